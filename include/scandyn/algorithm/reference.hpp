@@ -1,0 +1,79 @@
+// scandyn/algorithm/reference.hpp: the serial reference algorithms.
+//
+// RNEA (inverse dynamics), bias forces, CRBA (joint-space inertia), ABA (forward
+// dynamics) and forward dynamics by CRBA + Cholesky, for Scalar = float or double.
+// Every call reads the model, writes only its outputs and the preallocated scratch
+// in DataTpl, and allocates nothing.
+//
+// Arrays q, qd, qdd, tau, h have nv entries in DoF order. fext, when given, has nv
+// wrenches: fext[i] acts on body i, expressed in body i's frame about its origin,
+// [moment; force]. Gravity is the model's (entered as base acceleration -g).
+#pragma once
+
+#include <vector>
+
+#include "scandyn/algorithm/steps.hpp"
+
+namespace scandyn {
+
+// Scratch for one evaluation of any reference algorithm.
+template <class S>
+struct DataTpl {
+  explicit DataTpl(const ModelTpl<S>& model);
+
+  std::vector<Transform<S>> Xup;  // (nv) parent -> body transform at the current q
+  std::vector<Motion<S>> v;       // (nv) body velocities, body frames
+  std::vector<Motion<S>> a;       // (nv) body accelerations (gravity included)
+  std::vector<Motion<S>> c;       // (nv) ABA velocity-product accelerations
+  std::vector<Force<S>> f;        // (nv) RNEA joint forces / ABA bias forces pA
+  std::vector<Inertia<S>> Ic;     // (nv) CRBA composite inertias
+  std::vector<ABInertia<S>> IA;   // (nv) ABA articulated inertias
+  std::vector<Force<S>> U;        // (nv) ABA IA S
+  std::vector<S> D;               // (nv) ABA S^T IA S
+  std::vector<S> u;               // (nv) ABA tau - S^T pA
+  std::vector<S> M;               // (nv x nv) row-major mass matrix / its factor
+  std::vector<S> h;               // (nv) bias forces for JSI
+};
+
+// Outcome of a factorisation or a forward-dynamics call.
+struct Status {
+  Index failed_dof = -1;  // first DoF whose pivot was not positive and finite, -1 if none
+  bool ok() const { return failed_dof < 0; }
+};
+
+// tau = M(q) qdd + C(q, qd) qd + g(q) - sum_i J_i^T fext_i.
+template <class S>
+void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
+          S* tau, const Force<S>* fext = nullptr);
+
+// h = RNEA(q, qd, 0): Coriolis, centrifugal and gravity forces (and -J^T fext if given).
+template <class S>
+void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, S* h,
+                 const Force<S>* fext = nullptr);
+
+// M(q), the joint-space inertia matrix: nv x nv, row-major, both triangles written.
+template <class S>
+void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M);
+
+// qdd = FD(q, qd, tau) by the articulated-body algorithm. Fails (qdd untouched past
+// the failure) if an articulated pivot D_i is not positive and finite.
+template <class S>
+Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+           S* qdd, const Force<S>* fext = nullptr);
+
+// qdd = M^{-1} (tau - h) with M from CRBA and the tree-sparse L^T L factorisation
+// (Featherstone 6.5). Reports the first DoF whose pivot is not positive.
+template <class S>
+Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+              S* qdd, const Force<S>* fext = nullptr);
+
+// In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
+// L written to the lower triangle). parent gives the branch-induced sparsity.
+template <class S>
+Status ltl_factor(const ModelTpl<S>& model, S* M);
+
+// Solves L^T L x = b in place (x = b on entry) with the factor from ltl_factor.
+template <class S>
+void ltl_solve(const ModelTpl<S>& model, const S* L, S* x);
+
+}  // namespace scandyn

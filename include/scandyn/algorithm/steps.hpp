@@ -1,0 +1,126 @@
+// scandyn/algorithm/steps.hpp: per-body step functions of RNEA, CRBA and ABA.
+//
+// These are the one source of truth for the recursions: the serial reference,
+// the OpenMP backend and the CUDA kernels all call them. Each takes the body's
+// constants, the parent's quantities and the joint variables, and returns the
+// body's quantities (Featherstone, Rigid Body Dynamics Algorithms, ch. 5-7).
+#pragma once
+
+#include "scandyn/model/model.hpp"
+
+namespace scandyn {
+
+// Xup = XJ(q) Xtree: parent frame -> body frame at joint position q.
+template <class S>
+SCANDYN_HD Transform<S> joint_transform(const Body<S>& b, S q) {
+  using std::cos;
+  using std::sin;
+  if (b.type == JointType::Revolute) {
+    // XJ = rot(R(axis, q)^T): E = R^T Etree, r = rtree
+    const Mat3<S> R = axis_angle(b.axis, sin(q), cos(q));
+    return {mul_transpose(R, b.Xtree.E), b.Xtree.r};
+  }
+  // XJ = xlt(axis q): E = Etree, r = rtree + Etree^T axis q
+  return {b.Xtree.E, b.Xtree.r + mul_transpose(b.Xtree.E, q * b.axis)};
+}
+
+// S s: the joint's motion for a joint rate s.
+template <class S>
+SCANDYN_HD Motion<S> joint_motion(const Body<S>& b, S s) {
+  if (b.type == JointType::Revolute) return {s * b.axis, Vec3<S>::zero()};
+  return {Vec3<S>::zero(), s * b.axis};
+}
+
+// S^T f: the joint component of a force.
+template <class S>
+SCANDYN_HD S joint_project(const Body<S>& b, const Force<S>& f) {
+  return dot(b.axis, b.type == JointType::Revolute ? f.n : f.f);
+}
+
+// The base's spatial acceleration: gravity entered as a base acceleration -g.
+template <class S>
+SCANDYN_HD Motion<S> base_acceleration(const Vec3<S>& gravity) {
+  return {Vec3<S>::zero(), -gravity};
+}
+
+// ---- RNEA -------------------------------------------------------------------
+
+// Forward step: body velocity v, acceleration a and net body force f
+//   v = Xup v_parent + S qd
+//   a = Xup a_parent + S qdd + v x (S qd)
+//   f = I a + v x* I v - fext
+template <class S>
+struct RneaForward {
+  Motion<S> v;  // body velocity, body frame
+  Motion<S> a;  // body acceleration (gravity included), body frame
+  Force<S> f;   // force the parent transmits across the joint, before children
+};
+
+template <class S>
+SCANDYN_HD RneaForward<S> rnea_forward_step(const Body<S>& b, const Transform<S>& Xup,
+                                            const Motion<S>& v_parent, const Motion<S>& a_parent,
+                                            S qd, S qdd) {
+  const Motion<S> vJ = joint_motion(b, qd);
+  RneaForward<S> o;
+  o.v = Xup.apply(v_parent) + vJ;
+  o.a = Xup.apply(a_parent) + joint_motion(b, qdd) + cross(o.v, vJ);
+  o.f = b.I * o.a + cross(o.v, b.I * o.v);
+  return o;
+}
+
+// ---- ABA --------------------------------------------------------------------
+
+// Pass 1 step: velocity, velocity-product acceleration c and bias force pA.
+template <class S>
+struct AbaForward {
+  Motion<S> v;  // body velocity
+  Motion<S> c;  // v x (S qd)
+  Force<S> pA;  // bias force v x* I v (external force subtracted by the caller)
+};
+
+template <class S>
+SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& Xup,
+                                          const Motion<S>& v_parent, S qd) {
+  const Motion<S> vJ = joint_motion(b, qd);
+  AbaForward<S> o;
+  o.v = Xup.apply(v_parent) + vJ;
+  o.c = cross(o.v, vJ);
+  o.pA = cross(o.v, b.I * o.v);
+  return o;
+}
+
+// Pass 2 step: with the body's articulated inertia IA and bias force pA complete,
+// computes U = IA S, D = S^T U, u = tau - S^T pA and the contributions
+//   Ia = IA - U U^T / D,  pa = pA + Ia c + U u / D
+// that the parent receives as Xup^T Ia Xup and Xup^T pa.
+template <class S>
+SCANDYN_HD void aba_joint_terms(const Body<S>& b, const ABInertia<S>& IA, const Force<S>& pA,
+                                S tau, Force<S>& U, S& D, S& u) {
+  U = IA * joint_motion(b, S(1));
+  D = joint_project(b, U);
+  u = tau - joint_project(b, pA);
+}
+
+template <class S>
+SCANDYN_HD void aba_backward_to_parent(const Transform<S>& Xup, const ABInertia<S>& IA,
+                                       const Force<S>& pA, const Motion<S>& c, const Force<S>& U,
+                                       S D, S u, ABInertia<S>& IA_parent, Force<S>& pA_parent) {
+  const S Dinv = S(1) / D;
+  const ABInertia<S> Ia = IA.minus_outer(U, Dinv);
+  const Force<S> pa = pA + Ia * c + (u * Dinv) * U;
+  IA_parent += Ia.transform_transpose(Xup);
+  pA_parent += Xup.apply_transpose(pa);
+}
+
+// Pass 3 step: a' = Xup a_parent + c, qdd = (u - U^T a') / D, a = a' + S qdd.
+template <class S>
+SCANDYN_HD S aba_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
+                                   const Motion<S>& a_parent, const Motion<S>& c,
+                                   const Force<S>& U, S D, S u, Motion<S>& a) {
+  const Motion<S> ap = Xup.apply(a_parent) + c;
+  const S qdd = (u - dot(ap, U)) / D;
+  a = ap + joint_motion(b, qdd);
+  return qdd;
+}
+
+}  // namespace scandyn

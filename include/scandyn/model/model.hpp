@@ -1,0 +1,70 @@
+// scandyn/model/model.hpp: the immutable kinematic-tree model.
+//
+// A model is a fixed-base tree of nv moving bodies, one single-DoF joint each.
+// Bodies are numbered in DoF order: depth-first preorder from the URDF root,
+// siblings ordered by joint name, so parent[i] < i. Links attached through fixed
+// joints are merged into the body they hang from (their inertia is added and their
+// child joints re-rooted); the root link and everything fixed to it are the base.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "scandyn/spatial.hpp"
+
+namespace scandyn {
+
+enum class JointType : int {
+  Revolute = 0,   // rotation about axis (URDF revolute or continuous)
+  Prismatic = 1,  // translation along axis
+};
+
+// Per-body constants: everything the per-link step functions read.
+template <class S>
+struct Body {
+  Index parent;        // parent body, -1 for the fixed base; parent < this body's index
+  JointType type;      // joint between parent and this body
+  Vec3<S> axis;        // unit joint axis, in this body's frame
+  Transform<S> Xtree;  // parent body frame -> this body's frame at q = 0 (joint origin)
+  Inertia<S> I;        // spatial inertia in this body's frame, merged fixed links included
+
+  template <class T>
+  Body<T> cast() const {
+    return {parent, type, axis.template cast<T>(), Xtree.template cast<T>(), I.template cast<T>()};
+  }
+};
+
+template <class S>
+struct ModelTpl {
+  using Scalar = S;
+
+  std::string name;                      // robot name (URDF) or generator spec
+  std::string source;                    // file path or generator spec it was loaded from
+  std::string root_link;                 // URDF root link (the fixed base)
+  std::vector<Body<S>> bodies;           // (nv) bodies in DoF order
+  std::vector<std::string> joint_names;  // (nv) joint of each body
+  std::vector<std::string> link_names;   // (nv) URDF child link of each joint
+  Vec3<S> gravity{S(0), S(0), S(-9.81)};  // gravitational acceleration in the base frame (m/s^2)
+
+  // Number of degrees of freedom (= moving bodies).
+  Index nv() const { return static_cast<Index>(bodies.size()); }
+  Index parent(Index i) const { return bodies[i].parent; }
+
+  template <class T>
+  ModelTpl<T> cast() const {
+    ModelTpl<T> m;
+    m.name = name;
+    m.source = source;
+    m.root_link = root_link;
+    m.bodies.reserve(bodies.size());
+    for (const auto& b : bodies) m.bodies.push_back(b.template cast<T>());
+    m.joint_names = joint_names;
+    m.link_names = link_names;
+    m.gravity = gravity.template cast<T>();
+    return m;
+  }
+};
+
+using Model = ModelTpl<double>;
+
+}  // namespace scandyn

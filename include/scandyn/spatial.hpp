@@ -1,0 +1,7 @@
+// scandyn/spatial.hpp: the whole spatial algebra (host + device).
+#pragma once
+
+#include "scandyn/spatial/inertia.hpp"
+#include "scandyn/spatial/motion.hpp"
+#include "scandyn/spatial/transform.hpp"
+#include "scandyn/spatial/vec3.hpp"

@@ -1,0 +1,188 @@
+// Serial reference algorithms: loops over bodies in DoF order calling the shared
+// step functions of scandyn/algorithm/steps.hpp.
+#include "scandyn/algorithm/reference.hpp"
+
+#include <cmath>
+
+namespace scandyn {
+
+template <class S>
+DataTpl<S>::DataTpl(const ModelTpl<S>& model) {
+  const std::size_t n = static_cast<std::size_t>(model.nv());
+  Xup.resize(n);
+  v.resize(n);
+  a.resize(n);
+  c.resize(n);
+  f.resize(n);
+  Ic.resize(n);
+  IA.resize(n);
+  U.resize(n);
+  D.resize(n);
+  u.resize(n);
+  M.resize(n * n);
+  h.resize(n);
+}
+
+template <class S>
+void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
+          S* tau, const Force<S>* fext) {
+  const Index n = model.nv();
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  // forward: kinematics and body forces
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform(b, q[i]);
+    const RneaForward<S> o = rnea_forward_step(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p],
+                                               p < 0 ? a0 : data.a[p], qd[i], qdd ? qdd[i] : S(0));
+    data.v[i] = o.v;
+    data.a[i] = o.a;
+    data.f[i] = fext ? o.f - fext[i] : o.f;
+  }
+  // backward: joint torques, forces accumulated into parents
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    tau[i] = joint_project(b, data.f[i]);
+    if (b.parent >= 0) data.f[b.parent] += data.Xup[i].apply_transpose(data.f[i]);
+  }
+}
+
+template <class S>
+void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, S* h,
+                 const Force<S>* fext) {
+  rnea(model, data, q, qd, static_cast<const S*>(nullptr), h, fext);
+}
+
+template <class S>
+void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
+  const Index n = model.nv();
+  for (Index i = 0; i < n; ++i) {
+    data.Xup[i] = joint_transform(model.bodies[i], q[i]);
+    data.Ic[i] = model.bodies[i].I;
+  }
+  // composite inertias, leaves to root
+  for (Index i = n - 1; i >= 0; --i) {
+    const Index p = model.bodies[i].parent;
+    if (p >= 0) data.Ic[p] += data.Ic[i].transform_transpose(data.Xup[i]);
+  }
+  for (Index k = 0; k < n * n; ++k) M[k] = S(0);
+  // column i: F = Ic_i S_i carried up the path to the root
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    Force<S> F = data.Ic[i] * joint_motion(b, S(1));
+    M[i * n + i] = joint_project(b, F);
+    Index j = i;
+    while (model.bodies[j].parent >= 0) {
+      F = data.Xup[j].apply_transpose(F);
+      j = model.bodies[j].parent;
+      const S Mij = joint_project(model.bodies[j], F);
+      M[i * n + j] = Mij;
+      M[j * n + i] = Mij;
+    }
+  }
+}
+
+template <class S>
+static bool pivot_ok(S d) {
+  return d > S(0) && std::isfinite(d);
+}
+
+template <class S>
+Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+           S* qdd, const Force<S>* fext) {
+  const Index n = model.nv();
+  // pass 1: kinematics, bias forces
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform(b, q[i]);
+    const AbaForward<S> o = aba_forward_step(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p], qd[i]);
+    data.v[i] = o.v;
+    data.c[i] = o.c;
+    data.f[i] = fext ? o.pA - fext[i] : o.pA;
+    data.IA[i] = ABInertia<S>::from(b.I);
+  }
+  // pass 2: articulated inertias, leaves to root
+  Status st;
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i]);
+    if (!pivot_ok(data.D[i])) st.failed_dof = i;
+    else if (b.parent >= 0)
+      aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
+                             data.u[i], data.IA[b.parent], data.f[b.parent]);
+  }
+  if (!st.ok()) return st;
+  // pass 3: accelerations, root to leaves
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    qdd[i] = aba_acceleration_step(b, data.Xup[i], b.parent < 0 ? a0 : data.a[b.parent], data.c[i],
+                                   data.U[i], data.D[i], data.u[i], data.a[i]);
+  }
+  return st;
+}
+
+template <class S>
+Status ltl_factor(const ModelTpl<S>& model, S* M) {
+  const Index n = model.nv();
+  for (Index k = n - 1; k >= 0; --k) {
+    const S d = M[k * n + k];
+    if (!pivot_ok(d)) return Status{k};
+    const S Lkk = std::sqrt(d);
+    M[k * n + k] = Lkk;
+    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) M[k * n + i] /= Lkk;
+    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) {
+      const S Lki = M[k * n + i];
+      for (Index j = i; j >= 0; j = model.parent(j)) M[i * n + j] -= Lki * M[k * n + j];
+    }
+  }
+  return Status{};
+}
+
+template <class S>
+void ltl_solve(const ModelTpl<S>& model, const S* L, S* x) {
+  const Index n = model.nv();
+  // L^T y = b
+  for (Index i = n - 1; i >= 0; --i) {
+    x[i] /= L[i * n + i];
+    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[j] -= L[i * n + j] * x[i];
+  }
+  // L x = y
+  for (Index i = 0; i < n; ++i) {
+    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[i] -= L[i * n + j] * x[j];
+    x[i] /= L[i * n + i];
+  }
+}
+
+template <class S>
+Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+              S* qdd, const Force<S>* fext) {
+  const Index n = model.nv();
+  crba(model, data, q, data.M.data());
+  bias_forces(model, data, q, qd, data.h.data(), fext);
+  const Status st = ltl_factor(model, data.M.data());
+  if (!st.ok()) return st;
+  for (Index i = 0; i < n; ++i) qdd[i] = tau[i] - data.h[i];
+  ltl_solve(model, data.M.data(), qdd);
+  return st;
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                    \
+  template struct DataTpl<S>;                                                                     \
+  template void rnea(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,           \
+                     const Force<S>*);                                                            \
+  template void bias_forces(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, S*,              \
+                            const Force<S>*);                                                     \
+  template void crba(const ModelTpl<S>&, DataTpl<S>&, const S*, S*);                              \
+  template Status aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,          \
+                      const Force<S>*);                                                           \
+  template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
+                         const Force<S>*);                                                        \
+  template Status ltl_factor(const ModelTpl<S>&, S*);                                             \
+  template void ltl_solve(const ModelTpl<S>&, const S*, S*);
+
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+
+}  // namespace scandyn
