@@ -103,16 +103,14 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
     data.IA[i] = ABInertia<S>::from(b.I);
   }
   // pass 2: articulated inertias, leaves to root
-  Status st;
   for (Index i = n - 1; i >= 0; --i) {
     const Body<S>& b = model.bodies[i];
     aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i]);
-    if (!pivot_ok(data.D[i])) st.failed_dof = i;
-    else if (b.parent >= 0)
+    if (!pivot_ok(data.D[i])) return Status{i};
+    if (b.parent >= 0)
       aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
                              data.u[i], data.IA[b.parent], data.f[b.parent]);
   }
-  if (!st.ok()) return st;
   // pass 3: accelerations, root to leaves
   const Motion<S> a0 = base_acceleration(model.gravity);
   for (Index i = 0; i < n; ++i) {
@@ -120,7 +118,7 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
     qdd[i] = aba_acceleration_step(b, data.Xup[i], b.parent < 0 ? a0 : data.a[b.parent], data.c[i],
                                    data.U[i], data.D[i], data.u[i], data.a[i]);
   }
-  return st;
+  return Status{};
 }
 
 template <class S>

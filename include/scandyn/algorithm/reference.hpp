@@ -35,6 +35,8 @@ struct DataTpl {
   std::vector<S> h;               // (nv) bias forces for JSI
 };
 
+using Data = DataTpl<double>;
+
 // Outcome of a factorisation or a forward-dynamics call.
 struct Status {
   Index failed_dof = -1;  // first DoF whose pivot was not positive and finite, -1 if none
@@ -55,8 +57,8 @@ void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S
 template <class S>
 void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M);
 
-// qdd = FD(q, qd, tau) by the articulated-body algorithm. Fails (qdd untouched past
-// the failure) if an articulated pivot D_i is not positive and finite.
+// qdd = FD(q, qd, tau) by the articulated-body algorithm. Stops and reports the body
+// (qdd untouched) when an articulated pivot D_i = S_i^T IA_i S_i is not positive and finite.
 template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
            S* qdd, const Force<S>* fext = nullptr);

@@ -1,0 +1,317 @@
+// Reference RNEA / CRBA / ABA / JSI against closed forms and against each other.
+#include <gtest/gtest.h>
+
+#include <Eigen/Dense>
+#include <limits>
+#include <random>
+
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+using test::max_rel_err;
+using test::Tol;
+
+namespace {
+
+// A random tree built directly from Body structs (independent of the loader):
+// arbitrary unit axes, ~25% prismatic, rotated inertias with offset centres of mass.
+Model random_model(int n, unsigned seed) {
+  std::mt19937_64 g(seed);
+  auto uni = [&](double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(g); };
+  auto vec = [&](double s) { return Vec3<double>{uni(-s, s), uni(-s, s), uni(-s, s)}; };
+  Model m;
+  m.name = m.source = "random:" + std::to_string(n);
+  for (int i = 0; i < n; ++i) {
+    Body<double> b;
+    b.parent = i == 0 ? -1 : static_cast<Index>(std::uniform_int_distribution<int>(-1, i - 1)(g));
+    b.type = uni(0, 1) < 0.25 ? JointType::Prismatic : JointType::Revolute;
+    Vec3<double> ax = vec(1);
+    const double nrm = std::sqrt(dot(ax, ax));
+    b.axis = (1.0 / nrm) * ax;
+    b.Xtree = Transform<double>::from_pose(rpy_matrix(uni(-3, 3), uni(-1.5, 1.5), uni(-3, 3)), vec(0.3));
+    const double p1 = uni(0.02, 0.2), p2 = uni(0.02, 0.2), p3 = uni(std::fabs(p1 - p2) + 0.01, p1 + p2);
+    const Mat3<double> R = rpy_matrix(uni(-3, 3), uni(-1.5, 1.5), uni(-3, 3));
+    // Ic = R diag(p) R^T
+    Mat3<double> D = Mat3<double>::zero();
+    D(0, 0) = p1; D(1, 1) = p2; D(2, 2) = p3;
+    const Sym3<double> Ic = Sym3<double>::from(R * D * transpose(R));
+    b.I = Inertia<double>::from_com(uni(0.5, 2.0), vec(0.1), Ic);
+    m.bodies.push_back(b);
+    m.joint_names.push_back("j" + std::to_string(i));
+    m.link_names.push_back("l" + std::to_string(i));
+  }
+  return m;
+}
+
+// Planar two-link arm in the xy plane, joints about z, gravity along -y.
+struct TwoLink {
+  double m1 = 1.3, m2 = 0.7, l1 = 0.9, lc1 = 0.4, lc2 = 0.35, I1 = 0.11, I2 = 0.05, g = 9.81;
+  Model model() const {
+    Model m;
+    m.name = "two-link";
+    m.gravity = {0, -g, 0};
+    auto body = [](Index parent, double x, double mass, double lc, double Izz) {
+      Body<double> b;
+      b.parent = parent;
+      b.type = JointType::Revolute;
+      b.axis = {0, 0, 1};
+      b.Xtree = Transform<double>::from_pose(Mat3<double>::identity(), {x, 0, 0});
+      // Ixx, Iyy only matter out of plane; pick values satisfying the triangle inequality
+      b.I = Inertia<double>::from_com(mass, {lc, 0, 0}, Sym3<double>{Izz, Izz, Izz, 0, 0, 0});
+      return b;
+    };
+    m.bodies = {body(-1, 0, m1, lc1, I1), body(0, l1, m2, lc2, I2)};
+    m.joint_names = {"j1", "j2"};
+    m.link_names = {"l1", "l2"};
+    return m;
+  }
+  Eigen::Matrix2d M(double q2) const {
+    const double c2 = std::cos(q2);
+    Eigen::Matrix2d o;
+    o(0, 0) = I1 + I2 + m1 * lc1 * lc1 + m2 * (l1 * l1 + lc2 * lc2 + 2 * l1 * lc2 * c2);
+    o(0, 1) = o(1, 0) = I2 + m2 * (lc2 * lc2 + l1 * lc2 * c2);
+    o(1, 1) = I2 + m2 * lc2 * lc2;
+    return o;
+  }
+  Eigen::Vector2d h(double q1, double q2, double qd1, double qd2) const {
+    const double k = m2 * l1 * lc2 * std::sin(q2);
+    const Eigen::Vector2d c(-k * (2 * qd1 * qd2 + qd2 * qd2), k * qd1 * qd1);
+    const Eigen::Vector2d gr((m1 * lc1 + m2 * l1) * g * std::cos(q1) + m2 * lc2 * g * std::cos(q1 + q2),
+                             m2 * lc2 * g * std::cos(q1 + q2));
+    return c + gr;
+  }
+};
+
+std::vector<std::string> robot_files() { return {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}; }
+
+// All identities of the issue for one model and precision.
+template <class S>
+void check_identities(const Model& model_d, unsigned seed, const std::string& what) {
+  SCOPED_TRACE(what);
+  const ModelTpl<S> model = model_d.template cast<S>();
+  DataTpl<S> data(model);
+  const int n = model.nv();
+  std::mt19937_64 rng(seed);
+  const auto q = test::cast_vector<S>(test::random_vector(rng, n, -2, 2));
+  const auto qd = test::cast_vector<S>(test::random_vector(rng, n, -2, 2));
+  const auto tau = test::cast_vector<S>(test::random_vector(rng, n, -5, 5));
+  const std::vector<S> zero(n, S(0));
+  const S nan = std::numeric_limits<S>::quiet_NaN();
+
+  // forward dynamics two ways
+  std::vector<S> qdd_aba(n, nan), qdd_jsi(n, nan), tau_back(n, nan);
+  ASSERT_TRUE(aba(model, data, q.data(), qd.data(), tau.data(), qdd_aba.data()).ok());
+  ASSERT_TRUE(fd_jsi(model, data, q.data(), qd.data(), tau.data(), qdd_jsi.data()).ok());
+  // conditioning grows with depth: scale the tolerance by the size of qdd
+  EXPECT_LT(max_rel_err(qdd_jsi, qdd_aba), Tol<S>(1e-9, 2e-2)) << "ABA vs CRBA+Cholesky";
+  // ID(q, qd, FD(q, qd, tau)) = tau
+  rnea(model, data, q.data(), qd.data(), qdd_aba.data(), tau_back.data());
+  EXPECT_LT(max_rel_err(tau_back, tau), Tol<S>(1e-10, 2e-3)) << "ID(FD(tau)) = tau";
+
+  // CRBA = columns of RNEA(q, 0, e_i) - RNEA(q, 0, 0)
+  std::vector<S> M(n * n, nan), g0(n, nan), col(n, nan), e(n, S(0));
+  crba(model, data, q.data(), M.data());
+  rnea(model, data, q.data(), zero.data(), zero.data(), g0.data());
+  double worst = 0, scale = 1;
+  for (int i = 0; i < n * n; ++i) scale = std::max(scale, std::fabs(double(M[i])));
+  for (int j = 0; j < n; ++j) {
+    e[j] = S(1);
+    rnea(model, data, q.data(), zero.data(), e.data(), col.data());
+    e[j] = S(0);
+    for (int i = 0; i < n; ++i) worst = std::max(worst, std::fabs(double(col[i] - g0[i]) - double(M[i * n + j])));
+  }
+  EXPECT_LT(worst / scale, Tol<S>(1e-12, 1e-5)) << "CRBA vs RNEA columns";
+
+  // M symmetric positive definite
+  Eigen::MatrixXd Md(n, n);
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) Md(i, j) = double(M[i * n + j]);
+  EXPECT_EQ((Md - Md.transpose()).cwiseAbs().maxCoeff(), 0.0);
+  EXPECT_EQ(Eigen::LLT<Eigen::MatrixXd>(Md).info(), Eigen::Success);
+
+  // bias forces = RNEA(q, qd, 0); tau = M qdd + h
+  std::vector<S> h(n, nan), tau_m(n, S(0));
+  bias_forces(model, data, q.data(), qd.data(), h.data());
+  for (int i = 0; i < n; ++i) {
+    double acc = double(h[i]);
+    for (int j = 0; j < n; ++j) acc += double(M[i * n + j]) * double(qdd_aba[j]);
+    tau_m[i] = S(acc);
+  }
+  EXPECT_LT(max_rel_err(tau_m, tau), Tol<S>(1e-9, 5e-3)) << "M qdd + h = tau";
+}
+
+// Virtual work: with external wrenches f_i on bodies (body frames),
+// tau_ext = RNEA(.., fext) - RNEA(.., 0) = -sum_i J_i^T f_i, so for any joint
+// velocity qd, qd . (tau - tau_ext_free) = -sum_i v_i(qd) . f_i where v_i is the
+// body velocity produced by qd (from RNEA's forward pass, body frames).
+template <class S>
+void check_virtual_work(const Model& model_d, unsigned seed) {
+  const ModelTpl<S> model = model_d.template cast<S>();
+  DataTpl<S> data(model);
+  const int n = model.nv();
+  std::mt19937_64 rng(seed);
+  const auto q = test::cast_vector<S>(test::random_vector(rng, n, -2, 2));
+  const auto qd = test::cast_vector<S>(test::random_vector(rng, n, -1, 1));
+  const auto qdd = test::cast_vector<S>(test::random_vector(rng, n, -1, 1));
+  std::vector<Force<S>> fext(n);
+  for (auto& f : fext) {
+    const auto r = test::random_vector(rng, 6, -3, 3);
+    f = Force<S>{{S(r[0]), S(r[1]), S(r[2])}, {S(r[3]), S(r[4]), S(r[5])}};
+  }
+  std::vector<S> t_free(n), t_ext(n);
+  rnea(model, data, q.data(), qd.data(), qdd.data(), t_free.data());
+  rnea(model, data, q.data(), qd.data(), qdd.data(), t_ext.data(), fext.data());
+  // body velocities for the test velocity qd (data.v after the last call)
+  double lhs = 0, rhs = 0, scale = 1;
+  for (int i = 0; i < n; ++i) {
+    lhs += double(qd[i]) * (double(t_ext[i]) - double(t_free[i]));
+    rhs -= double(dot(data.v[i], fext[i]));
+    scale += std::fabs(double(dot(data.v[i], fext[i])));
+  }
+  EXPECT_LT(std::fabs(lhs - rhs) / scale, Tol<S>(1e-12, 1e-5));
+  // ABA with the same wrenches inverts RNEA with them
+  std::vector<S> qdd_back(n);
+  ASSERT_TRUE(aba(model, data, q.data(), qd.data(), t_ext.data(), qdd_back.data(), fext.data()).ok());
+  EXPECT_LT(max_rel_err(qdd_back, qdd), Tol<S>(1e-9, 5e-2));
+  std::vector<S> qdd_jsi(n);
+  ASSERT_TRUE(fd_jsi(model, data, q.data(), qd.data(), t_ext.data(), qdd_jsi.data(), fext.data()).ok());
+  EXPECT_LT(max_rel_err(qdd_jsi, qdd), Tol<S>(1e-9, 5e-2));
+}
+
+}  // namespace
+
+TEST(ClosedForm, TwoLinkArm) {
+  const TwoLink arm;
+  const Model model = arm.model();
+  Data data(model);
+  std::mt19937_64 rng(7);
+  for (int t = 0; t < 20; ++t) {
+    const auto s = test::random_vector(rng, 6, -3, 3);
+    const double q[2] = {s[0], s[1]}, qd[2] = {s[2], s[3]}, qdd[2] = {s[4], s[5]};
+    const Eigen::Matrix2d M = arm.M(q[1]);
+    const Eigen::Vector2d h = arm.h(q[0], q[1], qd[0], qd[1]);
+    const Eigen::Vector2d tau = M * Eigen::Vector2d(qdd[0], qdd[1]) + h;
+
+    double out[2];
+    rnea(model, data, q, qd, qdd, out);
+    EXPECT_NEAR(out[0], tau[0], 1e-12);
+    EXPECT_NEAR(out[1], tau[1], 1e-12);
+    bias_forces(model, data, q, qd, out);
+    EXPECT_NEAR(out[0], h[0], 1e-12);
+    EXPECT_NEAR(out[1], h[1], 1e-12);
+    double Mo[4];
+    crba(model, data, q, Mo);
+    for (int k = 0; k < 4; ++k) EXPECT_NEAR(Mo[k], M(k / 2, k % 2), 1e-12);
+    const double t2[2] = {tau[0], tau[1]};
+    ASSERT_TRUE(aba(model, data, q, qd, t2, out).ok());
+    EXPECT_NEAR(out[0], qdd[0], 1e-12);
+    EXPECT_NEAR(out[1], qdd[1], 1e-12);
+    ASSERT_TRUE(fd_jsi(model, data, q, qd, t2, out).ok());
+    EXPECT_NEAR(out[0], qdd[0], 1e-12);
+    EXPECT_NEAR(out[1], qdd[1], 1e-12);
+  }
+}
+
+TEST(ClosedForm, PrismaticSlider) {
+  // one prismatic joint along a random axis a: tau = m (qdd - g.a)
+  Model m;
+  m.name = "slider";
+  Body<double> b;
+  b.parent = -1;
+  b.type = JointType::Prismatic;
+  const double s = 1 / std::sqrt(3.0);
+  b.axis = {s, -s, s};
+  b.Xtree = Transform<double>::from_pose(rpy_matrix(0.3, -0.2, 1.1), {0.1, 0.2, 0.3});
+  b.I = Inertia<double>::from_com(2.5, {0.1, -0.3, 0.2}, Sym3<double>{0.1, 0.1, 0.1, 0, 0, 0});
+  m.bodies = {b};
+  m.joint_names = {"p"};
+  m.link_names = {"l"};
+  Data data(m);
+  // the axis in base coordinates: E^T a (E = R^T)
+  const Vec3<double> a_base = mul_transpose(b.Xtree.E, b.axis);
+  const double q = 0.7, qd = -1.2, qdd = 0.4;
+  double tau;
+  rnea(m, data, &q, &qd, &qdd, &tau);
+  EXPECT_NEAR(tau, 2.5 * (qdd - dot(m.gravity, a_base)), 1e-12);
+}
+
+class RandomTrees : public ::testing::TestWithParam<int> {};
+
+TEST_P(RandomTrees, IdentitiesDouble) {
+  const int n = GetParam();
+  for (unsigned seed = 1; seed <= 3; ++seed)
+    check_identities<double>(random_model(n, seed * 101 + n), seed, "n=" + std::to_string(n));
+}
+TEST_P(RandomTrees, IdentitiesFloat) {
+  const int n = GetParam();
+  if (n > 50) GTEST_SKIP() << "float FD on deep random trees is conditioning-limited; see FloatVsDouble";
+  check_identities<float>(random_model(n, 5 * n + 1), 9, "n=" + std::to_string(n));
+}
+TEST_P(RandomTrees, VirtualWork) {
+  const int n = GetParam();
+  check_virtual_work<double>(random_model(n, 77 + n), 3);
+}
+INSTANTIATE_TEST_SUITE_P(Sizes, RandomTrees, ::testing::Values(1, 2, 3, 5, 8, 13, 30, 64, 120, 200));
+
+TEST(Robots, Identities) {
+  for (const auto& f : robot_files()) {
+    const Model model = load_urdf(test::model_path(f));
+    check_identities<double>(model, 11, f + " double");
+    check_identities<float>(model, 12, f + " float");
+    check_virtual_work<double>(model, 13);
+    check_virtual_work<float>(model, 14);
+  }
+}
+
+TEST(Generated, Identities) {
+  for (const char* spec : {"chain:7", "rope:50", "tree:40:3", "tree:200:9"})
+    check_identities<double>(load_model(spec), 21, spec);
+}
+
+// float results against the double reference on the same inputs.
+TEST(Precision, FloatVsDouble) {
+  for (const auto& f : robot_files()) {
+    SCOPED_TRACE(f);
+    const Model md = load_urdf(test::model_path(f));
+    const ModelTpl<float> mf = md.cast<float>();
+    Data dd(md);
+    DataTpl<float> df(mf);
+    const int n = md.nv();
+    std::mt19937_64 rng(5);
+    for (int t = 0; t < 10; ++t) {
+      const auto q = test::random_vector(rng, n, -2, 2), qd = test::random_vector(rng, n, -2, 2),
+                 x = test::random_vector(rng, n, -5, 5);
+      const auto qf = test::cast_vector<float>(q), qdf = test::cast_vector<float>(qd),
+                 xf = test::cast_vector<float>(x);
+      std::vector<double> od(n);
+      std::vector<float> of(n);
+      rnea(md, dd, q.data(), qd.data(), x.data(), od.data());
+      rnea(mf, df, qf.data(), qdf.data(), xf.data(), of.data());
+      EXPECT_LT(max_rel_err(of, od), 1e-5) << "RNEA float";
+      ASSERT_TRUE(aba(md, dd, q.data(), qd.data(), x.data(), od.data()).ok());
+      ASSERT_TRUE(aba(mf, df, qf.data(), qdf.data(), xf.data(), of.data()).ok());
+      EXPECT_LT(max_rel_err(of, od), 1e-3) << "ABA float";
+      std::vector<double> Md(n * n);
+      std::vector<float> Mf(n * n);
+      crba(md, dd, q.data(), Md.data());
+      crba(mf, df, qf.data(), Mf.data());
+      EXPECT_LT(max_rel_err(Mf, Md), 1e-5) << "CRBA float";
+    }
+  }
+}
+
+TEST(Failure, SingularMassMatrixIsReported) {
+  // a massless leaf body: its pivot is zero, so both FD routes must say so
+  Model m = random_model(3, 4);
+  m.bodies[2].I = Inertia<double>::zero();
+  m.bodies[2].parent = 1;
+  Data data(m);
+  const double q[3] = {0.1, 0.2, 0.3}, qd[3] = {0, 0, 0}, tau[3] = {1, 1, 1};
+  double qdd[3];
+  const Status s1 = aba(m, data, q, qd, tau, qdd);
+  EXPECT_EQ(s1.failed_dof, 2);
+  const Status s2 = fd_jsi(m, data, q, qd, tau, qdd);
+  EXPECT_EQ(s2.failed_dof, 2);
+}
