@@ -315,3 +315,18 @@ TEST(Failure, SingularMassMatrixIsReported) {
   const Status s2 = fd_jsi(m, data, q, qd, tau, qdd);
   EXPECT_EQ(s2.failed_dof, 2);
 }
+
+TEST(Steps, AlignedAxisRotationMatchesGeneral) {
+  // joint_transform takes a two-row shortcut for axes along +-x, +-y, +-z
+  const Mat3<double> E = rpy_matrix(0.4, -0.7, 2.1);
+  for (int k = 0; k < 3; ++k)
+    for (double sign : {1.0, -1.0}) {
+      Vec3<double> a{0, 0, 0};
+      (k == 0 ? a.x : k == 1 ? a.y : a.z) = sign;
+      for (double q : {-2.5, 0.3, 1.7}) {
+        const Mat3<double> fast = rotate_rows(a, std::sin(q), std::cos(q), E);
+        const Mat3<double> general = mul_transpose(axis_angle(a, std::sin(q), std::cos(q)), E);
+        for (int i = 0; i < 9; ++i) EXPECT_NEAR(fast.m[i], general.m[i], 1e-15) << "axis " << k << " sign " << sign;
+      }
+    }
+}

@@ -10,6 +10,25 @@
 
 namespace scandyn {
 
+// R(axis, q)^T Etree for a revolute joint. An axis along +-x, +-y or +-z (the common
+// case, decided per call from the stored axis) touches two rows of Etree only.
+template <class S>
+SCANDYN_HD Mat3<S> rotate_rows(const Vec3<S>& axis, S s, S c, const Mat3<S>& E) {
+  // rows i, j of R^T E = [c s; -s c] applied to rows i, j of E, with (i, j, sign) by axis
+  auto mix = [&](int i, int j, S sn) {
+    Mat3<S> o = E;
+    for (int k = 0; k < 3; ++k) {
+      o.m[3 * i + k] = c * E.m[3 * i + k] + sn * E.m[3 * j + k];
+      o.m[3 * j + k] = c * E.m[3 * j + k] - sn * E.m[3 * i + k];
+    }
+    return o;
+  };
+  if (axis.x == S(0) && axis.y == S(0)) return mix(0, 1, axis.z * s);
+  if (axis.y == S(0) && axis.z == S(0)) return mix(1, 2, axis.x * s);
+  if (axis.x == S(0) && axis.z == S(0)) return mix(2, 0, axis.y * s);
+  return mul_transpose(axis_angle(axis, s, c), E);
+}
+
 // Xup = XJ(q) Xtree: parent frame -> body frame at joint position q.
 template <class S>
 SCANDYN_HD Transform<S> joint_transform(const Body<S>& b, S q) {
@@ -17,8 +36,7 @@ SCANDYN_HD Transform<S> joint_transform(const Body<S>& b, S q) {
   using std::sin;
   if (b.type == JointType::Revolute) {
     // XJ = rot(R(axis, q)^T): E = R^T Etree, r = rtree
-    const Mat3<S> R = axis_angle(b.axis, sin(q), cos(q));
-    return {mul_transpose(R, b.Xtree.E), b.Xtree.r};
+    return {rotate_rows(b.axis, sin(q), cos(q), b.Xtree.E), b.Xtree.r};
   }
   // XJ = xlt(axis q): E = Etree, r = rtree + Etree^T axis q
   return {b.Xtree.E, b.Xtree.r + mul_transpose(b.Xtree.E, q * b.axis)};
@@ -29,6 +47,22 @@ template <class S>
 SCANDYN_HD Motion<S> joint_motion(const Body<S>& b, S s) {
   if (b.type == JointType::Revolute) return {s * b.axis, Vec3<S>::zero()};
   return {Vec3<S>::zero(), s * b.axis};
+}
+
+// v + S s, without arithmetic on the zero half of S.
+template <class S>
+SCANDYN_HD Motion<S> add_joint_motion(const Body<S>& b, Motion<S> v, S s) {
+  if (b.type == JointType::Revolute) v.w += s * b.axis;
+  else v.v += s * b.axis;
+  return v;
+}
+
+// v x (S s), without arithmetic on the zero half of S.
+template <class S>
+SCANDYN_HD Motion<S> cross_joint_motion(const Body<S>& b, const Motion<S>& v, S s) {
+  const Vec3<S> sa = s * b.axis;
+  if (b.type == JointType::Revolute) return {cross(v.w, sa), cross(v.v, sa)};
+  return {Vec3<S>::zero(), cross(v.w, sa)};
 }
 
 // S^T f: the joint component of a force.
@@ -60,10 +94,9 @@ template <class S>
 SCANDYN_HD RneaForward<S> rnea_forward_step(const Body<S>& b, const Transform<S>& Xup,
                                             const Motion<S>& v_parent, const Motion<S>& a_parent,
                                             S qd, S qdd) {
-  const Motion<S> vJ = joint_motion(b, qd);
   RneaForward<S> o;
-  o.v = Xup.apply(v_parent) + vJ;
-  o.a = Xup.apply(a_parent) + joint_motion(b, qdd) + cross(o.v, vJ);
+  o.v = add_joint_motion(b, Xup.apply(v_parent), qd);
+  o.a = add_joint_motion(b, Xup.apply(a_parent), qdd) + cross_joint_motion(b, o.v, qd);
   o.f = b.I * o.a + cross(o.v, b.I * o.v);
   return o;
 }
@@ -81,10 +114,9 @@ struct AbaForward {
 template <class S>
 SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& Xup,
                                           const Motion<S>& v_parent, S qd) {
-  const Motion<S> vJ = joint_motion(b, qd);
   AbaForward<S> o;
-  o.v = Xup.apply(v_parent) + vJ;
-  o.c = cross(o.v, vJ);
+  o.v = add_joint_motion(b, Xup.apply(v_parent), qd);
+  o.c = cross_joint_motion(b, o.v, qd);
   o.pA = cross(o.v, b.I * o.v);
   return o;
 }
@@ -119,7 +151,7 @@ SCANDYN_HD S aba_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
                                    const Force<S>& U, S D, S u, Motion<S>& a) {
   const Motion<S> ap = Xup.apply(a_parent) + c;
   const S qdd = (u - dot(ap, U)) / D;
-  a = ap + joint_motion(b, qdd);
+  a = add_joint_motion(b, ap, qdd);
   return qdd;
 }
 
