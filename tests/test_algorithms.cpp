@@ -11,39 +11,10 @@
 
 using namespace scandyn;
 using test::max_rel_err;
+using test::random_model;
 using test::Tol;
 
 namespace {
-
-// A random tree built directly from Body structs (independent of the loader):
-// arbitrary unit axes, ~25% prismatic, rotated inertias with offset centres of mass.
-Model random_model(int n, unsigned seed) {
-  std::mt19937_64 g(seed);
-  auto uni = [&](double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(g); };
-  auto vec = [&](double s) { return Vec3<double>{uni(-s, s), uni(-s, s), uni(-s, s)}; };
-  Model m;
-  m.name = m.source = "random:" + std::to_string(n);
-  for (int i = 0; i < n; ++i) {
-    Body<double> b;
-    b.parent = i == 0 ? -1 : static_cast<Index>(std::uniform_int_distribution<int>(-1, i - 1)(g));
-    b.type = uni(0, 1) < 0.25 ? JointType::Prismatic : JointType::Revolute;
-    Vec3<double> ax = vec(1);
-    const double nrm = std::sqrt(dot(ax, ax));
-    b.axis = (1.0 / nrm) * ax;
-    b.Xtree = Transform<double>::from_pose(rpy_matrix(uni(-3, 3), uni(-1.5, 1.5), uni(-3, 3)), vec(0.3));
-    const double p1 = uni(0.02, 0.2), p2 = uni(0.02, 0.2), p3 = uni(std::fabs(p1 - p2) + 0.01, p1 + p2);
-    const Mat3<double> R = rpy_matrix(uni(-3, 3), uni(-1.5, 1.5), uni(-3, 3));
-    // Ic = R diag(p) R^T
-    Mat3<double> D = Mat3<double>::zero();
-    D(0, 0) = p1; D(1, 1) = p2; D(2, 2) = p3;
-    const Sym3<double> Ic = Sym3<double>::from(R * D * transpose(R));
-    b.I = Inertia<double>::from_com(uni(0.5, 2.0), vec(0.1), Ic);
-    m.bodies.push_back(b);
-    m.joint_names.push_back("j" + std::to_string(i));
-    m.link_names.push_back("l" + std::to_string(i));
-  }
-  return m;
-}
 
 // Planar two-link arm in the xy plane, joints about z, gravity along -y.
 struct TwoLink {

@@ -3,11 +3,12 @@
 #include "scandyn/algorithm/reference.hpp"
 
 #include <cmath>
+#include <stdexcept>
 
 namespace scandyn {
 
 template <class S>
-DataTpl<S>::DataTpl(const ModelTpl<S>& model) {
+DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
   const std::size_t n = static_cast<std::size_t>(model.nv());
   Xup.resize(n);
   v.resize(n);
@@ -19,7 +20,7 @@ DataTpl<S>::DataTpl(const ModelTpl<S>& model) {
   U.resize(n);
   D.resize(n);
   u.resize(n);
-  M.resize(n * n);
+  if (mass_matrix) M.resize(n * n);
   h.resize(n);
 }
 
@@ -157,6 +158,8 @@ template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
               S* qdd, const Force<S>* fext) {
   const Index n = model.nv();
+  if (data.M.size() != static_cast<std::size_t>(n) * n)
+    throw std::logic_error("fd_jsi: DataTpl was built without its mass-matrix workspace");
   crba(model, data, q, data.M.data());
   bias_forces(model, data, q, qd, data.h.data(), fext);
   const Status st = ltl_factor(model, data.M.data());

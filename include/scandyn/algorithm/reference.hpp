@@ -19,7 +19,9 @@ namespace scandyn {
 // Scratch for one evaluation of any reference algorithm.
 template <class S>
 struct DataTpl {
-  explicit DataTpl(const ModelTpl<S>& model);
+  // mass_matrix = false skips the nv x nv workspace that only fd_jsi needs (a
+  // 10^5-link rope would need 80 GB); fd_jsi then throws std::logic_error.
+  explicit DataTpl(const ModelTpl<S>& model, bool mass_matrix = true);
 
   std::vector<Transform<S>> Xup;  // (nv) parent -> body transform at the current q
   std::vector<Motion<S>> v;       // (nv) body velocities, body frames
@@ -31,7 +33,7 @@ struct DataTpl {
   std::vector<Force<S>> U;        // (nv) ABA IA S
   std::vector<S> D;               // (nv) ABA S^T IA S
   std::vector<S> u;               // (nv) ABA tau - S^T pA
-  std::vector<S> M;               // (nv x nv) row-major mass matrix / its factor
+  std::vector<S> M;               // (nv x nv) row-major mass matrix / its factor (fd_jsi), or empty
   std::vector<S> h;               // (nv) bias forces for JSI
 };
 
