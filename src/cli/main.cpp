@@ -1,2 +1,129 @@
+// src/cli/main.cpp: the `scandyn` command: subcommand dispatch, usage, and the
+// mapping of errors to one-line messages and exit codes (docs/cli.md).
 #include <cstdio>
-int main() { std::puts("scandyn"); return 0; }
+#include <cstring>
+#include <exception>
+#include <string>
+#include <vector>
+
+#include "cli.hpp"
+#include "csv.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/model/load.hpp"
+
+namespace {
+
+using namespace scandyn::cli;
+
+const char* const kUsage =
+    "usage: scandyn <command> [flags]\n"
+    "\n"
+    "commands:\n"
+    "  info   print a model's summary and DoF order\n"
+    "  eval   evaluate dynamics on the states of a CSV file, write a CSV file\n"
+    "  bench  time one algorithm on random states, print one benchmark CSV row\n"
+    "\n"
+    "M, a model, is a URDF file or a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N.\n"
+    "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
+
+const char* const kInfoUsage =
+    "usage: scandyn info --model M\n"
+    "\n"
+    "Prints the model's name, source, nv, root link and gravity, then one line per DoF\n"
+    "in DoF order: index, joint, type, parent index (-1 = base), child link, axis.\n";
+
+const char* const kEvalUsage =
+    "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
+    "                    [--backend serial] [--precision double|float]\n"
+    "\n"
+    "  --states IN.csv   header row, one state per row; columns q_<i>, qd_<i>, qdd_<i>,\n"
+    "                    tau_<i> (i = DoF index) in any order\n"
+    "  --out OUT.csv     tau_id_<i>, qdd_fd_<i>, M_<i>_<j>, h_<i> of the selected algorithms,\n"
+    "                    one row per input row, 17 significant digits\n"
+    "  --algo LIST       comma-separated subset of id (needs q, qd, qdd), fd (q, qd, tau),\n"
+    "                    mass (q), bias (q, qd); default: each of id, fd, bias whose\n"
+    "                    columns are all present\n"
+    "  --backend NAME    serial (default)\n"
+    "  --precision P     double (default) or float\n";
+
+const char* const kBenchUsage =
+    "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd aba|jsi]\n"
+    "                     [--backend serial] [--precision double|float]\n"
+    "                     [--min-time SECONDS] [--csv FILE]\n"
+    "\n"
+    "Times the algorithm on B random states (fixed seed) and prints one CSV row:\n"
+    "algo,strategy,backend,precision,model,links,instances,seconds_per_call,\n"
+    "evals_per_second,max_rel_err (with the header when stdout is a terminal).\n"
+    "  --fd METHOD       forward dynamics by aba (default) or jsi (CRBA + Cholesky)\n"
+    "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
+    "  --csv FILE        also append the row to FILE (created with the header)\n";
+
+// One subcommand: its name, usage text, accepted flags and body.
+struct Command {
+  const char* name;
+  const char* usage;
+  std::vector<std::string> flags;
+  int (*run)(const Args&);
+};
+
+const Command kCommands[] = {
+    {"info", kInfoUsage, {"model"}, &run_info},
+    {"eval", kEvalUsage, {"model", "states", "out", "algo", "backend", "precision"}, &run_eval},
+    {"bench",
+     kBenchUsage,
+     {"model", "algo", "fd", "instances", "backend", "precision", "min-time", "csv"},
+     &run_bench},
+};
+
+int fail(int code, const std::string& message) {
+  std::string line = "scandyn: " + message;
+  for (char& c : line)
+    if (c == '\n' || c == '\r') c = ' ';  // always exactly one line
+  std::fprintf(stderr, "%s\n", line.c_str());
+  return code;
+}
+
+int dispatch(int argc, char** argv) {
+  if (argc < 2) return fail(kExitUsage, "missing command (try 'scandyn --help')");
+  const std::string cmd = argv[1];
+  if (cmd == "--help" || cmd == "-h" || cmd == "help") {
+    std::fputs(kUsage, stdout);
+    return kExitOk;
+  }
+  if (cmd == "--version") {
+    std::printf("scandyn %s\n", SCANDYN_VERSION);
+    return kExitOk;
+  }
+  for (const Command& c : kCommands) {
+    if (cmd != c.name) continue;
+    const Args args(c.name, argc, argv, 2, c.flags);
+    if (args.help()) {
+      std::fputs(c.usage, stdout);
+      return kExitOk;
+    }
+    return c.run(args);
+  }
+  return fail(kExitUsage, "unknown command '" + cmd + "' (try 'scandyn --help')");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return dispatch(argc, argv);
+  } catch (const UsageError& e) {
+    const std::string cmd = argc >= 2 ? argv[1] : "";
+    if (!e.hint_help) return fail(kExitUsage, e.what());
+    return fail(kExitUsage, std::string(e.what()) + " (try 'scandyn " + cmd + " --help')");
+  } catch (const scandyn::ModelError& e) {
+    return fail(kExitData, e.what());
+  } catch (const DataError& e) {
+    return fail(kExitData, e.what());
+  } catch (const CsvError& e) {
+    return fail(kExitData, e.what());
+  } catch (const std::bad_alloc&) {
+    return fail(kExitData, "out of memory");
+  } catch (const std::exception& e) {
+    return fail(kExitData, std::string("error: ") + e.what());
+  }
+}

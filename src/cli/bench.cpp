@@ -1,0 +1,209 @@
+// src/cli/bench.cpp: `scandyn bench`, times one algorithm on a batch of random
+// states and prints one row of the benchmark CSV (DESIGN.md's columns).
+#include <unistd.h>
+
+#include <charconv>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "backend.hpp"
+#include "cli.hpp"
+#include "csv.hpp"
+#include "scandyn/model/load.hpp"
+
+namespace scandyn::cli {
+namespace {
+
+constexpr const char* kBenchHeader =
+    "algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,"
+    "max_rel_err";
+constexpr std::uint64_t kSeed = 42;                    // random states are repeatable
+constexpr double kMaxBatchBytes = 4.0 * (1ull << 30);  // refuse batches above 4 GiB
+
+// The model column: a generator spec as given, a file's base name without ".urdf".
+std::string model_label(const std::string& spec) {
+  if (is_generator_spec(spec)) return spec;
+  std::string base = spec.substr(spec.rfind('/') == std::string::npos ? 0 : spec.rfind('/') + 1);
+  const std::string ext = ".urdf";
+  if (base.size() > ext.size() && base.compare(base.size() - ext.size(), ext.size(), ext) == 0)
+    base.resize(base.size() - ext.size());
+  return base;
+}
+
+std::size_t parse_instances(const std::string& text) {
+  unsigned long long v = 0;
+  const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (ec != std::errc() || ptr != text.data() + text.size() || v < 1 || v > 1000000000)
+    throw UsageError("--instances must be an integer from 1 to 1e9, got '" + text + "'");
+  return static_cast<std::size_t>(v);
+}
+
+double parse_min_time(const std::string& text) {
+  double v = 0;
+  if (!parse_number(text, v) || !std::isfinite(v) || v < 0)
+    throw UsageError("--min-time must be a number of seconds >= 0, got '" + text + "'");
+  return v;
+}
+
+std::string format_g(double x, int digits) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.*g", digits, x);
+  return buf;
+}
+
+// Random inputs of the benchmark, in double: q, qd, then qdd (used as tau for fd),
+// each count x nv, uniform in [-1, 1], drawn in that order from one seeded stream.
+struct RandomStates {
+  std::vector<double> q, qd, third;
+  RandomStates(std::size_t count, std::size_t nv) {
+    std::mt19937_64 rng(kSeed);
+    std::uniform_real_distribution<double> uniform(-1.0, 1.0);
+    for (std::vector<double>* v : {&q, &qd, &third}) {
+      v->resize(count * nv);
+      for (double& x : *v) x = uniform(rng);
+    }
+  }
+};
+
+template <class S>
+BatchIn<S> make_batch(Algo algo, std::size_t count, const std::vector<S>& q,
+                      const std::vector<S>& qd, const std::vector<S>& third) {
+  BatchIn<S> in;
+  in.count = count;
+  in.q = q.data();
+  if (algo != Algo::Mass) in.qd = qd.data();
+  if (algo == Algo::Id) in.qdd = third.data();
+  if (algo == Algo::Fd) in.tau = third.data();
+  return in;
+}
+
+void check(const BatchStatus& st, FdMethod fd) {
+  if (!st.ok())
+    throw DataError("bench: instance " + std::to_string(st.instance) +
+                    ": forward dynamics failed: " + describe_fd_failure(fd, st.status));
+}
+
+struct Timing {
+  double seconds_per_call = 0;
+  double max_rel_err = 0;
+};
+
+// max over instances of max_i |x_i - ref_i| / max(1, max_i |ref_i|); NaN if any x is NaN.
+double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomStates& states,
+                                std::size_t count, const std::vector<double>& x) {
+  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  const std::size_t width = output_width(algo, model.nv());
+  auto reference = make_serial_evaluator<double>(model);
+  std::vector<double> ref(width);
+  double worst = 0;
+  for (std::size_t b = 0; b < count; ++b) {
+    BatchIn<double> in = make_batch(algo, 1, states.q, states.qd, states.third);
+    const std::size_t k = b * nv;
+    in.q += k;
+    if (in.qd) in.qd += k;
+    if (in.qdd) in.qdd += k;
+    if (in.tau) in.tau += k;
+    check(reference->run(algo, FdMethod::Aba, in, ref.data()), FdMethod::Aba);
+    double scale = 1, err = 0;
+    for (std::size_t j = 0; j < width; ++j) {
+      scale = std::max(scale, std::fabs(ref[j]));
+      const double e = std::fabs(x[b * width + j] - ref[j]);
+      if (std::isnan(e)) return e;
+      err = std::max(err, e);
+    }
+    worst = std::max(worst, err / scale);
+  }
+  return worst;
+}
+
+template <class S>
+Timing time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
+                 Algo algo, FdMethod fd, const RandomStates& states, std::size_t count,
+                 double min_time, bool need_error) {
+  using Clock = std::chrono::steady_clock;
+  const std::vector<S> q(states.q.begin(), states.q.end());
+  const std::vector<S> qd(states.qd.begin(), states.qd.end());
+  const std::vector<S> third(states.third.begin(), states.third.end());
+  std::vector<S> out(count * output_width(algo, model.nv()));
+  const BatchIn<S> in = make_batch(algo, count, q, qd, third);
+  auto evaluator = make(model_s);
+
+  // warm-up pass, then whole passes until min_time has passed
+  check(evaluator->run(algo, fd, in, out.data()), fd);
+  std::size_t passes = 0;
+  double elapsed = 0;
+  const Clock::time_point t0 = Clock::now();
+  do {
+    evaluator->run(algo, fd, in, out.data());
+    ++passes;
+    elapsed = std::chrono::duration<double>(Clock::now() - t0).count();
+  } while (elapsed < min_time || elapsed <= 0);
+
+  Timing t;
+  t.seconds_per_call = elapsed / static_cast<double>(passes);
+  if (need_error)
+    t.max_rel_err = max_rel_err_vs_reference(model, algo, states, count,
+                                             std::vector<double>(out.begin(), out.end()));
+  return t;
+}
+
+}  // namespace
+
+int run_bench(const Args& args) {
+  const std::string& model_spec = args.required("model");
+  Algo algo;
+  if (!parse_algo(args.required("algo"), algo))
+    throw UsageError("unknown --algo value '" + args.required("algo") +
+                     "' (expected id, fd, mass or bias)");
+  FdMethod fd = FdMethod::Aba;
+  if (args.has("fd")) {
+    if (algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
+    if (!parse_fd_method(args.required("fd"), fd))
+      throw UsageError("unknown --fd value '" + args.required("fd") + "' (expected aba or jsi)");
+  }
+  const std::size_t count = parse_instances(args.required("instances"));
+  const Backend& backend = find_backend(args.get("backend", "serial"));
+  Precision precision;
+  if (!parse_precision(args.get("precision", "double"), precision))
+    throw UsageError("unknown --precision value '" + args.get("precision", "") +
+                     "' (expected double or float)");
+  const double min_time = parse_min_time(args.get("min-time", "0.5"));
+
+  const Model model = load_model(model_spec);
+  if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  // at most: inputs in double and in the precision, outputs in the precision and in double
+  const double bytes =
+      double(count) * (3.0 * nv * 16 + double(output_width(algo, model.nv())) * 16);
+  if (bytes > kMaxBatchBytes)
+    throw UsageError("--instances " + std::to_string(count) + " needs about " +
+                     format_g(bytes / (1 << 30), 3) +
+                     " GiB for this model and algorithm (limit 4 GiB)");
+
+  const RandomStates states(count, nv);
+  Timing t;
+  if (precision == Precision::Double) {
+    // double is the reference itself, except the JSI route to forward dynamics
+    const bool need_error = algo == Algo::Fd && fd == FdMethod::Jsi;
+    t = time_algo<double>(model, model, backend.make_double, algo, fd, states, count, min_time,
+                          need_error);
+  } else {
+    const ModelTpl<float> model_f = model.cast<float>();
+    t = time_algo<float>(model, model_f, backend.make_float, algo, fd, states, count, min_time,
+                         true);
+  }
+
+  const std::string row =
+      std::string(algo_name(algo)) + "," + (algo == Algo::Fd ? fd_method_name(fd) : "serial") +
+      "," + backend.name + "," + precision_name(precision) + "," + model_label(model_spec) + "," +
+      std::to_string(nv) + "," + std::to_string(count) + "," + format_g(t.seconds_per_call, 6) +
+      "," + format_g(double(count) / t.seconds_per_call, 6) + "," + format_g(t.max_rel_err, 6);
+  if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, row);
+  if (::isatty(STDOUT_FILENO)) std::puts(kBenchHeader);
+  std::puts(row.c_str());
+  return kExitOk;
+}
+
+}  // namespace scandyn::cli

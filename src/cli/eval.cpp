@@ -1,0 +1,171 @@
+// src/cli/eval.cpp: `scandyn eval`, dynamics of the states in a CSV file.
+#include <algorithm>
+#include <cmath>
+
+#include "backend.hpp"
+#include "cli.hpp"
+#include "csv.hpp"
+#include "scandyn/model/load.hpp"
+#include "states.hpp"
+
+namespace scandyn::cli {
+namespace {
+
+constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias};
+
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias).
+std::vector<Algo> parse_algo_list(const std::string& list) {
+  bool wanted[4] = {false, false, false, false};
+  std::size_t start = 0;
+  for (;;) {
+    const std::size_t comma = list.find(',', start);
+    const std::string item =
+        list.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+    Algo a;
+    if (!parse_algo(item, a))
+      throw UsageError("unknown --algo value '" + item +
+                       "' (expected a comma-separated list of id, fd, mass, bias)");
+    wanted[static_cast<int>(a)] = true;
+    if (comma == std::string::npos) break;
+    start = comma + 1;
+  }
+  std::vector<Algo> algos;
+  for (Algo a : kAllAlgos)
+    if (wanted[static_cast<int>(a)]) algos.push_back(a);
+  return algos;
+}
+
+// Without --algo: each of id, fd, bias whose inputs are all in the file.
+std::vector<Algo> default_algos(const StateColumns& cols, const std::string& source) {
+  std::vector<Algo> algos;
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Bias})
+    if (cols.supports(a)) algos.push_back(a);
+  if (algos.empty())
+    throw DataError(source +
+                    ": no algorithm has all its input columns (id needs q, qd, qdd; fd needs q, "
+                    "qd, tau; bias needs q, qd; mass needs q and --algo mass)");
+  return algos;
+}
+
+// Rows are evaluated in chunks, so memory stays bounded for any file length.
+std::size_t chunk_rows(std::size_t values_per_row) {
+  constexpr std::size_t kValuesPerChunk = std::size_t(1) << 22;  // 32 MiB of doubles
+  return std::clamp<std::size_t>(kValuesPerChunk / std::max<std::size_t>(values_per_row, 1), 1,
+                                 4096);
+}
+
+template <class S>
+void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
+               const StateColumns& cols, const std::vector<Algo>& algos, CsvWriter& out) {
+  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  std::vector<std::string> names;
+  std::vector<std::size_t> offset;  // start of each algo's block in an output row
+  for (Algo a : algos) {
+    offset.push_back(names.size());
+    for (std::string& n : output_columns(a, model.nv())) names.push_back(std::move(n));
+  }
+  out.write_header(names);
+  const std::size_t width = names.size();
+
+  bool needed[kFamilies] = {false, false, false, false};
+  for (Algo a : algos)
+    for (Family f : algo_inputs(a)) needed[static_cast<int>(f)] = true;
+
+  const std::size_t chunk = chunk_rows(in.columns().size() + width + kFamilies * nv);
+  std::vector<S> input[kFamilies];
+  for (int f = 0; f < kFamilies; ++f)
+    if (needed[f]) input[f].resize(chunk * nv);
+  std::vector<std::vector<S>> result(algos.size());
+  for (std::size_t k = 0; k < algos.size(); ++k)
+    result[k].resize(chunk * output_width(algos[k], model.nv()));
+  std::vector<double> row, out_row(width);
+
+  for (bool more = true; more;) {
+    // read and validate up to chunk rows
+    const std::size_t row0 = in.row() + 1;
+    std::size_t count = 0;
+    while (count < chunk && (more = in.next_row(row))) {
+      for (int f = 0; f < kFamilies; ++f)
+        if (needed[f])
+          gather_family(cols, static_cast<Family>(f), row.data(), input[f].data() + count * nv);
+      ++count;
+    }
+    if (count == 0) break;
+
+    // evaluate
+    const auto family_data = [&](Family f) -> const S* {
+      return needed[static_cast<int>(f)] ? input[static_cast<int>(f)].data() : nullptr;
+    };
+    BatchIn<S> batch;
+    batch.count = count;
+    batch.q = family_data(Family::Q);
+    batch.qd = family_data(Family::Qd);
+    batch.qdd = family_data(Family::Qdd);
+    batch.tau = family_data(Family::Tau);
+    for (std::size_t k = 0; k < algos.size(); ++k) {
+      const BatchStatus st = evaluator.run(algos[k], FdMethod::Aba, batch, result[k].data());
+      if (!st.ok()) {
+        throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
+                        describe_fd_failure(FdMethod::Aba, st.status));
+      }
+    }
+
+    // write
+    for (std::size_t b = 0; b < count; ++b) {
+      for (std::size_t k = 0; k < algos.size(); ++k) {
+        const std::size_t w = output_width(algos[k], model.nv());
+        const S* src = result[k].data() + b * w;
+        for (std::size_t j = 0; j < w; ++j) {
+          const double v = static_cast<double>(src[j]);
+          if (!std::isfinite(v)) {
+            throw DataError(in.where(row0 + b) + ": result " + names[offset[k] + j] +
+                            " is not finite (" +
+                            (std::isnan(v) ? "NaN"
+                             : v > 0       ? "Inf"
+                                           : "-Inf") +
+                            ")");
+          }
+          out_row[offset[k] + j] = v;
+        }
+      }
+      out.write_row(out_row.data(), width);
+    }
+  }
+}
+
+}  // namespace
+
+int run_eval(const Args& args) {
+  const std::string& model_spec = args.required("model");
+  const std::string& states_path = args.required("states");
+  const std::string& out_path = args.required("out");
+  std::vector<Algo> algos;
+  if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
+  const Backend& backend = find_backend(args.get("backend", "serial"));
+  Precision precision;
+  if (!parse_precision(args.get("precision", "double"), precision))
+    throw UsageError("unknown --precision value '" + args.get("precision", "") +
+                     "' (expected double or float)");
+
+  const Model model = load_model(model_spec);
+  if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+
+  CsvReader in(states_path);
+  const StateColumns cols = map_state_columns(in.columns(), model.nv(), states_path);
+  if (algos.empty()) algos = default_algos(cols, states_path);
+  check_state_columns(cols, algos, states_path);
+
+  CsvWriter out(out_path);
+  if (precision == Precision::Double) {
+    auto evaluator = backend.make_double(model);
+    eval_rows(model, *evaluator, in, cols, algos, out);
+  } else {
+    const ModelTpl<float> model_f = model.cast<float>();
+    auto evaluator = backend.make_float(model_f);
+    eval_rows(model_f, *evaluator, in, cols, algos, out);
+  }
+  out.commit();
+  return kExitOk;
+}
+
+}  // namespace scandyn::cli

@@ -1,0 +1,64 @@
+// src/cli/info.cpp: `scandyn info`, a model's summary and DoF order.
+#include <algorithm>
+#include <cstdio>
+
+#include "cli.hpp"
+#include "scandyn/model/load.hpp"
+
+namespace scandyn::cli {
+namespace {
+
+std::string format_g(double x) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%g", x == 0 ? 0.0 : x);  // no "-0"
+  return buf;
+}
+
+std::string format_vec3(const Vec3<double>& v) {
+  return format_g(v.x) + " " + format_g(v.y) + " " + format_g(v.z);
+}
+
+// Prints rows as columns separated by two spaces, each as wide as its widest cell.
+void print_table(const std::vector<std::vector<std::string>>& rows) {
+  std::vector<std::size_t> width;
+  for (const auto& r : rows) {
+    width.resize(std::max(width.size(), r.size()), 0);
+    for (std::size_t c = 0; c < r.size(); ++c) width[c] = std::max(width[c], r[c].size());
+  }
+  std::string line;
+  for (const auto& r : rows) {
+    line.clear();
+    for (std::size_t c = 0; c < r.size(); ++c) {
+      line += r[c];
+      if (c + 1 < r.size()) line.append(width[c] - r[c].size() + 2, ' ');
+    }
+    std::puts(line.c_str());
+  }
+}
+
+}  // namespace
+
+int run_info(const Args& args) {
+  const Model model = load_model(args.required("model"));
+  print_table({
+      {"model", model.name},
+      {"source", model.source},
+      {"nv", std::to_string(model.nv())},
+      {"root", model.root_link},
+      {"gravity", format_vec3(model.gravity)},
+  });
+  std::puts("");
+  std::vector<std::vector<std::string>> rows = {
+      {"index", "joint", "type", "parent", "child", "axis"}};
+  for (Index i = 0; i < model.nv(); ++i) {
+    const Body<double>& b = model.bodies[static_cast<std::size_t>(i)];
+    rows.push_back({std::to_string(i), model.joint_names[static_cast<std::size_t>(i)],
+                    b.type == JointType::Revolute ? "revolute" : "prismatic",
+                    std::to_string(b.parent), model.link_names[static_cast<std::size_t>(i)],
+                    format_vec3(b.axis)});
+  }
+  print_table(rows);
+  return kExitOk;
+}
+
+}  // namespace scandyn::cli

@@ -1,0 +1,112 @@
+// src/cli/states.cpp: mapping states-file columns to DoF entries.
+#include "states.hpp"
+
+#include "cli.hpp"
+
+namespace scandyn::cli {
+
+const char* family_prefix(Family f) {
+  switch (f) {
+    case Family::Q: return "q_";
+    case Family::Qd: return "qd_";
+    case Family::Qdd: return "qdd_";
+    case Family::Tau: return "tau_";
+  }
+  return "?";
+}
+
+std::vector<Family> algo_inputs(Algo algo) {
+  switch (algo) {
+    case Algo::Id: return {Family::Q, Family::Qd, Family::Qdd};
+    case Algo::Fd: return {Family::Q, Family::Qd, Family::Tau};
+    case Algo::Mass: return {Family::Q};
+    case Algo::Bias: return {Family::Q, Family::Qd};
+  }
+  return {};
+}
+
+bool StateColumns::any(Family f) const {
+  for (int c : of(f))
+    if (c >= 0) return true;
+  return false;
+}
+
+Index StateColumns::first_missing(Family f) const {
+  const std::vector<int>& c = of(f);
+  for (std::size_t i = 0; i < c.size(); ++i)
+    if (c[i] < 0) return static_cast<Index>(i);
+  return -1;
+}
+
+bool StateColumns::supports(Algo algo) const {
+  for (Family f : algo_inputs(algo))
+    if (!complete(f)) return false;
+  return true;
+}
+
+namespace {
+
+// Parses the decimal index after a family prefix: digits only, no leading zero
+// (so each entry has exactly one spelling). Returns -1 if malformed or huge.
+long parse_index(const std::string& digits) {
+  if (digits.empty() || digits.size() > 9) return -1;
+  if (digits.size() > 1 && digits[0] == '0') return -1;
+  long v = 0;
+  for (char ch : digits) {
+    if (ch < '0' || ch > '9') return -1;
+    v = 10 * v + (ch - '0');
+  }
+  return v;
+}
+
+}  // namespace
+
+StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
+                               const std::string& source) {
+  StateColumns cols;
+  cols.nv = nv;
+  for (auto& c : cols.column) c.assign(static_cast<std::size_t>(nv), -1);
+  for (std::size_t k = 0; k < names.size(); ++k) {
+    const std::string& name = names[k];
+    // the prefixes are prefix-free ("q_" does not start "qd_"): at most one matches
+    int family = -1;
+    std::size_t plen = 0;
+    for (int f = 0; f < kFamilies && family < 0; ++f) {
+      const std::string p = family_prefix(static_cast<Family>(f));
+      if (name.compare(0, p.size(), p) == 0) {
+        family = f;
+        plen = p.size();
+      }
+    }
+    const long i = family < 0 ? -1 : parse_index(name.substr(plen));
+    if (i < 0)
+      throw DataError(source + ": unknown column '" + name +
+                      "' (expected q_<i>, qd_<i>, qdd_<i> or tau_<i>)");
+    if (i >= nv)
+      throw DataError(source + ": column " + name + ": index " + std::to_string(i) +
+                      " out of range (the model has " + std::to_string(nv) + " DoF)");
+    cols.column[family][static_cast<std::size_t>(i)] = static_cast<int>(k);
+  }
+  return cols;
+}
+
+void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algos,
+                         const std::string& source) {
+  for (Algo a : algos) {
+    for (Family f : algo_inputs(a)) {
+      const Index i = cols.first_missing(f);
+      if (i >= 0)
+        throw DataError(source + ": missing column " + family_prefix(f) + std::to_string(i) +
+                        " (needed by --algo " + algo_name(a) + ")");
+    }
+  }
+  for (int f = 0; f < kFamilies; ++f) {
+    const Family fam = static_cast<Family>(f);
+    const Index i = cols.first_missing(fam);
+    if (i >= 0 && cols.any(fam))
+      throw DataError(source + ": missing column " + family_prefix(fam) + std::to_string(i) +
+                      " (other " + family_prefix(fam) + "<i> columns are present)");
+  }
+}
+
+}  // namespace scandyn::cli

@@ -1,0 +1,650 @@
+// Tests of the `scandyn` command (docs/cli.md): each runs the built executable in a
+// fresh temporary directory and checks its files, exit code and messages against
+// the library called directly.
+#include <gtest/gtest.h>
+#include <stdlib.h>
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+namespace {
+
+namespace fs = std::filesystem;
+using scandyn::Model;
+
+// ---- helpers ------------------------------------------------------------------
+
+std::string read_text(const fs::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  std::stringstream ss;
+  ss << f.rdbuf();
+  return ss.str();
+}
+
+void write_text(const fs::path& p, const std::string& text) {
+  std::ofstream f(p, std::ios::binary);
+  f << text;
+}
+
+std::string quote(const std::string& s) {
+  std::string q = "'";
+  for (char c : s) q += c == '\'' ? std::string("'\\''") : std::string(1, c);
+  return q + "'";
+}
+
+std::vector<std::string> split(const std::string& s, char sep) {
+  std::vector<std::string> parts;
+  std::size_t start = 0;
+  for (;;) {
+    const std::size_t k = s.find(sep, start);
+    parts.push_back(s.substr(start, k == std::string::npos ? std::string::npos : k - start));
+    if (k == std::string::npos) return parts;
+    start = k + 1;
+  }
+}
+
+std::vector<std::string> lines(const std::string& text) {
+  std::vector<std::string> out = split(text, '\n');
+  if (!out.empty() && out.back().empty()) out.pop_back();
+  return out;
+}
+
+std::string fmt17(double x) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.17g", x);
+  return buf;
+}
+
+// A parsed numeric CSV file (as eval writes it).
+struct Table {
+  std::vector<std::string> names;
+  std::vector<std::vector<double>> rows;
+
+  // Values of columns prefix0 .. prefix(n-1) in row r.
+  std::vector<double> get(std::size_t r, const std::string& prefix, int n) const {
+    std::vector<double> v;
+    for (int i = 0; i < n; ++i) {
+      const auto it = std::find(names.begin(), names.end(), prefix + std::to_string(i));
+      if (it == names.end()) {
+        ADD_FAILURE() << "no column " << prefix << i;
+        return v;
+      }
+      v.push_back(rows.at(r).at(static_cast<std::size_t>(it - names.begin())));
+    }
+    return v;
+  }
+};
+
+Table parse_csv(const std::string& text) {
+  Table t;
+  const std::vector<std::string> ls = lines(text);
+  if (ls.empty()) return t;
+  t.names = split(ls[0], ',');
+  for (std::size_t k = 1; k < ls.size(); ++k) {
+    std::vector<double> row;
+    for (const std::string& f : split(ls[k], ',')) row.push_back(std::strtod(f.c_str(), nullptr));
+    EXPECT_EQ(row.size(), t.names.size()) << "line " << k + 1;
+    t.rows.push_back(row);
+  }
+  return t;
+}
+
+// Random states: [row][dof] for each family, uniform in [-1, 1].
+struct States {
+  int nv = 0;
+  std::vector<std::vector<double>> q, qd, qdd, tau;
+
+  States(int nv_, int rows, unsigned seed) : nv(nv_) {
+    std::mt19937_64 rng(seed);
+    for (auto* fam : {&q, &qd, &qdd, &tau})
+      for (int r = 0; r < rows; ++r) fam->push_back(scandyn::test::random_vector(rng, nv, -1, 1));
+  }
+  const std::vector<std::vector<double>>& family(const std::string& name) const {
+    return name == "q" ? q : name == "qd" ? qd : name == "qdd" ? qdd : tau;
+  }
+  std::size_t rows() const { return q.size(); }
+
+  // CSV text with the given families, columns in family-major order, or shuffled.
+  std::string csv(const std::vector<std::string>& families, unsigned shuffle_seed = 0) const {
+    std::vector<std::pair<std::string, int>> cols;
+    for (const std::string& f : families)
+      for (int i = 0; i < nv; ++i) cols.emplace_back(f, i);
+    if (shuffle_seed) {
+      std::mt19937 rng(shuffle_seed);
+      std::shuffle(cols.begin(), cols.end(), rng);
+    }
+    std::string text;
+    for (std::size_t c = 0; c < cols.size(); ++c)
+      text += (c ? "," : "") + cols[c].first + "_" + std::to_string(cols[c].second);
+    text += "\n";
+    for (std::size_t r = 0; r < rows(); ++r) {
+      for (std::size_t c = 0; c < cols.size(); ++c)
+        text += (c ? "," : "") +
+                fmt17(family(cols[c].first)[r][static_cast<std::size_t>(cols[c].second)]);
+      text += "\n";
+    }
+    return text;
+  }
+};
+
+struct Result {
+  int code = -1;
+  std::string out, err;
+};
+
+class Cli : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string tmpl = (fs::temp_directory_path() / "scandyn_cli_XXXXXX").string();
+    ASSERT_NE(::mkdtemp(&tmpl[0]), nullptr);
+    dir_ = tmpl;
+  }
+  void TearDown() override {
+    std::error_code ec;
+    fs::remove_all(dir_, ec);
+  }
+
+  fs::path path(const std::string& name) const { return dir_ / name; }
+
+  // Runs `scandyn args` in the test directory.
+  Result run(const std::string& args) const {
+    const std::string cmd =
+        "cd " + quote(dir_.string()) + " && " + quote(scandyn::test::cli_path()) + " " + args +
+        " >" + quote(path(".stdout").string()) + " 2>" + quote(path(".stderr").string());
+    const int status = std::system(cmd.c_str());
+    Result r;
+    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    r.out = read_text(path(".stdout"));
+    r.err = read_text(path(".stderr"));
+    return r;
+  }
+
+  // Files in the test directory, except the captured stdout/stderr.
+  std::vector<std::string> files() const {
+    std::vector<std::string> names;
+    for (const auto& e : fs::directory_iterator(dir_)) {
+      const std::string n = e.path().filename().string();
+      if (n != ".stdout" && n != ".stderr") names.push_back(n);
+    }
+    std::sort(names.begin(), names.end());
+    return names;
+  }
+
+  fs::path dir_;
+};
+
+// The info table's DoF rows: [index, joint, type, parent, child, axis...].
+std::vector<std::vector<std::string>> info_dofs(const std::string& out) {
+  std::vector<std::vector<std::string>> rows;
+  bool in_table = false;
+  for (const std::string& l : lines(out)) {
+    std::istringstream ss(l);
+    std::vector<std::string> words;
+    for (std::string w; ss >> w;) words.push_back(w);
+    if (!words.empty() && words[0] == "index") {
+      in_table = true;
+      continue;
+    }
+    if (in_table && !words.empty()) rows.push_back(words);
+  }
+  return rows;
+}
+
+// ---- info ---------------------------------------------------------------------
+
+TEST_F(Cli, InfoChainListsDofsInOrderWithParents) {
+  const Model model = scandyn::load_model("chain:3");
+  const Result r = run("info --model chain:3");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(r.err.empty());
+  EXPECT_NE(r.out.find("nv       3"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("gravity  0 0 -9.81"), std::string::npos) << r.out;
+  const auto dofs = info_dofs(r.out);
+  ASSERT_EQ(dofs.size(), 3u) << r.out;
+  for (int i = 0; i < 3; ++i) {
+    ASSERT_GE(dofs[i].size(), 8u);
+    EXPECT_EQ(dofs[i][0], std::to_string(i));
+    EXPECT_EQ(dofs[i][1], model.joint_names[i]);
+    EXPECT_EQ(dofs[i][2], "revolute");
+    EXPECT_EQ(dofs[i][3], std::to_string(i - 1));  // a chain: each body hangs from the previous
+    EXPECT_EQ(dofs[i][4], model.link_names[i]);
+  }
+}
+
+TEST_F(Cli, InfoIiwaListsSevenJoints) {
+  const Result r = run("info --model " + quote(scandyn::test::model_path("iiwa.urdf")));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("iiwa14"), std::string::npos) << r.out;
+  const auto dofs = info_dofs(r.out);
+  ASSERT_EQ(dofs.size(), 7u) << r.out;
+  for (int i = 0; i < 7; ++i) {
+    EXPECT_EQ(dofs[i][0], std::to_string(i));
+    EXPECT_EQ(dofs[i][1], "iiwa_joint_" + std::to_string(i + 1));
+    EXPECT_EQ(dofs[i][2], "revolute");
+    EXPECT_EQ(dofs[i][3], std::to_string(i - 1));
+  }
+}
+
+// ---- eval against the library -------------------------------------------------
+
+class EvalModel : public Cli, public ::testing::WithParamInterface<const char*> {
+ protected:
+  std::string spec() const {
+    const std::string p = GetParam();
+    return p == "iiwa" ? scandyn::test::model_path("iiwa.urdf") : p;
+  }
+};
+
+TEST_P(EvalModel, AllAlgorithmsMatchTheReference) {
+  const Model model = scandyn::load_model(spec());
+  const int n = model.nv();
+  scandyn::DataTpl<double> data(model);
+  const States s(n, 6, 11);
+  write_text(path("states.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  const Result r = run("eval --model " + quote(spec()) +
+                       " --states states.csv --out out.csv --algo bias,mass,fd,id");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(r.err.empty()) << r.err;
+  const Table t = parse_csv(read_text(path("out.csv")));
+  ASSERT_EQ(t.rows.size(), s.rows());
+
+  // columns: tau_id, qdd_fd, M (row-major), h, whatever the --algo order
+  std::vector<std::string> expected;
+  for (int i = 0; i < n; ++i) expected.push_back("tau_id_" + std::to_string(i));
+  for (int i = 0; i < n; ++i) expected.push_back("qdd_fd_" + std::to_string(i));
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j)
+      expected.push_back("M_" + std::to_string(i) + "_" + std::to_string(j));
+  for (int i = 0; i < n; ++i) expected.push_back("h_" + std::to_string(i));
+  ASSERT_EQ(t.names, expected);
+
+  for (std::size_t row = 0; row < s.rows(); ++row) {
+    SCOPED_TRACE("row " + std::to_string(row + 1));
+    const double* q = s.q[row].data();
+    const double* qd = s.qd[row].data();
+    std::vector<double> ref(n), zero(n, 0.0), M(n * n);
+
+    // id: 17 digits read back exactly
+    scandyn::rnea(model, data, q, qd, s.qdd[row].data(), ref.data());
+    EXPECT_EQ(t.get(row, "tau_id_", n), ref);
+
+    // fd: ID(FD(tau)) = tau
+    const std::vector<double> qdd_fd = t.get(row, "qdd_fd_", n);
+    scandyn::rnea(model, data, q, qd, qdd_fd.data(), ref.data());
+    EXPECT_LT(scandyn::test::max_rel_err(ref, s.tau[row]), 1e-9);
+
+    // mass: CRBA exactly, symmetric
+    scandyn::crba(model, data, q, M.data());
+    for (int i = 0; i < n; ++i) {
+      const std::vector<double> Mi = t.get(row, "M_" + std::to_string(i) + "_", n);
+      for (int j = 0; j < n; ++j) EXPECT_EQ(Mi[j], M[i * n + j]) << "M_" << i << "_" << j;
+      for (int j = 0; j < i; ++j)
+        EXPECT_EQ(Mi[j], t.get(row, "M_" + std::to_string(j) + "_", n)[i])
+            << "symmetry " << i << "," << j;
+    }
+
+    // bias: RNEA with qdd = 0
+    const std::vector<double> h = t.get(row, "h_", n);
+    scandyn::rnea(model, data, q, qd, zero.data(), ref.data());
+    EXPECT_LE(scandyn::test::max_rel_err(h, ref), 1e-15);
+    scandyn::bias_forces(model, data, q, qd, ref.data());
+    EXPECT_EQ(h, ref);
+  }
+}
+
+TEST_P(EvalModel, FloatPrecisionIsCloseToDouble) {
+  const Model model = scandyn::load_model(spec());
+  const States s(model.nv(), 4, 12);
+  write_text(path("states.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  const std::string base =
+      "eval --model " + quote(spec()) + " --states states.csv --algo id,fd,mass,bias";
+  const Result rd = run(base + " --out double.csv");
+  const Result rf = run(base + " --out float.csv --precision float");
+  ASSERT_EQ(rd.code, 0) << rd.err;
+  ASSERT_EQ(rf.code, 0) << rf.err;
+  const Table td = parse_csv(read_text(path("double.csv")));
+  const Table tf = parse_csv(read_text(path("float.csv")));
+  ASSERT_EQ(td.names, tf.names);
+  ASSERT_EQ(td.rows.size(), tf.rows.size());
+  bool differs = false;
+  for (std::size_t row = 0; row < td.rows.size(); ++row) {
+    EXPECT_LT(scandyn::test::max_rel_err(tf.rows[row], td.rows[row]), 1e-4) << "row " << row + 1;
+    differs = differs || tf.rows[row] != td.rows[row];
+    // each value is a float widened to double
+    for (double v : tf.rows[row]) EXPECT_EQ(v, static_cast<double>(static_cast<float>(v)));
+  }
+  EXPECT_TRUE(differs) << "float output identical to double: was it computed in float?";
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Models, EvalModel, ::testing::Values("chain:4", "iiwa"),
+    [](const ::testing::TestParamInfo<const char*>& info) {
+      return std::string(info.param).substr(0, std::string(info.param).find(':'));
+    });
+
+TEST_F(Cli, EvalOutputDoesNotDependOnInputColumnOrder) {
+  const States s(4, 5, 13);
+  write_text(path("a.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  write_text(path("b.csv"), s.csv({"tau", "qdd", "qd", "q"}, 7));
+  ASSERT_NE(read_text(path("a.csv")), read_text(path("b.csv")));
+  const std::string args = " --model chain:4 --algo id,fd,mass,bias";
+  ASSERT_EQ(run("eval --states a.csv --out a_out.csv" + args).code, 0);
+  ASSERT_EQ(run("eval --states b.csv --out b_out.csv" + args).code, 0);
+  const std::string a = read_text(path("a_out.csv"));
+  EXPECT_FALSE(a.empty());
+  EXPECT_EQ(a, read_text(path("b_out.csv")));
+}
+
+TEST_F(Cli, EvalDefaultAlgorithmsFollowTheColumnsPresent) {
+  const States s(3, 2, 14);
+  struct Case {
+    std::vector<std::string> families;
+    std::vector<std::string> first_columns;  // of each output block, in order
+  };
+  const std::vector<Case> cases = {
+      {{"q", "qd", "qdd", "tau"}, {"tau_id_0", "qdd_fd_0", "h_0"}},
+      {{"q", "qd", "qdd"}, {"tau_id_0", "h_0"}},
+      {{"q", "qd", "tau"}, {"qdd_fd_0", "h_0"}},
+      {{"qd", "q"}, {"h_0"}},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(::testing::PrintToString(c.families));
+    write_text(path("states.csv"), s.csv(c.families));
+    const Result r = run("eval --model chain:3 --states states.csv --out out.csv");
+    ASSERT_EQ(r.code, 0) << r.err;
+    const Table t = parse_csv(read_text(path("out.csv")));
+    ASSERT_EQ(t.names.size(), 3 * c.first_columns.size());
+    for (std::size_t k = 0; k < c.first_columns.size(); ++k)
+      EXPECT_EQ(t.names[3 * k], c.first_columns[k]);
+    EXPECT_EQ(t.rows.size(), 2u);
+  }
+  // mass only on request
+  write_text(path("states.csv"), s.csv({"q"}));
+  fs::remove(path("out.csv"));
+  const Result r = run("eval --model chain:3 --states states.csv --out out.csv");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("no algorithm"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(path("out.csv")));
+  ASSERT_EQ(run("eval --model chain:3 --states states.csv --out out.csv --algo mass").code, 0);
+  EXPECT_EQ(parse_csv(read_text(path("out.csv"))).names.size(), 9u);
+}
+
+TEST_F(Cli, EvalAcceptsCrlfSpacesAndMissingFinalNewline) {
+  const States s(3, 3, 15);
+  const std::string clean = s.csv({"q", "qd", "qdd"});
+  write_text(path("clean.csv"), clean);
+  // CRLF, spaces and tabs around fields, a '+' sign, no final newline
+  std::string messy;
+  for (char c : clean)
+    messy += c == ',' ? std::string(" ,\t ") : c == '\n' ? std::string(" \r\n") : std::string(1, c);
+  messy.resize(messy.size() - 2);
+  messy.insert(messy.find('\n') + 1, "+");
+  write_text(path("messy.csv"), messy);
+  write_text(path("trailing.csv"), clean + "\n\r\n  \n");
+  ASSERT_EQ(run("eval --model chain:3 --states clean.csv --out clean_out.csv").code, 0);
+  const std::string expected = read_text(path("clean_out.csv"));
+  for (const char* name : {"messy", "trailing"}) {
+    const Result r =
+        run(std::string("eval --model chain:3 --states ") + name + ".csv --out out.csv");
+    ASSERT_EQ(r.code, 0) << name << ": " << r.err;
+    EXPECT_EQ(read_text(path("out.csv")), expected) << name;
+  }
+}
+
+TEST_F(Cli, EvalHeaderOnlyGivesHeaderOnly) {
+  write_text(path("states.csv"), "q_0,q_1,q_2,qd_0,qd_1,qd_2\n");
+  const Result r = run("eval --model chain:3 --states states.csv --out out.csv");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(read_text(path("out.csv")), "h_0,h_1,h_2\n");
+}
+
+// ---- eval errors --------------------------------------------------------------
+
+struct BadCase {
+  const char* name;
+  const char* states;  // contents of states.csv; nullptr: no such file
+  std::string args;    // the command line after "scandyn"
+  int code;
+  std::vector<std::string> expect;  // substrings of the message
+};
+
+const std::string kEval = "eval --model chain:3 --states states.csv --out out.csv ";
+
+const char* const kHeader = "q_0,q_1,q_2,qd_0,qd_1,qd_2,qdd_0,qdd_1,qdd_2\n";
+
+std::string good_states(const std::string& row2 = "0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9",
+                        const std::string& row3 = "1,2,3,4,5,6,7,8,9") {
+  return std::string(kHeader) + "0,0,0,0,0,0,0,0,0\n" + row2 + "\n" + row3 + "\n";
+}
+
+TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
+  const std::string wrong_count = good_states("0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8");
+  const std::string too_many = good_states("0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0");
+  const std::string nan = good_states("0,0,0,0,0,0,0,0,0", "1,2,3,4,5,nan,7,8,9");
+  const std::string nan_upper = good_states("0,0,0,0,0,0,0,0,0", "1,2,3,4,5,NaN,7,8,9");
+  const std::string inf = good_states("0,inf,0,0,0,0,0,0,0");
+  const std::string minus_inf = good_states("0,-Infinity,0,0,0,0,0,0,0");
+  const std::string overflow = good_states("0,1e400,0,0,0,0,0,0,0");
+  const std::string word = good_states("0,abc,0,0,0,0,0,0,0");
+  const std::string trailing_junk = good_states("0,1.5x,0,0,0,0,0,0,0");
+  const std::string empty_field = good_states("0,,0,0,0,0,0,0,0");
+  const std::string blank_line = std::string(kHeader) + "0,0,0,0,0,0,0,0,0\n\n1,2,3,4,5,6,7,8,9\n";
+  // clang-format off
+  const std::vector<BadCase> cases = {
+      {"missing file", nullptr, kEval, 1, {"states.csv: cannot open"}},
+      {"empty file", "", kEval, 1, {"states.csv: empty file"}},
+      {"blank file", " \n\r\n", kEval, 1, {"states.csv: empty file"}},
+      {"unknown column", "q_0,q_1,q_2,foo\n", kEval, 1, {"states.csv", "unknown column 'foo'"}},
+      {"leading zero", "q_0,q_1,q_02\n", kEval, 1, {"states.csv", "unknown column 'q_02'"}},
+      {"duplicate column", "q_0,q_1,q_2,q_1\n", kEval, 1, {"states.csv", "duplicate column q_1"}},
+      {"index >= nv", "q_0,q_1,q_2,qd_3\n", kEval, 1, {"states.csv", "qd_3", "out of range"}},
+      {"empty column name", "q_0,,q_2\n", kEval, 1, {"states.csv", "column 2 has an empty name"}},
+      {"too few fields", wrong_count.c_str(), kEval, 1, {"states.csv: row 2 (line 3): expected 9 fields, found 8"}},
+      {"too many fields", too_many.c_str(), kEval, 1, {"states.csv: row 2 (line 3): expected 9 fields, found 10"}},
+      {"blank line", blank_line.c_str(), kEval, 1, {"states.csv: row 2 (line 3): empty line"}},
+      {"nan", nan.c_str(), kEval, 1, {"states.csv: row 3 (line 4), column qd_2: NaN"}},
+      {"NaN", nan_upper.c_str(), kEval, 1, {"states.csv: row 3 (line 4), column qd_2: NaN"}},
+      {"inf", inf.c_str(), kEval, 1, {"states.csv: row 2 (line 3), column q_1: Inf"}},
+      {"-inf", minus_inf.c_str(), kEval, 1, {"states.csv: row 2 (line 3), column q_1: -Inf"}},
+      {"overflow", overflow.c_str(), kEval, 1, {"states.csv: row 2 (line 3), column q_1: Inf"}},
+      {"not a number", word.c_str(), kEval, 1, {"states.csv: row 2 (line 3), column q_1: not a number: 'abc'"}},
+      {"junk after number", trailing_junk.c_str(), kEval, 1, {"row 2 (line 3), column q_1: not a number: '1.5x'"}},
+      {"empty field", empty_field.c_str(), kEval, 1, {"states.csv: row 2 (line 3), column q_1: empty field"}},
+      {"id needs qdd", "q_0,q_1,q_2,qd_0,qd_1,qd_2,qdd_0,qdd_2\n", kEval + "--algo id", 1, {"states.csv: missing column qdd_1 (needed by --algo id)"}},
+      {"fd needs tau", kHeader, kEval + "--algo fd", 1, {"states.csv: missing column tau_0 (needed by --algo fd)"}},
+      {"partial family", "q_0,q_1,q_2,qd_0,qd_1,qd_2,tau_1\n", kEval + "--algo bias", 1, {"states.csv: missing column tau_0 (other tau_<i> columns are present)"}},
+      {"no default algo", "q_0,q_1,q_2\n", kEval, 1, {"states.csv: no algorithm"}},
+      {"unknown algo", kHeader, kEval + "--algo id,foo", 2, {"unknown --algo value 'foo'"}},
+      {"empty algo item", kHeader, kEval + "--algo id,", 2, {"unknown --algo value ''"}},
+      {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"unknown --backend value 'gpu'"}},
+      {"openmp backend", kHeader, kEval + "--backend openmp", 2, {"backend 'openmp' is not available in this build"}},
+      {"cuda backend", kHeader, kEval + "--backend cuda", 2, {"backend 'cuda' is not available in this build"}},
+      {"unknown precision", kHeader, kEval + "--precision half", 2, {"unknown --precision value 'half'"}},
+      {"unknown flag", kHeader, kEval + "--fast", 2, {"unknown flag '--fast'"}},
+      {"repeated flag", kHeader, kEval + "--algo id --algo fd", 2, {"'--algo' given more than once"}},
+      {"missing model file", kHeader, "eval --model nope.urdf --states states.csv --out out.csv", 1, {"nope.urdf"}},
+      {"malformed generator", kHeader, "eval --model chain:x --states states.csv --out out.csv", 1, {"chain:x"}},
+      {"output directory missing", kHeader, "eval --model chain:3 --states states.csv --out nodir/out.csv", 1, {"nodir/out.csv: cannot create file"}},
+      {"missing --out", kHeader, "eval --model chain:3 --states states.csv", 2, {"'eval' needs --out"}},
+      {"stray argument", kHeader, kEval + "extra", 2, {"unexpected argument 'extra'"}},
+  };
+  // clang-format on
+  for (const BadCase& c : cases) {
+    for (bool existing : {false, true}) {
+      SCOPED_TRACE(std::string(c.name) + (existing ? ", existing output" : ", no output"));
+      fs::remove(path("states.csv"));
+      fs::remove(path("out.csv"));
+      if (c.states) write_text(path("states.csv"), c.states);
+      if (existing) write_text(path("out.csv"), "sentinel\n");
+      const std::vector<std::string> before = files();
+      const Result r = run(c.args);
+      EXPECT_EQ(r.code, c.code);
+      ASSERT_FALSE(r.err.empty());
+      EXPECT_EQ(r.err.rfind("scandyn: ", 0), 0u) << r.err;
+      EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+      EXPECT_EQ(r.err.back(), '\n');
+      for (const std::string& e : c.expect) EXPECT_NE(r.err.find(e), std::string::npos) << r.err;
+      EXPECT_TRUE(r.out.empty()) << r.out;
+      EXPECT_EQ(files(), before) << "no file created or removed (temporary files included)";
+      if (existing) {
+        EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+      }
+    }
+  }
+}
+
+// A body of 1e300 kg on a prismatic joint: when it slides 1e5 m out, the articulated
+// inertia about the first (revolute) joint, 1e300 * (1e5)^2, overflows and its pivot
+// is not finite. Row 1 (at the origin) is fine, row 2 fails.
+TEST_F(Cli, EvalReportsTheRowWhoseForwardDynamicsFails) {
+  const std::string inertial =
+      "<inertial><origin xyz=\"0 0 0\"/><mass value=\"1e300\"/>"
+      "<inertia ixx=\"1\" iyy=\"1\" izz=\"1\" ixy=\"0\" ixz=\"0\" iyz=\"0\"/></inertial>";
+  const std::string limit = "<limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>";
+  write_text(path("heavy.urdf"),
+             "<robot name=\"heavy\"><link name=\"base\"/>"
+             "<link name=\"a\">" +
+                 inertial + "</link><link name=\"b\">" + inertial +
+                 "</link>"
+                 "<joint name=\"j1\" type=\"revolute\"><parent link=\"base\"/><child link=\"a\"/>"
+                 "<axis xyz=\"0 0 1\"/>" +
+                 limit +
+                 "</joint>"
+                 "<joint name=\"j2\" type=\"prismatic\"><parent link=\"a\"/><child link=\"b\"/>"
+                 "<axis xyz=\"1 0 0\"/>" +
+                 limit + "</joint></robot>\n");
+  write_text(path("states.csv"), "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n0,1e5,0,0,0,0\n");
+  write_text(path("out.csv"), "sentinel\n");
+  const Result r = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.err,
+            "scandyn: states.csv: row 2 (line 3): forward dynamics failed: articulated inertia "
+            "pivot at DoF 0 is not positive\n");
+  EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+  // the first row alone is fine
+  write_text(path("states.csv"), "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n");
+  const Result ok = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd");
+  EXPECT_EQ(ok.code, 0) << ok.err;
+  EXPECT_EQ(read_text(path("out.csv")), "qdd_fd_0,qdd_fd_1\n0,0\n");
+}
+
+// ---- usage --------------------------------------------------------------------
+
+TEST_F(Cli, HelpAndUsageErrors) {
+  for (const char* args : {"--help", "info --help", "eval --help", "bench --help"}) {
+    const Result r = run(args);
+    EXPECT_EQ(r.code, 0) << args;
+    EXPECT_EQ(r.out.rfind("usage: scandyn", 0), 0u) << args << ": " << r.out;
+    EXPECT_TRUE(r.err.empty()) << args;
+  }
+  for (const char* args :
+       {"", "frobnicate", "info", "info --model", "info --model chain:3 --states x.csv",
+        "bench --model chain:3 --algo id", "bench --model chain:3 --algo id --instances 0",
+        "bench --model chain:3 --algo id --instances 2.5",
+        "bench --model chain:3 --algo step --instances 1",
+        "bench --model chain:3 --algo id --fd jsi --instances 1",
+        "bench --model chain:3 --algo fd --fd lu --instances 1",
+        "bench --model chain:3 --algo id --instances 1 --min-time -1",
+        "bench --model chain:3 --algo id --instances 1 --backend openmp"}) {
+    const Result r = run(args);
+    EXPECT_EQ(r.code, 2) << args;
+    EXPECT_EQ(r.err.rfind("scandyn: ", 0), 0u) << args << ": " << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << args << ": " << r.err;
+    EXPECT_TRUE(r.out.empty()) << args;
+  }
+}
+
+TEST_F(Cli, UnavailableBackendMessageIsExact) {
+  for (const char* backend : {"openmp", "cuda"}) {
+    const Result r =
+        run(std::string("bench --model chain:2 --algo id --instances 1 --backend ") + backend);
+    EXPECT_EQ(r.code, 2);
+    EXPECT_EQ(r.err,
+              std::string("scandyn: backend '") + backend + "' is not available in this build\n");
+  }
+}
+
+// ---- bench --------------------------------------------------------------------
+
+std::vector<std::string> bench_row(const Result& r) {
+  EXPECT_EQ(r.code, 0) << r.err;
+  const std::vector<std::string> ls = lines(r.out);
+  EXPECT_EQ(ls.size(), 1u) << r.out;  // stdout is not a terminal: no header
+  return ls.empty() ? std::vector<std::string>() : split(ls[0], ',');
+}
+
+TEST_F(Cli, BenchPrintsOneRow) {
+  const std::string base = "bench --model chain:5 --instances 7 --min-time 0.01";
+  const std::vector<std::string> id = bench_row(run(base + " --algo id"));
+  ASSERT_EQ(id.size(), 10u);
+  EXPECT_EQ(id[0], "id");
+  EXPECT_EQ(id[1], "serial");
+  EXPECT_EQ(id[2], "serial");
+  EXPECT_EQ(id[3], "double");
+  EXPECT_EQ(id[4], "chain:5");
+  EXPECT_EQ(id[5], "5");
+  EXPECT_EQ(id[6], "7");
+  EXPECT_GT(std::stod(id[7]), 0);
+  EXPECT_GT(std::stod(id[8]), 0);
+  EXPECT_NEAR(std::stod(id[8]) * std::stod(id[7]), 7.0, 1e-3);  // instances / seconds_per_call
+  EXPECT_EQ(id[9], "0");
+
+  const std::vector<std::string> f = bench_row(run(base + " --algo id --precision float"));
+  ASSERT_EQ(f.size(), 10u);
+  EXPECT_EQ(f[3], "float");
+  EXPECT_GT(std::stod(f[9]), 0);  // really computed in float
+  EXPECT_LT(std::stod(f[9]), 1e-3);
+
+  const std::vector<std::string> jsi = bench_row(run(base + " --algo fd --fd jsi"));
+  ASSERT_EQ(jsi.size(), 10u);
+  EXPECT_EQ(jsi[0], "fd");
+  EXPECT_EQ(jsi[1], "jsi");
+  EXPECT_LT(std::stod(jsi[9]), 1e-10);
+
+  for (const char* algo : {"fd", "mass", "bias"}) {
+    const std::vector<std::string> row = bench_row(run(base + " --algo " + algo));
+    ASSERT_EQ(row.size(), 10u) << algo;
+    EXPECT_EQ(row[1], std::string(algo) == "fd" ? "aba" : "serial");
+    EXPECT_EQ(row[9], "0") << algo;
+  }
+}
+
+TEST_F(Cli, BenchAppendsToCsvFile) {
+  const std::string header =
+      "algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,max_"
+      "rel_err";
+  const std::string args = "bench --model " + quote(scandyn::test::model_path("iiwa.urdf")) +
+                           " --algo bias --instances 3 --min-time 0.001 --csv results.csv";
+  const Result a = run(args);
+  const Result b = run(args + " --precision float");
+  ASSERT_EQ(a.code, 0) << a.err;
+  ASSERT_EQ(b.code, 0) << b.err;
+  const std::vector<std::string> ls = lines(read_text(path("results.csv")));
+  ASSERT_EQ(ls.size(), 3u);
+  EXPECT_EQ(ls[0], header);
+  EXPECT_EQ(ls[1] + "\n", a.out);
+  EXPECT_EQ(ls[2] + "\n", b.out);
+  EXPECT_EQ(split(ls[1], ',')[4], "iiwa");
+  EXPECT_EQ(split(ls[1], ',')[5], "7");
+
+  // an existing file with another header is not appended to
+  write_text(path("other.csv"), "a,b\n1,2\n");
+  const Result c =
+      run("bench --model chain:2 --algo id --instances 1 --min-time 0 --csv other.csv");
+  EXPECT_EQ(c.code, 1);
+  EXPECT_NE(c.err.find("other.csv: existing header does not match"), std::string::npos) << c.err;
+  EXPECT_EQ(read_text(path("other.csv")), "a,b\n1,2\n");
+}
+
+}  // namespace
