@@ -1,0 +1,191 @@
+#!/usr/bin/env bash
+# scripts/gpu_check.sh: build and test scandyn on the GPU machine, offline.
+#
+#   scripts/gpu_check.sh [OUTDIR]        (default: $OUT)
+#
+# Run from anywhere on the GPU machine after scripts/prepare_device.sh was run on
+# a networked machine and .deps/root + .models travelled with the tree. Steps:
+#   1. environment report (GPU, driver, nvcc, compilers)          -> env.txt
+#   2. configure: Release, CUDA on (sm_90 unless CMAKE_CUDA_ARCHITECTURES is set
+#      in the environment), -march=native, urdfdom from .deps/root -> configure.log
+#   3. build                                                        -> build.log
+#   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
+#   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
+#   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
+#   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
+# A failed configure or build stops the run; later steps run even if an earlier
+# test step failed.
+#
+# Environment: SCANDYN_GPU_BUILD_DIR (default build-gpu), CMAKE_CUDA_ARCHITECTURES
+# (default 90), SCANDYN_JOBS (default nproc), SCANDYN_SKIP_SANITIZER=1,
+# SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
+# --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300).
+set -euo pipefail
+
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+repo=$PWD
+
+die() { echo "gpu_check.sh: error: $*" >&2; exit 2; }
+note() { printf '\n==== [%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
+
+out=${1:-${OUT:-}}
+[[ -n "$out" ]] || die "no output directory: pass it as \$1 or set \$OUT"
+mkdir -p "$out"
+out=$(cd "$out" && pwd)
+build=${SCANDYN_GPU_BUILD_DIR:-build-gpu}
+jobs=${SCANDYN_JOBS:-$(nproc)}
+arch=${CMAKE_CUDA_ARCHITECTURES:-90}
+summary=$out/summary.txt
+: >"$summary"
+status=0
+record() {  # record STEP RC
+  local word=ok
+  [[ "$2" == 0 ]] || { word="FAILED (exit $2)"; status=1; }
+  printf '%-28s %s\n' "$1" "$word" | tee -a "$summary"
+}
+
+# ---- staged dependencies ---------------------------------------------------------
+deps=$repo/.deps/root
+[[ -d "$deps/usr" ]] ||
+  die "$deps is missing: run scripts/prepare_device.sh on a networked machine and bring .deps/root along"
+urdfdom_cfg=$(find "$deps/usr/lib" -path '*/urdfdom/cmake/urdfdom-config.cmake' 2>/dev/null | head -n1)
+[[ -n "$urdfdom_cfg" ]] || die "no urdfdom CMake config under $deps (re-run prepare_device.sh)"
+libdir=$(dirname "$(dirname "$(dirname "$urdfdom_cfg")")")  # .../usr/lib/<multiarch>
+if grep -q ';/usr/lib/' "$(dirname "$urdfdom_cfg")/urdfdomExport.cmake"; then
+  die "urdfdomExport.cmake under $deps still names /usr/lib files (re-run prepare_device.sh)"
+fi
+export LD_LIBRARY_PATH=$libdir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+export CMAKE_PREFIX_PATH=$deps/usr${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}
+
+[[ -d "$repo/.models" ]] || die "$repo/.models is missing: run scripts/prepare_device.sh and bring .models along"
+export SCANDYN_MODELS_DIR=$repo/.models
+
+# CUDA tools: PATH first, then the usual toolkit location
+if ! command -v nvcc >/dev/null 2>&1 && [[ -x /usr/local/cuda/bin/nvcc ]]; then
+  export PATH=/usr/local/cuda/bin:$PATH
+fi
+command -v nvcc >/dev/null 2>&1 || die "nvcc not found (PATH, /usr/local/cuda/bin)"
+sanitizer=$(command -v compute-sanitizer 2>/dev/null || true)
+for c in "$(dirname "$(command -v nvcc)")/compute-sanitizer" \
+         "$(dirname "$(dirname "$(command -v nvcc)")")/compute-sanitizer/compute-sanitizer"; do
+  [[ -n "$sanitizer" ]] && break
+  [[ -x "$c" ]] && sanitizer=$c
+done
+
+# ---- 1. environment ------------------------------------------------------------
+note "environment -> $out/env.txt"
+{
+  echo "date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
+  echo "host: $(uname -srm), $(nproc) cores"
+  [[ -r /etc/os-release ]] && (. /etc/os-release && echo "os: $PRETTY_NAME")
+  command -v git >/dev/null 2>&1 && git -C "$repo" rev-parse HEAD 2>/dev/null | sed 's/^/commit: /'
+  echo "nvcc: $(nvcc --version | tail -n2 | paste -sd' ')"
+  echo "compute-sanitizer: ${sanitizer:-not found}"
+  echo "cmake: $(cmake --version | head -n1)"
+  echo "c++: $(c++ --version | head -n1)"
+  echo "CMAKE_PREFIX_PATH=$CMAKE_PREFIX_PATH"
+  echo "LD_LIBRARY_PATH=$LD_LIBRARY_PATH"
+  echo "SCANDYN_MODELS_DIR=$SCANDYN_MODELS_DIR"
+  echo "staged packages:"
+  sed 's/^/  /' "$repo/.deps/manifest.txt" 2>/dev/null || echo "  (no .deps/manifest.txt)"
+  echo
+  nvidia-smi 2>&1 || echo "nvidia-smi failed or is missing"
+} >"$out/env.txt" 2>&1
+cat "$out/env.txt"
+
+# ---- 2. configure ----------------------------------------------------------------
+note "configure $build (CUDA architectures $arch) -> $out/configure.log"
+set +e
+cmake -S "$repo" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
+  -DSCANDYN_CUDA=ON -DCMAKE_CUDA_ARCHITECTURES="$arch" -DSCANDYN_NATIVE=ON \
+  -DCMAKE_PREFIX_PATH="$deps/usr" -DSCANDYN_MODELS_DIR="$SCANDYN_MODELS_DIR" \
+  2>&1 | tee "$out/configure.log"
+rc=${PIPESTATUS[0]}
+set -e
+record configure "$rc"
+((rc == 0)) || die "configure failed; see $out/configure.log"
+# the urdfdom used must be the staged one
+grep -q "urdfdom_DIR:PATH=$deps" "$build/CMakeCache.txt" ||
+  die "CMake found urdfdom outside $deps: $(grep urdfdom_DIR "$build/CMakeCache.txt")"
+
+# ---- 3. build ------------------------------------------------------------------
+note "build (-j$jobs) -> $out/build.log"
+set +e
+cmake --build "$build" --parallel "$jobs" 2>&1 | tee "$out/build.log"
+rc=${PIPESTATUS[0]}
+set -e
+record build "$rc"
+((rc == 0)) || die "build failed; see $out/build.log"
+
+# ---- 4. tests ------------------------------------------------------------------
+note "ctest -> $out/ctest.log"
+junit=()
+ctest_version=$(ctest --version | awk 'NR == 1 {print $3}')
+if [[ "$(printf '%s\n' 3.21 "$ctest_version" | sort -V | head -n1)" == 3.21 ]]; then
+  junit=(--output-junit "$out/ctest.xml")  # CMake >= 3.21
+fi
+set +e
+ctest --test-dir "$build" --output-on-failure --parallel "$jobs" ${junit[@]+"${junit[@]}"} \
+  2>&1 | tee "$out/ctest.log"
+rc=${PIPESTATUS[0]}
+set -e
+record ctest "$rc"
+cp "$build/Testing/Temporary/LastTest.log" "$out/ctest-LastTest.log" 2>/dev/null || true
+# On this machine a skipped CUDA test means the device was not usable: a failure.
+skipped=$(grep -E 'Not Run|Skipped' "$out/ctest.log" | grep -iE 'cuda' || true)
+if [[ -n "$skipped" ]]; then
+  echo "$skipped"
+  record "cuda tests not skipped" 1
+else
+  record "cuda tests not skipped" 0
+fi
+
+# ---- 5. compute-sanitizer ------------------------------------------------------
+mapfile -t cuda_tests < <(find "$build/tests" -maxdepth 1 -type f -name 'test_cuda_*' -perm -u+x | sort)
+if [[ "${SCANDYN_SKIP_SANITIZER:-0}" == 1 ]]; then
+  note "compute-sanitizer skipped (SCANDYN_SKIP_SANITIZER=1)"
+elif [[ -z "$sanitizer" ]]; then
+  note "compute-sanitizer not found"
+  record "compute-sanitizer" 127
+elif ((${#cuda_tests[@]} == 0)); then
+  note "no test_cuda_* programs were built"
+  record "compute-sanitizer" 1
+else
+  mkdir -p "$out/sanitizer"
+  for t in "${cuda_tests[@]}"; do
+    name=$(basename "$t")
+    note "compute-sanitizer memcheck $name -> $out/sanitizer/$name.log"
+    set +e
+    "$sanitizer" --tool memcheck --leak-check full --error-exitcode 86 "$t" \
+      2>&1 | tee "$out/sanitizer/$name.log"
+    rc=${PIPESTATUS[0]}
+    set -e
+    record "memcheck $name" "$rc"
+  done
+fi
+
+# ---- 6. benchmarks -------------------------------------------------------------
+mapfile -t benches < <(find "$build/bench" -maxdepth 1 -type f -name 'bench_*' -perm -u+x 2>/dev/null | sort)
+if [[ "${SCANDYN_SKIP_BENCH:-0}" == 1 ]]; then
+  note "benchmarks skipped (SCANDYN_SKIP_BENCH=1)"
+elif ((${#benches[@]} == 0)); then
+  note "no bench_* programs were built"
+else
+  mkdir -p "$out/bench"
+  read -r -a bench_args <<<"${SCANDYN_BENCH_ARGS:-}"
+  for b in "${benches[@]}"; do
+    name=$(basename "$b")
+    note "$name -> $out/bench/$name.json"
+    set +e
+    timeout "${SCANDYN_BENCH_TIMEOUT:-300}" "$b" --benchmark_out="$out/bench/$name.json" \
+      --benchmark_out_format=json ${bench_args[@]+"${bench_args[@]}"} 2>&1 |
+      tee "$out/bench/$name.log"
+    rc=${PIPESTATUS[0]}
+    set -e
+    record "bench $name" "$rc"
+  done
+fi
+
+note "summary ($out/summary.txt)"
+cat "$summary"
+exit "$status"

@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# scripts/test.sh: the project's test command (what CI runs through .ci/run).
+#
+#   1. scripts/setup.sh (installs missing Debian packages)
+#   2. build/       Ninja, Release, CUDA when nvcc is found; ctest
+#   3. build-asan/  RelWithDebInfo with AddressSanitizer + UBSan, no CUDA, no
+#                   benchmarks; ctest
+# Both stages run even if the first one's tests fail; the exit status is non-zero
+# if anything failed.
+#
+# Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
+# SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
+# SCANDYN_MODELS_DIR (robot models; default ../shared/models beside the checkout),
+# SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_ASAN=1.
+set -euo pipefail
+
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+jobs=${SCANDYN_JOBS:-$(nproc 2>/dev/null || echo 2)}
+build=${SCANDYN_BUILD_DIR:-build}
+asan_build=${SCANDYN_ASAN_BUILD_DIR:-build-asan}
+
+stamp() { printf '\n==== [%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
+start=$SECONDS
+failed=()
+
+if [[ "${SCANDYN_SKIP_SETUP:-0}" != 1 ]]; then
+  stamp "setup"
+  scripts/setup.sh
+fi
+
+models=${SCANDYN_MODELS_DIR:-../shared/models}
+if [[ ! -d "$models" ]]; then
+  echo "test.sh: warning: robot models not found at $models" \
+       "(set SCANDYN_MODELS_DIR); tests that load them will fail" >&2
+fi
+
+# run_stage NAME BUILD_DIR CMAKE_ARGS...
+run_stage() {
+  local name=$1 dir=$2
+  shift 2
+  # (set -e does not apply inside a function called from `if`: check each step)
+  stamp "$name: configure ($dir)"
+  cmake -S . -B "$dir" -G Ninja "$@" || return 1
+  stamp "$name: build"
+  cmake --build "$dir" --parallel "$jobs" || return 1
+  stamp "$name: test"
+  ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" || return 1
+}
+
+if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release; then
+  failed+=(release)
+fi
+
+if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
+  # UBSan reports are fatal (-fno-sanitize-recover=all); show where they happen
+  export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1}
+  if ! run_stage asan "$asan_build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+       -DSCANDYN_SANITIZE=address,undefined -DSCANDYN_BENCH=OFF -DSCANDYN_CUDA=OFF; then
+    failed+=(asan)
+  fi
+fi
+
+elapsed=$((SECONDS - start))
+if ((${#failed[@]})); then
+  stamp "FAILED: ${failed[*]} ($((elapsed / 60))m$((elapsed % 60))s)"
+  exit 1
+fi
+stamp "all stages passed ($((elapsed / 60))m$((elapsed % 60))s)"
