@@ -39,14 +39,10 @@ bool parse_fd_method(const std::string& name, FdMethod& fd) {
   return false;
 }
 
-bool parse_precision(const std::string& name, Precision& p) {
-  for (Precision x : {Precision::Double, Precision::Float}) {
-    if (name == precision_name(x)) {
-      p = x;
-      return true;
-    }
-  }
-  return false;
+Precision parse_precision(const std::string& name) {
+  for (Precision p : {Precision::Double, Precision::Float})
+    if (name == precision_name(p)) return p;
+  throw UsageError("unknown --precision value '" + name + "' (expected double or float)");
 }
 
 std::size_t output_width(Algo algo, Index nv) {

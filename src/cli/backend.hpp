@@ -25,7 +25,8 @@ const char* precision_name(Precision p);  // "double", "float"
 // Parses a name as written on the command line; false if unknown.
 bool parse_algo(const std::string& name, Algo& algo);
 bool parse_fd_method(const std::string& name, FdMethod& fd);
-bool parse_precision(const std::string& name, Precision& p);
+// The --precision value; throws UsageError if unknown.
+Precision parse_precision(const std::string& name);
 
 // Values per instance that algo writes: nv, or nv * nv for Mass.
 std::size_t output_width(Algo algo, Index nv);

@@ -165,10 +165,7 @@ int run_bench(const Args& args) {
   }
   const std::size_t count = parse_instances(args.required("instances"));
   const Backend& backend = find_backend(args.get("backend", "serial"));
-  Precision precision;
-  if (!parse_precision(args.get("precision", "double"), precision))
-    throw UsageError("unknown --precision value '" + args.get("precision", "") +
-                     "' (expected double or float)");
+  const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
 
   const Model model = load_model(model_spec);

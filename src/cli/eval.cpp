@@ -142,10 +142,7 @@ int run_eval(const Args& args) {
   std::vector<Algo> algos;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
   const Backend& backend = find_backend(args.get("backend", "serial"));
-  Precision precision;
-  if (!parse_precision(args.get("precision", "double"), precision))
-    throw UsageError("unknown --precision value '" + args.get("precision", "") +
-                     "' (expected double or float)");
+  const Precision precision = parse_precision(args.get("precision", "double"));
 
   const Model model = load_model(model_spec);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
