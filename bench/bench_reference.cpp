@@ -15,6 +15,7 @@
 #include <cstring>
 #include <functional>
 #include <iostream>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -85,12 +86,13 @@ double max_rel_err(Algo a, const Model& md, const ModelTpl<S>& m, const States& 
     std::vector<S> q(&st.q[o], &st.q[o] + n), qd(&st.qd[o], &st.qd[o] + n), x(&st.x[o], &st.x[o] + n);
     run<S>(a, m, d, q.data(), qd.data(), x.data(), out.data());
     double scale = 1, err = 0;
-    for (std::size_t i = 0; i < len; ++i) scale = std::fmax(scale, std::fabs(ref[i]));
     for (std::size_t i = 0; i < len; ++i) {
       const double e = std::fabs(double(out[i]) - ref[i]);
-      if (!(e <= err)) err = e;
+      if (std::isnan(e)) return std::numeric_limits<double>::quiet_NaN();
+      err = std::fmax(err, e);
+      scale = std::fmax(scale, std::fabs(ref[i]));
     }
-    if (!(err / scale <= worst)) worst = err / scale;
+    worst = std::fmax(worst, err / scale);
   }
   return worst;
 }

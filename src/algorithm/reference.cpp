@@ -66,19 +66,20 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
     const Index p = model.bodies[i].parent;
     if (p >= 0) data.Ic[p] += data.Ic[i].transform_transpose(data.Xup[i]);
   }
-  for (Index k = 0; k < n * n; ++k) M[k] = S(0);
+  const std::size_t nn = static_cast<std::size_t>(n);  // row stride; n * n overflows Index past 46340
+  for (std::size_t k = 0; k < nn * nn; ++k) M[k] = S(0);
   // column i: F = Ic_i S_i carried up the path to the root
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
     Force<S> F = data.Ic[i] * joint_motion(b, S(1));
-    M[i * n + i] = joint_project(b, F);
+    M[i * nn + i] = joint_project(b, F);
     Index j = i;
     while (model.bodies[j].parent >= 0) {
       F = data.Xup[j].apply_transpose(F);
       j = model.bodies[j].parent;
       const S Mij = joint_project(model.bodies[j], F);
-      M[i * n + j] = Mij;
-      M[j * n + i] = Mij;
+      M[i * nn + j] = Mij;
+      M[j * nn + i] = Mij;
     }
   }
 }
@@ -125,15 +126,18 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
 template <class S>
 Status ltl_factor(const ModelTpl<S>& model, S* M) {
   const Index n = model.nv();
+  const std::size_t nn = static_cast<std::size_t>(n);
   for (Index k = n - 1; k >= 0; --k) {
-    const S d = M[k * n + k];
+    S* Lk = M + k * nn;  // row k
+    const S d = Lk[k];
     if (!pivot_ok(d)) return Status{k};
     const S Lkk = std::sqrt(d);
-    M[k * n + k] = Lkk;
-    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) M[k * n + i] /= Lkk;
+    Lk[k] = Lkk;
+    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) Lk[i] /= Lkk;
     for (Index i = model.parent(k); i >= 0; i = model.parent(i)) {
-      const S Lki = M[k * n + i];
-      for (Index j = i; j >= 0; j = model.parent(j)) M[i * n + j] -= Lki * M[k * n + j];
+      const S Lki = Lk[i];
+      S* Mi = M + i * nn;
+      for (Index j = i; j >= 0; j = model.parent(j)) Mi[j] -= Lki * Lk[j];
     }
   }
   return Status{};
@@ -142,15 +146,18 @@ Status ltl_factor(const ModelTpl<S>& model, S* M) {
 template <class S>
 void ltl_solve(const ModelTpl<S>& model, const S* L, S* x) {
   const Index n = model.nv();
+  const std::size_t nn = static_cast<std::size_t>(n);
   // L^T y = b
   for (Index i = n - 1; i >= 0; --i) {
-    x[i] /= L[i * n + i];
-    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[j] -= L[i * n + j] * x[i];
+    const S* Li = L + i * nn;
+    x[i] /= Li[i];
+    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[j] -= Li[j] * x[i];
   }
   // L x = y
   for (Index i = 0; i < n; ++i) {
-    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[i] -= L[i * n + j] * x[j];
-    x[i] /= L[i * n + i];
+    const S* Li = L + i * nn;
+    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[i] -= Li[j] * x[j];
+    x[i] /= Li[i];
   }
 }
 
