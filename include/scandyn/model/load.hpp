@@ -17,13 +17,22 @@ class ModelError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// An orientation as a unit quaternion (x, y, z, w). parse_urdf fills these from
+// urdfdom, which stores only quaternions: turning them back into roll-pitch-yaw
+// (urdf::Rotation::getRPY) loses up to ~5e-3 rad near pitch = +-pi/2.
+struct RawQuat {
+  double x = 0, y = 0, z = 0, w = 1;
+};
+
 // A link as written in a URDF file.
 struct RawLink {
   std::string name;
   bool has_inertial = false;  // false: massless frame (no <inertial> element)
   double mass = 0;            // kg
   Vec3<double> com_xyz{0, 0, 0};  // <inertial><origin xyz>: inertial frame in link frame (m)
-  Vec3<double> com_rpy{0, 0, 0};  // <inertial><origin rpy> (rad)
+  Vec3<double> com_rpy{0, 0, 0};  // <inertial><origin rpy> (rad), ignored when com_has_quat
+  bool com_has_quat = false;      // true: the inertial frame's orientation is com_quat
+  RawQuat com_quat;
   Sym3<double> inertia{0, 0, 0, 0, 0, 0};  // about the centre of mass, inertial-frame axes (kg m^2)
 };
 
@@ -37,8 +46,10 @@ struct RawJoint {
   std::string parent;             // parent link name
   std::string child;              // child link name
   Vec3<double> xyz{0, 0, 0};      // <origin xyz>: child frame in parent frame (m)
-  Vec3<double> rpy{0, 0, 0};      // <origin rpy> (rad)
-  Vec3<double> axis{1, 0, 0};     // <axis xyz>, joint frame (URDF default 1 0 0)
+  Vec3<double> rpy{0, 0, 0};      // <origin rpy> (rad), ignored when has_quat
+  bool has_quat = false;          // true: the origin's orientation is quat
+  RawQuat quat;
+  Vec3<double> axis{1, 0, 0};     // <axis xyz>, joint frame (URDF default 1 0 0); unused if fixed
 };
 
 struct RawTree {
@@ -48,26 +59,46 @@ struct RawTree {
   std::vector<RawJoint> joints;
 };
 
+// Options for building a model (defaults: every check on).
+struct BuildOptions {
+  // Require each link's rotational inertia about its centre of mass to be one a rigid
+  // body can have: positive definite, principal moments satisfying the triangle
+  // inequality. Some published models break this (GRiD's atlas.urdf: links l_lglut,
+  // utorso, l_foot, r_foot); set false to load them anyway. Mass > 0, finite numbers
+  // and everything structural are checked regardless.
+  bool require_physical_inertia = true;
+  // When non-null, each inertia check waived by require_physical_inertia = false
+  // appends its message (the line ModelError would have had) here.
+  std::vector<std::string>* warnings = nullptr;
+};
+
 // Builds and validates a model: DoF order, fixed-joint merging, every check
-// listed in the README (unknown joint type, cycles, missing links, multiple
-// parents or roots, non-positive mass, inertia not positive definite or violating
-// the triangle inequality, NaN/Inf, zero axis). Throws ModelError.
-Model build_model(const RawTree& tree);
+// listed in docs/models.md (unsupported joint type, cycles, missing links, multiple
+// parents or roots, duplicate names, non-positive mass, inertia not positive definite
+// or violating the triangle inequality, NaN/Inf, zero axis). A tree whose joints are
+// all fixed gives an empty model (nv = 0). Throws ModelError.
+Model build_model(const RawTree& tree, const BuildOptions& options = {});
 
 // Parses URDF text (source names the file in error messages). Throws ModelError.
 RawTree parse_urdf(const std::string& xml, const std::string& source);
 
 // Reads and builds a URDF file. Throws ModelError (missing file included).
-Model load_urdf(const std::string& path);
+Model load_urdf(const std::string& path, const BuildOptions& options = {});
 
-// Builds a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N.
-// Throws ModelError for a malformed spec.
+// The raw tree of a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N
+// (geometry in docs/models.md). N, K >= 1, at most kMaxGeneratedBodies moving bodies.
+// Throws ModelError naming the spec when it is malformed.
+RawTree generate_tree(const std::string& spec);
+inline constexpr long long kMaxGeneratedBodies = 10000000;
+
+// build_model(generate_tree(spec)). Throws ModelError for a malformed spec.
 Model make_generated(const std::string& spec);
 
-// True when spec names a generator (chain:, rope:, tree:, curtain:).
+// True when spec names a generator (starts with chain:, rope:, tree: or curtain:);
+// such a string is never taken as a file path (write ./rope:1.urdf for a file).
 bool is_generator_spec(const std::string& spec);
 
 // A URDF path or a generator spec.
-Model load_model(const std::string& path_or_spec);
+Model load_model(const std::string& path_or_spec, const BuildOptions& options = {});
 
 }  // namespace scandyn
