@@ -217,7 +217,6 @@ TEST_P(RandomTrees, IdentitiesDouble) {
 }
 TEST_P(RandomTrees, IdentitiesFloat) {
   const int n = GetParam();
-  if (n > 50) GTEST_SKIP() << "float FD on deep random trees is conditioning-limited; see FloatVsDouble";
   check_identities<float>(random_model(n, 5 * n + 1), 9, "n=" + std::to_string(n));
 }
 TEST_P(RandomTrees, VirtualWork) {
@@ -228,7 +227,7 @@ INSTANTIATE_TEST_SUITE_P(Sizes, RandomTrees, ::testing::Values(1, 2, 3, 5, 8, 13
 
 TEST(Robots, Identities) {
   for (const auto& f : robot_files()) {
-    const Model model = load_urdf(test::model_path(f));
+    const Model model = test::load_robot(f);
     check_identities<double>(model, 11, f + " double");
     check_identities<float>(model, 12, f + " float");
     check_virtual_work<double>(model, 13);
@@ -245,7 +244,7 @@ TEST(Generated, Identities) {
 TEST(Precision, FloatVsDouble) {
   for (const auto& f : robot_files()) {
     SCOPED_TRACE(f);
-    const Model md = load_urdf(test::model_path(f));
+    const Model md = test::load_robot(f);
     const ModelTpl<float> mf = md.cast<float>();
     Data dd(md);
     DataTpl<float> df(mf);

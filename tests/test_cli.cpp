@@ -236,6 +236,23 @@ TEST_F(Cli, InfoIiwaListsSevenJoints) {
   }
 }
 
+TEST_F(Cli, NonPhysicalInertiaIsRefusedUnlessAllowed) {
+  // GRiD's atlas.urdf: utorso, l_foot, r_foot not positive definite, l_lglut breaks
+  // the triangle inequality
+  const std::string atlas = quote(scandyn::test::model_path("atlas.urdf"));
+  const Result strict = run("info --model " + atlas);
+  EXPECT_EQ(strict.code, 1);
+  EXPECT_NE(strict.err.find("atlas.urdf"), std::string::npos) << strict.err;
+  EXPECT_NE(strict.err.find("--allow-nonphysical-inertia"), std::string::npos) << strict.err;
+  EXPECT_EQ(std::count(strict.err.begin(), strict.err.end(), '\n'), 1) << strict.err;
+  const Result lenient = run("info --model " + atlas + " --allow-nonphysical-inertia");
+  ASSERT_EQ(lenient.code, 0) << lenient.err;
+  EXPECT_EQ(info_dofs(lenient.out).size(), 30u);
+  EXPECT_NE(lenient.err.find("warning"), std::string::npos);
+  EXPECT_NE(lenient.err.find("l_foot"), std::string::npos);
+  EXPECT_NE(run("info --model " + atlas + " --allow-nonphysical-inertia=1").code, 0);
+}
+
 // ---- eval against the library -------------------------------------------------
 
 class EvalModel : public Cli, public ::testing::WithParamInterface<const char*> {

@@ -203,10 +203,9 @@ TEST(RneaScan, EqualsReferenceOnRandomTrees) {
 }
 
 TEST(RneaScan, EqualsReferenceOnRobotsAndGenerators) {
-  std::vector<std::string> specs = {test::model_path("iiwa.urdf"), test::model_path("hyq.urdf"),
-                                    test::model_path("atlas.urdf"), "tree:500:4", "curtain:10:30", "chain:50"};
+  std::vector<std::string> specs = {"iiwa.urdf", "hyq.urdf", "atlas.urdf", "tree:500:4", "curtain:10:30", "chain:50"};
   for (const auto& s : specs) {
-    const Model m = load_model(s);
+    const Model m = s.find(".urdf") != std::string::npos ? test::load_robot(s) : load_model(s);
     for (ScanForm form : {ScanForm::Local, ScanForm::World})
       for (int t : {1, 4}) {
         EXPECT_LT(scan_vs_reference<double>(m, form, t, 5, true), 1e-10) << s;

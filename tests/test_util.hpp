@@ -9,7 +9,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "scandyn/model/model.hpp"
+#include "scandyn/model/load.hpp"
 
 namespace scandyn::test {
 
@@ -20,6 +20,14 @@ inline std::string models_dir() {
   return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
 }
 inline std::string model_path(const std::string& file) { return models_dir() + "/" + file; }
+
+// The shipped robots (iiwa.urdf, hyq.urdf, atlas.urdf). GRiD's atlas.urdf has four
+// links whose inertia no rigid body can have, so the physical-inertia check is waived.
+inline Model load_robot(const std::string& file) {
+  BuildOptions o;
+  o.require_physical_inertia = false;
+  return load_urdf(model_path(file), o);
+}
 
 // The scandyn executable built alongside the tests.
 inline std::string cli_path() { return SCANDYN_CLI_PATH; }

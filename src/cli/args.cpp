@@ -4,6 +4,10 @@
 
 #include "cli.hpp"
 
+#include <cstdio>
+
+#include "scandyn/model/load.hpp"
+
 namespace scandyn::cli {
 
 Args::Args(std::string command, int argc, char** argv, int first,
@@ -23,6 +27,11 @@ Args::Args(std::string command, int argc, char** argv, int first,
     if (!known) throw UsageError("unknown flag '--" + name + "' for '" + command_ + "'");
     if (values_.count(name)) throw UsageError("flag '--" + name + "' given more than once");
     std::string value;
+    if (std::find(kSwitches.begin(), kSwitches.end(), name) != kSwitches.end()) {
+      if (eq != std::string::npos) throw UsageError("flag '--" + name + "' takes no value");
+      values_[name] = "1";
+      continue;
+    }
     if (eq != std::string::npos) {
       value = arg.substr(eq + 1);
     } else {
@@ -44,6 +53,16 @@ const std::string& Args::required(const std::string& name) const {
 std::string Args::get(const std::string& name, const std::string& fallback) const {
   const auto it = values_.find(name);
   return it == values_.end() ? fallback : it->second;
+}
+
+Model load_cli_model(const Args& args) {
+  BuildOptions options;
+  std::vector<std::string> warnings;
+  options.require_physical_inertia = !args.has("allow-nonphysical-inertia");
+  options.warnings = &warnings;
+  Model model = load_model(args.required("model"), options);
+  for (const auto& w : warnings) std::fprintf(stderr, "scandyn: warning: %s\n", w.c_str());
+  return model;
 }
 
 }  // namespace scandyn::cli

@@ -168,7 +168,7 @@ int run_bench(const Args& args) {
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
 
-  const Model model = load_model(model_spec);
+  const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   // at most: inputs in double and in the precision, outputs in the precision and in double

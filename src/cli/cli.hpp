@@ -6,6 +6,8 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/model/model.hpp"
+
 namespace scandyn::cli {
 
 // Exit codes.
@@ -28,7 +30,8 @@ class DataError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-// The flags of one subcommand: "--name value" or "--name=value"; "--help" alone.
+// The flags of one subcommand: "--name value" or "--name=value"; "--help" and the
+// switches (flags without a value, kSwitches) alone.
 class Args {
  public:
   // Parses argv[first, argc) for subcommand command, accepting only the given
@@ -49,6 +52,13 @@ class Args {
   bool help_ = false;
   std::map<std::string, std::string> values_;
 };
+
+// Flags that take no value.
+inline const std::vector<std::string> kSwitches = {"allow-nonphysical-inertia"};
+
+// Loads --model, honouring --allow-nonphysical-inertia (waived inertia checks are
+// printed to stderr as warnings). Throws ModelError.
+Model load_cli_model(const Args& args);
 
 // The subcommands; each returns the exit code and throws UsageError, DataError,
 // CsvError or ModelError on failure.

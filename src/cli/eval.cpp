@@ -144,7 +144,7 @@ int run_eval(const Args& args) {
   const Backend& backend = find_backend(args.get("backend", "serial"));
   const Precision precision = parse_precision(args.get("precision", "double"));
 
-  const Model model = load_model(model_spec);
+  const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
 
   CsvReader in(states_path);

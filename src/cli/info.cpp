@@ -39,7 +39,7 @@ void print_table(const std::vector<std::vector<std::string>>& rows) {
 }  // namespace
 
 int run_info(const Args& args) {
-  const Model model = load_model(args.required("model"));
+  const Model model = load_cli_model(args);
   print_table({
       {"model", model.name},
       {"source", model.source},

@@ -27,7 +27,7 @@ const char* const kUsage =
     "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
 
 const char* const kInfoUsage =
-    "usage: scandyn info --model M\n"
+    "usage: scandyn info --model M [--allow-nonphysical-inertia]\n"
     "\n"
     "Prints the model's name, source, nv, root link and gravity, then one line per DoF\n"
     "in DoF order: index, joint, type, parent index (-1 = base), child link, axis.\n";
@@ -44,7 +44,10 @@ const char* const kEvalUsage =
     "                    mass (q), bias (q, qd); default: each of id, fd, bias whose\n"
     "                    columns are all present\n"
     "  --backend NAME    serial (default)\n"
-    "  --precision P     double (default) or float\n";
+    "  --precision P     double (default) or float\n"
+    "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
+    "                    (not positive definite, or breaking the triangle inequality),\n"
+    "                    with a warning, instead of refusing the model\n";
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd aba|jsi]\n"
@@ -56,7 +59,8 @@ const char* const kBenchUsage =
     "evals_per_second,max_rel_err (with the header when stdout is a terminal).\n"
     "  --fd METHOD       forward dynamics by aba (default) or jsi (CRBA + Cholesky)\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
-    "  --csv FILE        also append the row to FILE (created with the header)\n";
+    "  --csv FILE        also append the row to FILE (created with the header)\n"
+    "  --allow-nonphysical-inertia  as for eval\n";
 
 // One subcommand: its name, usage text, accepted flags and body.
 struct Command {
@@ -67,11 +71,14 @@ struct Command {
 };
 
 const Command kCommands[] = {
-    {"info", kInfoUsage, {"model"}, &run_info},
-    {"eval", kEvalUsage, {"model", "states", "out", "algo", "backend", "precision"}, &run_eval},
+    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
+    {"eval",
+     kEvalUsage,
+     {"model", "states", "out", "algo", "backend", "precision", "allow-nonphysical-inertia"},
+     &run_eval},
     {"bench",
      kBenchUsage,
-     {"model", "algo", "fd", "instances", "backend", "precision", "min-time", "csv"},
+     {"model", "algo", "fd", "instances", "backend", "precision", "min-time", "csv", "allow-nonphysical-inertia"},
      &run_bench},
 };
 

@@ -101,8 +101,8 @@ void check_link(const RawTree& t, const RawLink& l, const BuildOptions& opt) {
                 : "principal moments " + moments +
                       " violate the triangle inequality (the largest exceeds the sum of the other two)";
   if (opt.require_physical_inertia)
-    fail(t, L, l.name, what + "; no rigid body has this inertia (BuildOptions::"
-                                   "require_physical_inertia = false loads it anyway)");
+    fail(t, L, l.name, what + "; no rigid body has this inertia (load it anyway with "
+                                   "--allow-nonphysical-inertia, or BuildOptions::require_physical_inertia = false)");
   if (opt.warnings) opt.warnings->push_back(t.source + ": link '" + l.name + "': " + what);
 }
 
