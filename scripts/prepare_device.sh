@@ -79,7 +79,8 @@ for p in "${packages[@]}"; do
   deb=$(compgen -G "$debs/${p}_${v//:/%3a}_*.deb" | head -n1)
   [[ -n "$deb" ]] || die "missing .deb for $p $v"
   dpkg-deb -x "$deb" "$root"
-  echo "$(dpkg-deb -f "$deb" Package Version Architecture | paste -sd' ')" >>"$deps/manifest.txt"
+  printf '%s %s %s\n' "$(dpkg-deb -f "$deb" Package)" "$(dpkg-deb -f "$deb" Version)" \
+    "$(dpkg-deb -f "$deb" Architecture)" >>"$deps/manifest.txt"
 done
 {
   echo "# unpacked by scripts/prepare_device.sh on $(date -u +%Y-%m-%dT%H:%M:%SZ)"
