@@ -22,6 +22,9 @@ DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
   u.resize(n);
   if (mass_matrix) M.resize(n * n);
   h.resize(n);
+  run_start.resize(n);
+  for (std::size_t i = 0; i < n; ++i)
+    run_start[i] = (i > 0 && model.bodies[i].parent == Index(i) - 1) ? run_start[i - 1] : Index(i);
 }
 
 template <class S>
@@ -123,8 +126,19 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
   return Status{};
 }
 
+// Calls f(j) for every ancestor j of body i and i itself, from i towards the root,
+// walking contiguous chain runs as plain loops (vectorisable, no pointer chasing).
+template <class S, class F>
+inline void for_path(const ModelTpl<S>& model, const DataTpl<S>& data, Index i, F f) {
+  while (i >= 0) {
+    const Index r = data.run_start[i];
+    for (Index j = i; j >= r; --j) f(j);
+    i = model.parent(r);
+  }
+}
+
 template <class S>
-Status ltl_factor(const ModelTpl<S>& model, S* M) {
+Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M) {
   const Index n = model.nv();
   const std::size_t nn = static_cast<std::size_t>(n);
   for (Index k = n - 1; k >= 0; --k) {
@@ -133,31 +147,34 @@ Status ltl_factor(const ModelTpl<S>& model, S* M) {
     if (!pivot_ok(d)) return Status{k};
     const S Lkk = std::sqrt(d);
     Lk[k] = Lkk;
-    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) Lk[i] /= Lkk;
-    for (Index i = model.parent(k); i >= 0; i = model.parent(i)) {
+    const S inv = S(1) / Lkk;
+    for_path(model, data, model.parent(k), [&](Index i) { Lk[i] *= inv; });
+    for_path(model, data, model.parent(k), [&](Index i) {
       const S Lki = Lk[i];
       S* Mi = M + i * nn;
-      for (Index j = i; j >= 0; j = model.parent(j)) Mi[j] -= Lki * Lk[j];
-    }
+      for_path(model, data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
+    });
   }
   return Status{};
 }
 
 template <class S>
-void ltl_solve(const ModelTpl<S>& model, const S* L, S* x) {
+void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* x) {
   const Index n = model.nv();
   const std::size_t nn = static_cast<std::size_t>(n);
   // L^T y = b
   for (Index i = n - 1; i >= 0; --i) {
     const S* Li = L + i * nn;
     x[i] /= Li[i];
-    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[j] -= Li[j] * x[i];
+    const S xi = x[i];
+    for_path(model, data, model.parent(i), [&](Index j) { x[j] -= Li[j] * xi; });
   }
   // L x = y
   for (Index i = 0; i < n; ++i) {
     const S* Li = L + i * nn;
-    for (Index j = model.parent(i); j >= 0; j = model.parent(j)) x[i] -= Li[j] * x[j];
-    x[i] /= Li[i];
+    S acc = x[i];
+    for_path(model, data, model.parent(i), [&](Index j) { acc -= Li[j] * x[j]; });
+    x[i] = acc / Li[i];
   }
 }
 
@@ -169,10 +186,10 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
     throw std::logic_error("fd_jsi: DataTpl was built without its mass-matrix workspace");
   crba(model, data, q, data.M.data());
   bias_forces(model, data, q, qd, data.h.data(), fext);
-  const Status st = ltl_factor(model, data.M.data());
+  const Status st = ltl_factor(model, data, data.M.data());
   if (!st.ok()) return st;
   for (Index i = 0; i < n; ++i) qdd[i] = tau[i] - data.h[i];
-  ltl_solve(model, data.M.data(), qdd);
+  ltl_solve(model, data, data.M.data(), qdd);
   return st;
 }
 
@@ -187,8 +204,8 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
                       const Force<S>*);                                                           \
   template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
                          const Force<S>*);                                                        \
-  template Status ltl_factor(const ModelTpl<S>&, S*);                                             \
-  template void ltl_solve(const ModelTpl<S>&, const S*, S*);
+  template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \
+  template void ltl_solve(const ModelTpl<S>&, const DataTpl<S>&, const S*, S*);
 
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)

@@ -35,6 +35,8 @@ struct DataTpl {
   std::vector<S> u;               // (nv) ABA tau - S^T pA
   std::vector<S> M;               // (nv x nv) row-major mass matrix / its factor (fd_jsi), or empty
   std::vector<S> h;               // (nv) bias forces for JSI
+  std::vector<Index> run_start;   // (nv) first body of the chain run holding body i: bodies
+                                  // run_start[i]..i each have the previous one as parent
 };
 
 using Data = DataTpl<double>;
@@ -72,12 +74,13 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
               S* qdd, const Force<S>* fext = nullptr);
 
 // In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
-// L written to the lower triangle). parent gives the branch-induced sparsity.
+// L written to the lower triangle). parent gives the branch-induced sparsity; the
+// ancestor walks run over data.run_start's contiguous chain runs.
 template <class S>
-Status ltl_factor(const ModelTpl<S>& model, S* M);
+Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M);
 
 // Solves L^T L x = b in place (x = b on entry) with the factor from ltl_factor.
 template <class S>
-void ltl_solve(const ModelTpl<S>& model, const S* L, S* x);
+void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* x);
 
 }  // namespace scandyn
