@@ -363,6 +363,29 @@ TEST_F(Cli, EvalOutputDoesNotDependOnInputColumnOrder) {
   EXPECT_EQ(a, read_text(path("b_out.csv")));
 }
 
+TEST_F(Cli, EvalBackendsAndStrategiesAgree) {
+  // OpenMP splits instances over threads running the same recursion: identical
+  // bytes. The scan forms reassociate the sums: equal to rounding.
+  const States s(7, 40, 21);
+  write_text(path("in.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  const std::string model = " --model " + quote(scandyn::test::model_path("iiwa.urdf"));
+  const std::string io = " --states in.csv --algo id,fd,mass,bias";
+  ASSERT_EQ(run("eval --out serial.csv" + model + io).code, 0);
+  const Result omp = run("eval --out omp.csv --backend openmp --threads 2" + model + io);
+  ASSERT_EQ(omp.code, 0) << omp.err;
+  EXPECT_EQ(read_text(path("serial.csv")), read_text(path("omp.csv")));
+  const Table ref = parse_csv(read_text(path("serial.csv")));
+  for (const char* strategy : {"scan-local", "scan-world"}) {
+    const std::string out = std::string(strategy) + ".csv";
+    const Result r = run("eval --out " + out + " --algo id --states in.csv --strategy " + strategy + model);
+    ASSERT_EQ(r.code, 0) << r.err;
+    const Table t = parse_csv(read_text(path(out)));
+    ASSERT_EQ(t.rows.size(), ref.rows.size());
+    for (std::size_t k = 0; k < t.rows.size(); ++k)
+      EXPECT_LT(scandyn::test::max_rel_err(t.get(k, "tau_id_", 7), ref.get(k, "tau_id_", 7)), 1e-13) << strategy;
+  }
+}
+
 TEST_F(Cli, EvalDefaultAlgorithmsFollowTheColumnsPresent) {
   const States s(3, 2, 14);
   struct Case {
@@ -485,7 +508,9 @@ TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
       {"unknown algo", kHeader, kEval + "--algo id,foo", 2, {"unknown --algo value 'foo'"}},
       {"empty algo item", kHeader, kEval + "--algo id,", 2, {"unknown --algo value ''"}},
       {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"unknown --backend value 'gpu'"}},
-      {"openmp backend", kHeader, kEval + "--backend openmp", 2, {"backend 'openmp' is not available in this build"}},
+      {"cuda backend", kHeader, kEval + "--backend cuda", 2, {"backend 'cuda' is not available in this build"}},
+      {"unknown strategy", kHeader, kEval + "--strategy fastest", 2, {"--strategy: unknown strategy 'fastest'"}},
+      {"bad threads", kHeader, kEval + "--threads 0", 2, {"--threads must be an integer"}},
       {"cuda backend", kHeader, kEval + "--backend cuda", 2, {"backend 'cuda' is not available in this build"}},
       {"unknown precision", kHeader, kEval + "--precision half", 2, {"unknown --precision value 'half'"}},
       {"unknown flag", kHeader, kEval + "--fast", 2, {"unknown flag '--fast'"}},
@@ -573,7 +598,8 @@ TEST_F(Cli, HelpAndUsageErrors) {
         "bench --model chain:3 --algo id --fd jsi --instances 1",
         "bench --model chain:3 --algo fd --fd lu --instances 1",
         "bench --model chain:3 --algo id --instances 1 --min-time -1",
-        "bench --model chain:3 --algo id --instances 1 --backend openmp"}) {
+        "bench --model chain:3 --algo id --instances 1 --backend cuda",
+        "bench --model chain:3 --algo fd --instances 1 --strategy scan-local"}) {
     const Result r = run(args);
     EXPECT_EQ(r.code, 2) << args;
     EXPECT_EQ(r.err.rfind("scandyn: ", 0), 0u) << args << ": " << r.err;
@@ -583,7 +609,7 @@ TEST_F(Cli, HelpAndUsageErrors) {
 }
 
 TEST_F(Cli, UnavailableBackendMessageIsExact) {
-  for (const char* backend : {"openmp", "cuda"}) {
+  for (const char* backend : {"cuda"}) {
     const Result r =
         run(std::string("bench --model chain:2 --algo id --instances 1 --backend ") + backend);
     EXPECT_EQ(r.code, 2);
@@ -606,7 +632,7 @@ TEST_F(Cli, BenchPrintsOneRow) {
   const std::vector<std::string> id = bench_row(run(base + " --algo id"));
   ASSERT_EQ(id.size(), 10u);
   EXPECT_EQ(id[0], "id");
-  EXPECT_EQ(id[1], "serial");
+  EXPECT_EQ(id[1], "recursion");
   EXPECT_EQ(id[2], "serial");
   EXPECT_EQ(id[3], "double");
   EXPECT_EQ(id[4], "chain:5");

@@ -2,6 +2,14 @@
 #include "backend.hpp"
 
 #include "cli.hpp"
+#include "csv.hpp"
+#include "scandyn/build_config.hpp"
+
+#include <cmath>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 
 namespace scandyn::cli {
 
@@ -70,68 +78,148 @@ std::string describe_fd_failure(FdMethod fd, const Status& status) {
          " is not positive";
 }
 
-// ---- serial reference backend -------------------------------------------------
+// ---- CPU backends ---------------------------------------------------------------
 
 namespace {
 
-// Loops over the instances calling the serial reference algorithms with one
-// preallocated DataTpl. Its nv x nv workspace, needed by fd_jsi alone, is
-// allocated on the first JSI call (a 10^5-link rope would need 80 GB).
+// Serial (one thread) or OpenMP (threads over instances). Inverse dynamics goes
+// through the library's batched engine, which also provides the scan strategies
+// across links; the other algorithms run the reference per instance, one
+// preallocated DataTpl per thread. The nv x nv workspaces that fd_jsi alone needs
+// are made on the first JSI call (a 10^5-link rope would need 80 GB).
 template <class S>
-class SerialEvaluator final : public Evaluator<S> {
+class CpuEvaluator final : public Evaluator<S> {
  public:
-  explicit SerialEvaluator(const ModelTpl<S>& model) : model_(model), data_(model, false) {}
+  CpuEvaluator(const ModelTpl<S>& model, BackendKind kind, const EvalOptions& o) : model_(model) {
+    BackendOptions bo;
+    bo.backend = kind;
+    bo.strategy = o.strategy;
+    bo.threads = kind == BackendKind::Serial ? 1 : o.threads;
+    bo.max_batch = static_cast<Index>(o.max_batch);
+    id_ = make_inverse_dynamics<S>(model, bo);
+    threads_ = kind == BackendKind::Serial ? 1 : (o.threads > 0 ? o.threads : max_threads());
+    for (int t = 0; t < threads_; ++t) data_.emplace_back(model, false);
+  }
 
   BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) override {
-    const std::size_t n = static_cast<std::size_t>(model_.nv());
-    const std::size_t width = output_width(algo, model_.nv());
-    BatchStatus st;
-    for (std::size_t b = 0; b < in.count; ++b) {
-      const std::size_t k = b * n;
-      S* o = out + b * width;
+    const Index nv = model_.nv();
+    const std::size_t n = static_cast<std::size_t>(nv);
+    if (algo == Algo::Id) {
+      const Index B = static_cast<Index>(in.count);
+      IdBatchIn<S> id{BatchView<const S>::aos(in.q, nv, B), BatchView<const S>::aos(in.qd, nv, B),
+                      BatchView<const S>::aos(in.qdd, nv, B)};
+      id_->compute(id, BatchView<S>::aos(out, nv, B));
+      return {};
+    }
+    if (algo == Algo::Fd && fd == FdMethod::Jsi && jsi_.empty())
+      for (int t = 0; t < threads_; ++t) jsi_.emplace_back(model_, true);
+    const std::size_t width = output_width(algo, nv);
+    const long long count = static_cast<long long>(in.count);
+    // first failing instance, if any
+    long long failed = count;
+    Status failed_status;
+#pragma omp parallel for num_threads(threads_) schedule(static) if (threads_ > 1 && count > 1)
+    for (long long b = 0; b < count; ++b) {
+      const int t = thread_index();
+      const std::size_t k = static_cast<std::size_t>(b) * n;
+      S* o = out + static_cast<std::size_t>(b) * width;
+      Status st;
       switch (algo) {
-        case Algo::Id: rnea(model_, data_, in.q + k, in.qd + k, in.qdd + k, o); break;
-        case Algo::Bias: bias_forces(model_, data_, in.q + k, in.qd + k, o); break;
-        case Algo::Mass: crba(model_, data_, in.q + k, o); break;
+        case Algo::Bias: bias_forces(model_, data_[t], in.q + k, in.qd + k, o); break;
+        case Algo::Mass: crba(model_, data_[t], in.q + k, o); break;
         case Algo::Fd:
-          if (fd == FdMethod::Aba) {
-            st.status = aba(model_, data_, in.q + k, in.qd + k, in.tau + k, o);
-          } else {
-            if (!jsi_data_) jsi_data_ = std::make_unique<DataTpl<S>>(model_, true);
-            st.status = fd_jsi(model_, *jsi_data_, in.q + k, in.qd + k, in.tau + k, o);
-          }
-          if (!st.ok()) {
-            st.instance = b;
-            return st;
-          }
+          st = fd == FdMethod::Aba ? aba(model_, data_[t], in.q + k, in.qd + k, in.tau + k, o)
+                                   : fd_jsi(model_, jsi_[t], in.q + k, in.qd + k, in.tau + k, o);
           break;
+        case Algo::Id: break;
       }
+      if (!st.ok()) {
+#pragma omp critical(scandyn_cli_fd_failure)
+        if (b < failed) {
+          failed = b;
+          failed_status = st;
+        }
+      }
+    }
+    BatchStatus st;
+    if (failed < count) {
+      st.instance = static_cast<std::size_t>(failed);
+      st.status = failed_status;
     }
     return st;
   }
 
+  std::string strategy(Algo algo, FdMethod fd) const override {
+    if (algo == Algo::Id) return id_->strategy();
+    if (algo == Algo::Fd) return fd_method_name(fd);
+    return "serial";
+  }
+
  private:
+  static int max_threads() {
+#ifdef _OPENMP
+    return omp_get_max_threads();
+#else
+    return 1;
+#endif
+  }
+  static int thread_index() {
+#ifdef _OPENMP
+    return omp_get_thread_num();
+#else
+    return 0;
+#endif
+  }
+
   const ModelTpl<S>& model_;
-  DataTpl<S> data_;                       // without the mass-matrix workspace
-  std::unique_ptr<DataTpl<S>> jsi_data_;  // with it, for fd_jsi
+  int threads_ = 1;
+  std::unique_ptr<InverseDynamics<S>> id_;  // batched inverse dynamics
+  std::vector<DataTpl<S>> data_;            // (threads) without the mass-matrix workspace
+  std::vector<DataTpl<S>> jsi_;             // (threads) with it, for fd_jsi
 };
+
+template <class S>
+std::unique_ptr<Evaluator<S>> make_openmp_evaluator(const ModelTpl<S>& model, const EvalOptions& options) {
+  return std::make_unique<CpuEvaluator<S>>(model, BackendKind::OpenMP, options);
+}
 
 // The backends this command knows. Entries with null factories are recognised
 // names that this build does not contain (they get a clear error, not "unknown").
 const Backend kBackends[] = {
     {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>},
+#if SCANDYN_HAS_OPENMP && defined(_OPENMP)
+    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>},
+#else
     {"openmp", nullptr, nullptr},
+#endif
     {"cuda", nullptr, nullptr},
 };
 
 }  // namespace
 
 template <class S>
-std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model) {
-  return std::make_unique<SerialEvaluator<S>>(model);
+std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model, const EvalOptions& options) {
+  return std::make_unique<CpuEvaluator<S>>(model, BackendKind::Serial, options);
 }
-template std::unique_ptr<Evaluator<double>> make_serial_evaluator(const ModelTpl<double>&);
-template std::unique_ptr<Evaluator<float>> make_serial_evaluator(const ModelTpl<float>&);
+template std::unique_ptr<Evaluator<double>> make_serial_evaluator(const ModelTpl<double>&, const EvalOptions&);
+template std::unique_ptr<Evaluator<float>> make_serial_evaluator(const ModelTpl<float>&, const EvalOptions&);
+
+EvalOptions parse_eval_options(const Args& args) {
+  EvalOptions o;
+  try {
+    if (args.has("strategy")) o.strategy = parse_strategy(args.required("strategy"));
+  } catch (const BackendError& e) {
+    throw UsageError(std::string("--strategy: ") + e.what());
+  }
+  if (args.has("threads")) {
+    const std::string& t = args.required("threads");
+    double v = 0;
+    if (!parse_number(t, v) || v < 1 || v > 4096 || v != std::floor(v))
+      throw UsageError("--threads must be an integer from 1 to 4096, got '" + t + "'");
+    o.threads = static_cast<int>(v);
+  }
+  return o;
+}
 
 const Backend& find_backend(const std::string& name) {
   std::string known;

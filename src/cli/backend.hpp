@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/backend.hpp"
 #include "scandyn/model/model.hpp"
 
 namespace scandyn::cli {
@@ -61,10 +62,21 @@ class Evaluator {
   // the forward-dynamics method (ignored for the other algorithms). Stops at the
   // first instance whose factorisation fails.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
+  // How algo is computed, for the benchmark's strategy column: recursion,
+  // scan-local or scan-world for id; aba or jsi for fd; serial for mass and bias.
+  virtual std::string strategy(Algo algo, FdMethod fd) const = 0;
+};
+
+// How an evaluator is made: the inverse-dynamics strategy (Auto: by shape), the
+// thread count (0: all) and the largest batch run() will get.
+struct EvalOptions {
+  IdStrategy strategy = IdStrategy::Auto;
+  int threads = 0;
+  std::size_t max_batch = 1;
 };
 
 template <class S>
-using EvaluatorFactory = std::unique_ptr<Evaluator<S>> (*)(const ModelTpl<S>&);
+using EvaluatorFactory = std::unique_ptr<Evaluator<S>> (*)(const ModelTpl<S>&, const EvalOptions&);
 
 // One row of the backend table. A backend known by name but not compiled into
 // this build has null factories.
@@ -75,12 +87,17 @@ struct Backend {
   bool available() const { return make_double != nullptr; }
 };
 
+// --strategy and --threads of eval and bench; throws UsageError for bad values.
+class Args;
+EvalOptions parse_eval_options(const Args& args);
+
 // The backend called name. Throws UsageError if it is unknown or not available.
 const Backend& find_backend(const std::string& name);
 
-// The serial reference backend (always available).
+// The serial reference backend (always available): instances in turn, inverse
+// dynamics by the recursion unless options.strategy asks for a scan form.
 template <class S>
-std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model);
+std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model, const EvalOptions& options);
 
 // One-line description of a failed forward dynamics, e.g.
 // "articulated inertia pivot at DoF 3 is not positive".

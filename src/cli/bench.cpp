@@ -88,6 +88,7 @@ void check(const BatchStatus& st, FdMethod fd) {
 struct Timing {
   double seconds_per_call = 0;
   double max_rel_err = 0;
+  std::string strategy;  // as the evaluator reports it
 };
 
 // max over instances of max_i |x_i - ref_i| / max(1, max_i |ref_i|); NaN if any x is NaN.
@@ -95,7 +96,7 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
                                 std::size_t count, const std::vector<double>& x) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   const std::size_t width = output_width(algo, model.nv());
-  auto reference = make_serial_evaluator<double>(model);
+  auto reference = make_serial_evaluator<double>(model, EvalOptions{});
   std::vector<double> ref(width);
   double worst = 0;
   for (std::size_t b = 0; b < count; ++b) {
@@ -120,15 +121,16 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
 
 template <class S>
 Timing time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
-                 Algo algo, FdMethod fd, const RandomStates& states, std::size_t count,
-                 double min_time, bool need_error) {
+                 EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
+                 std::size_t count, double min_time, bool need_error) {
   using Clock = std::chrono::steady_clock;
   const std::vector<S> q(states.q.begin(), states.q.end());
   const std::vector<S> qd(states.qd.begin(), states.qd.end());
   const std::vector<S> third(states.third.begin(), states.third.end());
   std::vector<S> out(count * output_width(algo, model.nv()));
   const BatchIn<S> in = make_batch(algo, count, q, qd, third);
-  auto evaluator = make(model_s);
+  options.max_batch = count;
+  auto evaluator = make(model_s, options);
 
   // warm-up pass, then whole passes until min_time has passed
   check(evaluator->run(algo, fd, in, out.data()), fd);
@@ -143,7 +145,9 @@ Timing time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactor
 
   Timing t;
   t.seconds_per_call = elapsed / static_cast<double>(passes);
-  if (need_error)
+  t.strategy = evaluator->strategy(algo, fd);
+  // the scan forms reassociate the recursion's arithmetic: measure them too
+  if (need_error || t.strategy.compare(0, 4, "scan") == 0)
     t.max_rel_err = max_rel_err_vs_reference(model, algo, states, count,
                                              std::vector<double>(out.begin(), out.end()));
   return t;
@@ -164,6 +168,8 @@ int run_bench(const Args& args) {
       throw UsageError("unknown --fd value '" + args.required("fd") + "' (expected aba or jsi)");
   }
   const std::size_t count = parse_instances(args.required("instances"));
+  const EvalOptions options = parse_eval_options(args);
+  if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
   const Backend& backend = find_backend(args.get("backend", "serial"));
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
@@ -184,16 +190,16 @@ int run_bench(const Args& args) {
   if (precision == Precision::Double) {
     // double is the reference itself, except the JSI route to forward dynamics
     const bool need_error = algo == Algo::Fd && fd == FdMethod::Jsi;
-    t = time_algo<double>(model, model, backend.make_double, algo, fd, states, count, min_time,
-                          need_error);
+    t = time_algo<double>(model, model, backend.make_double, options, algo, fd, states, count,
+                          min_time, need_error);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    t = time_algo<float>(model, model_f, backend.make_float, algo, fd, states, count, min_time,
-                         true);
+    t = time_algo<float>(model, model_f, backend.make_float, options, algo, fd, states, count,
+                         min_time, true);
   }
 
   const std::string row =
-      std::string(algo_name(algo)) + "," + (algo == Algo::Fd ? fd_method_name(fd) : "serial") +
+      std::string(algo_name(algo)) + "," + t.strategy +
       "," + backend.name + "," + precision_name(precision) + "," + model_label(model_spec) + "," +
       std::to_string(nv) + "," + std::to_string(count) + "," + format_g(t.seconds_per_call, 6) +
       "," + format_g(double(count) / t.seconds_per_call, 6) + "," + format_g(t.max_rel_err, 6);

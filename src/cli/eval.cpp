@@ -48,10 +48,11 @@ std::vector<Algo> default_algos(const StateColumns& cols, const std::string& sou
 }
 
 // Rows are evaluated in chunks, so memory stays bounded for any file length.
+constexpr std::size_t kMaxChunkRows = 4096;
 std::size_t chunk_rows(std::size_t values_per_row) {
   constexpr std::size_t kValuesPerChunk = std::size_t(1) << 22;  // 32 MiB of doubles
   return std::clamp<std::size_t>(kValuesPerChunk / std::max<std::size_t>(values_per_row, 1), 1,
-                                 4096);
+                                 kMaxChunkRows);
 }
 
 template <class S>
@@ -152,13 +153,15 @@ int run_eval(const Args& args) {
   if (algos.empty()) algos = default_algos(cols, states_path);
   check_state_columns(cols, algos, states_path);
 
+  EvalOptions options = parse_eval_options(args);
+  options.max_batch = kMaxChunkRows;
   CsvWriter out(out_path);
   if (precision == Precision::Double) {
-    auto evaluator = backend.make_double(model);
+    auto evaluator = backend.make_double(model, options);
     eval_rows(model, *evaluator, in, cols, algos, out);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    auto evaluator = backend.make_float(model_f);
+    auto evaluator = backend.make_float(model_f, options);
     eval_rows(model_f, *evaluator, in, cols, algos, out);
   }
   out.commit();

@@ -34,7 +34,8 @@ const char* const kInfoUsage =
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
-    "                    [--backend serial] [--precision double|float]\n"
+    "                    [--backend serial|openmp] [--strategy S] [--threads N]\n"
+    "                    [--precision double|float]\n"
     "\n"
     "  --states IN.csv   header row, one state per row; columns q_<i>, qd_<i>, qdd_<i>,\n"
     "                    tau_<i> (i = DoF index) in any order\n"
@@ -43,7 +44,11 @@ const char* const kEvalUsage =
     "  --algo LIST       comma-separated subset of id (needs q, qd, qdd), fd (q, qd, tau),\n"
     "                    mass (q), bias (q, qd); default: each of id, fd, bias whose\n"
     "                    columns are all present\n"
-    "  --backend NAME    serial (default)\n"
+    "  --backend NAME    serial (default) or openmp (threads over instances, or scans\n"
+    "                    over links for fewer instances than threads on long chains)\n"
+    "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
+    "                    default auto (chosen by shape, see docs/cli.md)\n"
+    "  --threads N       OpenMP threads (default: all)\n"
     "  --precision P     double (default) or float\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
@@ -51,13 +56,14 @@ const char* const kEvalUsage =
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd aba|jsi]\n"
-    "                     [--backend serial] [--precision double|float]\n"
-    "                     [--min-time SECONDS] [--csv FILE]\n"
+    "                     [--backend serial|openmp] [--strategy S] [--threads N]\n"
+    "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
     "Times the algorithm on B random states (fixed seed) and prints one CSV row:\n"
     "algo,strategy,backend,precision,model,links,instances,seconds_per_call,\n"
     "evals_per_second,max_rel_err (with the header when stdout is a terminal).\n"
     "  --fd METHOD       forward dynamics by aba (default) or jsi (CRBA + Cholesky)\n"
+    "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
     "  --allow-nonphysical-inertia  as for eval\n";
@@ -74,11 +80,13 @@ const Command kCommands[] = {
     {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
     {"eval",
      kEvalUsage,
-     {"model", "states", "out", "algo", "backend", "precision", "allow-nonphysical-inertia"},
+     {"model", "states", "out", "algo", "backend", "strategy", "threads", "precision",
+      "allow-nonphysical-inertia"},
      &run_eval},
     {"bench",
      kBenchUsage,
-     {"model", "algo", "fd", "instances", "backend", "precision", "min-time", "csv", "allow-nonphysical-inertia"},
+     {"model", "algo", "fd", "instances", "backend", "strategy", "threads", "precision", "min-time", "csv",
+      "allow-nonphysical-inertia"},
      &run_bench},
 };
 
