@@ -49,8 +49,8 @@ States random_states(int n) {
 enum class Algo { Id, Mass, Aba, Jsi };
 const char* algo_name(Algo a) {
   switch (a) {
-    case Algo::Id: return "id";
-    case Algo::Mass: return "mass";
+    case Algo::Id: return "id_recursion";
+    case Algo::Mass: return "mass_crba";
     case Algo::Aba: return "fd_aba";
     case Algo::Jsi: return "fd_jsi";
   }

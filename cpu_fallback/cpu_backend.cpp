@@ -108,21 +108,34 @@ class CpuInverseDynamics final : public InverseDynamics<S> {
   }
 
   void compute_instances(const IdBatchIn<S>& in, const BatchView<S>& tau, Index B) {
-    const Index nv = model_.nv();
-#pragma omp parallel num_threads(threads_) if (threads_ > 1 && B > 1)
+    if (threads_ == 1 || B == 1) {
+      // no parallel region: entering one costs more than a small robot's whole RNEA
+      instances(in, tau, 0, 0, B);
+      return;
+    }
+#pragma omp parallel num_threads(threads_)
     {
 #ifdef _OPENMP
       const int t = omp_get_thread_num();
+      const int nt = omp_get_num_threads();
 #else
-      const int t = 0;
+      const int t = 0, nt = 1;
 #endif
-      S *q = state(t, 0), *qd = state(t, 1), *qdd = state(t, 2), *out = state(t, 3);
-#pragma omp for schedule(static)
-      for (Index b = 0; b < B; ++b) {
-        gather(in, b, q, qd, qdd);
-        rnea(model_, data_[t], q, qd, qdd, out, in.fext ? in.fext + static_cast<std::size_t>(b) * nv : nullptr);
-        for (Index i = 0; i < nv; ++i) tau.at(i, b) = out[i];
-      }
+      // contiguous blocks of instances, one per thread (static schedule)
+      const Index per = B / nt, extra = B % nt;
+      const Index begin = t * per + std::min<Index>(t, extra);
+      instances(in, tau, t, begin, begin + per + (t < extra ? 1 : 0));
+    }
+  }
+
+  // instances [begin, end) on thread t's workspace
+  void instances(const IdBatchIn<S>& in, const BatchView<S>& tau, int t, Index begin, Index end) {
+    const Index nv = model_.nv();
+    S *q = state(t, 0), *qd = state(t, 1), *qdd = state(t, 2), *out = state(t, 3);
+    for (Index b = begin; b < end; ++b) {
+      gather(in, b, q, qd, qdd);
+      rnea(model_, data_[t], q, qd, qdd, out, in.fext ? in.fext + static_cast<std::size_t>(b) * nv : nullptr);
+      for (Index i = 0; i < nv; ++i) tau.at(i, b) = out[i];
     }
   }
 

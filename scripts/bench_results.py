@@ -5,7 +5,7 @@ Rows go to bench/results/<device>.csv with the columns of DESIGN.md:
   algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,max_rel_err
 A row whose key (all columns up to instances) already exists is replaced, so the
 file holds the newest measurement of each configuration. Benchmark names are
-`<algo>[_<strategy>]/<precision>/<model>[/<backend>]`; counters `links`,
+`<algo>_<strategy>/<precision>/<model>[/<backend>]` (backend defaults to serial); counters `links`,
 `instances` and `max_rel_err` come from the program. With repetitions, the
 median aggregate is used.
 
@@ -40,7 +40,7 @@ def rows_from_json(path):
         backend = parts[3] if len(parts) > 3 else 'serial'
         algo, _, strategy = algo_part.partition('_')
         if not strategy:
-            strategy = 'serial' if backend == 'serial' else backend
+            raise SystemExit('%s: benchmark name %r has no strategy (<algo>_<strategy>)' % (path, name))
         seconds = b['real_time'] * UNIT[b.get('time_unit', 'ns')]
         instances = int(b.get('instances', 1))
         out.append({

@@ -658,7 +658,7 @@ TEST_F(Cli, BenchPrintsOneRow) {
   for (const char* algo : {"fd", "mass", "bias"}) {
     const std::vector<std::string> row = bench_row(run(base + " --algo " + algo));
     ASSERT_EQ(row.size(), 10u) << algo;
-    EXPECT_EQ(row[1], std::string(algo) == "fd" ? "aba" : "serial");
+    EXPECT_EQ(row[1], std::string(algo) == "fd" ? "aba" : std::string(algo) == "mass" ? "crba" : "recursion");
     EXPECT_EQ(row[9], "0") << algo;
   }
 }

@@ -141,11 +141,16 @@ void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
 template <class S>
 void rnea_scan(const ModelTpl<S>& model, ScanWorkspace<S>& ws, ScanForm form, const S* q, const S* qd,
                const S* qdd, S* tau, const Force<S>* fext) {
-#pragma omp parallel num_threads(ws.threads) if (ws.threads > 1)
-  {
+  auto run = [&] {
     if (form == ScanForm::Local) rnea_scan_local(model, ws, q, qd, qdd, tau, fext);
     else rnea_scan_world(model, ws, q, qd, qdd, tau, fext);
+  };
+  if (ws.threads == 1) {
+    run();  // the worksharing constructs run serially outside a parallel region
+    return;
   }
+#pragma omp parallel num_threads(ws.threads)
+  run();
 }
 
 template struct ScanWorkspace<float>;

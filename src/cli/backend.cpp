@@ -152,7 +152,7 @@ class CpuEvaluator final : public Evaluator<S> {
   std::string strategy(Algo algo, FdMethod fd) const override {
     if (algo == Algo::Id) return id_->strategy();
     if (algo == Algo::Fd) return fd_method_name(fd);
-    return "serial";
+    return algo == Algo::Mass ? "crba" : "recursion";
   }
 
  private:

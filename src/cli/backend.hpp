@@ -63,7 +63,7 @@ class Evaluator {
   // first instance whose factorisation fails.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
   // How algo is computed, for the benchmark's strategy column: recursion,
-  // scan-local or scan-world for id; aba or jsi for fd; serial for mass and bias.
+  // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion for bias.
   virtual std::string strategy(Algo algo, FdMethod fd) const = 0;
 };
 
