@@ -44,7 +44,19 @@ run_stage() {
   stamp "$name: build"
   cmake --build "$dir" --parallel "$jobs" || return 1
   stamp "$name: test"
-  ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" || return 1
+  local rc=0
+  ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" || rc=1
+  show_skips "$dir"
+  return "$rc"
+}
+
+# Prints each skipped GoogleTest case with the reason it gave (ctest only says
+# "Skipped"); e.g. CUDA tests on a machine without a GPU.
+show_skips() {
+  local log=$1/Testing/Temporary/LastTest.log
+  [[ -f "$log" ]] || return 0
+  awk '/^\[ RUN      \] / { name = $4 }
+       /: Skipped$/ { getline why; printf "  skipped %s: %s\n", name, why }' "$log" | sort -u
 }
 
 if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release; then
