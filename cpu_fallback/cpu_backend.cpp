@@ -57,13 +57,9 @@ IdStrategy choose_strategy(Index nv, Index batch, int threads) {
 
 namespace {
 
-int max_threads() {
 #ifdef _OPENMP
-  return omp_get_max_threads();
-#else
-  return 1;
+int max_threads() { return omp_get_max_threads(); }
 #endif
-}
 
 template <class S>
 class CpuInverseDynamics final : public InverseDynamics<S> {

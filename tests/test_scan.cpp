@@ -74,6 +74,7 @@ int thread_counts[] = {1, 2, 3, 4, 7};
 
 template <class F>
 void with_threads(int t, F f) {
+  (void)t;  // without OpenMP: one thread
 #pragma omp parallel num_threads(t)
   f();
 }
