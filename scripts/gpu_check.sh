@@ -78,7 +78,7 @@ note "environment -> $out/env.txt"
   echo "date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
   echo "host: $(uname -srm), $(nproc) cores"
   [[ -r /etc/os-release ]] && (. /etc/os-release && echo "os: $PRETTY_NAME")
-  command -v git >/dev/null 2>&1 && git -C "$repo" rev-parse HEAD 2>/dev/null | sed 's/^/commit: /'
+  echo "commit: $(git -C "$repo" rev-parse HEAD 2>/dev/null || echo 'unknown (not a git checkout)')"
   echo "nvcc: $(nvcc --version | tail -n2 | paste -sd' ')"
   echo "compute-sanitizer: ${sanitizer:-not found}"
   echo "cmake: $(cmake --version | head -n1)"
