@@ -78,7 +78,7 @@ note "environment -> $out/env.txt"
   echo "date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
   echo "host: $(uname -srm), $(nproc) cores"
   [[ -r /etc/os-release ]] && (. /etc/os-release && echo "os: $PRETTY_NAME")
-  echo "commit: $(git -C "$repo" rev-parse HEAD 2>/dev/null || echo 'unknown (not a git checkout)')"
+  echo "commit: $(git -C "$repo" rev-parse --verify -q HEAD 2>/dev/null || echo 'unknown (not a git checkout)')"
   echo "nvcc: $(nvcc --version | tail -n2 | paste -sd' ')"
   echo "compute-sanitizer: ${sanitizer:-not found}"
   echo "cmake: $(cmake --version | head -n1)"
