@@ -17,6 +17,7 @@ packages=(
   libgtest-dev
   libbenchmark-dev
   python3          # scripts/
+  python3-venv     # scripts/setup_python.sh (.venv with numpy and Pinocchio)
 )
 
 missing=()

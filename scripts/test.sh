@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # scripts/test.sh: the project's test command (what CI runs through .ci/run).
 #
-#   1. scripts/setup.sh (installs missing Debian packages)
+#   1. scripts/setup.sh (installs missing Debian packages), scripts/setup_python.sh
+#      (.venv with numpy and Pinocchio for the cross-check test)
 #   2. build/       Ninja, Release, CUDA when nvcc is found; ctest
 #   3. build-asan/  RelWithDebInfo with AddressSanitizer + UBSan, no CUDA, no
 #                   benchmarks; ctest
@@ -11,7 +12,8 @@
 # Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
 # SCANDYN_MODELS_DIR (robot models; default ../shared/models beside the checkout),
-# SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_ASAN=1.
+# SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_PYTHON=1 (no .venv: the Pinocchio cross-check
+# is skipped), SCANDYN_SKIP_ASAN=1.
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -26,6 +28,12 @@ failed=()
 if [[ "${SCANDYN_SKIP_SETUP:-0}" != 1 ]]; then
   stamp "setup"
   scripts/setup.sh
+fi
+
+# Pinocchio for the independent cross-check test; without it that test is skipped
+if [[ "${SCANDYN_SKIP_PYTHON:-0}" != 1 ]]; then
+  stamp "python environment (.venv)"
+  scripts/setup_python.sh || echo "test.sh: warning: .venv setup failed; pinocchio_crosscheck will be skipped" >&2
 fi
 
 models=${SCANDYN_MODELS_DIR:-../shared/models}
