@@ -22,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
 #include "scandyn/build_config.hpp"
@@ -54,7 +55,7 @@ template <class S>
 double max_rel_err(const Model& md, const Inputs& in, const std::vector<S>& tau, Index B) {
   const Index nv = md.nv();
   Data d(md, false);
-  std::vector<double> q(nv), qd(nv), qdd(nv), ref(nv);
+  std::vector<double> q(nv), qd(nv), qdd(nv), ref(nv), ours(nv);
   double worst = 0;
   const Index step = B > 64 ? B / 64 : 1;
   for (Index b = 0; b < B; b += step) {
@@ -65,14 +66,10 @@ double max_rel_err(const Model& md, const Inputs& in, const std::vector<S>& tau,
       qdd[i] = double(S(in.qdd[k]));
     }
     rnea(md, d, q.data(), qd.data(), qdd.data(), ref.data());
-    double scale = 1, err = 0;
-    for (Index i = 0; i < nv; ++i) {
-      const double e = std::fabs(double(tau[static_cast<std::size_t>(i) * B + b]) - ref[i]);
-      if (std::isnan(e)) return std::numeric_limits<double>::quiet_NaN();
-      err = std::fmax(err, e);
-      scale = std::fmax(scale, std::fabs(ref[i]));
-    }
-    worst = std::fmax(worst, err / scale);
+    for (Index i = 0; i < nv; ++i) ours[i] = double(tau[static_cast<std::size_t>(i) * B + b]);
+    const double e = rel_err(ours.data(), ref.data(), ref.size());
+    if (std::isnan(e)) return e;
+    worst = std::fmax(worst, e);
   }
   return worst;
 }

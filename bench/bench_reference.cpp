@@ -20,6 +20,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/model/load.hpp"
 
@@ -85,14 +86,9 @@ double max_rel_err(Algo a, const Model& md, const ModelTpl<S>& m, const States& 
     run<double>(ref_algo, md, dd, &st.q[o], &st.qd[o], &st.x[o], ref.data());
     std::vector<S> q(&st.q[o], &st.q[o] + n), qd(&st.qd[o], &st.qd[o] + n), x(&st.x[o], &st.x[o] + n);
     run<S>(a, m, d, q.data(), qd.data(), x.data(), out.data());
-    double scale = 1, err = 0;
-    for (std::size_t i = 0; i < len; ++i) {
-      const double e = std::fabs(double(out[i]) - ref[i]);
-      if (std::isnan(e)) return std::numeric_limits<double>::quiet_NaN();
-      err = std::fmax(err, e);
-      scale = std::fmax(scale, std::fabs(ref[i]));
-    }
-    worst = std::fmax(worst, err / scale);
+    const double e = rel_err(out.data(), ref.data(), len);
+    if (std::isnan(e)) return e;
+    worst = std::fmax(worst, e);
   }
   return worst;
 }

@@ -9,6 +9,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn::test {
@@ -51,20 +52,11 @@ std::vector<T> cast_vector(const std::vector<double>& v) {
   return std::vector<T>(v.begin(), v.end());
 }
 
-// max_i |a_i - b_i| / max(1, max_i |b_i|): relative to the reference's scale.
-// NaN if the sizes differ or any entry of a or b is NaN, so untouched NaN-filled
-// outputs fail every comparison.
+// scandyn::rel_err over two vectors; NaN if their sizes differ.
 template <class A, class B>
 double max_rel_err(const std::vector<A>& a, const std::vector<B>& b) {
   if (a.size() != b.size()) return std::numeric_limits<double>::quiet_NaN();
-  double scale = 1.0, err = 0.0;
-  for (std::size_t i = 0; i < b.size(); ++i) {
-    const double e = std::fabs(double(a[i]) - double(b[i]));
-    if (std::isnan(e)) return std::numeric_limits<double>::quiet_NaN();
-    err = std::fmax(err, e);
-    scale = std::fmax(scale, std::fabs(double(b[i])));
-  }
-  return err / scale;
+  return rel_err(a.data(), b.data(), b.size());
 }
 
 // A random tree built directly from Body structs (independent of the loader):

@@ -11,6 +11,7 @@
 #include "backend.hpp"
 #include "cli.hpp"
 #include "csv.hpp"
+#include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn::cli {
@@ -107,14 +108,9 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
     if (in.qdd) in.qdd += k;
     if (in.tau) in.tau += k;
     check(reference->run(algo, FdMethod::Aba, in, ref.data()), FdMethod::Aba);
-    double scale = 1, err = 0;
-    for (std::size_t j = 0; j < width; ++j) {
-      scale = std::max(scale, std::fabs(ref[j]));
-      const double e = std::fabs(x[b * width + j] - ref[j]);
-      if (std::isnan(e)) return e;
-      err = std::max(err, e);
-    }
-    worst = std::max(worst, err / scale);
+    const double e = rel_err(x.data() + b * width, ref.data(), width);
+    if (std::isnan(e)) return e;
+    worst = std::max(worst, e);
   }
   return worst;
 }
