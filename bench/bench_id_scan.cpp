@@ -5,11 +5,13 @@
 //    local-frame scan and the world-frame scan (one thread each), and the OpenMP
 //    scans across links; float and double, with max_rel_err against the double
 //    recursion on the same inputs;
+//  * trees, one instance: curtain:100:100, curtain:1000:1000 (wide) and
+//    tree:100000:1 (random, deep segment tree), recursion vs scans;
 //  * iiwa batches, B = 1, 10^3, 10^6 (10^5 with --quick): serial vs OpenMP threads
 //    over instances.
 // Benchmark names follow scripts/bench_results.py: id_<strategy>/<precision>/<model>/<backend>.
 //
-// Flags (before Google Benchmark's): --quick (ropes to 10^4, iiwa to 10^3: for CI),
+// Flags (before Google Benchmark's): --quick (ropes to 10^4, one curtain, iiwa to 10^5),
 // --max-rope=N, --models-dir=DIR (default $SCANDYN_MODELS_DIR or ../shared/models).
 #include <benchmark/benchmark.h>
 
@@ -145,6 +147,16 @@ int main(int argc, char** argv) {
       add(label, m, BackendKind::Serial, s, 1, t);
     if (omp)
       for (IdStrategy s : {IdStrategy::ScanLocal, IdStrategy::ScanWorld}) add(label, m, BackendKind::OpenMP, s, 1, t);
+  }
+  // trees: wide (curtains: many independent segments) and random (short segments,
+  // many levels of the segment tree)
+  for (const char* spec : {"curtain:100:100", "curtain:1000:1000", "tree:100000:1"}) {
+    if (quick && std::string(spec) != "curtain:100:100") continue;
+    const Model* m = keep(load_model(spec));
+    add(spec, m, BackendKind::Serial, IdStrategy::Recursion, 1, 0.3);
+    add(spec, m, BackendKind::Serial, IdStrategy::ScanLocal, 1, 0.3);
+    if (omp)
+      for (IdStrategy s : {IdStrategy::ScanLocal, IdStrategy::ScanWorld}) add(spec, m, BackendKind::OpenMP, s, 1, 0.3);
   }
   try {
     const Model* iiwa = keep(load_urdf(models_dir + "/iiwa.urdf"));

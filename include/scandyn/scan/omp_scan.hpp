@@ -15,7 +15,25 @@
 
 #include "scandyn/scan/tree_plan.hpp"
 
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
 namespace scandyn {
+
+namespace detail {
+// Pieces handed out per grab: about eight grabs per thread in a level, so a level
+// of 50,000 two-node segments is not scheduled one piece at a time.
+inline Index piece_chunk(Index pieces) {
+#ifdef _OPENMP
+  const Index threads = omp_get_num_threads();
+#else
+  const Index threads = 1;
+#endif
+  const Index c = pieces / (8 * threads);
+  return c > 1 ? c : 1;
+}
+}  // namespace detail
 
 // Root-path prefix: on return x[i] = e_root o ... o e_parent o e_i (the value of
 // node i), for all i, given elements e_i in x. Roots keep their element.
@@ -24,7 +42,8 @@ template <class T, class Op, class Known>
 void tree_prefix_scan(const TreeScanPlan& plan, T* x, T* carry, Op op, Known known) {
   for (Index l = 0; l < plan.num_levels(); ++l) {
     const Index kb = plan.level_begin[l], ke = plan.level_begin[l + 1];
-#pragma omp for schedule(dynamic, 1)
+    const Index chunk = detail::piece_chunk(ke - kb);
+#pragma omp for schedule(dynamic, chunk)
     for (Index k = kb; k < ke; ++k) {
       const TreeScanPlan::Piece& pc = plan.pieces[k];
       if (pc.first) {
@@ -60,7 +79,8 @@ template <class T, class Op, class Known, class Fold>
 void tree_suffix_scan(const TreeScanPlan& plan, T* x, T* carry, Op op, Known known, Fold fold) {
   for (Index l = plan.num_levels() - 1; l >= 0; --l) {
     const Index kb = plan.level_begin[l], ke = plan.level_begin[l + 1];
-#pragma omp for schedule(dynamic, 1)
+    const Index chunk = detail::piece_chunk(ke - kb);
+#pragma omp for schedule(dynamic, chunk)
     for (Index k = kb; k < ke; ++k) {
       const TreeScanPlan::Piece& pc = plan.pieces[k];
       const Index s = pc.segment;
