@@ -8,6 +8,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/algorithm/rnea_scan.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/scan/elements.hpp"
 #include "scandyn/scan/omp_scan.hpp"
 #include "test_util.hpp"
 
@@ -97,6 +98,47 @@ TEST(ChainScan, MatchesStdInclusiveScanExactly) {
         with_threads(t, [&] { chain_inclusive_scan(plan, x.data(), carry.data(), MulAfter{}); });
         ASSERT_TRUE(x == expect) << "n=" << n << " threads=" << t << " piece=" << piece;
       }
+    }
+  }
+}
+
+// The dynamics operators themselves against std::inclusive_scan: the parallel
+// scan reassociates, so equality holds to rounding (double: 1e-12 relative to the
+// values' scale on chains of 10^5 transforms near identity).
+TEST(ChainScan, DynamicsOperatorsMatchStdInclusiveScan) {
+  std::mt19937_64 g(11);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int n : {1, 2, 3, 64, 65, 4096, 100000}) {
+    std::vector<MotionAffine<double>> in(n);
+    std::vector<Transform<double>> poses(n);
+    for (int i = 0; i < n; ++i) {
+      // small rotations and offsets, as along a rope
+      const Transform<double> X{rpy_matrix(0.01 * u(g), 0.01 * u(g), 0.01 * u(g)), {0.01 * u(g), 0.01 * u(g), -0.01}};
+      in[i] = {X, {{u(g), u(g), u(g)}, {u(g), u(g), u(g)}}};
+      poses[i] = X;
+    }
+    std::vector<MotionAffine<double>> expect(n);
+    std::inclusive_scan(in.begin(), in.end(), expect.begin(), ComposeMotionAffine{});
+    std::vector<Transform<double>> expect_pose(n);
+    std::inclusive_scan(poses.begin(), poses.end(), expect_pose.begin(), ComposePose{});
+    for (int t : {1, 3, 4}) {
+      const TreeScanPlan plan = make_tree_scan_plan(shape("chain", n, g), n >= 4096 ? 1000 : 7);
+      std::vector<MotionAffine<double>> x = in, carry(plan.pieces.size());
+      std::vector<Transform<double>> p = poses, carry_p(plan.pieces.size());
+      with_threads(t, [&] {
+        chain_inclusive_scan(plan, x.data(), carry.data(), ComposeMotionAffine{});
+        chain_inclusive_scan(plan, p.data(), carry_p.data(), ComposePose{});
+      });
+      double err = 0, scale = 1;
+      for (int i = 0; i < n; ++i) {
+        for (int k = 0; k < 6; ++k) {
+          err = std::max(err, std::fabs(x[i].b[k] - expect[i].b[k]));
+          scale = std::max(scale, std::fabs(expect[i].b[k]));
+        }
+        for (int k = 0; k < 9; ++k) err = std::max(err, std::fabs(p[i].E.m[k] - expect_pose[i].E.m[k]));
+        err = std::max(err, std::fabs(p[i].r.z - expect_pose[i].r.z) / std::max(1.0, std::fabs(expect_pose[i].r.z)));
+      }
+      EXPECT_LT(err / scale, 1e-12) << "n=" << n << " threads=" << t;
     }
   }
 }
