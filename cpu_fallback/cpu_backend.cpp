@@ -47,14 +47,13 @@ IdStrategy parse_strategy(const std::string& name) {
   throw BackendError("unknown strategy '" + name + "' (expected auto, recursion, scan-local or scan-world)");
 }
 
-IdStrategy choose_strategy(Index nv, Index batch, int threads, Index segments) {
+IdStrategy choose_strategy(Index nv, Index batch, int threads) {
   // Instances are independent: splitting them costs nothing. Scans over links pay
   // 1.5-3x the arithmetic of the recursion, so they only win when there are fewer
-  // instances than threads and chains long enough to cut into pieces (a random
-  // 10^5-body tree, segments of 2 bodies on average, runs 2x slower as a scan on 16
-  // threads than as the serial recursion).
+  // instances than threads and enough links to give every thread long runs: from
+  // about 10^4 links on 16 threads for ropes, curtains and random trees alike
+  // (docs/accuracy-id-scan.md).
   if (threads <= 1 || batch >= threads || nv < 4096) return IdStrategy::Recursion;
-  if (segments > 0 && nv / segments < 64) return IdStrategy::Recursion;
   return IdStrategy::ScanLocal;
 }
 
@@ -64,21 +63,12 @@ namespace {
 int max_threads() { return omp_get_max_threads(); }
 #endif
 
-// Maximal chain runs in DoF order (body i continues a run when parent[i] == i - 1).
-template <class S>
-Index count_segments(const ModelTpl<S>& model) {
-  Index segments = 0;
-  for (Index i = 0; i < model.nv(); ++i) segments += (i == 0 || model.bodies[i].parent != i - 1) ? 1 : 0;
-  return segments;
-}
-
 template <class S>
 class CpuInverseDynamics final : public InverseDynamics<S> {
  public:
   CpuInverseDynamics(const ModelTpl<S>& model, BackendKind kind, IdStrategy strategy, int threads, Index max_batch)
       : model_(model), kind_(kind), threads_(threads), max_batch_(max_batch) {
-    strategy_ = strategy == IdStrategy::Auto ? choose_strategy(model.nv(), max_batch, threads, count_segments(model))
-                                             : strategy;
+    strategy_ = strategy == IdStrategy::Auto ? choose_strategy(model.nv(), max_batch, threads) : strategy;
     const Index nv = model.nv();
     if (strategy_ == IdStrategy::Recursion) {
       // one reference workspace and contiguous state per thread

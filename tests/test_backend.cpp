@@ -114,8 +114,6 @@ TEST(Backend, AutoStrategyFollowsShape) {
   EXPECT_EQ(choose_strategy(1000000, 1, 16), IdStrategy::ScanLocal);
   EXPECT_EQ(choose_strategy(1000000, 32, 16), IdStrategy::Recursion);
   EXPECT_EQ(choose_strategy(1000000, 1, 1), IdStrategy::Recursion);
-  EXPECT_EQ(choose_strategy(1000000, 1, 16, 1000), IdStrategy::ScanLocal);     // curtain:1000:1000
-  EXPECT_EQ(choose_strategy(100000, 1, 16, 49969), IdStrategy::Recursion);     // tree:100000:1
 }
 
 TEST(Backend, Errors) {

@@ -75,11 +75,10 @@ template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
 
 // The OpenMP backend's choice for Auto: threads over instances (the recursion) when
-// there are at least as many instances as threads, fewer than 4096 bodies, or chain
-// segments averaging under 64 bodies (segments = maximal chain runs, see
-// tree_plan.hpp); otherwise the local-frame scan across links. Measured crossovers:
+// there are at least as many instances as threads or fewer than 4096 bodies;
+// otherwise the local-frame scan across links. Measured crossovers:
 // docs/accuracy-id-scan.md.
-IdStrategy choose_strategy(Index nv, Index batch, int threads, Index segments = 1);
+IdStrategy choose_strategy(Index nv, Index batch, int threads);
 
 const char* to_string(BackendKind b);
 const char* to_string(IdStrategy s);
