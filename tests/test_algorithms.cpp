@@ -126,11 +126,7 @@ void check_virtual_work(const Model& model_d, unsigned seed) {
   const auto q = test::cast_vector<S>(test::random_vector(rng, n, -2, 2));
   const auto qd = test::cast_vector<S>(test::random_vector(rng, n, -1, 1));
   const auto qdd = test::cast_vector<S>(test::random_vector(rng, n, -1, 1));
-  std::vector<Force<S>> fext(n);
-  for (auto& f : fext) {
-    const auto r = test::random_vector(rng, 6, -3, 3);
-    f = Force<S>{{S(r[0]), S(r[1]), S(r[2])}, {S(r[3]), S(r[4]), S(r[5])}};
-  }
+  const std::vector<Force<S>> fext = test::random_wrenches<S>(rng, n, 3);
   std::vector<S> t_free(n), t_ext(n);
   rnea(model, data, q.data(), qd.data(), qdd.data(), t_free.data());
   rnea(model, data, q.data(), qd.data(), qdd.data(), t_ext.data(), fext.data());

@@ -214,11 +214,7 @@ double scan_vs_reference(const Model& md, ScanForm form, int threads, unsigned s
   const auto q = test::cast_vector<S>(test::random_vector(g, n, -1, 1));
   const auto qd = test::cast_vector<S>(test::random_vector(g, n, -1, 1));
   const auto qdd = test::cast_vector<S>(test::random_vector(g, n, -1, 1));
-  std::vector<Force<S>> fext(n);
-  for (auto& f : fext) {
-    const auto r = test::random_vector(g, 6, -1, 1);
-    f = Force<S>{{S(r[0]), S(r[1]), S(r[2])}, {S(r[3]), S(r[4]), S(r[5])}};
-  }
+  const std::vector<Force<S>> fext = test::random_wrenches<S>(g, n, 1);
   // reference in double on the same (rounded) inputs
   Data dd(md, /*mass_matrix=*/false);
   std::vector<double> ref(n);

@@ -47,6 +47,17 @@ inline std::vector<double> random_vector(std::mt19937_64& rng, int n, double lo,
   return v;
 }
 
+// n random body wrenches, each component uniform in [-a, a].
+template <class S>
+std::vector<Force<S>> random_wrenches(std::mt19937_64& rng, int n, double a) {
+  std::vector<Force<S>> out(static_cast<std::size_t>(n));
+  for (auto& f : out) {
+    const auto r = random_vector(rng, 6, -a, a);
+    f = Force<S>{{S(r[0]), S(r[1]), S(r[2])}, {S(r[3]), S(r[4]), S(r[5])}};
+  }
+  return out;
+}
+
 template <class T>
 std::vector<T> cast_vector(const std::vector<double>& v) {
   return std::vector<T>(v.begin(), v.end());
