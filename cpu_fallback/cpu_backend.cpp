@@ -6,6 +6,9 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
 #include "scandyn/build_config.hpp"
+#if SCANDYN_HAS_CUDA
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#endif
 
 #ifdef _OPENMP
 #include <omp.h>
@@ -174,7 +177,11 @@ std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& mod
 #endif
     }
     case BackendKind::Cuda:
-      throw BackendError("backend 'cuda' does not provide inverse dynamics in this build yet");
+#if SCANDYN_HAS_CUDA
+      return cuda::make_cuda_inverse_dynamics<S>(model, o);
+#else
+      throw BackendError("backend 'cuda' is not available in this build (configured without CUDA)");
+#endif
   }
   throw BackendError("unknown backend");
 }

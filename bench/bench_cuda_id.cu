@@ -1,0 +1,380 @@
+// Inverse dynamics on the GPU, one thread per instance (CudaInverseDynamics).
+//
+// Rows (names as scripts/bench_results.py reads them):
+//   id_thread/<precision>/<model>/cuda          compute_async on device buffers, soa
+//                                               layout, B = 10^4 .. 10^7 instances of
+//                                               iiwa, hyq, atlas (double to 10^7 when
+//                                               it fits in device memory);
+//   id_thread-host/<precision>/iiwa/cuda        compute() from host buffers (copies
+//                                               included), B = 10^6;
+//   id_thread-keepxup/<precision>/iiwa/cuda     the same RNEA through the public device
+//                                               function with the forward pass's
+//                                               transforms kept for the backward pass
+//                                               (more registers, less arithmetic);
+//   id_thread-rolled/<precision>/iiwa/cuda      ... with the body loops not unrolled
+//                                               (state in local memory, few registers);
+//                                               both at B = 10^6, 10^7, to show what the
+//                                               engine's choice costs.
+// Device rows are timed with CUDA events around the launch alone (manual time), so
+// host copies are excluded; inputs are uniform in [-1, 1] from a counter-based hash,
+// generated on the device. Counters: links, instances, max_rel_err (against the
+// double serial reference on up to 64 instances, float-rounded inputs for float) and
+// GBps (q, qd, qdd read + tau written, per second).
+//
+// Before the rows the program prints the device, a device-to-device copy bandwidth
+// (the memory roofline: bytes read + written per second) and the registers, local
+// memory and occupancy of the iiwa kernel variants.
+//
+// Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
+// ../shared/models), --max-instances=N (default 10^7).
+#include <benchmark/benchmark.h>
+#include <cuda_runtime.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <limits>
+#include <memory>
+#include <type_traits>
+#include <string>
+#include <vector>
+
+#include "scandyn/accuracy.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+// ---- inputs: a counter-based hash, the same on host and device --------------------
+
+__host__ __device__ inline double uniform(std::uint64_t array, std::uint64_t k) {
+  std::uint64_t z = (array << 56) + k + 0x9e3779b97f4a7c15ull;  // splitmix64
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  z ^= z >> 31;
+  return double(z >> 11) * (2.0 / 9007199254740992.0) - 1.0;  // [-1, 1)
+}
+
+template <class S>
+__global__ void fill_kernel(S* out, std::uint64_t array, std::size_t n) {
+  for (std::size_t k = blockIdx.x * std::size_t(blockDim.x) + threadIdx.x; k < n; k += std::size_t(gridDim.x) * blockDim.x)
+    out[k] = S(uniform(array, k));
+}
+
+// The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled.
+template <class S, int C, bool kKeepXup, bool kUnrolled>
+__global__ void __launch_bounds__(cuda::kIdInstancesBlock)
+    variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const IdBatchIn<S> batch_in,
+                   const BatchView<S> tau_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= batch_in.q.batch) return;
+  auto col = [b](const auto& v) { return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride}; };
+  cuda::rnea_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
+                                      col(tau_out));
+}
+
+bool cuda_ok(benchmark::State& st, cudaError_t err, const char* what) {
+  if (err == cudaSuccess) return true;
+  st.SkipWithError((std::string(what) + ": " + cudaGetErrorString(err)).c_str());
+  (void)cudaGetLastError();
+  return false;
+}
+
+// Device buffers q, qd, qdd, tau (nv x B each, soa), freed on scope exit.
+template <class S>
+struct DeviceBatch {
+  S* p = nullptr;
+  std::size_t n = 0;
+  cudaError_t alloc(Index nv, Index B) {
+    n = static_cast<std::size_t>(nv) * B;
+    const cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&p), 4 * n * sizeof(S));
+    if (err != cudaSuccess) return err;
+    for (int a = 0; a < 3; ++a) fill_kernel<S><<<1024, 256>>>(p + a * n, a, n);
+    cudaMemset(p + 3 * n, 0xff, n * sizeof(S));  // NaN
+    return cudaDeviceSynchronize();
+  }
+  ~DeviceBatch() {
+    if (p) cudaFree(p);
+  }
+  IdBatchIn<S> in(Index nv, Index B) const {
+    using V = BatchView<const S>;
+    return {V::soa(p, nv, B), V::soa(p + n, nv, B), V::soa(p + 2 * n, nv, B)};
+  }
+  BatchView<S> tau(Index nv, Index B) const { return BatchView<S>::soa(p + 3 * n, nv, B); }
+};
+
+// max rel_err over up to 64 instances: tau (soa, nv x B, host or device) against the
+// double reference on the same (S-rounded) inputs.
+template <class S>
+double max_rel_err(const Model& md, Index B, const S* tau, bool on_device) {
+  const Index nv = md.nv();
+  Data d(md, false);
+  std::vector<double> q(nv), qd(nv), qdd(nv), ref(nv), ours(nv);
+  std::vector<S> col(nv);
+  double worst = 0;
+  const Index step = B > 64 ? B / 64 : 1;
+  for (Index b = 0; b < B; b += step) {
+    for (Index i = 0; i < nv; ++i) {
+      const std::size_t k = static_cast<std::size_t>(i) * B + b;
+      q[i] = double(S(uniform(0, k)));
+      qd[i] = double(S(uniform(1, k)));
+      qdd[i] = double(S(uniform(2, k)));
+    }
+    rnea(md, d, q.data(), qd.data(), qdd.data(), ref.data());
+    if (on_device) {
+      if (cudaMemcpy2D(col.data(), sizeof(S), tau + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
+          cudaSuccess)
+        return std::nan("");
+    } else {
+      for (Index i = 0; i < nv; ++i) col[i] = tau[static_cast<std::size_t>(i) * B + b];
+    }
+    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
+    const double e = rel_err(ours.data(), ref.data(), ref.size());
+    if (std::isnan(e)) return e;
+    worst = std::fmax(worst, e);
+  }
+  return worst;
+}
+
+void set_counters(benchmark::State& st, Index nv, Index B, double err, double seconds, std::size_t scalar) {
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = err;
+  const double bytes = 4.0 * nv * double(B) * double(scalar);
+  st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
+}
+
+// Times `launch` (one call on `stream`) with events; returns the total seconds.
+template <class F>
+double time_launches(benchmark::State& st, F&& launch) {
+  cudaEvent_t start, stop;
+  cudaEventCreate(&start);
+  cudaEventCreate(&stop);
+  double total = 0;
+  if (!cuda_ok(st, launch(), "warm-up launch") || !cuda_ok(st, cudaDeviceSynchronize(), "warm-up run")) {
+    for (auto _ : st) {
+    }
+  } else {
+    for (auto _ : st) {
+      cudaEventRecord(start);
+      const cudaError_t err = launch();
+      cudaEventRecord(stop);
+      cudaEventSynchronize(stop);
+      if (err != cudaSuccess) {
+        cuda_ok(st, err, "launch");
+        break;
+      }
+      float ms = 0;
+      cudaEventElapsedTime(&ms, start, stop);
+      st.SetIterationTime(ms * 1e-3);
+      total += ms * 1e-3;
+    }
+    cuda_ok(st, cudaDeviceSynchronize(), "kernel");
+  }
+  cudaEventDestroy(start);
+  cudaEventDestroy(stop);
+  return total;
+}
+
+// id_thread: the engine's device path.
+template <class S>
+void bench_device(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 0;  // no staging buffers: the device path does not use them
+  cuda::CudaInverseDynamics<S> engine(m, o);
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const IdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> tau = buf.tau(nv, B);
+  const double seconds = time_launches(st, [&] { return engine.compute_async(in, tau, nullptr); });
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true), seconds, sizeof(S));
+}
+
+// id_thread-keepxup, id_thread-rolled: the bench's own instances of the device function.
+template <class S, bool kKeepXup, bool kUnrolled>
+void bench_variant(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const cuda::ThreadModel<S> tm(m);
+  if (tm.capacity() != 8) {
+    st.SkipWithError("the variants are built for capacity 8 only");
+    return;
+  }
+  const auto& params = std::get<cuda::ThreadModelParams<S, 8>>(tm.params());
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const IdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> tau = buf.tau(nv, B);
+  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + cuda::kIdInstancesBlock - 1) /
+                                                cuda::kIdInstancesBlock);
+  const double seconds = time_launches(st, [&] {
+    variant_kernel<S, 8, kKeepXup, kUnrolled><<<blocks, cuda::kIdInstancesBlock>>>(params, in, tau);
+    return cudaGetLastError();
+  });
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true), seconds, sizeof(S));
+}
+
+// id_thread-host: compute() from host buffers, copies included (wall clock).
+template <class S>
+void bench_host(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const std::size_t n = static_cast<std::size_t>(nv) * B;
+  std::vector<S> q(n), qd(n), qdd(n), tau(n, std::numeric_limits<S>::quiet_NaN());
+  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), qdd[k] = S(uniform(2, k));
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  auto engine = make_inverse_dynamics<S>(m, o);
+  using V = BatchView<const S>;
+  const IdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B)};
+  const BatchView<S> out = BatchView<S>::soa(tau.data(), nv, B);
+  engine->compute(in, out);  // warm-up
+  for (auto _ : st) {
+    engine->compute(in, out);
+    benchmark::ClobberMemory();
+  }
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, tau.data(), false);
+}
+
+// ---- what bounds the speed: printed before the rows ----------------------------------
+
+template <class K>
+void print_kernel(const char* name, K kernel) {
+  cudaFuncAttributes a{};
+  int blocks = 0;
+  if (cudaFuncGetAttributes(&a, kernel) != cudaSuccess ||
+      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks, kernel, cuda::kIdInstancesBlock, 0) != cudaSuccess) {
+    (void)cudaGetLastError();
+    std::printf("  %-28s attributes unavailable\n", name);
+    return;
+  }
+  std::printf("  %-28s %3d registers, %6zu B local/thread, %2d warps/SM resident\n", name, a.numRegs,
+              a.localSizeBytes, blocks * cuda::kIdInstancesBlock / 32);
+}
+
+void print_limits() {
+  const auto info = cuda::device_info(0);
+  std::printf("bench_cuda_id: device %s\n", info ? cuda::describe(info.value).c_str() : info.error.c_str());
+  // memory roofline: a 2 GiB device-to-device copy, bytes read + written
+  const std::size_t bytes = std::size_t(1) << 30;
+  void *a = nullptr, *b = nullptr;
+  if (cudaMalloc(&a, bytes) == cudaSuccess && cudaMalloc(&b, bytes) == cudaSuccess) {
+    cudaMemset(a, 1, bytes);
+    cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
+    cudaEvent_t s, e;
+    cudaEventCreate(&s);
+    cudaEventCreate(&e);
+    float best = 1e30f;
+    for (int r = 0; r < 10; ++r) {
+      cudaEventRecord(s);
+      cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
+      cudaEventRecord(e);
+      cudaEventSynchronize(e);
+      float ms = 0;
+      cudaEventElapsedTime(&ms, s, e);
+      best = std::fmin(best, ms);
+    }
+    std::printf("bench_cuda_id: device-to-device copy of 1 GiB: %.0f GB/s (read + write, best of 10)\n",
+                2.0 * bytes / (best * 1e-3) * 1e-9);
+    cudaEventDestroy(s);
+    cudaEventDestroy(e);
+  }
+  if (a) cudaFree(a);
+  if (b) cudaFree(b);
+  (void)cudaGetLastError();
+  std::printf("bench_cuda_id: kernels for capacity 8 (iiwa), block %d:\n", cuda::kIdInstancesBlock);
+  print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>);
+  print_kernel("float, keepxup", variant_kernel<float, 8, true, true>);
+  print_kernel("float, rolled", variant_kernel<float, 8, false, false>);
+  print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>);
+  print_kernel("double, keepxup", variant_kernel<double, 8, true, true>);
+  print_kernel("double, rolled", variant_kernel<double, 8, false, false>);
+  std::fflush(stdout);
+}
+
+std::vector<std::unique_ptr<Model>> g_models;  // outlive the registered benchmarks
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  std::string models_dir = env && *env ? env : "../shared/models";
+  long max_instances = 10000000;
+  std::vector<char*> rest;
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
+    else if (std::strncmp(argv[i], "--max-instances=", 16) == 0) max_instances = std::atol(argv[i] + 16);
+    else rest.push_back(argv[i]);
+  }
+  const auto count = cuda::device_count();
+  if (!count || count.value == 0) {
+    std::fprintf(stderr, "bench_cuda_id: %s; nothing to run\n",
+                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
+    return 0;
+  }
+  print_limits();
+  std::size_t free_bytes = 0, total_bytes = 0;
+  cudaMemGetInfo(&free_bytes, &total_bytes);
+
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    BuildOptions bo;
+    bo.require_physical_inertia = false;  // GRiD's atlas.urdf
+    try {
+      g_models.push_back(std::make_unique<Model>(load_urdf(models_dir + "/" + file, bo)));
+    } catch (const ModelError& e) {
+      std::fprintf(stderr, "bench_cuda_id: skipping %s: %s\n", file, e.what());
+      continue;
+    }
+    const Model* m = g_models.back().get();
+    const std::string label = std::string(file).substr(0, std::strlen(file) - 5);
+    for (long B = 10000; B <= max_instances; B *= 10) {
+      for (int prec = 0; prec < 2; ++prec) {
+        const std::size_t need = 4 * static_cast<std::size_t>(m->nv()) * B * (prec ? 4 : 8);
+        if (need > free_bytes * 0.9) {
+          std::fprintf(stderr, "bench_cuda_id: skipping %s %s B=%ld: %zu bytes, %zu free\n", label.c_str(),
+                       prec ? "float" : "double", B, need, free_bytes);
+          continue;
+        }
+        const std::string name = std::string("id_thread/") + (prec ? "float/" : "double/") + label + "/cuda";
+        const Index b = static_cast<Index>(B);
+        auto* r = prec ? benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) { bench_device<float>(st, m, b); })
+                       : benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) { bench_device<double>(st, m, b); });
+        r->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+        if (label == "iiwa" && B >= 1000000) {
+          const std::string pre = prec ? "float/" : "double/";
+          const std::string kname = "id_thread-keepxup/" + pre + label + "/cuda";
+          const std::string rname = "id_thread-rolled/" + pre + label + "/cuda";
+          auto* k = prec ? benchmark::RegisterBenchmark(kname.c_str(), [=](benchmark::State& st) { bench_variant<float, true, true>(st, m, b); })
+                         : benchmark::RegisterBenchmark(kname.c_str(), [=](benchmark::State& st) { bench_variant<double, true, true>(st, m, b); });
+          k->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+          auto* rr = prec ? benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<float, false, false>(st, m, b); })
+                         : benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<double, false, false>(st, m, b); });
+          rr->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+        }
+        if (label == "iiwa" && B == 1000000) {
+          const std::string hname = std::string("id_thread-host/") + (prec ? "float/" : "double/") + label + "/cuda";
+          auto* h = prec ? benchmark::RegisterBenchmark(hname.c_str(), [=](benchmark::State& st) { bench_host<float>(st, m, b); })
+                         : benchmark::RegisterBenchmark(hname.c_str(), [=](benchmark::State& st) { bench_host<double>(st, m, b); });
+          h->UseRealTime()->Unit(benchmark::kMillisecond)->MinTime(0.2);
+        }
+      }
+    }
+  }
+  int rargc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rargc, rest.data());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

@@ -1,0 +1,549 @@
+// Batched inverse dynamics on the GPU, one thread per instance (CudaInverseDynamics)
+// against the serial double reference scandyn::rnea.
+//
+// Every instance of every batch is compared: max |tau - ref| / max(1, max |ref|) over
+// the instance's DoFs (scandyn::rel_err) must be <= 1e-10 in double and 1e-4 in float
+// on the robots (float: the reference runs on the float-rounded inputs, so only the
+// arithmetic is measured). Outputs start as NaN, so an entry the kernel never wrote
+// fails; with strided output layouts the gaps between entries hold a sentinel that
+// must survive compute(). Tests that need a device skip with "no CUDA device: ...";
+// the model checks and the no-device error run everywhere.
+#include <cuda_runtime.h>
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <random>
+#include <string>
+#include <type_traits>
+#include <variant>
+#include <vector>
+
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/backend.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+// ---- device plumbing ------------------------------------------------------------
+
+// Why CUDA tests cannot run here, or "" when a device is usable.
+std::string no_device_reason() {
+  const auto count = cuda::device_count();
+  const std::string prefix = "no usable CUDA device: ";
+  if (!count) {
+    return count.error.compare(0, prefix.size(), prefix) == 0 ? count.error.substr(prefix.size()) : count.error;
+  }
+  if (count.value == 0) return "the CUDA runtime reports 0 devices";
+  return "";
+}
+
+#define SKIP_WITHOUT_CUDA_DEVICE()                               \
+  do {                                                           \
+    const std::string why = no_device_reason();                  \
+    if (!why.empty()) GTEST_SKIP() << "no CUDA device: " << why; \
+  } while (0)
+
+#define ASSERT_CUDA(call)                                                       \
+  do {                                                                          \
+    const cudaError_t err_ = (call);                                            \
+    ASSERT_EQ(err_, cudaSuccess) << #call << ": " << cudaGetErrorString(err_); \
+  } while (0)
+
+template <class T>
+struct DeviceArray {
+  T* ptr = nullptr;
+  cudaError_t alloc(std::size_t n) { return cudaMalloc(reinterpret_cast<void**>(&ptr), std::max<std::size_t>(n, 1) * sizeof(T)); }
+  ~DeviceArray() {
+    if (ptr) cudaFree(ptr);
+  }
+};
+
+// ---- layouts --------------------------------------------------------------------
+
+// Where the nv x B entries of one array live in a buffer: entry (i, b) at
+// buffer[base + i * ds + b * bs]; the other buffer elements are gaps.
+struct Layout {
+  std::string name;
+  std::ptrdiff_t ds = 0, bs = 0;
+  std::ptrdiff_t base = 0;  // offset of entry (0, 0)
+  std::size_t size = 0;     // buffer elements
+  std::ptrdiff_t at(Index i, Index b) const { return base + i * ds + b * bs; }
+};
+
+Layout make_layout(const std::string& name, Index nv, Index B, std::ptrdiff_t ds, std::ptrdiff_t bs) {
+  Layout l{name, ds, bs};
+  std::ptrdiff_t lo = 0, hi = 0;
+  for (std::ptrdiff_t e : {ds * (nv - 1), bs * (B - 1)}) (e < 0 ? lo : hi) += e;
+  l.base = -lo;
+  l.size = static_cast<std::size_t>(hi - lo + 1);
+  return l;
+}
+
+Layout soa(Index nv, Index B) { return make_layout("soa", nv, B, B, 1); }
+Layout aos(Index nv, Index B) { return make_layout("aos", nv, B, 1, nv); }
+
+// A random layout: soa or aos, padded or not, either direction, or with both
+// strides > 1 (entries interleaved with another array's).
+Layout random_layout(std::mt19937_64& g, Index nv, Index B, bool output) {
+  auto pick = [&](int n) { return static_cast<int>(std::uniform_int_distribution<int>(0, n - 1)(g)); };
+  const int pad = pick(5);
+  const std::ptrdiff_t s1 = pick(2) ? 1 : -1, s2 = pick(2) ? 1 : -1;
+  switch (pick(output ? 5 : 6)) {
+    case 0: return make_layout("soa+" + std::to_string(pad), nv, B, s2 * (B + pad), s1);
+    case 1: return make_layout("aos+" + std::to_string(pad), nv, B, s1, s2 * (nv + pad));
+    case 2: return make_layout("soa-interleaved", nv, B, s2 * 2 * B, s1 * 2);  // (q0 x0 q1 x1 ...) rows
+    case 3: return make_layout("aos-interleaved", nv, B, s1 * 2, s2 * 2 * (nv + pad));
+    case 4: return make_layout(pad % 2 ? "soa" : "aos", nv, B, pad % 2 ? B : 1, pad % 2 ? 1 : nv);
+    default: return make_layout("broadcast", nv, B, s1 * (1 + pad), 0);  // one state for all instances
+  }
+}
+
+// ---- one batch against the reference -------------------------------------------
+
+// B random instances of md: inputs as doubles exactly representable in S.
+template <class S>
+struct Batch {
+  Index nv, B;
+  std::vector<double> q, qd, qdd;     // (nv x B), entry (i, b) at i * B + b
+  std::vector<Force<double>> fext;    // (B x nv)
+  Batch(const Model& md, Index B_, unsigned seed) : nv(md.nv()), B(B_) {
+    std::mt19937_64 g(seed);
+    auto fill = [&](std::vector<double>& v, double a) {
+      v = test::random_vector(g, nv * B, -a, a);
+      for (double& x : v) x = double(S(x));
+    };
+    fill(q, 3.1);
+    fill(qd, 2.0);
+    fill(qdd, 2.0);
+    fext = test::random_wrenches<double>(g, nv * B, 1.0);
+    for (auto& f : fext) f = f.template cast<S>().template cast<double>();
+  }
+  // instance b's reference torques
+  void reference(const Model& md, Data& d, Index b, bool with_fext, std::vector<double>& tau) const {
+    std::vector<double> qi(nv), qdi(nv), qddi(nv);
+    for (Index i = 0; i < nv; ++i) {
+      qi[i] = q[static_cast<std::size_t>(i) * B + b];
+      qdi[i] = qd[static_cast<std::size_t>(i) * B + b];
+      qddi[i] = qdd[static_cast<std::size_t>(i) * B + b];
+    }
+    tau.assign(nv, 0.0);
+    rnea(md, d, qi.data(), qdi.data(), qddi.data(), tau.data(),
+         with_fext ? fext.data() + static_cast<std::size_t>(b) * nv : nullptr);
+  }
+};
+
+// The worst instance error of tau (entries at `out`) against the reference.
+template <class S>
+double worst_error(const Model& md, const Batch<S>& batch, bool with_fext, const std::vector<S>& tau_buf,
+                   const Layout& out) {
+  Data d(md, false);
+  double worst = 0;
+  std::vector<double> ref, ours(batch.nv);
+  for (Index b = 0; b < batch.B; ++b) {
+    batch.reference(md, d, b, with_fext, ref);
+    for (Index i = 0; i < batch.nv; ++i) ours[i] = double(tau_buf[out.at(i, b)]);
+    const double e = test::max_rel_err(ours, ref);
+    if (!(e <= worst)) worst = e;  // NaN sticks
+  }
+  return worst;
+}
+
+// Fills a buffer in layout l with the batch array v (nv x B soa), gaps = sentinel.
+template <class S>
+std::vector<S> pack(const std::vector<double>& v, Index nv, Index B, const Layout& l, double sentinel) {
+  std::vector<S> buf(l.size, S(sentinel));
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) buf[l.at(i, b)] = S(v[static_cast<std::size_t>(i) * B + b]);
+  return buf;
+}
+
+constexpr double kSentinel = 12345.0;
+
+// Runs the engine's host path: inputs in layout lin (one per array), tau in lout.
+// Returns the worst instance error; checks the gaps of tau.
+template <class S>
+double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& lqdd,
+                const Layout& lout, unsigned seed = 1) {
+  const ModelTpl<S> m = md.cast<S>();
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, seed);
+  const bool broadcast = lq.bs == 0 && B > 1;
+  if (broadcast) {
+    // one state for all instances: the reference uses instance 0 everywhere
+    for (auto* v : {&batch.q, &batch.qd, &batch.qdd})
+      for (Index i = 0; i < nv; ++i)
+        for (Index b = 0; b < B; ++b) (*v)[static_cast<std::size_t>(i) * B + b] = (*v)[static_cast<std::size_t>(i) * B];
+  }
+  const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
+                       qdd = pack<S>(batch.qdd, nv, B, lqdd, 0.0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> tau(lout.size, S(kSentinel));
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) tau[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
+
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  auto engine = make_inverse_dynamics<S>(m, o);
+  EXPECT_EQ(engine->strategy(), "thread");
+  EXPECT_EQ(engine->backend(), "cuda");
+  const IdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
+                        {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
+                        {qdd.data() + lqdd.base, B, lqdd.ds, lqdd.bs},
+                        with_fext ? fext.data() : nullptr};
+  engine->compute(in, BatchView<S>{tau.data() + lout.base, B, lout.ds, lout.bs});
+
+  // gaps untouched
+  std::vector<char> entry(lout.size, 0);
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) entry[lout.at(i, b)] = 1;
+  std::size_t bad_gaps = 0;
+  for (std::size_t k = 0; k < tau.size(); ++k) bad_gaps += !entry[k] && tau[k] != S(kSentinel);
+  EXPECT_EQ(bad_gaps, 0u) << "compute() wrote between tau's entries (layout " << lout.name << ")";
+  return worst_error<S>(md, batch, with_fext, tau, lout);
+}
+
+template <class S>
+double host_run_soa(const Model& md, Index B, bool with_fext) {
+  const Layout l = soa(md.nv(), B);
+  return host_run<S>(md, B, with_fext, l, l, l, l);
+}
+
+const Model& robot(const std::string& file) {
+  static std::map<std::string, Model> cache;
+  auto it = cache.find(file);
+  if (it == cache.end()) it = cache.emplace(file, test::load_robot(file)).first;
+  return it->second;
+}
+
+// The flags of ThreadModel's parameter block, whatever its capacity.
+template <class S>
+std::vector<int> flags_of(const cuda::ThreadModel<S>& tm) {
+  return std::visit([](const auto& p) { return std::vector<int>(p.flags, p.flags + p.nv); }, tm.params());
+}
+
+// The CPU float engine's error on the same inputs: the scale of float rounding for a model.
+double cpu_float_error(const Model& md, Index B, bool with_fext) {
+  const ModelTpl<float> m = md.cast<float>();
+  const Index nv = m.nv();
+  Batch<float> batch(md, B, 1);
+  std::vector<float> q(batch.q.begin(), batch.q.end()), qd(batch.qd.begin(), batch.qd.end()),
+      qdd(batch.qdd.begin(), batch.qdd.end()), tau(static_cast<std::size_t>(nv) * B);
+  std::vector<Force<float>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].cast<float>();
+  BackendOptions o;
+  o.max_batch = B;
+  auto engine = make_inverse_dynamics<float>(m, o);
+  using V = BatchView<const float>;
+  engine->compute({V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B),
+                   with_fext ? fext.data() : nullptr},
+                  BatchView<float>::soa(tau.data(), nv, B));
+  return worst_error<float>(md, batch, with_fext, tau, soa(nv, B));
+}
+
+}  // namespace
+
+// ---- runs everywhere: the model as the kernels see it, and the errors --------------
+
+TEST(CudaIdModel, CapacityAndFlags) {
+  EXPECT_EQ(cuda::ThreadModel<double>(robot("iiwa.urdf")).capacity(), 8);
+  EXPECT_EQ(cuda::ThreadModel<float>(robot("hyq.urdf").cast<float>()).capacity(), 16);
+  EXPECT_EQ(cuda::ThreadModel<double>(robot("atlas.urdf")).capacity(), 32);
+  EXPECT_EQ(cuda::ThreadModel<double>(load_model("chain:8")).capacity(), 8);
+  EXPECT_EQ(cuda::ThreadModel<double>(load_model("chain:9")).capacity(), 16);
+  EXPECT_EQ(cuda::ThreadModel<double>(load_model("chain:50")).capacity(), 64);
+  EXPECT_EQ(cuda::ThreadModel<double>(load_model("chain:64")).capacity(), 64);
+
+  // atlas: torso body 2 has children 3 (next), 10 and 11; legs hang from the base
+  const cuda::ThreadModel<double> tm(robot("atlas.urdf"));
+  const auto& p = std::get<cuda::ThreadModelParams<double, 32>>(tm.params());
+  EXPECT_EQ(p.nv, 30);
+  EXPECT_EQ(p.flags[0], cuda::kParentIsBase);
+  EXPECT_EQ(p.flags[1], cuda::kParentIsPrev);
+  EXPECT_EQ(p.flags[2], cuda::kParentIsPrev | cuda::kStacked);
+  EXPECT_EQ(p.flags[10], 0);  // parent 2, not the previous body
+  EXPECT_EQ(p.flags[11], 0);
+  EXPECT_EQ(p.flags[9], cuda::kParentIsPrev);
+  EXPECT_EQ(p.flags[18], cuda::kParentIsBase);
+  EXPECT_EQ(p.a0.v.z, 9.81);
+  // the flags by their definitions, on trees with many branch points
+  for (const Model& md : {robot("atlas.urdf"), test::random_model(40, 4), load_model("tree:60:2")}) {
+    const std::vector<int> flags = flags_of(cuda::ThreadModel<double>(md));
+    const Index n = md.nv();
+    ASSERT_EQ(static_cast<Index>(flags.size()), n);
+    int stacked = 0;
+    for (Index i = 0; i < n; ++i) {
+      const Index p = md.parent(i);
+      bool other_child = false;
+      for (Index j = i + 2; j < n; ++j) other_child = other_child || md.parent(j) == i;
+      const int want = (p < 0 ? cuda::kParentIsBase : 0) | (p >= 0 && p == i - 1 ? cuda::kParentIsPrev : 0) |
+                       (other_child ? cuda::kStacked : 0);
+      EXPECT_EQ(flags[i], want) << md.name << " body " << i;
+      stacked += other_child;
+    }
+    EXPECT_GT(stacked, 0) << md.name;
+  }
+}
+
+// rnea_instance run on the host (it is __host__ __device__): the kernel's loops,
+// flags and stack against the reference, on every machine.
+template <class S, bool kKeepXup, bool kUnrolled>
+double host_instance_error(const Model& md, Index B, bool with_fext) {
+  const ModelTpl<S> m = md.cast<S>();
+  const cuda::ThreadModel<S> tm(m);
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, 11);
+  const Layout l = aos(nv, B);  // each instance contiguous
+  const std::vector<S> q = pack<S>(batch.q, nv, B, l, 0), qd = pack<S>(batch.qd, nv, B, l, 0),
+                       qdd = pack<S>(batch.qdd, nv, B, l, 0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> tau(l.size, std::numeric_limits<S>::quiet_NaN());
+  for (Index b = 0; b < B; ++b) {
+    const std::size_t o = static_cast<std::size_t>(b) * nv;
+    const Force<S>* f = with_fext ? fext.data() + o : nullptr;
+    std::visit(
+        [&](const auto& p) {
+          using P = std::decay_t<decltype(p)>;
+          cuda::rnea_instance<S, P::capacity, kKeepXup, kUnrolled>(p, {q.data() + o, 1}, {qd.data() + o, 1},
+                                                                   {qdd.data() + o, 1}, f, {tau.data() + o, 1});
+        },
+        tm.params());
+  }
+  return worst_error<S>(md, batch, with_fext, tau, l);
+}
+
+TEST(CudaIdModel, DeviceFunctionOnTheHost) {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (const char* spec : {"tree:30:1", "chain:50", "chain:1", "chain:9", "chain:64", "curtain:3:5", "tree:60:2"})
+    models.emplace_back(spec, load_model(spec));
+  models.emplace_back("random_model(12)", test::random_model(12, 3));
+  models.emplace_back("random_model(40)", test::random_model(40, 4));
+  models.emplace_back("random_model(64)", test::random_model(64, 5));
+  for (const auto& [name, md] : models) {
+    SCOPED_TRACE(name);
+    for (bool fx : {false, true}) {
+      // every variant of the function: transforms kept or recomputed, unrolled or not
+      const double ftol = std::max(1e-4, 10 * cpu_float_error(md, 20, fx));
+      EXPECT_LE((host_instance_error<double, false, false>(md, 20, fx)), 1e-12);
+      EXPECT_LE((host_instance_error<double, false, true>(md, 20, fx)), 1e-12);
+      EXPECT_LE((host_instance_error<double, true, true>(md, 20, fx)), 1e-12);
+      EXPECT_LE((host_instance_error<float, false, false>(md, 20, fx)), ftol);
+      EXPECT_LE((host_instance_error<float, false, true>(md, 20, fx)), ftol);
+      EXPECT_LE((host_instance_error<float, true, false>(md, 20, fx)), ftol);
+    }
+  }
+}
+
+TEST(CudaIdErrors, WithoutADevice) {
+  // arguments are checked before the device: these hold on every machine
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 4;
+  try {
+    make_inverse_dynamics<double>(load_model("chain:200"), o);
+    ADD_FAILURE() << "chain:200 (200 DoF) was accepted";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("at most 64"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(cuda::ThreadModel<float>(load_model("chain:65").cast<float>()), BackendError);
+  o.strategy = IdStrategy::ScanLocal;
+  EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);
+  o.strategy = IdStrategy::Recursion;
+  o.max_batch = -1;
+  EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);
+  // no device: a BackendError naming why, never a crash
+  o.max_batch = 4;
+  if (!no_device_reason().empty()) {
+    try {
+      make_inverse_dynamics<float>(load_model("chain:3").cast<float>(), o);
+      ADD_FAILURE() << "an engine was made without a device";
+    } catch (const BackendError& e) {
+      EXPECT_NE(std::string(e.what()).find("no usable CUDA device"), std::string::npos) << e.what();
+    }
+  } else {
+    auto e = make_inverse_dynamics<float>(load_model("chain:3").cast<float>(), o);
+    EXPECT_EQ(e->strategy(), "thread");
+  }
+}
+
+// ---- on the device ----------------------------------------------------------------
+
+TEST(CudaId, RobotsMatchReference) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    for (Index B : {1, 31, 32, 33, 1000, 100000}) {
+      for (bool fx : {false, true}) {
+        if (B == 100000 && fx && std::string(file) != "iiwa.urdf") continue;  // keep the run short
+        SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + (fx ? " fext" : ""));
+        EXPECT_LE(host_run_soa<double>(md, B, fx), 1e-10);
+        EXPECT_LE(host_run_soa<float>(md, B, fx), 1e-4);
+      }
+    }
+  }
+}
+
+TEST(CudaId, GeneratedTreesAndChains) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  // every capacity, its boundaries, branch points (curtain, random trees) and
+  // prismatic joints with arbitrary axes (random_model)
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* spec : {"tree:30:1", "chain:50", "chain:1", "chain:8", "chain:9", "chain:16", "chain:17",
+                           "chain:32", "chain:33", "chain:64", "curtain:3:5", "tree:60:2", "rope:40"})
+    models.emplace_back(spec, load_model(spec));
+  models.emplace_back("random_model(12)", test::random_model(12, 3));
+  models.emplace_back("random_model(40)", test::random_model(40, 4));
+  for (const auto& [name, md] : models) {
+    for (Index B : {33, 1000}) {
+      SCOPED_TRACE(name + " B=" + std::to_string(B));
+      EXPECT_LE(host_run_soa<double>(md, B, B == 33), 1e-10);
+      // float: within 10x of what the serial float reference gets on the same inputs
+      const double cpu = cpu_float_error(md, B, B == 33);
+      EXPECT_LE(host_run_soa<float>(md, B, B == 33), std::max(1e-4, 10 * cpu)) << "cpu float error " << cpu;
+    }
+  }
+}
+
+TEST(CudaId, StridedHostLayouts) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(99);
+  for (const char* file : {"iiwa.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (int trial = 0; trial < 12; ++trial) {
+      const Index B = trial % 3 == 0 ? 1 : 257;
+      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
+      // qd and qdd like q unless q broadcasts (then all three do)
+      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
+      const Layout lqdd = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
+      const bool fx = trial % 2 == 0;
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " q " + lq.name + " qd " + lqd.name + " qdd " +
+                   lqdd.name + " tau " + lout.name + (fx ? " fext" : ""));
+      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-10);
+      EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-4);
+    }
+  }
+}
+
+// compute_async: device pointers with their own strides, the caller's stream.
+template <class S>
+void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout, bool with_fext, double tol) {
+  const ModelTpl<S> m = md.cast<S>();
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, 7);
+  const std::vector<S> q = pack<S>(batch.q, nv, B, lin, 0.0), qd = pack<S>(batch.qd, nv, B, lin, 0.0),
+                       qdd = pack<S>(batch.qdd, nv, B, lin, 0.0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> tau(lout.size, std::numeric_limits<S>::quiet_NaN());
+
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 1;  // the device path is not limited by the staging buffers
+  cuda::CudaInverseDynamics<S> engine(m, o);
+  DeviceArray<S> dq, dqd, dqdd, dtau;
+  DeviceArray<Force<S>> dfext;
+  ASSERT_CUDA(dq.alloc(lin.size));
+  ASSERT_CUDA(dqd.alloc(lin.size));
+  ASSERT_CUDA(dqdd.alloc(lin.size));
+  ASSERT_CUDA(dtau.alloc(lout.size));
+  ASSERT_CUDA(dfext.alloc(fext.size()));
+  ASSERT_CUDA(cudaMemcpy(dq.ptr, q.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dqd.ptr, qd.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dqdd.ptr, qdd.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dfext.ptr, fext.data(), fext.size() * sizeof(Force<S>), cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dtau.ptr, tau.data(), lout.size * sizeof(S), cudaMemcpyHostToDevice));
+  cudaStream_t stream;
+  ASSERT_CUDA(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking));
+  const IdBatchIn<S> in{{dq.ptr + lin.base, B, lin.ds, lin.bs},
+                        {dqd.ptr + lin.base, B, lin.ds, lin.bs},
+                        {dqdd.ptr + lin.base, B, lin.ds, lin.bs},
+                        with_fext ? dfext.ptr : nullptr};
+  const BatchView<S> out{dtau.ptr + lout.base, B, lout.ds, lout.bs};
+  EXPECT_EQ(engine.compute_async(in, out, stream), cudaSuccess);
+  EXPECT_EQ(cudaStreamSynchronize(stream), cudaSuccess);
+  EXPECT_EQ(cudaStreamDestroy(stream), cudaSuccess);
+  ASSERT_CUDA(cudaMemcpy(tau.data(), dtau.ptr, lout.size * sizeof(S), cudaMemcpyDeviceToHost));
+  EXPECT_LE(worst_error<S>(md, batch, with_fext, tau, lout), tol);
+}
+
+TEST(CudaId, DevicePointersOnAStream) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(5);
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (Index B : {1, 33, 4097}) {
+      const Layout lin = B == 33 ? aos(nv, B) : soa(nv, B);
+      const Layout lout = B == 4097 ? random_layout(g, nv, B, true) : lin;
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " in " + lin.name + " out " + lout.name);
+      device_run<double>(md, B, lin, lout, B != 1, 1e-10);
+      device_run<float>(md, B, lin, lout, B != 1, 1e-4);
+    }
+  }
+  SCOPED_TRACE("iiwa B=100000");
+  device_run<float>(robot("iiwa.urdf"), 100000, soa(7, 100000), soa(7, 100000), false, 1e-4);
+}
+
+TEST(CudaId, ErrorsWithADevice) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = load_model("chain:4");
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 8;
+  cuda::CudaInverseDynamics<double> engine(md, o);
+  EXPECT_EQ(engine.device_bytes(), 10u * 4 * 8 * sizeof(double));
+  std::vector<double> x(4 * 16, 0.0), tau(4 * 16, 0.0);
+  using V = BatchView<const double>;
+  // max_batch exceeded
+  const IdBatchIn<double> big{V::soa(x.data(), 4, 9), V::soa(x.data(), 4, 9), V::soa(x.data(), 4, 9)};
+  try {
+    engine.compute(big, BatchView<double>::soa(tau.data(), 4, 9));
+    ADD_FAILURE() << "a batch over max_batch was accepted";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("max_batch"), std::string::npos) << e.what();
+  }
+  // batch sizes that disagree; tau entries that overlap
+  const IdBatchIn<double> ok{V::soa(x.data(), 4, 8), V::soa(x.data(), 4, 8), V::soa(x.data(), 4, 8)};
+  EXPECT_THROW(engine.compute(ok, BatchView<double>::soa(tau.data(), 4, 7)), BackendError);
+  EXPECT_THROW(engine.compute(ok, BatchView<double>{tau.data(), 8, 1, 0}), BackendError);
+  EXPECT_THROW(engine.compute(ok, BatchView<double>{tau.data(), 8, 1, 2}), BackendError);
+  // the device path reports argument errors as values
+  EXPECT_EQ(engine.compute_async(ok, BatchView<double>::soa(tau.data(), 4, 7), nullptr), cudaErrorInvalidValue);
+  EXPECT_EQ(engine.compute_async({V::soa(nullptr, 4, 8), ok.qd, ok.qdd}, BatchView<double>::soa(tau.data(), 4, 8),
+                                 nullptr),
+            cudaErrorInvalidValue);
+  const IdBatchIn<double> none{V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0)};
+  EXPECT_EQ(engine.compute_async(none, BatchView<double>::soa(nullptr, 4, 0), nullptr), cudaSuccess);
+  EXPECT_NO_THROW(engine.compute(none, BatchView<double>::soa(nullptr, 4, 0)));
+  // more than the device holds: the message names the bytes needed and free
+  o.max_batch = 2000000000;
+  try {
+    cuda::CudaInverseDynamics<double> huge(load_model("chain:64"), o);
+    ADD_FAILURE() << "an engine of " << huge.device_bytes() << " bytes was made";
+  } catch (const BackendError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("10240000000000 bytes"), std::string::npos) << what;
+    EXPECT_NE(what.find("bytes free"), std::string::npos) << what;
+  }
+  // the engine still works after the failures
+  std::vector<double> q(4 * 8, 0.1), t(4 * 8, std::nan(""));
+  const IdBatchIn<double> in{V::soa(q.data(), 4, 8), V::soa(q.data(), 4, 8), V::soa(q.data(), 4, 8)};
+  engine.compute(in, BatchView<double>::soa(t.data(), 4, 8));
+  Data d(md, false);
+  std::vector<double> ref(4), q1(4, 0.1);
+  rnea(md, d, q1.data(), q1.data(), q1.data(), ref.data());
+  for (Index b = 0; b < 8; ++b)
+    for (Index i = 0; i < 4; ++i) EXPECT_NEAR(t[i * 8 + b], ref[i], 1e-12 * std::max(1.0, std::fabs(ref[i])));
+}
