@@ -24,6 +24,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "cuda_test_util.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"
@@ -31,40 +32,6 @@
 using namespace scandyn;
 
 namespace {
-
-// ---- device plumbing ------------------------------------------------------------
-
-// Why CUDA tests cannot run here, or "" when a device is usable.
-std::string no_device_reason() {
-  const auto count = cuda::device_count();
-  const std::string prefix = "no usable CUDA device: ";
-  if (!count) {
-    return count.error.compare(0, prefix.size(), prefix) == 0 ? count.error.substr(prefix.size()) : count.error;
-  }
-  if (count.value == 0) return "the CUDA runtime reports 0 devices";
-  return "";
-}
-
-#define SKIP_WITHOUT_CUDA_DEVICE()                               \
-  do {                                                           \
-    const std::string why = no_device_reason();                  \
-    if (!why.empty()) GTEST_SKIP() << "no CUDA device: " << why; \
-  } while (0)
-
-#define ASSERT_CUDA(call)                                                       \
-  do {                                                                          \
-    const cudaError_t err_ = (call);                                            \
-    ASSERT_EQ(err_, cudaSuccess) << #call << ": " << cudaGetErrorString(err_); \
-  } while (0)
-
-template <class T>
-struct DeviceArray {
-  T* ptr = nullptr;
-  cudaError_t alloc(std::size_t n) { return cudaMalloc(reinterpret_cast<void**>(&ptr), std::max<std::size_t>(n, 1) * sizeof(T)); }
-  ~DeviceArray() {
-    if (ptr) cudaFree(ptr);
-  }
-};
 
 // ---- layouts --------------------------------------------------------------------
 
@@ -364,7 +331,7 @@ TEST(CudaIdErrors, WithoutADevice) {
   EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);
   // no device: a BackendError naming why, never a crash
   o.max_batch = 4;
-  if (!no_device_reason().empty()) {
+  if (!test::no_device_reason().empty()) {
     try {
       make_inverse_dynamics<float>(load_model("chain:3").cast<float>(), o);
       ADD_FAILURE() << "an engine was made without a device";
@@ -452,8 +419,8 @@ void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout,
   o.backend = BackendKind::Cuda;
   o.max_batch = 1;  // the device path is not limited by the staging buffers
   cuda::CudaInverseDynamics<S> engine(m, o);
-  DeviceArray<S> dq, dqd, dqdd, dtau;
-  DeviceArray<Force<S>> dfext;
+  test::DeviceArray<S> dq, dqd, dqdd, dtau;
+  test::DeviceArray<Force<S>> dfext;
   ASSERT_CUDA(dq.alloc(lin.size));
   ASSERT_CUDA(dqd.alloc(lin.size));
   ASSERT_CUDA(dqdd.alloc(lin.size));

@@ -27,6 +27,7 @@
 
 #include "scandyn/algorithm/steps.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "cuda_test_util.hpp"
 
 using namespace scandyn;
 
@@ -210,48 +211,12 @@ Case<T> cast_case(const Case<double>& c) {
   return o;
 }
 
-// ---- device plumbing ------------------------------------------------------------
-
-// Why CUDA tests cannot run here, or "" when a device is usable.
-std::string no_device_reason() {
-  const auto count = scandyn::cuda::device_count();
-  const std::string prefix = "no usable CUDA device: ";
-  if (!count) {
-    return count.error.compare(0, prefix.size(), prefix) == 0 ? count.error.substr(prefix.size())
-                                                              : count.error;
-  }
-  if (count.value == 0) return "the CUDA runtime reports 0 devices";
-  return "";
-}
-
-#define SKIP_WITHOUT_CUDA_DEVICE()                                    \
-  do {                                                                \
-    const std::string why = no_device_reason();                       \
-    if (!why.empty()) GTEST_SKIP() << "no CUDA device: " << why;      \
-  } while (0)
-
-#define ASSERT_CUDA(call)                                                            \
-  do {                                                                               \
-    const cudaError_t err_ = (call);                                                 \
-    ASSERT_EQ(err_, cudaSuccess) << #call << ": " << cudaGetErrorString(err_);      \
-  } while (0)
-
-// Device memory for n objects, freed on scope exit.
-template <class T>
-struct DeviceArray {
-  T* ptr = nullptr;
-  cudaError_t alloc(std::size_t n) { return cudaMalloc(reinterpret_cast<void**>(&ptr), n * sizeof(T)); }
-  ~DeviceArray() {
-    if (ptr) cudaFree(ptr);
-  }
-};
-
 // Runs evaluate_kernel on `cases`, filling `out` (NaN before the kernel).
 template <class S>
 void run_on_device(const std::vector<Case<S>>& cases, std::vector<Outputs<S>>& out) {
   const int n = static_cast<int>(cases.size());
-  DeviceArray<Case<S>> d_in;
-  DeviceArray<Outputs<S>> d_out;
+  test::DeviceArray<Case<S>> d_in;
+  test::DeviceArray<Outputs<S>> d_out;
   ASSERT_CUDA(d_in.alloc(cases.size()));
   ASSERT_CUDA(d_out.alloc(cases.size()));
   ASSERT_CUDA(cudaMemcpy(d_in.ptr, cases.data(), n * sizeof(Case<S>), cudaMemcpyHostToDevice));
