@@ -60,6 +60,22 @@ IdStrategy choose_strategy(Index nv, Index batch, int threads) {
   return IdStrategy::ScanLocal;
 }
 
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batch) {
+  const Index B = in.q.batch;
+  if (in.qd.batch != B || in.qdd.batch != B || tau.batch != B)
+    throw BackendError("batch sizes disagree: q " + std::to_string(B) + ", qd " + std::to_string(in.qd.batch) +
+                       ", qdd " + std::to_string(in.qdd.batch) + ", tau " + std::to_string(tau.batch));
+  if (B < 0) throw BackendError("negative batch size " + std::to_string(B));
+  if (B > max_batch)
+    throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
+                       std::to_string(max_batch));
+  if (B > 0 && (!in.q.data || !in.qd.data || !in.qdd.data || !tau.data))
+    throw BackendError("null data pointer in a batch of " + std::to_string(B) + " instances");
+}
+template void check_batch(const IdBatchIn<float>&, const BatchView<float>&, Index);
+template void check_batch(const IdBatchIn<double>&, const BatchView<double>&, Index);
+
 namespace {
 
 #ifdef _OPENMP
@@ -84,10 +100,8 @@ class CpuInverseDynamics final : public InverseDynamics<S> {
   }
 
   void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override {
+    check_batch(in, tau, max_batch_);
     const Index B = in.q.batch;
-    if (B > max_batch_)
-      throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
-                         std::to_string(max_batch_));
     if (strategy_ == IdStrategy::Recursion) compute_instances(in, tau, B);
     else compute_scans(in, tau, B);
   }

@@ -269,14 +269,8 @@ cudaError_t CudaInverseDynamics<S>::compute_async(const IdBatchIn<S>& in, const 
 
 template <class S>
 void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>& tau) {
+  check_batch(in, tau, max_batch_);
   const Index B = in.q.batch;
-  if (B > max_batch_)
-    throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
-                       std::to_string(max_batch_));
-  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || tau.batch != B)
-    throw BackendError("backend 'cuda': the views' batch sizes differ (q " + std::to_string(B) + ", qd " +
-                       std::to_string(in.qd.batch) + ", qdd " + std::to_string(in.qdd.batch) + ", tau " +
-                       std::to_string(tau.batch) + ")");
   const Index nv = model_.nv();
   if (B == 0 || nv == 0) return;
   // staging buffers: nv x max_batch scalars each, then the wrenches

@@ -124,7 +124,13 @@ TEST(Backend, Errors) {
   std::vector<double> x(9, 0.0);
   IdBatchIn<double> in{BatchView<const double>::soa(x.data(), 3, 3), BatchView<const double>::soa(x.data(), 3, 3),
                        BatchView<const double>::soa(x.data(), 3, 3)};
-  EXPECT_THROW(e->compute(in, BatchView<double>::soa(x.data(), 3, 3)), BackendError);
+  EXPECT_THROW(e->compute(in, BatchView<double>::soa(x.data(), 3, 3)), BackendError);  // above max_batch
+  IdBatchIn<double> mixed{BatchView<const double>::soa(x.data(), 3, 2), BatchView<const double>::soa(x.data(), 3, 2),
+                          BatchView<const double>::soa(x.data(), 3, 1)};
+  EXPECT_THROW(e->compute(mixed, BatchView<double>::soa(x.data(), 3, 2)), BackendError);  // qdd has 1
+  IdBatchIn<double> two{BatchView<const double>::soa(x.data(), 3, 2), BatchView<const double>::soa(x.data(), 3, 2),
+                        BatchView<const double>::soa(x.data(), 3, 2)};
+  EXPECT_THROW(e->compute(two, BatchView<double>::soa(nullptr, 3, 2)), BackendError);  // null tau
   EXPECT_THROW(parse_backend("gpu"), BackendError);
   EXPECT_THROW(parse_strategy("fast"), BackendError);
   o.backend = BackendKind::Cuda;

@@ -25,7 +25,7 @@ struct BatchView {
   std::ptrdiff_t dof_stride = 0;   // elements between DoF i and i + 1 of one instance
   std::ptrdiff_t batch_stride = 0; // elements between instance b and b + 1
 
-  T& at(Index dof, Index b) const { return data[dof * dof_stride + b * batch_stride]; }
+  SCANDYN_HD T& at(Index dof, Index b) const { return data[dof * dof_stride + b * batch_stride]; }
   static BatchView soa(T* data, Index nv, Index B) { (void)nv; return {data, B, B, 1}; }
   static BatchView aos(T* data, Index nv, Index B) { return {data, B, 1, nv}; }
 };
@@ -35,6 +35,11 @@ struct IdBatchIn {
   BatchView<const S> q, qd, qdd;      // (nv x B) joint positions, velocities, accelerations
   const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
 };
+
+// Throws BackendError unless q, qd, qdd and tau describe the same number of
+// instances, at most max_batch, with non-null data when there is any.
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batch);
 
 enum class BackendKind { Serial, OpenMP, Cuda };
 
