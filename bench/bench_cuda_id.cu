@@ -46,26 +46,12 @@
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/model/load.hpp"
+#include "cuda_bench_util.hpp"
 
 using namespace scandyn;
+using namespace scandyn::bench;
 
 namespace {
-
-// ---- inputs: a counter-based hash, the same on host and device --------------------
-
-__host__ __device__ inline double uniform(std::uint64_t array, std::uint64_t k) {
-  std::uint64_t z = (array << 56) + k + 0x9e3779b97f4a7c15ull;  // splitmix64
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-  z ^= z >> 31;
-  return double(z >> 11) * (2.0 / 9007199254740992.0) - 1.0;  // [-1, 1)
-}
-
-template <class S>
-__global__ void fill_kernel(S* out, std::uint64_t array, std::size_t n) {
-  for (std::size_t k = blockIdx.x * std::size_t(blockDim.x) + threadIdx.x; k < n; k += std::size_t(gridDim.x) * blockDim.x)
-    out[k] = S(uniform(array, k));
-}
 
 // The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled.
 template <class S, int C, bool kKeepXup, bool kUnrolled>
@@ -77,109 +63,6 @@ __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
   auto col = [b](const auto& v) { return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride}; };
   cuda::rnea_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
                                       col(tau_out));
-}
-
-bool cuda_ok(benchmark::State& st, cudaError_t err, const char* what) {
-  if (err == cudaSuccess) return true;
-  st.SkipWithError((std::string(what) + ": " + cudaGetErrorString(err)).c_str());
-  (void)cudaGetLastError();
-  return false;
-}
-
-// Device buffers q, qd, qdd, tau (nv x B each, soa), freed on scope exit.
-template <class S>
-struct DeviceBatch {
-  S* p = nullptr;
-  std::size_t n = 0;
-  cudaError_t alloc(Index nv, Index B) {
-    n = static_cast<std::size_t>(nv) * B;
-    const cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&p), 4 * n * sizeof(S));
-    if (err != cudaSuccess) return err;
-    for (int a = 0; a < 3; ++a) fill_kernel<S><<<1024, 256>>>(p + a * n, a, n);
-    cudaMemset(p + 3 * n, 0xff, n * sizeof(S));  // NaN
-    return cudaDeviceSynchronize();
-  }
-  ~DeviceBatch() {
-    if (p) cudaFree(p);
-  }
-  IdBatchIn<S> in(Index nv, Index B) const {
-    using V = BatchView<const S>;
-    return {V::soa(p, nv, B), V::soa(p + n, nv, B), V::soa(p + 2 * n, nv, B)};
-  }
-  BatchView<S> tau(Index nv, Index B) const { return BatchView<S>::soa(p + 3 * n, nv, B); }
-};
-
-// max rel_err over up to 64 instances: tau (soa, nv x B, host or device) against the
-// double reference on the same (S-rounded) inputs.
-template <class S>
-double max_rel_err(const Model& md, Index B, const S* tau, bool on_device) {
-  const Index nv = md.nv();
-  Data d(md, false);
-  std::vector<double> q(nv), qd(nv), qdd(nv), ref(nv), ours(nv);
-  std::vector<S> col(nv);
-  double worst = 0;
-  const Index step = B > 64 ? B / 64 : 1;
-  for (Index b = 0; b < B; b += step) {
-    for (Index i = 0; i < nv; ++i) {
-      const std::size_t k = static_cast<std::size_t>(i) * B + b;
-      q[i] = double(S(uniform(0, k)));
-      qd[i] = double(S(uniform(1, k)));
-      qdd[i] = double(S(uniform(2, k)));
-    }
-    rnea(md, d, q.data(), qd.data(), qdd.data(), ref.data());
-    if (on_device) {
-      if (cudaMemcpy2D(col.data(), sizeof(S), tau + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
-          cudaSuccess)
-        return std::nan("");
-    } else {
-      for (Index i = 0; i < nv; ++i) col[i] = tau[static_cast<std::size_t>(i) * B + b];
-    }
-    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
-    const double e = rel_err(ours.data(), ref.data(), ref.size());
-    if (std::isnan(e)) return e;
-    worst = std::fmax(worst, e);
-  }
-  return worst;
-}
-
-void set_counters(benchmark::State& st, Index nv, Index B, double err, double seconds, std::size_t scalar) {
-  st.counters["links"] = nv;
-  st.counters["instances"] = B;
-  st.counters["max_rel_err"] = err;
-  const double bytes = 4.0 * nv * double(B) * double(scalar);
-  st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
-}
-
-// Times `launch` (one call on `stream`) with events; returns the total seconds.
-template <class F>
-double time_launches(benchmark::State& st, F&& launch) {
-  cudaEvent_t start, stop;
-  cudaEventCreate(&start);
-  cudaEventCreate(&stop);
-  double total = 0;
-  if (!cuda_ok(st, launch(), "warm-up launch") || !cuda_ok(st, cudaDeviceSynchronize(), "warm-up run")) {
-    for (auto _ : st) {
-    }
-  } else {
-    for (auto _ : st) {
-      cudaEventRecord(start);
-      const cudaError_t err = launch();
-      cudaEventRecord(stop);
-      cudaEventSynchronize(stop);
-      if (err != cudaSuccess) {
-        cuda_ok(st, err, "launch");
-        break;
-      }
-      float ms = 0;
-      cudaEventElapsedTime(&ms, start, stop);
-      st.SetIterationTime(ms * 1e-3);
-      total += ms * 1e-3;
-    }
-    cuda_ok(st, cudaDeviceSynchronize(), "kernel");
-  }
-  cudaEventDestroy(start);
-  cudaEventDestroy(stop);
-  return total;
 }
 
 // id_thread: the engine's device path.

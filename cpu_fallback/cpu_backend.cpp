@@ -76,11 +76,15 @@ void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batc
 template void check_batch(const IdBatchIn<float>&, const BatchView<float>&, Index);
 template void check_batch(const IdBatchIn<double>&, const BatchView<double>&, Index);
 
-namespace {
-
+int openmp_threads() {
 #ifdef _OPENMP
-int max_threads() { return omp_get_max_threads(); }
+  return omp_get_max_threads();
+#else
+  return 1;
 #endif
+}
+
+namespace {
 
 template <class S>
 class CpuInverseDynamics final : public InverseDynamics<S> {
@@ -184,7 +188,7 @@ std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& mod
       return std::make_unique<CpuInverseDynamics<S>>(model, o.backend, o.strategy, 1, o.max_batch);
     case BackendKind::OpenMP: {
 #if SCANDYN_HAS_OPENMP && defined(_OPENMP)
-      const int threads = o.threads > 0 ? o.threads : max_threads();
+      const int threads = o.threads > 0 ? o.threads : openmp_threads();
       return std::make_unique<CpuInverseDynamics<S>>(model, o.backend, o.strategy, threads, o.max_batch);
 #else
       throw BackendError("backend 'openmp' is not available in this build (configured with SCANDYN_OPENMP=OFF)");

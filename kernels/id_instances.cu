@@ -217,36 +217,52 @@ cudaError_t copy(const Staging& s, const BatchView<T>& v, Index nv, S* buffer, c
 
 // ---- the engine -------------------------------------------------------------------
 
+IdStrategy choose_cuda_strategy(Index nv, Index batch) {
+  (void)batch;
+  return nv <= kMaxThreadDofs ? IdStrategy::Recursion : IdStrategy::ScanLocal;
+}
+
 template <class S>
 CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options)
-    : model_(model), max_batch_(options.max_batch) {
-  if (options.strategy == IdStrategy::ScanLocal || options.strategy == IdStrategy::ScanWorld)
-    throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
-                       "' is not available on this backend (it runs one thread per instance: use auto or recursion)");
+    : nv_(model.nv()), max_batch_(options.max_batch) {
+  if (options.strategy == IdStrategy::ScanWorld)
+    throw BackendError("backend 'cuda': strategy 'scan-world' is not available on this backend "
+                       "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
+  const IdStrategy strategy =
+      options.strategy == IdStrategy::Auto ? choose_cuda_strategy(nv_, max_batch_) : options.strategy;
+  if (strategy == IdStrategy::Recursion && nv_ > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
+                       " DoF; strategy 'recursion' (a thread per instance) takes at most " +
+                       std::to_string(kMaxThreadDofs) + " (use auto or scan-local)");
   const Result<int> count = device_count();
   if (!count) throw BackendError("backend 'cuda': " + count.error);
   if (count.value == 0) throw BackendError("backend 'cuda': no usable CUDA device: the CUDA runtime reports 0 devices");
   check(cudaGetDevice(&device_), "cudaGetDevice");
 
   // q, qd, qdd, tau (1 scalar per DoF each) and fext (6) for max_batch instances
-  const std::size_t per_instance = 10 * static_cast<std::size_t>(model_.nv()) * sizeof(S);
-  bytes_ = per_instance * static_cast<std::size_t>(max_batch_);
+  const std::size_t per_instance = 10 * static_cast<std::size_t>(nv_) * sizeof(S);
+  const std::size_t staging = per_instance * static_cast<std::size_t>(max_batch_);
+  const std::size_t scratch = strategy == IdStrategy::ScanLocal ? IdScanPlan<S>::bytes_needed(model, max_batch_) : 0;
+  bytes_ = staging + scratch;
   std::size_t free_bytes = 0, total_bytes = 0;
   check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
   auto too_large = [&](const std::string& why) {
     const Result<DeviceInfo> info = device_info(device_);
     return BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " instances of a " +
-                        std::to_string(model_.nv()) + "-DoF model in " + (sizeof(S) == 4 ? "float" : "double") +
+                        std::to_string(nv_) + "-DoF model in " + (sizeof(S) == 4 ? "float" : "double") +
                         " need " + std::to_string(bytes_) + " bytes of device memory (q, qd, qdd, tau and fext: " +
-                        std::to_string(per_instance) + " bytes per instance); device " + std::to_string(device_) +
-                        " (" + (info ? info.value.name : std::string("?")) + ") has " + std::to_string(free_bytes) +
-                        " bytes free of " + std::to_string(total_bytes) + why);
+                        std::to_string(per_instance) + " bytes per instance" +
+                        (scratch ? ", link-scan scratch: " + std::to_string(scratch) + " bytes" : std::string()) +
+                        "); device " + std::to_string(device_) + " (" + (info ? info.value.name : std::string("?")) +
+                        ") has " + std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes) + why);
   };
   if (bytes_ > free_bytes) throw too_large("");
+  if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
+  else thread_ = std::make_unique<ThreadModel<S>>(model);
   check(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
-  if (bytes_ > 0) {
-    const cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&buffer_), bytes_);
+  if (staging > 0) {
+    const cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&buffer_), staging);
     if (err != cudaSuccess) {
       (void)cudaGetLastError();
       cudaStreamDestroy(stream_);
@@ -263,15 +279,15 @@ CudaInverseDynamics<S>::~CudaInverseDynamics() {
 
 template <class S>
 cudaError_t CudaInverseDynamics<S>::compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau,
-                                                  cudaStream_t stream) const {
-  return launch_id_instances(model_, in, tau, stream);
+                                                  cudaStream_t stream) {
+  return scan_ ? scan_->launch(in, tau, stream) : launch_id_instances(*thread_, in, tau, stream);
 }
 
 template <class S>
 void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>& tau) {
   check_batch(in, tau, max_batch_);
   const Index B = in.q.batch;
-  const Index nv = model_.nv();
+  const Index nv = nv_;
   if (B == 0 || nv == 0) return;
   // staging buffers: nv x max_batch scalars each, then the wrenches
   const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
@@ -297,10 +313,10 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
                          {dqdd + sqdd.dev_base, B, sqdd.dev_ds, sqdd.dev_bs},
                          in.fext ? dfext : nullptr};
   const BatchView<S> dtau_view{dtau + stau.dev_base, B, stau.dev_ds, stau.dev_bs};
-  check(launch_id_instances(model_, din, dtau_view, stream_), "launching id_instances_kernel");
+  check(compute_async(din, dtau_view, stream_), scan_ ? "launching the link scans" : "launching id_instances_kernel");
   // copy out: tau's entries only
   check(copy(stau, tau, nv, dtau, cudaMemcpyDeviceToHost, stream_), "copying tau to the host");
-  check(cudaStreamSynchronize(stream_), "running id_instances_kernel");
+  check(cudaStreamSynchronize(stream_), scan_ ? "running the link scans" : "running id_instances_kernel");
 }
 
 template <class S>

@@ -18,7 +18,10 @@
 #
 # Environment: SCANDYN_GPU_BUILD_DIR (default build-gpu), CMAKE_CUDA_ARCHITECTURES
 # (default 90), SCANDYN_JOBS (default nproc), SCANDYN_SKIP_SANITIZER=1,
-# SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
+# SCANDYN_SANITIZER_FILTER (gtest filter under memcheck; default leaves out the
+# 10^5..10^6-link cases, which repeat the smaller ones' kernels at 10-100x the
+# time), SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
+# SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
 # --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300).
 set -euo pipefail
 
@@ -157,6 +160,7 @@ else
     note "compute-sanitizer memcheck $name -> $out/sanitizer/$name.log"
     set +e
     "$sanitizer" --tool memcheck --leak-check full --error-exitcode 86 "$t" \
+      --gtest_filter="${SCANDYN_SANITIZER_FILTER:--*LongRopes*:*BatchesOfRopes*}" \
       2>&1 | tee "$out/sanitizer/$name.log"
     rc=${PIPESTATUS[0]}
     set -e
@@ -165,7 +169,8 @@ else
 fi
 
 # ---- 6. benchmarks -------------------------------------------------------------
-mapfile -t benches < <(find "$build/bench" -maxdepth 1 -type f -name 'bench_*' -perm -u+x 2>/dev/null | sort)
+mapfile -t benches < <(find "$build/bench" -maxdepth 1 -type f -name 'bench_*' -perm -u+x 2>/dev/null | sort |
+  grep -E "${SCANDYN_BENCH_ONLY:-.}" || true)
 if [[ "${SCANDYN_SKIP_BENCH:-0}" == 1 ]]; then
   note "benchmarks skipped (SCANDYN_SKIP_BENCH=1)"
 elif ((${#benches[@]} == 0)); then

@@ -138,7 +138,7 @@ constexpr double kSentinel = 12345.0;
 // Returns the worst instance error; checks the gaps of tau.
 template <class S>
 double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& lqdd,
-                const Layout& lout, unsigned seed = 1) {
+                const Layout& lout, unsigned seed = 1, IdStrategy strategy = IdStrategy::Auto) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   Batch<S> batch(md, B, seed);
@@ -160,8 +160,10 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
+  o.strategy = strategy;
   auto engine = make_inverse_dynamics<S>(m, o);
-  EXPECT_EQ(engine->strategy(), "thread");
+  const IdStrategy used = strategy == IdStrategy::Auto ? cuda::choose_cuda_strategy(nv, B) : strategy;
+  EXPECT_EQ(engine->strategy(), used == IdStrategy::ScanLocal ? "scan-local" : "thread");
   EXPECT_EQ(engine->backend(), "cuda");
   const IdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
                         {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
@@ -180,9 +182,9 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
 }
 
 template <class S>
-double host_run_soa(const Model& md, Index B, bool with_fext) {
+double host_run_soa(const Model& md, Index B, bool with_fext, IdStrategy strategy = IdStrategy::Auto) {
   const Layout l = soa(md.nv(), B);
-  return host_run<S>(md, B, with_fext, l, l, l, l);
+  return host_run<S>(md, B, with_fext, l, l, l, l, 1, strategy);
 }
 
 const Model& robot(const std::string& file) {
@@ -317,15 +319,24 @@ TEST(CudaIdErrors, WithoutADevice) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 4;
+  o.strategy = IdStrategy::Recursion;
   try {
     make_inverse_dynamics<double>(load_model("chain:200"), o);
-    ADD_FAILURE() << "chain:200 (200 DoF) was accepted";
+    ADD_FAILURE() << "chain:200 (200 DoF) was accepted by the thread-per-instance strategy";
   } catch (const BackendError& e) {
     EXPECT_NE(std::string(e.what()).find("at most 64"), std::string::npos) << e.what();
   }
   EXPECT_THROW(cuda::ThreadModel<float>(load_model("chain:65").cast<float>()), BackendError);
-  o.strategy = IdStrategy::ScanLocal;
-  EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);
+  o.strategy = IdStrategy::ScanWorld;
+  try {
+    make_inverse_dynamics<double>(load_model("chain:3"), o);
+    ADD_FAILURE() << "scan-world was accepted";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("scan-world"), std::string::npos) << e.what();
+  }
+  // auto: a thread per instance up to 64 DoF, the link scans beyond
+  EXPECT_EQ(cuda::choose_cuda_strategy(64, 1000000), IdStrategy::Recursion);
+  EXPECT_EQ(cuda::choose_cuda_strategy(65, 1), IdStrategy::ScanLocal);
   o.strategy = IdStrategy::Recursion;
   o.max_batch = -1;
   EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);
@@ -405,7 +416,8 @@ TEST(CudaId, StridedHostLayouts) {
 
 // compute_async: device pointers with their own strides, the caller's stream.
 template <class S>
-void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout, bool with_fext, double tol) {
+void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout, bool with_fext, double tol,
+                IdStrategy strategy = IdStrategy::Auto) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   Batch<S> batch(md, B, 7);
@@ -417,7 +429,10 @@ void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout,
 
   BackendOptions o;
   o.backend = BackendKind::Cuda;
-  o.max_batch = 1;  // the device path is not limited by the staging buffers
+  o.strategy = strategy;
+  // the thread strategy's device path is not limited by the staging buffers; the
+  // scans' scratch is sized by max_batch
+  o.max_batch = strategy == IdStrategy::ScanLocal || nv > cuda::kMaxThreadDofs ? B : 1;
   cuda::CudaInverseDynamics<S> engine(m, o);
   test::DeviceArray<S> dq, dqd, dqdd, dtau;
   test::DeviceArray<Force<S>> dfext;
@@ -513,4 +528,115 @@ TEST(CudaId, ErrorsWithADevice) {
   rnea(md, d, q1.data(), q1.data(), q1.data(), ref.data());
   for (Index b = 0; b < 8; ++b)
     for (Index i = 0; i < 4; ++i) EXPECT_NEAR(t[i * 8 + b], ref[i], 1e-12 * std::max(1.0, std::fabs(ref[i])));
+}
+
+// ---- the link scans (strategy scan-local) ------------------------------------------
+
+// float tolerance for the scans: within 10x of the serial float recursion on the
+// same inputs, and never looser than needed for float arithmetic on short models
+double scan_float_tol(const Model& md, Index B, bool fx) { return std::max(1e-4, 10 * cpu_float_error(md, B, fx)); }
+
+TEST(CudaIdScan, TreesChainsAndRobots) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  // chains (one level), branching trees (many levels, branch children folded into
+  // their parents), prismatic joints with arbitrary axes, the robots forced onto
+  // the scans, and models beyond the thread kernels' 64 DoF (auto picks the scans)
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (const char* spec : {"chain:1", "chain:2", "rope:40", "chain:200", "curtain:3:5", "curtain:8:30", "tree:60:2",
+                           "tree:1000:3"})
+    models.emplace_back(spec, load_model(spec));
+  models.emplace_back("random_model(12)", test::random_model(12, 3));
+  models.emplace_back("random_model(200)", test::random_model(200, 6));
+  for (const auto& [name, md] : models) {
+    for (Index B : {1, 33, 257}) {
+      const bool fx = B == 33;
+      SCOPED_TRACE(name + " B=" + std::to_string(B) + (fx ? " fext" : ""));
+      EXPECT_LE(host_run_soa<double>(md, B, fx, IdStrategy::ScanLocal), 1e-10);
+      EXPECT_LE(host_run_soa<float>(md, B, fx, IdStrategy::ScanLocal), scan_float_tol(md, B, fx));
+    }
+  }
+}
+
+TEST(CudaIdScan, StridedLayoutsAndDevicePointers) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(17);
+  for (const char* spec : {"rope:300", "tree:500:7"}) {
+    const Model md = load_model(spec);
+    const Index nv = md.nv();
+    for (int trial = 0; trial < 6; ++trial) {
+      const Index B = trial % 3 == 0 ? 1 : 37;
+      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
+      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
+      const Layout lqdd = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
+      const bool fx = trial % 2 == 0;
+      SCOPED_TRACE(std::string(spec) + " B=" + std::to_string(B) + " q " + lq.name + " tau " + lout.name);
+      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, lqdd, lout, trial, IdStrategy::ScanLocal), 1e-10);
+    }
+    for (Index B : {1, 64}) {
+      SCOPED_TRACE(std::string(spec) + " device pointers B=" + std::to_string(B));
+      device_run<double>(md, B, aos(nv, B), soa(nv, B), B > 1, 1e-10, IdStrategy::ScanLocal);
+      device_run<float>(md, B, soa(nv, B), aos(nv, B), B > 1, scan_float_tol(md, B, B > 1), IdStrategy::ScanLocal);
+    }
+  }
+}
+
+TEST(CudaIdScan, BatchesOfRopes) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  // the middle shapes: instances x links ~ 10^5 .. 10^6 in one scan per pass
+  for (const auto& [spec, B] : std::vector<std::pair<std::string, Index>>{{"rope:1000", 100}, {"rope:100", 3000}}) {
+    const Model md = load_model(spec);
+    SCOPED_TRACE(spec + " B=" + std::to_string(B));
+    EXPECT_LE(host_run_soa<double>(md, B, true), 1e-10);
+    EXPECT_LE(host_run_soa<float>(md, B, false), scan_float_tol(md, 4, false));
+  }
+}
+
+TEST(CudaIdScan, LongRopes) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  // one instance of a rope of 10^5 and 10^6 links: double to 1e-10 of the serial
+  // double recursion; float within 10x of the serial float recursion's error
+  for (const char* spec : {"rope:100000", "rope:1000000"}) {
+    const Model md = load_model(spec);
+    SCOPED_TRACE(spec);
+    EXPECT_LE(host_run_soa<double>(md, 1, false), 1e-10);
+    const double cpu = cpu_float_error(md, 1, false);
+    EXPECT_LE(host_run_soa<float>(md, 1, false), std::max(1e-4, 10 * cpu)) << "cpu float error " << cpu;
+  }
+}
+
+TEST(CudaIdScan, ErrorsAndScratch) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = load_model("rope:100");
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 8;
+  cuda::CudaInverseDynamics<double> engine(md, o);
+  EXPECT_EQ(engine.strategy(), "scan-local");
+  ASSERT_NE(engine.scan_plan(), nullptr);
+  EXPECT_EQ(engine.thread_model(), nullptr);
+  EXPECT_EQ(engine.scan_plan()->levels(), 1);
+  EXPECT_LE(engine.scan_plan()->body_classes(), 2);  // a rope's links share their constants
+  std::vector<double> x(100 * 9, 0.0), tau(100 * 9, 0.0);
+  using V = BatchView<const double>;
+  // over max_batch: an error value on the device path (the scratch is sized by it)
+  const IdBatchIn<double> big{V::soa(x.data(), 100, 9), V::soa(x.data(), 100, 9), V::soa(x.data(), 100, 9)};
+  EXPECT_EQ(engine.compute_async(big, BatchView<double>::soa(tau.data(), 100, 9), nullptr), cudaErrorInvalidValue);
+  EXPECT_THROW(engine.compute(big, BatchView<double>::soa(tau.data(), 100, 9)), BackendError);
+  // more than the device holds: the message names the scratch
+  o.max_batch = 2000000;  // 2 * 10^9 elements per scan, 144 GB of v, a, F
+  try {
+    cuda::CudaInverseDynamics<double> huge(load_model("rope:1000"), o);
+    ADD_FAILURE() << "an engine of " << huge.device_bytes() << " bytes was made";
+  } catch (const BackendError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("link-scan scratch"), std::string::npos) << what;
+    EXPECT_NE(what.find("bytes free"), std::string::npos) << what;
+  }
+  // a tree: levels and branch children
+  const Model tree = load_model("curtain:4:10");
+  o.max_batch = 2;
+  cuda::CudaInverseDynamics<double> t(tree, o);
+  EXPECT_EQ(t.strategy(), "scan-local");
+  EXPECT_GE(t.scan_plan()->levels(), 2);
 }

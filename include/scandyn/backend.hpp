@@ -85,6 +85,10 @@ std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& mod
 // docs/accuracy-id-scan.md.
 IdStrategy choose_strategy(Index nv, Index batch, int threads);
 
+// Threads the OpenMP backend uses when BackendOptions::threads is 0
+// (omp_get_max_threads(); 1 in a build without OpenMP).
+int openmp_threads();
+
 const char* to_string(BackendKind b);
 const char* to_string(IdStrategy s);
 BackendKind parse_backend(const std::string& name);   // throws BackendError

@@ -42,6 +42,7 @@
 
 #include "scandyn/backend.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/id_scan.hpp"
 
 #if SCANDYN_HAS_CUDA
 #include <cuda_runtime_api.h>
@@ -105,51 +106,66 @@ template <class S>
 cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>& batch_in,
                                 const BatchView<S>& tau_out, cudaStream_t stream);
 
-// The batched engine on one CUDA device (the device current at construction).
+// The batched engine on one CUDA device (the device current at construction),
+// with two strategies (BackendOptions::strategy):
+//   recursion   ("thread") one thread per instance, launch_id_instances: models of
+//               up to kMaxThreadDofs DoF;
+//   scan-local  device-wide scans across links, IdScanPlan (scandyn/cuda/id_scan.hpp):
+//               any model, for few instances of long chains and the middle shapes;
+//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_cuda_strategy).
+// scan-world is not offered on this backend.
 template <class S>
 class CudaInverseDynamics final : public InverseDynamics<S> {
  public:
   // Prepares the model and allocates the device buffers compute() stages through:
   // q, qd, qdd, tau and fext for options.max_batch instances, 10 * nv * max_batch
-  // scalars (compute_async needs none of them). Throws BackendError when there is
-  // no usable device, the model has more than kMaxThreadDofs DoF, the strategy is
-  // a scan (not on this backend yet), or the buffers do not fit in device memory
-  // (the message gives the bytes needed and the bytes free).
+  // scalars (compute_async needs none of them), plus the scan strategy's scratch.
+  // Throws BackendError when there is no usable device, the strategy cannot take
+  // the model (recursion beyond kMaxThreadDofs DoF, scan-world), or the buffers do
+  // not fit in device memory (the message gives the bytes needed and the bytes free).
   CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options);
   ~CudaInverseDynamics() override;
   CudaInverseDynamics(const CudaInverseDynamics&) = delete;
   CudaInverseDynamics& operator=(const CudaInverseDynamics&) = delete;
 
-  // HOST pointers, any strides. Copies the inputs to the device, runs the kernel,
+  // HOST pointers, any strides. Copies the inputs to the device, runs the kernels,
   // copies tau back (writing only tau's entries: gaps between strided entries keep
   // their contents) and waits for all of it on the engine's own stream. Throws
   // BackendError for B > max_batch, views whose batch sizes disagree, a tau view
   // whose entries overlap, or any CUDA error.
   void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override;
 
-  // DEVICE pointers, any strides, on `stream`: launch_id_instances with this
-  // engine's model. Asynchronous: returns after queuing the kernel, with no hidden
-  // synchronisation, copy or allocation; not limited by max_batch. Safe to call
-  // from several host threads on different streams (the engine is not modified).
-  cudaError_t compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau,
-                            cudaStream_t stream) const;
+  // DEVICE pointers, any strides, on `stream`. Asynchronous: returns after queuing
+  // the kernels, with no hidden synchronisation, copy or allocation.
+  //   thread: launch_id_instances with this engine's model; not limited by
+  //           max_batch; safe from several host threads on different streams.
+  //   scan:   IdScanPlan::launch; B <= max_batch (else cudaErrorInvalidValue); uses
+  //           the engine's scratch, so one stream at a time.
+  cudaError_t compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau, cudaStream_t stream);
 
-  std::string strategy() const override { return "thread"; }
+  std::string strategy() const override { return scan_ ? "scan-local" : "thread"; }
   std::string backend() const override { return "cuda"; }
 
-  const ThreadModel<S>& thread_model() const { return model_; }
+  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for the scan strategy
+  const IdScanPlan<S>* scan_plan() const { return scan_.get(); }        // null for the thread strategy
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
-  std::size_t device_bytes() const { return bytes_; }  // held by the staging buffers
+  std::size_t device_bytes() const { return bytes_; }  // staging buffers and scan scratch
 
  private:
-  ThreadModel<S> model_;
+  Index nv_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<IdScanPlan<S>> scan_;
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;
   cudaStream_t stream_ = nullptr;  // compute()'s stream
   S* buffer_ = nullptr;            // one allocation: q, qd, qdd, tau (nv x max_batch each), fext
 };
+
+// The CUDA backend's choice for IdStrategy::Auto: recursion (a thread per
+// instance) up to kMaxThreadDofs DoF, the link scans beyond.
+IdStrategy choose_cuda_strategy(Index nv, Index batch);
 
 // The factory behind make_inverse_dynamics(model, {BackendKind::Cuda, ...}).
 template <class S>

@@ -1,0 +1,167 @@
+// The shape sweep: inverse dynamics on the GPU against the OpenMP backend on the
+// same machine's CPU cores, from many instances of a small robot to a few ropes of
+// 10^6 links, links x instances ~ 10^7 (and single long ropes, links x 1).
+//
+// Rows (names as scripts/bench_results.py reads them):
+//   id_<strategy>/<precision>/<model>/cuda     CudaInverseDynamics::compute_async on
+//                                              device buffers (soa), CUDA events around
+//                                              the call; strategy as the engine chose it
+//                                              (thread or scan-local);
+//   id_<strategy>/<precision>/<model>/openmp   the OpenMP engine (all cores, its own
+//                                              auto choice: recursion or scan-local) on
+//                                              host buffers with the same inputs.
+// Counters: links, instances, max_rel_err against the double serial reference (a
+// few instances), and for the cuda rows GBps (q, qd, qdd, tau per second).
+// scripts/sweep_table.py pairs the rows into the speed-up table of docs/benchmarks.md.
+//
+// Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
+// ../shared/models), --elements=N (links x instances per shape, default 10^7),
+// --no-openmp (GPU rows only).
+#include <benchmark/benchmark.h>
+#include <cuda_runtime.h>
+
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "cuda_bench_util.hpp"
+#include "scandyn/backend.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+
+
+using namespace scandyn;
+using namespace scandyn::bench;
+
+namespace {
+
+// Instances whose error is checked: every instance's reference is a serial RNEA.
+Index samples_for(Index nv) { return nv >= 100000 ? 1 : nv >= 1000 ? 4 : 64; }
+
+template <class S>
+void bench_cuda(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;  // the scan strategy sizes its scratch by it; no host staging is used here
+  std::unique_ptr<cuda::CudaInverseDynamics<S>> engine;
+  try {
+    engine = std::make_unique<cuda::CudaInverseDynamics<S>>(m, o);
+  } catch (const BackendError& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const IdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> tau = buf.tau(nv, B);
+  const double seconds = time_launches(st, [&] { return engine->compute_async(in, tau, nullptr); });
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true, samples_for(nv)), seconds, sizeof(S));
+  st.SetLabel(engine->strategy());
+}
+
+template <class S>
+void bench_openmp(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const std::size_t n = static_cast<std::size_t>(nv) * B;
+  std::vector<S> q(n), qd(n), qdd(n), tau(n, S(0));
+  for (std::size_t k = 0; k < n; ++k)
+    q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), qdd[k] = S(uniform(2, k));
+  BackendOptions o;
+  o.backend = BackendKind::OpenMP;
+  o.max_batch = B;
+  auto engine = make_inverse_dynamics<S>(m, o);
+  using V = BatchView<const S>;
+  const IdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B)};
+  const BatchView<S> out = BatchView<S>::soa(tau.data(), nv, B);
+  engine->compute(in, out);  // warm-up
+  for (auto _ : st) {
+    engine->compute(in, out);
+    benchmark::ClobberMemory();
+  }
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, tau.data(), false, samples_for(nv));
+  st.SetLabel(engine->strategy());
+}
+
+std::vector<std::unique_ptr<Model>> g_models;
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  std::string models_dir = env && *env ? env : "../shared/models";
+  double elements = 1e7;
+  bool openmp = true;
+  std::vector<char*> rest;
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
+    else if (std::strncmp(argv[i], "--elements=", 11) == 0) elements = std::atof(argv[i] + 11);
+    else if (std::strcmp(argv[i], "--no-openmp") == 0) openmp = false;
+    else rest.push_back(argv[i]);
+  }
+  const auto count = cuda::device_count();
+  if (!count || count.value == 0) {
+    std::fprintf(stderr, "bench_cuda_sweep: %s; nothing to run\n",
+                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
+    return 0;
+  }
+  const auto info = cuda::device_info(0);
+  const int threads = openmp_threads();
+  std::printf("bench_cuda_sweep: device %s; OpenMP rows on %d threads\n",
+              info ? cuda::describe(info.value).c_str() : info.error.c_str(), threads);
+
+  // (model, instances): links x instances ~ elements, then single long ropes
+  std::vector<std::pair<std::string, double>> shapes;
+  for (const char* s : {"iiwa.urdf", "atlas.urdf", "chain:64", "rope:100", "rope:1000", "rope:10000", "rope:100000",
+                        "rope:1000000"})
+    shapes.emplace_back(s, 0.0);
+  for (const char* s : {"rope:1000", "rope:10000", "rope:100000", "rope:1000000"}) shapes.emplace_back(s, 1.0);
+  for (const auto& [spec, fixed_b] : shapes) {
+    BuildOptions bo;
+    bo.require_physical_inertia = false;  // GRiD's atlas.urdf
+    try {
+      const bool urdf = spec.size() > 5 && spec.compare(spec.size() - 5, 5, ".urdf") == 0;
+      g_models.push_back(std::make_unique<Model>(urdf ? load_urdf(models_dir + "/" + spec, bo) : load_model(spec)));
+    } catch (const ModelError& e) {
+      std::fprintf(stderr, "bench_cuda_sweep: skipping %s: %s\n", spec.c_str(), e.what());
+      continue;
+    }
+    const Model* md = g_models.back().get();
+    const Index nv = md->nv();
+    const Index B = fixed_b > 0 ? static_cast<Index>(fixed_b)
+                                : static_cast<Index>(std::max(1.0, std::round(elements / double(nv))));
+    const std::string label = spec.size() > 5 && spec.compare(spec.size() - 5, 5, ".urdf") == 0
+                                  ? spec.substr(0, spec.size() - 5)
+                                  : spec;
+    for (int prec = 0; prec < 2; ++prec) {
+      const std::string p = prec ? "float/" : "double/";
+      const IdStrategy gs = cuda::choose_cuda_strategy(nv, B);
+      const std::string gname =
+          std::string("id_") + (gs == IdStrategy::ScanLocal ? "scan-local/" : "thread/") + p + label + "/cuda";
+      auto* g = prec ? benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<float>(st, md, B); })
+                     : benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<double>(st, md, B); });
+      g->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+      if (!openmp) continue;
+      const IdStrategy cs = choose_strategy(nv, B, threads);
+      const std::string cname =
+          std::string("id_") + (cs == IdStrategy::ScanLocal ? "scan-local/" : "recursion/") + p + label + "/openmp";
+      auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<float>(st, md, B); })
+                     : benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<double>(st, md, B); });
+      c->UseRealTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
+    }
+  }
+  int rargc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rargc, rest.data());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

@@ -1,0 +1,106 @@
+// scandyn/cuda/id_scan.hpp: batched inverse dynamics on a CUDA device as
+// device-wide scans across links (strategy "scan-local").
+//
+// The local-frame form of scandyn/scan/elements.hpp, run with CUB's single-pass
+// scan (cub::DeviceScan::InclusiveScan, decoupled look-back):
+//   velocities     x_i = Xup_i x_parent + S qd                       (MotionAffine)
+//   accelerations  x_i = Xup_i x_parent + S qdd + v x S qd, -g at the base
+//   forces         F_i = f_i + Xup_{i+1}^T F_{i+1} + sum over branch children
+//                  (ForceAffine, run leaves -> root; f_i = I a + v x* I v - fext)
+//   tau_i = S^T F_i.
+//
+// Trees. The preorder tree is cut into chain segments (scandyn/scan/tree_plan.hpp);
+// a segment's level is its depth in the segment tree. Each level is one scan per
+// pass over the concatenation of all its segments, for all instances:
+// element e = b * n_level + k (instance b, position k of the level's bodies).
+// Segments and instances are kept apart without flags: a segment's first body
+// takes the element (0, Xup x_parent + b) in the forward passes (a map with a zero
+// transform ignores whatever precedes it), and its last body the element (0, f) in
+// the backward pass. A head's parent lies in a lower level (its values are final
+// when the level runs forward); a branch child heads a segment of a higher level
+// (its force is final when the level runs backward). A chain is one level: the
+// whole batch is three scans.
+//
+// Model constants are deduplicated: identical bodies (every link of a generated
+// rope) share one entry of a body table, and each link reads a 4-byte index.
+//
+// Every pointer given to launch() is a DEVICE pointer. The plan owns its device
+// memory (model tables, v and a for max_batch instances, CUB's temporary storage):
+// nothing is allocated per call and nothing is synchronised; one plan serves one
+// stream at a time.
+#pragma once
+
+#include <cstddef>
+#include <string>
+#include <vector>
+
+#include "scandyn/backend.hpp"
+#include "scandyn/build_config.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+namespace scandyn {
+namespace cuda {
+
+// Position roles in a level's body list.
+enum ScanRole : unsigned char {
+  kSegmentHead = 1,  // first body of its segment: its parent is in a lower level (or the base)
+  kSegmentTail = 2,  // last body of its segment: body i + 1 is not its child
+};
+
+template <class S>
+class IdScanPlan {
+ public:
+  // Copies the model to the device and allocates the scratch for max_batch
+  // instances. Throws BackendError when the device memory does not suffice
+  // (naming the bytes needed and free) or on any CUDA error.
+  IdScanPlan(const ModelTpl<S>& model, Index max_batch);
+  ~IdScanPlan();
+  IdScanPlan(const IdScanPlan&) = delete;
+  IdScanPlan& operator=(const IdScanPlan&) = delete;
+
+  // tau (nv x B) = RNEA(q, qd, qdd) - sum J^T fext for B = in.q.batch <= max_batch
+  // instances (device views, any strides; fext: B x nv body wrenches or null), on
+  // `stream`: 3 scans per level, no synchronisation. Returns cudaErrorInvalidValue
+  // for disagreeing batch sizes, B > max_batch or a null pointer, else the first
+  // launch error.
+  cudaError_t launch(const IdBatchIn<S>& in, const BatchView<S>& tau, cudaStream_t stream);
+
+  Index nv() const { return nv_; }
+  Index max_batch() const { return max_batch_; }
+  Index levels() const { return static_cast<Index>(level_begin_.size()) - 1; }
+  Index body_classes() const { return classes_; }   // distinct bodies in the device table
+  std::size_t device_bytes() const { return bytes_; }  // held by this plan
+
+  // Device bytes a plan for this model and batch would hold (model tables, scratch,
+  // CUB's temporary storage); what the constructor checks against free memory.
+  static std::size_t bytes_needed(const ModelTpl<S>& model, Index max_batch);
+
+ private:
+  Index nv_ = 0;
+  Index max_batch_ = 0;
+  Index classes_ = 0;
+  Motion<S> a0_{};                      // base acceleration (-g)
+  std::vector<Index> level_begin_;      // (levels + 1) offsets into order_
+  std::size_t bytes_ = 0;
+  void* block_ = nullptr;               // one device allocation holding all below
+  // device arrays inside block_
+  const Body<S>* body_table_ = nullptr; // (classes) distinct bodies
+  const int* body_class_ = nullptr;     // (nv) body i -> table entry
+  const int* parent_ = nullptr;         // (nv) parent body, -1 at the base
+  const int* order_ = nullptr;          // (nv) bodies level by level, segments contiguous
+  const unsigned char* role_ = nullptr; // (nv) ScanRole bits of order_[k]
+  const int* branch_begin_ = nullptr;   // (nv + 1) CSR offsets of branch children per body
+  const int* branch_child_ = nullptr;   // branch children (children other than body i + 1)
+  Motion<S>* v_ = nullptr;              // (max_batch x nv) velocities, v[b * nv + i]
+  Motion<S>* a_ = nullptr;              // (max_batch x nv) accelerations
+  Force<S>* F_ = nullptr;               // (max_batch x nv) subtree forces (segment heads only)
+  void* temp_ = nullptr;                // CUB temporary storage
+  std::size_t temp_bytes_ = 0;
+};
+
+}  // namespace cuda
+}  // namespace scandyn
+
+#endif  // SCANDYN_HAS_CUDA
