@@ -57,15 +57,15 @@ std::size_t chunk_rows(std::size_t values_per_row) {
                                  kMaxChunkRows);
 }
 
-// Rows per chunk for this file and selection: the evaluators' max_batch.
+// Rows per chunk for this file and selection.
 std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Index nv) {
   std::size_t width = 0;
   for (Algo a : algos) width += output_width(a, nv);
   return chunk_rows(in.columns().size() + width + kFamilies * static_cast<std::size_t>(nv));
 }
 
-// Reads, evaluates and writes the rows in chunks of `chunk` rows (at most the
-// evaluator's max_batch), whatever the backend.
+// Reads, evaluates and writes the rows in chunks of `chunk` rows (at most
+// kMaxChunkRows, the evaluator's max_batch), whatever the backend.
 template <class S>
 void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
                const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk,
@@ -151,7 +151,9 @@ template <class S>
 void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions options, CsvReader& in,
                const StateColumns& cols, const std::vector<Algo>& algos, const std::string& out_path) {
   const std::size_t chunk = chunk_rows(in, algos, model.nv());
-  options.max_batch = chunk;
+  // Every chunk fits; the bound, not this file's chunk, because the OpenMP engine's
+  // auto strategy is chosen from max_batch (cuda: staging for 4096 rows, <= 21 MB).
+  options.max_batch = kMaxChunkRows;
   std::unique_ptr<Evaluator<S>> evaluator;
   if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
   else evaluator = backend.make_float(model, options);
