@@ -6,6 +6,7 @@
 #include <sys/wait.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -13,10 +14,11 @@
 #include <sstream>
 #include <string>
 
-#include "scandyn/build_config.hpp"
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"
 
@@ -26,6 +28,29 @@ namespace fs = std::filesystem;
 using scandyn::Model;
 
 // ---- helpers ------------------------------------------------------------------
+
+// Why `--backend cuda` cannot run here ("" when it can): the command's message
+// after "scandyn: ", as docs/cli.md gives it.
+std::string cuda_backend_error() {
+#if SCANDYN_HAS_CUDA
+  const auto count = scandyn::cuda::device_count();
+  if (!count) return "backend 'cuda': " + count.error;
+  if (count.value == 0) return "backend 'cuda': no usable CUDA device: the CUDA runtime reports 0 devices";
+  return "";
+#else
+  return "backend 'cuda' is not available in this build";
+#endif
+}
+
+// --backend cuda with an algorithm it does not compute: the message after "scandyn: ".
+std::string cuda_algo_error(const std::string& algos) {
+#if SCANDYN_HAS_CUDA
+  return "backend 'cuda' does not provide --algo " + algos + " (it provides: id, bias)";
+#else
+  (void)algos;
+  return "backend 'cuda' is not available in this build";
+#endif
+}
 
 std::string read_text(const fs::path& p) {
   std::ifstream f(p, std::ios::binary);
@@ -222,6 +247,26 @@ TEST_F(Cli, InfoChainListsDofsInOrderWithParents) {
     EXPECT_EQ(dofs[i][3], std::to_string(i - 1));  // a chain: each body hangs from the previous
     EXPECT_EQ(dofs[i][4], model.link_names[i]);
   }
+}
+
+TEST_F(Cli, InfoReportsCudaDevicesOrWhyNone) {
+  const Result r = run("info --model chain:2");
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::vector<std::string> expected;  // the cuda rows, as the library describes the devices
+  const auto count = scandyn::cuda::device_count();
+  if (!count) expected.push_back(count.error);
+  else if (count.value == 0) expected.push_back("no usable CUDA device: the CUDA runtime reports 0 devices");
+  for (int d = 0; count && d < count.value; ++d) {
+    const auto info = scandyn::cuda::device_info(d);
+    expected.push_back(info ? scandyn::cuda::describe(info.value) : info.error);
+  }
+  std::vector<std::string> rows;  // the summary's cuda rows, before the blank line
+  for (const std::string& l : lines(r.out)) {
+    if (l.empty()) break;
+    if (l.rfind("cuda ", 0) == 0) rows.push_back(l.substr(l.find_first_not_of(' ', 4)));
+  }
+  EXPECT_EQ(rows, expected) << r.out;
+  EXPECT_EQ(info_dofs(r.out).size(), 2u) << r.out;
 }
 
 TEST_F(Cli, InfoIiwaListsSevenJoints) {
@@ -514,10 +559,9 @@ TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
       {"unknown algo", kHeader, kEval + "--algo id,foo", 2, {"unknown --algo value 'foo'"}},
       {"empty algo item", kHeader, kEval + "--algo id,", 2, {"unknown --algo value ''"}},
       {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"unknown --backend value 'gpu'"}},
-      {"cuda backend", kHeader, kEval + "--backend cuda", 2, {"backend 'cuda' is not available in this build"}},
+      {"algo not on backend", kHeader, kEval + "--backend cuda --algo id,mass", 2, {cuda_algo_error("mass")}},
       {"unknown strategy", kHeader, kEval + "--strategy fastest", 2, {"--strategy: unknown strategy 'fastest'"}},
       {"bad threads", kHeader, kEval + "--threads 0", 2, {"--threads must be an integer"}},
-      {"cuda backend", kHeader, kEval + "--backend cuda", 2, {"backend 'cuda' is not available in this build"}},
       {"unknown precision", kHeader, kEval + "--precision half", 2, {"unknown --precision value 'half'"}},
       {"unknown flag", kHeader, kEval + "--fast", 2, {"unknown flag '--fast'"}},
       {"repeated flag", kHeader, kEval + "--algo id --algo fd", 2, {"'--algo' given more than once"}},
@@ -604,7 +648,7 @@ TEST_F(Cli, HelpAndUsageErrors) {
         "bench --model chain:3 --algo id --fd jsi --instances 1",
         "bench --model chain:3 --algo fd --fd lu --instances 1",
         "bench --model chain:3 --algo id --instances 1 --min-time -1",
-        "bench --model chain:3 --algo id --instances 1 --backend cuda",
+        "bench --model chain:3 --algo mass --instances 1 --backend cuda",
         "bench --model chain:3 --algo fd --instances 1 --strategy scan-local"}) {
     const Result r = run(args);
     EXPECT_EQ(r.code, 2) << args;
@@ -615,13 +659,16 @@ TEST_F(Cli, HelpAndUsageErrors) {
 }
 
 TEST_F(Cli, UnavailableBackendMessageIsExact) {
-  for (const char* backend : {"cuda"}) {
-    const Result r =
-        run(std::string("bench --model chain:2 --algo id --instances 1 --backend ") + backend);
-    EXPECT_EQ(r.code, 2);
-    EXPECT_EQ(r.err,
-              std::string("scandyn: backend '") + backend + "' is not available in this build\n");
-  }
+#if !SCANDYN_HAS_OPENMP
+  const Result omp = run("bench --model chain:2 --algo id --instances 1 --backend openmp");
+  EXPECT_EQ(omp.code, 2);
+  EXPECT_EQ(omp.err, "scandyn: backend 'openmp' is not available in this build\n");
+#endif
+  const std::string why = cuda_backend_error();
+  if (why.empty()) GTEST_SKIP() << "a CUDA device is usable: the cuda backend is available";
+  const Result r = run("bench --model chain:2 --algo id --instances 1 --backend cuda");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(r.err, "scandyn: " + why + "\n");
 }
 
 // ---- bench --------------------------------------------------------------------
@@ -694,6 +741,193 @@ TEST_F(Cli, BenchAppendsToCsvFile) {
   EXPECT_EQ(c.code, 1);
   EXPECT_NE(c.err.find("other.csv: existing header does not match"), std::string::npos) << c.err;
   EXPECT_EQ(read_text(path("other.csv")), "a,b\n1,2\n");
+}
+
+// ---- --backend cuda ------------------------------------------------------------
+
+// Without a usable device (or without CUDA in the build) every use of the backend is
+// one line, exit 2, and leaves no file behind: neither eval's output (an existing
+// one untouched) nor bench's --csv file.
+TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
+  const std::string why = cuda_backend_error();
+  if (why.empty()) GTEST_SKIP() << "a CUDA device is usable: the cuda backend runs here";
+  write_text(path("states.csv"), good_states());
+  for (const std::string& args :
+       {kEval + "--backend cuda", kEval + "--backend cuda --algo id", kEval + "--backend cuda --algo bias --precision float",
+        std::string("bench --model chain:3 --algo id --instances 100 --backend cuda --csv results.csv"),
+        std::string("bench --model chain:3 --algo bias --instances 1 --backend cuda --precision float --csv results.csv")}) {
+    for (bool existing : {false, true}) {
+      SCOPED_TRACE(args + (existing ? ", existing output" : ", no output"));
+      fs::remove(path("out.csv"));
+      if (existing) write_text(path("out.csv"), "sentinel\n");
+      const std::vector<std::string> before = files();
+      const Result r = run(args);
+      EXPECT_EQ(r.code, 2);
+      EXPECT_EQ(r.err, "scandyn: " + why + "\n");
+      EXPECT_TRUE(r.out.empty()) << r.out;
+      EXPECT_EQ(files(), before) << "no file created or removed (temporary files included)";
+      if (existing) {
+        EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+      }
+    }
+  }
+}
+
+// fd and mass are not on the cuda backend: one line naming them, exit 2, before any
+// device is looked for (so the message is the same on every machine).
+TEST_F(Cli, CudaBackendRefusesFdAndMass) {
+  write_text(path("states.csv"), good_states());
+  write_text(path("out.csv"), "sentinel\n");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {kEval + "--backend cuda --algo fd", "fd"},
+      {kEval + "--backend cuda --algo mass", "mass"},
+      {kEval + "--backend cuda --algo bias,mass,id,fd", "fd,mass"},
+      {"bench --model chain:3 --algo fd --instances 1 --backend cuda --csv results.csv", "fd"},
+      {"bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda", "fd"},
+      {"bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float", "mass"},
+  };
+  for (const auto& [args, algos] : cases) {
+    SCOPED_TRACE(args);
+    const std::vector<std::string> before = files();
+    const Result r = run(args);
+    EXPECT_EQ(r.code, 2);
+    EXPECT_EQ(r.err, "scandyn: " + cuda_algo_error(algos) + "\n");
+    EXPECT_TRUE(r.out.empty());
+    EXPECT_EQ(files(), before);
+    EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+  }
+}
+
+// The tests below need a device: they skip, with the reason, without one.
+#define SKIP_WITHOUT_CUDA_BACKEND()                                          \
+  do {                                                                       \
+    const std::string why_ = cuda_backend_error();                           \
+    if (!why_.empty()) GTEST_SKIP() << "no CUDA backend here: " << why_;     \
+  } while (0)
+
+class EvalCuda : public Cli, public ::testing::WithParamInterface<const char*> {
+ protected:
+  std::string spec() const {
+    const std::string p = GetParam();
+    return p == "iiwa" || p == "hyq" ? scandyn::test::model_path(p + ".urdf") : p;
+  }
+};
+
+// eval --backend cuda gives the serial backend's CSV up to rounding: the same
+// header, one row per input row (5000 rows: two chunks), every value within 1e-10
+// (double) or 1e-4 (float, against the serial float output) relative to
+// max(1, max |row|) per output block, and in float each value a float.
+TEST_P(EvalCuda, MatchesSerial) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const Model model = scandyn::load_model(spec());
+  const int n = model.nv();
+  const States s(n, 5000, 31);
+  write_text(path("states.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  for (const char* precision : {"double", "float"}) {
+    SCOPED_TRACE(precision);
+    const bool is_float = std::string(precision) == "float";
+    const std::string base = "eval --model " + quote(spec()) +
+                             " --states states.csv --algo bias,id --precision " + precision;
+    const Result rs = run(base + " --out serial.csv");
+    const Result rc = run(base + " --out cuda.csv --backend cuda");
+    ASSERT_EQ(rs.code, 0) << rs.err;
+    ASSERT_EQ(rc.code, 0) << rc.err;
+    EXPECT_TRUE(rc.err.empty()) << rc.err;
+    const Table ts = parse_csv(read_text(path("serial.csv")));
+    const Table tc = parse_csv(read_text(path("cuda.csv")));
+    ASSERT_EQ(tc.names, ts.names);
+    ASSERT_EQ(tc.rows.size(), s.rows());
+    ASSERT_EQ(ts.rows.size(), s.rows());
+    const double tol = is_float ? 1e-4 : 1e-10;
+    double worst = 0;
+    for (std::size_t row = 0; row < s.rows(); ++row) {
+      for (const char* prefix : {"tau_id_", "h_"}) {
+        const double e = scandyn::test::max_rel_err(tc.get(row, prefix, n), ts.get(row, prefix, n));
+        if (!(e <= worst)) worst = e;
+        ASSERT_LE(e, tol) << "row " << row + 1 << ", " << prefix;
+      }
+      if (is_float) {
+        for (double v : tc.rows[row]) ASSERT_EQ(v, static_cast<double>(static_cast<float>(v)));
+      }
+    }
+    EXPECT_FALSE(std::isnan(worst));
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Models, EvalCuda, ::testing::Values("iiwa", "hyq", "rope:64"),
+    [](const ::testing::TestParamInfo<const char*>& info) {
+      return std::string(info.param).substr(0, std::string(info.param).find(':'));
+    });
+
+TEST_F(Cli, EvalCudaDefaultsAndLimits) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const States s(3, 10, 32);
+  // without --algo: id and bias from q, qd, qdd, as on the serial backend
+  write_text(path("states.csv"), s.csv({"q", "qd", "qdd"}));
+  ASSERT_EQ(run("eval --model chain:3 --states states.csv --out serial.csv").code, 0);
+  const Result r = run("eval --model chain:3 --states states.csv --out cuda.csv --backend cuda");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(parse_csv(read_text(path("cuda.csv"))).names, parse_csv(read_text(path("serial.csv"))).names);
+  // ... but tau columns select fd too, which the backend does not provide
+  write_text(path("states.csv"), s.csv({"q", "qd", "qdd", "tau"}));
+  const Result d = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda");
+  EXPECT_EQ(d.code, 2);
+  EXPECT_EQ(d.err,
+            "scandyn: backend 'cuda' does not provide --algo fd (it provides: id, bias); without --algo, fd was "
+            "selected because states.csv has the input columns: choose with --algo, e.g. --algo id,bias\n");
+  EXPECT_FALSE(fs::exists(path("out.csv")));
+  // more DoF than the thread-per-instance kernels take; a scan strategy
+  write_text(path("rope.csv"), States(65, 2, 33).csv({"q", "qd", "qdd"}));
+  const Result big = run("eval --model rope:65 --states rope.csv --out out.csv --backend cuda --algo id");
+  EXPECT_EQ(big.code, 2);
+  EXPECT_NE(big.err.find("scandyn: backend 'cuda': model 'rope:65' has 65 DoF"), std::string::npos) << big.err;
+  EXPECT_NE(big.err.find("at most 64"), std::string::npos) << big.err;
+  const Result scan = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda --algo id "
+                          "--strategy scan-local");
+  EXPECT_EQ(scan.code, 2);
+  EXPECT_NE(scan.err.find("strategy 'scan-local' is not available on this backend"), std::string::npos) << scan.err;
+  EXPECT_EQ(std::count(scan.err.begin(), scan.err.end(), '\n'), 1);
+  EXPECT_FALSE(fs::exists(path("out.csv")));
+}
+
+// bench --backend cuda: two rows, the device-resident batch (thread) and the
+// host-staged call (thread-host), both with their measured error.
+TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
+  for (const char* algo : {"id", "bias"}) {
+    for (const char* precision : {"double", "float"}) {
+      SCOPED_TRACE(std::string(algo) + " " + precision);
+      const Result r = run("bench --model " + iiwa + " --algo " + algo + " --instances 3000 --min-time 0.02" +
+                           " --backend cuda --csv results.csv --precision " + precision);
+      ASSERT_EQ(r.code, 0) << r.err;
+      EXPECT_TRUE(r.err.empty()) << r.err;
+      const std::vector<std::string> ls = lines(r.out);
+      ASSERT_EQ(ls.size(), 2u) << r.out;
+      for (std::size_t k = 0; k < 2; ++k) {
+        const std::vector<std::string> row = split(ls[k], ',');
+        ASSERT_EQ(row.size(), 10u) << ls[k];
+        EXPECT_EQ(row[0], algo);
+        EXPECT_EQ(row[1], k == 0 ? "thread" : "thread-host");
+        EXPECT_EQ(row[2], "cuda");
+        EXPECT_EQ(row[3], precision);
+        EXPECT_EQ(row[4], "iiwa");
+        EXPECT_EQ(row[5], "7");
+        EXPECT_EQ(row[6], "3000");
+        EXPECT_GT(std::stod(row[7]), 0);
+        EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 1e-2);
+        EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-4 : 1e-10);  // nan fails
+      }
+    }
+  }
+  const std::vector<std::string> csv = lines(read_text(path("results.csv")));
+  ASSERT_EQ(csv.size(), 9u);  // header and 4 x 2 rows
+  EXPECT_EQ(csv[0].rfind("algo,strategy,backend", 0), 0u);
+  // a batch of one, and a single timed pass
+  const Result one = run("bench --model chain:2 --algo id --instances 1 --min-time 0 --backend cuda");
+  ASSERT_EQ(one.code, 0) << one.err;
+  EXPECT_EQ(lines(one.out).size(), 2u);
 }
 
 }  // namespace

@@ -53,6 +53,16 @@ Precision parse_precision(const std::string& name) {
   throw UsageError("unknown --precision value '" + name + "' (expected double or float)");
 }
 
+std::string algo_list(AlgoSet algos, const char* sep) {
+  std::string out;
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+    if (!(algos & algo_bit(a))) continue;
+    if (!out.empty()) out += sep;
+    out += algo_name(a);
+  }
+  return out;
+}
+
 std::size_t output_width(Algo algo, Index nv) {
   const std::size_t n = static_cast<std::size_t>(nv);
   return algo == Algo::Mass ? n * n : n;
@@ -155,6 +165,12 @@ class CpuEvaluator final : public Evaluator<S> {
     return algo == Algo::Mass ? "crba" : "recursion";
   }
 
+  // the reference functions themselves, except the scan forms and JSI
+  bool exact(Algo algo, FdMethod fd) const override {
+    if (algo == Algo::Id) return id_->strategy() == "recursion";
+    return !(algo == Algo::Fd && fd == FdMethod::Jsi);
+  }
+
  private:
   static int max_threads() {
 #ifdef _OPENMP
@@ -183,16 +199,23 @@ std::unique_ptr<Evaluator<S>> make_openmp_evaluator(const ModelTpl<S>& model, co
   return std::make_unique<CpuEvaluator<S>>(model, BackendKind::OpenMP, options);
 }
 
-// The backends this command knows. Entries with null factories are recognised
-// names that this build does not contain (they get a clear error, not "unknown").
+// The backends this command knows: name, evaluator factories, the algorithms they
+// compute, and the check that the machine can run them. Entries with null
+// factories are recognised names that this build does not contain (they get a
+// clear error, not "unknown").
 const Backend kBackends[] = {
-    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>},
+    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr},
 #if SCANDYN_HAS_OPENMP && defined(_OPENMP)
-    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>},
+    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>, kEveryAlgo, nullptr},
 #else
-    {"openmp", nullptr, nullptr},
+    {"openmp", nullptr, nullptr, kEveryAlgo, nullptr},
 #endif
-    {"cuda", nullptr, nullptr},
+#if SCANDYN_HAS_CUDA
+    {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>, algo_bit(Algo::Id) | algo_bit(Algo::Bias),
+     &cuda_unusable},
+#else
+    {"cuda", nullptr, nullptr, 0, nullptr},
+#endif
 };
 
 }  // namespace
@@ -233,6 +256,25 @@ const Backend& find_backend(const std::string& name) {
     known += b.name;
   }
   throw UsageError("unknown --backend value '" + name + "' (known: " + known + ")");
+}
+
+void require_algos(const Backend& backend, AlgoSet algos, const std::string& default_from) {
+  const AlgoSet missing = algos & ~backend.algos;
+  if (!missing) return;
+  std::string msg = std::string("backend '") + backend.name + "' does not provide --algo " +
+                    algo_list(missing, ",") + " (it provides: " + algo_list(backend.algos, ", ") + ")";
+  if (!default_from.empty()) {
+    msg += "; without --algo, " + algo_list(missing, ",") + (missing & (missing - 1) ? " were" : " was") +
+           " selected because " + default_from + " has the input columns: choose with --algo";
+    if (algos & backend.algos) msg += ", e.g. --algo " + algo_list(algos & backend.algos, ",");
+  }
+  throw UsageError(msg, false);
+}
+
+void require_usable(const Backend& backend) {
+  if (!backend.unusable) return;
+  const std::string why = backend.unusable();
+  if (!why.empty()) throw UsageError(std::string("backend '") + backend.name + "': " + why, false);
 }
 
 }  // namespace scandyn::cli

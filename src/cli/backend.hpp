@@ -1,8 +1,11 @@
 // src/cli/backend.hpp: what `scandyn eval` and `scandyn bench` run, and where.
 //
 // An Evaluator computes one algorithm for a batch of instances; a backend is an
-// entry of the table in backend.cpp that makes Evaluators for a model. Adding a
-// backend (OpenMP, CUDA) means adding an Evaluator and a table entry.
+// entry of the table in backend.cpp that makes Evaluators for a model and says
+// which algorithms they compute. Adding a backend means adding an Evaluator and a
+// table entry; giving a backend one more algorithm means computing it in the
+// Evaluator's run() and adding it to the entry's AlgoSet. eval's CSV reading,
+// chunking and writing and bench's states, timing and rows are shared by all.
 #pragma once
 
 #include <cstddef>
@@ -12,6 +15,7 @@
 
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
+#include "scandyn/build_config.hpp"
 #include "scandyn/model/model.hpp"
 
 namespace scandyn::cli {
@@ -28,6 +32,14 @@ bool parse_algo(const std::string& name, Algo& algo);
 bool parse_fd_method(const std::string& name, FdMethod& fd);
 // The --precision value; throws UsageError if unknown.
 Precision parse_precision(const std::string& name);
+
+// A set of algorithms: bit (1 << algo) for each member.
+using AlgoSet = unsigned;
+constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo); }
+constexpr AlgoSet kEveryAlgo =
+    algo_bit(Algo::Id) | algo_bit(Algo::Fd) | algo_bit(Algo::Mass) | algo_bit(Algo::Bias);
+// The members' names joined by sep, in the order id, fd, mass, bias.
+std::string algo_list(AlgoSet algos, const char* sep);
 
 // Values per instance that algo writes: nv, or nv * nv for Mass.
 std::size_t output_width(Algo algo, Index nv);
@@ -53,18 +65,46 @@ struct BatchStatus {
   bool ok() const { return status.ok(); }
 };
 
+// A batch copied once into a backend's own memory (a CUDA device's), so that the
+// benchmark can time the computation without the transfers: launch() queues one
+// call on all the batch's instances, wait() returns when every queued call is done.
+template <class S>
+class ResidentBatch {
+ public:
+  virtual ~ResidentBatch() = default;
+  virtual void launch() = 0;                  // asynchronous; throws DataError
+  virtual void wait() = 0;                    // throws DataError for a failed call
+  // Copies the last call's results to out (count x output_width, instance-major,
+  // as Evaluator::run writes them). Waits first.
+  virtual void read(S* out) = 0;
+  virtual std::string strategy() const = 0;  // the benchmark's strategy column
+};
+
 // Evaluates algorithms on batches for one model (which must outlive it).
 template <class S>
 class Evaluator {
  public:
   virtual ~Evaluator() = default;
-  // Writes count x output_width(algo) values to out, instance-major. fd selects
-  // the forward-dynamics method (ignored for the other algorithms). Stops at the
-  // first instance whose factorisation fails.
+  // Writes count x output_width(algo) values to out, instance-major, all in host
+  // memory. fd selects the forward-dynamics method (ignored for the other
+  // algorithms). Stops at the first instance whose factorisation fails. Called
+  // only for algorithms of the backend's AlgoSet, with count <= max_batch.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
-  // How algo is computed, for the benchmark's strategy column: recursion,
-  // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion for bias.
+  // How run() computes algo, for the benchmark's strategy column: recursion,
+  // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion
+  // for bias (CPU); thread-host for CUDA (one GPU thread per instance, host
+  // buffers staged through the device).
   virtual std::string strategy(Algo algo, FdMethod fd) const = 0;
+  // True when run() performs exactly the serial double reference's arithmetic for
+  // this S (the same functions in the same order), so that its error against the
+  // reference is known without measuring: 0 in double.
+  virtual bool exact(Algo algo, FdMethod fd) const = 0;
+  // The batch in the backend's own memory, for timing without transfers; null
+  // (the default) for backends that compute in host memory.
+  virtual std::unique_ptr<ResidentBatch<S>> resident(Algo algo, FdMethod fd, const BatchIn<S>& in) {
+    (void)algo, (void)fd, (void)in;
+    return nullptr;
+  }
 };
 
 // How an evaluator is made: the inverse-dynamics strategy (Auto: by shape), the
@@ -84,20 +124,45 @@ struct Backend {
   const char* name;
   EvaluatorFactory<double> make_double;
   EvaluatorFactory<float> make_float;
+  AlgoSet algos;  // the algorithms its evaluators compute
+  // Why the backend cannot run on this machine, "" when it can; null: always can.
+  std::string (*unusable)();
   bool available() const { return make_double != nullptr; }
+  bool provides(Algo algo) const { return (algos & algo_bit(algo)) != 0; }
 };
 
 // --strategy and --threads of eval and bench; throws UsageError for bad values.
 class Args;
 EvalOptions parse_eval_options(const Args& args);
 
-// The backend called name. Throws UsageError if it is unknown or not available.
+// The backend called name. Throws UsageError if it is unknown or not in this build.
 const Backend& find_backend(const std::string& name);
+
+// Throws UsageError (no --help hint) unless the backend computes every algorithm
+// of algos: "backend 'cuda' does not provide --algo fd (it provides: id, bias)".
+// default_from: for a selection eval made without --algo, the states file whose
+// columns selected it (the message then says so); empty otherwise.
+void require_algos(const Backend& backend, AlgoSet algos, const std::string& default_from = "");
+
+// Throws UsageError (no --help hint) when the backend cannot run on this machine:
+// "backend 'cuda': no usable CUDA device: <why>".
+void require_usable(const Backend& backend);
 
 // The serial reference backend (always available): instances in turn, inverse
 // dynamics by the recursion unless options.strategy asks for a scan form.
 template <class S>
 std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model, const EvalOptions& options);
+
+#if SCANDYN_HAS_CUDA
+// The CUDA backend (backend_cuda.cpp): id and bias by the CUDA inverse-dynamics
+// engine, one GPU thread per instance. Throws UsageError (no --help hint) when the
+// engine cannot be made: no usable device, a model beyond the kernels' DoF limit, a
+// scan strategy, a max_batch that does not fit in device memory.
+template <class S>
+std::unique_ptr<Evaluator<S>> make_cuda_evaluator(const ModelTpl<S>& model, const EvalOptions& options);
+// Why CUDA cannot run here ("no usable CUDA device: ..."), "" when it can.
+std::string cuda_unusable();
+#endif
 
 // One-line description of a failed forward dynamics, e.g.
 // "articulated inertia pivot at DoF 3 is not positive".

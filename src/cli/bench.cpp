@@ -1,10 +1,14 @@
 // src/cli/bench.cpp: `scandyn bench`, times one algorithm on a batch of random
-// states and prints one row of the benchmark CSV (DESIGN.md's columns).
+// states and prints one row of the benchmark CSV (DESIGN.md's columns) per way of
+// calling the backend: the host-memory call, and for CUDA first the
+// device-resident batch.
 #include <unistd.h>
 
+#include <algorithm>
 #include <charconv>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <random>
 
@@ -86,10 +90,11 @@ void check(const BatchStatus& st, FdMethod fd) {
                     ": forward dynamics failed: " + describe_fd_failure(fd, st.status));
 }
 
+// One row of results: a way of calling the backend, its time and error.
 struct Timing {
+  std::string strategy;  // as the evaluator reports it
   double seconds_per_call = 0;
   double max_rel_err = 0;
-  std::string strategy;  // as the evaluator reports it
 };
 
 // max over instances of max_i |x_i - ref_i| / max(1, max_i |ref_i|); NaN if any x is NaN.
@@ -115,11 +120,34 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
   return worst;
 }
 
-template <class S>
-Timing time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
-                 EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
-                 std::size_t count, double min_time, bool need_error) {
+// Seconds per call: calls(n) makes n calls and returns when all are complete. After
+// a first call, calls go in rounds sized from the time per call so far (at most
+// doubling), until min_time seconds have passed, so that the clock (and a device's
+// synchronisation) is read rarely when calls are short.
+template <class F>
+double time_calls(double min_time, F&& calls) {
   using Clock = std::chrono::steady_clock;
+  std::size_t done = 0, n = 1;
+  double elapsed = 0;
+  const Clock::time_point t0 = Clock::now();
+  for (;;) {
+    calls(n);
+    done += n;
+    elapsed = std::chrono::duration<double>(Clock::now() - t0).count();
+    if (elapsed >= min_time && elapsed > 0) break;
+    const double per_call = elapsed / static_cast<double>(done);
+    const double wanted = per_call > 0 ? (min_time - elapsed) / per_call + 1 : 2.0 * n;
+    n = static_cast<std::size_t>(std::clamp(wanted, 1.0, 2.0 * n));
+  }
+  return elapsed / static_cast<double>(done);
+}
+
+// Times algo on the batch: a row for the evaluator's run() on host memory and,
+// first, one for the batch in the backend's own memory when it has one (CUDA).
+template <class S>
+std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
+                              EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
+                              std::size_t count, double min_time, bool float_precision) {
   const std::vector<S> q(states.q.begin(), states.q.end());
   const std::vector<S> qd(states.qd.begin(), states.qd.end());
   const std::vector<S> third(states.third.begin(), states.third.end());
@@ -127,26 +155,40 @@ Timing time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactor
   const BatchIn<S> in = make_batch(algo, count, q, qd, third);
   options.max_batch = count;
   auto evaluator = make(model_s, options);
+  // float always differs from the double reference; double only off the reference's path
+  const bool measure = float_precision || !evaluator->exact(algo, fd);
+  auto error = [&] {
+    return measure ? max_rel_err_vs_reference(model, algo, states, count, std::vector<double>(out.begin(), out.end()))
+                   : 0.0;
+  };
+  std::vector<Timing> rows;
 
-  // warm-up pass, then whole passes until min_time has passed
+  if (std::unique_ptr<ResidentBatch<S>> resident = evaluator->resident(algo, fd, in)) {
+    // warm-up call, then rounds of queued calls, each round waited for
+    resident->launch();
+    resident->wait();
+    Timing t;
+    t.strategy = resident->strategy();
+    t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+      for (std::size_t k = 0; k < n; ++k) resident->launch();
+      resident->wait();
+    });
+    resident->read(out.data());
+    t.max_rel_err = error();
+    rows.push_back(t);
+  }  // (device memory of the resident batch released here)
+
+  // warm-up call, then whole calls until min_time has passed
+  std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());  // untouched entries show
   check(evaluator->run(algo, fd, in, out.data()), fd);
-  std::size_t passes = 0;
-  double elapsed = 0;
-  const Clock::time_point t0 = Clock::now();
-  do {
-    evaluator->run(algo, fd, in, out.data());
-    ++passes;
-    elapsed = std::chrono::duration<double>(Clock::now() - t0).count();
-  } while (elapsed < min_time || elapsed <= 0);
-
   Timing t;
-  t.seconds_per_call = elapsed / static_cast<double>(passes);
   t.strategy = evaluator->strategy(algo, fd);
-  // the scan forms reassociate the recursion's arithmetic: measure them too
-  if (need_error || t.strategy.compare(0, 4, "scan") == 0)
-    t.max_rel_err = max_rel_err_vs_reference(model, algo, states, count,
-                                             std::vector<double>(out.begin(), out.end()));
-  return t;
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+    for (std::size_t k = 0; k < n; ++k) evaluator->run(algo, fd, in, out.data());
+  });
+  t.max_rel_err = error();
+  rows.push_back(t);
+  return rows;
 }
 
 }  // namespace
@@ -167,8 +209,10 @@ int run_bench(const Args& args) {
   const EvalOptions options = parse_eval_options(args);
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
   const Backend& backend = find_backend(args.get("backend", "serial"));
+  require_algos(backend, algo_bit(algo));
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
+  require_usable(backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
@@ -182,26 +226,25 @@ int run_bench(const Args& args) {
                      " GiB for this model and algorithm (limit 4 GiB)");
 
   const RandomStates states(count, nv);
-  Timing t;
+  std::vector<Timing> timings;
   if (precision == Precision::Double) {
-    // double is the reference itself, except the JSI route to forward dynamics
-    const bool need_error = algo == Algo::Fd && fd == FdMethod::Jsi;
-    t = time_algo<double>(model, model, backend.make_double, options, algo, fd, states, count,
-                          min_time, need_error);
+    timings = time_algo<double>(model, model, backend.make_double, options, algo, fd, states, count, min_time, false);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    t = time_algo<float>(model, model_f, backend.make_float, options, algo, fd, states, count,
-                         min_time, true);
+    timings = time_algo<float>(model, model_f, backend.make_float, options, algo, fd, states, count, min_time, true);
   }
 
-  const std::string row =
-      std::string(algo_name(algo)) + "," + t.strategy +
-      "," + backend.name + "," + precision_name(precision) + "," + model_label(model_spec) + "," +
-      std::to_string(nv) + "," + std::to_string(count) + "," + format_g(t.seconds_per_call, 6) +
-      "," + format_g(double(count) / t.seconds_per_call, 6) + "," + format_g(t.max_rel_err, 6);
-  if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, row);
+  std::string rows;  // one line per timing, without the last newline
+  for (const Timing& t : timings) {
+    if (!rows.empty()) rows += "\n";
+    rows += std::string(algo_name(algo)) + "," + t.strategy + "," + backend.name + "," + precision_name(precision) +
+            "," + model_label(model_spec) + "," + std::to_string(nv) + "," + std::to_string(count) + "," +
+            format_g(t.seconds_per_call, 6) + "," + format_g(double(count) / t.seconds_per_call, 6) + "," +
+            format_g(t.max_rel_err, 6);
+  }
+  if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, rows);
   if (::isatty(STDOUT_FILENO)) std::puts(kBenchHeader);
-  std::puts(row.c_str());
+  std::puts(rows.c_str());
   return kExitOk;
 }
 

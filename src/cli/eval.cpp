@@ -1,6 +1,8 @@
 // src/cli/eval.cpp: `scandyn eval`, dynamics of the states in a CSV file.
 #include <algorithm>
 #include <cmath>
+#include <memory>
+#include <type_traits>
 
 #include "backend.hpp"
 #include "cli.hpp"
@@ -55,9 +57,19 @@ std::size_t chunk_rows(std::size_t values_per_row) {
                                  kMaxChunkRows);
 }
 
+// Rows per chunk for this file and selection.
+std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Index nv) {
+  std::size_t width = 0;
+  for (Algo a : algos) width += output_width(a, nv);
+  return chunk_rows(in.columns().size() + width + kFamilies * static_cast<std::size_t>(nv));
+}
+
+// Reads, evaluates and writes the rows in chunks of `chunk` rows (at most
+// kMaxChunkRows, the evaluator's max_batch), whatever the backend.
 template <class S>
 void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, CsvWriter& out) {
+               const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk,
+               CsvWriter& out) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
@@ -72,7 +84,6 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
   for (Algo a : algos)
     for (Family f : algo_inputs(a)) needed[static_cast<int>(f)] = true;
 
-  const std::size_t chunk = chunk_rows(in.columns().size() + width + kFamilies * nv);
   std::vector<S> input[kFamilies];
   for (int f = 0; f < kFamilies; ++f)
     if (needed[f]) input[f].resize(chunk * nv);
@@ -134,6 +145,29 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
   }
 }
 
+// Makes the backend's evaluator (before the output file exists, so that a backend
+// that cannot run leaves nothing behind), then evaluates the file.
+template <class S>
+void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions options, CsvReader& in,
+               const StateColumns& cols, const std::vector<Algo>& algos, const std::string& out_path) {
+  const std::size_t chunk = chunk_rows(in, algos, model.nv());
+  // Every chunk fits; the bound, not this file's chunk, because the OpenMP engine's
+  // auto strategy is chosen from max_batch (cuda: staging for 4096 rows, <= 21 MB).
+  options.max_batch = kMaxChunkRows;
+  std::unique_ptr<Evaluator<S>> evaluator;
+  if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
+  else evaluator = backend.make_float(model, options);
+  CsvWriter out(out_path);
+  eval_rows(model, *evaluator, in, cols, algos, chunk, out);
+  out.commit();
+}
+
+AlgoSet algo_set(const std::vector<Algo>& algos) {
+  AlgoSet set = 0;
+  for (Algo a : algos) set |= algo_bit(a);
+  return set;
+}
+
 }  // namespace
 
 int run_eval(const Args& args) {
@@ -143,28 +177,28 @@ int run_eval(const Args& args) {
   std::vector<Algo> algos;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
   const Backend& backend = find_backend(args.get("backend", "serial"));
+  if (!algos.empty()) require_algos(backend, algo_set(algos));
   const Precision precision = parse_precision(args.get("precision", "double"));
+  const EvalOptions options = parse_eval_options(args);
+  require_usable(backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
 
   CsvReader in(states_path);
   const StateColumns cols = map_state_columns(in.columns(), model.nv(), states_path);
-  if (algos.empty()) algos = default_algos(cols, states_path);
+  if (algos.empty()) {
+    algos = default_algos(cols, states_path);
+    require_algos(backend, algo_set(algos), states_path);
+  }
   check_state_columns(cols, algos, states_path);
 
-  EvalOptions options = parse_eval_options(args);
-  options.max_batch = kMaxChunkRows;
-  CsvWriter out(out_path);
   if (precision == Precision::Double) {
-    auto evaluator = backend.make_double(model, options);
-    eval_rows(model, *evaluator, in, cols, algos, out);
+    eval_file<double>(backend, model, options, in, cols, algos, out_path);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    auto evaluator = backend.make_float(model_f, options);
-    eval_rows(model_f, *evaluator, in, cols, algos, out);
+    eval_file<float>(backend, model_f, options, in, cols, algos, out_path);
   }
-  out.commit();
   return kExitOk;
 }
 

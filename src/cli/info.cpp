@@ -3,6 +3,7 @@
 #include <cstdio>
 
 #include "cli.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn::cli {
@@ -36,17 +37,34 @@ void print_table(const std::vector<std::vector<std::string>>& rows) {
   }
 }
 
+// One "cuda" row per usable device ("0: NVIDIA H100 ... (sm_90, ...)"), or one row
+// saying why there is none.
+void add_cuda_rows(std::vector<std::vector<std::string>>& rows) {
+  const cuda::Result<int> count = cuda::device_count();
+  if (!count) {
+    rows.push_back({"cuda", count.error});
+    return;
+  }
+  if (count.value == 0) rows.push_back({"cuda", "no usable CUDA device: the CUDA runtime reports 0 devices"});
+  for (int d = 0; d < count.value; ++d) {
+    const cuda::Result<cuda::DeviceInfo> info = cuda::device_info(d);
+    rows.push_back({"cuda", info ? cuda::describe(info.value) : info.error});
+  }
+}
+
 }  // namespace
 
 int run_info(const Args& args) {
   const Model model = load_cli_model(args);
-  print_table({
+  std::vector<std::vector<std::string>> summary = {
       {"model", model.name},
       {"source", model.source},
       {"nv", std::to_string(model.nv())},
       {"root", model.root_link},
       {"gravity", format_vec3(model.gravity)},
-  });
+  };
+  add_cuda_rows(summary);
+  print_table(summary);
   std::puts("");
   std::vector<std::vector<std::string>> rows = {
       {"index", "joint", "type", "parent", "child", "axis"}};

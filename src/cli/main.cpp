@@ -29,12 +29,13 @@ const char* const kUsage =
 const char* const kInfoUsage =
     "usage: scandyn info --model M [--allow-nonphysical-inertia]\n"
     "\n"
-    "Prints the model's name, source, nv, root link and gravity, then one line per DoF\n"
-    "in DoF order: index, joint, type, parent index (-1 = base), child link, axis.\n";
+    "Prints the model's name, source, nv, root link and gravity, the CUDA devices (or why\n"
+    "there are none), then one line per DoF in DoF order: index, joint, type, parent index\n"
+    "(-1 = base), child link, axis.\n";
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
-    "                    [--backend serial|openmp] [--strategy S] [--threads N]\n"
+    "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                    [--precision double|float]\n"
     "\n"
     "  --states IN.csv   header row, one state per row; columns q_<i>, qd_<i>, qdd_<i>,\n"
@@ -44,8 +45,10 @@ const char* const kEvalUsage =
     "  --algo LIST       comma-separated subset of id (needs q, qd, qdd), fd (q, qd, tau),\n"
     "                    mass (q), bias (q, qd); default: each of id, fd, bias whose\n"
     "                    columns are all present\n"
-    "  --backend NAME    serial (default) or openmp (threads over instances, or scans\n"
+    "  --backend NAME    serial (default), openmp (threads over instances, or scans\n"
     "                    over links for fewer instances than threads on long chains)\n"
+    "                    or cuda (id and bias only, one GPU thread per instance,\n"
+    "                    models of up to 64 DoF)\n"
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
@@ -56,12 +59,14 @@ const char* const kEvalUsage =
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd aba|jsi]\n"
-    "                     [--backend serial|openmp] [--strategy S] [--threads N]\n"
+    "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
     "Times the algorithm on B random states (fixed seed) and prints one CSV row:\n"
     "algo,strategy,backend,precision,model,links,instances,seconds_per_call,\n"
-    "evals_per_second,max_rel_err (with the header when stdout is a terminal).\n"
+    "evals_per_second,max_rel_err (with the header when stdout is a terminal). With\n"
+    "--backend cuda two rows: strategy thread (the batch resident in device memory)\n"
+    "and thread-host (host buffers, copies to and from the device included).\n"
     "  --fd METHOD       forward dynamics by aba (default) or jsi (CRBA + Cholesky)\n"
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
