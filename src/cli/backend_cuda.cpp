@@ -1,7 +1,8 @@
 // src/cli/backend_cuda.cpp: the CUDA backend of `scandyn eval` and `scandyn bench`.
 //
 // id and bias (= id with qdd = 0) run through the library's CUDA inverse-dynamics
-// engine (scandyn/cuda/inverse_dynamics.hpp), one GPU thread per instance:
+// engine (scandyn/cuda/inverse_dynamics.hpp): one GPU thread per instance up to
+// 64 DoF, scans across links beyond (or as --strategy says):
 //   run()       eval's chunks and bench's "thread-host" row: host buffers,
 //               CudaInverseDynamics::compute() (copies in, kernel, copy out, sync);
 //   resident()  bench's "thread" row: the batch copied once to device memory in the
@@ -60,8 +61,8 @@ void require_id_or_bias(Algo algo) {
 template <class S>
 class CudaResidentBatch final : public ResidentBatch<S> {
  public:
-  CudaResidentBatch(const cuda::CudaInverseDynamics<S>& engine, Algo algo, const BatchIn<S>& in)
-      : engine_(engine), nv_(engine.thread_model().nv()), B_(static_cast<Index>(in.count)) {
+  CudaResidentBatch(cuda::CudaInverseDynamics<S>& engine, Algo algo, const BatchIn<S>& in)
+      : engine_(engine), nv_(engine.nv()), B_(static_cast<Index>(in.count)) {
     const std::size_t n = static_cast<std::size_t>(nv_) * in.count;
     const int arrays = algo == Algo::Id ? 4 : 3;  // q, qd, (qdd), tau
     const std::size_t bytes = (arrays * n + 1) * sizeof(S);
@@ -90,8 +91,8 @@ class CudaResidentBatch final : public ResidentBatch<S> {
   CudaResidentBatch(const CudaResidentBatch&) = delete;
   CudaResidentBatch& operator=(const CudaResidentBatch&) = delete;
 
-  void launch() override { check(engine_.compute_async(in_, tau_, stream_), "launching id_instances_kernel"); }
-  void wait() override { check(cudaStreamSynchronize(stream_), "running id_instances_kernel"); }
+  void launch() override { check(engine_.compute_async(in_, tau_, stream_), "launching the inverse dynamics"); }
+  void wait() override { check(cudaStreamSynchronize(stream_), "running the inverse dynamics"); }
 
   void read(S* out) override {
     wait();
@@ -105,7 +106,7 @@ class CudaResidentBatch final : public ResidentBatch<S> {
         out[static_cast<std::size_t>(b) * nv_ + i] = soa[static_cast<std::size_t>(i) * B_ + b];
   }
 
-  std::string strategy() const override { return engine_.strategy(); }  // "thread"
+  std::string strategy() const override { return engine_.strategy(); }  // "thread" or "scan-local"
 
  private:
   // the stream, the inputs transposed into the buffer, tau set to NaN, the views
@@ -149,7 +150,7 @@ class CudaResidentBatch final : public ResidentBatch<S> {
     buffer_ = nullptr;
   }
 
-  const cuda::CudaInverseDynamics<S>& engine_;
+  cuda::CudaInverseDynamics<S>& engine_;
   Index nv_, B_;
   S* buffer_ = nullptr;  // q, qd, tau, qdd (id only), each nv x B; then one zero
   cudaStream_t stream_ = nullptr;
@@ -168,7 +169,7 @@ class CudaEvaluator final : public Evaluator<S> {
     try {
       engine_ = std::make_unique<cuda::CudaInverseDynamics<S>>(model, bo);
     } catch (const BackendError& e) {
-      // no device, too many DoF, a scan strategy, staging buffers beyond device memory
+      // no device, recursion beyond 64 DoF, scan-world, buffers beyond device memory
       throw UsageError(e.what(), false);
     }
   }

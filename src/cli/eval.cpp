@@ -151,9 +151,10 @@ template <class S>
 void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions options, CsvReader& in,
                const StateColumns& cols, const std::vector<Algo>& algos, const std::string& out_path) {
   const std::size_t chunk = chunk_rows(in, algos, model.nv());
-  // Every chunk fits; the bound, not this file's chunk, because the OpenMP engine's
-  // auto strategy is chosen from max_batch (cuda: staging for 4096 rows, <= 21 MB).
-  options.max_batch = kMaxChunkRows;
+  // Engines are sized for this file's chunk: the CUDA link scans' scratch grows
+  // with rows x links, and the auto strategies choose by it (a few rows of a long
+  // chain: scans across links on OpenMP too).
+  options.max_batch = chunk;
   std::unique_ptr<Evaluator<S>> evaluator;
   if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
   else evaluator = backend.make_float(model, options);

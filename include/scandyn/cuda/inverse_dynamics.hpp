@@ -148,6 +148,7 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for the scan strategy
   const IdScanPlan<S>* scan_plan() const { return scan_.get(); }        // null for the thread strategy
+  Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
   std::size_t device_bytes() const { return bytes_; }  // staging buffers and scan scratch
