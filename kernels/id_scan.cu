@@ -5,7 +5,6 @@
 // come from and where each result goes.
 #include <cub/device/device_scan.cuh>
 #include <thrust/iterator/counting_iterator.h>
-#include <thrust/iterator/tabulate_output_iterator.h>
 #include <thrust/iterator/transform_iterator.h>
 
 #include <algorithm>
@@ -66,88 +65,59 @@ struct Level {
   __device__ __forceinline__ const Body<S>& body(int i) const { return table[body_class[i]]; }
 };
 
-// ---- velocities: (Xup_i, S qd_i); heads (0, Xup_i v_parent + S qd_i) ----------------
-template <class S>
-struct VelocityElement {
-  Level<S> L;
-  __device__ MotionAffine<S> operator()(unsigned e) const {
-    const auto s = L.site(e);
-    const Body<S>& bd = L.body(s.i);
-    const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
-    const Motion<S> sq = joint_motion(bd, L.in.qd.at(s.i, s.b));
-    if (!(s.role & kSegmentHead)) return {X, sq};
-    const int p = L.parent[s.i];
-    const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.v[L.slot(s.b, p)];
-    return {zero_transform<S>(), X.apply(vp) + sq};
-  }
-};
-template <class S>
-struct VelocityStore {
-  Level<S> L;
-  __device__ void operator()(unsigned e, const MotionAffine<S>& x) const {
-    const auto s = L.site(e);
-    L.v[L.slot(s.b, s.i)] = x.b;
-  }
-};
+// ---- scan elements ------------------------------------------------------------------
 
-// ---- accelerations: (Xup_i, S qdd + v x S qd); heads fold in Xup_i a_parent ---------
+// velocities: (Xup_i, S qd_i); a segment head (0, Xup_i v_parent + S qd_i)
 template <class S>
-struct AccelerationElement {
-  Level<S> L;
-  __device__ MotionAffine<S> operator()(unsigned e) const {
-    const auto s = L.site(e);
-    const Body<S>& bd = L.body(s.i);
-    const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
-    const Motion<S> v = L.v[L.slot(s.b, s.i)];
-    const S qd = L.in.qd.at(s.i, s.b);
-    const Motion<S> c = add_joint_motion(bd, cross_joint_motion(bd, v, qd), L.in.qdd.at(s.i, s.b));
-    if (!(s.role & kSegmentHead)) return {X, c};
-    const int p = L.parent[s.i];
-    const Motion<S> ap = p < 0 ? L.a0 : L.a[L.slot(s.b, p)];
-    return {zero_transform<S>(), X.apply(ap) + c};
-  }
-};
-template <class S>
-struct AccelerationStore {
-  Level<S> L;
-  __device__ void operator()(unsigned e, const MotionAffine<S>& x) const {
-    const auto s = L.site(e);
-    L.a[L.slot(s.b, s.i)] = x.b;
-  }
-};
+__device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s) {
+  const Body<S>& bd = L.body(s.i);
+  const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
+  const Motion<S> sq = joint_motion(bd, L.in.qd.at(s.i, s.b));
+  if (!(s.role & kSegmentHead)) return {X, sq};
+  const int p = L.parent[s.i];
+  const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.v[L.slot(s.b, p)];
+  return {zero_transform<S>(), X.apply(vp) + sq};
+}
 
-// ---- forces, scanned from the level's last element back to its first ----------------
-// Element of body i: G -> B + Y^T G with G = F_{i+1}, Y = Xup_{i+1} (0 at a segment's
-// tail) and B = f_i plus the forces of the branch children (heads of higher levels).
+// accelerations: (Xup_i, S qdd + v x S qd); a head folds in Xup_i a_parent (-g at the base)
 template <class S>
-struct ForceElement {
-  Level<S> L;
-  __device__ ForceAffine<S> operator()(unsigned r) const {
-    const auto s = L.site(L.count - 1 - r);
-    const Body<S>& bd = L.body(s.i);
-    const std::size_t slot = L.slot(s.b, s.i);
-    const Motion<S> v = L.v[slot], a = L.a[slot];
-    Force<S> f = bd.I * a + cross(v, bd.I * v);
-    if (L.in.fext) f -= L.in.fext[slot];
-    for (int k = L.branch_begin[s.i]; k < L.branch_begin[s.i + 1]; ++k) {
-      const int c = L.branch_child[k];
-      const Transform<S> Xc = joint_transform(L.body(c), L.in.q.at(c, s.b));
-      f += Xc.apply_transpose(L.F[L.slot(s.b, c)]);
-    }
-    if (s.role & kSegmentTail) return {zero_transform<S>(), f};
-    return {joint_transform(L.body(s.i + 1), L.in.q.at(s.i + 1, s.b)), f};
-  }
-};
+__device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typename Level<S>::Site& s,
+                                                const Motion<S>& v) {
+  const Body<S>& bd = L.body(s.i);
+  const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
+  const S qd = L.in.qd.at(s.i, s.b);
+  const Motion<S> c = add_joint_motion(bd, cross_joint_motion(bd, v, qd), L.in.qdd.at(s.i, s.b));
+  if (!(s.role & kSegmentHead)) return {X, c};
+  const int p = L.parent[s.i];
+  const Motion<S> ap = p < 0 ? L.a0 : L.a[L.slot(s.b, p)];
+  return {zero_transform<S>(), X.apply(ap) + c};
+}
+
+// forces, leaves to root: G -> B + Y^T G with G = F_{i+1}. The offset B is the net
+// body force f_i = I a + v x* I v - fext plus the forces of the branch children
+// (heads of higher levels, final when this level runs) ...
 template <class S>
-struct ForceStore {
-  Level<S> L;
-  __device__ void operator()(unsigned r, const ForceAffine<S>& x) const {
-    const auto s = L.site(L.count - 1 - r);
-    if (s.role & kSegmentHead) L.F[L.slot(s.b, s.i)] = x.B;
-    L.tau.at(s.i, s.b) = joint_project(L.body(s.i), x.B);
+__device__ Force<S> force_offset(const Level<S>& L, const typename Level<S>::Site& s, const Motion<S>& v,
+                                 const Motion<S>& a) {
+  const Body<S>& bd = L.body(s.i);
+  Force<S> f = bd.I * a + cross(v, bd.I * v);
+  if (L.in.fext) f -= L.in.fext[L.slot(s.b, s.i)];
+  for (int k = L.branch_begin[s.i]; k < L.branch_begin[s.i + 1]; ++k) {
+    const int c = L.branch_child[k];
+    const Transform<S> Xc = joint_transform(L.body(c), L.in.q.at(c, s.b));
+    f += Xc.apply_transpose(L.F[L.slot(s.b, c)]);
   }
-};
-// CUB's operator sees (prefix so far, next element): here (deeper run d, outer body o).
+  return f;
+}
+// ... and the map Y = Xup_{i+1}, zero at a segment's tail.
+template <class S>
+__device__ Transform<S> force_map(const Level<S>& L, const typename Level<S>::Site& s) {
+  if (s.role & kSegmentTail) return zero_transform<S>();
+  return joint_transform(L.body(s.i + 1), L.in.q.at(s.i + 1, s.b));
+}
+
+// CUB's operator sees (prefix so far, next element): for the run aggregates of the
+// force pass, scanned from the last run back, that is (deeper runs d, outer run o).
 struct ComposeForceSuffix {
   template <class S>
   __host__ __device__ ForceAffine<S> operator()(const ForceAffine<S>& d, const ForceAffine<S>& o) const {
@@ -155,11 +125,146 @@ struct ComposeForceSuffix {
   }
 };
 
-template <template <class> class Element, template <class> class Store, class Op, class S>
-cudaError_t scan_level(void* temp, std::size_t& temp_bytes, const Level<S>& L, Op op, cudaStream_t stream) {
-  auto in = thrust::make_transform_iterator(thrust::counting_iterator<unsigned>(0u), Element<S>{L});
-  auto out = thrust::make_tabulate_output_iterator(Store<S>{L});
-  return cub::DeviceScan::InclusiveScan(temp, temp_bytes, in, out, op, static_cast<int>(L.count), stream);
+// ---- runs ------------------------------------------------------------------------------
+// A level's `count` elements are cut into runs of `run` consecutive elements, one
+// thread each. Every pass is: aggregate each run serially (kernels below), scan the
+// run aggregates with CUB, then walk each run serially from its carry-in. Inside a
+// run the values come from the recursion itself (apply, not compose), so the only
+// composed maps span one run.
+struct Runs {
+  unsigned count;  // elements
+  unsigned run;    // elements per run
+  unsigned runs;   // ceil(count / run)
+  __device__ __forceinline__ unsigned begin(unsigned r) const { return r * run; }
+  __device__ __forceinline__ unsigned end(unsigned r) const { return min(count, (r + 1) * run); }
+};
+
+constexpr int kRunBlock = 128;
+constexpr unsigned kTargetRuns = 1u << 16;  // threads per level pass, when there are elements for them
+constexpr unsigned kMinRun = 4, kMaxRun = 64;
+
+Runs make_runs(unsigned count) {
+  unsigned run = (count + kTargetRuns - 1) / kTargetRuns;
+  run = std::min(kMaxRun, std::max(kMinRun, run));
+  return {count, run, (count + run - 1) / run};
+}
+
+// velocity aggregates
+template <class S>
+__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, const Runs R, MotionAffine<S>* agg) {
+  const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= R.runs) return;
+  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  MotionAffine<S> acc = velocity_element(L, L.site(e0));
+  for (unsigned e = e0 + 1; e < e1; ++e) acc = compose(acc, velocity_element(L, L.site(e)));
+  agg[r] = acc;
+}
+
+// velocities from the carry-in; acceleration aggregates
+template <class S>
+__global__ void __launch_bounds__(kRunBlock)
+    velocity_walk(const Level<S> L, const Runs R, const MotionAffine<S>* pre, MotionAffine<S>* agg) {
+  const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= R.runs) return;
+  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  Motion<S> x = r > 0 ? pre[r - 1].b : Motion<S>::zero();  // the first element is a head
+  MotionAffine<S> acc;
+  for (unsigned e = e0; e < e1; ++e) {
+    const auto s = L.site(e);
+    x = apply(velocity_element(L, s), x);
+    L.v[L.slot(s.b, s.i)] = x;
+    const MotionAffine<S> el = acceleration_element(L, s, x);
+    acc = e == e0 ? el : compose(acc, el);
+  }
+  agg[r] = acc;
+}
+
+// One element of the force pass: its offset is kept for force_walk, the element
+// joins the run's aggregate (the outer run so far, then this inner element).
+template <class S>
+__device__ __forceinline__ void force_element(const Level<S>& L, const typename Level<S>::Site& s, std::size_t slot,
+                                              const Motion<S>& v, const Motion<S>& a, bool first, Force<S>* offset,
+                                              ForceAffine<S>& acc) {
+  const ForceAffine<S> el{force_map(L, s), force_offset(L, s, v, a)};
+  offset[slot] = el.B;
+  acc = first ? el : compose(acc, el);
+}
+
+// accelerations from the carry-in; with kForces (a model of one level) also the
+// force offsets and aggregates, which otherwise wait for force_runs
+template <class S, bool kForces>
+__global__ void __launch_bounds__(kRunBlock) acceleration_walk(const Level<S> L, const Runs R,
+                                                               const MotionAffine<S>* pre, Force<S>* offset,
+                                                               ForceAffine<S>* agg) {
+  const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= R.runs) return;
+  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  Motion<S> x = r > 0 ? pre[r - 1].b : Motion<S>::zero();
+  ForceAffine<S> acc;
+  for (unsigned e = e0; e < e1; ++e) {
+    const auto s = L.site(e);
+    const std::size_t slot = L.slot(s.b, s.i);
+    const Motion<S> v = L.v[slot];
+    x = apply(acceleration_element(L, s, v), x);
+    L.a[slot] = x;
+    if constexpr (kForces) force_element(L, s, slot, v, x, e == e0, offset, acc);
+  }
+  if constexpr (kForces) agg[r] = acc;
+}
+
+// force offsets and aggregates of a level whose branch children are final
+template <class S>
+__global__ void __launch_bounds__(kRunBlock)
+    force_runs(const Level<S> L, const Runs R, Force<S>* offset, ForceAffine<S>* agg) {
+  const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= R.runs) return;
+  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  ForceAffine<S> acc;
+  for (unsigned e = e0; e < e1; ++e) {
+    const auto s = L.site(e);
+    const std::size_t slot = L.slot(s.b, s.i);
+    force_element(L, s, slot, L.v[slot], L.a[slot], e == e0, offset, acc);
+  }
+  agg[r] = acc;
+}
+
+// forces from the carry-in (the force of the next run's first body), last element
+// first; tau, and the forces of segment heads for the levels below
+template <class S>
+__global__ void __launch_bounds__(kRunBlock)
+    force_walk(const Level<S> L, const Runs R, const Force<S>* offset, const ForceAffine<S>* suffix) {
+  const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= R.runs) return;
+  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  // suffix[k] covers runs R.runs - 1 - k .. end; run r + 1's is suffix[R.runs - 2 - r]
+  Force<S> G = r + 1 < R.runs ? suffix[R.runs - 2 - r].B : Force<S>::zero();  // the last element is a tail
+  for (unsigned e = e1; e-- > e0;) {
+    const auto s = L.site(e);
+    const std::size_t slot = L.slot(s.b, s.i);
+    G = offset[slot] + force_map(L, s).apply_transpose(G);
+    if (s.role & kSegmentHead) L.F[slot] = G;
+    L.tau.at(s.i, s.b) = joint_project(L.body(s.i), G);
+  }
+}
+
+// run aggregates read from the last run back
+template <class S>
+struct Reversed {
+  const ForceAffine<S>* agg;
+  unsigned runs;
+  __host__ __device__ ForceAffine<S> operator()(unsigned k) const { return agg[runs - 1 - k]; }
+};
+
+template <class S>
+cudaError_t scan_motion_runs(void* temp, std::size_t& bytes, const MotionAffine<S>* agg, MotionAffine<S>* pre,
+                             unsigned runs, cudaStream_t stream) {
+  return cub::DeviceScan::InclusiveScan(temp, bytes, agg, pre, ComposeMotionAffine{}, static_cast<int>(runs), stream);
+}
+template <class S>
+cudaError_t scan_force_runs(void* temp, std::size_t& bytes, const ForceAffine<S>* agg, ForceAffine<S>* suffix,
+                            unsigned runs, cudaStream_t stream) {
+  auto in = thrust::make_transform_iterator(thrust::counting_iterator<unsigned>(0u), Reversed<S>{agg, runs});
+  return cub::DeviceScan::InclusiveScan(temp, bytes, in, suffix, ComposeForceSuffix{}, static_cast<int>(runs), stream);
 }
 
 std::string error_string(cudaError_t err) {
@@ -229,26 +334,24 @@ HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
 constexpr std::size_t kAlign = 256;
 std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; }
 
-// CUB's temporary storage for the largest level scan of any pass.
+// CUB's temporary storage for the run-aggregate scans of the largest level.
 template <class S>
-std::size_t cub_temp_bytes(std::size_t count) {
-  if (count == 0) return 0;
-  Level<S> L{};
-  L.n_level = 1;
-  L.count = static_cast<unsigned>(count);
-  std::size_t a = 0, b = 0, c = 0;
-  scan_level<VelocityElement, VelocityStore>(nullptr, a, L, ComposeMotionAffine{}, nullptr);
-  scan_level<AccelerationElement, AccelerationStore>(nullptr, b, L, ComposeMotionAffine{}, nullptr);
-  scan_level<ForceElement, ForceStore>(nullptr, c, L, ComposeForceSuffix{}, nullptr);
-  return std::max({a, b, c});
+std::size_t cub_temp_bytes(unsigned runs) {
+  if (runs == 0) return 0;
+  std::size_t a = 0, b = 0;
+  scan_motion_runs<S>(nullptr, a, nullptr, nullptr, runs, nullptr);
+  scan_force_runs<S>(nullptr, b, nullptr, nullptr, runs, nullptr);
+  return std::max(a, b);
 }
 
 // Byte sizes of the parts of one allocation, in order.
 template <class S>
 struct Parts {
-  std::size_t table, body_class, parent, order, role, branch_begin, branch_child, v, a, F, temp;
+  std::size_t table, body_class, parent, order, role, branch_begin, branch_child, v, a, F, offset;
+  std::size_t agg, pre, temp;  // per run: motion or force aggregates, their scan; CUB's storage
   std::size_t total() const {
-    return table + body_class + parent + order + role + branch_begin + branch_child + v + a + F + temp;
+    return table + body_class + parent + order + role + branch_begin + branch_child + v + a + F + offset + agg + pre +
+           temp;
   }
 };
 
@@ -266,7 +369,11 @@ Parts<S> parts(const HostPlan& h, std::size_t classes, Index nv, Index max_batch
   p.v = aligned(B * n * sizeof(Motion<S>));
   p.a = aligned(B * n * sizeof(Motion<S>));
   p.F = aligned(B * n * sizeof(Force<S>));
-  p.temp = aligned(cub_temp_bytes<S>(B * static_cast<std::size_t>(h.max_level)));
+  p.offset = aligned(B * n * sizeof(Force<S>));
+  const unsigned runs = make_runs(static_cast<unsigned>(B * static_cast<std::size_t>(h.max_level))).runs;
+  p.agg = aligned(runs * std::max(sizeof(MotionAffine<S>), sizeof(ForceAffine<S>)));
+  p.pre = p.agg;
+  p.temp = aligned(cub_temp_bytes<S>(runs));
   return p;
 }
 
@@ -336,6 +443,9 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
   v_ = reinterpret_cast<Motion<S>*>(take(p.v));
   a_ = reinterpret_cast<Motion<S>*>(take(p.a));
   F_ = reinterpret_cast<Force<S>*>(take(p.F));
+  offset_ = reinterpret_cast<Force<S>*>(take(p.offset));
+  agg_ = take(p.agg);
+  pre_ = take(p.pre);
   temp_ = take(p.temp);
   body_table_ = table_d, body_class_ = class_d, parent_ = parent_d, order_ = order_d, role_ = role_d;
   branch_begin_ = bb_d, branch_child_ = bc_d;
@@ -377,22 +487,43 @@ cudaError_t IdScanPlan<S>::launch(const IdBatchIn<S>& in, const BatchView<S>& ta
     L.role = role_ + level_begin_[l];
     L.n_level = static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]);
     L.count = L.n_level * static_cast<unsigned>(B);
+    return make_runs(L.count);
   };
+  auto* magg = static_cast<MotionAffine<S>*>(agg_);
+  auto* mpre = static_cast<MotionAffine<S>*>(pre_);
+  auto* fagg = static_cast<ForceAffine<S>*>(agg_);
+  auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
+  auto blocks = [](const Runs& R) { return (R.runs + kRunBlock - 1) / kRunBlock; };
+  cudaError_t err = cudaSuccess;
   const Index nl = levels();
+  // forward, level by level: velocities, then accelerations (and the force offsets)
   for (Index l = 0; l < nl; ++l) {
-    at_level(l);
+    const Runs R = at_level(l);
     std::size_t bytes = temp_bytes_;
-    cudaError_t err = scan_level<VelocityElement, VelocityStore>(temp_, bytes, L, ComposeMotionAffine{}, stream);
-    if (err != cudaSuccess) return err;
+    velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, R, magg);
+    if ((err = cudaGetLastError()) != cudaSuccess) return err;
+    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.runs, stream)) != cudaSuccess) return err;
+    velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, magg);
+    if ((err = cudaGetLastError()) != cudaSuccess) return err;
     bytes = temp_bytes_;
-    err = scan_level<AccelerationElement, AccelerationStore>(temp_, bytes, L, ComposeMotionAffine{}, stream);
-    if (err != cudaSuccess) return err;
+    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.runs, stream)) != cudaSuccess) return err;
+    if (nl == 1) acceleration_walk<S, true><<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, offset_, fagg);
+    else acceleration_walk<S, false><<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, offset_, fagg);
+    if ((err = cudaGetLastError()) != cudaSuccess) return err;
   }
+  // backward, deepest level first: forces and torques. A level's force offsets
+  // need its branch children's forces, which the deeper levels produce: with more
+  // than one level they are made here.
   for (Index l = nl - 1; l >= 0; --l) {
-    at_level(l);
+    const Runs R = at_level(l);
+    if (nl > 1) {
+      force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, R, offset_, fagg);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+    }
     std::size_t bytes = temp_bytes_;
-    const cudaError_t err = scan_level<ForceElement, ForceStore>(temp_, bytes, L, ComposeForceSuffix{}, stream);
-    if (err != cudaSuccess) return err;
+    if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.runs, stream)) != cudaSuccess) return err;
+    force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, R, offset_, fsuf);
+    if ((err = cudaGetLastError()) != cudaSuccess) return err;
   }
   return cudaSuccess;
 }

@@ -30,11 +30,12 @@ SCANDYN_HD Mat3<S> rotate_rows(const Vec3<S>& axis, S s, S c, const Mat3<S>& E) 
 }
 
 // sin q and cos q of a revolute joint. In float, the pair is scaled back onto the
-// unit circle (k = (3 - s^2 - c^2) / 2, one Newton step towards s^2 + c^2 = 1):
-// CUDA's sinf/cosf are within 2 ulp but their norm error has a bias of about
-// 0.1 ulp, which a chain multiplies link after link, so that a rope of 10^5
-// links drifted by 10^-3 (glibc's correctly rounded sinf/cosf do not drift). After
-// the step the norm error is unbiased rounding. Double needs no step.
+// unit circle by one Newton step, k = (3 - s^2 - c^2) / 2, evaluated in double
+// (a float k near 1 is quantised to steps of 6e-8 below and 1.2e-7 above, a bias
+// of its own). CUDA's sinf/cosf are within 2 ulp, but their norm error s^2 + c^2 - 1
+// has a bias of about 0.1 ulp, which a chain multiplies link after link: a float
+// rope of 10^5 links drifted by 10^-3. After the step the norm error is unbiased
+// rounding. Double needs no step.
 template <class S>
 SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   using std::cos;
@@ -42,9 +43,9 @@ SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   s = sin(q);
   c = cos(q);
   if constexpr (sizeof(S) < sizeof(double)) {
-    const S k = S(1.5) - S(0.5) * (s * s + c * c);
-    s *= k;
-    c *= k;
+    const double k = 1.5 - 0.5 * (double(s) * s + double(c) * c);  // products of floats are exact
+    s = S(s * k);
+    c = S(c * k);
   }
 }
 

@@ -1,8 +1,7 @@
 // scandyn/cuda/id_scan.hpp: batched inverse dynamics on a CUDA device as
 // device-wide scans across links (strategy "scan-local").
 //
-// The local-frame form of scandyn/scan/elements.hpp, run with CUB's single-pass
-// scan (cub::DeviceScan::InclusiveScan, decoupled look-back):
+// The local-frame form of scandyn/scan/elements.hpp:
 //   velocities     x_i = Xup_i x_parent + S qd                       (MotionAffine)
 //   accelerations  x_i = Xup_i x_parent + S qdd + v x S qd, -g at the base
 //   forces         F_i = f_i + Xup_{i+1}^T F_{i+1} + sum over branch children
@@ -20,6 +19,16 @@
 // when the level runs forward); a branch child heads a segment of a higher level
 // (its force is final when the level runs backward). A chain is one level: the
 // whole batch is three scans.
+//
+// Runs. A level's elements are cut into runs of 4..64 consecutive elements, one
+// thread each (about 2^16 threads per pass, more runs only past 64 elements each).
+// Each pass aggregates every run serially, scans the run aggregates with CUB's
+// single-pass scan (cub::DeviceScan::InclusiveScan, decoupled look-back), then
+// walks every run again from its carry-in, by the recursion itself. So a value is
+// a carry-in (composed maps spanning whole runs) followed by at most 63 steps of
+// the recursion, the passes are fused where their data allow (velocity walk +
+// acceleration aggregates, acceleration walk + force aggregates for a chain), and
+// the only per-link traffic is the inputs, v, a, the force offsets and tau.
 //
 // Model constants are deduplicated: identical bodies (every link of a generated
 // rope) share one entry of a body table, and each link reads a 4-byte index.
@@ -96,6 +105,9 @@ class IdScanPlan {
   Motion<S>* v_ = nullptr;              // (max_batch x nv) velocities, v[b * nv + i]
   Motion<S>* a_ = nullptr;              // (max_batch x nv) accelerations
   Force<S>* F_ = nullptr;               // (max_batch x nv) subtree forces (segment heads only)
+  Force<S>* offset_ = nullptr;          // (max_batch x nv) force-pass offsets B of the current level
+  void* agg_ = nullptr;                 // (runs) run aggregates of the current pass
+  void* pre_ = nullptr;                 // (runs) their inclusive scan (prefixes or suffixes)
   void* temp_ = nullptr;                // CUB temporary storage
   std::size_t temp_bytes_ = 0;
 };
