@@ -30,12 +30,15 @@ SCANDYN_HD Mat3<S> rotate_rows(const Vec3<S>& axis, S s, S c, const Mat3<S>& E) 
 }
 
 // sin q and cos q of a revolute joint. In float, the pair is scaled back onto the
-// unit circle by one Newton step, k = (3 - s^2 - c^2) / 2, evaluated in double
-// (a float k near 1 is quantised to steps of 6e-8 below and 1.2e-7 above, a bias
-// of its own). CUDA's sinf/cosf are within 2 ulp, but their norm error s^2 + c^2 - 1
-// has a bias of about 0.1 ulp, which a chain multiplies link after link: a float
-// rope of 10^5 links drifted by 10^-3. After the step the norm error is unbiased
-// rounding. Double needs no step.
+// unit circle by one Newton step, (s, c) <- (s, c) (1 - d) with d = (s^2 + c^2 - 1)/2
+// evaluated without rounding loss (a float k = 1 - d near 1 would be quantised to
+// steps of 6e-8 below and 1.2e-7 above, a bias of its own): on the device from
+// exact float products (fma residuals, Sterbenz subtraction), on the host in double,
+// where products of floats are exact; both give the correctly rounded s (1 - d).
+// Why: CUDA's sinf/cosf are within 2 ulp, but their norm error s^2 + c^2 - 1 has a
+// bias of about 0.1 ulp, which a chain multiplies link after link (a float rope of
+// 10^5 links drifted by 10^-3). After the step the norm error is unbiased rounding.
+// Double needs no step.
 template <class S>
 SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   using std::cos;
@@ -43,9 +46,18 @@ SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   s = sin(q);
   c = cos(q);
   if constexpr (sizeof(S) < sizeof(double)) {
-    const double k = 1.5 - 0.5 * (double(s) * s + double(c) * c);  // products of floats are exact
-    s = S(s * k);
-    c = S(c * k);
+#if defined(__CUDA_ARCH__)
+    const float p = s * s, pe = fmaf(s, s, -p);  // s^2 = p + pe exactly
+    const float r = c * c, re = fmaf(c, c, -r);
+    const float big = fmaxf(p, r), small = fminf(p, r);  // big in [0.5, 1]: big - 1 is exact
+    const float d = 0.5f * (((big - 1.0f) + small) + (pe + re));
+    s = fmaf(-s, d, s);
+    c = fmaf(-c, d, c);
+#else
+    const double d = 0.5 * (double(s) * s + double(c) * c - 1.0);
+    s = S(s - s * d);
+    c = S(c - c * d);
+#endif
   }
 }
 
