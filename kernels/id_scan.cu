@@ -29,95 +29,135 @@ __device__ __forceinline__ Transform<S> zero_transform() {
   return {Mat3<S>::zero(), Vec3<S>::zero()};
 }
 
-// What the element and store functors of one level read and write.
+// ---- runs ---------------------------------------------------------------------------
+// Level l holds n bodies (its segments, concatenated) for each of B instances. The
+// bodies are cut into C chunks of P consecutive ones; run r = c B + b (instance
+// fastest) is chunk c of instance b, one thread. Every pass aggregates each run
+// serially, scans the run aggregates of each instance in chunk order with CUB
+// (scan index b C + c), then walks each run again from its carry-in by the
+// recursion itself: values are a carry-in (maps composed over whole runs) followed
+// by at most P - 1 steps of the recursion.
+//
+// Memory. Per-level scratch (v, a, force offsets) is stored by (run, step) as
+// [r / 32][step][r % 32]: at every step a warp's 32 threads touch 32 consecutive
+// entries. Values other levels need are also stored by (body, instance): v and a
+// of bodies with branch children (for the heads that hang from them), and the
+// forces of those heads (for their parents' offsets).
+constexpr int kRunBlock = 128;
+constexpr unsigned kTargetRuns = 1u << 16;  // threads per pass, when there are elements for them
+constexpr unsigned kMinRun = 4, kMaxRun = 64;
+
+struct RunShape {
+  unsigned n, P, C, B, R;  // bodies, chunk length, chunks, instances, runs = C B
+};
+
+RunShape run_shape(unsigned n, unsigned B) {
+  const unsigned long long count = static_cast<unsigned long long>(n) * B;
+  unsigned P = static_cast<unsigned>(std::min<unsigned long long>(kMaxRun, (count + kTargetRuns - 1) / kTargetRuns));
+  P = std::min(n, std::max(kMinRun, P));
+  const unsigned C = (n + P - 1) / P;
+  return {n, P, C, B, C * B};
+}
+
+// entries of per-level scratch a shape uses, and a bound for every B <= max_batch
+std::size_t scratch_entries(const RunShape& s) { return std::size_t((s.R + 31) / 32) * 32 * s.P; }
+std::size_t scratch_bound(unsigned n, unsigned max_batch) {
+  return std::size_t(max_batch) * (n + std::min(n, kMaxRun) - 1) + 31 * kMaxRun;
+}
+
 template <class S>
 struct Level {
-  const Body<S>* table;        // distinct bodies
-  const int* body_class;       // (nv) body -> table entry
-  const int* parent;           // (nv)
-  const int* order;            // (n_level) this level's bodies
-  const unsigned char* role;   // (n_level) ScanRole bits
-  const int* branch_begin;     // (nv + 1)
-  const int* branch_child;
-  unsigned n_level;            // bodies in this level
-  unsigned count;              // elements in the scan: B * n_level
-  int nv;
-  IdBatchIn<S> in;             // device views
+  // model (device)
+  const Body<S>* __restrict__ table;         // distinct bodies
+  const int* __restrict__ body_class;        // (nv) body -> table entry
+  const int* __restrict__ parent;            // (nv)
+  const int* __restrict__ order;             // (n) this level's bodies
+  const unsigned char* __restrict__ role;    // (n) ScanRole bits
+  const int* __restrict__ branch_begin;      // (nv + 1)
+  const int* __restrict__ branch_child;      // branch children, by parent
+  const int* __restrict__ branch_point;      // (nv) index among bodies with branch children, or -1
+  const int* __restrict__ branch_pos;        // (nv) index of a branch child in branch_child, or -1
+  // batch (device views)
+  IdBatchIn<S> in;
   BatchView<S> tau;
-  Motion<S>* v;                // (B x nv)
-  Motion<S>* a;                // (B x nv)
-  Force<S>* F;                 // (B x nv), written at segment heads
-  Motion<S> a0;                // base acceleration
+  // scratch
+  Motion<S>* v;         // per-level, by (run, step), from `base`
+  Motion<S>* a;
+  Force<S>* offset;
+  Motion<S>* vb;        // (branch points x B) v of bodies with branch children
+  Motion<S>* ab;        // (branch points x B) a of the same
+  Force<S>* Fb;         // (branch children x B) forces of branch children (segment heads)
+  std::size_t base;     // this level's first scratch entry
+  int nv;
+  RunShape shape;
+  Motion<S> a0;         // base acceleration
 
-  // element e of the level -> instance b, body i, role
   struct Site {
-    unsigned b;
-    int i;
+    unsigned b;           // instance
+    int i;                // body
     unsigned char role;
+    std::size_t st;       // scratch entry
   };
-  __device__ __forceinline__ Site site(unsigned e) const {
-    const unsigned b = e / n_level, k = e - b * n_level;
-    return {b, order[k], role[k]};
+  // run r's step j; valid when chunk_begin(r) + j < n
+  __device__ __forceinline__ unsigned chunk(unsigned r) const { return r / shape.B; }
+  __device__ __forceinline__ unsigned steps(unsigned r) const { return min(shape.P, shape.n - chunk(r) * shape.P); }
+  __device__ __forceinline__ Site site(unsigned r, unsigned j) const {
+    const unsigned c = chunk(r), b = r - c * shape.B, k = c * shape.P + j;
+    return {b, order[k], role[k], base + (std::size_t(r >> 5) * shape.P + j) * 32 + (r & 31)};
   }
-  __device__ __forceinline__ std::size_t slot(unsigned b, int i) const {
-    return static_cast<std::size_t>(b) * nv + i;
+  // scan index of run r (instances apart, chunks in order)
+  __device__ __forceinline__ unsigned scan_index(unsigned r) const {
+    const unsigned c = chunk(r), b = r - c * shape.B;
+    return b * shape.C + c;
   }
-  __device__ __forceinline__ const Body<S>& body(int i) const { return table[body_class[i]]; }
+  __device__ __forceinline__ Body<S> body(int i) const { return table[body_class[i]]; }
+  __device__ __forceinline__ S q(int i, unsigned b) const { return in.q.at(i, b); }
 };
 
 // ---- scan elements ------------------------------------------------------------------
 
 // velocities: (Xup_i, S qd_i); a segment head (0, Xup_i v_parent + S qd_i)
 template <class S>
-__device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s) {
-  const Body<S>& bd = L.body(s.i);
-  const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
+__device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+                                            const Transform<S>& X) {
   const Motion<S> sq = joint_motion(bd, L.in.qd.at(s.i, s.b));
   if (!(s.role & kSegmentHead)) return {X, sq};
   const int p = L.parent[s.i];
-  const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.v[L.slot(s.b, p)];
+  const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.vb[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
   return {zero_transform<S>(), X.apply(vp) + sq};
 }
 
 // accelerations: (Xup_i, S qdd + v x S qd); a head folds in Xup_i a_parent (-g at the base)
 template <class S>
 __device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typename Level<S>::Site& s,
-                                                const Motion<S>& v) {
-  const Body<S>& bd = L.body(s.i);
-  const Transform<S> X = joint_transform(bd, L.in.q.at(s.i, s.b));
+                                                const Body<S>& bd, const Transform<S>& X, const Motion<S>& v) {
   const S qd = L.in.qd.at(s.i, s.b);
   const Motion<S> c = add_joint_motion(bd, cross_joint_motion(bd, v, qd), L.in.qdd.at(s.i, s.b));
   if (!(s.role & kSegmentHead)) return {X, c};
   const int p = L.parent[s.i];
-  const Motion<S> ap = p < 0 ? L.a0 : L.a[L.slot(s.b, p)];
+  const Motion<S> ap = p < 0 ? L.a0 : L.ab[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
   return {zero_transform<S>(), X.apply(ap) + c};
 }
 
-// forces, leaves to root: G -> B + Y^T G with G = F_{i+1}. The offset B is the net
-// body force f_i = I a + v x* I v - fext plus the forces of the branch children
-// (heads of higher levels, final when this level runs) ...
+// forces, leaves to root: G -> B + Y^T G with G = F_{i+1}, Y = Xup_{i+1} (zero at a
+// segment's tail), B = f_i = I a + v x* I v - fext plus the forces of the branch
+// children (heads of higher levels, final when this level runs)
 template <class S>
-__device__ Force<S> force_offset(const Level<S>& L, const typename Level<S>::Site& s, const Motion<S>& v,
-                                 const Motion<S>& a) {
-  const Body<S>& bd = L.body(s.i);
+__device__ ForceAffine<S> force_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+                                        const Motion<S>& v, const Motion<S>& a) {
   Force<S> f = bd.I * a + cross(v, bd.I * v);
-  if (L.in.fext) f -= L.in.fext[L.slot(s.b, s.i)];
+  if (L.in.fext) f -= L.in.fext[std::size_t(s.b) * L.nv + s.i];
   for (int k = L.branch_begin[s.i]; k < L.branch_begin[s.i + 1]; ++k) {
     const int c = L.branch_child[k];
-    const Transform<S> Xc = joint_transform(L.body(c), L.in.q.at(c, s.b));
-    f += Xc.apply_transpose(L.F[L.slot(s.b, c)]);
+    const Transform<S> Xc = joint_transform(L.body(c), L.q(c, s.b));
+    f += Xc.apply_transpose(L.Fb[std::size_t(k) * L.shape.B + s.b]);
   }
-  return f;
-}
-// ... and the map Y = Xup_{i+1}, zero at a segment's tail.
-template <class S>
-__device__ Transform<S> force_map(const Level<S>& L, const typename Level<S>::Site& s) {
-  if (s.role & kSegmentTail) return zero_transform<S>();
-  return joint_transform(L.body(s.i + 1), L.in.q.at(s.i + 1, s.b));
+  if (s.role & kSegmentTail) return {zero_transform<S>(), f};
+  return {joint_transform(L.body(s.i + 1), L.q(s.i + 1, s.b)), f};
 }
 
-// CUB's operator sees (prefix so far, next element): for the run aggregates of the
-// force pass, scanned from the last run back, that is (deeper runs d, outer run o).
+// CUB's operator sees (prefix so far, next element): for the force aggregates,
+// scanned from the last run back, that is (deeper runs d, outer run o).
 struct ComposeForceSuffix {
   template <class S>
   __host__ __device__ ForceAffine<S> operator()(const ForceAffine<S>& d, const ForceAffine<S>& o) const {
@@ -125,146 +165,131 @@ struct ComposeForceSuffix {
   }
 };
 
-// ---- runs ------------------------------------------------------------------------------
-// A level's `count` elements are cut into runs of `run` consecutive elements, one
-// thread each. Every pass is: aggregate each run serially (kernels below), scan the
-// run aggregates with CUB, then walk each run serially from its carry-in. Inside a
-// run the values come from the recursion itself (apply, not compose), so the only
-// composed maps span one run.
-struct Runs {
-  unsigned count;  // elements
-  unsigned run;    // elements per run
-  unsigned runs;   // ceil(count / run)
-  __device__ __forceinline__ unsigned begin(unsigned r) const { return r * run; }
-  __device__ __forceinline__ unsigned end(unsigned r) const { return min(count, (r + 1) * run); }
-};
-
-constexpr int kRunBlock = 128;
-constexpr unsigned kTargetRuns = 1u << 16;  // threads per level pass, when there are elements for them
-constexpr unsigned kMinRun = 4, kMaxRun = 64;
-
-Runs make_runs(unsigned count) {
-  unsigned run = (count + kTargetRuns - 1) / kTargetRuns;
-  run = std::min(kMaxRun, std::max(kMinRun, run));
-  return {count, run, (count + run - 1) / run};
-}
+// ---- pass kernels: one thread per run -----------------------------------------------
 
 // velocity aggregates
 template <class S>
-__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, const Runs R, MotionAffine<S>* agg) {
+__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
-  if (r >= R.runs) return;
-  const unsigned e0 = R.begin(r), e1 = R.end(r);
-  MotionAffine<S> acc = velocity_element(L, L.site(e0));
-  for (unsigned e = e0 + 1; e < e1; ++e) acc = compose(acc, velocity_element(L, L.site(e)));
-  agg[r] = acc;
+  if (r >= L.shape.R) return;
+  const unsigned n = L.steps(r);
+  MotionAffine<S> acc;
+  for (unsigned j = 0; j < n; ++j) {
+    const auto s = L.site(r, j);
+    const Body<S> bd = L.body(s.i);
+    const MotionAffine<S> el = velocity_element(L, s, bd, joint_transform(bd, L.q(s.i, s.b)));
+    acc = j == 0 ? el : compose(acc, el);
+  }
+  agg[L.scan_index(r)] = acc;
 }
 
 // velocities from the carry-in; acceleration aggregates
 template <class S>
 __global__ void __launch_bounds__(kRunBlock)
-    velocity_walk(const Level<S> L, const Runs R, const MotionAffine<S>* pre, MotionAffine<S>* agg) {
+    velocity_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
-  if (r >= R.runs) return;
-  const unsigned e0 = R.begin(r), e1 = R.end(r);
-  Motion<S> x = r > 0 ? pre[r - 1].b : Motion<S>::zero();  // the first element is a head
+  if (r >= L.shape.R) return;
+  const unsigned n = L.steps(r), si = L.scan_index(r);
+  Motion<S> x = L.chunk(r) > 0 ? pre[si - 1].b : Motion<S>::zero();  // a chunk 0 starts with a head
   MotionAffine<S> acc;
-  for (unsigned e = e0; e < e1; ++e) {
-    const auto s = L.site(e);
-    x = apply(velocity_element(L, s), x);
-    L.v[L.slot(s.b, s.i)] = x;
-    const MotionAffine<S> el = acceleration_element(L, s, x);
-    acc = e == e0 ? el : compose(acc, el);
+  for (unsigned j = 0; j < n; ++j) {
+    const auto s = L.site(r, j);
+    const Body<S> bd = L.body(s.i);
+    const Transform<S> X = joint_transform(bd, L.q(s.i, s.b));
+    x = apply(velocity_element(L, s, bd, X), x);
+    L.v[s.st] = x;
+    const int bp = L.branch_point[s.i];
+    if (bp >= 0) L.vb[std::size_t(bp) * L.shape.B + s.b] = x;
+    const MotionAffine<S> el = acceleration_element(L, s, bd, X, x);
+    acc = j == 0 ? el : compose(acc, el);
   }
-  agg[r] = acc;
-}
-
-// One element of the force pass: its offset is kept for force_walk, the element
-// joins the run's aggregate (the outer run so far, then this inner element).
-template <class S>
-__device__ __forceinline__ void force_element(const Level<S>& L, const typename Level<S>::Site& s, std::size_t slot,
-                                              const Motion<S>& v, const Motion<S>& a, bool first, Force<S>* offset,
-                                              ForceAffine<S>& acc) {
-  const ForceAffine<S> el{force_map(L, s), force_offset(L, s, v, a)};
-  offset[slot] = el.B;
-  acc = first ? el : compose(acc, el);
+  agg[si] = acc;
 }
 
 // accelerations from the carry-in; with kForces (a model of one level) also the
 // force offsets and aggregates, which otherwise wait for force_runs
 template <class S, bool kForces>
-__global__ void __launch_bounds__(kRunBlock) acceleration_walk(const Level<S> L, const Runs R,
-                                                               const MotionAffine<S>* pre, Force<S>* offset,
-                                                               ForceAffine<S>* agg) {
+__global__ void __launch_bounds__(kRunBlock)
+    acceleration_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
-  if (r >= R.runs) return;
-  const unsigned e0 = R.begin(r), e1 = R.end(r);
-  Motion<S> x = r > 0 ? pre[r - 1].b : Motion<S>::zero();
+  if (r >= L.shape.R) return;
+  const unsigned n = L.steps(r), si = L.scan_index(r);
+  Motion<S> x = L.chunk(r) > 0 ? pre[si - 1].b : Motion<S>::zero();
   ForceAffine<S> acc;
-  for (unsigned e = e0; e < e1; ++e) {
-    const auto s = L.site(e);
-    const std::size_t slot = L.slot(s.b, s.i);
-    const Motion<S> v = L.v[slot];
-    x = apply(acceleration_element(L, s, v), x);
-    L.a[slot] = x;
-    if constexpr (kForces) force_element(L, s, slot, v, x, e == e0, offset, acc);
+  for (unsigned j = 0; j < n; ++j) {
+    const auto s = L.site(r, j);
+    const Body<S> bd = L.body(s.i);
+    const Motion<S> v = L.v[s.st];
+    x = apply(acceleration_element(L, s, bd, joint_transform(bd, L.q(s.i, s.b)), v), x);
+    L.a[s.st] = x;
+    const int bp = L.branch_point[s.i];
+    if (bp >= 0) L.ab[std::size_t(bp) * L.shape.B + s.b] = x;
+    if constexpr (kForces) {
+      const ForceAffine<S> el = force_element(L, s, bd, v, x);
+      L.offset[s.st] = el.B;
+      acc = j == 0 ? el : compose(acc, el);  // the outer run so far, then this inner element
+    }
   }
-  if constexpr (kForces) agg[r] = acc;
+  if constexpr (kForces) agg[si] = acc;
 }
 
 // force offsets and aggregates of a level whose branch children are final
 template <class S>
-__global__ void __launch_bounds__(kRunBlock)
-    force_runs(const Level<S> L, const Runs R, Force<S>* offset, ForceAffine<S>* agg) {
+__global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S> L, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
-  if (r >= R.runs) return;
-  const unsigned e0 = R.begin(r), e1 = R.end(r);
+  if (r >= L.shape.R) return;
+  const unsigned n = L.steps(r);
   ForceAffine<S> acc;
-  for (unsigned e = e0; e < e1; ++e) {
-    const auto s = L.site(e);
-    const std::size_t slot = L.slot(s.b, s.i);
-    force_element(L, s, slot, L.v[slot], L.a[slot], e == e0, offset, acc);
+  for (unsigned j = 0; j < n; ++j) {
+    const auto s = L.site(r, j);
+    const ForceAffine<S> el = force_element(L, s, L.body(s.i), L.v[s.st], L.a[s.st]);
+    L.offset[s.st] = el.B;
+    acc = j == 0 ? el : compose(acc, el);
   }
-  agg[r] = acc;
+  agg[L.scan_index(r)] = acc;
 }
 
-// forces from the carry-in (the force of the next run's first body), last element
-// first; tau, and the forces of segment heads for the levels below
+// forces from the carry-in (the force of the next run's first body), last step
+// first; tau, and the forces of branch children for their parents
 template <class S>
-__global__ void __launch_bounds__(kRunBlock)
-    force_walk(const Level<S> L, const Runs R, const Force<S>* offset, const ForceAffine<S>* suffix) {
+__global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S> L, const ForceAffine<S>* __restrict__ suffix) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
-  if (r >= R.runs) return;
-  const unsigned e0 = R.begin(r), e1 = R.end(r);
-  // suffix[k] covers runs R.runs - 1 - k .. end; run r + 1's is suffix[R.runs - 2 - r]
-  Force<S> G = r + 1 < R.runs ? suffix[R.runs - 2 - r].B : Force<S>::zero();  // the last element is a tail
-  for (unsigned e = e1; e-- > e0;) {
-    const auto s = L.site(e);
-    const std::size_t slot = L.slot(s.b, s.i);
-    G = offset[slot] + force_map(L, s).apply_transpose(G);
-    if (s.role & kSegmentHead) L.F[slot] = G;
-    L.tau.at(s.i, s.b) = joint_project(L.body(s.i), G);
+  if (r >= L.shape.R) return;
+  const unsigned n = L.steps(r), si = L.scan_index(r), count = L.shape.B * L.shape.C;
+  // suffix[k] covers scan indices count - 1 - k .. the instance's last run
+  Force<S> G = L.chunk(r) + 1 < L.shape.C ? suffix[count - 2 - si].B : Force<S>::zero();  // a last chunk ends in a tail
+  for (unsigned j = n; j-- > 0;) {
+    const auto s = L.site(r, j);
+    const Body<S> bd = L.body(s.i);
+    const Transform<S> Y = (s.role & kSegmentTail) ? zero_transform<S>()
+                                                   : joint_transform(L.body(s.i + 1), L.q(s.i + 1, s.b));
+    G = L.offset[s.st] + Y.apply_transpose(G);
+    const int pos = L.branch_pos[s.i];
+    if (pos >= 0) L.Fb[std::size_t(pos) * L.shape.B + s.b] = G;
+    L.tau.at(s.i, s.b) = joint_project(bd, G);
   }
 }
 
-// run aggregates read from the last run back
+// run aggregates read from the last back
 template <class S>
 struct Reversed {
   const ForceAffine<S>* agg;
-  unsigned runs;
-  __host__ __device__ ForceAffine<S> operator()(unsigned k) const { return agg[runs - 1 - k]; }
+  unsigned count;
+  __host__ __device__ ForceAffine<S> operator()(unsigned k) const { return agg[count - 1 - k]; }
 };
 
 template <class S>
 cudaError_t scan_motion_runs(void* temp, std::size_t& bytes, const MotionAffine<S>* agg, MotionAffine<S>* pre,
-                             unsigned runs, cudaStream_t stream) {
-  return cub::DeviceScan::InclusiveScan(temp, bytes, agg, pre, ComposeMotionAffine{}, static_cast<int>(runs), stream);
+                             unsigned count, cudaStream_t stream) {
+  return cub::DeviceScan::InclusiveScan(temp, bytes, agg, pre, ComposeMotionAffine{}, static_cast<int>(count),
+                                        stream);
 }
 template <class S>
 cudaError_t scan_force_runs(void* temp, std::size_t& bytes, const ForceAffine<S>* agg, ForceAffine<S>* suffix,
-                            unsigned runs, cudaStream_t stream) {
-  auto in = thrust::make_transform_iterator(thrust::counting_iterator<unsigned>(0u), Reversed<S>{agg, runs});
-  return cub::DeviceScan::InclusiveScan(temp, bytes, in, suffix, ComposeForceSuffix{}, static_cast<int>(runs), stream);
+                            unsigned count, cudaStream_t stream) {
+  auto in = thrust::make_transform_iterator(thrust::counting_iterator<unsigned>(0u), Reversed<S>{agg, count});
+  return cub::DeviceScan::InclusiveScan(temp, bytes, in, suffix, ComposeForceSuffix{}, static_cast<int>(count),
+                                        stream);
 }
 
 std::string error_string(cudaError_t err) {
@@ -275,6 +300,9 @@ std::string error_string(cudaError_t err) {
 // Host-side layout of a plan: the level order, roles, branch children, body classes.
 struct HostPlan {
   std::vector<int> order, parent, branch_begin, branch_child, body_class;
+  std::vector<int> branch_point;  // (nv) index among bodies with branch children, or -1
+  std::vector<int> branch_pos;    // (nv) position of a branch child in branch_child, or -1
+  int branch_points = 0;
   std::vector<unsigned char> role;
   std::vector<Index> level_begin;
   Index max_level = 0;  // bodies in the largest level
@@ -313,8 +341,15 @@ HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
   for (Index i = 0; i < n; ++i) h.branch_begin[i + 1] += h.branch_begin[i];
   h.branch_child.resize(static_cast<std::size_t>(h.branch_begin[n]));
   std::vector<int> fill(h.branch_begin.begin(), h.branch_begin.end() - 1);
+  h.branch_pos.assign(static_cast<std::size_t>(n), -1);
   for (Index c = 0; c < n; ++c)
-    if (parent[c] >= 0 && parent[c] != c - 1) h.branch_child[fill[parent[c]]++] = c;
+    if (parent[c] >= 0 && parent[c] != c - 1) {
+      h.branch_pos[c] = fill[parent[c]];
+      h.branch_child[fill[parent[c]]++] = c;
+    }
+  h.branch_point.assign(static_cast<std::size_t>(n), -1);
+  for (Index i = 0; i < n; ++i)
+    if (h.branch_begin[i + 1] > h.branch_begin[i]) h.branch_point[i] = h.branch_points++;
   // body classes: bodies equal in everything but the parent index share an entry
   if (table) {
     std::unordered_map<std::string, int> seen;
@@ -334,7 +369,7 @@ HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
 constexpr std::size_t kAlign = 256;
 std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; }
 
-// CUB's temporary storage for the run-aggregate scans of the largest level.
+// CUB's temporary storage for `runs` run aggregates.
 template <class S>
 std::size_t cub_temp_bytes(unsigned runs) {
   if (runs == 0) return 0;
@@ -345,40 +380,41 @@ std::size_t cub_temp_bytes(unsigned runs) {
 }
 
 // Byte sizes of the parts of one allocation, in order.
-template <class S>
 struct Parts {
-  std::size_t table, body_class, parent, order, role, branch_begin, branch_child, v, a, F, offset;
-  std::size_t agg, pre, temp;  // per run: motion or force aggregates, their scan; CUB's storage
-  std::size_t total() const {
-    return table + body_class + parent + order + role + branch_begin + branch_child + v + a + F + offset + agg + pre +
-           temp;
-  }
+  std::size_t ints, role, table;                 // model
+  std::size_t v, a, offset, vb, ab, Fb;          // scratch
+  std::size_t agg, pre, temp;                    // run aggregates, their scan, CUB's storage
+  std::size_t total() const { return ints + role + table + v + a + offset + vb + ab + Fb + agg + pre + temp; }
 };
 
+// ints: body_class, parent, order, branch_point, branch_pos (nv each), branch_begin (nv + 1), branch_child
 template <class S>
-Parts<S> parts(const HostPlan& h, std::size_t classes, Index nv, Index max_batch) {
+Parts parts(const HostPlan& h, std::size_t classes, Index nv, Index max_batch) {
   const std::size_t n = static_cast<std::size_t>(nv), B = static_cast<std::size_t>(max_batch);
-  Parts<S> p{};
-  p.table = aligned(classes * sizeof(Body<S>));
-  p.body_class = aligned(n * sizeof(int));
-  p.parent = aligned(n * sizeof(int));
-  p.order = aligned(n * sizeof(int));
+  Parts p{};
+  p.ints = aligned((6 * n + 1 + h.branch_child.size()) * sizeof(int));
   p.role = aligned(n);
-  p.branch_begin = aligned((n + 1) * sizeof(int));
-  p.branch_child = aligned(h.branch_child.size() * sizeof(int));
-  p.v = aligned(B * n * sizeof(Motion<S>));
-  p.a = aligned(B * n * sizeof(Motion<S>));
-  p.F = aligned(B * n * sizeof(Force<S>));
-  p.offset = aligned(B * n * sizeof(Force<S>));
-  const unsigned runs = make_runs(static_cast<unsigned>(B * static_cast<std::size_t>(h.max_level))).runs;
+  p.table = aligned(classes * sizeof(Body<S>));
+  std::size_t scratch = 0, runs = 0;
+  for (std::size_t l = 0; l + 1 < h.level_begin.size(); ++l) {
+    const unsigned nl = static_cast<unsigned>(h.level_begin[l + 1] - h.level_begin[l]);
+    scratch += scratch_bound(nl, static_cast<unsigned>(B));
+    runs = std::max<std::size_t>(runs, B * std::max<std::size_t>(1, (nl + kMinRun - 1) / kMinRun));
+  }
+  p.v = aligned(scratch * sizeof(Motion<S>));
+  p.a = p.v;
+  p.offset = aligned(scratch * sizeof(Force<S>));
+  p.vb = aligned(B * h.branch_points * sizeof(Motion<S>));
+  p.ab = p.vb;
+  p.Fb = aligned(B * h.branch_child.size() * sizeof(Force<S>));
   p.agg = aligned(runs * std::max(sizeof(MotionAffine<S>), sizeof(ForceAffine<S>)));
   p.pre = p.agg;
-  p.temp = aligned(cub_temp_bytes<S>(runs));
+  p.temp = aligned(cub_temp_bytes<S>(static_cast<unsigned>(runs)));
   return p;
 }
 
 void check_count(Index nv, Index max_batch, Index max_level) {
-  if (static_cast<long long>(max_batch) * max_level > INT_MAX)
+  if (static_cast<long long>(max_batch) * (max_level + kMaxRun) > INT_MAX)
     throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch) + " instances of a model with " +
                        std::to_string(nv) + " bodies give scans of more than 2^31 - 1 elements");
 }
@@ -402,7 +438,7 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
   classes_ = static_cast<Index>(table.size());
   level_begin_ = h.level_begin;
   a0_ = base_acceleration(model.gravity);
-  const Parts<S> p = parts<S>(h, table.size(), nv_, max_batch_);
+  const Parts p = parts<S>(h, table.size(), nv_, max_batch_);
   bytes_ = p.total();
   temp_bytes_ = p.temp;
   if (bytes_ == 0) return;
@@ -417,7 +453,7 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
     return BackendError("backend 'cuda': the link scans for max_batch " + std::to_string(max_batch_) +
                         " instances of a " + std::to_string(nv_) + "-body model in " +
                         (sizeof(S) == 4 ? "float" : "double") + " need " + std::to_string(bytes_) +
-                        " bytes of device memory (v, a, F: " + std::to_string(3 * sizeof(Motion<S>)) +
+                        " bytes of device memory (v, a and force offsets: " + std::to_string(3 * sizeof(Motion<S>)) +
                         " bytes per body and instance, plus model tables and scan storage); the device has " +
                         std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes) + why);
   };
@@ -433,22 +469,33 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
     at += bytes;
     return here;
   };
-  Body<S>* table_d = reinterpret_cast<Body<S>*>(take(p.table));
-  int* class_d = reinterpret_cast<int*>(take(p.body_class));
-  int* parent_d = reinterpret_cast<int*>(take(p.parent));
-  int* order_d = reinterpret_cast<int*>(take(p.order));
+  // the model's int arrays, packed
+  std::vector<int> ints;
+  ints.reserve(p.ints / sizeof(int));
+  auto pack = [&ints](const std::vector<int>& v) {
+    const std::size_t at_ = ints.size();
+    ints.insert(ints.end(), v.begin(), v.end());
+    return at_;
+  };
+  const std::size_t o_class = pack(h.body_class), o_parent = pack(h.parent), o_order = pack(h.order);
+  const std::size_t o_bp = pack(h.branch_point), o_pos = pack(h.branch_pos), o_bb = pack(h.branch_begin);
+  const std::size_t o_bc = pack(h.branch_child);
+  int* ints_d = reinterpret_cast<int*>(take(p.ints));
   unsigned char* role_d = reinterpret_cast<unsigned char*>(take(p.role));
-  int* bb_d = reinterpret_cast<int*>(take(p.branch_begin));
-  int* bc_d = reinterpret_cast<int*>(take(p.branch_child));
+  Body<S>* table_d = reinterpret_cast<Body<S>*>(take(p.table));
+  body_table_ = table_d, role_ = role_d;
+  body_class_ = ints_d + o_class, parent_ = ints_d + o_parent, order_ = ints_d + o_order;
+  branch_point_ = ints_d + o_bp, branch_pos_ = ints_d + o_pos;
+  branch_begin_ = ints_d + o_bb, branch_child_ = ints_d + o_bc;
   v_ = reinterpret_cast<Motion<S>*>(take(p.v));
   a_ = reinterpret_cast<Motion<S>*>(take(p.a));
-  F_ = reinterpret_cast<Force<S>*>(take(p.F));
   offset_ = reinterpret_cast<Force<S>*>(take(p.offset));
+  vb_ = reinterpret_cast<Motion<S>*>(take(p.vb));
+  ab_ = reinterpret_cast<Motion<S>*>(take(p.ab));
+  Fb_ = reinterpret_cast<Force<S>*>(take(p.Fb));
   agg_ = take(p.agg);
   pre_ = take(p.pre);
   temp_ = take(p.temp);
-  body_table_ = table_d, body_class_ = class_d, parent_ = parent_d, order_ = order_d, role_ = role_d;
-  branch_begin_ = bb_d, branch_child_ = bc_d;
 
   auto upload = [&](void* dst, const void* src, std::size_t bytes, const char* what) {
     if (bytes == 0) return;
@@ -460,13 +507,9 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
       throw BackendError(std::string("backend 'cuda': copying the ") + what + " to the device: " + error_string(e));
     }
   };
-  upload(table_d, table.data(), table.size() * sizeof(Body<S>), "body table");
-  upload(class_d, h.body_class.data(), h.body_class.size() * sizeof(int), "body classes");
-  upload(parent_d, h.parent.data(), h.parent.size() * sizeof(int), "parent array");
-  upload(order_d, h.order.data(), h.order.size() * sizeof(int), "level order");
+  upload(ints_d, ints.data(), ints.size() * sizeof(int), "model's index arrays");
   upload(role_d, h.role.data(), h.role.size(), "segment roles");
-  upload(bb_d, h.branch_begin.data(), h.branch_begin.size() * sizeof(int), "branch offsets");
-  upload(bc_d, h.branch_child.data(), h.branch_child.size() * sizeof(int), "branch children");
+  upload(table_d, table.data(), table.size() * sizeof(Body<S>), "body table");
 }
 
 template <class S>
@@ -480,49 +523,56 @@ cudaError_t IdScanPlan<S>::launch(const IdBatchIn<S>& in, const BatchView<S>& ta
   if (B < 0 || in.qd.batch != B || in.qdd.batch != B || tau.batch != B || B > max_batch_) return cudaErrorInvalidValue;
   if (B == 0 || nv_ == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.qdd.data || !tau.data) return cudaErrorInvalidValue;
-  Level<S> L{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_, 0, 0, nv_, in, tau,
-             v_, a_, F_, a0_};
+  const Index nl = levels();
+  // every level's scratch region, for this batch size
+  Level<S> L{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_, branch_point_,
+             branch_pos_, in, tau, v_, a_, offset_, vb_, ab_, Fb_, 0, nv_, RunShape{}, a0_};
+  std::vector<std::size_t> base(static_cast<std::size_t>(nl) + 1, 0);
   auto at_level = [&](Index l) {
     L.order = order_ + level_begin_[l];
     L.role = role_ + level_begin_[l];
-    L.n_level = static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]);
-    L.count = L.n_level * static_cast<unsigned>(B);
-    return make_runs(L.count);
+    L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B));
+    L.base = base[l];
   };
+  for (Index l = 0; l < nl; ++l) {
+    at_level(l);
+    base[l + 1] = base[l] + scratch_entries(L.shape);
+  }
   auto* magg = static_cast<MotionAffine<S>*>(agg_);
   auto* mpre = static_cast<MotionAffine<S>*>(pre_);
   auto* fagg = static_cast<ForceAffine<S>*>(agg_);
   auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
-  auto blocks = [](const Runs& R) { return (R.runs + kRunBlock - 1) / kRunBlock; };
+  auto blocks = [](const RunShape& R) { return (R.R + kRunBlock - 1) / kRunBlock; };
   cudaError_t err = cudaSuccess;
-  const Index nl = levels();
-  // forward, level by level: velocities, then accelerations (and the force offsets)
+  // forward, level by level: velocities, then accelerations (and a chain's force offsets)
   for (Index l = 0; l < nl; ++l) {
-    const Runs R = at_level(l);
+    at_level(l);
+    const RunShape& R = L.shape;
     std::size_t bytes = temp_bytes_;
-    velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, R, magg);
+    velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, magg);
     if ((err = cudaGetLastError()) != cudaSuccess) return err;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.runs, stream)) != cudaSuccess) return err;
-    velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, magg);
+    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+    velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, magg);
     if ((err = cudaGetLastError()) != cudaSuccess) return err;
     bytes = temp_bytes_;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.runs, stream)) != cudaSuccess) return err;
-    if (nl == 1) acceleration_walk<S, true><<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, offset_, fagg);
-    else acceleration_walk<S, false><<<blocks(R), kRunBlock, 0, stream>>>(L, R, mpre, offset_, fagg);
+    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+    if (nl == 1) acceleration_walk<S, true><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
+    else acceleration_walk<S, false><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
     if ((err = cudaGetLastError()) != cudaSuccess) return err;
   }
   // backward, deepest level first: forces and torques. A level's force offsets
   // need its branch children's forces, which the deeper levels produce: with more
   // than one level they are made here.
   for (Index l = nl - 1; l >= 0; --l) {
-    const Runs R = at_level(l);
+    at_level(l);
+    const RunShape& R = L.shape;
     if (nl > 1) {
-      force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, R, offset_, fagg);
+      force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, fagg);
       if ((err = cudaGetLastError()) != cudaSuccess) return err;
     }
     std::size_t bytes = temp_bytes_;
-    if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.runs, stream)) != cudaSuccess) return err;
-    force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, R, offset_, fsuf);
+    if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.R, stream)) != cudaSuccess) return err;
+    force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, fsuf);
     if ((err = cudaGetLastError()) != cudaSuccess) return err;
   }
   return cudaSuccess;

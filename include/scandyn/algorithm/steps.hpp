@@ -29,45 +29,40 @@ SCANDYN_HD Mat3<S> rotate_rows(const Vec3<S>& axis, S s, S c, const Mat3<S>& E) 
   return mul_transpose(axis_angle(axis, s, c), E);
 }
 
-// sin q and cos q of a revolute joint. In float, the pair is scaled back onto the
-// unit circle by one Newton step, (s, c) <- (s, c) (1 - d) with d = (s^2 + c^2 - 1)/2
-// evaluated without rounding loss (a float k = 1 - d near 1 would be quantised to
-// steps of 6e-8 below and 1.2e-7 above, a bias of its own): on the device from
-// exact float products (fma residuals, Sterbenz subtraction), on the host in double,
-// where products of floats are exact; both give the correctly rounded s (1 - d).
-// Why: CUDA's sinf/cosf are within 2 ulp, but their norm error s^2 + c^2 - 1 has a
-// bias of about 0.1 ulp, which a chain multiplies link after link (a float rope of
-// 10^5 links drifted by 10^-3). After the step the norm error is unbiased rounding.
-// Double needs no step.
-template <class S>
+// sin q and cos q of a revolute joint, correctly rounded in float as well. CUDA's
+// sinf/cosf are within 2 ulp, but their error has a bias: the mean of
+// s^2 + c^2 - 1 is about 8e-9 (0.1 ulp). A chain multiplies one joint rotation per
+// link, so the bias grows linearly with the length: float ropes of 10^5 links drifted
+// by 10^-3 from the double reference. A scaling of (s, c) cannot remove a bias below
+// half an ulp (the scaled value rounds back to the same float), so on the device a
+// float angle is evaluated in double and rounded once, like glibc's sinf/cosf on
+// the host. kFast keeps the device's sinf/cosf: for the short chains of the
+// thread-per-instance kernels (at most 64 links, a drift of < 1e-6).
+template <bool kFast = false, class S>
 SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   using std::cos;
   using std::sin;
+#if defined(__CUDA_ARCH__)
+  if constexpr (!kFast && sizeof(S) < sizeof(double)) {
+    double sd, cd;
+    ::sincos(double(q), &sd, &cd);
+    s = S(sd);
+    c = S(cd);
+    return;
+  }
+#endif
   s = sin(q);
   c = cos(q);
-  if constexpr (sizeof(S) < sizeof(double)) {
-#if defined(__CUDA_ARCH__)
-    const float p = s * s, pe = fmaf(s, s, -p);  // s^2 = p + pe exactly
-    const float r = c * c, re = fmaf(c, c, -r);
-    const float big = fmaxf(p, r), small = fminf(p, r);  // big in [0.5, 1]: big - 1 is exact
-    const float d = 0.5f * (((big - 1.0f) + small) + (pe + re));
-    s = fmaf(-s, d, s);
-    c = fmaf(-c, d, c);
-#else
-    const double d = 0.5 * (double(s) * s + double(c) * c - 1.0);
-    s = S(s - s * d);
-    c = S(c - c * d);
-#endif
-  }
 }
 
-// Xup = XJ(q) Xtree: parent frame -> body frame at joint position q.
-template <class S>
+// Xup = XJ(q) Xtree: parent frame -> body frame at joint position q (kFast: see
+// joint_sincos).
+template <bool kFast = false, class S>
 SCANDYN_HD Transform<S> joint_transform(const Body<S>& b, S q) {
   if (b.type == JointType::Revolute) {
     // XJ = rot(R(axis, q)^T): E = R^T Etree, r = rtree
     S s, c;
-    joint_sincos(q, s, c);
+    joint_sincos<kFast>(q, s, c);
     return {rotate_rows(b.axis, s, c, b.Xtree.E), b.Xtree.r};
   }
   // XJ = xlt(axis q): E = Etree, r = rtree + Etree^T axis q

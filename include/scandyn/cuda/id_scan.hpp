@@ -20,8 +20,10 @@
 // (its force is final when the level runs backward). A chain is one level: the
 // whole batch is three scans.
 //
-// Runs. A level's elements are cut into runs of 4..64 consecutive elements, one
-// thread each (about 2^16 threads per pass, more runs only past 64 elements each).
+// Runs. Each instance's bodies of a level are cut into chunks of 4..64 consecutive
+// bodies; a run (chunk, instance) is one thread (about 2^16 threads per pass, more
+// only past 64 bodies each), instances fastest, so a warp reads consecutive
+// instances' inputs and writes its scratch 32 entries at a time.
 // Each pass aggregates every run serially, scans the run aggregates with CUB's
 // single-pass scan (cub::DeviceScan::InclusiveScan, decoupled look-back), then
 // walks every run again from its carry-in, by the recursion itself. So a value is
@@ -34,7 +36,7 @@
 // rope) share one entry of a body table, and each link reads a 4-byte index.
 //
 // Every pointer given to launch() is a DEVICE pointer. The plan owns its device
-// memory (model tables, v and a for max_batch instances, CUB's temporary storage):
+// memory (model tables, scratch for max_batch instances, CUB's temporary storage):
 // nothing is allocated per call and nothing is synchronised; one plan serves one
 // stream at a time.
 #pragma once
@@ -95,19 +97,23 @@ class IdScanPlan {
   std::size_t bytes_ = 0;
   void* block_ = nullptr;               // one device allocation holding all below
   // device arrays inside block_
-  const Body<S>* body_table_ = nullptr; // (classes) distinct bodies
-  const int* body_class_ = nullptr;     // (nv) body i -> table entry
-  const int* parent_ = nullptr;         // (nv) parent body, -1 at the base
-  const int* order_ = nullptr;          // (nv) bodies level by level, segments contiguous
-  const unsigned char* role_ = nullptr; // (nv) ScanRole bits of order_[k]
-  const int* branch_begin_ = nullptr;   // (nv + 1) CSR offsets of branch children per body
-  const int* branch_child_ = nullptr;   // branch children (children other than body i + 1)
-  Motion<S>* v_ = nullptr;              // (max_batch x nv) velocities, v[b * nv + i]
-  Motion<S>* a_ = nullptr;              // (max_batch x nv) accelerations
-  Force<S>* F_ = nullptr;               // (max_batch x nv) subtree forces (segment heads only)
-  Force<S>* offset_ = nullptr;          // (max_batch x nv) force-pass offsets B of the current level
-  void* agg_ = nullptr;                 // (runs) run aggregates of the current pass
-  void* pre_ = nullptr;                 // (runs) their inclusive scan (prefixes or suffixes)
+  const Body<S>* body_table_ = nullptr;   // (classes) distinct bodies
+  const int* body_class_ = nullptr;       // (nv) body i -> table entry
+  const int* parent_ = nullptr;           // (nv) parent body, -1 at the base
+  const int* order_ = nullptr;            // (nv) bodies level by level, segments contiguous
+  const unsigned char* role_ = nullptr;   // (nv) ScanRole bits of order_[k]
+  const int* branch_begin_ = nullptr;     // (nv + 1) CSR offsets of branch children per body
+  const int* branch_child_ = nullptr;     // branch children (children other than body i + 1)
+  const int* branch_point_ = nullptr;     // (nv) index among bodies with branch children, or -1
+  const int* branch_pos_ = nullptr;       // (nv) a branch child's index in branch_child_, or -1
+  Motion<S>* v_ = nullptr;                // per-level scratch by (run, step): velocities
+  Motion<S>* a_ = nullptr;                //   accelerations
+  Force<S>* offset_ = nullptr;            //   force-pass offsets
+  Motion<S>* vb_ = nullptr;               // (branch points x max_batch) v of bodies with branch children
+  Motion<S>* ab_ = nullptr;               // (branch points x max_batch) a of the same
+  Force<S>* Fb_ = nullptr;                // (branch children x max_batch) forces of branch children
+  void* agg_ = nullptr;                   // (runs) run aggregates of the current pass
+  void* pre_ = nullptr;                   // (runs) their inclusive scan (prefixes or suffixes)
   void* temp_ = nullptr;                // CUB temporary storage
   std::size_t temp_bytes_ = 0;
 };

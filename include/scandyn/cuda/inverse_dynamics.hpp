@@ -237,7 +237,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
     if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
     else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
     const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
-    const Transform<S> X = joint_transform(b, qi);
+    const Transform<S> X = joint_transform<true>(b, qi);
     if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
     const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
     const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
@@ -262,7 +262,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
     if (fl & kParentIsBase) continue;
     Transform<S> X;
     if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
-    else X = joint_transform(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    else X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
     const Force<S> up = X.apply_transpose(fi);
     if (fl & kParentIsPrev) carry = up;
     else sf[b.parent] += up;
