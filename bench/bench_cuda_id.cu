@@ -46,26 +46,15 @@
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/model/load.hpp"
+#include "cuda_bench_util.hpp"
 
 using namespace scandyn;
+using bench::cuda_ok;
+using bench::fill_kernel;
+using bench::time_launches;
+using bench::uniform;
 
 namespace {
-
-// ---- inputs: a counter-based hash, the same on host and device --------------------
-
-__host__ __device__ inline double uniform(std::uint64_t array, std::uint64_t k) {
-  std::uint64_t z = (array << 56) + k + 0x9e3779b97f4a7c15ull;  // splitmix64
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-  z ^= z >> 31;
-  return double(z >> 11) * (2.0 / 9007199254740992.0) - 1.0;  // [-1, 1)
-}
-
-template <class S>
-__global__ void fill_kernel(S* out, std::uint64_t array, std::size_t n) {
-  for (std::size_t k = blockIdx.x * std::size_t(blockDim.x) + threadIdx.x; k < n; k += std::size_t(gridDim.x) * blockDim.x)
-    out[k] = S(uniform(array, k));
-}
 
 // The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled.
 template <class S, int C, bool kKeepXup, bool kUnrolled>
@@ -77,13 +66,6 @@ __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
   auto col = [b](const auto& v) { return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride}; };
   cuda::rnea_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
                                       col(tau_out));
-}
-
-bool cuda_ok(benchmark::State& st, cudaError_t err, const char* what) {
-  if (err == cudaSuccess) return true;
-  st.SkipWithError((std::string(what) + ": " + cudaGetErrorString(err)).c_str());
-  (void)cudaGetLastError();
-  return false;
 }
 
 // Device buffers q, qd, qdd, tau (nv x B each, soa), freed on scope exit.
@@ -148,38 +130,6 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double se
   st.counters["max_rel_err"] = err;
   const double bytes = 4.0 * nv * double(B) * double(scalar);
   st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
-}
-
-// Times `launch` (one call on `stream`) with events; returns the total seconds.
-template <class F>
-double time_launches(benchmark::State& st, F&& launch) {
-  cudaEvent_t start, stop;
-  cudaEventCreate(&start);
-  cudaEventCreate(&stop);
-  double total = 0;
-  if (!cuda_ok(st, launch(), "warm-up launch") || !cuda_ok(st, cudaDeviceSynchronize(), "warm-up run")) {
-    for (auto _ : st) {
-    }
-  } else {
-    for (auto _ : st) {
-      cudaEventRecord(start);
-      const cudaError_t err = launch();
-      cudaEventRecord(stop);
-      cudaEventSynchronize(stop);
-      if (err != cudaSuccess) {
-        cuda_ok(st, err, "launch");
-        break;
-      }
-      float ms = 0;
-      cudaEventElapsedTime(&ms, start, stop);
-      st.SetIterationTime(ms * 1e-3);
-      total += ms * 1e-3;
-    }
-    cuda_ok(st, cudaDeviceSynchronize(), "kernel");
-  }
-  cudaEventDestroy(start);
-  cudaEventDestroy(stop);
-  return total;
 }
 
 // id_thread: the engine's device path.
@@ -250,57 +200,15 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
 
 // ---- what bounds the speed: printed before the rows ----------------------------------
 
-template <class K>
-void print_kernel(const char* name, K kernel) {
-  cudaFuncAttributes a{};
-  int blocks = 0;
-  if (cudaFuncGetAttributes(&a, kernel) != cudaSuccess ||
-      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks, kernel, cuda::kIdInstancesBlock, 0) != cudaSuccess) {
-    (void)cudaGetLastError();
-    std::printf("  %-28s attributes unavailable\n", name);
-    return;
-  }
-  std::printf("  %-28s %3d registers, %6zu B local/thread, %2d warps/SM resident\n", name, a.numRegs,
-              a.localSizeBytes, blocks * cuda::kIdInstancesBlock / 32);
-}
-
 void print_limits() {
-  const auto info = cuda::device_info(0);
-  std::printf("bench_cuda_id: device %s\n", info ? cuda::describe(info.value).c_str() : info.error.c_str());
-  // memory roofline: a 2 GiB device-to-device copy, bytes read + written
-  const std::size_t bytes = std::size_t(1) << 30;
-  void *a = nullptr, *b = nullptr;
-  if (cudaMalloc(&a, bytes) == cudaSuccess && cudaMalloc(&b, bytes) == cudaSuccess) {
-    cudaMemset(a, 1, bytes);
-    cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
-    cudaEvent_t s, e;
-    cudaEventCreate(&s);
-    cudaEventCreate(&e);
-    float best = 1e30f;
-    for (int r = 0; r < 10; ++r) {
-      cudaEventRecord(s);
-      cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
-      cudaEventRecord(e);
-      cudaEventSynchronize(e);
-      float ms = 0;
-      cudaEventElapsedTime(&ms, s, e);
-      best = std::fmin(best, ms);
-    }
-    std::printf("bench_cuda_id: device-to-device copy of 1 GiB: %.0f GB/s (read + write, best of 10)\n",
-                2.0 * bytes / (best * 1e-3) * 1e-9);
-    cudaEventDestroy(s);
-    cudaEventDestroy(e);
-  }
-  if (a) cudaFree(a);
-  if (b) cudaFree(b);
-  (void)cudaGetLastError();
+  bench::print_device_and_roofline("bench_cuda_id");
   std::printf("bench_cuda_id: kernels for capacity 8 (iiwa), block %d:\n", cuda::kIdInstancesBlock);
-  print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>);
-  print_kernel("float, keepxup", variant_kernel<float, 8, true, true>);
-  print_kernel("float, rolled", variant_kernel<float, 8, false, false>);
-  print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>);
-  print_kernel("double, keepxup", variant_kernel<double, 8, true, true>);
-  print_kernel("double, rolled", variant_kernel<double, 8, false, false>);
+  bench::print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>, cuda::kIdInstancesBlock);
+  bench::print_kernel("float, keepxup", variant_kernel<float, 8, true, true>, cuda::kIdInstancesBlock);
+  bench::print_kernel("float, rolled", variant_kernel<float, 8, false, false>, cuda::kIdInstancesBlock);
+  bench::print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>, cuda::kIdInstancesBlock);
+  bench::print_kernel("double, keepxup", variant_kernel<double, 8, true, true>, cuda::kIdInstancesBlock);
+  bench::print_kernel("double, rolled", variant_kernel<double, 8, false, false>, cuda::kIdInstancesBlock);
   std::fflush(stdout);
 }
 
