@@ -133,57 +133,16 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
 
 // ---- what bounds the speed: printed before the rows ----------------------------------
 
-template <class K>
-void print_kernel(const char* name, K kernel) {
-  cudaFuncAttributes a{};
-  int blocks = 0;
-  if (cudaFuncGetAttributes(&a, kernel) != cudaSuccess ||
-      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks, kernel, cuda::kIdInstancesBlock, 0) != cudaSuccess) {
-    (void)cudaGetLastError();
-    std::printf("  %-28s attributes unavailable\n", name);
-    return;
-  }
-  std::printf("  %-28s %3d registers, %6zu B local/thread, %2d warps/SM resident\n", name, a.numRegs,
-              a.localSizeBytes, blocks * cuda::kIdInstancesBlock / 32);
-}
-
 void print_limits() {
-  const auto info = cuda::device_info(0);
-  std::printf("bench_cuda_id: device %s\n", info ? cuda::describe(info.value).c_str() : info.error.c_str());
-  // memory roofline: a 2 GiB device-to-device copy, bytes read + written
-  const std::size_t bytes = std::size_t(1) << 30;
-  void *a = nullptr, *b = nullptr;
-  if (cudaMalloc(&a, bytes) == cudaSuccess && cudaMalloc(&b, bytes) == cudaSuccess) {
-    cudaMemset(a, 1, bytes);
-    cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
-    cudaEvent_t s, e;
-    cudaEventCreate(&s);
-    cudaEventCreate(&e);
-    float best = 1e30f;
-    for (int r = 0; r < 10; ++r) {
-      cudaEventRecord(s);
-      cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
-      cudaEventRecord(e);
-      cudaEventSynchronize(e);
-      float ms = 0;
-      cudaEventElapsedTime(&ms, s, e);
-      best = std::fmin(best, ms);
-    }
-    std::printf("bench_cuda_id: device-to-device copy of 1 GiB: %.0f GB/s (read + write, best of 10)\n",
-                2.0 * bytes / (best * 1e-3) * 1e-9);
-    cudaEventDestroy(s);
-    cudaEventDestroy(e);
-  }
-  if (a) cudaFree(a);
-  if (b) cudaFree(b);
-  (void)cudaGetLastError();
+  print_device_and_roofline("bench_cuda_id");
   std::printf("bench_cuda_id: kernels for capacity 8 (iiwa), block %d:\n", cuda::kIdInstancesBlock);
-  print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>);
-  print_kernel("float, keepxup", variant_kernel<float, 8, true, true>);
-  print_kernel("float, rolled", variant_kernel<float, 8, false, false>);
-  print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>);
-  print_kernel("double, keepxup", variant_kernel<double, 8, true, true>);
-  print_kernel("double, rolled", variant_kernel<double, 8, false, false>);
+  const int bl = cuda::kIdInstancesBlock;
+  print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>, bl);
+  print_kernel("float, keepxup", variant_kernel<float, 8, true, true>, bl);
+  print_kernel("float, rolled", variant_kernel<float, 8, false, false>, bl);
+  print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>, bl);
+  print_kernel("double, keepxup", variant_kernel<double, 8, true, true>, bl);
+  print_kernel("double, rolled", variant_kernel<double, 8, false, false>, bl);
   std::fflush(stdout);
 }
 

@@ -1,19 +1,23 @@
 // bench/cuda_bench_util.hpp: what the CUDA benchmark programs share: inputs from
 // a counter-based hash (the same numbers on host and device), device batches,
-// accuracy against the double serial reference, CUDA-event timing.
+// accuracy against the double serial reference, CUDA-event timing of one launch per
+// iteration, kernel resource reports and the memory roofline.
 #pragma once
 
 #include <benchmark/benchmark.h>
 #include <cuda_runtime.h>
 
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
+#include <cstdio>
 #include <string>
 #include <vector>
 
 #include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
+#include "scandyn/cuda/device.hpp"
 
 namespace scandyn::bench {
 
@@ -137,5 +141,53 @@ double time_launches(benchmark::State& st, F&& launch) {
   return total;
 }
 
+
+// One line: registers, local memory per thread, resident warps per SM at `block`.
+template <class K>
+void print_kernel(const char* name, K kernel, int block) {
+  cudaFuncAttributes a{};
+  int blocks = 0;
+  if (cudaFuncGetAttributes(&a, kernel) != cudaSuccess ||
+      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks, kernel, block, 0) != cudaSuccess) {
+    (void)cudaGetLastError();
+    std::printf("  %-34s attributes unavailable\n", name);
+    return;
+  }
+  std::printf("  %-34s %3d registers, %6zu B local/thread, %2d warps/SM resident\n", name, a.numRegs,
+              a.localSizeBytes, blocks * block / 32);
+}
+
+// The device, and a device-to-device copy bandwidth (the memory roofline: bytes read
+// + written per second), prefixed with the program's name.
+inline void print_device_and_roofline(const char* program) {
+  const auto info = cuda::device_info(0);
+  std::printf("%s: device %s\n", program, info ? cuda::describe(info.value).c_str() : info.error.c_str());
+  const std::size_t bytes = std::size_t(1) << 30;
+  void *a = nullptr, *b = nullptr;
+  if (cudaMalloc(&a, bytes) == cudaSuccess && cudaMalloc(&b, bytes) == cudaSuccess) {
+    cudaMemset(a, 1, bytes);
+    cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
+    cudaEvent_t s, e;
+    cudaEventCreate(&s);
+    cudaEventCreate(&e);
+    float best = 1e30f;
+    for (int r = 0; r < 10; ++r) {
+      cudaEventRecord(s);
+      cudaMemcpy(b, a, bytes, cudaMemcpyDeviceToDevice);
+      cudaEventRecord(e);
+      cudaEventSynchronize(e);
+      float ms = 0;
+      cudaEventElapsedTime(&ms, s, e);
+      best = std::fmin(best, ms);
+    }
+    std::printf("%s: device-to-device copy of 1 GiB: %.0f GB/s (read + write, best of 10)\n", program,
+                2.0 * bytes / (best * 1e-3) * 1e-9);
+    cudaEventDestroy(s);
+    cudaEventDestroy(e);
+  }
+  if (a) cudaFree(a);
+  if (b) cudaFree(b);
+  (void)cudaGetLastError();
+}
 
 }  // namespace scandyn::bench

@@ -76,6 +76,22 @@ void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batc
 template void check_batch(const IdBatchIn<float>&, const BatchView<float>&, Index);
 template void check_batch(const IdBatchIn<double>&, const BatchView<double>&, Index);
 
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const BatchView<S>& qdd, Index max_batch) {
+  const Index B = in.q.batch;
+  if (in.qd.batch != B || in.tau.batch != B || qdd.batch != B)
+    throw BackendError("batch sizes disagree: q " + std::to_string(B) + ", qd " + std::to_string(in.qd.batch) +
+                       ", tau " + std::to_string(in.tau.batch) + ", qdd " + std::to_string(qdd.batch));
+  if (B < 0) throw BackendError("negative batch size " + std::to_string(B));
+  if (B > max_batch)
+    throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
+                       std::to_string(max_batch));
+  if (B > 0 && (!in.q.data || !in.qd.data || !in.tau.data || !qdd.data))
+    throw BackendError("null data pointer in a batch of " + std::to_string(B) + " instances");
+}
+template void check_batch(const FdBatchIn<float>&, const BatchView<float>&, Index);
+template void check_batch(const FdBatchIn<double>&, const BatchView<double>&, Index);
+
 int openmp_threads() {
 #ifdef _OPENMP
   return omp_get_max_threads();

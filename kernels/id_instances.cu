@@ -12,9 +12,15 @@
 
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
+#include "staging.hpp"
 
 namespace scandyn {
 namespace cuda {
+
+using detail::check;
+using detail::copy;
+using detail::plan;
+using detail::Staging;
 
 // ---- the model as kernel parameter --------------------------------------------
 
@@ -32,6 +38,7 @@ ThreadModelParams<S, C> make_params(const ModelTpl<S>& model) {
       throw BackendError("backend 'cuda': body " + std::to_string(i) + " has parent " + std::to_string(parent) +
                          " (bodies must come after their parent)");
     p.body[i] = model.bodies[i];
+    if (parent >= 0) p.ancestors[i] = p.ancestors[parent] | (1ull << parent);
     if (parent < 0) p.flags[i] |= kParentIsBase;
     else if (parent == i - 1) p.flags[i] |= kParentIsPrev;
     else p.flags[parent] |= kStacked;  // a child that is not the next body
@@ -40,6 +47,11 @@ ThreadModelParams<S, C> make_params(const ModelTpl<S>& model) {
 }
 
 }  // namespace
+
+// The model travels as a kernel parameter: sm_70+ with CUDA >= 12.1 take 32764 bytes
+// of parameters per launch (the views and pointers after it need < 256).
+static_assert(sizeof(ThreadModelParams<double, kMaxThreadDofs>) + 256 <= 32764,
+              "ThreadModelParams no longer fits in a kernel parameter block");
 
 template <class S>
 ThreadModel<S>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
@@ -94,127 +106,6 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
   return cudaGetLastError();
 }
 
-// ---- host staging for compute() ---------------------------------------------------
-
-namespace {
-
-std::string error_string(cudaError_t err) {
-  const char* s = cudaGetErrorString(err);
-  return std::string(s ? s : "unknown CUDA error") + " (" + std::to_string(static_cast<int>(err)) + ")";
-}
-
-void check(cudaError_t err, const char* what) {
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();  // clear a non-sticky error so the next call starts clean
-    throw BackendError(std::string("backend 'cuda': ") + what + ": " + error_string(err));
-  }
-}
-
-std::ptrdiff_t sign(std::ptrdiff_t s) { return s < 0 ? -1 : 1; }
-
-// How the nv x B entries of a host view are laid out in a staging buffer, and
-// the copies between the two. Kinds:
-//   Span      the host memory between the lowest and the highest entry, verbatim,
-//             same strides on the device (inputs whose span fits the buffer; outputs
-//             only when dense, so that nothing between entries is written);
-//   Rows      one stride is +-1: runs of contiguous entries, one 2D copy, dense on
-//             the device with the same orientation;
-//   Elements  neither stride is +-1: one 2D copy per DoF with a one-element width.
-struct Staging {
-  enum Kind { Span, Rows, Elements } kind = Span;
-  std::ptrdiff_t lo = 0;         // host offset (elements) of the lowest entry
-  std::ptrdiff_t count = 0;      // Span: elements copied
-  std::ptrdiff_t dev_base = 0;   // device view base = buffer + dev_base
-  std::ptrdiff_t dev_ds = 0, dev_bs = 0;  // device view strides
-  // Rows: n_out runs of n_in entries, host pitch `pitch` elements
-  std::ptrdiff_t n_in = 0, n_out = 0, pitch = 0;
-};
-
-template <class T>
-Staging plan(const BatchView<T>& v, Index nv, std::size_t capacity, bool output) {
-  const Index B = v.batch;
-  // a stride along an extent of 1 is never used
-  const std::ptrdiff_t ds = nv > 1 ? v.dof_stride : 0, bs = B > 1 ? v.batch_stride : 0;
-  Staging s;
-  std::ptrdiff_t hi = 0;
-  for (std::ptrdiff_t e : {ds * (nv - 1), bs * (B - 1)}) (e < 0 ? s.lo : hi) += e;
-  const std::ptrdiff_t span = hi - s.lo + 1;
-  const bool soa_dense = (B == 1 || std::abs(bs) == 1) && (nv == 1 || std::abs(ds) == B);
-  const bool aos_dense = (nv == 1 || std::abs(ds) == 1) && (B == 1 || std::abs(bs) == nv);
-  if (output ? (soa_dense || aos_dense) : static_cast<std::size_t>(span) <= capacity) {
-    s.kind = Staging::Span;
-    s.count = span;
-    s.dev_base = -s.lo;
-    s.dev_ds = ds, s.dev_bs = bs;
-    return s;
-  }
-  if (output && ((nv > 1 && ds == 0) || (B > 1 && bs == 0)))
-    throw BackendError("backend 'cuda': the tau view has a zero stride: its entries overlap");
-  const bool rows_b = std::abs(bs) == 1, rows_d = std::abs(ds) == 1;
-  if (rows_b || rows_d) {
-    // runs along the unit stride; the other stride is the pitch
-    s.kind = Staging::Rows;
-    const std::ptrdiff_t si = rows_b ? bs : ds, so = rows_b ? ds : bs;
-    s.n_in = rows_b ? B : nv;
-    s.n_out = rows_b ? nv : B;
-    s.pitch = std::abs(so);
-    if (s.pitch < s.n_in)  // only outputs get here (inputs fit the span)
-      throw BackendError("backend 'cuda': the tau view's entries overlap (strides " + std::to_string(v.dof_stride) +
-                         ", " + std::to_string(v.batch_stride) + ")");
-    const std::ptrdiff_t dsi = sign(si), dso = sign(so) * s.n_in;
-    s.dev_base = (si < 0 ? s.n_in - 1 : 0) + (so < 0 ? (s.n_out - 1) * s.n_in : 0);
-    s.dev_ds = rows_b ? dso : dsi;
-    s.dev_bs = rows_b ? dsi : dso;
-    return s;
-  }
-  s.kind = Staging::Elements;
-  if (bs == 0) {  // an input broadcast over instances, DoFs far apart: nv entries
-    s.dev_base = ds < 0 ? nv - 1 : 0;
-    s.dev_ds = sign(ds), s.dev_bs = 0;
-  } else {        // DoF i's B entries to row i, dense
-    s.dev_base = bs < 0 ? B - 1 : 0;
-    s.dev_ds = B, s.dev_bs = sign(bs);
-  }
-  return s;
-}
-
-// Copies between the host view's entries and the staging buffer as planned.
-template <class S, class T>
-cudaError_t copy(const Staging& s, const BatchView<T>& v, Index nv, S* buffer, cudaMemcpyKind kind,
-                 cudaStream_t stream) {
-  constexpr std::size_t sz = sizeof(S);
-  S* host = const_cast<S*>(v.data);
-  auto copy2d = [&](S* dev, std::ptrdiff_t dpitch, S* h, std::ptrdiff_t hpitch, std::ptrdiff_t width,
-                    std::ptrdiff_t height) {
-    return kind == cudaMemcpyHostToDevice
-               ? cudaMemcpy2DAsync(dev, dpitch * sz, h, hpitch * sz, width * sz, height, kind, stream)
-               : cudaMemcpy2DAsync(h, hpitch * sz, dev, dpitch * sz, width * sz, height, kind, stream);
-  };
-  switch (s.kind) {
-    case Staging::Span:
-      return kind == cudaMemcpyHostToDevice
-                 ? cudaMemcpyAsync(buffer, host + s.lo, s.count * sz, kind, stream)
-                 : cudaMemcpyAsync(host + s.lo, buffer, s.count * sz, kind, stream);
-    case Staging::Rows:
-      return copy2d(buffer, s.n_in, host + s.lo, s.pitch, s.n_in, s.n_out);
-    case Staging::Elements: {
-      const Index B = v.batch;
-      if (s.dev_bs == 0)
-        return copy2d(buffer, 1, host + s.lo, std::abs(v.dof_stride), 1, nv);
-      const std::ptrdiff_t first = v.batch_stride < 0 ? (B - 1) * v.batch_stride : 0;
-      for (Index i = 0; i < nv; ++i) {
-        const cudaError_t err = copy2d(buffer + static_cast<std::ptrdiff_t>(i) * B, 1,
-                                       host + i * v.dof_stride + first, std::abs(v.batch_stride), 1, B);
-        if (err != cudaSuccess) return err;
-      }
-      return cudaSuccess;
-    }
-  }
-  return cudaErrorInvalidValue;
-}
-
-}  // namespace
-
 // ---- the engine -------------------------------------------------------------------
 
 IdStrategy choose_cuda_strategy(Index nv, Index batch) {
@@ -235,47 +126,18 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; strategy 'recursion' (a thread per instance) takes at most " +
                        std::to_string(kMaxThreadDofs) + " (use auto or scan-local)");
-  const Result<int> count = device_count();
-  if (!count) throw BackendError("backend 'cuda': " + count.error);
-  if (count.value == 0) throw BackendError("backend 'cuda': no usable CUDA device: the CUDA runtime reports 0 devices");
-  check(cudaGetDevice(&device_), "cudaGetDevice");
-
   // q, qd, qdd, tau (1 scalar per DoF each) and fext (6) for max_batch instances
-  const std::size_t per_instance = 10 * static_cast<std::size_t>(nv_) * sizeof(S);
-  const std::size_t staging = per_instance * static_cast<std::size_t>(max_batch_);
-  const std::size_t scratch = strategy == IdStrategy::ScanLocal ? IdScanPlan<S>::bytes_needed(model, max_batch_) : 0;
-  bytes_ = staging + scratch;
-  std::size_t free_bytes = 0, total_bytes = 0;
-  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-  auto too_large = [&](const std::string& why) {
-    const Result<DeviceInfo> info = device_info(device_);
-    return BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " instances of a " +
-                        std::to_string(nv_) + "-DoF model in " + (sizeof(S) == 4 ? "float" : "double") +
-                        " need " + std::to_string(bytes_) + " bytes of device memory (q, qd, qdd, tau and fext: " +
-                        std::to_string(per_instance) + " bytes per instance" +
-                        (scratch ? ", link-scan scratch: " + std::to_string(scratch) + " bytes" : std::string()) +
-                        "); device " + std::to_string(device_) + " (" + (info ? info.value.name : std::string("?")) +
-                        ") has " + std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes) + why);
-  };
-  if (bytes_ > free_bytes) throw too_large("");
+  staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double",
+                                                     "q, qd, qdd, tau and fext",
+                                                     10 * static_cast<std::size_t>(nv_) * sizeof(S));
+  device_ = staging_->device();
   if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
   else thread_ = std::make_unique<ThreadModel<S>>(model);
-  check(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
-  if (staging > 0) {
-    const cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&buffer_), staging);
-    if (err != cudaSuccess) {
-      (void)cudaGetLastError();
-      cudaStreamDestroy(stream_);
-      throw too_large(": cudaMalloc failed with " + error_string(err));
-    }
-  }
+  bytes_ = staging_->bytes() + (scan_ ? scan_->device_bytes() : 0);
 }
 
 template <class S>
-CudaInverseDynamics<S>::~CudaInverseDynamics() {
-  if (buffer_) cudaFree(buffer_);
-  if (stream_) cudaStreamDestroy(stream_);
-}
+CudaInverseDynamics<S>::~CudaInverseDynamics() = default;
 
 template <class S>
 cudaError_t CudaInverseDynamics<S>::compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau,
@@ -291,7 +153,8 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   if (B == 0 || nv == 0) return;
   // staging buffers: nv x max_batch scalars each, then the wrenches
   const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
-  S* const dq = buffer_;
+  S* const dq = static_cast<S*>(staging_->data());
+  const cudaStream_t stream = staging_->stream();
   S* const dqd = dq + cap;
   S* const dqdd = dqd + cap;
   S* const dtau = dqdd + cap;
@@ -299,24 +162,22 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
 
   // copy in, in whatever layout keeps the copies few
   const Staging sq = plan(in.q, nv, cap, false), sqd = plan(in.qd, nv, cap, false);
-  const Staging sqdd = plan(in.qdd, nv, cap, false), stau = plan(tau, nv, cap, true);
-  check(copy(sq, in.q, nv, dq, cudaMemcpyHostToDevice, stream_), "copying q to the device");
-  check(copy(sqd, in.qd, nv, dqd, cudaMemcpyHostToDevice, stream_), "copying qd to the device");
-  check(copy(sqdd, in.qdd, nv, dqdd, cudaMemcpyHostToDevice, stream_), "copying qdd to the device");
+  const Staging sqdd = plan(in.qdd, nv, cap, false), stau = plan(tau, nv, cap, true, "tau");
+  check(copy(sq, in.q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
+  check(copy(sqd, in.qd, nv, dqd, cudaMemcpyHostToDevice, stream), "copying qd to the device");
+  check(copy(sqdd, in.qdd, nv, dqdd, cudaMemcpyHostToDevice, stream), "copying qdd to the device");
   if (in.fext)
     check(cudaMemcpyAsync(dfext, in.fext, static_cast<std::size_t>(B) * nv * sizeof(Force<S>), cudaMemcpyHostToDevice,
-                          stream_),
+                          stream),
           "copying fext to the device");
   // run
-  const IdBatchIn<S> din{{dq + sq.dev_base, B, sq.dev_ds, sq.dev_bs},
-                         {dqd + sqd.dev_base, B, sqd.dev_ds, sqd.dev_bs},
-                         {dqdd + sqdd.dev_base, B, sqdd.dev_ds, sqdd.dev_bs},
-                         in.fext ? dfext : nullptr};
-  const BatchView<S> dtau_view{dtau + stau.dev_base, B, stau.dev_ds, stau.dev_bs};
-  check(compute_async(din, dtau_view, stream_), scan_ ? "launching the link scans" : "launching id_instances_kernel");
+  const IdBatchIn<S> din{sq.device_view<const S>(dq, B), sqd.device_view<const S>(dqd, B),
+                         sqdd.device_view<const S>(dqdd, B), in.fext ? dfext : nullptr};
+  const BatchView<S> dtau_view = stau.device_view(dtau, B);
+  check(compute_async(din, dtau_view, stream), scan_ ? "launching the link scans" : "launching id_instances_kernel");
   // copy out: tau's entries only
-  check(copy(stau, tau, nv, dtau, cudaMemcpyDeviceToHost, stream_), "copying tau to the host");
-  check(cudaStreamSynchronize(stream_), scan_ ? "running the link scans" : "running id_instances_kernel");
+  check(copy(stau, tau, nv, dtau, cudaMemcpyDeviceToHost, stream), "copying tau to the host");
+  check(cudaStreamSynchronize(stream), scan_ ? "running the link scans" : "running id_instances_kernel");
 }
 
 template <class S>

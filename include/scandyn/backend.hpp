@@ -1,4 +1,6 @@
-// scandyn/backend.hpp: batched inverse dynamics on a selectable backend.
+// scandyn/backend.hpp: batched inverse dynamics on a selectable backend (and the
+// batch types of forward dynamics, whose engine is CUDA-only so far:
+// scandyn/cuda/forward_dynamics.hpp).
 //
 // A batch holds B instances of one model. Per-DoF arrays are plain strided buffers:
 // entry (DoF i, instance b) lives at data[i * dof_stride + b * batch_stride].
@@ -40,6 +42,17 @@ struct IdBatchIn {
 // instances, at most max_batch, with non-null data when there is any.
 template <class S>
 void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batch);
+
+// Forward dynamics' inputs: qdd = FD(q, qd, tau, fext).
+template <class S>
+struct FdBatchIn {
+  BatchView<const S> q, qd, tau;      // (nv x B) joint positions, velocities, forces
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
+// The same checks for q, qd, tau and qdd.
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const BatchView<S>& qdd, Index max_batch);
 
 enum class BackendKind { Serial, OpenMP, Cuda };
 

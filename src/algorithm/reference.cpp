@@ -67,29 +67,24 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
   // composite inertias, leaves to root
   for (Index i = n - 1; i >= 0; --i) {
     const Index p = model.bodies[i].parent;
-    if (p >= 0) data.Ic[p] += data.Ic[i].transform_transpose(data.Xup[i]);
+    if (p >= 0) data.Ic[p] += crba_composite_step(data.Xup[i], data.Ic[i]);
   }
   const std::size_t nn = static_cast<std::size_t>(n);  // row stride; n * n overflows Index past 46340
   for (std::size_t k = 0; k < nn * nn; ++k) M[k] = S(0);
   // column i: F = Ic_i S_i carried up the path to the root
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
-    Force<S> F = data.Ic[i] * joint_motion(b, S(1));
+    Force<S> F = crba_column_force(b, data.Ic[i]);
     M[i * nn + i] = joint_project(b, F);
     Index j = i;
     while (model.bodies[j].parent >= 0) {
-      F = data.Xup[j].apply_transpose(F);
+      F = crba_column_step(data.Xup[j], F);
       j = model.bodies[j].parent;
       const S Mij = joint_project(model.bodies[j], F);
       M[i * nn + j] = Mij;
       M[j * nn + i] = Mij;
     }
   }
-}
-
-template <class S>
-static bool pivot_ok(S d) {
-  return d > S(0) && std::isfinite(d);
 }
 
 template <class S>

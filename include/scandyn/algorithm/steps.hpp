@@ -6,6 +6,8 @@
 // body's quantities (Featherstone, Rigid Body Dynamics Algorithms, ch. 5-7).
 #pragma once
 
+#include <cmath>
+
 #include "scandyn/model/model.hpp"
 
 namespace scandyn {
@@ -104,6 +106,15 @@ SCANDYN_HD Motion<S> base_acceleration(const Vec3<S>& gravity) {
   return {Vec3<S>::zero(), -gravity};
 }
 
+// A pivot of a factorisation (ABA's D_i = S_i^T IA_i S_i, a diagonal entry of the
+// L^T L factorisation of M) is usable when it is positive and finite: false for
+// zero, negative values, NaN and +inf.
+template <class S>
+SCANDYN_HD bool pivot_ok(S d) {
+  using std::isfinite;
+  return d > S(0) && isfinite(d);
+}
+
 // ---- RNEA -------------------------------------------------------------------
 
 // Forward step: body velocity v, acceleration a and net body force f
@@ -126,6 +137,30 @@ SCANDYN_HD RneaForward<S> rnea_forward_step(const Body<S>& b, const Transform<S>
   o.a = add_joint_motion(b, Xup.apply(a_parent), qdd) + cross_joint_motion(b, o.v, qd);
   o.f = b.I * o.a + cross(o.v, b.I * o.v);
   return o;
+}
+
+// ---- CRBA -------------------------------------------------------------------
+
+// Composite step, leaves to root: body i's composite inertia Ic (its own plus its
+// subtree's) expressed in its parent's frame, Xup^T Ic Xup; the caller adds it to
+// the parent's: Ic_parent += crba_composite_step(Xup, Ic), children in descending
+// order.
+template <class S>
+SCANDYN_HD Inertia<S> crba_composite_step(const Transform<S>& Xup, const Inertia<S>& Ic) {
+  return Ic.transform_transpose(Xup);
+}
+
+// Column i of M starts from the force F = Ic_i S_i (M_ii = S_i^T F) ...
+template <class S>
+SCANDYN_HD Force<S> crba_column_force(const Body<S>& b, const Inertia<S>& Ic) {
+  return Ic * joint_motion(b, S(1));
+}
+
+// ... and is carried to the root one joint at a time: F = Xup_j^T F moves it from
+// body j's frame to its parent p's, where M_ip = M_pi = S_p^T F.
+template <class S>
+SCANDYN_HD Force<S> crba_column_step(const Transform<S>& Xup, const Force<S>& F) {
+  return Xup.apply_transpose(F);
 }
 
 // ---- ABA --------------------------------------------------------------------

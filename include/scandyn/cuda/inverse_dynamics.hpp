@@ -23,7 +23,7 @@
 // DoF. fext, when given, is (B x nv) wrenches, fext[b * nv + i], as in IdBatchIn.
 //
 // Model constants. The kernels read the model from the constant bank through the
-// kernel parameter (ThreadModelParams, at most 13.6 KB: sm_70+ with CUDA >= 12.1
+// kernel parameter (ThreadModelParams, at most 14.1 KB: sm_70+ with CUDA >= 12.1
 // take parameters of up to 32 KB). It is built once per engine on the host and
 // travels with each launch; the kernel then reads every body constant at a
 // compile-time address as an operand of the arithmetic (no load instruction), and
@@ -50,6 +50,10 @@
 namespace scandyn {
 namespace cuda {
 
+namespace detail {
+class StagingBuffer;  // kernels/staging.hpp: an engine's stream and device buffer
+}  // namespace detail
+
 // Largest model (DoF) the thread-per-instance kernels take.
 inline constexpr Index kMaxThreadDofs = 64;
 
@@ -69,10 +73,12 @@ enum ThreadBodyFlag : int {
 template <class S, int C>
 struct ThreadModelParams {
   static constexpr int capacity = C;
-  Body<S> body[C];     // (nv) bodies in DoF order; entries past nv unused
-  int flags[C];        // (nv) ThreadBodyFlag bits of each body
-  Motion<S> a0;        // base acceleration: gravity entered as -g
-  Index nv;            // number of bodies (DoF), <= C
+  Body<S> body[C];                 // (nv) bodies in DoF order; entries past nv unused
+  int flags[C];                    // (nv) ThreadBodyFlag bits of each body
+  unsigned long long ancestors[C]; // (nv) bit j of ancestors[i]: body j is a proper ancestor
+                                   // of body i (the sparsity of row i of M; forward dynamics)
+  Motion<S> a0;                    // base acceleration: gravity entered as -g
+  Index nv;                        // number of bodies (DoF), <= C
 };
 
 // One model prepared for the kernels: the parameter block of the smallest capacity
@@ -160,8 +166,8 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;
-  cudaStream_t stream_ = nullptr;  // compute()'s stream
-  S* buffer_ = nullptr;            // one allocation: q, qd, qdd, tau (nv x max_batch each), fext
+  // compute()'s stream and its one allocation: q, qd, qdd, tau (nv x max_batch each), fext
+  std::unique_ptr<detail::StagingBuffer> staging_;
 };
 
 // The CUDA backend's choice for IdStrategy::Auto: recursion (a thread per

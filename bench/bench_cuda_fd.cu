@@ -1,0 +1,331 @@
+// Forward dynamics on the GPU by the joint-space inertia, one thread per instance
+// (CudaForwardDynamics).
+//
+// Rows (names as scripts/bench_results.py reads them: algo fd, strategy jsi_thread...):
+//   fd_jsi_thread/<precision>/<model>/cuda           compute_async on device buffers,
+//                                                    soa layout, B = 10^4 .. 10^7
+//                                                    instances of iiwa, hyq, atlas
+//                                                    (double to 10^7 when it fits in
+//                                                    device memory);
+//   fd_jsi_thread-host/<precision>/iiwa/cuda         compute() from host buffers
+//                                                    (copies included), B = 10^6;
+//   fd_jsi_thread-keepxup/<precision>/iiwa/cuda      the same through the public device
+//                                                    function with the forward pass's
+//                                                    transforms kept for the backward
+//                                                    pass (more registers, no second
+//                                                    sin/cos);
+//   fd_jsi_thread-rolled/<precision>/iiwa/cuda       ... with the loops not unrolled
+//                                                    (state in local memory);
+//   fd_jsi_thread-cap128/<precision>/iiwa/cuda       ... the engine's code held to 128
+//                                                    registers (__launch_bounds__ with
+//                                                    4 blocks of 128 per SM: more warps,
+//                                                    some spills);
+//   fd_jsi_thread-unrolled/float/hyq/cuda            capacity 16 unrolled (the engine
+//                                                    rolls it: > 255 registers);
+//   the variants at B = 10^6 and 10^7, to show what the engine's choices cost.
+// Device rows are timed with CUDA events around the launch alone (manual time), so
+// host copies are excluded; q, qd, tau are uniform in [-1, 1] from a counter-based
+// hash, generated on the device (M is well conditioned for the robots at any q).
+// Counters: links, instances, max_rel_err (against the double serial fd_jsi on up
+// to 64 instances, float-rounded inputs for float), failed (instances whose
+// factorisation failed: 0 expected) and GBps (q, qd, tau read + qdd and the failed
+// DoF written, per second).
+//
+// Before the rows the program prints the device, a device-to-device copy bandwidth
+// (the memory roofline) and the registers, local memory and occupancy of the
+// kernels (the engine's code for capacity 8 and 16, and the variants).
+//
+// Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
+// ../shared/models), --max-instances=N (default 10^7).
+#include <benchmark/benchmark.h>
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <limits>
+#include <memory>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#include "cuda_bench_util.hpp"
+#include "scandyn/accuracy.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+
+using namespace scandyn;
+using bench::cuda_ok;
+using bench::fill_kernel;
+using bench::time_launches;
+using bench::uniform;
+
+namespace {
+
+// The engine's kernel (kernels/fd_instances.cu) with other choices of
+// fd_jsi_instance's kKeepXup, kUnrolled, and of the blocks per SM that ptxas plans
+// registers for (kMinBlocks = 1: up to 255 registers, as the engine).
+template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
+__global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
+    variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+                   const BatchView<S> qdd_out, int* const failed_dof_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= batch_in.q.batch) return;
+  auto col = [b](const auto& v) {
+    return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride};
+  };
+  failed_dof_out[b] = cuda::fd_jsi_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd),
+                                                                       col(batch_in.tau), nullptr, col(qdd_out));
+}
+
+// Device buffers q, qd, tau, qdd (nv x B each, soa) and B failed DoFs, freed on scope exit.
+template <class S>
+struct DeviceBatch {
+  S* p = nullptr;
+  int* failed = nullptr;
+  std::size_t n = 0;
+  cudaError_t alloc(Index nv, Index B) {
+    n = static_cast<std::size_t>(nv) * B;
+    cudaError_t err = cudaMalloc(reinterpret_cast<void**>(&p), 4 * n * sizeof(S));
+    if (err == cudaSuccess) err = cudaMalloc(reinterpret_cast<void**>(&failed), std::max<std::size_t>(B, 1) * sizeof(int));
+    if (err != cudaSuccess) return err;
+    for (int a = 0; a < 3; ++a) fill_kernel<S><<<1024, 256>>>(p + a * n, a, n);
+    cudaMemset(p + 3 * n, 0xff, n * sizeof(S));  // NaN
+    cudaMemset(failed, 0xff, B * sizeof(int));    // -1
+    return cudaDeviceSynchronize();
+  }
+  ~DeviceBatch() {
+    if (p) cudaFree(p);
+    if (failed) cudaFree(failed);
+  }
+  FdBatchIn<S> in(Index nv, Index B) const {
+    using V = BatchView<const S>;
+    return {V::soa(p, nv, B), V::soa(p + n, nv, B), V::soa(p + 2 * n, nv, B)};
+  }
+  BatchView<S> qdd(Index nv, Index B) const { return BatchView<S>::soa(p + 3 * n, nv, B); }
+};
+
+// max rel_err over up to 64 instances: qdd (soa, nv x B, host or device) against the
+// double serial fd_jsi on the same (S-rounded) inputs.
+template <class S>
+double max_rel_err(const Model& md, Index B, const S* qdd, bool on_device) {
+  const Index nv = md.nv();
+  Data d(md);
+  std::vector<double> q(nv), qd(nv), tau(nv), ref(nv), ours(nv);
+  std::vector<S> col(nv);
+  double worst = 0;
+  const Index step = B > 64 ? B / 64 : 1;
+  for (Index b = 0; b < B; b += step) {
+    for (Index i = 0; i < nv; ++i) {
+      const std::size_t k = static_cast<std::size_t>(i) * B + b;
+      q[i] = double(S(uniform(0, k)));
+      qd[i] = double(S(uniform(1, k)));
+      tau[i] = double(S(uniform(2, k)));
+    }
+    if (!fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data()).ok()) return std::nan("");
+    if (on_device) {
+      if (cudaMemcpy2D(col.data(), sizeof(S), qdd + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
+          cudaSuccess)
+        return std::nan("");
+    } else {
+      for (Index i = 0; i < nv; ++i) col[i] = qdd[static_cast<std::size_t>(i) * B + b];
+    }
+    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
+    const double e = rel_err(ours.data(), ref.data(), ref.size());
+    if (std::isnan(e)) return e;
+    worst = std::fmax(worst, e);
+  }
+  return worst;
+}
+
+// Instances whose factorisation failed (failed DoF >= 0), from B device entries.
+double count_failed(const int* failed, Index B) {
+  std::vector<int> h(static_cast<std::size_t>(B));
+  if (cudaMemcpy(h.data(), failed, h.size() * sizeof(int), cudaMemcpyDeviceToHost) != cudaSuccess) return std::nan("");
+  return double(std::count_if(h.begin(), h.end(), [](int k) { return k >= 0; }));
+}
+
+void set_counters(benchmark::State& st, Index nv, Index B, double err, double failed, double seconds,
+                  std::size_t scalar) {
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = err;
+  st.counters["failed"] = failed;
+  const double bytes = (4.0 * nv * double(scalar) + sizeof(int)) * double(B);
+  st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
+}
+
+// fd_jsi_thread: the engine's device path.
+template <class S>
+void bench_device(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 0;  // no staging buffers: the device path does not use them
+  cuda::CudaForwardDynamics<S> engine(m, o);
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const FdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> qdd = buf.qdd(nv, B);
+  const double seconds = time_launches(st, [&] { return engine.compute_async(in, qdd, buf.failed, nullptr); });
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true), count_failed(buf.failed, B), seconds, sizeof(S));
+}
+
+// the variants: the bench's own instances of the device function.
+template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
+void bench_variant(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const cuda::ThreadModel<S> tm(m);
+  if (tm.capacity() != C) {
+    st.SkipWithError(("this variant is built for capacity " + std::to_string(C)).c_str());
+    return;
+  }
+  const auto& params = std::get<cuda::ThreadModelParams<S, C>>(tm.params());
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const FdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> qdd = buf.qdd(nv, B);
+  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + cuda::kFdInstancesBlock - 1) /
+                                                cuda::kFdInstancesBlock);
+  const double seconds = time_launches(st, [&] {
+    variant_kernel<S, C, kKeepXup, kUnrolled, kMinBlocks><<<blocks, cuda::kFdInstancesBlock>>>(params, in, qdd,
+                                                                                              buf.failed);
+    return cudaGetLastError();
+  });
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true), count_failed(buf.failed, B), seconds, sizeof(S));
+}
+
+// fd_jsi_thread-host: compute() from host buffers, copies included (wall clock).
+template <class S>
+void bench_host(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const std::size_t n = static_cast<std::size_t>(nv) * B;
+  std::vector<S> q(n), qd(n), tau(n), qdd(n, std::numeric_limits<S>::quiet_NaN());
+  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), tau[k] = S(uniform(2, k));
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  cuda::CudaForwardDynamics<S> engine(m, o);
+  using V = BatchView<const S>;
+  const FdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)};
+  const BatchView<S> out = BatchView<S>::soa(qdd.data(), nv, B);
+  cuda::FdBatchStatus status = engine.compute(in, out);  // warm-up
+  for (auto _ : st) {
+    status = engine.compute(in, out);
+    benchmark::ClobberMemory();
+  }
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, qdd.data(), false);
+  st.counters["failed"] = status.failed;
+}
+
+// ---- what bounds the speed: printed before the rows ----------------------------------
+
+void print_limits() {
+  bench::print_device_and_roofline("bench_cuda_fd");
+  constexpr int blk = cuda::kFdInstancesBlock;
+  std::printf("bench_cuda_fd: kernels, block %d:\n", blk);
+  bench::print_kernel("C=8 float (the engine's)", variant_kernel<float, 8, false, true, 1>, blk);
+  bench::print_kernel("C=8 float, keepxup", variant_kernel<float, 8, true, true, 1>, blk);
+  bench::print_kernel("C=8 float, rolled", variant_kernel<float, 8, false, false, 1>, blk);
+  bench::print_kernel("C=8 float, cap128", variant_kernel<float, 8, false, true, 4>, blk);
+  bench::print_kernel("C=8 double (the engine's)", variant_kernel<double, 8, false, true, 1>, blk);
+  bench::print_kernel("C=8 double, keepxup", variant_kernel<double, 8, true, true, 1>, blk);
+  bench::print_kernel("C=8 double, rolled", variant_kernel<double, 8, false, false, 1>, blk);
+  bench::print_kernel("C=8 double, cap128", variant_kernel<double, 8, false, true, 4>, blk);
+  bench::print_kernel("C=16 float (the engine's: rolled)", variant_kernel<float, 16, false, false, 1>, blk);
+  bench::print_kernel("C=16 float, unrolled", variant_kernel<float, 16, false, true, 1>, blk);
+  std::fflush(stdout);
+}
+
+std::vector<std::unique_ptr<Model>> g_models;  // outlive the registered benchmarks
+
+template <class F>
+void add(const std::string& name, F&& f, bool host = false) {
+  auto* r = benchmark::RegisterBenchmark(name.c_str(), std::forward<F>(f));
+  if (host) r->UseRealTime()->Unit(benchmark::kMillisecond)->MinTime(0.2);
+  else r->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  std::string models_dir = env && *env ? env : "../shared/models";
+  long max_instances = 10000000;
+  std::vector<char*> rest;
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
+    else if (std::strncmp(argv[i], "--max-instances=", 16) == 0) max_instances = std::atol(argv[i] + 16);
+    else rest.push_back(argv[i]);
+  }
+  const auto count = cuda::device_count();
+  if (!count || count.value == 0) {
+    std::fprintf(stderr, "bench_cuda_fd: %s; nothing to run\n",
+                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
+    return 0;
+  }
+  print_limits();
+  std::size_t free_bytes = 0, total_bytes = 0;
+  cudaMemGetInfo(&free_bytes, &total_bytes);
+
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    BuildOptions bo;
+    bo.require_physical_inertia = false;  // GRiD's atlas.urdf
+    try {
+      g_models.push_back(std::make_unique<Model>(load_urdf(models_dir + "/" + file, bo)));
+    } catch (const ModelError& e) {
+      std::fprintf(stderr, "bench_cuda_fd: skipping %s: %s\n", file, e.what());
+      continue;
+    }
+    const Model* m = g_models.back().get();
+    const std::string label = std::string(file).substr(0, std::strlen(file) - 5);
+    for (long B = 10000; B <= max_instances; B *= 10) {
+      for (int prec = 0; prec < 2; ++prec) {
+        const bool fl = prec == 1;
+        const std::size_t need = (4 * static_cast<std::size_t>(m->nv()) * (fl ? 4 : 8) + sizeof(int)) * B;
+        if (need > free_bytes * 0.9) {
+          std::fprintf(stderr, "bench_cuda_fd: skipping %s %s B=%ld: %zu bytes, %zu free\n", label.c_str(),
+                       fl ? "float" : "double", B, need, free_bytes);
+          continue;
+        }
+        const std::string pre = fl ? "float/" : "double/";
+        const std::string post = pre + label + "/cuda";
+        const Index b = static_cast<Index>(B);
+        if (fl) add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b); });
+        else add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b); });
+        if (label == "iiwa" && B >= 1000000) {
+          if (fl) {
+            add("fd_jsi_thread-keepxup/" + post, [=](benchmark::State& st) { bench_variant<float, 8, true, true, 1>(st, m, b); });
+            add("fd_jsi_thread-rolled/" + post, [=](benchmark::State& st) { bench_variant<float, 8, false, false, 1>(st, m, b); });
+            add("fd_jsi_thread-cap128/" + post, [=](benchmark::State& st) { bench_variant<float, 8, false, true, 4>(st, m, b); });
+          } else {
+            add("fd_jsi_thread-keepxup/" + post, [=](benchmark::State& st) { bench_variant<double, 8, true, true, 1>(st, m, b); });
+            add("fd_jsi_thread-rolled/" + post, [=](benchmark::State& st) { bench_variant<double, 8, false, false, 1>(st, m, b); });
+            add("fd_jsi_thread-cap128/" + post, [=](benchmark::State& st) { bench_variant<double, 8, false, true, 4>(st, m, b); });
+          }
+        }
+        if (label == "hyq" && fl && B >= 1000000)
+          add("fd_jsi_thread-unrolled/" + post, [=](benchmark::State& st) { bench_variant<float, 16, false, true, 1>(st, m, b); });
+        if (label == "iiwa" && B == 1000000) {
+          if (fl) add("fd_jsi_thread-host/" + post, [=](benchmark::State& st) { bench_host<float>(st, m, b); }, true);
+          else add("fd_jsi_thread-host/" + post, [=](benchmark::State& st) { bench_host<double>(st, m, b); }, true);
+        }
+      }
+    }
+  }
+  int rargc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rargc, rest.data());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

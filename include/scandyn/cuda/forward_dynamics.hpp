@@ -1,0 +1,347 @@
+// scandyn/cuda/forward_dynamics.hpp: batched forward dynamics on a CUDA device by
+// the joint-space inertia (JSI) method, one thread per instance (strategy
+// "jsi_thread").
+//
+// For each instance, qdd = M(q)^{-1} (tau - h(q, qd)) with
+//   M  from the CRBA (composite inertias, each column carried to the root),
+//   h  = RNEA(q, qd, 0) - sum J^T fext (gravity included),
+//   M = L^T L, the tree-sparse factorisation of Featherstone (2008) 6.5, no fill-in,
+// the formulas and the order of operations of scandyn::fd_jsi
+// (src/algorithm/reference.cpp) over the same step functions (steps.hpp).
+//
+// Three layers, as for inverse dynamics (scandyn/cuda/inverse_dynamics.hpp):
+//   fd_jsi_instance()          __host__ __device__: one instance, state in per-thread
+//                              arrays sized at compile time; callable from your own
+//                              kernels (this header under nvcc) and on the host;
+//   fd_jsi_instances_kernel    one thread per instance (kernels/fd_instances.cu);
+//   launch_fd_jsi_instances()  host wrapper: device pointers, a stream, returns the
+//                              cudaError_t of the launch, never synchronises.
+// and the engine CudaForwardDynamics on top:
+//     compute()        HOST pointers: copies in, launches, copies out, synchronises;
+//                      returns an FdBatchStatus.
+//     compute_async()  DEVICE pointers and your stream: one launch, no copy, no
+//                      synchronisation, no allocation; returns the cudaError_t.
+//
+// A factorisation that fails is reported, never turned into NaN. When a pivot of
+// L^T L (a diagonal entry of M as the factorisation reaches it, DoFs from the last
+// to the first) is not positive and finite, the instance's failed DoF is that DoF
+// and its qdd entries are LEFT UNWRITTEN (they keep what the caller's buffer held,
+// on the device and, through compute(), on the host); otherwise its failed DoF is
+// -1. A non-finite position of a joint that is not a root makes M non-finite, so it
+// is reported the same way; as in the serial fd_jsi, non-finite qd, tau, fext or
+// root joint positions (M does not depend on them) with a sound M give non-finite
+// qdd.
+//
+// Layout, model constants and capacities are those of the inverse dynamics:
+// BatchView strides of any kind (q[i * B + b], BatchView::soa, is the fast one),
+// fext as (B x nv) wrenches, the model as a __grid_constant__ kernel parameter
+// (ThreadModelParams), kernels for models of up to 8, 16, 32 and 64 DoF.
+//
+// Resources (ptxas, sm_90, CUDA 13, block 128; bench_cuda_fd prints them on the
+// device): capacity 8 is unrolled, in registers: float 167 registers, no spills,
+// double 255 registers with 148 B of spill stores; its 928 B (float) stack frame is
+// the branch stack and sin/cos's slow-path scratch, untouched for a chain such as
+// iiwa. Capacities 16..64 keep M and the forces in local memory: 72 (float) / 128
+// (double) registers, 2.8 KB (16 DoF float) to 34.6 KB (64 DoF double) per thread.
+#pragma once
+
+#include <cstddef>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/backend.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+namespace scandyn {
+namespace cuda {
+
+// Threads per block of fd_jsi_instances_kernel.
+inline constexpr int kFdInstancesBlock = 128;
+
+// What compute() reports about the factorisations of one batch.
+struct FdBatchStatus {
+  Index failed = 0;           // instances whose mass matrix had a pivot that is not positive and finite
+  Index first_instance = -1;  // the lowest such instance, -1 when none
+  Index first_dof = -1;       // the DoF at which its factorisation stopped
+  bool ok() const { return failed == 0; }
+  // "" when ok(); else one line, e.g.
+  //   "instance 3: mass matrix pivot at DoF 6 is not positive"
+  // followed by " (and 41 more instances)" when others failed too.
+  std::string message() const {
+    if (ok()) return "";
+    std::string s = "instance " + std::to_string(first_instance) + ": mass matrix pivot at DoF " +
+                    std::to_string(first_dof) + " is not positive";
+    if (failed > 1)
+      s += " (and " + std::to_string(failed - 1) + " more instance" + (failed > 2 ? "s" : "") + ")";
+    return s;
+  }
+};
+
+// qdd_out (nv x B) = FD(q, qd, tau, fext) for the B = batch_in.q.batch instances,
+// gravity included: one launch of fd_jsi_instances_kernel on `stream`. Writes
+// failed_dof_out[b] for every b < B: -1, or the DoF whose pivot failed (qdd of that
+// instance unwritten). Every pointer is a DEVICE pointer (views with any strides;
+// failed_dof_out dense, B entries); nothing is copied, allocated or synchronised.
+// Returns cudaErrorInvalidValue for views whose batch sizes disagree or a null
+// pointer (failed_dof_out included) with B > 0, else the launch's error (kernel
+// faults surface later, at your synchronisation). B = 0 launches nothing.
+template <class S>
+cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+                                    const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
+
+// The batched forward-dynamics engine on one CUDA device (the device current at
+// construction).
+template <class S>
+class CudaForwardDynamics {
+ public:
+  // Prepares the model and allocates the device buffers compute() stages through:
+  // q, qd, tau, qdd and fext for options.max_batch instances plus one int each,
+  // (10 * nv * sizeof(S) + sizeof(int)) * max_batch bytes (compute_async needs none
+  // of them). options.strategy must be Auto or Recursion. Throws BackendError when
+  // there is no usable device, the model has more than kMaxThreadDofs DoF (the
+  // thread-per-instance kernels size per-thread state at compile time), or the
+  // buffers do not fit in device memory (the message gives the bytes needed and the
+  // bytes free).
+  CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options);
+  ~CudaForwardDynamics();
+  CudaForwardDynamics(const CudaForwardDynamics&) = delete;
+  CudaForwardDynamics& operator=(const CudaForwardDynamics&) = delete;
+
+  // HOST pointers, any strides. Copies the inputs to the device, runs the kernel,
+  // copies qdd back and waits for all of it on the engine's own stream. Writes only
+  // qdd's entries (gaps between strided entries keep their contents), and not those
+  // of instances whose factorisation failed. Returns which failed (status.message()
+  // names the first); failed_dof, when not null, receives B entries on the host:
+  // -1 or the failed DoF of each instance. Throws BackendError for B > max_batch,
+  // views whose batch sizes disagree, a qdd view whose entries overlap, or any CUDA
+  // error; a failed factorisation is not an exception. Allocates nothing, except
+  // the first time more instances fail than ever before (to keep their qdd).
+  FdBatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof = nullptr);
+
+  // DEVICE pointers, any strides, on `stream`: launch_fd_jsi_instances with this
+  // engine's model (failed_dof: B ints on the device). Asynchronous: returns after
+  // queuing the kernel, with no hidden synchronisation, copy or allocation; not
+  // limited by max_batch. Safe to call from several host threads on different
+  // streams (the engine is not modified).
+  cudaError_t compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
+                            cudaStream_t stream) const;
+
+  std::string strategy() const { return "jsi_thread"; }
+  std::string backend() const { return "cuda"; }
+
+  const ThreadModel<S>& thread_model() const { return model_; }
+  Index max_batch() const { return max_batch_; }
+  int device() const { return device_; }
+  std::size_t device_bytes() const { return bytes_; }  // held by the staging buffers
+
+ private:
+  ThreadModel<S> model_;
+  Index max_batch_ = 0;
+  int device_ = 0;
+  std::size_t bytes_ = 0;
+  // compute()'s stream and its one allocation: q, qd, tau, qdd (nv x max_batch each),
+  // fext, failed DoFs
+  std::unique_ptr<detail::StagingBuffer> staging_;
+  std::vector<int> failed_host_;  // (max_batch) when the caller passes no failed_dof
+  std::vector<S> kept_;           // qdd entries of failed instances, restored after the copy back
+};
+
+#if defined(__CUDACC__)
+// ---- device API --------------------------------------------------------------
+
+namespace fd_detail {
+
+// Index of M(k, j), j <= k, in a packed lower triangle.
+__host__ __device__ constexpr int tri(int k, int j) { return k * (k + 1) / 2 + j; }
+
+// Is body j a proper ancestor of body k?
+template <class S, int C>
+__host__ __device__ __forceinline__ bool is_ancestor(const ThreadModelParams<S, C>& m, Index j, Index k) {
+  return (m.ancestors[k] >> j) & 1ull;
+}
+
+// Calls f(j) for every proper ancestor j of body k, nearest first (the order of the
+// reference's for_path). Unrolled: a loop of compile-time indices (once k is one)
+// over the ancestor bits, so that arrays indexed by j stay in registers; otherwise
+// the walk up the parents.
+template <bool kUnrolled, class S, int C, class F>
+__host__ __device__ __forceinline__ void for_ancestors(const ThreadModelParams<S, C>& m, Index k, F&& f) {
+  if constexpr (kUnrolled) {
+#pragma unroll
+    for (Index j = C - 2; j >= 0; --j)
+      if (j < k && is_ancestor(m, j, k)) f(j);
+  } else {
+    for (Index j = m.body[k].parent; j >= 0; j = m.body[j].parent) f(j);
+  }
+}
+
+// Calls f(k) for every proper descendant k of body i (any order; ascending here).
+template <bool kUnrolled, class S, int C, class F>
+__host__ __device__ __forceinline__ void for_descendants(const ThreadModelParams<S, C>& m, Index i, F&& f) {
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index k = 1; k < C; ++k)
+    if (k > i && k < m.nv && is_ancestor(m, i, k)) f(k);
+}
+
+}  // namespace fd_detail
+
+// Forward dynamics of one instance by the joint-space inertia:
+//   qdd = M(q)^{-1} (tau - h(q, qd, fext)),
+// gravity included; fext: nv body wrenches or null. Returns -1, or the DoF whose
+// pivot was not positive and finite, in which case qdd is not written.
+//
+// One forward pass (transforms, velocities, accelerations and body forces of the
+// RNEA with qdd = 0) and one backward pass that, for each body i from the last,
+// completes its force (h_i = S_i^T f_i), its composite inertia Ic_i, the entries
+// M(k, i) of the columns k of its descendants (their forces F_k reach body i's frame
+// there) and its own column's force F_i = Ic_i S_i, then carries f_i, Ic_i and every
+// F_k of its subtree to its parent. Then the L^T L factorisation of the packed lower
+// triangle of M, with the pivot check, and the two triangular solves. Each entry is
+// computed by the reference's formulas in the reference's order of summation.
+//
+// Also a host function (under nvcc), so the tests check its logic without a device.
+//
+// State (per thread): M as a packed lower triangle of C (C + 1) / 2 scalars, tau - h
+// and the solution (C), the forces f_i / F_i (C, one slot per body: body i's force
+// until its backward step, then column i's), and a stack for the bodies at which
+// the tree branches (kStacked), as in rnea_instance. With kUnrolled (the default for
+// capacity 8) every loop runs over compile-time indices so that all of it but the
+// branch stack lives in registers, and the tree's sparsity is tested per entry from
+// ThreadModelParams::ancestors (C^3 / 6 tests in the factorisation); otherwise the
+// arrays live in per-thread (local) memory and the ancestor loops walk the parents,
+// touching only the entries a tree has. (Capacity 16 unrolled needs more than 255
+// registers in float too: M alone is 136 scalars.) kKeepXup keeps each body's
+// transform from the forward pass for the backward pass; otherwise joint_transform
+// is evaluated again there (fewer registers, more arithmetic).
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8)>
+__host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParams<S, C>& model,
+                                                          DofColumn<const S> q, DofColumn<const S> qd,
+                                                          DofColumn<const S> tau, const Force<S>* fext,
+                                                          DofColumn<S> qdd) {
+  using fd_detail::tri;
+  using std::sqrt;
+  constexpr int kRegs = kUnrolled ? C : 1;  // register copies of q, qd when unrolled
+  constexpr int kXup = kKeepXup ? C : 1;
+  const Index n = model.nv;
+  S q_r[kRegs], qd_r[kRegs];
+  S x[C];                   // (nv) tau - h, then the solution qdd
+  S M[C * (C + 1) / 2];     // M(k, j) at tri(k, j) for j = k and j an ancestor of k; then L
+  Transform<S> Xup[kXup];   // (nv) parent -> body transforms (kKeepXup)
+  Force<S> w[C];            // (nv) body i's net force f_i until its backward step, then the
+                            // force F_i of column i of M, carried towards the root
+  Motion<S> sv[C], sa[C];   // stack: v, a of kStacked bodies
+  Force<S> sf[C];           // stack: f of kStacked bodies plus their children other than the next
+  Inertia<S> sI[C];         // stack: the same for composite inertias
+
+  // load: all of one instance's inputs in flight before the first use
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i < n) {
+      if constexpr (kUnrolled) {
+        q_r[kUnrolled ? i : 0] = q[i];
+        qd_r[kUnrolled ? i : 0] = qd[i];
+      }
+      x[i] = tau[i];
+    }
+  }
+
+  // forward: kinematics and the bias forces' body forces (RNEA with qdd = 0)
+  const Motion<S> a0 = model.a0;
+  Motion<S> v_prev = Motion<S>::zero(), a_prev = a0;  // body i - 1's v and a
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
+    const Body<S>& b = model.body[i];
+    const int fl = model.flags[i];
+    Motion<S> vp = Motion<S>::zero(), ap = a0;
+    if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
+    else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
+    const Transform<S> X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
+    const RneaForward<S> o = rnea_forward_step(b, X, vp, ap, kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i], S(0));
+    w[i] = fext ? o.f - fext[i] : o.f;
+    if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = w[i], sI[i] = b.I;
+    v_prev = o.v;
+    a_prev = o.a;
+  }
+
+  // backward: bias forces, composite inertias and the columns of M. Body i's force
+  // and composite inertia go to its parent, the next body's through registers
+  // (fcarry, Icarry), others' through the stack; a parent receives its children in
+  // descending order, as in the reference.
+  Force<S> fcarry = Force<S>::zero();      // Xup^T f of body i + 1, when its parent is body i
+  Inertia<S> Icarry = Inertia<S>::zero();  // its composite inertia in body i's frame
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = C - 1; i >= 0; --i) {
+    if (i >= n) continue;
+    const Body<S>& b = model.body[i];
+    const int fl = model.flags[i];
+    Force<S> fi = (fl & kStacked) ? sf[i] : w[i];
+    Inertia<S> Ic = (fl & kStacked) ? sI[i] : b.I;
+    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) {
+      fi += fcarry;
+      Ic += Icarry;
+    }
+    x[i] -= joint_project(b, fi);  // tau_i - h_i
+    // the columns of i's descendants have reached its frame: M(k, i) = S_i^T F_k
+    fd_detail::for_descendants<kUnrolled>(model, i, [&](Index k) { M[tri(k, i)] = joint_project(b, w[k]); });
+    w[i] = crba_column_force(b, Ic);
+    M[tri(i, i)] = joint_project(b, w[i]);
+    if (fl & kParentIsBase) continue;
+    Transform<S> X;
+    if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
+    else X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    const Force<S> up = X.apply_transpose(fi);
+    const Inertia<S> Iup = crba_composite_step(X, Ic);
+    if (fl & kParentIsPrev) fcarry = up, Icarry = Iup;
+    else sf[b.parent] += up, sI[b.parent] += Iup;
+    w[i] = crba_column_step(X, w[i]);
+    fd_detail::for_descendants<kUnrolled>(model, i, [&](Index k) { w[k] = crba_column_step(X, w[k]); });
+  }
+
+  // M = L^T L in place (ltl_factor), from the last DoF to the first
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index k = C - 1; k >= 0; --k) {
+    if (k >= n) continue;
+    const S d = M[tri(k, k)];
+    if (!pivot_ok(d)) return k;
+    const S Lkk = sqrt(d);
+    M[tri(k, k)] = Lkk;
+    const S inv = S(1) / Lkk;
+    fd_detail::for_ancestors<kUnrolled>(model, k, [&](Index i) { M[tri(k, i)] *= inv; });
+    fd_detail::for_ancestors<kUnrolled>(model, k, [&](Index i) {
+      const S Lki = M[tri(k, i)];
+      M[tri(i, i)] -= Lki * M[tri(k, i)];
+      fd_detail::for_ancestors<kUnrolled>(model, i, [&](Index j) { M[tri(i, j)] -= Lki * M[tri(k, j)]; });
+    });
+  }
+
+  // L^T y = tau - h, then L qdd = y (ltl_solve)
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = C - 1; i >= 0; --i) {
+    if (i >= n) continue;
+    x[i] /= M[tri(i, i)];
+    const S xi = x[i];
+    fd_detail::for_ancestors<kUnrolled>(model, i, [&](Index j) { x[j] -= M[tri(i, j)] * xi; });
+  }
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;
+    S acc = x[i];
+    fd_detail::for_ancestors<kUnrolled>(model, i, [&](Index j) { acc -= M[tri(i, j)] * x[j]; });
+    x[i] = acc / M[tri(i, i)];
+    qdd[i] = x[i];
+  }
+  return -1;
+}
+#endif  // __CUDACC__
+
+}  // namespace cuda
+}  // namespace scandyn
+
+#endif  // SCANDYN_HAS_CUDA

@@ -1,0 +1,169 @@
+// kernels/fd_instances.cu: batched forward dynamics by the joint-space inertia, one
+// thread per instance.
+//
+// The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance (the header) ->
+// fd_jsi_instances_kernel -> launch_fd_jsi_instances -> CudaForwardDynamics (host
+// staging through kernels/staging.hpp for compute(), the plain launch for
+// compute_async()).
+#include <cuda_runtime.h>
+
+#include <string>
+#include <type_traits>
+
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+using detail::check;
+using detail::copy;
+using detail::plan;
+using detail::Staging;
+
+// ---- kernel and launch ---------------------------------------------------------
+
+namespace {
+
+template <class T>
+__device__ __forceinline__ DofColumn<T> column(const BatchView<T>& v, long long b) {
+  return {v.data + b * v.batch_stride, v.dof_stride};
+}
+
+}  // namespace
+
+// One thread per instance b < B: the forward dynamics of instance b.
+template <class S, int C>
+__global__ void __launch_bounds__(kFdInstancesBlock)
+    fd_jsi_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+                            const BatchView<S> qdd_out, int* const failed_dof_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= batch_in.q.batch) return;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
+  failed_dof_out[b] = fd_jsi_instance<S, C>(model, column(batch_in.q, b), column(batch_in.qd, b),
+                                            column(batch_in.tau, b), fext, column(qdd_out, b));
+}
+
+template <class S>
+cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+                                    const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
+  const Index B = batch_in.q.batch;
+  if (B < 0 || batch_in.qd.batch != B || batch_in.tau.batch != B || qdd_out.batch != B) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  if (!failed_dof_out) return cudaErrorInvalidValue;
+  if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
+    return cudaErrorInvalidValue;
+  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
+  std::visit(
+      [&](const auto& params) {
+        using P = std::decay_t<decltype(params)>;
+        fd_jsi_instances_kernel<S, P::capacity>
+            <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+      },
+      model.params());
+  return cudaGetLastError();
+}
+
+// ---- the engine -------------------------------------------------------------------
+
+template <class S>
+CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options)
+    : model_(model), max_batch_(options.max_batch) {
+  if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
+    throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
+                       "' is not available for forward dynamics (one thread per instance: use auto or recursion)");
+  // q, qd, tau, qdd (1 scalar per DoF each), fext (6) and a failed DoF for max_batch instances
+  staging_ = std::make_unique<detail::StagingBuffer>(
+      max_batch_, model_.nv(), sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
+      10 * static_cast<std::size_t>(model_.nv()) * sizeof(S) + sizeof(int));
+  device_ = staging_->device();
+  bytes_ = staging_->bytes();
+  failed_host_.resize(static_cast<std::size_t>(max_batch_));
+}
+
+template <class S>
+CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
+
+template <class S>
+cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
+                                                  cudaStream_t stream) const {
+  return launch_fd_jsi_instances(model_, in, qdd, failed_dof, stream);
+}
+
+template <class S>
+FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof) {
+  check_batch(in, qdd, max_batch_);
+  const Index B = in.q.batch;
+  const Index nv = model_.nv();
+  FdBatchStatus status;
+  if (B == 0) return status;
+  int* const failed = failed_dof ? failed_dof : failed_host_.data();
+  if (nv == 0) {  // nothing to factorise
+    for (Index b = 0; b < B; ++b) failed[b] = -1;
+    return status;
+  }
+  // staging buffers: nv x max_batch scalars each, then the wrenches, then the failed DoFs
+  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  const cudaStream_t stream = staging_->stream();
+  S* const dq = static_cast<S*>(staging_->data());
+  S* const dqd = dq + cap;
+  S* const dtau = dqd + cap;
+  S* const dqdd = dtau + cap;
+  Force<S>* const dfext = reinterpret_cast<Force<S>*>(dqdd + cap);
+  int* const dfailed = reinterpret_cast<int*>(dfext + cap);
+
+  // copy in, in whatever layout keeps the copies few
+  const Staging sq = plan(in.q, nv, cap, false), sqd = plan(in.qd, nv, cap, false);
+  const Staging stau = plan(in.tau, nv, cap, false), sqdd = plan(qdd, nv, cap, true, "qdd");
+  check(copy(sq, in.q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
+  check(copy(sqd, in.qd, nv, dqd, cudaMemcpyHostToDevice, stream), "copying qd to the device");
+  check(copy(stau, in.tau, nv, dtau, cudaMemcpyHostToDevice, stream), "copying tau to the device");
+  if (in.fext)
+    check(cudaMemcpyAsync(dfext, in.fext, static_cast<std::size_t>(B) * nv * sizeof(Force<S>), cudaMemcpyHostToDevice,
+                          stream),
+          "copying fext to the device");
+  // run
+  const FdBatchIn<S> din{sq.device_view<const S>(dq, B), sqd.device_view<const S>(dqd, B),
+                         stau.device_view<const S>(dtau, B), in.fext ? dfext : nullptr};
+  check(launch_fd_jsi_instances(model_, din, sqdd.device_view(dqdd, B), dfailed, stream),
+        "launching fd_jsi_instances_kernel");
+  // which instances failed, before qdd comes back over their entries
+  check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
+        "copying the failed DoFs to the host");
+  check(cudaStreamSynchronize(stream), "running fd_jsi_instances_kernel");
+  for (Index b = 0; b < B; ++b) {
+    if (failed[b] < 0) continue;
+    if (status.failed++ == 0) status.first_instance = b, status.first_dof = failed[b];
+  }
+  // keep the failed instances' qdd entries (the device holds nothing for them)
+  if (status.failed > 0) {
+    const std::size_t need = static_cast<std::size_t>(status.failed) * nv;
+    if (kept_.size() < need) kept_.resize(need);
+    std::size_t k = 0;
+    for (Index b = 0; b < B; ++b)
+      if (failed[b] >= 0)
+        for (Index i = 0; i < nv; ++i) kept_[k++] = qdd.at(i, b);
+  }
+  // copy out: qdd's entries only
+  check(copy(sqdd, qdd, nv, dqdd, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
+  check(cudaStreamSynchronize(stream), "copying qdd to the host");
+  if (status.failed > 0) {
+    std::size_t k = 0;
+    for (Index b = 0; b < B; ++b)
+      if (failed[b] >= 0)
+        for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
+  }
+  return status;
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                             \
+  template class CudaForwardDynamics<S>;                                                                   \
+  template cudaError_t launch_fd_jsi_instances(const ThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
+                                               int*, cudaStream_t);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace cuda
+}  // namespace scandyn

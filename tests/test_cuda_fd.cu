@@ -1,0 +1,709 @@
+// Batched forward dynamics by the joint-space inertia on the GPU, one thread per
+// instance (fd_jsi_instance, launch_fd_jsi_instances, CudaForwardDynamics), against
+// the serial double references scandyn::fd_jsi (the same algorithm) and
+// scandyn::aba (an independent one).
+//
+// Errors are scandyn::rel_err per instance, max |qdd - ref| / max(1, max |ref|),
+// the worst over every instance of a batch. Tolerances:
+//   double vs fd_jsi   1e-10 (the issue's bound). The device computes every entry
+//                      with the reference's formulas in its order; what differs is
+//                      FMA contraction and the device's sin/cos. On the host the
+//                      device function is bit-identical to fd_jsi (measured: 0, every
+//                      model and variant), asserted as <= 1e-13.
+//   double vs aba      1e-9: a different elimination order, so the difference grows
+//                      with cond(M): measured <= 4e-15 on the robots and random trees,
+//                      1e-11 on chain:33, 8e-11 on chain:64.
+//   float              the reference runs on the float-rounded inputs, so only float
+//                      arithmetic is measured: <= 1e-4 on the robots (measured on the
+//                      host: 4e-7 to 6e-7 for iiwa, hyq and atlas), and on generated
+//                      models <= max(1e-4, 10 x the serial float fd_jsi's own error
+//                      on the same inputs): cond(M) grows fast with chain length
+//                      (serial float: 1e-5 on chain:8, 3e-3 on chain:33, 0.06 on
+//                      chain:64, where float JSI is not usable).
+// Outputs start as NaN, so an entry never written fails; with strided layouts the
+// gaps between entries hold a sentinel that must survive compute(). Tests that need
+// a device skip with "no CUDA device: ..."; the device function (run on the host),
+// the model's ancestor masks, pivot failures and the argument errors are checked on
+// every machine, CI included.
+#include <cuda_runtime.h>
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <random>
+#include <string>
+#include <type_traits>
+#include <utility>
+#include <variant>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/backend.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+using test::aos;
+using test::Layout;
+using test::pack;
+using test::random_layout;
+using test::soa;
+
+constexpr double kDoubleTol = 1e-10;  // vs fd_jsi
+constexpr double kAbaTol = 1e-9;      // double vs aba
+constexpr double kFloatTol = 1e-4;    // float on the robots; floor elsewhere
+constexpr double kSentinel = 12345.0;
+
+const Model& robot(const std::string& file) {
+  static std::map<std::string, Model> cache;
+  auto it = cache.find(file);
+  if (it == cache.end()) it = cache.emplace(file, test::load_robot(file)).first;
+  return it->second;
+}
+
+// ---- one batch against the references ----------------------------------------------
+
+// B random instances of md: inputs as doubles exactly representable in S.
+template <class S>
+struct Batch {
+  Index nv, B;
+  std::vector<double> q, qd, tau;     // (nv x B), entry (i, b) at i * B + b
+  std::vector<Force<double>> fext;    // (B x nv)
+  Batch(const Model& md, Index B_, unsigned seed) : nv(md.nv()), B(B_) {
+    std::mt19937_64 g(seed);
+    auto fill = [&](std::vector<double>& v, double a) {
+      v = test::random_vector(g, nv * B, -a, a);
+      for (double& x : v) x = double(S(x));
+    };
+    fill(q, 3.1);
+    fill(qd, 2.0);
+    fill(tau, 2.0);
+    fext = test::random_wrenches<double>(g, nv * B, 1.0);
+    for (auto& f : fext) f = f.template cast<S>().template cast<double>();
+  }
+  // every instance takes instance 0's state (for broadcast layouts)
+  void broadcast() {
+    for (auto* v : {&q, &qd, &tau})
+      for (Index i = 0; i < nv; ++i)
+        for (Index b = 0; b < B; ++b) (*v)[at(i, b)] = (*v)[at(i, 0)];
+  }
+  std::size_t at(Index i, Index b) const { return static_cast<std::size_t>(i) * B + b; }
+  std::vector<double> column(const std::vector<double>& v, Index b) const {
+    std::vector<double> c(nv);
+    for (Index i = 0; i < nv; ++i) c[i] = v[at(i, b)];
+    return c;
+  }
+  const Force<double>* wrenches(Index b, bool with_fext) const {
+    return with_fext ? fext.data() + static_cast<std::size_t>(b) * nv : nullptr;
+  }
+  // instance b's qdd by fd_jsi (status returned) and by aba
+  Status reference(const Model& md, Data& d, Index b, bool with_fext, std::vector<double>& jsi,
+                   std::vector<double>& ab) const {
+    const std::vector<double> qi = column(q, b), qdi = column(qd, b), ti = column(tau, b);
+    jsi.assign(nv, 0.0);
+    ab.assign(nv, 0.0);
+    const Status s = fd_jsi(md, d, qi.data(), qdi.data(), ti.data(), jsi.data(), wrenches(b, with_fext));
+    aba(md, d, qi.data(), qdi.data(), ti.data(), ab.data(), wrenches(b, with_fext));
+    return s;
+  }
+};
+
+struct Errors {
+  double jsi = 0;  // worst instance error against fd_jsi
+  double aba = 0;  // ... against aba
+};
+
+void worsen(double& worst, double e) {
+  if (!(e <= worst)) worst = e;  // NaN sticks
+}
+
+// The worst instance errors of qdd (entries at `out`) against the references.
+template <class S>
+Errors worst_errors(const Model& md, const Batch<S>& batch, bool with_fext, const std::vector<S>& qdd_buf,
+                    const Layout& out) {
+  Data d(md);
+  Errors worst;
+  std::vector<double> jsi, ab, ours(batch.nv);
+  for (Index b = 0; b < batch.B; ++b) {
+    EXPECT_TRUE(batch.reference(md, d, b, with_fext, jsi, ab).ok()) << "reference failed on instance " << b;
+    for (Index i = 0; i < batch.nv; ++i) ours[i] = double(qdd_buf[out.at(i, b)]);
+    worsen(worst.jsi, test::max_rel_err(ours, jsi));
+    worsen(worst.aba, test::max_rel_err(ours, ab));
+  }
+  return worst;
+}
+
+// The serial float fd_jsi's error on the same inputs (Batch<float>(md, B, seed)):
+// the scale of float rounding for a model.
+double cpu_float_error(const Model& md, Index B, bool with_fext, unsigned seed) {
+  const ModelTpl<float> m = md.cast<float>();
+  const Index nv = m.nv();
+  Batch<float> batch(md, B, seed);
+  DataTpl<float> d(m);
+  std::vector<float> qdd_buf(static_cast<std::size_t>(nv) * B);
+  const Layout l = aos(nv, B);
+  for (Index b = 0; b < B; ++b) {
+    const std::vector<double> qi = batch.column(batch.q, b), qdi = batch.column(batch.qd, b),
+                              ti = batch.column(batch.tau, b);
+    std::vector<float> qf(qi.begin(), qi.end()), qdf(qdi.begin(), qdi.end()), tf(ti.begin(), ti.end());
+    std::vector<Force<float>> ff;
+    if (with_fext)
+      for (Index i = 0; i < nv; ++i) ff.push_back(batch.wrenches(b, true)[i].cast<float>());
+    fd_jsi(m, d, qf.data(), qdf.data(), tf.data(), qdd_buf.data() + l.at(0, b), with_fext ? ff.data() : nullptr);
+  }
+  return worst_errors<float>(md, batch, with_fext, qdd_buf, l).jsi;
+}
+
+double float_tol(const Model& md, Index B, bool with_fext, unsigned seed) {
+  return std::max(kFloatTol, 10 * cpu_float_error(md, B, with_fext, seed));
+}
+
+// ---- the device function on the host ------------------------------------------------
+
+// fd_jsi_instance run on the host (it is __host__ __device__) over a batch in aos
+// layout (inputs Batch<S>(md, B, kHostSeed)); every instance must succeed.
+constexpr unsigned kHostSeed = 11;
+
+template <class S, bool kKeepXup, bool kUnrolled>
+Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
+  const ModelTpl<S> m = md.cast<S>();
+  const cuda::ThreadModel<S> tm(m);
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, kHostSeed);
+  const Layout l = aos(nv, B);  // each instance contiguous
+  const std::vector<S> q = pack<S>(batch.q, nv, B, l, 0), qd = pack<S>(batch.qd, nv, B, l, 0),
+                       tau = pack<S>(batch.tau, nv, B, l, 0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> qdd(l.size, std::numeric_limits<S>::quiet_NaN());
+  for (Index b = 0; b < B; ++b) {
+    const std::size_t o = static_cast<std::size_t>(b) * nv;
+    const Force<S>* f = with_fext ? fext.data() + o : nullptr;
+    const Index failed = std::visit(
+        [&](const auto& p) {
+          using P = std::decay_t<decltype(p)>;
+          return cuda::fd_jsi_instance<S, P::capacity, kKeepXup, kUnrolled>(
+              p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
+        },
+        tm.params());
+    EXPECT_EQ(failed, -1) << "instance " << b;
+  }
+  return worst_errors<S>(md, batch, with_fext, qdd, l);
+}
+
+std::vector<std::pair<std::string, Model>> generated_models() {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* spec : {"chain:1", "chain:8", "chain:9", "chain:16", "chain:17", "chain:33", "chain:64",
+                           "tree:30:1", "tree:60:2", "curtain:3:5", "rope:40"})
+    models.emplace_back(spec, load_model(spec));
+  // arbitrary axes, ~25% prismatic joints, branching; parents drawn at random, so the
+  // numbering is not a preorder (subtrees are not contiguous)
+  models.emplace_back("random_model(12)", test::random_model(12, 3));
+  models.emplace_back("random_model(40)", test::random_model(40, 4));
+  models.emplace_back("random_model(64)", test::random_model(64, 5));
+  return models;
+}
+
+// A model whose mass matrix is singular: chain:N with its last body massless
+// (M(N-1, N-1) = 0: the factorisation stops at DoF N-1 for every state).
+Model massless_leaf(int n) {
+  Model md = load_model("chain:" + std::to_string(n));
+  md.bodies.back().I = Inertia<double>::zero();
+  return md;
+}
+
+}  // namespace
+
+// ---- runs everywhere ------------------------------------------------------------------
+
+TEST(CudaFdModel, AncestorMasks) {
+  for (const Model& md : {robot("atlas.urdf"), robot("hyq.urdf"), test::random_model(64, 5), load_model("tree:60:2"),
+                          load_model("chain:64")}) {
+    const cuda::ThreadModel<double> tm(md);
+    std::visit(
+        [&](const auto& p) {
+          for (Index k = 0; k < md.nv(); ++k) {
+            unsigned long long want = 0;
+            for (Index j = md.parent(k); j >= 0; j = md.parent(j)) want |= 1ull << j;
+            EXPECT_EQ(p.ancestors[k], want) << md.name << " body " << k;
+          }
+        },
+        tm.params());
+  }
+}
+
+TEST(CudaFdModel, DeviceFunctionOnTheHost) {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (auto& m : generated_models()) models.push_back(std::move(m));
+  for (const auto& [name, md] : models) {
+    SCOPED_TRACE(name);
+    for (bool fx : {false, true}) {
+      SCOPED_TRACE(fx ? "fext" : "no fext");
+      // every variant: loops unrolled (ancestor masks) or not (parent walks),
+      // transforms kept or recomputed
+      for (const Errors& e : {host_instance_errors<double, false, true>(md, 20, fx),
+                              host_instance_errors<double, false, false>(md, 20, fx),
+                              host_instance_errors<double, true, true>(md, 20, fx),
+                              host_instance_errors<double, true, false>(md, 20, fx)}) {
+        EXPECT_LE(e.jsi, 1e-13);  // the reference's formulas and order on the same host
+        EXPECT_LE(e.aba, kAbaTol);
+      }
+      const double ftol = float_tol(md, 20, fx, kHostSeed);
+      for (const Errors& e : {host_instance_errors<float, false, true>(md, 20, fx),
+                              host_instance_errors<float, false, false>(md, 20, fx),
+                              host_instance_errors<float, true, false>(md, 20, fx)})
+        EXPECT_LE(e.jsi, ftol);
+    }
+  }
+}
+
+// Pivot failures on the host: the DoF the serial fd_jsi reports, qdd left unwritten.
+template <class S, bool kUnrolled>
+void check_host_failure(const Model& md, const std::vector<S>& q, const std::vector<S>& qd,
+                        const std::vector<S>& tau) {
+  const ModelTpl<S> m = md.cast<S>();
+  DataTpl<S> d(m);
+  const Index nv = m.nv();
+  std::vector<S> ref(nv, S(kSentinel)), qdd(nv, S(kSentinel));
+  const Status want = fd_jsi(m, d, q.data(), qd.data(), tau.data(), ref.data());
+  ASSERT_FALSE(want.ok());
+  const Index got = std::visit(
+      [&](const auto& p) {
+        using P = std::decay_t<decltype(p)>;
+        return cuda::fd_jsi_instance<S, P::capacity, false, kUnrolled>(p, {q.data(), 1}, {qd.data(), 1},
+                                                                      {tau.data(), 1}, nullptr, {qdd.data(), 1});
+      },
+      cuda::ThreadModel<S>(m).params());
+  EXPECT_EQ(got, want.failed_dof);
+  for (Index i = 0; i < nv; ++i) EXPECT_EQ(qdd[i], S(kSentinel)) << "qdd[" << i << "] was written";
+}
+
+template <class S>
+void host_failures() {
+  // a singular mass matrix: the last DoF, for every state
+  {
+    const Model md = massless_leaf(5);
+    const std::vector<S> x(5, S(0.3));
+    check_host_failure<S, true>(md, x, x, x);
+    check_host_failure<S, false>(md, x, x, x);
+  }
+  // a non-finite joint position makes M non-finite: NaN or inf at each DoF in turn
+  for (const char* file : {"iiwa.urdf", "hyq.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (Index j = 0; j < nv; ++j) {
+      for (S bad : {std::numeric_limits<S>::quiet_NaN(), std::numeric_limits<S>::infinity()}) {
+        SCOPED_TRACE(std::string(file) + " q[" + std::to_string(j) + "] = " + std::to_string(bad));
+        std::vector<S> q(nv, S(0.2)), x(nv, S(0.1));
+        q[j] = bad;
+        const ModelTpl<S> m = md.cast<S>();
+        DataTpl<S> d(m);
+        std::vector<S> out(nv);
+        // M does not depend on a root joint's position: NaN qdd there, as in fd_jsi
+        if (md.parent(j) < 0) continue;
+        ASSERT_FALSE(fd_jsi(m, d, q.data(), x.data(), x.data(), out.data()).ok());
+        check_host_failure<S, true>(md, q, x, x);
+        check_host_failure<S, false>(md, q, x, x);
+      }
+    }
+  }
+}
+
+TEST(CudaFdModel, PivotFailuresOnTheHost) {
+  host_failures<double>();
+  host_failures<float>();
+  // the message the command line prints
+  cuda::FdBatchStatus s;
+  EXPECT_TRUE(s.ok());
+  EXPECT_EQ(s.message(), "");
+  s.failed = 1, s.first_instance = 3, s.first_dof = 6;
+  EXPECT_EQ(s.message(), "instance 3: mass matrix pivot at DoF 6 is not positive");
+  s.failed = 2;
+  EXPECT_EQ(s.message(), "instance 3: mass matrix pivot at DoF 6 is not positive (and 1 more instance)");
+  s.failed = 42;
+  EXPECT_EQ(s.message(), "instance 3: mass matrix pivot at DoF 6 is not positive (and 41 more instances)");
+}
+
+TEST(CudaFdErrors, WithoutADevice) {
+  // arguments are checked before the device: these hold on every machine
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 4;
+  try {
+    cuda::CudaForwardDynamics<double> e(load_model("chain:65"), o);
+    ADD_FAILURE() << "chain:65 (65 DoF) was accepted";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("at most 64"), std::string::npos) << e.what();
+  }
+  o.strategy = IdStrategy::ScanLocal;
+  EXPECT_THROW(cuda::CudaForwardDynamics<double>(load_model("chain:3"), o), BackendError);
+  o.strategy = IdStrategy::Auto;
+  o.max_batch = -1;
+  EXPECT_THROW(cuda::CudaForwardDynamics<double>(load_model("chain:3"), o), BackendError);
+  // no device: a BackendError naming why, never a crash
+  o.max_batch = 4;
+  if (!test::no_device_reason().empty()) {
+    try {
+      cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o);
+      ADD_FAILURE() << "an engine was made without a device";
+    } catch (const BackendError& e) {
+      EXPECT_NE(std::string(e.what()).find("no usable CUDA device"), std::string::npos) << e.what();
+    }
+  } else {
+    cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o);
+    EXPECT_EQ(e.strategy(), "jsi_thread");
+    EXPECT_EQ(e.backend(), "cuda");
+  }
+}
+
+// ---- on the device ----------------------------------------------------------------
+
+namespace {
+
+// Runs the engine's host path: inputs in layouts lq, lqd, ltau, qdd in lout.
+// Returns the worst instance errors; checks the gaps of qdd and that all succeeded.
+template <class S>
+Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& ltau,
+                const Layout& lout, unsigned seed = 1) {
+  const ModelTpl<S> m = md.cast<S>();
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, seed);
+  if (lq.bs == 0 && B > 1) batch.broadcast();  // one state for all instances
+  const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
+                       tau = pack<S>(batch.tau, nv, B, ltau, 0.0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> qdd(lout.size, S(kSentinel));
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) qdd[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
+
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  cuda::CudaForwardDynamics<S> engine(m, o);
+  const FdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
+                        {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
+                        {tau.data() + ltau.base, B, ltau.ds, ltau.bs},
+                        with_fext ? fext.data() : nullptr};
+  std::vector<int> failed(B, -2);
+  const cuda::FdBatchStatus st = engine.compute(in, BatchView<S>{qdd.data() + lout.base, B, lout.ds, lout.bs},
+                                                failed.data());
+  EXPECT_TRUE(st.ok()) << st.message();
+  EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
+
+  // gaps untouched
+  std::vector<char> entry(lout.size, 0);
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) entry[lout.at(i, b)] = 1;
+  std::size_t bad_gaps = 0;
+  for (std::size_t k = 0; k < qdd.size(); ++k) bad_gaps += !entry[k] && qdd[k] != S(kSentinel);
+  EXPECT_EQ(bad_gaps, 0u) << "compute() wrote between qdd's entries (layout " << lout.name << ")";
+  return worst_errors<S>(md, batch, with_fext, qdd, lout);
+}
+
+template <class S>
+Errors host_run_soa(const Model& md, Index B, bool with_fext) {
+  const Layout l = soa(md.nv(), B);
+  return host_run<S>(md, B, with_fext, l, l, l, l);
+}
+
+// compute_async: device pointers with their own strides, the caller's stream.
+template <class S>
+Errors device_run(const Model& md, Index B, const Layout& lin, const Layout& lout, bool with_fext) {
+  const ModelTpl<S> m = md.cast<S>();
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, 7);
+  const std::vector<S> q = pack<S>(batch.q, nv, B, lin, 0.0), qd = pack<S>(batch.qd, nv, B, lin, 0.0),
+                       tau = pack<S>(batch.tau, nv, B, lin, 0.0);
+  std::vector<Force<S>> fext(batch.fext.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<S> qdd(lout.size, std::numeric_limits<S>::quiet_NaN());
+  std::vector<int> failed(B, -2);
+
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 1;  // the device path is not limited by the staging buffers
+  cuda::CudaForwardDynamics<S> engine(m, o);
+  test::DeviceArray<S> dq, dqd, dtau, dqdd;
+  test::DeviceArray<Force<S>> dfext;
+  test::DeviceArray<int> dfailed;
+  Errors none{std::nan(""), std::nan("")};
+  if (dq.alloc(lin.size) != cudaSuccess || dqd.alloc(lin.size) != cudaSuccess || dtau.alloc(lin.size) != cudaSuccess ||
+      dqdd.alloc(lout.size) != cudaSuccess || dfext.alloc(fext.size()) != cudaSuccess ||
+      dfailed.alloc(static_cast<std::size_t>(B)) != cudaSuccess) {
+    ADD_FAILURE() << "cudaMalloc failed";
+    return none;
+  }
+  EXPECT_EQ(cudaMemcpy(dq.ptr, q.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(dqd.ptr, qd.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(dtau.ptr, tau.data(), lin.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(dfext.ptr, fext.data(), fext.size() * sizeof(Force<S>), cudaMemcpyHostToDevice), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(dqdd.ptr, qdd.data(), lout.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(dfailed.ptr, failed.data(), B * sizeof(int), cudaMemcpyHostToDevice), cudaSuccess);
+  cudaStream_t stream;
+  EXPECT_EQ(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking), cudaSuccess);
+  const FdBatchIn<S> in{{dq.ptr + lin.base, B, lin.ds, lin.bs},
+                        {dqd.ptr + lin.base, B, lin.ds, lin.bs},
+                        {dtau.ptr + lin.base, B, lin.ds, lin.bs},
+                        with_fext ? dfext.ptr : nullptr};
+  const BatchView<S> out{dqdd.ptr + lout.base, B, lout.ds, lout.bs};
+  EXPECT_EQ(engine.compute_async(in, out, dfailed.ptr, stream), cudaSuccess);
+  EXPECT_EQ(cudaStreamSynchronize(stream), cudaSuccess);
+  EXPECT_EQ(cudaStreamDestroy(stream), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(qdd.data(), dqdd.ptr, lout.size * sizeof(S), cudaMemcpyDeviceToHost), cudaSuccess);
+  EXPECT_EQ(cudaMemcpy(failed.data(), dfailed.ptr, B * sizeof(int), cudaMemcpyDeviceToHost), cudaSuccess);
+  EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
+  return worst_errors<S>(md, batch, with_fext, qdd, lout);
+}
+
+}  // namespace
+
+TEST(CudaFd, RobotsMatchReferences) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    for (Index B : {1, 31, 32, 33, 1000, 100000}) {
+      for (bool fx : {false, true}) {
+        if (B == 100000 && (fx || std::string(file) != "iiwa.urdf")) continue;  // keep the run short
+        SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + (fx ? " fext" : ""));
+        const Errors d = host_run_soa<double>(md, B, fx);
+        EXPECT_LE(d.jsi, kDoubleTol);
+        EXPECT_LE(d.aba, kAbaTol);
+        EXPECT_LE(host_run_soa<float>(md, B, fx).jsi, kFloatTol);
+      }
+    }
+  }
+}
+
+TEST(CudaFd, GeneratedTreesAndChains) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  // every capacity and its boundaries, branch points, prismatic joints, arbitrary
+  // axes, numberings that are not preorders, up to 64 DoF
+  for (const auto& [name, md] : generated_models()) {
+    for (Index B : {33, 1000}) {
+      SCOPED_TRACE(name + " B=" + std::to_string(B));
+      const Errors d = host_run_soa<double>(md, B, B == 33);
+      EXPECT_LE(d.jsi, kDoubleTol);
+      EXPECT_LE(d.aba, kAbaTol);
+      const double ftol = float_tol(md, B, B == 33, 1);  // host_run's inputs
+      EXPECT_LE(host_run_soa<float>(md, B, B == 33).jsi, ftol);
+    }
+  }
+}
+
+TEST(CudaFd, StridedHostLayouts) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(99);
+  for (const char* file : {"iiwa.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (int trial = 0; trial < 12; ++trial) {
+      const Index B = trial % 3 == 0 ? 1 : 257;
+      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
+      // qd and tau like q when q broadcasts (then all three do)
+      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
+      const Layout ltau = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
+      const bool fx = trial % 2 == 0;
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " q " + lq.name + " qd " + lqd.name + " tau " +
+                   ltau.name + " qdd " + lout.name + (fx ? " fext" : ""));
+      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kDoubleTol);
+      EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kFloatTol);
+    }
+  }
+}
+
+TEST(CudaFd, DevicePointersOnAStream) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(5);
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (Index B : {1, 33, 4097}) {
+      const Layout lin = B == 33 ? aos(nv, B) : soa(nv, B);
+      const Layout lout = B == 4097 ? random_layout(g, nv, B, true) : lin;
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " in " + lin.name + " out " + lout.name);
+      EXPECT_LE(device_run<double>(md, B, lin, lout, B != 1).jsi, kDoubleTol);
+      EXPECT_LE(device_run<float>(md, B, lin, lout, B != 1).jsi, kFloatTol);
+    }
+  }
+  SCOPED_TRACE("iiwa B=100000");
+  EXPECT_LE(device_run<float>(robot("iiwa.urdf"), 100000, soa(7, 100000), soa(7, 100000), false).jsi, kFloatTol);
+}
+
+// Failed factorisations: reported per instance, named by compute()'s status, their
+// qdd left as it was; the other instances of the batch are unaffected.
+template <class S>
+void failures_on_device(const Model& md, Index B) {
+  const ModelTpl<S> m = md.cast<S>();
+  const Index nv = m.nv();
+  Batch<S> batch(md, B, 21);
+  // instances 3, 10, 11, ... get a NaN or inf position of a joint that is not a root
+  // (M does not depend on a root's position: a NaN there gives NaN qdd, as in fd_jsi)
+  std::vector<Index> nonroot;
+  for (Index i = 0; i < nv; ++i)
+    if (md.parent(i) >= 0) nonroot.push_back(i);
+  std::vector<Index> want(B, -1);
+  DataTpl<S> d(m);
+  for (Index b = 3; b < B; b += 7 + b % 3) {
+    batch.q[batch.at(nonroot[b % nonroot.size()], b)] = b % 2 ? std::numeric_limits<double>::quiet_NaN()
+                                                              : std::numeric_limits<double>::infinity();
+  }
+  Index failures = 0, first = -1;
+  for (Index b = 0; b < B; ++b) {
+    std::vector<S> qi(nv), qdi(nv), ti(nv), out(nv);
+    for (Index i = 0; i < nv; ++i)
+      qi[i] = S(batch.q[batch.at(i, b)]), qdi[i] = S(batch.qd[batch.at(i, b)]), ti[i] = S(batch.tau[batch.at(i, b)]);
+    want[b] = fd_jsi(m, d, qi.data(), qdi.data(), ti.data(), out.data()).failed_dof;
+    if (want[b] >= 0 && failures++ == 0) first = b;
+  }
+  ASSERT_GT(failures, 1);
+  const Layout l = soa(nv, B);
+  const std::vector<S> q = pack<S>(batch.q, nv, B, l, 0.0), qd = pack<S>(batch.qd, nv, B, l, 0.0),
+                       tau = pack<S>(batch.tau, nv, B, l, 0.0);
+  const FdBatchIn<S> in{{q.data(), B, l.ds, l.bs}, {qd.data(), B, l.ds, l.bs}, {tau.data(), B, l.ds, l.bs}};
+
+  // host path
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  cuda::CudaForwardDynamics<S> engine(m, o);
+  for (int rep = 0; rep < 2; ++rep) {  // the second time reuses the kept entries' buffer
+    std::vector<S> qdd(l.size, S(kSentinel));
+    std::vector<int> failed(B, -2);
+    const cuda::FdBatchStatus st = engine.compute(in, BatchView<S>::soa(qdd.data(), nv, B), rep ? failed.data() : nullptr);
+    EXPECT_EQ(st.failed, failures);
+    EXPECT_EQ(st.first_instance, first);
+    EXPECT_EQ(st.first_dof, want[first]);
+    EXPECT_EQ(st.message(), "instance " + std::to_string(first) + ": mass matrix pivot at DoF " +
+                                std::to_string(want[first]) + " is not positive (and " +
+                                std::to_string(failures - 1) + " more instance" + (failures > 2 ? "s)" : ")"));
+    Data dd(md);
+    std::vector<double> jsi, ab, ours(nv);
+    for (Index b = 0; b < B; ++b) {
+      if (rep) EXPECT_EQ(failed[b], want[b]) << "instance " << b;
+      for (Index i = 0; i < nv; ++i) ours[i] = double(qdd[l.at(i, b)]);
+      if (want[b] >= 0) {
+        for (Index i = 0; i < nv; ++i) EXPECT_EQ(ours[i], kSentinel) << "instance " << b << " DoF " << i;
+      } else {
+        batch.reference(md, dd, b, false, jsi, ab);
+        EXPECT_LE(test::max_rel_err(ours, jsi), test::Tol<S>(kDoubleTol, kFloatTol)) << "instance " << b;
+      }
+    }
+  }
+
+  // device path
+  test::DeviceArray<S> dbuf;
+  test::DeviceArray<int> dfailed;
+  ASSERT_CUDA(dbuf.alloc(4 * l.size));
+  ASSERT_CUDA(dfailed.alloc(static_cast<std::size_t>(B)));
+  std::vector<S> qdd(l.size, S(kSentinel));
+  for (const auto& [k, v] : {std::make_pair(0, &q), std::make_pair(1, &qd), std::make_pair(2, &tau),
+                             std::make_pair(3, static_cast<const std::vector<S>*>(&qdd))})
+    ASSERT_CUDA(cudaMemcpy(dbuf.ptr + k * l.size, v->data(), l.size * sizeof(S), cudaMemcpyHostToDevice));
+  const FdBatchIn<S> din{{dbuf.ptr, B, l.ds, l.bs}, {dbuf.ptr + l.size, B, l.ds, l.bs},
+                         {dbuf.ptr + 2 * l.size, B, l.ds, l.bs}};
+  ASSERT_CUDA(engine.compute_async(din, {dbuf.ptr + 3 * l.size, B, l.ds, l.bs}, dfailed.ptr, nullptr));
+  ASSERT_CUDA(cudaDeviceSynchronize());
+  std::vector<int> failed(B);
+  ASSERT_CUDA(cudaMemcpy(qdd.data(), dbuf.ptr + 3 * l.size, l.size * sizeof(S), cudaMemcpyDeviceToHost));
+  ASSERT_CUDA(cudaMemcpy(failed.data(), dfailed.ptr, B * sizeof(int), cudaMemcpyDeviceToHost));
+  for (Index b = 0; b < B; ++b) {
+    EXPECT_EQ(failed[b], want[b]) << "instance " << b;
+    if (want[b] >= 0)
+      for (Index i = 0; i < nv; ++i) EXPECT_EQ(qdd[l.at(i, b)], S(kSentinel)) << "instance " << b << " DoF " << i;
+    else
+      for (Index i = 0; i < nv; ++i) EXPECT_TRUE(std::isfinite(qdd[l.at(i, b)])) << "instance " << b << " DoF " << i;
+  }
+}
+
+TEST(CudaFd, PivotFailuresReported) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    SCOPED_TRACE(file);
+    failures_on_device<double>(robot(file), 200);
+    failures_on_device<float>(robot(file), 200);
+  }
+  // a singular model: every instance fails at the last DoF
+  const Model md = massless_leaf(5);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 40;
+  cuda::CudaForwardDynamics<double> engine(md, o);
+  std::vector<double> x(5 * 40, 0.25), qdd(5 * 40, kSentinel);
+  using V = BatchView<const double>;
+  const FdBatchIn<double> in{V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40)};
+  const cuda::FdBatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40));
+  EXPECT_EQ(st.failed, 40);
+  EXPECT_EQ(st.first_instance, 0);
+  EXPECT_EQ(st.first_dof, 4);
+  EXPECT_EQ(st.message(), "instance 0: mass matrix pivot at DoF 4 is not positive (and 39 more instances)");
+  EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
+}
+
+TEST(CudaFd, ErrorsWithADevice) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = load_model("chain:4");
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 8;
+  cuda::CudaForwardDynamics<double> engine(md, o);
+  EXPECT_EQ(engine.device_bytes(), (10u * 4 * sizeof(double) + sizeof(int)) * 8);
+  std::vector<double> x(4 * 16, 0.0), qdd(4 * 16, 0.0);
+  std::vector<int> failed(16);
+  using V = BatchView<const double>;
+  // max_batch exceeded
+  const FdBatchIn<double> big{V::soa(x.data(), 4, 9), V::soa(x.data(), 4, 9), V::soa(x.data(), 4, 9)};
+  try {
+    engine.compute(big, BatchView<double>::soa(qdd.data(), 4, 9));
+    ADD_FAILURE() << "a batch over max_batch was accepted";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("max_batch"), std::string::npos) << e.what();
+  }
+  // batch sizes that disagree; qdd entries that overlap
+  const FdBatchIn<double> ok{V::soa(x.data(), 4, 8), V::soa(x.data(), 4, 8), V::soa(x.data(), 4, 8)};
+  EXPECT_THROW(engine.compute(ok, BatchView<double>::soa(qdd.data(), 4, 7)), BackendError);
+  EXPECT_THROW(engine.compute(ok, BatchView<double>{qdd.data(), 8, 1, 0}), BackendError);
+  EXPECT_THROW(engine.compute(ok, BatchView<double>{qdd.data(), 8, 1, 2}), BackendError);
+  // the device path reports argument errors as values (host pointers are never touched)
+  EXPECT_EQ(engine.compute_async(ok, BatchView<double>::soa(qdd.data(), 4, 7), failed.data(), nullptr),
+            cudaErrorInvalidValue);
+  EXPECT_EQ(engine.compute_async({V::soa(nullptr, 4, 8), ok.qd, ok.tau}, BatchView<double>::soa(qdd.data(), 4, 8),
+                                 failed.data(), nullptr),
+            cudaErrorInvalidValue);
+  EXPECT_EQ(engine.compute_async(ok, BatchView<double>::soa(qdd.data(), 4, 8), nullptr, nullptr),
+            cudaErrorInvalidValue);
+  // B = 0: nothing to do, null pointers allowed
+  const FdBatchIn<double> none{V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0)};
+  EXPECT_EQ(engine.compute_async(none, BatchView<double>::soa(nullptr, 4, 0), nullptr, nullptr), cudaSuccess);
+  cuda::FdBatchStatus st;
+  EXPECT_NO_THROW(st = engine.compute(none, BatchView<double>::soa(nullptr, 4, 0)));
+  EXPECT_TRUE(st.ok());
+  // more than the device holds: the message names the bytes needed and free
+  o.max_batch = 2000000000;
+  try {
+    cuda::CudaForwardDynamics<double> huge(load_model("chain:64"), o);
+    ADD_FAILURE() << "an engine of " << huge.device_bytes() << " bytes was made";
+  } catch (const BackendError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("10248000000000 bytes"), std::string::npos) << what;
+    EXPECT_NE(what.find("bytes free"), std::string::npos) << what;
+  }
+  // the engine still works after the failures
+  std::vector<double> q(4 * 8, 0.1), t(4 * 8, std::nan(""));
+  const FdBatchIn<double> in{V::soa(q.data(), 4, 8), V::soa(q.data(), 4, 8), V::soa(q.data(), 4, 8)};
+  EXPECT_TRUE(engine.compute(in, BatchView<double>::soa(t.data(), 4, 8)).ok());
+  Data d(md);
+  std::vector<double> ref(4), q1(4, 0.1);
+  ASSERT_TRUE(fd_jsi(md, d, q1.data(), q1.data(), q1.data(), ref.data()).ok());
+  for (Index b = 0; b < 8; ++b)
+    for (Index i = 0; i < 4; ++i) EXPECT_NEAR(t[i * 8 + b], ref[i], 1e-12 * std::max(1.0, std::fabs(ref[i])));
+}
