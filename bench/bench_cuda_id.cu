@@ -14,7 +14,9 @@
 //   id_thread-rolled/<precision>/iiwa/cuda      ... with the body loops not unrolled
 //                                               (state in local memory, few registers);
 //                                               both at B = 10^6, 10^7, to show what the
-//                                               engine's choice costs.
+//                                               engine's choice costs;
+//   id_thread-hwtrig[-keepxup]/float/iiwa/cuda  sin/cos from the SFU (Trig::Hardware)
+//                                               instead of CUDA's sinf/cosf.
 // Device rows are timed with CUDA events around the launch alone (manual time), so
 // host copies are excluded; inputs are uniform in [-1, 1] from a counter-based hash,
 // generated on the device. Counters: links, instances, max_rel_err (against the
@@ -53,15 +55,15 @@ using namespace scandyn::bench;
 
 namespace {
 
-// The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled.
-template <class S, int C, bool kKeepXup, bool kUnrolled>
+// The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled, kTrig.
+template <class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig = Trig::Library>
 __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
     variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const IdBatchIn<S> batch_in,
                    const BatchView<S> tau_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
   auto col = [b](const auto& v) { return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride}; };
-  cuda::rnea_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
+  cuda::rnea_instance<S, C, kKeepXup, kUnrolled, kTrig>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
                                       col(tau_out));
 }
 
@@ -83,7 +85,7 @@ void bench_device(benchmark::State& st, const Model* md, Index B) {
 }
 
 // id_thread-keepxup, id_thread-rolled: the bench's own instances of the device function.
-template <class S, bool kKeepXup, bool kUnrolled>
+template <class S, bool kKeepXup, bool kUnrolled, Trig kTrig = Trig::Library>
 void bench_variant(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
@@ -100,7 +102,7 @@ void bench_variant(benchmark::State& st, const Model* md, Index B) {
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + cuda::kIdInstancesBlock - 1) /
                                                 cuda::kIdInstancesBlock);
   const double seconds = time_launches(st, [&] {
-    variant_kernel<S, 8, kKeepXup, kUnrolled><<<blocks, cuda::kIdInstancesBlock>>>(params, in, tau);
+    variant_kernel<S, 8, kKeepXup, kUnrolled, kTrig><<<blocks, cuda::kIdInstancesBlock>>>(params, in, tau);
     return cudaGetLastError();
   });
   set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true), seconds, sizeof(S));
@@ -140,6 +142,8 @@ void print_limits() {
   print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>, bl);
   print_kernel("float, keepxup", variant_kernel<float, 8, true, true>, bl);
   print_kernel("float, rolled", variant_kernel<float, 8, false, false>, bl);
+  print_kernel("float, hwtrig", variant_kernel<float, 8, false, true, Trig::Hardware>, bl);
+  print_kernel("float, hwtrig keepxup", variant_kernel<float, 8, true, true, Trig::Hardware>, bl);
   print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>, bl);
   print_kernel("double, keepxup", variant_kernel<double, 8, true, true>, bl);
   print_kernel("double, rolled", variant_kernel<double, 8, false, false>, bl);
@@ -204,6 +208,14 @@ int main(int argc, char** argv) {
           auto* rr = prec ? benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<float, false, false>(st, m, b); })
                          : benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<double, false, false>(st, m, b); });
           rr->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+          if (prec) {  // the SFU's sin/cos (Trig::Hardware), recomputed or kept
+            const std::string hw = "id_thread-hwtrig/" + pre + label + "/cuda";
+            const std::string hwk = "id_thread-hwtrig-keepxup/" + pre + label + "/cuda";
+            benchmark::RegisterBenchmark(hw.c_str(), [=](benchmark::State& st) { bench_variant<float, false, true, Trig::Hardware>(st, m, b); })
+                ->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+            benchmark::RegisterBenchmark(hwk.c_str(), [=](benchmark::State& st) { bench_variant<float, true, true, Trig::Hardware>(st, m, b); })
+                ->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+          }
         }
         if (label == "iiwa" && B == 1000000) {
           const std::string hname = std::string("id_thread-host/") + (prec ? "float/" : "double/") + label + "/cuda";

@@ -10,8 +10,19 @@
 //   id_<strategy>/<precision>/<model>/openmp   the OpenMP engine (all cores, its own
 //                                              auto choice: recursion or scan-local) on
 //                                              host buffers with the same inputs.
+//   fd_jsi_thread/<precision>/<model>/cuda    forward dynamics by the joint-space
+//                                              inertia, CudaForwardDynamics::compute_async
+//                                              (models of up to 64 DoF);
+//   fd_jsi/<precision>/<model>/cpu-threads    the serial fd_jsi on every host thread
+//                                              (std::thread, instances split evenly):
+//                                              the library has no batched CPU forward-
+//                                              dynamics engine, this is what one would
+//                                              write with it.
+// JSI forward dynamics stops at 64 DoF here: beyond that there is no GPU kernel for
+// it, and on chains its cost grows as n^3 and its float accuracy is gone by about 30
+// links (docs/accuracy-id-scan.md, bench_cuda_fd).
 // Counters: links, instances, max_rel_err against the double serial reference (a
-// few instances), and for the cuda rows GBps (q, qd, qdd, tau per second).
+// few instances), and for the cuda rows GBps (inputs and outputs per second).
 // scripts/sweep_table.py pairs the rows into the speed-up table of docs/benchmarks.md.
 //
 // Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
@@ -31,8 +42,11 @@
 #include "cuda_bench_util.hpp"
 #include "scandyn/backend.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/model/load.hpp"
+
+#include <thread>
 
 
 using namespace scandyn;
@@ -90,6 +104,101 @@ void bench_openmp(benchmark::State& st, const Model* md, Index B) {
   st.counters["instances"] = B;
   st.counters["max_rel_err"] = max_rel_err<S>(*md, B, tau.data(), false, samples_for(nv));
   st.SetLabel(engine->strategy());
+}
+
+
+// ---- forward dynamics by the joint-space inertia --------------------------------------
+
+// max rel_err of qdd (soa, host or device) against the double serial fd_jsi on the
+// same (S-rounded) inputs, over up to 16 instances; inputs: arrays 0, 1, 2 = q, qd, tau
+template <class S>
+double fd_max_rel_err(const Model& md, Index B, const S* qdd, bool on_device) {
+  const Index nv = md.nv();
+  Data d(md, true);
+  std::vector<double> q(nv), qd(nv), tau(nv), ref(nv), ours(nv);
+  std::vector<S> col(nv);
+  double worst = 0;
+  const Index step = B > 16 ? B / 16 : 1;
+  for (Index b = 0; b < B; b += step) {
+    for (Index i = 0; i < nv; ++i) {
+      const std::size_t k = static_cast<std::size_t>(i) * B + b;
+      q[i] = double(S(uniform(0, k))), qd[i] = double(S(uniform(1, k))), tau[i] = double(S(uniform(2, k)));
+    }
+    if (!fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data()).ok()) return std::nan("");
+    if (on_device) {
+      if (cudaMemcpy2D(col.data(), sizeof(S), qdd + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
+          cudaSuccess)
+        return std::nan("");
+    } else {
+      for (Index i = 0; i < nv; ++i) col[i] = qdd[static_cast<std::size_t>(i) * B + b];
+    }
+    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
+    worst = std::fmax(worst, rel_err(ours.data(), ref.data(), ref.size()));
+  }
+  return worst;
+}
+
+template <class S>
+void bench_fd_cuda(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 0;  // device path only
+  std::unique_ptr<cuda::CudaForwardDynamics<S>> engine;
+  try {
+    engine = std::make_unique<cuda::CudaForwardDynamics<S>>(m, o);
+  } catch (const BackendError& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  DeviceBatch<S> buf;  // q, qd, tau (array 2), qdd (array 3)
+  int* failed = nullptr;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch") ||
+      !cuda_ok(st, cudaMalloc(reinterpret_cast<void**>(&failed), std::size_t(B) * sizeof(int)), "cudaMalloc"))
+    return;
+  const IdBatchIn<S> id = buf.in(nv, B);
+  const FdBatchIn<S> in{id.q, id.qd, id.qdd};
+  const BatchView<S> qdd = buf.tau(nv, B);
+  const double seconds = time_launches(st, [&] { return engine->compute_async(in, qdd, failed, nullptr); });
+  set_counters(st, nv, B, fd_max_rel_err<S>(*md, B, qdd.data, true), seconds, sizeof(S));
+  cudaFree(failed);
+}
+
+template <class S>
+void bench_fd_cpu(benchmark::State& st, const Model* md, Index B) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  const std::size_t n = static_cast<std::size_t>(nv) * B;
+  std::vector<S> q(n), qd(n), tau(n), qdd(n, S(0));
+  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), tau[k] = S(uniform(2, k));
+  const int threads = std::max(1u, std::thread::hardware_concurrency());
+  std::vector<DataTpl<S>> data;
+  for (int t = 0; t < threads; ++t) data.emplace_back(m, true);
+  auto run = [&] {
+    std::vector<std::thread> pool;
+    for (int t = 0; t < threads; ++t)
+      pool.emplace_back([&, t] {
+        std::vector<S> qi(nv), qdi(nv), ti(nv), out(nv);
+        for (Index b = Index(std::int64_t(B) * t / threads); b < Index(std::int64_t(B) * (t + 1) / threads); ++b) {
+          for (Index i = 0; i < nv; ++i) {
+            const std::size_t k = static_cast<std::size_t>(i) * B + b;
+            qi[i] = q[k], qdi[i] = qd[k], ti[i] = tau[k];
+          }
+          fd_jsi(m, data[t], qi.data(), qdi.data(), ti.data(), out.data());
+          for (Index i = 0; i < nv; ++i) qdd[static_cast<std::size_t>(i) * B + b] = out[i];
+        }
+      });
+    for (auto& th : pool) th.join();
+  };
+  run();  // warm-up
+  for (auto _ : st) {
+    run();
+    benchmark::ClobberMemory();
+  }
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = fd_max_rel_err<S>(*md, B, qdd.data(), false);
 }
 
 std::vector<std::unique_ptr<Model>> g_models;
@@ -156,6 +265,19 @@ int main(int argc, char** argv) {
           std::string("id_") + (cs == IdStrategy::ScanLocal ? "scan-local/" : "recursion/") + p + label + "/openmp";
       auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<float>(st, md, B); })
                      : benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<double>(st, md, B); });
+      c->UseRealTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
+    }
+    if (fixed_b > 0 || nv > cuda::kMaxThreadDofs) continue;
+    for (int prec = 0; prec < 2; ++prec) {
+      const std::string p = prec ? "float/" : "double/";
+      const std::string gname = "fd_jsi_thread/" + p + label + "/cuda";
+      auto* g = prec ? benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_fd_cuda<float>(st, md, B); })
+                     : benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_fd_cuda<double>(st, md, B); });
+      g->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+      if (!openmp) continue;
+      const std::string cname = "fd_jsi/" + p + label + "/cpu-threads";
+      auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_fd_cpu<float>(st, md, B); })
+                     : benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_fd_cpu<double>(st, md, B); });
       c->UseRealTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
     }
   }

@@ -31,25 +31,38 @@ SCANDYN_HD Mat3<S> rotate_rows(const Vec3<S>& axis, S s, S c, const Mat3<S>& E) 
   return mul_transpose(axis_angle(axis, s, c), E);
 }
 
-// sin q and cos q of a revolute joint, correctly rounded in float as well. CUDA's
-// sinf/cosf are within 2 ulp, but their error has a bias: the mean of
-// s^2 + c^2 - 1 is about 8e-9 (0.1 ulp). A chain multiplies one joint rotation per
-// link, so the bias grows linearly with the length: float ropes of 10^5 links drifted
-// by 10^-3 from the double reference. A scaling of (s, c) cannot remove a bias below
-// half an ulp (the scaled value rounds back to the same float), so on the device a
-// float angle is evaluated in double and rounded once, like glibc's sinf/cosf on
-// the host. kFast keeps the device's sinf/cosf: for the short chains of the
-// thread-per-instance kernels (at most 64 links, a drift of < 1e-6).
-template <bool kFast = false, class S>
+// How joint angles become sin q and cos q (joint_sincos).
+enum class Trig {
+  Exact,     // correctly rounded in float too (the default)
+  Library,   // the platform's sin/cos (on the device: CUDA's sinf/cosf, 2 ulp)
+  Hardware,  // device float: reduction to [-pi, pi] and the SFU's __sincosf
+             // (absolute error <= 2^-21.4); elsewhere as Library
+};
+
+// sin q and cos q of a revolute joint. Trig::Exact rounds correctly in float as
+// well: CUDA's sinf/cosf are within 2 ulp, but their error has a bias (the mean of
+// s^2 + c^2 - 1 is about 8e-9, 0.1 ulp), and a chain multiplies one joint rotation
+// per link, so the bias grows linearly with the length: float ropes of 10^5 links
+// drifted by 10^-3 from the double reference. A scaling of (s, c) cannot remove a
+// bias below half an ulp (the scaled value rounds back to the same float), so on
+// the device a float angle is evaluated in double and rounded once, like glibc's
+// sinf/cosf on the host. The thread-per-instance kernels (at most 64 links, where
+// that drift stays below 1e-6) use the cheaper kinds.
+template <Trig kTrig = Trig::Exact, class S>
 SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   using std::cos;
   using std::sin;
 #if defined(__CUDA_ARCH__)
-  if constexpr (!kFast && sizeof(S) < sizeof(double)) {
+  if constexpr (sizeof(S) < sizeof(double) && kTrig == Trig::Exact) {
     double sd, cd;
     ::sincos(double(q), &sd, &cd);
     s = S(sd);
     c = S(cd);
+    return;
+  } else if constexpr (sizeof(S) < sizeof(double) && kTrig == Trig::Hardware) {
+    const float k = rintf(q * 0.159154943f);                            // turns
+    const float r = fmaf(-k, -1.74845553e-7f, fmaf(-k, 6.28318548f, q));  // q - 2 pi k, 2 pi in two parts
+    __sincosf(r, &s, &c);
     return;
   }
 #endif
@@ -57,14 +70,14 @@ SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
   c = cos(q);
 }
 
-// Xup = XJ(q) Xtree: parent frame -> body frame at joint position q (kFast: see
+// Xup = XJ(q) Xtree: parent frame -> body frame at joint position q (kTrig: see
 // joint_sincos).
-template <bool kFast = false, class S>
+template <Trig kTrig = Trig::Exact, class S>
 SCANDYN_HD Transform<S> joint_transform(const Body<S>& b, S q) {
   if (b.type == JointType::Revolute) {
     // XJ = rot(R(axis, q)^T): E = R^T Etree, r = rtree
     S s, c;
-    joint_sincos<kFast>(q, s, c);
+    joint_sincos<kTrig>(q, s, c);
     return {rotate_rows(b.axis, s, c, b.Xtree.E), b.Xtree.r};
   }
   // XJ = xlt(axis q): E = Etree, r = rtree + Etree^T axis q

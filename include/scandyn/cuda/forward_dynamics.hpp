@@ -218,7 +218,7 @@ __host__ __device__ __forceinline__ void for_descendants(const ThreadModelParams
 // registers in float too: M alone is 136 scalars.) kKeepXup keeps each body's
 // transform from the forward pass for the backward pass; otherwise joint_transform
 // is evaluated again there (fewer registers, more arithmetic).
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8)>
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
 __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParams<S, C>& model,
                                                           DofColumn<const S> q, DofColumn<const S> qd,
                                                           DofColumn<const S> tau, const Force<S>* fext,
@@ -261,7 +261,7 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
     Motion<S> vp = Motion<S>::zero(), ap = a0;
     if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
     else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
-    const Transform<S> X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    const Transform<S> X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
     if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
     const RneaForward<S> o = rnea_forward_step(b, X, vp, ap, kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i], S(0));
     w[i] = fext ? o.f - fext[i] : o.f;
@@ -295,7 +295,7 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
     if (fl & kParentIsBase) continue;
     Transform<S> X;
     if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
-    else X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
     const Force<S> up = X.apply_transpose(fi);
     const Inertia<S> Iup = crba_composite_step(X, Ic);
     if (fl & kParentIsPrev) fcarry = up, Icarry = Iup;

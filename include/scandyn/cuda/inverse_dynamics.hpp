@@ -205,7 +205,9 @@ struct DofColumn {
 // tree branch points (kStacked) go through the stack arrays. kKeepXup keeps each
 // body's transform from the forward pass for the backward pass; otherwise
 // joint_transform is evaluated again there (fewer registers, more arithmetic).
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64)>
+// kTrig: how joint angles become sin and cos (Trig::Library, CUDA's sinf/cosf, by
+// default: at most 64 links, so their slight bias stays below 1e-6; see joint_sincos).
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library>
 __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S, C>& model,
                                                        DofColumn<const S> q, DofColumn<const S> qd,
                                                        DofColumn<const S> qdd, const Force<S>* fext,
@@ -243,7 +245,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
     if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
     else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
     const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
-    const Transform<S> X = joint_transform<true>(b, qi);
+    const Transform<S> X = joint_transform<kTrig>(b, qi);
     if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
     const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
     const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
@@ -268,7 +270,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
     if (fl & kParentIsBase) continue;
     Transform<S> X;
     if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
-    else X = joint_transform<true>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+    else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
     const Force<S> up = X.apply_transpose(fi);
     if (fl & kParentIsPrev) carry = up;
     else sf[b.parent] += up;
