@@ -162,6 +162,27 @@ double cpu_float_error(const Model& md, Index B, bool with_fext, unsigned seed) 
   return worst_errors<float>(md, batch, with_fext, qdd_buf, l).jsi;
 }
 
+// The double tolerance against fd_jsi on a model: 1e-10, or 10x what two exact
+// algorithms (serial fd_jsi and aba, double) disagree by on it when its mass matrix
+// is ill-conditioned (a 64-link chain: 8e-11; the GPU's FMA contractions then move
+// its JSI result by up to 5e-10).
+double jsi_tol(const Model& md) {
+  std::mt19937_64 g(3);
+  Data d(md);
+  const Index nv = md.nv();
+  double spread = 0;
+  for (int k = 0; k < 8; ++k) {
+    const std::vector<double> q = test::random_vector(g, nv, -3.1, 3.1), qd = test::random_vector(g, nv, -2, 2),
+                              tau = test::random_vector(g, nv, -2, 2);
+    std::vector<double> a(nv), b(nv);
+    if (!fd_jsi(md, d, q.data(), qd.data(), tau.data(), a.data()).ok() ||
+        !aba(md, d, q.data(), qd.data(), tau.data(), b.data()).ok())
+      continue;
+    spread = std::max(spread, test::max_rel_err(a, b));
+  }
+  return std::max(kDoubleTol, 10 * spread);
+}
+
 double float_tol(const Model& md, Index B, bool with_fext, unsigned seed) {
   return std::max(kFloatTol, 10 * cpu_float_error(md, B, with_fext, seed));
 }
@@ -495,7 +516,7 @@ TEST(CudaFd, GeneratedTreesAndChains) {
     for (Index B : {33, 1000}) {
       SCOPED_TRACE(name + " B=" + std::to_string(B));
       const Errors d = host_run_soa<double>(md, B, B == 33);
-      EXPECT_LE(d.jsi, kDoubleTol);
+      EXPECT_LE(d.jsi, jsi_tol(md));
       EXPECT_LE(d.aba, kAbaTol);
       const double ftol = float_tol(md, B, B == 33, 1);  // host_run's inputs
       EXPECT_LE(host_run_soa<float>(md, B, B == 33).jsi, ftol);
