@@ -510,6 +510,15 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model
   upload(ints_d, ints.data(), ints.size() * sizeof(int), "model's index arrays");
   upload(role_d, h.role.data(), h.role.size(), "segment roles");
   upload(table_d, table.data(), table.size() * sizeof(Body<S>), "body table");
+  // A cudaMemcpy from pageable memory may return before the data reaches the device,
+  // and launches on a non-blocking stream do not wait for the legacy stream: make
+  // the tables final before any launch reads them.
+  if ((err = cudaDeviceSynchronize()) != cudaSuccess) {
+    (void)cudaGetLastError();
+    cudaFree(block_);
+    block_ = nullptr;
+    throw BackendError("backend 'cuda': copying the model tables to the device: " + error_string(err));
+  }
 }
 
 template <class S>
