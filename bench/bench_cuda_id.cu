@@ -15,8 +15,8 @@
 //                                               (state in local memory, few registers);
 //                                               both at B = 10^6, 10^7, to show what the
 //                                               engine's choice costs;
-//   id_thread-hwtrig[-keepxup]/float/iiwa/cuda  sin/cos from the SFU (Trig::Hardware)
-//                                               instead of CUDA's sinf/cosf.
+//   id_thread-libtrig[-keepxup]/float/iiwa/cuda CUDA's sinf/cosf (Trig::Library)
+//                                               instead of the engine's SFU sin/cos.
 // Device rows are timed with CUDA events around the launch alone (manual time), so
 // host copies are excluded; inputs are uniform in [-1, 1] from a counter-based hash,
 // generated on the device. Counters: links, instances, max_rel_err (against the
@@ -56,7 +56,7 @@ using namespace scandyn::bench;
 namespace {
 
 // The engine's kernel with other choices of rnea_instance's kKeepXup, kUnrolled, kTrig.
-template <class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig = Trig::Library>
+template <class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig = cuda::kThreadTrig<S>>
 __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
     variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const IdBatchIn<S> batch_in,
                    const BatchView<S> tau_out) {
@@ -85,7 +85,7 @@ void bench_device(benchmark::State& st, const Model* md, Index B) {
 }
 
 // id_thread-keepxup, id_thread-rolled: the bench's own instances of the device function.
-template <class S, bool kKeepXup, bool kUnrolled, Trig kTrig = Trig::Library>
+template <class S, bool kKeepXup, bool kUnrolled, Trig kTrig = cuda::kThreadTrig<S>>
 void bench_variant(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
@@ -142,8 +142,8 @@ void print_limits() {
   print_kernel("float (the engine's)", variant_kernel<float, 8, false, true>, bl);
   print_kernel("float, keepxup", variant_kernel<float, 8, true, true>, bl);
   print_kernel("float, rolled", variant_kernel<float, 8, false, false>, bl);
-  print_kernel("float, hwtrig", variant_kernel<float, 8, false, true, Trig::Hardware>, bl);
-  print_kernel("float, hwtrig keepxup", variant_kernel<float, 8, true, true, Trig::Hardware>, bl);
+  print_kernel("float, libtrig", variant_kernel<float, 8, false, true, Trig::Library>, bl);
+  print_kernel("float, libtrig keepxup", variant_kernel<float, 8, true, true, Trig::Library>, bl);
   print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>, bl);
   print_kernel("double, keepxup", variant_kernel<double, 8, true, true>, bl);
   print_kernel("double, rolled", variant_kernel<double, 8, false, false>, bl);
@@ -208,12 +208,12 @@ int main(int argc, char** argv) {
           auto* rr = prec ? benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<float, false, false>(st, m, b); })
                          : benchmark::RegisterBenchmark(rname.c_str(), [=](benchmark::State& st) { bench_variant<double, false, false>(st, m, b); });
           rr->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
-          if (prec) {  // the SFU's sin/cos (Trig::Hardware), recomputed or kept
-            const std::string hw = "id_thread-hwtrig/" + pre + label + "/cuda";
-            const std::string hwk = "id_thread-hwtrig-keepxup/" + pre + label + "/cuda";
-            benchmark::RegisterBenchmark(hw.c_str(), [=](benchmark::State& st) { bench_variant<float, false, true, Trig::Hardware>(st, m, b); })
+          if (prec) {  // CUDA's sinf/cosf (Trig::Library) instead of the SFU's
+            const std::string lib = "id_thread-libtrig/" + pre + label + "/cuda";
+            const std::string libk = "id_thread-libtrig-keepxup/" + pre + label + "/cuda";
+            benchmark::RegisterBenchmark(lib.c_str(), [=](benchmark::State& st) { bench_variant<float, false, true, Trig::Library>(st, m, b); })
                 ->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
-            benchmark::RegisterBenchmark(hwk.c_str(), [=](benchmark::State& st) { bench_variant<float, true, true, Trig::Hardware>(st, m, b); })
+            benchmark::RegisterBenchmark(libk.c_str(), [=](benchmark::State& st) { bench_variant<float, true, true, Trig::Library>(st, m, b); })
                 ->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
           }
         }

@@ -84,7 +84,7 @@ __global__ void __launch_bounds__(kIdInstancesBlock)
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
   const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
-  rnea_instance<S, C>(model, column(batch_in.q, b), column(batch_in.qd, b), column(batch_in.qdd, b), fext,
+  rnea_instance<S, C, false, (C * sizeof(S) <= 64), kThreadTrig<S>>(model, column(batch_in.q, b), column(batch_in.qd, b), column(batch_in.qdd, b), fext,
                       column(tau_out, b));
 }
 
