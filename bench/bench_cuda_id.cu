@@ -144,8 +144,8 @@ void print_limits() {
   print_kernel("float, rolled", variant_kernel<float, 8, false, false>, bl);
   print_kernel("float, libtrig", variant_kernel<float, 8, false, true, Trig::Library>, bl);
   print_kernel("float, libtrig keepxup", variant_kernel<float, 8, true, true, Trig::Library>, bl);
-  print_kernel("double (the engine's)", variant_kernel<double, 8, false, true>, bl);
-  print_kernel("double, keepxup", variant_kernel<double, 8, true, true>, bl);
+  print_kernel("double", variant_kernel<double, 8, false, true>, bl);
+  print_kernel("double, keepxup (the engine's)", variant_kernel<double, 8, true, true>, bl);
   print_kernel("double, rolled", variant_kernel<double, 8, false, false>, bl);
   std::fflush(stdout);
 }
