@@ -45,7 +45,7 @@ std::string cuda_backend_error() {
 // --backend cuda with an algorithm it does not compute: the message after "scandyn: ".
 std::string cuda_algo_error(const std::string& algos) {
 #if SCANDYN_HAS_CUDA
-  return "backend 'cuda' does not provide --algo " + algos + " (it provides: id, bias)";
+  return "backend 'cuda' does not provide --algo " + algos + " (it provides: id, fd, bias)";
 #else
   (void)algos;
   return "backend 'cuda' is not available in this build";
@@ -598,25 +598,30 @@ TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
 
 // A body of 1e300 kg on a prismatic joint: when it slides 1e5 m out, the articulated
 // inertia about the first (revolute) joint, 1e300 * (1e5)^2, overflows and its pivot
-// is not finite. Row 1 (at the origin) is fine, row 2 fails.
-TEST_F(Cli, EvalReportsTheRowWhoseForwardDynamicsFails) {
+// is not finite (so does the mass matrix's M(0, 0), the joint-space inertia's pivot
+// at DoF 0). Row 1 (at the origin) is fine, row 2 fails.
+std::string heavy_urdf() {
   const std::string inertial =
       "<inertial><origin xyz=\"0 0 0\"/><mass value=\"1e300\"/>"
       "<inertia ixx=\"1\" iyy=\"1\" izz=\"1\" ixy=\"0\" ixz=\"0\" iyz=\"0\"/></inertial>";
   const std::string limit = "<limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>";
-  write_text(path("heavy.urdf"),
-             "<robot name=\"heavy\"><link name=\"base\"/>"
-             "<link name=\"a\">" +
-                 inertial + "</link><link name=\"b\">" + inertial +
-                 "</link>"
-                 "<joint name=\"j1\" type=\"revolute\"><parent link=\"base\"/><child link=\"a\"/>"
-                 "<axis xyz=\"0 0 1\"/>" +
-                 limit +
-                 "</joint>"
-                 "<joint name=\"j2\" type=\"prismatic\"><parent link=\"a\"/><child link=\"b\"/>"
-                 "<axis xyz=\"1 0 0\"/>" +
-                 limit + "</joint></robot>\n");
-  write_text(path("states.csv"), "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n0,1e5,0,0,0,0\n");
+  return "<robot name=\"heavy\"><link name=\"base\"/>"
+         "<link name=\"a\">" +
+         inertial + "</link><link name=\"b\">" + inertial +
+         "</link>"
+         "<joint name=\"j1\" type=\"revolute\"><parent link=\"base\"/><child link=\"a\"/>"
+         "<axis xyz=\"0 0 1\"/>" +
+         limit +
+         "</joint>"
+         "<joint name=\"j2\" type=\"prismatic\"><parent link=\"a\"/><child link=\"b\"/>"
+         "<axis xyz=\"1 0 0\"/>" +
+         limit + "</joint></robot>\n";
+}
+const char* const kHeavyStates = "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n0,1e5,0,0,0,0\n";
+
+TEST_F(Cli, EvalReportsTheRowWhoseForwardDynamicsFails) {
+  write_text(path("heavy.urdf"), heavy_urdf());
+  write_text(path("states.csv"), kHeavyStates);
   write_text(path("out.csv"), "sentinel\n");
   const Result r = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd");
   EXPECT_EQ(r.code, 1);
@@ -755,7 +760,10 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
   for (const std::string& args :
        {kEval + "--backend cuda", kEval + "--backend cuda --algo id", kEval + "--backend cuda --algo bias --precision float",
         std::string("bench --model chain:3 --algo id --instances 100 --backend cuda --csv results.csv"),
-        std::string("bench --model chain:3 --algo bias --instances 1 --backend cuda --precision float --csv results.csv")}) {
+        std::string("bench --model chain:3 --algo bias --instances 1 --backend cuda --precision float --csv results.csv"),
+        kEval + "--backend cuda --algo fd",
+        std::string("bench --model chain:3 --algo fd --instances 1 --backend cuda --csv results.csv"),
+        std::string("bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda --precision float")}) {
     for (bool existing : {false, true}) {
       SCOPED_TRACE(args + (existing ? ", existing output" : ", no output"));
       fs::remove(path("out.csv"));
@@ -773,25 +781,27 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
   }
 }
 
-// fd and mass are not on the cuda backend: one line naming them, exit 2, before any
-// device is looked for (so the message is the same on every machine).
-TEST_F(Cli, CudaBackendRefusesFdAndMass) {
+// mass is not on the cuda backend, and its fd is by the joint-space inertia only:
+// one line, exit 2, before any device is looked for (so the message is the same on
+// every machine).
+TEST_F(Cli, CudaBackendRefusesMassAndFdAba) {
   write_text(path("states.csv"), good_states());
   write_text(path("out.csv"), "sentinel\n");
+  const std::string fd_aba = "backend 'cuda' computes --algo fd by jsi only: use --fd jsi or leave --fd out";
   const std::vector<std::pair<std::string, std::string>> cases = {
-      {kEval + "--backend cuda --algo fd", "fd"},
-      {kEval + "--backend cuda --algo mass", "mass"},
-      {kEval + "--backend cuda --algo bias,mass,id,fd", "fd,mass"},
-      {"bench --model chain:3 --algo fd --instances 1 --backend cuda --csv results.csv", "fd"},
-      {"bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda", "fd"},
-      {"bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float", "mass"},
+      {kEval + "--backend cuda --algo mass", cuda_algo_error("mass")},
+      {kEval + "--backend cuda --algo bias,mass,id,fd", cuda_algo_error("mass")},
+      {"bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float", cuda_algo_error("mass")},
+#if SCANDYN_HAS_CUDA
+      {"bench --model chain:3 --algo fd --fd aba --instances 1 --backend cuda --csv results.csv", fd_aba},
+#endif
   };
-  for (const auto& [args, algos] : cases) {
+  for (const auto& [args, message] : cases) {
     SCOPED_TRACE(args);
     const std::vector<std::string> before = files();
     const Result r = run(args);
     EXPECT_EQ(r.code, 2);
-    EXPECT_EQ(r.err, "scandyn: " + cuda_algo_error(algos) + "\n");
+    EXPECT_EQ(r.err, "scandyn: " + message + "\n");
     EXPECT_TRUE(r.out.empty());
     EXPECT_EQ(files(), before);
     EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
@@ -860,6 +870,60 @@ INSTANTIATE_TEST_SUITE_P(
       return std::string(info.param).substr(0, std::string(info.param).find(':'));
     });
 
+// eval --algo fd --backend cuda (the joint-space inertia, one GPU thread per
+// instance) against the serial backend's (ABA, in double): every value within 1e-9
+// (double) or 1e-3 (float) relative to max(1, max |row|), 5000 rows (two chunks).
+class EvalCudaFd : public EvalCuda {};
+
+TEST_P(EvalCudaFd, MatchesSerial) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const Model model = scandyn::load_model(spec());
+  const int n = model.nv();
+  const States s(n, 5000, 34);
+  write_text(path("states.csv"), s.csv({"q", "qd", "tau"}));
+  const std::string base = "eval --model " + quote(spec()) + " --states states.csv --algo fd";
+  const Result rs = run(base + " --out serial.csv");
+  ASSERT_EQ(rs.code, 0) << rs.err;
+  const Table ts = parse_csv(read_text(path("serial.csv")));
+  ASSERT_EQ(ts.rows.size(), s.rows());
+  for (const char* precision : {"double", "float"}) {
+    SCOPED_TRACE(precision);
+    const bool is_float = std::string(precision) == "float";
+    const Result rc = run(base + " --out cuda.csv --backend cuda --precision " + precision);
+    ASSERT_EQ(rc.code, 0) << rc.err;
+    EXPECT_TRUE(rc.err.empty()) << rc.err;
+    const Table tc = parse_csv(read_text(path("cuda.csv")));
+    ASSERT_EQ(tc.names, ts.names);
+    ASSERT_EQ(tc.rows.size(), s.rows());
+    const double tol = is_float ? 1e-3 : 1e-9;
+    double worst = 0;
+    for (std::size_t row = 0; row < s.rows(); ++row) {
+      const double e = scandyn::test::max_rel_err(tc.get(row, "qdd_fd_", n), ts.get(row, "qdd_fd_", n));
+      if (!(e <= worst)) worst = e;
+      ASSERT_LE(e, tol) << "row " << row + 1;
+    }
+    EXPECT_FALSE(std::isnan(worst));
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Models, EvalCudaFd, ::testing::Values("iiwa", "hyq"),
+                         [](const ::testing::TestParamInfo<const char*>& info) { return std::string(info.param); });
+
+// A failed factorisation on the device: the row and the joint-space inertia's pivot,
+// as on the CPU backends, and no output.
+TEST_F(Cli, EvalCudaReportsTheRowWhoseForwardDynamicsFails) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  write_text(path("heavy.urdf"), heavy_urdf());
+  write_text(path("states.csv"), kHeavyStates);
+  write_text(path("out.csv"), "sentinel\n");
+  const Result r = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd --backend cuda");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.err,
+            "scandyn: states.csv: row 2 (line 3): forward dynamics failed: mass matrix "
+            "pivot at DoF 0 is not positive\n");
+  EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+}
+
 TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const States s(3, 10, 32);
@@ -869,14 +933,15 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   const Result r = run("eval --model chain:3 --states states.csv --out cuda.csv --backend cuda");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(parse_csv(read_text(path("cuda.csv"))).names, parse_csv(read_text(path("serial.csv"))).names);
-  // ... but tau columns select fd too, which the backend does not provide
+  // ... and tau columns select fd too
   write_text(path("states.csv"), s.csv({"q", "qd", "qdd", "tau"}));
-  const Result d = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda");
-  EXPECT_EQ(d.code, 2);
-  EXPECT_EQ(d.err,
-            "scandyn: backend 'cuda' does not provide --algo fd (it provides: id, bias); without --algo, fd was "
-            "selected because states.csv has the input columns: choose with --algo, e.g. --algo id,bias\n");
-  EXPECT_FALSE(fs::exists(path("out.csv")));
+  ASSERT_EQ(run("eval --model chain:3 --states states.csv --out serial.csv").code, 0);
+  const Result d = run("eval --model chain:3 --states states.csv --out cuda.csv --backend cuda");
+  ASSERT_EQ(d.code, 0) << d.err;
+  const Table dc = parse_csv(read_text(path("cuda.csv"))), ds = parse_csv(read_text(path("serial.csv")));
+  EXPECT_EQ(dc.names, ds.names);
+  EXPECT_NE(std::find(dc.names.begin(), dc.names.end(), "qdd_fd_0"), dc.names.end());
+  EXPECT_EQ(dc.rows.size(), ds.rows.size());
   // beyond the thread-per-instance kernels' 64 DoF: the link scans, same numbers
   write_text(path("rope.csv"), States(65, 2, 33).csv({"q", "qd", "qdd"}));
   ASSERT_EQ(run("eval --model rope:65 --states rope.csv --out rope_serial.csv --algo id").code, 0);
@@ -897,6 +962,20 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   EXPECT_EQ(rec.code, 2);
   EXPECT_NE(rec.err.find("scandyn: backend 'cuda': model 'rope:65' has 65 DoF"), std::string::npos) << rec.err;
   EXPECT_NE(rec.err.find("at most 64"), std::string::npos) << rec.err;
+  // fd has no link scans: one line naming the limit, with or without id
+  write_text(path("rope.csv"), States(65, 2, 33).csv({"q", "qd", "qdd", "tau"}));
+  for (const char* algos : {"fd", "id,fd", "bias,fd"}) {
+    SCOPED_TRACE(algos);
+    const Result fd = run(std::string("eval --model rope:65 --states rope.csv --out out.csv --backend cuda --algo ") + algos);
+    EXPECT_EQ(fd.code, 2);
+    EXPECT_EQ(fd.err,
+              "scandyn: backend 'cuda': --algo fd takes models of at most 64 DoF (one GPU thread per instance); "
+              "model 'rope:65' has 65 DoF\n");
+  }
+  const Result bench_fd = run("bench --model rope:65 --algo fd --instances 1 --backend cuda");
+  EXPECT_EQ(bench_fd.code, 2);
+  EXPECT_NE(bench_fd.err.find("--algo fd takes models of at most 64 DoF"), std::string::npos) << bench_fd.err;
+  EXPECT_TRUE(bench_fd.out.empty());
   const Result scan = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda --algo id "
                           "--strategy scan-world");
   EXPECT_EQ(scan.code, 2);
@@ -942,6 +1021,37 @@ TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
   const Result one = run("bench --model chain:2 --algo id --instances 1 --min-time 0 --backend cuda");
   ASSERT_EQ(one.code, 0) << one.err;
   EXPECT_EQ(lines(one.out).size(), 2u);
+}
+
+// bench --algo fd --backend cuda: one row, the host-staged call (jsi_thread-host),
+// whether --fd is left out or says jsi, with its error against the serial ABA.
+TEST_F(Cli, BenchCudaFdPrintsHostRow) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
+  for (const char* fd : {"", " --fd jsi"}) {
+    for (const char* precision : {"double", "float"}) {
+      SCOPED_TRACE(std::string(fd) + " " + precision);
+      const Result r = run("bench --model " + iiwa + " --algo fd" + fd + " --instances 3000 --min-time 0.02" +
+                           " --backend cuda --csv results.csv --precision " + precision);
+      ASSERT_EQ(r.code, 0) << r.err;
+      EXPECT_TRUE(r.err.empty()) << r.err;
+      const std::vector<std::string> ls = lines(r.out);
+      ASSERT_EQ(ls.size(), 1u) << r.out;
+      const std::vector<std::string> row = split(ls[0], ',');
+      ASSERT_EQ(row.size(), 10u) << ls[0];
+      EXPECT_EQ(row[0], "fd");
+      EXPECT_EQ(row[1], "jsi_thread-host");
+      EXPECT_EQ(row[2], "cuda");
+      EXPECT_EQ(row[3], precision);
+      EXPECT_EQ(row[4], "iiwa");
+      EXPECT_EQ(row[5], "7");
+      EXPECT_EQ(row[6], "3000");
+      EXPECT_GT(std::stod(row[7]), 0);
+      EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 1e-2);
+      EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-3 : 1e-9);  // nan fails
+    }
+  }
+  ASSERT_EQ(lines(read_text(path("results.csv"))).size(), 5u);  // header and 4 x 1 row
 }
 
 }  // namespace

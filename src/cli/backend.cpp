@@ -200,21 +200,21 @@ std::unique_ptr<Evaluator<S>> make_openmp_evaluator(const ModelTpl<S>& model, co
 }
 
 // The backends this command knows: name, evaluator factories, the algorithms they
-// compute, and the check that the machine can run them. Entries with null
-// factories are recognised names that this build does not contain (they get a
-// clear error, not "unknown").
+// compute, the check that the machine can run them and the one fd method they
+// have, if only one. Entries with null factories are recognised names that this
+// build does not contain (they get a clear error, not "unknown").
 const Backend kBackends[] = {
-    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr},
+    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr, nullptr},
 #if SCANDYN_HAS_OPENMP && defined(_OPENMP)
-    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>, kEveryAlgo, nullptr},
+    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>, kEveryAlgo, nullptr, nullptr},
 #else
-    {"openmp", nullptr, nullptr, kEveryAlgo, nullptr},
+    {"openmp", nullptr, nullptr, kEveryAlgo, nullptr, nullptr},
 #endif
 #if SCANDYN_HAS_CUDA
-    {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>, algo_bit(Algo::Id) | algo_bit(Algo::Bias),
-     &cuda_unusable},
+    {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>,
+     algo_bit(Algo::Id) | algo_bit(Algo::Fd) | algo_bit(Algo::Bias), &cuda_unusable, "jsi"},
 #else
-    {"cuda", nullptr, nullptr, 0, nullptr},
+    {"cuda", nullptr, nullptr, 0, nullptr, nullptr},
 #endif
 };
 

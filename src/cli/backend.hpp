@@ -90,10 +90,14 @@ class Evaluator {
   // algorithms). Stops at the first instance whose factorisation fails. Called
   // only for algorithms of the backend's AlgoSet, with count <= max_batch.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
+  // The forward-dynamics method run() uses when fd is requested: fd itself on the
+  // CPU backends; Jsi on CUDA, which has no other. Failure messages
+  // (describe_fd_failure) name the pivot of the method used.
+  virtual FdMethod fd_method(FdMethod requested) const { return requested; }
   // How run() computes algo, for the benchmark's strategy column: recursion,
   // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion
-  // for bias (CPU); thread-host for CUDA (one GPU thread per instance, host
-  // buffers staged through the device).
+  // for bias (CPU); for CUDA, thread-host (id, bias) or jsi_thread-host (fd): one
+  // GPU thread per instance, host buffers staged through the device.
   virtual std::string strategy(Algo algo, FdMethod fd) const = 0;
   // True when run() performs exactly the serial double reference's arithmetic for
   // this S (the same functions in the same order), so that its error against the
@@ -108,11 +112,15 @@ class Evaluator {
 };
 
 // How an evaluator is made: the inverse-dynamics strategy (Auto: by shape), the
-// thread count (0: all) and the largest batch run() will get.
+// thread count (0: all), the largest batch run() will get and the algorithms it
+// will be asked for (0: not known). A backend prepares the engines of those
+// algorithms when it is made, so that one it cannot run here fails before any
+// output exists; others are made on first use.
 struct EvalOptions {
   IdStrategy strategy = IdStrategy::Auto;
   int threads = 0;
   std::size_t max_batch = 1;
+  AlgoSet algos = 0;
 };
 
 template <class S>
@@ -127,6 +135,10 @@ struct Backend {
   AlgoSet algos;  // the algorithms its evaluators compute
   // Why the backend cannot run on this machine, "" when it can; null: always can.
   std::string (*unusable)();
+  // The forward-dynamics method its evaluators use whatever is requested (their
+  // fd_method()); null when they use the one requested. bench refuses an explicit
+  // --fd naming another.
+  const char* fd_only = nullptr;
   bool available() const { return make_double != nullptr; }
   bool provides(Algo algo) const { return (algos & algo_bit(algo)) != 0; }
 };
@@ -139,7 +151,7 @@ EvalOptions parse_eval_options(const Args& args);
 const Backend& find_backend(const std::string& name);
 
 // Throws UsageError (no --help hint) unless the backend computes every algorithm
-// of algos: "backend 'cuda' does not provide --algo fd (it provides: id, bias)".
+// of algos: "backend 'cuda' does not provide --algo mass (it provides: id, fd, bias)".
 // default_from: for a selection eval made without --algo, the states file whose
 // columns selected it (the message then says so); empty otherwise.
 void require_algos(const Backend& backend, AlgoSet algos, const std::string& default_from = "");
@@ -155,9 +167,11 @@ std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model, co
 
 #if SCANDYN_HAS_CUDA
 // The CUDA backend (backend_cuda.cpp): id and bias by the CUDA inverse-dynamics
-// engine, one GPU thread per instance. Throws UsageError (no --help hint) when the
-// engine cannot be made: no usable device, a model beyond the kernels' DoF limit, a
-// scan strategy, a max_batch that does not fit in device memory.
+// engine (one GPU thread per instance up to 64 DoF, link scans beyond), fd by the
+// CUDA joint-space-inertia engine (one GPU thread per instance, at most 64 DoF).
+// Throws UsageError (no --help hint) when an engine of options.algos cannot be
+// made: no usable device, a model beyond the kernels' DoF limit, a strategy the
+// backend does not have, a max_batch that does not fit in device memory.
 template <class S>
 std::unique_ptr<Evaluator<S>> make_cuda_evaluator(const ModelTpl<S>& model, const EvalOptions& options);
 // Why CUDA cannot run here ("no usable CUDA device: ..."), "" when it can.

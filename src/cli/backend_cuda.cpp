@@ -7,6 +7,13 @@
 //               CudaInverseDynamics::compute() (copies in, kernel, copy out, sync);
 //   resident()  bench's "thread" row: the batch copied once to device memory in the
 //               engine's fast layout (instance innermost), compute_async() on a stream.
+// fd runs through the CUDA forward-dynamics engine (scandyn/cuda/forward_dynamics.hpp):
+// the joint-space inertia (CRBA, L^T L) whatever --fd asks, one GPU thread per
+// instance, models of at most 64 DoF; run() only (bench's "jsi_thread-host" row),
+// CudaForwardDynamics::compute(), whose first failed factorisation becomes the
+// BatchStatus that eval and bench report as for the CPU backends. Each engine is
+// made when the evaluator is, if its algorithms are among EvalOptions::algos, or on
+// first use.
 // Which algorithms this backend computes is its AlgoSet in the table of backend.cpp.
 #include "backend.hpp"
 
@@ -19,6 +26,7 @@
 
 #include "cli.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 
 namespace scandyn::cli {
@@ -161,45 +169,102 @@ class CudaResidentBatch final : public ResidentBatch<S> {
 template <class S>
 class CudaEvaluator final : public Evaluator<S> {
  public:
-  CudaEvaluator(const ModelTpl<S>& model, const EvalOptions& o) : nv_(model.nv()) {
-    BackendOptions bo;
-    bo.backend = BackendKind::Cuda;
-    bo.strategy = o.strategy;
-    bo.max_batch = static_cast<Index>(o.max_batch);
-    try {
-      engine_ = std::make_unique<cuda::CudaInverseDynamics<S>>(model, bo);
-    } catch (const BackendError& e) {
-      // no device, recursion beyond 64 DoF, scan-world, buffers beyond device memory
-      throw UsageError(e.what(), false);
-    }
+  // Makes the engines of o.algos (the inverse dynamics' when o.algos is 0), others
+  // on first use, so that an eval of id alone runs on a model that fd cannot take.
+  CudaEvaluator(const ModelTpl<S>& model, const EvalOptions& o) : model_(model), nv_(model.nv()) {
+    bo_.backend = BackendKind::Cuda;
+    bo_.strategy = o.strategy;
+    bo_.max_batch = static_cast<Index>(o.max_batch);
+    const AlgoSet algos = o.algos ? o.algos : algo_bit(Algo::Id);
+    if (algos & algo_bit(Algo::Fd)) fd_engine();
+    if (algos & (algo_bit(Algo::Id) | algo_bit(Algo::Bias))) id_engine();
   }
 
   BatchStatus run(Algo algo, FdMethod, const BatchIn<S>& in, S* out) override {
-    require_id_or_bias(algo);
     const Index B = static_cast<Index>(in.count);
     using V = BatchView<const S>;
+    if (algo == Algo::Fd) {
+      cuda::CudaForwardDynamics<S>& engine = fd_engine();
+      const FdBatchIn<S> fd{V::aos(in.q, nv_, B), V::aos(in.qd, nv_, B), V::aos(in.tau, nv_, B), nullptr};
+      cuda::FdBatchStatus st;
+      try {
+        st = engine.compute(fd, BatchView<S>::aos(out, nv_, B));
+      } catch (const BackendError& e) {
+        throw DataError(e.what());
+      }
+      BatchStatus status;
+      if (!st.ok()) {
+        status.instance = static_cast<std::size_t>(st.first_instance);
+        status.status = Status{st.first_dof};
+      }
+      return status;
+    }
+    require_id_or_bias(algo);
+    cuda::CudaInverseDynamics<S>& engine = id_engine();
     const IdBatchIn<S> id =
         id_inputs<S>(algo, V::aos(in.q, nv_, B), V::aos(in.qd, nv_, B), V::aos(in.qdd, nv_, B), &zero_);
     try {
-      engine_->compute(id, BatchView<S>::aos(out, nv_, B));
+      engine.compute(id, BatchView<S>::aos(out, nv_, B));
     } catch (const BackendError& e) {
       throw DataError(e.what());
     }
     return {};
   }
 
-  std::string strategy(Algo, FdMethod) const override { return engine_->strategy() + "-host"; }
+  // fd is by the joint-space inertia, whatever is requested
+  FdMethod fd_method(FdMethod) const override { return FdMethod::Jsi; }
+
+  std::string strategy(Algo algo, FdMethod) const override {
+    return (algo == Algo::Fd ? fd_engine().strategy() : id_engine().strategy()) + "-host";
+  }
   bool exact(Algo, FdMethod) const override { return false; }  // other compiler, FMA contraction
 
+  // id and bias only: bench times fd through run() alone (its "jsi_thread-host" row)
   std::unique_ptr<ResidentBatch<S>> resident(Algo algo, FdMethod, const BatchIn<S>& in) override {
+    if (algo == Algo::Fd) return nullptr;
     require_id_or_bias(algo);
-    return std::make_unique<CudaResidentBatch<S>>(*engine_, algo, in);
+    return std::make_unique<CudaResidentBatch<S>>(id_engine(), algo, in);
   }
 
  private:
+  // (const: made on first use, kept in mutable members)
+  cuda::CudaInverseDynamics<S>& id_engine() const {
+    if (!id_) {
+      try {
+        id_ = std::make_unique<cuda::CudaInverseDynamics<S>>(model_, bo_);
+      } catch (const BackendError& e) {
+        // no device, recursion beyond 64 DoF, scan-world, buffers beyond device memory
+        throw UsageError(e.what(), false);
+      }
+    }
+    return *id_;
+  }
+
+  cuda::CudaForwardDynamics<S>& fd_engine() const {
+    if (!fd_) {
+      if (nv_ > cuda::kMaxThreadDofs)
+        throw UsageError("backend 'cuda': --algo fd takes models of at most " + std::to_string(cuda::kMaxThreadDofs) +
+                             " DoF (one GPU thread per instance); model '" + model_.name + "' has " +
+                             std::to_string(nv_) + " DoF",
+                         false);
+      BackendOptions bo = bo_;
+      bo.strategy = IdStrategy::Auto;  // --strategy is inverse dynamics' (as on the CPU backends)
+      try {
+        fd_ = std::make_unique<cuda::CudaForwardDynamics<S>>(model_, bo);
+      } catch (const BackendError& e) {
+        // no device, buffers beyond device memory
+        throw UsageError(e.what(), false);
+      }
+    }
+    return *fd_;
+  }
+
+  const ModelTpl<S>& model_;
   Index nv_;
+  BackendOptions bo_;
   S zero_ = 0;  // qdd of bias
-  std::unique_ptr<cuda::CudaInverseDynamics<S>> engine_;
+  mutable std::unique_ptr<cuda::CudaInverseDynamics<S>> id_;
+  mutable std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_;
 };
 
 }  // namespace

@@ -1,7 +1,7 @@
 // src/cli/bench.cpp: `scandyn bench`, times one algorithm on a batch of random
 // states and prints one row of the benchmark CSV (DESIGN.md's columns) per way of
-// calling the backend: the host-memory call, and for CUDA first the
-// device-resident batch.
+// calling the backend: the host-memory call, and for CUDA's id and bias first the
+// device-resident batch (CUDA's fd has the host-memory row only).
 #include <unistd.h>
 
 #include <algorithm>
@@ -143,7 +143,8 @@ double time_calls(double min_time, F&& calls) {
 }
 
 // Times algo on the batch: a row for the evaluator's run() on host memory and,
-// first, one for the batch in the backend's own memory when it has one (CUDA).
+// first, one for the batch in the backend's own memory when it has one (CUDA id
+// and bias; resident() is null otherwise).
 template <class S>
 std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
                               EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
@@ -154,6 +155,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
   std::vector<S> out(count * output_width(algo, model.nv()));
   const BatchIn<S> in = make_batch(algo, count, q, qd, third);
   options.max_batch = count;
+  options.algos = algo_bit(algo);
   auto evaluator = make(model_s, options);
   // float always differs from the double reference; double only off the reference's path
   const bool measure = float_precision || !evaluator->exact(algo, fd);
@@ -180,7 +182,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
 
   // warm-up call, then whole calls until min_time has passed
   std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());  // untouched entries show
-  check(evaluator->run(algo, fd, in, out.data()), fd);
+  check(evaluator->run(algo, fd, in, out.data()), evaluator->fd_method(fd));
   Timing t;
   t.strategy = evaluator->strategy(algo, fd);
   t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
@@ -210,6 +212,10 @@ int run_bench(const Args& args) {
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
   const Backend& backend = find_backend(args.get("backend", "serial"));
   require_algos(backend, algo_bit(algo));
+  if (args.has("fd") && backend.fd_only && fd_method_name(fd) != std::string(backend.fd_only))
+    throw UsageError(std::string("backend '") + backend.name + "' computes --algo fd by " + backend.fd_only +
+                         " only: use --fd " + backend.fd_only + " or leave --fd out",
+                     false);
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
   require_usable(backend);

@@ -116,9 +116,9 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
     batch.tau = family_data(Family::Tau);
     for (std::size_t k = 0; k < algos.size(); ++k) {
       const BatchStatus st = evaluator.run(algos[k], FdMethod::Aba, batch, result[k].data());
-      if (!st.ok()) {
+      if (!st.ok()) {  // the pivot of the method used (CUDA: JSI's mass matrix)
         throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
-                        describe_fd_failure(FdMethod::Aba, st.status));
+                        describe_fd_failure(evaluator.fd_method(FdMethod::Aba), st.status));
       }
     }
 
@@ -145,6 +145,12 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
   }
 }
 
+AlgoSet algo_set(const std::vector<Algo>& algos) {
+  AlgoSet set = 0;
+  for (Algo a : algos) set |= algo_bit(a);
+  return set;
+}
+
 // Makes the backend's evaluator (before the output file exists, so that a backend
 // that cannot run leaves nothing behind), then evaluates the file.
 template <class S>
@@ -155,18 +161,13 @@ void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions opt
   // with rows x links, and the auto strategies choose by it (a few rows of a long
   // chain: scans across links on OpenMP too).
   options.max_batch = chunk;
+  options.algos = algo_set(algos);
   std::unique_ptr<Evaluator<S>> evaluator;
   if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
   else evaluator = backend.make_float(model, options);
   CsvWriter out(out_path);
   eval_rows(model, *evaluator, in, cols, algos, chunk, out);
   out.commit();
-}
-
-AlgoSet algo_set(const std::vector<Algo>& algos) {
-  AlgoSet set = 0;
-  for (Algo a : algos) set |= algo_bit(a);
-  return set;
 }
 
 }  // namespace
