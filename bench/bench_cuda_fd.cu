@@ -76,11 +76,10 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
                    const BatchView<S> qdd_out, int* const failed_dof_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  auto col = [b](const auto& v) {
-    return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride};
-  };
-  failed_dof_out[b] = cuda::fd_jsi_instance<S, C, kKeepXup, kUnrolled>(model, col(batch_in.q), col(batch_in.qd),
-                                                                       col(batch_in.tau), nullptr, col(qdd_out));
+  using cuda::instance_column;
+  failed_dof_out[b] = cuda::fd_jsi_instance<S, C, kKeepXup, kUnrolled>(
+      model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b), instance_column(batch_in.tau, b), nullptr,
+      instance_column(qdd_out, b));
 }
 
 // Device buffers q, qd, tau, qdd (nv x B each, soa) and B failed DoFs, freed on scope exit.

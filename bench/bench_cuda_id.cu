@@ -62,9 +62,9 @@ __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
                    const BatchView<S> tau_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  auto col = [b](const auto& v) { return cuda::DofColumn<std::remove_reference_t<decltype(*v.data)>>{v.data + b * v.batch_stride, v.dof_stride}; };
-  cuda::rnea_instance<S, C, kKeepXup, kUnrolled, kTrig>(model, col(batch_in.q), col(batch_in.qd), col(batch_in.qdd), nullptr,
-                                      col(tau_out));
+  using cuda::instance_column;
+  cuda::rnea_instance<S, C, kKeepXup, kUnrolled, kTrig>(model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b),
+                                                        instance_column(batch_in.qdd, b), nullptr, instance_column(tau_out, b));
 }
 
 // id_thread: the engine's device path.

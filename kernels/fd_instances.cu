@@ -24,15 +24,6 @@ using detail::Staging;
 
 // ---- kernel and launch ---------------------------------------------------------
 
-namespace {
-
-template <class T>
-__device__ __forceinline__ DofColumn<T> column(const BatchView<T>& v, long long b) {
-  return {v.data + b * v.batch_stride, v.dof_stride};
-}
-
-}  // namespace
-
 // One thread per instance b < B: the forward dynamics of instance b. Measured on
 // the H100 (bench_cuda_fd, iiwa, 10^7 instances): float fastest held to 128
 // registers (4 resident blocks; 4.4 ms against 5.6 ms with 167), double with the
@@ -45,8 +36,9 @@ __global__ void __launch_bounds__(kFdInstancesBlock, sizeof(S) == 4 ? 4 : 1)
   if (b >= batch_in.q.batch) return;
   const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
   constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;
-  failed_dof_out[b] = fd_jsi_instance<S, C, false, kUnrolled>(model, column(batch_in.q, b), column(batch_in.qd, b),
-                                            column(batch_in.tau, b), fext, column(qdd_out, b));
+  failed_dof_out[b] =
+      fd_jsi_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b),
+                                              instance_column(batch_in.tau, b), fext, instance_column(qdd_out, b));
 }
 
 template <class S>

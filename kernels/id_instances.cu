@@ -67,15 +67,6 @@ ThreadModel<S>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
 
 // ---- kernel and launch ---------------------------------------------------------
 
-namespace {
-
-template <class T>
-__device__ __forceinline__ DofColumn<T> column(const BatchView<T>& v, long long b) {
-  return {v.data + b * v.batch_stride, v.dof_stride};
-}
-
-}  // namespace
-
 // One thread per instance b < B: the RNEA of instance b.
 template <class S, int C>
 __global__ void __launch_bounds__(kIdInstancesBlock)
@@ -87,8 +78,9 @@ __global__ void __launch_bounds__(kIdInstancesBlock)
   // double keeps the forward pass's transforms for iiwa-sized models (H100: 4.1e9
   // against 3.4e9 evaluations/s recomputing them; float gains nothing from it)
   constexpr bool kKeepXup = sizeof(S) == 8 && C <= 8;
-  rnea_instance<S, C, kKeepXup, (C * sizeof(S) <= 64), kThreadTrig<S>>(model, column(batch_in.q, b), column(batch_in.qd, b), column(batch_in.qdd, b), fext,
-                      column(tau_out, b));
+  rnea_instance<S, C, kKeepXup, (C * sizeof(S) <= 64), kThreadTrig<S>>(
+      model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b), instance_column(batch_in.qdd, b), fext,
+      instance_column(tau_out, b));
 }
 
 template <class S>

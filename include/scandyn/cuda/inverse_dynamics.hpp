@@ -198,6 +198,12 @@ struct DofColumn {
   __host__ __device__ __forceinline__ T& operator[](Index i) const { return data[i * stride]; }
 };
 
+// Instance b's entries of a batch view.
+template <class T>
+__host__ __device__ __forceinline__ DofColumn<T> instance_column(const BatchView<T>& v, long long b) {
+  return {v.data + b * v.batch_stride, v.dof_stride};
+}
+
 // The RNEA of one instance: tau = RNEA(q, qd, qdd) - sum J^T fext, gravity included,
 // the loops of scandyn::rnea (src/algorithm/reference.cpp) over the same step
 // functions and in the same order of summation. fext: nv body wrenches or null.
