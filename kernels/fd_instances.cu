@@ -65,16 +65,18 @@ cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn
 
 template <class S>
 CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options)
-    : model_(model), max_batch_(options.max_batch) {
+    : nv_(model.nv()), max_batch_(options.max_batch) {
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
-                       "' is not available for forward dynamics (one thread per instance: use auto or recursion)");
+                       "' is not available for forward dynamics (use auto or recursion)");
   // q, qd, tau, qdd (1 scalar per DoF each), fext (6) and a failed DoF for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(
-      max_batch_, model_.nv(), sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
-      10 * static_cast<std::size_t>(model_.nv()) * sizeof(S) + sizeof(int));
+      max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
+      10 * static_cast<std::size_t>(nv_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
-  bytes_ = staging_->bytes();
+  if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ThreadModel<S>>(model);
+  else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
+  bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
 }
 
@@ -83,15 +85,16 @@ CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
 
 template <class S>
 cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
-                                                  cudaStream_t stream) const {
-  return launch_fd_jsi_instances(model_, in, qdd, failed_dof, stream);
+                                                  cudaStream_t stream) {
+  return dense_ ? dense_->launch(in, qdd, failed_dof, stream)
+                : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
 }
 
 template <class S>
 FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof) {
   check_batch(in, qdd, max_batch_);
   const Index B = in.q.batch;
-  const Index nv = model_.nv();
+  const Index nv = nv_;
   FdBatchStatus status;
   if (B == 0) return status;
   int* const failed = failed_dof ? failed_dof : failed_host_.data();
@@ -122,12 +125,11 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
   // run
   const FdBatchIn<S> din{sq.device_view<const S>(dq, B), sqd.device_view<const S>(dqd, B),
                          stau.device_view<const S>(dtau, B), in.fext ? dfext : nullptr};
-  check(launch_fd_jsi_instances(model_, din, sqdd.device_view(dqdd, B), dfailed, stream),
-        "launching fd_jsi_instances_kernel");
+  check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
   // which instances failed, before qdd comes back over their entries
   check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the failed DoFs to the host");
-  check(cudaStreamSynchronize(stream), "running fd_jsi_instances_kernel");
+  check(cudaStreamSynchronize(stream), "running the forward dynamics");
   for (Index b = 0; b < B; ++b) {
     if (failed[b] < 0) continue;
     if (status.failed++ == 0) status.first_instance = b, status.first_dof = failed[b];

@@ -962,20 +962,23 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   EXPECT_EQ(rec.code, 2);
   EXPECT_NE(rec.err.find("scandyn: backend 'cuda': model 'rope:65' has 65 DoF"), std::string::npos) << rec.err;
   EXPECT_NE(rec.err.find("at most 64"), std::string::npos) << rec.err;
-  // fd has no link scans: one line naming the limit, with or without id
+  // fd beyond 64 DoF: CRBA + cuSOLVER's batched Cholesky, the serial JSI's numbers
   write_text(path("rope.csv"), States(65, 2, 33).csv({"q", "qd", "qdd", "tau"}));
-  for (const char* algos : {"fd", "id,fd", "bias,fd"}) {
-    SCOPED_TRACE(algos);
-    const Result fd = run(std::string("eval --model rope:65 --states rope.csv --out out.csv --backend cuda --algo ") + algos);
-    EXPECT_EQ(fd.code, 2);
-    EXPECT_EQ(fd.err,
-              "scandyn: backend 'cuda': --algo fd takes models of at most 64 DoF (one GPU thread per instance); "
-              "model 'rope:65' has 65 DoF\n");
+  ASSERT_EQ(run("eval --model rope:65 --states rope.csv --out fd_serial.csv --algo fd").code, 0);
+  const Result fd = run("eval --model rope:65 --states rope.csv --out fd_cuda.csv --backend cuda --algo fd");
+  ASSERT_EQ(fd.code, 0) << fd.err;
+  const Table fd_want = parse_csv(read_text(path("fd_serial.csv"))), fd_got = parse_csv(read_text(path("fd_cuda.csv")));
+  ASSERT_EQ(fd_got.names, fd_want.names);
+  ASSERT_EQ(fd_got.rows.size(), fd_want.rows.size());
+  for (std::size_t r = 0; r < fd_want.rows.size(); ++r) {
+    double scale = 1;
+    for (double x : fd_want.rows[r]) scale = std::max(scale, std::fabs(x));
+    for (std::size_t c = 0; c < fd_want.rows[r].size(); ++c)  // JSI against the serial ABA on a 65-link rope
+      EXPECT_NEAR(fd_got.rows[r][c], fd_want.rows[r][c], 1e-6 * scale) << "row " << r << " " << fd_want.names[c];
   }
-  const Result bench_fd = run("bench --model rope:65 --algo fd --instances 1 --backend cuda");
-  EXPECT_EQ(bench_fd.code, 2);
-  EXPECT_NE(bench_fd.err.find("--algo fd takes models of at most 64 DoF"), std::string::npos) << bench_fd.err;
-  EXPECT_TRUE(bench_fd.out.empty());
+  const Result bench_fd = run("bench --model rope:65 --algo fd --instances 3 --backend cuda");
+  EXPECT_EQ(bench_fd.code, 0) << bench_fd.err;
+  EXPECT_NE(bench_fd.out.find("fd,jsi_dense-host,cuda"), std::string::npos) << bench_fd.out;
   const Result scan = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda --algo id "
                           "--strategy scan-world");
   EXPECT_EQ(scan.code, 2);

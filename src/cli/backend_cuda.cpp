@@ -8,8 +8,9 @@
 //   resident()  bench's "thread" row: the batch copied once to device memory in the
 //               engine's fast layout (instance innermost), compute_async() on a stream.
 // fd runs through the CUDA forward-dynamics engine (scandyn/cuda/forward_dynamics.hpp):
-// the joint-space inertia (CRBA, L^T L) whatever --fd asks, one GPU thread per
-// instance, models of at most 64 DoF; run() only (bench's "jsi_thread-host" row),
+// the joint-space inertia whatever --fd asks: one GPU thread per instance (CRBA,
+// tree-sparse L^T L) up to 64 DoF, CRBA per block and cuSOLVER's batched Cholesky
+// beyond; run() only (bench's "jsi_thread-host" or "jsi_dense-host" row),
 // CudaForwardDynamics::compute(), whose first failed factorisation becomes the
 // BatchStatus that eval and bench report as for the CPU backends. Each engine is
 // made when the evaluator is, if its algorithms are among EvalOptions::algos, or on
@@ -242,11 +243,6 @@ class CudaEvaluator final : public Evaluator<S> {
 
   cuda::CudaForwardDynamics<S>& fd_engine() const {
     if (!fd_) {
-      if (nv_ > cuda::kMaxThreadDofs)
-        throw UsageError("backend 'cuda': --algo fd takes models of at most " + std::to_string(cuda::kMaxThreadDofs) +
-                             " DoF (one GPU thread per instance); model '" + model_.name + "' has " +
-                             std::to_string(nv_) + " DoF",
-                         false);
       BackendOptions bo = bo_;
       bo.strategy = IdStrategy::Auto;  // --strategy is inverse dynamics' (as on the CPU backends)
       try {

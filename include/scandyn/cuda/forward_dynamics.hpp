@@ -52,6 +52,7 @@
 
 #include "scandyn/backend.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/fd_dense.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -102,11 +103,11 @@ class CudaForwardDynamics {
   // Prepares the model and allocates the device buffers compute() stages through:
   // q, qd, tau, qdd and fext for options.max_batch instances plus one int each,
   // (10 * nv * sizeof(S) + sizeof(int)) * max_batch bytes (compute_async needs none
-  // of them). options.strategy must be Auto or Recursion. Throws BackendError when
-  // there is no usable device, the model has more than kMaxThreadDofs DoF (the
-  // thread-per-instance kernels size per-thread state at compile time), or the
-  // buffers do not fit in device memory (the message gives the bytes needed and the
-  // bytes free).
+  // of them); beyond kMaxThreadDofs DoF also DenseJsiPlan's buffers (the mass
+  // matrices: nv^2 scalars per instance). options.strategy must be Auto or
+  // Recursion. Throws BackendError when there is no usable device, or the buffers
+  // do not fit in device memory (the message gives the bytes needed and the bytes
+  // free).
   CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options);
   ~CudaForwardDynamics();
   CudaForwardDynamics(const CudaForwardDynamics&) = delete;
@@ -123,24 +124,31 @@ class CudaForwardDynamics {
   // the first time more instances fail than ever before (to keep their qdd).
   FdBatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof = nullptr);
 
-  // DEVICE pointers, any strides, on `stream`: launch_fd_jsi_instances with this
-  // engine's model (failed_dof: B ints on the device). Asynchronous: returns after
-  // queuing the kernel, with no hidden synchronisation, copy or allocation; not
-  // limited by max_batch. Safe to call from several host threads on different
-  // streams (the engine is not modified).
+  // DEVICE pointers, any strides, on `stream` (failed_dof: B ints on the device).
+  // Asynchronous: returns after queuing the kernels, with no hidden
+  // synchronisation, copy or allocation.
+  //   jsi_thread: launch_fd_jsi_instances with this engine's model; not limited by
+  //               max_batch; safe from several host threads on different streams;
+  //   jsi_dense:  DenseJsiPlan::launch; B <= max_batch (else cudaErrorInvalidValue);
+  //               the engine's scratch, so one stream at a time.
   cudaError_t compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
-                            cudaStream_t stream) const;
+                            cudaStream_t stream);
 
-  std::string strategy() const { return "jsi_thread"; }
+  // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF) or "jsi_dense"
+  // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond)
+  std::string strategy() const { return dense_ ? "jsi_dense" : "jsi_thread"; }
   std::string backend() const { return "cuda"; }
 
-  const ThreadModel<S>& thread_model() const { return model_; }
+  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
+  Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
   std::size_t device_bytes() const { return bytes_; }  // held by the staging buffers
 
  private:
-  ThreadModel<S> model_;
+  Index nv_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<DenseJsiPlan<S>> dense_;
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;
