@@ -127,6 +127,19 @@ Table parse_csv(const std::string& text) {
   return t;
 }
 
+// Every value of got within tol * max(1, max |row|) of want's, row by row, same
+// columns and rows.
+void expect_tables_near(const Table& got, const Table& want, double tol) {
+  ASSERT_EQ(got.names, want.names);
+  ASSERT_EQ(got.rows.size(), want.rows.size());
+  for (std::size_t r = 0; r < want.rows.size(); ++r) {
+    double scale = 1;
+    for (double x : want.rows[r]) scale = std::max(scale, std::fabs(x));
+    for (std::size_t c = 0; c < want.rows[r].size(); ++c)
+      EXPECT_NEAR(got.rows[r][c], want.rows[r][c], tol * scale) << "row " << r << " column " << want.names[c];
+  }
+}
+
 // Random states: [row][dof] for each family, uniform in [-1, 1].
 struct States {
   int nv = 0;
@@ -947,15 +960,7 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   ASSERT_EQ(run("eval --model rope:65 --states rope.csv --out rope_serial.csv --algo id").code, 0);
   const Result big = run("eval --model rope:65 --states rope.csv --out rope_cuda.csv --backend cuda --algo id");
   ASSERT_EQ(big.code, 0) << big.err;
-  const Table want = parse_csv(read_text(path("rope_serial.csv"))), got = parse_csv(read_text(path("rope_cuda.csv")));
-  ASSERT_EQ(got.names, want.names);
-  ASSERT_EQ(got.rows.size(), want.rows.size());
-  for (std::size_t r = 0; r < want.rows.size(); ++r) {
-    double scale = 1;
-    for (double x : want.rows[r]) scale = std::max(scale, std::fabs(x));
-    for (std::size_t c = 0; c < want.rows[r].size(); ++c)
-      EXPECT_NEAR(got.rows[r][c], want.rows[r][c], 1e-10 * scale) << "row " << r << " column " << want.names[c];
-  }
+  expect_tables_near(parse_csv(read_text(path("rope_cuda.csv"))), parse_csv(read_text(path("rope_serial.csv"))), 1e-10);
   // ... unless the thread strategy is asked for; scan-world is not on this backend
   const Result rec = run("eval --model rope:65 --states rope.csv --out out.csv --backend cuda --algo id "
                          "--strategy recursion");
@@ -967,15 +972,8 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   ASSERT_EQ(run("eval --model rope:65 --states rope.csv --out fd_serial.csv --algo fd").code, 0);
   const Result fd = run("eval --model rope:65 --states rope.csv --out fd_cuda.csv --backend cuda --algo fd");
   ASSERT_EQ(fd.code, 0) << fd.err;
-  const Table fd_want = parse_csv(read_text(path("fd_serial.csv"))), fd_got = parse_csv(read_text(path("fd_cuda.csv")));
-  ASSERT_EQ(fd_got.names, fd_want.names);
-  ASSERT_EQ(fd_got.rows.size(), fd_want.rows.size());
-  for (std::size_t r = 0; r < fd_want.rows.size(); ++r) {
-    double scale = 1;
-    for (double x : fd_want.rows[r]) scale = std::max(scale, std::fabs(x));
-    for (std::size_t c = 0; c < fd_want.rows[r].size(); ++c)  // JSI against the serial ABA on a 65-link rope
-      EXPECT_NEAR(fd_got.rows[r][c], fd_want.rows[r][c], 1e-6 * scale) << "row " << r << " " << fd_want.names[c];
-  }
+  // JSI against the serial ABA on a 65-link rope: the mass matrix's conditioning
+  expect_tables_near(parse_csv(read_text(path("fd_cuda.csv"))), parse_csv(read_text(path("fd_serial.csv"))), 1e-6);
   const Result bench_fd = run("bench --model rope:65 --algo fd --instances 3 --backend cuda");
   EXPECT_EQ(bench_fd.code, 0) << bench_fd.err;
   EXPECT_NE(bench_fd.out.find("fd,jsi_dense-host,cuda"), std::string::npos) << bench_fd.out;
