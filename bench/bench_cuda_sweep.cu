@@ -107,6 +107,27 @@ void bench_openmp(benchmark::State& st, const Model* md, Index B) {
 }
 
 
+// id_scan-local-runs<N>: the link scans with about N threads per pass (IdScanPlan's
+// target_runs), one rope instance: what the default (2^16) costs.
+template <class S>
+void bench_scan_runs(benchmark::State& st, const Model* md, unsigned target_runs) {
+  const ModelTpl<S> m = md->cast<S>();
+  const Index nv = m.nv();
+  std::unique_ptr<cuda::IdScanPlan<S>> plan;
+  try {
+    plan = std::make_unique<cuda::IdScanPlan<S>>(m, 1, target_runs);
+  } catch (const BackendError& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, 1), "allocating and filling the batch")) return;
+  const IdBatchIn<S> in = buf.in(nv, 1);
+  const BatchView<S> tau = buf.tau(nv, 1);
+  const double seconds = time_launches(st, [&] { return plan->launch(in, tau, nullptr); });
+  set_counters(st, nv, 1, max_rel_err<S>(*md, 1, tau.data, true, 1), seconds, sizeof(S));
+}
+
 // ---- forward dynamics by the joint-space inertia --------------------------------------
 
 // max rel_err of qdd (soa, host or device) against the double serial fd_jsi on the
@@ -266,6 +287,13 @@ int main(int argc, char** argv) {
       auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<float>(st, md, B); })
                      : benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<double>(st, md, B); });
       c->UseRealTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
+    }
+    if (fixed_b > 0 && nv >= 1000000) {
+      for (unsigned runs : {1u << 14, 1u << 15, 1u << 17, 1u << 18}) {
+        const std::string name = "id_scan-local-runs" + std::to_string(runs) + "/float/" + label + "/cuda";
+        benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) { bench_scan_runs<float>(st, md, runs); })
+            ->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
+      }
     }
     if (fixed_b > 0 || nv > cuda::kMaxThreadDofs) continue;
     for (int prec = 0; prec < 2; ++prec) {

@@ -44,16 +44,15 @@ __device__ __forceinline__ Transform<S> zero_transform() {
 // of bodies with branch children (for the heads that hang from them), and the
 // forces of those heads (for their parents' offsets).
 constexpr int kRunBlock = 128;
-constexpr unsigned kTargetRuns = 1u << 16;  // threads per pass, when there are elements for them
 constexpr unsigned kMinRun = 4, kMaxRun = 64;
 
 struct RunShape {
   unsigned n, P, C, B, R;  // bodies, chunk length, chunks, instances, runs = C B
 };
 
-RunShape run_shape(unsigned n, unsigned B) {
+RunShape run_shape(unsigned n, unsigned B, unsigned target_runs) {
   const unsigned long long count = static_cast<unsigned long long>(n) * B;
-  unsigned P = static_cast<unsigned>(std::min<unsigned long long>(kMaxRun, (count + kTargetRuns - 1) / kTargetRuns));
+  unsigned P = static_cast<unsigned>(std::min<unsigned long long>(kMaxRun, (count + target_runs - 1) / target_runs));
   P = std::min(n, std::max(kMinRun, P));
   const unsigned C = (n + P - 1) / P;
   return {n, P, C, B, C * B};
@@ -430,7 +429,8 @@ std::size_t IdScanPlan<S>::bytes_needed(const ModelTpl<S>& model, Index max_batc
 }
 
 template <class S>
-IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch) : nv_(model.nv()), max_batch_(max_batch) {
+IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned target_runs)
+    : nv_(model.nv()), max_batch_(max_batch), target_runs_(std::max(1u, target_runs)) {
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   std::vector<Body<S>> table;
   const HostPlan h = host_plan(model, &table);
@@ -540,7 +540,8 @@ cudaError_t IdScanPlan<S>::launch(const IdBatchIn<S>& in, const BatchView<S>& ta
   auto at_level = [&](Index l) {
     L.order = order_ + level_begin_[l];
     L.role = role_ + level_begin_[l];
-    L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B));
+    L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B),
+                        target_runs_);
     L.base = base[l];
   };
   for (Index l = 0; l < nl; ++l) {

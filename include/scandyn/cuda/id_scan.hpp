@@ -60,13 +60,17 @@ enum ScanRole : unsigned char {
   kSegmentTail = 2,  // last body of its segment: body i + 1 is not its child
 };
 
+// Threads per scan pass the plans aim at (IdScanPlan's target_runs).
+inline constexpr unsigned kDefaultTargetRuns = 1u << 16;
+
 template <class S>
 class IdScanPlan {
  public:
   // Copies the model to the device and allocates the scratch for max_batch
-  // instances. Throws BackendError when the device memory does not suffice
-  // (naming the bytes needed and free) or on any CUDA error.
-  IdScanPlan(const ModelTpl<S>& model, Index max_batch);
+  // instances. target_runs: about how many threads a pass runs (chunks get longer,
+  // up to 64 links, before there are more). Throws BackendError when the device
+  // memory does not suffice (naming the bytes needed and free) or on any CUDA error.
+  IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned target_runs = kDefaultTargetRuns);
   ~IdScanPlan();
   IdScanPlan(const IdScanPlan&) = delete;
   IdScanPlan& operator=(const IdScanPlan&) = delete;
@@ -91,6 +95,7 @@ class IdScanPlan {
  private:
   Index nv_ = 0;
   Index max_batch_ = 0;
+  unsigned target_runs_ = kDefaultTargetRuns;
   Index classes_ = 0;
   Motion<S> a0_{};                      // base acceleration (-g)
   std::vector<Index> level_begin_;      // (levels + 1) offsets into order_
