@@ -22,7 +22,12 @@
 //                                                    some spills);
 //   fd_jsi_thread-unrolled/float/hyq/cuda            capacity 16 unrolled (the engine
 //                                                    rolls it: > 255 registers);
-//   the variants at B = 10^6 and 10^7, to show what the engine's choices cost.
+//   the variants at B = 10^6 and 10^7, to show what the engine's choices cost;
+//   fd_aba_thread/<precision>/<model>/cuda           the engine with FdAlgorithm::Aba
+//                                                    (articulated-body algorithm, one
+//                                                    thread per instance), as the
+//                                                    fd_jsi_thread rows; max_rel_err
+//                                                    against the double serial aba.
 // Device rows are timed with CUDA events around the launch alone (manual time), so
 // host copies are excluded; q, qd, tau are uniform in [-1, 1] from a counter-based
 // hash, generated on the device (M is well conditioned for the robots at any q).
@@ -82,6 +87,21 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
       instance_column(qdd_out, b));
 }
 
+// The engine's ABA kernel (aba_instances_kernel), for its resources.
+template <class S, int C, bool kUnrolled, int kMinBlocks>
+__global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
+    aba_variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+                       const BatchView<S> qdd_out, int* const failed_dof_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= batch_in.q.batch) return;
+  using cuda::instance_column;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
+  failed_dof_out[b] = cuda::aba_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b),
+                                                                 instance_column(batch_in.qd, b),
+                                                                 instance_column(batch_in.tau, b), fext,
+                                                                 instance_column(qdd_out, b));
+}
+
 // Device buffers q, qd, tau, qdd (nv x B each, soa) and B failed DoFs, freed on scope exit.
 template <class S>
 struct DeviceBatch {
@@ -110,9 +130,9 @@ struct DeviceBatch {
 };
 
 // max rel_err over up to 64 instances: qdd (soa, nv x B, host or device) against the
-// double serial fd_jsi on the same (S-rounded) inputs.
+// double serial fd_jsi (with_aba: aba) on the same (S-rounded) inputs.
 template <class S>
-double max_rel_err(const Model& md, Index B, const S* qdd, bool on_device) {
+double max_rel_err(const Model& md, Index B, const S* qdd, bool on_device, bool with_aba = false) {
   const Index nv = md.nv();
   Data d(md);
   std::vector<double> q(nv), qd(nv), tau(nv), ref(nv), ours(nv);
@@ -126,7 +146,9 @@ double max_rel_err(const Model& md, Index B, const S* qdd, bool on_device) {
       qd[i] = double(S(uniform(1, k)));
       tau[i] = double(S(uniform(2, k)));
     }
-    if (!fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data()).ok()) return std::nan("");
+    const Status ok = with_aba ? aba(md, d, q.data(), qd.data(), tau.data(), ref.data())
+                               : fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data());
+    if (!ok.ok()) return std::nan("");
     if (on_device) {
       if (cudaMemcpy2D(col.data(), sizeof(S), qdd + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
           cudaSuccess)
@@ -159,21 +181,22 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double fa
   st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
 }
 
-// fd_jsi_thread: the engine's device path.
+// fd_jsi_thread (fd_aba_thread with FdAlgorithm::Aba): the engine's device path.
 template <class S>
-void bench_device(benchmark::State& st, const Model* md, Index B) {
+void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 0;  // no staging buffers: the device path does not use them
-  cuda::CudaForwardDynamics<S> engine(m, o);
+  cuda::CudaForwardDynamics<S> engine(m, o, alg);
   DeviceBatch<S> buf;
   if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
   const FdBatchIn<S> in = buf.in(nv, B);
   const BatchView<S> qdd = buf.qdd(nv, B);
   const double seconds = time_launches(st, [&] { return engine.compute_async(in, qdd, buf.failed, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true), count_failed(buf.failed, B), seconds, sizeof(S));
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == cuda::FdAlgorithm::Aba),
+               count_failed(buf.failed, B), seconds, sizeof(S));
 }
 
 // the variants: the bench's own instances of the device function.
@@ -243,6 +266,9 @@ void print_limits() {
   bench::print_kernel("C=8 double, cap128", variant_kernel<double, 8, false, true, 4>, blk);
   bench::print_kernel("C=16 float (the engine's: rolled)", variant_kernel<float, 16, false, false, 1>, blk);
   bench::print_kernel("C=16 float, unrolled", variant_kernel<float, 16, false, true, 1>, blk);
+  bench::print_kernel("ABA C=8 float (the engine's)", aba_variant_kernel<float, 8, true, 4>, blk);
+  bench::print_kernel("ABA C=8 double (the engine's)", aba_variant_kernel<double, 8, false, 1>, blk);
+  bench::print_kernel("ABA C=16 float (the engine's)", aba_variant_kernel<float, 16, false, 4>, blk);
   std::fflush(stdout);
 }
 
@@ -302,6 +328,9 @@ int main(int argc, char** argv) {
         const Index b = static_cast<Index>(B);
         if (fl) add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b); });
         else add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b); });
+        constexpr auto kAba = cuda::FdAlgorithm::Aba;
+        if (fl) add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b, kAba); });
+        else add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b, kAba); });
         if (label == "iiwa" && B >= 1000000) {
           if (fl) {
             add("fd_jsi_thread-keepxup/" + post, [=](benchmark::State& st) { bench_variant<float, 8, true, true, 1>(st, m, b); });

@@ -61,14 +61,55 @@ cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn
   return cudaGetLastError();
 }
 
+// One thread per instance b < B: the forward dynamics of instance b by the ABA.
+// Launch bounds as fd_jsi_instances_kernel's (not measured for the ABA: no device
+// was at hand when it was written); loops unrolled for capacity 8 in float, as there.
+template <class S, int C>
+__global__ void __launch_bounds__(kFdInstancesBlock, sizeof(S) == 4 ? 4 : 1)
+    aba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+                         const BatchView<S> qdd_out, int* const failed_dof_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= batch_in.q.batch) return;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
+  constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;
+  failed_dof_out[b] =
+      aba_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b),
+                                           instance_column(batch_in.tau, b), fext, instance_column(qdd_out, b));
+}
+
+template <class S>
+cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+                                 const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
+  const Index B = batch_in.q.batch;
+  if (B < 0 || batch_in.qd.batch != B || batch_in.tau.batch != B || qdd_out.batch != B) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  if (!failed_dof_out) return cudaErrorInvalidValue;
+  if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
+    return cudaErrorInvalidValue;
+  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
+  std::visit(
+      [&](const auto& params) {
+        using P = std::decay_t<decltype(params)>;
+        aba_instances_kernel<S, P::capacity>
+            <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+      },
+      model.params());
+  return cudaGetLastError();
+}
+
 // ---- the engine -------------------------------------------------------------------
 
 template <class S>
-CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch) {
+CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
+                                            FdAlgorithm algorithm)
+    : nv_(model.nv()), aba_(algorithm == FdAlgorithm::Aba), max_batch_(options.max_batch) {
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for forward dynamics (use auto or recursion)");
+  if (aba_ && nv_ > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
+                       std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
+                       " (use the joint-space inertia method, FdAlgorithm::Jsi or Auto)");
   // q, qd, tau, qdd (1 scalar per DoF each), fext (6) and a failed DoF for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(
       max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
@@ -86,6 +127,7 @@ CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
 template <class S>
 cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                                                   cudaStream_t stream) {
+  if (aba_) return launch_aba_instances(*thread_, in, qdd, failed_dof, stream);
   return dense_ ? dense_->launch(in, qdd, failed_dof, stream)
                 : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
 }
@@ -158,7 +200,9 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
 #define SCANDYN_INSTANTIATE(S)                                                                             \
   template class CudaForwardDynamics<S>;                                                                   \
   template cudaError_t launch_fd_jsi_instances(const ThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
-                                               int*, cudaStream_t);
+                                               int*, cudaStream_t);                             \
+  template cudaError_t launch_aba_instances(const ThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
+                                            int*, cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)
 #undef SCANDYN_INSTANTIATE

@@ -141,9 +141,10 @@ Errors worst_errors(const Model& md, const Batch<S>& batch, bool with_fext, cons
   return worst;
 }
 
-// The serial float fd_jsi's error on the same inputs (Batch<float>(md, B, seed)):
+// The serial float fd_jsi's (with_aba: aba's) error on the same inputs
+// (Batch<float>(md, B, seed)), against the double reference of the same algorithm:
 // the scale of float rounding for a model.
-double cpu_float_error(const Model& md, Index B, bool with_fext, unsigned seed) {
+double cpu_float_error(const Model& md, Index B, bool with_fext, unsigned seed, bool with_aba = false) {
   const ModelTpl<float> m = md.cast<float>();
   const Index nv = m.nv();
   Batch<float> batch(md, B, seed);
@@ -157,9 +158,13 @@ double cpu_float_error(const Model& md, Index B, bool with_fext, unsigned seed) 
     std::vector<Force<float>> ff;
     if (with_fext)
       for (Index i = 0; i < nv; ++i) ff.push_back(batch.wrenches(b, true)[i].cast<float>());
-    fd_jsi(m, d, qf.data(), qdf.data(), tf.data(), qdd_buf.data() + l.at(0, b), with_fext ? ff.data() : nullptr);
+    if (with_aba)
+      aba(m, d, qf.data(), qdf.data(), tf.data(), qdd_buf.data() + l.at(0, b), with_fext ? ff.data() : nullptr);
+    else
+      fd_jsi(m, d, qf.data(), qdf.data(), tf.data(), qdd_buf.data() + l.at(0, b), with_fext ? ff.data() : nullptr);
   }
-  return worst_errors<float>(md, batch, with_fext, qdd_buf, l).jsi;
+  const Errors e = worst_errors<float>(md, batch, with_fext, qdd_buf, l);
+  return with_aba ? e.aba : e.jsi;
 }
 
 // The double tolerance against fd_jsi on a model: 1e-10, or 10x what two exact
@@ -187,13 +192,20 @@ double float_tol(const Model& md, Index B, bool with_fext, unsigned seed) {
   return std::max(kFloatTol, 10 * cpu_float_error(md, B, with_fext, seed));
 }
 
+// The float tolerance of the ABA against the serial double aba: max(1e-4, 10 x the
+// serial float aba's own error on the same inputs).
+double aba_float_tol(const Model& md, Index B, bool with_fext, unsigned seed) {
+  return std::max(kFloatTol, 10 * cpu_float_error(md, B, with_fext, seed, true));
+}
+
 // ---- the device function on the host ------------------------------------------------
 
 // fd_jsi_instance run on the host (it is __host__ __device__) over a batch in aos
 // layout (inputs Batch<S>(md, B, kHostSeed)); every instance must succeed.
 constexpr unsigned kHostSeed = 11;
 
-template <class S, bool kKeepXup, bool kUnrolled>
+// kAba: aba_instance instead of fd_jsi_instance.
+template <class S, bool kKeepXup, bool kUnrolled, bool kAba = false>
 Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
   const ModelTpl<S> m = md.cast<S>();
   const cuda::ThreadModel<S> tm(m);
@@ -211,8 +223,12 @@ Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
     const Index failed = std::visit(
         [&](const auto& p) {
           using P = std::decay_t<decltype(p)>;
-          return cuda::fd_jsi_instance<S, P::capacity, kKeepXup, kUnrolled>(
-              p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
+          if constexpr (kAba)
+            return cuda::aba_instance<S, P::capacity, kKeepXup, kUnrolled>(
+                p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
+          else
+            return cuda::fd_jsi_instance<S, P::capacity, kKeepXup, kUnrolled>(
+                p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
         },
         tm.params());
     EXPECT_EQ(failed, -1) << "instance " << b;
@@ -383,6 +399,116 @@ TEST(CudaFdErrors, WithoutADevice) {
   }
 }
 
+// ---- aba_instance on the host ---------------------------------------------------------
+//
+// Against the serial aba (the same algorithm, formulas and order: bit-identical on
+// the same host up to FMA contraction, asserted as <= 1e-12 in double), and against
+// fd_jsi within jsi_tol (two exact algorithms on one mass matrix). Float: within
+// max(1e-4, 10 x the serial float aba's own error on the same inputs).
+TEST(CudaFdAbaModel, DeviceFunctionOnTheHost) {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (auto& m : generated_models()) models.push_back(std::move(m));
+  for (const auto& [name, md] : models) {
+    SCOPED_TRACE(name);
+    const double jtol = jsi_tol(md);
+    for (bool fx : {false, true}) {
+      SCOPED_TRACE(fx ? "fext" : "no fext");
+      for (const Errors& e : {host_instance_errors<double, false, true, true>(md, 20, fx),
+                              host_instance_errors<double, false, false, true>(md, 20, fx),
+                              host_instance_errors<double, true, true, true>(md, 20, fx),
+                              host_instance_errors<double, true, false, true>(md, 20, fx)}) {
+        EXPECT_LE(e.aba, 1e-12);
+        EXPECT_LE(e.jsi, jtol);
+      }
+      const double ftol = aba_float_tol(md, 20, fx, kHostSeed);
+      for (const Errors& e : {host_instance_errors<float, false, true, true>(md, 20, fx),
+                              host_instance_errors<float, false, false, true>(md, 20, fx),
+                              host_instance_errors<float, true, false, true>(md, 20, fx)})
+        EXPECT_LE(e.aba, ftol);
+    }
+  }
+}
+
+// Articulated pivot failures on the host: the DoF the serial aba reports, qdd left
+// unwritten.
+template <class S, bool kUnrolled>
+void check_host_aba_failure(const Model& md, const std::vector<S>& q, const std::vector<S>& qd,
+                            const std::vector<S>& tau) {
+  const ModelTpl<S> m = md.cast<S>();
+  DataTpl<S> d(m);
+  const Index nv = m.nv();
+  std::vector<S> ref(nv, S(kSentinel)), qdd(nv, S(kSentinel));
+  const Status want = aba(m, d, q.data(), qd.data(), tau.data(), ref.data());
+  ASSERT_FALSE(want.ok());
+  const Index got = std::visit(
+      [&](const auto& p) {
+        using P = std::decay_t<decltype(p)>;
+        return cuda::aba_instance<S, P::capacity, false, kUnrolled>(p, {q.data(), 1}, {qd.data(), 1}, {tau.data(), 1},
+                                                                   nullptr, {qdd.data(), 1});
+      },
+      cuda::ThreadModel<S>(m).params());
+  EXPECT_EQ(got, want.failed_dof);
+  for (Index i = 0; i < nv; ++i) EXPECT_EQ(qdd[i], S(kSentinel)) << "qdd[" << i << "] was written";
+}
+
+template <class S>
+void host_aba_failures() {
+  // a massless leaf: D = 0 at the last DoF, for every state
+  {
+    const Model md = massless_leaf(5);
+    const std::vector<S> x(5, S(0.3));
+    check_host_aba_failure<S, true>(md, x, x, x);
+    check_host_aba_failure<S, false>(md, x, x, x);
+  }
+  // a non-finite joint position reaches the parent's articulated inertia (wherever
+  // the serial aba reports a failure; a root's position does not enter any IA)
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    const ModelTpl<S> m = md.cast<S>();
+    DataTpl<S> d(m);
+    Index checked = 0;
+    for (Index j = 0; j < nv; ++j) {
+      for (S bad : {std::numeric_limits<S>::quiet_NaN(), std::numeric_limits<S>::infinity()}) {
+        SCOPED_TRACE(std::string(file) + " q[" + std::to_string(j) + "] = " + std::to_string(bad));
+        std::vector<S> q(nv, S(0.2)), x(nv, S(0.1)), out(nv);
+        q[j] = bad;
+        if (aba(m, d, q.data(), x.data(), x.data(), out.data()).ok()) continue;
+        check_host_aba_failure<S, true>(md, q, x, x);
+        check_host_aba_failure<S, false>(md, q, x, x);
+        ++checked;
+      }
+    }
+    EXPECT_GT(checked, 0) << file;
+  }
+}
+
+TEST(CudaFdAbaModel, PivotFailuresOnTheHost) {
+  host_aba_failures<double>();
+  host_aba_failures<float>();
+}
+
+TEST(CudaFdAbaErrors, WithoutADevice) {
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 4;
+  // beyond kMaxThreadDofs: no ABA kernel, a BackendError before any device work
+  try {
+    cuda::CudaForwardDynamics<double> e(load_model("chain:65"), o, cuda::FdAlgorithm::Aba);
+    ADD_FAILURE() << "an ABA engine was made for 65 DoF";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("up to 64 DoF"), std::string::npos) << e.what();
+  }
+  if (test::no_device_reason().empty()) {
+    cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o, cuda::FdAlgorithm::Aba);
+    EXPECT_EQ(e.strategy(), "aba_thread");
+    EXPECT_EQ(e.algorithm(), cuda::FdAlgorithm::Aba);
+    cuda::CudaForwardDynamics<float> j(load_model("chain:3").cast<float>(), o);
+    EXPECT_EQ(j.algorithm(), cuda::FdAlgorithm::Jsi);
+  }
+}
+
 // ---- on the device ----------------------------------------------------------------
 
 namespace {
@@ -391,7 +517,7 @@ namespace {
 // Returns the worst instance errors; checks the gaps of qdd and that all succeeded.
 template <class S>
 Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& ltau,
-                const Layout& lout, unsigned seed = 1) {
+                const Layout& lout, unsigned seed = 1, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   Batch<S> batch(md, B, seed);
@@ -407,7 +533,10 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
-  cuda::CudaForwardDynamics<S> engine(m, o);
+  cuda::CudaForwardDynamics<S> engine(m, o, alg);
+  EXPECT_EQ(engine.strategy(), alg == cuda::FdAlgorithm::Aba ? "aba_thread"
+                               : md.nv() > cuda::kMaxThreadDofs ? "jsi_dense"
+                                                                : "jsi_thread");
   const FdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
                         {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
                         {tau.data() + ltau.base, B, ltau.ds, ltau.bs},
@@ -429,9 +558,9 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
 }
 
 template <class S>
-Errors host_run_soa(const Model& md, Index B, bool with_fext) {
+Errors host_run_soa(const Model& md, Index B, bool with_fext, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
   const Layout l = soa(md.nv(), B);
-  return host_run<S>(md, B, with_fext, l, l, l, l);
+  return host_run<S>(md, B, with_fext, l, l, l, l, 1, alg);
 }
 
 // compute_async: device pointers with their own strides, the caller's stream.
@@ -666,6 +795,44 @@ TEST(CudaFd, PivotFailuresReported) {
   EXPECT_EQ(st.first_instance, 0);
   EXPECT_EQ(st.first_dof, 4);
   EXPECT_EQ(st.message(), "instance 0: mass matrix pivot at DoF 4 is not positive (and 39 more instances)");
+  EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
+}
+
+// ---- the ABA on the device (FdAlgorithm::Aba) ------------------------------------------
+//
+// Against the serial double aba: double 1e-10 (the device's FMA contractions and
+// sin/cos); float max(1e-4, 10 x the serial float aba's error on the same inputs).
+TEST(CudaFdAba, MatchesReferences) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (auto& m : generated_models()) models.push_back(std::move(m));
+  for (const auto& [name, md] : models) {
+    for (Index B : {1, 33, 1000}) {
+      const bool fx = B != 1000;
+      SCOPED_TRACE(name + " B=" + std::to_string(B) + (fx ? " fext" : ""));
+      EXPECT_LE(host_run_soa<double>(md, B, fx, cuda::FdAlgorithm::Aba).aba, kDoubleTol);
+      EXPECT_LE(host_run_soa<float>(md, B, fx, cuda::FdAlgorithm::Aba).aba, aba_float_tol(md, B, fx, 1));
+    }
+  }
+}
+
+TEST(CudaFdAba, PivotFailuresReported) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = massless_leaf(5);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 40;
+  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Aba);
+  std::vector<double> x(5 * 40, 0.25), qdd(5 * 40, kSentinel);
+  std::vector<int> failed(40, -2);
+  using V = BatchView<const double>;
+  const FdBatchIn<double> in{V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40)};
+  const cuda::FdBatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40), failed.data());
+  EXPECT_EQ(st.failed, 40);
+  EXPECT_EQ(st.first_instance, 0);
+  EXPECT_EQ(st.first_dof, 4);
+  EXPECT_EQ(std::count(failed.begin(), failed.end(), 4), 40);
   EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
 }
 

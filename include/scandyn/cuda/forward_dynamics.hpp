@@ -95,6 +95,21 @@ template <class S>
 cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
                                     const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
 
+// The same by the articulated-body algorithm (aba_instance, aba_instances_kernel),
+// with the same arguments, checks and return values; failed_dof_out[b] is -1 or the
+// DoF whose articulated pivot D failed (qdd of that instance unwritten).
+template <class S>
+cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+                                 const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
+
+// Which algorithm CudaForwardDynamics runs.
+enum class FdAlgorithm {
+  Auto,  // Jsi (ABA has not been measured against it on a device yet)
+  Jsi,   // joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond
+  Aba,   // articulated-body algorithm, one thread per instance ("aba_thread"), up to
+         // kMaxThreadDofs DoF (beyond: BackendError, no kernel yet)
+};
+
 // The batched forward-dynamics engine on one CUDA device (the device current at
 // construction).
 template <class S>
@@ -107,8 +122,12 @@ class CudaForwardDynamics {
   // matrices: nv^2 scalars per instance). options.strategy must be Auto or
   // Recursion. Throws BackendError when there is no usable device, or the buffers
   // do not fit in device memory (the message gives the bytes needed and the bytes
-  // free).
-  CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options);
+  // free). algorithm: FdAlgorithm::Aba selects the articulated-body algorithm
+  // (strategy "aba_thread"), for models of up to kMaxThreadDofs DoF (beyond: a
+  // BackendError); Auto and Jsi the joint-space inertia. The staging and the
+  // compute() / compute_async() contracts are the same for both.
+  CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
+                      FdAlgorithm algorithm = FdAlgorithm::Auto);
   ~CudaForwardDynamics();
   CudaForwardDynamics(const CudaForwardDynamics&) = delete;
   CudaForwardDynamics& operator=(const CudaForwardDynamics&) = delete;
@@ -129,14 +148,18 @@ class CudaForwardDynamics {
   // synchronisation, copy or allocation.
   //   jsi_thread: launch_fd_jsi_instances with this engine's model; not limited by
   //               max_batch; safe from several host threads on different streams;
+  //   aba_thread: launch_aba_instances, likewise;
   //   jsi_dense:  DenseJsiPlan::launch; B <= max_batch (else cudaErrorInvalidValue);
   //               the engine's scratch, so one stream at a time.
   cudaError_t compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                             cudaStream_t stream);
 
-  // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF) or "jsi_dense"
-  // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond)
-  std::string strategy() const { return dense_ ? "jsi_dense" : "jsi_thread"; }
+  // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
+  // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
+  // "aba_thread" (FdAlgorithm::Aba: ABA, one thread per instance)
+  std::string strategy() const { return aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread"; }
+  // Jsi or Aba: the algorithm the engine runs (Auto resolved)
+  FdAlgorithm algorithm() const { return aba_ ? FdAlgorithm::Aba : FdAlgorithm::Jsi; }
   std::string backend() const { return "cuda"; }
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
@@ -147,6 +170,7 @@ class CudaForwardDynamics {
 
  private:
   Index nv_ = 0;
+  bool aba_ = false;
   std::unique_ptr<ThreadModel<S>> thread_;
   std::unique_ptr<DenseJsiPlan<S>> dense_;
   Index max_batch_ = 0;
@@ -344,6 +368,135 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
     fd_detail::for_ancestors<kUnrolled>(model, i, [&](Index j) { acc -= M[tri(i, j)] * x[j]; });
     x[i] = acc / M[tri(i, i)];
     qdd[i] = x[i];
+  }
+  return -1;
+}
+
+// Forward dynamics of one instance by the articulated-body algorithm (ABA,
+// Featherstone (2008) 7.3): the three passes of the serial scandyn::aba
+// (src/algorithm/reference.cpp) over the same step functions (steps.hpp), in its
+// order: pass 1 (velocities, c = v x S qd, bias forces pA = v x* I v - fext), pass 2
+// from the last body to the first (aba_joint_terms, the pivot check, then
+// aba_backward_to_parent into the parent's articulated inertia and bias force),
+// pass 3 from the first to the last (aba_acceleration_step). gravity included;
+// fext: nv body wrenches or null. Returns -1, or the DoF whose articulated pivot
+// D_i = S_i^T IA_i S_i was not positive and finite (the DoF the serial aba reports),
+// in which case qdd is not written (pass 2 completes before pass 3 writes anything).
+//
+// A parent receives its children in descending order, as in the reference: body
+// i + 1 (kParentIsPrev) is the last of them, and hands its articulated inertia and
+// bias force over in registers (IAcarry, pcarry), added after the others; every
+// other child adds into its parent's slot of the stack arrays sIA / pA (the parent is
+// then kStacked, and its sIA slot starts as its rigid inertia in pass 1). A body's
+// v (pass 1) and a (pass 3) reach its children in registers (body i + 1) or through
+// the stack array sm (kStacked bodies; pass 1's v there is dead once pass 1 ends).
+//
+// Also a host function (under nvcc), so the tests check its logic without a device.
+//
+// State (per thread): c, U, pA (C each, 6 scalars), D, u (C), the stack arrays
+// sIA (C articulated inertias, 21 scalars; only kStacked bodies' slots are used) and
+// sm (C motions). With kUnrolled every loop runs over compile-time indices so that
+// the per-body arrays can live in registers; otherwise they are per-thread (local)
+// memory. kKeepXup keeps each body's transform from pass 1 for passes 2 and 3;
+// otherwise joint_transform is evaluated again in each (fewer registers, more
+// arithmetic).
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
+__host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
+                                                       DofColumn<const S> qd, DofColumn<const S> tau,
+                                                       const Force<S>* fext, DofColumn<S> qdd) {
+  constexpr int kRegs = kUnrolled ? C : 1;  // register copies of q when unrolled
+  constexpr int kXup = kKeepXup ? C : 1;
+  const Index n = model.nv;
+  S q_r[kRegs];
+  Transform<S> Xup[kXup];  // (nv) parent -> body transforms (kKeepXup)
+  Motion<S> c[C];          // (nv) v_i x S_i qd_i
+  Force<S> pA[C];          // (nv) bias force; non-chain children add theirs here
+  Force<S> U[C];           // (nv) IA_i S_i
+  S D[C], u[C];            // (nv) S_i^T U_i, tau_i - S_i^T pA_i
+  ABInertia<S> sIA[C];     // stack: articulated inertias of kStacked bodies
+  Motion<S> sm[C];         // stack: v (pass 1), then a (pass 3), of kStacked bodies
+
+  auto q_at = [&](Index i) -> S {
+    if constexpr (kUnrolled) return q_r[kUnrolled ? i : 0];
+    else return q[i];
+  };
+  auto xup = [&](Index i, const Body<S>& b) -> Transform<S> {
+    if constexpr (kKeepXup) return Xup[kKeepXup ? i : 0];
+    else return joint_transform<kTrig>(b, q_at(i));
+  };
+
+  // load q: all of it in flight before the first use (unrolled)
+  if constexpr (kUnrolled) {
+#pragma unroll
+    for (Index i = 0; i < C; ++i)
+      if (i < n) q_r[kUnrolled ? i : 0] = q[i];
+  }
+
+  // pass 1: kinematics and bias forces, root to leaves
+  Motion<S> v_prev = Motion<S>::zero();  // body i - 1's v
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
+    const Body<S>& b = model.body[i];
+    const int fl = model.flags[i];
+    Motion<S> vp = Motion<S>::zero();
+    if (fl & kParentIsPrev) vp = v_prev;
+    else if (!(fl & kParentIsBase)) vp = sm[b.parent];
+    const Transform<S> X = joint_transform<kTrig>(b, q_at(i));
+    if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
+    const AbaForward<S> o = aba_forward_step(b, X, vp, qd[i]);
+    c[i] = o.c;
+    pA[i] = fext ? o.pA - fext[i] : o.pA;
+    if (fl & kStacked) sm[i] = o.v, sIA[i] = ABInertia<S>::from(b.I);
+    v_prev = o.v;
+  }
+
+  // pass 2: articulated inertias and bias forces, leaves to root
+  ABInertia<S> IAcarry{};  // body i + 1's contribution Xup^T Ia Xup, when its parent is body i
+  Force<S> pcarry = Force<S>::zero();
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = C - 1; i >= 0; --i) {
+    if (i >= n) continue;
+    const Body<S>& b = model.body[i];
+    const int fl = model.flags[i];
+    ABInertia<S> IA = (fl & kStacked) ? sIA[i] : ABInertia<S>::from(b.I);
+    Force<S> p = pA[i];
+    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) {
+      IA += IAcarry;
+      p += pcarry;
+    }
+    Force<S> Ui;
+    S Di, ui;
+    aba_joint_terms(b, IA, p, tau[i], Ui, Di, ui);
+    if (!pivot_ok(Di)) return i;
+    U[i] = Ui, D[i] = Di, u[i] = ui;
+    if (fl & kParentIsBase) continue;
+    const Transform<S> X = xup(i, b);
+    if (fl & kParentIsPrev) {
+      // the parent's slots start from zero: 0 + x == x, the same sums as the reference's
+      IAcarry = ABInertia<S>{};
+      pcarry = Force<S>::zero();
+      aba_backward_to_parent(X, IA, p, c[i], Ui, Di, ui, IAcarry, pcarry);
+    } else {
+      aba_backward_to_parent(X, IA, p, c[i], Ui, Di, ui, sIA[b.parent], pA[b.parent]);
+    }
+  }
+
+  // pass 3: accelerations, root to leaves
+  const Motion<S> a0 = model.a0;
+  Motion<S> a_prev = a0;  // body i - 1's a
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;
+    const Body<S>& b = model.body[i];
+    const int fl = model.flags[i];
+    Motion<S> ap = a0;
+    if (fl & kParentIsPrev) ap = a_prev;
+    else if (!(fl & kParentIsBase)) ap = sm[b.parent];
+    Motion<S> a;
+    qdd[i] = aba_acceleration_step(b, xup(i, b), ap, c[i], U[i], D[i], u[i], a);
+    if (fl & kStacked) sm[i] = a;
+    a_prev = a;
   }
   return -1;
 }
