@@ -407,7 +407,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
   constexpr int kRegs = kUnrolled ? C : 1;  // register copies of q when unrolled
   constexpr int kXup = kKeepXup ? C : 1;
   const Index n = model.nv;
-  S q_r[kRegs];
+  S q_r[kRegs] = {};
   Transform<S> Xup[kXup];  // (nv) parent -> body transforms (kKeepXup)
   Motion<S> c[C];          // (nv) v_i x S_i qd_i
   Force<S> pA[C];          // (nv) bias force; non-chain children add theirs here
