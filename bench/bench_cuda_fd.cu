@@ -87,7 +87,7 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
       instance_column(qdd_out, b));
 }
 
-// The engine's ABA kernel (aba_instances_kernel), for its resources.
+// The engine's ABA kernel (fd_instances_kernel with kAba), for its resources.
 template <class S, int C, bool kUnrolled, int kMinBlocks>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     aba_variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,

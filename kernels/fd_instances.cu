@@ -2,7 +2,7 @@
 // thread per instance.
 //
 // The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance (the header) ->
-// fd_jsi_instances_kernel -> launch_fd_jsi_instances -> CudaForwardDynamics (host
+// fd_instances_kernel -> launch_fd_jsi_instances -> CudaForwardDynamics (host
 // staging through kernels/staging.hpp for compute(), the plain launch for
 // compute_async()).
 #include <cuda_runtime.h>
@@ -24,26 +24,35 @@ using detail::Staging;
 
 // ---- kernel and launch ---------------------------------------------------------
 
-// One thread per instance b < B: the forward dynamics of instance b. Measured on
-// the H100 (bench_cuda_fd, iiwa, 10^7 instances): float fastest held to 128
-// registers (4 resident blocks; 4.4 ms against 5.6 ms with 167), double with the
-// loops rolled (8.8 ms against 9.6 ms unrolled and spilling at 255 registers).
-template <class S, int C>
+// One thread per instance b < B: the forward dynamics of instance b, by the ABA
+// (kAba) or the joint-space inertia. Measured on the H100 (bench_cuda_fd, iiwa,
+// 10^7 instances): the JSI kernel fastest in float held to 128 registers (4
+// resident blocks; 4.4 ms against 5.6 ms with 167), in double with the loops rolled
+// (8.8 ms against 9.6 ms unrolled and spilling at 255 registers). The ABA kernel
+// takes the same choices (it spills at the 128-register cap in float; other
+// choices not measured yet).
+template <class S, int C, bool kAba>
 __global__ void __launch_bounds__(kFdInstancesBlock, sizeof(S) == 4 ? 4 : 1)
-    fd_jsi_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
-                            const BatchView<S> qdd_out, int* const failed_dof_out) {
+    fd_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+                        const BatchView<S> qdd_out, int* const failed_dof_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
   const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
   constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;
-  failed_dof_out[b] =
-      fd_jsi_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b),
-                                              instance_column(batch_in.tau, b), fext, instance_column(qdd_out, b));
+  const DofColumn<const S> q = instance_column(batch_in.q, b), qd = instance_column(batch_in.qd, b),
+                           tau = instance_column(batch_in.tau, b);
+  if constexpr (kAba)
+    failed_dof_out[b] = aba_instance<S, C, false, kUnrolled>(model, q, qd, tau, fext, instance_column(qdd_out, b));
+  else
+    failed_dof_out[b] = fd_jsi_instance<S, C, false, kUnrolled>(model, q, qd, tau, fext, instance_column(qdd_out, b));
 }
 
-template <class S>
-cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
-                                    const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
+namespace {
+
+// The checks and the launch of launch_fd_jsi_instances and launch_aba_instances.
+template <bool kAba, class S>
+cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in, const BatchView<S>& qdd_out,
+                                int* failed_dof_out, cudaStream_t stream) {
   const Index B = batch_in.q.batch;
   if (B < 0 || batch_in.qd.batch != B || batch_in.tau.batch != B || qdd_out.batch != B) return cudaErrorInvalidValue;
   if (B == 0) return cudaSuccess;
@@ -54,47 +63,25 @@ cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        fd_jsi_instances_kernel<S, P::capacity>
+        fd_instances_kernel<S, P::capacity, kAba>
             <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
       },
       model.params());
   return cudaGetLastError();
 }
 
-// One thread per instance b < B: the forward dynamics of instance b by the ABA.
-// Launch bounds as fd_jsi_instances_kernel's (not measured for the ABA: no device
-// was at hand when it was written); loops unrolled for capacity 8 in float, as there.
-template <class S, int C>
-__global__ void __launch_bounds__(kFdInstancesBlock, sizeof(S) == 4 ? 4 : 1)
-    aba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
-                         const BatchView<S> qdd_out, int* const failed_dof_out) {
-  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (b >= batch_in.q.batch) return;
-  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
-  constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;
-  failed_dof_out[b] =
-      aba_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b),
-                                           instance_column(batch_in.tau, b), fext, instance_column(qdd_out, b));
+}  // namespace
+
+template <class S>
+cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+                                    const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
+  return launch_fd_instances<false>(model, batch_in, qdd_out, failed_dof_out, stream);
 }
 
 template <class S>
 cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
                                  const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
-  const Index B = batch_in.q.batch;
-  if (B < 0 || batch_in.qd.batch != B || batch_in.tau.batch != B || qdd_out.batch != B) return cudaErrorInvalidValue;
-  if (B == 0) return cudaSuccess;
-  if (!failed_dof_out) return cudaErrorInvalidValue;
-  if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
-    return cudaErrorInvalidValue;
-  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        aba_instances_kernel<S, P::capacity>
-            <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
-      },
-      model.params());
-  return cudaGetLastError();
+  return launch_fd_instances<true>(model, batch_in, qdd_out, failed_dof_out, stream);
 }
 
 // ---- the engine -------------------------------------------------------------------

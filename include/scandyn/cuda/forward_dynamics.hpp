@@ -13,7 +13,7 @@
 //   fd_jsi_instance()          __host__ __device__: one instance, state in per-thread
 //                              arrays sized at compile time; callable from your own
 //                              kernels (this header under nvcc) and on the host;
-//   fd_jsi_instances_kernel    one thread per instance (kernels/fd_instances.cu);
+//   fd_instances_kernel    one thread per instance (kernels/fd_instances.cu);
 //   launch_fd_jsi_instances()  host wrapper: device pointers, a stream, returns the
 //                              cudaError_t of the launch, never synchronises.
 // and the engine CudaForwardDynamics on top:
@@ -61,7 +61,7 @@
 namespace scandyn {
 namespace cuda {
 
-// Threads per block of fd_jsi_instances_kernel.
+// Threads per block of fd_instances_kernel.
 inline constexpr int kFdInstancesBlock = 128;
 
 // What compute() reports about the factorisations of one batch.
@@ -84,7 +84,7 @@ struct FdBatchStatus {
 };
 
 // qdd_out (nv x B) = FD(q, qd, tau, fext) for the B = batch_in.q.batch instances,
-// gravity included: one launch of fd_jsi_instances_kernel on `stream`. Writes
+// gravity included: one launch of fd_instances_kernel on `stream`. Writes
 // failed_dof_out[b] for every b < B: -1, or the DoF whose pivot failed (qdd of that
 // instance unwritten). Every pointer is a DEVICE pointer (views with any strides;
 // failed_dof_out dense, B entries); nothing is copied, allocated or synchronised.
@@ -95,7 +95,7 @@ template <class S>
 cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
                                     const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
 
-// The same by the articulated-body algorithm (aba_instance, aba_instances_kernel),
+// The same by the articulated-body algorithm (aba_instance, fd_instances_kernel with kAba),
 // with the same arguments, checks and return values; failed_dof_out[b] is -1 or the
 // DoF whose articulated pivot D failed (qdd of that instance unwritten).
 template <class S>
