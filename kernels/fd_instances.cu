@@ -134,26 +134,16 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
   // staging buffers: nv x max_batch scalars each, then the wrenches, then the failed DoFs
   const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
   const cudaStream_t stream = staging_->stream();
-  S* const dq = static_cast<S*>(staging_->data());
-  S* const dqd = dq + cap;
-  S* const dtau = dqd + cap;
-  S* const dqdd = dtau + cap;
-  Force<S>* const dfext = reinterpret_cast<Force<S>*>(dqdd + cap);
-  int* const dfailed = reinterpret_cast<int*>(dfext + cap);
+  S* const buffer = static_cast<S*>(staging_->data());
+  S* const dqdd = buffer + 3 * cap;
+  int* const dfailed = reinterpret_cast<int*>(reinterpret_cast<Force<S>*>(buffer + 4 * cap) + cap);
 
   // copy in, in whatever layout keeps the copies few
-  const Staging sq = plan(in.q, nv, cap, false), sqd = plan(in.qd, nv, cap, false);
-  const Staging stau = plan(in.tau, nv, cap, false), sqdd = plan(qdd, nv, cap, true, "qdd");
-  check(copy(sq, in.q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
-  check(copy(sqd, in.qd, nv, dqd, cudaMemcpyHostToDevice, stream), "copying qd to the device");
-  check(copy(stau, in.tau, nv, dtau, cudaMemcpyHostToDevice, stream), "copying tau to the device");
-  if (in.fext)
-    check(cudaMemcpyAsync(dfext, in.fext, static_cast<std::size_t>(B) * nv * sizeof(Force<S>), cudaMemcpyHostToDevice,
-                          stream),
-          "copying fext to the device");
+  const Staging sqdd = plan(qdd, nv, cap, true, "qdd");
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext, nv, cap,
+                                                            buffer, stream);
   // run
-  const FdBatchIn<S> din{sq.device_view<const S>(dq, B), sqd.device_view<const S>(dqd, B),
-                         stau.device_view<const S>(dtau, B), in.fext ? dfext : nullptr};
+  const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
   check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
   // which instances failed, before qdd comes back over their entries
   check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),

@@ -148,26 +148,16 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   if (B == 0 || nv == 0) return;
   // staging buffers: nv x max_batch scalars each, then the wrenches
   const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
-  S* const dq = static_cast<S*>(staging_->data());
+  S* const buffer = static_cast<S*>(staging_->data());
   const cudaStream_t stream = staging_->stream();
-  S* const dqd = dq + cap;
-  S* const dqdd = dqd + cap;
-  S* const dtau = dqdd + cap;
-  Force<S>* const dfext = reinterpret_cast<Force<S>*>(dtau + cap);
+  S* const dtau = buffer + 3 * cap;
 
   // copy in, in whatever layout keeps the copies few
-  const Staging sq = plan(in.q, nv, cap, false), sqd = plan(in.qd, nv, cap, false);
-  const Staging sqdd = plan(in.qdd, nv, cap, false), stau = plan(tau, nv, cap, true, "tau");
-  check(copy(sq, in.q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
-  check(copy(sqd, in.qd, nv, dqd, cudaMemcpyHostToDevice, stream), "copying qd to the device");
-  check(copy(sqdd, in.qdd, nv, dqdd, cudaMemcpyHostToDevice, stream), "copying qdd to the device");
-  if (in.fext)
-    check(cudaMemcpyAsync(dfext, in.fext, static_cast<std::size_t>(B) * nv * sizeof(Force<S>), cudaMemcpyHostToDevice,
-                          stream),
-          "copying fext to the device");
+  const Staging stau = plan(tau, nv, cap, true, "tau");
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext, nv, cap,
+                                                            buffer, stream);
   // run
-  const IdBatchIn<S> din{sq.device_view<const S>(dq, B), sqd.device_view<const S>(dqd, B),
-                         sqdd.device_view<const S>(dqdd, B), in.fext ? dfext : nullptr};
+  const IdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
   const BatchView<S> dtau_view = stau.device_view(dtau, B);
   check(compute_async(din, dtau_view, stream), scan_ ? "launching the link scans" : "launching id_instances_kernel");
   // copy out: tau's entries only
