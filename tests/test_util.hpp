@@ -100,4 +100,12 @@ inline Model random_model(int n, unsigned seed) {
   return m;
 }
 
+// random_model's bodies as an unbranched chain (body i's parent is body i - 1).
+inline Model random_chain(int n, unsigned seed) {
+  Model m = random_model(n, seed);
+  m.name = m.source = "random-chain:" + std::to_string(n);
+  for (int i = 0; i < n; ++i) m.bodies[static_cast<std::size_t>(i)].parent = i - 1;
+  return m;
+}
+
 }  // namespace scandyn::test

@@ -1,0 +1,530 @@
+// scandyn/algorithm/chain_fd.hpp: forward dynamics of unbranched chains as
+// associative scans over the links, with O(log n) span.
+//
+// The articulated-body algorithm (Featherstone, RBDA ch. 7) on a chain is four
+// recursions; each is written here as the application of a per-link map, and the
+// maps compose associatively, so a chain of n links is cut into chunks, each chunk's
+// maps are composed into one aggregate, the aggregates are scanned (recursively, in
+// chunks again) and every chunk then walks its links with the serial ABA step
+// functions from the value at its boundary. Every link's result is therefore
+// computed by the serial recursion; the scans only supply the chunk boundary values.
+//
+//   pass 0, root to leaf:  v_i = Xup_i v_{i-1} + S_i qd_i                 (Affine6)
+//   pass 1, leaf to root:  the articulated inertias, carried in the dual
+//                          (constraint-space) form Y_i = T_i^T IA_i^{-1} T_i (DualRiccati)
+//   pass 2, leaf to root:  z_i = pA_i + Ia_i c_i + U_i u_i / D_i, the force body i
+//                          passes to its parent (the seed's z scan)       (Affine6)
+//   pass 3, root to leaf:  a_i = Xup_i a_{i-1} + c_i + S_i qdd_i          (Affine6)
+//
+// Pass 1 is the Riccati recursion of ABA,
+//   IA_i = I_i + Xup_{i+1}^T Ia_{i+1} Xup_{i+1},  Ia = IA - U U^T / D,  U = IA S,  D = S^T U.
+// Its projection Ia is singular (Ia S = 0), so the recursion is not a composition of
+// well-defined Möbius maps in IA; in the constraint space it is. With T_i (6x5) a
+// basis of the forces a joint transmits without doing work (S_i^T T_i = 0),
+//   Ia_i = T_i (T_i^T IA_i^{-1} T_i)^{-1} T_i^T = T_i Y_i^{-1} T_i^T,
+// and with Phi_i = I_i^{-1} and B_{i+1} = Xup_{i+1}^T T_{i+1} (Woodbury),
+//   Y_i = Q_i - C_i (Y_{i+1} + R_i)^{-1} C_i^T,
+//   [Q_i C_i; C_i^T R_i] = [T_i B_{i+1}]^T Phi_i [T_i B_{i+1}].
+// Maps of the form Y -> Q - C (Y + R)^{-1} C^T are closed under composition:
+//   (a o b)(Y): W = Q_b + R_a,  Q = Q_a - C_a W^{-1} C_a^T,  C = C_a W^{-1} C_b,
+//               R = R_b - C_b^T W^{-1} C_b,
+// which is one step of block cyclic reduction on the chain's constraint-force
+// system; W is the relative mobility across a joint, symmetric positive definite,
+// so every composition solves a well-conditioned 5x5 SPD system (no pivoting).
+//
+// Several instances of the chain are one sequence of links g = b * n + i. A link
+// with no parent (i = 0) or no child (i = n - 1) has an element that ignores its
+// input (M = 0, or C = 0), so scans run across instance boundaries unchanged.
+#pragma once
+
+#include <cmath>
+#include <vector>
+
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/backend.hpp"
+#include "scandyn/spatial/small_matrix.hpp"
+
+namespace scandyn {
+
+template <class S>
+using Mat5 = SmallMat<S, 5, 5>;
+
+// ---- scan elements ----------------------------------------------------------
+
+// x -> M x + b on 6-vectors (motions or forces).
+template <class S>
+struct Affine6 {
+  Mat6<S> M;  // (6x6) linear part
+  Vec6<S> b;  // (6) offset
+
+  using Value = Vec6<S>;
+  SCANDYN_HD static Affine6 constant(const Vec6<S>& b) { return {Mat6<S>::zero(), b}; }
+  SCANDYN_HD Value apply(const Value& x) const { return M * x + b; }
+  // (outer o inner)(x) = outer(inner(x))
+  SCANDYN_HD static Affine6 compose(const Affine6& outer, const Affine6& inner) {
+    return {outer.M * inner.M, outer.M * inner.b + outer.b};
+  }
+  SCANDYN_HD static Value start() { return Vec6<S>::zero(); }
+};
+
+// Y -> Q - C (Y + R)^{-1} C^T on symmetric positive definite 5x5 Y.
+template <class S>
+struct DualRiccati {
+  Mat5<S> Q;  // (5x5) symmetric
+  Mat5<S> C;  // (5x5)
+  Mat5<S> R;  // (5x5) symmetric
+
+  using Value = Mat5<S>;
+  SCANDYN_HD Value apply(const Value& Y) const {
+    Mat5<S> L = Y + R;
+    Mat5<S> Z = transpose(C);  // (Y + R)^{-1} C^T
+    if (!cholesky(L)) return nan_value();
+    cholesky_solve(L, Z);
+    return symmetrize(Q - C * Z);
+  }
+  SCANDYN_HD static DualRiccati compose(const DualRiccati& a, const DualRiccati& b) {
+    Mat5<S> W = b.Q + a.R;
+    Mat5<S> Za = transpose(a.C);  // W^{-1} C_a^T
+    Mat5<S> Zb = b.C;             // W^{-1} C_b
+    if (!cholesky(W)) return {nan_value(), nan_value(), nan_value()};
+    cholesky_solve(W, Za);
+    cholesky_solve(W, Zb);
+    return {symmetrize(a.Q - a.C * Za), transpose(Za) * b.C, symmetrize(b.R - mul_transpose(b.C, Zb))};
+  }
+  SCANDYN_HD static Value start() { return Mat5<S>::identity(); }  // absorbed by every leaf
+  SCANDYN_HD static Value nan_value() {
+    Mat5<S> o;
+    for (int k = 0; k < 25; ++k) o.m[k] = S(NAN);
+    return o;
+  }
+};
+
+// ---- per-link constants -----------------------------------------------------
+
+// Phi = I^{-1} of a rigid body, stored through its centre of mass c (10 scalars):
+//   I^{-1} [n; f] = [w; c x w + f / m],  w = Ic^{-1} (n - c x f),
+// Ic the rotational inertia about the centre of mass.
+template <class S>
+struct InverseInertia {
+  Sym3<S> Ic_inv;  // (3x3) inverse rotational inertia about the centre of mass
+  Vec3<S> c;       // centre of mass in the body frame
+  S m_inv;         // 1 / mass
+
+  // A body without positive mass and positive definite Ic gives non-finite entries.
+  static InverseInertia from(const Inertia<S>& I) {
+    InverseInertia o;
+    o.m_inv = S(1) / I.m;
+    o.c = o.m_inv * I.h;
+    // Ic = Ibar - m (|c|^2 1 - c c^T)
+    Sym3<S> Ic = I.I + sym_outer(o.c, I.m);
+    const S cc = I.m * dot(o.c, o.c);
+    Ic.xx -= cc; Ic.yy -= cc; Ic.zz -= cc;
+    // inverse by cofactors
+    const S a = Ic.xx, b = Ic.yy, c = Ic.zz, d = Ic.xy, e = Ic.xz, f = Ic.yz;
+    const S A = b * c - f * f, B = e * f - d * c, C = d * f - b * e;
+    const S det = a * A + d * B + e * C;
+    const S r = S(1) / det;
+    o.Ic_inv = {r * A, r * (a * c - e * e), r * (a * b - d * d), r * B, r * C, r * (d * e - a * f)};
+    return o;
+  }
+
+  SCANDYN_HD Motion<S> operator*(const Force<S>& f) const {
+    const Vec3<S> w = Ic_inv * (f.n - cross(c, f.f));
+    return {w, cross(c, w) + m_inv * f.f};
+  }
+};
+
+// Column k (0..4) of T: a basis of the forces a joint transmits without working on
+// its motion S (S^T T = 0), orthonormal. Revolute about a: the moments
+// perpendicular to a (e1, e2) and every linear force; prismatic along a: every
+// moment and the linear forces perpendicular to a.
+template <class S>
+SCANDYN_HD void perpendicular_basis(const Vec3<S>& a, Vec3<S>& e1, Vec3<S>& e2) {
+  using std::fabs;
+  using std::sqrt;
+  const Vec3<S> t = fabs(a.x) < S(0.6) ? Vec3<S>{S(1), S(0), S(0)}
+                                       : (fabs(a.y) < S(0.6) ? Vec3<S>{S(0), S(1), S(0)} : Vec3<S>{S(0), S(0), S(1)});
+  Vec3<S> p = cross(a, t);
+  p = (S(1) / sqrt(dot(p, p))) * p;
+  e1 = p;
+  e2 = cross(a, p);
+}
+
+template <class S>
+SCANDYN_HD Force<S> constraint_force(const Body<S>& b, int k) {
+  Vec3<S> e1, e2;
+  perpendicular_basis(b.axis, e1, e2);
+  const Vec3<S> z = Vec3<S>::zero();
+  const Vec3<S> unit[3] = {{S(1), S(0), S(0)}, {S(0), S(1), S(0)}, {S(0), S(0), S(1)}};
+  if (b.type == JointType::Revolute) {
+    if (k == 0) return {e1, z};
+    if (k == 1) return {e2, z};
+    return {z, unit[k - 2]};
+  }
+  if (k < 3) return {unit[k], z};
+  return {z, k == 3 ? e1 : e2};
+}
+
+// Ia = T K T^T: the articulated inertia passed across a joint, from K = Y^{-1}.
+template <class S>
+SCANDYN_HD ABInertia<S> constraint_congruence(const Body<S>& b, const Mat5<S>& K) {
+  SmallMat<S, 6, 5> T;
+  for (int k = 0; k < 5; ++k) {
+    const Vec6<S> t = to_vec6(constraint_force(b, k));
+    for (int r = 0; r < 6; ++r) T(r, k) = t.m[r];
+  }
+  return to_abinertia(T * K * transpose(T));
+}
+
+// The articulated inertia Ia = T Y^{-1} T^T that a body passes to its parent, from
+// its dual Y (NaN when Y is not positive definite).
+template <class S>
+SCANDYN_HD ABInertia<S> articulated_from_dual(const Body<S>& b, const Mat5<S>& Y) {
+  Mat5<S> L = Y;
+  Mat5<S> K = Mat5<S>::identity();
+  if (!cholesky(L)) K = DualRiccati<S>::nan_value();
+  else cholesky_solve(L, K);
+  return constraint_congruence(b, symmetrize(K));
+}
+
+// Pass 1's element of link i: Y_{i+1} -> Y_i. Xup_next is link i + 1's transform;
+// has_child false gives the leaf element (C = R = 0, Y_i = T_i^T Phi_i T_i).
+template <class S>
+SCANDYN_HD DualRiccati<S> dual_element(const Body<S>& b, const InverseInertia<S>& Phi, bool has_child,
+                                       const Body<S>& next, const Transform<S>& Xup_next) {
+  Force<S> G[10];       // [T_i, B_{i+1}] as forces in body i's frame
+  Motion<S> PhiG[10];   // Phi_i G
+  const int cols = has_child ? 10 : 5;
+  for (int k = 0; k < 5; ++k) G[k] = constraint_force(b, k);
+  if (has_child)
+    for (int k = 0; k < 5; ++k) G[5 + k] = Xup_next.apply_transpose(constraint_force(next, k));
+  for (int k = 0; k < cols; ++k) PhiG[k] = Phi * G[k];
+  DualRiccati<S> e{Mat5<S>::zero(), Mat5<S>::zero(), Mat5<S>::zero()};
+  for (int r = 0; r < 5; ++r)
+    for (int c = 0; c < 5; ++c) {
+      e.Q(r, c) = dot(PhiG[c], G[r]);
+      if (has_child) {
+        e.C(r, c) = dot(PhiG[5 + c], G[r]);
+        e.R(r, c) = dot(PhiG[5 + c], G[5 + r]);
+      }
+    }
+  e.Q = symmetrize(e.Q);
+  e.R = symmetrize(e.R);
+  return e;
+}
+
+// ---- the chain and its per-link scratch -------------------------------------
+
+// B instances of an n-link chain (every body's parent is the previous one) and the
+// per-link scratch of the passes; link g = b * n + i is body i of instance b.
+// Pointers are host or device memory, as the driver needs.
+template <class S>
+struct ChainFdData {
+  Index n = 0;                              // links per instance (nv)
+  Index batch = 0;                          // instances B
+  const Body<S>* body = nullptr;            // (table) distinct bodies
+  const InverseInertia<S>* Phi = nullptr;   // (table) their inverse inertias
+  const int* body_class = nullptr;          // (n) table entry of body i
+  Motion<S> a0;                             // base acceleration (-gravity)
+  BatchView<const S> q, qd, tau;            // (n x B) inputs
+  const Force<S>* fext = nullptr;           // optional (B x n) body wrenches
+  BatchView<S> qdd;                         // (n x B) output
+  Motion<S>* v = nullptr;                   // (B n) body velocities (pass 0)
+  Force<S>* U = nullptr;                    // (B n) IA S (pass 1)
+  S* D = nullptr;                           // (B n) S^T IA S (pass 1)
+  Force<S>* w = nullptr;                    // (B n) Ia c (pass 1)
+  S* u = nullptr;                           // (B n) tau - S^T pA (pass 2)
+  int* failed = nullptr;                    // (B) -1, or the first link whose pivot D failed
+
+  SCANDYN_HD Index count() const { return n * batch; }
+  SCANDYN_HD Index link(Index g) const { return g % n; }
+  SCANDYN_HD Index instance(Index g) const { return g / n; }
+  SCANDYN_HD bool has_parent(Index g) const { return g % n != 0; }
+  SCANDYN_HD bool has_child(Index g) const { return g % n != n - 1; }
+  SCANDYN_HD const Body<S>& body_of(Index g) const { return body[body_class[g % n]]; }
+  SCANDYN_HD const InverseInertia<S>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
+  SCANDYN_HD S q_of(Index g) const { return q.at(g % n, g / n); }
+  SCANDYN_HD S qd_of(Index g) const { return qd.at(g % n, g / n); }
+  SCANDYN_HD S tau_of(Index g) const { return tau.at(g % n, g / n); }
+  SCANDYN_HD Transform<S> Xup(Index g) const { return joint_transform(body_of(g), q_of(g)); }
+  // bias force v x* I v - fext of link g (pass 0's velocities complete)
+  SCANDYN_HD Force<S> pA(Index g) const {
+    const Body<S>& b = body_of(g);
+    const Force<S> p = cross(v[g], b.I * v[g]);
+    return fext ? p - fext[g] : p;
+  }
+  SCANDYN_HD Motion<S> c(Index g) const { return cross_joint_motion(body_of(g), v[g], qd_of(g)); }
+};
+
+// Records that link g's articulated pivot failed: failed[instance] becomes the
+// smallest such link (-1: none), safely from concurrent threads.
+template <class S>
+SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g) {
+  int* slot = d.failed + g / d.n;
+  const int link = static_cast<int>(g % d.n);
+#if defined(__CUDA_ARCH__)
+  int cur = *slot;
+  while (cur < 0 || link < cur) {
+    const int seen = atomicCAS(slot, cur, link);
+    if (seen == cur) break;
+    cur = seen;
+  }
+#else
+  int cur = __atomic_load_n(slot, __ATOMIC_RELAXED);
+  while ((cur < 0 || link < cur) &&
+         !__atomic_compare_exchange_n(slot, &cur, link, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+  }
+#endif
+}
+
+// ---- chunk walks: links s..e (inclusive, s <= e), shared by every driver ------
+
+// Pass 0's aggregate of links s..e: v_e as a map of v_{s-1}.
+template <class S>
+SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index e) {
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  for (Index g = s; g <= e; ++g) {
+    const Body<S>& b = d.body_of(g);
+    const Vec6<S> Sqd = to_vec6(joint_motion(b, d.qd_of(g)));
+    const Affine6<S> el = d.has_parent(g) ? Affine6<S>{to_mat6(d.Xup(g)), Sqd} : Affine6<S>::constant(Sqd);
+    agg = Affine6<S>::compose(el, agg);
+  }
+  return agg;
+}
+
+// Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk,
+// Y_s as a map of Y_{e+1}.
+template <class S>
+SCANDYN_HD DualRiccati<S> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
+  Motion<S> v_parent = to_motion(v_in);
+  Transform<S> X = d.Xup(s);
+  DualRiccati<S> agg{};
+  for (Index g = s; g <= e; ++g) {
+    const Body<S>& b = d.body_of(g);
+    const AbaForward<S> o = aba_forward_step(b, X, d.has_parent(g) ? v_parent : Motion<S>::zero(), d.qd_of(g));
+    d.v[g] = o.v;
+    v_parent = o.v;
+    const bool child = d.has_child(g);
+    const Transform<S> Xnext = g + 1 < d.count() ? d.Xup(g + 1) : X;  // next link (next instance's first)
+    const DualRiccati<S> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+    agg = g == s ? el : DualRiccati<S>::compose(agg, el);
+    X = Xnext;
+  }
+  return agg;
+}
+
+// Pass 1's walk from Ia_in, the projected articulated inertia of link e + 1 (its
+// frame; ignored when link e has no child): the ABA articulated-inertia recursion
+// over e..s with the step functions; stores U, D, w = Ia c and records a failed
+// pivot; returns pass 2's aggregate of the chunk, z_s as a map of z_{e+1}.
+template <class S>
+SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
+  ABInertia<S> Ia_next = Ia_in;  // Ia of link g + 1, its frame
+  Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  for (Index g = e; g >= s; --g) {
+    const Body<S>& b = d.body_of(g);
+    const bool child = d.has_child(g);
+    ABInertia<S> IA = ABInertia<S>::from(b.I);
+    if (child) IA += Ia_next.transform_transpose(Xnext);
+    const Force<S> pA = d.pA(g);
+    Force<S> U;
+    S D, u_unused;
+    aba_joint_terms(b, IA, pA, S(0), U, D, u_unused);
+    if (!pivot_ok(D)) {
+      record_failure(d, g);
+      D = S(NAN);
+    }
+    const S Dinv = S(1) / D;
+    const ABInertia<S> Ia = IA.minus_outer(U, Dinv);
+    const Force<S> w = Ia * d.c(g);
+    d.U[g] = U;
+    d.D[g] = D;
+    d.w[g] = w;
+    // z_g = N (pA + Xnext^T z_{g+1}) + w + U tau / D,  N = 1 - U S^T / D
+    Affine6<S> el = Affine6<S>::constant(Vec6<S>::zero());
+    if (child) {
+      const Mat6<S> XT = transpose(to_mat6(Xnext));
+      el.M = XT;
+      const Vec6<S> Uv = to_vec6(U);
+      for (int c = 0; c < 6; ++c) {
+        Vec6<S> col;
+        for (int r = 0; r < 6; ++r) col.m[r] = XT(r, c);
+        const S st = joint_project(b, to_force(col)) * Dinv;
+        for (int r = 0; r < 6; ++r) el.M(r, c) -= Uv.m[r] * st;
+      }
+    }
+    const S sp = joint_project(b, pA);
+    el.b = to_vec6(pA - (sp * Dinv) * U + w + (d.tau_of(g) * Dinv) * U);
+    agg = Affine6<S>::compose(el, agg);
+    Ia_next = Ia;
+    Xnext = d.Xup(g);
+  }
+  return agg;
+}
+
+// Pass 2's walk from z_{e+1}: stores u = tau - S^T pA; returns pass 3's aggregate of
+// the chunk, a_e as a map of a_{s-1}.
+template <class S>
+SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
+  Force<S> z_next = to_force(z_in);
+  Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  for (Index g = e; g >= s; --g) {
+    const Body<S>& b = d.body_of(g);
+    Force<S> pA = d.pA(g);
+    if (d.has_child(g)) pA += Xnext.apply_transpose(z_next);
+    const S D = d.D[g], Dinv = S(1) / D;
+    const Force<S> U = d.U[g];
+    const S u = d.tau_of(g) - joint_project(b, pA);
+    d.u[g] = u;
+    z_next = pA + d.w[g] + (u * Dinv) * U;
+    // a_g = N^T (Xup a_{g-1} + c) + S u / D,  N^T = 1 - S U^T / D
+    const Transform<S> X = d.Xup(g);
+    const Vec6<S> Uv = to_vec6(U);
+    const Vec6<S> Sv = to_vec6(joint_motion(b, S(1)));
+    auto project = [&](Vec6<S> x) {  // N^T x
+      S t = S(0);
+      for (int r = 0; r < 6; ++r) t += Uv.m[r] * x.m[r];
+      t *= Dinv;
+      for (int r = 0; r < 6; ++r) x.m[r] -= Sv.m[r] * t;
+      return x;
+    };
+    Affine6<S> el;
+    const Vec6<S> Su = to_vec6(joint_motion(b, u * Dinv));
+    if (d.has_parent(g)) {
+      const Mat6<S> XM = to_mat6(X);
+      for (int c = 0; c < 6; ++c) {
+        Vec6<S> col;
+        for (int r = 0; r < 6; ++r) col.m[r] = XM(r, c);
+        col = project(col);
+        for (int r = 0; r < 6; ++r) el.M(r, c) = col.m[r];
+      }
+      el.b = project(to_vec6(d.c(g))) + Su;
+    } else {
+      el = Affine6<S>::constant(project(to_vec6(X.apply(d.a0) + d.c(g))) + Su);
+    }
+    agg = Affine6<S>::compose(agg, el);
+    Xnext = X;
+  }
+  return agg;
+}
+
+// Pass 3's walk from a_{s-1}: qdd by aba_acceleration_step.
+template <class S>
+SCANDYN_HD void acceleration_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& a_in) {
+  Motion<S> a_parent = to_motion(a_in);
+  for (Index g = s; g <= e; ++g) {
+    const Body<S>& b = d.body_of(g);
+    Motion<S> a;
+    const S qdd = aba_acceleration_step(b, d.Xup(g), d.has_parent(g) ? a_parent : d.a0, d.c(g), d.U[g], d.D[g],
+                                        d.u[g], a);
+    if (d.failed[g / d.n] < 0) d.qdd.at(g % d.n, g / d.n) = qdd;  // a failed instance's qdd stays unwritten
+    a_parent = a;
+  }
+}
+
+// ---- scans of chunk aggregates, shared by every driver -------------------------
+//
+// A pass runs `forward` (values flow from link 0 to the last: the carry of element
+// k is the value after elements 0..k-1) or backward (the carry of element k is the
+// value after elements k+1..); an aggregate of elements a..b is the map from the
+// value entering the range to the value leaving it.
+
+// The aggregate of elements [a, b).
+template <class E>
+SCANDYN_HD E fold_range(const E* el, Index a, Index b, bool forward) {
+  E agg = el[a];
+  for (Index k = a + 1; k < b; ++k) agg = forward ? E::compose(el[k], agg) : E::compose(agg, el[k]);
+  return agg;
+}
+
+// carry[k] for k in [a, b) from the value `in` entering the range.
+template <class E>
+SCANDYN_HD void carry_range(const E* el, typename E::Value* carry, Index a, Index b, bool forward,
+                            typename E::Value in) {
+  if (forward) {
+    for (Index k = a; k < b; ++k) {
+      carry[k] = in;
+      in = el[k].apply(in);
+    }
+  } else {
+    for (Index k = b - 1; k >= a; --k) {
+      carry[k] = in;
+      in = el[k].apply(in);
+    }
+  }
+}
+
+// The carried dual Y of link e + 1 as the articulated inertia the walk of pass 1
+// starts from (link e + 1 exists: e is not an instance's last link).
+template <class S>
+SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S>& d, Index e, const Mat5<S>& Y) {
+  return d.has_child(e) ? articulated_from_dual(d.body_of(e + 1), Y) : ABInertia<S>{};
+}
+
+}  // namespace scandyn
+
+namespace scandyn {
+
+// ---- the CPU engine ------------------------------------------------------------
+
+// How the links of a batch are cut: chunks of `chunk` links walked by one thread
+// each, their aggregates scanned in levels of `fan_in` until one level has at most
+// `fan_in` entries (scanned serially).
+struct ChainChunking {
+  Index links = 0;               // n * B
+  Index chunk = 0;               // links per chunk (level 0)
+  Index fan_in = 0;              // aggregates per chunk at the levels above
+  std::vector<Index> level_size; // entries per level; level 0: chunks of links
+
+  ChainChunking() = default;
+  ChainChunking(Index links, Index chunk, Index fan_in);
+  Index chunks() const { return level_size.empty() ? 0 : level_size[0]; }
+};
+
+// Throws BackendError unless every body's parent is the previous body (the chain
+// forward dynamics' requirement), naming the first body that breaks it.
+template <class S>
+void require_chain(const ModelTpl<S>& model, const char* what);
+
+// Forward dynamics of B instances of an unbranched chain by the chunked scans above
+// ("parallel"), on the host with OpenMP threads (1: serial). Agrees with the serial
+// aba to rounding (see tests/test_chain_fd.cpp for the measured errors). Owns all
+// scratch for max_batch instances; compute() allocates nothing.
+template <class S>
+class ChainForwardDynamics {
+ public:
+  // chunk 0 picks the links per chunk from the size and the threads.
+  ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads = 0, Index chunk = 0);
+
+  // qdd = FD(q, qd, tau, fext) for in.q.batch instances, gravity included. Returns
+  // the number of instances whose articulated pivot D = S^T IA S was not positive
+  // and finite (their qdd is left unwritten); failed, when not null, receives B
+  // entries: -1 or the first failed link of each instance.
+  Index compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed = nullptr);
+
+  Index nv() const { return n_; }
+  Index max_batch() const { return max_batch_; }
+  int threads() const { return threads_; }
+  Index chunk() const { return chunk_; }
+
+ private:
+  Index n_ = 0, max_batch_ = 0, chunk_ = 0;
+  int threads_ = 1;
+  Motion<S> a0_;
+  std::vector<Body<S>> body_;
+  std::vector<InverseInertia<S>> Phi_;
+  std::vector<int> body_class_;
+  std::vector<Motion<S>> v_;
+  std::vector<Force<S>> U_, w_;
+  std::vector<S> D_, u_;
+  std::vector<int> failed_;
+  // per level: aggregates and carries of the three Affine6 passes and the dual pass
+  std::vector<std::vector<Affine6<S>>> aff_;
+  std::vector<std::vector<Vec6<S>>> aff_carry_;
+  std::vector<std::vector<DualRiccati<S>>> dual_;
+  std::vector<std::vector<Mat5<S>>> dual_carry_;
+};
+
+}  // namespace scandyn

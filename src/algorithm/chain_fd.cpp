@@ -1,0 +1,167 @@
+// The CPU driver of the chain forward dynamics (scandyn/algorithm/chain_fd.hpp):
+// OpenMP over chunks, the same walks and scans as the CUDA driver.
+#include "scandyn/algorithm/chain_fd.hpp"
+
+#include <algorithm>
+#include <climits>
+#include <cstring>
+#include <string>
+
+#if defined(_OPENMP)
+#include <omp.h>
+#endif
+
+namespace scandyn {
+
+ChainChunking::ChainChunking(Index links_, Index chunk_, Index fan_in_)
+    : links(links_), chunk(std::max<Index>(chunk_, 1)), fan_in(std::max<Index>(fan_in_, 2)) {
+  if (links <= 0) return;
+  Index size = (links + chunk - 1) / chunk;
+  level_size.push_back(size);
+  while (size > fan_in) {
+    size = (size + fan_in - 1) / fan_in;
+    level_size.push_back(size);
+  }
+}
+
+template <class S>
+void require_chain(const ModelTpl<S>& model, const char* what) {
+  if (model.nv() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
+  for (Index i = 0; i < model.nv(); ++i)
+    if (model.parent(i) != i - 1)
+      throw BackendError(std::string(what) + " needs an unbranched chain (every body's parent the previous one); " +
+                         "body " + std::to_string(i) + " (joint '" + model.joint_names[i] + "') has parent " +
+                         std::to_string(model.parent(i)));
+}
+
+namespace {
+
+// The aggregates above level 0 and the carries of every level, for one pass whose
+// level-0 aggregates are in agg[0]; `in` enters the whole sequence.
+template <class E>
+void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
+                 std::vector<std::vector<typename E::Value>>& carry, bool forward, int threads) {
+  const Index levels = static_cast<Index>(ck.level_size.size());
+  for (Index k = 0; k + 1 < levels; ++k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    E* upper = agg[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) upper[j] = fold_range(lower, j * f, std::min(size, (j + 1) * f), forward);
+  }
+  carry_range(agg[levels - 1].data(), carry[levels - 1].data(), 0, ck.level_size[levels - 1], forward, E::start());
+  for (Index k = levels - 2; k >= 0; --k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    auto* lc = carry[k].data();
+    const auto* uc = carry[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) carry_range(lower, lc, j * f, std::min(size, (j + 1) * f), forward, uc[j]);
+  }
+}
+
+}  // namespace
+
+template <class S>
+ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
+    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)) {
+  require_chain(model, "the parallel chain forward dynamics");
+  if (static_cast<long long>(n_) * max_batch_ > INT_MAX / 2)
+    throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
+                       std::to_string(max_batch_) + " instances exceed 2^30 links per call");
+  threads_ = threads > 0 ? threads : openmp_threads();
+  const Index links = n_ * max_batch_;
+  // chunks: at least 8 per thread, at most 64 links each, at least 8 links each
+  chunk_ = chunk > 0 ? chunk : std::clamp<Index>(links / (8 * threads_), 8, 64);
+  a0_ = base_acceleration(model.gravity);
+  // distinct bodies (every link of a generated rope is the same body)
+  body_class_.resize(static_cast<std::size_t>(n_));
+  for (Index i = 0; i < n_; ++i) {
+    Body<S> b = model.bodies[i];
+    b.parent = -1;
+    Index k = static_cast<Index>(body_.size()) - 1;
+    if (k < 0 || std::memcmp(&body_[k], &b, sizeof b) != 0) {
+      body_.push_back(b);
+      Phi_.push_back(InverseInertia<S>::from(b.I));
+      k = static_cast<Index>(body_.size()) - 1;
+    }
+    body_class_[i] = static_cast<int>(k);
+  }
+  v_.resize(links);
+  U_.resize(links);
+  w_.resize(links);
+  D_.resize(links);
+  u_.resize(links);
+  failed_.resize(static_cast<std::size_t>(max_batch_));
+  const ChainChunking ck(links, chunk_, 16);
+  for (Index size : ck.level_size) {
+    aff_.emplace_back(static_cast<std::size_t>(size));
+    aff_carry_.emplace_back(static_cast<std::size_t>(size));
+    dual_.emplace_back(static_cast<std::size_t>(size));
+    dual_carry_.emplace_back(static_cast<std::size_t>(size));
+  }
+}
+
+template <class S>
+Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) {
+  check_batch(in, qdd, max_batch_);
+  const Index B = in.q.batch;
+  if (B == 0) return 0;
+  ChainFdData<S> d;
+  d.n = n_;
+  d.batch = B;
+  d.body = body_.data();
+  d.Phi = Phi_.data();
+  d.body_class = body_class_.data();
+  d.a0 = a0_;
+  d.q = in.q;
+  d.qd = in.qd;
+  d.tau = in.tau;
+  d.fext = in.fext;
+  d.qdd = qdd;
+  d.v = v_.data();
+  d.U = U_.data();
+  d.D = D_.data();
+  d.w = w_.data();
+  d.u = u_.data();
+  d.failed = failed_.data();
+  std::fill(failed_.begin(), failed_.begin() + B, -1);
+
+  const ChainChunking ck(d.count(), chunk_, 16);
+  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+  const int T = threads_;
+  auto first = [&](Index c) { return c * L; };
+  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+
+  // pass 0: velocities (and pass 1's aggregates)
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
+  scan_levels(ck, aff_, aff_carry_, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
+  // pass 1: articulated inertias (and pass 2's aggregates)
+  scan_levels(ck, dual_, dual_carry_, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c)
+    aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
+  // pass 2: bias forces (and pass 3's aggregates)
+  scan_levels(ck, aff_, aff_carry_, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
+  // pass 3: accelerations
+  scan_levels(ck, aff_, aff_carry_, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+
+  Index bad = 0;
+  for (Index b = 0; b < B; ++b) bad += failed_[b] >= 0;
+  if (failed) std::copy(failed_.begin(), failed_.begin() + B, failed);
+  return bad;
+}
+
+template void require_chain(const ModelTpl<float>&, const char*);
+template void require_chain(const ModelTpl<double>&, const char*);
+template class ChainForwardDynamics<float>;
+template class ChainForwardDynamics<double>;
+
+}  // namespace scandyn
