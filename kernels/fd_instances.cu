@@ -86,13 +86,28 @@ cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>
 
 // ---- the engine -------------------------------------------------------------------
 
+namespace {
+bool is_chain(const std::vector<Index>& parents) {
+  for (std::size_t i = 0; i < parents.size(); ++i)
+    if (parents[i] != static_cast<Index>(i) - 1) return false;
+  return true;
+}
+}  // namespace
+
 template <class S>
 CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
                                             FdAlgorithm algorithm)
-    : nv_(model.nv()), aba_(algorithm == FdAlgorithm::Aba), max_batch_(options.max_batch) {
+    : nv_(model.nv()), max_batch_(options.max_batch) {
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for forward dynamics (use auto or recursion)");
+  std::vector<Index> parents;
+  for (Index i = 0; i < nv_; ++i) parents.push_back(model.parent(i));
+  if (algorithm == FdAlgorithm::Auto)
+    algorithm = nv_ > kMaxThreadDofs && is_chain(parents) ? FdAlgorithm::Parallel : FdAlgorithm::Jsi;
+  algorithm_ = algorithm;
+  aba_ = algorithm == FdAlgorithm::Aba;
+  const bool chain = algorithm == FdAlgorithm::Parallel || algorithm == FdAlgorithm::Hybrid;
   if (aba_ && nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
                        std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
@@ -102,9 +117,10 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
       10 * static_cast<std::size_t>(nv_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
-  if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ThreadModel<S>>(model);
+  if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
+  else if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ThreadModel<S>>(model);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
-  bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0);
+  bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
 }
 
@@ -114,6 +130,7 @@ CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
 template <class S>
 cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                                                   cudaStream_t stream) {
+  if (chain_) return algorithm_ == FdAlgorithm::Hybrid ? cudaErrorNotSupported : chain_->launch(in, qdd, failed_dof, stream);
   if (aba_) return launch_aba_instances(*thread_, in, qdd, failed_dof, stream);
   return dense_ ? dense_->launch(in, qdd, failed_dof, stream)
                 : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
@@ -144,7 +161,12 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
                                                             buffer, stream);
   // run
   const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
-  check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
+  if (chain_ && algorithm_ == FdAlgorithm::Hybrid)
+    check(chain_->launch_hybrid(in.q, din, sqdd.device_view(dqdd, B), dfailed, stream,
+                                record_timeline_ ? &timeline_ : nullptr),
+          "running the hybrid forward dynamics");
+  else
+    check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
   // which instances failed, before qdd comes back over their entries
   check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the failed DoFs to the host");

@@ -169,3 +169,21 @@ TEST(ChainFd, RefusesTrees) {
   const Model m = test::random_model(10, 3);
   EXPECT_THROW(ChainForwardDynamics<double>(m, 1), BackendError);
 }
+
+TEST(ChainFd, FailedPivotIsReportedAndQddUnwritten) {
+  const Model m = make_generated("rope:50");
+  std::vector<double> q(100, 0.1), qd(100, 0.0), tau(100, 0.0), qdd(100, 7.0);
+  q[20 * 2 + 1] = NAN;  // instance 1, link 20
+  ChainForwardDynamics<double> fd(m, 2, 2, 4);
+  std::vector<int> failed(2, 9);
+  FdBatchIn<double> in{BatchView<const double>::soa(q.data(), 50, 2), BatchView<const double>::soa(qd.data(), 50, 2),
+                       BatchView<const double>::soa(tau.data(), 50, 2), nullptr};
+  EXPECT_EQ(fd.compute(in, BatchView<double>::soa(qdd.data(), 50, 2), failed.data()), 1);
+  EXPECT_EQ(failed[0], -1);
+  EXPECT_GE(failed[1], 0);
+  EXPECT_LE(failed[1], 20);
+  for (Index i = 0; i < 50; ++i) {
+    EXPECT_TRUE(std::isfinite(qdd[i * 2])) << i;
+    EXPECT_EQ(qdd[i * 2 + 1], 7.0) << i;
+  }
+}

@@ -794,20 +794,15 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
   }
 }
 
-// mass is not on the cuda backend, and its fd is by the joint-space inertia only:
-// one line, exit 2, before any device is looked for (so the message is the same on
-// every machine).
-TEST_F(Cli, CudaBackendRefusesMassAndFdAba) {
+// mass is not on the cuda backend: one line, exit 2, before any device is looked
+// for (so the message is the same on every machine).
+TEST_F(Cli, CudaBackendRefusesMass) {
   write_text(path("states.csv"), good_states());
   write_text(path("out.csv"), "sentinel\n");
-  const std::string fd_aba = "backend 'cuda' computes --algo fd by jsi only: use --fd jsi or leave --fd out";
   const std::vector<std::pair<std::string, std::string>> cases = {
       {kEval + "--backend cuda --algo mass", cuda_algo_error("mass")},
       {kEval + "--backend cuda --algo bias,mass,id,fd", cuda_algo_error("mass")},
       {"bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float", cuda_algo_error("mass")},
-#if SCANDYN_HAS_CUDA
-      {"bench --model chain:3 --algo fd --fd aba --instances 1 --backend cuda --csv results.csv", fd_aba},
-#endif
   };
   for (const auto& [args, message] : cases) {
     SCOPED_TRACE(args);
@@ -974,9 +969,23 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   ASSERT_EQ(fd.code, 0) << fd.err;
   // JSI against the serial ABA on a 65-link rope: the mass matrix's conditioning
   expect_tables_near(parse_csv(read_text(path("fd_cuda.csv"))), parse_csv(read_text(path("fd_serial.csv"))), 1e-6);
-  const Result bench_fd = run("bench --model rope:65 --algo fd --instances 3 --backend cuda");
+  const Result bench_fd = run("bench --model rope:65 --algo fd --fd jsi --instances 3 --backend cuda");
   EXPECT_EQ(bench_fd.code, 0) << bench_fd.err;
   EXPECT_NE(bench_fd.out.find("fd,jsi_dense-host,cuda"), std::string::npos) << bench_fd.out;
+  // auto: a chain beyond 64 links goes to the link scans
+  const Result bench_auto = run("bench --model rope:65 --algo fd --instances 3 --backend cuda");
+  EXPECT_EQ(bench_auto.code, 0) << bench_auto.err;
+  EXPECT_NE(bench_auto.out.find("fd,parallel-host,cuda"), std::string::npos) << bench_auto.out;
+  for (const char* method : {"parallel", "hybrid"}) {
+    const Result r = run(std::string("eval --model rope:65 --states rope.csv --out fd_") + method +
+                         ".csv --backend cuda --algo fd --fd " + method);
+    ASSERT_EQ(r.code, 0) << r.err;
+    expect_tables_near(parse_csv(read_text(path(std::string("fd_") + method + ".csv"))),
+                       parse_csv(read_text(path("fd_serial.csv"))), 1e-9);
+  }
+  const Result aba65 = run("bench --model rope:65 --algo fd --fd aba --instances 3 --backend cuda");
+  EXPECT_EQ(aba65.code, 2);
+  EXPECT_NE(aba65.err.find("--fd aba: "), std::string::npos) << aba65.err;
   const Result scan = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda --algo id "
                           "--strategy scan-world");
   EXPECT_EQ(scan.code, 2);
@@ -1053,6 +1062,41 @@ TEST_F(Cli, BenchCudaFdPrintsHostRow) {
     }
   }
   ASSERT_EQ(lines(read_text(path("results.csv"))).size(), 5u);  // header and 4 x 1 row
+}
+
+}  // namespace
+
+namespace {
+
+// --fd on the CPU backends: parallel (link scans) agrees with aba on a rope; hybrid
+// is cuda's only; parallel refuses a tree naming the body; auto picks aba here.
+TEST_F(Cli, FdMethodsOnTheCpu) {
+  write_text(path("rope.csv"), States(300, 3, 5).csv({"q", "qd", "tau"}));
+  ASSERT_EQ(run("eval --model rope:300 --states rope.csv --out aba.csv --algo fd --fd aba").code, 0);
+  for (const char* backend : {"serial", "openmp"}) {
+    SCOPED_TRACE(backend);
+    const Result r = run(std::string("eval --model rope:300 --states rope.csv --out par.csv --algo fd --fd parallel "
+                                     "--backend ") + backend);
+    ASSERT_EQ(r.code, 0) << r.err;
+    expect_tables_near(parse_csv(read_text(path("par.csv"))), parse_csv(read_text(path("aba.csv"))), 1e-10);
+    const Result h = run(std::string("eval --model rope:300 --states rope.csv --out h.csv --algo fd --fd hybrid "
+                                     "--backend ") + backend);
+    EXPECT_EQ(h.code, 2);
+    EXPECT_NE(h.err.find("--fd hybrid runs on --backend cuda only"), std::string::npos) << h.err;
+    EXPECT_FALSE(fs::exists(path("h.csv")));
+  }
+  const Result tree = run("bench --model tree:20:3 --algo fd --fd parallel --instances 2");
+  EXPECT_EQ(tree.code, 2);
+  EXPECT_NE(tree.err.find("needs an unbranched chain"), std::string::npos) << tree.err;
+  const Result bad = run("bench --model rope:5 --algo fd --fd fast --instances 2");
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("unknown --fd value 'fast' (expected auto, aba, jsi, hybrid or parallel)"), std::string::npos)
+      << bad.err;
+  const std::vector<std::string> row = bench_row(run("bench --model rope:300 --algo fd --fd parallel --instances 2 "
+                                                     "--min-time 0.01"));
+  ASSERT_EQ(row.size(), 10u);
+  EXPECT_EQ(row[1], "parallel");
+  EXPECT_LT(std::stod(row[9]), 1e-10);
 }
 
 }  // namespace

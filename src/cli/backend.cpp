@@ -3,8 +3,10 @@
 
 #include "cli.hpp"
 #include "csv.hpp"
+#include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/build_config.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #ifdef _OPENMP
@@ -23,7 +25,16 @@ const char* algo_name(Algo algo) {
   return "?";
 }
 
-const char* fd_method_name(FdMethod fd) { return fd == FdMethod::Aba ? "aba" : "jsi"; }
+const char* fd_method_name(FdMethod fd) {
+  switch (fd) {
+    case FdMethod::Auto: return "auto";
+    case FdMethod::Aba: return "aba";
+    case FdMethod::Jsi: return "jsi";
+    case FdMethod::Hybrid: return "hybrid";
+    case FdMethod::Parallel: return "parallel";
+  }
+  return "?";
+}
 
 const char* precision_name(Precision p) { return p == Precision::Double ? "double" : "float"; }
 
@@ -38,7 +49,7 @@ bool parse_algo(const std::string& name, Algo& algo) {
 }
 
 bool parse_fd_method(const std::string& name, FdMethod& fd) {
-  for (FdMethod f : {FdMethod::Aba, FdMethod::Jsi}) {
+  for (FdMethod f : {FdMethod::Auto, FdMethod::Aba, FdMethod::Jsi, FdMethod::Hybrid, FdMethod::Parallel}) {
     if (name == fd_method_name(f)) {
       fd = f;
       return true;
@@ -83,7 +94,7 @@ std::vector<std::string> output_columns(Algo algo, Index nv) {
 }
 
 std::string describe_fd_failure(FdMethod fd, const Status& status) {
-  const char* what = fd == FdMethod::Aba ? "articulated inertia" : "mass matrix";
+  const char* what = fd == FdMethod::Jsi ? "mass matrix" : "articulated inertia";
   return std::string(what) + " pivot at DoF " + std::to_string(status.failed_dof) +
          " is not positive";
 }
@@ -109,6 +120,18 @@ class CpuEvaluator final : public Evaluator<S> {
     id_ = make_inverse_dynamics<S>(model, bo);
     threads_ = kind == BackendKind::Serial ? 1 : (o.threads > 0 ? o.threads : max_threads());
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model, false);
+    max_batch_ = static_cast<Index>(o.max_batch);
+    chain_ = is_chain(model);
+    openmp_ = kind == BackendKind::OpenMP;
+    if (o.fd == FdMethod::Hybrid)
+      throw UsageError("--fd hybrid runs on --backend cuda only (articulated inertias on the host, the other passes "
+                       "as device scans); on the CPU use --fd parallel, aba or jsi", false);
+    if (fd_method(o.fd) == FdMethod::Parallel && (o.algos & algo_bit(Algo::Fd))) parallel_engine();
+  }
+
+  FdMethod fd_method(FdMethod requested) const override {
+    if (requested != FdMethod::Auto) return requested;
+    return openmp_ && chain_ && model_.nv() >= 4096 ? FdMethod::Parallel : FdMethod::Aba;
   }
 
   BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) override {
@@ -120,6 +143,25 @@ class CpuEvaluator final : public Evaluator<S> {
                       BatchView<const S>::aos(in.qdd, nv, B)};
       id_->compute(id, BatchView<S>::aos(out, nv, B));
       return {};
+    }
+    fd = fd_method(fd);
+    if (algo == Algo::Fd && fd == FdMethod::Hybrid)
+      throw UsageError("--fd hybrid runs on --backend cuda only", false);
+    if (algo == Algo::Fd && fd == FdMethod::Parallel) {
+      const Index B = static_cast<Index>(in.count);
+      std::vector<int>& failed = failed_;
+      failed.assign(in.count, -1);
+      const FdBatchIn<S> fin{BatchView<const S>::aos(in.q, nv, B), BatchView<const S>::aos(in.qd, nv, B),
+                             BatchView<const S>::aos(in.tau, nv, B), nullptr};
+      parallel_engine().compute(fin, BatchView<S>::aos(out, nv, B), failed.data());
+      BatchStatus st;
+      for (std::size_t b = 0; b < in.count; ++b)
+        if (failed[b] >= 0) {
+          st.instance = b;
+          st.status = Status{failed[b]};
+          break;
+        }
+      return st;
     }
     if (algo == Algo::Fd && fd == FdMethod::Jsi && jsi_.empty())
       for (int t = 0; t < threads_; ++t) jsi_.emplace_back(model_, true);
@@ -161,14 +203,14 @@ class CpuEvaluator final : public Evaluator<S> {
 
   std::string strategy(Algo algo, FdMethod fd) const override {
     if (algo == Algo::Id) return id_->strategy();
-    if (algo == Algo::Fd) return fd_method_name(fd);
+    if (algo == Algo::Fd) return fd_method_name(fd_method(fd));
     return algo == Algo::Mass ? "crba" : "recursion";
   }
 
   // the reference functions themselves, except the scan forms and JSI
   bool exact(Algo algo, FdMethod fd) const override {
     if (algo == Algo::Id) return id_->strategy() == "recursion";
-    return !(algo == Algo::Fd && fd == FdMethod::Jsi);
+    return !(algo == Algo::Fd && fd_method(fd) != FdMethod::Aba);
   }
 
  private:
@@ -187,7 +229,27 @@ class CpuEvaluator final : public Evaluator<S> {
 #endif
   }
 
+  static bool is_chain(const ModelTpl<S>& m) {
+    for (Index i = 0; i < m.nv(); ++i)
+      if (m.parent(i) != i - 1) return false;
+    return m.nv() > 0;
+  }
+  ChainForwardDynamics<S>& parallel_engine() {
+    if (!parallel_) {
+      try {
+        parallel_ = std::make_unique<ChainForwardDynamics<S>>(model_, std::max<Index>(max_batch_, 1), threads_);
+      } catch (const BackendError& e) {
+        throw UsageError(std::string("--fd parallel: ") + e.what(), false);
+      }
+    }
+    return *parallel_;
+  }
+
   const ModelTpl<S>& model_;
+  Index max_batch_ = 1;
+  bool chain_ = false, openmp_ = false;
+  std::unique_ptr<ChainForwardDynamics<S>> parallel_;  // --fd parallel, made on first use
+  std::vector<int> failed_;                             // (batch) its failed links
   int threads_ = 1;
   std::unique_ptr<InverseDynamics<S>> id_;  // batched inverse dynamics
   std::vector<DataTpl<S>> data_;            // (threads) without the mass-matrix workspace
@@ -204,17 +266,17 @@ std::unique_ptr<Evaluator<S>> make_openmp_evaluator(const ModelTpl<S>& model, co
 // have, if only one. Entries with null factories are recognised names that this
 // build does not contain (they get a clear error, not "unknown").
 const Backend kBackends[] = {
-    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr, nullptr},
+    {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr},
 #if SCANDYN_HAS_OPENMP && defined(_OPENMP)
-    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>, kEveryAlgo, nullptr, nullptr},
+    {"openmp", &make_openmp_evaluator<double>, &make_openmp_evaluator<float>, kEveryAlgo, nullptr},
 #else
-    {"openmp", nullptr, nullptr, kEveryAlgo, nullptr, nullptr},
+    {"openmp", nullptr, nullptr, kEveryAlgo, nullptr},
 #endif
 #if SCANDYN_HAS_CUDA
     {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>,
-     algo_bit(Algo::Id) | algo_bit(Algo::Fd) | algo_bit(Algo::Bias), &cuda_unusable, "jsi"},
+     algo_bit(Algo::Id) | algo_bit(Algo::Fd) | algo_bit(Algo::Bias), &cuda_unusable},
 #else
-    {"cuda", nullptr, nullptr, 0, nullptr, nullptr},
+    {"cuda", nullptr, nullptr, 0, nullptr},
 #endif
 };
 
@@ -241,6 +303,8 @@ EvalOptions parse_eval_options(const Args& args) {
       throw UsageError("--threads must be an integer from 1 to 4096, got '" + t + "'");
     o.threads = static_cast<int>(v);
   }
+  if (args.has("fd") && !parse_fd_method(args.required("fd"), o.fd))
+    throw UsageError("unknown --fd value '" + args.required("fd") + "' (expected auto, aba, jsi, hybrid or parallel)");
   return o;
 }
 

@@ -21,11 +21,13 @@
 namespace scandyn::cli {
 
 enum class Algo { Id, Fd, Mass, Bias };
-enum class FdMethod { Aba, Jsi };
+// Forward-dynamics methods (--fd): auto resolves by backend and shape (see
+// Evaluator::fd_method); hybrid and parallel take unbranched chains.
+enum class FdMethod { Auto, Aba, Jsi, Hybrid, Parallel };
 enum class Precision { Double, Float };
 
 const char* algo_name(Algo algo);         // "id", "fd", "mass", "bias"
-const char* fd_method_name(FdMethod fd);  // "aba", "jsi"
+const char* fd_method_name(FdMethod fd);  // "auto", "aba", "jsi", "hybrid", "parallel"
 const char* precision_name(Precision p);  // "double", "float"
 // Parses a name as written on the command line; false if unknown.
 bool parse_algo(const std::string& name, Algo& algo);
@@ -90,10 +92,12 @@ class Evaluator {
   // algorithms). Stops at the first instance whose factorisation fails. Called
   // only for algorithms of the backend's AlgoSet, with count <= max_batch.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
-  // The forward-dynamics method run() uses when fd is requested: fd itself on the
-  // CPU backends; Jsi on CUDA, which has no other. Failure messages
-  // (describe_fd_failure) name the pivot of the method used.
-  virtual FdMethod fd_method(FdMethod requested) const { return requested; }
+  // The forward-dynamics method run() uses when fd is requested (Auto resolved):
+  // on the CPU backends aba, or parallel for unbranched chains of at least 4096
+  // links on openmp; on CUDA the engine's choice (parallel for unbranched chains
+  // beyond 64 links, else jsi). Failure messages (describe_fd_failure) name the
+  // pivot of the method used.
+  virtual FdMethod fd_method(FdMethod requested) const = 0;
   // How run() computes algo, for the benchmark's strategy column: recursion,
   // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion
   // for bias (CPU); for CUDA, thread-host (id, bias) or jsi_thread-host (fd): one
@@ -121,6 +125,7 @@ struct EvalOptions {
   int threads = 0;
   std::size_t max_batch = 1;
   AlgoSet algos = 0;
+  FdMethod fd = FdMethod::Auto;  // the forward-dynamics method fd will be asked for
 };
 
 template <class S>
@@ -135,15 +140,11 @@ struct Backend {
   AlgoSet algos;  // the algorithms its evaluators compute
   // Why the backend cannot run on this machine, "" when it can; null: always can.
   std::string (*unusable)();
-  // The forward-dynamics method its evaluators use whatever is requested (their
-  // fd_method()); null when they use the one requested. bench refuses an explicit
-  // --fd naming another.
-  const char* fd_only = nullptr;
   bool available() const { return make_double != nullptr; }
   bool provides(Algo algo) const { return (algos & algo_bit(algo)) != 0; }
 };
 
-// --strategy and --threads of eval and bench; throws UsageError for bad values.
+// --strategy, --threads and --fd of eval and bench; throws UsageError for bad values.
 class Args;
 EvalOptions parse_eval_options(const Args& args);
 

@@ -7,10 +7,11 @@
 //               CudaInverseDynamics::compute() (copies in, kernel, copy out, sync);
 //   resident()  bench's "thread" row: the batch copied once to device memory in the
 //               engine's fast layout (instance innermost), compute_async() on a stream.
-// fd runs through the CUDA forward-dynamics engine (scandyn/cuda/forward_dynamics.hpp):
-// the joint-space inertia whatever --fd asks: one GPU thread per instance (CRBA,
-// tree-sparse L^T L) up to 64 DoF, CRBA per block and cuSOLVER's batched Cholesky
-// beyond; run() only (bench's "jsi_thread-host" or "jsi_dense-host" row),
+// fd runs through the CUDA forward-dynamics engine (scandyn/cuda/forward_dynamics.hpp)
+// by the --fd method (one engine per method): jsi (one GPU thread per instance up
+// to 64 DoF, CRBA per block and cuSOLVER's batched Cholesky beyond), aba (one
+// thread per instance, up to 64 DoF), parallel and hybrid (unbranched chains, link
+// scans), auto (the engine's choice); run() only (bench's "<strategy>-host" row),
 // CudaForwardDynamics::compute(), whose first failed factorisation becomes the
 // BatchStatus that eval and bench report as for the CPU backends. Each engine is
 // made when the evaluator is, if its algorithms are among EvalOptions::algos, or on
@@ -177,15 +178,15 @@ class CudaEvaluator final : public Evaluator<S> {
     bo_.strategy = o.strategy;
     bo_.max_batch = static_cast<Index>(o.max_batch);
     const AlgoSet algos = o.algos ? o.algos : algo_bit(Algo::Id);
-    if (algos & algo_bit(Algo::Fd)) fd_engine();
+    if (algos & algo_bit(Algo::Fd)) fd_engine(o.fd);
     if (algos & (algo_bit(Algo::Id) | algo_bit(Algo::Bias))) id_engine();
   }
 
-  BatchStatus run(Algo algo, FdMethod, const BatchIn<S>& in, S* out) override {
+  BatchStatus run(Algo algo, FdMethod fd_method, const BatchIn<S>& in, S* out) override {
     const Index B = static_cast<Index>(in.count);
     using V = BatchView<const S>;
     if (algo == Algo::Fd) {
-      cuda::CudaForwardDynamics<S>& engine = fd_engine();
+      cuda::CudaForwardDynamics<S>& engine = fd_engine(fd_method);
       const FdBatchIn<S> fd{V::aos(in.q, nv_, B), V::aos(in.qd, nv_, B), V::aos(in.tau, nv_, B), nullptr};
       cuda::FdBatchStatus st;
       try {
@@ -212,11 +213,18 @@ class CudaEvaluator final : public Evaluator<S> {
     return {};
   }
 
-  // fd is by the joint-space inertia, whatever is requested
-  FdMethod fd_method(FdMethod) const override { return FdMethod::Jsi; }
+  // the engine's algorithm (Auto: its choice by shape)
+  FdMethod fd_method(FdMethod requested) const override {
+    switch (fd_engine(requested).algorithm()) {
+      case cuda::FdAlgorithm::Aba: return FdMethod::Aba;
+      case cuda::FdAlgorithm::Parallel: return FdMethod::Parallel;
+      case cuda::FdAlgorithm::Hybrid: return FdMethod::Hybrid;
+      default: return FdMethod::Jsi;
+    }
+  }
 
-  std::string strategy(Algo algo, FdMethod) const override {
-    return (algo == Algo::Fd ? fd_engine().strategy() : id_engine().strategy()) + "-host";
+  std::string strategy(Algo algo, FdMethod fd) const override {
+    return (algo == Algo::Fd ? fd_engine(fd).strategy() : id_engine().strategy()) + "-host";
   }
   bool exact(Algo, FdMethod) const override { return false; }  // other compiler, FMA contraction
 
@@ -241,18 +249,28 @@ class CudaEvaluator final : public Evaluator<S> {
     return *id_;
   }
 
-  cuda::CudaForwardDynamics<S>& fd_engine() const {
-    if (!fd_) {
+  // the engine of one --fd method (made on first use)
+  cuda::CudaForwardDynamics<S>& fd_engine(FdMethod method) const {
+    auto& fd = fd_[static_cast<int>(method)];
+    if (!fd) {
       BackendOptions bo = bo_;
       bo.strategy = IdStrategy::Auto;  // --strategy is inverse dynamics' (as on the CPU backends)
+      cuda::FdAlgorithm algo = cuda::FdAlgorithm::Auto;
+      switch (method) {
+        case FdMethod::Auto: algo = cuda::FdAlgorithm::Auto; break;
+        case FdMethod::Aba: algo = cuda::FdAlgorithm::Aba; break;
+        case FdMethod::Jsi: algo = cuda::FdAlgorithm::Jsi; break;
+        case FdMethod::Hybrid: algo = cuda::FdAlgorithm::Hybrid; break;
+        case FdMethod::Parallel: algo = cuda::FdAlgorithm::Parallel; break;
+      }
       try {
-        fd_ = std::make_unique<cuda::CudaForwardDynamics<S>>(model_, bo);
+        fd = std::make_unique<cuda::CudaForwardDynamics<S>>(model_, bo, algo);
       } catch (const BackendError& e) {
-        // no device, buffers beyond device memory
-        throw UsageError(e.what(), false);
+        // no device, buffers beyond device memory, a method the model cannot take
+        throw UsageError(std::string("--fd ") + fd_method_name(method) + ": " + e.what(), false);
       }
     }
-    return *fd_;
+    return *fd;
   }
 
   const ModelTpl<S>& model_;
@@ -260,7 +278,7 @@ class CudaEvaluator final : public Evaluator<S> {
   BackendOptions bo_;
   S zero_ = 0;  // qdd of bias
   mutable std::unique_ptr<cuda::CudaInverseDynamics<S>> id_;
-  mutable std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_;
+  mutable std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_[5];  // by FdMethod
 };
 
 }  // namespace

@@ -201,21 +201,13 @@ int run_bench(const Args& args) {
   if (!parse_algo(args.required("algo"), algo))
     throw UsageError("unknown --algo value '" + args.required("algo") +
                      "' (expected id, fd, mass or bias)");
-  FdMethod fd = FdMethod::Aba;
-  if (args.has("fd")) {
-    if (algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
-    if (!parse_fd_method(args.required("fd"), fd))
-      throw UsageError("unknown --fd value '" + args.required("fd") + "' (expected aba or jsi)");
-  }
+  if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
   const EvalOptions options = parse_eval_options(args);
+  const FdMethod fd = options.fd;
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
   const Backend& backend = find_backend(args.get("backend", "serial"));
   require_algos(backend, algo_bit(algo));
-  if (args.has("fd") && backend.fd_only && fd_method_name(fd) != std::string(backend.fd_only))
-    throw UsageError(std::string("backend '") + backend.name + "' computes --algo fd by " + backend.fd_only +
-                         " only: use --fd " + backend.fd_only + " or leave --fd out",
-                     false);
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
   require_usable(backend);

@@ -68,7 +68,7 @@ std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Inde
 // kMaxChunkRows, the evaluator's max_batch), whatever the backend.
 template <class S>
 void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk,
+               const StateColumns& cols, const std::vector<Algo>& algos, FdMethod fd, std::size_t chunk,
                CsvWriter& out) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   std::vector<std::string> names;
@@ -115,10 +115,10 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
     batch.qdd = family_data(Family::Qdd);
     batch.tau = family_data(Family::Tau);
     for (std::size_t k = 0; k < algos.size(); ++k) {
-      const BatchStatus st = evaluator.run(algos[k], FdMethod::Aba, batch, result[k].data());
-      if (!st.ok()) {  // the pivot of the method used (CUDA: JSI's mass matrix)
+      const BatchStatus st = evaluator.run(algos[k], fd, batch, result[k].data());
+      if (!st.ok()) {  // the pivot of the method used
         throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
-                        describe_fd_failure(evaluator.fd_method(FdMethod::Aba), st.status));
+                        describe_fd_failure(evaluator.fd_method(fd), st.status));
       }
     }
 
@@ -166,7 +166,7 @@ void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions opt
   if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
   else evaluator = backend.make_float(model, options);
   CsvWriter out(out_path);
-  eval_rows(model, *evaluator, in, cols, algos, chunk, out);
+  eval_rows(model, *evaluator, in, cols, algos, options.fd, chunk, out);
   out.commit();
 }
 

@@ -35,6 +35,7 @@ const char* const kInfoUsage =
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
+    "                    [--fd auto|aba|jsi|hybrid|parallel]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                    [--precision double|float]\n"
     "\n"
@@ -47,8 +48,14 @@ const char* const kEvalUsage =
     "                    columns are all present\n"
     "  --backend NAME    serial (default), openmp (threads over instances, or scans\n"
     "                    over links for fewer instances than threads on long chains)\n"
-    "                    or cuda (id, fd and bias, one GPU thread per instance;\n"
-    "                    fd by jsi: one thread per instance up to 64 DoF, batched dense Cholesky beyond)\n"
+    "                    or cuda (id, fd and bias, one GPU thread per instance,\n"
+    "                    or scans over links for long chains)\n"
+    "  --fd METHOD       forward dynamics by aba (articulated bodies), jsi (CRBA +\n"
+    "                    Cholesky), parallel (unbranched chains: scans over links,\n"
+    "                    O(log n) depth) or hybrid (chains, cuda only: articulated\n"
+    "                    inertias on the CPU, the rest as GPU scans); default auto:\n"
+    "                    serial aba; openmp parallel for chains of 4096+ links, else\n"
+    "                    aba; cuda parallel for chains beyond 64 links, else jsi\n"
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
@@ -58,7 +65,7 @@ const char* const kEvalUsage =
     "                    with a warning, instead of refusing the model\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd aba|jsi]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd METHOD]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -67,9 +74,8 @@ const char* const kBenchUsage =
     "evals_per_second,max_rel_err (with the header when stdout is a terminal). With\n"
     "--backend cuda two rows for id and bias: strategy thread (the batch resident in\n"
     "device memory) and thread-host (host buffers, copies to and from the device\n"
-    "included); one row, jsi_thread-host (jsi_dense-host beyond 64 DoF), for fd.\n"
-    "  --fd METHOD       forward dynamics by aba (default) or jsi (CRBA + Cholesky);\n"
-    "                    cuda has jsi only (used without --fd)\n"
+    "included); one row, <strategy>-host (e.g. jsi_thread-host, parallel-host), for fd.\n"
+    "  --fd METHOD       auto (default), aba, jsi, hybrid or parallel, as for eval\n"
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
@@ -87,7 +93,7 @@ const Command kCommands[] = {
     {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
     {"eval",
      kEvalUsage,
-     {"model", "states", "out", "algo", "backend", "strategy", "threads", "precision",
+     {"model", "states", "out", "algo", "fd", "backend", "strategy", "threads", "precision",
       "allow-nonphysical-inertia"},
      &run_eval},
     {"bench",

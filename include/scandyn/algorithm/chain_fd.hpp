@@ -51,31 +51,39 @@ using Mat5 = SmallMat<S, 5, 5>;
 
 // ---- scan elements ----------------------------------------------------------
 
-// x -> M x + b on 6-vectors (motions or forces).
+// x -> M x + b on 6-vectors (motions or forces). A constant map (an instance's
+// first link forward, its last backward) ignores its input exactly: composing with
+// it never multiplies by the other side, so a NaN in one instance stays there.
 template <class S>
 struct Affine6 {
-  Mat6<S> M;  // (6x6) linear part
-  Vec6<S> b;  // (6) offset
+  Mat6<S> M;              // (6x6) linear part (zero and unused when constant)
+  Vec6<S> b;              // (6) offset
+  bool constant = false;  // x -> b
 
   using Value = Vec6<S>;
-  SCANDYN_HD static Affine6 constant(const Vec6<S>& b) { return {Mat6<S>::zero(), b}; }
-  SCANDYN_HD Value apply(const Value& x) const { return M * x + b; }
+  SCANDYN_HD static Affine6 make_constant(const Vec6<S>& b) { return {Mat6<S>::zero(), b, true}; }
+  SCANDYN_HD Value apply(const Value& x) const { return constant ? b : M * x + b; }
   // (outer o inner)(x) = outer(inner(x))
   SCANDYN_HD static Affine6 compose(const Affine6& outer, const Affine6& inner) {
-    return {outer.M * inner.M, outer.M * inner.b + outer.b};
+    if (outer.constant) return outer;
+    if (inner.constant) return make_constant(outer.M * inner.b + outer.b);
+    return {outer.M * inner.M, outer.M * inner.b + outer.b, false};
   }
   SCANDYN_HD static Value start() { return Vec6<S>::zero(); }
 };
 
-// Y -> Q - C (Y + R)^{-1} C^T on symmetric positive definite 5x5 Y.
+// Y -> Q - C (Y + R)^{-1} C^T on symmetric positive definite 5x5 Y; a leaf's map
+// (constant: C = R = 0) is Y -> Q, and composing with it stays exact as above.
 template <class S>
 struct DualRiccati {
-  Mat5<S> Q;  // (5x5) symmetric
-  Mat5<S> C;  // (5x5)
-  Mat5<S> R;  // (5x5) symmetric
+  Mat5<S> Q;              // (5x5) symmetric
+  Mat5<S> C;              // (5x5)
+  Mat5<S> R;              // (5x5) symmetric
+  bool constant = false;  // Y -> Q
 
   using Value = Mat5<S>;
   SCANDYN_HD Value apply(const Value& Y) const {
+    if (constant) return Q;
     Mat5<S> L = Y + R;
     Mat5<S> Z = transpose(C);  // (Y + R)^{-1} C^T
     if (!cholesky(L)) return nan_value();
@@ -83,13 +91,16 @@ struct DualRiccati {
     return symmetrize(Q - C * Z);
   }
   SCANDYN_HD static DualRiccati compose(const DualRiccati& a, const DualRiccati& b) {
+    if (a.constant) return a;
     Mat5<S> W = b.Q + a.R;
     Mat5<S> Za = transpose(a.C);  // W^{-1} C_a^T
-    Mat5<S> Zb = b.C;             // W^{-1} C_b
-    if (!cholesky(W)) return {nan_value(), nan_value(), nan_value()};
+    if (!cholesky(W)) return {nan_value(), nan_value(), nan_value(), b.constant};
     cholesky_solve(W, Za);
+    const Mat5<S> Q = symmetrize(a.Q - a.C * Za);
+    if (b.constant) return {Q, Mat5<S>::zero(), Mat5<S>::zero(), true};
+    Mat5<S> Zb = b.C;  // W^{-1} C_b
     cholesky_solve(W, Zb);
-    return {symmetrize(a.Q - a.C * Za), transpose(Za) * b.C, symmetrize(b.R - mul_transpose(b.C, Zb))};
+    return {Q, transpose(Za) * b.C, symmetrize(b.R - mul_transpose(b.C, Zb)), false};
   }
   SCANDYN_HD static Value start() { return Mat5<S>::identity(); }  // absorbed by every leaf
   SCANDYN_HD static Value nan_value() {
@@ -199,7 +210,7 @@ SCANDYN_HD DualRiccati<S> dual_element(const Body<S>& b, const InverseInertia<S>
   if (has_child)
     for (int k = 0; k < 5; ++k) G[5 + k] = Xup_next.apply_transpose(constraint_force(next, k));
   for (int k = 0; k < cols; ++k) PhiG[k] = Phi * G[k];
-  DualRiccati<S> e{Mat5<S>::zero(), Mat5<S>::zero(), Mat5<S>::zero()};
+  DualRiccati<S> e{Mat5<S>::zero(), Mat5<S>::zero(), Mat5<S>::zero(), !has_child};
   for (int r = 0; r < 5; ++r)
     for (int c = 0; c < 5; ++c) {
       e.Q(r, c) = dot(PhiG[c], G[r]);
@@ -282,19 +293,19 @@ SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g) {
 // Pass 0's aggregate of links s..e: v_e as a map of v_{s-1}.
 template <class S>
 SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index e) {
-  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);
     const Vec6<S> Sqd = to_vec6(joint_motion(b, d.qd_of(g)));
-    const Affine6<S> el = d.has_parent(g) ? Affine6<S>{to_mat6(d.Xup(g)), Sqd} : Affine6<S>::constant(Sqd);
+    const Affine6<S> el = d.has_parent(g) ? Affine6<S>{to_mat6(d.Xup(g)), Sqd} : Affine6<S>::make_constant(Sqd);
     agg = Affine6<S>::compose(el, agg);
   }
   return agg;
 }
 
 // Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk,
-// Y_s as a map of Y_{e+1}.
-template <class S>
+// Y_s as a map of Y_{e+1} (kDual; otherwise nothing, for the hybrid).
+template <bool kDual = true, class S>
 SCANDYN_HD DualRiccati<S> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
   Motion<S> v_parent = to_motion(v_in);
   Transform<S> X = d.Xup(s);
@@ -304,10 +315,13 @@ SCANDYN_HD DualRiccati<S> velocity_walk(const ChainFdData<S>& d, Index s, Index 
     const AbaForward<S> o = aba_forward_step(b, X, d.has_parent(g) ? v_parent : Motion<S>::zero(), d.qd_of(g));
     d.v[g] = o.v;
     v_parent = o.v;
-    const bool child = d.has_child(g);
-    const Transform<S> Xnext = g + 1 < d.count() ? d.Xup(g + 1) : X;  // next link (next instance's first)
-    const DualRiccati<S> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
-    agg = g == s ? el : DualRiccati<S>::compose(agg, el);
+    const bool more = g + 1 < d.count();
+    const Transform<S> Xnext = more ? d.Xup(g + 1) : X;  // the next link's (the next instance's first)
+    if constexpr (kDual) {
+      const bool child = d.has_child(g);
+      const DualRiccati<S> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+      agg = g == s ? el : DualRiccati<S>::compose(agg, el);
+    }
     X = Xnext;
   }
   return agg;
@@ -321,7 +335,7 @@ template <class S>
 SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
   ABInertia<S> Ia_next = Ia_in;  // Ia of link g + 1, its frame
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
-  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
   for (Index g = e; g >= s; --g) {
     const Body<S>& b = d.body_of(g);
     const bool child = d.has_child(g);
@@ -342,9 +356,10 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, co
     d.D[g] = D;
     d.w[g] = w;
     // z_g = N (pA + Xnext^T z_{g+1}) + w + U tau / D,  N = 1 - U S^T / D
-    Affine6<S> el = Affine6<S>::constant(Vec6<S>::zero());
+    Affine6<S> el = Affine6<S>::make_constant(Vec6<S>::zero());
     if (child) {
       const Mat6<S> XT = transpose(to_mat6(Xnext));
+      el.constant = false;
       el.M = XT;
       const Vec6<S> Uv = to_vec6(U);
       for (int c = 0; c < 6; ++c) {
@@ -369,7 +384,7 @@ template <class S>
 SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
   Force<S> z_next = to_force(z_in);
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
-  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero()};
+  Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
   for (Index g = e; g >= s; --g) {
     const Body<S>& b = d.body_of(g);
     Force<S> pA = d.pA(g);
@@ -402,7 +417,7 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const
       }
       el.b = project(to_vec6(d.c(g))) + Su;
     } else {
-      el = Affine6<S>::constant(project(to_vec6(X.apply(d.a0) + d.c(g))) + Su);
+      el = Affine6<S>::make_constant(project(to_vec6(X.apply(d.a0) + d.c(g))) + Su);
     }
     agg = Affine6<S>::compose(agg, el);
     Xnext = X;

@@ -52,6 +52,7 @@
 
 #include "scandyn/backend.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/chain_fd.hpp"
 #include "scandyn/cuda/fd_dense.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 
@@ -104,13 +105,17 @@ cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>
 
 // Which algorithm CudaForwardDynamics runs.
 enum class FdAlgorithm {
-  Auto,  // Jsi. Measured on the H100 (bench_cuda_fd, 10^7 instances): ABA is faster
-         // from about 30 DoF (atlas: 28.8 ms against 48.0 ms float, 57 against
-         // 95 ms double), slower at 7-12 (iiwa float 9.8 against 4.5 ms: the ABA
-         // kernel spills at 128 registers); a choice by size is the next step
-  Jsi,   // joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond
-  Aba,   // articulated-body algorithm, one thread per instance ("aba_thread"), up to
-         // kMaxThreadDofs DoF (beyond: BackendError, no kernel yet)
+  Auto,      // parallel for an unbranched chain of more than kMaxThreadDofs links,
+             // else Jsi. Measured on the H100 (bench_cuda_fd, 10^7 instances): ABA
+             // is faster from about 30 DoF (atlas: 28.8 ms against 48.0 ms float),
+             // slower at 7-12 (iiwa float 9.8 against 4.5 ms)
+  Jsi,       // joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond
+  Aba,       // articulated-body algorithm, one thread per instance ("aba_thread"), up to
+             // kMaxThreadDofs DoF (beyond: BackendError)
+  Parallel,  // unbranched chains of any length: the articulated-body algorithm as scans
+             // over links, every pass on the device (ChainFdPlan::launch, "parallel")
+  Hybrid,    // unbranched chains: articulated inertias on the host, the other passes as
+             // device scans (ChainFdPlan::launch_hybrid, "hybrid"); compute() only
 };
 
 // The batched forward-dynamics engine on one CUDA device (the device current at
@@ -153,16 +158,26 @@ class CudaForwardDynamics {
   //               max_batch; safe from several host threads on different streams;
   //   aba_thread: launch_aba_instances, likewise;
   //   jsi_dense:  DenseJsiPlan::launch; B <= max_batch (else cudaErrorInvalidValue);
-  //               the engine's scratch, so one stream at a time.
+  //               the engine's scratch, so one stream at a time;
+  //   parallel:   ChainFdPlan::launch, likewise;
+  //   hybrid:     not here (its host recursion needs q in host memory):
+  //               cudaErrorNotSupported; compute() runs it.
   cudaError_t compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                             cudaStream_t stream);
 
   // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
   // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
   // "aba_thread" (FdAlgorithm::Aba: ABA, one thread per instance)
-  std::string strategy() const { return aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread"; }
-  // Jsi or Aba: the algorithm the engine runs (Auto resolved)
-  FdAlgorithm algorithm() const { return aba_ ? FdAlgorithm::Aba : FdAlgorithm::Jsi; }
+  // "parallel" and "hybrid" (ChainFdPlan) likewise.
+  std::string strategy() const {
+    if (chain_) return algorithm_ == FdAlgorithm::Hybrid ? "hybrid" : "parallel";
+    return aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread";
+  }
+  // the algorithm the engine runs (Auto resolved)
+  FdAlgorithm algorithm() const { return algorithm_; }
+  // the hybrid's timeline of its last compute() when record_timeline(true) was set
+  void record_timeline(bool on) { record_timeline_ = on; }
+  const std::vector<ChainTimelineEvent>& timeline() const { return timeline_; }
   std::string backend() const { return "cuda"; }
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
@@ -174,8 +189,12 @@ class CudaForwardDynamics {
  private:
   Index nv_ = 0;
   bool aba_ = false;
+  FdAlgorithm algorithm_ = FdAlgorithm::Jsi;
   std::unique_ptr<ThreadModel<S>> thread_;
   std::unique_ptr<DenseJsiPlan<S>> dense_;
+  std::unique_ptr<ChainFdPlan<S>> chain_;
+  bool record_timeline_ = false;
+  std::vector<ChainTimelineEvent> timeline_;
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;

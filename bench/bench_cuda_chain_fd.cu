@@ -1,0 +1,256 @@
+// Forward dynamics of ropes (rope:N, one instance unless stated) on the GPU by the
+// chain scans (parallel, hybrid) and by the joint-space inertia, against the serial
+// ABA on this machine's CPU.
+//
+// Rows (names as scripts/bench_results.py reads them):
+//   fd_parallel/<precision>/rope:N/cuda       CudaForwardDynamics, FdAlgorithm::Parallel,
+//                                             compute_async on device buffers (events
+//                                             around the launch), N = 10 .. 10^6;
+//   fd_parallel-host/<precision>/rope:N/cuda  compute() from host buffers (copies in
+//                                             and out included), as the hybrid is;
+//   fd_hybrid/<precision>/rope:N/cuda         FdAlgorithm::Hybrid through compute():
+//                                             the articulated inertias on this host
+//                                             (one thread), the other passes on the
+//                                             device;
+//   fd_jsi/<precision>/rope:N/cuda            FdAlgorithm::Jsi (jsi_thread to 64 links,
+//                                             then CRBA + cuSOLVER's Cholesky), compute_async,
+//                                             N = 10 .. 4000 (M is N^2 scalars);
+//   fd_aba/<precision>/rope:N/serial          the serial reference aba on this host;
+//   fd_parallel/<precision>/rope:1000/cuda    with instances = 10 .. 1000 (batches of ropes).
+// max_rel_err: every qdd entry against the double serial aba on the same
+// (precision-rounded) inputs: q uniform in [-1, 1] rad, qd and tau in [-1, 1].
+// Counters: links, instances, max_rel_err, failed (instances reported failed).
+//
+// Before the rows: the device, and the hybrid's timeline for rope:10^6 in float as
+// lines "timeline,<event>,<start ms>,<end ms>" (host groups of the articulated-inertia
+// recursion against the device's walks of the groups already known).
+//
+// Flags (before Google Benchmark's): --max-links=N (default 10^6).
+#include <benchmark/benchmark.h>
+#include <cuda_runtime.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <map>
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "cuda_bench_util.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+
+using namespace scandyn;
+using namespace scandyn::bench;
+
+namespace {
+
+// Inputs of one configuration in double (the reference's) and the reference qdd.
+struct Inputs {
+  std::vector<double> q, qd, tau, ref;  // SoA (n x B)
+};
+
+std::map<std::string, std::shared_ptr<Inputs>> g_inputs;  // by "<precision>/<spec>/<B>"
+
+template <class S>
+std::shared_ptr<Inputs> inputs(const Model& m, Index B) {
+  const std::string key = std::string(sizeof(S) == 4 ? "f/" : "d/") + m.source + "/" + std::to_string(B);
+  auto& slot = g_inputs[key];
+  if (slot) return slot;
+  slot = std::make_shared<Inputs>();
+  const Index n = m.nv();
+  std::mt19937_64 rng(42);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (auto* v : {&slot->q, &slot->qd, &slot->tau}) {
+    v->resize(static_cast<std::size_t>(n) * B);
+    for (auto& x : *v) x = double(S(u(rng)));
+  }
+  slot->ref.resize(slot->q.size());
+  Data data(m, false);
+  std::vector<double> qi(n), qdi(n), ti(n), qddi(n);
+  for (Index b = 0; b < B; ++b) {
+    for (Index i = 0; i < n; ++i) qi[i] = slot->q[i * B + b], qdi[i] = slot->qd[i * B + b], ti[i] = slot->tau[i * B + b];
+    aba(m, data, qi.data(), qdi.data(), ti.data(), qddi.data());
+    for (Index i = 0; i < n; ++i) slot->ref[i * B + b] = qddi[i];
+  }
+  return slot;
+}
+
+template <class S>
+double error_of(const std::vector<S>& qdd, const Inputs& in) {
+  std::vector<double> d(qdd.begin(), qdd.end());
+  return rel_err(d.data(), in.ref.data(), d.size());
+}
+
+template <class S>
+void set(benchmark::State& st, Index n, Index B, double err, Index failed) {
+  st.counters["links"] = n;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = err;
+  st.counters["failed"] = failed;
+}
+
+// Device rows: compute_async on device buffers.
+template <class S>
+void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
+  const Index n = m->nv();
+  const auto in = inputs<S>(*m, B);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  std::unique_ptr<cuda::CudaForwardDynamics<S>> fd;
+  try {
+    fd = std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  const std::size_t count = static_cast<std::size_t>(n) * B;
+  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  S* p = nullptr;
+  int* failed = nullptr;
+  if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
+      !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
+    return;
+  cudaMemcpy(p, q.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  cudaMemcpy(p + count, qd.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  cudaMemcpy(p + 2 * count, tau.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  using V = BatchView<const S>;
+  const FdBatchIn<S> din{V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
+  const BatchView<S> dqdd = BatchView<S>::soa(p + 3 * count, n, B);
+  time_launches(st, [&] { return fd->compute_async(din, dqdd, failed, nullptr); });
+  std::vector<S> qdd(count);
+  std::vector<int> f(static_cast<std::size_t>(B));
+  cudaMemcpy(qdd.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
+  cudaMemcpy(f.data(), failed, B * sizeof(int), cudaMemcpyDeviceToHost);
+  Index bad = 0;
+  for (int x : f) bad += x >= 0;
+  set<S>(st, n, B, error_of(qdd, *in), bad);
+  cudaFree(p);
+  cudaFree(failed);
+}
+
+// Host rows: compute() from host buffers (the hybrid needs q on the host).
+template <class S>
+void run_host(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
+  const Index n = m->nv();
+  const auto in = inputs<S>(*m, B);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  std::unique_ptr<cuda::CudaForwardDynamics<S>> fd;
+  try {
+    fd = std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  std::vector<S> qdd(q.size());
+  using V = BatchView<const S>;
+  const FdBatchIn<S> hin{V::soa(q.data(), n, B), V::soa(qd.data(), n, B), V::soa(tau.data(), n, B), nullptr};
+  cuda::FdBatchStatus status;
+  for (auto _ : st) status = fd->compute(hin, BatchView<S>::soa(qdd.data(), n, B));
+  set<S>(st, n, B, error_of(qdd, *in), status.failed);
+}
+
+template <class S>
+void run_serial_aba(benchmark::State& st, const Model* m) {
+  const Index n = m->nv();
+  const auto in = inputs<S>(*m, 1);
+  const ModelTpl<S> ms = m->cast<S>();
+  DataTpl<S> data(ms, false);
+  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  std::vector<S> qdd(q.size());
+  for (auto _ : st) {
+    aba(ms, data, q.data(), qd.data(), tau.data(), qdd.data());
+    benchmark::DoNotOptimize(qdd.data());
+  }
+  set<S>(st, n, 1, error_of(qdd, *in), 0);
+}
+
+std::vector<std::unique_ptr<Model>> g_models;
+
+void print_hybrid_timeline(Index n) {
+  const Model m = make_generated("rope:" + std::to_string(n));
+  const auto in = inputs<float>(m, 1);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  cuda::CudaForwardDynamics<float> fd(m.cast<float>(), o, cuda::FdAlgorithm::Hybrid);
+  fd.record_timeline(true);
+  const std::vector<float> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  std::vector<float> qdd(q.size());
+  using V = BatchView<const float>;
+  const FdBatchIn<float> hin{V::soa(q.data(), n, 1), V::soa(qd.data(), n, 1), V::soa(tau.data(), n, 1), nullptr};
+  for (int r = 0; r < 3; ++r) fd.compute(hin, BatchView<float>::soa(qdd.data(), n, 1));  // warm, then the last one
+  std::printf("timeline,event,start_ms,end_ms  (hybrid, float, rope:%d, one instance)\n", n);
+  for (const auto& e : fd.timeline()) std::printf("timeline,%s,%.4f,%.4f\n", e.what.c_str(), e.start_ms, e.end_ms);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  long max_links = 1000000;
+  std::vector<char*> rest;
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--max-links=", 12) == 0) max_links = std::atol(argv[i] + 12);
+    else rest.push_back(argv[i]);
+  }
+  const auto count = cuda::device_count();
+  if (!count || count.value == 0) {
+    std::fprintf(stderr, "bench_cuda_chain_fd: %s; nothing to run\n",
+                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
+    return 0;
+  }
+  print_device_and_roofline("bench_cuda_chain_fd");
+  print_hybrid_timeline(static_cast<Index>(std::min<long>(max_links, 1000000)));
+
+  for (long N = 10; N <= max_links; N *= 10) {
+    g_models.push_back(std::make_unique<Model>(make_generated("rope:" + std::to_string(N))));
+    const Model* m = g_models.back().get();
+    for (int prec = 0; prec < 2; ++prec) {
+      const bool fl = prec == 1;
+      const std::string tail = std::string(fl ? "float/" : "double/") + m->source;
+      auto reg = [&](const std::string& name, auto fn) {
+        benchmark::RegisterBenchmark(name.c_str(), fn)->UseManualTime()->Unit(benchmark::kMicrosecond);
+      };
+      auto regh = [&](const std::string& name, auto fn) {
+        benchmark::RegisterBenchmark(name.c_str(), fn)->UseRealTime()->Unit(benchmark::kMicrosecond);
+      };
+      if (fl) {
+        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, cuda::FdAlgorithm::Parallel); });
+        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, cuda::FdAlgorithm::Parallel); });
+        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, cuda::FdAlgorithm::Hybrid); });
+        if (N <= 4000)
+          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, cuda::FdAlgorithm::Jsi); });
+        regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<float>(st, m); });
+      } else {
+        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, cuda::FdAlgorithm::Parallel); });
+        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, cuda::FdAlgorithm::Parallel); });
+        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, cuda::FdAlgorithm::Hybrid); });
+        if (N <= 4000)
+          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, cuda::FdAlgorithm::Jsi); });
+        regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<double>(st, m); });
+      }
+    }
+  }
+  // batches of rope:1000
+  g_models.push_back(std::make_unique<Model>(make_generated("rope:1000")));
+  const Model* r1000 = g_models.back().get();
+  for (long B : {10L, 100L, 1000L}) {
+    benchmark::RegisterBenchmark(("fd_parallel/float/rope:1000/cuda/B" + std::to_string(B)).c_str(),
+                                 [r1000, B](benchmark::State& st) { run_device<float>(st, r1000, B, cuda::FdAlgorithm::Parallel); })
+        ->UseManualTime()
+        ->Unit(benchmark::kMicrosecond);
+  }
+  int rargc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rargc, rest.data());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

@@ -1,0 +1,108 @@
+// scandyn/cuda/chain_fd.hpp: forward dynamics of long unbranched chains on a CUDA
+// device, by the chunked scans of scandyn/algorithm/chain_fd.hpp.
+//
+// Two variants share the kernels:
+//   parallel  every pass on the device: the articulated-inertia recursion as a scan
+//             of constraint-space Riccati maps (DualRiccati), O(log n) span;
+//   hybrid    the seed's split: the articulated-inertia recursion runs serially on
+//             the host (the calling thread), from the last link to the first, in
+//             groups of chunks; each group's boundary inertias go to the device
+//             through pinned memory as soon as they are known and that group's
+//             pass-1 walks start while the host works on the next group. The other
+//             passes (velocities, the z and acceleration scans) run on the device.
+//
+// Kernels (one thread per chunk of `chunk` links, chunk aggregates scanned in levels
+// of kFanIn): velocity aggregate, then per pass the level folds, one thread for the
+// top level, the level carries, and the pass's walk. Every pointer given to launch()
+// is a DEVICE pointer; the plan owns its scratch (per link: v, U, w, D, u; per
+// level: aggregates and carries), allocates nothing per call and does not
+// synchronise (launch_hybrid waits for the host recursion only).
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/build_config.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+namespace scandyn {
+namespace cuda {
+
+// One event of the hybrid's timeline, in milliseconds from the start of the call.
+struct ChainTimelineEvent {
+  std::string what;  // "cpu group k" (host recursion done down to the group's first chunk),
+                     // "gpu velocities", "gpu group k" (its pass-1 walks done), "gpu end"
+  double start_ms = 0, end_ms = 0;
+};
+
+template <class S>
+class ChainFdPlan {
+ public:
+  static constexpr Index kFanIn = 8;  // aggregates per thread at the levels above the chunks
+
+  // Copies the model's distinct bodies to the device and allocates the scratch for
+  // max_batch instances. chunk: links per thread (0: 8). Throws BackendError for a
+  // model that is not an unbranched chain (naming the body), a batch whose links do
+  // not fit in 2^30, device memory that does not suffice, or a CUDA error.
+  ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0);
+  ~ChainFdPlan();
+  ChainFdPlan(const ChainFdPlan&) = delete;
+  ChainFdPlan& operator=(const ChainFdPlan&) = delete;
+
+  // parallel: qdd (nv x B) = FD(q, qd, tau, fext) for B = in.q.batch <= max_batch
+  // (device views, any strides), on `stream`, no synchronisation. failed: B device
+  // ints, -1 or the first link whose articulated pivot failed (qdd of that instance
+  // unwritten). Returns cudaErrorInvalidValue for B > max_batch, else the first
+  // launch error.
+  cudaError_t launch(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed, cudaStream_t stream);
+
+  // hybrid: the same result, with the articulated inertias computed on the host
+  // from q_host (the same positions as in.q, in host memory). Returns after the
+  // host recursion and the queuing of every kernel (not after the kernels). When
+  // timeline is not null it receives the host and device events of the call, and
+  // the call then waits for the device at the end.
+  cudaError_t launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in, const BatchView<S>& qdd,
+                            int* failed, cudaStream_t stream, std::vector<ChainTimelineEvent>* timeline = nullptr);
+
+  Index nv() const { return n_; }
+  Index max_batch() const { return max_batch_; }
+  Index chunk() const { return chunk_; }
+  std::size_t device_bytes() const { return bytes_; }
+
+ private:
+  ChainFdData<S> data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
+  cudaError_t velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream);
+  cudaError_t finish(const ChainFdData<S>& d, cudaStream_t stream);  // passes 2 and 3
+
+  Index n_ = 0, max_batch_ = 0, chunk_ = 0;
+  Motion<S> a0_;
+  std::vector<Body<S>> body_host_;          // distinct bodies (hybrid's host recursion)
+  std::vector<int> body_class_host_;        // (n)
+  std::size_t bytes_ = 0;
+  void* memory_ = nullptr;                  // one device allocation for everything below
+  const Body<S>* body_ = nullptr;           // (classes) distinct bodies
+  const InverseInertia<S>* Phi_ = nullptr;  // (classes)
+  const int* body_class_ = nullptr;         // (n)
+  Motion<S>* v_ = nullptr;                  // (n max_batch) per-link scratch
+  Force<S>* U_ = nullptr;
+  Force<S>* w_ = nullptr;
+  S* D_ = nullptr;
+  S* u_ = nullptr;
+  std::vector<Index> level_size_;           // for max_batch; a call uses its own sizes
+  std::vector<Affine6<S>*> aff_;            // per level
+  std::vector<Vec6<S>*> aff_carry_;
+  std::vector<DualRiccati<S>*> dual_;
+  std::vector<Mat5<S>*> dual_carry_;
+  ABInertia<S>* Ia_carry_ = nullptr;        // (chunks) hybrid: Ia of each chunk's link e + 1
+  ABInertia<S>* Ia_pinned_ = nullptr;       // (chunks) host pinned staging of the same
+  std::vector<cudaEvent_t> events_;         // hybrid timeline and group ordering
+};
+
+}  // namespace cuda
+}  // namespace scandyn
+
+#endif  // SCANDYN_HAS_CUDA

@@ -1,0 +1,362 @@
+// The CUDA driver of the chain forward dynamics (scandyn/cuda/chain_fd.hpp): the
+// walks and scans of scandyn/algorithm/chain_fd.hpp, one thread per chunk.
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <chrono>
+#include <climits>
+#include <cstring>
+#include <string>
+
+#include "scandyn/cuda/chain_fd.hpp"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+using detail::check;
+
+namespace {
+
+constexpr int kBlock = 128;
+
+unsigned blocks(Index threads) { return static_cast<unsigned>((threads + kBlock - 1) / kBlock); }
+
+// Links s..e of chunk c.
+struct ChunkRange {
+  Index chunk, count;
+  __host__ __device__ Index first(Index c) const { return c * chunk; }
+  __host__ __device__ Index last(Index c) const { return min(count, (c + 1) * chunk) - 1; }
+};
+
+template <class S>
+__global__ void velocity_aggregate_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
+  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (c < chunks) agg[c] = velocity_aggregate(d, r.first(c), r.last(c));
+}
+
+template <bool kDual, class S>
+__global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+                                     DualRiccati<S>* dual) {
+  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (c >= chunks) return;
+  const DualRiccati<S> agg = velocity_walk<kDual>(d, r.first(c), r.last(c), carry[c]);
+  if constexpr (kDual) dual[c] = agg;
+}
+
+// Pass 1's walks of chunks [c0, c1): from the dual carries (parallel) or the host's
+// articulated inertias (hybrid).
+template <class S>
+__global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index c0, Index c1, const Mat5<S>* dual_carry,
+                                    const ABInertia<S>* Ia_carry, Affine6<S>* agg) {
+  const Index c = c0 + static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (c >= c1) return;
+  const Index e = r.last(c);
+  const ABInertia<S> Ia = dual_carry ? chunk_inertia_carry(d, e, dual_carry[c]) : Ia_carry[c];
+  agg[c] = inertia_walk(d, r.first(c), e, Ia);
+}
+
+template <class S>
+__global__ void bias_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+                                 Affine6<S>* agg) {
+  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (c < chunks) agg[c] = bias_walk(d, r.first(c), r.last(c), carry[c]);
+}
+
+template <class S>
+__global__ void acceleration_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
+  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (c < chunks) acceleration_walk(d, r.first(c), r.last(c), carry[c]);
+}
+
+// ---- scans of aggregates in levels --------------------------------------------
+
+template <class E>
+__global__ void fold_kernel(const E* lower, Index size, E* upper, Index m, Index fan_in, bool forward) {
+  const Index j = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (j < m) upper[j] = fold_range(lower, j * fan_in, min(size, (j + 1) * fan_in), forward);
+}
+
+template <class E>
+__global__ void top_kernel(const E* agg, typename E::Value* carry, Index size, bool forward) {
+  if (blockIdx.x == 0 && threadIdx.x == 0) carry_range(agg, carry, 0, size, forward, E::start());
+}
+
+template <class E>
+__global__ void carry_kernel(const E* lower, typename E::Value* lower_carry, Index size,
+                             const typename E::Value* upper_carry, Index m, Index fan_in, bool forward) {
+  const Index j = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (j < m) carry_range(lower, lower_carry, j * fan_in, min(size, (j + 1) * fan_in), forward, upper_carry[j]);
+}
+
+// The carries of level 0 from its aggregates agg[0] (sizes: this call's levels).
+template <class E>
+cudaError_t scan_levels(const std::vector<Index>& size, E* const* agg, typename E::Value* const* carry, Index fan_in,
+                        bool forward, cudaStream_t stream) {
+  const Index levels = static_cast<Index>(size.size());
+  for (Index k = 0; k + 1 < levels; ++k)
+    fold_kernel<<<blocks(size[k + 1]), kBlock, 0, stream>>>(agg[k], size[k], agg[k + 1], size[k + 1], fan_in, forward);
+  top_kernel<<<1, 1, 0, stream>>>(agg[levels - 1], carry[levels - 1], size[levels - 1], forward);
+  for (Index k = levels - 2; k >= 0; --k)
+    carry_kernel<<<blocks(size[k + 1]), kBlock, 0, stream>>>(agg[k], carry[k], size[k], carry[k + 1], size[k + 1],
+                                                               fan_in, forward);
+  return cudaGetLastError();
+}
+
+std::vector<Index> level_sizes(Index links, Index chunk, Index fan_in) {
+  return ChainChunking(links, chunk, fan_in).level_size;
+}
+
+constexpr std::size_t kAlign = 256;
+std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; }
+
+}  // namespace
+
+template <class S>
+ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk)
+    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)), chunk_(chunk > 0 ? chunk : 8) {
+  require_chain(model, "the parallel chain forward dynamics");
+  if (static_cast<long long>(n_) * max_batch_ > INT_MAX / 2)
+    throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
+                       std::to_string(max_batch_) + " instances exceed 2^30 links per call");
+  a0_ = base_acceleration(model.gravity);
+  std::vector<InverseInertia<S>> Phi;
+  body_class_host_.resize(static_cast<std::size_t>(n_));
+  for (Index i = 0; i < n_; ++i) {
+    Body<S> b = model.bodies[i];
+    b.parent = -1;
+    Index k = static_cast<Index>(body_host_.size()) - 1;
+    if (k < 0 || std::memcmp(&body_host_[k], &b, sizeof b) != 0) {
+      body_host_.push_back(b);
+      Phi.push_back(InverseInertia<S>::from(b.I));
+      k = static_cast<Index>(body_host_.size()) - 1;
+    }
+    body_class_host_[i] = static_cast<int>(k);
+  }
+  const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
+  level_size_ = level_sizes(static_cast<Index>(links), chunk_, kFanIn);
+  const std::size_t classes = body_host_.size(), chunks = static_cast<std::size_t>(level_size_[0]);
+  // one allocation: tables, per-link scratch, per-level aggregates and carries
+  std::size_t off = 0;
+  auto take = [&](std::size_t bytes) {
+    const std::size_t at = off;
+    off += aligned(bytes);
+    return at;
+  };
+  const std::size_t o_body = take(classes * sizeof(Body<S>)), o_phi = take(classes * sizeof(InverseInertia<S>)),
+                    o_class = take(static_cast<std::size_t>(n_) * sizeof(int)), o_v = take(links * sizeof(Motion<S>)),
+                    o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
+                    o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S)),
+                    o_Ia = take(chunks * sizeof(ABInertia<S>));
+  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
+  for (Index size : level_size_) {
+    o_aff.push_back(take(size * sizeof(Affine6<S>)));
+    o_affc.push_back(take(size * sizeof(Vec6<S>)));
+    o_dual.push_back(take(size * sizeof(DualRiccati<S>)));
+    o_dualc.push_back(take(size * sizeof(Mat5<S>)));
+  }
+  bytes_ = off;
+  std::size_t free_bytes = 0, total_bytes = 0;
+  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
+  const cudaError_t err = cudaMalloc(&memory_, bytes_);
+  if (err != cudaSuccess) {
+    (void)cudaGetLastError();
+    throw BackendError("backend 'cuda': the chain forward dynamics of " + std::to_string(n_) + " links x " +
+                       std::to_string(max_batch_) + " instances needs " + std::to_string(bytes_) +
+                       " bytes of device memory; " + std::to_string(free_bytes) + " are free (" +
+                       detail::error_string(err) + ")");
+  }
+  char* base = static_cast<char*>(memory_);
+  body_ = reinterpret_cast<const Body<S>*>(base + o_body);
+  Phi_ = reinterpret_cast<const InverseInertia<S>*>(base + o_phi);
+  body_class_ = reinterpret_cast<const int*>(base + o_class);
+  v_ = reinterpret_cast<Motion<S>*>(base + o_v);
+  U_ = reinterpret_cast<Force<S>*>(base + o_U);
+  w_ = reinterpret_cast<Force<S>*>(base + o_w);
+  D_ = reinterpret_cast<S*>(base + o_D);
+  u_ = reinterpret_cast<S*>(base + o_u);
+  Ia_carry_ = reinterpret_cast<ABInertia<S>*>(base + o_Ia);
+  for (std::size_t k = 0; k < level_size_.size(); ++k) {
+    aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
+    aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
+    dual_.push_back(reinterpret_cast<DualRiccati<S>*>(base + o_dual[k]));
+    dual_carry_.push_back(reinterpret_cast<Mat5<S>*>(base + o_dualc[k]));
+  }
+  check(cudaMemcpy(base + o_body, body_host_.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
+        "copying the chain's bodies");
+  check(cudaMemcpy(base + o_phi, Phi.data(), classes * sizeof(InverseInertia<S>), cudaMemcpyHostToDevice),
+        "copying the chain's inverse inertias");
+  check(cudaMemcpy(base + o_class, body_class_host_.data(), static_cast<std::size_t>(n_) * sizeof(int),
+                   cudaMemcpyHostToDevice),
+        "copying the chain's body classes");
+  check(cudaMallocHost(&Ia_pinned_, chunks * sizeof(ABInertia<S>)), "allocating pinned memory");
+  events_.resize(2 * 64 + 4);
+  for (auto& e : events_) check(cudaEventCreate(&e), "cudaEventCreate");
+}
+
+template <class S>
+ChainFdPlan<S>::~ChainFdPlan() {
+  for (auto& e : events_) cudaEventDestroy(e);
+  if (Ia_pinned_) cudaFreeHost(Ia_pinned_);
+  if (memory_) cudaFree(memory_);
+}
+
+template <class S>
+ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
+  ChainFdData<S> d;
+  d.n = n_;
+  d.batch = in.q.batch;
+  d.body = body_;
+  d.Phi = Phi_;
+  d.body_class = body_class_;
+  d.a0 = a0_;
+  d.q = in.q;
+  d.qd = in.qd;
+  d.tau = in.tau;
+  d.fext = in.fext;
+  d.qdd = qdd;
+  d.v = v_;
+  d.U = U_;
+  d.w = w_;
+  d.D = D_;
+  d.u = u_;
+  d.failed = failed;
+  return d;
+}
+
+template <class S>
+cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream) {
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const ChunkRange r{chunk_, d.count()};
+  const Index chunks = size[0];
+  velocity_aggregate_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
+  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, true, stream);
+  if (err != cudaSuccess) return err;
+  if (dual) velocity_walk_kernel<true><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], dual_[0]);
+  else velocity_walk_kernel<false><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0],
+                                                                        static_cast<DualRiccati<S>*>(nullptr));
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S>& d, cudaStream_t stream) {
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const ChunkRange r{chunk_, d.count()};
+  const Index chunks = size[0];
+  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, false, stream);
+  if (err != cudaSuccess) return err;
+  bias_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, true, stream);
+  if (err != cudaSuccess) return err;
+  acceleration_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0]);
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t ChainFdPlan<S>::launch(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed, cudaStream_t stream) {
+  const Index B = in.q.batch;
+  if (B > max_batch_ || B < 0) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
+  if (err != cudaSuccess) return err;
+  const ChainFdData<S> d = data(in, qdd, failed);
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const ChunkRange r{chunk_, d.count()};
+  const Index chunks = size[0];
+  if ((err = velocities(d, true, stream)) != cudaSuccess) return err;
+  if ((err = scan_levels(size, dual_.data(), dual_carry_.data(), kFanIn, false, stream)) != cudaSuccess) return err;
+  inertia_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, Index(0), chunks, dual_carry_[0],
+                                                             static_cast<const ABInertia<S>*>(nullptr), aff_[0]);
+  return finish(d, stream);
+}
+
+template <class S>
+cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in,
+                                          const BatchView<S>& qdd, int* failed, cudaStream_t stream,
+                                          std::vector<ChainTimelineEvent>* timeline) {
+  using clock = std::chrono::steady_clock;
+  const auto t0 = clock::now();
+  auto ms_since = [&](clock::time_point t) { return std::chrono::duration<double, std::milli>(t - t0).count(); };
+  const Index B = in.q.batch;
+  if (B > max_batch_ || B < 0 || q_host.batch != B) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);
+  if (err != cudaSuccess) return err;
+  cudaEvent_t start = events_[0], after_velocities = events_[1], end = events_[2];
+  if ((err = cudaEventRecord(start, stream)) != cudaSuccess) return err;
+  const ChainFdData<S> d = data(in, qdd, failed);
+  const Index count = d.count();
+  const ChunkRange r{chunk_, count};
+  const Index chunks = level_sizes(count, chunk_, kFanIn)[0];
+  // the device: velocities (no dual aggregates) while the host starts
+  if ((err = velocities(d, false, stream)) != cudaSuccess) return err;
+  if ((err = cudaEventRecord(after_velocities, stream)) != cudaSuccess) return err;
+  std::vector<ChainTimelineEvent> tl;
+  // the host: the articulated-inertia recursion from the last link to the first,
+  // in up to 64 groups of chunks, each group's walks queued once its carries are known
+  const Index groups = std::min<Index>(64, chunks);
+  const Index per_group = (chunks + groups - 1) / groups;
+  std::vector<double> cpu_start(static_cast<std::size_t>(groups)), cpu_end(static_cast<std::size_t>(groups));
+  ABInertia<S> Ia_next{};  // Ia of link g + 1, its frame
+  Transform<S> Xnext = Transform<S>::identity();
+  Index g = count - 1;
+  Index done_groups = 0;
+  for (Index grp = 0; grp < groups; ++grp) {
+    const Index c_hi = chunks - grp * per_group;  // this group: chunks [c_lo, c_hi)
+    if (c_hi <= 0) break;
+    const Index c_lo = std::max<Index>(0, c_hi - per_group);
+    cpu_start[grp] = ms_since(clock::now());
+    // chunk c's carry is Ia of link last(c) + 1 = first(c + 1); walk down to first(c_lo)
+    for (Index c = c_hi - 1; c >= c_lo; --c) {
+      Ia_pinned_[c] = Ia_next;  // Ia of link last(c) + 1 (unused when last(c) has no child)
+      for (; g >= r.first(c); --g) {
+        const Index i = g % n_, b = g / n_;
+        const Body<S>& body = body_host_[body_class_host_[i]];
+        ABInertia<S> IA = ABInertia<S>::from(body.I);
+        if (i != n_ - 1) IA += Ia_next.transform_transpose(Xnext);
+        Force<S> U;
+        S D, u;
+        aba_joint_terms(body, IA, Force<S>::zero(), S(0), U, D, u);
+        Ia_next = IA.minus_outer(U, S(1) / D);  // a failed pivot: NaN here, reported by the device walk
+        Xnext = joint_transform(body, q_host.at(i, b));
+      }
+    }
+    cpu_end[grp] = ms_since(clock::now());
+    // this group's carries to the device, then its walks
+    const std::size_t bytes = static_cast<std::size_t>(c_hi - c_lo) * sizeof(ABInertia<S>);
+    if ((err = cudaMemcpyAsync(Ia_carry_ + c_lo, Ia_pinned_ + c_lo, bytes, cudaMemcpyHostToDevice, stream)) !=
+        cudaSuccess)
+      return err;
+    inertia_walk_kernel<<<blocks(c_hi - c_lo), kBlock, 0, stream>>>(d, r, c_lo, c_hi, static_cast<const Mat5<S>*>(nullptr),
+                                                                    Ia_carry_, aff_[0]);
+    if ((err = cudaEventRecord(events_[4 + grp], stream)) != cudaSuccess) return err;
+    ++done_groups;
+  }
+  if ((err = finish(d, stream)) != cudaSuccess) return err;
+  if ((err = cudaEventRecord(end, stream)) != cudaSuccess) return err;
+  if (timeline) {
+    if ((err = cudaEventSynchronize(end)) != cudaSuccess) return err;
+    auto gpu_ms = [&](cudaEvent_t e) {
+      float ms = 0;
+      cudaEventElapsedTime(&ms, start, e);
+      return double(ms);
+    };
+    tl.push_back({"gpu velocities", 0.0, gpu_ms(after_velocities)});
+    double prev = gpu_ms(after_velocities);
+    for (Index k = 0; k < done_groups; ++k) {
+      tl.push_back({"cpu group " + std::to_string(k), cpu_start[k], cpu_end[k]});
+      const double t = gpu_ms(events_[4 + k]);
+      tl.push_back({"gpu group " + std::to_string(k), prev, t});
+      prev = t;
+    }
+    tl.push_back({"gpu end", prev, gpu_ms(end)});
+    *timeline = std::move(tl);
+  }
+  return cudaGetLastError();
+}
+
+template class ChainFdPlan<float>;
+template class ChainFdPlan<double>;
+
+}  // namespace cuda
+}  // namespace scandyn

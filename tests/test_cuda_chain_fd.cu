@@ -1,0 +1,149 @@
+// The chain forward dynamics on the device (parallel and hybrid, ChainFdPlan through
+// CudaForwardDynamics) against the serial double ABA. Tests that need a device
+// skip with "no CUDA device: ...".
+#include <cuda_runtime.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+struct Case {
+  std::vector<double> q, qd, tau, ref;  // SoA (n x B)
+  std::vector<Force<double>> fext;      // (B x n) or empty
+};
+
+Case make_case(const Model& model, Index B, unsigned seed, bool with_fext) {
+  std::mt19937_64 rng(seed);
+  const Index n = model.nv();
+  Case c;
+  c.q = test::random_vector(rng, n * B, -3, 3);
+  c.qd = test::random_vector(rng, n * B, -1, 1);
+  c.tau = test::random_vector(rng, n * B, -2, 2);
+  if (with_fext) c.fext = test::random_wrenches<double>(rng, n * B, 1.0);
+  c.ref.resize(c.q.size());
+  Data data(model, false);
+  std::vector<double> qi(n), qdi(n), ti(n), qddi(n);
+  for (Index b = 0; b < B; ++b) {
+    for (Index i = 0; i < n; ++i) qi[i] = c.q[i * B + b], qdi[i] = c.qd[i * B + b], ti[i] = c.tau[i * B + b];
+    EXPECT_TRUE(aba(model, data, qi.data(), qdi.data(), ti.data(), qddi.data(),
+                    with_fext ? c.fext.data() + b * n : nullptr).ok());
+    for (Index i = 0; i < n; ++i) c.ref[i * B + b] = qddi[i];
+  }
+  return c;
+}
+
+template <class S>
+double device_error(const Model& model, Index B, cuda::FdAlgorithm algo, const Case& c,
+                    std::vector<cuda::ChainTimelineEvent>* timeline = nullptr) {
+  const Index n = model.nv();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  cuda::CudaForwardDynamics<S> fd(model.cast<S>(), o, algo);
+  EXPECT_EQ(fd.algorithm(), algo);
+  fd.record_timeline(timeline != nullptr);
+  const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau);
+  std::vector<Force<S>> fext;
+  for (const auto& f : c.fext) fext.push_back(f.cast<S>());
+  std::vector<S> qdd(q.size(), S(NAN));
+  FdBatchIn<S> in{BatchView<const S>::soa(q.data(), n, B), BatchView<const S>::soa(qd.data(), n, B),
+                  BatchView<const S>::soa(tau.data(), n, B), fext.empty() ? nullptr : fext.data()};
+  const auto status = fd.compute(in, BatchView<S>::soa(qdd.data(), n, B));
+  EXPECT_TRUE(status.ok()) << status.message();
+  if (timeline) *timeline = fd.timeline();
+  return test::max_rel_err(qdd, c.ref);
+}
+
+}  // namespace
+
+TEST(CudaChainFd, RandomChainsParallelAndHybrid) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (unsigned seed : {1u, 2u}) {
+    const Model m = test::random_chain(97, seed);
+    const Case c = make_case(m, 3, seed, seed == 2);
+    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+      EXPECT_LT(device_error<double>(m, 3, algo, c), 1e-9) << "seed " << seed;
+      EXPECT_LT(device_error<float>(m, 3, algo, c), 1e-3) << "seed " << seed;
+    }
+  }
+}
+
+TEST(CudaChainFd, RopesToOneHundredThousandLinks) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (int n : {10, 1000, 100000}) {
+    const Model m = make_generated("rope:" + std::to_string(n));
+    const Case c = make_case(m, 1, 7, false);
+    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+      const double ed = device_error<double>(m, 1, algo, c), ef = device_error<float>(m, 1, algo, c);
+      EXPECT_LT(ed, 1e-9) << "rope:" << n;
+      EXPECT_LT(ef, 1e-3) << "rope:" << n;
+      RecordProperty("rope" + std::to_string(n) + (algo == cuda::FdAlgorithm::Hybrid ? "_hybrid" : "_parallel"),
+                     std::to_string(ed) + " / " + std::to_string(ef));
+    }
+  }
+}
+
+TEST(CudaChainFd, AutoPicksParallelForLongChainsOnly) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 2;
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:100").cast<float>(), o).strategy(), "parallel");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "jsi_thread");
+  EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, cuda::FdAlgorithm::Parallel),
+               BackendError);
+}
+
+TEST(CudaChainFd, HybridOverlapsHostAndDevice) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model m = make_generated("rope:200000");
+  const Case c = make_case(m, 1, 3, false);
+  std::vector<cuda::ChainTimelineEvent> tl;
+  EXPECT_LT(device_error<float>(m, 1, cuda::FdAlgorithm::Hybrid, c, &tl), 1e-3);
+  // some device group's walks finish before the host's recursion does
+  double host_end = 0, first_gpu_group_end = -1;
+  for (const auto& e : tl) {
+    if (e.what.rfind("cpu group", 0) == 0) host_end = std::max(host_end, e.end_ms);
+    if (e.what.rfind("gpu group", 0) == 0 && first_gpu_group_end < 0) first_gpu_group_end = e.end_ms;
+  }
+  ASSERT_GT(tl.size(), 4u);
+  EXPECT_LT(first_gpu_group_end, host_end);
+}
+
+TEST(CudaChainFd, FailedPivotIsReportedNotNaN) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  Model m = make_generated("rope:300");
+  const Case c = make_case(m, 2, 4, false);
+  // a NaN joint position in instance 1 makes its articulated pivots non-finite
+  Case bad = c;
+  bad.q[150 * 2 + 1] = NAN;
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 2;
+  cuda::CudaForwardDynamics<double> fd(m, o, cuda::FdAlgorithm::Parallel);
+  std::vector<double> qdd(bad.q.size(), 123.0);
+  FdBatchIn<double> in{BatchView<const double>::soa(bad.q.data(), 300, 2),
+                       BatchView<const double>::soa(bad.qd.data(), 300, 2),
+                       BatchView<const double>::soa(bad.tau.data(), 300, 2), nullptr};
+  std::vector<int> failed(2, 9);
+  const auto st = fd.compute(in, BatchView<double>::soa(qdd.data(), 300, 2), failed.data());
+  EXPECT_EQ(st.failed, 1);
+  EXPECT_EQ(failed[0], -1);
+  EXPECT_GE(failed[1], 0);
+  for (Index i = 0; i < 300; ++i) {
+    EXPECT_EQ(qdd[i * 2 + 1], 123.0);  // unwritten
+    EXPECT_NEAR(qdd[i * 2], c.ref[i * 2], 1e-9 * 100);
+  }
+}
