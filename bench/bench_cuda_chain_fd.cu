@@ -16,7 +16,11 @@
 //                                             then CRBA + cuSOLVER's Cholesky), compute_async,
 //                                             N = 10 .. 4000 (M is N^2 scalars);
 //   fd_aba/<precision>/rope:N/serial          the serial reference aba on this host;
-//   fd_parallel/<precision>/rope:1000/cuda    with instances = 10 .. 1000 (batches of ropes).
+//   fd_parallel/<precision>/rope:1000/cuda    with instances = 10 .. 1000 (batches of ropes);
+//   fd_parallel-c<L>f<F>/float/rope:N/cuda    ChainFdPlan with L links per chunk and fan-in F
+//                                             (the engine's default: c8f8), N = 10^4, 10^6;
+//   fd_parallel-graph/float/rope:N/cuda       the default plan's launch captured in a CUDA
+//                                             graph and replayed.
 // max_rel_err: every qdd entry against the double serial aba on the same
 // (precision-rounded) inputs: q uniform in [-1, 1] rad, qd and tau in [-1, 1].
 // Counters: links, instances, max_rel_err, failed (instances reported failed).
@@ -174,6 +178,54 @@ void run_serial_aba(benchmark::State& st, const Model* m) {
   set<S>(st, n, 1, error_of(qdd, *in), 0);
 }
 
+// Variant rows: the plan with other chunk lengths and fan-ins, and the default plan's
+// launch captured once in a CUDA graph and replayed (kernel launch costs).
+template <class S>
+void run_plan(benchmark::State& st, const Model* m, Index chunk, Index fan_in, bool graph) {
+  const Index n = m->nv(), B = 1;
+  const auto in = inputs<S>(*m, B);
+  std::unique_ptr<cuda::ChainFdPlan<S>> plan;
+  try {
+    plan = std::make_unique<cuda::ChainFdPlan<S>>(m->cast<S>(), B, chunk, fan_in);
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  const std::size_t count = static_cast<std::size_t>(n) * B;
+  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  S* p = nullptr;
+  int* failed = nullptr;
+  if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
+      !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
+    return;
+  cudaMemcpy(p, q.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  cudaMemcpy(p + count, qd.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  cudaMemcpy(p + 2 * count, tau.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+  using V = BatchView<const S>;
+  const FdBatchIn<S> din{V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
+  const BatchView<S> dqdd = BatchView<S>::soa(p + 3 * count, n, B);
+  cudaStream_t stream = nullptr;
+  cudaGraphExec_t exec = nullptr;
+  cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking);
+  if (graph) {
+    cudaGraph_t g = nullptr;
+    cudaStreamBeginCapture(stream, cudaStreamCaptureModeThreadLocal);
+    plan->launch(din, dqdd, failed, stream);
+    if (!cuda_ok(st, cudaStreamEndCapture(stream, &g), "graph capture") ||
+        !cuda_ok(st, cudaGraphInstantiate(&exec, g, 0), "graph instantiate"))
+      return;
+    cudaGraphDestroy(g);
+  }
+  time_launches(st, [&] { return graph ? cudaGraphLaunch(exec, nullptr) : plan->launch(din, dqdd, failed, nullptr); });
+  std::vector<S> qdd(count);
+  cudaMemcpy(qdd.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
+  set<S>(st, n, B, error_of(qdd, *in), 0);
+  if (exec) cudaGraphExecDestroy(exec);
+  cudaStreamDestroy(stream);
+  cudaFree(p);
+  cudaFree(failed);
+}
+
 std::vector<std::unique_ptr<Model>> g_models;
 
 void print_hybrid_timeline(Index n) {
@@ -238,6 +290,22 @@ int main(int argc, char** argv) {
         regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<double>(st, m); });
       }
     }
+  }
+  // variants: chunk length and fan-in, and a CUDA graph of the default plan
+  std::vector<const Model*> variant_models;  // rope:10^4 and the longest
+  if (g_models.size() > 3) variant_models.push_back(g_models[3].get());
+  if (g_models.size() > 4) variant_models.push_back(g_models.back().get());
+  for (const Model* m : variant_models) {
+    const std::string tail = std::string("/float/") + m->source + "/cuda";
+    for (auto [c, f] : std::vector<std::pair<int, int>>{{4, 4}, {4, 8}, {8, 4}, {16, 4}, {16, 8}, {32, 8}, {8, 16}})
+      benchmark::RegisterBenchmark(("fd_parallel-c" + std::to_string(c) + "f" + std::to_string(f) + tail).c_str(),
+                                   [m, c = c, f = f](benchmark::State& st) { run_plan<float>(st, m, c, f, false); })
+          ->UseManualTime()
+          ->Unit(benchmark::kMicrosecond);
+    benchmark::RegisterBenchmark(("fd_parallel-graph" + tail).c_str(),
+                                 [m](benchmark::State& st) { run_plan<float>(st, m, 0, 0, true); })
+        ->UseManualTime()
+        ->Unit(benchmark::kMicrosecond);
   }
   // batches of rope:1000
   g_models.push_back(std::make_unique<Model>(make_generated("rope:1000")));

@@ -113,8 +113,11 @@ std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; 
 }  // namespace
 
 template <class S>
-ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk)
-    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)), chunk_(chunk > 0 ? chunk : 8) {
+ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk, Index fan_in)
+    : n_(model.nv()),
+      max_batch_(std::max<Index>(max_batch, 1)),
+      chunk_(chunk > 0 ? chunk : kDefaultChunk),
+      fan_in_(fan_in > 1 ? fan_in : kDefaultFanIn) {
   require_chain(model, "the parallel chain forward dynamics");
   if (static_cast<long long>(n_) * max_batch_ > INT_MAX / 2)
     throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
@@ -134,7 +137,7 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     body_class_host_[i] = static_cast<int>(k);
   }
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
-  level_size_ = level_sizes(static_cast<Index>(links), chunk_, kFanIn);
+  level_size_ = level_sizes(static_cast<Index>(links), chunk_, fan_in_);
   const std::size_t classes = body_host_.size(), chunks = static_cast<std::size_t>(level_size_[0]);
   // one allocation: tables, per-link scratch, per-level aggregates and carries
   std::size_t off = 0;
@@ -226,11 +229,11 @@ ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& 
 
 template <class S>
 cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream) {
-  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
   velocity_aggregate_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
-  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, true, stream);
+  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream);
   if (err != cudaSuccess) return err;
   if (dual) velocity_walk_kernel<true><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], dual_[0]);
   else velocity_walk_kernel<false><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0],
@@ -240,13 +243,13 @@ cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaS
 
 template <class S>
 cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S>& d, cudaStream_t stream) {
-  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
-  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, false, stream);
+  cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream);
   if (err != cudaSuccess) return err;
   bias_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
-  err = scan_levels(size, aff_.data(), aff_carry_.data(), kFanIn, true, stream);
+  err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream);
   if (err != cudaSuccess) return err;
   acceleration_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0]);
   return cudaGetLastError();
@@ -260,11 +263,11 @@ cudaError_t ChainFdPlan<S>::launch(const FdBatchIn<S>& in, const BatchView<S>& q
   cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
   if (err != cudaSuccess) return err;
   const ChainFdData<S> d = data(in, qdd, failed);
-  const std::vector<Index> size = level_sizes(d.count(), chunk_, kFanIn);
+  const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
   if ((err = velocities(d, true, stream)) != cudaSuccess) return err;
-  if ((err = scan_levels(size, dual_.data(), dual_carry_.data(), kFanIn, false, stream)) != cudaSuccess) return err;
+  if ((err = scan_levels(size, dual_.data(), dual_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
   inertia_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, Index(0), chunks, dual_carry_[0],
                                                              static_cast<const ABInertia<S>*>(nullptr), aff_[0]);
   return finish(d, stream);
@@ -287,7 +290,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
   const ChainFdData<S> d = data(in, qdd, failed);
   const Index count = d.count();
   const ChunkRange r{chunk_, count};
-  const Index chunks = level_sizes(count, chunk_, kFanIn)[0];
+  const Index chunks = level_sizes(count, chunk_, fan_in_)[0];
   // the device: velocities (no dual aggregates) while the host starts
   if ((err = velocities(d, false, stream)) != cudaSuccess) return err;
   if ((err = cudaEventRecord(after_velocities, stream)) != cudaSuccess) return err;

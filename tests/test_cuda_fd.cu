@@ -517,7 +517,7 @@ namespace {
 // Returns the worst instance errors; checks the gaps of qdd and that all succeeded.
 template <class S>
 Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& ltau,
-                const Layout& lout, unsigned seed = 1, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
+                const Layout& lout, unsigned seed = 1, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Jsi) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   Batch<S> batch(md, B, seed);
@@ -558,7 +558,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
 }
 
 template <class S>
-Errors host_run_soa(const Model& md, Index B, bool with_fext, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
+Errors host_run_soa(const Model& md, Index B, bool with_fext, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Jsi) {
   const Layout l = soa(md.nv(), B);
   return host_run<S>(md, B, with_fext, l, l, l, l, 1, alg);
 }
@@ -581,7 +581,7 @@ Errors device_run(const Model& md, Index B, const Layout& lin, const Layout& lou
   // the thread kernels' device path is not limited by the staging buffers; the
   // dense path's scratch is sized by max_batch
   o.max_batch = md.nv() > cuda::kMaxThreadDofs ? B : 1;
-  cuda::CudaForwardDynamics<S> engine(m, o);
+  cuda::CudaForwardDynamics<S> engine(m, o, cuda::FdAlgorithm::Jsi);
   test::DeviceArray<S> dq, dqd, dtau, dqdd;
   test::DeviceArray<Force<S>> dfext;
   test::DeviceArray<int> dfailed;
@@ -724,7 +724,7 @@ void failures_on_device(const Model& md, Index B) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
-  cuda::CudaForwardDynamics<S> engine(m, o);
+  cuda::CudaForwardDynamics<S> engine(m, o, cuda::FdAlgorithm::Jsi);
   for (int rep = 0; rep < 2; ++rep) {  // the second time reuses the kept entries' buffer
     std::vector<S> qdd(l.size, S(kSentinel));
     std::vector<int> failed(B, -2);
@@ -786,7 +786,7 @@ TEST(CudaFd, PivotFailuresReported) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 40;
-  cuda::CudaForwardDynamics<double> engine(md, o);
+  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
   std::vector<double> x(5 * 40, 0.25), qdd(5 * 40, kSentinel);
   using V = BatchView<const double>;
   const FdBatchIn<double> in{V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40)};
@@ -842,7 +842,7 @@ TEST(CudaFd, ErrorsWithADevice) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 8;
-  cuda::CudaForwardDynamics<double> engine(md, o);
+  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
   EXPECT_EQ(engine.device_bytes(), (10u * 4 * sizeof(double) + sizeof(int)) * 8);
   std::vector<double> x(4 * 16, 0.0), qdd(4 * 16, 0.0);
   std::vector<int> failed(16);
@@ -907,7 +907,7 @@ TEST(CudaFdDense, MatchesReferences) {
     BackendOptions o;
     o.backend = BackendKind::Cuda;
     o.max_batch = 1;
-    EXPECT_EQ(cuda::CudaForwardDynamics<double>(md, o).strategy(), "jsi_dense") << name;
+    EXPECT_EQ(cuda::CudaForwardDynamics<double>(md, o, cuda::FdAlgorithm::Jsi).strategy(), "jsi_dense") << name;
     const double tol = jsi_tol(md);
     for (Index B : {1, 7, 33}) {
       const bool fx = B == 7;
@@ -931,7 +931,7 @@ TEST(CudaFdDense, PivotFailuresReported) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
-  cuda::CudaForwardDynamics<double> engine(md, o);
+  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
   EXPECT_EQ(engine.strategy(), "jsi_dense");
   std::vector<double> x(n * B, 0.25), qdd(n * B, kSentinel);
   using V = BatchView<const double>;

@@ -42,13 +42,15 @@ struct ChainTimelineEvent {
 template <class S>
 class ChainFdPlan {
  public:
-  static constexpr Index kFanIn = 8;  // aggregates per thread at the levels above the chunks
+  static constexpr Index kDefaultChunk = 8;  // links per thread at level 0
+  static constexpr Index kDefaultFanIn = 8;  // aggregates per thread at the levels above
 
   // Copies the model's distinct bodies to the device and allocates the scratch for
-  // max_batch instances. chunk: links per thread (0: 8). Throws BackendError for a
+  // max_batch instances. chunk: links per thread (0: kDefaultChunk); fan_in:
+  // aggregates per thread above (0: kDefaultFanIn). Throws BackendError for a
   // model that is not an unbranched chain (naming the body), a batch whose links do
   // not fit in 2^30, device memory that does not suffice, or a CUDA error.
-  ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0);
+  ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0, Index fan_in = 0);
   ~ChainFdPlan();
   ChainFdPlan(const ChainFdPlan&) = delete;
   ChainFdPlan& operator=(const ChainFdPlan&) = delete;
@@ -71,6 +73,7 @@ class ChainFdPlan {
   Index nv() const { return n_; }
   Index max_batch() const { return max_batch_; }
   Index chunk() const { return chunk_; }
+  Index fan_in() const { return fan_in_; }
   std::size_t device_bytes() const { return bytes_; }
 
  private:
@@ -78,7 +81,7 @@ class ChainFdPlan {
   cudaError_t velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream);
   cudaError_t finish(const ChainFdData<S>& d, cudaStream_t stream);  // passes 2 and 3
 
-  Index n_ = 0, max_batch_ = 0, chunk_ = 0;
+  Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;
   Motion<S> a0_;
   std::vector<Body<S>> body_host_;          // distinct bodies (hybrid's host recursion)
   std::vector<int> body_class_host_;        // (n)
