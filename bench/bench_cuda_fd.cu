@@ -25,9 +25,26 @@
 //   the variants at B = 10^6 and 10^7, to show what the engine's choices cost;
 //   fd_aba_thread/<precision>/<model>/cuda           the engine with FdAlgorithm::Aba
 //                                                    (articulated-body algorithm, one
-//                                                    thread per instance), as the
+//                                                    thread per instance, the kernel
+//                                                    choose_aba_kernel picks), as the
 //                                                    fd_jsi_thread rows; max_rel_err
-//                                                    against the double serial aba.
+//                                                    against the double serial aba;
+//   fd_aba_thread-<shape>-<loops>-<cap>[-keepxup][-libtrig]/<precision>/<model>/cuda
+//                                                    the bench's own ABA kernels, at
+//                                                    B = 10^6 and 10^7, to choose the
+//                                                    engine's by: <shape> chain (no
+//                                                    branch slots), slots1 (one in
+//                                                    registers) or tree (in local
+//                                                    memory); <loops> unrolled or
+//                                                    rolled; <cap> the registers
+//                                                    ptxas may use (cap255, cap168,
+//                                                    cap128: 1, 3, 4 blocks of 128
+//                                                    per SM in __launch_bounds__);
+//                                                    keepxup: pass 1's transforms kept;
+//                                                    libtrig: CUDA's sinf/cosf in float
+//                                                    instead of the SFU (the engine's
+//                                                    Trig::Hardware). Which ones run on
+//                                                    which model: aba_rows() below.
 // Device rows are timed with CUDA events around the launch alone (manual time), so
 // host copies are excluded; q, qd, tau are uniform in [-1, 1] from a counter-based
 // hash, generated on the device (M is well conditioned for the robots at any q).
@@ -87,8 +104,10 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
       instance_column(qdd_out, b));
 }
 
-// The engine's ABA kernel (fd_instances_kernel with kAba), for its resources.
-template <class S, int C, bool kUnrolled, int kMinBlocks>
+// An ABA kernel: aba_instance with kSlots branch slots, loops unrolled or not, at
+// most the registers for kMinBlocks blocks per SM, transforms kept or not, kTrig's
+// sin/cos. The engine's kernels (kernels/fd_instances.cu) are some of these.
+template <class S, int C, int kSlots, bool kUnrolled, int kMinBlocks, bool kKeepXup, Trig kTrig>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     aba_variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
                        const BatchView<S> qdd_out, int* const failed_dof_out) {
@@ -96,10 +115,9 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
   if (b >= batch_in.q.batch) return;
   using cuda::instance_column;
   const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
-  failed_dof_out[b] = cuda::aba_instance<S, C, false, kUnrolled>(model, instance_column(batch_in.q, b),
-                                                                 instance_column(batch_in.qd, b),
-                                                                 instance_column(batch_in.tau, b), fext,
-                                                                 instance_column(qdd_out, b));
+  failed_dof_out[b] = cuda::aba_instance<S, C, kKeepXup, kUnrolled, kTrig, kSlots>(
+      model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b), instance_column(batch_in.tau, b), fext,
+      instance_column(qdd_out, b));
 }
 
 // Device buffers q, qd, tau, qdd (nv x B each, soa) and B failed DoFs, freed on scope exit.
@@ -199,9 +217,11 @@ void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgori
                count_failed(buf.failed, B), seconds, sizeof(S));
 }
 
-// the variants: the bench's own instances of the device function.
-template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
-void bench_variant(benchmark::State& st, const Model* md, Index B) {
+// The variants: the bench's own kernels (launch(params, in, qdd, failed, blocks)
+// for the model's ThreadModelParams of capacity C), max_rel_err against the double
+// serial fd_jsi (with_aba: aba).
+template <class S, int C, class Launch>
+void bench_kernel(benchmark::State& st, const Model* md, Index B, bool with_aba, Launch&& launch) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   const cuda::ThreadModel<S> tm(m);
@@ -217,11 +237,36 @@ void bench_variant(benchmark::State& st, const Model* md, Index B) {
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + cuda::kFdInstancesBlock - 1) /
                                                 cuda::kFdInstancesBlock);
   const double seconds = time_launches(st, [&] {
-    variant_kernel<S, C, kKeepXup, kUnrolled, kMinBlocks><<<blocks, cuda::kFdInstancesBlock>>>(params, in, qdd,
-                                                                                              buf.failed);
+    launch(params, in, qdd, buf.failed, blocks);
     return cudaGetLastError();
   });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true), count_failed(buf.failed, B), seconds, sizeof(S));
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, with_aba), count_failed(buf.failed, B), seconds,
+               sizeof(S));
+}
+
+// fd_jsi_thread-<variant>: fd_jsi_instance with other choices.
+template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
+void bench_variant(benchmark::State& st, const Model* md, Index B) {
+  bench_kernel<S, C>(st, md, B, false, [](const auto& params, const auto& in, const auto& qdd, int* failed,
+                                          unsigned blocks) {
+    variant_kernel<S, C, kKeepXup, kUnrolled, kMinBlocks><<<blocks, cuda::kFdInstancesBlock>>>(params, in, qdd, failed);
+  });
+}
+
+// fd_aba_thread-<variant>: aba_variant_kernel. A model that needs more branch slots
+// than kSlots (0 < kSlots < C) is skipped with a reason (the kernel would be wrong).
+template <class S, int C, int kSlots, bool kUnrolled, int kMinBlocks, bool kKeepXup = false,
+          Trig kTrig = cuda::kThreadTrig<S>>
+void bench_aba_variant(benchmark::State& st, const Model* md, Index B) {
+  if (kSlots < C && cuda::ThreadModel<S>(md->cast<S>()).branch_slots() > kSlots) {
+    st.SkipWithError(("the model needs more than " + std::to_string(kSlots) + " branch slots").c_str());
+    return;
+  }
+  bench_kernel<S, C>(st, md, B, true, [](const auto& params, const auto& in, const auto& qdd, int* failed,
+                                         unsigned blocks) {
+    aba_variant_kernel<S, C, kSlots, kUnrolled, kMinBlocks, kKeepXup, kTrig>
+        <<<blocks, cuda::kFdInstancesBlock>>>(params, in, qdd, failed);
+  });
 }
 
 // fd_jsi_thread-host: compute() from host buffers, copies included (wall clock).
@@ -250,6 +295,62 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
   st.counters["failed"] = status.failed;
 }
 
+// ---- the ABA kernels' variants ------------------------------------------------------
+
+// One fd_aba_thread-<variant> row: the model and precision it runs on, its name, its
+// benchmark and a printer of its kernel's resources.
+struct AbaRow {
+  const char* model;    // "iiwa", "hyq" or "atlas"
+  bool single;          // float (else double)
+  const char* variant;  // <shape>-<loops>-<cap>[-keepxup][-libtrig]
+  bool engine;          // the kernel launch_aba_instances runs for this model and precision
+  void (*run)(benchmark::State&, const Model*, Index);
+  void (*print)(const char* label);
+};
+
+template <class S, int C, int kSlots, bool kUnrolled, int kMinBlocks, bool kKeepXup = false,
+          Trig kTrig = cuda::kThreadTrig<S>>
+AbaRow aba_row(const char* model, const char* variant, bool engine = false) {
+  return {model, sizeof(S) == 4, variant, engine,
+          bench_aba_variant<S, C, kSlots, kUnrolled, kMinBlocks, kKeepXup, kTrig>,
+          [](const char* label) {
+            bench::print_kernel(label, aba_variant_kernel<S, C, kSlots, kUnrolled, kMinBlocks, kKeepXup, kTrig>,
+                                cuda::kFdInstancesBlock);
+          }};
+}
+
+// The rows: for each robot and precision the engine's kernel (kernels/fd_instances.cu,
+// FdKernelChoice) and the alternatives to it. Capacities: iiwa 8, hyq 16, atlas 32;
+// branch slots: iiwa and hyq none (chains from the base), atlas 1.
+const std::vector<AbaRow>& aba_rows() {
+  constexpr Trig kLib = Trig::Library;
+  static const std::vector<AbaRow> rows = {
+      aba_row<float, 8, 0, true, 3>("iiwa", "chain-unrolled-cap168", true),
+      aba_row<float, 8, 0, true, 1>("iiwa", "chain-unrolled-cap255"),
+      aba_row<float, 8, 0, true, 4>("iiwa", "chain-unrolled-cap128"),
+      aba_row<float, 8, 0, false, 4>("iiwa", "chain-rolled-cap128"),
+      aba_row<float, 8, 0, true, 1, true>("iiwa", "chain-unrolled-cap255-keepxup"),
+      aba_row<float, 8, 0, true, 3, false, kLib>("iiwa", "chain-unrolled-cap168-libtrig"),
+      aba_row<float, 8, 8, false, 4>("iiwa", "tree-rolled-cap128"),
+      aba_row<double, 8, 0, false, 1>("iiwa", "chain-rolled-cap255", true),
+      aba_row<double, 8, 0, true, 1>("iiwa", "chain-unrolled-cap255"),
+      aba_row<double, 8, 0, false, 3>("iiwa", "chain-rolled-cap168"),
+      aba_row<double, 8, 0, false, 1, true>("iiwa", "chain-rolled-cap255-keepxup"),
+      aba_row<double, 8, 8, false, 1>("iiwa", "tree-rolled-cap255"),
+      aba_row<float, 16, 0, false, 4>("hyq", "chain-rolled-cap128", true),
+      aba_row<float, 16, 0, true, 1>("hyq", "chain-unrolled-cap255"),
+      aba_row<float, 16, 16, false, 4>("hyq", "tree-rolled-cap128"),
+      aba_row<double, 16, 0, false, 1>("hyq", "chain-rolled-cap255", true),
+      aba_row<double, 16, 16, false, 1>("hyq", "tree-rolled-cap255"),
+      aba_row<float, 32, 1, false, 3>("atlas", "slots1-rolled-cap168", true),
+      aba_row<float, 32, 1, false, 4>("atlas", "slots1-rolled-cap128"),
+      aba_row<float, 32, 32, false, 4>("atlas", "tree-rolled-cap128"),
+      aba_row<double, 32, 32, false, 1>("atlas", "tree-rolled-cap255", true),
+      aba_row<double, 32, 1, false, 1>("atlas", "slots1-rolled-cap255"),
+  };
+  return rows;
+}
+
 // ---- what bounds the speed: printed before the rows ----------------------------------
 
 void print_limits() {
@@ -266,9 +367,11 @@ void print_limits() {
   bench::print_kernel("C=8 double, cap128", variant_kernel<double, 8, false, true, 4>, blk);
   bench::print_kernel("C=16 float (the engine's: rolled)", variant_kernel<float, 16, false, false, 1>, blk);
   bench::print_kernel("C=16 float, unrolled", variant_kernel<float, 16, false, true, 1>, blk);
-  bench::print_kernel("ABA C=8 float (the engine's)", aba_variant_kernel<float, 8, true, 4>, blk);
-  bench::print_kernel("ABA C=8 double (the engine's)", aba_variant_kernel<double, 8, false, 1>, blk);
-  bench::print_kernel("ABA C=16 float (the engine's)", aba_variant_kernel<float, 16, false, 4>, blk);
+  for (const AbaRow& r : aba_rows()) {
+    const std::string label = std::string("ABA ") + r.model + (r.single ? " float " : " double ") + r.variant +
+                              (r.engine ? " (the engine's)" : "");
+    r.print(label.c_str());
+  }
   std::fflush(stdout);
 }
 
@@ -342,6 +445,11 @@ int main(int argc, char** argv) {
             add("fd_jsi_thread-cap128/" + post, [=](benchmark::State& st) { bench_variant<double, 8, false, true, 4>(st, m, b); });
           }
         }
+        if (B >= 1000000)
+          for (const AbaRow& r : aba_rows())
+            if (label == r.model && fl == r.single)
+              add("fd_aba_thread-" + std::string(r.variant) + "/" + post,
+                  [=, run = r.run](benchmark::State& st) { run(st, m, b); });
         if (label == "hyq" && fl && B >= 1000000)
           add("fd_jsi_thread-unrolled/" + post, [=](benchmark::State& st) { bench_variant<float, 16, false, true, 1>(st, m, b); });
         if (label == "iiwa" && B == 1000000) {

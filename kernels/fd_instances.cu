@@ -1,10 +1,10 @@
-// kernels/fd_instances.cu: batched forward dynamics by the joint-space inertia, one
-// thread per instance.
+// kernels/fd_instances.cu: batched forward dynamics by the joint-space inertia or
+// the articulated-body algorithm, one thread per instance.
 //
-// The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance (the header) ->
-// fd_instances_kernel -> launch_fd_jsi_instances -> CudaForwardDynamics (host
-// staging through kernels/staging.hpp for compute(), the plain launch for
-// compute_async()).
+// The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance / aba_instance
+// (the header) -> fd_instances_kernel -> launch_fd_jsi_instances /
+// launch_aba_instances -> CudaForwardDynamics (host staging through
+// kernels/staging.hpp for compute(), the plain launch for compute_async()).
 #include <cuda_runtime.h>
 
 #include <string>
@@ -24,27 +24,50 @@ using detail::Staging;
 
 // ---- kernel and launch ---------------------------------------------------------
 
-// One thread per instance b < B: the forward dynamics of instance b, by the ABA
-// (kAba) or the joint-space inertia. Measured on the H100 (bench_cuda_fd, iiwa,
-// 10^7 instances): the JSI kernel fastest in float held to 128 registers (4
-// resident blocks; 4.4 ms against 5.6 ms with 167), in double with the loops rolled
-// (8.8 ms against 9.6 ms unrolled and spilling at 255 registers). The ABA kernel
-// takes the same choices (it spills at the 128-register cap in float; other
-// choices not measured yet).
-template <class S, int C, bool kAba>
-__global__ void __launch_bounds__(kFdInstancesBlock, sizeof(S) == 4 ? 4 : 1)
+// fd_instances_kernel's algorithm argument: the joint-space inertia, or the ABA with
+// aba_instance's kSlots branch slots (0: chains; kAbaRegisterSlots; C: any tree).
+inline constexpr int kJsiKernel = -1;
+
+// The kernels' compile-time choices for capacity C, precision S and algorithm kAlgo
+// (kJsiKernel or the ABA's kSlots); ptxas, sm_90, CUDA 13, block 128:
+//   JSI: measured on the H100 (bench_cuda_fd, iiwa, 10^7 instances): fastest in
+//        float unrolled at capacity 8 and held to 128 registers (4 resident blocks;
+//        4.4 ms against 5.6 ms with 167), in double with the loops rolled (8.8 ms
+//        against 9.6 ms unrolled and spilling at 255 registers).
+//   ABA: float chains at capacity 8 unrolled in 168 registers (3 blocks; 202 without
+//        a cap; at 128, 464 B of spill stores); float rolled chains and trees in 128
+//        registers (no spills; the per-body state, 8 scalars per body, in local
+//        memory); float register slots rolled in 152 (3 blocks; at 128, 88 B of
+//        spill stores); double rolled, up to 255 registers (226 for chains, 240 for
+//        trees; unrolled, or with register slots, it spills at 255). Sin and cos as
+//        the inverse dynamics (kThreadTrig: the SFU in float). Not timed yet:
+//        bench_cuda_fd's fd_aba_thread-* rows time these against the alternatives.
+template <class S, int C, int kAlgo>
+struct FdKernelChoice {
+  static constexpr bool kAba = kAlgo != kJsiKernel;
+  static constexpr bool kUnrolled = sizeof(S) == 4 && C <= 8 && (!kAba || kAlgo == 0);
+  static constexpr int kMinBlocks =
+      sizeof(S) == 8 ? 1 : !kAba ? 4 : (kUnrolled || (kAlgo > 0 && kAlgo < C)) ? 3 : 4;
+};
+
+// One thread per instance b < B: the forward dynamics of instance b, by the
+// joint-space inertia (kAlgo == kJsiKernel) or the ABA with kAlgo branch slots.
+template <class S, int C, int kAlgo>
+__global__ void __launch_bounds__(kFdInstancesBlock, FdKernelChoice<S, C, kAlgo>::kMinBlocks)
     fd_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
                         const BatchView<S> qdd_out, int* const failed_dof_out) {
+  using Choice = FdKernelChoice<S, C, kAlgo>;
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
   const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
-  constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;
   const DofColumn<const S> q = instance_column(batch_in.q, b), qd = instance_column(batch_in.qd, b),
                            tau = instance_column(batch_in.tau, b);
-  if constexpr (kAba)
-    failed_dof_out[b] = aba_instance<S, C, false, kUnrolled>(model, q, qd, tau, fext, instance_column(qdd_out, b));
+  if constexpr (Choice::kAba)
+    failed_dof_out[b] = aba_instance<S, C, false, Choice::kUnrolled, kThreadTrig<S>, kAlgo>(
+        model, q, qd, tau, fext, instance_column(qdd_out, b));
   else
-    failed_dof_out[b] = fd_jsi_instance<S, C, false, kUnrolled>(model, q, qd, tau, fext, instance_column(qdd_out, b));
+    failed_dof_out[b] =
+        fd_jsi_instance<S, C, false, Choice::kUnrolled>(model, q, qd, tau, fext, instance_column(qdd_out, b));
 }
 
 namespace {
@@ -60,11 +83,23 @@ cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>&
   if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
     return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
+  const AbaKernel aba = kAba ? choose_aba_kernel(model) : AbaKernel::Tree;
   std::visit(
       [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        fd_instances_kernel<S, P::capacity, kAba>
-            <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+        constexpr int C = std::decay_t<decltype(params)>::capacity;
+        auto launch = [&](auto algo) {
+          fd_instances_kernel<S, C, decltype(algo)::value>
+              <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+        };
+        using std::integral_constant;
+        if constexpr (!kAba) launch(integral_constant<int, kJsiKernel>{});
+        else if (aba == AbaKernel::Chains) launch(integral_constant<int, 0>{});
+        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
+          if (aba == AbaKernel::Branches) launch(integral_constant<int, int(kAbaRegisterSlots)>{});
+          else launch(integral_constant<int, C>{});
+        } else {
+          launch(integral_constant<int, C>{});
+        }
       },
       model.params());
   return cudaGetLastError();
@@ -142,6 +177,7 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
   const Index B = in.q.batch;
   const Index nv = nv_;
   FdBatchStatus status;
+  status.algorithm = algorithm();
   if (B == 0) return status;
   int* const failed = failed_dof ? failed_dof : failed_host_.data();
   if (nv == 0) {  // nothing to factorise

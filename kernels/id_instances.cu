@@ -26,23 +26,41 @@ using detail::Staging;
 
 namespace {
 
+// The model's parameter block; slots_out receives ThreadModel::branch_slots().
 template <int C, class S>
-ThreadModelParams<S, C> make_params(const ModelTpl<S>& model) {
+ThreadModelParams<S, C> make_params(const ModelTpl<S>& model, Index& slots_out) {
   ThreadModelParams<S, C> p{};  // zero-filled, unused bodies included
   const Index n = model.nv();
   p.nv = n;
   p.a0 = base_acceleration(model.gravity);
+  Index last_branch_child[C];  // (nv) highest-numbered branch child of each body, -1 if none
   for (Index i = 0; i < n; ++i) {
     const Index parent = model.bodies[i].parent;
     if (parent >= i || parent < -1)
       throw BackendError("backend 'cuda': body " + std::to_string(i) + " has parent " + std::to_string(parent) +
                          " (bodies must come after their parent)");
     p.body[i] = model.bodies[i];
+    last_branch_child[i] = -1;
     if (parent >= 0) p.ancestors[i] = p.ancestors[parent] | (1ull << parent);
     if (parent < 0) p.flags[i] |= kParentIsBase;
     else if (parent == i - 1) p.flags[i] |= kParentIsPrev;
-    else p.flags[parent] |= kStacked;  // a child that is not the next body
+    else p.flags[parent] |= kStacked, last_branch_child[parent] = i;  // a child that is not the next body
   }
+  // branch slots: branch points in increasing order, each to the lowest slot whose
+  // last range ended at or before it (interval colouring: as many slots as ranges overlap)
+  Index slot_end[C];  // (slots) the last range's end, h(p), of each slot in use
+  Index slots = 0;
+  for (Index i = 0; i < n; ++i) {
+    const Index h = last_branch_child[i];
+    if (h < 0) continue;
+    p.flags[h] |= kOpensSlot;
+    Index s = 0;
+    while (s < slots && slot_end[s] > i) ++s;
+    if (s == slots) ++slots;
+    slot_end[s] = h;
+    p.flags[i] |= static_cast<int>(s) << kSlotShift;
+  }
+  slots_out = slots;
   return p;
 }
 
@@ -59,10 +77,10 @@ ThreadModel<S>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; the thread-per-instance kernels take at most " + std::to_string(kMaxThreadDofs) +
                        " (per-thread state is sized at compile time)");
-  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8>(model);
-  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16>(model);
-  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32>(model);
-  else capacity_ = 64, params_ = make_params<64>(model);
+  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8>(model, branch_slots_);
+  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16>(model, branch_slots_);
+  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32>(model, branch_slots_);
+  else capacity_ = 64, params_ = make_params<64>(model, branch_slots_);
 }
 
 // ---- kernel and launch ---------------------------------------------------------

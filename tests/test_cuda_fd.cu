@@ -204,8 +204,9 @@ double aba_float_tol(const Model& md, Index B, bool with_fext, unsigned seed) {
 // layout (inputs Batch<S>(md, B, kHostSeed)); every instance must succeed.
 constexpr unsigned kHostSeed = 11;
 
-// kAba: aba_instance instead of fd_jsi_instance.
-template <class S, bool kKeepXup, bool kUnrolled, bool kAba = false>
+// kAba: aba_instance instead of fd_jsi_instance, with kSlots branch slots (-1: the
+// capacity, aba_instance's default, for any model).
+template <class S, bool kKeepXup, bool kUnrolled, bool kAba = false, int kSlots = -1>
 Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
   const ModelTpl<S> m = md.cast<S>();
   const cuda::ThreadModel<S> tm(m);
@@ -223,10 +224,11 @@ Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
     const Index failed = std::visit(
         [&](const auto& p) {
           using P = std::decay_t<decltype(p)>;
-          if constexpr (kAba)
-            return cuda::aba_instance<S, P::capacity, kKeepXup, kUnrolled>(
+          if constexpr (kAba) {
+            constexpr int kAbaSlots = kSlots < 0 ? P::capacity : kSlots;
+            return cuda::aba_instance<S, P::capacity, kKeepXup, kUnrolled, Trig::Library, kAbaSlots>(
                 p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
-          else
+          } else
             return cuda::fd_jsi_instance<S, P::capacity, kKeepXup, kUnrolled>(
                 p, {q.data() + o, 1}, {qd.data() + o, 1}, {tau.data() + o, 1}, f, {qdd.data() + o, 1});
         },
@@ -431,8 +433,8 @@ TEST(CudaFdAbaModel, DeviceFunctionOnTheHost) {
 }
 
 // Articulated pivot failures on the host: the DoF the serial aba reports, qdd left
-// unwritten.
-template <class S, bool kUnrolled>
+// unwritten (kSlots as in host_instance_errors).
+template <class S, bool kUnrolled, int kSlots = -1>
 void check_host_aba_failure(const Model& md, const std::vector<S>& q, const std::vector<S>& qd,
                             const std::vector<S>& tau) {
   const ModelTpl<S> m = md.cast<S>();
@@ -444,8 +446,9 @@ void check_host_aba_failure(const Model& md, const std::vector<S>& q, const std:
   const Index got = std::visit(
       [&](const auto& p) {
         using P = std::decay_t<decltype(p)>;
-        return cuda::aba_instance<S, P::capacity, false, kUnrolled>(p, {q.data(), 1}, {qd.data(), 1}, {tau.data(), 1},
-                                                                   nullptr, {qdd.data(), 1});
+        constexpr int C = P::capacity;
+        return cuda::aba_instance<S, C, false, kUnrolled, Trig::Library, (kSlots < 0 ? C : kSlots)>(
+            p, {q.data(), 1}, {qd.data(), 1}, {tau.data(), 1}, nullptr, {qdd.data(), 1});
       },
       cuda::ThreadModel<S>(m).params());
   EXPECT_EQ(got, want.failed_dof);
@@ -454,12 +457,15 @@ void check_host_aba_failure(const Model& md, const std::vector<S>& q, const std:
 
 template <class S>
 void host_aba_failures() {
-  // a massless leaf: D = 0 at the last DoF, for every state
+  // a massless leaf: D = 0 at the last DoF, for every state (a chain: the chain
+  // kernels too)
   {
     const Model md = massless_leaf(5);
     const std::vector<S> x(5, S(0.3));
     check_host_aba_failure<S, true>(md, x, x, x);
     check_host_aba_failure<S, false>(md, x, x, x);
+    check_host_aba_failure<S, true, 0>(md, x, x, x);
+    check_host_aba_failure<S, false, 0>(md, x, x, x);
   }
   // a non-finite joint position reaches the parent's articulated inertia (wherever
   // the serial aba reports a failure; a root's position does not enter any IA)
@@ -477,6 +483,9 @@ void host_aba_failures() {
         if (aba(m, d, q.data(), x.data(), x.data(), out.data()).ok()) continue;
         check_host_aba_failure<S, true>(md, q, x, x);
         check_host_aba_failure<S, false>(md, q, x, x);
+        // the kernel for the model's shape (iiwa, hyq: chains; atlas: one branch slot)
+        if (cuda::ThreadModel<S>(m).branch_slots() == 0) check_host_aba_failure<S, false, 0>(md, q, x, x);
+        else check_host_aba_failure<S, false, 1>(md, q, x, x);
         ++checked;
       }
     }
@@ -487,6 +496,130 @@ void host_aba_failures() {
 TEST(CudaFdAbaModel, PivotFailuresOnTheHost) {
   host_aba_failures<double>();
   host_aba_failures<float>();
+  // the message names the ABA's pivot, D_i = S_i^T IA_i S_i
+  cuda::FdBatchStatus s;
+  EXPECT_EQ(s.algorithm, cuda::FdAlgorithm::Jsi);
+  s.algorithm = cuda::FdAlgorithm::Aba;
+  EXPECT_EQ(s.message(), "");
+  s.failed = 1, s.first_instance = 3, s.first_dof = 6;
+  EXPECT_EQ(s.message(), "instance 3: articulated inertia pivot at DoF 6 is not positive");
+  s.failed = 42;
+  EXPECT_EQ(s.message(), "instance 3: articulated inertia pivot at DoF 6 is not positive (and 41 more instances)");
+}
+
+// Branch slots (ThreadModel): kOpensSlot on each branch point's highest-numbered
+// branch child h(p); two branch points whose ranges [p, h(p)) overlap never share a
+// slot; and no more slots than the most ranges over one body (interval colouring is
+// optimal).
+TEST(CudaFdAbaModel, BranchSlots) {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (auto& m : generated_models()) models.push_back(std::move(m));
+  for (const char* spec : {"tree:12:4", "tree:20:2", "tree:20:3", "tree:64:7"})
+    models.emplace_back(spec, load_model(spec));
+  for (const auto& named : models) {
+    SCOPED_TRACE(named.first);
+    const Model& md = named.second;
+    const Index nv = md.nv();
+    const cuda::ThreadModel<double> tm(md);
+    std::vector<Index> h(nv, -1);  // highest-numbered branch child
+    for (Index i = 0; i < nv; ++i)
+      if (md.parent(i) >= 0 && md.parent(i) != i - 1) h[md.parent(i)] = i;
+    std::visit(
+        [&](const auto& p) {
+          Index most = 0;
+          for (Index i = 0; i < nv; ++i) {
+            const bool opens = md.parent(i) >= 0 && h[md.parent(i)] == i;
+            EXPECT_EQ((p.flags[i] & cuda::kOpensSlot) != 0, opens) << "body " << i;
+            EXPECT_EQ((p.flags[i] & cuda::kStacked) != 0, h[i] >= 0) << "body " << i;
+            if (h[i] < 0) {
+              EXPECT_EQ(cuda::branch_slot(p.flags[i]), 0) << "body " << i;
+              continue;
+            }
+            EXPECT_LT(cuda::branch_slot(p.flags[i]), tm.branch_slots()) << "body " << i;
+            Index over = 0;  // ranges [j, h(j)) holding body i (the most are at a range's start)
+            for (Index j = 0; j <= i; ++j)
+              if (h[j] > i) ++over;
+            most = std::max(most, over);
+            for (Index j = 0; j < i; ++j)
+              if (h[j] > i) EXPECT_NE(cuda::branch_slot(p.flags[j]), cuda::branch_slot(p.flags[i])) << j << ", " << i;
+          }
+          EXPECT_EQ(tm.branch_slots(), most);
+        },
+        tm.params());
+  }
+  EXPECT_EQ(cuda::ThreadModel<double>(robot("atlas.urdf")).branch_slots(), 1);
+  EXPECT_EQ(cuda::ThreadModel<double>(robot("hyq.urdf")).branch_slots(), 0);  // four legs on the base
+  EXPECT_EQ(cuda::ThreadModel<double>(load_model("tree:12:4")).branch_slots(), 2);
+}
+
+// The kernel launch_aba_instances picks by shape.
+TEST(CudaFdAbaModel, KernelChoiceByShape) {
+  using cuda::AbaKernel;
+  auto pick = [](const Model& md, bool fl) {
+    return fl ? cuda::choose_aba_kernel(cuda::ThreadModel<float>(md.cast<float>()))
+              : cuda::choose_aba_kernel(cuda::ThreadModel<double>(md));
+  };
+  for (bool fl : {false, true}) {
+    EXPECT_EQ(pick(robot("iiwa.urdf"), fl), AbaKernel::Chains);
+    EXPECT_EQ(pick(robot("hyq.urdf"), fl), AbaKernel::Chains);
+    EXPECT_EQ(pick(load_model("chain:64"), fl), AbaKernel::Chains);
+    EXPECT_EQ(pick(load_model("curtain:3:5"), fl), AbaKernel::Chains);
+    EXPECT_EQ(pick(load_model("tree:30:1"), fl), AbaKernel::Tree);
+  }
+  EXPECT_EQ(pick(robot("atlas.urdf"), true), AbaKernel::Branches);
+  EXPECT_EQ(pick(robot("atlas.urdf"), false), AbaKernel::Tree);
+  EXPECT_STREQ(cuda::to_string(AbaKernel::Chains), "chain");
+  EXPECT_STREQ(cuda::to_string(AbaKernel::Branches), "slots");
+  EXPECT_STREQ(cuda::to_string(AbaKernel::Tree), "tree");
+}
+
+// The ABA kernels for shapes (aba_instance's kSlots) on the host: the chain kernel
+// (0) on every model without branch children, register slots (1, 2) on every model
+// that needs at most as many, against the serial aba (double 1e-12, float
+// max(1e-4, 10 x the serial float aba's own error), as DeviceFunctionOnTheHost).
+TEST(CudaFdAbaModel, ShapeKernelsOnTheHost) {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
+  for (auto& m : generated_models()) models.push_back(std::move(m));
+  for (const char* spec : {"tree:12:4", "tree:20:2"}) models.emplace_back(spec, load_model(spec));
+  int tested[3] = {0, 0, 0};  // models run with 0, 1, 2 slots
+  for (const auto& [name, md] : models) {
+    SCOPED_TRACE(name);
+    const Index slots = cuda::ThreadModel<double>(md).branch_slots();
+    for (bool fx : {false, true}) {
+      SCOPED_TRACE(fx ? "fext" : "no fext");
+      std::vector<Errors> dbl, flt;
+      if (slots == 0) {
+        dbl = {host_instance_errors<double, false, true, true, 0>(md, 20, fx),
+               host_instance_errors<double, false, false, true, 0>(md, 20, fx),
+               host_instance_errors<double, true, false, true, 0>(md, 20, fx)};
+        flt = {host_instance_errors<float, false, true, true, 0>(md, 20, fx),
+               host_instance_errors<float, false, false, true, 0>(md, 20, fx)};
+      }
+      if (slots <= 1) {
+        for (const Errors& e : {host_instance_errors<double, false, true, true, 1>(md, 20, fx),
+                                host_instance_errors<double, false, false, true, 1>(md, 20, fx)})
+          dbl.push_back(e);
+        flt.push_back(host_instance_errors<float, false, false, true, 1>(md, 20, fx));
+      }
+      if (slots <= 2) {
+        for (const Errors& e : {host_instance_errors<double, false, true, true, 2>(md, 20, fx),
+                                host_instance_errors<double, true, false, true, 2>(md, 20, fx)})
+          dbl.push_back(e);
+        flt.push_back(host_instance_errors<float, false, false, true, 2>(md, 20, fx));
+      }
+      for (const Errors& e : dbl) EXPECT_LE(e.aba, 1e-12);
+      if (!flt.empty()) {
+        const double ftol = aba_float_tol(md, 20, fx, kHostSeed);
+        for (const Errors& e : flt) EXPECT_LE(e.aba, ftol);
+      }
+    }
+    for (Index k = slots; k < 3; ++k) ++tested[k];
+  }
+  EXPECT_GE(tested[0], 8);  // iiwa, hyq, chains, rope, curtain
+  EXPECT_GE(tested[1], 9);  // ... and atlas
+  EXPECT_GE(tested[2], 11); // ... and tree:12:4, tree:20:2
 }
 
 TEST(CudaFdAbaErrors, WithoutADevice) {
@@ -834,6 +967,8 @@ TEST(CudaFdAba, PivotFailuresReported) {
   EXPECT_EQ(st.first_dof, 4);
   EXPECT_EQ(std::count(failed.begin(), failed.end(), 4), 40);
   EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
+  EXPECT_EQ(st.algorithm, cuda::FdAlgorithm::Aba);
+  EXPECT_EQ(st.message(), "instance 0: articulated inertia pivot at DoF 4 is not positive (and 39 more instances)");
 }
 
 TEST(CudaFd, ErrorsWithADevice) {

@@ -196,12 +196,13 @@ TEST(CudaIdModel, CapacityAndFlags) {
   EXPECT_EQ(p.flags[0], cuda::kParentIsBase);
   EXPECT_EQ(p.flags[1], cuda::kParentIsPrev);
   EXPECT_EQ(p.flags[2], cuda::kParentIsPrev | cuda::kStacked);
-  EXPECT_EQ(p.flags[10], 0);  // parent 2, not the previous body
-  EXPECT_EQ(p.flags[11], 0);
+  EXPECT_EQ(p.flags[10], 0);                 // parent 2, not the previous body
+  EXPECT_EQ(p.flags[11], cuda::kOpensSlot);  // ... and the highest-numbered such child
   EXPECT_EQ(p.flags[9], cuda::kParentIsPrev);
   EXPECT_EQ(p.flags[18], cuda::kParentIsBase);
   EXPECT_EQ(p.a0.v.z, 9.81);
-  // the flags by their definitions, on trees with many branch points
+  // the flags by their definitions, on trees with many branch points (the branch
+  // slots in the bits from kSlotShift: test_cuda_fd's BranchSlots)
   for (const Model& md : {robot("atlas.urdf"), test::random_model(40, 4), load_model("tree:60:2")}) {
     const std::vector<int> flags = flags_of(cuda::ThreadModel<double>(md));
     const Index n = md.nv();
@@ -209,11 +210,13 @@ TEST(CudaIdModel, CapacityAndFlags) {
     int stacked = 0;
     for (Index i = 0; i < n; ++i) {
       const Index p = md.parent(i);
-      bool other_child = false;
+      bool other_child = false, later_sibling = false;
       for (Index j = i + 2; j < n; ++j) other_child = other_child || md.parent(j) == i;
+      for (Index j = i + 1; j < n; ++j) later_sibling = later_sibling || md.parent(j) == p;
+      const bool opens = p >= 0 && p != i - 1 && !later_sibling;  // the parent's last branch child
       const int want = (p < 0 ? cuda::kParentIsBase : 0) | (p >= 0 && p == i - 1 ? cuda::kParentIsPrev : 0) |
-                       (other_child ? cuda::kStacked : 0);
-      EXPECT_EQ(flags[i], want) << md.name << " body " << i;
+                       (other_child ? cuda::kStacked : 0) | (opens ? cuda::kOpensSlot : 0);
+      EXPECT_EQ(flags[i] & ((1 << cuda::kSlotShift) - 1), want) << md.name << " body " << i;
       stacked += other_child;
     }
     EXPECT_GT(stacked, 0) << md.name;

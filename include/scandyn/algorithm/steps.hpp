@@ -186,13 +186,25 @@ struct AbaForward {
   Force<S> pA;  // bias force v x* I v (external force subtracted by the caller)
 };
 
+// The velocity-product acceleration c = v x (S qd) of a body moving with v.
+template <class S>
+SCANDYN_HD Motion<S> aba_velocity_product(const Body<S>& b, const Motion<S>& v, S qd) {
+  return cross_joint_motion(b, v, qd);
+}
+
+// The bias force v x* I v of a body moving with v (pA before external forces).
+template <class S>
+SCANDYN_HD Force<S> aba_bias_force(const Body<S>& b, const Motion<S>& v) {
+  return cross(v, b.I * v);
+}
+
 template <class S>
 SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& Xup,
                                           const Motion<S>& v_parent, S qd) {
   AbaForward<S> o;
   o.v = add_joint_motion(b, Xup.apply(v_parent), qd);
-  o.c = cross_joint_motion(b, o.v, qd);
-  o.pA = cross(o.v, b.I * o.v);
+  o.c = aba_velocity_product(b, o.v, qd);
+  o.pA = aba_bias_force(b, o.v);
   return o;
 }
 

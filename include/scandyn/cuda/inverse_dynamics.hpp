@@ -74,8 +74,22 @@ inline constexpr int kIdInstancesBlock = 128;
 enum ThreadBodyFlag : int {
   kParentIsBase = 1,  // parent is the fixed base (-1)
   kParentIsPrev = 2,  // parent is body i - 1
-  kStacked = 4,       // a child other than body i + 1 reads v_i, a_i and adds to f_i
+  kStacked = 4,       // a child other than body i + 1 (a branch child) reads v_i, a_i and
+                      // adds to f_i: body i is a branch point of the tree
+  kOpensSlot = 8,     // body i is the highest-numbered branch child of its parent: the
+                      // first of them to reach the parent going leaves to root
 };
+
+// Bits kSlotShift.. of a kStacked body's flags: its branch slot, a small number
+// shared by branch points whose children do not interleave. Branch point p's slot
+// is in use from p to its highest-numbered branch child h(p) (root to leaves) or
+// from h(p) back to p (leaves to root); the host gives two branch points the same
+// slot only when one's range ends where or before the other's starts, so that a
+// kernel holding one value per slot (aba_instance: velocities, articulated
+// inertias) needs as many slots as branch points whose ranges overlap
+// (ThreadModel::branch_slots()), not one per body.
+inline constexpr int kSlotShift = 8;
+SCANDYN_HD constexpr int branch_slot(int flags) { return flags >> kSlotShift; }
 
 // The model as the kernels read it, for capacity C (nv <= C): the kernel parameter.
 template <class S, int C>
@@ -103,10 +117,14 @@ class ThreadModel {
   Index nv() const { return nv_; }
   Index capacity() const { return capacity_; }  // 8, 16, 32 or 64
   const Params& params() const { return params_; }
+  // Branch slots the model needs (see kSlotShift): 0 when every body's parent is the
+  // previous body or the base (a chain, or chains hanging from the base)
+  Index branch_slots() const { return branch_slots_; }
 
  private:
   Index nv_ = 0;
   Index capacity_ = 0;
+  Index branch_slots_ = 0;
   Params params_;
 };
 
