@@ -107,7 +107,7 @@ class Reader {
     if (!v.is_number_integer()) expected(key, what, v);
     if (v.is_number_unsigned()) {
       const auto u = v.get<unsigned long long>();
-      if (u > static_cast<unsigned long long>(hi)) expected(key, what, v);
+      if (u > static_cast<unsigned long long>(hi) || static_cast<long long>(u) < lo) expected(key, what, v);
       return static_cast<long long>(u);
     }
     const long long x = v.get<long long>();
