@@ -6,7 +6,8 @@
 //       the RL row, B = 10^3 .. 10^5 instances;
 //   step_openmp-aba:<integrator>:<gravity|all-zero>/float/iiwa/openmp, B = 10^4:
 //       the effects table: only gravity declared against every effect declared with
-//       zero coefficients (the same trajectory), per integrator;
+//       zero coefficients (the same trajectory), per integrator (the name gives the
+//       integrator asked for: implicit with gravity alone runs as euler);
 //   step_serial-aba:euler:gravity/double/rope:N/serial, one rope of 10^3 .. 10^6
 //       links.
 // One iteration = one step of all B instances; evals_per_second = instance-steps/s.
