@@ -21,7 +21,10 @@
 //     which gives the same numbers as the absent effect (test_sim's
 //     ZeroCoefficientsEqualAbsentEffects checks that identity on the host) at the
 //     cost of a few per-DoF operations.
-// 44 + 3 x 3 (float) + 4 x 3 (double) = 65 kernels.
+// 44 + 3 x 3 (float) + 4 x 3 (double) = 65 kernels. With SCANDYN_SIM_EFFECT_SETS=0
+// (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what scripts/test.sh uses on machines
+// without a GPU) the float capacity-8 kernels are the all-effects one per
+// integrator too: 24 kernels.
 #pragma once
 
 #include <cuda_runtime.h>
@@ -32,6 +35,10 @@
 
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/sim/integrators.hpp"
+
+#if !defined(SCANDYN_SIM_EFFECT_SETS)
+#define SCANDYN_SIM_EFFECT_SETS 1
+#endif
 
 namespace scandyn {
 namespace sim {
@@ -108,7 +115,7 @@ SCANDYN_SIM_UNROLL
 template <class S, int C, Integrator I>
 constexpr bool compiled_set(unsigned e) {
   if (e & kGravity) return false;
-  if (std::is_same<S, float>::value && C == 8)
+  if (SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8)
     return I == Integrator::Implicit ? (e & kImplicitEffects) != 0 : true;
   return e == (kJointEffects | kExternal);
 }
@@ -118,7 +125,8 @@ constexpr bool compiled_set(unsigned e) {
 // the scene has none).
 template <class S, int C, Integrator I>
 constexpr unsigned kernel_set(unsigned effects) {
-  return std::is_same<S, float>::value && C == 8 ? (effects & ~unsigned(kGravity)) : (kJointEffects | kExternal);
+  return SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8 ? (effects & ~unsigned(kGravity))
+                                                                            : (kJointEffects | kExternal);
 }
 
 template <class F, unsigned... K>
