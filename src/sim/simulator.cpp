@@ -275,7 +275,7 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
       throw std::out_of_range("Simulator::reset: instance " + std::to_string(b) + " is outside [0, " +
                               std::to_string(B) + ")");
   // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer
-  const Index chunk = std::max<Index>(1, std::min<Index>(B, 1 << 20) / std::max<Index>(1, n));
+  const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
     const Index count = static_cast<Index>(std::min<std::size_t>(chunk, instances.size() - start));
     q_rows_.resize(static_cast<std::size_t>(count) * n);
