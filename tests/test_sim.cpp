@@ -146,6 +146,21 @@ TEST(SimScene, ErrorsNameTheFileAndTheKey) {
   }
 }
 
+// Every shipped scene (scenes/*.json) is valid: parsed with its model, generators
+// made (rope:10^6 included: about 1 s), robots found through SCANDYN_MODELS_DIR or
+// ../shared/models.
+TEST(SimScene, ShippedScenesLoad) {
+  int count = 0;
+  for (const char* name : {"iiwa_rl", "hyq_rl", "rope_1e4", "rope_1e6", "curtain"}) {
+    const std::string path = std::string(SCANDYN_SOURCE_DIR) + "/scenes/" + name + ".json";
+    const Scene s = sim::load_scene(path);
+    EXPECT_GT(s.nv(), 0) << path;
+    EXPECT_NE(s.effects & sim::kGravity, 0u) << path;
+    ++count;
+  }
+  EXPECT_EQ(count, 5);
+}
+
 TEST(SimScene, MissingFile) {
   try {
     sim::load_scene("/nonexistent/scene.json");
