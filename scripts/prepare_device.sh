@@ -9,7 +9,8 @@
 # All three are git-ignored; they travel to the GPU machine with the working tree.
 #
 # The packages are the dependency closure of liburdfdom-dev (urdfdom libraries
-# and headers, console_bridge, tinyxml), minus the C/C++ runtime every machine
+# and headers, console_bridge, tinyxml) and nlohmann-json3-dev (scene files;
+# header-only), minus the C/C++ runtime every machine
 # with g++ has. They are built for this machine's Debian release and architecture
 # (see .deps/manifest.txt); the GPU machine must be the same architecture with a
 # glibc/libstdc++ at least as new.
@@ -39,7 +40,7 @@ command -v apt-get >/dev/null && command -v dpkg-deb >/dev/null ||
 base_re='^(libc6|libgcc-s1|libstdc\+\+6|gcc-[0-9]+-base)$'
 closure() {
   apt-cache depends --recurse --no-recommends --no-suggests --no-conflicts --no-breaks \
-    --no-replaces --no-enhances liburdfdom-dev 2>/dev/null |
+    --no-replaces --no-enhances liburdfdom-dev nlohmann-json3-dev 2>/dev/null |
     grep -E '^[a-z0-9]' | grep -Ev "$base_re" | sort -u || true
 }
 mapfile -t packages < <(closure)
@@ -49,7 +50,7 @@ if ((${#packages[@]} == 0)); then
   mapfile -t packages < <(closure)
 fi
 ((${#packages[@]} > 0)) || die "cannot resolve liburdfdom-dev's dependencies with apt-cache"
-for must in liburdfdom-dev liburdfdom-headers-dev libconsole-bridge-dev libtinyxml-dev; do
+for must in liburdfdom-dev liburdfdom-headers-dev libconsole-bridge-dev libtinyxml-dev nlohmann-json3-dev; do
   printf '%s\n' "${packages[@]}" | grep -qx "$must" || die "expected $must among: ${packages[*]}"
 done
 note "packages: ${packages[*]}"

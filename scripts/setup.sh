@@ -14,6 +14,7 @@ packages=(
   libgomp1
   libeigen3-dev
   liburdfdom-dev   # URDF parsing (pulls console_bridge, tinyxml, urdfdom_headers)
+  nlohmann-json3-dev  # scene files (JSON), header-only
   libgtest-dev
   libbenchmark-dev
   python3          # scripts/

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <random>
@@ -20,6 +21,7 @@
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/sim/simulator.hpp"
 #include "test_util.hpp"
 
 namespace {
@@ -1062,6 +1064,118 @@ TEST_F(Cli, BenchCudaFdPrintsHostRow) {
     }
   }
   ASSERT_EQ(lines(read_text(path("results.csv"))).size(), 5u);  // header and 4 x 1 row
+}
+
+// ---- rollout and bench --algo step (docs/cli.md) --------------------------------------
+
+const char* const kChainScene = R"({"model": "chain:3", "dt": 0.001, "instances": 2, "integrator": "rk4",
+  "effects": {"gravity": true, "damping": 0.1}, "initial": {"random": {"seed": 4, "q": 0.3, "qd": 0.2}}})";
+
+// The rollout's numbers equal the Simulator's, step by step.
+TEST_F(Cli, RolloutCsvMatchesTheSimulator) {
+  write_text(path("s.json"), kChainScene);
+  const Result r = run("rollout --scene s.json --steps 7 --every 3 --out traj.csv");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");  // no progress bar: stderr is not a terminal
+  const std::vector<std::string> rows = lines(read_text(path("traj.csv")));
+  ASSERT_EQ(rows.size(), 1u + 4 * 2);  // steps 0, 3, 6, 7; two instances each
+  EXPECT_EQ(rows[0], "step,time,instance,q_0,q_1,q_2,qd_0,qd_1,qd_2");
+  scandyn::sim::Simulator<double> sim(scandyn::sim::load_scene(path("s.json").string()));
+  int step = 0;
+  for (int rec : {0, 3, 6, 7}) {
+    while (step < rec) sim.step(), ++step;
+    for (int b = 0; b < 2; ++b) {
+      const std::vector<std::string> f = split(rows[1 + (rec == 0 ? 0 : rec == 3 ? 1 : rec == 6 ? 2 : 3) * 2 + b], ',');
+      ASSERT_EQ(f.size(), 9u);
+      EXPECT_EQ(std::stoi(f[0]), rec);
+      EXPECT_DOUBLE_EQ(std::stod(f[1]), rec * 0.001);
+      EXPECT_EQ(std::stoi(f[2]), b);
+      for (int i = 0; i < 3; ++i) {
+        EXPECT_EQ(std::stod(f[3 + i]), sim.q().at(i, b));  // 17 digits: the same double
+        EXPECT_EQ(std::stod(f[6 + i]), sim.qd().at(i, b));
+      }
+    }
+  }
+}
+
+// The .npy file: the version 1.0 header numpy writes (checked byte by byte here, as
+// the machine running the tests may have no numpy), then the array.
+TEST_F(Cli, RolloutNpyHasTheDocumentedHeaderAndData) {
+  write_text(path("s.json"), kChainScene);
+  ASSERT_EQ(run("rollout --scene s.json --steps 4 --every 2 --out traj.npy").code, 0);
+  ASSERT_EQ(run("rollout --scene s.json --steps 4 --every 2 --out traj.csv").code, 0);
+  const std::string npy = read_text(path("traj.npy"));
+  ASSERT_GT(npy.size(), 10u);
+  EXPECT_EQ(npy.substr(0, 8), std::string("\x93NUMPY\x01\x00", 8));
+  const std::size_t hlen = static_cast<unsigned char>(npy[8]) | (static_cast<unsigned char>(npy[9]) << 8);
+  EXPECT_EQ((10 + hlen) % 64, 0u);
+  const std::string header = npy.substr(10, hlen);
+  EXPECT_EQ(header.substr(0, header.find(" }") + 2), "{'descr': '<f8', 'fortran_order': False, 'shape': (3, 2, 7), }");
+  EXPECT_EQ(header.back(), '\n');
+  ASSERT_EQ(npy.size(), 10 + hlen + 3 * 2 * 7 * sizeof(double));
+  std::vector<double> data(3 * 2 * 7);
+  std::memcpy(data.data(), npy.data() + 10 + hlen, data.size() * sizeof(double));
+  const std::vector<std::string> rows = lines(read_text(path("traj.csv")));
+  ASSERT_EQ(rows.size(), 1u + 6);
+  for (int r = 0; r < 6; ++r) {  // record r / 2, instance r % 2
+    const std::vector<std::string> f = split(rows[1 + r], ',');
+    for (int k = 0; k < 7; ++k) EXPECT_EQ(data[r * 7 + k], std::stod(f[1 + (k == 0 ? 0 : k + 1)])) << r << " " << k;
+  }
+}
+
+TEST_F(Cli, RolloutErrorsWriteNothing) {
+  write_text(path("bad.json"), R"({"model": "chain:3", "dt": -1})");
+  Result r = run("rollout --scene bad.json --steps 3 --out t.csv");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.err, "scandyn: bad.json: dt: expected a positive number, got -1\n");
+  r = run("rollout --scene missing.json --steps 3 --out t.csv");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_EQ(r.err, "scandyn: missing.json: cannot open file\n");
+  write_text(path("s.json"), kChainScene);
+  r = run("rollout --scene s.json --steps 3 --out t.txt");
+  EXPECT_EQ(r.code, 2);
+  r = run("rollout --scene s.json --steps -3 --out t.csv");
+  EXPECT_EQ(r.code, 2);
+  r = run("rollout --scene s.json --steps 3 --out t.csv --backend tpu");
+  EXPECT_EQ(r.code, 2);
+  if (!cuda_backend_error().empty()) {
+    r = run("rollout --scene s.json --steps 3 --out t.csv --backend cuda");
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("backend 'cuda'"), std::string::npos) << r.err;
+  }
+  // a forward dynamics that fails (here: the state overflows to inf, then NaN, and
+  // the mass matrix's pivot is no longer finite) is exit 1 and no file
+  write_text(path("nan.json"), R"({"model": "chain:3", "dt": 0.001, "initial": {"q": [0, 1e308, 0], "qd": [1e308, 1e308, 1e308]}})");
+  r = run("rollout --scene nan.json --steps 50 --out t.csv");
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_NE(r.err.find("nan.json: step "), std::string::npos) << r.err;
+  std::vector<std::string> f = files();
+  f.erase(std::remove_if(f.begin(), f.end(), [](const std::string& n) { return n.find(".json") != std::string::npos; }),
+          f.end());
+  EXPECT_TRUE(f.empty()) << f[0];
+}
+
+TEST_F(Cli, BenchStepPrintsOneRow) {
+  write_text(path("s.json"), kChainScene);
+  const std::vector<std::string> row = bench_row(run("bench --algo step --scene s.json --instances 5 --min-time 0.01"));
+  ASSERT_EQ(row.size(), 10u);
+  EXPECT_EQ(row[0], "step");
+  EXPECT_EQ(row[1], "serial-aba:rk4:gravity+damping");
+  EXPECT_EQ(row[2], "serial");
+  EXPECT_EQ(row[3], "double");
+  EXPECT_EQ(row[4], "chain:3");
+  EXPECT_EQ(row[5], "3");
+  EXPECT_EQ(row[6], "5");
+  EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 5.0, 1e-3);
+  EXPECT_EQ(row[9], "0");  // the serial double simulator is the reference
+  const std::vector<std::string> f =
+      bench_row(run("bench --algo step --scene s.json --instances 5 --min-time 0.01 --precision float --backend openmp"));
+  ASSERT_EQ(f.size(), 10u);
+  EXPECT_EQ(f[3], "float");
+  EXPECT_GT(std::stod(f[9]), 0);
+  EXPECT_LT(std::stod(f[9]), 1e-4);
+  EXPECT_EQ(run("bench --algo step --model chain:3 --scene s.json").code, 2);
+  EXPECT_EQ(run("bench --algo id --model chain:3 --instances 2 --scene s.json").code, 2);
 }
 
 }  // namespace

@@ -89,7 +89,7 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
 
 template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-           S* qdd, const Force<S>* fext) {
+           S* qdd, const Force<S>* fext, const S* armature) {
   const Index n = model.nv();
   // pass 1: kinematics, bias forces
   for (Index i = 0; i < n; ++i) {
@@ -105,7 +105,10 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
   // pass 2: articulated inertias, leaves to root
   for (Index i = n - 1; i >= 0; --i) {
     const Body<S>& b = model.bodies[i];
-    aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i]);
+    if (armature)
+      aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i], armature[i]);
+    else
+      aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i]);
     if (!pivot_ok(data.D[i])) return Status{i};
     if (b.parent >= 0)
       aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
@@ -175,11 +178,15 @@ void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* 
 
 template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-              S* qdd, const Force<S>* fext) {
+              S* qdd, const Force<S>* fext, const S* armature) {
   const Index n = model.nv();
   if (data.M.size() != static_cast<std::size_t>(n) * n)
     throw std::logic_error("fd_jsi: DataTpl was built without its mass-matrix workspace");
   crba(model, data, q, data.M.data());
+  if (armature) {
+    const std::size_t nn = static_cast<std::size_t>(n);
+    for (Index i = 0; i < n; ++i) data.M[i * nn + i] += armature[i];
+  }
   bias_forces(model, data, q, qd, data.h.data(), fext);
   const Status st = ltl_factor(model, data, data.M.data());
   if (!st.ok()) return st;
@@ -196,9 +203,9 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
                             const Force<S>*);                                                     \
   template void crba(const ModelTpl<S>&, DataTpl<S>&, const S*, S*);                              \
   template Status aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,          \
-                      const Force<S>*);                                                           \
+                      const Force<S>*, const S*);                                                 \
   template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
-                         const Force<S>*);                                                        \
+                         const Force<S>*, const S*);                                              \
   template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \
   template void ltl_solve(const ModelTpl<S>&, const DataTpl<S>&, const S*, S*);
 

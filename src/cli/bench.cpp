@@ -17,6 +17,7 @@
 #include "csv.hpp"
 #include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::cli {
 namespace {
@@ -193,14 +194,109 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
   return rows;
 }
 
+// ---- --algo step ---------------------------------------------------------------
+
+// Steps compared with the double serial reference for max_rel_err, and the most
+// instances compared.
+constexpr int kStepErrSteps = 10;
+constexpr Index kStepErrInstances = 1000;
+
+// q and qd of every instance after kStepErrSteps steps, instance-major (B x 2 nv).
+template <class S>
+std::vector<double> state_rows(sim::Simulator<S>& s, Index count) {
+  const std::size_t n = static_cast<std::size_t>(s.nv()), B = static_cast<std::size_t>(s.batch());
+  std::vector<S> q(n * B), qd(n * B);
+  s.read_state(q.data(), qd.data());
+  std::vector<double> rows(static_cast<std::size_t>(count) * 2 * n);
+  for (std::size_t b = 0; b < static_cast<std::size_t>(count); ++b)
+    for (std::size_t i = 0; i < n; ++i) rows[b * 2 * n + i] = q[i * B + b], rows[b * 2 * n + n + i] = qd[i * B + b];
+  return rows;
+}
+
+template <class S>
+Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time) {
+  std::unique_ptr<sim::Simulator<S>> made;
+  try {
+    made = std::make_unique<sim::Simulator<S>>(scene, backend);
+  } catch (const BackendError& e) {
+    throw UsageError(e.what(), false);
+  }
+  sim::Simulator<S>& s = *made;
+  // error: the first instances after kStepErrSteps steps against the double serial reference
+  const Index count = std::min<Index>(s.batch(), kStepErrInstances);
+  for (int k = 0; k < kStepErrSteps; ++k) s.step();
+  const std::vector<double> x = state_rows(s, count);
+  sim::Scene ref_scene = scene;
+  ref_scene.instances = count;
+  sim::Simulator<double> ref(ref_scene, BackendKind::Serial);
+  for (int k = 0; k < kStepErrSteps; ++k) ref.step();
+  const std::vector<double> r = state_rows(ref, count);
+  const std::size_t w = 2 * static_cast<std::size_t>(s.nv());
+  Timing t;
+  for (Index b = 0; b < count; ++b) {
+    const double e = rel_err(x.data() + b * w, r.data() + b * w, w);
+    t.max_rel_err = std::isnan(e) || std::isnan(t.max_rel_err) ? NAN : std::max(t.max_rel_err, e);
+  }
+  if (!s.status().ok() || !ref.status().ok())
+    throw DataError(scene.path + ": " + (s.status().ok() ? ref.status() : s.status()).message());
+  // timing: whole steps of all instances, synchronised after each round
+  s.step();
+  s.synchronize();
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+    for (std::size_t k = 0; k < n; ++k) s.step();
+    s.synchronize();
+  });
+  t.strategy = s.strategy() + ":" + sim::to_string(s.setup().integrator) + ":" + sim::effect_names(scene.effects);
+  return t;
+}
+
+int run_bench_step(const Args& args) {
+  if (args.has("model")) throw UsageError("--algo step takes --scene, not --model");
+  for (const char* f : {"fd", "strategy", "threads"})
+    if (args.has(f)) throw UsageError(std::string("--") + f + " does not apply to --algo step");
+  const std::string& scene_path = args.required("scene");
+  const double min_time = parse_min_time(args.get("min-time", "0.5"));
+  sim::Scene scene;
+  try {
+    scene = sim::load_scene(scene_path);
+  } catch (const sim::SceneError& e) {
+    throw DataError(e.what());
+  }
+  if (args.has("instances")) scene.instances = static_cast<Index>(parse_instances(args.required("instances")));
+  BackendKind backend = scene.backend;
+  if (args.has("backend")) {
+    try {
+      backend = parse_backend(args.required("backend"));
+    } catch (const BackendError& e) {
+      throw UsageError(e.what());
+    }
+  }
+  if (args.has("precision"))
+    scene.precision = parse_precision(args.required("precision")) == Precision::Float ? sim::Precision::Float
+                                                                                       : sim::Precision::Double;
+  const Timing t = scene.precision == sim::Precision::Float ? time_steps<float>(scene, backend, min_time)
+                                                            : time_steps<double>(scene, backend, min_time);
+  const std::string row = std::string("step,") + t.strategy + "," + to_string(backend) + "," +
+                          sim::to_string(scene.precision) + "," + model_label(scene.model_spec) + "," +
+                          std::to_string(scene.nv()) + "," + std::to_string(scene.instances) + "," +
+                          format_g(t.seconds_per_call, 6) + "," + format_g(double(scene.instances) / t.seconds_per_call, 6) +
+                          "," + format_g(t.max_rel_err, 6);
+  if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, row);
+  if (::isatty(STDOUT_FILENO)) std::puts(kBenchHeader);
+  std::puts(row.c_str());
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_bench(const Args& args) {
+  if (args.get("algo", "") == "step") return run_bench_step(args);
+  if (args.has("scene")) throw UsageError("--scene applies only to --algo step");
   const std::string& model_spec = args.required("model");
   Algo algo;
   if (!parse_algo(args.required("algo"), algo))
     throw UsageError("unknown --algo value '" + args.required("algo") +
-                     "' (expected id, fd, mass or bias)");
+                     "' (expected id, fd, mass, bias or step)");
   if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
   const EvalOptions options = parse_eval_options(args);

@@ -65,5 +65,6 @@ Model load_cli_model(const Args& args);
 int run_info(const Args& args);
 int run_eval(const Args& args);
 int run_bench(const Args& args);
+int run_rollout(const Args& args);
 
 }  // namespace scandyn::cli

@@ -303,6 +303,8 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
   m.bodies.reserve(nv);
   m.joint_names.reserve(nv);
   m.link_names.reserve(nv);
+  m.q_lower.reserve(nv);
+  m.q_upper.reserve(nv);
 
   std::vector<Entry> stack;
   std::vector<char> reached(nl, 0);
@@ -341,6 +343,8 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
       m.bodies.push_back(body);
       m.joint_names.push_back(j.name);
       m.link_names.push_back(l.name);
+      m.q_lower.push_back(j.type == RawJointType::Continuous ? -HUGE_VAL : j.lower);
+      m.q_upper.push_back(j.type == RawJointType::Continuous ? HUGE_VAL : j.upper);
       push_children(link, b, true, Transform<double>::identity());
     }
   }

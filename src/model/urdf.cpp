@@ -131,6 +131,10 @@ RawTree parse_urdf(const std::string& xml, const std::string& source) {
     r.has_quat = true;
     r.quat = quat(j.parent_to_joint_origin_transform.rotation);
     r.axis = vec(j.axis);
+    if (j.limits && (j.type == urdf::Joint::REVOLUTE || j.type == urdf::Joint::PRISMATIC)) {
+      r.lower = j.limits->lower;
+      r.upper = j.limits->upper;
+    }
     t.joints.push_back(std::move(r));
   }
   return t;

@@ -62,16 +62,20 @@ template <class S>
 void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M);
 
 // qdd = FD(q, qd, tau) by the articulated-body algorithm. Stops and reports the body
-// (qdd untouched) when an articulated pivot D_i = S_i^T IA_i S_i is not positive and finite.
+// (qdd untouched) when an articulated pivot D_i = S_i^T IA_i S_i (+ armature_i) is not
+// positive and finite. armature, when given, has nv joint-space inertias added to
+// M's diagonal: qdd = (M + diag(armature))^{-1} (tau - h) (aba_joint_terms); null
+// computes exactly what it computes without the argument.
 template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-           S* qdd, const Force<S>* fext = nullptr);
+           S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
 // qdd = M^{-1} (tau - h) with M from CRBA and the tree-sparse L^T L factorisation
-// (Featherstone 6.5). Reports the first DoF whose pivot is not positive.
+// (Featherstone 6.5). Reports the first DoF whose pivot is not positive. armature as
+// for aba: added to M's diagonal after the CRBA, before the factorisation.
 template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-              S* qdd, const Force<S>* fext = nullptr);
+              S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
 // In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
 // L written to the lower triangle). parent gives the branch-induced sparsity; the

@@ -209,14 +209,21 @@ SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& 
 }
 
 // Pass 2 step: with the body's articulated inertia IA and bias force pA complete,
-// computes U = IA S, D = S^T U, u = tau - S^T pA and the contributions
+// computes U = IA S, D = S^T U (+ armature), u = tau - S^T pA and the contributions
 //   Ia = IA - U U^T / D,  pa = pA + Ia c + U u / D
 // that the parent receives as Xup^T Ia Xup and Xup^T pa.
+//
+// armature: a joint-space inertia added to the joint's own diagonal entry of M (a
+// rotor's reflected inertia, or the simulator's dt d + dt^2 k of implicit damping
+// and springs, scandyn/sim/integrators.hpp): M + diag(armature) is the mass matrix
+// of the same tree with a massless rotor of that inertia on each joint, and in the
+// ABA it enters only D (Featherstone 2008, 7.3 / exercise 7.3). 0 adds nothing
+// (D + 0 == D exactly).
 template <class S>
 SCANDYN_HD void aba_joint_terms(const Body<S>& b, const ABInertia<S>& IA, const Force<S>& pA,
-                                S tau, Force<S>& U, S& D, S& u) {
+                                S tau, Force<S>& U, S& D, S& u, S armature = S(0)) {
   U = IA * joint_motion(b, S(1));
-  D = joint_project(b, U);
+  D = joint_project(b, U) + armature;
   u = tau - joint_project(b, pA);
 }
 

@@ -314,11 +314,15 @@ __host__ __device__ __forceinline__ void for_descendants(const ThreadModelParams
 // registers in float too: M alone is 136 scalars.) kKeepXup keeps each body's
 // transform from the forward pass for the backward pass; otherwise joint_transform
 // is evaluated again there (fewer registers, more arithmetic).
+//
+// armature (optional, nv scalars, any memory the thread can read): joint-space
+// inertias added to M's diagonal before the factorisation, as in the serial fd_jsi
+// (scandyn/sim's implicit damping and springs); null adds nothing.
 template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
 __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParams<S, C>& model,
                                                           DofColumn<const S> q, DofColumn<const S> qd,
                                                           DofColumn<const S> tau, const Force<S>* fext,
-                                                          DofColumn<S> qdd) {
+                                                          DofColumn<S> qdd, const S* armature = nullptr) {
   using fd_detail::tri;
   using std::sqrt;
   constexpr int kRegs = kUnrolled ? C : 1;  // register copies of q, qd when unrolled
@@ -388,6 +392,7 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
     fd_detail::for_descendants<kUnrolled>(model, i, [&](Index k) { M[tri(k, i)] = joint_project(b, w[k]); });
     w[i] = crba_column_force(b, Ic);
     M[tri(i, i)] = joint_project(b, w[i]);
+    if (armature) M[tri(i, i)] += armature[i];
     if (fl & kParentIsBase) continue;
     Transform<S> X;
     if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];

@@ -2,6 +2,7 @@
 // raw link/joint description. All three go through one builder and one validator.
 #pragma once
 
+#include <cmath>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -50,6 +51,8 @@ struct RawJoint {
   bool has_quat = false;          // true: the origin's orientation is quat
   RawQuat quat;
   Vec3<double> axis{1, 0, 0};     // <axis xyz>, joint frame (URDF default 1 0 0); unused if fixed
+  double lower = -HUGE_VAL;       // <limit lower> (rad or m) of a revolute or prismatic joint;
+  double upper = HUGE_VAL;        // <limit upper>; -inf / +inf when there is none (continuous)
 };
 
 struct RawTree {

@@ -44,6 +44,10 @@ struct ModelTpl {
   std::vector<Body<S>> bodies;           // (nv) bodies in DoF order
   std::vector<std::string> joint_names;  // (nv) joint of each body
   std::vector<std::string> link_names;   // (nv) URDF child link of each joint
+  std::vector<S> q_lower;                // (nv) joint position limits from the URDF <limit>
+  std::vector<S> q_upper;                // (nv) (rad or m); -inf / +inf where there is none
+                                         // (continuous joints, generators); used by the
+                                         // simulator's joint-limit effect only
   Vec3<S> gravity{S(0), S(0), S(-9.81)};  // gravitational acceleration in the base frame (m/s^2)
 
   // Number of degrees of freedom (= moving bodies).
@@ -60,6 +64,8 @@ struct ModelTpl {
     for (const auto& b : bodies) m.bodies.push_back(b.template cast<T>());
     m.joint_names = joint_names;
     m.link_names = link_names;
+    m.q_lower.assign(q_lower.begin(), q_lower.end());
+    m.q_upper.assign(q_upper.begin(), q_upper.end());
     m.gravity = gravity.template cast<T>();
     return m;
   }

@@ -1,0 +1,122 @@
+// The simulator's step on the GPU (scandyn/sim/simulator.hpp, kernels/sim_step.cu):
+// the state resident on the device, one fused kernel per step (fd_jsi_instance +
+// effects + integration, one thread per instance), or beyond 64 DoF the engine path.
+//
+// Rows (names as scripts/bench_results.py reads them: algo step, strategy
+// <engine>:<integrator>:<effects>):
+//   step_fused-jsi:euler:gravity+damping/float/iiwa/cuda, B = 10^6 and 10^7: the RL
+//       target row (iiwa, gravity + damping, float, semi-implicit Euler);
+//   the same in double, and hyq (16-DoF kernels) in float;
+//   step_fused-jsi:<integrator>:<gravity|all-zero>/float/iiwa/cuda, B = 10^6: the
+//       effects table: only gravity declared against every effect declared with
+//       zero coefficients (same trajectory, the all-effects instantiation), per
+//       integrator (implicit with only gravity runs as euler: nothing to treat
+//       implicitly);
+//   step_engine-jsi_dense:euler:gravity/<precision>/rope:128/cuda, B = 10^3: the
+//       path beyond 64 DoF (effects kernel, CudaForwardDynamics, integration
+//       kernel).
+// Timing: CUDA events around `iterations` steps queued on the simulator's stream
+// (manual time), so a row is the device's throughput with launch overhead, no
+// host copies. Counters: links, instances, max_rel_err (q and qd after 10 steps
+// against the double serial simulator on the first 64 instances), GBps (q, qd, tau
+// read and q, qd written per step).
+//
+// Flags (before Google Benchmark's): --max-instances=N (default 10^7).
+#include <benchmark/benchmark.h>
+#include <cuda_runtime.h>
+
+#include <cstdio>
+#include <cstring>
+#include <memory>
+#include <string>
+
+#include "scandyn/cuda/device.hpp"
+#include "sim_bench_util.hpp"
+
+namespace {
+
+using namespace scandyn;
+
+long long g_max_instances = 10000000;
+
+template <class S>
+void BM_CudaStep(benchmark::State& st, std::string model, std::string effects, std::string integrator,
+                 long long instances) {
+  if (instances > g_max_instances) {
+    st.SkipWithError("beyond --max-instances");
+    return;
+  }
+  const char* precision = sizeof(S) == 4 ? "float" : "double";
+  std::unique_ptr<sim::Simulator<S>> s;
+  double err = 0;
+  try {
+    const sim::Scene scene = bench::make_scene(model, effects, integrator, precision, "cuda", instances, 1e-3);
+    s = std::make_unique<sim::Simulator<S>>(scene);
+    err = bench::max_rel_err_after(*s, scene, 10, static_cast<Index>(std::min<long long>(instances, 64)));
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  const cudaStream_t stream = static_cast<cudaStream_t>(s->stream());
+  cudaEvent_t start, stop;
+  cudaEventCreate(&start);
+  cudaEventCreate(&stop);
+  s->step();
+  s->synchronize();
+  for (auto _ : st) {
+    cudaEventRecord(start, stream);
+    s->step();
+    cudaEventRecord(stop, stream);
+    cudaEventSynchronize(stop);
+    float ms = 0;
+    cudaEventElapsedTime(&ms, start, stop);
+    st.SetIterationTime(ms * 1e-3);
+  }
+  cudaEventDestroy(start);
+  cudaEventDestroy(stop);
+  if (!s->status().ok()) st.SkipWithError(s->status().message().c_str());
+  st.counters["links"] = s->nv();
+  st.counters["instances"] = static_cast<double>(instances);
+  st.counters["max_rel_err"] = err;
+  st.counters["GBps"] = benchmark::Counter(5.0 * s->nv() * sizeof(S) * static_cast<double>(instances) / 1e9,
+                                           benchmark::Counter::kIsIterationInvariantRate);
+}
+
+template <class S>
+void add(const std::string& strategy, const std::string& model, const std::string& effects, const std::string& integ,
+         long long B) {
+  const std::string name = "step_" + strategy + ":" + integ + ":" + effects + "/" + (sizeof(S) == 4 ? "float" : "double") +
+                           "/" + model + "/cuda";
+  benchmark::RegisterBenchmark(name.c_str(), BM_CudaStep<S>, model, effects, integ, B)
+      ->UseManualTime()
+      ->Unit(benchmark::kMillisecond);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  for (int k = 1; k < argc; ++k)
+    if (std::strncmp(argv[k], "--max-instances=", 16) == 0) {
+      g_max_instances = std::atoll(argv[k] + 16);
+      for (int j = k; j + 1 < argc; ++j) argv[j] = argv[j + 1];
+      --argc, --k;
+    }
+  const auto count = cuda::device_count();
+  if (!count || count.value == 0) {
+    std::fprintf(stderr, "bench_cuda_sim: no usable CUDA device: %s\n", count ? "0 devices" : count.error.c_str());
+    return 0;
+  }
+  for (long long B : {1000000LL, 10000000LL}) {
+    add<float>("fused-jsi", "iiwa", "gravity+damping", "euler", B);
+    add<double>("fused-jsi", "iiwa", "gravity+damping", "euler", B);
+  }
+  add<float>("fused-jsi", "hyq", "gravity+damping", "euler", 1000000LL);
+  for (const char* integ : {"euler", "rk4", "implicit"})
+    for (const char* effects : {"gravity", "all-zero"}) add<float>("fused-jsi", "iiwa", effects, integ, 1000000LL);
+  add<float>("engine-jsi_dense", "rope:128", "gravity", "euler", 1000LL);
+  add<double>("engine-jsi_dense", "rope:128", "gravity", "euler", 1000LL);
+  benchmark::Initialize(&argc, argv);
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

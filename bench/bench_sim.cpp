@@ -1,0 +1,81 @@
+// The simulator's step on the CPU backends (scandyn/sim/simulator.hpp).
+//
+// Rows (names as scripts/bench_results.py reads them: algo step, strategy
+// <engine>:<integrator>:<effects>):
+//   step_<serial|openmp>-aba:euler:gravity+damping/<precision>/iiwa/<backend>
+//       the RL row, B = 10^3 .. 10^5 instances;
+//   step_openmp-aba:<integrator>:<gravity|all-zero>/float/iiwa/openmp, B = 10^4:
+//       the effects table: only gravity declared against every effect declared with
+//       zero coefficients (the same trajectory), per integrator (the name gives the
+//       integrator asked for: implicit with gravity alone runs as euler);
+//   step_serial-aba:euler:gravity/double/rope:N/serial, one rope of 10^3 .. 10^6
+//       links.
+// One iteration = one step of all B instances; evals_per_second = instance-steps/s.
+// Counters: links, instances, max_rel_err (q and qd after 10 steps against the
+// double serial simulator, first 64 instances).
+#include <benchmark/benchmark.h>
+
+#include <memory>
+#include <string>
+
+#include "sim_bench_util.hpp"
+
+namespace {
+
+using namespace scandyn;
+
+template <class S>
+void BM_Step(benchmark::State& st, std::string model, std::string effects, std::string integrator, const char* backend,
+             long long instances, double dt) {
+  const char* precision = sizeof(S) == 4 ? "float" : "double";
+  std::unique_ptr<sim::Simulator<S>> s;
+  double err = 0;
+  try {
+    const sim::Scene scene = bench::make_scene(model, effects, integrator, precision, backend, instances, dt);
+    s = std::make_unique<sim::Simulator<S>>(scene);
+    err = bench::max_rel_err_after(*s, scene, 10, static_cast<Index>(std::min<long long>(instances, 64)));
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return;
+  }
+  for (auto _ : st) s->step();
+  if (!s->status().ok()) st.SkipWithError(s->status().message().c_str());
+  st.counters["links"] = s->nv();
+  st.counters["instances"] = static_cast<double>(instances);
+  st.counters["max_rel_err"] = err;
+  st.counters["instance_steps_per_second"] =
+      benchmark::Counter(static_cast<double>(instances), benchmark::Counter::kIsIterationInvariantRate);
+}
+
+void register_all() {
+  for (const char* backend : {"serial", "openmp"})
+    for (long long B : {1000LL, 10000LL, 100000LL}) {
+      const std::string tail = std::string("/iiwa/") + backend;
+      benchmark::RegisterBenchmark((std::string("step_") + backend + "-aba:euler:gravity+damping/float" + tail).c_str(),
+                                   BM_Step<float>, "iiwa", "gravity+damping", "euler", backend, B, 1e-3)
+          ->Unit(benchmark::kMillisecond)->UseRealTime();
+      benchmark::RegisterBenchmark((std::string("step_") + backend + "-aba:euler:gravity+damping/double" + tail).c_str(),
+                                   BM_Step<double>, "iiwa", "gravity+damping", "euler", backend, B, 1e-3)
+          ->Unit(benchmark::kMillisecond)->UseRealTime();
+    }
+  for (const char* integrator : {"euler", "rk4", "implicit"})
+    for (const char* effects : {"gravity", "all-zero"})
+      benchmark::RegisterBenchmark(
+          (std::string("step_openmp-aba:") + integrator + ":" + effects + "/float/iiwa/openmp").c_str(),
+          BM_Step<float>, "iiwa", effects, integrator, "openmp", 10000LL, 1e-3)
+          ->Unit(benchmark::kMillisecond)->UseRealTime();
+  for (long long n : {1000LL, 10000LL, 100000LL, 1000000LL})
+    benchmark::RegisterBenchmark(("step_serial-aba:euler:gravity/double/rope:" + std::to_string(n) + "/serial").c_str(),
+                                 BM_Step<double>, "rope:" + std::to_string(n), "gravity", "euler", "serial", 1LL, 1e-5)
+        ->Unit(benchmark::kMillisecond)->UseRealTime()->MinTime(0.2);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  register_all();
+  benchmark::Initialize(&argc, argv);
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

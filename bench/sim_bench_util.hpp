@@ -1,0 +1,76 @@
+// Shared plumbing of bench_sim (CPU) and bench_cuda_sim (GPU): scenes built from
+// JSON text, the models directory, and max_rel_err against the double serial
+// simulator.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <string>
+#include <vector>
+
+#include "scandyn/accuracy.hpp"
+#include "scandyn/sim/simulator.hpp"
+
+namespace scandyn::bench {
+
+inline std::string models_dir() {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  return env && *env ? env : "../shared/models";
+}
+
+// A model spec usable in a scene: generators as they are, robots by their file.
+inline std::string model_for_scene(const std::string& model) {
+  return model.find(':') != std::string::npos ? model : models_dir() + "/" + model + ".urdf";
+}
+
+// The effect sets of the benchmarks: "gravity+damping" (the RL row), "gravity"
+// (only gravity declared) and "all-zero" (every effect declared, zero coefficients:
+// the same trajectory as "gravity", computed by the all-effects instantiation).
+inline std::string effects_json(const std::string& set) {
+  if (set == "gravity") return R"({"gravity": true})";
+  if (set == "gravity+damping") return R"({"gravity": true, "damping": 0.5})";
+  if (set == "all-zero")
+    return R"({"gravity": true, "damping": 0, "springs": {"stiffness": 0}, "limits": {"stiffness": 0, "damping": 0},
+               "external": {"wrenches": []}})";
+  return "{}";
+}
+
+inline sim::Scene make_scene(const std::string& model, const std::string& effects, const std::string& integrator,
+                             const char* precision, const char* backend, long long instances, double dt) {
+  const std::string json = R"({"model": ")" + model_for_scene(model) + R"(", "effects": )" + effects_json(effects) +
+                           R"(, "integrator": ")" + integrator + R"(", "dt": )" + std::to_string(dt) +
+                           R"(, "precision": ")" + precision + R"(", "backend": ")" + backend +
+                           R"(", "instances": )" + std::to_string(instances) +
+                           R"(, "initial": {"random": {"seed": 1, "q": 0.3, "qd": 0.1}}})";
+  return sim::parse_scene(json, "bench scene");
+}
+
+// max over the first `count` instances of max_i |x_i - ref_i| / max(1, max |ref_i|)
+// over q and qd after `steps` steps, against Simulator<double> on the serial backend.
+template <class S>
+double max_rel_err_after(sim::Simulator<S>& s, const sim::Scene& scene, int steps, Index count) {
+  sim::Scene rs = scene;
+  rs.instances = count;
+  sim::Simulator<double> ref(rs, BackendKind::Serial);
+  for (int k = 0; k < steps; ++k) ref.step(), s.step();
+  const std::size_t n = static_cast<std::size_t>(s.nv()), B = static_cast<std::size_t>(s.batch());
+  std::vector<S> q(n * B), qd(n * B);
+  s.read_state(q.data(), qd.data());
+  std::vector<double> rq(n * count), rqd(n * count);
+  ref.read_state(rq.data(), rqd.data());
+  double worst = 0;
+  std::vector<double> x(2 * n), r(2 * n);
+  for (Index b = 0; b < count; ++b) {
+    for (std::size_t i = 0; i < n; ++i) {
+      x[i] = q[i * B + b], x[n + i] = qd[i * B + b];
+      r[i] = rq[i * count + b], r[n + i] = rqd[i * count + b];
+    }
+    const double e = rel_err(x.data(), r.data(), 2 * n);
+    if (std::isnan(e)) return e;
+    worst = std::max(worst, e);
+  }
+  return worst;
+}
+
+}  // namespace scandyn::bench

@@ -1,0 +1,86 @@
+// scandyn/sim/scene.hpp: a simulation scene, read from a JSON file.
+//
+// A scene names the model, the effects present (and their coefficients), the
+// integrator, dt, precision, backend, the number of instances and the initial
+// state. The format, every key and every check: docs/scenes.md. Every error is a
+// SceneError whose what() is one line naming the file and the key, e.g.
+//   scenes/x.json: effects.damping: expected a non-negative number or an array of 7 numbers, got -1
+// Unknown keys are errors too.
+#pragma once
+
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "scandyn/backend.hpp"
+#include "scandyn/model/model.hpp"
+#include "scandyn/sim/effects.hpp"
+#include "scandyn/sim/integrators.hpp"
+
+namespace scandyn {
+namespace sim {
+
+// A scene file that cannot be read or is not valid.
+class SceneError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+enum class Precision { Double, Float };
+const char* to_string(Precision p);  // "double", "float"
+
+// One constant external wrench.
+struct SceneWrench {
+  Index body;             // the body (DoF index) it acts on
+  Force<double> wrench;   // [moment; force] in the body's frame about its origin (N m, N)
+};
+
+// How instances start (and restart after reset()).
+struct InitialState {
+  std::vector<double> q;      // (nv) joint positions
+  std::vector<double> qd;     // (nv) joint velocities
+  // randomised: each reset draws q_i + U(-q_spread_i, q_spread_i), qd_i + U(-qd_spread_i,
+  // qd_spread_i) from one std::mt19937_64 seeded once with seed (docs/scenes.md gives the order)
+  bool random = false;
+  std::uint64_t seed = 0;
+  std::vector<double> q_spread;   // (nv) half-widths, >= 0
+  std::vector<double> qd_spread;  // (nv)
+};
+
+struct Scene {
+  std::string path;        // the file it was read from ("" when parsed from text)
+  std::string model_spec;  // "model" as written
+  std::string model_path;  // the generator spec, or the URDF file it resolved to
+  Model model;             // the loaded model; gravity as declared (zero without the gravity effect)
+
+  unsigned effects = 0;    // Effect bits of the declared effects
+  // per-DoF coefficients of the joint effects (nv entries; zero / +-inf for undeclared)
+  std::vector<JointCoefficients<double>> joints;
+  std::vector<SceneWrench> wrenches;  // external: constant wrenches (one per listed body)
+  bool wrenches_per_step = false;     // external: the caller may rewrite them before each step
+
+  Integrator integrator = Integrator::Euler;
+  double dt = 1e-3;                   // time step (s)
+  Precision precision = Precision::Double;
+  BackendKind backend = BackendKind::Serial;
+  int threads = 0;                    // OpenMP threads, 0: all
+  Index instances = 1;                // B
+  InitialState initial;
+
+  Index nv() const { return model.nv(); }
+};
+
+// Reads and validates a scene file. Relative model paths are looked up, in order, in
+// the scene file's directory, in $SCANDYN_MODELS_DIR, and in ../../shared/models
+// relative to the scene file's directory (the repository's scenes/ next to the
+// project's shared/ folder). Throws SceneError (also for model errors, with the
+// model's message after "model: ").
+Scene load_scene(const std::string& path);
+
+// The same for JSON text; source names it in error messages; base_dir is where
+// relative model paths start.
+Scene parse_scene(const std::string& json_text, const std::string& source, const std::string& base_dir = ".");
+
+}  // namespace sim
+}  // namespace scandyn

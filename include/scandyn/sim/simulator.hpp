@@ -1,0 +1,179 @@
+// scandyn/sim/simulator.hpp: batched simulation of B instances of one scene, for
+// RL rollouts and long-chain simulation.
+//
+//   scandyn::sim::Scene scene = scandyn::sim::load_scene("scenes/iiwa_rl.json");
+//   scandyn::sim::Simulator<float> sim(scene);           // backend, B, dt, ... from the scene
+//   for (int t = 0; t < T; ++t) {
+//     write torques into tau (nv x B, the backend's memory: sim.on_device())
+//     sim.step(tau);                                      // every instance, one dt
+//     read / write sim.q(), sim.qd() in place (no copies)
+//     sim.reset({3, 17});                                 // instances 3 and 17 restart
+//   }
+//
+// State. q and qd live in the backend's memory, structure of arrays with the
+// instance innermost: entry (DoF i, instance b) at q[i * B + b] (BatchView::soa).
+// Host memory for the serial and OpenMP backends; device memory for cuda, where the
+// state stays resident across steps (no host round trip per step). q()/qd() return
+// views of that memory; writes through them change the simulation. On cuda, work
+// is queued on the simulator's stream (stream()); a caller touching the state on
+// another stream synchronises first (synchronize()).
+//
+// Step. Per instance, the scene's integrator (scandyn/sim/integrators.hpp) over the
+// forward dynamics with the scene's effects, instantiated for the scene's effect
+// set (scandyn/sim/effects.hpp; one of all 32 x 3 instantiations chosen here, at
+// construction):
+//   serial  the instances one after another, ABA (the reference scandyn::aba);
+//   openmp  the same, instances split over OpenMP threads;
+//   cuda    models of up to 64 DoF: one fused kernel per step, one thread per
+//           instance: the joint-space-inertia forward dynamics (fd_jsi_instance),
+//           the effects and the integration, state in registers / per-thread memory
+//           (strategy "fused-jsi"); beyond 64 DoF: per forward dynamics, a stage
+//           kernel (effects), CudaForwardDynamics::compute_async (jsi_dense), an
+//           integration kernel (strategy "engine-jsi_dense"; euler and rk4 only).
+//
+// Failures. A forward dynamics whose pivot is not positive and finite leaves that
+// instance's state unchanged for the step and is counted; status() reports the
+// failures since the last clear_status() (on cuda it synchronises).
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/backend.hpp"
+#include "scandyn/sim/scene.hpp"
+
+namespace scandyn {
+namespace sim {
+
+// Forward-dynamics failures counted by the steps.
+struct SimStatus {
+  long long failed = 0;          // (instance, step) pairs whose forward dynamics failed
+  Index first_instance = -1;     // lowest failing instance seen, -1 when none
+  bool ok() const { return failed == 0; }
+  std::string message() const;   // "" when ok(), else one line
+};
+
+// What the simulator's steps read, prepared once from the scene in precision S.
+template <class S>
+struct SimSetup {
+  ModelTpl<S> model;                        // the scene's model; gravity zero without kGravity
+  unsigned effects = 0;                     // declared Effect bits
+  Integrator integrator = Integrator::Euler;  // effective_integrator(scene's, effects)
+  S dt = S(0);
+  Index batch = 0;                          // B
+  std::vector<JointCoefficients<S>> coef;   // (nv) joint coefficients
+  std::vector<S> armature;                  // (nv) dt d + dt^2 k for implicit, else empty
+  std::vector<Force<S>> wrenches;           // (nv) the constant external wrenches (kExternal), else empty
+  bool wrenches_per_step = false;           // (B x nv) buffer the caller rewrites
+  int threads = 0;                          // OpenMP threads (0: all)
+};
+
+namespace detail {
+
+// A simulator backend: the resident state and the step (serial/OpenMP in
+// src/sim/simulator.cpp, cuda in kernels/sim_step.cu).
+template <class S>
+class SimBackend {
+ public:
+  virtual ~SimBackend() = default;
+  virtual void step(const BatchView<const S>& tau) = 0;
+  virtual BatchView<S> q() = 0;
+  virtual BatchView<S> qd() = 0;
+  virtual Force<S>* wrenches() = 0;                // (B x nv) per-step wrenches, or null
+  // writes the rows (count x nv each, host memory) of the listed instances
+  virtual void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) = 0;
+  // copies all of q and qd (nv x B, SoA) to host memory
+  virtual void read_state(S* q_host, S* qd_host) = 0;
+  virtual SimStatus status() = 0;
+  virtual void clear_status() = 0;
+  virtual void synchronize() = 0;
+  virtual bool on_device() const = 0;
+  virtual std::string strategy() const = 0;
+  virtual void* stream() const { return nullptr; }
+};
+
+template <class S>
+std::unique_ptr<SimBackend<S>> make_cpu_sim_backend(const SimSetup<S>& setup, bool openmp);
+// Throws BackendError when CUDA is not built or no device is usable.
+template <class S>
+std::unique_ptr<SimBackend<S>> make_cuda_sim_backend(const SimSetup<S>& setup);
+
+}  // namespace detail
+
+template <class S>
+class Simulator {
+ public:
+  // Prepares the scene in precision S (whatever the scene's "precision" says: that
+  // field tells the command line which S to use) on the scene's backend, or on
+  // `backend` when given, and puts every instance in its initial state. Throws
+  // BackendError (backend not built, no device, no memory, a combination the
+  // backend does not run).
+  explicit Simulator(const Scene& scene);
+  Simulator(const Scene& scene, BackendKind backend);
+  ~Simulator();
+  Simulator(const Simulator&) = delete;
+  Simulator& operator=(const Simulator&) = delete;
+
+  // Advances every instance by dt under the joint torques tau (nv x B view in the
+  // backend's memory, any strides; an empty view, data == nullptr, means zero
+  // torques). Allocates nothing; on cuda, queues the work and returns.
+  void step(const BatchView<const S>& tau = {});
+
+  // Puts the listed instances back in the scene's initial state (randomised ones
+  // draw again, continuing the scene's seeded generator). Throws std::out_of_range
+  // for an index outside [0, B).
+  void reset(const std::vector<Index>& instances);
+  void reset_all();
+
+  BatchView<S> q() { return backend_->q(); }    // (nv x B) joint positions, resident
+  BatchView<S> qd() { return backend_->qd(); }  // (nv x B) joint velocities, resident
+  // (B x nv) external wrenches, wrench[b * nv + i] on body i of instance b, in the
+  // backend's memory, read by every step: with "external": {"per_step": true}
+  // (initialised to the scene's constant wrenches); null otherwise.
+  Force<S>* wrenches() { return backend_->wrenches(); }
+
+  // Copies the state to host memory (nv x B each, SoA); synchronises on cuda.
+  void read_state(S* q_host, S* qd_host) { backend_->read_state(q_host, qd_host); }
+  // Mechanical energy of every instance (B values, computed in double on the host
+  // from a copy of the state): kinetic 1/2 sum v_i . I_i v_i, plus the potential of
+  // gravity (-sum m_i g . c_i, c_i the centre of mass of body i in the base frame;
+  // when gravity is declared) and of the declared springs and violated limits
+  // (joint_effect_energy). External wrenches and damping are not potentials.
+  std::vector<double> energy();
+
+  SimStatus status() { return backend_->status(); }
+  void clear_status() { backend_->clear_status(); }
+  void synchronize() { backend_->synchronize(); }
+
+  bool on_device() const { return backend_->on_device(); }
+  // "serial-aba", "openmp-aba", "fused-jsi" (cuda, thread per instance) or
+  // "engine-jsi_dense" (cuda, beyond 64 DoF)
+  std::string strategy() const { return backend_->strategy(); }
+  void* stream() const { return backend_->stream(); }  // cudaStream_t on cuda, else null
+
+  const SimSetup<S>& setup() const { return setup_; }
+  Index batch() const { return setup_.batch; }
+  Index nv() const { return setup_.model.nv(); }
+  double time() const { return time_; }        // steps taken since construction, times dt
+  long long steps() const { return steps_; }
+
+ private:
+  SimSetup<S> setup_;
+  InitialState initial_;  // the scene's (the scene itself is not kept: a rope's model is large)
+  std::unique_ptr<detail::SimBackend<S>> backend_;
+  // the initial-state generator (std::mt19937_64 state, kept opaque here)
+  struct Random;
+  std::unique_ptr<Random> random_;
+  std::vector<S> q_rows_, qd_rows_;  // reset scratch
+  double time_ = 0;
+  long long steps_ = 0;
+};
+
+// Mechanical energy of one state (see Simulator::energy): model in double, its
+// gravity used when effects has kGravity; coef (nv) for springs and limits.
+double mechanical_energy(const Model& model, unsigned effects, const JointCoefficients<double>* coef,
+                         const double* q, const double* qd);
+
+}  // namespace sim
+}  // namespace scandyn

@@ -1,0 +1,180 @@
+// kernels/sim_fused.cuh (internal): the simulator's fused step kernel, one thread
+// per instance: load the instance's q, qd, tau, run step_instance (the scene's
+// integrator and effects, scandyn/sim/integrators.hpp) over fd_jsi_instance, store
+// q, qd. The state never leaves the device.
+//
+// Instantiated per (precision, integrator) in kernels/sim_fused_<S>_<integrator>.cu
+// (six translation units, so a parallel build compiles them side by side). Each
+// kernel takes about 5 s of nvcc time (sm_90), so not all 2 x 4 x 32 x 3 are
+// compiled; the documented subset (compiled_set):
+//   - the gravity bit never changes the code: gravity is the base acceleration a0,
+//     a value in the kernel parameter (zero when absent), the same arithmetic
+//     either way, so a scene's set maps to set & ~kGravity;
+//   - float, capacity 8 (the RL robots: iiwa, and anything of up to 8 DoF): every
+//     one of the 16 remaining sets for euler and rk4, and the 12 with damping or
+//     springs for implicit (implicit without them is euler: effective_integrator):
+//     an absent effect costs nothing here, and bench_cuda_sim's effects table
+//     measures exactly this case;
+//   - double, and float beyond 8 DoF: one kernel per integrator with every joint
+//     effect and external wrenches compiled in; undeclared effects run with
+//     neutral coefficients (d = k = kl = dl = 0, limits -inf / +inf, zero wrenches),
+//     which gives the same numbers as the absent effect (test_sim's
+//     ZeroCoefficientsEqualAbsentEffects checks that identity on the host) at the
+//     cost of a few per-DoF operations.
+// 44 + 3 x 3 (float) + 4 x 3 (double) = 65 kernels. With SCANDYN_SIM_EFFECT_SETS=0
+// (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what scripts/test.sh uses on machines
+// without a GPU) the float capacity-8 kernels are the all-effects one per
+// integrator too: 24 kernels.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <climits>
+#include <type_traits>
+#include <utility>
+
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/sim/integrators.hpp"
+
+#if !defined(SCANDYN_SIM_EFFECT_SETS)
+#define SCANDYN_SIM_EFFECT_SETS 1
+#endif
+
+namespace scandyn {
+namespace sim {
+namespace detail {
+
+inline constexpr int kSimBlock = 128;
+
+// The kernel parameter of capacity C: the model as fd_instances_kernel reads it,
+// plus the joint coefficients and the implicit armature (__grid_constant__: read
+// from the constant bank; 18 KB at C = 64 in double).
+template <class S, int C>
+struct SimParams {
+  static constexpr int capacity = C;
+  cuda::ThreadModelParams<S, C> model;  // a0 = -g, or zero without gravity
+  JointCoefficients<S> coef[C];         // (nv) joint coefficients
+  S armature[C];                        // (nv) dt d + dt^2 k (implicit), else unused
+  S dt;                                 // time step
+};
+
+// Arguments of one launch (device pointers).
+template <class S>
+struct FusedArgs {
+  S* q;                      // (nv x B) SoA, q[i * B + b]
+  S* qd;                     // (nv x B)
+  BatchView<const S> tau;    // (nv x B) any strides; data null: zero torques
+  const Force<S>* wrenches;  // external wrenches of instance b at wrenches + b * wrench_stride, or null
+  long long wrench_stride;   // nv (per-step buffer) or 0 (the constant ones)
+  Index batch;               // B
+  int* status;               // [0]: failed instances (atomicAdd), [1]: lowest failed instance (atomicMin)
+};
+
+template <class S, int C, unsigned E, Integrator I>
+__global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
+    sim_fused_kernel(const __grid_constant__ SimParams<S, C> p, const FusedArgs<S> a) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= a.batch) return;
+  constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;  // as fd_instances_kernel
+  const Index n = p.model.nv;
+  const long long B = a.batch;
+  S q[C], qd[C], tau[C];                        // the instance's state and torques
+  S tw[C], qdd[C];                              // StepScratch: tau + effects, FD's result
+  S qs[I == Integrator::Rk4 ? C : 1], qds[I == Integrator::Rk4 ? C : 1];  // rk4 stages
+  S aq[I == Integrator::Rk4 ? C : 1], aqd[I == Integrator::Rk4 ? C : 1];
+SCANDYN_SIM_UNROLL
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;
+    q[i] = a.q[i * B + b];
+    qd[i] = a.qd[i * B + b];
+    tau[i] = a.tau.data ? a.tau.at(i, b) : S(0);
+  }
+  const Force<S>* fext = (E & kExternal) ? a.wrenches + b * a.wrench_stride : nullptr;
+  auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
+    return cuda::fd_jsi_instance<S, C, false, kUnrolled>(p.model, cuda::DofColumn<const S>{qa, 1},
+                                                         cuda::DofColumn<const S>{qda, 1},
+                                                         cuda::DofColumn<const S>{t, 1}, fext,
+                                                         cuda::DofColumn<S>{out, 1}, arm);
+  };
+  const StepScratch<S> w{tw, qdd, qs, qds, aq, aqd};
+  const Index failed = step_instance<E, I, C>(n, p.dt, p.coef, p.armature, q, qd, tau, w, fd);
+  if (failed >= 0) {
+    atomicAdd(&a.status[0], 1);
+    atomicMin(&a.status[1], static_cast<int>(b));
+    return;
+  }
+SCANDYN_SIM_UNROLL
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;
+    a.q[i * B + b] = q[i];
+    a.qd[i * B + b] = qd[i];
+  }
+}
+
+// Does the kernel of effect set e exist for (S, C, I)? (the header comment's subset)
+template <class S, int C, Integrator I>
+constexpr bool compiled_set(unsigned e) {
+  if (e & kGravity) return false;
+  if (SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8)
+    return I == Integrator::Implicit ? (e & kImplicitEffects) != 0 : true;
+  return e == (kJointEffects | kExternal);
+}
+
+// The kernel a scene's effect set runs on (S, C, I): its own set without gravity,
+// or the all-effects kernel (then the wrenches must point at nv zero wrenches when
+// the scene has none).
+template <class S, int C, Integrator I>
+constexpr unsigned kernel_set(unsigned effects) {
+  return SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8 ? (effects & ~unsigned(kGravity))
+                                                                            : (kJointEffects | kExternal);
+}
+
+template <class F, unsigned... K>
+void for_each_set(F& f, std::integer_sequence<unsigned, K...>) {
+  (f(std::integral_constant<unsigned, K>{}), ...);
+}
+
+// Launches the fused step for effect set `effects` (a scene's, any of 32) with
+// integrator I on `stream`. params: the SimParams of the model's capacity.
+template <class S, Integrator I, class Params>
+cudaError_t launch_fused_with(const Params& params, unsigned effects, const FusedArgs<S>& args, cudaStream_t stream) {
+  constexpr int C = Params::capacity;
+  const unsigned e = kernel_set<S, C, I>(effects);
+  const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
+  cudaError_t err = cudaErrorInvalidValue;  // a set not compiled for I (never: the front end maps them)
+  auto one = [&](auto set) {
+    constexpr unsigned E = decltype(set)::value;
+    if constexpr (compiled_set<S, C, I>(E)) {
+      if (e == E) {
+        sim_fused_kernel<S, C, E, I><<<blocks, kSimBlock, 0, stream>>>(params, args);
+        err = cudaGetLastError();
+      }
+    }
+  };
+  for_each_set(one, std::make_integer_sequence<unsigned, kEffectSets>{});
+  return err;
+}
+
+// The fused step of capacity C with integrator I: defined and explicitly
+// instantiated in kernels/sim_fused_<S>_<integrator>.cu (which define
+// SCANDYN_SIM_FUSED_DEFINE); elsewhere a declaration only, so no other unit
+// compiles the kernels again.
+template <class S, Integrator I, int C>
+cudaError_t launch_fused(const SimParams<S, C>& params, unsigned effects, const FusedArgs<S>& args, cudaStream_t stream)
+#if defined(SCANDYN_SIM_FUSED_DEFINE)
+{
+  return launch_fused_with<S, I>(params, effects, args, stream);
+}
+#else
+    ;
+#endif
+
+#define SCANDYN_SIM_FUSED_INSTANTIATE(S, I)                                                                      \
+  template cudaError_t launch_fused<S, I, 8>(const SimParams<S, 8>&, unsigned, const FusedArgs<S>&, cudaStream_t);   \
+  template cudaError_t launch_fused<S, I, 16>(const SimParams<S, 16>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
+  template cudaError_t launch_fused<S, I, 32>(const SimParams<S, 32>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
+  template cudaError_t launch_fused<S, I, 64>(const SimParams<S, 64>&, unsigned, const FusedArgs<S>&, cudaStream_t);
+
+}  // namespace detail
+}  // namespace sim
+}  // namespace scandyn

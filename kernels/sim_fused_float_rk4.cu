@@ -1,0 +1,12 @@
+// kernels/sim_fused_float_rk4.cu: the fused simulator step kernels in float with the
+// rk4 integrator, every capacity and compiled effect set (kernels/sim_fused.cuh).
+#define SCANDYN_SIM_FUSED_DEFINE
+#include "sim_fused.cuh"
+
+namespace scandyn {
+namespace sim {
+namespace detail {
+SCANDYN_SIM_FUSED_INSTANTIATE(float, Integrator::Rk4)
+}  // namespace detail
+}  // namespace sim
+}  // namespace scandyn

@@ -1,0 +1,392 @@
+// kernels/sim_step.cu: the simulator's CUDA backend (scandyn/sim/simulator.hpp).
+//
+// The state (q, qd: nv x B, q[i * B + b]) lives in device memory for the
+// simulator's lifetime; a step never touches the host.
+//   models of up to 64 DoF  one fused kernel per step (kernels/sim_fused.cuh): one
+//                           thread per instance runs the whole step_instance
+//                           (effects, fd_jsi_instance, integration) in registers /
+//                           per-thread memory (strategy "fused-jsi");
+//   beyond 64 DoF           per forward dynamics: an elementwise kernel adding the
+//                           joint effects' forces, CudaForwardDynamics::compute_async
+//                           (jsi_dense: CRBA per block, cuSOLVER's batched Cholesky),
+//                           an elementwise integration kernel (strategy
+//                           "engine-jsi_dense"). This is the seam where a parallel
+//                           chain forward dynamics plugs in (one call,
+//                           FdBatchIn -> qdd, on the simulator's stream). euler and
+//                           rk4 only: the dense path takes no armature yet.
+#include <cuda_runtime.h>
+
+#include <climits>
+#include <memory>
+#include <string>
+#include <variant>
+#include <vector>
+
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/sim/simulator.hpp"
+#include "sim_fused.cuh"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace sim {
+namespace detail {
+namespace {
+
+using cuda::detail::check;
+
+constexpr int kElementBlock = 256;
+
+unsigned element_blocks(long long count) {
+  return static_cast<unsigned>((count + kElementBlock - 1) / kElementBlock);
+}
+
+// ---- the engine path's elementwise kernels (entry k = i * B + b) ---------------------
+
+// tau_out = tau + the joint effects' forces at (qs, qds)
+template <class S, unsigned E>
+__global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, const S* qds,
+                              const BatchView<const S> tau, S* tau_out, Index nv, Index B) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(nv) * B) return;
+  const Index i = static_cast<Index>(k / B), b = static_cast<Index>(k % B);
+  const S t = tau.data ? tau.at(i, b) : S(0);
+  tau_out[k] = t + joint_effect_force<E>(coef[i], qs[k], qds[k], S(0));
+}
+
+// euler: qd += dt qdd, q += dt qd where the instance's forward dynamics succeeded;
+// failures counted once per instance (by the DoF-0 entries)
+template <class S>
+__global__ void euler_update_kernel(S* q, S* qd, const S* qdd, const int* failed, S dt, Index nv, Index B,
+                                    int* status) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(nv) * B) return;
+  const Index b = static_cast<Index>(k % B);
+  if (failed[b] >= 0) {
+    if (k < B) atomicAdd(&status[0], 1), atomicMin(&status[1], b);
+    return;
+  }
+  qd[k] += dt * qdd[k];
+  q[k] += dt * qd[k];
+}
+
+// rk4, before the stages: (qs, qds) = (q, qd), sums zero, no failure yet
+template <class S>
+__global__ void rk4_init_kernel(const S* q, const S* qd, S* qs, S* qds, S* aq, S* aqd, int* bad, Index nv, Index B) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(nv) * B) return;
+  qs[k] = q[k];
+  qds[k] = qd[k];
+  aq[k] = S(0);
+  aqd[k] = S(0);
+  if (k < B) bad[k] = -1;
+}
+
+// rk4, after stage s's forward dynamics: the formulas of step_instance's stage loop
+template <class S>
+__global__ void rk4_stage_kernel(const S* q, const S* qd, S* qs, S* qds, const S* qdd, S* aq, S* aqd,
+                                 const int* failed, int* bad, int s, S dt, Index nv, Index B) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(nv) * B) return;
+  if (k < B && failed[k] >= 0) bad[k] = failed[k];
+  const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+  const S c = s < 2 ? S(0.5) * dt : dt;
+  const S v = qds[k], a = qdd[k];
+  aq[k] += weight * v;
+  aqd[k] += weight * a;
+  qs[k] = q[k] + c * v;
+  qds[k] = qd[k] + c * a;
+}
+
+template <class S>
+__global__ void rk4_final_kernel(S* q, S* qd, const S* aq, const S* aqd, const int* bad, S dt, Index nv, Index B,
+                                 int* status) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(nv) * B) return;
+  const Index b = static_cast<Index>(k % B);
+  if (bad[b] >= 0) {
+    if (k < B) atomicAdd(&status[0], 1), atomicMin(&status[1], b);
+    return;
+  }
+  const S sixth = dt / S(6);
+  q[k] += sixth * aq[k];
+  qd[k] += sixth * aqd[k];
+}
+
+// reset: rows (count x nv, row r for instance idx[r]) into the SoA state
+template <class S>
+__global__ void scatter_kernel(S* q, S* qd, const int* idx, const S* q_rows, const S* qd_rows, Index count, Index nv,
+                               Index B) {
+  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (k >= static_cast<long long>(count) * nv) return;
+  const long long r = k / nv;
+  const Index i = static_cast<Index>(k % nv);
+  const long long at = static_cast<long long>(i) * B + idx[r];
+  q[at] = q_rows[k];
+  qd[at] = qd_rows[k];
+}
+
+// ---- the backend ------------------------------------------------------------------------
+
+template <class S>
+using ParamsVariant = std::variant<SimParams<S, 8>, SimParams<S, 16>, SimParams<S, 32>, SimParams<S, 64>>;
+
+template <class S>
+class CudaSimBackend final : public SimBackend<S> {
+ public:
+  explicit CudaSimBackend(const SimSetup<S>& setup) : setup_(setup) {
+    const Index nv = setup.model.nv(), B = setup.batch;
+    const std::size_t n = static_cast<std::size_t>(nv);
+    fused_ = nv <= cuda::kMaxThreadDofs;
+    if (!fused_ && setup.integrator == Integrator::Implicit)
+      throw BackendError("backend 'cuda': the implicit integrator runs on the GPU for models of up to " +
+                         std::to_string(cuda::kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv) +
+                         " (the dense forward dynamics beyond takes no armature yet): use euler or rk4, or the "
+                         "serial or openmp backend");
+    // q, qd; the per-step wrenches; the engine path's tau + effects, qdd, rk4 stages and two failure flags
+    const std::size_t per_instance = 2 * n * sizeof(S) + (setup.wrenches_per_step ? n * sizeof(Force<S>) : 0) +
+                                     (fused_ ? 0 : 6 * n * sizeof(S) + 2 * sizeof(int));
+    const char* what = fused_ ? "q, qd (and per-step wrenches)" : "q, qd, per-step wrenches, tau, qdd, rk4 stages, flags";
+    state_ = std::make_unique<cuda::detail::StagingBuffer>(B, nv, sizeof(S) == 4 ? "float" : "double", what,
+                                                            per_instance);
+    stream_ = state_->stream();
+    char* p = static_cast<char*>(state_->data());
+    const std::size_t cap = n * static_cast<std::size_t>(B);
+    auto take = [&](std::size_t bytes) {
+      char* r = p;
+      p += bytes;
+      return r;
+    };
+    q_ = reinterpret_cast<S*>(take(cap * sizeof(S)));
+    qd_ = reinterpret_cast<S*>(take(cap * sizeof(S)));
+    if (setup.wrenches_per_step) step_wrenches_ = reinterpret_cast<Force<S>*>(take(cap * sizeof(Force<S>)));
+    if (!fused_) {
+      S** arrays[] = {&tau_, &qdd_, &qs_, &qds_, &aq_, &aqd_};
+      for (S** a : arrays) *a = reinterpret_cast<S*>(take(cap * sizeof(S)));
+      failed_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
+      bad_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
+    }
+    // small constants: status, the constant (or zero) wrenches, the coefficients
+    const std::size_t small = 2 * sizeof(int) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>);
+    check(cudaMalloc(&small_, small), "allocating the simulator's constants");
+    status_ = static_cast<int*>(small_);
+    wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + 2 * sizeof(int));
+    coef_ = reinterpret_cast<JointCoefficients<S>*>(reinterpret_cast<char*>(wrenches_) + n * sizeof(Force<S>));
+    std::vector<Force<S>> w = setup.wrenches;
+    w.resize(n, Force<S>::zero());  // zeros for the all-effects kernels of scenes without wrenches
+    check(cudaMemcpy(wrenches_, w.data(), n * sizeof(Force<S>), cudaMemcpyHostToDevice), "copying the wrenches");
+    check(cudaMemcpy(coef_, setup.coef.data(), n * sizeof(JointCoefficients<S>), cudaMemcpyHostToDevice),
+          "copying the joint coefficients");
+    for (Index b = 0; b < B && step_wrenches_; ++b)
+      check(cudaMemcpy(step_wrenches_ + static_cast<std::size_t>(b) * n, w.data(), n * sizeof(Force<S>),
+                       cudaMemcpyHostToDevice),
+            "initialising the per-step wrenches");
+    clear_status();
+
+    if (fused_) {
+      const cuda::ThreadModel<S> tm(setup.model);
+      std::visit(
+          [&](const auto& mp) {
+            using MP = std::decay_t<decltype(mp)>;
+            SimParams<S, MP::capacity> sp{};
+            sp.model = mp;
+            for (Index i = 0; i < nv; ++i) {
+              sp.coef[i] = setup.coef[i];
+              sp.armature[i] = setup.armature.empty() ? S(0) : setup.armature[i];
+            }
+            sp.dt = setup.dt;
+            params_ = sp;
+          },
+          tm.params());
+    } else {
+      BackendOptions o;
+      o.backend = BackendKind::Cuda;
+      o.max_batch = B;
+      fd_ = std::make_unique<cuda::CudaForwardDynamics<S>>(setup.model, o);
+    }
+  }
+
+  ~CudaSimBackend() override {
+    if (small_) cudaFree(small_);
+    if (rows_) cudaFree(rows_);
+    if (expanded_raw_) cudaFree(expanded_raw_);
+  }
+
+  void step(const BatchView<const S>& tau) override {
+    const Index B = setup_.batch, nv = setup_.model.nv();
+    if (tau.data && tau.batch != B)
+      throw BackendError("Simulator::step: torques for " + std::to_string(tau.batch) + " instances, the simulator has " +
+                         std::to_string(B));
+    if (B == 0) return;
+    const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
+    const long long stride = step_wrenches_ ? nv : 0;
+    if (fused_) {
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_};
+      cudaError_t err = cudaSuccess;
+      std::visit(
+          [&](const auto& sp) {
+            using P = std::decay_t<decltype(sp)>;
+            switch (setup_.integrator) {
+              case Integrator::Euler: err = launch_fused<S, Integrator::Euler, P::capacity>(sp, setup_.effects, args, stream_); break;
+              case Integrator::Rk4: err = launch_fused<S, Integrator::Rk4, P::capacity>(sp, setup_.effects, args, stream_); break;
+              case Integrator::Implicit: err = launch_fused<S, Integrator::Implicit, P::capacity>(sp, setup_.effects, args, stream_); break;
+            }
+          },
+          params_);
+      check(err, "launching the fused simulator step");
+      return;
+    }
+    // the engine path
+    const long long count = static_cast<long long>(nv) * B;
+    const unsigned blocks = element_blocks(count);
+    const BatchView<const S> qs_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qs_ : q_, nv, B);
+    const BatchView<const S> qds_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qds_ : qd_, nv, B);
+    const FdBatchIn<S> in{qs_view, qds_view, BatchView<const S>::soa(tau_, nv, B),
+                          (setup_.effects & kExternal) ? wrenches_for_engine(wrenches) : nullptr};
+    auto forces = [&] {
+      launch_forces(qs_view.data, qds_view.data, tau);
+      check(fd_->compute_async(in, BatchView<S>::soa(qdd_, nv, B), failed_, stream_), "running the forward dynamics");
+    };
+    if (setup_.integrator == Integrator::Euler) {
+      forces();
+      euler_update_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, failed_, setup_.dt, nv, B, status_);
+    } else {
+      rk4_init_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, aq_, aqd_, bad_, nv, B);
+      for (int s = 0; s < 4; ++s) {
+        forces();
+        rk4_stage_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, qdd_, aq_, aqd_, failed_, bad_,
+                                                                   s, setup_.dt, nv, B);
+      }
+      rk4_final_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
+    }
+    check(cudaGetLastError(), "launching the simulator's integration kernels");
+  }
+
+  BatchView<S> q() override { return BatchView<S>::soa(q_, setup_.model.nv(), setup_.batch); }
+  BatchView<S> qd() override { return BatchView<S>::soa(qd_, setup_.model.nv(), setup_.batch); }
+  Force<S>* wrenches() override { return step_wrenches_; }
+
+  void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
+    if (count == 0) return;
+    const std::size_t n = static_cast<std::size_t>(setup_.model.nv());
+    const std::size_t bytes = static_cast<std::size_t>(count) * (sizeof(int) + 2 * n * sizeof(S)) + sizeof(S);
+    if (bytes > rows_bytes_) {
+      check(cudaStreamSynchronize(stream_), "resetting instances");
+      if (rows_) cudaFree(rows_);
+      rows_ = nullptr;
+      check(cudaMalloc(&rows_, bytes), "allocating the reset buffer");
+      rows_bytes_ = bytes;
+    }
+    int* idx = static_cast<int*>(rows_);
+    // rows after the indices, aligned to S
+    const std::size_t off = (static_cast<std::size_t>(count) * sizeof(int) + sizeof(S) - 1) / sizeof(S) * sizeof(S);
+    S* qr = reinterpret_cast<S*>(static_cast<char*>(rows_) + off);
+    S* qdr = qr + static_cast<std::size_t>(count) * n;
+    static_assert(sizeof(Index) == sizeof(int), "Index is int");
+    check(cudaMemcpyAsync(idx, instances, count * sizeof(int), cudaMemcpyHostToDevice, stream_), "resetting instances");
+    check(cudaMemcpyAsync(qr, q_rows, count * n * sizeof(S), cudaMemcpyHostToDevice, stream_), "resetting instances");
+    check(cudaMemcpyAsync(qdr, qd_rows, count * n * sizeof(S), cudaMemcpyHostToDevice, stream_), "resetting instances");
+    scatter_kernel<S><<<element_blocks(static_cast<long long>(count) * n), kElementBlock, 0, stream_>>>(
+        q_, qd_, idx, qr, qdr, count, static_cast<Index>(n), setup_.batch);
+    check(cudaGetLastError(), "resetting instances");
+    // the host rows are the caller's scratch, reused after we return
+    check(cudaStreamSynchronize(stream_), "resetting instances");
+  }
+
+  void read_state(S* q_host, S* qd_host) override {
+    const std::size_t bytes = static_cast<std::size_t>(setup_.model.nv()) * setup_.batch * sizeof(S);
+    check(cudaMemcpyAsync(q_host, q_, bytes, cudaMemcpyDeviceToHost, stream_), "copying q to the host");
+    check(cudaMemcpyAsync(qd_host, qd_, bytes, cudaMemcpyDeviceToHost, stream_), "copying qd to the host");
+    check(cudaStreamSynchronize(stream_), "copying the state to the host");
+  }
+
+  SimStatus status() override {
+    int s[2];
+    check(cudaMemcpyAsync(s, status_, sizeof s, cudaMemcpyDeviceToHost, stream_), "reading the step status");
+    check(cudaStreamSynchronize(stream_), "running the simulator's steps");
+    SimStatus st;
+    st.failed = s[0];
+    st.first_instance = s[0] > 0 ? s[1] : -1;
+    return st;
+  }
+  void clear_status() override {
+    check(cudaMemcpyAsync(status_, kStatusZero, sizeof kStatusZero, cudaMemcpyHostToDevice, stream_),
+          "clearing the step status");
+    check(cudaStreamSynchronize(stream_), "clearing the step status");
+  }
+  void synchronize() override { check(cudaStreamSynchronize(stream_), "running the simulator's steps"); }
+  bool on_device() const override { return true; }
+  std::string strategy() const override { return fused_ ? "fused-jsi" : "engine-" + fd_->strategy(); }
+  void* stream() const override { return stream_; }
+
+ private:
+  static constexpr int kStatusZero[2] = {0, INT_MAX};
+
+  // the engine takes (B x nv) wrenches, one row per instance: the per-step buffer,
+  // or the constant row expanded once into a per-instance buffer
+  const Force<S>* wrenches_for_engine(const Force<S>* w) {
+    if (step_wrenches_ || setup_.batch == 1) return w;
+    if (!expanded_) {
+      const std::size_t n = static_cast<std::size_t>(setup_.model.nv());
+      check(cudaMalloc(&expanded_raw_, n * setup_.batch * sizeof(Force<S>)), "allocating the wrenches");
+      expanded_ = static_cast<Force<S>*>(expanded_raw_);
+      for (Index b = 0; b < setup_.batch; ++b)
+        check(cudaMemcpy(expanded_ + b * n, wrenches_, n * sizeof(Force<S>), cudaMemcpyDeviceToDevice),
+              "expanding the wrenches");
+    }
+    return expanded_;
+  }
+
+  // tau_ = tau + joint effects at (qs, qds), for the scene's joint effects
+  void launch_forces(const S* qs, const S* qds, const BatchView<const S>& tau) {
+    const Index nv = setup_.model.nv(), B = setup_.batch;
+    const unsigned blocks = element_blocks(static_cast<long long>(nv) * B);
+    switch (setup_.effects & kJointEffects) {
+#define SCANDYN_FORCES_CASE(E) \
+  case E: forces_kernel<S, E><<<blocks, kElementBlock, 0, stream_>>>(coef_, qs, qds, tau, tau_, nv, B); break;
+      SCANDYN_FORCES_CASE(0u)
+      SCANDYN_FORCES_CASE(kDamping)
+      SCANDYN_FORCES_CASE(kSprings)
+      SCANDYN_FORCES_CASE(kDamping | kSprings)
+      SCANDYN_FORCES_CASE(kLimits)
+      SCANDYN_FORCES_CASE(kLimits | kDamping)
+      SCANDYN_FORCES_CASE(kLimits | kSprings)
+      SCANDYN_FORCES_CASE(kLimits | kDamping | kSprings)
+#undef SCANDYN_FORCES_CASE
+    }
+  }
+
+  const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
+  bool fused_ = true;
+  std::unique_ptr<cuda::detail::StagingBuffer> state_;  // the device, the stream, the state buffer
+  cudaStream_t stream_ = nullptr;
+  S* q_ = nullptr;                        // (nv x B) device
+  S* qd_ = nullptr;                       // (nv x B) device
+  Force<S>* step_wrenches_ = nullptr;     // (B x nv) per-step wrenches, or null
+  S *tau_ = nullptr, *qdd_ = nullptr, *qs_ = nullptr, *qds_ = nullptr, *aq_ = nullptr, *aqd_ = nullptr;  // engine path
+  int* failed_ = nullptr;                 // (B) the engine's failed DoF per instance
+  int* bad_ = nullptr;                    // (B) rk4: any stage failed
+  void* small_ = nullptr;                 // status, wrenches_, coef_
+  int* status_ = nullptr;                 // [0] failures, [1] lowest failed instance
+  Force<S>* wrenches_ = nullptr;          // (nv) constant wrenches (zeros when none)
+  JointCoefficients<S>* coef_ = nullptr;  // (nv)
+  void* rows_ = nullptr;                  // reset staging
+  std::size_t rows_bytes_ = 0;
+  void* expanded_raw_ = nullptr;
+  Force<S>* expanded_ = nullptr;          // (B x nv) constant wrenches for the engine
+  ParamsVariant<S> params_;
+  std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_;
+};
+
+}  // namespace
+
+template <class S>
+std::unique_ptr<SimBackend<S>> make_cuda_sim_backend(const SimSetup<S>& setup) {
+  return std::make_unique<CudaSimBackend<S>>(setup);
+}
+
+template std::unique_ptr<SimBackend<float>> make_cuda_sim_backend(const SimSetup<float>&);
+template std::unique_ptr<SimBackend<double>> make_cuda_sim_backend(const SimSetup<double>&);
+
+}  // namespace detail
+}  // namespace sim
+}  // namespace scandyn

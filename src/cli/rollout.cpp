@@ -1,0 +1,180 @@
+// src/cli/rollout.cpp: `scandyn rollout`, runs a scene for N steps and writes the
+// trajectory (CSV, or a NumPy .npy array) through the atomic writer; a progress
+// bar on stderr when stderr is a terminal.
+#include <unistd.h>
+
+#include <charconv>
+#include <chrono>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "cli.hpp"
+#include "csv.hpp"
+#include "scandyn/sim/simulator.hpp"
+
+namespace scandyn::cli {
+namespace {
+
+long long parse_count(const std::string& flag, const std::string& text, long long lo, long long hi) {
+  long long v = 0;
+  const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (ec != std::errc() || ptr != text.data() + text.size() || v < lo || v > hi)
+    throw UsageError("--" + flag + " must be an integer from " + std::to_string(lo) + " to " + std::to_string(hi) +
+                     ", got '" + text + "'");
+  return v;
+}
+
+bool ends_with(const std::string& s, const char* suffix) {
+  const std::size_t n = std::strlen(suffix);
+  return s.size() >= n && s.compare(s.size() - n, n, suffix) == 0;
+}
+
+// The header of a version 1.0 .npy file holding a C-order array of `shape` with
+// little-endian elements of `descr` ('<f8', '<f4'): magic, version, header length,
+// the dictionary padded with spaces and a newline to a multiple of 64 bytes.
+std::string npy_header(const char* descr, const std::vector<long long>& shape) {
+  std::string dict = std::string("{'descr': '") + descr + "', 'fortran_order': False, 'shape': (";
+  for (std::size_t k = 0; k < shape.size(); ++k) dict += std::to_string(shape[k]) + (shape.size() == 1 || k + 1 < shape.size() ? ", " : "");
+  dict += "), }";
+  const std::size_t unpadded = 10 + dict.size() + 1;
+  dict.append((64 - unpadded % 64) % 64, ' ');
+  dict += '\n';
+  std::string h = "\x93NUMPY";
+  h += '\x01';
+  h += '\x00';
+  const std::uint16_t len = static_cast<std::uint16_t>(dict.size());
+  h += static_cast<char>(len & 0xff);
+  h += static_cast<char>(len >> 8);
+  return h + dict;
+}
+
+bool little_endian() {
+  const std::uint16_t x = 1;
+  unsigned char c;
+  std::memcpy(&c, &x, 1);
+  return c == 1;
+}
+
+// "\r[#####.....]  45%  450/1000 steps" on stderr, at most every 0.1 s
+class Progress {
+ public:
+  Progress(long long total, bool on) : total_(total), on_(on) {}
+  void update(long long done) {
+    if (!on_) return;
+    const auto now = std::chrono::steady_clock::now();
+    if (done < total_ && now - last_ < std::chrono::milliseconds(100)) return;
+    last_ = now;
+    const int width = 30;
+    const int filled = total_ > 0 ? static_cast<int>(width * done / total_) : width;
+    std::fprintf(stderr, "\rrollout [%s%s] %3d%%  %lld/%lld steps", std::string(filled, '#').c_str(),
+                 std::string(width - filled, '.').c_str(), total_ > 0 ? static_cast<int>(100 * done / total_) : 100,
+                 done, total_);
+    std::fflush(stderr);
+  }
+  void finish() {
+    if (on_) std::fputs("\n", stderr);
+  }
+
+ private:
+  long long total_;
+  bool on_;
+  std::chrono::steady_clock::time_point last_{};
+};
+
+template <class S>
+int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path) {
+  std::unique_ptr<sim::Simulator<S>> made;
+  try {
+    made = std::make_unique<sim::Simulator<S>>(scene, backend);
+  } catch (const BackendError& e) {
+    throw UsageError(e.what(), false);
+  }
+  sim::Simulator<S>& sim = *made;
+  const Index nv = sim.nv(), B = sim.batch();
+  const std::size_t n = static_cast<std::size_t>(nv), nb = static_cast<std::size_t>(B);
+  // recorded steps: 0, every, 2 every, ..., and the last one
+  const long long records = steps / every + 1 + (steps % every != 0);
+  const bool npy = ends_with(out_path, ".npy");
+  AtomicFileWriter file(out_path);
+  std::vector<S> q(n * nb), qd(n * nb);
+  std::string text;
+  if (npy) {
+    if (!little_endian()) throw DataError("rollout: .npy output is written on little-endian machines only");
+    file.write(npy_header(sizeof(S) == 4 ? "<f4" : "<f8", {records, B, 1 + 2 * static_cast<long long>(nv)}));
+  } else {
+    text = "step,time,instance";
+    for (Index i = 0; i < nv; ++i) text += ",q_" + std::to_string(i);
+    for (Index i = 0; i < nv; ++i) text += ",qd_" + std::to_string(i);
+    text += "\n";
+    file.write(text);
+  }
+  std::vector<S> row(1 + 2 * n);
+  auto record = [&](long long step) {
+    sim.read_state(q.data(), qd.data());
+    const double t = static_cast<double>(step) * scene.dt;
+    for (std::size_t b = 0; b < nb; ++b) {
+      if (npy) {
+        row[0] = S(t);
+        for (std::size_t i = 0; i < n; ++i) row[1 + i] = q[i * nb + b], row[1 + n + i] = qd[i * nb + b];
+        file.write(std::string_view(reinterpret_cast<const char*>(row.data()), row.size() * sizeof(S)));
+      } else {
+        text = std::to_string(step) + ",";
+        append_number(text, t);
+        text += "," + std::to_string(b);
+        for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(q[i * nb + b]));
+        for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(qd[i * nb + b]));
+        text += "\n";
+        file.write(text);
+      }
+    }
+  };
+  Progress progress(steps, ::isatty(STDERR_FILENO) != 0);
+  record(0);
+  for (long long s = 1; s <= steps; ++s) {
+    sim.step();
+    if (s % every == 0 || s == steps) {
+      record(s);
+      const sim::SimStatus st = sim.status();
+      if (!st.ok()) {
+        progress.finish();
+        throw DataError(scene.path + ": step " + std::to_string(s) + ": " + st.message());
+      }
+    }
+    progress.update(s);
+  }
+  progress.finish();
+  file.commit();
+  return kExitOk;
+}
+
+}  // namespace
+
+int run_rollout(const Args& args) {
+  const std::string& scene_path = args.required("scene");
+  const long long steps = parse_count("steps", args.required("steps"), 0, 1000000000);
+  const std::string& out = args.required("out");
+  const long long every = parse_count("every", args.get("every", "1"), 1, 1000000000);
+  if (!ends_with(out, ".csv") && !ends_with(out, ".npy"))
+    throw UsageError("--out must name a .csv or .npy file, got '" + out + "'");
+  sim::Scene scene;
+  try {
+    scene = sim::load_scene(scene_path);
+  } catch (const sim::SceneError& e) {
+    throw DataError(e.what());
+  }
+  BackendKind backend = scene.backend;
+  if (args.has("backend")) {
+    try {
+      backend = parse_backend(args.required("backend"));
+    } catch (const BackendError& e) {
+      throw UsageError(e.what());
+    }
+  }
+  return scene.precision == sim::Precision::Float ? rollout<float>(scene, backend, steps, every, out)
+                                                  : rollout<double>(scene, backend, steps, every, out);
+}
+
+}  // namespace scandyn::cli

@@ -1,0 +1,372 @@
+// src/sim/scene.cpp: scene files (JSON, nlohmann-json) -> Scene, with every error
+// naming the file and the key. Format: docs/scenes.md.
+#include "scandyn/sim/scene.hpp"
+
+#include <cmath>
+#include <cstdlib>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <set>
+#include <sstream>
+#include <sys/stat.h>
+
+#include <nlohmann/json.hpp>
+
+#include "scandyn/model/load.hpp"
+
+namespace scandyn {
+namespace sim {
+
+using json = nlohmann::json;
+
+std::string effect_names(unsigned effects) {
+  static const char* const names[] = {"gravity", "damping", "springs", "limits", "external"};
+  std::string s;
+  for (int k = 0; k < 5; ++k) {
+    if (!(effects & (1u << k))) continue;
+    if (!s.empty()) s += "+";
+    s += names[k];
+  }
+  return s.empty() ? "none" : s;
+}
+
+const char* to_string(Integrator integrator) {
+  switch (integrator) {
+    case Integrator::Euler: return "euler";
+    case Integrator::Rk4: return "rk4";
+    case Integrator::Implicit: return "implicit";
+  }
+  return "?";
+}
+
+bool parse_integrator(const std::string& name, Integrator& integrator) {
+  if (name == "euler") integrator = Integrator::Euler;
+  else if (name == "rk4") integrator = Integrator::Rk4;
+  else if (name == "implicit") integrator = Integrator::Implicit;
+  else return false;
+  return true;
+}
+
+const char* to_string(Precision p) { return p == Precision::Float ? "float" : "double"; }
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+// Reads one JSON document; every error names source and the key path.
+class Reader {
+ public:
+  explicit Reader(std::string source) : source_(std::move(source)) {}
+
+  [[noreturn]] void fail(const std::string& key, const std::string& what) const {
+    throw SceneError(source_ + ": " + (key.empty() ? "" : key + ": ") + what);
+  }
+
+  // A value as written, shortened for messages.
+  static std::string shown(const json& v) {
+    std::string s = v.dump();
+    if (s.size() > 60) s = s.substr(0, 57) + "...";
+    return s;
+  }
+
+  [[noreturn]] void expected(const std::string& key, const std::string& what, const json& got) const {
+    fail(key, "expected " + what + ", got " + shown(got));
+  }
+
+  // Object at key with only the allowed member names.
+  void check_object(const std::string& key, const json& v, const std::set<std::string>& allowed) const {
+    if (!v.is_object()) expected(key, "an object", v);
+    for (auto it = v.begin(); it != v.end(); ++it) {
+      if (allowed.count(it.key())) continue;
+      std::string list;
+      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+      fail(join(key, it.key()), "unknown key (expected one of: " + list + ")");
+    }
+  }
+
+  static std::string join(const std::string& key, const std::string& member) {
+    return key.empty() ? member : key + "." + member;
+  }
+
+  double number(const std::string& key, const json& v, const char* what = "a number") const {
+    if (!v.is_number()) expected(key, what, v);
+    const double x = v.get<double>();
+    if (!std::isfinite(x)) expected(key, what, v);
+    return x;
+  }
+
+  double positive(const std::string& key, const json& v) const {
+    const double x = number(key, v, "a positive number");
+    if (!(x > 0)) expected(key, "a positive number", v);
+    return x;
+  }
+
+  long long integer(const std::string& key, const json& v, long long lo, long long hi) const {
+    const std::string what = "an integer from " + std::to_string(lo) + " to " + std::to_string(hi);
+    if (!v.is_number_integer()) expected(key, what, v);
+    if (v.is_number_unsigned()) {
+      const auto u = v.get<unsigned long long>();
+      if (u > static_cast<unsigned long long>(hi) || static_cast<long long>(u) < lo) expected(key, what, v);
+      return static_cast<long long>(u);
+    }
+    const long long x = v.get<long long>();
+    if (x < lo || x > hi) expected(key, what, v);
+    return x;
+  }
+
+  std::string string(const std::string& key, const json& v) const {
+    if (!v.is_string()) expected(key, "a string", v);
+    return v.get<std::string>();
+  }
+
+  bool boolean(const std::string& key, const json& v) const {
+    if (!v.is_boolean()) expected(key, "true or false", v);
+    return v.get<bool>();
+  }
+
+  // A per-DoF quantity: one number for every DoF, or an array of nv numbers.
+  // non_negative: values must be >= 0; nullable: null entries (or a null scalar)
+  // mean `null_value` (+-inf for open limits).
+  std::vector<double> per_dof(const std::string& key, const json& v, Index nv, bool non_negative,
+                              bool nullable = false, double null_value = 0) const {
+    const std::string what = std::string(non_negative ? "a non-negative number" : "a number") +
+                             (nullable ? " or null" : "") + " or an array of " + std::to_string(nv) +
+                             (non_negative ? " non-negative numbers" : " numbers");
+    auto one = [&](const json& x, const std::string& k) -> double {
+      if (nullable && x.is_null()) return null_value;
+      if (!x.is_number()) expected(k, what, x);
+      const double d = x.get<double>();
+      if (!std::isfinite(d) || (non_negative && d < 0)) expected(k, what, x);
+      return d;
+    };
+    std::vector<double> out(static_cast<std::size_t>(nv));
+    if (v.is_array()) {
+      if (v.size() != static_cast<std::size_t>(nv))
+        fail(key, "expected " + std::to_string(nv) + " entries (one per DoF), got " + std::to_string(v.size()));
+      for (Index i = 0; i < nv; ++i) {
+        const json& x = v[static_cast<std::size_t>(i)];
+        if (nullable && x.is_null()) { out[i] = null_value; continue; }
+        if (!x.is_number()) expected(key, what, v);
+        const double d = x.get<double>();
+        if (!std::isfinite(d) || (non_negative && d < 0))
+          fail(key + "[" + std::to_string(i) + "]", "expected " + std::string(non_negative ? "a non-negative number" : "a finite number") + ", got " + shown(x));
+        out[i] = d;
+      }
+      return out;
+    }
+    const double d = one(v, key);
+    for (double& x : out) x = d;
+    return out;
+  }
+
+ private:
+  std::string source_;
+};
+
+bool file_exists(const std::string& p) {
+  struct stat st;
+  return ::stat(p.c_str(), &st) == 0 && S_ISREG(st.st_mode);
+}
+
+std::string dir_of(const std::string& path) {
+  const std::size_t k = path.rfind('/');
+  return k == std::string::npos ? "." : k == 0 ? "/" : path.substr(0, k);
+}
+
+}  // namespace
+
+Scene parse_scene(const std::string& text, const std::string& source, const std::string& base_dir) {
+  const Reader r(source);
+  json doc;
+  try {
+    doc = json::parse(text);
+  } catch (const json::parse_error& e) {
+    std::string what = e.what();
+    const std::size_t k = what.find("] ");
+    if (k != std::string::npos) what = what.substr(k + 2);
+    r.fail("", "not valid JSON: " + what);
+  }
+  r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
+                           "backend", "threads", "instances", "initial"});
+  if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
+  if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
+
+  Scene s;
+  s.path = source;
+  // ---- model
+  s.model_spec = r.string("model", doc["model"]);
+  if (s.model_spec.empty()) r.expected("model", "a URDF path or a generator spec", doc["model"]);
+  BuildOptions options;
+  if (doc.contains("allow_nonphysical_inertia"))
+    options.require_physical_inertia = !r.boolean("allow_nonphysical_inertia", doc["allow_nonphysical_inertia"]);
+  if (is_generator_spec(s.model_spec) || s.model_spec[0] == '/') {
+    s.model_path = s.model_spec;
+  } else {
+    std::vector<std::string> tried{base_dir + "/" + s.model_spec};
+    if (const char* env = std::getenv("SCANDYN_MODELS_DIR"); env && *env) tried.push_back(std::string(env) + "/" + s.model_spec);
+    tried.push_back(base_dir + "/../../shared/models/" + s.model_spec);
+    for (const auto& t : tried)
+      if (s.model_path.empty() && file_exists(t)) s.model_path = t;
+    if (s.model_path.empty()) {
+      std::string list;
+      for (const auto& t : tried) list += (list.empty() ? "" : ", ") + t;
+      r.fail("model", "'" + s.model_spec + "' not found (looked for " + list + ")");
+    }
+  }
+  try {
+    s.model = load_model(s.model_path, options);
+  } catch (const ModelError& e) {
+    r.fail("model", e.what());
+  }
+  const Index nv = s.model.nv();
+  if (nv == 0) r.fail("model", "'" + s.model_spec + "' has no degrees of freedom");
+  const Vec3<double> default_gravity = s.model.gravity;
+  s.model.gravity = Vec3<double>::zero();
+
+  // ---- effects
+  s.joints.assign(static_cast<std::size_t>(nv), JointCoefficients<double>{0, 0, 0, -kInf, kInf, 0, 0});
+  if (doc.contains("effects")) {
+    const json& e = doc["effects"];
+    r.check_object("effects", e, {"gravity", "damping", "springs", "limits", "external"});
+    if (e.contains("gravity")) {
+      const json& g = e["gravity"];
+      if (g.is_boolean()) {
+        if (g.get<bool>()) s.effects |= kGravity, s.model.gravity = default_gravity;
+      } else if (g.is_array() && g.size() == 3) {
+        double v[3];
+        for (int k = 0; k < 3; ++k) v[k] = r.number("effects.gravity[" + std::to_string(k) + "]", g[k]);
+        s.model.gravity = {v[0], v[1], v[2]};
+        s.effects |= kGravity;
+      } else {
+        r.expected("effects.gravity", "true, false or [gx, gy, gz] (m/s^2)", g);
+      }
+    }
+    if (e.contains("damping")) {
+      const std::vector<double> d = r.per_dof("effects.damping", e["damping"], nv, true);
+      for (Index i = 0; i < nv; ++i) s.joints[i].damping = d[i];
+      s.effects |= kDamping;
+    }
+    if (e.contains("springs")) {
+      const json& sp = e["springs"];
+      r.check_object("effects.springs", sp, {"stiffness", "rest"});
+      if (!sp.contains("stiffness")) r.fail("effects.springs.stiffness", "missing");
+      const std::vector<double> k = r.per_dof("effects.springs.stiffness", sp["stiffness"], nv, true);
+      const std::vector<double> q0 =
+          sp.contains("rest") ? r.per_dof("effects.springs.rest", sp["rest"], nv, false) : std::vector<double>(nv, 0.0);
+      for (Index i = 0; i < nv; ++i) s.joints[i].stiffness = k[i], s.joints[i].rest = q0[i];
+      s.effects |= kSprings;
+    }
+    if (e.contains("limits")) {
+      const json& l = e["limits"];
+      r.check_object("effects.limits", l, {"stiffness", "damping", "lower", "upper"});
+      if (!l.contains("stiffness")) r.fail("effects.limits.stiffness", "missing");
+      const std::vector<double> k = r.per_dof("effects.limits.stiffness", l["stiffness"], nv, true);
+      const std::vector<double> d =
+          l.contains("damping") ? r.per_dof("effects.limits.damping", l["damping"], nv, true) : std::vector<double>(nv, 0.0);
+      const std::vector<double> lo = l.contains("lower") ? r.per_dof("effects.limits.lower", l["lower"], nv, false, true, -kInf)
+                                                         : s.model.q_lower;
+      const std::vector<double> hi = l.contains("upper") ? r.per_dof("effects.limits.upper", l["upper"], nv, false, true, kInf)
+                                                         : s.model.q_upper;
+      for (Index i = 0; i < nv; ++i) {
+        if (lo[i] > hi[i]) {
+          std::ostringstream m;
+          m << "DoF " << i << " (joint '" << s.model.joint_names[i] << "'): lower limit " << lo[i]
+            << " is above upper limit " << hi[i];
+          r.fail("effects.limits", m.str());
+        }
+        s.joints[i].limit_stiffness = k[i];
+        s.joints[i].limit_damping = d[i];
+        s.joints[i].lower = lo[i];
+        s.joints[i].upper = hi[i];
+      }
+      s.effects |= kLimits;
+    }
+    if (e.contains("external")) {
+      const json& x = e["external"];
+      r.check_object("effects.external", x, {"wrenches", "per_step"});
+      if (x.contains("per_step")) s.wrenches_per_step = r.boolean("effects.external.per_step", x["per_step"]);
+      if (x.contains("wrenches")) {
+        const json& ws = x["wrenches"];
+        if (!ws.is_array()) r.expected("effects.external.wrenches", "an array of {\"link\": NAME, \"wrench\": [6 numbers]}", ws);
+        std::map<std::string, Index> body_of;
+        for (Index i = 0; i < nv; ++i) body_of[s.model.link_names[i]] = i;
+        for (std::size_t k = 0; k < ws.size(); ++k) {
+          const std::string key = "effects.external.wrenches[" + std::to_string(k) + "]";
+          r.check_object(key, ws[k], {"link", "wrench"});
+          if (!ws[k].contains("link")) r.fail(key + ".link", "missing");
+          if (!ws[k].contains("wrench")) r.fail(key + ".wrench", "missing");
+          const std::string link = r.string(key + ".link", ws[k]["link"]);
+          const auto it = body_of.find(link);
+          if (it == body_of.end()) r.fail(key + ".link", "no moving link named '" + link + "' in the model");
+          const json& w = ws[k]["wrench"];
+          if (!w.is_array() || w.size() != 6)
+            r.expected(key + ".wrench", "[nx, ny, nz, fx, fy, fz] (moment N m, force N; body frame)", w);
+          double v[6];
+          for (int c = 0; c < 6; ++c) v[c] = r.number(key + ".wrench[" + std::to_string(c) + "]", w[c]);
+          s.wrenches.push_back({it->second, Force<double>{{v[0], v[1], v[2]}, {v[3], v[4], v[5]}}});
+        }
+      }
+      s.effects |= kExternal;
+    }
+  }
+
+  // ---- integration and execution
+  if (doc.contains("integrator")) {
+    const std::string name = r.string("integrator", doc["integrator"]);
+    if (!parse_integrator(name, s.integrator)) r.expected("integrator", "\"euler\", \"rk4\" or \"implicit\"", doc["integrator"]);
+  }
+  s.dt = r.positive("dt", doc["dt"]);
+  if (doc.contains("precision")) {
+    const std::string p = r.string("precision", doc["precision"]);
+    if (p == "double") s.precision = Precision::Double;
+    else if (p == "float") s.precision = Precision::Float;
+    else r.expected("precision", "\"double\" or \"float\"", doc["precision"]);
+  }
+  if (doc.contains("backend")) {
+    const std::string b = r.string("backend", doc["backend"]);
+    if (b == "serial") s.backend = BackendKind::Serial;
+    else if (b == "openmp") s.backend = BackendKind::OpenMP;
+    else if (b == "cuda") s.backend = BackendKind::Cuda;
+    else r.expected("backend", "\"serial\", \"openmp\" or \"cuda\"", doc["backend"]);
+  }
+  if (doc.contains("threads")) s.threads = static_cast<int>(r.integer("threads", doc["threads"], 0, 4096));
+  if (doc.contains("instances"))
+    s.instances = static_cast<Index>(r.integer("instances", doc["instances"], 1, 1000000000));
+
+  // ---- initial state
+  InitialState& in = s.initial;
+  in.q.assign(static_cast<std::size_t>(nv), 0.0);
+  in.qd.assign(static_cast<std::size_t>(nv), 0.0);
+  if (doc.contains("initial")) {
+    const json& i = doc["initial"];
+    r.check_object("initial", i, {"q", "qd", "random"});
+    if (i.contains("q")) in.q = r.per_dof("initial.q", i["q"], nv, false);
+    if (i.contains("qd")) in.qd = r.per_dof("initial.qd", i["qd"], nv, false);
+    if (i.contains("random")) {
+      const json& rd = i["random"];
+      r.check_object("initial.random", rd, {"seed", "q", "qd"});
+      if (!rd.contains("seed")) r.fail("initial.random.seed", "missing (a non-negative integer)");
+      const json& seed = rd["seed"];
+      if (!seed.is_number_integer() || (!seed.is_number_unsigned() && seed.get<long long>() < 0))
+        r.expected("initial.random.seed", "a non-negative integer", seed);
+      in.random = true;
+      in.seed = seed.get<std::uint64_t>();
+      in.q_spread = rd.contains("q") ? r.per_dof("initial.random.q", rd["q"], nv, true) : std::vector<double>(nv, 0.0);
+      in.qd_spread = rd.contains("qd") ? r.per_dof("initial.random.qd", rd["qd"], nv, true) : std::vector<double>(nv, 0.0);
+    }
+  }
+  return s;
+}
+
+Scene load_scene(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) throw SceneError(path + ": cannot open file");
+  std::ostringstream text;
+  text << f.rdbuf();
+  if (f.bad()) throw SceneError(path + ": cannot read file");
+  return parse_scene(text.str(), path, dir_of(path));
+}
+
+}  // namespace sim
+}  // namespace scandyn
