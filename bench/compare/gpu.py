@@ -39,8 +39,12 @@ def algos_for(nv):
     return ['id', 'bias', 'fd'] + (['mass'] if nv <= 1000 else [])
 
 
-def batches_for(args, name):
-    return args.batches if name in ROBOTS else [1]
+def batches_for(args, name, lib=None):
+    if name not in ROBOTS:
+        return [1]
+    if lib == 'mujoco-mjx':  # one XLA compilation per batch size and algorithm
+        return args.mjx_batches
+    return args.batches
 
 
 # ---- worker: one library on one model --------------------------------------------------------------
@@ -80,7 +84,7 @@ def worker(args):
         timed = lambda: mujoco_peer.timed(R.call, R.sync, args.min_time)  # noqa: E731
     log('check %s %s: %s' % (lib, args.model, '  '.join('%s %.1e' % kv for kv in errs.items())))
     for a in algos:
-        for b in batches_for(args, args.model):
+        for b in batches_for(args, args.model, lib):
             t0 = time.time()
             try:
                 prep(a, b)
@@ -151,6 +155,7 @@ def run_worker(args, rows, lib, model, nv, ref_npz, limit):
     cmd = [sys.executable, os.path.abspath(__file__), '--worker', '--library', lib, '--model', model.name,
            '--scandyn', args.scandyn, '--ref', ref_npz, '--workdir', args.workdir, '--device', args.warp_device,
            '--min-time', str(args.min_time), '--batches', ','.join(map(str, args.batches)), '--algos', args.algos,
+           '--mjx-batches', ','.join(map(str, args.mjx_batches)),
            '--slow', str(args.slow), '--grid-cache', args.grid_cache]
     got = 0
     t0 = time.time()
@@ -175,12 +180,14 @@ def run_worker(args, rows, lib, model, nv, ref_npz, limit):
             rows.add(backend='cuda', precision='float', model=model.name, links=nv, library=lib,
                      note='stopped after %.0f s (its time limit): %s' % (time.time() - t0,
                           'no row yet (build, load or check still running)' if not got else 'later rows missing'))
-            return
+            return False
     if p.returncode != 0:
         tail = open(logf.name).read().strip().splitlines()
         why = next((l for l in reversed(tail) if 'Error' in l or 'error' in l), tail[-1] if tail else '')
         rows.add(backend='cuda', precision='float', model=model.name, links=nv, library=lib,
                  note='failed: %s' % why.strip()[:300])
+        return False
+    return got > 0
 
 
 def main():
@@ -194,6 +201,7 @@ def main():
     ap.add_argument('--peers', default='mujoco-warp,mujoco-mjx,grid')
     ap.add_argument('--algos', default='id,bias,mass,fd')
     ap.add_argument('--batches', default='1,100,10000,1000000')
+    ap.add_argument('--mjx-batches', default='10000,1000000')
     ap.add_argument('--min-time', type=float, default=0.2)
     ap.add_argument('--deadline', type=float, default=560, help='seconds after gpu.sh started')
     ap.add_argument('--peer-limit', type=float, default=150, help='seconds per peer and model')
@@ -207,6 +215,7 @@ def main():
     ap.add_argument('--ref')
     args = ap.parse_args()
     args.batches = [int(float(x)) for x in args.batches.split(',')]
+    args.mjx_batches = [int(float(x)) for x in args.mjx_batches.split(',')]
     if args.worker:
         args.device = args.device
         return worker(args)
@@ -226,31 +235,47 @@ def main():
             if r.returncode != 0:
                 missing[p] = (r.stderr.strip().splitlines() or ['import failed'])[-1]
                 log('%s: not importable: %s' % (p, missing[p]))
-    for name in args.models.split(','):
-        model = Model(name, args.workdir)
-        names = common.scandyn_joints(args.scandyn, model)
-        nv = len(names)
-        S = common.random_states(nv)
-        with tempfile.TemporaryDirectory() as tmp:
-            s_csv = os.path.join(tmp, 'states.csv')
-            common.write_states(s_csv, S)
-            algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
-            ref = common.read_outputs(common.scandyn_eval(args.scandyn, model, s_csv, os.path.join(tmp, 'ref.csv'),
-                                                          algos=algos), nv)
-            ref_npz = os.path.join(args.workdir, 'ref-%s.npz' % name.replace(':', ''))
-            np.savez(ref_npz, **ref)
-            scandyn_rows(args, rows, model, nv, s_csv, ref)
-        for p in peers:
-            if p in missing:
-                rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
-                         note='not installed: %s' % missing[p])
-                continue
-            limit = min(args.peer_limit * (2 if p == 'grid' else 1), left(args))
-            if limit < 15:
-                rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
-                         note='skipped: time budget of this run spent')
-                continue
-            run_worker(args, rows, p, model, nv, ref_npz, limit)
+    # GRiD compiles each robot for minutes: the other libraries go over the robots first, then
+    # GRiD, then the ropes in the same order; a peer that failed or ran out of time on a rope
+    # is not tried on longer ones
+    first, grid = [p for p in peers if p != 'grid'], [p for p in peers if p == 'grid']
+    models = args.models.split(',')
+    robots, ropes = [m for m in models if m in ROBOTS], [m for m in models if m not in ROBOTS]
+    refs, gave_up = {}, {}
+    for phase_models, phase_peers in ((robots, first), (robots, grid), (ropes, first), (ropes, grid)):
+        for name in phase_models:
+            model = Model(name, args.workdir)
+            if name not in refs:
+                names = common.scandyn_joints(args.scandyn, model)
+                nv = len(names)
+                S = common.random_states(nv)
+                with tempfile.TemporaryDirectory() as tmp:
+                    s_csv = os.path.join(tmp, 'states.csv')
+                    common.write_states(s_csv, S)
+                    algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
+                    ref = common.read_outputs(common.scandyn_eval(args.scandyn, model, s_csv,
+                                                                  os.path.join(tmp, 'ref.csv'), algos=algos), nv)
+                    ref_npz = os.path.join(args.workdir, 'ref-%s.npz' % name.replace(':', ''))
+                    np.savez(ref_npz, **ref)
+                    refs[name] = (nv, ref_npz)
+                    scandyn_rows(args, rows, model, nv, s_csv, ref)
+            nv, ref_npz = refs[name]
+            for p in phase_peers:
+                if p in missing:
+                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                             note='not installed: %s' % missing[p])
+                    continue
+                if p in gave_up and name not in ROBOTS:
+                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                             note='not tried: %s already failed or ran out of time on %s' % (p, gave_up[p]))
+                    continue
+                limit = min(args.peer_limit * (2 if p == 'grid' else 1) * (1 if name in ROBOTS else 0.5), left(args))
+                if limit < 15:
+                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                             note='skipped: time budget of this run spent')
+                    continue
+                if not run_worker(args, rows, p, model, nv, ref_npz, limit) and name not in ROBOTS:
+                    gave_up[p] = name
     log('wrote %s (%d rows)' % (args.out, len(rows.rows)))
 
 

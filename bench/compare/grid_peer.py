@@ -48,7 +48,8 @@ class GridRunner:
         if self.cuda_arch:
             opts['cuda_arch'] = self.cuda_arch
         self.robot = self.grid.load_robot(model.urdf, **opts)
-        names = list(self.robot.joint_names)
+        base = getattr(self.robot, '_base', self.robot)  # the torch handle wraps the numpy one
+        names = list(getattr(self.robot, 'joint_names', None) or base.joint_names)
         if len(names) != len(scandyn_names):
             raise RuntimeError('GRiD model has %d joints, scandyn %d' % (len(names), len(scandyn_names)))
         pos = {n: i for i, n in enumerate(names)}
