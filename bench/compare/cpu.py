@@ -140,7 +140,7 @@ def main():
     if args.pin_bench_hdr:
         libs.append(('pinocchio', args.pin_bench_hdr, 'pinocchio %s (headers compiled here)' % pin_version))
     for name in args.models.split(','):
-        model = Model(name, os.path.join(os.path.dirname(os.path.abspath(args.out)), 'models'))
+        model = Model(name, os.path.join(tempfile.gettempdir(), 'scandyn-compare-models'))
         with tempfile.TemporaryDirectory() as tmp:
             errs, nv, pin_fail = check(args, model, tmp)
         if args.check_only:
