@@ -127,7 +127,7 @@ def main():
     args.batches = [int(x) for x in args.batches.split(',')]
     algos = args.algos.split(',')
 
-    sc_version = run([args.scandyn, '--version'], 30).strip().split()[-1]
+    sc_version = 'scandyn ' + run([args.scandyn, '--version'], 30).strip().split()[-1]
     commit = subprocess.run(['git', '-C', common.REPO, 'rev-parse', '--short', 'HEAD'], capture_output=True,
                             text=True).stdout.strip()
     sc_version += ('+' + commit) if commit else ''

@@ -14,9 +14,12 @@ computes in; scandyn's `bench` rows `thread`/`scan-local`: batch resident in dev
 import argparse
 import json
 import os
+import queue
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import numpy as np
@@ -66,7 +69,8 @@ def worker(args):
     BK = 'cuda' if args.device.startswith('cuda') else args.device  # noqa: N806
     if lib == 'grid':
         import grid_peer
-        R = grid_peer.GridRunner(cache_dir=args.grid_cache, max_batch=max(batches_for(args, args.model)))
+        R = grid_peer.GridRunner(cache_dir=args.grid_cache, max_batch=max(batches_for(args, args.model)),
+                                 cuda_arch=int(os.environ['GRID_CUDA_ARCH']) if os.environ.get('GRID_CUDA_ARCH') else None)
         t = time.time()
         errs = grid_peer.check(R, model, names, ref, S, algos)
         log('grid: %s built/loaded in %.0f s' % (args.model, time.time() - t))
@@ -89,7 +93,7 @@ def worker(args):
             try:
                 prep(a, b)
                 spc = timed()
-                emit(algo=a, strategy='graph' if lib == 'mujoco-warp' else 'jit-vmap' if lib == 'mujoco-mjx' else 'torch',
+                emit(algo=a, strategy='graph' if lib == 'mujoco-warp' else 'jit-vmap' if lib == 'mujoco-mjx' else R.strategy,
                      backend=BK, precision='float', model=args.model, links=nv, instances=b, seconds_per_call=spc,
                      library=lib, version=R.version, check_max_err=errs[a])
             except Exception as e:  # noqa: BLE001
@@ -160,22 +164,33 @@ def run_worker(args, rows, lib, model, nv, ref_npz, limit):
     got = 0
     t0 = time.time()
     with open(os.path.join(args.logdir, 'worker-%s-%s.log' % (lib, model.name.replace(':', ''))), 'w') as logf:
-        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=logf, text=True)
+        # its own process group: a time limit stops the worker and what it started (nvcc, ...)
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=logf, text=True, start_new_session=True)
+        lines = queue.Queue()
+        reader = threading.Thread(target=lambda: ([lines.put(l) for l in p.stdout], lines.put(None)), daemon=True)
+        reader.start()
         try:
             while True:
                 remaining = limit - (time.time() - t0)
                 if remaining <= 0:
                     raise subprocess.TimeoutExpired(cmd, limit)
-                line = p.stdout.readline()
-                if not line:
+                try:
+                    line = lines.get(timeout=min(remaining, 5))
+                except queue.Empty:
+                    continue
+                if line is None:
                     break
                 logf.write(line)
+                logf.flush()
                 if line.startswith('ROW '):
                     rows.add(**json.loads(line[4:]))
                     got += 1
             p.wait(timeout=max(1, limit - (time.time() - t0)))
         except subprocess.TimeoutExpired:
-            p.kill()
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
             p.wait()
             rows.add(backend='cuda', precision='float', model=model.name, links=nv, library=lib,
                      note='stopped after %.0f s (its time limit): %s' % (time.time() - t0,
@@ -221,7 +236,7 @@ def main():
         return worker(args)
     args.workdir = args.workdir or os.path.join(args.logdir, 'models')
     os.makedirs(args.workdir, exist_ok=True)
-    args.scandyn_version = subprocess.run([args.scandyn, '--version'], capture_output=True,
+    args.scandyn_version = 'scandyn ' + subprocess.run([args.scandyn, '--version'], capture_output=True,
                                           text=True).stdout.strip().split()[-1]
     commit = subprocess.run(['git', '-C', common.REPO, 'rev-parse', '--short', 'HEAD'], capture_output=True,
                             text=True).stdout.strip()

@@ -32,22 +32,43 @@ class GridRunner:
 
     def __init__(self, device='cuda', cache_dir=None, max_batch=1 << 20, cuda_arch=None):
         import grid_rbd
-        import torch
         from importlib import metadata
+        try:
+            import torch
+        except ImportError:
+            torch = None
         self.grid, self.torch = grid_rbd, torch
         self.cache_dir, self.max_batch, self.cuda_arch = cache_dir, max_batch, cuda_arch
-        self.version = 'grid-rbd %s (torch %s)' % (metadata.version('grid-rbd'), torch.__version__)
+        self.version = 'grid-rbd %s (%s)' % (metadata.version('grid-rbd'),
+                                             'torch %s' % torch.__version__ if torch else 'no torch')
         self.robot = None
+        self.backend = 'torch'
+        self.strategy = 'torch'
 
-    def load(self, model, scandyn_names, backend='torch'):
+    def load(self, model, scandyn_names, backend=None):
         """Generates and compiles (or takes from the cache) the robot; -> perm (scandyn DoF k is GRiD's perm[k])."""
+        backend = backend or ('torch' if self.torch else 'numpy')
         opts = dict(backend=backend, floating_base=False, max_batch_size=self.max_batch, dtype='float32',
                     algorithm_list=ALGO_LIST, enable_mujoco_kernels=False)
         if self.cache_dir:
             opts['cache_dir'] = self.cache_dir
         if self.cuda_arch:
             opts['cuda_arch'] = self.cuda_arch
-        self.robot = self.grid.load_robot(model.urdf, **opts)
+        try:
+            self.robot = self.grid.load_robot(model.urdf, **opts)
+            self.backend = backend
+        except Exception as e:  # noqa: BLE001
+            if backend != 'torch':
+                raise
+            # the torch ops could not be built here: GRiD's NumPy handle (host arrays; its
+            # times include the copies, strategy `numpy-host`)
+            print('grid: torch backend failed (%s: %s); using the numpy backend' % (type(e).__name__, e),
+                  flush=True)
+            opts['backend'] = 'numpy'
+            self.robot = self.grid.load_robot(model.urdf, **opts)
+            self.backend = 'numpy'
+            self.version += ' (numpy handle: the torch one failed to build)'
+        self.strategy = 'torch' if self.backend == 'torch' else 'numpy-host'
         base = getattr(self.robot, '_base', self.robot)  # the torch handle wraps the numpy one
         names = list(getattr(self.robot, 'joint_names', None) or base.joint_names)
         if len(names) != len(scandyn_names):
@@ -57,7 +78,12 @@ class GridRunner:
 
     def prepare(self, algo, B, S=None, nv=None):
         torch = self.torch
-        if S is None:
+        if self.backend == 'numpy':
+            if S is None:
+                rng = np.random.default_rng(42)
+                S = {k: rng.uniform(-1, 1, (B, nv)) for k in ('q', 'qd', 'qdd', 'tau')}
+            S = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in S.items()}
+        elif S is None:
             g = torch.Generator(device='cuda').manual_seed(42)
             S = {k: torch.rand((B, nv), device='cuda', generator=g, dtype=torch.float32) * 2 - 1
                  for k in ('q', 'qd', 'qdd', 'tau')}
@@ -70,19 +96,24 @@ class GridRunner:
             'mass': lambda: r.crba(S['q']),
             'fd': lambda: r.forward_dynamics(S['q'], S['qd'], S['tau']),
         }[algo]
-        with torch.no_grad():
-            self.out = self.fn()
-        torch.cuda.synchronize()
+        self.call()
+        self.sync()
         self.algo = algo
 
     def call(self):
+        if self.backend == 'numpy':
+            self.out = self.fn()
+            return
         with self.torch.no_grad():
             self.out = self.fn()
 
     def sync(self):
-        self.torch.cuda.synchronize()
+        if self.backend != 'numpy':
+            self.torch.cuda.synchronize()
 
     def result(self):
+        if self.backend == 'numpy':
+            return np.asarray(self.out, dtype=np.float64)
         return self.out.detach().double().cpu().numpy()
 
 
