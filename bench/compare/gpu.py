@@ -216,10 +216,10 @@ def main():
     ap.add_argument('--peers', default='mujoco-warp,mujoco-mjx,grid')
     ap.add_argument('--algos', default='id,bias,mass,fd')
     ap.add_argument('--batches', default='1,100,10000,1000000')
-    ap.add_argument('--mjx-batches', default='10000,1000000')
+    ap.add_argument('--mjx-batches', default='1000000')
     ap.add_argument('--min-time', type=float, default=0.2)
     ap.add_argument('--deadline', type=float, default=560, help='seconds after gpu.sh started')
-    ap.add_argument('--peer-limit', type=float, default=150, help='seconds per peer and model')
+    ap.add_argument('--peer-limit', type=float, default=120, help='seconds per peer and model (GRiD twice that)')
     ap.add_argument('--slow', type=float, default=40, help='a batch taking longer than this stops larger ones')
     ap.add_argument('--workdir', default=None)
     ap.add_argument('--grid-cache', default=os.environ.get('GRID_RBD_CACHE_DIR', '/tmp/grid-cache'))
@@ -250,47 +250,57 @@ def main():
             if r.returncode != 0:
                 missing[p] = (r.stderr.strip().splitlines() or ['import failed'])[-1]
                 log('%s: not importable: %s' % (p, missing[p]))
-    # GRiD compiles each robot for minutes: the other libraries go over the robots first, then
-    # GRiD, then the ropes in the same order; a peer that failed or ran out of time on a rope
-    # is not tried on longer ones
-    first, grid = [p for p in peers if p != 'grid'], [p for p in peers if p == 'grid']
+    # The order fits the most into one 10-minute command: scandyn on the robots, MuJoCo Warp,
+    # GRiD on iiwa (it compiles CUDA per robot, a minute or more each), MJX (an XLA compilation
+    # per computation and batch size), GRiD on the other robots, then the ropes in the same
+    # order. A peer that failed or ran out of time on a rope is not tried on longer ones.
     models = args.models.split(',')
     robots, ropes = [m for m in models if m in ROBOTS], [m for m in models if m not in ROBOTS]
+    schedule = []
+    for group in (robots, ropes):
+        first_robot = group[:1] if group is robots else group
+        schedule += [(m, 'scandyn') for m in group]
+        schedule += [(m, 'mujoco-warp') for m in group]
+        schedule += [(m, 'grid') for m in first_robot]
+        schedule += [(m, 'mujoco-mjx') for m in group]
+        schedule += [(m, 'grid') for m in group if m not in first_robot]
     refs, gave_up = {}, {}
-    for phase_models, phase_peers in ((robots, first), (robots, grid), (ropes, first), (ropes, grid)):
-        for name in phase_models:
-            model = Model(name, args.workdir)
-            if name not in refs:
-                names = common.scandyn_joints(args.scandyn, model)
-                nv = len(names)
-                S = common.random_states(nv)
-                with tempfile.TemporaryDirectory() as tmp:
-                    s_csv = os.path.join(tmp, 'states.csv')
-                    common.write_states(s_csv, S)
-                    algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
-                    ref = common.read_outputs(common.scandyn_eval(args.scandyn, model, s_csv,
-                                                                  os.path.join(tmp, 'ref.csv'), algos=algos), nv)
-                    ref_npz = os.path.join(args.workdir, 'ref-%s.npz' % name.replace(':', ''))
-                    np.savez(ref_npz, **ref)
-                    refs[name] = (nv, ref_npz)
-                    scandyn_rows(args, rows, model, nv, s_csv, ref)
-            nv, ref_npz = refs[name]
-            for p in phase_peers:
-                if p in missing:
-                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
-                             note='not installed: %s' % missing[p])
-                    continue
-                if p in gave_up and name not in ROBOTS:
-                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
-                             note='not tried: %s already failed or ran out of time on %s' % (p, gave_up[p]))
-                    continue
-                limit = min(args.peer_limit * (2 if p == 'grid' else 1) * (1 if name in ROBOTS else 0.5), left(args))
-                if limit < 15:
-                    rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
-                             note='skipped: time budget of this run spent')
-                    continue
-                if not run_worker(args, rows, p, model, nv, ref_npz, limit) and name not in ROBOTS:
-                    gave_up[p] = name
+    for name, p in schedule:
+        if p != 'scandyn' and p not in peers:
+            continue
+        model = Model(name, args.workdir)
+        if name not in refs:
+            names = common.scandyn_joints(args.scandyn, model)
+            nv = len(names)
+            S = common.random_states(nv)
+            with tempfile.TemporaryDirectory() as tmp:
+                s_csv = os.path.join(tmp, 'states.csv')
+                common.write_states(s_csv, S)
+                algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
+                ref = common.read_outputs(common.scandyn_eval(args.scandyn, model, s_csv,
+                                                              os.path.join(tmp, 'ref.csv'), algos=algos), nv)
+                ref_npz = os.path.join(args.workdir, 'ref-%s.npz' % name.replace(':', ''))
+                np.savez(ref_npz, **ref)
+                refs[name] = (nv, ref_npz)
+                scandyn_rows(args, rows, model, nv, s_csv, ref)
+        if p == 'scandyn':
+            continue
+        nv, ref_npz = refs[name]
+        if p in missing:
+            rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                     note='not installed: %s' % missing[p])
+            continue
+        if p in gave_up and name not in ROBOTS:
+            rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                     note='not tried: %s already failed or ran out of time on %s' % (p, gave_up[p]))
+            continue
+        limit = min(args.peer_limit * (2 if p == 'grid' else 1) * (1 if name in ROBOTS else 0.5), left(args))
+        if limit < 15:
+            rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
+                     note='skipped: time budget of this run spent')
+            continue
+        if not run_worker(args, rows, p, model, nv, ref_npz, limit) and name not in ROBOTS:
+            gave_up[p] = name
     log('wrote %s (%d rows)' % (args.out, len(rows.rows)))
 
 
