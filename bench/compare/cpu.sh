@@ -53,7 +53,7 @@ if [[ -z "${SCANDYN:-}" ]]; then
   echo "== scandyn (CPU build in $build)"
   cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DSCANDYN_CUDA=OFF -DSCANDYN_TESTS=OFF \
     -DSCANDYN_BENCH=OFF >/dev/null
-  cmake --build "$build" --parallel "$jobs" --target scandyn
+  cmake --build "$build" --parallel "$jobs" --target scandyn_cli
   SCANDYN=$repo/$build/scandyn
 fi
 

@@ -11,7 +11,7 @@
 #   1. environment (GPU, driver, nvcc, Python packages)               -> OUTDIR/env.txt
 #   2. wheels from .whl/ into /tmp/site (PYTHONPATH)
 #   3. scandyn: --scandyn PATH, or configured as gpu_check.sh does (Release, CUDA, sm_90,
-#      -march=native, staged urdfdom) and only the `scandyn` target built, in
+#      -march=native, staged urdfdom) and only the `scandyn_cli` target (the command) built, in
 #      $SCANDYN_GPU_BUILD_DIR (default build-gpu; an existing build is reused) -> OUTDIR/build.log
 #   4. bench/compare/gpu.py -> OUTDIR/compare-<device>.csv, OUTDIR/gpu.log,
 #      OUTDIR/logs.tar.gz (one log per library and model)
@@ -83,7 +83,7 @@ cat "$out/env.txt"
 # ---- 3. scandyn -----------------------------------------------------------------------------------
 if [[ -z "$scandyn" ]]; then
   build=${SCANDYN_GPU_BUILD_DIR:-build-gpu}
-  note "scandyn: configure and build the scandyn target in $build -> $out/build.log"
+  note "scandyn: configure and build the scandyn_cli target in $build -> $out/build.log"
   deps=$repo/.deps/root
   args=()
   if [[ -d "$deps/usr" ]]; then
@@ -95,7 +95,7 @@ if [[ -z "$scandyn" ]]; then
   {
     cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DSCANDYN_CUDA=ON \
       -DCMAKE_CUDA_ARCHITECTURES="${CMAKE_CUDA_ARCHITECTURES:-90}" -DSCANDYN_NATIVE=ON ${args[@]+"${args[@]}"} &&
-      cmake --build "$build" --parallel "${SCANDYN_JOBS:-$(nproc)}" --target scandyn
+      cmake --build "$build" --parallel "${SCANDYN_JOBS:-$(nproc)}" --target scandyn_cli
   } >"$out/build.log" 2>&1 || { tail -n 30 "$out/build.log"; echo "gpu.sh: scandyn build failed" >&2; exit 1; }
   scandyn=$repo/$build/scandyn
 else
