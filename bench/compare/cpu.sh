@@ -77,3 +77,8 @@ echo "== compare ($device)"
   echo "pinocchio: $("$build/pin_bench/pin_bench" version)"
 } | tee "bench/results/compare-$device.env.txt"
 "$py" bench/compare/cpu.py "${args[@]}" ${extra[@]+"${extra[@]}"}
+# plot.py needs matplotlib (not in scripts/setup_python.sh: the tests do not)
+"$py" -c 'import matplotlib' 2>/dev/null || "$py" -m pip install -q --disable-pip-version-check matplotlib ||
+  echo "cpu.sh: warning: matplotlib could not be installed; plot.py needs it" >&2
+echo "== done: bench/results/compare-$device.csv; plots and the docs table:"
+echo "   $py bench/compare/plot.py bench/results/compare-$device.csv --doc docs/benchmarks.md"
