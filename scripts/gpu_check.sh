@@ -11,6 +11,7 @@
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
 #   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
+#   5b. scripts/accuracy_report --full, when matplotlib is importable -> accuracy/
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
 #   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 # A failed configure or build stops the run; later steps run even if an earlier
@@ -167,6 +168,23 @@ else
     set -e
     record "memcheck $name" "$rc"
   done
+fi
+
+# ---- 5b. accuracy report (full mode), when matplotlib is importable ------------
+py=.venv/bin/python
+[[ -x "$py" ]] || py=python3
+if "$py" -c 'import matplotlib' 2>/dev/null; then
+  note "accuracy report (full) -> $out/accuracy"
+  set +e
+  "$py" scripts/accuracy_report --full --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
+    --stability-test "$build/tests/test_stability" \
+    --machine "$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), host $(nproc) cores" \
+    2>&1 | tee "$out/accuracy.log"
+  rc=${PIPESTATUS[0]}
+  set -e
+  record "accuracy report (full)" "$rc"
+else
+  note "accuracy report skipped: no matplotlib (scripts/setup_python.sh; or run scripts/accuracy_report --full later)"
 fi
 
 # ---- 6. benchmarks -------------------------------------------------------------

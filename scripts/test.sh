@@ -4,6 +4,8 @@
 #   1. scripts/setup.sh (installs missing Debian packages), scripts/setup_python.sh
 #      (.venv with numpy and Pinocchio for the cross-check test)
 #   2. build/       Ninja, Release, CUDA when nvcc is found; ctest
+#      then scripts/accuracy_report --quick into a temporary directory (when .venv
+#      has matplotlib)
 #   3. build-asan/  RelWithDebInfo with AddressSanitizer + UBSan, no CUDA, no
 #                   benchmarks; ctest
 # Both stages run even if the first one's tests fail; the exit status is non-zero
@@ -74,6 +76,23 @@ sim_sets=()
 if ! nvidia-smi -L >/dev/null 2>&1; then sim_sets=(-DSCANDYN_SIM_EFFECT_SETS=OFF); fi
 if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${sim_sets[@]+"${sim_sets[@]}"}; then
   failed+=(release)
+fi
+
+# The accuracy report in its quick mode (CPU, small sizes), into a temporary
+# directory so that the tree stays clean; needs .venv (matplotlib). A failing
+# report fails the test command.
+if [[ -x .venv/bin/python ]] && .venv/bin/python -c 'import matplotlib' 2>/dev/null; then
+  stamp "accuracy report (quick)"
+  report_dir=$(mktemp -d)
+  if .venv/bin/python scripts/accuracy_report --quick --out-dir "$report_dir" --scandyn "$build/scandyn" \
+       --stability-test "$build/tests/test_stability"; then
+    rm -rf "$report_dir"
+  else
+    echo "test.sh: accuracy report failed (output kept in $report_dir)" >&2
+    failed+=(accuracy-report)
+  fi
+else
+  echo "test.sh: warning: .venv with matplotlib not found; accuracy report skipped" >&2
 fi
 
 if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then

@@ -1213,4 +1213,46 @@ TEST_F(Cli, FdMethodsOnTheCpu) {
   EXPECT_LT(std::stod(row[9]), 1e-10);
 }
 
+// --fd jsi --fallback aba: float JSI fails its factorisation on rope:1000 (the
+// mass matrix is not numerically positive definite in float); with the fallback
+// every row is computed by aba (the same numbers as --fd aba) and one warning
+// line counts them.
+TEST_F(Cli, JsiFallbackToAbaOnTheCpu) {
+  write_text(path("rope.csv"), States(1000, 2, 11).csv({"q", "qd", "tau"}));
+  const std::string base = "eval --model rope:1000 --states rope.csv --algo fd --precision float";
+  const Result fail = run(base + " --out jsi.csv --fd jsi");
+  EXPECT_EQ(fail.code, 1);
+  EXPECT_NE(fail.err.find("forward dynamics failed: mass matrix pivot at DoF"), std::string::npos) << fail.err;
+  ASSERT_EQ(run(base + " --out aba.csv --fd aba").code, 0);
+  for (const char* backend : {"serial", "openmp"}) {
+    SCOPED_TRACE(backend);
+    const Result r = run(base + " --out jsi.csv --fd jsi --fallback aba --backend " + backend);
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_EQ(r.err,
+              "scandyn: warning: forward dynamics by jsi failed on 2 of 2 rows (mass matrix pivot not positive); "
+              "they were computed by aba (--fallback aba)\n");
+    EXPECT_EQ(read_text(path("jsi.csv")), read_text(path("aba.csv")));
+  }
+  // where JSI succeeds nothing falls back and nothing is printed
+  write_text(path("short.csv"), States(10, 2, 11).csv({"q", "qd", "tau"}));
+  const Result ok = run("eval --model rope:10 --states short.csv --out s.csv --algo fd --fd jsi --fallback aba");
+  EXPECT_EQ(ok.code, 0);
+  EXPECT_EQ(ok.err, "");
+
+  const Result bench = run("bench --model rope:1000 --algo fd --fd jsi --fallback aba --precision float "
+                           "--instances 1 --min-time 0");
+  const std::vector<std::string> row = bench_row(bench);
+  ASSERT_EQ(row.size(), 10u);
+  EXPECT_EQ(row[1], "jsi+aba");
+  EXPECT_LT(std::stod(row[9]), 1e-5);  // float aba
+  EXPECT_NE(bench.err.find("failed on 1 of 1 instances"), std::string::npos) << bench.err;
+
+  for (const char* args : {"bench --model rope:5 --algo fd --fd aba --fallback aba --instances 1",
+                           "bench --model rope:5 --algo fd --fallback aba --instances 1",
+                           "bench --model rope:5 --algo fd --fd jsi --fallback none --instances 1"}) {
+    const Result r = run(args);
+    EXPECT_EQ(r.code, 2) << args;
+  }
+}
+
 }  // namespace

@@ -123,6 +123,7 @@ class CpuEvaluator final : public Evaluator<S> {
     max_batch_ = static_cast<Index>(o.max_batch);
     chain_ = is_chain(model);
     openmp_ = kind == BackendKind::OpenMP;
+    fallback_ = o.fallback_aba;
     if (o.fd == FdMethod::Hybrid)
       throw UsageError("--fd hybrid runs on --backend cuda only (articulated inertias on the host, the other passes "
                        "as device scans); on the CPU use --fd parallel, aba or jsi", false);
@@ -163,6 +164,7 @@ class CpuEvaluator final : public Evaluator<S> {
         }
       return st;
     }
+    fallbacks_ = 0;
     if (algo == Algo::Fd && fd == FdMethod::Jsi && jsi_.empty())
       for (int t = 0; t < threads_; ++t) jsi_.emplace_back(model_, true);
     const std::size_t width = output_width(algo, nv);
@@ -170,7 +172,9 @@ class CpuEvaluator final : public Evaluator<S> {
     // first failing instance, if any
     long long failed = count;
     Status failed_status;
-#pragma omp parallel for num_threads(threads_) schedule(static) if (threads_ > 1 && count > 1)
+    long long fell_back = 0;  // instances recomputed by aba (--fallback aba)
+#pragma omp parallel for num_threads(threads_) schedule(static) if (threads_ > 1 && count > 1) \
+    reduction(+ : fell_back)
     for (long long b = 0; b < count; ++b) {
       const int t = thread_index();
       const std::size_t k = static_cast<std::size_t>(b) * n;
@@ -180,8 +184,13 @@ class CpuEvaluator final : public Evaluator<S> {
         case Algo::Bias: bias_forces(model_, data_[t], in.q + k, in.qd + k, o); break;
         case Algo::Mass: crba(model_, data_[t], in.q + k, o); break;
         case Algo::Fd:
-          st = fd == FdMethod::Aba ? aba(model_, data_[t], in.q + k, in.qd + k, in.tau + k, o)
-                                   : fd_jsi(model_, jsi_[t], in.q + k, in.qd + k, in.tau + k, o);
+          if (fd == FdMethod::Aba) {
+            st = aba(model_, data_[t], in.q + k, in.qd + k, in.tau + k, o);
+          } else {
+            const FdFallbackStatus fs = fd_jsi_or_aba(model_, jsi_[t], in.q + k, in.qd + k, in.tau + k, o, fallback_);
+            st = fs.status;
+            fell_back += fs.fell_back ? 1 : 0;
+          }
           break;
         case Algo::Id: break;
       }
@@ -193,6 +202,7 @@ class CpuEvaluator final : public Evaluator<S> {
         }
       }
     }
+    fallbacks_ = static_cast<std::size_t>(fell_back);
     BatchStatus st;
     if (failed < count) {
       st.instance = static_cast<std::size_t>(failed);
@@ -201,9 +211,14 @@ class CpuEvaluator final : public Evaluator<S> {
     return st;
   }
 
+  std::size_t fallbacks() const override { return fallbacks_; }
+
   std::string strategy(Algo algo, FdMethod fd) const override {
     if (algo == Algo::Id) return id_->strategy();
-    if (algo == Algo::Fd) return fd_method_name(fd_method(fd));
+    if (algo == Algo::Fd) {
+      const FdMethod m = fd_method(fd);
+      return m == FdMethod::Jsi && fallback_ ? "jsi+aba" : fd_method_name(m);
+    }
     return algo == Algo::Mass ? "crba" : "recursion";
   }
 
@@ -250,6 +265,8 @@ class CpuEvaluator final : public Evaluator<S> {
   bool chain_ = false, openmp_ = false;
   std::unique_ptr<ChainForwardDynamics<S>> parallel_;  // --fd parallel, made on first use
   std::vector<int> failed_;                             // (batch) its failed links
+  bool fallback_ = false;                               // --fallback aba
+  std::size_t fallbacks_ = 0;                           // instances the last fd run() fell back
   int threads_ = 1;
   std::unique_ptr<InverseDynamics<S>> id_;  // batched inverse dynamics
   std::vector<DataTpl<S>> data_;            // (threads) without the mass-matrix workspace
@@ -305,7 +322,25 @@ EvalOptions parse_eval_options(const Args& args) {
   }
   if (args.has("fd") && !parse_fd_method(args.required("fd"), o.fd))
     throw UsageError("unknown --fd value '" + args.required("fd") + "' (expected auto, aba, jsi, hybrid or parallel)");
+  if (args.has("fallback")) {
+    if (args.required("fallback") != "aba")
+      throw UsageError("unknown --fallback value '" + args.required("fallback") + "' (expected aba)");
+    if (o.fd != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
+    o.fallback_aba = true;
+  }
   return o;
+}
+
+void require_fallback(const Backend& backend, const EvalOptions& options) {
+  if (options.fallback_aba && std::string(backend.name) == "cuda")
+    throw UsageError("backend 'cuda' has no --fallback aba (a failed JSI factorisation is reported); "
+                     "use --fd aba or parallel, or a CPU backend", false);
+}
+
+std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit) {
+  return "forward dynamics by jsi failed on " + std::to_string(fell_back) + " of " + std::to_string(total) + " " +
+         unit + " (mass matrix pivot not positive); " + (fell_back == 1 ? "it was" : "they were") +
+         " computed by aba (--fallback aba)";
 }
 
 const Backend& find_backend(const std::string& name) {

@@ -113,6 +113,9 @@ class Evaluator {
     (void)algo, (void)fd, (void)in;
     return nullptr;
   }
+  // Instances of the last run() of fd whose JSI factorisation failed and that were
+  // computed by aba instead (EvalOptions::fallback_aba); 0 without the fallback.
+  virtual std::size_t fallbacks() const { return 0; }
 };
 
 // How an evaluator is made: the inverse-dynamics strategy (Auto: by shape), the
@@ -126,6 +129,7 @@ struct EvalOptions {
   std::size_t max_batch = 1;
   AlgoSet algos = 0;
   FdMethod fd = FdMethod::Auto;  // the forward-dynamics method fd will be asked for
+  bool fallback_aba = false;     // --fallback aba: a failed JSI factorisation is redone by aba
 };
 
 template <class S>
@@ -147,6 +151,15 @@ struct Backend {
 // --strategy, --threads and --fd of eval and bench; throws UsageError for bad values.
 class Args;
 EvalOptions parse_eval_options(const Args& args);
+
+// Throws UsageError (no --help hint) when options ask for --fallback aba on a
+// backend that does not have it (cuda).
+void require_fallback(const Backend& backend, const EvalOptions& options);
+
+// The stderr warning line for instances that fell back from JSI to aba, e.g.
+// "forward dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not
+// positive); they were computed by aba (--fallback aba)".
+std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit);
 
 // The backend called name. Throws UsageError if it is unknown or not in this build.
 const Backend& find_backend(const std::string& name);

@@ -184,6 +184,8 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
   // warm-up call, then whole calls until min_time has passed
   std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());  // untouched entries show
   check(evaluator->run(algo, fd, in, out.data()), evaluator->fd_method(fd));
+  if (const std::size_t n = evaluator->fallbacks())
+    std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(n, count, "instances").c_str());
   Timing t;
   t.strategy = evaluator->strategy(algo, fd);
   t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
@@ -304,6 +306,7 @@ int run_bench(const Args& args) {
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
   const Backend& backend = find_backend(args.get("backend", "serial"));
   require_algos(backend, algo_bit(algo));
+  require_fallback(backend, options);
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
   require_usable(backend);

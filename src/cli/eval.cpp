@@ -1,6 +1,7 @@
 // src/cli/eval.cpp: `scandyn eval`, dynamics of the states in a CSV file.
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <memory>
 #include <type_traits>
 
@@ -69,7 +70,7 @@ std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Inde
 template <class S>
 void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
                const StateColumns& cols, const std::vector<Algo>& algos, FdMethod fd, std::size_t chunk,
-               CsvWriter& out) {
+               CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
@@ -103,6 +104,7 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
       ++count;
     }
     if (count == 0) break;
+    rows += count;
 
     // evaluate
     const auto family_data = [&](Family f) -> const S* {
@@ -116,6 +118,7 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
     batch.tau = family_data(Family::Tau);
     for (std::size_t k = 0; k < algos.size(); ++k) {
       const BatchStatus st = evaluator.run(algos[k], fd, batch, result[k].data());
+      if (algos[k] == Algo::Fd) fell_back += evaluator.fallbacks();
       if (!st.ok()) {  // the pivot of the method used
         throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
                         describe_fd_failure(evaluator.fd_method(fd), st.status));
@@ -166,8 +169,10 @@ void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions opt
   if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
   else evaluator = backend.make_float(model, options);
   CsvWriter out(out_path);
-  eval_rows(model, *evaluator, in, cols, algos, options.fd, chunk, out);
+  std::size_t rows = 0, fell_back = 0;
+  eval_rows(model, *evaluator, in, cols, algos, options.fd, chunk, out, rows, fell_back);
   out.commit();
+  if (fell_back) std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(fell_back, rows, "rows").c_str());
 }
 
 }  // namespace
@@ -182,6 +187,7 @@ int run_eval(const Args& args) {
   if (!algos.empty()) require_algos(backend, algo_set(algos));
   const Precision precision = parse_precision(args.get("precision", "double"));
   const EvalOptions options = parse_eval_options(args);
+  require_fallback(backend, options);
   require_usable(backend);
 
   const Model model = load_cli_model(args);

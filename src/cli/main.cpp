@@ -36,7 +36,7 @@ const char* const kInfoUsage =
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
-    "                    [--fd auto|aba|jsi|hybrid|parallel]\n"
+    "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                    [--precision double|float]\n"
     "\n"
@@ -57,6 +57,9 @@ const char* const kEvalUsage =
     "                    inertias on the CPU, the rest as GPU scans); default auto:\n"
     "                    serial aba; openmp parallel for chains of 4096+ links, else\n"
     "                    aba; cuda parallel for chains beyond 64 links, else jsi\n"
+    "  --fallback aba    with --fd jsi (CPU backends): an instance whose mass matrix\n"
+    "                    factorisation fails (a pivot that is not positive) is\n"
+    "                    computed by aba instead, and a warning on stderr counts them\n"
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
@@ -78,6 +81,7 @@ const char* const kRolloutUsage =
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd METHOD]\n"
+    "                     [--fallback aba]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -88,6 +92,7 @@ const char* const kBenchUsage =
     "device memory) and thread-host (host buffers, copies to and from the device\n"
     "included); one row, <strategy>-host (e.g. jsi_thread-host, parallel-host), for fd.\n"
     "  --fd METHOD       auto (default), aba, jsi, hybrid or parallel, as for eval\n"
+    "  --fallback aba    as for eval (strategy column jsi+aba)\n"
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
@@ -112,13 +117,13 @@ const Command kCommands[] = {
     {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
     {"eval",
      kEvalUsage,
-     {"model", "states", "out", "algo", "fd", "backend", "strategy", "threads", "precision",
+     {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
       "allow-nonphysical-inertia"},
      &run_eval},
     {"bench",
      kBenchUsage,
-     {"model", "algo", "fd", "instances", "backend", "strategy", "threads", "precision", "min-time", "csv",
-      "allow-nonphysical-inertia", "scene"},
+     {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
+      "csv", "allow-nonphysical-inertia", "scene"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
 };
