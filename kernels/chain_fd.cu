@@ -37,17 +37,17 @@ __global__ void velocity_aggregate_kernel(const ChainFdData<S> d, ChunkRange r, 
 
 template <bool kDual, class S>
 __global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
-                                     DualRiccati<S>* dual) {
+                                     DualRiccati<DualScalar>* dual) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= chunks) return;
-  const DualRiccati<S> agg = velocity_walk<kDual>(d, r.first(c), r.last(c), carry[c]);
+  const DualRiccati<DualScalar> agg = velocity_walk<kDual>(d, r.first(c), r.last(c), carry[c]);
   if constexpr (kDual) dual[c] = agg;
 }
 
 // Pass 1's walks of chunks [c0, c1): from the dual carries (parallel) or the host's
 // articulated inertias (hybrid).
 template <class S>
-__global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index c0, Index c1, const Mat5<S>* dual_carry,
+__global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index c0, Index c1, const Mat5<DualScalar>* dual_carry,
                                     const ABInertia<S>* Ia_carry, Affine6<S>* agg) {
   const Index c = c0 + static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= c1) return;
@@ -123,7 +123,7 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
                        std::to_string(max_batch_) + " instances exceed 2^30 links per call");
   a0_ = base_acceleration(model.gravity);
-  std::vector<InverseInertia<S>> Phi;
+  std::vector<InverseInertia<DualScalar>> Phi;
   body_class_host_.resize(static_cast<std::size_t>(n_));
   for (Index i = 0; i < n_; ++i) {
     Body<S> b = model.bodies[i];
@@ -131,7 +131,7 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     Index k = static_cast<Index>(body_host_.size()) - 1;
     if (k < 0 || std::memcmp(&body_host_[k], &b, sizeof b) != 0) {
       body_host_.push_back(b);
-      Phi.push_back(InverseInertia<S>::from(b.I));
+      Phi.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
       k = static_cast<Index>(body_host_.size()) - 1;
     }
     body_class_host_[i] = static_cast<int>(k);
@@ -146,7 +146,7 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     off += aligned(bytes);
     return at;
   };
-  const std::size_t o_body = take(classes * sizeof(Body<S>)), o_phi = take(classes * sizeof(InverseInertia<S>)),
+  const std::size_t o_body = take(classes * sizeof(Body<S>)), o_phi = take(classes * sizeof(InverseInertia<DualScalar>)),
                     o_class = take(static_cast<std::size_t>(n_) * sizeof(int)), o_v = take(links * sizeof(Motion<S>)),
                     o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
                     o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S)),
@@ -155,8 +155,8 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   for (Index size : level_size_) {
     o_aff.push_back(take(size * sizeof(Affine6<S>)));
     o_affc.push_back(take(size * sizeof(Vec6<S>)));
-    o_dual.push_back(take(size * sizeof(DualRiccati<S>)));
-    o_dualc.push_back(take(size * sizeof(Mat5<S>)));
+    o_dual.push_back(take(size * sizeof(DualRiccati<DualScalar>)));
+    o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
   }
   bytes_ = off;
   std::size_t free_bytes = 0, total_bytes = 0;
@@ -171,7 +171,7 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   }
   char* base = static_cast<char*>(memory_);
   body_ = reinterpret_cast<const Body<S>*>(base + o_body);
-  Phi_ = reinterpret_cast<const InverseInertia<S>*>(base + o_phi);
+  Phi_ = reinterpret_cast<const InverseInertia<DualScalar>*>(base + o_phi);
   body_class_ = reinterpret_cast<const int*>(base + o_class);
   v_ = reinterpret_cast<Motion<S>*>(base + o_v);
   U_ = reinterpret_cast<Force<S>*>(base + o_U);
@@ -182,12 +182,12 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   for (std::size_t k = 0; k < level_size_.size(); ++k) {
     aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
     aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
-    dual_.push_back(reinterpret_cast<DualRiccati<S>*>(base + o_dual[k]));
-    dual_carry_.push_back(reinterpret_cast<Mat5<S>*>(base + o_dualc[k]));
+    dual_.push_back(reinterpret_cast<DualRiccati<DualScalar>*>(base + o_dual[k]));
+    dual_carry_.push_back(reinterpret_cast<Mat5<DualScalar>*>(base + o_dualc[k]));
   }
   check(cudaMemcpy(base + o_body, body_host_.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
         "copying the chain's bodies");
-  check(cudaMemcpy(base + o_phi, Phi.data(), classes * sizeof(InverseInertia<S>), cudaMemcpyHostToDevice),
+  check(cudaMemcpy(base + o_phi, Phi.data(), classes * sizeof(InverseInertia<DualScalar>), cudaMemcpyHostToDevice),
         "copying the chain's inverse inertias");
   check(cudaMemcpy(base + o_class, body_class_host_.data(), static_cast<std::size_t>(n_) * sizeof(int),
                    cudaMemcpyHostToDevice),
@@ -237,7 +237,7 @@ cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaS
   if (err != cudaSuccess) return err;
   if (dual) velocity_walk_kernel<true><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], dual_[0]);
   else velocity_walk_kernel<false><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0],
-                                                                        static_cast<DualRiccati<S>*>(nullptr));
+                                                                        static_cast<DualRiccati<DualScalar>*>(nullptr));
   return cudaGetLastError();
 }
 
@@ -330,7 +330,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
     if ((err = cudaMemcpyAsync(Ia_carry_ + c_lo, Ia_pinned_ + c_lo, bytes, cudaMemcpyHostToDevice, stream)) !=
         cudaSuccess)
       return err;
-    inertia_walk_kernel<<<blocks(c_hi - c_lo), kBlock, 0, stream>>>(d, r, c_lo, c_hi, static_cast<const Mat5<S>*>(nullptr),
+    inertia_walk_kernel<<<blocks(c_hi - c_lo), kBlock, 0, stream>>>(d, r, c_lo, c_hi, static_cast<const Mat5<DualScalar>*>(nullptr),
                                                                     Ia_carry_, aff_[0]);
     if ((err = cudaEventRecord(events_[4 + grp], stream)) != cudaSuccess) return err;
     ++done_groups;

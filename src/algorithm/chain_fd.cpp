@@ -82,7 +82,7 @@ ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index ma
     Index k = static_cast<Index>(body_.size()) - 1;
     if (k < 0 || std::memcmp(&body_[k], &b, sizeof b) != 0) {
       body_.push_back(b);
-      Phi_.push_back(InverseInertia<S>::from(b.I));
+      Phi_.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
       k = static_cast<Index>(body_.size()) - 1;
     }
     body_class_[i] = static_cast<int>(k);

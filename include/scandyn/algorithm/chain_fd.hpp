@@ -139,6 +139,11 @@ struct InverseInertia {
     return o;
   }
 
+  template <class T>
+  SCANDYN_HD InverseInertia<T> cast() const {
+    return {Ic_inv.template cast<T>(), c.template cast<T>(), T(m_inv)};
+  }
+
   SCANDYN_HD Motion<S> operator*(const Force<S>& f) const {
     const Vec3<S> w = Ic_inv * (f.n - cross(c, f.f));
     return {w, cross(c, w) + m_inv * f.f};
@@ -161,12 +166,12 @@ SCANDYN_HD void perpendicular_basis(const Vec3<S>& a, Vec3<S>& e1, Vec3<S>& e2) 
   e2 = cross(a, p);
 }
 
-template <class S>
-SCANDYN_HD Force<S> constraint_force(const Body<S>& b, int k) {
-  Vec3<S> e1, e2;
-  perpendicular_basis(b.axis, e1, e2);
-  const Vec3<S> z = Vec3<S>::zero();
-  const Vec3<S> unit[3] = {{S(1), S(0), S(0)}, {S(0), S(1), S(0)}, {S(0), S(0), S(1)}};
+template <class T, class S>
+SCANDYN_HD Force<T> constraint_force_in(const Body<S>& b, int k) {
+  Vec3<T> e1, e2;
+  perpendicular_basis(b.axis.template cast<T>(), e1, e2);
+  const Vec3<T> z = Vec3<T>::zero();
+  const Vec3<T> unit[3] = {{T(1), T(0), T(0)}, {T(0), T(1), T(0)}, {T(0), T(0), T(1)}};
   if (b.type == JointType::Revolute) {
     if (k == 0) return {e1, z};
     if (k == 1) return {e2, z};
@@ -175,42 +180,57 @@ SCANDYN_HD Force<S> constraint_force(const Body<S>& b, int k) {
   if (k < 3) return {unit[k], z};
   return {z, k == 3 ? e1 : e2};
 }
-
-// Ia = T K T^T: the articulated inertia passed across a joint, from K = Y^{-1}.
 template <class S>
-SCANDYN_HD ABInertia<S> constraint_congruence(const Body<S>& b, const Mat5<S>& K) {
-  SmallMat<S, 6, 5> T;
+SCANDYN_HD Force<S> constraint_force(const Body<S>& b, int k) {
+  return constraint_force_in<S>(b, k);
+}
+
+// The scalar of pass 1's dual Riccati maps, whatever the precision of the rest:
+// Y = T^T IA^{-1} T mixes the mobilities of neighbouring links, whose ratio is the
+// inverse of their mass ratio, and Y^{-1} recovers Ia from it. In float that loses
+// the lighter side once neighbouring masses differ by 10^5 or more (a wrong qdd
+// without any failed pivot); in double it holds (mass ratios of 10^6 within 1e-8).
+using DualScalar = double;
+
+// Ia = T K T^T: the articulated inertia passed across a joint, from K = Y^{-1}
+// (computed in K's scalar T).
+template <class T, class S>
+SCANDYN_HD ABInertia<T> constraint_congruence(const Body<S>& b, const Mat5<T>& K) {
+  SmallMat<T, 6, 5> Tb;
   for (int k = 0; k < 5; ++k) {
-    const Vec6<S> t = to_vec6(constraint_force(b, k));
-    for (int r = 0; r < 6; ++r) T(r, k) = t.m[r];
+    const Vec6<T> t = to_vec6(constraint_force_in<T>(b, k));
+    for (int r = 0; r < 6; ++r) Tb(r, k) = t.m[r];
   }
-  return to_abinertia(T * K * transpose(T));
+  return to_abinertia(Tb * K * transpose(Tb));
 }
 
 // The articulated inertia Ia = T Y^{-1} T^T that a body passes to its parent, from
-// its dual Y (NaN when Y is not positive definite).
+// its dual Y (NaN when Y is not positive definite), rounded to the body's scalar.
 template <class S>
-SCANDYN_HD ABInertia<S> articulated_from_dual(const Body<S>& b, const Mat5<S>& Y) {
-  Mat5<S> L = Y;
-  Mat5<S> K = Mat5<S>::identity();
-  if (!cholesky(L)) K = DualRiccati<S>::nan_value();
+SCANDYN_HD ABInertia<S> articulated_from_dual(const Body<S>& b, const Mat5<DualScalar>& Y) {
+  using D = DualScalar;
+  Mat5<D> L = Y;
+  Mat5<D> K = Mat5<D>::identity();
+  if (!cholesky(L)) K = DualRiccati<D>::nan_value();
   else cholesky_solve(L, K);
-  return constraint_congruence(b, symmetrize(K));
+  return constraint_congruence(b, symmetrize(K)).template cast<S>();
 }
 
 // Pass 1's element of link i: Y_{i+1} -> Y_i. Xup_next is link i + 1's transform;
 // has_child false gives the leaf element (C = R = 0, Y_i = T_i^T Phi_i T_i).
 template <class S>
-SCANDYN_HD DualRiccati<S> dual_element(const Body<S>& b, const InverseInertia<S>& Phi, bool has_child,
-                                       const Body<S>& next, const Transform<S>& Xup_next) {
-  Force<S> G[10];       // [T_i, B_{i+1}] as forces in body i's frame
-  Motion<S> PhiG[10];   // Phi_i G
+SCANDYN_HD DualRiccati<DualScalar> dual_element(const Body<S>& b, const InverseInertia<DualScalar>& Phi, bool has_child,
+                                                const Body<S>& next, const Transform<S>& Xup_next_s) {
+  using D = DualScalar;
+  const Transform<D> Xup_next = Xup_next_s.template cast<D>();
+  Force<D> G[10];       // [T_i, B_{i+1}] as forces in body i's frame
+  Motion<D> PhiG[10];   // Phi_i G
   const int cols = has_child ? 10 : 5;
-  for (int k = 0; k < 5; ++k) G[k] = constraint_force(b, k);
+  for (int k = 0; k < 5; ++k) G[k] = constraint_force_in<D>(b, k);
   if (has_child)
-    for (int k = 0; k < 5; ++k) G[5 + k] = Xup_next.apply_transpose(constraint_force(next, k));
+    for (int k = 0; k < 5; ++k) G[5 + k] = Xup_next.apply_transpose(constraint_force_in<D>(next, k));
   for (int k = 0; k < cols; ++k) PhiG[k] = Phi * G[k];
-  DualRiccati<S> e{Mat5<S>::zero(), Mat5<S>::zero(), Mat5<S>::zero(), !has_child};
+  DualRiccati<D> e{Mat5<D>::zero(), Mat5<D>::zero(), Mat5<D>::zero(), !has_child};
   for (int r = 0; r < 5; ++r)
     for (int c = 0; c < 5; ++c) {
       e.Q(r, c) = dot(PhiG[c], G[r]);
@@ -234,7 +254,7 @@ struct ChainFdData {
   Index n = 0;                              // links per instance (nv)
   Index batch = 0;                          // instances B
   const Body<S>* body = nullptr;            // (table) distinct bodies
-  const InverseInertia<S>* Phi = nullptr;   // (table) their inverse inertias
+  const InverseInertia<DualScalar>* Phi = nullptr;  // (table) their inverse inertias (pass 1's scalar)
   const int* body_class = nullptr;          // (n) table entry of body i
   Motion<S> a0;                             // base acceleration (-gravity)
   BatchView<const S> q, qd, tau;            // (n x B) inputs
@@ -253,7 +273,7 @@ struct ChainFdData {
   SCANDYN_HD bool has_parent(Index g) const { return g % n != 0; }
   SCANDYN_HD bool has_child(Index g) const { return g % n != n - 1; }
   SCANDYN_HD const Body<S>& body_of(Index g) const { return body[body_class[g % n]]; }
-  SCANDYN_HD const InverseInertia<S>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
+  SCANDYN_HD const InverseInertia<DualScalar>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
   SCANDYN_HD S q_of(Index g) const { return q.at(g % n, g / n); }
   SCANDYN_HD S qd_of(Index g) const { return qd.at(g % n, g / n); }
   SCANDYN_HD S tau_of(Index g) const { return tau.at(g % n, g / n); }
@@ -306,10 +326,10 @@ SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index
 // Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk,
 // Y_s as a map of Y_{e+1} (kDual; otherwise nothing, for the hybrid).
 template <bool kDual = true, class S>
-SCANDYN_HD DualRiccati<S> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
+SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
   Motion<S> v_parent = to_motion(v_in);
   Transform<S> X = d.Xup(s);
-  DualRiccati<S> agg{};
+  DualRiccati<DualScalar> agg{};
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);
     const AbaForward<S> o = aba_forward_step(b, X, d.has_parent(g) ? v_parent : Motion<S>::zero(), d.qd_of(g));
@@ -319,8 +339,8 @@ SCANDYN_HD DualRiccati<S> velocity_walk(const ChainFdData<S>& d, Index s, Index 
     const Transform<S> Xnext = more ? d.Xup(g + 1) : X;  // the next link's (the next instance's first)
     if constexpr (kDual) {
       const bool child = d.has_child(g);
-      const DualRiccati<S> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
-      agg = g == s ? el : DualRiccati<S>::compose(agg, el);
+      const DualRiccati<DualScalar> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+      agg = g == s ? el : DualRiccati<DualScalar>::compose(agg, el);
     }
     X = Xnext;
   }
@@ -474,7 +494,7 @@ SCANDYN_HD void carry_range(const E* el, typename E::Value* carry, Index a, Inde
 // The carried dual Y of link e + 1 as the articulated inertia the walk of pass 1
 // starts from (link e + 1 exists: e is not an instance's last link).
 template <class S>
-SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S>& d, Index e, const Mat5<S>& Y) {
+SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S>& d, Index e, const Mat5<DualScalar>& Y) {
   return d.has_child(e) ? articulated_from_dual(d.body_of(e + 1), Y) : ABInertia<S>{};
 }
 
@@ -529,7 +549,7 @@ class ChainForwardDynamics {
   int threads_ = 1;
   Motion<S> a0_;
   std::vector<Body<S>> body_;
-  std::vector<InverseInertia<S>> Phi_;
+  std::vector<InverseInertia<DualScalar>> Phi_;
   std::vector<int> body_class_;
   std::vector<Motion<S>> v_;
   std::vector<Force<S>> U_, w_;
@@ -538,8 +558,8 @@ class ChainForwardDynamics {
   // per level: aggregates and carries of the three Affine6 passes and the dual pass
   std::vector<std::vector<Affine6<S>>> aff_;
   std::vector<std::vector<Vec6<S>>> aff_carry_;
-  std::vector<std::vector<DualRiccati<S>>> dual_;
-  std::vector<std::vector<Mat5<S>>> dual_carry_;
+  std::vector<std::vector<DualRiccati<DualScalar>>> dual_;
+  std::vector<std::vector<Mat5<DualScalar>>> dual_carry_;
 };
 
 }  // namespace scandyn

@@ -88,7 +88,7 @@ class ChainFdPlan {
   std::size_t bytes_ = 0;
   void* memory_ = nullptr;                  // one device allocation for everything below
   const Body<S>* body_ = nullptr;           // (classes) distinct bodies
-  const InverseInertia<S>* Phi_ = nullptr;  // (classes)
+  const InverseInertia<DualScalar>* Phi_ = nullptr;  // (classes)
   const int* body_class_ = nullptr;         // (n)
   Motion<S>* v_ = nullptr;                  // (n max_batch) per-link scratch
   Force<S>* U_ = nullptr;
@@ -98,8 +98,8 @@ class ChainFdPlan {
   std::vector<Index> level_size_;           // for max_batch; a call uses its own sizes
   std::vector<Affine6<S>*> aff_;            // per level
   std::vector<Vec6<S>*> aff_carry_;
-  std::vector<DualRiccati<S>*> dual_;
-  std::vector<Mat5<S>*> dual_carry_;
+  std::vector<DualRiccati<DualScalar>*> dual_;
+  std::vector<Mat5<DualScalar>*> dual_carry_;
   ABInertia<S>* Ia_carry_ = nullptr;        // (chunks) hybrid: Ia of each chunk's link e + 1
   ABInertia<S>* Ia_pinned_ = nullptr;       // (chunks) host pinned staging of the same
   std::vector<cudaEvent_t> events_;         // hybrid timeline and group ordering

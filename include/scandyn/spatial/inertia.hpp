@@ -63,6 +63,10 @@ struct ABInertia {
   Mat3<S> Iwv;  // angular-linear block (kg m)
   Sym3<S> Ivv;  // linear-linear block (kg)
 
+  template <class T>
+  SCANDYN_HD ABInertia<T> cast() const {
+    return {Iww.template cast<T>(), Iwv.template cast<T>(), Ivv.template cast<T>()};
+  }
   SCANDYN_HD static ABInertia from(const Inertia<S>& I) {
     return {I.I, skew(I.h), Sym3<S>{I.m, I.m, I.m, S(0), S(0), S(0)}};
   }
