@@ -21,7 +21,7 @@
 # (default 90), SCANDYN_JOBS (default nproc), SCANDYN_SKIP_SANITIZER=1,
 # SCANDYN_SANITIZER_FILTER (gtest filter under memcheck; default leaves out the
 # 10^5..10^6-link cases, which repeat the smaller ones' kernels at 10-100x the
-# time), SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
+# time), SCANDYN_SKIP_ACCURACY=1, SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
 # SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
 # --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300).
 set -euo pipefail
@@ -173,7 +173,9 @@ fi
 # ---- 5b. accuracy report (full mode), when matplotlib is importable ------------
 py=.venv/bin/python
 [[ -x "$py" ]] || py=python3
-if "$py" -c 'import matplotlib' 2>/dev/null; then
+if [[ "${SCANDYN_SKIP_ACCURACY:-0}" == 1 ]]; then
+  note "accuracy report skipped (SCANDYN_SKIP_ACCURACY=1)"
+elif "$py" -c 'import matplotlib' 2>/dev/null; then
   note "accuracy report (full) -> $out/accuracy"
   set +e
   "$py" scripts/accuracy_report --full --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
