@@ -34,20 +34,18 @@ inline constexpr int kJsiKernel = -1;
 //        float unrolled at capacity 8 and held to 128 registers (4 resident blocks;
 //        4.4 ms against 5.6 ms with 167), in double with the loops rolled (8.8 ms
 //        against 9.6 ms unrolled and spilling at 255 registers).
-//   ABA: float chains at capacity 8 unrolled in 168 registers (3 blocks; 202 without
-//        a cap; at 128, 464 B of spill stores); float rolled chains and trees in 128
-//        registers (no spills; the per-body state, 8 scalars per body, in local
-//        memory); float register slots rolled in 152 (3 blocks; at 128, 88 B of
-//        spill stores); double rolled, up to 255 registers (226 for chains, 240 for
-//        trees; unrolled, or with register slots, it spills at 255). Sin and cos as
-//        the inverse dynamics (kThreadTrig: the SFU in float). Not timed yet:
-//        bench_cuda_fd's fd_aba_thread-* rows time these against the alternatives.
+//   ABA: float rolled and held to 128 registers (4 resident blocks), chains, slots
+//        and trees alike: measured on the H100 (10^7 instances) iiwa 3.3 ms against
+//        5.2 unrolled in 168 registers and 7.7 in 255; atlas with its register slot
+//        22.8 ms against 25.2 in 152 registers (88 B of spill stores at 128 cost
+//        less than the lost block). Double rolled, up to 255 registers (226 for
+//        chains, 240 for trees; unrolled it spills and takes 12.0 ms against 7.5 on
+//        iiwa). Sin and cos as the inverse dynamics (kThreadTrig: the SFU in float).
 template <class S, int C, int kAlgo>
 struct FdKernelChoice {
   static constexpr bool kAba = kAlgo != kJsiKernel;
-  static constexpr bool kUnrolled = sizeof(S) == 4 && C <= 8 && (!kAba || kAlgo == 0);
-  static constexpr int kMinBlocks =
-      sizeof(S) == 8 ? 1 : !kAba ? 4 : (kUnrolled || (kAlgo > 0 && kAlgo < C)) ? 3 : 4;
+  static constexpr bool kUnrolled = sizeof(S) == 4 && C <= 8 && !kAba;
+  static constexpr int kMinBlocks = sizeof(S) == 8 ? 1 : 4;
 };
 
 // One thread per instance b < B: the forward dynamics of instance b, by the
@@ -139,7 +137,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   std::vector<Index> parents;
   for (Index i = 0; i < nv_; ++i) parents.push_back(model.parent(i));
   if (algorithm == FdAlgorithm::Auto)
-    algorithm = nv_ > kMaxThreadDofs && is_chain(parents) ? FdAlgorithm::Parallel : FdAlgorithm::Jsi;
+    algorithm = nv_ <= kMaxThreadDofs ? FdAlgorithm::Aba : is_chain(parents) ? FdAlgorithm::Parallel : FdAlgorithm::Jsi;
   algorithm_ = algorithm;
   aba_ = algorithm == FdAlgorithm::Aba;
   const bool chain = algorithm == FdAlgorithm::Parallel || algorithm == FdAlgorithm::Hybrid;

@@ -926,7 +926,7 @@ TEST_F(Cli, EvalCudaReportsTheRowWhoseForwardDynamicsFails) {
   write_text(path("heavy.urdf"), heavy_urdf());
   write_text(path("states.csv"), kHeavyStates);
   write_text(path("out.csv"), "sentinel\n");
-  const Result r = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd --backend cuda");
+  const Result r = run("eval --model heavy.urdf --states states.csv --out out.csv --algo fd --fd jsi --backend cuda");
   EXPECT_EQ(r.code, 1);
   EXPECT_EQ(r.err,
             "scandyn: states.csv: row 2 (line 3): forward dynamics failed: mass matrix "
@@ -1035,8 +1035,8 @@ TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
   EXPECT_EQ(lines(one.out).size(), 2u);
 }
 
-// bench --algo fd --backend cuda: one row, the host-staged call (jsi_thread-host),
-// whether --fd is left out or says jsi, with its error against the serial ABA.
+// bench --algo fd --backend cuda: one row, the host-staged call (aba_thread-host
+// without --fd, jsi_thread-host with --fd jsi), with its error against the serial ABA.
 TEST_F(Cli, BenchCudaFdPrintsHostRow) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
@@ -1052,7 +1052,7 @@ TEST_F(Cli, BenchCudaFdPrintsHostRow) {
       const std::vector<std::string> row = split(ls[0], ',');
       ASSERT_EQ(row.size(), 10u) << ls[0];
       EXPECT_EQ(row[0], "fd");
-      EXPECT_EQ(row[1], "jsi_thread-host");
+      EXPECT_EQ(row[1], std::string(fd).empty() ? "aba_thread-host" : "jsi_thread-host");  // auto: ABA
       EXPECT_EQ(row[2], "cuda");
       EXPECT_EQ(row[3], precision);
       EXPECT_EQ(row[4], "iiwa");

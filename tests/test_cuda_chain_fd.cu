@@ -101,7 +101,7 @@ TEST(CudaChainFd, AutoPicksParallelForLongChainsOnly) {
   o.backend = BackendKind::Cuda;
   o.max_batch = 2;
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:100").cast<float>(), o).strategy(), "parallel");
-  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "jsi_thread");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "aba_thread");
   EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, cuda::FdAlgorithm::Parallel),
                BackendError);
 }

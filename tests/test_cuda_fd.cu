@@ -396,7 +396,7 @@ TEST(CudaFdErrors, WithoutADevice) {
     }
   } else {
     cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o);
-    EXPECT_EQ(e.strategy(), "jsi_thread");
+    EXPECT_EQ(e.strategy(), "aba_thread");  // Auto: ABA up to 64 DoF
     EXPECT_EQ(e.backend(), "cuda");
   }
 }
@@ -638,7 +638,7 @@ TEST(CudaFdAbaErrors, WithoutADevice) {
     EXPECT_EQ(e.strategy(), "aba_thread");
     EXPECT_EQ(e.algorithm(), cuda::FdAlgorithm::Aba);
     cuda::CudaForwardDynamics<float> j(load_model("chain:3").cast<float>(), o);
-    EXPECT_EQ(j.algorithm(), cuda::FdAlgorithm::Jsi);
+    EXPECT_EQ(j.algorithm(), cuda::FdAlgorithm::Aba);  // Auto: ABA up to 64 DoF
   }
 }
 

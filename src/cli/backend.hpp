@@ -94,8 +94,8 @@ class Evaluator {
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
   // The forward-dynamics method run() uses when fd is requested (Auto resolved):
   // on the CPU backends aba, or parallel for unbranched chains of at least 4096
-  // links on openmp; on CUDA the engine's choice (parallel for unbranched chains
-  // beyond 64 links, else jsi). Failure messages (describe_fd_failure) name the
+  // links on openmp; on CUDA the engine's choice (aba up to 64 DoF, parallel for
+  // longer unbranched chains, else jsi). Failure messages (describe_fd_failure) name the
   // pivot of the method used.
   virtual FdMethod fd_method(FdMethod requested) const = 0;
   // How run() computes algo, for the benchmark's strategy column: recursion,

@@ -56,7 +56,7 @@ const char* const kEvalUsage =
     "                    O(log n) depth) or hybrid (chains, cuda only: articulated\n"
     "                    inertias on the CPU, the rest as GPU scans); default auto:\n"
     "                    serial aba; openmp parallel for chains of 4096+ links, else\n"
-    "                    aba; cuda parallel for chains beyond 64 links, else jsi\n"
+    "                    aba; cuda aba up to 64 DoF, parallel for longer chains, else jsi\n"
     "  --fallback aba    with --fd jsi (CPU backends): an instance whose mass matrix\n"
     "                    factorisation fails (a pivot that is not positive) is\n"
     "                    computed by aba instead, and a warning on stderr counts them\n"
