@@ -99,6 +99,48 @@ void set(benchmark::State& st, Index n, Index B, double err, Index failed) {
   st.counters["failed"] = failed;
 }
 
+// One configuration's inputs on the device (q, qd, tau, then qdd; SoA n x B) and B
+// failed links; freed on scope exit.
+template <class S>
+struct DeviceInputs {
+  S* p = nullptr;
+  int* failed = nullptr;
+  Index n = 0, B = 0;
+  std::size_t count = 0;
+  FdBatchIn<S> in{};
+  BatchView<S> qdd{};
+
+  bool upload(benchmark::State& st, const Inputs& h, Index n_, Index B_) {
+    n = n_, B = B_, count = static_cast<std::size_t>(n) * B;
+    if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
+        !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
+      return false;
+    const std::vector<double>* src[3] = {&h.q, &h.qd, &h.tau};
+    for (int a = 0; a < 3; ++a) {
+      const std::vector<S> v(src[a]->begin(), src[a]->end());
+      cudaMemcpy(p + a * count, v.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+    }
+    using V = BatchView<const S>;
+    in = {V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
+    qdd = BatchView<S>::soa(p + 3 * count, n, B);
+    return true;
+  }
+  // qdd back on the host, and how many instances reported a failed pivot
+  std::vector<S> result(Index& bad) const {
+    std::vector<S> out(count);
+    std::vector<int> f(static_cast<std::size_t>(B));
+    cudaMemcpy(out.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
+    cudaMemcpy(f.data(), failed, B * sizeof(int), cudaMemcpyDeviceToHost);
+    bad = 0;
+    for (int x : f) bad += x >= 0;
+    return out;
+  }
+  ~DeviceInputs() {
+    if (p) cudaFree(p);
+    if (failed) cudaFree(failed);
+  }
+};
+
 // Device rows: compute_async on device buffers.
 template <class S>
 void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
@@ -114,29 +156,12 @@ void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm
     st.SkipWithError(e.what());
     return;
   }
-  const std::size_t count = static_cast<std::size_t>(n) * B;
-  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
-  S* p = nullptr;
-  int* failed = nullptr;
-  if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
-      !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
-    return;
-  cudaMemcpy(p, q.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  cudaMemcpy(p + count, qd.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  cudaMemcpy(p + 2 * count, tau.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  using V = BatchView<const S>;
-  const FdBatchIn<S> din{V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
-  const BatchView<S> dqdd = BatchView<S>::soa(p + 3 * count, n, B);
-  time_launches(st, [&] { return fd->compute_async(din, dqdd, failed, nullptr); });
-  std::vector<S> qdd(count);
-  std::vector<int> f(static_cast<std::size_t>(B));
-  cudaMemcpy(qdd.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
-  cudaMemcpy(f.data(), failed, B * sizeof(int), cudaMemcpyDeviceToHost);
+  DeviceInputs<S> dev;
+  if (!dev.upload(st, *in, n, B)) return;
+  time_launches(st, [&] { return fd->compute_async(dev.in, dev.qdd, dev.failed, nullptr); });
   Index bad = 0;
-  for (int x : f) bad += x >= 0;
+  const std::vector<S> qdd = dev.result(bad);
   set<S>(st, n, B, error_of(qdd, *in), bad);
-  cudaFree(p);
-  cudaFree(failed);
 }
 
 // Host rows: compute() from host buffers (the hybrid needs q on the host).
@@ -191,19 +216,11 @@ void run_plan(benchmark::State& st, const Model* m, Index chunk, Index fan_in, b
     st.SkipWithError(e.what());
     return;
   }
-  const std::size_t count = static_cast<std::size_t>(n) * B;
-  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
-  S* p = nullptr;
-  int* failed = nullptr;
-  if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
-      !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
-    return;
-  cudaMemcpy(p, q.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  cudaMemcpy(p + count, qd.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  cudaMemcpy(p + 2 * count, tau.data(), count * sizeof(S), cudaMemcpyHostToDevice);
-  using V = BatchView<const S>;
-  const FdBatchIn<S> din{V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
-  const BatchView<S> dqdd = BatchView<S>::soa(p + 3 * count, n, B);
+  DeviceInputs<S> dev;
+  if (!dev.upload(st, *in, n, B)) return;
+  const FdBatchIn<S> din = dev.in;
+  const BatchView<S> dqdd = dev.qdd;
+  int* const failed = dev.failed;
   cudaStream_t stream = nullptr;
   cudaGraphExec_t exec = nullptr;
   cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking);
@@ -217,13 +234,11 @@ void run_plan(benchmark::State& st, const Model* m, Index chunk, Index fan_in, b
     cudaGraphDestroy(g);
   }
   time_launches(st, [&] { return graph ? cudaGraphLaunch(exec, nullptr) : plan->launch(din, dqdd, failed, nullptr); });
-  std::vector<S> qdd(count);
-  cudaMemcpy(qdd.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
-  set<S>(st, n, B, error_of(qdd, *in), 0);
+  Index bad = 0;
+  const std::vector<S> qdd = dev.result(bad);
+  set<S>(st, n, B, error_of(qdd, *in), bad);
   if (exec) cudaGraphExecDestroy(exec);
   cudaStreamDestroy(stream);
-  cudaFree(p);
-  cudaFree(failed);
 }
 
 std::vector<std::unique_ptr<Model>> g_models;

@@ -118,27 +118,12 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
       max_batch_(std::max<Index>(max_batch, 1)),
       chunk_(chunk > 0 ? chunk : kDefaultChunk),
       fan_in_(fan_in > 1 ? fan_in : kDefaultFanIn) {
-  require_chain(model, "the parallel chain forward dynamics");
-  if (static_cast<long long>(n_) * max_batch_ > INT_MAX / 2)
-    throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
-                       std::to_string(max_batch_) + " instances exceed 2^30 links per call");
+  host_ = ChainBodies<S>::from(model, max_batch_);
   a0_ = base_acceleration(model.gravity);
-  std::vector<InverseInertia<DualScalar>> Phi;
-  body_class_host_.resize(static_cast<std::size_t>(n_));
-  for (Index i = 0; i < n_; ++i) {
-    Body<S> b = model.bodies[i];
-    b.parent = -1;
-    Index k = static_cast<Index>(body_host_.size()) - 1;
-    if (k < 0 || std::memcmp(&body_host_[k], &b, sizeof b) != 0) {
-      body_host_.push_back(b);
-      Phi.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
-      k = static_cast<Index>(body_host_.size()) - 1;
-    }
-    body_class_host_[i] = static_cast<int>(k);
-  }
+  const std::vector<InverseInertia<DualScalar>>& Phi = host_.Phi;
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
   level_size_ = level_sizes(static_cast<Index>(links), chunk_, fan_in_);
-  const std::size_t classes = body_host_.size(), chunks = static_cast<std::size_t>(level_size_[0]);
+  const std::size_t classes = host_.body.size(), chunks = static_cast<std::size_t>(level_size_[0]);
   // one allocation: tables, per-link scratch, per-level aggregates and carries
   std::size_t off = 0;
   auto take = [&](std::size_t bytes) {
@@ -185,11 +170,11 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     dual_.push_back(reinterpret_cast<DualRiccati<DualScalar>*>(base + o_dual[k]));
     dual_carry_.push_back(reinterpret_cast<Mat5<DualScalar>*>(base + o_dualc[k]));
   }
-  check(cudaMemcpy(base + o_body, body_host_.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
+  check(cudaMemcpy(base + o_body, host_.body.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
         "copying the chain's bodies");
   check(cudaMemcpy(base + o_phi, Phi.data(), classes * sizeof(InverseInertia<DualScalar>), cudaMemcpyHostToDevice),
         "copying the chain's inverse inertias");
-  check(cudaMemcpy(base + o_class, body_class_host_.data(), static_cast<std::size_t>(n_) * sizeof(int),
+  check(cudaMemcpy(base + o_class, host_.body_class.data(), static_cast<std::size_t>(n_) * sizeof(int),
                    cudaMemcpyHostToDevice),
         "copying the chain's body classes");
   check(cudaMallocHost(&Ia_pinned_, chunks * sizeof(ABInertia<S>)), "allocating pinned memory");
@@ -314,7 +299,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
       Ia_pinned_[c] = Ia_next;  // Ia of link last(c) + 1 (unused when last(c) has no child)
       for (; g >= r.first(c); --g) {
         const Index i = g % n_, b = g / n_;
-        const Body<S>& body = body_host_[body_class_host_[i]];
+        const Body<S>& body = host_.body[host_.body_class[i]];
         ABInertia<S> IA = ABInertia<S>::from(body.I);
         if (i != n_ - 1) IA += Ia_next.transform_transpose(Xnext);
         Force<S> U;

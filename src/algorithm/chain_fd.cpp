@@ -34,6 +34,29 @@ void require_chain(const ModelTpl<S>& model, const char* what) {
                          std::to_string(model.parent(i)));
 }
 
+template <class S>
+ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
+  require_chain(model, "the parallel chain forward dynamics");
+  const Index n = model.nv();
+  if (static_cast<long long>(n) * max_batch > INT_MAX / 2)
+    throw BackendError("the parallel chain forward dynamics: " + std::to_string(n) + " links x " +
+                       std::to_string(max_batch) + " instances exceed 2^30 links per call");
+  ChainBodies o;
+  o.body_class.resize(static_cast<std::size_t>(n));
+  for (Index i = 0; i < n; ++i) {
+    Body<S> b = model.bodies[i];
+    b.parent = -1;
+    Index k = static_cast<Index>(o.body.size()) - 1;
+    if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
+      o.body.push_back(b);
+      o.Phi.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
+      k = static_cast<Index>(o.body.size()) - 1;
+    }
+    o.body_class[i] = static_cast<int>(k);
+  }
+  return o;
+}
+
 namespace {
 
 // The aggregates above level 0 and the carries of every level, for one pass whose
@@ -65,28 +88,12 @@ void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
 template <class S>
 ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
     : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)) {
-  require_chain(model, "the parallel chain forward dynamics");
-  if (static_cast<long long>(n_) * max_batch_ > INT_MAX / 2)
-    throw BackendError("the parallel chain forward dynamics: " + std::to_string(n_) + " links x " +
-                       std::to_string(max_batch_) + " instances exceed 2^30 links per call");
+  bodies_ = ChainBodies<S>::from(model, max_batch_);
   threads_ = threads > 0 ? threads : openmp_threads();
   const Index links = n_ * max_batch_;
   // chunks: at least 8 per thread, at most 64 links each, at least 8 links each
   chunk_ = chunk > 0 ? chunk : std::clamp<Index>(links / (8 * threads_), 8, 64);
   a0_ = base_acceleration(model.gravity);
-  // distinct bodies (every link of a generated rope is the same body)
-  body_class_.resize(static_cast<std::size_t>(n_));
-  for (Index i = 0; i < n_; ++i) {
-    Body<S> b = model.bodies[i];
-    b.parent = -1;
-    Index k = static_cast<Index>(body_.size()) - 1;
-    if (k < 0 || std::memcmp(&body_[k], &b, sizeof b) != 0) {
-      body_.push_back(b);
-      Phi_.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
-      k = static_cast<Index>(body_.size()) - 1;
-    }
-    body_class_[i] = static_cast<int>(k);
-  }
   v_.resize(links);
   U_.resize(links);
   w_.resize(links);
@@ -110,9 +117,9 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   ChainFdData<S> d;
   d.n = n_;
   d.batch = B;
-  d.body = body_.data();
-  d.Phi = Phi_.data();
-  d.body_class = body_class_.data();
+  d.body = bodies_.body.data();
+  d.Phi = bodies_.Phi.data();
+  d.body_class = bodies_.body_class.data();
   d.a0 = a0_;
   d.q = in.q;
   d.qd = in.qd;
@@ -161,6 +168,8 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
 
 template void require_chain(const ModelTpl<float>&, const char*);
 template void require_chain(const ModelTpl<double>&, const char*);
+template struct ChainBodies<float>;
+template struct ChainBodies<double>;
 template class ChainForwardDynamics<float>;
 template class ChainForwardDynamics<double>;
 

@@ -523,6 +523,20 @@ struct ChainChunking {
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what);
 
+// A chain's constants as every driver keeps them: its distinct bodies (consecutive
+// equal bodies share one entry: every link of a generated rope is one), their
+// inverse inertias in pass 1's scalar, and each body's entry.
+template <class S>
+struct ChainBodies {
+  std::vector<Body<S>> body;                   // (classes) distinct bodies, parent -1
+  std::vector<InverseInertia<DualScalar>> Phi;  // (classes) their inverse inertias
+  std::vector<int> body_class;                 // (n) entry of body i
+
+  // Throws BackendError unless the model is an unbranched chain (require_chain) and
+  // n x max_batch links fit in 2^30.
+  static ChainBodies from(const ModelTpl<S>& model, Index max_batch);
+};
+
 // Forward dynamics of B instances of an unbranched chain by the chunked scans above
 // ("parallel"), on the host with OpenMP threads (1: serial). Agrees with the serial
 // aba to rounding (see tests/test_chain_fd.cpp for the measured errors). Owns all
@@ -548,9 +562,7 @@ class ChainForwardDynamics {
   Index n_ = 0, max_batch_ = 0, chunk_ = 0;
   int threads_ = 1;
   Motion<S> a0_;
-  std::vector<Body<S>> body_;
-  std::vector<InverseInertia<DualScalar>> Phi_;
-  std::vector<int> body_class_;
+  ChainBodies<S> bodies_;
   std::vector<Motion<S>> v_;
   std::vector<Force<S>> U_, w_;
   std::vector<S> D_, u_;

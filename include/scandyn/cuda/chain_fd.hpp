@@ -83,8 +83,7 @@ class ChainFdPlan {
 
   Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;
   Motion<S> a0_;
-  std::vector<Body<S>> body_host_;          // distinct bodies (hybrid's host recursion)
-  std::vector<int> body_class_host_;        // (n)
+  ChainBodies<S> host_;                     // the chain's constants (hybrid's host recursion)
   std::size_t bytes_ = 0;
   void* memory_ = nullptr;                  // one device allocation for everything below
   const Body<S>* body_ = nullptr;           // (classes) distinct bodies
