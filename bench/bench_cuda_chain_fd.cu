@@ -141,21 +141,28 @@ struct DeviceInputs {
   }
 };
 
+// The engine for B instances of m by algo, or null (the row skipped with the reason).
+template <class S>
+std::unique_ptr<cuda::CudaForwardDynamics<S>> make_engine(benchmark::State& st, const Model* m, Index B,
+                                                          cuda::FdAlgorithm algo) {
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  try {
+    return std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
+  } catch (const std::exception& e) {
+    st.SkipWithError(e.what());
+    return nullptr;
+  }
+}
+
 // Device rows: compute_async on device buffers.
 template <class S>
 void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
   const Index n = m->nv();
   const auto in = inputs<S>(*m, B);
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = B;
-  std::unique_ptr<cuda::CudaForwardDynamics<S>> fd;
-  try {
-    fd = std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
-  } catch (const std::exception& e) {
-    st.SkipWithError(e.what());
-    return;
-  }
+  const auto fd = make_engine<S>(st, m, B, algo);
+  if (!fd) return;
   DeviceInputs<S> dev;
   if (!dev.upload(st, *in, n, B)) return;
   time_launches(st, [&] { return fd->compute_async(dev.in, dev.qdd, dev.failed, nullptr); });
@@ -169,16 +176,8 @@ template <class S>
 void run_host(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
   const Index n = m->nv();
   const auto in = inputs<S>(*m, B);
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = B;
-  std::unique_ptr<cuda::CudaForwardDynamics<S>> fd;
-  try {
-    fd = std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
-  } catch (const std::exception& e) {
-    st.SkipWithError(e.what());
-    return;
-  }
+  const auto fd = make_engine<S>(st, m, B, algo);
+  if (!fd) return;
   const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
   std::vector<S> qdd(q.size());
   using V = BatchView<const S>;
