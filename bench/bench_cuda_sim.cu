@@ -1,20 +1,26 @@
 // The simulator's step on the GPU (scandyn/sim/simulator.hpp, kernels/sim_step.cu):
-// the state resident on the device, one fused kernel per step (fd_jsi_instance +
+// the state resident on the device, one fused kernel per step (aba_instance +
 // effects + integration, one thread per instance), or beyond 64 DoF the engine path.
 //
 // Rows (names as scripts/bench_results.py reads them: algo step, strategy
 // <engine>:<integrator>:<effects>):
-//   step_fused-jsi:euler:gravity+damping/float/iiwa/cuda, B = 10^6 and 10^7: the RL
+//   step_fused-aba:euler:gravity+damping/float/iiwa/cuda, B = 10^6 and 10^7: the RL
 //       target row (iiwa, gravity + damping, float, semi-implicit Euler);
 //   the same in double, and hyq (16-DoF kernels) in float;
-//   step_fused-jsi:<integrator>:<gravity|all-zero>/float/iiwa/cuda, B = 10^6: the
+//   step_fused-aba:<integrator>:<gravity|all-zero>/float/iiwa/cuda, B = 10^6: the
 //       effects table: only gravity declared against every effect declared with
 //       zero coefficients (same trajectory, the all-effects instantiation), per
 //       integrator (implicit with only gravity runs as euler: nothing to treat
 //       implicitly);
-//   step_engine-jsi_dense:euler:gravity/<precision>/rope:128/cuda, B = 10^3: the
-//       path beyond 64 DoF (effects kernel, CudaForwardDynamics, integration
-//       kernel).
+//   step_engine-parallel:euler:gravity/<precision>/rope:<n>/cuda: the path beyond
+//       64 DoF for chains (effects kernel, CudaForwardDynamics' parallel chain
+//       forward dynamics, integration kernel): rope:128 x 10^3 instances, the
+//       hanging ropes rope:10^4 and rope:10^6 (one instance; the rope:10^6 step
+//       target row);
+//   step_engine-jsi_dense:euler:gravity/<precision>/tree:128:4/cuda, B = 10^3: the
+//       same path for trees (the dense JSI).
+// Each row checks that the simulator runs the engine its name says (else it is
+// skipped with the strategy it got).
 // Timing: CUDA events around `iterations` steps queued on the simulator's stream
 // (manual time), so a row is the device's throughput with launch overhead, no
 // host copies. Counters: links, instances, max_rel_err (q and qd after 10 steps
@@ -40,8 +46,8 @@ using namespace scandyn;
 long long g_max_instances = 10000000;
 
 template <class S>
-void BM_CudaStep(benchmark::State& st, std::string model, std::string effects, std::string integrator,
-                 long long instances) {
+void BM_CudaStep(benchmark::State& st, std::string engine, std::string model, std::string effects,
+                 std::string integrator, long long instances) {
   if (instances > g_max_instances) {
     st.SkipWithError("beyond --max-instances");
     return;
@@ -52,6 +58,10 @@ void BM_CudaStep(benchmark::State& st, std::string model, std::string effects, s
   try {
     const sim::Scene scene = bench::make_scene(model, effects, integrator, precision, "cuda", instances, 1e-3);
     s = std::make_unique<sim::Simulator<S>>(scene);
+    if (s->strategy().rfind(engine + ":", 0) != 0) {
+      st.SkipWithError(("the simulator runs " + s->strategy() + ", not " + engine).c_str());
+      return;
+    }
     err = bench::max_rel_err_after(*s, scene, 10, static_cast<Index>(std::min<long long>(instances, 64)));
   } catch (const std::exception& e) {
     st.SkipWithError(e.what());
@@ -87,7 +97,7 @@ void add(const std::string& strategy, const std::string& model, const std::strin
          long long B) {
   const std::string name = "step_" + strategy + ":" + integ + ":" + effects + "/" + (sizeof(S) == 4 ? "float" : "double") +
                            "/" + model + "/cuda";
-  benchmark::RegisterBenchmark(name.c_str(), BM_CudaStep<S>, model, effects, integ, B)
+  benchmark::RegisterBenchmark(name.c_str(), BM_CudaStep<S>, strategy, model, effects, integ, B)
       ->UseManualTime()
       ->Unit(benchmark::kMillisecond);
 }
@@ -107,14 +117,20 @@ int main(int argc, char** argv) {
     return 0;
   }
   for (long long B : {1000000LL, 10000000LL}) {
-    add<float>("fused-jsi", "iiwa", "gravity+damping", "euler", B);
-    add<double>("fused-jsi", "iiwa", "gravity+damping", "euler", B);
+    add<float>("fused-aba", "iiwa", "gravity+damping", "euler", B);
+    add<double>("fused-aba", "iiwa", "gravity+damping", "euler", B);
   }
-  add<float>("fused-jsi", "hyq", "gravity+damping", "euler", 1000000LL);
+  add<float>("fused-aba", "hyq", "gravity+damping", "euler", 1000000LL);
   for (const char* integ : {"euler", "rk4", "implicit"})
-    for (const char* effects : {"gravity", "all-zero"}) add<float>("fused-jsi", "iiwa", effects, integ, 1000000LL);
-  add<float>("engine-jsi_dense", "rope:128", "gravity", "euler", 1000LL);
-  add<double>("engine-jsi_dense", "rope:128", "gravity", "euler", 1000LL);
+    for (const char* effects : {"gravity", "all-zero"}) add<float>("fused-aba", "iiwa", effects, integ, 1000000LL);
+  add<float>("engine-parallel", "rope:128", "gravity", "euler", 1000LL);
+  add<double>("engine-parallel", "rope:128", "gravity", "euler", 1000LL);
+  for (const char* rope : {"rope:10000", "rope:1000000"}) {
+    add<float>("engine-parallel", rope, "gravity", "euler", 1LL);
+    add<double>("engine-parallel", rope, "gravity", "euler", 1LL);
+  }
+  add<float>("engine-jsi_dense", "tree:128:4", "gravity", "euler", 1000LL);
+  add<double>("engine-jsi_dense", "tree:128:4", "gravity", "euler", 1000LL);
   benchmark::Initialize(&argc, argv);
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();

@@ -1,30 +1,40 @@
 // kernels/sim_fused.cuh (internal): the simulator's fused step kernel, one thread
 // per instance: load the instance's q, qd, tau, run step_instance (the scene's
-// integrator and effects, scandyn/sim/integrators.hpp) over fd_jsi_instance, store
-// q, qd. The state never leaves the device.
+// integrator and effects, scandyn/sim/integrators.hpp) over the articulated-body
+// algorithm (aba_instance, with the implicit integrator's armature on its pivots),
+// store q, qd. The state never leaves the device.
+//
+// The ABA, not the joint-space inertia: it is the serial backend's algorithm (so
+// the backends differ by rounding only), faster on the GPU (bench_cuda_fd: iiwa
+// 10^7 float 3.3 ms against 4.5), and it stays accurate in float where the
+// joint-space inertia's Cholesky does not (a 40-link chain's float rollout drifts
+// 5e-2 from the double one in 100 steps with the JSI).
 //
 // Instantiated per (precision, integrator) in kernels/sim_fused_<S>_<integrator>.cu
 // (six translation units, so a parallel build compiles them side by side). Each
-// kernel takes about 5 s of nvcc time (sm_90), so not all 2 x 4 x 32 x 3 are
-// compiled; the documented subset (compiled_set):
+// kernel takes about 5 s of nvcc time (sm_90), so not all 2 x 4 x 32 x 3 x 2 are
+// compiled; the documented subset (compiled_kernel):
 //   - the gravity bit never changes the code: gravity is the base acceleration a0,
 //     a value in the kernel parameter (zero when absent), the same arithmetic
 //     either way, so a scene's set maps to set & ~kGravity;
-//   - float, capacity 8 (the RL robots: iiwa, and anything of up to 8 DoF): every
-//     one of the 16 remaining sets for euler and rk4, and the 12 with damping or
-//     springs for implicit (implicit without them is euler: effective_integrator):
-//     an absent effect costs nothing here, and bench_cuda_sim's effects table
+//   - float, capacity 8 (the RL robots: iiwa, and anything of up to 8 DoF), models
+//     without branch children (ThreadModel::branch_slots() == 0: chains, and
+//     chains hanging from the base): every one of the 16 remaining sets for euler
+//     and rk4, and the 12 with damping or springs for implicit (implicit without
+//     them is euler: effective_integrator), over the chain ABA (kSlots 0): an
+//     absent effect costs nothing here, and bench_cuda_sim's effects table
 //     measures exactly this case;
-//   - double, and float beyond 8 DoF: one kernel per integrator with every joint
-//     effect and external wrenches compiled in; undeclared effects run with
-//     neutral coefficients (d = k = kl = dl = 0, limits -inf / +inf, zero wrenches),
-//     which gives the same numbers as the absent effect (test_sim's
+//   - everything else (double; float beyond 8 DoF; float branched models of up to
+//     8): one kernel per integrator with every joint effect and external wrenches
+//     compiled in, over the any-tree ABA (kSlots = C); undeclared effects run with
+//     neutral coefficients (d = k = kl = dl = 0, limits -inf / +inf, zero
+//     wrenches), which gives the same numbers as the absent effect (test_sim's
 //     ZeroCoefficientsEqualAbsentEffects checks that identity on the host) at the
 //     cost of a few per-DoF operations.
-// 44 + 3 x 3 (float) + 4 x 3 (double) = 65 kernels. With SCANDYN_SIM_EFFECT_SETS=0
-// (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what scripts/test.sh uses on machines
-// without a GPU) the float capacity-8 kernels are the all-effects one per
-// integrator too: 24 kernels.
+// 44 + 3 + 3 x 3 (float) + 4 x 3 (double) = 68 kernels. With
+// SCANDYN_SIM_EFFECT_SETS=0 (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what
+// scripts/test.sh uses on machines without a GPU) only the all-effects any-tree
+// kernels: 24.
 #pragma once
 
 #include <cuda_runtime.h>
@@ -56,7 +66,21 @@ struct SimParams {
   JointCoefficients<S> coef[C];         // (nv) joint coefficients
   S armature[C];                        // (nv) dt d + dt^2 k (implicit), else unused
   S dt;                                 // time step
+  Index branch_slots;                   // ThreadModel::branch_slots(): 0 lets the chain kernels run
 };
+
+// The forward dynamics of one instance as the fused step runs it: aba_instance with
+// kSlots branch slots (0: models without branch children; C: any model), rolled
+// loops (FdKernelChoice's choice for the ABA), the armature on the pivots. Also a
+// host function, so that tests run the fused composition without a device.
+template <class S, int C, int kSlots>
+__host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::ThreadModelParams<S, C>& model,
+                                                                 const Force<S>* fext, const S* q, const S* qd,
+                                                                 const S* tau, const S* armature, S* qdd) {
+  return cuda::aba_instance<S, C, false, false, cuda::kThreadTrig<S>, kSlots>(
+      model, cuda::DofColumn<const S>{q, 1}, cuda::DofColumn<const S>{qd, 1}, cuda::DofColumn<const S>{tau, 1}, fext,
+      cuda::DofColumn<S>{qdd, 1}, armature);
+}
 
 // Arguments of one launch (device pointers).
 template <class S>
@@ -70,12 +94,11 @@ struct FusedArgs {
   int* status;               // [0]: failed instances (atomicAdd), [1]: lowest failed instance (atomicMin)
 };
 
-template <class S, int C, unsigned E, Integrator I>
+template <class S, int C, unsigned E, Integrator I, int kSlots>
 __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
     sim_fused_kernel(const __grid_constant__ SimParams<S, C> p, const FusedArgs<S> a) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= a.batch) return;
-  constexpr bool kUnrolled = C <= 8 && sizeof(S) == 4;  // as fd_instances_kernel
   const Index n = p.model.nv;
   const long long B = a.batch;
   S q[C], qd[C], tau[C];                        // the instance's state and torques
@@ -91,10 +114,7 @@ SCANDYN_SIM_UNROLL
   }
   const Force<S>* fext = (E & kExternal) ? a.wrenches + b * a.wrench_stride : nullptr;
   auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
-    return cuda::fd_jsi_instance<S, C, false, kUnrolled>(p.model, cuda::DofColumn<const S>{qa, 1},
-                                                         cuda::DofColumn<const S>{qda, 1},
-                                                         cuda::DofColumn<const S>{t, 1}, fext,
-                                                         cuda::DofColumn<S>{out, 1}, arm);
+    return fused_forward_dynamics<S, C, kSlots>(p.model, fext, qa, qda, t, arm, out);
   };
   const StepScratch<S> w{tw, qdd, qs, qds, aq, aqd};
   const Index failed = step_instance<E, I, C>(n, p.dt, p.coef, p.armature, q, qd, tau, w, fd);
@@ -111,22 +131,33 @@ SCANDYN_SIM_UNROLL
   }
 }
 
-// Does the kernel of effect set e exist for (S, C, I)? (the header comment's subset)
+// The per-set chain kernels: float, capacity 8, with SCANDYN_SIM_EFFECT_SETS.
+template <class S, int C>
+constexpr bool kPerSetKernels = SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8;
+
+// Does the kernel of effect set e with kSlots branch slots exist for (S, C, I)?
+// (the header comment's subset)
 template <class S, int C, Integrator I>
-constexpr bool compiled_set(unsigned e) {
+constexpr bool compiled_kernel(unsigned e, int slots) {
   if (e & kGravity) return false;
-  if (SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8)
+  const bool all_effects_tree = e == (kJointEffects | kExternal) && slots == C;
+  if (kPerSetKernels<S, C> && slots == 0)
     return I == Integrator::Implicit ? (e & kImplicitEffects) != 0 : true;
-  return e == (kJointEffects | kExternal);
+  return all_effects_tree;
 }
 
-// The kernel a scene's effect set runs on (S, C, I): its own set without gravity,
-// or the all-effects kernel (then the wrenches must point at nv zero wrenches when
-// the scene has none).
+// The kernel a scene's effect set runs on (S, C, I), for a model with
+// branch_slots branch slots: its own set without gravity over the chain ABA, or
+// the all-effects kernel over the any-tree ABA (then the wrenches must point at nv
+// zero wrenches when the scene has none). Returns the set; slots gets kSlots.
 template <class S, int C, Integrator I>
-constexpr unsigned kernel_set(unsigned effects) {
-  return SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8 ? (effects & ~unsigned(kGravity))
-                                                                            : (kJointEffects | kExternal);
+constexpr unsigned kernel_set(unsigned effects, Index branch_slots, int& slots) {
+  if (kPerSetKernels<S, C> && branch_slots == 0) {
+    slots = 0;
+    return effects & ~unsigned(kGravity);
+  }
+  slots = C;
+  return kJointEffects | kExternal;
 }
 
 template <class F, unsigned... K>
@@ -139,14 +170,21 @@ void for_each_set(F& f, std::integer_sequence<unsigned, K...>) {
 template <class S, Integrator I, class Params>
 cudaError_t launch_fused_with(const Params& params, unsigned effects, const FusedArgs<S>& args, cudaStream_t stream) {
   constexpr int C = Params::capacity;
-  const unsigned e = kernel_set<S, C, I>(effects);
+  int slots = C;
+  const unsigned e = kernel_set<S, C, I>(effects, params.branch_slots, slots);
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
   cudaError_t err = cudaErrorInvalidValue;  // a set not compiled for I (never: the front end maps them)
   auto one = [&](auto set) {
     constexpr unsigned E = decltype(set)::value;
-    if constexpr (compiled_set<S, C, I>(E)) {
-      if (e == E) {
-        sim_fused_kernel<S, C, E, I><<<blocks, kSimBlock, 0, stream>>>(params, args);
+    if constexpr (compiled_kernel<S, C, I>(E, 0)) {
+      if (e == E && slots == 0) {
+        sim_fused_kernel<S, C, E, I, 0><<<blocks, kSimBlock, 0, stream>>>(params, args);
+        err = cudaGetLastError();
+      }
+    }
+    if constexpr (compiled_kernel<S, C, I>(E, C)) {
+      if (e == E && slots == C) {
+        sim_fused_kernel<S, C, E, I, C><<<blocks, kSimBlock, 0, stream>>>(params, args);
         err = cudaGetLastError();
       }
     }

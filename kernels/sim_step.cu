@@ -4,16 +4,14 @@
 // simulator's lifetime; a step never touches the host.
 //   models of up to 64 DoF  one fused kernel per step (kernels/sim_fused.cuh): one
 //                           thread per instance runs the whole step_instance
-//                           (effects, fd_jsi_instance, integration) in registers /
-//                           per-thread memory (strategy "fused-jsi");
+//                           (effects, aba_instance, integration) in registers /
+//                           per-thread memory (strategy "fused-aba");
 //   beyond 64 DoF           per forward dynamics: an elementwise kernel adding the
 //                           joint effects' forces, CudaForwardDynamics::compute_async
-//                           (jsi_dense: CRBA per block, cuSOLVER's batched Cholesky),
-//                           an elementwise integration kernel (strategy
-//                           "engine-jsi_dense"). This is the seam where a parallel
-//                           chain forward dynamics plugs in (one call,
-//                           FdBatchIn -> qdd, on the simulator's stream). euler and
-//                           rk4 only: the dense path takes no armature yet.
+//                           (its Auto choice: the parallel chain forward dynamics for
+//                           chains, jsi_dense for trees), an elementwise integration
+//                           kernel (strategy "engine-<that choice>"). euler and rk4
+//                           only: neither takes an armature yet.
 #include <cuda_runtime.h>
 
 #include <climits>
@@ -194,6 +192,7 @@ class CudaSimBackend final : public SimBackend<S> {
               sp.armature[i] = setup.armature.empty() ? S(0) : setup.armature[i];
             }
             sp.dt = setup.dt;
+            sp.branch_slots = tm.branch_slots();
             params_ = sp;
           },
           tm.params());
@@ -315,7 +314,7 @@ class CudaSimBackend final : public SimBackend<S> {
   }
   void synchronize() override { check(cudaStreamSynchronize(stream_), "running the simulator's steps"); }
   bool on_device() const override { return true; }
-  std::string strategy() const override { return fused_ ? "fused-jsi" : "engine-" + fd_->strategy(); }
+  std::string strategy() const override { return fused_ ? "fused-aba" : "engine-" + fd_->strategy(); }
   void* stream() const override { return stream_; }
 
  private:

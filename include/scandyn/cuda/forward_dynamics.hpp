@@ -525,6 +525,10 @@ __host__ __device__ __forceinline__ void slot_update(T (&slots)[K], int s, F&& f
 //   C           (the default) slots indexed at run time (per-thread local memory);
 //               any model.
 //
+// armature (optional, nv scalars, any memory the thread can read): joint-space
+// inertias added to the pivots D_i, i.e. to M's diagonal (the serial aba's
+// armature; the simulator's implicit damping and springs); null: none.
+//
 // Also a host function (under nvcc), so the tests check its logic without a device.
 //
 // State (per thread): AbaBodyState (C x 8 scalars), q and qd (C each, when
@@ -538,7 +542,8 @@ template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig
           int kSlots = C>
 __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
                                                        DofColumn<const S> qd, DofColumn<const S> tau,
-                                                       const Force<S>* fext, DofColumn<S> qdd) {
+                                                       const Force<S>* fext, DofColumn<S> qdd,
+                                                       const S* armature = nullptr) {
   static_assert(kSlots >= 0 && kSlots <= C, "aba_instance: kSlots is 0 (chains), below C (registers) or C");
   using fd_detail::slot_get;
   using fd_detail::slot_update;
@@ -642,7 +647,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     }
     Force<S> Ui;
     S Di, ui;
-    aba_joint_terms(b, IA, p, tau[i], Ui, Di, ui);
+    aba_joint_terms(b, IA, p, tau[i], Ui, Di, ui, armature ? armature[i] : S(0));
     if (!pivot_ok(Di)) return i;
     st[i].set_terms(Ui, Di, ui);
     if (fl & kParentIsBase) continue;

@@ -25,11 +25,13 @@
 //   serial  the instances one after another, ABA (the reference scandyn::aba);
 //   openmp  the same, instances split over OpenMP threads;
 //   cuda    models of up to 64 DoF: one fused kernel per step, one thread per
-//           instance: the joint-space-inertia forward dynamics (fd_jsi_instance),
-//           the effects and the integration, state in registers / per-thread memory
-//           (strategy "fused-jsi"); beyond 64 DoF: per forward dynamics, a stage
-//           kernel (effects), CudaForwardDynamics::compute_async (jsi_dense), an
-//           integration kernel (strategy "engine-jsi_dense"; euler and rk4 only).
+//           instance: the articulated-body algorithm (aba_instance), the effects
+//           and the integration, state in registers / per-thread memory (strategy
+//           "fused-aba"); beyond 64 DoF: per forward dynamics, a stage kernel
+//           (effects), CudaForwardDynamics::compute_async (Auto: the parallel chain
+//           forward dynamics for chains, jsi_dense for trees), an integration
+//           kernel (strategy "engine-parallel" / "engine-jsi_dense"; euler and rk4
+//           only).
 //
 // Failures. A forward dynamics whose pivot is not positive and finite leaves that
 // instance's state unchanged for the step and is counted; status() reports the
@@ -147,8 +149,8 @@ class Simulator {
   void synchronize() { backend_->synchronize(); }
 
   bool on_device() const { return backend_->on_device(); }
-  // "serial-aba", "openmp-aba", "fused-jsi" (cuda, thread per instance) or
-  // "engine-jsi_dense" (cuda, beyond 64 DoF)
+  // "serial-aba", "openmp-aba", "fused-aba" (cuda, thread per instance) or
+  // "engine-parallel" / "engine-jsi_dense" (cuda, beyond 64 DoF: chains / trees)
   std::string strategy() const { return backend_->strategy(); }
   void* stream() const { return backend_->stream(); }  // cudaStream_t on cuda, else null
 
