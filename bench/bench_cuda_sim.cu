@@ -58,7 +58,7 @@ void BM_CudaStep(benchmark::State& st, std::string engine, std::string model, st
   try {
     const sim::Scene scene = bench::make_scene(model, effects, integrator, precision, "cuda", instances, 1e-3);
     s = std::make_unique<sim::Simulator<S>>(scene);
-    if (s->strategy().rfind(engine + ":", 0) != 0) {
+    if (s->strategy() != engine) {  // Simulator::strategy(): the engine only
       st.SkipWithError(("the simulator runs " + s->strategy() + ", not " + engine).c_str());
       return;
     }
