@@ -35,6 +35,9 @@ def rows_from_json(path):
         if not has_median and b.get('run_type') == 'aggregate':
             continue
         name = b.get('run_name', b['name'])
+        if b.get('error_occurred'):  # a skipped row (its reason) measures nothing
+            sys.stderr.write('bench_results.py: %s: skipped: %s\n' % (name, b.get('error_message', '')))
+            continue
         parts = name.split('/')
         algo_part, precision, model = parts[0], parts[1], parts[2]
         backend = parts[3] if len(parts) > 3 else 'serial'
