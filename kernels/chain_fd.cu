@@ -301,7 +301,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
         const Index i = g % n_, b = g / n_;
         const Body<S>& body = host_.body[host_.body_class[i]];
         ABInertia<S> IA = ABInertia<S>::from(body.I);
-        if (i != n_ - 1) IA += Ia_next.transform_transpose(Xnext);
+        if (host_.has_child(i)) IA += Ia_next.transform_transpose(Xnext);
         Force<S> U;
         S D, u;
         aba_joint_terms(body, IA, Force<S>::zero(), S(0), U, D, u);

@@ -119,14 +119,6 @@ cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>
 
 // ---- the engine -------------------------------------------------------------------
 
-namespace {
-bool is_chain(const std::vector<Index>& parents) {
-  for (std::size_t i = 0; i < parents.size(); ++i)
-    if (parents[i] != static_cast<Index>(i) - 1) return false;
-  return true;
-}
-}  // namespace
-
 template <class S>
 CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
                                             FdAlgorithm algorithm)
@@ -134,10 +126,10 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for forward dynamics (use auto or recursion)");
-  std::vector<Index> parents;
-  for (Index i = 0; i < nv_; ++i) parents.push_back(model.parent(i));
   if (algorithm == FdAlgorithm::Auto)
-    algorithm = nv_ <= kMaxThreadDofs ? FdAlgorithm::Aba : is_chain(parents) ? FdAlgorithm::Parallel : FdAlgorithm::Jsi;
+    algorithm = nv_ <= kMaxThreadDofs            ? FdAlgorithm::Aba
+                : first_branching_body(model) < 0 ? FdAlgorithm::Parallel
+                                                  : FdAlgorithm::Jsi;
   algorithm_ = algorithm;
   aba_ = algorithm == FdAlgorithm::Aba;
   const bool chain = algorithm == FdAlgorithm::Parallel || algorithm == FdAlgorithm::Hybrid;

@@ -11,7 +11,8 @@
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
 #   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
-#   5b. scripts/accuracy_report --full, when matplotlib is importable -> accuracy/
+#   5b. scripts/accuracy_report --full --name accuracy-h100, when matplotlib is
+#       importable -> accuracy/accuracy-h100.md, accuracy/accuracy-h100/ (for docs/)
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
 #   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 # A failed configure or build stops the run; later steps run even if an earlier
@@ -176,9 +177,9 @@ py=.venv/bin/python
 if [[ "${SCANDYN_SKIP_ACCURACY:-0}" == 1 ]]; then
   note "accuracy report skipped (SCANDYN_SKIP_ACCURACY=1)"
 elif "$py" -c 'import matplotlib' 2>/dev/null; then
-  note "accuracy report (full) -> $out/accuracy"
+  note "accuracy report (full) -> $out/accuracy (accuracy-h100.md, accuracy-h100/: copy both to docs/)"
   set +e
-  "$py" scripts/accuracy_report --full --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
+  "$py" scripts/accuracy_report --full --name accuracy-h100 --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
     --stability-test "$build/tests/test_stability" \
     --machine "$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), host $(nproc) cores" \
     2>&1 | tee "$out/accuracy.log"

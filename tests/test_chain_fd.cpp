@@ -165,9 +165,35 @@ TEST(ChainFd, RopesMatchSerialAba) {
   }
 }
 
+// Chains hanging from the base (a curtain, fingers on a fixed palm) are independent
+// chains inside one instance: their boundaries are absorbed as instance boundaries.
+TEST(ChainFd, ChainsFromTheBaseMatchSerialAba) {
+  for (unsigned seed : {4u, 5u}) {
+    // chains of 1, 2, 7, 13 and 17 links; arbitrary axes, prismatic joints, rotated inertias
+    const Model m = test::random_chains_from_base(40, seed, {1, 3, 10, 23});
+    ASSERT_EQ(first_branching_body(m), -1);
+    for (Index chunk : {1, 2, 5, 64}) {
+      EXPECT_LT(chain_fd_error<double>(m, 3, seed, 2, chunk, false), 1e-9) << "seed " << seed << " chunk " << chunk;
+      EXPECT_LT(chain_fd_error<double>(m, 2, seed, 1, chunk, true), 1e-9) << "fext, seed " << seed << " chunk " << chunk;
+    }
+  }
+  const Model curtain = make_generated("curtain:6:50");
+  ASSERT_EQ(first_branching_body(curtain), -1);
+  EXPECT_LT(chain_fd_error<double>(curtain, 2, 9, 2, 0, false), 1e-9);
+  EXPECT_LT(chain_fd_error<float>(curtain, 2, 9, 2, 0, false), 1e-3);
+}
+
 TEST(ChainFd, RefusesTrees) {
-  const Model m = test::random_model(10, 3);
-  EXPECT_THROW(ChainForwardDynamics<double>(m, 1), BackendError);
+  for (const Model& m : {test::random_model(10, 3), make_generated("tree:20:3")}) {
+    const Index i = first_branching_body(m);
+    ASSERT_GE(i, 0) << m.name;  // a body whose parent is neither the previous body nor the base
+    try {
+      ChainForwardDynamics<double> fd(m, 1);
+      ADD_FAILURE() << m.name << " was accepted";
+    } catch (const BackendError& e) {
+      EXPECT_NE(std::string(e.what()).find("body " + std::to_string(i) + " "), std::string::npos) << e.what();
+    }
+  }
 }
 
 TEST(ChainFd, FailedPivotIsReportedAndQddUnwritten) {

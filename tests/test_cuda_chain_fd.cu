@@ -80,6 +80,21 @@ TEST(CudaChainFd, RandomChainsParallelAndHybrid) {
   }
 }
 
+// Chains hanging from the base: independent chains inside one instance (their
+// first and last links absorb as instance boundaries do), in every driver.
+TEST(CudaChainFd, ChainsFromTheBaseParallelAndHybrid) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model forest = test::random_chains_from_base(90, 3, {1, 3, 10, 41, 77});
+  const Model curtain = make_generated("curtain:20:40");
+  for (const Model* m : {&forest, &curtain}) {
+    const Case c = make_case(*m, 3, 5, m == &forest);
+    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+      EXPECT_LT(device_error<double>(*m, 3, algo, c), 1e-9) << m->name;
+      EXPECT_LT(device_error<float>(*m, 3, algo, c), 1e-3) << m->name;
+    }
+  }
+}
+
 TEST(CudaChainFd, RopesToOneHundredThousandLinks) {
   SKIP_WITHOUT_CUDA_DEVICE();
   for (int n : {10, 1000, 100000}) {
@@ -102,6 +117,8 @@ TEST(CudaChainFd, AutoPicksParallelForLongChainsOnly) {
   o.max_batch = 2;
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:100").cast<float>(), o).strategy(), "parallel");
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "aba_thread");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("curtain:10:10").cast<float>(), o).strategy(), "parallel");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("tree:80:3").cast<float>(), o).strategy(), "jsi_dense");
   EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, cuda::FdAlgorithm::Parallel),
                BackendError);
 }

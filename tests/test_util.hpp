@@ -108,4 +108,14 @@ inline Model random_chain(int n, unsigned seed) {
   return m;
 }
 
+// random_model's bodies as unbranched chains hanging from the base, numbered chain
+// by chain: body i's parent is body i - 1, except at the chain starts `starts`
+// (and body 0), whose parent is the base.
+inline Model random_chains_from_base(int n, unsigned seed, const std::vector<int>& starts) {
+  Model m = random_chain(n, seed);
+  m.name = m.source = "random-chains:" + std::to_string(n);
+  for (int s : starts) m.bodies[static_cast<std::size_t>(s)].parent = -1;
+  return m;
+}
+
 }  // namespace scandyn::test

@@ -27,11 +27,11 @@ ChainChunking::ChainChunking(Index links_, Index chunk_, Index fan_in_)
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what) {
   if (model.nv() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
-  for (Index i = 0; i < model.nv(); ++i)
-    if (model.parent(i) != i - 1)
-      throw BackendError(std::string(what) + " needs an unbranched chain (every body's parent the previous one); " +
-                         "body " + std::to_string(i) + " (joint '" + model.joint_names[i] + "') has parent " +
-                         std::to_string(model.parent(i)));
+  const Index i = first_branching_body(model);
+  if (i >= 0)
+    throw BackendError(std::string(what) + " needs unbranched chains hanging from the base (every body's parent " +
+                       "the previous body or the base); body " + std::to_string(i) + " (joint '" +
+                       model.joint_names[i] + "') has parent " + std::to_string(model.parent(i)));
 }
 
 template <class S>
@@ -45,7 +45,7 @@ ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   o.body_class.resize(static_cast<std::size_t>(n));
   for (Index i = 0; i < n; ++i) {
     Body<S> b = model.bodies[i];
-    b.parent = -1;
+    b.parent = model.parent(i) == -1 ? -1 : kChainPrevious;
     Index k = static_cast<Index>(o.body.size()) - 1;
     if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
       o.body.push_back(b);

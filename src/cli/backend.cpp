@@ -244,10 +244,8 @@ class CpuEvaluator final : public Evaluator<S> {
 #endif
   }
 
-  static bool is_chain(const ModelTpl<S>& m) {
-    for (Index i = 0; i < m.nv(); ++i)
-      if (m.parent(i) != i - 1) return false;
-    return m.nv() > 0;
+  static bool is_chain(const ModelTpl<S>& m) {  // what the chain forward dynamics takes
+    return m.nv() > 0 && first_branching_body(m) < 0;
   }
   ChainForwardDynamics<S>& parallel_engine() {
     if (!parallel_) {

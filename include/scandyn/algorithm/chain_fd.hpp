@@ -35,6 +35,13 @@
 // Several instances of the chain are one sequence of links g = b * n + i. A link
 // with no parent (i = 0) or no child (i = n - 1) has an element that ignores its
 // input (M = 0, or C = 0), so scans run across instance boundaries unchanged.
+//
+// The same holds inside an instance whose model is several unbranched chains
+// hanging from the base (every body's parent the previous body or the base, bodies
+// numbered chain by chain: a curtain of ropes, a hand's fingers on a fixed palm):
+// the chains are independent (the base absorbs their forces), so each chain's first
+// link has no parent and each chain's last link no child, exactly as at an
+// instance boundary.
 #pragma once
 
 #include <cmath>
@@ -246,14 +253,16 @@ SCANDYN_HD DualRiccati<DualScalar> dual_element(const Body<S>& b, const InverseI
 
 // ---- the chain and its per-link scratch -------------------------------------
 
-// B instances of an n-link chain (every body's parent is the previous one) and the
-// per-link scratch of the passes; link g = b * n + i is body i of instance b.
-// Pointers are host or device memory, as the driver needs.
+// B instances of an n-link model of unbranched chains from the base (every body's
+// parent the previous one or the base) and the per-link scratch of the passes; link
+// g = b * n + i is body i of instance b. Pointers are host or device memory, as the
+// driver needs.
 template <class S>
 struct ChainFdData {
   Index n = 0;                              // links per instance (nv)
   Index batch = 0;                          // instances B
-  const Body<S>* body = nullptr;            // (table) distinct bodies
+  const Body<S>* body = nullptr;            // (table) distinct bodies; parent: -1 (the base) or
+                                            // kChainPrevious (the previous link), see ChainBodies
   const InverseInertia<DualScalar>* Phi = nullptr;  // (table) their inverse inertias (pass 1's scalar)
   const int* body_class = nullptr;          // (n) table entry of body i
   Motion<S> a0;                             // base acceleration (-gravity)
@@ -270,8 +279,8 @@ struct ChainFdData {
   SCANDYN_HD Index count() const { return n * batch; }
   SCANDYN_HD Index link(Index g) const { return g % n; }
   SCANDYN_HD Index instance(Index g) const { return g / n; }
-  SCANDYN_HD bool has_parent(Index g) const { return g % n != 0; }
-  SCANDYN_HD bool has_child(Index g) const { return g % n != n - 1; }
+  SCANDYN_HD bool has_parent(Index g) const { return body_of(g).parent != -1; }  // (body 0's is -1)
+  SCANDYN_HD bool has_child(Index g) const { return g % n != n - 1 && body_of(g + 1).parent != -1; }
   SCANDYN_HD const Body<S>& body_of(Index g) const { return body[body_class[g % n]]; }
   SCANDYN_HD const InverseInertia<DualScalar>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
   SCANDYN_HD S q_of(Index g) const { return q.at(g % n, g / n); }
@@ -518,19 +527,40 @@ struct ChainChunking {
   Index chunks() const { return level_size.empty() ? 0 : level_size[0]; }
 };
 
-// Throws BackendError unless every body's parent is the previous body (the chain
-// forward dynamics' requirement), naming the first body that breaks it.
+// The chain forward dynamics' requirement on a model: unbranched chains hanging
+// from the base, bodies numbered chain by chain, i.e. every body's parent is the
+// previous body or the base. Returns the first body that breaks it, or -1 (also
+// -1 for a model without bodies).
+template <class S>
+Index first_branching_body(const ModelTpl<S>& model) {
+  for (Index i = 0; i < model.nv(); ++i)
+    if (model.parent(i) != i - 1 && model.parent(i) != -1) return i;
+  return -1;
+}
+
+// Throws BackendError unless the model has bodies and first_branching_body is -1,
+// naming the body that breaks it.
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what);
+
+// The parent a ChainBodies entry records for a link whose parent is the previous
+// link (-1: the base).
+inline constexpr Index kChainPrevious = 0;
 
 // A chain's constants as every driver keeps them: its distinct bodies (consecutive
 // equal bodies share one entry: every link of a generated rope is one), their
 // inverse inertias in pass 1's scalar, and each body's entry.
 template <class S>
 struct ChainBodies {
-  std::vector<Body<S>> body;                   // (classes) distinct bodies, parent -1
+  std::vector<Body<S>> body;                   // (classes) distinct bodies; parent -1 (a chain's
+                                               // first link: the base) or kChainPrevious
   std::vector<InverseInertia<DualScalar>> Phi;  // (classes) their inverse inertias
   std::vector<int> body_class;                 // (n) entry of body i
+
+  // does body i have a child (the next body, in the same chain)?
+  bool has_child(Index i) const {
+    return i + 1 < static_cast<Index>(body_class.size()) && body[body_class[i + 1]].parent != -1;
+  }
 
   // Throws BackendError unless the model is an unbranched chain (require_chain) and
   // n x max_batch links fit in 2^30.
