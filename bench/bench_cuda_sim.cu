@@ -17,6 +17,9 @@
 //       forward dynamics, integration kernel): rope:128 x 10^3 instances, the
 //       hanging ropes rope:10^4 and rope:10^6 (one instance; the rope:10^6 step
 //       target row);
+//   step_engine-parallel:euler:gravity/<precision>/curtain:100:100/cuda: 100 ropes of
+//       100 links from one base (chains from the base: the parallel chain forward
+//       dynamics too);
 //   step_engine-jsi_dense:euler:gravity/<precision>/tree:128:4/cuda, B = 10^3: the
 //       same path for trees (the dense JSI).
 // Each row checks that the simulator runs the engine its name says (else it is
@@ -132,6 +135,8 @@ int main(int argc, char** argv) {
     add<float>("engine-parallel", rope, "gravity", "euler", 1LL, 1e-6);
     add<double>("engine-parallel", rope, "gravity", "euler", 1LL, 1e-6);
   }
+  add<float>("engine-parallel", "curtain:100:100", "gravity", "euler", 1LL, 2e-5);  // as scenes/curtain.json
+  add<double>("engine-parallel", "curtain:100:100", "gravity", "euler", 1LL, 2e-5);
   add<float>("engine-jsi_dense", "tree:128:4", "gravity", "euler", 1000LL);
   add<double>("engine-jsi_dense", "tree:128:4", "gravity", "euler", 1000LL);
   benchmark::Initialize(&argc, argv);
