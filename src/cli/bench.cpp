@@ -18,6 +18,7 @@
 #include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "simulator_cli.hpp"
 
 namespace scandyn::cli {
 namespace {
@@ -217,12 +218,7 @@ std::vector<double> state_rows(sim::Simulator<S>& s, Index count) {
 
 template <class S>
 Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time) {
-  std::unique_ptr<sim::Simulator<S>> made;
-  try {
-    made = std::make_unique<sim::Simulator<S>>(scene, backend);
-  } catch (const BackendError& e) {
-    throw UsageError(e.what(), false);
-  }
+  const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(scene, backend);
   sim::Simulator<S>& s = *made;
   // error: the first instances after kStepErrSteps steps against the double serial reference
   const Index count = std::min<Index>(s.batch(), kStepErrInstances);

@@ -14,6 +14,7 @@
 #include "cli.hpp"
 #include "csv.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "simulator_cli.hpp"
 
 namespace scandyn::cli {
 namespace {
@@ -86,12 +87,7 @@ class Progress {
 
 template <class S>
 int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path) {
-  std::unique_ptr<sim::Simulator<S>> made;
-  try {
-    made = std::make_unique<sim::Simulator<S>>(scene, backend);
-  } catch (const BackendError& e) {
-    throw UsageError(e.what(), false);
-  }
+  const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(scene, backend);
   sim::Simulator<S>& sim = *made;
   const Index nv = sim.nv(), B = sim.batch();
   const std::size_t n = static_cast<std::size_t>(nv), nb = static_cast<std::size_t>(B);
