@@ -16,12 +16,13 @@
 // by the joint-space inertia (fd_jsi) and by scans over links
 // (ChainForwardDynamics, "parallel", chunks of 64 links so that the aggregate
 // scans are exercised).
+//
+// The cases (models, states, references) and the recording are shared with the
+// GPU variant, tests/test_cuda_stability.cu, through tests/stability_cases.hpp.
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <cstdio>
 #include <limits>
-#include <random>
 #include <string>
 #include <vector>
 
@@ -30,9 +31,11 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/backend.hpp"
 #include "scandyn/model/load.hpp"
+#include "stability_cases.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
+using namespace scandyn::stability;
 
 namespace {
 
@@ -50,45 +53,6 @@ const char* method_name(Method m) {
   return "?";
 }
 bool is_id(Method m) { return m == Method::Rnea || m == Method::ScanLocal || m == Method::ScanWorld; }
-
-template <class S>
-const char* precision_name() { return std::is_same<S, float>::value ? "float" : "double"; }
-
-// One instance of a model and its inputs: u is qdd for inverse dynamics and tau
-// for forward dynamics.
-struct Problem {
-  std::string name;
-  Model model;
-  std::vector<double> q, qd, u;
-  std::vector<double> ref_id, ref_fd;  // double rnea(q, qd, u), double aba(q, qd, u)
-};
-
-struct Outcome {
-  double err = std::numeric_limits<double>::quiet_NaN();  // rel_err against the double reference
-  bool finite = false;     // every output is finite
-  Index failed_dof = -1;   // the pivot the method reported as not positive, -1 if none
-  bool untouched = false;  // every output still holds the NaN it was filled with
-  bool reported() const { return failed_dof >= 0; }
-};
-
-// Random inputs, uniform in [-1, 1] (qd in [-qd_max, qd_max]), and both references.
-Problem make_problem(std::string name, Model model, unsigned seed, double qd_max = 1.0, bool stretched = false) {
-  Problem p;
-  p.name = std::move(name);
-  p.model = std::move(model);
-  const int n = static_cast<int>(p.model.nv());
-  std::mt19937_64 rng(seed);
-  p.q = stretched ? std::vector<double>(static_cast<std::size_t>(n), 0.0) : test::random_vector(rng, n, -1, 1);
-  p.qd = test::random_vector(rng, n, -qd_max, qd_max);
-  p.u = test::random_vector(rng, n, -1, 1);
-  Data data(p.model, false);
-  p.ref_id.resize(static_cast<std::size_t>(n));
-  p.ref_fd.resize(static_cast<std::size_t>(n));
-  rnea(p.model, data, p.q.data(), p.qd.data(), p.u.data(), p.ref_id.data());
-  const Status st = aba(p.model, data, p.q.data(), p.qd.data(), p.u.data(), p.ref_fd.data());
-  EXPECT_TRUE(st.ok()) << p.name << ": the double reference aba failed at DoF " << st.failed_dof;
-  return p;
-}
 
 template <class S>
 Outcome run(const Problem& p, Method method) {
@@ -135,19 +99,9 @@ Outcome run(const Problem& p, Method method) {
       break;
     }
   }
-  o.finite = o.untouched = true;
-  for (S x : out) {
-    o.finite = o.finite && std::isfinite(x);
-    o.untouched = o.untouched && std::isnan(x);
-  }
-  const auto& ref = is_id(method) ? p.ref_id : p.ref_fd;
-  o.err = rel_err(out.data(), ref.data(), ref.size());
+  measure(out, is_id(method) ? p.ref_id : p.ref_fd, o);
   // the measurement, for scripts/accuracy_report: property "<problem>.<method>.<precision>"
-  const std::string key = p.name + "." + method_name(method) + "." + precision_name<S>();
-  char value[96];
-  if (o.reported()) std::snprintf(value, sizeof value, "reported pivot at DoF %d", int(o.failed_dof));
-  else std::snprintf(value, sizeof value, "%.3g", o.err);
-  ::testing::Test::RecordProperty(key, value);
+  record<S>(p, method_name(method), o);
   return o;
 }
 
@@ -194,41 +148,6 @@ void expect_case(const Problem& p, const Expected& e) {
     expect<double>(p, method, b[0]);
     expect<float>(p, method, b[1]);
   }
-}
-
-// ---- models ---------------------------------------------------------------------
-
-Model rope(int n) { return load_model("rope:" + std::to_string(n)); }
-
-// rope:n with every other link's inertia (mass, first moment, rotational inertia)
-// multiplied by ratio: neighbouring links differ in mass by ratio and 1 / ratio.
-Model mass_ratio_rope(int n, double ratio) {
-  Model m = rope(n);
-  for (int i = 1; i < n; i += 2) {
-    Inertia<double>& I = m.bodies[static_cast<std::size_t>(i)].I;
-    I.m *= ratio;
-    I.h = ratio * I.h;
-    for (double* x : {&I.I.xx, &I.I.yy, &I.I.zz, &I.I.xy, &I.I.xz, &I.I.yz}) *x *= ratio;
-  }
-  m.name = m.source = "rope-mass-ratio:" + std::to_string(n);
-  return m;
-}
-
-// rope:n whose links are near point masses: 10 g at the link centre, rotational
-// inertia 1e-9 kg m^2 about every axis through it.
-Model tiny_inertia_rope(int n) {
-  Model m = rope(n);
-  for (auto& b : m.bodies) b.I = Inertia<double>::from_com(0.01, {0, 0, -0.005}, Sym3<double>{1e-9, 1e-9, 1e-9, 0, 0, 0});
-  m.name = m.source = "rope-tiny-inertia:" + std::to_string(n);
-  return m;
-}
-
-// rope:n with every joint axis along x: a planar chain whose axes are all parallel.
-Model parallel_axes_rope(int n) {
-  Model m = rope(n);
-  for (auto& b : m.bodies) b.axis = {1, 0, 0};
-  m.name = m.source = "rope-parallel-axes:" + std::to_string(n);
-  return m;
 }
 
 }  // namespace
