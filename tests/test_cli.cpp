@@ -44,16 +44,6 @@ std::string cuda_backend_error() {
 #endif
 }
 
-// --backend cuda with an algorithm it does not compute: the message after "scandyn: ".
-std::string cuda_algo_error(const std::string& algos) {
-#if SCANDYN_HAS_CUDA
-  return "backend 'cuda' does not provide --algo " + algos + " (it provides: id, fd, bias)";
-#else
-  (void)algos;
-  return "backend 'cuda' is not available in this build";
-#endif
-}
-
 std::string read_text(const fs::path& p) {
   std::ifstream f(p, std::ios::binary);
   std::stringstream ss;
@@ -574,7 +564,6 @@ TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
       {"unknown algo", kHeader, kEval + "--algo id,foo", 2, {"unknown --algo value 'foo'"}},
       {"empty algo item", kHeader, kEval + "--algo id,", 2, {"unknown --algo value ''"}},
       {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"unknown --backend value 'gpu'"}},
-      {"algo not on backend", kHeader, kEval + "--backend cuda --algo id,mass", 2, {cuda_algo_error("mass")}},
       {"unknown strategy", kHeader, kEval + "--strategy fastest", 2, {"--strategy: unknown strategy 'fastest'"}},
       {"bad threads", kHeader, kEval + "--threads 0", 2, {"--threads must be an integer"}},
       {"unknown precision", kHeader, kEval + "--precision half", 2, {"unknown --precision value 'half'"}},
@@ -668,7 +657,6 @@ TEST_F(Cli, HelpAndUsageErrors) {
         "bench --model chain:3 --algo id --fd jsi --instances 1",
         "bench --model chain:3 --algo fd --fd lu --instances 1",
         "bench --model chain:3 --algo id --instances 1 --min-time -1",
-        "bench --model chain:3 --algo mass --instances 1 --backend cuda",
         "bench --model chain:3 --algo fd --instances 1 --strategy scan-local"}) {
     const Result r = run(args);
     EXPECT_EQ(r.code, 2) << args;
@@ -778,7 +766,10 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
         std::string("bench --model chain:3 --algo bias --instances 1 --backend cuda --precision float --csv results.csv"),
         kEval + "--backend cuda --algo fd",
         std::string("bench --model chain:3 --algo fd --instances 1 --backend cuda --csv results.csv"),
-        std::string("bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda --precision float")}) {
+        std::string("bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda --precision float"),
+        kEval + "--backend cuda --algo mass", kEval + "--backend cuda --algo bias,mass,id",
+        std::string("bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float --csv results.csv"),
+        std::string("bench --model rope:70 --algo mass --instances 2 --backend cuda")}) {
     for (bool existing : {false, true}) {
       SCOPED_TRACE(args + (existing ? ", existing output" : ", no output"));
       fs::remove(path("out.csv"));
@@ -793,28 +784,6 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
         EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
       }
     }
-  }
-}
-
-// mass is not on the cuda backend: one line, exit 2, before any device is looked
-// for (so the message is the same on every machine).
-TEST_F(Cli, CudaBackendRefusesMass) {
-  write_text(path("states.csv"), good_states());
-  write_text(path("out.csv"), "sentinel\n");
-  const std::vector<std::pair<std::string, std::string>> cases = {
-      {kEval + "--backend cuda --algo mass", cuda_algo_error("mass")},
-      {kEval + "--backend cuda --algo bias,mass,id,fd", cuda_algo_error("mass")},
-      {"bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float", cuda_algo_error("mass")},
-  };
-  for (const auto& [args, message] : cases) {
-    SCOPED_TRACE(args);
-    const std::vector<std::string> before = files();
-    const Result r = run(args);
-    EXPECT_EQ(r.code, 2);
-    EXPECT_EQ(r.err, "scandyn: " + message + "\n");
-    EXPECT_TRUE(r.out.empty());
-    EXPECT_EQ(files(), before);
-    EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
   }
 }
 
@@ -919,6 +888,51 @@ TEST_P(EvalCudaFd, MatchesSerial) {
 INSTANTIATE_TEST_SUITE_P(Models, EvalCudaFd, ::testing::Values("iiwa", "hyq"),
                          [](const ::testing::TestParamInfo<const char*>& info) { return std::string(info.param); });
 
+// eval --algo mass --backend cuda (the CRBA: a GPU thread per row up to 64 DoF, a
+// thread block per row beyond) against the serial backend's crba: the same header
+// (M_<i>_<j>, row-major), every value within 1e-12 (double) or 1e-5 (float, against
+// the serial float output) relative to max(1, max |row|), and in float each value a
+// float. 5000 rows for the robots (two chunks), fewer for the long models (their
+// chunks hold fewer rows: nv^2 values each).
+class EvalCudaMass : public EvalCuda {};
+
+TEST_P(EvalCudaMass, MatchesSerial) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const Model model = scandyn::load_model(spec());
+  const int n = model.nv();
+  const States s(n, n <= 64 ? 5000 : 300, 35);
+  write_text(path("states.csv"), s.csv({"q"}));
+  for (const char* precision : {"double", "float"}) {
+    SCOPED_TRACE(precision);
+    const bool is_float = std::string(precision) == "float";
+    const std::string base = "eval --model " + quote(spec()) + " --states states.csv --algo mass --precision " + precision;
+    const Result rs = run(base + " --out serial.csv");
+    const Result rc = run(base + " --out cuda.csv --backend cuda");
+    ASSERT_EQ(rs.code, 0) << rs.err;
+    ASSERT_EQ(rc.code, 0) << rc.err;
+    EXPECT_TRUE(rc.err.empty()) << rc.err;
+    const Table ts = parse_csv(read_text(path("serial.csv")));
+    const Table tc = parse_csv(read_text(path("cuda.csv")));
+    ASSERT_EQ(tc.names.size(), static_cast<std::size_t>(n * n));
+    EXPECT_EQ(tc.names.front(), "M_0_0");
+    EXPECT_EQ(tc.names[1], n > 1 ? "M_0_1" : "M_0_0");
+    EXPECT_EQ(tc.rows.size(), s.rows());
+    expect_tables_near(tc, ts, is_float ? 1e-5 : 1e-12);
+    if (is_float) {
+      for (const auto& row : tc.rows)
+        for (double v : row) ASSERT_EQ(v, static_cast<double>(static_cast<float>(v)));
+    }
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Models, EvalCudaMass, ::testing::Values("iiwa", "hyq", "rope:64", "rope:65", "tree:90:3"),
+    [](const ::testing::TestParamInfo<const char*>& info) {
+      std::string name = info.param;
+      std::replace(name.begin(), name.end(), ':', '_');
+      return name;
+    });
+
 // A failed factorisation on the device: the row and the joint-space inertia's pivot,
 // as on the CPU backends, and no output.
 TEST_F(Cli, EvalCudaReportsTheRowWhoseForwardDynamicsFails) {
@@ -996,12 +1010,14 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   EXPECT_FALSE(fs::exists(path("out.csv")));
 }
 
-// bench --backend cuda: two rows, the device-resident batch (thread) and the
-// host-staged call (thread-host), both with their measured error.
+// bench --backend cuda: two rows, the device-resident batch (thread; crba_thread
+// for mass) and the host-staged call (thread-host; crba_thread-host), both with
+// their measured error.
 TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
-  for (const char* algo : {"id", "bias"}) {
+  for (const char* algo : {"id", "bias", "mass"}) {
+    const std::string engine = std::string(algo) == "mass" ? "crba_thread" : "thread";
     for (const char* precision : {"double", "float"}) {
       SCOPED_TRACE(std::string(algo) + " " + precision);
       const Result r = run("bench --model " + iiwa + " --algo " + algo + " --instances 3000 --min-time 0.02" +
@@ -1014,7 +1030,7 @@ TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
         const std::vector<std::string> row = split(ls[k], ',');
         ASSERT_EQ(row.size(), 10u) << ls[k];
         EXPECT_EQ(row[0], algo);
-        EXPECT_EQ(row[1], k == 0 ? "thread" : "thread-host");
+        EXPECT_EQ(row[1], k == 0 ? engine : engine + "-host");
         EXPECT_EQ(row[2], "cuda");
         EXPECT_EQ(row[3], precision);
         EXPECT_EQ(row[4], "iiwa");
@@ -1027,43 +1043,88 @@ TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
     }
   }
   const std::vector<std::string> csv = lines(read_text(path("results.csv")));
-  ASSERT_EQ(csv.size(), 9u);  // header and 4 x 2 rows
+  ASSERT_EQ(csv.size(), 13u);  // header and 6 x 2 rows
   EXPECT_EQ(csv[0].rfind("algo,strategy,backend", 0), 0u);
   // a batch of one, and a single timed pass
   const Result one = run("bench --model chain:2 --algo id --instances 1 --min-time 0 --backend cuda");
   ASSERT_EQ(one.code, 0) << one.err;
   EXPECT_EQ(lines(one.out).size(), 2u);
+  // the mass matrix beyond 64 DoF: a thread block per instance, both rows, double
+  const Result big = run("bench --model rope:70 --algo mass --instances 5 --min-time 0 --backend cuda");
+  ASSERT_EQ(big.code, 0) << big.err;
+  const std::vector<std::string> ls = lines(big.out);
+  ASSERT_EQ(ls.size(), 2u) << big.out;
+  for (std::size_t k = 0; k < 2; ++k) {
+    const std::vector<std::string> row = split(ls[k], ',');
+    ASSERT_EQ(row.size(), 10u) << ls[k];
+    EXPECT_EQ(row[1], k == 0 ? "crba_block" : "crba_block-host");
+    EXPECT_EQ(row[5], "70");
+    EXPECT_LE(std::stod(row[9]), 1e-12);  // nan fails
+  }
 }
 
-// bench --algo fd --backend cuda: one row, the host-staged call (aba_thread-host
-// without --fd, jsi_thread-host with --fd jsi), with its error against the serial ABA.
-TEST_F(Cli, BenchCudaFdPrintsHostRow) {
+// bench --algo fd --backend cuda: two rows, the device-resident batch (the engine's
+// strategy: aba_thread without --fd, jsi_thread with --fd jsi, parallel with --fd
+// parallel) and the host-staged call (the same with -host), each with its error
+// against the serial ABA; --fd hybrid (articulated inertias on the host) has the
+// host row only.
+TEST_F(Cli, BenchCudaFdPrintsResidentAndHostRows) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
-  for (const char* fd : {"", " --fd jsi"}) {
+  std::size_t printed = 0;
+  for (const char* fd : {"", "jsi", "parallel", "hybrid"}) {
+    const std::string method = fd;
+    const std::string engine = method.empty() ? "aba_thread" : method == "jsi" ? "jsi_thread" : method;
+    const bool hybrid = method == "hybrid";
     for (const char* precision : {"double", "float"}) {
-      SCOPED_TRACE(std::string(fd) + " " + precision);
-      const Result r = run("bench --model " + iiwa + " --algo fd" + fd + " --instances 3000 --min-time 0.02" +
-                           " --backend cuda --csv results.csv --precision " + precision);
+      SCOPED_TRACE(method + " " + precision);
+      const Result r = run("bench --model " + iiwa + " --algo fd" + (method.empty() ? "" : " --fd " + method) +
+                           " --instances 3000 --min-time 0.02 --backend cuda --csv results.csv --precision " +
+                           precision);
       ASSERT_EQ(r.code, 0) << r.err;
       EXPECT_TRUE(r.err.empty()) << r.err;
       const std::vector<std::string> ls = lines(r.out);
-      ASSERT_EQ(ls.size(), 1u) << r.out;
-      const std::vector<std::string> row = split(ls[0], ',');
-      ASSERT_EQ(row.size(), 10u) << ls[0];
-      EXPECT_EQ(row[0], "fd");
-      EXPECT_EQ(row[1], std::string(fd).empty() ? "aba_thread-host" : "jsi_thread-host");  // auto: ABA
-      EXPECT_EQ(row[2], "cuda");
-      EXPECT_EQ(row[3], precision);
-      EXPECT_EQ(row[4], "iiwa");
-      EXPECT_EQ(row[5], "7");
-      EXPECT_EQ(row[6], "3000");
-      EXPECT_GT(std::stod(row[7]), 0);
-      EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 3000.0 * 1e-5);
-      EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-3 : 1e-9);  // nan fails
+      ASSERT_EQ(ls.size(), hybrid ? 1u : 2u) << r.out;
+      printed += ls.size();
+      for (std::size_t k = 0; k < ls.size(); ++k) {
+        const std::vector<std::string> row = split(ls[k], ',');
+        ASSERT_EQ(row.size(), 10u) << ls[k];
+        EXPECT_EQ(row[0], "fd");
+        EXPECT_EQ(row[1], k + 1 == ls.size() ? engine + "-host" : engine);  // auto: ABA
+        EXPECT_EQ(row[2], "cuda");
+        EXPECT_EQ(row[3], precision);
+        EXPECT_EQ(row[4], "iiwa");
+        EXPECT_EQ(row[5], "7");
+        EXPECT_EQ(row[6], "3000");
+        EXPECT_GT(std::stod(row[7]), 0);
+        EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 3000.0 * 1e-5);
+        EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-3 : 1e-9);  // nan fails
+      }
     }
   }
-  ASSERT_EQ(lines(read_text(path("results.csv"))).size(), 5u);  // header and 4 x 1 row
+  ASSERT_EQ(lines(read_text(path("results.csv"))).size(), 1 + printed);  // header and every row
+}
+
+// A forward dynamics that fails in bench --backend cuda is reported as on the serial
+// backend (the host row's report): the instance and the pivot of the method, exit 1,
+// no row printed and no --csv file, also from the device-resident batch, which runs
+// first. heavy.urdf in float: the 1e300 kg links' inertias are inf, every pivot fails.
+TEST_F(Cli, BenchCudaFdReportsFailuresLikeTheHostRow) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  write_text(path("heavy.urdf"), heavy_urdf());
+  for (const char* fd : {"jsi", "aba"}) {
+    SCOPED_TRACE(fd);
+    const std::string args =
+        std::string("bench --model heavy.urdf --algo fd --fd ") + fd + " --instances 50 --precision float --min-time 0";
+    const Result serial = run(args);
+    ASSERT_EQ(serial.code, 1) << serial.err;
+    EXPECT_NE(serial.err.find("bench: instance 0: forward dynamics failed: "), std::string::npos) << serial.err;
+    const Result r = run(args + " --backend cuda --csv results.csv");
+    EXPECT_EQ(r.code, 1);
+    EXPECT_EQ(r.err, serial.err);
+    EXPECT_TRUE(r.out.empty()) << r.out;
+    EXPECT_FALSE(fs::exists(path("results.csv")));
+  }
 }
 
 // ---- rollout and bench --algo step (docs/cli.md) --------------------------------------

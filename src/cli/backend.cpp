@@ -277,8 +277,7 @@ std::unique_ptr<Evaluator<S>> make_openmp_evaluator(const ModelTpl<S>& model, co
 }
 
 // The backends this command knows: name, evaluator factories, the algorithms they
-// compute, the check that the machine can run them and the one fd method they
-// have, if only one. Entries with null factories are recognised names that this
+// compute and the check that the machine can run them. Entries with null factories are recognised names that this
 // build does not contain (they get a clear error, not "unknown").
 const Backend kBackends[] = {
     {"serial", &make_serial_evaluator<double>, &make_serial_evaluator<float>, kEveryAlgo, nullptr},
@@ -288,8 +287,7 @@ const Backend kBackends[] = {
     {"openmp", nullptr, nullptr, kEveryAlgo, nullptr},
 #endif
 #if SCANDYN_HAS_CUDA
-    {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>,
-     algo_bit(Algo::Id) | algo_bit(Algo::Fd) | algo_bit(Algo::Bias), &cuda_unusable},
+    {"cuda", &make_cuda_evaluator<double>, &make_cuda_evaluator<float>, kEveryAlgo, &cuda_unusable},
 #else
     {"cuda", nullptr, nullptr, 0, nullptr},
 #endif

@@ -79,6 +79,10 @@ class ResidentBatch {
   // Copies the last call's results to out (count x output_width, instance-major,
   // as Evaluator::run writes them). Waits first.
   virtual void read(S* out) = 0;
+  // The first instance of the last call whose forward dynamics failed, as run()
+  // reports it (a failed instance's outputs are not written); ok for algorithms
+  // that cannot fail. Waits first.
+  virtual BatchStatus status() = 0;
   virtual std::string strategy() const = 0;  // the benchmark's strategy column
 };
 
@@ -100,15 +104,18 @@ class Evaluator {
   virtual FdMethod fd_method(FdMethod requested) const = 0;
   // How run() computes algo, for the benchmark's strategy column: recursion,
   // scan-local or scan-world for id; aba or jsi for fd; crba for mass; recursion
-  // for bias (CPU); for CUDA, thread-host (id, bias) or jsi_thread-host (fd): one
-  // GPU thread per instance, host buffers staged through the device.
+  // for bias (CPU); for CUDA the engine's strategy with "-host" (host buffers
+  // staged through the device): thread-host or scan-local-host (id, bias),
+  // aba_thread-host, jsi_thread-host, ... (fd), crba_thread-host or
+  // crba_block-host (mass).
   virtual std::string strategy(Algo algo, FdMethod fd) const = 0;
   // True when run() performs exactly the serial double reference's arithmetic for
   // this S (the same functions in the same order), so that its error against the
   // reference is known without measuring: 0 in double.
   virtual bool exact(Algo algo, FdMethod fd) const = 0;
   // The batch in the backend's own memory, for timing without transfers; null
-  // (the default) for backends that compute in host memory.
+  // (the default) for backends that compute in host memory, and where the backend
+  // has no device-resident call for algo and fd (CUDA's --fd hybrid).
   virtual std::unique_ptr<ResidentBatch<S>> resident(Algo algo, FdMethod fd, const BatchIn<S>& in) {
     (void)algo, (void)fd, (void)in;
     return nullptr;
@@ -165,7 +172,8 @@ std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const c
 const Backend& find_backend(const std::string& name);
 
 // Throws UsageError (no --help hint) unless the backend computes every algorithm
-// of algos: "backend 'cuda' does not provide --algo mass (it provides: id, fd, bias)".
+// of algos, e.g. "backend 'x' does not provide --algo mass (it provides: id, fd,
+// bias)" (every backend of this build provides all four).
 // default_from: for a selection eval made without --algo, the states file whose
 // columns selected it (the message then says so); empty otherwise.
 void require_algos(const Backend& backend, AlgoSet algos, const std::string& default_from = "");
@@ -182,7 +190,8 @@ std::unique_ptr<Evaluator<S>> make_serial_evaluator(const ModelTpl<S>& model, co
 #if SCANDYN_HAS_CUDA
 // The CUDA backend (backend_cuda.cpp): id and bias by the CUDA inverse-dynamics
 // engine (one GPU thread per instance up to 64 DoF, link scans beyond), fd by the
-// CUDA joint-space-inertia engine (one GPU thread per instance, at most 64 DoF).
+// CUDA forward-dynamics engine of the --fd method, mass by the CUDA mass-matrix
+// engine (CRBA: a GPU thread per instance up to 64 DoF, a thread block beyond).
 // Throws UsageError (no --help hint) when an engine of options.algos cannot be
 // made: no usable device, a model beyond the kernels' DoF limit, a strategy the
 // backend does not have, a max_batch that does not fit in device memory.

@@ -1,7 +1,8 @@
 // src/cli/bench.cpp: `scandyn bench`, times one algorithm on a batch of random
 // states and prints one row of the benchmark CSV (DESIGN.md's columns) per way of
-// calling the backend: the host-memory call, and for CUDA's id and bias first the
-// device-resident batch (CUDA's fd has the host-memory row only).
+// calling the backend: the host-memory call, and for CUDA first the
+// device-resident batch (every algorithm but --fd hybrid, which has the
+// host-memory row only).
 #include <unistd.h>
 
 #include <algorithm>
@@ -145,8 +146,11 @@ double time_calls(double min_time, F&& calls) {
 }
 
 // Times algo on the batch: a row for the evaluator's run() on host memory and,
-// first, one for the batch in the backend's own memory when it has one (CUDA id
-// and bias; resident() is null otherwise).
+// first, one for the batch in the backend's own memory when it has one (CUDA;
+// resident() is null otherwise). A forward dynamics that fails is an error in
+// either row: checked after the warm-up call (before any timing) and, for the
+// resident batch, again on the last timed call's results, whose error the row
+// reports.
 template <class S>
 std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
                               EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
@@ -165,18 +169,24 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
     return measure ? max_rel_err_vs_reference(model, algo, states, count, std::vector<double>(out.begin(), out.end()))
                    : 0.0;
   };
+  // a failed forward dynamics, named by the method used (asked for only then: on
+  // CUDA the method is an engine's, made on first use)
+  auto check_fd = [&](const BatchStatus& st) {
+    if (!st.ok()) check(st, evaluator->fd_method(fd));
+  };
   std::vector<Timing> rows;
 
   if (std::unique_ptr<ResidentBatch<S>> resident = evaluator->resident(algo, fd, in)) {
     // warm-up call, then rounds of queued calls, each round waited for
     resident->launch();
-    resident->wait();
+    check_fd(resident->status());
     Timing t;
     t.strategy = resident->strategy();
     t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
       for (std::size_t k = 0; k < n; ++k) resident->launch();
       resident->wait();
     });
+    check_fd(resident->status());
     resident->read(out.data());
     t.max_rel_err = error();
     rows.push_back(t);
@@ -184,7 +194,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
 
   // warm-up call, then whole calls until min_time has passed
   std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());  // untouched entries show
-  check(evaluator->run(algo, fd, in, out.data()), evaluator->fd_method(fd));
+  check_fd(evaluator->run(algo, fd, in, out.data()));
   if (const std::size_t n = evaluator->fallbacks())
     std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(n, count, "instances").c_str());
   Timing t;

@@ -1,0 +1,164 @@
+// scandyn/cuda/mass_matrix.hpp: the joint-space inertia (mass) matrix M(q) of a
+// batch on a CUDA device, by the composite-rigid-body algorithm (CRBA).
+//
+// Layers, as for inverse and forward dynamics:
+//   crba_instance()          __host__ __device__ (scandyn/cuda/forward_dynamics.hpp): one
+//                            instance's M as a packed lower triangle in per-thread
+//                            arrays; the same function builds fd_jsi_instance's M;
+//   mass_matrix_instance()   __host__ __device__: crba_instance, then the full nv x nv
+//                            matrix written out (below);
+//   crba_instances_kernel    one thread per instance (kernels/mass_matrix.cu);
+//   launch_crba_instances()  host wrapper: device pointers, a stream, returns the
+//                            cudaError_t of the launch, never synchronises.
+// and the engine CudaMassMatrix on top:
+//     compute()        HOST pointers: copies q in, launches, copies M out, synchronises;
+//     compute_async()  DEVICE pointers and your stream: one launch, no copy, no
+//                      synchronisation, no allocation; returns the cudaError_t.
+//
+// Layout of M: a BatchView with nv * nv entries per instance, entry e = i * nv + j
+// of instance b holding M(i, j): M.at(i * nv + j, b). Every entry is written, both
+// triangles, zeros where neither body is an ancestor of the other (M is symmetric,
+// so reading it column-major gives the same). The fast layout for a thread per
+// instance is BatchView::soa(M, nv * nv, B): M[(i * nv + j) * B + b], a warp's 32
+// threads writing 32 consecutive scalars. BatchView::aos(M, nv * nv, B):
+// M[b * nv * nv + i * nv + j], each instance's matrix contiguous and row-major, is
+// what scandyn::crba writes per instance and `scandyn eval --algo mass` prints
+// (columns M_<i>_<j>). q is (nv x B) as for the other engines, any strides.
+//
+// Strategies: "crba_thread", one thread per instance, models of up to kMaxThreadDofs
+// DoF (kernels for capacities 8, 16, 32 and 64, the model as a __grid_constant__
+// parameter, as the inverse and forward dynamics); "crba_block" beyond, one thread
+// block per instance (the kernel DenseJsiPlan builds its mass matrices with,
+// kernels/crba_block.hpp): the transforms in parallel over bodies, the composite
+// inertias leaves to root on one thread, then a thread per column.
+//
+// Accuracy: the serial crba's formulas and order of summation (on the host
+// mass_matrix_instance is bit-identical to it, measured in double and float); on the
+// device, FMA contraction and the device's sin/cos (the library's, in float too)
+// make the difference.
+#pragma once
+
+#include <cstddef>
+#include <memory>
+#include <string>
+
+#include "scandyn/backend.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+namespace scandyn {
+namespace cuda {
+
+namespace detail {
+template <class S>
+class CrbaBlocks;  // kernels/crba_block.hpp: the CRBA with a thread block per instance
+}  // namespace detail
+
+// Threads per block of crba_instances_kernel.
+inline constexpr int kMassInstancesBlock = 128;
+
+// M_out (nv * nv entries x B, M(i, j) at entry i * nv + j) = M(q) for the B =
+// q.batch instances: one launch of crba_instances_kernel on `stream`. Every
+// pointer is a DEVICE pointer (views with any strides); nothing is copied,
+// allocated or synchronised. Returns cudaErrorInvalidValue when the batch sizes
+// disagree or a pointer is null with B > 0, else the launch's error (kernel faults
+// surface later, at your synchronisation). B = 0 launches nothing.
+template <class S>
+cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
+                                  cudaStream_t stream);
+
+// The batched mass-matrix engine on one CUDA device (the device current at
+// construction).
+template <class S>
+class CudaMassMatrix {
+ public:
+  // Prepares the model and allocates the device buffers compute() stages through:
+  // q and M for options.max_batch instances, (nv + nv^2) * sizeof(S) * max_batch
+  // bytes (compute_async needs none of them); beyond kMaxThreadDofs DoF also the
+  // block kernel's scratch (the bodies, and each instance's transforms and
+  // composite inertias: nv * (sizeof(Transform) + sizeof(Inertia)) per instance).
+  // options.strategy must be Auto or Recursion (inverse dynamics' choice; the mass
+  // matrix has one algorithm). Throws BackendError when there is no usable device,
+  // or the buffers do not fit in device memory (the message gives the bytes needed
+  // and the bytes free).
+  CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions& options);
+  ~CudaMassMatrix();
+  CudaMassMatrix(const CudaMassMatrix&) = delete;
+  CudaMassMatrix& operator=(const CudaMassMatrix&) = delete;
+
+  // HOST pointers, any strides: q (nv x B), M (nv * nv entries x B, see the layout
+  // above). Copies q to the device, runs the kernel, copies M back (writing only M's
+  // entries: gaps between strided entries keep their contents) and waits for all
+  // of it on the engine's own stream. Throws BackendError for B > max_batch, views
+  // whose batch sizes disagree, a null pointer with B > 0, an M view whose entries
+  // overlap, or any CUDA error.
+  void compute(const BatchView<const S>& q, const BatchView<S>& M);
+
+  // DEVICE pointers, any strides, on `stream`. Asynchronous: returns after queuing
+  // the kernel, with no hidden synchronisation, copy or allocation.
+  //   crba_thread: launch_crba_instances with this engine's model; not limited by
+  //                max_batch; safe from several host threads on different streams;
+  //   crba_block:  B <= max_batch (else cudaErrorInvalidValue); the engine's
+  //                scratch, so one stream at a time.
+  cudaError_t compute_async(const BatchView<const S>& q, const BatchView<S>& M, cudaStream_t stream);
+
+  // "crba_thread" (one thread per instance, up to kMaxThreadDofs DoF) or
+  // "crba_block" (one thread block per instance, beyond)
+  std::string strategy() const { return blocks_ ? "crba_block" : "crba_thread"; }
+  std::string backend() const { return "cuda"; }
+
+  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for crba_block
+  Index nv() const { return nv_; }
+  Index max_batch() const { return max_batch_; }
+  int device() const { return device_; }
+  std::size_t device_bytes() const { return bytes_; }  // staging buffers and the block kernel's scratch
+
+ private:
+  Index nv_ = 0;
+  Index max_batch_ = 0;
+  int device_ = 0;
+  std::size_t bytes_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;              // crba_thread
+  std::unique_ptr<detail::CrbaBlocks<S>> blocks_;       // crba_block
+  // compute()'s stream and its one allocation: q (nv x max_batch), then M (nv^2 x max_batch)
+  std::unique_ptr<detail::StagingBuffer> staging_;
+};
+
+#if defined(__CUDACC__)
+// ---- device API --------------------------------------------------------------
+
+// M(q) of one instance, the full nv x nv matrix: M_out[i * nv + j] = M(i, j) for
+// every i, j < nv (row-major; both triangles; zero where neither body is an
+// ancestor of the other). crba_instance into per-thread storage (C (C + 1) / 2
+// scalars: registers when unrolled, else local memory), then nv^2 stores, row by
+// row. Also a host function (under nvcc): the tests check it against scandyn::crba
+// without a device. kUnrolled and kTrig as for crba_instance.
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
+__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C>& model,
+                                                              DofColumn<const S> q, DofColumn<S> M_out) {
+  using fd_detail::tri;
+  const Index n = model.nv;
+  S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
+  crba_instance<S, C, kUnrolled, kTrig>(model, q, M);
+#pragma unroll(kUnrolled ? C : 1)
+  for (Index i = 0; i < C; ++i) {
+    if (i >= n) continue;
+#pragma unroll(kUnrolled ? C : 1)
+    for (Index j = 0; j < C; ++j) {
+      if (j >= n) continue;
+      const Index hi = i > j ? i : j, lo = i > j ? j : i;
+      // a nonzero entry pairs a body with itself or one of its ancestors
+      M_out[i * n + j] = hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0);
+    }
+  }
+}
+#endif  // __CUDACC__
+
+}  // namespace cuda
+}  // namespace scandyn
+
+#endif  // SCANDYN_HAS_CUDA

@@ -1,0 +1,143 @@
+// kernels/mass_matrix.cu: the batched mass matrix by the CRBA, one thread per
+// instance up to kMaxThreadDofs DoF, one thread block per instance beyond.
+//
+// The layers of scandyn/cuda/mass_matrix.hpp: crba_instance (forward_dynamics.hpp)
+// -> mass_matrix_instance (the header) -> crba_instances_kernel ->
+// launch_crba_instances -> CudaMassMatrix (host staging through kernels/staging.hpp
+// for compute(), the plain launch for compute_async()); beyond 64 DoF
+// detail::CrbaBlocks (kernels/crba_block.hpp, defined in kernels/fd_dense.cu).
+#include <cuda_runtime.h>
+
+#include <string>
+#include <type_traits>
+
+#include "crba_block.hpp"
+#include "scandyn/cuda/mass_matrix.hpp"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+using detail::check;
+using detail::copy;
+using detail::plan;
+using detail::Staging;
+
+// ---- kernel and launch ---------------------------------------------------------
+
+// The kernel's compile-time choices for capacity C and precision S, those of the
+// JSI forward dynamics' kernel (FdKernelChoice in fd_instances.cu, measured there):
+// float at capacity 8 unrolled, so that the packed M (36 scalars), the column
+// forces and q stay in registers, held to 128 registers (4 resident blocks);
+// double, and capacities 16..64, rolled, M and the forces in per-thread local
+// memory. ptxas (sm_90, CUDA 13, block 128): float capacity 8 127 registers,
+// 16..64 64; double 118 (240 unrolled at capacity 8); no spills; the stack frame
+// holds the branch points' composite inertias and sin/cos's slow-path scratch
+// (352 B at float capacity 8), and when rolled M and the column forces (24.9 KB
+// per thread at double capacity 64). Not timed on a device yet (bench --algo
+// mass --backend cuda prints both rows).
+template <class S, int C>
+struct MassKernelChoice {
+  static constexpr bool kUnrolled = sizeof(S) == 4 && C <= 8;
+  static constexpr int kMinBlocks = sizeof(S) == 8 ? 1 : 4;
+};
+
+// One thread per instance b < B: M(q) of instance b, all nv^2 entries.
+template <class S, int C>
+__global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::kMinBlocks)
+    crba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const BatchView<const S> q,
+                          const BatchView<S> M_out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= q.batch) return;
+  mass_matrix_instance<S, C, MassKernelChoice<S, C>::kUnrolled>(model, instance_column(q, b),
+                                                                instance_column(M_out, b));
+}
+
+template <class S>
+cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
+                                  cudaStream_t stream) {
+  const Index B = q.batch;
+  if (B < 0 || M_out.batch != B) return cudaErrorInvalidValue;
+  if (B == 0 || model.nv() == 0) return cudaSuccess;
+  if (!q.data || !M_out.data) return cudaErrorInvalidValue;
+  const unsigned blocks =
+      static_cast<unsigned>((static_cast<long long>(B) + kMassInstancesBlock - 1) / kMassInstancesBlock);
+  std::visit(
+      [&](const auto& params) {
+        using P = std::decay_t<decltype(params)>;
+        crba_instances_kernel<S, P::capacity><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+      },
+      model.params());
+  return cudaGetLastError();
+}
+
+// ---- the engine -------------------------------------------------------------------
+
+template <class S>
+CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions& options)
+    : nv_(model.nv()), max_batch_(options.max_batch) {
+  if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
+    throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
+                       "' is not available for the mass matrix (use auto or recursion)");
+  if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
+  const std::size_t n = static_cast<std::size_t>(nv_);
+  // q (1 scalar per DoF) and M (nv per DoF) for max_batch instances
+  staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q and M",
+                                                     (n + n * n) * sizeof(S));
+  device_ = staging_->device();
+  if (nv_ > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
+  else thread_ = std::make_unique<ThreadModel<S>>(model);
+  bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0);
+}
+
+template <class S>
+CudaMassMatrix<S>::~CudaMassMatrix() = default;
+
+template <class S>
+cudaError_t CudaMassMatrix<S>::compute_async(const BatchView<const S>& q, const BatchView<S>& M, cudaStream_t stream) {
+  return blocks_ ? blocks_->launch(q, M, stream) : launch_crba_instances(*thread_, q, M, stream);
+}
+
+template <class S>
+void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>& M) {
+  const Index B = q.batch;
+  if (M.batch != B)
+    throw BackendError("batch sizes disagree: q " + std::to_string(B) + ", M " + std::to_string(M.batch));
+  if (B < 0) throw BackendError("negative batch size " + std::to_string(B));
+  if (B > max_batch_)
+    throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
+                       std::to_string(max_batch_));
+  if (B > 0 && (!q.data || !M.data))
+    throw BackendError("null data pointer in a batch of " + std::to_string(B) + " instances");
+  const Index nv = nv_;
+  if (B == 0 || nv == 0) return;
+  // staging buffer: q (nv x max_batch), then M (nv^2 x max_batch)
+  const std::size_t qcap = static_cast<std::size_t>(nv) * max_batch_;
+  const std::size_t mcap = static_cast<std::size_t>(nv) * qcap;
+  const Index entries = nv * nv;  // M's entries per instance
+  S* const dq = static_cast<S*>(staging_->data());
+  S* const dM = dq + qcap;
+  const cudaStream_t stream = staging_->stream();
+
+  // copy in, in whatever layout keeps the copies few
+  const Staging sM = plan(M, entries, mcap, true, "M");
+  const Staging sq = plan(q, nv, qcap, false);
+  check(copy(sq, q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
+  // run
+  check(compute_async(sq.device_view<const S>(dq, B), sM.device_view(dM, B), stream),
+        blocks_ ? "launching the CRBA (a block per instance)" : "launching crba_instances_kernel");
+  // copy out: M's entries only
+  check(copy(sM, M, entries, dM, cudaMemcpyDeviceToHost, stream), "copying M to the host");
+  check(cudaStreamSynchronize(stream), blocks_ ? "running the CRBA (a block per instance)" : "running crba_instances_kernel");
+}
+
+#define SCANDYN_INSTANTIATE(S)         \
+  template class CudaMassMatrix<S>;   \
+  template cudaError_t launch_crba_instances(const ThreadModel<S>&, const BatchView<const S>&, const BatchView<S>&, \
+                                             cudaStream_t);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace cuda
+}  // namespace scandyn
