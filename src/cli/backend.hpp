@@ -22,7 +22,7 @@ namespace scandyn::cli {
 
 enum class Algo { Id, Fd, Mass, Bias };
 // Forward-dynamics methods (--fd): auto resolves by backend and shape (see
-// Evaluator::fd_method); hybrid and parallel take unbranched chains.
+// Evaluator::fd_method); hybrid and parallel take unbranched chains hanging from the base.
 enum class FdMethod { Auto, Aba, Jsi, Hybrid, Parallel };
 enum class Precision { Double, Float };
 
@@ -97,9 +97,9 @@ class Evaluator {
   // only for algorithms of the backend's AlgoSet, with count <= max_batch.
   virtual BatchStatus run(Algo algo, FdMethod fd, const BatchIn<S>& in, S* out) = 0;
   // The forward-dynamics method run() uses when fd is requested (Auto resolved):
-  // on the CPU backends aba, or parallel for unbranched chains of at least 4096
+  // on the CPU backends aba, or parallel for chains (from the base) of at least 4096
   // links on openmp; on CUDA the engine's choice (aba up to 64 DoF, parallel for
-  // longer unbranched chains, else jsi). Failure messages (describe_fd_failure) name the
+  // longer chains from the base, else jsi). Failure messages (describe_fd_failure) name the
   // pivot of the method used.
   virtual FdMethod fd_method(FdMethod requested) const = 0;
   // How run() computes algo, for the benchmark's strategy column: recursion,

@@ -8,7 +8,7 @@
 //             method (one engine per method): jsi (one GPU thread per instance up
 //             to 64 DoF, CRBA per block and cuSOLVER's batched Cholesky beyond), aba
 //             (one thread per instance, up to 64 DoF), parallel and hybrid
-//             (unbranched chains, link scans), auto (the engine's choice);
+//             (unbranched chains from the base, link scans), auto (the engine's choice);
 //   mass      CudaMassMatrix (scandyn/cuda/mass_matrix.hpp): the CRBA, one thread
 //             per instance up to 64 DoF, one thread block per instance beyond.
 // and each in two ways:

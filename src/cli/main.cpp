@@ -52,7 +52,7 @@ const char* const kEvalUsage =
     "                    or cuda (id, fd and bias, one GPU thread per instance,\n"
     "                    or scans over links for long chains)\n"
     "  --fd METHOD       forward dynamics by aba (articulated bodies), jsi (CRBA +\n"
-    "                    Cholesky), parallel (unbranched chains: scans over links,\n"
+    "                    Cholesky), parallel (chains from the base: scans over links,\n"
     "                    O(log n) depth) or hybrid (chains, cuda only: articulated\n"
     "                    inertias on the CPU, the rest as GPU scans); default auto:\n"
     "                    serial aba; openmp parallel for chains of 4096+ links, else\n"

@@ -562,12 +562,12 @@ struct ChainBodies {
     return i + 1 < static_cast<Index>(body_class.size()) && body[body_class[i + 1]].parent != -1;
   }
 
-  // Throws BackendError unless the model is an unbranched chain (require_chain) and
+  // Throws BackendError unless the model is chains from the base (require_chain) and
   // n x max_batch links fit in 2^30.
   static ChainBodies from(const ModelTpl<S>& model, Index max_batch);
 };
 
-// Forward dynamics of B instances of an unbranched chain by the chunked scans above
+// Forward dynamics of B instances of unbranched chains from the base by the chunked scans above
 // ("parallel"), on the host with OpenMP threads (1: serial). Agrees with the serial
 // aba to rounding (see tests/test_chain_fd.cpp for the measured errors). Owns all
 // scratch for max_batch instances; compute() allocates nothing.

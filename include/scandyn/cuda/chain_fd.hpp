@@ -1,4 +1,4 @@
-// scandyn/cuda/chain_fd.hpp: forward dynamics of long unbranched chains on a CUDA
+// scandyn/cuda/chain_fd.hpp: forward dynamics of long unbranched chains (hanging from the base) on a CUDA
 // device, by the chunked scans of scandyn/algorithm/chain_fd.hpp.
 //
 // Two variants share the kernels:
@@ -48,7 +48,7 @@ class ChainFdPlan {
   // Copies the model's distinct bodies to the device and allocates the scratch for
   // max_batch instances. chunk: links per thread (0: kDefaultChunk); fan_in:
   // aggregates per thread above (0: kDefaultFanIn). Throws BackendError for a
-  // model that is not an unbranched chain (naming the body), a batch whose links do
+  // model that is not unbranched chains from the base (naming the body), a batch whose links do
   // not fit in 2^30, device memory that does not suffice, or a CUDA error.
   ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0, Index fan_in = 0);
   ~ChainFdPlan();

@@ -79,16 +79,16 @@ inline constexpr int kFdInstancesBlock = 128;
 
 // Which algorithm CudaForwardDynamics runs.
 enum class FdAlgorithm {
-  Auto,      // Aba up to kMaxThreadDofs DoF; beyond, Parallel for an unbranched chain,
+  Auto,      // Aba up to kMaxThreadDofs DoF; beyond, Parallel for unbranched chains from the base,
              // else Jsi. Measured on the H100 (bench_cuda_fd, 10^7 instances, ms,
              // float / double): iiwa ABA 3.3 / 7.5 against JSI 4.5 / 8.9, hyq 6.0 /
              // 13.8 against 7.5 / 14.8, atlas 22.8 / 52.9 against 47.8 / 94.8
   Jsi,       // joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond
   Aba,       // articulated-body algorithm, one thread per instance ("aba_thread"), up to
              // kMaxThreadDofs DoF (beyond: BackendError)
-  Parallel,  // unbranched chains of any length: the articulated-body algorithm as scans
+  Parallel,  // unbranched chains from the base, any length: the articulated-body algorithm as scans
              // over links, every pass on the device (ChainFdPlan::launch, "parallel")
-  Hybrid,    // unbranched chains: articulated inertias on the host, the other passes as
+  Hybrid,    // the same shapes: articulated inertias on the host, the other passes as
              // device scans (ChainFdPlan::launch_hybrid, "hybrid"); compute() only
 };
 
