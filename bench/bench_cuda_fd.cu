@@ -55,7 +55,7 @@
 //
 // Before the rows the program prints the device, a device-to-device copy bandwidth
 // (the memory roofline) and the registers, local memory and occupancy of the
-// kernels (the engine's code for capacity 8 and 16, and the variants).
+// kernels (the engine's choices for capacity 8, and the variants).
 //
 // Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
 // ../shared/models), --max-instances=N (default 10^7).
@@ -91,7 +91,7 @@ namespace {
 
 // The engine's kernel (kernels/fd_instances.cu) with other choices of
 // fd_jsi_instance's kKeepXup, kUnrolled, and of the blocks per SM that ptxas plans
-// registers for (kMinBlocks = 1: up to 255 registers, as the engine).
+// registers for (kMinBlocks = 1: up to 255 registers; the engine's: FdKernelChoice).
 template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
@@ -325,10 +325,10 @@ AbaRow aba_row(const char* model, const char* variant, bool engine = false) {
 const std::vector<AbaRow>& aba_rows() {
   constexpr Trig kLib = Trig::Library;
   static const std::vector<AbaRow> rows = {
-      aba_row<float, 8, 0, true, 3>("iiwa", "chain-unrolled-cap168", true),
+      aba_row<float, 8, 0, true, 3>("iiwa", "chain-unrolled-cap168"),
       aba_row<float, 8, 0, true, 1>("iiwa", "chain-unrolled-cap255"),
       aba_row<float, 8, 0, true, 4>("iiwa", "chain-unrolled-cap128"),
-      aba_row<float, 8, 0, false, 4>("iiwa", "chain-rolled-cap128"),
+      aba_row<float, 8, 0, false, 4>("iiwa", "chain-rolled-cap128", true),
       aba_row<float, 8, 0, true, 1, true>("iiwa", "chain-unrolled-cap255-keepxup"),
       aba_row<float, 8, 0, true, 3, false, kLib>("iiwa", "chain-unrolled-cap168-libtrig"),
       aba_row<float, 8, 8, false, 4>("iiwa", "tree-rolled-cap128"),
@@ -342,8 +342,8 @@ const std::vector<AbaRow>& aba_rows() {
       aba_row<float, 16, 16, false, 4>("hyq", "tree-rolled-cap128"),
       aba_row<double, 16, 0, false, 1>("hyq", "chain-rolled-cap255", true),
       aba_row<double, 16, 16, false, 1>("hyq", "tree-rolled-cap255"),
-      aba_row<float, 32, 1, false, 3>("atlas", "slots1-rolled-cap168", true),
-      aba_row<float, 32, 1, false, 4>("atlas", "slots1-rolled-cap128"),
+      aba_row<float, 32, 1, false, 3>("atlas", "slots1-rolled-cap168"),
+      aba_row<float, 32, 1, false, 4>("atlas", "slots1-rolled-cap128", true),
       aba_row<float, 32, 32, false, 4>("atlas", "tree-rolled-cap128"),
       aba_row<double, 32, 32, false, 1>("atlas", "tree-rolled-cap255", true),
       aba_row<double, 32, 1, false, 1>("atlas", "slots1-rolled-cap255"),
@@ -357,15 +357,17 @@ void print_limits() {
   bench::print_device_and_roofline("bench_cuda_fd");
   constexpr int blk = cuda::kFdInstancesBlock;
   std::printf("bench_cuda_fd: kernels, block %d:\n", blk);
-  bench::print_kernel("C=8 float (the engine's)", variant_kernel<float, 8, false, true, 1>, blk);
+  // the JSI at capacity 8; the engine's (FdKernelChoice): float unrolled in 128
+  // registers (cap128), double rolled
+  bench::print_kernel("C=8 float, unrolled", variant_kernel<float, 8, false, true, 1>, blk);
   bench::print_kernel("C=8 float, keepxup", variant_kernel<float, 8, true, true, 1>, blk);
   bench::print_kernel("C=8 float, rolled", variant_kernel<float, 8, false, false, 1>, blk);
-  bench::print_kernel("C=8 float, cap128", variant_kernel<float, 8, false, true, 4>, blk);
-  bench::print_kernel("C=8 double (the engine's)", variant_kernel<double, 8, false, true, 1>, blk);
+  bench::print_kernel("C=8 float, cap128 (the engine's)", variant_kernel<float, 8, false, true, 4>, blk);
+  bench::print_kernel("C=8 double, unrolled", variant_kernel<double, 8, false, true, 1>, blk);
   bench::print_kernel("C=8 double, keepxup", variant_kernel<double, 8, true, true, 1>, blk);
-  bench::print_kernel("C=8 double, rolled", variant_kernel<double, 8, false, false, 1>, blk);
+  bench::print_kernel("C=8 double, rolled (the engine's)", variant_kernel<double, 8, false, false, 1>, blk);
   bench::print_kernel("C=8 double, cap128", variant_kernel<double, 8, false, true, 4>, blk);
-  bench::print_kernel("C=16 float (the engine's: rolled)", variant_kernel<float, 16, false, false, 1>, blk);
+  bench::print_kernel("C=16 float, rolled", variant_kernel<float, 16, false, false, 1>, blk);
   bench::print_kernel("C=16 float, unrolled", variant_kernel<float, 16, false, true, 1>, blk);
   for (const AbaRow& r : aba_rows()) {
     const std::string label = std::string("ABA ") + r.model + (r.single ? " float " : " double ") + r.variant +
