@@ -70,11 +70,14 @@ show_skips() {
 }
 
 # Without a GPU the CUDA code is compiled but never run: compile the simulator's
-# all-effects step kernels only (SCANDYN_SIM_EFFECT_SETS, CMakeLists.txt), not the
-# 44 per-effect-set ones (several minutes of nvcc on 2 cores).
-sim_sets=()
-if ! nvidia-smi -L >/dev/null 2>&1; then sim_sets=(-DSCANDYN_SIM_EFFECT_SETS=OFF); fi
-if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${sim_sets[@]+"${sim_sets[@]}"}; then
+# all-effects step kernels only (SCANDYN_SIM_EFFECT_SETS), not the 44 per-effect-set
+# ones, and of bench_cuda_fd's kernel variants only the engine's own
+# (SCANDYN_BENCH_VARIANTS; CMakeLists.txt): several minutes of nvcc on 2 cores.
+variants=()
+if ! nvidia-smi -L >/dev/null 2>&1; then
+  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF)
+fi
+if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${variants[@]+"${variants[@]}"}; then
   failed+=(release)
 fi
 
