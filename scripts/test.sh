@@ -43,9 +43,12 @@ fi
 # one core) while the release stage configures and builds; waited for before its
 # tests.
 python_pid=
+report_pid=
 python_log=$(mktemp)
 report_log=$(mktemp)
-trap 'rm -f "$python_log" "$report_log"' EXIT
+# (a background job still running at exit, after an error: stop it)
+trap 'for p in $python_pid $report_pid; do kill "$p" 2>/dev/null || true; done
+      rm -f "$python_log" "$report_log"' EXIT
 if [[ "${SCANDYN_SKIP_PYTHON:-0}" != 1 ]]; then
   stamp "python environment (.venv), in the background"
   scripts/setup_python.sh >"$python_log" 2>&1 &
@@ -119,7 +122,6 @@ wait_python
 # directory so that the tree stays clean; needs .venv (matplotlib). A failing
 # report fails the test command. It runs in the background (one process at a
 # time: a core) while the ASan stage builds; nothing there checks timings.
-report_pid=
 report_dir=
 if [[ -x .venv/bin/python ]] && .venv/bin/python -c 'import matplotlib' 2>/dev/null; then
   stamp "accuracy report (quick), in the background"
