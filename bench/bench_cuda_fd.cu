@@ -55,10 +55,18 @@
 //
 // Before the rows the program prints the device, a device-to-device copy bandwidth
 // (the memory roofline) and the registers, local memory and occupancy of the
-// kernels (the engine's code for capacity 8 and 16, and the variants).
+// kernels (the engine's choices for capacity 8, and the variants).
 //
 // Flags (before Google Benchmark's): --models-dir=DIR (default $SCANDYN_MODELS_DIR or
 // ../shared/models), --max-instances=N (default 10^7).
+//
+// SCANDYN_BENCH_VARIANTS=0 (CMake option SCANDYN_BENCH_VARIANTS=OFF, what
+// scripts/test.sh uses on machines without a GPU, where this program is compiled but
+// never run) compiles only the variant rows whose kernel is the engine's own choice
+// (FdKernelChoice in kernels/fd_instances.cu: fd_jsi_thread-cap128 in float,
+// fd_jsi_thread-rolled in double, the fd_aba_thread-<variant> rows marked `engine`),
+// so that every kernel template here still compiles, without the alternatives
+// (tuning experiments, ~2.5 s of nvcc each).
 #include <benchmark/benchmark.h>
 #include <cuda_runtime.h>
 
@@ -87,11 +95,15 @@ using bench::fill_kernel;
 using bench::time_launches;
 using bench::uniform;
 
+#if !defined(SCANDYN_BENCH_VARIANTS)
+#define SCANDYN_BENCH_VARIANTS 1
+#endif
+
 namespace {
 
 // The engine's kernel (kernels/fd_instances.cu) with other choices of
 // fd_jsi_instance's kKeepXup, kUnrolled, and of the blocks per SM that ptxas plans
-// registers for (kMinBlocks = 1: up to 255 registers, as the engine).
+// registers for (kMinBlocks = 1: up to 255 registers; the engine's: FdKernelChoice).
 template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
@@ -323,30 +335,46 @@ AbaRow aba_row(const char* model, const char* variant, bool engine = false) {
 // FdKernelChoice) and the alternatives to it. Capacities: iiwa 8, hyq 16, atlas 32;
 // branch slots: iiwa and hyq none (chains from the base), atlas 1.
 const std::vector<AbaRow>& aba_rows() {
+#if SCANDYN_BENCH_VARIANTS
   constexpr Trig kLib = Trig::Library;
+#endif
   static const std::vector<AbaRow> rows = {
-      aba_row<float, 8, 0, true, 3>("iiwa", "chain-unrolled-cap168", true),
+#if SCANDYN_BENCH_VARIANTS
+      aba_row<float, 8, 0, true, 3>("iiwa", "chain-unrolled-cap168"),
       aba_row<float, 8, 0, true, 1>("iiwa", "chain-unrolled-cap255"),
       aba_row<float, 8, 0, true, 4>("iiwa", "chain-unrolled-cap128"),
-      aba_row<float, 8, 0, false, 4>("iiwa", "chain-rolled-cap128"),
+#endif
+      aba_row<float, 8, 0, false, 4>("iiwa", "chain-rolled-cap128", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<float, 8, 0, true, 1, true>("iiwa", "chain-unrolled-cap255-keepxup"),
       aba_row<float, 8, 0, true, 3, false, kLib>("iiwa", "chain-unrolled-cap168-libtrig"),
       aba_row<float, 8, 8, false, 4>("iiwa", "tree-rolled-cap128"),
+#endif
       aba_row<double, 8, 0, false, 1>("iiwa", "chain-rolled-cap255", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<double, 8, 0, true, 1>("iiwa", "chain-unrolled-cap255"),
       aba_row<double, 8, 0, false, 3>("iiwa", "chain-rolled-cap168"),
       aba_row<double, 8, 0, false, 1, true>("iiwa", "chain-rolled-cap255-keepxup"),
       aba_row<double, 8, 8, false, 1>("iiwa", "tree-rolled-cap255"),
+#endif
       aba_row<float, 16, 0, false, 4>("hyq", "chain-rolled-cap128", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<float, 16, 0, true, 1>("hyq", "chain-unrolled-cap255"),
       aba_row<float, 16, 16, false, 4>("hyq", "tree-rolled-cap128"),
+#endif
       aba_row<double, 16, 0, false, 1>("hyq", "chain-rolled-cap255", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<double, 16, 16, false, 1>("hyq", "tree-rolled-cap255"),
-      aba_row<float, 32, 1, false, 3>("atlas", "slots1-rolled-cap168", true),
-      aba_row<float, 32, 1, false, 4>("atlas", "slots1-rolled-cap128"),
+      aba_row<float, 32, 1, false, 3>("atlas", "slots1-rolled-cap168"),
+#endif
+      aba_row<float, 32, 1, false, 4>("atlas", "slots1-rolled-cap128", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<float, 32, 32, false, 4>("atlas", "tree-rolled-cap128"),
+#endif
       aba_row<double, 32, 32, false, 1>("atlas", "tree-rolled-cap255", true),
+#if SCANDYN_BENCH_VARIANTS
       aba_row<double, 32, 1, false, 1>("atlas", "slots1-rolled-cap255"),
+#endif
   };
   return rows;
 }
@@ -357,16 +385,24 @@ void print_limits() {
   bench::print_device_and_roofline("bench_cuda_fd");
   constexpr int blk = cuda::kFdInstancesBlock;
   std::printf("bench_cuda_fd: kernels, block %d:\n", blk);
-  bench::print_kernel("C=8 float (the engine's)", variant_kernel<float, 8, false, true, 1>, blk);
+  // the JSI at capacity 8; the engine's (FdKernelChoice): float unrolled in 128
+  // registers (cap128), double rolled
+#if SCANDYN_BENCH_VARIANTS
+  bench::print_kernel("C=8 float, unrolled", variant_kernel<float, 8, false, true, 1>, blk);
   bench::print_kernel("C=8 float, keepxup", variant_kernel<float, 8, true, true, 1>, blk);
   bench::print_kernel("C=8 float, rolled", variant_kernel<float, 8, false, false, 1>, blk);
-  bench::print_kernel("C=8 float, cap128", variant_kernel<float, 8, false, true, 4>, blk);
-  bench::print_kernel("C=8 double (the engine's)", variant_kernel<double, 8, false, true, 1>, blk);
+#endif
+  bench::print_kernel("C=8 float, cap128 (the engine's)", variant_kernel<float, 8, false, true, 4>, blk);
+#if SCANDYN_BENCH_VARIANTS
+  bench::print_kernel("C=8 double, unrolled", variant_kernel<double, 8, false, true, 1>, blk);
   bench::print_kernel("C=8 double, keepxup", variant_kernel<double, 8, true, true, 1>, blk);
-  bench::print_kernel("C=8 double, rolled", variant_kernel<double, 8, false, false, 1>, blk);
+#endif
+  bench::print_kernel("C=8 double, rolled (the engine's)", variant_kernel<double, 8, false, false, 1>, blk);
+#if SCANDYN_BENCH_VARIANTS
   bench::print_kernel("C=8 double, cap128", variant_kernel<double, 8, false, true, 4>, blk);
-  bench::print_kernel("C=16 float (the engine's: rolled)", variant_kernel<float, 16, false, false, 1>, blk);
+  bench::print_kernel("C=16 float, rolled", variant_kernel<float, 16, false, false, 1>, blk);
   bench::print_kernel("C=16 float, unrolled", variant_kernel<float, 16, false, true, 1>, blk);
+#endif
   for (const AbaRow& r : aba_rows()) {
     const std::string label = std::string("ABA ") + r.model + (r.single ? " float " : " double ") + r.variant +
                               (r.engine ? " (the engine's)" : "");
@@ -436,13 +472,19 @@ int main(int argc, char** argv) {
         else add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b, kAba); });
         if (label == "iiwa" && B >= 1000000) {
           if (fl) {
+#if SCANDYN_BENCH_VARIANTS
             add("fd_jsi_thread-keepxup/" + post, [=](benchmark::State& st) { bench_variant<float, 8, true, true, 1>(st, m, b); });
             add("fd_jsi_thread-rolled/" + post, [=](benchmark::State& st) { bench_variant<float, 8, false, false, 1>(st, m, b); });
+#endif
             add("fd_jsi_thread-cap128/" + post, [=](benchmark::State& st) { bench_variant<float, 8, false, true, 4>(st, m, b); });
           } else {
+#if SCANDYN_BENCH_VARIANTS
             add("fd_jsi_thread-keepxup/" + post, [=](benchmark::State& st) { bench_variant<double, 8, true, true, 1>(st, m, b); });
+#endif
             add("fd_jsi_thread-rolled/" + post, [=](benchmark::State& st) { bench_variant<double, 8, false, false, 1>(st, m, b); });
+#if SCANDYN_BENCH_VARIANTS
             add("fd_jsi_thread-cap128/" + post, [=](benchmark::State& st) { bench_variant<double, 8, false, true, 4>(st, m, b); });
+#endif
           }
         }
         if (B >= 1000000)
@@ -450,8 +492,10 @@ int main(int argc, char** argv) {
             if (label == r.model && fl == r.single)
               add("fd_aba_thread-" + std::string(r.variant) + "/" + post,
                   [=, run = r.run](benchmark::State& st) { run(st, m, b); });
+#if SCANDYN_BENCH_VARIANTS
         if (label == "hyq" && fl && B >= 1000000)
           add("fd_jsi_thread-unrolled/" + post, [=](benchmark::State& st) { bench_variant<float, 16, false, true, 1>(st, m, b); });
+#endif
         if (label == "iiwa" && B == 1000000) {
           if (fl) add("fd_jsi_thread-host/" + post, [=](benchmark::State& st) { bench_host<float>(st, m, b); }, true);
           else add("fd_jsi_thread-host/" + post, [=](benchmark::State& st) { bench_host<double>(st, m, b); }, true);

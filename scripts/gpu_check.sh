@@ -7,7 +7,9 @@
 # a networked machine and .deps/root + .models travelled with the tree. Steps:
 #   1. environment report (GPU, driver, nvcc, compilers)          -> env.txt
 #   2. configure: Release, CUDA on (sm_90 unless CMAKE_CUDA_ARCHITECTURES is set
-#      in the environment), -march=native, urdfdom from .deps/root -> configure.log
+#      in the environment), -march=native, every kernel variant
+#      (SCANDYN_SIM_EFFECT_SETS and SCANDYN_BENCH_VARIANTS on, whatever an earlier
+#      configure of the build directory said), urdfdom from .deps/root -> configure.log
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
 #   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
@@ -103,6 +105,7 @@ note "configure $build (CUDA architectures $arch) -> $out/configure.log"
 set +e
 cmake -S "$repo" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
   -DSCANDYN_CUDA=ON -DCMAKE_CUDA_ARCHITECTURES="$arch" -DSCANDYN_NATIVE=ON \
+  -DSCANDYN_SIM_EFFECT_SETS=ON -DSCANDYN_BENCH_VARIANTS=ON \
   -DCMAKE_PREFIX_PATH="$deps/usr" -DSCANDYN_MODELS_DIR="$SCANDYN_MODELS_DIR" \
   2>&1 | tee "$out/configure.log"
 rc=${PIPESTATUS[0]}

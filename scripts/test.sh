@@ -1,15 +1,21 @@
 #!/usr/bin/env bash
 # scripts/test.sh: the project's test command (what CI runs through .ci/run).
 #
-#   1. scripts/setup.sh (installs missing Debian packages), scripts/setup_python.sh
-#      (.venv with numpy and Pinocchio for the cross-check test)
+#   1. scripts/setup.sh (installs missing Debian packages); scripts/setup_python.sh
+#      (.venv with numpy, Pinocchio and matplotlib) in the background, while stage 2
+#      builds: only its tests and the report use it
 #   2. build/       Ninja, Release, CUDA when nvcc is found; ctest
 #      then scripts/accuracy_report --quick into a temporary directory (when .venv
-#      has matplotlib)
-#   3. build-asan/  RelWithDebInfo with AddressSanitizer + UBSan, no CUDA, no
-#                   benchmarks; ctest
+#      has matplotlib), in the background while stage 3 builds
+#   3. build-asan/  AddressSanitizer + UBSan, no CUDA, no benchmarks, -O1 -g1 (line
+#                   tables for the reports' stack traces); ctest
 # Both stages run even if the first one's tests fail; the exit status is non-zero
-# if anything failed.
+# if anything failed. Each step prints a stamp; the last line gives the total time.
+#
+# Without a GPU (nvidia-smi -L fails: CI) the CUDA code is compiled but never run,
+# so stage 2 compiles fewer variant instantiations of it: SCANDYN_SIM_EFFECT_SETS=OFF
+# and SCANDYN_BENCH_VARIANTS=OFF (CMakeLists.txt). Every kernel template, test and
+# benchmark still compiles; scripts/gpu_check.sh builds the full variety.
 #
 # Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
@@ -32,11 +38,33 @@ if [[ "${SCANDYN_SKIP_SETUP:-0}" != 1 ]]; then
   scripts/setup.sh
 fi
 
-# Pinocchio for the independent cross-check test; without it that test is skipped
+# Pinocchio for the independent cross-check test (without it that test is skipped)
+# and matplotlib for the accuracy report: set up in the background (mostly pip,
+# one core) while the release stage configures and builds; waited for before its
+# tests.
+python_pid=
+report_pid=
+python_log=$(mktemp)
+report_log=$(mktemp)
+# (a background job still running at exit, after an error: stop it)
+trap 'for p in $python_pid $report_pid; do kill "$p" 2>/dev/null || true; done
+      rm -f "$python_log" "$report_log"' EXIT
 if [[ "${SCANDYN_SKIP_PYTHON:-0}" != 1 ]]; then
-  stamp "python environment (.venv)"
-  scripts/setup_python.sh || echo "test.sh: warning: .venv setup failed; pinocchio_crosscheck will be skipped" >&2
+  stamp "python environment (.venv), in the background"
+  scripts/setup_python.sh >"$python_log" 2>&1 &
+  python_pid=$!
 fi
+wait_python() {
+  [[ -n "$python_pid" ]] || return 0
+  stamp "python environment (.venv): waiting"
+  local rc=0
+  wait "$python_pid" || rc=$?
+  python_pid=
+  cat "$python_log"
+  if ((rc != 0)); then
+    echo "test.sh: warning: .venv setup failed; pinocchio_crosscheck will be skipped" >&2
+  fi
+}
 
 models=${SCANDYN_MODELS_DIR:-../shared/models}
 if [[ ! -d "$models" ]]; then
@@ -44,8 +72,8 @@ if [[ ! -d "$models" ]]; then
        "(set SCANDYN_MODELS_DIR); tests that load them will fail" >&2
 fi
 
-# run_stage NAME BUILD_DIR CMAKE_ARGS...
-run_stage() {
+# build_stage NAME BUILD_DIR CMAKE_ARGS...
+build_stage() {
   local name=$1 dir=$2
   shift 2
   # (set -e does not apply inside a function called from `if`: check each step)
@@ -53,6 +81,11 @@ run_stage() {
   cmake -S . -B "$dir" -G Ninja "$@" || return 1
   stamp "$name: build"
   cmake --build "$dir" --parallel "$jobs" || return 1
+}
+
+# test_stage NAME BUILD_DIR
+test_stage() {
+  local name=$1 dir=$2
   stamp "$name: test"
   local rc=0
   ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" || rc=1
@@ -70,39 +103,67 @@ show_skips() {
 }
 
 # Without a GPU the CUDA code is compiled but never run: compile the simulator's
-# all-effects step kernels only (SCANDYN_SIM_EFFECT_SETS, CMakeLists.txt), not the
-# 44 per-effect-set ones (several minutes of nvcc on 2 cores).
-sim_sets=()
-if ! nvidia-smi -L >/dev/null 2>&1; then sim_sets=(-DSCANDYN_SIM_EFFECT_SETS=OFF); fi
-if ! run_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${sim_sets[@]+"${sim_sets[@]}"}; then
+# all-effects step kernels only (SCANDYN_SIM_EFFECT_SETS), not the 44 per-effect-set
+# ones, and of bench_cuda_fd's kernel variants only the engine's own
+# (SCANDYN_BENCH_VARIANTS; CMakeLists.txt): several minutes of nvcc on 2 cores.
+variants=()
+if ! nvidia-smi -L >/dev/null 2>&1; then
+  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF)
+fi
+if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${variants[@]+"${variants[@]}"}; then
+  wait_python
+  test_stage release "$build" || failed+=(release)
+else
   failed+=(release)
 fi
+wait_python
 
 # The accuracy report in its quick mode (CPU, small sizes), into a temporary
 # directory so that the tree stays clean; needs .venv (matplotlib). A failing
-# report fails the test command.
+# report fails the test command. It runs in the background (one process at a
+# time: a core) while the ASan stage builds; nothing there checks timings.
+report_dir=
 if [[ -x .venv/bin/python ]] && .venv/bin/python -c 'import matplotlib' 2>/dev/null; then
-  stamp "accuracy report (quick)"
+  stamp "accuracy report (quick), in the background"
   report_dir=$(mktemp -d)
-  if .venv/bin/python scripts/accuracy_report --quick --out-dir "$report_dir" --scandyn "$build/scandyn" \
-       --stability-test "$build/tests/test_stability"; then
+  .venv/bin/python scripts/accuracy_report --quick --out-dir "$report_dir" --scandyn "$build/scandyn" \
+    --stability-test "$build/tests/test_stability" >"$report_log" 2>&1 &
+  report_pid=$!
+else
+  echo "test.sh: warning: .venv with matplotlib not found; accuracy report skipped" >&2
+fi
+wait_report() {
+  [[ -n "$report_pid" ]] || return 0
+  stamp "accuracy report (quick): waiting"
+  local rc=0
+  wait "$report_pid" || rc=$?
+  report_pid=
+  cat "$report_log"
+  if ((rc == 0)); then
     rm -rf "$report_dir"
   else
     echo "test.sh: accuracy report failed (output kept in $report_dir)" >&2
     failed+=(accuracy-report)
   fi
-else
-  echo "test.sh: warning: .venv with matplotlib not found; accuracy report skipped" >&2
-fi
+}
 
 if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
   # UBSan reports are fatal (-fno-sanitize-recover=all); show where they happen
   export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1}
-  if ! run_stage asan "$asan_build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+  # -O1 -g1 instead of RelWithDebInfo's -O2 -g (NDEBUG as there): line tables are
+  # what the reports' stack traces need (file:line), and the stage compiles in
+  # about half the CPU time (test_model.cpp: 80 s -> 28 s) while its tests run
+  # ~15% longer (test_sim's long rollouts, measured).
+  if build_stage asan "$asan_build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+       "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1 -DNDEBUG" \
        -DSCANDYN_SANITIZE=address,undefined -DSCANDYN_BENCH=OFF -DSCANDYN_CUDA=OFF; then
+    wait_report
+    test_stage asan "$asan_build" || failed+=(asan)
+  else
     failed+=(asan)
   fi
 fi
+wait_report
 
 elapsed=$((SECONDS - start))
 if ((${#failed[@]})); then
