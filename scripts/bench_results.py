@@ -74,7 +74,7 @@ def main():
     os.makedirs(args.results_dir, exist_ok=True)
     tmp = path + '.tmp'
     with open(tmp, 'w', newline='') as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator='\n')
         w.writeheader()
         for k in sorted(rows, key=lambda k: (k[0], k[1], k[4], k[3], int(k[5]), int(k[6]))):
             w.writerow(rows[k])
