@@ -54,16 +54,20 @@ if [[ "${SCANDYN_SKIP_PYTHON:-0}" != 1 ]]; then
   scripts/setup_python.sh >"$python_log" 2>&1 &
   python_pid=$!
 fi
+# wait_job PID_VAR LOG LABEL: wait for the background job whose pid PID_VAR holds (none
+# started: status 0), clear PID_VAR, print the job's log; the job's exit status
+wait_job() {
+  local pid=${!1} rc=0
+  [[ -n "$pid" ]] || return 0
+  stamp "$3: waiting"
+  wait "$pid" || rc=$?
+  printf -v "$1" '%s' ''
+  cat "$2"
+  return "$rc"
+}
 wait_python() {
-  [[ -n "$python_pid" ]] || return 0
-  stamp "python environment (.venv): waiting"
-  local rc=0
-  wait "$python_pid" || rc=$?
-  python_pid=
-  cat "$python_log"
-  if ((rc != 0)); then
+  wait_job python_pid "$python_log" "python environment (.venv)" ||
     echo "test.sh: warning: .venv setup failed; pinocchio_crosscheck will be skipped" >&2
-  fi
 }
 
 models=${SCANDYN_MODELS_DIR:-../shared/models}
@@ -134,12 +138,7 @@ else
 fi
 wait_report() {
   [[ -n "$report_pid" ]] || return 0
-  stamp "accuracy report (quick): waiting"
-  local rc=0
-  wait "$report_pid" || rc=$?
-  report_pid=
-  cat "$report_log"
-  if ((rc == 0)); then
+  if wait_job report_pid "$report_log" "accuracy report (quick)"; then
     rm -rf "$report_dir"
   else
     echo "test.sh: accuracy report failed (output kept in $report_dir)" >&2

@@ -58,16 +58,7 @@ struct Batch {
   std::vector<double> q, qd, tau;     // (nv x B), entry (i, b) at i * B + b
   std::vector<Force<double>> fext;    // (B x nv)
   Batch(const Model& md, Index B_, unsigned seed) : nv(md.nv()), B(B_) {
-    std::mt19937_64 g(seed);
-    auto fill = [&](std::vector<double>& v, double a) {
-      v = test::random_vector(g, nv * B, -a, a);
-      for (double& x : v) x = double(S(x));
-    };
-    fill(q, 3.1);
-    fill(qd, 2.0);
-    fill(tau, 2.0);
-    fext = test::random_wrenches<double>(g, nv * B, 1.0);
-    for (auto& f : fext) f = f.template cast<S>().template cast<double>();
+    test::random_exact_batch<S>(nv, B, seed, q, qd, tau, fext);
   }
   // every instance takes instance 0's state (for broadcast layouts)
   void broadcast() {
@@ -218,18 +209,7 @@ Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
   return worst_errors<S>(md, batch, with_fext, qdd, l);
 }
 
-inline std::vector<std::pair<std::string, Model>> generated_models() {
-  std::vector<std::pair<std::string, Model>> models;
-  for (const char* spec : {"chain:1", "chain:8", "chain:9", "chain:16", "chain:17", "chain:33", "chain:64",
-                           "tree:30:1", "tree:60:2", "curtain:3:5", "rope:40"})
-    models.emplace_back(spec, load_model(spec));
-  // arbitrary axes, ~25% prismatic joints, branching; parents drawn at random, so the
-  // numbering is not a preorder (subtrees are not contiguous)
-  models.emplace_back("random_model(12)", test::random_model(12, 3));
-  models.emplace_back("random_model(40)", test::random_model(40, 4));
-  models.emplace_back("random_model(64)", test::random_model(64, 5));
-  return models;
-}
+inline std::vector<std::pair<std::string, Model>> generated_models() { return test::thread_shape_models(); }
 
 // A model whose mass matrix is singular: chain:N with its last body massless
 // (M(N-1, N-1) = 0: the factorisation stops at DoF N-1 for every state).

@@ -48,16 +48,7 @@ struct Batch {
   std::vector<double> q, qd, qdd;     // (nv x B), entry (i, b) at i * B + b
   std::vector<Force<double>> fext;    // (B x nv)
   Batch(const Model& md, Index B_, unsigned seed) : nv(md.nv()), B(B_) {
-    std::mt19937_64 g(seed);
-    auto fill = [&](std::vector<double>& v, double a) {
-      v = test::random_vector(g, nv * B, -a, a);
-      for (double& x : v) x = double(S(x));
-    };
-    fill(q, 3.1);
-    fill(qd, 2.0);
-    fill(qdd, 2.0);
-    fext = test::random_wrenches<double>(g, nv * B, 1.0);
-    for (auto& f : fext) f = f.template cast<S>().template cast<double>();
+    test::random_exact_batch<S>(nv, B, seed, q, qd, qdd, fext);
   }
   // instance b's reference torques
   void reference(const Model& md, Data& d, Index b, bool with_fext, std::vector<double>& tau) const {

@@ -66,13 +66,8 @@ const Model& robot(const std::string& file) {
 std::vector<std::pair<std::string, Model>> thread_models() {
   std::vector<std::pair<std::string, Model>> models;
   for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) models.emplace_back(file, robot(file));
-  for (const char* spec : {"chain:1", "chain:8", "chain:9", "chain:16", "chain:17", "chain:33", "chain:64",
-                           "tree:30:1", "tree:60:2", "curtain:3:5", "rope:40"})
-    models.emplace_back(spec, load_model(spec));
+  for (auto& m : test::thread_shape_models()) models.push_back(std::move(m));
   models.emplace_back("random_model(5)", test::random_model(5, 2));
-  models.emplace_back("random_model(12)", test::random_model(12, 3));
-  models.emplace_back("random_model(40)", test::random_model(40, 4));
-  models.emplace_back("random_model(64)", test::random_model(64, 5));
   models.emplace_back("random_chain(20)", test::random_chain(20, 6));
   return models;
 }

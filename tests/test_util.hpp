@@ -7,6 +7,7 @@
 #include <random>
 #include <string>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "scandyn/accuracy.hpp"
@@ -56,6 +57,25 @@ std::vector<Force<S>> random_wrenches(std::mt19937_64& rng, int n, double a) {
     f = Force<S>{{S(r[0]), S(r[1]), S(r[2])}, {S(r[3]), S(r[4]), S(r[5])}};
   }
   return out;
+}
+
+// A batch of B random states of an nv-DoF model, every value a double exactly
+// representable in S (so S and double runs see the same inputs): q in [-3.1, 3.1],
+// qd and u (qdd or tau) in [-2, 2], each (nv x B) with entry (i, b) at i * B + b;
+// fext (B x nv) body wrenches with components in [-1, 1].
+template <class S>
+void random_exact_batch(Index nv, Index B, unsigned seed, std::vector<double>& q, std::vector<double>& qd,
+                        std::vector<double>& u, std::vector<Force<double>>& fext) {
+  std::mt19937_64 g(seed);
+  auto fill = [&](std::vector<double>& v, double a) {
+    v = random_vector(g, static_cast<int>(nv * B), -a, a);
+    for (double& x : v) x = double(S(x));
+  };
+  fill(q, 3.1);
+  fill(qd, 2.0);
+  fill(u, 2.0);
+  fext = random_wrenches<double>(g, static_cast<int>(nv * B), 1.0);
+  for (auto& f : fext) f = f.template cast<S>().template cast<double>();
 }
 
 template <class T>
@@ -116,6 +136,21 @@ inline Model random_chains_from_base(int n, unsigned seed, const std::vector<int
   m.name = m.source = "random-chains:" + std::to_string(n);
   for (int s : starts) m.bodies[static_cast<std::size_t>(s)].parent = -1;
   return m;
+}
+
+// Models of up to 64 DoF at the shape edges of the thread-per-instance kernels: chains
+// at the register capacities (8, 16, 32, 64) and one past them, trees, chains from the
+// base, and random trees with arbitrary axes and ~25% prismatic joints whose parents
+// are drawn at random (the numbering is not a preorder: subtrees are not contiguous).
+inline std::vector<std::pair<std::string, Model>> thread_shape_models() {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* spec : {"chain:1", "chain:8", "chain:9", "chain:16", "chain:17", "chain:33", "chain:64",
+                           "tree:30:1", "tree:60:2", "curtain:3:5", "rope:40"})
+    models.emplace_back(spec, load_model(spec));
+  models.emplace_back("random_model(12)", random_model(12, 3));
+  models.emplace_back("random_model(40)", random_model(40, 4));
+  models.emplace_back("random_model(64)", random_model(64, 5));
+  return models;
 }
 
 }  // namespace scandyn::test

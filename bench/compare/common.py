@@ -22,6 +22,7 @@ import csv
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 
@@ -43,8 +44,12 @@ def models_dir():
     return os.path.join(REPO, '..', 'shared', 'models')
 
 
+_T0 = time.time()
+
+
 def log(*a):
-    print('[compare]', *a, flush=True)
+    # seconds since this process started: where a run's time goes
+    print('[compare +%.0fs]' % (time.time() - _T0), *a, flush=True)
     sys.stdout.flush()
 
 
