@@ -310,7 +310,8 @@ int run_bench(const Args& args) {
   const EvalOptions options = parse_eval_options(args);
   const FdMethod fd = options.fd;
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
-  const Backend& backend = find_backend(args.get("backend", "serial"));
+  const std::string backend_name = args.get("backend", "serial");  // named, not a temporary: g++ 13 -Wdangling-reference
+  const Backend& backend = find_backend(backend_name);
   require_algos(backend, algo_bit(algo));
   require_fallback(backend, options);
   const Precision precision = parse_precision(args.get("precision", "double"));

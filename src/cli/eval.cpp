@@ -183,7 +183,8 @@ int run_eval(const Args& args) {
   const std::string& out_path = args.required("out");
   std::vector<Algo> algos;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
-  const Backend& backend = find_backend(args.get("backend", "serial"));
+  const std::string backend_name = args.get("backend", "serial");  // named, not a temporary: g++ 13 -Wdangling-reference
+  const Backend& backend = find_backend(backend_name);
   if (!algos.empty()) require_algos(backend, algo_set(algos));
   const Precision precision = parse_precision(args.get("precision", "double"));
   const EvalOptions options = parse_eval_options(args);

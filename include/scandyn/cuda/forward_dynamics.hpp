@@ -636,7 +636,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
   constexpr int K = kSlots > 0 ? kSlots : 1;  // extent of the slot arrays
   const Index n = model.nv;
   S q_r[kRegs] = {}, qd_r[kRegs] = {};
-  Transform<S> Xup[kXup];              // (nv) parent -> body transforms (kKeepXup)
+  Transform<S> Xup[kXup] = {};         // (nv) parent -> body transforms (kKeepXup)
   fd_detail::AbaBodyState<S> st[C];    // (nv) v_i, then U_i, D_i, u_i
   Motion<S> sv[K], sa[K];              // (slots) a branch point's v (passes 1 and 3) and a (pass 3)
   ABInertia<S> sIA[K];                 // (slots) a branch point's articulated inertia (pass 2) ...
