@@ -219,6 +219,73 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
       if (failed[b] >= 0)
         for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
   }
+  if (fallback_aba_ && status.failed > 0) return compute_failed_by_aba(in, qdd, failed, status.failed);
+  return status;
+}
+
+template <class S>
+void CudaForwardDynamics<S>::set_fallback_aba(bool on) {
+  if (on && !(thread_ && !aba_))
+    throw BackendError("backend 'cuda': the fallback to the ABA needs the thread-per-instance joint-space inertia "
+                       "(jsi_thread, up to " + std::to_string(kMaxThreadDofs) + " DoF); this engine runs " + strategy());
+  fallback_aba_ = on;
+}
+
+template <class S>
+FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd,
+                                                            int* failed, Index count) {
+  const Index B = in.q.batch, nv = nv_, F = count;
+  const std::size_t n = static_cast<std::size_t>(nv), f = static_cast<std::size_t>(F);
+  std::vector<Index> which;  // (F) the failed instances
+  which.reserve(f);
+  for (Index b = 0; b < B; ++b)
+    if (failed[b] >= 0) which.push_back(b);
+  // gathered on the host: q, qd, tau (nv x F each, entry (i, k) at i * F + k), fext (F x nv)
+  std::vector<S> host(3 * n * f);
+  std::vector<Force<S>> wrenches(in.fext ? n * f : 0);
+  for (std::size_t k = 0; k < f; ++k)
+    for (Index i = 0; i < nv; ++i) {
+      const std::size_t e = static_cast<std::size_t>(i) * f + k;
+      host[e] = in.q.at(i, which[k]);
+      host[n * f + e] = in.qd.at(i, which[k]);
+      host[2 * n * f + e] = in.tau.at(i, which[k]);
+      if (in.fext) wrenches[k * n + static_cast<std::size_t>(i)] = in.fext[static_cast<std::size_t>(which[k]) * n + static_cast<std::size_t>(i)];
+    }
+  // the staging buffers' layout, as compute() uses them (F <= max_batch)
+  const std::size_t cap = n * static_cast<std::size_t>(max_batch_);
+  const cudaStream_t stream = staging_->stream();
+  S* const buffer = static_cast<S*>(staging_->data());
+  S* const dqdd = buffer + 3 * cap;
+  Force<S>* const dfext = reinterpret_cast<Force<S>*>(buffer + 4 * cap);
+  int* const dfailed = reinterpret_cast<int*>(dfext + cap);
+  check(cudaMemcpyAsync(buffer, host.data(), host.size() * sizeof(S), cudaMemcpyHostToDevice, stream),
+        "copying the fallback's inputs to the device");
+  if (in.fext)
+    check(cudaMemcpyAsync(dfext, wrenches.data(), wrenches.size() * sizeof(Force<S>), cudaMemcpyHostToDevice, stream),
+          "copying the fallback's wrenches to the device");
+  using V = BatchView<const S>;
+  const FdBatchIn<S> din{V::soa(buffer, nv, F), V::soa(buffer + n * f, nv, F), V::soa(buffer + 2 * n * f, nv, F),
+                         in.fext ? dfext : nullptr};
+  check(launch_aba_instances(*thread_, din, BatchView<S>::soa(dqdd, nv, F), dfailed, stream),
+        "launching the ABA for the instances whose JSI failed");
+  std::vector<int> aba_failed(f);
+  check(cudaMemcpyAsync(host.data(), dqdd, n * f * sizeof(S), cudaMemcpyDeviceToHost, stream),
+        "copying the fallback's qdd to the host");
+  check(cudaMemcpyAsync(aba_failed.data(), dfailed, f * sizeof(int), cudaMemcpyDeviceToHost, stream),
+        "copying the fallback's failed DoFs to the host");
+  check(cudaStreamSynchronize(stream), "running the ABA for the instances whose JSI failed");
+  FdBatchStatus status;
+  status.algorithm = FdAlgorithm::Aba;
+  for (std::size_t k = 0; k < f; ++k) {
+    const Index b = which[k];
+    failed[b] = aba_failed[k];
+    if (aba_failed[k] >= 0) {
+      if (status.failed++ == 0) status.first_instance = b, status.first_dof = aba_failed[k];
+      continue;
+    }
+    for (Index i = 0; i < nv; ++i) qdd.at(i, b) = host[static_cast<std::size_t>(i) * f + k];
+    ++status.fell_back;
+  }
   return status;
 }
 

@@ -767,6 +767,8 @@ TEST_F(Cli, CudaBackendWithoutDeviceFailsCleanly) {
         kEval + "--backend cuda --algo fd",
         std::string("bench --model chain:3 --algo fd --instances 1 --backend cuda --csv results.csv"),
         std::string("bench --model chain:3 --algo fd --fd jsi --instances 1 --backend cuda --precision float"),
+        std::string("bench --model chain:3 --algo fd --fd jsi --fallback aba --instances 1 --backend cuda"),
+        kEval + "--backend cuda --algo fd --fd jsi --fallback aba",
         kEval + "--backend cuda --algo mass", kEval + "--backend cuda --algo bias,mass,id",
         std::string("bench --model chain:3 --algo mass --instances 1 --backend cuda --precision float --csv results.csv"),
         std::string("bench --model rope:70 --algo mass --instances 2 --backend cuda")}) {
@@ -946,6 +948,32 @@ TEST_F(Cli, EvalCudaReportsTheRowWhoseForwardDynamicsFails) {
             "scandyn: states.csv: row 2 (line 3): forward dynamics failed: mass matrix "
             "pivot at DoF 0 is not positive\n");
   EXPECT_EQ(read_text(path("out.csv")), "sentinel\n");
+}
+
+// --fd jsi --fallback aba on the device: where nothing fails, the JSI's output and
+// no warning; bench times it with the host copies only (jsi_thread+aba-host: the
+// fallback must see which instances failed, which a device-resident row cannot);
+// beyond 64 DoF (jsi_dense) it is refused. Which instances fall back, and that they
+// get the ABA's qdd, is CudaStabilityJsiFallback's test.
+TEST_F(Cli, CudaJsiFallbackToAba) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  write_text(path("states.csv"), States(10, 20, 33).csv({"q", "qd", "tau"}));
+  const std::string base = "eval --model rope:10 --states states.csv --algo fd --fd jsi --backend cuda";
+  ASSERT_EQ(run(base + " --out jsi.csv").code, 0);
+  const Result r = run(base + " --out fallback.csv --fallback aba");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");
+  EXPECT_EQ(read_text(path("fallback.csv")), read_text(path("jsi.csv")));
+
+  const Result b = run("bench --model rope:10 --algo fd --fd jsi --fallback aba --backend cuda --instances 4 --min-time 0");
+  ASSERT_EQ(b.code, 0) << b.err;
+  const std::vector<std::string> row = bench_row(b);
+  ASSERT_EQ(row.size(), 10u) << b.out;
+  EXPECT_EQ(row[1], "jsi_thread+aba-host");
+
+  const Result big = run("bench --model rope:100 --algo fd --fd jsi --fallback aba --backend cuda --instances 1");
+  EXPECT_EQ(big.code, 2);
+  EXPECT_NE(big.err.find("needs the thread-per-instance joint-space inertia"), std::string::npos) << big.err;
 }
 
 TEST_F(Cli, EvalCudaDefaultsAndLimits) {

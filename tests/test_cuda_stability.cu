@@ -73,10 +73,11 @@
 // skips with "no CUDA device: ..." without one; scripts/gpu_check.sh runs them
 // (compute-sanitizer leaves out the 10^5-link case by its name, *LongRopes*).
 //
-// There is no JSI -> ABA fallback on the CUDA backend: CudaForwardDynamics reports
-// the failed instances (as asserted here) and leaves their qdd unwritten, and
-// `scandyn eval|bench --backend cuda --fd jsi --fallback aba` is refused (exit 2,
-// "backend 'cuda' has no --fallback aba", src/cli/backend.cpp require_fallback).
+// JSI -> ABA fallback: CudaForwardDynamics reports the instances whose JSI
+// factorisation failed (as asserted here) and leaves their qdd unwritten; with
+// set_fallback_aba (jsi_thread, up to 64 DoF) compute() runs the ABA kernel over
+// just those instances (CudaStabilityJsiFallback; `scandyn eval|bench --backend cuda
+// --fd jsi --fallback aba`).
 #include <cuda_runtime.h>
 #include <gtest/gtest.h>
 
@@ -453,4 +454,84 @@ TEST(CudaStabilityHard, HugeVelocity) {
                {1e-7, kDegraded},     {1e-12, 5e-4}, {1e-12, 5e-4}});
   expect_case(make_problem("rope-qd-1e3:1000", rope(1000), 7, 1e3),
               long_chain({1e-13, 5e-5}, {1e-7, kReported}, {1e-12, 5e-4}, {1e-12, 5e-4}));
+}
+
+// ---- JSI with the fallback to the ABA ---------------------------------------------
+
+// A 64-link rope with a tip 3e4 times its links' inertia, in float: the thread
+// JSI's Cholesky fails on part of the batch (host fd_jsi on these 256 states: 103
+// fail), the ABA on none. Without the fallback the failed instances are reported
+// and their qdd left alone; with it (set_fallback_aba) they are the ABA engine's
+// qdd bit for bit (the same kernel on the same inputs), the others stay the JSI's
+// bit for bit, and the status counts them in fell_back. With and without external
+// wrenches, inputs in an instance-major (AoS) layout.
+TEST(CudaStabilityJsiFallback, HeavyTipRopeInFloat) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = heavy_tip_rope(64, 3e4);
+  const ModelTpl<float> m = md.cast<float>();
+  const Index n = m.nv(), B = 256;
+  const std::size_t N = static_cast<std::size_t>(n * B);
+  std::vector<double> q64, qd64, tau64;
+  std::vector<Force<double>> fext64;
+  test::random_exact_batch<float>(n, B, 21, q64, qd64, tau64, fext64);
+  const auto q = test::cast_vector<float>(q64), qd = test::cast_vector<float>(qd64), tau = test::cast_vector<float>(tau64);
+  std::vector<Force<float>> fext(fext64.size());
+  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = fext64[k].cast<float>();
+  BackendOptions options;
+  options.backend = BackendKind::Cuda;
+  options.max_batch = B;
+  cuda::CudaForwardDynamics<float> jsi(m, options, cuda::FdAlgorithm::Jsi), by_aba(m, options, cuda::FdAlgorithm::Aba);
+  ASSERT_EQ(jsi.strategy(), "jsi_thread");
+  EXPECT_THROW(by_aba.set_fallback_aba(true), BackendError);
+  using View = BatchView<const float>;
+  for (bool with_fext : {false, true}) {
+    SCOPED_TRACE(with_fext ? "with fext" : "no fext");
+    // random_exact_batch's (nv x B) arrays read as instance-major: entry (i, b) at b * nv + i
+    const FdBatchIn<float> in{View::aos(q.data(), n, B), View::aos(qd.data(), n, B), View::aos(tau.data(), n, B),
+                              with_fext ? fext.data() : nullptr};
+    auto run = [&](cuda::CudaForwardDynamics<float>& e, std::vector<float>& qdd, std::vector<int>& failed) {
+      qdd.assign(N, std::numeric_limits<float>::quiet_NaN());
+      failed.assign(static_cast<std::size_t>(B), -2);
+      return e.compute(in, BatchView<float>::aos(qdd.data(), n, B), failed.data());
+    };
+    std::vector<float> qdd_jsi, qdd_aba, qdd_fb;
+    std::vector<int> failed_jsi, failed_aba, failed_fb;
+    jsi.set_fallback_aba(false);
+    const cuda::FdBatchStatus off = run(jsi, qdd_jsi, failed_jsi);
+    ASSERT_GT(off.failed, 0) << "the JSI no longer fails on this batch: the test needs a harder case";
+    EXPECT_EQ(off.fell_back, 0);
+    ASSERT_TRUE(run(by_aba, qdd_aba, failed_aba).ok());
+    jsi.set_fallback_aba(true);
+    EXPECT_TRUE(jsi.fallback_aba());
+    const cuda::FdBatchStatus on = run(jsi, qdd_fb, failed_fb);
+    EXPECT_TRUE(on.ok()) << on.message();
+    EXPECT_EQ(on.fell_back, off.failed);
+    Data ref_data(md, false);
+    double worst = 0;
+    for (Index b = 0; b < B; ++b) {
+      const std::size_t o = static_cast<std::size_t>(b * n);
+      const std::vector<float> got(qdd_fb.begin() + o, qdd_fb.begin() + o + n);
+      EXPECT_EQ(failed_fb[b], -1) << "instance " << b;
+      if (failed_jsi[b] >= 0) {
+        // untouched without the fallback, the ABA's with it
+        for (Index i = 0; i < n; ++i) ASSERT_TRUE(std::isnan(qdd_jsi[o + i])) << "instance " << b;
+        EXPECT_EQ(got, std::vector<float>(qdd_aba.begin() + o, qdd_aba.begin() + o + n)) << "instance " << b;
+        // against the double ABA on the same (float-exact) inputs
+        std::vector<double> ref(static_cast<std::size_t>(n));
+        std::vector<Force<double>> f(with_fext ? fext64.begin() + o : fext64.end(), with_fext ? fext64.begin() + o + n : fext64.end());
+        std::vector<double> qb(q64.begin() + o, q64.begin() + o + n), qdb(qd64.begin() + o, qd64.begin() + o + n),
+            tb(tau64.begin() + o, tau64.begin() + o + n);
+        ASSERT_TRUE(aba(md, ref_data, qb.data(), qdb.data(), tb.data(), ref.data(), with_fext ? f.data() : nullptr).ok());
+        worst = std::max(worst, rel_err(got.data(), ref.data(), static_cast<std::size_t>(n)));
+      } else {
+        EXPECT_EQ(got, std::vector<float>(qdd_jsi.begin() + o, qdd_jsi.begin() + o + n)) << "instance " << b;
+      }
+    }
+    // float ABA with the heavy tip: host aba<float> on all 256 states 5.0e-3 (no
+    // fext) and 2.7e-3 (fext) against the double ABA; the tip's 3e4 ratio costs
+    // float 4 digits (rope:64 alone: 3e-7)
+    EXPECT_LT(worst, 2e-2);
+    RecordProperty(std::string("rope-heavy-tip:64.cuda-fd-jsi_thread+aba.float") + (with_fext ? ".fext" : ""),
+                   std::to_string(worst));
+  }
 }

@@ -335,12 +335,6 @@ EvalOptions parse_eval_options(const Args& args) {
   return o;
 }
 
-void require_fallback(const Backend& backend, const EvalOptions& options) {
-  if (options.fallback_aba && std::string(backend.name) == "cuda")
-    throw UsageError("backend 'cuda' has no --fallback aba (a failed JSI factorisation is reported); "
-                     "use --fd aba or parallel, or a CPU backend", false);
-}
-
 std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit) {
   return "forward dynamics by jsi failed on " + std::to_string(fell_back) + " of " + std::to_string(total) + " " +
          unit + " (mass matrix pivot not positive); " + (fell_back == 1 ? "it was" : "they were") +

@@ -159,10 +159,6 @@ struct Backend {
 class Args;
 EvalOptions parse_eval_options(const Args& args);
 
-// Throws UsageError (no --help hint) when options ask for --fallback aba on a
-// backend that does not have it (cuda).
-void require_fallback(const Backend& backend, const EvalOptions& options);
-
 // The stderr warning line for instances that fell back from JSI to aba, e.g.
 // "forward dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not
 // positive); they were computed by aba (--fallback aba)".

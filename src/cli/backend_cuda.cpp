@@ -236,7 +236,8 @@ class CudaEvaluator final : public Evaluator<S> {
  public:
   // Makes the engines of o.algos (the inverse dynamics' when o.algos is 0), others
   // on first use, so that an eval of id alone runs on a model that fd cannot take.
-  CudaEvaluator(const ModelTpl<S>& model, const EvalOptions& o) : model_(model), nv_(model.nv()) {
+  CudaEvaluator(const ModelTpl<S>& model, const EvalOptions& o)
+      : model_(model), nv_(model.nv()), fallback_(o.fallback_aba) {
     bo_.backend = BackendKind::Cuda;
     bo_.strategy = o.strategy;
     bo_.max_batch = static_cast<Index>(o.max_batch);
@@ -258,6 +259,7 @@ class CudaEvaluator final : public Evaluator<S> {
       } catch (const BackendError& e) {
         throw DataError(e.what());
       }
+      fallbacks_ = static_cast<std::size_t>(st.fell_back);
       BatchStatus status;
       if (!st.ok()) {
         status.instance = static_cast<std::size_t>(st.first_instance);
@@ -297,7 +299,10 @@ class CudaEvaluator final : public Evaluator<S> {
   }
 
   // the engine's strategy with "-host": thread-host, aba_thread-host, crba_thread-host, ...
+  std::size_t fallbacks() const override { return fallbacks_; }
+
   std::string strategy(Algo algo, FdMethod fd) const override {
+    if (algo == Algo::Fd && fd_engine(fd).fallback_aba()) return "jsi_thread+aba-host";
     const std::string s = algo == Algo::Fd     ? fd_engine(fd).strategy()
                           : algo == Algo::Mass ? mass_engine().strategy()
                                                : id_engine().strategy();
@@ -306,13 +311,15 @@ class CudaEvaluator final : public Evaluator<S> {
   bool exact(Algo, FdMethod) const override { return false; }  // other compiler, FMA contraction
 
   // The batch on the device, the engine's compute_async() per call; the row's
-  // strategy is the engine's without "-host". Null for --fd hybrid.
+  // strategy is the engine's without "-host". Null for --fd hybrid and for the
+  // fallback to the ABA (compute() only: it must see which instances failed).
   std::unique_ptr<ResidentBatch<S>> resident(Algo algo, FdMethod fd, const BatchIn<S>& in) override {
     using Device = typename CudaResidentBatch<S>::Device;
     const std::size_t width = output_width(algo, nv_);
     if (algo == Algo::Fd) {
       cuda::CudaForwardDynamics<S>& e = fd_engine(fd);
       if (e.algorithm() == cuda::FdAlgorithm::Hybrid) return nullptr;  // compute_async: cudaErrorNotSupported
+      if (e.fallback_aba()) return nullptr;
       return std::make_unique<CudaResidentBatch<S>>(
           e.strategy(), "the forward dynamics", nv_, in.count, std::vector<const S*>{in.q, in.qd, in.tau},
           width, true, e.device_bytes(), [&e](const Device& d) {
@@ -380,6 +387,7 @@ class CudaEvaluator final : public Evaluator<S> {
       }
       try {
         fd = std::make_unique<cuda::CudaForwardDynamics<S>>(model_, bo, algo);
+        if (fallback_ && method == FdMethod::Jsi) fd->set_fallback_aba(true);
       } catch (const BackendError& e) {
         // no device, buffers beyond device memory, a method the model cannot take
         throw UsageError(std::string("--fd ") + fd_method_name(method) + ": " + e.what(), false);
@@ -395,6 +403,8 @@ class CudaEvaluator final : public Evaluator<S> {
   mutable std::unique_ptr<cuda::CudaInverseDynamics<S>> id_;
   mutable std::unique_ptr<cuda::CudaMassMatrix<S>> mass_;
   mutable std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_[5];  // by FdMethod
+  bool fallback_ = false;        // --fallback aba: the Jsi engine's set_fallback_aba
+  std::size_t fallbacks_ = 0;    // instances the last fd run() computed by the ABA instead
 };
 
 }  // namespace

@@ -313,7 +313,6 @@ int run_bench(const Args& args) {
   const std::string backend_name = args.get("backend", "serial");  // named, not a temporary: g++ 13 -Wdangling-reference
   const Backend& backend = find_backend(backend_name);
   require_algos(backend, algo_bit(algo));
-  require_fallback(backend, options);
   const Precision precision = parse_precision(args.get("precision", "double"));
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
   require_usable(backend);

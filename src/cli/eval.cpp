@@ -188,7 +188,6 @@ int run_eval(const Args& args) {
   if (!algos.empty()) require_algos(backend, algo_set(algos));
   const Precision precision = parse_precision(args.get("precision", "double"));
   const EvalOptions options = parse_eval_options(args);
-  require_fallback(backend, options);
   require_usable(backend);
 
   const Model model = load_cli_model(args);

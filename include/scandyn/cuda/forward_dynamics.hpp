@@ -99,6 +99,8 @@ struct FdBatchStatus {
   Index first_dof = -1;       // the DoF at which its factorisation stopped
   FdAlgorithm algorithm = FdAlgorithm::Jsi;  // whose pivot: Jsi (a diagonal entry of the mass
                                              // matrix's L^T L) or Aba (D_i = S_i^T IA_i S_i)
+  Index fell_back = 0;  // instances whose JSI factorisation failed and the ABA computed instead
+                        // (CudaForwardDynamics::set_fallback_aba); not counted in `failed`
   bool ok() const { return failed == 0; }
   // "" when ok(); else one line naming the pivot of the algorithm, e.g.
   //   "instance 3: mass matrix pivot at DoF 6 is not positive"             (Jsi)
@@ -211,6 +213,17 @@ class CudaForwardDynamics {
   cudaError_t compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                             cudaStream_t stream);
 
+  // With on, compute() computes the instances whose JSI factorisation failed again by
+  // the ABA (one launch of the ABA kernel over just those instances, gathered on the
+  // host and staged through the same buffers): their qdd is the ABA's, their
+  // failed_dof -1, and the returned status counts them in fell_back (an instance whose
+  // ABA pivot fails too stays failed, with algorithm Aba). compute_async() is not
+  // affected: it cannot see which instances failed without waiting for them. Only
+  // the thread-per-instance JSI (strategy "jsi_thread", up to kMaxThreadDofs DoF) has
+  // it; any other engine throws BackendError for on.
+  void set_fallback_aba(bool on);
+  bool fallback_aba() const { return fallback_aba_; }
+
   // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
   // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
   // "aba_thread" (FdAlgorithm::Aba: ABA, one thread per instance)
@@ -249,6 +262,10 @@ class CudaForwardDynamics {
   std::unique_ptr<detail::StagingBuffer> staging_;
   std::vector<int> failed_host_;  // (max_batch) when the caller passes no failed_dof
   std::vector<S> kept_;           // qdd entries of failed instances, restored after the copy back
+  bool fallback_aba_ = false;     // set_fallback_aba
+  // compute()'s second pass for set_fallback_aba: the failed instances by the ABA
+  FdBatchStatus compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
+                                      Index count);
 };
 
 #if defined(__CUDACC__)
