@@ -622,6 +622,10 @@ std::string heavy_urdf() {
          limit + "</joint></robot>\n";
 }
 const char* const kHeavyStates = "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n0,1e5,0,0,0,0\n";
+// row 2 of kHeavyStates with --fd jsi --fallback aba: the JSI fails, then the ABA
+const char* const kHeavyFallbackError =
+    "scandyn: heavy.csv: row 2 (line 3): forward dynamics failed: mass matrix pivot not positive, and by "
+    "--fallback aba the articulated inertia pivot at DoF 0 is not positive\n";
 
 TEST_F(Cli, EvalReportsTheRowWhoseForwardDynamicsFails) {
   write_text(path("heavy.urdf"), heavy_urdf());
@@ -970,6 +974,14 @@ TEST_F(Cli, CudaJsiFallbackToAba) {
   const std::vector<std::string> row = bench_row(b);
   ASSERT_EQ(row.size(), 10u) << b.out;
   EXPECT_EQ(row[1], "jsi_thread+aba-host");
+
+  // an instance that fails the ABA too: as on the CPU backends
+  write_text(path("heavy.urdf"), heavy_urdf());
+  write_text(path("heavy.csv"), kHeavyStates);
+  const Result h = run("eval --model heavy.urdf --states heavy.csv --out heavy_out.csv --algo fd --fd jsi "
+                       "--fallback aba --backend cuda");
+  EXPECT_EQ(h.code, 1);
+  EXPECT_EQ(h.err, kHeavyFallbackError);
 
   const Result big = run("bench --model rope:100 --algo fd --fd jsi --fallback aba --backend cuda --instances 1");
   EXPECT_EQ(big.code, 2);
@@ -1335,6 +1347,17 @@ TEST_F(Cli, JsiFallbackToAbaOnTheCpu) {
   EXPECT_EQ(row[1], "jsi+aba");
   EXPECT_LT(std::stod(row[9]), 1e-5);  // float aba
   EXPECT_NE(bench.err.find("failed on 1 of 1 instances"), std::string::npos) << bench.err;
+
+  // an instance that fails the ABA too stays an error, and the message says both failed
+  write_text(path("heavy.urdf"), heavy_urdf());
+  write_text(path("heavy.csv"), kHeavyStates);
+  for (const char* backend : {"serial", "openmp"}) {
+    const Result r = run(std::string("eval --model heavy.urdf --states heavy.csv --out heavy_out.csv --algo fd --fd jsi "
+                                     "--fallback aba --backend ") + backend);
+    EXPECT_EQ(r.code, 1) << backend;
+    EXPECT_EQ(r.err, kHeavyFallbackError) << backend;
+    EXPECT_FALSE(fs::exists(path("heavy_out.csv"))) << backend;
+  }
 
   for (const char* args : {"bench --model rope:5 --algo fd --fd aba --fallback aba --instances 1",
                            "bench --model rope:5 --algo fd --fallback aba --instances 1",

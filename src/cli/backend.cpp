@@ -93,10 +93,11 @@ std::vector<std::string> output_columns(Algo algo, Index nv) {
   return names;
 }
 
-std::string describe_fd_failure(FdMethod fd, const Status& status) {
-  const char* what = fd == FdMethod::Jsi ? "mass matrix" : "articulated inertia";
-  return std::string(what) + " pivot at DoF " + std::to_string(status.failed_dof) +
-         " is not positive";
+std::string describe_fd_failure(FdMethod fd, const Status& status, bool fallback_aba) {
+  const std::string pivot = " pivot at DoF " + std::to_string(status.failed_dof) + " is not positive";
+  if (fd == FdMethod::Jsi && fallback_aba)  // what is left failed both: the status is the ABA's
+    return "mass matrix pivot not positive, and by --fallback aba the articulated inertia" + pivot;
+  return (fd == FdMethod::Jsi ? "mass matrix" : "articulated inertia") + pivot;
 }
 
 // ---- CPU backends ---------------------------------------------------------------

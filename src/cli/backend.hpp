@@ -198,7 +198,8 @@ std::string cuda_unusable();
 #endif
 
 // One-line description of a failed forward dynamics, e.g.
-// "articulated inertia pivot at DoF 3 is not positive".
-std::string describe_fd_failure(FdMethod fd, const Status& status);
+// "articulated inertia pivot at DoF 3 is not positive"; with fallback_aba (--fd jsi
+// --fallback aba: the instance failed the JSI and then the ABA) both, the DoF the ABA's.
+std::string describe_fd_failure(FdMethod fd, const Status& status, bool fallback_aba = false);
 
 }  // namespace scandyn::cli

@@ -87,10 +87,10 @@ BatchIn<S> make_batch(Algo algo, std::size_t count, const std::vector<S>& q,
   return in;
 }
 
-void check(const BatchStatus& st, FdMethod fd) {
+void check(const BatchStatus& st, FdMethod fd, bool fallback_aba = false) {
   if (!st.ok())
     throw DataError("bench: instance " + std::to_string(st.instance) +
-                    ": forward dynamics failed: " + describe_fd_failure(fd, st.status));
+                    ": forward dynamics failed: " + describe_fd_failure(fd, st.status, fallback_aba));
 }
 
 // One row of results: a way of calling the backend, its time and error.
@@ -172,7 +172,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
   // a failed forward dynamics, named by the method used (asked for only then: on
   // CUDA the method is an engine's, made on first use)
   auto check_fd = [&](const BatchStatus& st) {
-    if (!st.ok()) check(st, evaluator->fd_method(fd));
+    if (!st.ok()) check(st, evaluator->fd_method(fd), options.fallback_aba);
   };
   std::vector<Timing> rows;
 

@@ -69,8 +69,8 @@ std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Inde
 // kMaxChunkRows, the evaluator's max_batch), whatever the backend.
 template <class S>
 void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, FdMethod fd, std::size_t chunk,
-               CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
+               const StateColumns& cols, const std::vector<Algo>& algos, FdMethod fd, bool fallback_aba,
+               std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
@@ -121,7 +121,7 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
       if (algos[k] == Algo::Fd) fell_back += evaluator.fallbacks();
       if (!st.ok()) {  // the pivot of the method used
         throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
-                        describe_fd_failure(evaluator.fd_method(fd), st.status));
+                        describe_fd_failure(evaluator.fd_method(fd), st.status, fallback_aba));
       }
     }
 
@@ -170,7 +170,7 @@ void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions opt
   else evaluator = backend.make_float(model, options);
   CsvWriter out(out_path);
   std::size_t rows = 0, fell_back = 0;
-  eval_rows(model, *evaluator, in, cols, algos, options.fd, chunk, out, rows, fell_back);
+  eval_rows(model, *evaluator, in, cols, algos, options.fd, options.fallback_aba, chunk, out, rows, fell_back);
   out.commit();
   if (fell_back) std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(fell_back, rows, "rows").c_str());
 }
