@@ -7,6 +7,7 @@
 // kernels/staging.hpp for compute(), the plain launch for compute_async()).
 #include <cuda_runtime.h>
 
+#include <algorithm>
 #include <string>
 #include <type_traits>
 
@@ -243,14 +244,16 @@ FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& 
   // gathered on the host: q, qd, tau (nv x F each, entry (i, k) at i * F + k), fext (F x nv)
   std::vector<S> host(3 * n * f);
   std::vector<Force<S>> wrenches(in.fext ? n * f : 0);
-  for (std::size_t k = 0; k < f; ++k)
+  for (std::size_t k = 0; k < f; ++k) {
+    const Index b = which[k];
     for (Index i = 0; i < nv; ++i) {
       const std::size_t e = static_cast<std::size_t>(i) * f + k;
-      host[e] = in.q.at(i, which[k]);
-      host[n * f + e] = in.qd.at(i, which[k]);
-      host[2 * n * f + e] = in.tau.at(i, which[k]);
-      if (in.fext) wrenches[k * n + static_cast<std::size_t>(i)] = in.fext[static_cast<std::size_t>(which[k]) * n + static_cast<std::size_t>(i)];
+      host[e] = in.q.at(i, b);
+      host[n * f + e] = in.qd.at(i, b);
+      host[2 * n * f + e] = in.tau.at(i, b);
     }
+    if (in.fext) std::copy_n(in.fext + static_cast<std::size_t>(b) * n, n, wrenches.begin() + k * n);
+  }
   // the staging buffers' layout, as compute() uses them (F <= max_batch)
   const std::size_t cap = n * static_cast<std::size_t>(max_batch_);
   const cudaStream_t stream = staging_->stream();
