@@ -459,8 +459,9 @@ TEST(CudaStabilityHard, HugeVelocity) {
 // ---- JSI with the fallback to the ABA ---------------------------------------------
 
 // A 64-link rope with a tip 3e4 times its links' inertia, in float: the thread
-// JSI's Cholesky fails on part of the batch (host fd_jsi on these 256 states: 103
-// fail), the ABA on none. Without the fallback the failed instances are reported
+// JSI's Cholesky fails on part of the batch (on these 256 states the kernels'
+// functions compiled for the host, fd_jsi_instance / aba_instance<float>: 103 fail
+// / none, with and without the wrenches; the device's sinf/cosf may move a few). Without the fallback the failed instances are reported
 // and their qdd left alone; with it (set_fallback_aba) they are the ABA engine's
 // qdd bit for bit (the same kernel on the same inputs), the others stay the JSI's
 // bit for bit, and the status counts them in fell_back. With and without external
