@@ -111,23 +111,13 @@ CrbaBlocks<S>::CrbaBlocks(const ModelTpl<S>& model, Index max_batch) : nv_(model
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const std::size_t n = std::size_t(nv_), B = std::size_t(max_batch_);
   bytes_ = bytes_needed(nv_, max_batch_);
-  std::size_t free_bytes = 0, total_bytes = 0;
-  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-  auto too_large = [&](const std::string& why) {
-    return BackendError("backend 'cuda': the CRBA (a thread block per instance) for max_batch " +
-                        std::to_string(max_batch_) + " instances of a " + std::to_string(nv_) + "-DoF model in " +
-                        (sizeof(S) == 4 ? "float" : "double") + " needs " + std::to_string(bytes_) +
-                        " bytes of device memory (the bodies, and each instance's transforms and composite "
-                        "inertias); the device has " + std::to_string(free_bytes) + " bytes free of " +
-                        std::to_string(total_bytes) + why);
-  };
-  if (bytes_ > free_bytes) throw too_large("");
-  const cudaError_t err = cudaMalloc(&block_, bytes_);
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();
-    block_ = nullptr;
-    throw too_large(": cudaMalloc failed with " + error_string(err));
-  }
+  block_ = device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t total_bytes) {
+    return "backend 'cuda': the CRBA (a thread block per instance) for max_batch " + std::to_string(max_batch_) +
+           " instances of a " + std::to_string(nv_) + "-DoF model in " + (sizeof(S) == 4 ? "float" : "double") +
+           " needs " + std::to_string(bytes_) +
+           " bytes of device memory (the bodies, and each instance's transforms and composite inertias); the "
+           "device has " + std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes);
+  });
   char* at = static_cast<char*>(block_);
   auto take = [&at](std::size_t bytes) {
     char* here = at;

@@ -254,25 +254,22 @@ FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& 
     }
     if (in.fext) std::copy_n(in.fext + static_cast<std::size_t>(b) * n, n, wrenches.begin() + k * n);
   }
-  // the staging buffers' layout, as compute() uses them (F <= max_batch)
+  // through the staging buffers as compute() uses them (F <= max_batch)
   const std::size_t cap = n * static_cast<std::size_t>(max_batch_);
   const cudaStream_t stream = staging_->stream();
   S* const buffer = static_cast<S*>(staging_->data());
   S* const dqdd = buffer + 3 * cap;
-  Force<S>* const dfext = reinterpret_cast<Force<S>*>(buffer + 4 * cap);
-  int* const dfailed = reinterpret_cast<int*>(dfext + cap);
-  check(cudaMemcpyAsync(buffer, host.data(), host.size() * sizeof(S), cudaMemcpyHostToDevice, stream),
-        "copying the fallback's inputs to the device");
-  if (in.fext)
-    check(cudaMemcpyAsync(dfext, wrenches.data(), wrenches.size() * sizeof(Force<S>), cudaMemcpyHostToDevice, stream),
-          "copying the fallback's wrenches to the device");
+  int* const dfailed = reinterpret_cast<int*>(reinterpret_cast<Force<S>*>(buffer + 4 * cap) + cap);
   using V = BatchView<const S>;
-  const FdBatchIn<S> din{V::soa(buffer, nv, F), V::soa(buffer + n * f, nv, F), V::soa(buffer + 2 * n * f, nv, F),
-                         in.fext ? dfext : nullptr};
-  check(launch_aba_instances(*thread_, din, BatchView<S>::soa(dqdd, nv, F), dfailed, stream),
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>(
+      {V::soa(host.data(), nv, F), V::soa(host.data() + n * f, nv, F), V::soa(host.data() + 2 * n * f, nv, F)},
+      {"q", "qd", "tau"}, in.fext ? wrenches.data() : nullptr, nv, cap, buffer, stream);
+  check(launch_aba_instances(*thread_, FdBatchIn<S>{d.in[0], d.in[1], d.in[2], d.fext}, BatchView<S>::soa(dqdd, nv, F),
+                             dfailed, stream),
         "launching the ABA for the instances whose JSI failed");
+  std::vector<S> aba_qdd(n * f);  // nv x F, as the inputs
   std::vector<int> aba_failed(f);
-  check(cudaMemcpyAsync(host.data(), dqdd, n * f * sizeof(S), cudaMemcpyDeviceToHost, stream),
+  check(cudaMemcpyAsync(aba_qdd.data(), dqdd, n * f * sizeof(S), cudaMemcpyDeviceToHost, stream),
         "copying the fallback's qdd to the host");
   check(cudaMemcpyAsync(aba_failed.data(), dfailed, f * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the fallback's failed DoFs to the host");
@@ -286,7 +283,7 @@ FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& 
       if (status.failed++ == 0) status.first_instance = b, status.first_dof = aba_failed[k];
       continue;
     }
-    for (Index i = 0; i < nv; ++i) qdd.at(i, b) = host[static_cast<std::size_t>(i) * f + k];
+    for (Index i = 0; i < nv; ++i) qdd.at(i, b) = aba_qdd[static_cast<std::size_t>(i) * f + k];
     ++status.fell_back;
   }
   return status;

@@ -15,12 +15,16 @@
 
 #include "scandyn/algorithm/steps.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "staging.hpp"
 #include "scandyn/cuda/id_scan.hpp"
 #include "scandyn/scan/elements.hpp"
 #include "scandyn/scan/tree_plan.hpp"
 
 namespace scandyn {
 namespace cuda {
+
+using detail::error_string;
+
 namespace {
 
 // A map that ignores its argument: x -> 0 x + b (segment heads and tails).
@@ -291,11 +295,6 @@ cudaError_t scan_force_runs(void* temp, std::size_t& bytes, const ForceAffine<S>
                                         stream);
 }
 
-std::string error_string(cudaError_t err) {
-  const char* s = cudaGetErrorString(err);
-  return std::string(s ? s : "unknown CUDA error") + " (" + std::to_string(static_cast<int>(err)) + ")";
-}
-
 // Host-side layout of a plan: the level order, roles, branch children, body classes.
 struct HostPlan {
   std::vector<int> order, parent, branch_begin, branch_child, body_class;
@@ -443,26 +442,14 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned ta
   temp_bytes_ = p.temp;
   if (bytes_ == 0) return;
 
-  std::size_t free_bytes = 0, total_bytes = 0;
-  cudaError_t err = cudaMemGetInfo(&free_bytes, &total_bytes);
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();
-    throw BackendError("backend 'cuda': cudaMemGetInfo: " + error_string(err));
-  }
-  auto too_large = [&](const std::string& why) {
-    return BackendError("backend 'cuda': the link scans for max_batch " + std::to_string(max_batch_) +
-                        " instances of a " + std::to_string(nv_) + "-body model in " +
-                        (sizeof(S) == 4 ? "float" : "double") + " need " + std::to_string(bytes_) +
-                        " bytes of device memory (v, a and force offsets: " + std::to_string(3 * sizeof(Motion<S>)) +
-                        " bytes per body and instance, plus model tables and scan storage); the device has " +
-                        std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes) + why);
-  };
-  if (bytes_ > free_bytes) throw too_large("");
-  if ((err = cudaMalloc(&block_, bytes_)) != cudaSuccess) {
-    (void)cudaGetLastError();
-    block_ = nullptr;
-    throw too_large(": cudaMalloc failed with " + error_string(err));
-  }
+  block_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t total_bytes) {
+    return "backend 'cuda': the link scans for max_batch " + std::to_string(max_batch_) + " instances of a " +
+           std::to_string(nv_) + "-body model in " + (sizeof(S) == 4 ? "float" : "double") + " need " +
+           std::to_string(bytes_) + " bytes of device memory (v, a and force offsets: " +
+           std::to_string(3 * sizeof(Motion<S>)) +
+           " bytes per body and instance, plus model tables and scan storage); the device has " +
+           std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes);
+  });
   char* at = static_cast<char*>(block_);
   auto take = [&at](std::size_t bytes) {
     char* here = at;
@@ -513,7 +500,7 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned ta
   // A cudaMemcpy from pageable memory may return before the data reaches the device,
   // and launches on a non-blocking stream do not wait for the legacy stream: make
   // the tables final before any launch reads them.
-  if ((err = cudaDeviceSynchronize()) != cudaSuccess) {
+  if (const cudaError_t err = cudaDeviceSynchronize(); err != cudaSuccess) {
     (void)cudaGetLastError();
     cudaFree(block_);
     block_ = nullptr;

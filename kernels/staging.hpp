@@ -38,6 +38,25 @@ inline void check(cudaError_t err, const char* what) {
   }
 }
 
+// `bytes` of device memory on the current device, first checked against the memory
+// free there. When they do not fit, or cudaMalloc fails, throws
+// BackendError(too_large(free_bytes, total_bytes) + why), why being "" or
+// ": cudaMalloc failed with <error>": too_large says who needs how many bytes of
+// what (built only on failure).
+template <class TooLarge>
+void* device_malloc(std::size_t bytes, TooLarge&& too_large) {
+  std::size_t free_bytes = 0, total_bytes = 0;
+  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
+  if (bytes > free_bytes) throw BackendError(too_large(free_bytes, total_bytes));
+  void* p = nullptr;
+  const cudaError_t err = cudaMalloc(&p, bytes);
+  if (err != cudaSuccess) {
+    (void)cudaGetLastError();
+    throw BackendError(too_large(free_bytes, total_bytes) + ": cudaMalloc failed with " + error_string(err));
+  }
+  return p;
+}
+
 // The device current at construction, a non-blocking stream, and `bytes` of device
 // memory for an engine's staging buffers. Throws BackendError when no device is
 // usable, or when the bytes do not fit (naming them, what they hold, and the bytes
@@ -54,26 +73,20 @@ class StagingBuffer {
       throw BackendError("backend 'cuda': no usable CUDA device: the CUDA runtime reports 0 devices");
     check(cudaGetDevice(&device_), "cudaGetDevice");
     bytes_ = per_instance * static_cast<std::size_t>(max_batch);
-    std::size_t free_bytes = 0, total_bytes = 0;
-    check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-    auto too_large = [&](const std::string& why) {
-      const Result<DeviceInfo> info = device_info(device_);
-      return BackendError("backend 'cuda': max_batch " + std::to_string(max_batch) + " instances of a " +
-                          std::to_string(nv) + "-DoF model in " + precision + " need " + std::to_string(bytes_) +
-                          " bytes of device memory (" + arrays + ": " + std::to_string(per_instance) +
-                          " bytes per instance); device " + std::to_string(device_) + " (" +
-                          (info ? info.value.name : std::string("?")) + ") has " + std::to_string(free_bytes) +
-                          " bytes free of " + std::to_string(total_bytes) + why);
-    };
-    if (bytes_ > free_bytes) throw too_large("");
     check(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
-    if (bytes_ > 0) {
-      const cudaError_t err = cudaMalloc(&buffer_, bytes_);
-      if (err != cudaSuccess) {
-        (void)cudaGetLastError();
-        cudaStreamDestroy(stream_);
-        throw too_large(": cudaMalloc failed with " + error_string(err));
-      }
+    if (bytes_ == 0) return;
+    try {
+      buffer_ = device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t total_bytes) {
+        const Result<DeviceInfo> info = device_info(device_);
+        return "backend 'cuda': max_batch " + std::to_string(max_batch) + " instances of a " + std::to_string(nv) +
+               "-DoF model in " + precision + " need " + std::to_string(bytes_) + " bytes of device memory (" +
+               arrays + ": " + std::to_string(per_instance) + " bytes per instance); device " +
+               std::to_string(device_) + " (" + (info ? info.value.name : std::string("?")) + ") has " +
+               std::to_string(free_bytes) + " bytes free of " + std::to_string(total_bytes);
+      });
+    } catch (...) {
+      cudaStreamDestroy(stream_);
+      throw;
     }
   }
   ~StagingBuffer() {
