@@ -186,8 +186,7 @@ Errors host_instance_errors(const Model& md, Index B, bool with_fext) {
   const Layout l = aos(nv, B);  // each instance contiguous
   const std::vector<S> q = pack<S>(batch.q, nv, B, l, 0), qd = pack<S>(batch.qd, nv, B, l, 0),
                        tau = pack<S>(batch.tau, nv, B, l, 0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> qdd(l.size, std::numeric_limits<S>::quiet_NaN());
   for (Index b = 0; b < B; ++b) {
     const std::size_t o = static_cast<std::size_t>(b) * nv;

@@ -806,6 +806,17 @@ class EvalCuda : public Cli, public ::testing::WithParamInterface<const char*> {
     const std::string p = GetParam();
     return p == "iiwa" || p == "hyq" ? scandyn::test::model_path(p + ".urdf") : p;
   }
+  // Runs the eval command `base` (without --out) on the serial and the cuda backend:
+  // both succeed, cuda with nothing on stderr. Their outputs, serial first.
+  void eval_serial_and_cuda(const std::string& base, Table& serial, Table& cuda) const {
+    const Result rs = run(base + " --out serial.csv");
+    const Result rc = run(base + " --out cuda.csv --backend cuda");
+    ASSERT_EQ(rs.code, 0) << rs.err;
+    ASSERT_EQ(rc.code, 0) << rc.err;
+    EXPECT_TRUE(rc.err.empty()) << rc.err;
+    serial = parse_csv(read_text(path("serial.csv")));
+    cuda = parse_csv(read_text(path("cuda.csv")));
+  }
 };
 
 // eval --backend cuda gives the serial backend's CSV up to rounding: the same
@@ -823,13 +834,8 @@ TEST_P(EvalCuda, MatchesSerial) {
     const bool is_float = std::string(precision) == "float";
     const std::string base = "eval --model " + quote(spec()) +
                              " --states states.csv --algo bias,id --precision " + precision;
-    const Result rs = run(base + " --out serial.csv");
-    const Result rc = run(base + " --out cuda.csv --backend cuda");
-    ASSERT_EQ(rs.code, 0) << rs.err;
-    ASSERT_EQ(rc.code, 0) << rc.err;
-    EXPECT_TRUE(rc.err.empty()) << rc.err;
-    const Table ts = parse_csv(read_text(path("serial.csv")));
-    const Table tc = parse_csv(read_text(path("cuda.csv")));
+    Table ts, tc;
+    ASSERT_NO_FATAL_FAILURE(eval_serial_and_cuda(base, ts, tc));
     ASSERT_EQ(tc.names, ts.names);
     ASSERT_EQ(tc.rows.size(), s.rows());
     ASSERT_EQ(ts.rows.size(), s.rows());
@@ -912,13 +918,8 @@ TEST_P(EvalCudaMass, MatchesSerial) {
     SCOPED_TRACE(precision);
     const bool is_float = std::string(precision) == "float";
     const std::string base = "eval --model " + quote(spec()) + " --states states.csv --algo mass --precision " + precision;
-    const Result rs = run(base + " --out serial.csv");
-    const Result rc = run(base + " --out cuda.csv --backend cuda");
-    ASSERT_EQ(rs.code, 0) << rs.err;
-    ASSERT_EQ(rc.code, 0) << rc.err;
-    EXPECT_TRUE(rc.err.empty()) << rc.err;
-    const Table ts = parse_csv(read_text(path("serial.csv")));
-    const Table tc = parse_csv(read_text(path("cuda.csv")));
+    Table ts, tc;
+    ASSERT_NO_FATAL_FAILURE(eval_serial_and_cuda(base, ts, tc));
     ASSERT_EQ(tc.names.size(), static_cast<std::size_t>(n * n));
     EXPECT_EQ(tc.names.front(), "M_0_0");
     EXPECT_EQ(tc.names[1], n > 1 ? "M_0_1" : "M_0_0");

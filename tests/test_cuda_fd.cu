@@ -184,8 +184,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   if (lq.bs == 0 && B > 1) batch.broadcast();  // one state for all instances
   const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
                        tau = pack<S>(batch.tau, nv, B, ltau, 0.0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> qdd(lout.size, S(kSentinel));
   for (Index i = 0; i < nv; ++i)
     for (Index b = 0; b < B; ++b) qdd[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
@@ -231,8 +230,7 @@ Errors device_run(const Model& md, Index B, const Layout& lin, const Layout& lou
   Batch<S> batch(md, B, 7);
   const std::vector<S> q = pack<S>(batch.q, nv, B, lin, 0.0), qd = pack<S>(batch.qd, nv, B, lin, 0.0),
                        tau = pack<S>(batch.tau, nv, B, lin, 0.0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> qdd(lout.size, std::numeric_limits<S>::quiet_NaN());
   std::vector<int> failed(B, -2);
 

@@ -99,8 +99,7 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   }
   const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
                        qdd = pack<S>(batch.qdd, nv, B, lqdd, 0.0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> tau(lout.size, S(kSentinel));
   for (Index i = 0; i < nv; ++i)
     for (Index b = 0; b < B; ++b) tau[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
@@ -155,8 +154,7 @@ double cpu_float_error(const Model& md, Index B, bool with_fext) {
   Batch<float> batch(md, B, 1);
   std::vector<float> q(batch.q.begin(), batch.q.end()), qd(batch.qd.begin(), batch.qd.end()),
       qdd(batch.qdd.begin(), batch.qdd.end()), tau(static_cast<std::size_t>(nv) * B);
-  std::vector<Force<float>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].cast<float>();
+  std::vector<Force<float>> fext = test::cast_wrenches<float>(batch.fext);
   BackendOptions o;
   o.max_batch = B;
   auto engine = make_inverse_dynamics<float>(m, o);
@@ -225,8 +223,7 @@ double host_instance_error(const Model& md, Index B, bool with_fext) {
   const Layout l = aos(nv, B);  // each instance contiguous
   const std::vector<S> q = pack<S>(batch.q, nv, B, l, 0), qd = pack<S>(batch.qd, nv, B, l, 0),
                        qdd = pack<S>(batch.qdd, nv, B, l, 0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> tau(l.size, std::numeric_limits<S>::quiet_NaN());
   for (Index b = 0; b < B; ++b) {
     const std::size_t o = static_cast<std::size_t>(b) * nv;
@@ -374,8 +371,7 @@ void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout,
   Batch<S> batch(md, B, 7);
   const std::vector<S> q = pack<S>(batch.q, nv, B, lin, 0.0), qd = pack<S>(batch.qd, nv, B, lin, 0.0),
                        qdd = pack<S>(batch.qdd, nv, B, lin, 0.0);
-  std::vector<Force<S>> fext(batch.fext.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = batch.fext[k].template cast<S>();
+  std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
   std::vector<S> tau(lout.size, std::numeric_limits<S>::quiet_NaN());
 
   BackendOptions o;

@@ -476,8 +476,7 @@ TEST(CudaStabilityJsiFallback, HeavyTipRopeInFloat) {
   std::vector<Force<double>> fext64;
   test::random_exact_batch<float>(n, B, 21, q64, qd64, tau64, fext64);
   const auto q = test::cast_vector<float>(q64), qd = test::cast_vector<float>(qd64), tau = test::cast_vector<float>(tau64);
-  std::vector<Force<float>> fext(fext64.size());
-  for (std::size_t k = 0; k < fext.size(); ++k) fext[k] = fext64[k].cast<float>();
+  std::vector<Force<float>> fext = test::cast_wrenches<float>(fext64);
   BackendOptions options;
   options.backend = BackendKind::Cuda;
   options.max_batch = B;

@@ -83,6 +83,14 @@ std::vector<T> cast_vector(const std::vector<double>& v) {
   return std::vector<T>(v.begin(), v.end());
 }
 
+// Body wrenches in precision T.
+template <class T>
+std::vector<Force<T>> cast_wrenches(const std::vector<Force<double>>& f) {
+  std::vector<Force<T>> out(f.size());
+  for (std::size_t k = 0; k < f.size(); ++k) out[k] = f[k].template cast<T>();
+  return out;
+}
+
 // scandyn::rel_err over two vectors; NaN if their sizes differ.
 template <class A, class B>
 double max_rel_err(const std::vector<A>& a, const std::vector<B>& b) {
