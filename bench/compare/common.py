@@ -138,14 +138,19 @@ def write_states(path, S):
 def read_outputs(path, nv):
     """scandyn's OUT.csv columns -> {'id': (n, nv), 'fd': (n, nv), 'mass': (n, nv, nv), 'bias': (n, nv)}."""
     with open(path) as fh:
-        rows = list(csv.DictReader(fh))
+        header = fh.readline().strip().split(',')
+        data = np.array([np.array(line.split(','), dtype=np.float64) for line in fh if line.strip()]).reshape(-1, len(header))
+    col = {c: i for i, c in enumerate(header)}
     out = {}
-    fams = {'id': ['tau_id_%d' % i for i in range(nv)], 'fd': ['qdd_fd_%d' % i for i in range(nv)],
-            'mass': ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)], 'bias': ['h_%d' % i for i in range(nv)]}
+    # a family's column names are built only when its first column is there (mass of rope:10^4 would be 10^8 names)
+    fams = {'id': lambda: ['tau_id_%d' % i for i in range(nv)], 'fd': lambda: ['qdd_fd_%d' % i for i in range(nv)],
+            'mass': lambda: ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)],
+            'bias': lambda: ['h_%d' % i for i in range(nv)]}
+    first = {'id': 'tau_id_0', 'fd': 'qdd_fd_0', 'mass': 'M_0_0', 'bias': 'h_0'}
     for a, cols in fams.items():
-        if rows and cols[0] in rows[0]:
-            x = np.array([[float(r[c]) for c in cols] for r in rows])
-            out[a] = x.reshape(len(rows), nv, nv) if a == 'mass' else x
+        if first[a] in col:
+            x = data[:, [col[c] for c in cols()]]
+            out[a] = x.reshape(len(data), nv, nv) if a == 'mass' else x
     return out
 
 
