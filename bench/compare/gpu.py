@@ -70,7 +70,9 @@ def worker(args):
     BK = 'cuda' if args.device.startswith('cuda') else args.device  # noqa: N806
     if lib == 'grid':
         import grid_peer
-        R = grid_peer.GridRunner(cache_dir=args.grid_cache, max_batch=max(batches_for(args, args.model)),
+        # the build's batch limit covers the timed batches and the check's CHECK_STATES states
+        R = grid_peer.GridRunner(cache_dir=args.grid_cache,
+                                 max_batch=max(batches_for(args, args.model) + [common.CHECK_STATES]),
                                  cuda_arch=int(os.environ['GRID_CUDA_ARCH']) if os.environ.get('GRID_CUDA_ARCH') else None)
         t = time.time()
         errs = grid_peer.check(R, model, names, ref, S, algos)
@@ -295,7 +297,9 @@ def main():
             rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
                      note='not tried: %s already failed or ran out of time on %s' % (p, gave_up[p]))
             continue
-        limit = min(args.peer_limit * (2 if p == 'grid' else 1) * (1 if name in ROBOTS else 0.5), left(args))
+        # every peer compiles per model (GRiD: CUDA code; MJX: one XLA program per computation and
+        # batch size; MuJoCo Warp: kernels per tree level), ropes included: the same limit for both
+        limit = min(args.peer_limit * (2 if p == 'grid' else 1), left(args))
         if limit < 15:
             rows.add(backend='cuda', precision='float', model=name, links=nv, library=p,
                      note='skipped: time budget of this run spent')

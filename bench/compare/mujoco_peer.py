@@ -15,6 +15,12 @@ Model conversion (URDF -> MuJoCo), the same for both:
 - MuJoCo rejects a body whose inertia is not positive definite or breaks the triangle
   inequality; GRiD's atlas.urdf has four (docs/models.md), so atlas cannot be loaded as it is
   (the error is recorded in the row's note).
+- MuJoCo's compiler refuses a body tree 1024 or more bodies deep ("depth limit exceeded in
+  signature computation"; MJCF files fail even earlier, at the XML parser's nesting limit), so
+  rope:10000 and longer cannot be loaded by either peer; load_mjmodel shows this with a
+  1024-body probe chain (2 s) instead of the URDF import, which runs for minutes at that depth.
+- MuJoCo Warp's put_model recurses once per tree level (Python), so the recursion limit is
+  raised to fit the tree.
 
 Computations, smooth dynamics only (MuJoCo's own functions, the minimal pipeline for each):
 - id   kinematics, com_pos, com_vel, rne(flg_acc=True)              -> qfrc_bias = M qacc + h
@@ -31,6 +37,7 @@ are timed.
 """
 import os
 import re
+import sys
 import tempfile
 import time
 
@@ -48,9 +55,54 @@ def urdf_for_mujoco(urdf_path):
     return text
 
 
+def urdf_depth(urdf_path):
+    """Bodies on the longest root-to-leaf path of the URDF's joint tree (the root link not counted)."""
+    import xml.etree.ElementTree as ET
+    parent = {j.find('child').get('link'): j.find('parent').get('link')
+              for j in ET.parse(urdf_path).getroot().findall('joint')}
+    depth = {}
+    for link in parent:
+        path = []
+        while link in parent and link not in depth:
+            path.append(link)
+            link = parent[link]
+        d = depth.get(link, 0)
+        for l in reversed(path):
+            d += 1
+            depth[l] = d
+    return max(depth.values(), default=0)
+
+
+DEPTH_PROBE = 1024
+
+
+def depth_probe(mujoco, n):
+    """MuJoCo's compiler on an n-body chain of unit hinges: None if it compiles, else its error."""
+    spec = mujoco.MjSpec()
+    b = spec.worldbody
+    for _ in range(n):
+        b = b.add_body(pos=[0, 0, -0.1])
+        b.add_joint(type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0])
+        b.explicitinertial, b.mass, b.inertia = True, 0.1, [1e-4, 1e-4, 1e-5]
+    try:
+        spec.compile()
+        return None
+    except Exception as e:  # noqa: BLE001
+        return str(e).splitlines()[0]
+
+
 def load_mjmodel(model, scandyn_names):
     """-> (mujoco.MjModel, perm) where scandyn DoF k is MuJoCo DoF perm[k]."""
     import mujoco
+    # MuJoCo's compiler limits the body tree's depth, and its URDF import of a chain thousands of
+    # links deep runs for minutes before reaching that error: a chain of DEPTH_PROBE bodies, which
+    # compiles in about 2 s, shows first whether a deeper tree can be compiled at all
+    depth = urdf_depth(model.urdf)
+    if depth >= DEPTH_PROBE:
+        err = depth_probe(mujoco, DEPTH_PROBE)
+        if err:
+            raise RuntimeError('MuJoCo %s cannot compile a body tree %d deep: a chain of %d bodies already '
+                               'fails with "%s"' % (mujoco.__version__, depth, DEPTH_PROBE, err))
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, os.path.basename(model.urdf))
         with open(path, 'w') as fh:
@@ -123,6 +175,9 @@ class WarpRunner:
     def prepare(self, mjm, algo, B, S=None):
         """S: dict of (B, nv) arrays in MuJoCo order (q, qd, qdd, tau); random if None."""
         wp, mjw = self.wp, self.mjw
+        # put_model builds each leaf's ancestor chain recursively, one Python frame per tree level
+        # (io.py); the default limit of 1000 frames stops it on a chain deeper than about 990 bodies
+        sys.setrecursionlimit(max(sys.getrecursionlimit(), 2 * mjm.nbody + 1000))
         with wp.ScopedDevice(self.device):
             m = mjw.put_model(mjm)
             d = mjw.make_data(mjm, nworld=B)
