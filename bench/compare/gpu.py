@@ -202,8 +202,10 @@ def run_worker(args, rows, lib, model, nv, ref_npz, limit):
     if p.returncode != 0:
         tail = open(logf.name).read().strip().splitlines()
         why = next((l for l in reversed(tail) if 'Error' in l or 'error' in l), tail[-1] if tail else '')
+        # a peer's own diagnostic printed before the exception (GRiD: "... failed: out of memory")
+        cause = next((l for l in reversed(tail) if 'out of memory' in l.lower() and l != why), '')
         rows.add(backend='cuda', precision='float', model=model.name, links=nv, library=lib,
-                 note='failed: %s' % why.strip()[:300])
+                 note='failed: %s' % why.strip()[:300] + (' (log: %s)' % cause.strip()[:200] if cause else ''))
         return False
     return got > 0
 
