@@ -83,7 +83,8 @@ def worker(args):
         timed = lambda: grid_peer.timed(R, args.min_time)  # noqa: E731
     else:
         import mujoco_peer
-        R = mujoco_peer.RUNNERS[lib](args.device)
+        R = (mujoco_peer.MjxRunner(args.device, args.mjx_matmul_precision) if lib == 'mujoco-mjx'
+             else mujoco_peer.WarpRunner(args.device))
         errs, mjm = mujoco_peer.check(R, model, names, ref, S, algos)
 
         def prep(a, b):
@@ -96,7 +97,7 @@ def worker(args):
             try:
                 prep(a, b)
                 spc = timed()
-                emit(algo=a, strategy='graph' if lib == 'mujoco-warp' else 'jit-vmap' if lib == 'mujoco-mjx' else R.strategy,
+                emit(algo=a, strategy=R.strategy,
                      backend=BK, precision='float', model=args.model, links=nv, instances=b, seconds_per_call=spc,
                      library=lib, version=R.version, check_max_err=errs[a])
             except Exception as e:  # noqa: BLE001
@@ -162,7 +163,7 @@ def run_worker(args, rows, lib, model, nv, ref_npz, limit):
     cmd = [sys.executable, os.path.abspath(__file__), '--worker', '--library', lib, '--model', model.name,
            '--scandyn', args.scandyn, '--ref', ref_npz, '--workdir', args.workdir, '--device', args.warp_device,
            '--min-time', str(args.min_time), '--batches', ','.join(map(str, args.batches)), '--algos', args.algos,
-           '--mjx-batches', ','.join(map(str, args.mjx_batches)),
+           '--mjx-batches', ','.join(map(str, args.mjx_batches)), '--mjx-matmul-precision', args.mjx_matmul_precision,
            '--slow', str(args.slow), '--grid-cache', args.grid_cache]
     got = 0
     t0 = time.time()
@@ -222,6 +223,9 @@ def main():
     ap.add_argument('--algos', default='id,bias,mass,fd')
     ap.add_argument('--batches', default='1,100,10000,1000000')
     ap.add_argument('--mjx-batches', default='1000000')
+    ap.add_argument('--mjx-matmul-precision', default='',
+                    help="JAX's jax_default_matmul_precision for MJX: '' keeps JAX's default (TF32 products on "
+                         "Ampere and newer GPUs), 'highest' computes float32 products (strategy jit-vmap-highest)"),
     ap.add_argument('--min-time', type=float, default=0.2)
     ap.add_argument('--deadline', type=float, default=540, help='seconds after gpu.sh started')
     ap.add_argument('--peer-limit', type=float, default=120, help='seconds per peer and model (GRiD twice that)')

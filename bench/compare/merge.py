@@ -5,9 +5,10 @@
 
 Every input must have bench/compare's columns (common.COLUMNS). Rows keep their
 order, file by file; a row whose key (algo, strategy, backend, precision, model,
-links, instances, library) a later file measures again is replaced by the later one,
-and so is a note row (no key beyond library and model) for the same library, model
-and algorithm. Writes through a temporary file: the output is whole or untouched.
+links, instances, library) a later file has again is replaced by the later one. A note
+row (a peer that failed on a model: algo and instances empty) is replaced only by a
+later note row for the same library and model, so leave out a run whose notes a later
+run made stale. Writes through a temporary file: the output is whole or untouched.
 """
 import argparse
 import csv

@@ -29,7 +29,9 @@ Computations, smooth dynamics only (MuJoCo's own functions, the minimal pipeline
                                                                        for the check only)
 - fd   kinematics, com_pos, crb, factor_m, com_vel, rne, fwd_acceleration
                                                                     -> qacc_smooth = M^-1 (qfrc_applied - h)
-Both compute in float32 (MuJoCo Warp always; MJX with JAX's default precision).
+Both compute in float32: MuJoCo Warp always; MJX with JAX's default matmul precision, which on
+Ampere and newer GPUs rounds the factors of float32 matrix products to TF32 (10-bit mantissa),
+or with gpu.py --mjx-matmul-precision highest.
 Timing: MuJoCo Warp's sequence is captured once as a CUDA graph (wp.ScopedCapture, as its
 own testspeed does) and the graph is launched back to back; MJX's is one jax.jit(jax.vmap(.))
 call on device arrays with block_until_ready. The batch stays on the device; no host copies
@@ -162,6 +164,7 @@ def timed(call, sync, min_time):
 
 class WarpRunner:
     library = 'mujoco-warp'
+    strategy = 'graph'
 
     def __init__(self, device):
         import warp as wp
@@ -202,6 +205,7 @@ class WarpRunner:
                 with wp.ScopedCapture(device=self.device) as cap:
                     seq()
                 self.graph = cap.graph
+        self.strategy = 'graph' if self.graph is not None else 'launch'
         self.seq = seq
 
     def call(self):
@@ -236,10 +240,15 @@ class WarpRunner:
 class MjxRunner:
     library = 'mujoco-mjx'
 
-    def __init__(self, device):
+    def __init__(self, device, matmul_precision=''):
         import jax
         from mujoco import mjx
         self.jax, self.mjx = jax, mjx
+        # JAX's default computes float32 matrix products in TF32 on Ampere and newer GPUs (10-bit
+        # mantissa); 'highest' asks for float32 products, at whatever cost
+        if matmul_precision:
+            jax.config.update('jax_default_matmul_precision', matmul_precision)
+        self.strategy = 'jit-vmap' + ('-' + matmul_precision if matmul_precision else '')
         self.dev = jax.devices('gpu' if device.startswith('cuda') else 'cpu')[0]
         self.version = 'mujoco-mjx %s (impl jax), jax %s' % (_version('mujoco-mjx', None), jax.__version__)
 
@@ -290,9 +299,6 @@ def _version(dist, mod):
         return metadata.version(dist)
     except Exception:  # noqa: BLE001
         return getattr(mod, '__version__', '?')
-
-
-RUNNERS = {'mujoco-warp': WarpRunner, 'mujoco-mjx': MjxRunner}
 
 
 def check(runner, model, scandyn_names, ref, S, algos):
