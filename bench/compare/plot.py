@@ -169,9 +169,13 @@ def tables(rows, device):
         if any_peer or s:
             lines.append('| ' + ' | '.join(cells) + ' |')
     notes = defaultdict(set)
+    measured = {(r['library'], r['model']) for r in rows if not r['note']}
     for r in rows:
         if r['note']:
-            what = '%s %s' % (r['model'], r['algo'] or '(all)')
+            # a note without an algorithm covers the library on that model, except where a
+            # later run of the same library measured some of it (other batch sizes, say)
+            whole = '(in one run; the rows of another are in the table)' if (r['library'], r['model']) in measured else '(all)'
+            what = '%s %s' % (r['model'], r['algo'] or whole)
             notes[(r['library'], re.sub(r'\d+(\.\d+)? s\b', 'N s', r['note']))].add(what)
     if notes:
         lines += ['', 'Not measured (from the rows\' `note` column):', '']
