@@ -143,13 +143,11 @@ def read_outputs(path, nv):
     col = {c: i for i, c in enumerate(header)}
     out = {}
     # a family's column names are built only when its first column is there (mass of rope:10^4 would be 10^8 names)
-    fams = {'id': lambda: ['tau_id_%d' % i for i in range(nv)], 'fd': lambda: ['qdd_fd_%d' % i for i in range(nv)],
-            'mass': lambda: ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)],
-            'bias': lambda: ['h_%d' % i for i in range(nv)]}
-    first = {'id': 'tau_id_0', 'fd': 'qdd_fd_0', 'mass': 'M_0_0', 'bias': 'h_0'}
-    for a, cols in fams.items():
-        if first[a] in col:
-            x = data[:, [col[c] for c in cols()]]
+    fams = {'id': 'tau_id_{0}', 'fd': 'qdd_fd_{0}', 'mass': 'M_{0}_{1}', 'bias': 'h_{0}'}
+    for a, name in fams.items():
+        if name.format(0, 0) in col:
+            cols = range(nv) if a == 'mass' else [0]  # M's second index; the vectors have one
+            x = data[:, [col[name.format(i, j)] for i in range(nv) for j in cols]]
             out[a] = x.reshape(len(data), nv, nv) if a == 'mass' else x
     return out
 

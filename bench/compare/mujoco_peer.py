@@ -164,7 +164,6 @@ def timed(call, sync, min_time):
 
 class WarpRunner:
     library = 'mujoco-warp'
-    strategy = 'graph'
 
     def __init__(self, device):
         import warp as wp
