@@ -692,6 +692,24 @@ std::vector<std::string> bench_row(const Result& r) {
   return ls.empty() ? std::vector<std::string>() : split(ls[0], ',');
 }
 
+// One row of `bench --model iiwa.urdf --instances 3000 --backend cuda`: its columns, a
+// rate that agrees with the time, and an error within max_err (nan fails).
+void expect_cuda_iiwa_row(const std::string& line, const std::string& algo, const std::string& strategy,
+                          const std::string& precision, double max_err) {
+  const std::vector<std::string> row = split(line, ',');
+  ASSERT_EQ(row.size(), 10u) << line;
+  EXPECT_EQ(row[0], algo);
+  EXPECT_EQ(row[1], strategy);
+  EXPECT_EQ(row[2], "cuda");
+  EXPECT_EQ(row[3], precision);
+  EXPECT_EQ(row[4], "iiwa");
+  EXPECT_EQ(row[5], "7");
+  EXPECT_EQ(row[6], "3000");
+  EXPECT_GT(std::stod(row[7]), 0);
+  EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 3000.0 * 1e-5);  // both printed to 6 significant digits
+  EXPECT_LE(std::stod(row[9]), max_err);
+}
+
 TEST_F(Cli, BenchPrintsOneRow) {
   const std::string base = "bench --model chain:5 --instances 7 --min-time 0.01";
   const std::vector<std::string> id = bench_row(run(base + " --algo id"));
@@ -1068,18 +1086,8 @@ TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
       const std::vector<std::string> ls = lines(r.out);
       ASSERT_EQ(ls.size(), 2u) << r.out;
       for (std::size_t k = 0; k < 2; ++k) {
-        const std::vector<std::string> row = split(ls[k], ',');
-        ASSERT_EQ(row.size(), 10u) << ls[k];
-        EXPECT_EQ(row[0], algo);
-        EXPECT_EQ(row[1], k == 0 ? engine : engine + "-host");
-        EXPECT_EQ(row[2], "cuda");
-        EXPECT_EQ(row[3], precision);
-        EXPECT_EQ(row[4], "iiwa");
-        EXPECT_EQ(row[5], "7");
-        EXPECT_EQ(row[6], "3000");
-        EXPECT_GT(std::stod(row[7]), 0);
-        EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 3000.0 * 1e-5);  // both printed to 6 significant digits
-        EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-4 : 1e-10);  // nan fails
+        expect_cuda_iiwa_row(ls[k], algo, k == 0 ? engine : engine + "-host", precision,
+                             std::string(precision) == "float" ? 1e-4 : 1e-10);
       }
     }
   }
@@ -1128,18 +1136,8 @@ TEST_F(Cli, BenchCudaFdPrintsResidentAndHostRows) {
       ASSERT_EQ(ls.size(), hybrid ? 1u : 2u) << r.out;
       printed += ls.size();
       for (std::size_t k = 0; k < ls.size(); ++k) {
-        const std::vector<std::string> row = split(ls[k], ',');
-        ASSERT_EQ(row.size(), 10u) << ls[k];
-        EXPECT_EQ(row[0], "fd");
-        EXPECT_EQ(row[1], k + 1 == ls.size() ? engine + "-host" : engine);  // auto: ABA
-        EXPECT_EQ(row[2], "cuda");
-        EXPECT_EQ(row[3], precision);
-        EXPECT_EQ(row[4], "iiwa");
-        EXPECT_EQ(row[5], "7");
-        EXPECT_EQ(row[6], "3000");
-        EXPECT_GT(std::stod(row[7]), 0);
-        EXPECT_NEAR(std::stod(row[8]) * std::stod(row[7]), 3000.0, 3000.0 * 1e-5);
-        EXPECT_LE(std::stod(row[9]), std::string(precision) == "float" ? 1e-3 : 1e-9);  // nan fails
+        expect_cuda_iiwa_row(ls[k], "fd", k + 1 == ls.size() ? engine + "-host" : engine,  // auto: ABA
+                             precision, std::string(precision) == "float" ? 1e-3 : 1e-9);
       }
     }
   }
