@@ -1,0 +1,108 @@
+// scandyn/batch.hpp: the batch types every engine reads and writes.
+//
+// A batch holds B instances of one model. Per-DoF arrays are plain strided buffers:
+// entry (DoF i, instance b) lives at data[i * dof_stride + b * batch_stride].
+// scandyn's native layout is structure-of-arrays with the instance innermost,
+// q[i * B + b] (BatchView::soa); an array of per-instance rows, q[b * nv + i], is
+// BatchView::aos (what NumPy / PyTorch call a (B, nv) C-contiguous array). Any
+// other strides work too, so callers pass their own memory without copies.
+#pragma once
+
+#include <cstddef>
+#include <string>
+
+#include "scandyn/model/model.hpp"
+
+namespace scandyn {
+
+template <class T>
+struct BatchView {
+  T* data = nullptr;
+  Index batch = 0;                 // number of instances B
+  std::ptrdiff_t dof_stride = 0;   // elements between DoF i and i + 1 of one instance
+  std::ptrdiff_t batch_stride = 0; // elements between instance b and b + 1
+
+  SCANDYN_HD T& at(Index dof, Index b) const { return data[dof * dof_stride + b * batch_stride]; }
+  static BatchView soa(T* data, Index nv, Index B) { (void)nv; return {data, B, B, 1}; }
+  static BatchView aos(T* data, Index nv, Index B) { return {data, B, 1, nv}; }
+};
+
+// Inverse dynamics' inputs: tau = ID(q, qd, qdd, fext).
+template <class S>
+struct IdBatchIn {
+  BatchView<const S> q, qd, qdd;      // (nv x B) joint positions, velocities, accelerations
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
+// Forward dynamics' inputs: qdd = FD(q, qd, tau, fext).
+template <class S>
+struct FdBatchIn {
+  BatchView<const S> q, qd, tau;      // (nv x B) joint positions, velocities, forces
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
+// Bias forces' inputs: h = RNEA(q, qd, 0, fext).
+template <class S>
+struct BiasBatchIn {
+  BatchView<const S> q, qd;           // (nv x B) joint positions, velocities
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
+// Forward-dynamics methods. Auto resolves by backend and shape (choose_fd_method).
+enum class FdMethod {
+  Auto,
+  Aba,       // articulated-body algorithm
+  Jsi,       // joint-space inertia: CRBA + tree-sparse L^T L (dense cuSOLVER beyond 64 DoF on cuda)
+  Parallel,  // the parallel chain forward dynamics: scans over links (unbranched chains from the base)
+  Hybrid,    // articulated inertias on the host, the other passes as device scans (chains, cuda only)
+};
+
+// What failed in one instance of a batch; the pivot named in messages.
+enum class Failure {
+  None,
+  ArticulatedPivot,  // an articulated inertia pivot D_i = S_i^T IA_i S_i (aba, parallel, hybrid)
+  MassMatrixPivot,   // a diagonal entry of the mass matrix's L^T L (jsi)
+  BothPivots,        // jsi failed, and the aba it fell back to failed too (the DoF is the aba's)
+};
+
+// The outcome of one batched call (or, for the simulator, of its steps since the
+// last clear). Instances that fail have their outputs left unwritten, never NaN.
+struct BatchStatus {
+  Index failed = 0;            // failed instances (simulator: failed instance-steps)
+  Index first_instance = -1;   // the lowest failing instance, -1 when none
+  Index first_dof = -1;        // the DoF at which its computation stopped
+  Failure failure = Failure::None;  // what failed in first_instance
+  Index fell_back = 0;         // instances whose jsi failed and that aba computed instead
+                               // (FdOptions::fallback_aba); not counted in `failed`
+  const int* failed_dof = nullptr;  // (B) per instance: -1, or the DoF that failed; host memory
+                                    // owned by the engine, valid until its next call; null when
+                                    // the engine does not keep them (the simulator)
+
+  bool ok() const { return failed == 0; }
+  // Records instance b failing at dof (keeps the lowest instance as the first).
+  void record(Index b, Index dof, Failure what) {
+    ++failed;
+    if (first_instance < 0 || b < first_instance) {
+      first_instance = b;
+      first_dof = dof;
+      failure = what;
+    }
+  }
+  // Adds another status's counts (e.g. the next step's); keeps the lowest instance.
+  void merge(const BatchStatus& other);
+  // "" when ok(); else what failed in the first instance, e.g.
+  //   "articulated inertia pivot at DoF 6 is not positive"
+  //   "mass matrix pivot at DoF 6 is not positive"
+  //   "mass matrix pivot not positive, and by the aba fallback the articulated inertia pivot at DoF 6 is not positive"
+  std::string reason() const;
+  // "" when ok(); else "instance 3: " + reason(), followed by
+  // " (and 41 more instances)" when others failed too.
+  std::string message() const;
+};
+
+// The pivot a method's failure names: jsi's mass matrix, every other method's articulated inertia.
+inline Failure pivot_failure(FdMethod method) {
+  return method == FdMethod::Jsi ? Failure::MassMatrixPivot : Failure::ArticulatedPivot;
+}
+
+}  // namespace scandyn
