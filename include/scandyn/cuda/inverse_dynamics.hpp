@@ -40,6 +40,7 @@
 #include <string>
 #include <variant>
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/id_scan.hpp"
@@ -143,7 +144,7 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
 //               up to kMaxThreadDofs DoF;
 //   scan-local  device-wide scans across links, IdScanPlan (scandyn/cuda/id_scan.hpp):
 //               any model, for few instances of long chains and the middle shapes;
-//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_cuda_strategy).
+//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_id_strategy).
 // scan-world is not offered on this backend.
 template <class S>
 class CudaInverseDynamics final : public InverseDynamics<S> {
@@ -221,9 +222,6 @@ class CudaBiasForces final : public BiasForces<S> {
   S* zero_device_ = nullptr;  // one zero in device memory: compute_async's qdd
 };
 
-// The CUDA backend's choice for IdStrategy::Auto (choose_id_strategy on Cuda):
-// recursion (a thread per instance) up to kMaxThreadDofs DoF, the link scans beyond.
-IdStrategy choose_cuda_strategy(Index nv, Index batch);
 
 #if defined(__CUDACC__)
 // ---- device API --------------------------------------------------------------

@@ -42,6 +42,7 @@
 #include <memory>
 #include <string>
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
