@@ -111,7 +111,7 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   auto engine = make_inverse_dynamics<S>(m, o);
   const IdStrategy used = strategy == IdStrategy::Auto ? choose_id_strategy(BackendKind::Cuda, nv, B, 1) : strategy;
   EXPECT_EQ(engine->strategy(), used == IdStrategy::ScanLocal ? "scan-local" : "thread");
-  EXPECT_EQ(engine->backend(), "cuda");
+  EXPECT_EQ(engine->backend(), BackendKind::Cuda);
   const IdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
                         {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
                         {qdd.data() + lqdd.base, B, lqdd.ds, lqdd.bs},
