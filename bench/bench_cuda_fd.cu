@@ -23,7 +23,7 @@
 //   fd_jsi_thread-unrolled/float/hyq/cuda            capacity 16 unrolled (the engine
 //                                                    rolls it: > 255 registers);
 //   the variants at B = 10^6 and 10^7, to show what the engine's choices cost;
-//   fd_aba_thread/<precision>/<model>/cuda           the engine with FdAlgorithm::Aba
+//   fd_aba_thread/<precision>/<model>/cuda           the engine with FdMethod::Aba
 //                                                    (articulated-body algorithm, one
 //                                                    thread per instance, the kernel
 //                                                    choose_aba_kernel picks), as the
@@ -211,9 +211,9 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double fa
   st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
 }
 
-// fd_jsi_thread (fd_aba_thread with FdAlgorithm::Aba): the engine's device path.
+// fd_jsi_thread (fd_aba_thread with FdMethod::Aba): the engine's device path.
 template <class S>
-void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
+void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Auto) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   BackendOptions o;
@@ -225,7 +225,7 @@ void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgori
   const FdBatchIn<S> in = buf.in(nv, B);
   const BatchView<S> qdd = buf.qdd(nv, B);
   const double seconds = time_launches(st, [&] { return engine.compute_async(in, qdd, buf.failed, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == cuda::FdAlgorithm::Aba),
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == FdMethod::Aba),
                count_failed(buf.failed, B), seconds, sizeof(S));
 }
 
@@ -296,7 +296,7 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
   using V = BatchView<const S>;
   const FdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)};
   const BatchView<S> out = BatchView<S>::soa(qdd.data(), nv, B);
-  cuda::FdBatchStatus status = engine.compute(in, out);  // warm-up
+  BatchStatus status = engine.compute(in, out);  // warm-up
   for (auto _ : st) {
     status = engine.compute(in, out);
     benchmark::ClobberMemory();
@@ -467,7 +467,7 @@ int main(int argc, char** argv) {
         const Index b = static_cast<Index>(B);
         if (fl) add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b); });
         else add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b); });
-        constexpr auto kAba = cuda::FdAlgorithm::Aba;
+        constexpr auto kAba = FdMethod::Aba;
         if (fl) add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b, kAba); });
         else add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b, kAba); });
         if (label == "iiwa" && B >= 1000000) {

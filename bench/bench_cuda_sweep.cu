@@ -40,7 +40,7 @@
 #include <vector>
 
 #include "cuda_bench_util.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -281,7 +281,7 @@ int main(int argc, char** argv) {
                      : benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<double>(st, md, B); });
       g->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
       if (!openmp) continue;
-      const IdStrategy cs = choose_strategy(nv, B, threads);
+      const IdStrategy cs = choose_id_strategy(BackendKind::OpenMP, nv, B, threads);
       const std::string cname =
           std::string("id_") + (cs == IdStrategy::ScanLocal ? "scan-local/" : "recursion/") + p + label + "/openmp";
       auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<float>(st, md, B); })

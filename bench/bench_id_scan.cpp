@@ -1,6 +1,6 @@
 // Inverse dynamics through the batched engines: what accuracy costs in time.
 //
-// Two families, both through make_inverse_dynamics (scandyn/backend.hpp):
+// Two families, both through make_inverse_dynamics (scandyn/engine.hpp):
 //  * ropes, one instance, rope:N for N = 10 .. 10^6: the serial recursion, the
 //    local-frame scan and the world-frame scan (one thread each), and the OpenMP
 //    scans across links; float and double, with max_rel_err against the double
@@ -26,7 +26,7 @@
 
 #include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/model/load.hpp"
 

@@ -183,19 +183,39 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   check(cudaStreamSynchronize(stream), scan_ ? "running the link scans" : "running id_instances_kernel");
 }
 
+// ---- the bias forces ----------------------------------------------------------------
+
 template <class S>
-std::unique_ptr<InverseDynamics<S>> make_cuda_inverse_dynamics(const ModelTpl<S>& model,
-                                                               const BackendOptions& options) {
-  return std::make_unique<CudaInverseDynamics<S>>(model, options);
+CudaBiasForces<S>::CudaBiasForces(const ModelTpl<S>& model, const BackendOptions& options) : id_(model, options) {
+  zero_device_ = static_cast<S*>(detail::device_malloc(sizeof(S), [](std::size_t free_bytes, std::size_t) {
+    return "backend 'cuda': the bias forces' zero qdd needs " + std::to_string(sizeof(S)) + " bytes; " +
+           std::to_string(free_bytes) + " are free";
+  }));
+  check(cudaMemset(zero_device_, 0, sizeof(S)), "cudaMemset");
+}
+
+template <class S>
+CudaBiasForces<S>::~CudaBiasForces() {
+  if (zero_device_) cudaFree(zero_device_);
+}
+
+template <class S>
+void CudaBiasForces<S>::compute(const BiasBatchIn<S>& in, const BatchView<S>& h) {
+  id_.compute(IdBatchIn<S>{in.q, in.qd, BatchView<const S>{&zero_host_, in.q.batch, 0, 0}, in.fext}, h);
+}
+
+template <class S>
+cudaError_t CudaBiasForces<S>::compute_async(const BiasBatchIn<S>& in, const BatchView<S>& h, cudaStream_t stream) {
+  return id_.compute_async(IdBatchIn<S>{in.q, in.qd, BatchView<const S>{zero_device_, in.q.batch, 0, 0}, in.fext}, h,
+                           stream);
 }
 
 #define SCANDYN_INSTANTIATE(S)                                                                           \
   template class ThreadModel<S>;                                                                         \
   template class CudaInverseDynamics<S>;                                                                 \
+  template class CudaBiasForces<S>;                                                                      \
   template cudaError_t launch_id_instances(const ThreadModel<S>&, const IdBatchIn<S>&, const BatchView<S>&, \
-                                           cudaStream_t);                                                \
-  template std::unique_ptr<InverseDynamics<S>> make_cuda_inverse_dynamics(const ModelTpl<S>&,            \
-                                                                          const BackendOptions&);
+                                           cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)
 #undef SCANDYN_INSTANTIATE

@@ -19,7 +19,7 @@
 #include <cstdlib>
 #include <string>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 
 namespace scandyn {

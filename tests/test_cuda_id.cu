@@ -22,7 +22,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "cuda_test_util.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"

@@ -29,7 +29,7 @@
 #include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
 #include "stability_cases.hpp"
 #include "test_util.hpp"

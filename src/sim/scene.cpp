@@ -48,7 +48,6 @@ bool parse_integrator(const std::string& name, Integrator& integrator) {
   return true;
 }
 
-const char* to_string(Precision p) { return p == Precision::Float ? "float" : "double"; }
 
 namespace {
 

@@ -24,7 +24,7 @@
 #include <cstddef>
 #include <memory>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 
 #if SCANDYN_HAS_CUDA

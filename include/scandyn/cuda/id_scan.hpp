@@ -45,7 +45,7 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 
 #if SCANDYN_HAS_CUDA
