@@ -17,7 +17,7 @@
 //                              mass matrix is crba_instance()'s (the CRBA alone, also
 //                              behind scandyn/cuda/mass_matrix.hpp): one function,
 //                              fd_detail::jsi_passes, computes both;
-//   fd_instances_kernel    one thread per instance (kernels/fd_instances.cu);
+//   fd_instances_kernel    one thread per instance (kernels/forward_dynamics.cu);
 //   launch_fd_jsi_instances()  host wrapper: device pointers, a stream, returns the
 //                              cudaError_t of the launch, never synchronises.
 // and the engine CudaForwardDynamics on top:

@@ -9,7 +9,7 @@
 //                          callable from your own kernels
 //                          (scandyn/instance/rnea_instance.hpp, under nvcc; the
 //                          model it reads: scandyn/instance/thread_model.hpp);
-//   id_instances_kernel    one thread per instance (kernels/id_instances.cu);
+//   id_instances_kernel    one thread per instance (kernels/inverse_dynamics.cu);
 //   launch_id_instances()  host wrapper: device pointers, a stream, returns the
 //                          cudaError_t of the launch, never synchronises.
 // and the engine of scandyn/engine.hpp on top:
