@@ -1,4 +1,4 @@
-// kernels/id_instances.cu: batched inverse dynamics, one thread per instance.
+// kernels/inverse_dynamics.cu: batched inverse dynamics, one thread per instance.
 //
 // The layers of scandyn/cuda/inverse_dynamics.hpp: rnea_instance (the header) ->
 // id_instances_kernel -> launch_id_instances -> CudaInverseDynamics (host staging
