@@ -5,6 +5,8 @@
 //   scandyn-truth eval   --model M --states IN.csv --out TRUTH.csv [--algo id,fd,mass,bias]
 //                        [--precision float128|longdouble]
 //   scandyn-truth error  --truth TRUTH.csv --result OUT.csv [--result-precision double|longdouble|float128]
+//   scandyn-truth check  --model M --states IN.csv --result OUT.csv [--precision float|double]
+//                        [--threshold X]
 //   (states and eval also take --allow-nonphysical-inertia)
 //
 // states: R random states drawn as `scandyn bench --instances R` draws them
@@ -20,6 +22,12 @@
 //   the largest over rows of max_i |x_i - t_i| / max(1, max_i |t_i|), the
 //   differences taken in binary128. The result's values are read as doubles (what
 //   `scandyn eval` writes, 17 digits, exactly) unless --result-precision says wider.
+// check: the forward-dynamics check (scandyn/algorithm/fd_check.hpp) of the
+//   result's qdd_fd columns, in double, on the inputs the engine saw (q, qd, tau
+//   rounded to --precision, the result's): one line
+//   `rows,flagged,threshold,max_error_estimate,max_relative_residual`, flagged =
+//   rows whose error_estimate exceeds --threshold (default fd_check_threshold of
+//   the precision: float 1e-4, double 1e-10).
 //
 // Exit status: 0 success, 1 bad data (file, model, failed computation), 2 bad command line.
 #include <algorithm>
@@ -35,6 +43,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/truth/truth.hpp"
 
@@ -55,7 +64,9 @@ const char* kUsage =
     "                          [--precision float128|longdouble]\n"
     "       scandyn-truth error --truth TRUTH.csv --result OUT.csv\n"
     "                          [--result-precision double|longdouble|float128]\n"
-    "       (states and eval also take --allow-nonphysical-inertia)\n";
+    "       scandyn-truth check --model M --states IN.csv --result OUT.csv [--precision float|double]\n"
+    "                          [--threshold X]\n"
+    "       (states, eval and check also take --allow-nonphysical-inertia)\n";
 
 // --name value pairs after the subcommand; flags without a value: --allow-nonphysical-inertia.
 struct Args {
@@ -362,6 +373,57 @@ int run_error(const Args& a) {
   return 0;
 }
 
+// ---- check -------------------------------------------------------------------
+
+int run_check(const Args& a) {
+  const std::string precision = a.get("precision", "double");
+  if (precision != "float" && precision != "double")
+    throw UsageError("unknown --precision value '" + precision + "' (expected float or double)");
+  const bool is_float = precision == "float";
+  double threshold = is_float ? fd_check_threshold<float>() : fd_check_threshold<double>();
+  if (a.has("threshold")) {
+    char* end = nullptr;
+    threshold = std::strtod(a.required("threshold").c_str(), &end);
+    if (*end != '\0' || !(threshold > 0)) throw UsageError("--threshold must be a positive number");
+  }
+  const Model model = load(a);
+  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  const Csv in = read_csv(a.required("states"));
+  const Csv result = read_csv(a.required("result"));
+  if (in.rows.size() != result.rows.size())
+    throw DataError(result.path + ": " + std::to_string(result.rows.size()) + " rows, the states have " +
+                    std::to_string(in.rows.size()));
+  const auto cq = family_columns(in, "q_", nv), cqd = family_columns(in, "qd_", nv),
+             ctau = family_columns(in, "tau_", nv), cqdd = family_columns(result, "qdd_fd_", nv);
+  for (const auto* c : {&cq, &cqd, &ctau})
+    if (!complete(*c)) throw DataError(in.path + ": needs the columns q_<i>, qd_<i>, tau_<i>");
+  if (!complete(cqdd)) throw DataError(result.path + ": needs the columns qdd_fd_<i>");
+  Data data(model, false);
+  std::vector<double> q(nv), qd(nv), tau(nv), qdd(nv);
+  std::size_t flagged = 0;
+  double worst_est = 0, worst_res = 0;
+  for (std::size_t r = 0; r < in.rows.size(); ++r) {
+    const std::string where = "row " + std::to_string(r);
+    auto gather = [&](const Csv& c, const std::vector<int>& cols, std::vector<double>& dst, bool round) {
+      for (std::size_t i = 0; i < nv; ++i) {
+        dst[i] = parse_double(c.rows[r][static_cast<std::size_t>(cols[i])], c.path + ": " + where);
+        if (round && is_float) dst[i] = double(float(dst[i]));  // what a float engine was given
+      }
+    };
+    gather(in, cq, q, true);
+    gather(in, cqd, qd, true);
+    gather(in, ctau, tau, true);
+    gather(result, cqdd, qdd, false);
+    const FdCheck<double> c = fd_check(model, data, q.data(), qd.data(), tau.data(), qdd.data());
+    flagged += !c.ok(threshold);
+    worst_est = std::isnan(c.error_estimate) ? c.error_estimate : std::max(worst_est, c.error_estimate);
+    worst_res = std::max(worst_res, c.relative_residual);
+  }
+  std::printf("rows,flagged,threshold,max_error_estimate,max_relative_residual\n%zu,%zu,%.3g,%.6g,%.6g\n",
+              in.rows.size(), flagged, threshold, worst_est, worst_res);
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -374,6 +436,9 @@ int main(int argc, char** argv) {
     if (cmd == "states") return run_states(parse_args(argc, argv, {"model", "rows", "out", "seed", "allow-nonphysical-inertia"}));
     if (cmd == "eval")
       return run_eval(parse_args(argc, argv, {"model", "states", "out", "algo", "precision", "allow-nonphysical-inertia"}));
+    if (cmd == "check")
+      return run_check(parse_args(argc, argv, {"model", "states", "result", "precision", "threshold",
+                                               "allow-nonphysical-inertia"}));
     if (cmd == "error") return run_error(parse_args(argc, argv, {"truth", "result", "result-precision"}));
     throw UsageError("unknown command '" + cmd + "'");
   } catch (const UsageError& e) {
