@@ -253,8 +253,8 @@ TEST(FdCheck, ZeroTorqueRows) {
 }
 
 // The silent float cases: float JSI on chain:64 and on ropes of 30 and 100 links is
-// flagged (by a check in double, as fd_check.hpp recommends), float ABA on the
-// robots is not.
+// flagged exactly where its true error exceeds the float budget (by a check in
+// double, as fd_check.hpp recommends); float ABA on the robots is not flagged.
 TEST(FdCheck, FlagsSilentFloatJsi) {
   for (const char* spec : {"chain:64", "rope:30", "rope:100"}) {
     SCOPED_TRACE(spec);
@@ -278,9 +278,10 @@ TEST(FdCheck, FlagsSilentFloatJsi) {
       const double est = fd_check(md, d, q.data(), qd.data(), tau.data(), qdd.data()).error_estimate;
       bad += err > 1e-4;
       flagged += est > fd_check_threshold<float>();
-      // the estimate is the error to first order
-      if (err > 1e-4) {
-        EXPECT_NEAR(est / err, 1.0, 0.5) << "state " << k;
+      // the estimate is the error to first order: within 10% while the error is
+      // small enough for the first order to hold (the study measures 1.00 there)
+      if (err > 1e-4 && err < 1e-2) {
+        EXPECT_NEAR(est / err, 1.0, 0.1) << "state " << k;
       }
     }
     EXPECT_GT(bad, 0);

@@ -112,10 +112,11 @@ Model load(const Args& a) {
 struct Csv {
   std::string path;
   std::vector<std::string> names;
+  std::map<std::string, int> index;            // name -> column
   std::vector<std::vector<std::string>> rows;  // fields as text
   int column(const std::string& name) const {
-    auto it = std::find(names.begin(), names.end(), name);
-    return it == names.end() ? -1 : static_cast<int>(it - names.begin());
+    auto it = index.find(name);
+    return it == index.end() ? -1 : it->second;
   }
 };
 
@@ -137,6 +138,7 @@ Csv read_csv(const std::string& path) {
   if (!std::getline(f, line)) throw DataError(path + ": empty file");
   if (!line.empty() && line.back() == '\r') line.pop_back();
   c.names = split(line);
+  for (std::size_t k = 0; k < c.names.size(); ++k) c.index.emplace(c.names[k], static_cast<int>(k));
   while (std::getline(f, line)) {
     if (!line.empty() && line.back() == '\r') line.pop_back();
     if (line.empty()) continue;
