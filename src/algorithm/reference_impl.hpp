@@ -200,6 +200,9 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
   return st;
 }
 
+}  // namespace scandyn
+
+// Explicit instantiation of every reference algorithm for the scalar S.
 #define SCANDYN_INSTANTIATE(S)                                                                    \
   template struct DataTpl<S>;                                                                     \
   template void rnea(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,           \
