@@ -43,10 +43,21 @@ std::vector<Algo> default_algos(const StateColumns& cols, const std::string& sou
   std::vector<Algo> algos;
   for (Algo a : {Algo::Id, Algo::Fd, Algo::Bias})
     if (cols.supports(a)) algos.push_back(a);
-  if (algos.empty())
-    throw DataError(source +
-                    ": no algorithm has all its input columns (id needs q, qd, qdd; fd needs q, "
-                    "qd, tau; bias needs q, qd; mass needs q and --algo mass)");
+  if (algos.empty()) {
+    // name the first missing column of each
+    std::string lacks;
+    for (Algo a : {Algo::Id, Algo::Fd, Algo::Bias}) {
+      for (Family f : algo_inputs(a)) {
+        const Index i = cols.first_missing(f);
+        if (i < 0) continue;
+        lacks += std::string(lacks.empty() ? "" : ", ") + algo_name(a) + " lacks column " + family_prefix(f) +
+                 std::to_string(i);
+        break;
+      }
+    }
+    throw DataError(source + ": no algorithm has all its input columns: " + lacks +
+                    " (id needs q, qd, qdd; fd needs q, qd, tau; bias needs q, qd; mass needs q and --algo mass)");
+  }
   return algos;
 }
 
