@@ -11,6 +11,7 @@
 # writes the full libFuzzer output to build-fuzz/fuzz_<target>.log; a crash, leak,
 # timeout (an input taking over 10 s), out-of-memory (2 GiB) or sanitizer report
 # saves the input as build-fuzz/artifacts/<target>-* and makes the exit status 1.
+# Leaks inside urdfdom itself are suppressed (tests/fuzz/lsan.supp says which and why).
 #
 # Environment: SCANDYN_FUZZ_BUILD_DIR (default build-fuzz), SCANDYN_JOBS (build
 # parallelism, default nproc), SCANDYN_MODELS_DIR.
@@ -43,6 +44,7 @@ for t in "${targets[@]}"; do
   log=$dir/fuzz_$t.log
   rc=0
   UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ASAN_OPTIONS=detect_leaks=1 \
+    LSAN_OPTIONS=suppressions=$PWD/tests/fuzz/lsan.supp \
     "$dir/tests/fuzz/fuzz_$t" -max_total_time="$secs" -timeout=10 -rss_limit_mb=2048 -max_len=65536 \
     -print_final_stats=1 -artifact_prefix="$dir/artifacts/$t-" "$corpus" >"$log" 2>&1 || rc=$?
   execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)
