@@ -96,6 +96,15 @@ template <class S>
 std::string first_non_finite(const BatchView<const S>& q, const BatchView<const S>& qd, Index nv, long long& count) {
   std::string first;
   count = 0;
+  // fast path: contiguous SoA state, all finite (the common case, every step)
+  const auto all_finite = [&](const BatchView<const S>& v) {
+    if (v.dof_stride != v.batch || v.batch_stride != 1) return false;
+    const std::size_t total = static_cast<std::size_t>(nv) * static_cast<std::size_t>(v.batch);
+    bool ok = true;
+    for (std::size_t k = 0; k < total; ++k) ok &= std::isfinite(v.data[k]);
+    return ok;
+  };
+  if (all_finite(q) && all_finite(qd)) return first;
   for (Index b = 0; b < q.batch; ++b) {
     for (int part = 0; part < 2; ++part) {
       const BatchView<const S>& v = part ? qd : q;
