@@ -9,7 +9,7 @@
 // Benchmark.
 //
 //   fd_residual_cost [--min-time 0.2] [--out docs/accuracy/fd_check_cost.csv]
-// Models: iiwa, hyq, atlas ($SCANDYN_MODELS_DIR, default ../shared/models), rope:100, rope:1000.
+// Models: iiwa, hyq, atlas ($SCANDYN_MODELS_DIR, default the shipped models/), rope:100, rope:1000.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>

@@ -24,7 +24,7 @@
 //
 //   fd_residual_study [--quick] [--out docs/accuracy/fd_check.csv]
 // (--quick: 1/20 of the states, for a smoke run.) Models from $SCANDYN_MODELS_DIR
-// (default ../shared/models).
+// (default the shipped models/).
 #include <algorithm>
 #include <chrono>
 #include <cmath>

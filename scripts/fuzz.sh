@@ -24,7 +24,7 @@ targets=("$@")
 ((${#targets[@]})) || targets=(urdf scene csv)
 dir=${SCANDYN_FUZZ_BUILD_DIR:-build-fuzz}
 jobs=${SCANDYN_JOBS:-$(nproc 2>/dev/null || echo 2)}
-models=${SCANDYN_MODELS_DIR:-$PWD/../shared/models}
+models=${SCANDYN_MODELS_DIR:-$PWD/models}
 
 command -v clang++ >/dev/null || { echo "fuzz.sh: clang++ not found (libFuzzer needs clang)" >&2; exit 1; }
 cmake -S . -B "$dir" -G Ninja -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_BUILD_TYPE=RelWithDebInfo \

@@ -148,7 +148,7 @@ TEST(SimScene, ErrorsNameTheFileAndTheKey) {
 
 // Every shipped scene (scenes/*.json) is valid: parsed with its model, generators
 // made (rope:10^6 included: about 1 s), robots found through SCANDYN_MODELS_DIR or
-// ../shared/models.
+// the shipped models/.
 TEST(SimScene, ShippedScenesLoad) {
   int count = 0;
   for (const char* name : {"iiwa_rl", "hyq_rl", "rope_1e4", "rope_1e6", "curtain"}) {

@@ -15,7 +15,7 @@
 
 #include "engines.hpp"
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
 #include "resources.hpp"
 #include "scandyn/limits.hpp"
 #include "scandyn/accuracy.hpp"

@@ -8,8 +8,8 @@
 #include <vector>
 
 #include "cli.hpp"
-#include "csv.hpp"
-#include "output_file.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/io/output_file.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/limits.hpp"
 #include "scandyn/model/load.hpp"

@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "cli.hpp"
-#include "csv.hpp"
-#include "output_file.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/io/output_file.hpp"
 #include "resources.hpp"
 #include "scandyn/limits.hpp"
 #include "scandyn/sim/simulator.hpp"

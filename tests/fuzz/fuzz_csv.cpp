@@ -6,16 +6,16 @@
 #include <string>
 #include <vector>
 
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   try {
-    scandyn::cli::CsvReader in("fuzz.csv", std::string(reinterpret_cast<const char*>(data), size));
+    scandyn::io::CsvReader in("fuzz.csv", std::string(reinterpret_cast<const char*>(data), size));
     std::vector<double> row;
     std::string out;
     while (in.next_row(row))
-      for (double v : row) scandyn::cli::append_number(out, v), out.clear();
-  } catch (const scandyn::cli::CsvError&) {
+      for (double v : row) scandyn::io::append_number(out, v), out.clear();
+  } catch (const scandyn::io::CsvError&) {
   }
   return 0;
 }

@@ -1,4 +1,4 @@
-// src/cli/output_file.hpp: how scandyn writes the files other programs read
+// scandyn/io/output_file.hpp: how scandyn writes the files other programs read
 // (docs/cli.md, "Output files"):
 //  - through a hidden temporary file in the destination's directory, renamed onto
 //    the destination only when complete (an error leaves nothing, an existing file
@@ -19,7 +19,7 @@
 #include <string>
 #include <string_view>
 
-namespace scandyn::cli {
+namespace scandyn::io {
 
 // Installs the SIGINT / SIGTERM / SIGHUP handlers (main() calls it once).
 void install_signal_handlers();
@@ -76,4 +76,4 @@ class AtomicFileWriter {
   std::string buffer_;
 };
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

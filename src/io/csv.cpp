@@ -1,5 +1,5 @@
-// src/cli/csv.cpp: strict numeric CSV reading and atomic CSV writing.
-#include "csv.hpp"
+// src/io/csv.cpp: strict numeric CSV reading and atomic CSV writing.
+#include "scandyn/io/csv.hpp"
 
 #include "scandyn/limits.hpp"
 
@@ -15,7 +15,7 @@
 #include <cstring>
 #include <unordered_map>
 
-namespace scandyn::cli {
+namespace scandyn::io {
 namespace {
 
 bool is_blank(char c) { return c == ' ' || c == '\t'; }
@@ -226,4 +226,4 @@ void append_csv_line(const std::string& path, const std::string& header_line,
   if (!error.empty()) throw CsvError(error);
 }
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

@@ -1,7 +1,7 @@
-// src/cli/output_file.cpp: atomic output files, stdout, symbolic links, kept
+// src/io/output_file.cpp: atomic output files, stdout, symbolic links, kept
 // permissions, and the signal handlers that remove temporary files
 // (output_file.hpp).
-#include "output_file.hpp"
+#include "scandyn/io/output_file.hpp"
 
 #include <fcntl.h>
 #include <limits.h>
@@ -12,10 +12,10 @@
 #include <cstdlib>
 #include <cstring>
 
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/limits.hpp"
 
-namespace scandyn::cli {
+namespace scandyn::io {
 namespace {
 
 // The temporary files to remove on a signal: fixed storage, so that the handler
@@ -218,4 +218,4 @@ void AtomicFileWriter::commit() {
   slot_ = -1;
 }
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

@@ -1,4 +1,4 @@
-// src/cli/csv.hpp: the numeric CSV files of `scandyn eval` (and of the later
+// scandyn/io/csv.hpp: the numeric CSV files of `scandyn eval` (and of the later
 // backends): a strict reader of a header row plus rows of finite numbers, and a
 // writer that only ever shows a complete file under its final name.
 //
@@ -19,9 +19,9 @@
 #include <utility>
 #include <vector>
 
-#include "output_file.hpp"
+#include "scandyn/io/output_file.hpp"
 
-namespace scandyn::cli {
+namespace scandyn::io {
 
 // A malformed or unreadable CSV file (what(): one line naming the file).
 class CsvError : public std::runtime_error {
@@ -100,4 +100,4 @@ class CsvWriter {
 void append_csv_line(const std::string& path, const std::string& header_line,
                      const std::string& line);
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io
