@@ -1,5 +1,5 @@
-// The stability suite's cases, shared by its CPU (tests/test_stability.cpp) and GPU
-// (tests/test_cuda_stability.cu) variants: the hard models, the random states and
+// The stability suite's cases, shared by its CPU (tests/algorithm/test_stability.cpp) and GPU
+// (tests/cuda/test_cuda_stability.cu) variants: the hard models, the random states and
 // their double serial references, what one run of a method measured, and how that
 // measurement is recorded as a test property (scripts/accuracy_report reads the
 // CPU suite's: key "<problem>.<method>.<precision>", value "%.3g" of the error or

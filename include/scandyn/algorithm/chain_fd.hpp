@@ -569,7 +569,7 @@ struct ChainBodies {
 
 // Forward dynamics of B instances of unbranched chains from the base by the chunked scans above
 // ("parallel"), on the host with OpenMP threads (1: serial). Agrees with the serial
-// aba to rounding (see tests/test_chain_fd.cpp for the measured errors). Owns all
+// aba to rounding (see tests/algorithm/test_chain_fd.cpp for the measured errors). Owns all
 // scratch for max_batch instances; compute() allocates nothing.
 template <class S>
 class ChainForwardDynamics {

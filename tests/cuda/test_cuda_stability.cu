@@ -1,5 +1,5 @@
 // The stability suite on the GPU: the hard models and states of
-// tests/test_stability.cpp (shared through tests/stability_cases.hpp) for every
+// tests/algorithm/test_stability.cpp (shared through tests/stability_cases.hpp) for every
 // CUDA inverse- and forward-dynamics engine, in float and double, against the
 // double serial reference (rnea for inverse dynamics, aba for forward dynamics).
 //

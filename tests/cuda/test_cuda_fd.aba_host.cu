@@ -1,6 +1,6 @@
 // test_cuda_fd, part: aba_instance (the articulated-body algorithm's device function)
 // run on the host in every variant with the capacity's slots, against the serial aba
-// and fd_jsi, and its pivot failures. Tolerances: tests/test_cuda_fd.cu.
+// and fd_jsi, and its pivot failures. Tolerances: tests/cuda/test_cuda_fd.cu.
 #include "cuda_fd_test_util.hpp"
 
 using namespace scandyn;

@@ -1,5 +1,5 @@
 // test_cuda_fd, part: aba_instance on the host with the branch slots of the ABA kernels
-// for shapes (chains: 0; register slots: 1, 2). Tolerances: tests/test_cuda_fd.cu.
+// for shapes (chains: 0; register slots: 1, 2). Tolerances: tests/cuda/test_cuda_fd.cu.
 #include "cuda_fd_test_util.hpp"
 
 using namespace scandyn;

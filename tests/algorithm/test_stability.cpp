@@ -18,7 +18,7 @@
 // scans are exercised).
 //
 // The cases (models, states, references) and the recording are shared with the
-// GPU variant, tests/test_cuda_stability.cu, through tests/stability_cases.hpp.
+// GPU variant, tests/cuda/test_cuda_stability.cu, through tests/stability_cases.hpp.
 #include <gtest/gtest.h>
 
 #include <cmath>

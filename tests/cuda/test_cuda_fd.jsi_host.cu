@@ -1,6 +1,6 @@
 // test_cuda_fd, part: fd_jsi_instance (the joint-space inertia's device function) run on
 // the host in every variant, against the serial fd_jsi and aba, and its pivot failures.
-// Tolerances: tests/test_cuda_fd.cu.
+// Tolerances: tests/cuda/test_cuda_fd.cu.
 #include "cuda_fd_test_util.hpp"
 
 using namespace scandyn;
