@@ -56,47 +56,38 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
     }
   }
   // forward: kinematics and body forces
-  const Motion<S> a0 = model.a0;
-  Motion<S> v_prev = Motion<S>::zero(), a_prev = a0;  // body i - 1's v and a
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = 0; i < C; ++i) {
-    if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Motion<S> vp = Motion<S>::zero(), ap = a0;
-    if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
-    else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
-    const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
-    const Transform<S> X = joint_transform<kTrig>(b, qi);
-    if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
-    const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
-    const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
-    const RneaForward<S> o = rnea_forward_step(b, X, vp, ap, qdi, qddi);
-    f[i] = fext ? o.f - fext[i] : o.f;
-    if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = f[i];
-    v_prev = o.v;
-    a_prev = o.a;
-  }
+  forward_pass<kUnrolled>(
+      model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
+      [&](Index i) { return BodyKinematics<S>{sv[model.body[i].parent], sa[model.body[i].parent]}; },
+      [&](Index i, int fl, const BodyKinematics<S>& p) {
+        const Body<S>& b = model.body[i];
+        const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
+        const Transform<S> X = joint_transform<kTrig>(b, qi);
+        if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
+        const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
+        const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
+        const RneaForward<S> o = rnea_forward_step(b, X, p.v, p.a, qdi, qddi);
+        f[i] = fext ? o.f - fext[i] : o.f;
+        if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = f[i];
+        return BodyKinematics<S>{o.v, o.a};
+      });
   // backward: joint torques; each body's force goes to its parent, the next body's
-  // through a register (`carry`), others' through the stack. A parent receives its
-  // children in descending order, as in the reference.
-  Force<S> carry = Force<S>::zero();  // from body i + 1, when its parent is body i
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = C - 1; i >= 0; --i) {
-    if (i >= n) continue;
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Force<S> fi = (fl & kStacked) ? sf[i] : f[i];
-    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) fi += carry;
-    tau[i] = joint_project(b, fi);
-    if (fl & kParentIsBase) continue;
-    Transform<S> X;
-    if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
-    else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
-    const Force<S> up = X.apply_transpose(fi);
-    if (fl & kParentIsPrev) carry = up;
-    else sf[b.parent] += up;
-  }
+  // through the carry, others' through the stack (sf, which starts as the branch
+  // point's own force)
+  backward_pass<kUnrolled, S, C, Force<S>>(
+      model, n, [&](Index i, int fl) { return (fl & kStacked) ? sf[i] : f[i]; },
+      [&](Index i, int, const Force<S>& fi) {
+        tau[i] = joint_project(model.body[i], fi);
+        return true;
+      },
+      [&](Index i, const Force<S>& fi) {
+        const Body<S>& b = model.body[i];
+        Transform<S> X;
+        if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
+        else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+        return X.apply_transpose(fi);
+      },
+      [&](Index i, int, const Force<S>& up) { sf[model.body[i].parent] += up; });
 }
 #endif  // __CUDACC__
 
