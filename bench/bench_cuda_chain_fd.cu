@@ -3,16 +3,16 @@
 // ABA on this machine's CPU.
 //
 // Rows (names as scripts/bench_results.py reads them):
-//   fd_parallel/<precision>/rope:N/cuda       CudaForwardDynamics, FdAlgorithm::Parallel,
+//   fd_parallel/<precision>/rope:N/cuda       CudaForwardDynamics, FdMethod::Parallel,
 //                                             compute_async on device buffers (events
 //                                             around the launch), N = 10 .. 10^6;
 //   fd_parallel-host/<precision>/rope:N/cuda  compute() from host buffers (copies in
 //                                             and out included), as the hybrid is;
-//   fd_hybrid/<precision>/rope:N/cuda         FdAlgorithm::Hybrid through compute():
+//   fd_hybrid/<precision>/rope:N/cuda         FdMethod::Hybrid through compute():
 //                                             the articulated inertias on this host
 //                                             (one thread), the other passes on the
 //                                             device;
-//   fd_jsi/<precision>/rope:N/cuda            FdAlgorithm::Jsi (jsi_thread to 64 links,
+//   fd_jsi/<precision>/rope:N/cuda            FdMethod::Jsi (jsi_thread to 64 links,
 //                                             then CRBA + cuSOLVER's Cholesky), compute_async,
 //                                             N = 10 .. 4000 (M is N^2 scalars);
 //   fd_aba/<precision>/rope:N/serial          the serial reference aba on this host;
@@ -144,7 +144,7 @@ struct DeviceInputs {
 // The engine for B instances of m by algo, or null (the row skipped with the reason).
 template <class S>
 std::unique_ptr<cuda::CudaForwardDynamics<S>> make_engine(benchmark::State& st, const Model* m, Index B,
-                                                          cuda::FdAlgorithm algo) {
+                                                          FdMethod algo) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
@@ -158,7 +158,7 @@ std::unique_ptr<cuda::CudaForwardDynamics<S>> make_engine(benchmark::State& st, 
 
 // Device rows: compute_async on device buffers.
 template <class S>
-void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
+void run_device(benchmark::State& st, const Model* m, Index B, FdMethod algo) {
   const Index n = m->nv();
   const auto in = inputs<S>(*m, B);
   const auto fd = make_engine<S>(st, m, B, algo);
@@ -173,7 +173,7 @@ void run_device(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm
 
 // Host rows: compute() from host buffers (the hybrid needs q on the host).
 template <class S>
-void run_host(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm algo) {
+void run_host(benchmark::State& st, const Model* m, Index B, FdMethod algo) {
   const Index n = m->nv();
   const auto in = inputs<S>(*m, B);
   const auto fd = make_engine<S>(st, m, B, algo);
@@ -182,7 +182,7 @@ void run_host(benchmark::State& st, const Model* m, Index B, cuda::FdAlgorithm a
   std::vector<S> qdd(q.size());
   using V = BatchView<const S>;
   const FdBatchIn<S> hin{V::soa(q.data(), n, B), V::soa(qd.data(), n, B), V::soa(tau.data(), n, B), nullptr};
-  cuda::FdBatchStatus status;
+  BatchStatus status;
   for (auto _ : st) status = fd->compute(hin, BatchView<S>::soa(qdd.data(), n, B));
   set<S>(st, n, B, error_of(qdd, *in), status.failed);
 }
@@ -247,7 +247,7 @@ void print_hybrid_timeline(Index n) {
   const auto in = inputs<float>(m, 1);
   BackendOptions o;
   o.backend = BackendKind::Cuda;
-  cuda::CudaForwardDynamics<float> fd(m.cast<float>(), o, cuda::FdAlgorithm::Hybrid);
+  cuda::CudaForwardDynamics<float> fd(m.cast<float>(), o, FdMethod::Hybrid);
   fd.record_timeline(true);
   const std::vector<float> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
   std::vector<float> qdd(q.size());
@@ -289,18 +289,18 @@ int main(int argc, char** argv) {
         benchmark::RegisterBenchmark(name.c_str(), fn)->UseRealTime()->Unit(benchmark::kMicrosecond);
       };
       if (fl) {
-        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, cuda::FdAlgorithm::Parallel); });
-        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, cuda::FdAlgorithm::Parallel); });
-        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, cuda::FdAlgorithm::Hybrid); });
+        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, FdMethod::Parallel); });
+        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, FdMethod::Parallel); });
+        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, FdMethod::Hybrid); });
         if (N <= 4000)
-          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, cuda::FdAlgorithm::Jsi); });
+          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, FdMethod::Jsi); });
         regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<float>(st, m); });
       } else {
-        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, cuda::FdAlgorithm::Parallel); });
-        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, cuda::FdAlgorithm::Parallel); });
-        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, cuda::FdAlgorithm::Hybrid); });
+        reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, FdMethod::Parallel); });
+        regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, FdMethod::Parallel); });
+        regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, FdMethod::Hybrid); });
         if (N <= 4000)
-          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, cuda::FdAlgorithm::Jsi); });
+          reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, FdMethod::Jsi); });
         regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<double>(st, m); });
       }
     }
@@ -326,7 +326,7 @@ int main(int argc, char** argv) {
   const Model* r1000 = g_models.back().get();
   for (long B : {10L, 100L, 1000L}) {
     benchmark::RegisterBenchmark(("fd_parallel/float/rope:1000/cuda/B" + std::to_string(B)).c_str(),
-                                 [r1000, B](benchmark::State& st) { run_device<float>(st, r1000, B, cuda::FdAlgorithm::Parallel); })
+                                 [r1000, B](benchmark::State& st) { run_device<float>(st, r1000, B, FdMethod::Parallel); })
         ->UseManualTime()
         ->Unit(benchmark::kMicrosecond);
   }

@@ -23,7 +23,7 @@
 //   fd_jsi_thread-unrolled/float/hyq/cuda            capacity 16 unrolled (the engine
 //                                                    rolls it: > 255 registers);
 //   the variants at B = 10^6 and 10^7, to show what the engine's choices cost;
-//   fd_aba_thread/<precision>/<model>/cuda           the engine with FdAlgorithm::Aba
+//   fd_aba_thread/<precision>/<model>/cuda           the engine with FdMethod::Aba
 //                                                    (articulated-body algorithm, one
 //                                                    thread per instance, the kernel
 //                                                    choose_aba_kernel picks), as the
@@ -63,7 +63,7 @@
 // SCANDYN_BENCH_VARIANTS=0 (CMake option SCANDYN_BENCH_VARIANTS=OFF, what
 // scripts/test.sh uses on machines without a GPU, where this program is compiled but
 // never run) compiles only the variant rows whose kernel is the engine's own choice
-// (FdKernelChoice in kernels/fd_instances.cu: fd_jsi_thread-cap128 in float,
+// (FdKernelChoice in kernels/forward_dynamics.cu: fd_jsi_thread-cap128 in float,
 // fd_jsi_thread-rolled in double, the fd_aba_thread-<variant> rows marked `engine`),
 // so that every kernel template here still compiles, without the alternatives
 // (tuning experiments, ~2.5 s of nvcc each).
@@ -101,7 +101,7 @@ using bench::uniform;
 
 namespace {
 
-// The engine's kernel (kernels/fd_instances.cu) with other choices of
+// The engine's kernel (kernels/forward_dynamics.cu) with other choices of
 // fd_jsi_instance's kKeepXup, kUnrolled, and of the blocks per SM that ptxas plans
 // registers for (kMinBlocks = 1: up to 255 registers; the engine's: FdKernelChoice).
 template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
@@ -118,7 +118,7 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
 
 // An ABA kernel: aba_instance with kSlots branch slots, loops unrolled or not, at
 // most the registers for kMinBlocks blocks per SM, transforms kept or not, kTrig's
-// sin/cos. The engine's kernels (kernels/fd_instances.cu) are some of these.
+// sin/cos. The engine's kernels (kernels/forward_dynamics.cu) are some of these.
 template <class S, int C, int kSlots, bool kUnrolled, int kMinBlocks, bool kKeepXup, Trig kTrig>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     aba_variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
@@ -211,9 +211,9 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double fa
   st.counters["GBps"] = seconds > 0 ? bytes * double(st.iterations()) / seconds * 1e-9 : 0;
 }
 
-// fd_jsi_thread (fd_aba_thread with FdAlgorithm::Aba): the engine's device path.
+// fd_jsi_thread (fd_aba_thread with FdMethod::Aba): the engine's device path.
 template <class S>
-void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Auto) {
+void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Auto) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   BackendOptions o;
@@ -225,7 +225,7 @@ void bench_device(benchmark::State& st, const Model* md, Index B, cuda::FdAlgori
   const FdBatchIn<S> in = buf.in(nv, B);
   const BatchView<S> qdd = buf.qdd(nv, B);
   const double seconds = time_launches(st, [&] { return engine.compute_async(in, qdd, buf.failed, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == cuda::FdAlgorithm::Aba),
+  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == FdMethod::Aba),
                count_failed(buf.failed, B), seconds, sizeof(S));
 }
 
@@ -296,7 +296,7 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
   using V = BatchView<const S>;
   const FdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)};
   const BatchView<S> out = BatchView<S>::soa(qdd.data(), nv, B);
-  cuda::FdBatchStatus status = engine.compute(in, out);  // warm-up
+  BatchStatus status = engine.compute(in, out);  // warm-up
   for (auto _ : st) {
     status = engine.compute(in, out);
     benchmark::ClobberMemory();
@@ -331,7 +331,7 @@ AbaRow aba_row(const char* model, const char* variant, bool engine = false) {
           }};
 }
 
-// The rows: for each robot and precision the engine's kernel (kernels/fd_instances.cu,
+// The rows: for each robot and precision the engine's kernel (kernels/forward_dynamics.cu,
 // FdKernelChoice) and the alternatives to it. Capacities: iiwa 8, hyq 16, atlas 32;
 // branch slots: iiwa and hyq none (chains from the base), atlas 1.
 const std::vector<AbaRow>& aba_rows() {
@@ -467,7 +467,7 @@ int main(int argc, char** argv) {
         const Index b = static_cast<Index>(B);
         if (fl) add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b); });
         else add("fd_jsi_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b); });
-        constexpr auto kAba = cuda::FdAlgorithm::Aba;
+        constexpr auto kAba = FdMethod::Aba;
         if (fl) add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b, kAba); });
         else add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b, kAba); });
         if (label == "iiwa" && B >= 1000000) {

@@ -40,7 +40,7 @@
 #include <vector>
 
 #include "cuda_bench_util.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -274,14 +274,14 @@ int main(int argc, char** argv) {
                                   : spec;
     for (int prec = 0; prec < 2; ++prec) {
       const std::string p = prec ? "float/" : "double/";
-      const IdStrategy gs = cuda::choose_cuda_strategy(nv, B);
+      const IdStrategy gs = choose_id_strategy(BackendKind::Cuda, nv, B, 1);
       const std::string gname =
           std::string("id_") + (gs == IdStrategy::ScanLocal ? "scan-local/" : "thread/") + p + label + "/cuda";
       auto* g = prec ? benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<float>(st, md, B); })
                      : benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<double>(st, md, B); });
       g->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.1);
       if (!openmp) continue;
-      const IdStrategy cs = choose_strategy(nv, B, threads);
+      const IdStrategy cs = choose_id_strategy(BackendKind::OpenMP, nv, B, threads);
       const std::string cname =
           std::string("id_") + (cs == IdStrategy::ScanLocal ? "scan-local/" : "recursion/") + p + label + "/openmp";
       auto* c = prec ? benchmark::RegisterBenchmark(cname.c_str(), [=](benchmark::State& st) { bench_openmp<float>(st, md, B); })

@@ -16,7 +16,7 @@
 
 #include "scandyn/accuracy.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 
 namespace scandyn::bench {

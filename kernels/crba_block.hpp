@@ -15,7 +15,7 @@
 
 #include <cstddef>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 
 namespace scandyn {
 namespace cuda {

@@ -23,7 +23,7 @@
 
 #include "cuda_test_util.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/model/load.hpp"

@@ -5,7 +5,7 @@
 #include <random>
 
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"
@@ -110,10 +110,10 @@ TEST(Backend, LongRopeAcrossLinks) {
 }
 
 TEST(Backend, AutoStrategyFollowsShape) {
-  EXPECT_EQ(choose_strategy(7, 1000000, 16), IdStrategy::Recursion);
-  EXPECT_EQ(choose_strategy(1000000, 1, 16), IdStrategy::ScanLocal);
-  EXPECT_EQ(choose_strategy(1000000, 32, 16), IdStrategy::Recursion);
-  EXPECT_EQ(choose_strategy(1000000, 1, 1), IdStrategy::Recursion);
+  EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 7, 1000000, 16), IdStrategy::Recursion);
+  EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 1000000, 1, 16), IdStrategy::ScanLocal);
+  EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 1000000, 32, 16), IdStrategy::Recursion);
+  EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 1000000, 1, 1), IdStrategy::Recursion);
 }
 
 TEST(Backend, Errors) {

@@ -563,10 +563,10 @@ TEST_F(Cli, EvalRejectsBadInputWithOneLineAndNoOutput) {
       {"no default algo", "q_0,q_1,q_2\n", kEval, 1, {"states.csv: no algorithm"}},
       {"unknown algo", kHeader, kEval + "--algo id,foo", 2, {"unknown --algo value 'foo'"}},
       {"empty algo item", kHeader, kEval + "--algo id,", 2, {"unknown --algo value ''"}},
-      {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"unknown --backend value 'gpu'"}},
+      {"unknown backend", kHeader, kEval + "--backend gpu", 2, {"--backend: unknown backend 'gpu' (expected serial, openmp or cuda)"}},
       {"unknown strategy", kHeader, kEval + "--strategy fastest", 2, {"--strategy: unknown strategy 'fastest'"}},
       {"bad threads", kHeader, kEval + "--threads 0", 2, {"--threads must be an integer"}},
-      {"unknown precision", kHeader, kEval + "--precision half", 2, {"unknown --precision value 'half'"}},
+      {"unknown precision", kHeader, kEval + "--precision half", 2, {"--precision: unknown precision 'half' (expected double or float)"}},
       {"unknown flag", kHeader, kEval + "--fast", 2, {"unknown flag '--fast'"}},
       {"repeated flag", kHeader, kEval + "--algo id --algo fd", 2, {"'--algo' given more than once"}},
       {"missing model file", kHeader, "eval --model nope.urdf --states states.csv --out out.csv", 1, {"nope.urdf"}},
@@ -625,7 +625,7 @@ const char* const kHeavyStates = "q_0,q_1,qd_0,qd_1,tau_0,tau_1\n0,0,0,0,0,0\n0,
 // row 2 of kHeavyStates with --fd jsi --fallback aba: the JSI fails, then the ABA
 const char* const kHeavyFallbackError =
     "scandyn: heavy.csv: row 2 (line 3): forward dynamics failed: mass matrix pivot not positive, and by "
-    "--fallback aba the articulated inertia pivot at DoF 0 is not positive\n";
+    "the aba fallback the articulated inertia pivot at DoF 0 is not positive\n";
 
 TEST_F(Cli, EvalReportsTheRowWhoseForwardDynamicsFails) {
   write_text(path("heavy.urdf"), heavy_urdf());
@@ -1296,7 +1296,7 @@ TEST_F(Cli, FdMethodsOnTheCpu) {
     const Result h = run(std::string("eval --model rope:300 --states rope.csv --out h.csv --algo fd --fd hybrid "
                                      "--backend ") + backend);
     EXPECT_EQ(h.code, 2);
-    EXPECT_NE(h.err.find("--fd hybrid runs on --backend cuda only"), std::string::npos) << h.err;
+    EXPECT_NE(h.err.find("--fd hybrid: hybrid runs on the cuda backend only"), std::string::npos) << h.err;
     EXPECT_FALSE(fs::exists(path("h.csv")));
   }
   const Result tree = run("bench --model tree:20:3 --algo fd --fd parallel --instances 2");
@@ -1304,7 +1304,7 @@ TEST_F(Cli, FdMethodsOnTheCpu) {
   EXPECT_NE(tree.err.find("needs unbranched chains hanging from the base"), std::string::npos) << tree.err;
   const Result bad = run("bench --model rope:5 --algo fd --fd fast --instances 2");
   EXPECT_EQ(bad.code, 2);
-  EXPECT_NE(bad.err.find("unknown --fd value 'fast' (expected auto, aba, jsi, hybrid or parallel)"), std::string::npos)
+  EXPECT_NE(bad.err.find("--fd: unknown forward-dynamics method 'fast' (expected auto, aba, jsi, hybrid or parallel)"), std::string::npos)
       << bad.err;
   const std::vector<std::string> row = bench_row(run("bench --model rope:300 --algo fd --fd parallel --instances 2 "
                                                      "--min-time 0.01"));

@@ -45,14 +45,14 @@ Case make_case(const Model& model, Index B, unsigned seed, bool with_fext) {
 }
 
 template <class S>
-double device_error(const Model& model, Index B, cuda::FdAlgorithm algo, const Case& c,
+double device_error(const Model& model, Index B, FdMethod algo, const Case& c,
                     std::vector<cuda::ChainTimelineEvent>* timeline = nullptr) {
   const Index n = model.nv();
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
   cuda::CudaForwardDynamics<S> fd(model.cast<S>(), o, algo);
-  EXPECT_EQ(fd.algorithm(), algo);
+  EXPECT_EQ(fd.method(), algo);
   fd.record_timeline(timeline != nullptr);
   const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau);
   std::vector<Force<S>> fext;
@@ -73,7 +73,7 @@ TEST(CudaChainFd, RandomChainsParallelAndHybrid) {
   for (unsigned seed : {1u, 2u}) {
     const Model m = test::random_chain(97, seed);
     const Case c = make_case(m, 3, seed, seed == 2);
-    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+    for (auto algo : {FdMethod::Parallel, FdMethod::Hybrid}) {
       EXPECT_LT(device_error<double>(m, 3, algo, c), 1e-9) << "seed " << seed;
       EXPECT_LT(device_error<float>(m, 3, algo, c), 1e-3) << "seed " << seed;
     }
@@ -88,7 +88,7 @@ TEST(CudaChainFd, ChainsFromTheBaseParallelAndHybrid) {
   const Model curtain = make_generated("curtain:20:40");
   for (const Model* m : {&forest, &curtain}) {
     const Case c = make_case(*m, 3, 5, m == &forest);
-    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+    for (auto algo : {FdMethod::Parallel, FdMethod::Hybrid}) {
       EXPECT_LT(device_error<double>(*m, 3, algo, c), 1e-9) << m->name;
       EXPECT_LT(device_error<float>(*m, 3, algo, c), 1e-3) << m->name;
     }
@@ -100,11 +100,11 @@ TEST(CudaChainFd, RopesToOneHundredThousandLinks) {
   for (int n : {10, 1000, 100000}) {
     const Model m = make_generated("rope:" + std::to_string(n));
     const Case c = make_case(m, 1, 7, false);
-    for (auto algo : {cuda::FdAlgorithm::Parallel, cuda::FdAlgorithm::Hybrid}) {
+    for (auto algo : {FdMethod::Parallel, FdMethod::Hybrid}) {
       const double ed = device_error<double>(m, 1, algo, c), ef = device_error<float>(m, 1, algo, c);
       EXPECT_LT(ed, 1e-9) << "rope:" << n;
       EXPECT_LT(ef, 1e-3) << "rope:" << n;
-      RecordProperty("rope" + std::to_string(n) + (algo == cuda::FdAlgorithm::Hybrid ? "_hybrid" : "_parallel"),
+      RecordProperty("rope" + std::to_string(n) + (algo == FdMethod::Hybrid ? "_hybrid" : "_parallel"),
                      std::to_string(ed) + " / " + std::to_string(ef));
     }
   }
@@ -119,7 +119,7 @@ TEST(CudaChainFd, AutoPicksParallelForLongChainsOnly) {
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "aba_thread");
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("curtain:10:10").cast<float>(), o).strategy(), "parallel");
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("tree:80:3").cast<float>(), o).strategy(), "jsi_dense");
-  EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, cuda::FdAlgorithm::Parallel),
+  EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, FdMethod::Parallel),
                BackendError);
 }
 
@@ -128,7 +128,7 @@ TEST(CudaChainFd, HybridOverlapsHostAndDevice) {
   const Model m = make_generated("rope:200000");
   const Case c = make_case(m, 1, 3, false);
   std::vector<cuda::ChainTimelineEvent> tl;
-  EXPECT_LT(device_error<float>(m, 1, cuda::FdAlgorithm::Hybrid, c, &tl), 1e-3);
+  EXPECT_LT(device_error<float>(m, 1, FdMethod::Hybrid, c, &tl), 1e-3);
   // some device group's walks finish before the host's recursion does
   double host_end = 0, first_gpu_group_end = -1;
   for (const auto& e : tl) {
@@ -149,7 +149,7 @@ TEST(CudaChainFd, FailedPivotIsReportedNotNaN) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 2;
-  cuda::CudaForwardDynamics<double> fd(m, o, cuda::FdAlgorithm::Parallel);
+  cuda::CudaForwardDynamics<double> fd(m, o, FdMethod::Parallel);
   std::vector<double> qdd(bad.q.size(), 123.0);
   FdBatchIn<double> in{BatchView<const double>::soa(bad.q.data(), 300, 2),
                        BatchView<const double>::soa(bad.qd.data(), 300, 2),

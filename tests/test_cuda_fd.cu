@@ -76,7 +76,7 @@ TEST(CudaFdErrors, WithoutADevice) {
   } else {
     cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o);
     EXPECT_EQ(e.strategy(), "aba_thread");  // Auto: ABA up to 64 DoF
-    EXPECT_EQ(e.backend(), "cuda");
+    EXPECT_EQ(e.backend(), BackendKind::Cuda);
   }
 }
 
@@ -155,17 +155,17 @@ TEST(CudaFdAbaErrors, WithoutADevice) {
   o.max_batch = 4;
   // beyond kMaxThreadDofs: no ABA kernel, a BackendError before any device work
   try {
-    cuda::CudaForwardDynamics<double> e(load_model("chain:65"), o, cuda::FdAlgorithm::Aba);
+    cuda::CudaForwardDynamics<double> e(load_model("chain:65"), o, FdMethod::Aba);
     ADD_FAILURE() << "an ABA engine was made for 65 DoF";
   } catch (const BackendError& e) {
     EXPECT_NE(std::string(e.what()).find("up to 64 DoF"), std::string::npos) << e.what();
   }
   if (test::no_device_reason().empty()) {
-    cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o, cuda::FdAlgorithm::Aba);
+    cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o, FdMethod::Aba);
     EXPECT_EQ(e.strategy(), "aba_thread");
-    EXPECT_EQ(e.algorithm(), cuda::FdAlgorithm::Aba);
+    EXPECT_EQ(e.method(), FdMethod::Aba);
     cuda::CudaForwardDynamics<float> j(load_model("chain:3").cast<float>(), o);
-    EXPECT_EQ(j.algorithm(), cuda::FdAlgorithm::Aba);  // Auto: ABA up to 64 DoF
+    EXPECT_EQ(j.method(), FdMethod::Aba);  // Auto: ABA up to 64 DoF
   }
 }
 
@@ -177,7 +177,7 @@ namespace {
 // Returns the worst instance errors; checks the gaps of qdd and that all succeeded.
 template <class S>
 Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, const Layout& lqd, const Layout& ltau,
-                const Layout& lout, unsigned seed = 1, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Jsi) {
+                const Layout& lout, unsigned seed = 1, FdMethod alg = FdMethod::Jsi) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   Batch<S> batch(md, B, seed);
@@ -193,7 +193,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
   cuda::CudaForwardDynamics<S> engine(m, o, alg);
-  EXPECT_EQ(engine.strategy(), alg == cuda::FdAlgorithm::Aba ? "aba_thread"
+  EXPECT_EQ(engine.strategy(), alg == FdMethod::Aba ? "aba_thread"
                                : md.nv() > cuda::kMaxThreadDofs ? "jsi_dense"
                                                                 : "jsi_thread");
   const FdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
@@ -201,7 +201,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
                         {tau.data() + ltau.base, B, ltau.ds, ltau.bs},
                         with_fext ? fext.data() : nullptr};
   std::vector<int> failed(B, -2);
-  const cuda::FdBatchStatus st = engine.compute(in, BatchView<S>{qdd.data() + lout.base, B, lout.ds, lout.bs},
+  const BatchStatus st = engine.compute(in, BatchView<S>{qdd.data() + lout.base, B, lout.ds, lout.bs},
                                                 failed.data());
   EXPECT_TRUE(st.ok()) << st.message();
   EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
@@ -217,7 +217,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
 }
 
 template <class S>
-Errors host_run_soa(const Model& md, Index B, bool with_fext, cuda::FdAlgorithm alg = cuda::FdAlgorithm::Jsi) {
+Errors host_run_soa(const Model& md, Index B, bool with_fext, FdMethod alg = FdMethod::Jsi) {
   const Layout l = soa(md.nv(), B);
   return host_run<S>(md, B, with_fext, l, l, l, l, 1, alg);
 }
@@ -239,7 +239,7 @@ Errors device_run(const Model& md, Index B, const Layout& lin, const Layout& lou
   // the thread kernels' device path is not limited by the staging buffers; the
   // dense path's scratch is sized by max_batch
   o.max_batch = md.nv() > cuda::kMaxThreadDofs ? B : 1;
-  cuda::CudaForwardDynamics<S> engine(m, o, cuda::FdAlgorithm::Jsi);
+  cuda::CudaForwardDynamics<S> engine(m, o, FdMethod::Jsi);
   test::DeviceArray<S> dq, dqd, dtau, dqdd;
   test::DeviceArray<Force<S>> dfext;
   test::DeviceArray<int> dfailed;
@@ -382,11 +382,11 @@ void failures_on_device(const Model& md, Index B) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
-  cuda::CudaForwardDynamics<S> engine(m, o, cuda::FdAlgorithm::Jsi);
+  cuda::CudaForwardDynamics<S> engine(m, o, FdMethod::Jsi);
   for (int rep = 0; rep < 2; ++rep) {  // the second time reuses the kept entries' buffer
     std::vector<S> qdd(l.size, S(kSentinel));
     std::vector<int> failed(B, -2);
-    const cuda::FdBatchStatus st = engine.compute(in, BatchView<S>::soa(qdd.data(), nv, B), rep ? failed.data() : nullptr);
+    const BatchStatus st = engine.compute(in, BatchView<S>::soa(qdd.data(), nv, B), rep ? failed.data() : nullptr);
     EXPECT_EQ(st.failed, failures);
     EXPECT_EQ(st.first_instance, first);
     EXPECT_EQ(st.first_dof, want[first]);
@@ -444,11 +444,11 @@ TEST(CudaFd, PivotFailuresReported) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 40;
-  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
+  cuda::CudaForwardDynamics<double> engine(md, o, FdMethod::Jsi);
   std::vector<double> x(5 * 40, 0.25), qdd(5 * 40, kSentinel);
   using V = BatchView<const double>;
   const FdBatchIn<double> in{V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40)};
-  const cuda::FdBatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40));
+  const BatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40));
   EXPECT_EQ(st.failed, 40);
   EXPECT_EQ(st.first_instance, 0);
   EXPECT_EQ(st.first_dof, 4);
@@ -456,7 +456,7 @@ TEST(CudaFd, PivotFailuresReported) {
   EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
 }
 
-// ---- the ABA on the device (FdAlgorithm::Aba) ------------------------------------------
+// ---- the ABA on the device (FdMethod::Aba) ------------------------------------------
 //
 // Against the serial double aba: double 1e-10 (the device's FMA contractions and
 // sin/cos); float max(1e-4, 10 x the serial float aba's error on the same inputs).
@@ -469,8 +469,8 @@ TEST(CudaFdAba, MatchesReferences) {
     for (Index B : {1, 33, 1000}) {
       const bool fx = B != 1000;
       SCOPED_TRACE(name + " B=" + std::to_string(B) + (fx ? " fext" : ""));
-      EXPECT_LE(host_run_soa<double>(md, B, fx, cuda::FdAlgorithm::Aba).aba, kDoubleTol);
-      EXPECT_LE(host_run_soa<float>(md, B, fx, cuda::FdAlgorithm::Aba).aba, aba_float_tol(md, B, fx, 1));
+      EXPECT_LE(host_run_soa<double>(md, B, fx, FdMethod::Aba).aba, kDoubleTol);
+      EXPECT_LE(host_run_soa<float>(md, B, fx, FdMethod::Aba).aba, aba_float_tol(md, B, fx, 1));
     }
   }
 }
@@ -481,18 +481,18 @@ TEST(CudaFdAba, PivotFailuresReported) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 40;
-  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Aba);
+  cuda::CudaForwardDynamics<double> engine(md, o, FdMethod::Aba);
   std::vector<double> x(5 * 40, 0.25), qdd(5 * 40, kSentinel);
   std::vector<int> failed(40, -2);
   using V = BatchView<const double>;
   const FdBatchIn<double> in{V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40), V::soa(x.data(), 5, 40)};
-  const cuda::FdBatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40), failed.data());
+  const BatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), 5, 40), failed.data());
   EXPECT_EQ(st.failed, 40);
   EXPECT_EQ(st.first_instance, 0);
   EXPECT_EQ(st.first_dof, 4);
   EXPECT_EQ(std::count(failed.begin(), failed.end(), 4), 40);
   EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
-  EXPECT_EQ(st.algorithm, cuda::FdAlgorithm::Aba);
+  EXPECT_EQ(st.failure, Failure::ArticulatedPivot);
   EXPECT_EQ(st.message(), "instance 0: articulated inertia pivot at DoF 4 is not positive (and 39 more instances)");
 }
 
@@ -502,7 +502,7 @@ TEST(CudaFd, ErrorsWithADevice) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 8;
-  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
+  cuda::CudaForwardDynamics<double> engine(md, o, FdMethod::Jsi);
   EXPECT_EQ(engine.device_bytes(), (10u * 4 * sizeof(double) + sizeof(int)) * 8);
   std::vector<double> x(4 * 16, 0.0), qdd(4 * 16, 0.0);
   std::vector<int> failed(16);
@@ -531,7 +531,7 @@ TEST(CudaFd, ErrorsWithADevice) {
   // B = 0: nothing to do, null pointers allowed
   const FdBatchIn<double> none{V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0), V::soa(nullptr, 4, 0)};
   EXPECT_EQ(engine.compute_async(none, BatchView<double>::soa(nullptr, 4, 0), nullptr, nullptr), cudaSuccess);
-  cuda::FdBatchStatus st;
+  BatchStatus st;
   EXPECT_NO_THROW(st = engine.compute(none, BatchView<double>::soa(nullptr, 4, 0)));
   EXPECT_TRUE(st.ok());
   // more than the device holds: the message names the bytes needed and free
@@ -567,7 +567,7 @@ TEST(CudaFdDense, MatchesReferences) {
     BackendOptions o;
     o.backend = BackendKind::Cuda;
     o.max_batch = 1;
-    EXPECT_EQ(cuda::CudaForwardDynamics<double>(md, o, cuda::FdAlgorithm::Jsi).strategy(), "jsi_dense") << name;
+    EXPECT_EQ(cuda::CudaForwardDynamics<double>(md, o, FdMethod::Jsi).strategy(), "jsi_dense") << name;
     const double tol = jsi_tol(md);
     for (Index B : {1, 7, 33}) {
       const bool fx = B == 7;
@@ -591,12 +591,12 @@ TEST(CudaFdDense, PivotFailuresReported) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
-  cuda::CudaForwardDynamics<double> engine(md, o, cuda::FdAlgorithm::Jsi);
+  cuda::CudaForwardDynamics<double> engine(md, o, FdMethod::Jsi);
   EXPECT_EQ(engine.strategy(), "jsi_dense");
   std::vector<double> x(n * B, 0.25), qdd(n * B, kSentinel);
   using V = BatchView<const double>;
   const FdBatchIn<double> in{V::soa(x.data(), n, B), V::soa(x.data(), n, B), V::soa(x.data(), n, B)};
-  const cuda::FdBatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), n, B));
+  const BatchStatus st = engine.compute(in, BatchView<double>::soa(qdd.data(), n, B));
   EXPECT_EQ(st.failed, B);
   EXPECT_EQ(st.first_instance, 0);
   EXPECT_EQ(st.first_dof, n - 1);

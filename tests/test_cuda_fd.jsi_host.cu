@@ -93,7 +93,7 @@ TEST(CudaFdModel, PivotFailuresOnTheHost) {
   host_failures<double>();
   host_failures<float>();
   // the message the command line prints
-  cuda::FdBatchStatus s;
+  BatchStatus s;
   EXPECT_TRUE(s.ok());
   EXPECT_EQ(s.message(), "");
   s.failed = 1, s.first_instance = 3, s.first_dof = 6;

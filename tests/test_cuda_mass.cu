@@ -33,7 +33,7 @@
 
 #include "cuda_test_util.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"

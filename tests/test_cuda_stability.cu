@@ -7,14 +7,14 @@
 //   cuda-id-thread       CudaInverseDynamics, strategy recursion (one thread per
 //                        instance, up to 64 DoF; the SFU's sin/cos in float)
 //   cuda-id-scan-local   CudaInverseDynamics, strategy scan-local (IdScanPlan)
-//   cuda-fd-aba-thread   CudaForwardDynamics, FdAlgorithm::Aba (up to 64 DoF; the
+//   cuda-fd-aba-thread   CudaForwardDynamics, FdMethod::Aba (up to 64 DoF; the
 //                        SFU's sin/cos in float)
-//   cuda-fd-jsi-thread   CudaForwardDynamics, FdAlgorithm::Jsi up to 64 DoF (the
+//   cuda-fd-jsi-thread   CudaForwardDynamics, FdMethod::Jsi up to 64 DoF (the
 //                        tree-sparse L^T L of fd_jsi; CUDA's sinf/cosf in float)
 //   cuda-fd-jsi-dense    the same beyond 64 DoF (CRBA per block, cuSOLVER's batched
 //                        dense Cholesky: DenseJsiPlan)
-//   cuda-fd-parallel     FdAlgorithm::Parallel (ChainFdPlan, chunks of 8 links)
-//   cuda-fd-hybrid       FdAlgorithm::Hybrid (articulated inertias on the host)
+//   cuda-fd-parallel     FdMethod::Parallel (ChainFdPlan, chunks of 8 links)
+//   cuda-fd-hybrid       FdMethod::Hybrid (articulated inertias on the host)
 // The thread kernels take at most 64 DoF, so each hard model runs twice: at 64
 // links (every engine) and at the CPU suite's size, 10^3 links, with the CPU
 // suite's seeds (the engines for long chains). Ropes of 10^4 and 10^5 links run the
@@ -22,7 +22,7 @@
 //
 // Each run asserts one of:
 //   bounded   no failure reported, every output finite, error <= the bound;
-//   reported  the method reports a pivot that is not positive (FdBatchStatus and
+//   reported  the method reports a pivot that is not positive (BatchStatus and
 //             the per-instance failed DoF agree) and leaves qdd unwritten;
 //   degraded  the silent loss of accuracy the CPU suite documents for float JSI
 //             (FloatJsiDegradesWithoutReport): no report, finite, error over the
@@ -89,7 +89,7 @@
 
 #include "cuda_test_util.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "stability_cases.hpp"
@@ -104,12 +104,12 @@ enum class Engine { IdThread, IdScanLocal, FdAba, FdJsi, FdParallel, FdHybrid };
 
 bool is_id(Engine e) { return e == Engine::IdThread || e == Engine::IdScanLocal; }
 
-cuda::FdAlgorithm fd_algorithm(Engine e) {
+FdMethod fd_algorithm(Engine e) {
   switch (e) {
-    case Engine::FdAba: return cuda::FdAlgorithm::Aba;
-    case Engine::FdParallel: return cuda::FdAlgorithm::Parallel;
-    case Engine::FdHybrid: return cuda::FdAlgorithm::Hybrid;
-    default: return cuda::FdAlgorithm::Jsi;
+    case Engine::FdAba: return FdMethod::Aba;
+    case Engine::FdParallel: return FdMethod::Parallel;
+    case Engine::FdHybrid: return FdMethod::Hybrid;
+    default: return FdMethod::Jsi;
   }
 }
 
@@ -182,16 +182,16 @@ Outcome run(const Problem& p, Engine e) {
     cuda::CudaForwardDynamics<S> fd(m, options, fd_algorithm(e));
     name = strategy_name("fd", fd.strategy());
     int failed = -2;
-    const cuda::FdBatchStatus st = fd.compute({vq, vqd, vu}, vout, &failed);
+    const BatchStatus st = fd.compute({vq, vqd, vu}, vout, &failed);
     o.failed_dof = failed;
     // the batch status and the per-instance DoF tell the same story
     EXPECT_GE(failed, -1) << name << ": failed DoF not written";
     EXPECT_EQ(st.failed, failed >= 0 ? 1 : 0) << name;
-    EXPECT_EQ(st.algorithm, fd.algorithm()) << name;
+    EXPECT_EQ(st.failure, pivot_failure(fd.method())) << name;
     if (failed >= 0) {
       EXPECT_EQ(st.first_instance, 0) << name;
       EXPECT_EQ(st.first_dof, failed) << name;
-      const char* pivot = fd.algorithm() == cuda::FdAlgorithm::Jsi ? "mass matrix pivot" : "articulated inertia pivot";
+      const char* pivot = fd.method() == FdMethod::Jsi ? "mass matrix pivot" : "articulated inertia pivot";
       EXPECT_NE(st.message().find(pivot), std::string::npos) << name << ": " << st.message();
     }
   }
@@ -480,7 +480,7 @@ TEST(CudaStabilityJsiFallback, HeavyTipRopeInFloat) {
   BackendOptions options;
   options.backend = BackendKind::Cuda;
   options.max_batch = B;
-  cuda::CudaForwardDynamics<float> jsi(m, options, cuda::FdAlgorithm::Jsi), by_aba(m, options, cuda::FdAlgorithm::Aba);
+  cuda::CudaForwardDynamics<float> jsi(m, options, FdMethod::Jsi), by_aba(m, options, FdMethod::Aba);
   ASSERT_EQ(jsi.strategy(), "jsi_thread");
   EXPECT_THROW(by_aba.set_fallback_aba(true), BackendError);
   using View = BatchView<const float>;
@@ -497,13 +497,13 @@ TEST(CudaStabilityJsiFallback, HeavyTipRopeInFloat) {
     std::vector<float> qdd_jsi, qdd_aba, qdd_fb;
     std::vector<int> failed_jsi, failed_aba, failed_fb;
     jsi.set_fallback_aba(false);
-    const cuda::FdBatchStatus off = run(jsi, qdd_jsi, failed_jsi);
+    const BatchStatus off = run(jsi, qdd_jsi, failed_jsi);
     ASSERT_GT(off.failed, 0) << "the JSI no longer fails on this batch: the test needs a harder case";
     EXPECT_EQ(off.fell_back, 0);
     ASSERT_TRUE(run(by_aba, qdd_aba, failed_aba).ok());
     jsi.set_fallback_aba(true);
     EXPECT_TRUE(jsi.fallback_aba());
-    const cuda::FdBatchStatus on = run(jsi, qdd_fb, failed_fb);
+    const BatchStatus on = run(jsi, qdd_fb, failed_fb);
     EXPECT_TRUE(on.ok()) << on.message();
     EXPECT_EQ(on.fell_back, off.failed);
     Data ref_data(md, false);

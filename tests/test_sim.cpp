@@ -56,7 +56,7 @@ TEST(SimScene, ParsesEveryKey) {
   EXPECT_EQ(s.model.gravity.z, -1.5);
   EXPECT_EQ(s.integrator, Integrator::Implicit);
   EXPECT_EQ(s.dt, 0.002);
-  EXPECT_EQ(s.precision, sim::Precision::Float);
+  EXPECT_EQ(s.precision, Precision::Float);
   EXPECT_EQ(s.backend, BackendKind::OpenMP);
   EXPECT_EQ(s.threads, 2);
   EXPECT_EQ(s.instances, 5);

@@ -100,6 +100,11 @@ struct BatchStatus {
   std::string message() const;
 };
 
+// The status of a batch from its per-instance failed DoFs (B entries in host memory,
+// failed_dof[b] >= 0: instance b failed at that DoF), each failure of kind `what`;
+// the status keeps failed_dof as its per-instance array.
+BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Index fell_back = 0);
+
 // The pivot a method's failure names: jsi's mass matrix, every other method's articulated inertia.
 inline Failure pivot_failure(FdMethod method) {
   return method == FdMethod::Jsi ? Failure::MassMatrixPivot : Failure::ArticulatedPivot;

@@ -114,6 +114,11 @@ std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const 
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
 
+namespace cuda {
+// The CUDA backend's one-thread-per-instance kernels take models of up to this many DoF.
+inline constexpr Index kMaxThreadDofs = 64;
+}  // namespace cuda
+
 // ---- Auto choices: one function per algorithm, shared by every caller ------------
 
 // Inverse dynamics (and bias forces) on the CPU backends: threads over instances

@@ -13,7 +13,7 @@
 #include <cstdio>
 #include <random>
 
-#include "backend.hpp"
+#include "engines.hpp"
 #include "cli.hpp"
 #include "csv.hpp"
 #include "scandyn/accuracy.hpp"
@@ -87,10 +87,10 @@ BatchIn<S> make_batch(Algo algo, std::size_t count, const std::vector<S>& q,
   return in;
 }
 
-void check(const BatchStatus& st, FdMethod fd, bool fallback_aba = false) {
+void check(const BatchStatus& st) {
   if (!st.ok())
-    throw DataError("bench: instance " + std::to_string(st.instance) +
-                    ": forward dynamics failed: " + describe_fd_failure(fd, st.status, fallback_aba));
+    throw DataError("bench: instance " + std::to_string(st.first_instance) + ": forward dynamics failed: " +
+                    st.reason());
 }
 
 // One row of results: a way of calling the backend, its time and error.
@@ -105,7 +105,9 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
                                 std::size_t count, const std::vector<double>& x) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   const std::size_t width = output_width(algo, model.nv());
-  auto reference = make_serial_evaluator<double>(model, EvalOptions{});
+  BackendOptions serial;
+  serial.fd_method = FdMethod::Aba;
+  AlgoEngine<double> reference(algo, model, serial);
   std::vector<double> ref(width);
   double worst = 0;
   for (std::size_t b = 0; b < count; ++b) {
@@ -115,7 +117,7 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
     if (in.qd) in.qd += k;
     if (in.qdd) in.qdd += k;
     if (in.tau) in.tau += k;
-    check(reference->run(algo, FdMethod::Aba, in, ref.data()), FdMethod::Aba);
+    check(reference.run(in, ref.data()));
     const double e = rel_err(x.data() + b * width, ref.data(), width);
     if (std::isnan(e)) return e;
     worst = std::max(worst, e);
@@ -152,31 +154,26 @@ double time_calls(double min_time, F&& calls) {
 // resident batch, again on the last timed call's results, whose error the row
 // reports.
 template <class S>
-std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, EvaluatorFactory<S> make,
-                              EvalOptions options, Algo algo, FdMethod fd, const RandomStates& states,
-                              std::size_t count, double min_time, bool float_precision) {
+std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, BackendOptions options, Algo algo,
+                              const RandomStates& states, std::size_t count, double min_time, bool float_precision) {
   const std::vector<S> q(states.q.begin(), states.q.end());
   const std::vector<S> qd(states.qd.begin(), states.qd.end());
   const std::vector<S> third(states.third.begin(), states.third.end());
   std::vector<S> out(count * output_width(algo, model.nv()));
   const BatchIn<S> in = make_batch(algo, count, q, qd, third);
-  options.max_batch = count;
-  options.algos = algo_bit(algo);
-  auto evaluator = make(model_s, options);
+  options.max_batch = static_cast<Index>(count);
+  AlgoEngine<S> engine(algo, model_s, options);
   // float always differs from the double reference; double only off the reference's path
-  const bool measure = float_precision || !evaluator->exact(algo, fd);
+  const bool measure = float_precision || !engine.exact();
   auto error = [&] {
     return measure ? max_rel_err_vs_reference(model, algo, states, count, std::vector<double>(out.begin(), out.end()))
                    : 0.0;
   };
-  // a failed forward dynamics, named by the method used (asked for only then: on
-  // CUDA the method is an engine's, made on first use)
-  auto check_fd = [&](const BatchStatus& st) {
-    if (!st.ok()) check(st, evaluator->fd_method(fd), options.fallback_aba);
-  };
+  // a failed forward dynamics, named by the method used
+  const auto check_fd = [](const BatchStatus& st) { check(st); };
   std::vector<Timing> rows;
 
-  if (std::unique_ptr<ResidentBatch<S>> resident = evaluator->resident(algo, fd, in)) {
+  if (std::unique_ptr<ResidentBatch<S>> resident = engine.resident(in)) {
     // warm-up call, then rounds of queued calls, each round waited for
     resident->launch();
     check_fd(resident->status());
@@ -194,13 +191,15 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ev
 
   // warm-up call, then whole calls until min_time has passed
   std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());  // untouched entries show
-  check_fd(evaluator->run(algo, fd, in, out.data()));
-  if (const std::size_t n = evaluator->fallbacks())
-    std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(n, count, "instances").c_str());
+  const BatchStatus first = engine.run(in, out.data());
+  check_fd(first);
+  if (first.fell_back)
+    std::fprintf(stderr, "scandyn: warning: %s\n",
+                 describe_fallbacks(static_cast<std::size_t>(first.fell_back), count, "instances").c_str());
   Timing t;
-  t.strategy = evaluator->strategy(algo, fd);
+  t.strategy = engine.strategy();
   t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
-    for (std::size_t k = 0; k < n; ++k) evaluator->run(algo, fd, in, out.data());
+    for (std::size_t k = 0; k < n; ++k) engine.run(in, out.data());
   });
   t.max_rel_err = error();
   rows.push_back(t);
@@ -280,12 +279,11 @@ int run_bench_step(const Args& args) {
     }
   }
   if (args.has("precision"))
-    scene.precision = parse_precision(args.required("precision")) == Precision::Float ? sim::Precision::Float
-                                                                                       : sim::Precision::Double;
-  const Timing t = scene.precision == sim::Precision::Float ? time_steps<float>(scene, backend, min_time)
+    scene.precision = parse_cli_precision(args);
+  const Timing t = scene.precision == Precision::Float ? time_steps<float>(scene, backend, min_time)
                                                             : time_steps<double>(scene, backend, min_time);
   const std::string row = std::string("step,") + t.strategy + "," + to_string(backend) + "," +
-                          sim::to_string(scene.precision) + "," + model_label(scene.model_spec) + "," +
+                          to_string(scene.precision) + "," + model_label(scene.model_spec) + "," +
                           std::to_string(scene.nv()) + "," + std::to_string(scene.instances) + "," +
                           format_g(t.seconds_per_call, 6) + "," + format_g(double(scene.instances) / t.seconds_per_call, 6) +
                           "," + format_g(t.max_rel_err, 6);
@@ -307,15 +305,11 @@ int run_bench(const Args& args) {
                      "' (expected id, fd, mass, bias or step)");
   if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
-  const EvalOptions options = parse_eval_options(args);
-  const FdMethod fd = options.fd;
+  const BackendOptions options = parse_backend_options(args);
   if (args.has("strategy") && algo != Algo::Id) throw UsageError("--strategy applies only to --algo id");
-  const std::string backend_name = args.get("backend", "serial");  // named, not a temporary: g++ 13 -Wdangling-reference
-  const Backend& backend = find_backend(backend_name);
-  require_algos(backend, algo_bit(algo));
-  const Precision precision = parse_precision(args.get("precision", "double"));
+  const Precision precision = parse_cli_precision(args);
   const double min_time = parse_min_time(args.get("min-time", "0.5"));
-  require_usable(backend);
+  require_usable(options.backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
@@ -331,16 +325,16 @@ int run_bench(const Args& args) {
   const RandomStates states(count, nv);
   std::vector<Timing> timings;
   if (precision == Precision::Double) {
-    timings = time_algo<double>(model, model, backend.make_double, options, algo, fd, states, count, min_time, false);
+    timings = time_algo<double>(model, model, options, algo, states, count, min_time, false);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    timings = time_algo<float>(model, model_f, backend.make_float, options, algo, fd, states, count, min_time, true);
+    timings = time_algo<float>(model, model_f, options, algo, states, count, min_time, true);
   }
 
   std::string rows;  // one line per timing, without the last newline
   for (const Timing& t : timings) {
     if (!rows.empty()) rows += "\n";
-    rows += std::string(algo_name(algo)) + "," + t.strategy + "," + backend.name + "," + precision_name(precision) +
+    rows += std::string(algo_name(algo)) + "," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
             "," + model_label(model_spec) + "," + std::to_string(nv) + "," + std::to_string(count) + "," +
             format_g(t.seconds_per_call, 6) + "," + format_g(double(count) / t.seconds_per_call, 6) + "," +
             format_g(t.max_rel_err, 6);

@@ -5,7 +5,7 @@
 #include <memory>
 #include <type_traits>
 
-#include "backend.hpp"
+#include "engines.hpp"
 #include "cli.hpp"
 #include "csv.hpp"
 #include "scandyn/model/load.hpp"
@@ -66,11 +66,11 @@ std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Inde
 }
 
 // Reads, evaluates and writes the rows in chunks of `chunk` rows (at most
-// kMaxChunkRows, the evaluator's max_batch), whatever the backend.
+// kMaxChunkRows, the engines' max_batch), whatever the backend.
 template <class S>
-void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, FdMethod fd, bool fallback_aba,
-               std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
+void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines, CsvReader& in,
+               const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk, CsvWriter& out,
+               std::size_t& rows, std::size_t& fell_back) {
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
@@ -117,12 +117,11 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
     batch.qdd = family_data(Family::Qdd);
     batch.tau = family_data(Family::Tau);
     for (std::size_t k = 0; k < algos.size(); ++k) {
-      const BatchStatus st = evaluator.run(algos[k], fd, batch, result[k].data());
-      if (algos[k] == Algo::Fd) fell_back += evaluator.fallbacks();
-      if (!st.ok()) {  // the pivot of the method used
-        throw DataError(in.where(row0 + st.instance) + ": forward dynamics failed: " +
-                        describe_fd_failure(evaluator.fd_method(fd), st.status, fallback_aba));
-      }
+      const BatchStatus st = engines[k]->run(batch, result[k].data());
+      fell_back += static_cast<std::size_t>(st.fell_back);
+      if (!st.ok())  // the pivot of the method used
+        throw DataError(in.where(row0 + static_cast<std::size_t>(st.first_instance)) +
+                        ": forward dynamics failed: " + st.reason());
     }
 
     // write
@@ -148,29 +147,21 @@ void eval_rows(const ModelTpl<S>& model, Evaluator<S>& evaluator, CsvReader& in,
   }
 }
 
-AlgoSet algo_set(const std::vector<Algo>& algos) {
-  AlgoSet set = 0;
-  for (Algo a : algos) set |= algo_bit(a);
-  return set;
-}
-
-// Makes the backend's evaluator (before the output file exists, so that a backend
-// that cannot run leaves nothing behind), then evaluates the file.
+// Makes the engines (before the output file exists, so that a backend that cannot
+// run leaves nothing behind), then evaluates the file.
 template <class S>
-void eval_file(const Backend& backend, const ModelTpl<S>& model, EvalOptions options, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, const std::string& out_path) {
+void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, const StateColumns& cols,
+               const std::vector<Algo>& algos, const std::string& out_path) {
   const std::size_t chunk = chunk_rows(in, algos, model.nv());
   // Engines are sized for this file's chunk: the CUDA link scans' scratch grows
   // with rows x links, and the auto strategies choose by it (a few rows of a long
   // chain: scans across links on OpenMP too).
-  options.max_batch = chunk;
-  options.algos = algo_set(algos);
-  std::unique_ptr<Evaluator<S>> evaluator;
-  if constexpr (std::is_same_v<S, double>) evaluator = backend.make_double(model, options);
-  else evaluator = backend.make_float(model, options);
+  options.max_batch = static_cast<Index>(chunk);
+  std::vector<std::unique_ptr<AlgoEngine<S>>> engines;
+  for (Algo a : algos) engines.push_back(std::make_unique<AlgoEngine<S>>(a, model, options));
   CsvWriter out(out_path);
   std::size_t rows = 0, fell_back = 0;
-  eval_rows(model, *evaluator, in, cols, algos, options.fd, options.fallback_aba, chunk, out, rows, fell_back);
+  eval_rows(model, engines, in, cols, algos, chunk, out, rows, fell_back);
   out.commit();
   if (fell_back) std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(fell_back, rows, "rows").c_str());
 }
@@ -183,29 +174,23 @@ int run_eval(const Args& args) {
   const std::string& out_path = args.required("out");
   std::vector<Algo> algos;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
-  const std::string backend_name = args.get("backend", "serial");  // named, not a temporary: g++ 13 -Wdangling-reference
-  const Backend& backend = find_backend(backend_name);
-  if (!algos.empty()) require_algos(backend, algo_set(algos));
-  const Precision precision = parse_precision(args.get("precision", "double"));
-  const EvalOptions options = parse_eval_options(args);
-  require_usable(backend);
+  const BackendOptions options = parse_backend_options(args);
+  const Precision precision = parse_cli_precision(args);
+  require_usable(options.backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
 
   CsvReader in(states_path);
   const StateColumns cols = map_state_columns(in.columns(), model.nv(), states_path);
-  if (algos.empty()) {
-    algos = default_algos(cols, states_path);
-    require_algos(backend, algo_set(algos), states_path);
-  }
+  if (algos.empty()) algos = default_algos(cols, states_path);
   check_state_columns(cols, algos, states_path);
 
   if (precision == Precision::Double) {
-    eval_file<double>(backend, model, options, in, cols, algos, out_path);
+    eval_file<double>(model, options, in, cols, algos, out_path);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    eval_file<float>(backend, model_f, options, in, cols, algos, out_path);
+    eval_file<float>(model_f, options, in, cols, algos, out_path);
   }
   return kExitOk;
 }

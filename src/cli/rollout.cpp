@@ -169,7 +169,7 @@ int run_rollout(const Args& args) {
       throw UsageError(e.what());
     }
   }
-  return scene.precision == sim::Precision::Float ? rollout<float>(scene, backend, steps, every, out)
+  return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out)
                                                   : rollout<double>(scene, backend, steps, every, out);
 }
 

@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-#include "backend.hpp"
+#include "engines.hpp"
 
 namespace scandyn::cli {
 

@@ -48,7 +48,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/steps.hpp"
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/spatial/small_matrix.hpp"
 
 namespace scandyn {

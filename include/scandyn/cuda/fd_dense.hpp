@@ -24,7 +24,8 @@
 #include <cstddef>
 #include <memory>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 
 #if SCANDYN_HAS_CUDA

@@ -17,12 +17,12 @@
 //                              mass matrix is crba_instance()'s (the CRBA alone, also
 //                              behind scandyn/cuda/mass_matrix.hpp): one function,
 //                              fd_detail::jsi_passes, computes both;
-//   fd_instances_kernel    one thread per instance (kernels/fd_instances.cu);
+//   fd_instances_kernel    one thread per instance (kernels/forward_dynamics.cu);
 //   launch_fd_jsi_instances()  host wrapper: device pointers, a stream, returns the
 //                              cudaError_t of the launch, never synchronises.
 // and the engine CudaForwardDynamics on top:
 //     compute()        HOST pointers: copies in, launches, copies out, synchronises;
-//                      returns an FdBatchStatus.
+//                      returns an BatchStatus.
 //     compute_async()  DEVICE pointers and your stream: one launch, no copy, no
 //                      synchronisation, no allocation; returns the cudaError_t.
 //
@@ -48,7 +48,7 @@
 // iiwa. Capacities 16..64 keep M and the forces in local memory: 72 (float) / 128
 // (double) registers, 2.8 KB (16 DoF float) to 34.6 KB (64 DoF double) per thread.
 //
-// The same by the articulated-body algorithm (FdAlgorithm::Aba, strategy
+// The same by the articulated-body algorithm (FdMethod::Aba, strategy
 // "aba_thread"): aba_instance (scandyn/instance/aba_instance.hpp), launch_aba_instances, one kernel per model shape
 // (choose_aba_kernel). Resources (ptxas as above): float chains (iiwa) unrolled in
 // 168 registers, other float kernels rolled in 128 (chains, trees) or 152 (one
@@ -63,7 +63,7 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/chain_fd.hpp"
 #include "scandyn/cuda/fd_dense.hpp"
@@ -80,45 +80,16 @@ namespace cuda {
 // Threads per block of fd_instances_kernel.
 inline constexpr int kFdInstancesBlock = 128;
 
-// Which algorithm CudaForwardDynamics runs.
-enum class FdAlgorithm {
-  Auto,      // Aba up to kMaxThreadDofs DoF; beyond, Parallel for unbranched chains from the base,
-             // else Jsi. Measured on the H100 (bench_cuda_fd, 10^7 instances, ms,
-             // float / double): iiwa ABA 3.3 / 7.5 against JSI 4.5 / 8.9, hyq 6.0 /
-             // 13.8 against 7.5 / 14.8, atlas 22.8 / 52.9 against 47.8 / 94.8
-  Jsi,       // joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond
-  Aba,       // articulated-body algorithm, one thread per instance ("aba_thread"), up to
-             // kMaxThreadDofs DoF (beyond: BackendError)
-  Parallel,  // unbranched chains from the base, any length: the articulated-body algorithm as scans
-             // over links, every pass on the device (ChainFdPlan::launch, "parallel")
-  Hybrid,    // the same shapes: articulated inertias on the host, the other passes as
-             // device scans (ChainFdPlan::launch_hybrid, "hybrid"); compute() only
-};
-
-// What compute() reports about the factorisations of one batch.
-struct FdBatchStatus {
-  Index failed = 0;           // instances whose factorisation had a pivot that is not positive and finite
-  Index first_instance = -1;  // the lowest such instance, -1 when none
-  Index first_dof = -1;       // the DoF at which its factorisation stopped
-  FdAlgorithm algorithm = FdAlgorithm::Jsi;  // whose pivot: Jsi (a diagonal entry of the mass
-                                             // matrix's L^T L) or Aba (D_i = S_i^T IA_i S_i)
-  Index fell_back = 0;  // instances whose JSI factorisation failed and the ABA computed instead
-                        // (CudaForwardDynamics::set_fallback_aba); not counted in `failed`
-  bool ok() const { return failed == 0; }
-  // "" when ok(); else one line naming the pivot of the algorithm, e.g.
-  //   "instance 3: mass matrix pivot at DoF 6 is not positive"             (Jsi)
-  //   "instance 3: articulated inertia pivot at DoF 6 is not positive"     (Aba)
-  // followed by " (and 41 more instances)" when others failed too.
-  std::string message() const {
-    if (ok()) return "";
-    const char* pivot = algorithm == FdAlgorithm::Jsi ? "mass matrix" : "articulated inertia";
-    std::string s = "instance " + std::to_string(first_instance) + ": " + pivot + " pivot at DoF " +
-                    std::to_string(first_dof) + " is not positive";
-    if (failed > 1)
-      s += " (and " + std::to_string(failed - 1) + " more instance" + (failed > 2 ? "s" : "") + ")";
-    return s;
-  }
-};
+// Which method CudaForwardDynamics runs (BackendOptions::fd_method):
+//   Auto      choose_fd_method: Aba up to kMaxThreadDofs DoF; beyond, Parallel for
+//             unbranched chains from the base, else Jsi;
+//   Jsi       joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond;
+//   Aba       articulated-body algorithm, one thread per instance ("aba_thread"), up to
+//             kMaxThreadDofs DoF (beyond: BackendError);
+//   Parallel  unbranched chains from the base, any length: the articulated-body algorithm
+//             as scans over links, every pass on the device (ChainFdPlan::launch);
+//   Hybrid    the same shapes: articulated inertias on the host, the other passes as
+//             device scans (ChainFdPlan::launch_hybrid); compute() only.
 
 // qdd_out (nv x B) = FD(q, qd, tau, fext) for the B = batch_in.q.batch instances,
 // gravity included: one launch of fd_instances_kernel on `stream`. Writes
@@ -143,7 +114,7 @@ cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>
 // The batched forward-dynamics engine on one CUDA device (the device current at
 // construction).
 template <class S>
-class CudaForwardDynamics {
+class CudaForwardDynamics final : public ForwardDynamics<S> {
  public:
   // Prepares the model and allocates the device buffers compute() stages through:
   // q, qd, tau, qdd and fext for options.max_batch instances plus one int each,
@@ -152,13 +123,15 @@ class CudaForwardDynamics {
   // matrices: nv^2 scalars per instance). options.strategy must be Auto or
   // Recursion. Throws BackendError when there is no usable device, or the buffers
   // do not fit in device memory (the message gives the bytes needed and the bytes
-  // free). algorithm: FdAlgorithm::Aba selects the articulated-body algorithm
+  // free). algorithm: FdMethod::Aba selects the articulated-body algorithm
   // (strategy "aba_thread"), for models of up to kMaxThreadDofs DoF (beyond: a
   // BackendError); Auto and Jsi the joint-space inertia. The staging and the
   // compute() / compute_async() contracts are the same for both.
-  CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
-                      FdAlgorithm algorithm = FdAlgorithm::Auto);
-  ~CudaForwardDynamics();
+  // options.fallback_aba: set_fallback_aba(true).
+  CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options);
+  // The same with options.fd_method = method.
+  CudaForwardDynamics(const ModelTpl<S>& model, BackendOptions options, FdMethod method);
+  ~CudaForwardDynamics() override;
   CudaForwardDynamics(const CudaForwardDynamics&) = delete;
   CudaForwardDynamics& operator=(const CudaForwardDynamics&) = delete;
 
@@ -171,7 +144,11 @@ class CudaForwardDynamics {
   // views whose batch sizes disagree, a qdd view whose entries overlap, or any CUDA
   // error; a failed factorisation is not an exception. Allocates nothing, except
   // the first time more instances fail than ever before (to keep their qdd).
-  FdBatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof = nullptr);
+  BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof);
+  // The same; the status's failed_dof is the engine's own host array.
+  BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
+    return compute(in, qdd, nullptr);
+  }
 
   // DEVICE pointers, any strides, on `stream` (failed_dof: B ints on the device).
   // Asynchronous: returns after queuing the kernels, with no hidden
@@ -191,7 +168,7 @@ class CudaForwardDynamics {
   // the ABA (one launch of the ABA kernel over just those instances, gathered on the
   // host and staged through the same buffers): their qdd is the ABA's, their
   // failed_dof -1, and the returned status counts them in fell_back (an instance whose
-  // ABA pivot fails too stays failed, with algorithm Aba). compute_async() is not
+  // ABA pivot fails too stays failed, Failure::BothPivots). compute_async() is not
   // affected: it cannot see which instances failed without waiting for them. Only
   // the thread-per-instance JSI (strategy "jsi_thread", up to kMaxThreadDofs DoF) has
   // it; any other engine throws BackendError for on.
@@ -200,18 +177,20 @@ class CudaForwardDynamics {
 
   // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
   // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
-  // "aba_thread" (FdAlgorithm::Aba: ABA, one thread per instance)
+  // "aba_thread" (FdMethod::Aba: ABA, one thread per instance)
   // "parallel" and "hybrid" (ChainFdPlan) likewise.
-  std::string strategy() const {
-    if (chain_) return algorithm_ == FdAlgorithm::Hybrid ? "hybrid" : "parallel";
+  // With set_fallback_aba: "jsi_thread+aba".
+  std::string strategy() const override {
+    if (chain_) return algorithm_ == FdMethod::Hybrid ? "hybrid" : "parallel";
+    if (fallback_aba_) return "jsi_thread+aba";
     return aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread";
   }
-  // the algorithm the engine runs (Auto resolved)
-  FdAlgorithm algorithm() const { return algorithm_; }
+  // the method the engine runs (Auto resolved)
+  FdMethod method() const override { return algorithm_; }
   // the hybrid's timeline of its last compute() when record_timeline(true) was set
   void record_timeline(bool on) { record_timeline_ = on; }
   const std::vector<ChainTimelineEvent>& timeline() const { return timeline_; }
-  std::string backend() const { return "cuda"; }
+  BackendKind backend() const override { return BackendKind::Cuda; }
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
   Index nv() const { return nv_; }
@@ -222,7 +201,7 @@ class CudaForwardDynamics {
  private:
   Index nv_ = 0;
   bool aba_ = false;
-  FdAlgorithm algorithm_ = FdAlgorithm::Jsi;
+  FdMethod algorithm_ = FdMethod::Jsi;
   std::unique_ptr<ThreadModel<S>> thread_;
   std::unique_ptr<DenseJsiPlan<S>> dense_;
   std::unique_ptr<ChainFdPlan<S>> chain_;
@@ -238,7 +217,7 @@ class CudaForwardDynamics {
   std::vector<S> kept_;           // qdd entries of failed instances, restored after the copy back
   bool fallback_aba_ = false;     // set_fallback_aba
   // compute()'s second pass for set_fallback_aba: the failed instances by the ABA
-  FdBatchStatus compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
+  BatchStatus compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
                                       Index count);
 };
 

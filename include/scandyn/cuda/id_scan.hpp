@@ -45,7 +45,8 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/algorithm/rnea_scan.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 
 #if SCANDYN_HAS_CUDA

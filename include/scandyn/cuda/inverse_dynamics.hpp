@@ -9,10 +9,10 @@
 //                          callable from your own kernels
 //                          (scandyn/instance/rnea_instance.hpp, under nvcc; the
 //                          model it reads: scandyn/instance/thread_model.hpp);
-//   id_instances_kernel    one thread per instance (kernels/id_instances.cu);
+//   id_instances_kernel    one thread per instance (kernels/inverse_dynamics.cu);
 //   launch_id_instances()  host wrapper: device pointers, a stream, returns the
 //                          cudaError_t of the launch, never synchronises.
-// and the engine of scandyn/backend.hpp on top:
+// and the engine of scandyn/engine.hpp on top:
 //   CudaInverseDynamics<S> make_inverse_dynamics() with BackendKind::Cuda gives one.
 //     compute()        HOST pointers: copies in, launches, copies out, synchronises
 //                      (the convenience path of the command line); throws BackendError.
@@ -42,7 +42,8 @@
 #include <string>
 #include <variant>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/id_scan.hpp"
 #include "scandyn/instance/dof_column.hpp"
@@ -58,6 +59,8 @@ namespace cuda {
 namespace detail {
 class StagingBuffer;  // kernels/staging.hpp: an engine's stream and device buffer
 }  // namespace detail
+
+// Largest model (DoF) the thread-per-instance kernels take: kMaxThreadDofs (scandyn/engine.hpp).
 
 // How id_instances_kernel turns joint angles into sin and cos: in float the SFU's
 // __sincosf after a reduction to [-pi, pi] (Trig::Hardware; on iiwa on the H100,
@@ -86,7 +89,7 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
 //               up to kMaxThreadDofs DoF;
 //   scan-local  device-wide scans across links, IdScanPlan (scandyn/cuda/id_scan.hpp):
 //               any model, for few instances of long chains and the middle shapes;
-//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_cuda_strategy).
+//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_id_strategy).
 // scan-world is not offered on this backend.
 template <class S>
 class CudaInverseDynamics final : public InverseDynamics<S> {
@@ -118,7 +121,7 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   cudaError_t compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau, cudaStream_t stream);
 
   std::string strategy() const override { return scan_ ? "scan-local" : "thread"; }
-  std::string backend() const override { return "cuda"; }
+  BackendKind backend() const override { return BackendKind::Cuda; }
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for the scan strategy
   const IdScanPlan<S>* scan_plan() const { return scan_.get(); }        // null for the thread strategy
@@ -138,14 +141,32 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   std::unique_ptr<detail::StagingBuffer> staging_;
 };
 
-// The CUDA backend's choice for IdStrategy::Auto: recursion (a thread per
-// instance) up to kMaxThreadDofs DoF, the link scans beyond.
-IdStrategy choose_cuda_strategy(Index nv, Index batch);
-
-// The factory behind make_inverse_dynamics(model, {BackendKind::Cuda, ...}).
+// The bias forces h = RNEA(q, qd, 0, fext): the inverse-dynamics engine above (its
+// strategies, buffers and contracts) with qdd a zero read by every entry.
 template <class S>
-std::unique_ptr<InverseDynamics<S>> make_cuda_inverse_dynamics(const ModelTpl<S>& model,
-                                                               const BackendOptions& options);
+class CudaBiasForces final : public BiasForces<S> {
+ public:
+  CudaBiasForces(const ModelTpl<S>& model, const BackendOptions& options);
+  ~CudaBiasForces() override;
+  CudaBiasForces(const CudaBiasForces&) = delete;
+  CudaBiasForces& operator=(const CudaBiasForces&) = delete;
+
+  // HOST pointers, as CudaInverseDynamics::compute.
+  void compute(const BiasBatchIn<S>& in, const BatchView<S>& h) override;
+  // DEVICE pointers on `stream`, as CudaInverseDynamics::compute_async.
+  cudaError_t compute_async(const BiasBatchIn<S>& in, const BatchView<S>& h, cudaStream_t stream);
+
+  std::string strategy() const override { return id_.strategy(); }
+  BackendKind backend() const override { return BackendKind::Cuda; }
+  const CudaInverseDynamics<S>& inverse_dynamics() const { return id_; }
+  std::size_t device_bytes() const { return id_.device_bytes() + sizeof(S); }
+
+ private:
+  CudaInverseDynamics<S> id_;
+  S zero_host_ = S(0);
+  S* zero_device_ = nullptr;  // one zero in device memory: compute_async's qdd
+};
+
 
 }  // namespace cuda
 }  // namespace scandyn

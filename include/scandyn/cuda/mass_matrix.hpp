@@ -42,7 +42,8 @@
 #include <memory>
 #include <string>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -75,7 +76,7 @@ cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<c
 // The batched mass-matrix engine on one CUDA device (the device current at
 // construction).
 template <class S>
-class CudaMassMatrix {
+class CudaMassMatrix final : public MassMatrix<S> {
  public:
   // Prepares the model and allocates the device buffers compute() stages through:
   // q and M for options.max_batch instances, (nv + nv^2) * sizeof(S) * max_batch
@@ -87,7 +88,7 @@ class CudaMassMatrix {
   // or the buffers do not fit in device memory (the message gives the bytes needed
   // and the bytes free).
   CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions& options);
-  ~CudaMassMatrix();
+  ~CudaMassMatrix() override;
   CudaMassMatrix(const CudaMassMatrix&) = delete;
   CudaMassMatrix& operator=(const CudaMassMatrix&) = delete;
 
@@ -97,7 +98,7 @@ class CudaMassMatrix {
   // of it on the engine's own stream. Throws BackendError for B > max_batch, views
   // whose batch sizes disagree, a null pointer with B > 0, an M view whose entries
   // overlap, or any CUDA error.
-  void compute(const BatchView<const S>& q, const BatchView<S>& M);
+  void compute(const BatchView<const S>& q, const BatchView<S>& M) override;
 
   // DEVICE pointers, any strides, on `stream`. Asynchronous: returns after queuing
   // the kernel, with no hidden synchronisation, copy or allocation.
@@ -109,8 +110,8 @@ class CudaMassMatrix {
 
   // "crba_thread" (one thread per instance, up to kMaxThreadDofs DoF) or
   // "crba_block" (one thread block per instance, beyond)
-  std::string strategy() const { return blocks_ ? "crba_block" : "crba_thread"; }
-  std::string backend() const { return "cuda"; }
+  std::string strategy() const override { return blocks_ ? "crba_block" : "crba_thread"; }
+  BackendKind backend() const override { return BackendKind::Cuda; }
 
   const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for crba_block
   Index nv() const { return nv_; }

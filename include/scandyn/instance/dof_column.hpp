@@ -3,7 +3,7 @@
 #pragma once
 
 #include <cstddef>
-#include "scandyn/backend.hpp"
+#include "scandyn/batch.hpp"
 #include "scandyn/build_config.hpp"
 
 #if SCANDYN_HAS_CUDA

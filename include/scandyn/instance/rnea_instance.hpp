@@ -12,6 +12,11 @@ namespace scandyn {
 namespace cuda {
 
 #if defined(__CUDACC__)
+// The passes' functors read per-thread arrays (the branch stack, the register copies
+// of the inputs) that are written before they are read, but after the functors are
+// created; nvcc's front end sees the capture as a read of an unset variable (#549).
+#pragma nv_diagnostic push
+#pragma nv_diag_suppress 549
 // The RNEA of one instance: tau = RNEA(q, qd, qdd) - sum J^T fext, gravity included,
 // the loops of scandyn::rnea (src/algorithm/reference.cpp) over the same step
 // functions and in the same order of summation. fext: nv body wrenches or null.
@@ -89,6 +94,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
       },
       [&](Index i, int, const Force<S>& up) { sf[model.body[i].parent] += up; });
 }
+#pragma nv_diagnostic pop
 #endif  // __CUDACC__
 
 }  // namespace cuda

@@ -12,14 +12,14 @@
 
 #include <variant>
 #include "scandyn/build_config.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/model/model.hpp"
 
 #if SCANDYN_HAS_CUDA
 namespace scandyn {
 namespace cuda {
 
-// Largest model (DoF) the thread-per-instance kernels take.
-inline constexpr Index kMaxThreadDofs = 64;
+// Largest model (DoF) the thread-per-instance kernels take: kMaxThreadDofs (scandyn/engine.hpp).
 
 // How body i exchanges quantities with its parent; precomputed on the host so that
 // the kernel keeps the common case (parent = body i - 1, or the base) in registers

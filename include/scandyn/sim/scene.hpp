@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/model/model.hpp"
 #include "scandyn/sim/effects.hpp"
 #include "scandyn/sim/integrators.hpp"
@@ -27,8 +27,6 @@ class SceneError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-enum class Precision { Double, Float };
-const char* to_string(Precision p);  // "double", "float"
 
 // One constant external wrench.
 struct SceneWrench {

@@ -42,7 +42,7 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/backend.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/sim/scene.hpp"
 
 namespace scandyn {

@@ -1,4 +1,4 @@
-// kernels/id_instances.cu: batched inverse dynamics, one thread per instance.
+// kernels/inverse_dynamics.cu: batched inverse dynamics, one thread per instance.
 //
 // The layers of scandyn/cuda/inverse_dynamics.hpp: rnea_instance (the header) ->
 // id_instances_kernel -> launch_id_instances -> CudaInverseDynamics (host staging
@@ -121,11 +121,6 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
 
 // ---- the engine -------------------------------------------------------------------
 
-IdStrategy choose_cuda_strategy(Index nv, Index batch) {
-  (void)batch;
-  return nv <= kMaxThreadDofs ? IdStrategy::Recursion : IdStrategy::ScanLocal;
-}
-
 template <class S>
 CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), max_batch_(options.max_batch) {
@@ -134,7 +129,7 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
                        "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const IdStrategy strategy =
-      options.strategy == IdStrategy::Auto ? choose_cuda_strategy(nv_, max_batch_) : options.strategy;
+      options.strategy == IdStrategy::Auto ? choose_id_strategy(BackendKind::Cuda, nv_, max_batch_, 1) : options.strategy;
   if (strategy == IdStrategy::Recursion && nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; strategy 'recursion' (a thread per instance) takes at most " +
@@ -183,19 +178,39 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   check(cudaStreamSynchronize(stream), scan_ ? "running the link scans" : "running id_instances_kernel");
 }
 
+// ---- the bias forces ----------------------------------------------------------------
+
 template <class S>
-std::unique_ptr<InverseDynamics<S>> make_cuda_inverse_dynamics(const ModelTpl<S>& model,
-                                                               const BackendOptions& options) {
-  return std::make_unique<CudaInverseDynamics<S>>(model, options);
+CudaBiasForces<S>::CudaBiasForces(const ModelTpl<S>& model, const BackendOptions& options) : id_(model, options) {
+  zero_device_ = static_cast<S*>(detail::device_malloc(sizeof(S), [](std::size_t free_bytes, std::size_t) {
+    return "backend 'cuda': the bias forces' zero qdd needs " + std::to_string(sizeof(S)) + " bytes; " +
+           std::to_string(free_bytes) + " are free";
+  }));
+  check(cudaMemset(zero_device_, 0, sizeof(S)), "cudaMemset");
+}
+
+template <class S>
+CudaBiasForces<S>::~CudaBiasForces() {
+  if (zero_device_) cudaFree(zero_device_);
+}
+
+template <class S>
+void CudaBiasForces<S>::compute(const BiasBatchIn<S>& in, const BatchView<S>& h) {
+  id_.compute(IdBatchIn<S>{in.q, in.qd, BatchView<const S>{&zero_host_, in.q.batch, 0, 0}, in.fext}, h);
+}
+
+template <class S>
+cudaError_t CudaBiasForces<S>::compute_async(const BiasBatchIn<S>& in, const BatchView<S>& h, cudaStream_t stream) {
+  return id_.compute_async(IdBatchIn<S>{in.q, in.qd, BatchView<const S>{zero_device_, in.q.batch, 0, 0}, in.fext}, h,
+                           stream);
 }
 
 #define SCANDYN_INSTANTIATE(S)                                                                           \
   template class ThreadModel<S>;                                                                         \
   template class CudaInverseDynamics<S>;                                                                 \
+  template class CudaBiasForces<S>;                                                                      \
   template cudaError_t launch_id_instances(const ThreadModel<S>&, const IdBatchIn<S>&, const BatchView<S>&, \
-                                           cudaStream_t);                                                \
-  template std::unique_ptr<InverseDynamics<S>> make_cuda_inverse_dynamics(const ModelTpl<S>&,            \
-                                                                          const BackendOptions&);
+                                           cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)
 #undef SCANDYN_INSTANTIATE

@@ -1,4 +1,4 @@
-// kernels/fd_instances.cu: batched forward dynamics by the joint-space inertia or
+// kernels/forward_dynamics.cu: batched forward dynamics by the joint-space inertia or
 // the articulated-body algorithm, one thread per instance.
 //
 // The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance / aba_instance
@@ -121,23 +121,24 @@ cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>
 // ---- the engine -------------------------------------------------------------------
 
 template <class S>
-CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options,
-                                            FdAlgorithm algorithm)
+CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, BackendOptions options, FdMethod method)
+    : CudaForwardDynamics(model, (options.fd_method = method, options)) {}
+
+template <class S>
+CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), max_batch_(options.max_batch) {
+  FdMethod algorithm = options.fd_method;
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for forward dynamics (use auto or recursion)");
-  if (algorithm == FdAlgorithm::Auto)
-    algorithm = nv_ <= kMaxThreadDofs            ? FdAlgorithm::Aba
-                : first_branching_body(model) < 0 ? FdAlgorithm::Parallel
-                                                  : FdAlgorithm::Jsi;
+  if (algorithm == FdMethod::Auto) algorithm = choose_fd_method(BackendKind::Cuda, model);
   algorithm_ = algorithm;
-  aba_ = algorithm == FdAlgorithm::Aba;
-  const bool chain = algorithm == FdAlgorithm::Parallel || algorithm == FdAlgorithm::Hybrid;
+  aba_ = algorithm == FdMethod::Aba;
+  const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;
   if (aba_ && nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
                        std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
-                       " (use the joint-space inertia method, FdAlgorithm::Jsi or Auto)");
+                       " (use the joint-space inertia method, FdMethod::Jsi or Auto)");
   // q, qd, tau, qdd (1 scalar per DoF each), fext (6) and a failed DoF for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(
       max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
@@ -148,6 +149,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
+  if (options.fallback_aba) set_fallback_aba(true);
 }
 
 template <class S>
@@ -156,21 +158,21 @@ CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
 template <class S>
 cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                                                   cudaStream_t stream) {
-  if (chain_) return algorithm_ == FdAlgorithm::Hybrid ? cudaErrorNotSupported : chain_->launch(in, qdd, failed_dof, stream);
+  if (chain_) return algorithm_ == FdMethod::Hybrid ? cudaErrorNotSupported : chain_->launch(in, qdd, failed_dof, stream);
   if (aba_) return launch_aba_instances(*thread_, in, qdd, failed_dof, stream);
   return dense_ ? dense_->launch(in, qdd, failed_dof, stream)
                 : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
 }
 
 template <class S>
-FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof) {
+BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof) {
   check_batch(in, qdd, max_batch_);
   const Index B = in.q.batch;
   const Index nv = nv_;
-  FdBatchStatus status;
-  status.algorithm = algorithm();
-  if (B == 0) return status;
   int* const failed = failed_dof ? failed_dof : failed_host_.data();
+  BatchStatus status;
+  status.failed_dof = failed;
+  if (B == 0) return status;
   if (nv == 0) {  // nothing to factorise
     for (Index b = 0; b < B; ++b) failed[b] = -1;
     return status;
@@ -188,7 +190,7 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
                                                             buffer, stream);
   // run
   const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
-  if (chain_ && algorithm_ == FdAlgorithm::Hybrid)
+  if (chain_ && algorithm_ == FdMethod::Hybrid)
     check(chain_->launch_hybrid(in.q, din, sqdd.device_view(dqdd, B), dfailed, stream,
                                 record_timeline_ ? &timeline_ : nullptr),
           "running the hybrid forward dynamics");
@@ -198,10 +200,7 @@ FdBatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const Batc
   check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the failed DoFs to the host");
   check(cudaStreamSynchronize(stream), "running the forward dynamics");
-  for (Index b = 0; b < B; ++b) {
-    if (failed[b] < 0) continue;
-    if (status.failed++ == 0) status.first_instance = b, status.first_dof = failed[b];
-  }
+  status = summarize_failures(failed, B, pivot_failure(algorithm_));
   // keep the failed instances' qdd entries (the device holds nothing for them)
   if (status.failed > 0) {
     const std::size_t need = static_cast<std::size_t>(status.failed) * nv;
@@ -233,7 +232,7 @@ void CudaForwardDynamics<S>::set_fallback_aba(bool on) {
 }
 
 template <class S>
-FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd,
+BatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd,
                                                             int* failed, Index count) {
   const Index B = in.q.batch, nv = nv_, F = count;
   const std::size_t n = static_cast<std::size_t>(nv), f = static_cast<std::size_t>(F);
@@ -274,18 +273,14 @@ FdBatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& 
   check(cudaMemcpyAsync(aba_failed.data(), dfailed, f * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the fallback's failed DoFs to the host");
   check(cudaStreamSynchronize(stream), "running the ABA for the instances whose JSI failed");
-  FdBatchStatus status;
-  status.algorithm = FdAlgorithm::Aba;
   for (std::size_t k = 0; k < f; ++k) {
     const Index b = which[k];
     failed[b] = aba_failed[k];
-    if (aba_failed[k] >= 0) {
-      if (status.failed++ == 0) status.first_instance = b, status.first_dof = aba_failed[k];
-      continue;
-    }
-    for (Index i = 0; i < nv; ++i) qdd.at(i, b) = aba_qdd[static_cast<std::size_t>(i) * f + k];
-    ++status.fell_back;
+    if (aba_failed[k] < 0)
+      for (Index i = 0; i < nv; ++i) qdd.at(i, b) = aba_qdd[static_cast<std::size_t>(i) * f + k];
   }
+  BatchStatus status = summarize_failures(failed, B, Failure::BothPivots);
+  status.fell_back = F - status.failed;
   return status;
 }
 

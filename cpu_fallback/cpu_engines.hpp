@@ -1,0 +1,25 @@
+// cpu_fallback/cpu_engines.hpp: the serial and OpenMP engines behind the factories
+// of scandyn/engine.hpp (make_inverse_dynamics, ... with BackendKind::Serial or
+// OpenMP). One source per algorithm: inverse_dynamics.cpp (with the bias forces),
+// forward_dynamics.cpp, mass_matrix.cpp; all run their instances through
+// instance_loop.hpp.
+#pragma once
+
+#include <memory>
+
+#include "scandyn/engine.hpp"
+
+namespace scandyn {
+namespace cpu {
+
+template <class S>
+std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
+
+}  // namespace cpu
+}  // namespace scandyn

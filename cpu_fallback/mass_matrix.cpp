@@ -1,0 +1,59 @@
+// cpu_fallback/mass_matrix.cpp: the serial and OpenMP mass matrix, the reference
+// CRBA (crba) per instance, threads over instances.
+#include <vector>
+
+#include "cpu_engines.hpp"
+#include "instance_loop.hpp"
+#include "scandyn/algorithm/reference.hpp"
+
+namespace scandyn {
+namespace cpu {
+namespace {
+
+template <class S>
+class CpuMassMatrix final : public MassMatrix<S> {
+ public:
+  CpuMassMatrix(const ModelTpl<S>& model, const BackendOptions& o)
+      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch) {
+    const std::size_t nv = static_cast<std::size_t>(model.nv());
+    for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
+    q_rows_ = RowScratch<S>(threads_, 1, nv);
+    M_rows_ = RowScratch<S>(threads_, 1, nv * nv);
+  }
+
+  void compute(const BatchView<const S>& q, const BatchView<S>& M) override {
+    check_batch(q, M, max_batch_);
+    const Index nv = model_.nv();
+    for_instance_blocks(threads_, q.batch, [&](int t, Index begin, Index end) {
+      for (Index b = begin; b < end; ++b) {
+        S* m = output_row(M, b, M_rows_.row(t, 0));
+        crba(model_, data_[t], gather(q, b, nv, q_rows_.row(t, 0)), m);
+        scatter(m, M, b, nv * nv);
+      }
+    });
+  }
+
+  std::string strategy() const override { return "crba"; }
+  BackendKind backend() const override { return kind_; }
+  bool exact() const override { return true; }
+
+ private:
+  const ModelTpl<S>& model_;
+  BackendKind kind_;
+  int threads_;
+  Index max_batch_;
+  std::vector<DataTpl<S>> data_;  // (threads) workspaces
+  RowScratch<S> q_rows_, M_rows_; // per thread: one instance's q (nv) and M (nv x nv)
+};
+
+}  // namespace
+
+template <class S>
+std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& o) {
+  return std::make_unique<CpuMassMatrix<S>>(model, o);
+}
+template std::unique_ptr<MassMatrix<float>> make_mass_matrix(const ModelTpl<float>&, const BackendOptions&);
+template std::unique_ptr<MassMatrix<double>> make_mass_matrix(const ModelTpl<double>&, const BackendOptions&);
+
+}  // namespace cpu
+}  // namespace scandyn

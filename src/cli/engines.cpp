@@ -1,0 +1,192 @@
+// src/cli/engines.cpp: the command line's algorithms on the library's engines.
+#include "engines.hpp"
+
+#include <cmath>
+#include <stdexcept>
+
+#include "cli.hpp"
+#include "csv.hpp"
+
+namespace scandyn::cli {
+
+const char* algo_name(Algo algo) {
+  switch (algo) {
+    case Algo::Id: return "id";
+    case Algo::Fd: return "fd";
+    case Algo::Mass: return "mass";
+    case Algo::Bias: return "bias";
+  }
+  return "?";
+}
+
+bool parse_algo(const std::string& name, Algo& algo) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+    if (name == algo_name(a)) {
+      algo = a;
+      return true;
+    }
+  }
+  return false;
+}
+
+std::string algo_list(AlgoSet algos, const char* sep) {
+  std::string out;
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+    if (!(algos & algo_bit(a))) continue;
+    if (!out.empty()) out += sep;
+    out += algo_name(a);
+  }
+  return out;
+}
+
+std::size_t output_width(Algo algo, Index nv) {
+  const std::size_t n = static_cast<std::size_t>(nv);
+  return algo == Algo::Mass ? n * n : n;
+}
+
+std::vector<std::string> output_columns(Algo algo, Index nv) {
+  std::vector<std::string> names;
+  names.reserve(output_width(algo, nv));
+  if (algo == Algo::Mass) {
+    for (Index i = 0; i < nv; ++i)
+      for (Index j = 0; j < nv; ++j) names.push_back("M_" + std::to_string(i) + "_" + std::to_string(j));
+    return names;
+  }
+  const char* prefix = algo == Algo::Id ? "tau_id_" : algo == Algo::Fd ? "qdd_fd_" : "h_";
+  for (Index i = 0; i < nv; ++i) names.push_back(prefix + std::to_string(i));
+  return names;
+}
+
+namespace {
+
+// parse(value of --flag), its BackendError as "--flag: unknown ..." (exit 2)
+template <class F>
+auto parse_flag(const Args& args, const char* flag, const char* fallback, F&& parse) {
+  try {
+    return parse(args.get(flag, fallback));
+  } catch (const BackendError& e) {
+    throw UsageError(std::string("--") + flag + ": " + e.what());
+  }
+}
+
+}  // namespace
+
+Precision parse_cli_precision(const Args& args) { return parse_flag(args, "precision", "double", parse_precision); }
+
+BackendOptions parse_backend_options(const Args& args) {
+  BackendOptions o;
+  o.backend = parse_flag(args, "backend", "serial", parse_backend);
+  o.strategy = parse_flag(args, "strategy", "auto", parse_strategy);
+  o.fd_method = parse_flag(args, "fd", "auto", parse_fd_method);
+  if (args.has("threads")) {
+    const std::string& t = args.required("threads");
+    double v = 0;
+    if (!parse_number(t, v) || v < 1 || v > 4096 || v != std::floor(v))
+      throw UsageError("--threads must be an integer from 1 to 4096, got '" + t + "'");
+    o.threads = static_cast<int>(v);
+  }
+  if (args.has("fallback")) {
+    if (args.required("fallback") != "aba")
+      throw UsageError("unknown --fallback value '" + args.required("fallback") + "' (expected aba)");
+    if (o.fd_method != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
+    o.fallback_aba = true;
+  }
+  return o;
+}
+
+void require_usable(BackendKind backend) {
+  const std::string why = backend_unusable(backend);
+  if (why.empty()) return;
+  // a backend this build lacks already names itself; a device that is missing does not
+  throw UsageError(why.rfind("backend '", 0) == 0 ? why : std::string("backend '") + to_string(backend) + "': " + why,
+                   false);
+}
+
+std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit) {
+  return "forward dynamics by jsi failed on " + std::to_string(fell_back) + " of " + std::to_string(total) + " " +
+         unit + " (mass matrix pivot not positive); " + (fell_back == 1 ? "it was" : "they were") +
+         " computed by aba (--fallback aba)";
+}
+
+// ---- AlgoEngine -----------------------------------------------------------------
+
+template <class S>
+AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& o)
+    : algo_(algo), nv_(model.nv()) {
+  try {
+    switch (algo) {
+      case Algo::Id: id_ = make_inverse_dynamics(model, o); break;
+      case Algo::Bias: bias_ = make_bias_forces(model, o); break;
+      case Algo::Mass: mass_ = make_mass_matrix(model, o); break;
+      case Algo::Fd: fd_ = make_forward_dynamics(model, o); break;
+    }
+  } catch (const BackendError& e) {
+    // no device, a model beyond a kernel's limit, a method the model cannot take, no memory
+    throw UsageError(algo == Algo::Fd ? std::string("--fd ") + to_string(o.fd_method) + ": " + e.what() : e.what(),
+                     false);
+  }
+}
+
+template <class S>
+AlgoEngine<S>::~AlgoEngine() = default;
+
+template <class S>
+const Engine& AlgoEngine<S>::engine() const {
+  if (id_) return *id_;
+  if (bias_) return *bias_;
+  if (mass_) return *mass_;
+  return *fd_;
+}
+
+template <class S>
+BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
+  const Index B = static_cast<Index>(in.count), nv = nv_;
+  using V = BatchView<const S>;
+  try {
+    switch (algo_) {
+      case Algo::Id:
+        id_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+                     BatchView<S>::aos(out, nv, B));
+        return {};
+      case Algo::Bias:
+        bias_->compute(BiasBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B)}, BatchView<S>::aos(out, nv, B));
+        return {};
+      case Algo::Mass:
+        mass_->compute(V::aos(in.q, nv, B), BatchView<S>::aos(out, nv * nv, B));
+        return {};
+      case Algo::Fd:
+        return fd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+                            BatchView<S>::aos(out, nv, B));
+    }
+  } catch (const BackendError& e) {
+    throw DataError(e.what());  // a CUDA error during the computation
+  }
+  return {};
+}
+
+template <class S>
+std::string AlgoEngine<S>::strategy() const {
+  const Engine& e = engine();
+  return e.strategy() + (e.backend() == BackendKind::Cuda ? "-host" : "");
+}
+
+template <class S>
+bool AlgoEngine<S>::exact() const {
+  // bench's fd reference is the serial aba
+  return engine().exact() && (algo_ != Algo::Fd || fd_->method() == FdMethod::Aba);
+}
+
+template <class S>
+std::unique_ptr<ResidentBatch<S>> AlgoEngine<S>::resident(const BatchIn<S>& in) {
+#if SCANDYN_HAS_CUDA
+  if (engine().backend() == BackendKind::Cuda)
+    return make_resident_batch<S>(algo_, const_cast<Engine&>(engine()), nv_, in);
+#endif
+  (void)in;
+  return nullptr;
+}
+
+template class AlgoEngine<float>;
+template class AlgoEngine<double>;
+
+}  // namespace scandyn::cli

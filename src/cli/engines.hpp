@@ -1,0 +1,114 @@
+// src/cli/engines.hpp: the algorithms `scandyn eval` and `scandyn bench` compute,
+// each through the library's engine for the chosen backend (scandyn/engine.hpp).
+// The command line only turns its flags into BackendOptions, its CSV rows into
+// instance-major host batches, and the engines' errors into its exit codes.
+#pragma once
+
+#include <cstddef>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/build_config.hpp"
+#include "scandyn/engine.hpp"
+
+namespace scandyn::cli {
+
+class Args;
+
+enum class Algo { Id, Fd, Mass, Bias };
+const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias"
+bool parse_algo(const std::string& name, Algo& algo);  // false if unknown
+
+// A set of algorithms: bit (1 << algo) for each member.
+using AlgoSet = unsigned;
+constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo); }
+// The members' names joined by sep, in the order id, fd, mass, bias.
+std::string algo_list(AlgoSet algos, const char* sep);
+
+// Values per instance that algo writes: nv, or nv * nv for Mass.
+std::size_t output_width(Algo algo, Index nv);
+// Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>.
+std::vector<std::string> output_columns(Algo algo, Index nv);
+
+// A batch of count instances, instance-major: entry i of instance b is at [b * nv + i].
+// Inputs an algorithm does not read may be null: id reads q, qd, qdd; fd reads
+// q, qd, tau; mass reads q; bias reads q, qd.
+template <class S>
+struct BatchIn {
+  std::size_t count = 0;
+  const S* q = nullptr;
+  const S* qd = nullptr;
+  const S* qdd = nullptr;
+  const S* tau = nullptr;
+};
+
+// --precision (default double); throws UsageError for a bad value.
+Precision parse_cli_precision(const Args& args);
+
+// --backend, --strategy, --threads, --fd and --fallback as BackendOptions (max_batch
+// 1); throws UsageError for bad values.
+BackendOptions parse_backend_options(const Args& args);
+
+// Throws UsageError (no --help hint) when the backend cannot run here:
+// "backend 'cuda': no usable CUDA device: ...".
+void require_usable(BackendKind backend);
+
+// The batch copied once into a device's memory, so that bench can time the
+// computation without the transfers (CUDA engines' compute_async()).
+template <class S>
+class ResidentBatch {
+ public:
+  virtual ~ResidentBatch() = default;
+  virtual void launch() = 0;                  // asynchronous; throws DataError
+  virtual void wait() = 0;                    // throws DataError for a failed call
+  virtual void read(S* out) = 0;              // the last call's results, as AlgoEngine::run writes them
+  virtual BatchStatus status() = 0;           // the last call's failures (fd)
+  virtual std::string strategy() const = 0;   // the engine's strategy
+};
+
+// One algorithm's engine on one backend, called on instance-major host batches.
+template <class S>
+class AlgoEngine {
+ public:
+  // Makes the engine (options.max_batch instances); what the backend refuses (no
+  // device, a model beyond a kernel's limit, a method the model cannot take, too
+  // little memory) is a UsageError (exit 2) with the library's message.
+  AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& options);
+  ~AlgoEngine();
+
+  // Writes count x output_width values to out. A failed computation (a CUDA error)
+  // is a DataError; failed instances are in the status, their outputs unwritten.
+  BatchStatus run(const BatchIn<S>& in, S* out);
+  // The bench row's strategy: the engine's, with "-host" on cuda (host buffers,
+  // staged through the device).
+  std::string strategy() const;
+  // True when run() is exactly the serial double reference bench compares with (aba
+  // for fd).
+  bool exact() const;
+  // The batch in device memory (CUDA engines with compute_async), else null.
+  std::unique_ptr<ResidentBatch<S>> resident(const BatchIn<S>& in);
+
+ private:
+  Algo algo_;
+  Index nv_;
+  std::unique_ptr<InverseDynamics<S>> id_;
+  std::unique_ptr<BiasForces<S>> bias_;
+  std::unique_ptr<MassMatrix<S>> mass_;
+  std::unique_ptr<ForwardDynamics<S>> fd_;
+  const Engine& engine() const;
+};
+
+#if SCANDYN_HAS_CUDA
+// The CUDA engines' device-resident batch (engines_cuda.cpp); null for an engine
+// without compute_async (fd hybrid, and jsi with the aba fallback).
+template <class S>
+std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, const BatchIn<S>& in);
+#endif
+
+// The stderr warning for instances that fell back from jsi to aba, e.g. "forward
+// dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not positive); they
+// were computed by aba (--fallback aba)".
+std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit);
+
+}  // namespace scandyn::cli

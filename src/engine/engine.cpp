@@ -1,0 +1,316 @@
+// src/engine/engine.cpp: the engine API's factories (one dispatch on the backend for
+// every algorithm), its Auto choices, names, batch checks and BatchStatus.
+#include "scandyn/engine.hpp"
+
+#include <algorithm>
+
+#include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/build_config.hpp"
+#include "../../cpu_fallback/cpu_engines.hpp"
+#if SCANDYN_HAS_CUDA
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/cuda/mass_matrix.hpp"
+#endif
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+namespace scandyn {
+
+// ---- names ----------------------------------------------------------------------
+
+const char* to_string(BackendKind b) {
+  switch (b) {
+    case BackendKind::Serial: return "serial";
+    case BackendKind::OpenMP: return "openmp";
+    case BackendKind::Cuda: return "cuda";
+  }
+  return "?";
+}
+
+const char* to_string(Precision p) { return p == Precision::Double ? "double" : "float"; }
+
+const char* to_string(IdStrategy s) {
+  switch (s) {
+    case IdStrategy::Auto: return "auto";
+    case IdStrategy::Recursion: return "recursion";
+    case IdStrategy::ScanLocal: return "scan-local";
+    case IdStrategy::ScanWorld: return "scan-world";
+  }
+  return "?";
+}
+
+const char* to_string(FdMethod m) {
+  switch (m) {
+    case FdMethod::Auto: return "auto";
+    case FdMethod::Aba: return "aba";
+    case FdMethod::Jsi: return "jsi";
+    case FdMethod::Parallel: return "parallel";
+    case FdMethod::Hybrid: return "hybrid";
+  }
+  return "?";
+}
+
+namespace {
+
+// The value of E whose to_string is name; BackendError naming what and the choices.
+template <class E, std::size_t N>
+E parse_name(const std::string& name, const E (&values)[N], const char* what) {
+  std::string known;
+  for (std::size_t k = 0; k < N; ++k) {
+    if (name == to_string(values[k])) return values[k];
+    known += k == 0 ? "" : k + 1 == N ? " or " : ", ";
+    known += to_string(values[k]);
+  }
+  throw BackendError("unknown " + std::string(what) + " '" + name + "' (expected " + known + ")");
+}
+
+}  // namespace
+
+BackendKind parse_backend(const std::string& name) {
+  static constexpr BackendKind kAll[] = {BackendKind::Serial, BackendKind::OpenMP, BackendKind::Cuda};
+  return parse_name(name, kAll, "backend");
+}
+Precision parse_precision(const std::string& name) {
+  static constexpr Precision kAll[] = {Precision::Double, Precision::Float};
+  return parse_name(name, kAll, "precision");
+}
+IdStrategy parse_strategy(const std::string& name) {
+  static constexpr IdStrategy kAll[] = {IdStrategy::Auto, IdStrategy::Recursion, IdStrategy::ScanLocal,
+                                        IdStrategy::ScanWorld};
+  return parse_name(name, kAll, "strategy");
+}
+FdMethod parse_fd_method(const std::string& name) {
+  static constexpr FdMethod kAll[] = {FdMethod::Auto, FdMethod::Aba, FdMethod::Jsi, FdMethod::Hybrid,
+                                      FdMethod::Parallel};
+  return parse_name(name, kAll, "forward-dynamics method");
+}
+
+// ---- BatchStatus ----------------------------------------------------------------
+
+void BatchStatus::merge(const BatchStatus& other) {
+  if (other.first_instance >= 0 && (first_instance < 0 || other.first_instance < first_instance)) {
+    first_instance = other.first_instance;
+    first_dof = other.first_dof;
+    failure = other.failure;
+  }
+  failed += other.failed;
+  fell_back += other.fell_back;
+}
+
+std::string BatchStatus::reason() const {
+  if (ok()) return "";
+  const std::string pivot = " pivot at DoF " + std::to_string(first_dof) + " is not positive";
+  switch (failure) {
+    case Failure::MassMatrixPivot: return "mass matrix" + pivot;
+    case Failure::BothPivots:
+      return "mass matrix pivot not positive, and by the aba fallback the articulated inertia" + pivot;
+    case Failure::ArticulatedPivot:
+    case Failure::None: break;
+  }
+  return "articulated inertia" + pivot;
+}
+
+std::string BatchStatus::message() const {
+  if (ok()) return "";
+  std::string s = "instance " + std::to_string(first_instance) + ": " + reason();
+  if (failed > 1) s += " (and " + std::to_string(failed - 1) + " more instance" + (failed > 2 ? "s" : "") + ")";
+  return s;
+}
+
+BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Index fell_back) {
+  BatchStatus st;
+  st.failed_dof = failed_dof;
+  st.fell_back = fell_back;
+  for (Index b = 0; b < B; ++b)
+    if (failed_dof[b] >= 0) st.record(b, failed_dof[b], what);
+  return st;
+}
+
+// ---- batch checks ---------------------------------------------------------------
+
+namespace {
+
+// Throws unless every named view has B instances (B <= max_batch) and data when B > 0.
+void check_views(std::initializer_list<std::pair<const char*, std::pair<Index, const void*>>> views, Index max_batch) {
+  const Index B = views.begin()->second.first;
+  std::string sizes;
+  bool agree = true;
+  for (const auto& [name, v] : views) {
+    sizes += (sizes.empty() ? "" : ", ") + std::string(name) + " " + std::to_string(v.first);
+    agree = agree && v.first == B;
+  }
+  if (!agree) throw BackendError("batch sizes disagree: " + sizes);
+  if (B < 0) throw BackendError("negative batch size " + std::to_string(B));
+  if (B > max_batch)
+    throw BackendError("batch of " + std::to_string(B) + " instances exceeds the engine's max_batch " +
+                       std::to_string(max_batch));
+  if (B > 0)
+    for (const auto& [name, v] : views)
+      if (!v.second) throw BackendError("null data pointer in a batch of " + std::to_string(B) + " instances");
+}
+
+template <class V>
+std::pair<Index, const void*> info(const V& v) {
+  return {v.batch, v.data};
+}
+
+}  // namespace
+
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const BatchView<S>& tau, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"tau", info(tau)}}, max_batch);
+}
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const BatchView<S>& qdd, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"tau", info(in.tau)}, {"qdd", info(qdd)}}, max_batch);
+}
+template <class S>
+void check_batch(const BiasBatchIn<S>& in, const BatchView<S>& h, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"h", info(h)}}, max_batch);
+}
+template <class S>
+void check_batch(const BatchView<const S>& q, const BatchView<S>& M, Index max_batch) {
+  check_views({{"q", info(q)}, {"M", info(M)}}, max_batch);
+}
+
+// ---- Auto choices ---------------------------------------------------------------
+
+IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int threads) {
+  // CUDA: a GPU thread per instance (the recursion) up to kMaxThreadDofs DoF, the
+  // link scans beyond
+  if (backend == BackendKind::Cuda) return nv <= cuda::kMaxThreadDofs ? IdStrategy::Recursion : IdStrategy::ScanLocal;
+  // Instances are independent: splitting them costs nothing. Scans over links pay
+  // 1.5-3x the arithmetic of the recursion, so they only win when there are fewer
+  // instances than threads and enough links to give every thread long runs: from
+  // about 10^4 links on 16 threads for ropes, curtains and random trees alike
+  // (docs/accuracy-id-scan.md).
+  if (threads <= 1 || batch >= threads || nv < 4096) return IdStrategy::Recursion;
+  return IdStrategy::ScanLocal;
+}
+
+template <class S>
+bool is_chain_from_base(const ModelTpl<S>& model) {
+  return model.nv() > 0 && first_branching_body(model) < 0;
+}
+
+template <class S>
+FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
+  switch (backend) {
+    case BackendKind::Serial: return FdMethod::Aba;
+    case BackendKind::OpenMP:
+      return is_chain_from_base(model) && model.nv() >= 4096 ? FdMethod::Parallel : FdMethod::Aba;
+    case BackendKind::Cuda:
+      // measured on the H100 (bench_cuda_fd, 10^7 instances, ms, float / double):
+      // iiwa ABA 3.3 / 7.5 against JSI 4.5 / 8.9, hyq 6.0 / 13.8 against 7.5 / 14.8,
+      // atlas 22.8 / 52.9 against 47.8 / 94.8
+      return model.nv() <= cuda::kMaxThreadDofs ? FdMethod::Aba
+             : is_chain_from_base(model)       ? FdMethod::Parallel
+                                               : FdMethod::Jsi;
+  }
+  return FdMethod::Aba;
+}
+
+int openmp_threads() {
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
+#endif
+}
+
+std::string backend_unusable(BackendKind backend) {
+  switch (backend) {
+    case BackendKind::Serial: return "";
+    case BackendKind::OpenMP:
+#if SCANDYN_HAS_OPENMP && defined(_OPENMP)
+      return "";
+#else
+      return "backend 'openmp' is not available in this build";
+#endif
+    case BackendKind::Cuda: {
+#if SCANDYN_HAS_CUDA
+      const cuda::Result<int> count = cuda::device_count();
+      if (!count) return count.error;
+      if (count.value == 0) return "no usable CUDA device: the CUDA runtime reports 0 devices";
+      return "";
+#else
+      return "backend 'cuda' is not available in this build";
+#endif
+    }
+  }
+  return "unknown backend";
+}
+
+// ---- factories ------------------------------------------------------------------
+
+namespace {
+
+// Throws BackendError when the backend is not in this build (cuda's device check is
+// the engines' own, which name the device).
+void require_built(BackendKind backend) {
+  if (backend == BackendKind::Cuda && !SCANDYN_HAS_CUDA)
+    throw BackendError(backend_unusable(backend));
+  if (backend == BackendKind::OpenMP) {
+    const std::string why = backend_unusable(backend);
+    if (!why.empty()) throw BackendError(why);
+  }
+}
+
+}  // namespace
+
+template <class S>
+std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaInverseDynamics<S>>(model, o);
+#endif
+  return cpu::make_inverse_dynamics(model, o);
+}
+
+template <class S>
+std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaBiasForces<S>>(model, o);
+#endif
+  return cpu::make_bias_forces(model, o);
+}
+
+template <class S>
+std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaMassMatrix<S>>(model, o);
+#endif
+  return cpu::make_mass_matrix(model, o);
+}
+
+template <class S>
+std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaForwardDynamics<S>>(model, o);
+#endif
+  return cpu::make_forward_dynamics(model, o);
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                                  \
+  template void check_batch(const IdBatchIn<S>&, const BatchView<S>&, Index);                                  \
+  template void check_batch(const FdBatchIn<S>&, const BatchView<S>&, Index);                                  \
+  template void check_batch(const BiasBatchIn<S>&, const BatchView<S>&, Index);                                \
+  template void check_batch(const BatchView<const S>&, const BatchView<S>&, Index);                            \
+  template bool is_chain_from_base(const ModelTpl<S>&);                                                         \
+  template FdMethod choose_fd_method(BackendKind, const ModelTpl<S>&);                                          \
+  template std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>&, const BackendOptions&); \
+  template std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>&, const BackendOptions&);           \
+  template std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>&, const BackendOptions&);           \
+  template std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>&, const BackendOptions&);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace scandyn
