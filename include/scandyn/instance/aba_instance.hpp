@@ -124,7 +124,7 @@ __host__ __device__ __forceinline__ void slot_update(T (&slots)[K], int s, F&& f
 //
 // A parent receives its children in descending order, as in the reference. Body
 // i + 1 (kParentIsPrev) is the last of them and hands its articulated inertia and
-// bias force over in registers (IAcarry, pcarry), added after the others. Every
+// bias force over in registers (backward_pass' carry), added after the others. Every
 // other child (a branch child) adds into its parent's branch slot (kSlotShift): the
 // highest-numbered one (kOpensSlot) starts the slot from the parent's rigid inertia
 // and bias force, the rest add to it, and the parent reads it back. The slot also
@@ -242,7 +242,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
   Force<S> Ui;  // body i's U_i, D_i, u_i, for its contribution to the parent
   S Di, ui;
   using fd_detail::AbaCarry;
-  const Index failed = backward_pass<kUnrolled, S, C, AbaCarry<S>>(
+  const PassEnd pass2 = backward_pass<kUnrolled, S, C, AbaCarry<S>>(
       model, n,
       [&](Index i, int fl) {
         // IA_i and pA_i: from the branch slot (rigid inertia, bias force and the
@@ -292,7 +292,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
           }
         }
       });
-  if (failed >= 0) return failed;
+  if (!pass2.complete) return pass2.at;
 
   // pass 3: accelerations, root to leaves
   forward_pass<kUnrolled>(

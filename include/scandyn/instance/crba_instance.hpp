@@ -43,7 +43,7 @@ __host__ __device__ __forceinline__ JsiCarry<S>& operator+=(JsiCarry<S>& a, cons
 // column's force F_i = Ic_i S_i (with kBias also its force f_i: h_i = S_i^T f_i),
 // then carries Ic_i, every F_k of its subtree (and f_i) to its parent. A parent
 // receives its children in descending order, as in the reference: body i + 1's
-// through registers (Icarry, fcarry), others' through the stack. Each entry is
+// through registers (backward_pass' carry), others' through the stack. Each entry is
 // computed by the reference's formulas (crba, rnea) in the reference's order of
 // summation.
 //
@@ -57,6 +57,10 @@ __host__ __device__ __forceinline__ JsiCarry<S>& operator+=(JsiCarry<S>& a, cons
 // in rnea_instance. kUnrolled, kKeepXup (kBias only: without a forward pass the
 // backward pass evaluates each transform once anyway) and kTrig as for
 // fd_jsi_instance.
+// (The passes' functors read per-thread arrays written before they are read but after
+// the functors are created: nvcc's #549, as in rnea_instance.)
+#pragma nv_diagnostic push
+#pragma nv_diag_suppress 549
 template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig>
 __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
                                                     DofColumn<const S> qd, DofColumn<const S> tau,
@@ -130,7 +134,7 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         if (armature) M[tri(i, i)] += armature[i];
         return true;
       },
-      [&](Index i, const JsiCarry<S>& t) {
+      [&](Index i, const JsiCarry<S>& t, auto&& hand_off) {
         const Body<S>& b = model.body[i];
         Transform<S> X;
         if constexpr (kKeep) X = Xup[kKeep ? i : 0];
@@ -138,10 +142,10 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         JsiCarry<S> up{Force<S>::zero(), Inertia<S>::zero()};
         if constexpr (kBias) up.f = X.apply_transpose(t.f);
         up.I = crba_composite_step(X, t.I);
-        // the columns of body i's subtree move on to its parent's frame
+        hand_off(up);
+        // then the columns of body i's subtree move on to its parent's frame
         w[i] = crba_column_step(X, w[i]);
         for_descendants<kUnrolled>(model, i, [&](Index k) { w[k] = crba_column_step(X, w[k]); });
-        return up;
       },
       [&](Index i, int, const JsiCarry<S>& up) {
         const Index p = model.body[i].parent;
@@ -149,6 +153,7 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         sI[p] += up.I;
       });
 }
+#pragma nv_diagnostic pop
 
 }  // namespace fd_detail
 
