@@ -59,6 +59,20 @@ struct AbaBodyState {
   }
 };
 
+// What body i hands its parent in aba_instance's pass 2, in the parent's frame:
+// Xup^T Ia_i Xup and Xup^T pa_i.
+template <class S>
+struct AbaCarry {
+  ABInertia<S> IA;
+  Force<S> pA;
+};
+template <class S>
+__host__ __device__ __forceinline__ AbaCarry<S>& operator+=(AbaCarry<S>& a, const AbaCarry<S>& b) {
+  a.IA += b.IA;
+  a.pA += b.pA;
+  return a;
+}
+
 // Slot s (a run-time value) of K branch slots. With K < C a loop of compile-time
 // indices selects it, so that the slots can stay in registers (K selects per
 // scalar); with K == C the slot indexes the array (per-thread local memory).
@@ -110,7 +124,7 @@ __host__ __device__ __forceinline__ void slot_update(T (&slots)[K], int s, F&& f
 //
 // A parent receives its children in descending order, as in the reference. Body
 // i + 1 (kParentIsPrev) is the last of them and hands its articulated inertia and
-// bias force over in registers (IAcarry, pcarry), added after the others. Every
+// bias force over in registers (backward_pass' carry), added after the others. Every
 // other child (a branch child) adds into its parent's branch slot (kSlotShift): the
 // highest-numbered one (kOpensSlot) starts the slot from the parent's rigid inertia
 // and bias force, the rest add to it, and the parent reads it back. The slot also
@@ -197,22 +211,21 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
   }
 
   // pass 1: velocities, root to leaves
-  Motion<S> v_prev = Motion<S>::zero();  // body i - 1's v
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = 0; i < C; ++i) {
-    if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Motion<S> vp = Motion<S>::zero();
-    if (fl & kParentIsPrev) vp = v_prev;
-    else if (kBranches && !(fl & kParentIsBase)) vp = slot_get<K, C>(sv, slot_of(b.parent));
-    const Transform<S> X = joint_transform<kTrig>(b, q_at(i));
-    if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
-    const Motion<S> v = aba_forward_step(b, X, vp, qd_at(i)).v;
-    st[i].set_v(v);
-    if (kBranches && (fl & kStacked)) slot_update<K, C>(sv, slot_of(i), [&](Motion<S>& s) { s = v; });
-    v_prev = v;
-  }
+  forward_pass<kUnrolled>(
+      model, n, Motion<S>::zero(),
+      [&](Index i) -> Motion<S> {
+        if constexpr (kBranches) return slot_get<K, C>(sv, slot_of(model.body[i].parent));
+        else return Motion<S>::zero();
+      },
+      [&](Index i, int fl, const Motion<S>& vp) {
+        const Body<S>& b = model.body[i];
+        const Transform<S> X = joint_transform<kTrig>(b, q_at(i));
+        if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
+        const Motion<S> v = aba_forward_step(b, X, vp, qd_at(i)).v;
+        st[i].set_v(v);
+        if (kBranches && (fl & kStacked)) slot_update<K, C>(sv, slot_of(i), [&](Motion<S>& s) { s = v; });
+        return v;
+      });
   if constexpr (kBranches && kSlots < C) {
     // pass 1's slot values are dead (pass 3 writes its own before reading them);
     // saying so frees their registers during pass 2
@@ -220,91 +233,90 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     for (int k = 0; k < K; ++k) sv[k] = Motion<S>::zero();
   }
 
-  // pass 2: articulated inertias and bias forces, leaves to root
-  ABInertia<S> IAcarry{};  // body i + 1's contribution Xup^T Ia Xup, when its parent is body i
-  Force<S> pcarry = Force<S>::zero();
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = C - 1; i >= 0; --i) {
-    if (i >= n) continue;
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    const Motion<S> v = st[i].v();
-    // IA_i and pA_i: from the branch slot (rigid inertia, bias force and the branch
-    // children), or the rigid inertia and bias force; then body i + 1's
-    ABInertia<S> IA;
-    Force<S> p;
-    if (kBranches && (fl & kStacked)) {
-      IA = slot_get<K, C>(sIA, slot_of(i));
-      p = slot_get<K, C>(spA, slot_of(i));
-    } else {
-      IA = ABInertia<S>::from(b.I);
-      p = aba_bias_force(b, v);
-      if (fext) p = p - fext[i];
-    }
-    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) {
-      IA += IAcarry;
-      p += pcarry;
-    }
-    Force<S> Ui;
-    S Di, ui;
-    aba_joint_terms(b, IA, p, tau[i], Ui, Di, ui, armature ? armature[i] : S(0));
-    if (!pivot_ok(Di)) return i;
-    st[i].set_terms(Ui, Di, ui);
-    if (fl & kParentIsBase) continue;
-    // the contribution to the parent, from zero (0 + x == x: the parent's sums are
-    // the reference's)
-    ABInertia<S> IAc{};
-    Force<S> pc = Force<S>::zero();
-    aba_backward_to_parent(xup(i, b), IA, p, aba_velocity_product(b, v, qd_at(i)), Ui, Di, ui, IAc, pc);
-    if (fl & kParentIsPrev) {
-      IAcarry = IAc;
-      pcarry = pc;
-    } else if constexpr (kBranches) {
-      const Index par = b.parent;
-      if (fl & kOpensSlot) {
-        // the first branch child to arrive: the parent's rigid inertia and bias force first
-        const Body<S>& bp = model.body[par];
-        Force<S> pA = aba_bias_force(bp, velocity_of(par, i));
-        if (fext) pA = pA - fext[par];
-        const ABInertia<S> IAp = ABInertia<S>::from(bp.I) + IAc;
-        pA += pc;
-        slot_update<K, C>(sIA, slot_of(par), [&](ABInertia<S>& s) { s = IAp; });
-        slot_update<K, C>(spA, slot_of(par), [&](Force<S>& s) { s = pA; });
-      } else {
-        slot_update<K, C>(sIA, slot_of(par), [&](ABInertia<S>& s) { s += IAc; });
-        slot_update<K, C>(spA, slot_of(par), [&](Force<S>& s) { s += pc; });
-      }
-    }
-  }
+  // pass 2: articulated inertias and bias forces, leaves to root. Body i hands its
+  // parent Xup^T Ia Xup and Xup^T pa (AbaCarry): body i + 1 through the carry, added
+  // after the others; every other child (a branch child) into its parent's branch
+  // slot, which the highest-numbered one (kOpensSlot) starts from the parent's rigid
+  // inertia and bias force.
+  Motion<S> v;  // body i's v_i, read before its state becomes U_i, D_i, u_i
+  Force<S> Ui;  // body i's U_i, D_i, u_i, for its contribution to the parent
+  S Di, ui;
+  using fd_detail::AbaCarry;
+  const PassEnd pass2 = backward_pass<kUnrolled, S, C, AbaCarry<S>>(
+      model, n,
+      [&](Index i, int fl) {
+        // IA_i and pA_i: from the branch slot (rigid inertia, bias force and the
+        // branch children), or the rigid inertia and bias force
+        const Body<S>& b = model.body[i];
+        v = st[i].v();
+        AbaCarry<S> t;
+        if (kBranches && (fl & kStacked)) {
+          t.IA = slot_get<K, C>(sIA, slot_of(i));
+          t.pA = slot_get<K, C>(spA, slot_of(i));
+        } else {
+          t.IA = ABInertia<S>::from(b.I);
+          t.pA = aba_bias_force(b, v);
+          if (fext) t.pA = t.pA - fext[i];
+        }
+        return t;
+      },
+      [&](Index i, int, const AbaCarry<S>& t) {
+        aba_joint_terms(model.body[i], t.IA, t.pA, tau[i], Ui, Di, ui, armature ? armature[i] : S(0));
+        if (!pivot_ok(Di)) return false;
+        st[i].set_terms(Ui, Di, ui);
+        return true;
+      },
+      [&](Index i, const AbaCarry<S>& t) {
+        // the contribution to the parent, from zero (0 + x == x: the parent's sums are
+        // the reference's)
+        const Body<S>& b = model.body[i];
+        AbaCarry<S> up{ABInertia<S>{}, Force<S>::zero()};
+        aba_backward_to_parent(xup(i, b), t.IA, t.pA, aba_velocity_product(b, v, qd_at(i)), Ui, Di, ui, up.IA, up.pA);
+        return up;
+      },
+      [&](Index i, int fl, const AbaCarry<S>& up) {
+        if constexpr (kBranches) {
+          const Index par = model.body[i].parent;
+          if (fl & kOpensSlot) {
+            // the first branch child to arrive: the parent's rigid inertia and bias force first
+            const Body<S>& bp = model.body[par];
+            Force<S> pA = aba_bias_force(bp, velocity_of(par, i));
+            if (fext) pA = pA - fext[par];
+            const ABInertia<S> IAp = ABInertia<S>::from(bp.I) + up.IA;
+            pA += up.pA;
+            slot_update<K, C>(sIA, slot_of(par), [&](ABInertia<S>& s) { s = IAp; });
+            slot_update<K, C>(spA, slot_of(par), [&](Force<S>& s) { s = pA; });
+          } else {
+            slot_update<K, C>(sIA, slot_of(par), [&](ABInertia<S>& s) { s += up.IA; });
+            slot_update<K, C>(spA, slot_of(par), [&](Force<S>& s) { s += up.pA; });
+          }
+        }
+      });
+  if (!pass2.complete) return pass2.at;
 
   // pass 3: accelerations, root to leaves
-  const Motion<S> a0 = model.a0;
-  Motion<S> a_prev = a0;  // body i - 1's a (and v_prev its v)
-  v_prev = Motion<S>::zero();
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = 0; i < C; ++i) {
-    if (i >= n) continue;
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Motion<S> vp = Motion<S>::zero(), ap = a0;
-    if (fl & kParentIsPrev) {
-      vp = v_prev;
-      ap = a_prev;
-    } else if (kBranches && !(fl & kParentIsBase)) {
-      vp = slot_get<K, C>(sv, slot_of(b.parent));
-      ap = slot_get<K, C>(sa, slot_of(b.parent));
-    }
-    const Transform<S> X = xup(i, b);
-    const AbaForward<S> o = aba_forward_step(b, X, vp, qd_at(i));
-    Motion<S> a;
-    qdd[i] = aba_acceleration_step(b, X, ap, o.c, st[i].U(), st[i].D, st[i].u, a);
-    if (kBranches && (fl & kStacked)) {
-      slot_update<K, C>(sv, slot_of(i), [&](Motion<S>& s) { s = o.v; });
-      slot_update<K, C>(sa, slot_of(i), [&](Motion<S>& s) { s = a; });
-    }
-    v_prev = o.v;
-    a_prev = a;
-  }
+  forward_pass<kUnrolled>(
+      model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
+      [&](Index i) -> BodyKinematics<S> {
+        if constexpr (kBranches) {
+          const int s = slot_of(model.body[i].parent);
+          return {slot_get<K, C>(sv, s), slot_get<K, C>(sa, s)};
+        } else {
+          return {Motion<S>::zero(), model.a0};
+        }
+      },
+      [&](Index i, int fl, const BodyKinematics<S>& p) {
+        const Body<S>& b = model.body[i];
+        const Transform<S> X = xup(i, b);
+        const AbaForward<S> o = aba_forward_step(b, X, p.v, qd_at(i));
+        Motion<S> a;
+        qdd[i] = aba_acceleration_step(b, X, p.a, o.c, st[i].U(), st[i].D, st[i].u, a);
+        if (kBranches && (fl & kStacked)) {
+          slot_update<K, C>(sv, slot_of(i), [&](Motion<S>& s) { s = o.v; });
+          slot_update<K, C>(sa, slot_of(i), [&](Motion<S>& s) { s = a; });
+        }
+        return BodyKinematics<S>{o.v, a};
+      });
   return -1;
 }
 #endif  // __CUDACC__

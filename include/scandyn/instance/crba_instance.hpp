@@ -18,6 +18,20 @@ namespace fd_detail {
 // Index of M(k, j), j <= k, in a packed lower triangle.
 __host__ __device__ constexpr int tri(int k, int j) { return k * (k + 1) / 2 + j; }
 
+// What body i hands its parent in jsi_passes' backward pass, in the parent's frame:
+// its force Xup^T f_i (kBias; else zero, unused) and composite inertia Xup^T Ic_i Xup.
+template <class S>
+struct JsiCarry {
+  Force<S> f;
+  Inertia<S> I;
+};
+template <class S>
+__host__ __device__ __forceinline__ JsiCarry<S>& operator+=(JsiCarry<S>& a, const JsiCarry<S>& b) {
+  a.f += b.f;
+  a.I += b.I;
+  return a;
+}
+
 // The CRBA of one instance (kBias = false: crba_instance) or the CRBA and the bias
 // forces in the same passes (kBias = true: fd_jsi_instance), so that the CRBA's
 // formulas and order exist once for both.
@@ -29,7 +43,7 @@ __host__ __device__ constexpr int tri(int k, int j) { return k * (k + 1) / 2 + j
 // column's force F_i = Ic_i S_i (with kBias also its force f_i: h_i = S_i^T f_i),
 // then carries Ic_i, every F_k of its subtree (and f_i) to its parent. A parent
 // receives its children in descending order, as in the reference: body i + 1's
-// through registers (Icarry, fcarry), others' through the stack. Each entry is
+// through registers (backward_pass' carry), others' through the stack. Each entry is
 // computed by the reference's formulas (crba, rnea) in the reference's order of
 // summation.
 //
@@ -43,6 +57,10 @@ __host__ __device__ constexpr int tri(int k, int j) { return k * (k + 1) / 2 + j
 // in rnea_instance. kUnrolled, kKeepXup (kBias only: without a forward pass the
 // backward pass evaluates each transform once anyway) and kTrig as for
 // fd_jsi_instance.
+// (The passes' functors read per-thread arrays written before they are read but after
+// the functors are created: nvcc's #549, as in rnea_instance.)
+#pragma nv_diagnostic push
+#pragma nv_diag_suppress 549
 template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig>
 __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
                                                     DofColumn<const S> qd, DofColumn<const S> tau,
@@ -76,24 +94,19 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
 
   if constexpr (kBias) {
     // forward: kinematics and the bias forces' body forces (RNEA with qdd = 0)
-    const Motion<S> a0 = model.a0;
-    Motion<S> v_prev = Motion<S>::zero(), a_prev = a0;  // body i - 1's v and a
-#pragma unroll(kUnrolled ? C : 1)
-    for (Index i = 0; i < C; ++i) {
-      if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
-      const Body<S>& b = model.body[i];
-      const int fl = model.flags[i];
-      Motion<S> vp = Motion<S>::zero(), ap = a0;
-      if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
-      else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
-      const Transform<S> X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
-      if constexpr (kKeep) Xup[kKeep ? i : 0] = X;
-      const RneaForward<S> o = rnea_forward_step(b, X, vp, ap, kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i], S(0));
-      w[i] = fext ? o.f - fext[i] : o.f;
-      if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = w[i], sI[i] = b.I;
-      v_prev = o.v;
-      a_prev = o.a;
-    }
+    forward_pass<kUnrolled>(
+        model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
+        [&](Index i) { return BodyKinematics<S>{sv[model.body[i].parent], sa[model.body[i].parent]}; },
+        [&](Index i, int fl, const BodyKinematics<S>& p) {
+          const Body<S>& b = model.body[i];
+          const Transform<S> X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+          if constexpr (kKeep) Xup[kKeep ? i : 0] = X;
+          const RneaForward<S> o =
+              rnea_forward_step(b, X, p.v, p.a, kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i], S(0));
+          w[i] = fext ? o.f - fext[i] : o.f;
+          if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = w[i], sI[i] = b.I;
+          return BodyKinematics<S>{o.v, o.a};
+        });
   } else {
     // a branch point's composite inertia starts as its rigid inertia (the forward
     // pass does this when there is one)
@@ -102,45 +115,45 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
       if (i < n && (model.flags[i] & kStacked)) sI[i] = model.body[i].I;
   }
 
-  // backward: composite inertias, the columns of M (and the bias forces)
-  Force<S> fcarry = Force<S>::zero();      // Xup^T f of body i + 1, when its parent is body i (kBias)
-  Inertia<S> Icarry = Inertia<S>::zero();  // its composite inertia in body i's frame
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = C - 1; i >= 0; --i) {
-    if (i >= n) continue;
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Force<S> fi = Force<S>::zero();
-    if constexpr (kBias) fi = (fl & kStacked) ? sf[i] : w[i];
-    Inertia<S> Ic = (fl & kStacked) ? sI[i] : b.I;
-    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) {
-      if constexpr (kBias) fi += fcarry;
-      Ic += Icarry;
-    }
-    if constexpr (kBias) x[i] -= joint_project(b, fi);  // tau_i - h_i
-    // the columns of i's descendants have reached its frame: M(k, i) = S_i^T F_k
-    for_descendants<kUnrolled>(model, i, [&](Index k) { M[tri(k, i)] = joint_project(b, w[k]); });
-    w[i] = crba_column_force(b, Ic);
-    M[tri(i, i)] = joint_project(b, w[i]);
-    if (armature) M[tri(i, i)] += armature[i];
-    if (fl & kParentIsBase) continue;
-    Transform<S> X;
-    if constexpr (kKeep) X = Xup[kKeep ? i : 0];
-    else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
-    Force<S> up = Force<S>::zero();
-    if constexpr (kBias) up = X.apply_transpose(fi);
-    const Inertia<S> Iup = crba_composite_step(X, Ic);
-    if (fl & kParentIsPrev) {
-      if constexpr (kBias) fcarry = up;
-      Icarry = Iup;
-    } else {
-      if constexpr (kBias) sf[b.parent] += up;
-      sI[b.parent] += Iup;
-    }
-    w[i] = crba_column_step(X, w[i]);
-    for_descendants<kUnrolled>(model, i, [&](Index k) { w[k] = crba_column_step(X, w[k]); });
-  }
+  // backward: composite inertias, the columns of M (and the bias forces); body i
+  // hands its parent Xup^T f_i (kBias) and Xup^T Ic_i Xup (JsiCarry)
+  backward_pass<kUnrolled, S, C, JsiCarry<S>>(
+      model, n,
+      [&](Index i, int fl) {
+        JsiCarry<S> t{Force<S>::zero(), (fl & kStacked) ? sI[i] : model.body[i].I};
+        if constexpr (kBias) t.f = (fl & kStacked) ? sf[i] : w[i];
+        return t;
+      },
+      [&](Index i, int, const JsiCarry<S>& t) {
+        const Body<S>& b = model.body[i];
+        if constexpr (kBias) x[i] -= joint_project(b, t.f);  // tau_i - h_i
+        // the columns of i's descendants have reached its frame: M(k, i) = S_i^T F_k
+        for_descendants<kUnrolled>(model, i, [&](Index k) { M[tri(k, i)] = joint_project(b, w[k]); });
+        w[i] = crba_column_force(b, t.I);
+        M[tri(i, i)] = joint_project(b, w[i]);
+        if (armature) M[tri(i, i)] += armature[i];
+        return true;
+      },
+      [&](Index i, const JsiCarry<S>& t, auto&& hand_off) {
+        const Body<S>& b = model.body[i];
+        Transform<S> X;
+        if constexpr (kKeep) X = Xup[kKeep ? i : 0];
+        else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+        JsiCarry<S> up{Force<S>::zero(), Inertia<S>::zero()};
+        if constexpr (kBias) up.f = X.apply_transpose(t.f);
+        up.I = crba_composite_step(X, t.I);
+        hand_off(up);
+        // then the columns of body i's subtree move on to its parent's frame
+        w[i] = crba_column_step(X, w[i]);
+        for_descendants<kUnrolled>(model, i, [&](Index k) { w[k] = crba_column_step(X, w[k]); });
+      },
+      [&](Index i, int, const JsiCarry<S>& up) {
+        const Index p = model.body[i].parent;
+        if constexpr (kBias) sf[p] += up.f;
+        sI[p] += up.I;
+      });
 }
+#pragma nv_diagnostic pop
 
 }  // namespace fd_detail
 

@@ -2,6 +2,8 @@
 // (rnea_instance, crba_instance / fd_jsi_instance, aba_instance).
 #pragma once
 
+#include <type_traits>
+
 #include "scandyn/build_config.hpp"
 #include "scandyn/instance/thread_model.hpp"
 
@@ -86,6 +88,16 @@ __host__ __device__ __forceinline__ void forward_pass(const ThreadModelParams<S,
   }
 }
 
+// How backward_pass ended: through every body (complete), or stopped at body `at`
+// by step. (A flag, not just `at` >= 0: the caller's early return then branches on
+// a constant per exit, and the compiler keeps the stopped exit apart from the code
+// that follows a complete pass, as a hand-written loop's `return i` does; with the
+// index alone aba_instance's double tree kernel took 242 registers against 240.)
+struct PassEnd {
+  bool complete;
+  Index at;  // the body at which step returned false (when not complete)
+};
+
 // Leaves to root: for each body i from the last,
 //   t = own(i, flags_i)              its own value (or its stack entry / slot, into
 //                                    which its branch children have gone already)
@@ -98,10 +110,18 @@ __host__ __device__ __forceinline__ void forward_pass(const ThreadModelParams<S,
 // A parent thus receives its children in descending order, as in the serial
 // reference: branch children (higher-numbered) first, body i + 1 last. T needs
 // += and value-initialises to zero (the carry before any body sets it). Returns
-// -1, or the body at which step returned false.
+// whether the pass went through every body, else the body at which step returned
+// false (PassEnd).
+//
+// lift may instead take a third argument, hand_off, and call hand_off(up) itself,
+// once: its work after that (which needs what it computed for up, a transform)
+// then runs after the hand-off, as in a hand-written loop, in registers that up no
+// longer holds (jsi_passes moves its columns on so; work ahead of the hand-off
+// costs registers).
 template <bool kUnrolled, class S, int C, class T, class Own, class Step, class Lift, class ToBranchParent>
-__host__ __device__ __forceinline__ Index backward_pass(const ThreadModelParams<S, C>& model, Index n, Own&& own,
-                                                        Step&& step, Lift&& lift, ToBranchParent&& to_branch_parent) {
+__host__ __device__ __forceinline__ PassEnd backward_pass(const ThreadModelParams<S, C>& model, Index n, Own&& own,
+                                                          Step&& step, Lift&& lift,
+                                                          ToBranchParent&& to_branch_parent) {
   T carry{};  // body i + 1's contribution, when its parent is body i
 #pragma unroll(kUnrolled ? C : 1)
   for (Index i = C - 1; i >= 0; --i) {
@@ -109,13 +129,16 @@ __host__ __device__ __forceinline__ Index backward_pass(const ThreadModelParams<
     const int fl = model.flags[i];
     T t = own(i, fl);
     if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) t += carry;
-    if (!step(i, fl, t)) return i;
+    if (!step(i, fl, t)) return PassEnd{false, i};
     if (fl & kParentIsBase) continue;
-    const T up = lift(i, t);
-    if (fl & kParentIsPrev) carry = up;
-    else to_branch_parent(i, fl, up);
+    auto hand_off = [&](const T& up) {
+      if (fl & kParentIsPrev) carry = up;
+      else to_branch_parent(i, fl, up);
+    };
+    if constexpr (std::is_invocable_v<Lift&, Index, const T&>) hand_off(lift(i, t));
+    else lift(i, t, hand_off);
   }
-  return -1;
+  return PassEnd{true, -1};
 }
 #endif  // __CUDACC__
 
