@@ -96,7 +96,7 @@ TEST(CudaFdModel, PivotFailuresOnTheHost) {
   BatchStatus s;
   EXPECT_TRUE(s.ok());
   EXPECT_EQ(s.message(), "");
-  s.failed = 1, s.first_instance = 3, s.first_dof = 6;
+  s.record(3, 6, pivot_failure(FdMethod::Jsi));
   EXPECT_EQ(s.message(), "instance 3: mass matrix pivot at DoF 6 is not positive");
   s.failed = 2;
   EXPECT_EQ(s.message(), "instance 3: mass matrix pivot at DoF 6 is not positive (and 1 more instance)");
