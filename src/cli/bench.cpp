@@ -245,7 +245,7 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
     t.max_rel_err = std::isnan(e) || std::isnan(t.max_rel_err) ? NAN : std::max(t.max_rel_err, e);
   }
   if (!s.status().ok() || !ref.status().ok())
-    throw DataError(scene.path + ": " + (s.status().ok() ? ref.status() : s.status()).message());
+    throw DataError(scene.path + ": " + sim::failure_message(s.status().ok() ? ref.status() : s.status()));
   // timing: whole steps of all instances, synchronised after each round
   s.step();
   s.synchronize();

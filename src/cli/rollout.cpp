@@ -133,10 +133,10 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     sim.step();
     if (s % every == 0 || s == steps) {
       record(s);
-      const sim::SimStatus st = sim.status();
+      const BatchStatus st = sim.status();
       if (!st.ok()) {
         progress.finish();
-        throw DataError(scene.path + ": step " + std::to_string(s) + ": " + st.message());
+        throw DataError(scene.path + ": step " + std::to_string(s) + ": " + sim::failure_message(st));
       }
     }
     progress.update(s);
