@@ -312,7 +312,8 @@ class CpuEngineStep final : public CpuSimState<S> {
 
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
-  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit && setup.batch < threads &&
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+         static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          choose_fd_method(backend, setup.model) == FdMethod::Parallel;
 }
 

@@ -270,14 +270,7 @@ int run_bench_step(const Args& args) {
     throw DataError(e.what());
   }
   if (args.has("instances")) scene.instances = static_cast<Index>(parse_instances(args.required("instances")));
-  BackendKind backend = scene.backend;
-  if (args.has("backend")) {
-    try {
-      backend = parse_backend(args.required("backend"));
-    } catch (const BackendError& e) {
-      throw UsageError(e.what());
-    }
-  }
+  const BackendKind backend = scene_backend(scene, args);
   if (args.has("precision"))
     scene.precision = parse_cli_precision(args);
   const Timing t = scene.precision == Precision::Float ? time_steps<float>(scene, backend, min_time)

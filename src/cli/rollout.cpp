@@ -161,14 +161,7 @@ int run_rollout(const Args& args) {
   } catch (const sim::SceneError& e) {
     throw DataError(e.what());
   }
-  BackendKind backend = scene.backend;
-  if (args.has("backend")) {
-    try {
-      backend = parse_backend(args.required("backend"));
-    } catch (const BackendError& e) {
-      throw UsageError(e.what());
-    }
-  }
+  const BackendKind backend = scene_backend(scene, args);
   return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out)
                                                   : rollout<double>(scene, backend, steps, every, out);
 }

@@ -61,13 +61,25 @@ struct Scene {
   Integrator integrator = Integrator::Euler;
   double dt = 1e-3;                   // time step (s)
   Precision precision = Precision::Double;
-  BackendKind backend = BackendKind::Serial;
+  BackendKind backend = BackendKind::Serial;  // "auto": resolved when the scene is read (auto_backend)
+  bool backend_auto = false;          // the scene said "backend": "auto"
+  std::string backend_note;           // auto: why not cuda (auto_backend's why), "" when cuda was chosen
   int threads = 0;                    // OpenMP threads, 0: all
   Index instances = 1;                // B
   InitialState initial;
 
   Index nv() const { return model.nv(); }
 };
+
+// The backend "backend": "auto" stands for on this machine: cuda when it is built
+// and a device is usable (backend_unusable(Cuda) is ""), else openmp (serial in a
+// build without OpenMP). why, when not null, gets "" for cuda, else the reasons,
+// e.g. "cuda: no usable CUDA device: ...".
+BackendKind auto_backend(std::string* why = nullptr);
+
+// The line a program prints for a scene whose backend was "auto", e.g.
+// "scene backend auto: openmp (cuda: no usable CUDA device: ...)"; "" otherwise.
+std::string backend_choice(const Scene& scene);
 
 // Reads and validates a scene file. Relative model paths are looked up, in order, in
 // the scene file's directory, in $SCANDYN_MODELS_DIR, and in ../../shared/models
