@@ -52,11 +52,12 @@ __global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, con
   tau_out[k] = effect_forces<E>(t, coef[i], qs[k], qds[k], S(0));
 }
 
-// euler: euler_update where the instance's forward dynamics succeeded; failures
-// recorded once per instance (by the DoF-0 entries)
-template <class S>
-__global__ void euler_update_kernel(S* q, S* qd, const S* qdd, const int* failed, S dt, Index nv, Index B,
-                                    StepStatus* status) {
+// The end of a step: where the instance's forward dynamics succeeded (failed[b] <
+// 0; rk4: in every stage), euler_update with qdd = x, or rk4_finish with the sums
+// (x, y); failures recorded once per instance (by the DoF-0 entries).
+template <class S, bool kRk4>
+__global__ void finish_kernel(S* q, S* qd, const S* x, const S* y, const int* failed, S dt, Index nv, Index B,
+                              StepStatus* status) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= static_cast<long long>(nv) * B) return;
   const Index b = static_cast<Index>(k % B);
@@ -64,7 +65,8 @@ __global__ void euler_update_kernel(S* q, S* qd, const S* qdd, const int* failed
     if (k < B) record_step_failure(status, b, failed[b]);
     return;
   }
-  euler_update(dt, qdd[k], q[k], qd[k]);
+  if constexpr (kRk4) rk4_finish(dt, x[k], y[k], q[k], qd[k]);
+  else euler_update(dt, x[k], q[k], qd[k]);
 }
 
 // rk4, before the stages: rk4_begin, no failure yet
@@ -85,20 +87,6 @@ __global__ void rk4_stage_kernel(const S* q, const S* qd, S* qs, S* qds, const S
   if (k >= static_cast<long long>(nv) * B) return;
   if (k < B && failed[k] >= 0 && bad[k] < 0) bad[k] = failed[k];
   rk4_stage(s, dt, q[k], qd[k], qdd[k], qs[k], qds[k], aq[k], aqd[k]);
-}
-
-// rk4, after the stages: rk4_finish where no stage failed
-template <class S>
-__global__ void rk4_final_kernel(S* q, S* qd, const S* aq, const S* aqd, const int* bad, S dt, Index nv, Index B,
-                                 StepStatus* status) {
-  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (k >= static_cast<long long>(nv) * B) return;
-  const Index b = static_cast<Index>(k % B);
-  if (bad[b] >= 0) {
-    if (k < B) record_step_failure(status, b, bad[b]);
-    return;
-  }
-  rk4_finish(dt, aq[k], aqd[k], q[k], qd[k]);
 }
 
 // reset: rows (count x nv, row r for instance idx[r]) into the SoA state
@@ -238,7 +226,8 @@ class CudaSimBackend final : public SimBackend<S> {
     };
     if (setup_.integrator == Integrator::Euler) {
       forces();
-      euler_update_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, failed_, setup_.dt, nv, B, status_);
+      finish_kernel<S, false><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, nullptr, failed_, setup_.dt, nv, B,
+                                                                      status_);
     } else {
       rk4_init_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, aq_, aqd_, bad_, nv, B);
       for (int s = 0; s < 4; ++s) {
@@ -246,7 +235,7 @@ class CudaSimBackend final : public SimBackend<S> {
         rk4_stage_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, qdd_, aq_, aqd_, failed_, bad_,
                                                                    s, setup_.dt, nv, B);
       }
-      rk4_final_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
+      finish_kernel<S, true><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
     }
     check(cudaGetLastError(), "launching the simulator's integration kernels");
   }

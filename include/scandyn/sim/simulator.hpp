@@ -37,9 +37,10 @@
 //           parallel chain forward dynamics (make_forward_dynamics with
 //           FdMethod::Parallel, scans across links on all threads), for what
 //           choose_fd_method(OpenMP, model) runs by the parallel method (unbranched
-//           chains from the base of >= 4096 links) when there are fewer instances
-//           than threads (else every thread has whole instances to step) and the
-//           integrator is euler or rk4 (cpu_fallback/simulator_step.cpp);
+//           chains from the base of >= 4096 links) with at least 16 threads per
+//           instance (cpu::kEngineThreadsPerInstance: with fewer, threads stepping
+//           whole instances by the ABA are faster; measured in docs/scenes.md) and
+//           euler or rk4 (cpu_fallback/simulator_step.hpp);
 //   cuda    models of up to 64 DoF: one fused kernel per step, one thread per
 //           instance: step_instance over the articulated-body algorithm
 //           (aba_instance), state in registers / per-thread memory (strategy
