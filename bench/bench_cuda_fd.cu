@@ -63,7 +63,7 @@
 // SCANDYN_BENCH_VARIANTS=0 (CMake option SCANDYN_BENCH_VARIANTS=OFF, what
 // scripts/test.sh uses on machines without a GPU, where this program is compiled but
 // never run) compiles only the variant rows whose kernel is the engine's own choice
-// (FdKernelChoice in kernels/fd_instances.cu: fd_jsi_thread-cap128 in float,
+// (FdKernelChoice in kernels/forward_dynamics.cu: fd_jsi_thread-cap128 in float,
 // fd_jsi_thread-rolled in double, the fd_aba_thread-<variant> rows marked `engine`),
 // so that every kernel template here still compiles, without the alternatives
 // (tuning experiments, ~2.5 s of nvcc each).
@@ -101,7 +101,7 @@ using bench::uniform;
 
 namespace {
 
-// The engine's kernel (kernels/fd_instances.cu) with other choices of
+// The engine's kernel (kernels/forward_dynamics.cu) with other choices of
 // fd_jsi_instance's kKeepXup, kUnrolled, and of the blocks per SM that ptxas plans
 // registers for (kMinBlocks = 1: up to 255 registers; the engine's: FdKernelChoice).
 template <class S, int C, bool kKeepXup, bool kUnrolled, int kMinBlocks>
@@ -118,7 +118,7 @@ __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
 
 // An ABA kernel: aba_instance with kSlots branch slots, loops unrolled or not, at
 // most the registers for kMinBlocks blocks per SM, transforms kept or not, kTrig's
-// sin/cos. The engine's kernels (kernels/fd_instances.cu) are some of these.
+// sin/cos. The engine's kernels (kernels/forward_dynamics.cu) are some of these.
 template <class S, int C, int kSlots, bool kUnrolled, int kMinBlocks, bool kKeepXup, Trig kTrig>
 __global__ void __launch_bounds__(cuda::kFdInstancesBlock, kMinBlocks)
     aba_variant_kernel(const __grid_constant__ cuda::ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
@@ -331,7 +331,7 @@ AbaRow aba_row(const char* model, const char* variant, bool engine = false) {
           }};
 }
 
-// The rows: for each robot and precision the engine's kernel (kernels/fd_instances.cu,
+// The rows: for each robot and precision the engine's kernel (kernels/forward_dynamics.cu,
 // FdKernelChoice) and the alternatives to it. Capacities: iiwa 8, hyq 16, atlas 32;
 // branch slots: iiwa and hyq none (chains from the base), atlas 1.
 const std::vector<AbaRow>& aba_rows() {

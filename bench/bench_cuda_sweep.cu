@@ -274,7 +274,7 @@ int main(int argc, char** argv) {
                                   : spec;
     for (int prec = 0; prec < 2; ++prec) {
       const std::string p = prec ? "float/" : "double/";
-      const IdStrategy gs = cuda::choose_cuda_strategy(nv, B);
+      const IdStrategy gs = choose_id_strategy(BackendKind::Cuda, nv, B, 1);
       const std::string gname =
           std::string("id_") + (gs == IdStrategy::ScanLocal ? "scan-local/" : "thread/") + p + label + "/cuda";
       auto* g = prec ? benchmark::RegisterBenchmark(gname.c_str(), [=](benchmark::State& st) { bench_cuda<float>(st, md, B); })

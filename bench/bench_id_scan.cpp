@@ -12,7 +12,7 @@
 // Benchmark names follow scripts/bench_results.py: id_<strategy>/<precision>/<model>/<backend>.
 //
 // Flags (before Google Benchmark's): --quick (ropes to 10^4, one curtain, iiwa to 10^5),
-// --max-rope=N, --models-dir=DIR (default $SCANDYN_MODELS_DIR or ../shared/models).
+// --max-rope=N, --models-dir=DIR (default $SCANDYN_MODELS_DIR or the shipped models/).
 #include <benchmark/benchmark.h>
 
 #include <cmath>
@@ -127,8 +127,8 @@ void add(const std::string& model_label, const Model* m, BackendKind backend, Id
 int main(int argc, char** argv) {
   bool quick = false;
   long max_rope = 1000000;
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  std::string models_dir = env && *env ? env : "../shared/models";
+  const std::vector<std::string> dirs = model_search_dirs();  // $SCANDYN_MODELS_DIR, the shipped models
+  std::string models_dir = dirs.empty() ? "models" : dirs.front();
   std::vector<char*> rest;
   for (int i = 0; i < argc; ++i) {
     if (std::strcmp(argv[i], "--quick") == 0) quick = true;

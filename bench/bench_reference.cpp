@@ -6,7 +6,7 @@
 // max_rel_err (float against the double reference of the same algorithm; JSI
 // forward dynamics against double ABA).
 //
-// Models: $SCANDYN_MODELS_DIR (default ../shared/models) for the URDFs, or the list
+// Models: $SCANDYN_MODELS_DIR (default: the shipped models/) for the URDFs, or the list
 // given with --models=a.urdf,rope:1000 (before the Google Benchmark flags).
 #include <benchmark/benchmark.h>
 
@@ -115,9 +115,10 @@ void bench(benchmark::State& state, const Model& md, Algo a) {
   state.counters["max_rel_err"] = max_rel_err<S>(a, md, m, st);
 }
 
+// $SCANDYN_MODELS_DIR, else the shipped models (scandyn::model_search_dirs)
 std::string default_models_dir() {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  return env && *env ? env : "../shared/models";
+  const std::vector<std::string> dirs = scandyn::model_search_dirs();
+  return dirs.empty() ? "models" : dirs.front();
 }
 
 }  // namespace

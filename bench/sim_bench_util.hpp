@@ -10,13 +10,15 @@
 #include <vector>
 
 #include "scandyn/accuracy.hpp"
+#include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::bench {
 
+// $SCANDYN_MODELS_DIR, else the shipped models (model_search_dirs)
 inline std::string models_dir() {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  return env && *env ? env : "../shared/models";
+  const std::vector<std::string> dirs = model_search_dirs();
+  return dirs.empty() ? "models" : dirs.front();
 }
 
 // A model spec usable in a scene: generators as they are, robots by their file.

@@ -27,12 +27,6 @@ using detail::error_string;
 
 namespace {
 
-// A map that ignores its argument: x -> 0 x + b (segment heads and tails).
-template <class S>
-__device__ __forceinline__ Transform<S> zero_transform() {
-  return {Mat3<S>::zero(), Vec3<S>::zero()};
-}
-
 // ---- runs ---------------------------------------------------------------------------
 // Level l holds n bodies (its segments, concatenated) for each of B instances. The
 // bodies are cut into C chunks of P consecutive ones; run r = c B + b (instance
@@ -119,15 +113,19 @@ struct Level {
 
 // ---- scan elements ------------------------------------------------------------------
 
+// The elements are scandyn/scan/elements.hpp's (id_velocity_element,
+// id_acceleration_element); here only where a segment head's parent value comes
+// from: the base, or the stored values of a branch point of a lower level.
+
 // velocities: (Xup_i, S qd_i); a segment head (0, Xup_i v_parent + S qd_i)
 template <class S>
 __device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
                                             const Transform<S>& X) {
-  const Motion<S> sq = joint_motion(bd, L.in.qd.at(s.i, s.b));
-  if (!(s.role & kSegmentHead)) return {X, sq};
+  const MotionAffine<S> e = id_velocity_element(bd, X, L.in.qd.at(s.i, s.b));
+  if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.vb[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
-  return {zero_transform<S>(), X.apply(vp) + sq};
+  return fold_parent(e, vp);
 }
 
 // accelerations: (Xup_i, S qdd + v x S qd); a head folds in Xup_i a_parent (-g at the base)
@@ -135,20 +133,20 @@ template <class S>
 __device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typename Level<S>::Site& s,
                                                 const Body<S>& bd, const Transform<S>& X, const Motion<S>& v) {
   const S qd = L.in.qd.at(s.i, s.b);
-  const Motion<S> c = add_joint_motion(bd, cross_joint_motion(bd, v, qd), L.in.qdd.at(s.i, s.b));
-  if (!(s.role & kSegmentHead)) return {X, c};
+  const MotionAffine<S> e = id_acceleration_element(bd, X, v, qd, L.in.qdd.at(s.i, s.b));
+  if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> ap = p < 0 ? L.a0 : L.ab[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
-  return {zero_transform<S>(), X.apply(ap) + c};
+  return fold_parent(e, ap);
 }
 
 // forces, leaves to root: G -> B + Y^T G with G = F_{i+1}, Y = Xup_{i+1} (zero at a
-// segment's tail), B = f_i = I a + v x* I v - fext plus the forces of the branch
-// children (heads of higher levels, final when this level runs)
+// segment's tail), B = f_i = I a + v x* I v - fext (body_force) plus the forces of
+// the branch children (heads of higher levels, final when this level runs)
 template <class S>
 __device__ ForceAffine<S> force_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
                                         const Motion<S>& v, const Motion<S>& a) {
-  Force<S> f = bd.I * a + cross(v, bd.I * v);
+  Force<S> f = body_force(bd, v, a);
   if (L.in.fext) f -= L.in.fext[std::size_t(s.b) * L.nv + s.i];
   for (int k = L.branch_begin[s.i]; k < L.branch_begin[s.i + 1]; ++k) {
     const int c = L.branch_child[k];

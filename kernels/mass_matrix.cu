@@ -26,7 +26,7 @@ using detail::Staging;
 // ---- kernel and launch ---------------------------------------------------------
 
 // The kernel's compile-time choices for capacity C and precision S, those of the
-// JSI forward dynamics' kernel (FdKernelChoice in fd_instances.cu, measured there):
+// JSI forward dynamics' kernel (FdKernelChoice in forward_dynamics.cu, measured there):
 // float at capacity 8 unrolled, so that the packed M (36 scalars), the column
 // forces and q stay in registers, held to 128 registers (4 resident blocks);
 // double, and capacities 16..64, rolled, M and the forces in per-thread local

@@ -2,8 +2,8 @@
 //
 // The engines' compute() takes HOST views with any strides, copies them into one
 // device buffer, launches, and copies the outputs back. This header holds that
-// machinery once, for CudaInverseDynamics (id_instances.cu) and
-// CudaForwardDynamics (fd_instances.cu):
+// machinery once, for CudaInverseDynamics (inverse_dynamics.cu) and
+// CudaForwardDynamics (forward_dynamics.cu):
 //   check(), error_string()   CUDA errors as BackendError;
 //   StagingBuffer             the device, a non-blocking stream and one buffer,
 //                             with the "does not fit" message naming the bytes

@@ -137,7 +137,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--scandyn', required=True)
     ap.add_argument('--models', default=os.environ.get('SCANDYN_MODELS_DIR',
-                                                       os.path.join(os.path.dirname(__file__), '..', '..', 'shared', 'models')))
+                                                       os.path.join(os.path.dirname(__file__), '..', 'models')))
     ap.add_argument('--random', type=int, default=20, help='number of random URDF trees')
     ap.add_argument('--states', type=int, default=5)
     ap.add_argument('--tol', type=float, default=1e-9)

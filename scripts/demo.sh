@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # scripts/demo.sh: the main job. Installs what is missing, builds the `scandyn`
 # command (Release, without tests and benchmarks) and runs it on the built-in
-# defaults: the KUKA iiwa arm (../shared/models/iiwa.urdf, or $SCANDYN_MODELS_DIR)
+# defaults: the KUKA iiwa arm (the shipped models/iiwa.urdf, or $SCANDYN_MODELS_DIR)
 # and a generated 1000-link rope.
 #   1. `scandyn info`  the DoF order
 #   2. `scandyn eval`  inverse dynamics, forward dynamics and bias forces of 5
@@ -17,7 +17,7 @@ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DSCANDYN_TESTS=OFF -
 cmake --build "$build" --target scandyn_cli
 scandyn=$build/scandyn
 
-models=${SCANDYN_MODELS_DIR:-../shared/models}
+models=${SCANDYN_MODELS_DIR:-models}
 arm=$models/iiwa.urdf
 if [[ ! -f "$arm" ]]; then
   echo "demo: $arm not found (set SCANDYN_MODELS_DIR); using the generated chain:7 instead"

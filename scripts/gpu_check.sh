@@ -4,7 +4,7 @@
 #   scripts/gpu_check.sh [OUTDIR]        (default: $OUT)
 #
 # Run from anywhere on the GPU machine after scripts/prepare_device.sh was run on
-# a networked machine and .deps/root + .models travelled with the tree. Steps:
+# a networked machine and .deps/root travelled with the tree. Steps:
 #   1. environment report (GPU, driver, nvcc, compilers)          -> env.txt
 #   2. configure: Release, CUDA on (sm_90 unless CMAKE_CUDA_ARCHITECTURES is set
 #      in the environment), -march=native, every kernel variant
@@ -64,8 +64,7 @@ fi
 export LD_LIBRARY_PATH=$libdir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 export CMAKE_PREFIX_PATH=$deps/usr${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}
 
-[[ -d "$repo/.models" ]] || die "$repo/.models is missing: run scripts/prepare_device.sh and bring .models along"
-export SCANDYN_MODELS_DIR=$repo/.models
+export SCANDYN_MODELS_DIR=$repo/models  # the shipped robot models
 
 # CUDA tools: PATH first, then the usual toolkit location
 if ! command -v nvcc >/dev/null 2>&1 && [[ -x /usr/local/cuda/bin/nvcc ]]; then

@@ -5,7 +5,6 @@
 #   .deps/debs/   the .deb files of urdfdom and its dependencies (apt-get download)
 #   .deps/root/   the same packages unpacked (dpkg -x); gpu_check.sh points
 #                 CMAKE_PREFIX_PATH at .deps/root/usr and LD_LIBRARY_PATH at its libs
-#   .models/      a copy of the robot models (../shared/models)
 # All three are git-ignored; they travel to the GPU machine with the working tree.
 #
 # The packages are the dependency closure of liburdfdom-dev (urdfdom libraries
@@ -19,8 +18,6 @@
 # (/usr/lib/<arch>/libtinyxml.so); the unpacked copy is patched to name it
 # relative to its own prefix, so the unpacked tree works wherever it lies.
 #
-# Environment: SCANDYN_SHARED_DIR (default ../shared) or SCANDYN_MODELS_DIR for
-# the models' source.
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -118,12 +115,5 @@ done
   die "urdfdom_headers CMake config missing after unpacking"
 note "unpacked into .deps/root (libraries in ${multiarch#"$repo"/})"
 
-# ---- robot models ------------------------------------------------------------
-models_src=${SCANDYN_MODELS_DIR:-${SCANDYN_SHARED_DIR:-../shared}/models}
-[[ -d "$models_src" ]] || die "robot models not found at $models_src (set SCANDYN_MODELS_DIR)"
-rm -rf .models
-cp -r "$models_src" .models
-note "copied $(find .models -name '*.urdf' | wc -l) URDF models from $models_src into .models/"
-
-du -sh .deps/debs .deps/root .models | sed 's/^/prepare_device.sh: size /'
+du -sh .deps/debs .deps/root | sed 's/^/prepare_device.sh: size /'
 note "done; on the GPU machine run: scripts/gpu_check.sh \"\$OUT\""

@@ -19,7 +19,7 @@
 #
 # Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
-# SCANDYN_MODELS_DIR (robot models; default ../shared/models beside the checkout),
+# SCANDYN_MODELS_DIR (robot models; default the shipped models/),
 # SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_PYTHON=1 (no .venv: the Pinocchio cross-check
 # is skipped), SCANDYN_SKIP_ASAN=1.
 set -euo pipefail
@@ -70,7 +70,7 @@ wait_python() {
     echo "test.sh: warning: .venv setup failed; pinocchio_crosscheck will be skipped" >&2
 }
 
-models=${SCANDYN_MODELS_DIR:-../shared/models}
+models=${SCANDYN_MODELS_DIR:-models}
 if [[ ! -d "$models" ]]; then
   echo "test.sh: warning: robot models not found at $models" \
        "(set SCANDYN_MODELS_DIR); tests that load them will fail" >&2

@@ -52,7 +52,7 @@ double device_error(const Model& model, Index B, FdMethod algo, const Case& c,
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
   cuda::CudaForwardDynamics<S> fd(model.cast<S>(), o, algo);
-  EXPECT_EQ(fd.algorithm(), algo);
+  EXPECT_EQ(fd.method(), algo);
   fd.record_timeline(timeline != nullptr);
   const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau);
   std::vector<Force<S>> fext;

@@ -103,10 +103,8 @@ TEST(CudaFdAbaModel, PivotFailuresOnTheHost) {
   host_aba_failures<float>();
   // the message names the ABA's pivot, D_i = S_i^T IA_i S_i
   BatchStatus s;
-  EXPECT_EQ(s.algorithm, FdMethod::Jsi);
-  s.algorithm = FdMethod::Aba;
   EXPECT_EQ(s.message(), "");
-  s.failed = 1, s.first_instance = 3, s.first_dof = 6;
+  s.record(3, 6, pivot_failure(FdMethod::Aba));
   EXPECT_EQ(s.message(), "instance 3: articulated inertia pivot at DoF 6 is not positive");
   s.failed = 42;
   EXPECT_EQ(s.message(), "instance 3: articulated inertia pivot at DoF 6 is not positive (and 41 more instances)");

@@ -76,7 +76,7 @@ TEST(CudaFdErrors, WithoutADevice) {
   } else {
     cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o);
     EXPECT_EQ(e.strategy(), "aba_thread");  // Auto: ABA up to 64 DoF
-    EXPECT_EQ(e.backend(), "cuda");
+    EXPECT_EQ(e.backend(), BackendKind::Cuda);
   }
 }
 
@@ -163,9 +163,9 @@ TEST(CudaFdAbaErrors, WithoutADevice) {
   if (test::no_device_reason().empty()) {
     cuda::CudaForwardDynamics<float> e(load_model("chain:3").cast<float>(), o, FdMethod::Aba);
     EXPECT_EQ(e.strategy(), "aba_thread");
-    EXPECT_EQ(e.algorithm(), FdMethod::Aba);
+    EXPECT_EQ(e.method(), FdMethod::Aba);
     cuda::CudaForwardDynamics<float> j(load_model("chain:3").cast<float>(), o);
-    EXPECT_EQ(j.algorithm(), FdMethod::Aba);  // Auto: ABA up to 64 DoF
+    EXPECT_EQ(j.method(), FdMethod::Aba);  // Auto: ABA up to 64 DoF
   }
 }
 
@@ -492,7 +492,7 @@ TEST(CudaFdAba, PivotFailuresReported) {
   EXPECT_EQ(st.first_dof, 4);
   EXPECT_EQ(std::count(failed.begin(), failed.end(), 4), 40);
   EXPECT_EQ(std::count(qdd.begin(), qdd.end(), kSentinel), 5 * 40) << "a failed instance's qdd was written";
-  EXPECT_EQ(st.algorithm, FdMethod::Aba);
+  EXPECT_EQ(st.failure, Failure::ArticulatedPivot);
   EXPECT_EQ(st.message(), "instance 0: articulated inertia pivot at DoF 4 is not positive (and 39 more instances)");
 }
 

@@ -109,9 +109,9 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   o.max_batch = B;
   o.strategy = strategy;
   auto engine = make_inverse_dynamics<S>(m, o);
-  const IdStrategy used = strategy == IdStrategy::Auto ? cuda::choose_cuda_strategy(nv, B) : strategy;
+  const IdStrategy used = strategy == IdStrategy::Auto ? choose_id_strategy(BackendKind::Cuda, nv, B, 1) : strategy;
   EXPECT_EQ(engine->strategy(), used == IdStrategy::ScanLocal ? "scan-local" : "thread");
-  EXPECT_EQ(engine->backend(), "cuda");
+  EXPECT_EQ(engine->backend(), BackendKind::Cuda);
   const IdBatchIn<S> in{{q.data() + lq.base, B, lq.ds, lq.bs},
                         {qd.data() + lqd.base, B, lqd.ds, lqd.bs},
                         {qdd.data() + lqdd.base, B, lqdd.ds, lqdd.bs},
@@ -283,8 +283,8 @@ TEST(CudaIdErrors, WithoutADevice) {
     EXPECT_NE(std::string(e.what()).find("scan-world"), std::string::npos) << e.what();
   }
   // auto: a thread per instance up to 64 DoF, the link scans beyond
-  EXPECT_EQ(cuda::choose_cuda_strategy(64, 1000000), IdStrategy::Recursion);
-  EXPECT_EQ(cuda::choose_cuda_strategy(65, 1), IdStrategy::ScanLocal);
+  EXPECT_EQ(choose_id_strategy(BackendKind::Cuda, 64, 1000000, 1), IdStrategy::Recursion);
+  EXPECT_EQ(choose_id_strategy(BackendKind::Cuda, 65, 1, 1), IdStrategy::ScanLocal);
   o.strategy = IdStrategy::Recursion;
   o.max_batch = -1;
   EXPECT_THROW(make_inverse_dynamics<double>(load_model("chain:3"), o), BackendError);

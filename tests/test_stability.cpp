@@ -293,28 +293,37 @@ TEST(StabilityHard, HugeVelocity) {
 
 // ---- JSI with the fallback to ABA --------------------------------------------------
 
-// Float JSI fails its factorisation on rope:1000; with the fallback allowed the
-// instance is recomputed by aba (bit for bit the float aba) and reported as such;
+// Float JSI fails its factorisation on rope:1000; with the engine's aba fallback the
+// instance is recomputed by aba (bit for bit the float aba) and counted as such;
 // without it the failure is returned and qdd stays unwritten.
 TEST(StabilityJsiFallback, FloatLongRope) {
   const Problem p = make_problem("rope:1000", rope(1000), 3);
   const ModelTpl<float> m = p.model.cast<float>();
+  const Index nv = m.nv();
   const auto q = test::cast_vector<float>(p.q), qd = test::cast_vector<float>(p.qd), tau = test::cast_vector<float>(p.u);
   DataTpl<float> data(m, true);
   std::vector<float> qdd(q.size(), NAN), qdd_aba(q.size(), NAN);
   ASSERT_TRUE(aba(m, data, q.data(), qd.data(), tau.data(), qdd_aba.data()).ok());
-
-  const FdFallbackStatus off = fd_jsi_or_aba(m, data, q.data(), qd.data(), tau.data(), qdd.data(), false);
-  EXPECT_FALSE(off.ok());
-  EXPECT_FALSE(off.fell_back);
-  EXPECT_GE(off.jsi_failed_dof, 0);
-  EXPECT_EQ(off.status.failed_dof, off.jsi_failed_dof);
+  const Status jsi = fd_jsi(m, data, q.data(), qd.data(), tau.data(), qdd.data());
+  ASSERT_FALSE(jsi.ok());
   for (float x : qdd) ASSERT_TRUE(std::isnan(x));
 
-  const FdFallbackStatus on = fd_jsi_or_aba(m, data, q.data(), qd.data(), tau.data(), qdd.data(), true);
-  EXPECT_TRUE(on.ok());
-  EXPECT_TRUE(on.fell_back);
-  EXPECT_EQ(on.jsi_failed_dof, off.jsi_failed_dof);
+  using V = BatchView<const float>;
+  const FdBatchIn<float> in{V::soa(q.data(), nv, 1), V::soa(qd.data(), nv, 1), V::soa(tau.data(), nv, 1)};
+  BackendOptions o;
+  o.fd_method = FdMethod::Jsi;
+  auto off = make_forward_dynamics<float>(m, o);
+  const BatchStatus st_off = off->compute(in, BatchView<float>::soa(qdd.data(), nv, 1));
+  EXPECT_EQ(st_off.failed, 1);
+  EXPECT_EQ(st_off.first_dof, jsi.failed_dof);
+  EXPECT_EQ(st_off.fell_back, 0);
+  for (float x : qdd) ASSERT_TRUE(std::isnan(x));
+
+  o.fallback_aba = true;
+  auto on = make_forward_dynamics<float>(m, o);
+  const BatchStatus st_on = on->compute(in, BatchView<float>::soa(qdd.data(), nv, 1));
+  EXPECT_TRUE(st_on.ok());
+  EXPECT_EQ(st_on.fell_back, 1);
   EXPECT_EQ(qdd, qdd_aba);
   EXPECT_LT(rel_err(qdd.data(), p.ref_fd.data(), qdd.size()), 1e-5);  // float aba, measured 6.2e-07
 }
@@ -322,12 +331,18 @@ TEST(StabilityJsiFallback, FloatLongRope) {
 // Where JSI succeeds the fallback changes nothing: the result is fd_jsi's.
 TEST(StabilityJsiFallback, NoFallbackWhenJsiSucceeds) {
   const Problem p = make_problem("rope:100", rope(100), 3);
+  const Index nv = p.model.nv();
   Data data(p.model, true);
   std::vector<double> qdd(p.q.size(), NAN), qdd_jsi(p.q.size(), NAN);
   ASSERT_TRUE(fd_jsi(p.model, data, p.q.data(), p.qd.data(), p.u.data(), qdd_jsi.data()).ok());
-  const FdFallbackStatus st = fd_jsi_or_aba(p.model, data, p.q.data(), p.qd.data(), p.u.data(), qdd.data(), true);
+  BackendOptions o;
+  o.fd_method = FdMethod::Jsi;
+  o.fallback_aba = true;
+  using V = BatchView<const double>;
+  const BatchStatus st = make_forward_dynamics<double>(p.model, o)->compute(
+      {V::soa(p.q.data(), nv, 1), V::soa(p.qd.data(), nv, 1), V::soa(p.u.data(), nv, 1)},
+      BatchView<double>::soa(qdd.data(), nv, 1));
   EXPECT_TRUE(st.ok());
-  EXPECT_FALSE(st.fell_back);
-  EXPECT_EQ(st.jsi_failed_dof, -1);
+  EXPECT_EQ(st.fell_back, 0);
   EXPECT_EQ(qdd, qdd_jsi);
 }

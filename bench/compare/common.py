@@ -38,10 +38,7 @@ def models_dir():
     d = os.environ.get('SCANDYN_MODELS_DIR')
     if d:
         return d
-    for c in (os.path.join(REPO, '.models'), os.path.join(REPO, '..', 'shared', 'models')):
-        if os.path.isdir(c):
-            return os.path.abspath(c)
-    return os.path.join(REPO, '..', 'shared', 'models')
+    return os.path.join(REPO, 'models')  # the shipped robot models
 
 
 _T0 = time.time()

@@ -37,7 +37,7 @@ jobs=${SCANDYN_JOBS:-2}
 build=${SCANDYN_COMPARE_BUILD:-build-compare}
 
 if [[ -z "${SCANDYN_MODELS_DIR:-}" ]]; then
-  for d in "$repo/.models" "$repo/../shared/models"; do
+  for d in "$repo/models"; do
     [[ -d "$d" ]] && { export SCANDYN_MODELS_DIR=$(cd "$d" && pwd); break; }
   done
 fi

@@ -7,7 +7,7 @@
 #   bench/compare/fetch_wheels.sh [--with-warp]
 #
 # Default set (36 MiB, mujoco's wheel 25 of it; the GPU machine's working tree may carry
-# 64 MiB in all, .deps and .models take about 10):
+# 64 MiB in all, .deps takes about 10):
 #   mujoco 3.17.0, mujoco-mjx 3.17.0 (MJX, JAX implementation; JAX 0.11.2 with CUDA 13 is in
 #   the image), trimesh (imported by MJX), grid-rbd 0.6.0 and what it imports beyond the
 #   image (beautifulsoup4, soupsieve, platformdirs). mujoco's declared glfw and PyOpenGL are

@@ -5,7 +5,7 @@
 #
 # Offline machine: the peers come as wheels in .whl/ (bench/compare/fetch_wheels.sh fetches
 # them on a networked machine), installed with pip --no-index into /tmp/site; urdfdom and the
-# models as scripts/prepare_device.sh stages them (.deps/root, .models), as for gpu_check.sh.
+# models as scripts/prepare_device.sh stages them (.deps/root), as for gpu_check.sh; the robot models ship in models/.
 # Steps (each logged; the run stops itself at --deadline seconds, default 540, and every row
 # measured until then is in the CSV):
 #   1. environment (GPU, driver, nvcc, Python packages)               -> OUTDIR/env.txt
@@ -41,7 +41,7 @@ if ! command -v nvcc >/dev/null 2>&1 && [[ -x /usr/local/cuda/bin/nvcc ]]; then
   export PATH=/usr/local/cuda/bin:$PATH
 fi
 if [[ -z "${SCANDYN_MODELS_DIR:-}" ]]; then
-  for d in "$repo/.models" "$repo/../shared/models"; do
+  for d in "$repo/models"; do
     [[ -d "$d" ]] && { export SCANDYN_MODELS_DIR=$(cd "$d" && pwd); break; }
   done
 fi

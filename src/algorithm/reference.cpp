@@ -195,20 +195,6 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
   return st;
 }
 
-template <class S>
-FdFallbackStatus fd_jsi_or_aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
-                               const S* tau, S* qdd, bool allow_aba_fallback, const Force<S>* fext) {
-  FdFallbackStatus out;
-  out.status = fd_jsi(model, data, q, qd, tau, qdd, fext);
-  if (out.status.ok()) return out;
-  out.jsi_failed_dof = out.status.failed_dof;
-  if (!allow_aba_fallback) return out;
-  // JSI left qdd untouched: the articulated-body algorithm does not form M
-  out.status = aba(model, data, q, qd, tau, qdd, fext);
-  out.fell_back = true;
-  return out;
-}
-
 #define SCANDYN_INSTANTIATE(S)                                                                    \
   template struct DataTpl<S>;                                                                     \
   template void rnea(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,           \
@@ -220,8 +206,6 @@ FdFallbackStatus fd_jsi_or_aba(const ModelTpl<S>& model, DataTpl<S>& data, const
                       const Force<S>*, const S*);                                                 \
   template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
                          const Force<S>*, const S*);                                              \
-  template FdFallbackStatus fd_jsi_or_aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*,    \
-                                          const S*, S*, bool, const Force<S>*);                   \
   template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \
   template void ltl_solve(const ModelTpl<S>&, const DataTpl<S>&, const S*, S*);
 

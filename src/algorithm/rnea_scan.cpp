@@ -58,13 +58,6 @@ struct FoldPlus {
   }
 };
 
-// f = I a + v x* I v - fext, the net force on body i (body frame)
-template <class S>
-Force<S> body_force(const Body<S>& b, const Motion<S>& v, const Motion<S>& a, const Force<S>* fext, Index i) {
-  const Force<S> f = b.I * a + cross(v, b.I * v);
-  return fext ? f - fext[i] : f;
-}
-
 template <class S>
 void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, const S* qd, const S* qdd,
                      S* tau, const Force<S>* fext) {
@@ -74,7 +67,7 @@ void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
     ws.Xup[i] = joint_transform(m.bodies[i], q[i]);
-    ws.fwd[i] = {ws.Xup[i], joint_motion(m.bodies[i], qd[i])};
+    ws.fwd[i] = id_velocity_element(m.bodies[i], ws.Xup[i], qd[i]);
   }
   tree_prefix_scan(ws.plan, ws.fwd.data(), ws.carry_fwd.data(), ComposeMotionAffine{}, KnownMotionAffine{});
   // accelerations: x_i = Xup_i x_parent + S qdd + v x S qd, the base moving with -g
@@ -82,15 +75,14 @@ void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = m.bodies[i];
     ws.v[i] = ws.fwd[i].b;
-    Motion<S> c = add_joint_motion(b, cross_joint_motion(b, ws.v[i], qd[i]), qdd ? qdd[i] : S(0));
-    if (b.parent < 0) c += ws.Xup[i].apply(a0);
-    ws.fwd[i] = {ws.Xup[i], c};
+    const MotionAffine<S> e = id_acceleration_element(b, ws.Xup[i], ws.v[i], qd[i], qdd ? qdd[i] : S(0));
+    ws.fwd[i] = b.parent < 0 ? fold_parent(e, a0) : e;
   }
   tree_prefix_scan(ws.plan, ws.fwd.data(), ws.carry_fwd.data(), ComposeMotionAffine{}, KnownMotionAffine{});
   // wrenches: B_i = Xup_i^T (f_i + sum over children)
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
-    const Force<S> f = body_force(m.bodies[i], ws.v[i], ws.fwd[i].b, fext, i);
+    const Force<S> f = body_force(m.bodies[i], ws.v[i], ws.fwd[i].b, fext ? fext + i : nullptr);
     ws.bwd[i] = {ws.Xup[i], ws.Xup[i].apply_transpose(f)};
   }
   tree_suffix_scan(ws.plan, ws.bwd.data(), ws.carry_bwd.data(), ComposeForceAffine{}, KnownForceAffine{},
@@ -128,7 +120,7 @@ void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
     const Transform<S>& P = ws.P[i];
-    const Force<S> f = body_force(m.bodies[i], P.apply(ws.Vw[i]), P.apply(ws.Aw[i]), fext, i);
+    const Force<S> f = body_force(m.bodies[i], P.apply(ws.Vw[i]), P.apply(ws.Aw[i]), fext ? fext + i : nullptr);
     ws.Fw[i] = P.apply_transpose(f);
   }
   tree_suffix_scan(ws.plan, ws.Fw.data(), ws.carry_force.data(), Plus{}, Plus{}, FoldPlus{});

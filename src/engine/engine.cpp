@@ -180,10 +180,9 @@ void check_batch(const BatchView<const S>& q, const BatchView<S>& M, Index max_b
 // ---- Auto choices ---------------------------------------------------------------
 
 IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int threads) {
-#if SCANDYN_HAS_CUDA
-  if (backend == BackendKind::Cuda) return cuda::choose_cuda_strategy(nv, batch);
-#endif
-  (void)backend;
+  // CUDA: a GPU thread per instance (the recursion) up to kMaxThreadDofs DoF, the
+  // link scans beyond
+  if (backend == BackendKind::Cuda) return nv <= cuda::kMaxThreadDofs ? IdStrategy::Recursion : IdStrategy::ScanLocal;
   // Instances are independent: splitting them costs nothing. Scans over links pay
   // 1.5-3x the arithmetic of the recursion, so they only win when there are fewer
   // instances than threads and enough links to give every thread long runs: from

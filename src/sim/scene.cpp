@@ -202,15 +202,12 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   if (is_generator_spec(s.model_spec) || s.model_spec[0] == '/') {
     s.model_path = s.model_spec;
   } else {
-    std::vector<std::string> tried{base_dir + "/" + s.model_spec};
-    if (const char* env = std::getenv("SCANDYN_MODELS_DIR"); env && *env) tried.push_back(std::string(env) + "/" + s.model_spec);
-    tried.push_back(base_dir + "/../../shared/models/" + s.model_spec);
-    for (const auto& t : tried)
-      if (s.model_path.empty() && file_exists(t)) s.model_path = t;
+    const std::string found = find_model_file(s.model_spec, {base_dir});
+    if (file_exists(found)) s.model_path = found;
     if (s.model_path.empty()) {
-      std::string list;
-      for (const auto& t : tried) list += (list.empty() ? "" : ", ") + t;
-      r.fail("model", "'" + s.model_spec + "' not found (looked for " + list + ")");
+      std::string list = base_dir;
+      for (const auto& d : model_search_dirs()) list += ", " + d;
+      r.fail("model", "'" + s.model_spec + "' not found (looked in " + list + ")");
     }
   }
   try {

@@ -77,25 +77,6 @@ template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
               S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
-// Outcome of fd_jsi_or_aba.
-struct FdFallbackStatus {
-  Status status;              // of the method whose qdd was written (JSI, or ABA after a fallback);
-                              // not ok: qdd untouched
-  Index jsi_failed_dof = -1;  // the JSI pivot that was not positive and finite, -1 if none
-  bool fell_back = false;     // qdd was computed by aba because JSI's factorisation failed
-  bool ok() const { return status.ok(); }
-};
-
-// qdd by fd_jsi; when its L^T L factorisation reports a pivot that is not positive
-// and finite (M not numerically positive definite in S, e.g. a long chain in float)
-// and allow_aba_fallback is true, qdd is computed again by aba and fell_back is set.
-// Without the fallback a failed factorisation is returned as fd_jsi returns it.
-// data needs the mass-matrix workspace.
-template <class S>
-FdFallbackStatus fd_jsi_or_aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
-                               const S* tau, S* qdd, bool allow_aba_fallback,
-                               const Force<S>* fext = nullptr);
-
 // In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
 // L written to the lower triangle). parent gives the branch-induced sparsity; the
 // ancestor walks run over data.run_start's contiguous chain runs.

@@ -130,6 +130,19 @@ SCANDYN_HD bool pivot_ok(S d) {
 
 // ---- RNEA -------------------------------------------------------------------
 
+// The net force on a body moving with velocity v and acceleration a (body frame,
+// Featherstone (2008) 5.3):
+//   f = I a + v x* I v - fext
+// fext: the external wrench on the body, or null for none. The RNEA's forward step,
+// the scans over links (CPU and CUDA) and the per-instance functions all take their
+// body forces from here.
+template <class S>
+SCANDYN_HD Force<S> body_force(const Body<S>& b, const Motion<S>& v, const Motion<S>& a,
+                               const Force<S>* fext = nullptr) {
+  const Force<S> f = b.I * a + cross(v, b.I * v);
+  return fext ? f - *fext : f;
+}
+
 // Forward step: body velocity v, acceleration a and net body force f
 //   v = Xup v_parent + S qd
 //   a = Xup a_parent + S qdd + v x (S qd)
@@ -148,7 +161,7 @@ SCANDYN_HD RneaForward<S> rnea_forward_step(const Body<S>& b, const Transform<S>
   RneaForward<S> o;
   o.v = add_joint_motion(b, Xup.apply(v_parent), qd);
   o.a = add_joint_motion(b, Xup.apply(a_parent), qdd) + cross_joint_motion(b, o.v, qd);
-  o.f = b.I * o.a + cross(o.v, b.I * o.v);
+  o.f = body_force(b, o.v, o.a);
   return o;
 }
 

@@ -24,6 +24,7 @@
 #include <cstddef>
 #include <memory>
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 

@@ -45,6 +45,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/rnea_scan.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 

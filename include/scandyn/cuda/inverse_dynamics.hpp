@@ -6,8 +6,10 @@
 //                          reference's loops over the same SCANDYN_HD step functions
 //                          (joint_transform, rnea_forward_step, joint_project,
 //                          Transform::apply_transpose), state in per-thread arrays;
-//                          callable from your own kernels (this header under nvcc);
-//   id_instances_kernel    one thread per instance (kernels/id_instances.cu);
+//                          callable from your own kernels
+//                          (scandyn/instance/rnea_instance.hpp, under nvcc; the
+//                          model it reads: scandyn/instance/thread_model.hpp);
+//   id_instances_kernel    one thread per instance (kernels/inverse_dynamics.cu);
 //   launch_id_instances()  host wrapper: device pointers, a stream, returns the
 //                          cudaError_t of the launch, never synchronises.
 // and the engine of scandyn/engine.hpp on top:
@@ -40,9 +42,13 @@
 #include <string>
 #include <variant>
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/id_scan.hpp"
+#include "scandyn/instance/dof_column.hpp"
+#include "scandyn/instance/rnea_instance.hpp"
+#include "scandyn/instance/thread_model.hpp"
 
 #if SCANDYN_HAS_CUDA
 #include <cuda_runtime_api.h>
@@ -67,66 +73,6 @@ inline constexpr Trig kThreadTrig = sizeof(S) == 4 ? Trig::Hardware : Trig::Libr
 // Threads per block of id_instances_kernel.
 inline constexpr int kIdInstancesBlock = 128;
 
-// How body i exchanges quantities with its parent; precomputed on the host so that
-// the kernel keeps the common case (parent = body i - 1, or the base) in registers
-// and touches per-thread memory only at branch points of the tree.
-enum ThreadBodyFlag : int {
-  kParentIsBase = 1,  // parent is the fixed base (-1)
-  kParentIsPrev = 2,  // parent is body i - 1
-  kStacked = 4,       // a child other than body i + 1 (a branch child) reads v_i, a_i and
-                      // adds to f_i: body i is a branch point of the tree
-  kOpensSlot = 8,     // body i is the highest-numbered branch child of its parent: the
-                      // first of them to reach the parent going leaves to root
-};
-
-// Bits kSlotShift.. of a kStacked body's flags: its branch slot, a small number
-// shared by branch points whose children do not interleave. Branch point p's slot
-// is in use from p to its highest-numbered branch child h(p) (root to leaves) or
-// from h(p) back to p (leaves to root); the host gives two branch points the same
-// slot only when one's range ends where or before the other's starts, so that a
-// kernel holding one value per slot (aba_instance: velocities, articulated
-// inertias) needs as many slots as branch points whose ranges overlap
-// (ThreadModel::branch_slots()), not one per body.
-inline constexpr int kSlotShift = 8;
-SCANDYN_HD constexpr int branch_slot(int flags) { return flags >> kSlotShift; }
-
-// The model as the kernels read it, for capacity C (nv <= C): the kernel parameter.
-template <class S, int C>
-struct ThreadModelParams {
-  static constexpr int capacity = C;
-  Body<S> body[C];                 // (nv) bodies in DoF order; entries past nv unused
-  int flags[C];                    // (nv) ThreadBodyFlag bits of each body
-  unsigned long long ancestors[C]; // (nv) bit j of ancestors[i]: body j is a proper ancestor
-                                   // of body i (the sparsity of row i of M; forward dynamics)
-  Motion<S> a0;                    // base acceleration: gravity entered as -g
-  Index nv;                        // number of bodies (DoF), <= C
-};
-
-// One model prepared for the kernels: the parameter block of the smallest capacity
-// that holds it. Host memory only; built once, then copied into each launch.
-template <class S>
-class ThreadModel {
- public:
-  using Params = std::variant<ThreadModelParams<S, 8>, ThreadModelParams<S, 16>,
-                              ThreadModelParams<S, 32>, ThreadModelParams<S, 64>>;
-
-  // Throws BackendError when model.nv() > kMaxThreadDofs.
-  explicit ThreadModel(const ModelTpl<S>& model);
-
-  Index nv() const { return nv_; }
-  Index capacity() const { return capacity_; }  // 8, 16, 32 or 64
-  const Params& params() const { return params_; }
-  // Branch slots the model needs (see kSlotShift): 0 when every body's parent is the
-  // previous body or the base (a chain, or chains hanging from the base)
-  Index branch_slots() const { return branch_slots_; }
-
- private:
-  Index nv_ = 0;
-  Index capacity_ = 0;
-  Index branch_slots_ = 0;
-  Params params_;
-};
-
 // tau_out (nv x B) = RNEA(q, qd, qdd) - sum J^T fext for the B = batch_in.q.batch
 // instances, gravity included: one launch of id_instances_kernel on `stream`.
 // Every pointer is a DEVICE pointer (views with any strides); nothing is copied,
@@ -143,7 +89,7 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
 //               up to kMaxThreadDofs DoF;
 //   scan-local  device-wide scans across links, IdScanPlan (scandyn/cuda/id_scan.hpp):
 //               any model, for few instances of long chains and the middle shapes;
-//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_cuda_strategy).
+//   auto        recursion up to kMaxThreadDofs DoF, else scan-local (choose_id_strategy).
 // scan-world is not offered on this backend.
 template <class S>
 class CudaInverseDynamics final : public InverseDynamics<S> {
@@ -221,114 +167,6 @@ class CudaBiasForces final : public BiasForces<S> {
   S* zero_device_ = nullptr;  // one zero in device memory: compute_async's qdd
 };
 
-// The CUDA backend's choice for IdStrategy::Auto (choose_id_strategy on Cuda):
-// recursion (a thread per instance) up to kMaxThreadDofs DoF, the link scans beyond.
-IdStrategy choose_cuda_strategy(Index nv, Index batch);
-
-#if defined(__CUDACC__)
-// ---- device API --------------------------------------------------------------
-
-// One instance's entries of a strided batch array: DoF i at data[i * stride].
-template <class T>
-struct DofColumn {
-  T* data;
-  std::ptrdiff_t stride;
-  __host__ __device__ __forceinline__ T& operator[](Index i) const { return data[i * stride]; }
-};
-
-// Instance b's entries of a batch view.
-template <class T>
-__host__ __device__ __forceinline__ DofColumn<T> instance_column(const BatchView<T>& v, long long b) {
-  return {v.data + b * v.batch_stride, v.dof_stride};
-}
-
-// The RNEA of one instance: tau = RNEA(q, qd, qdd) - sum J^T fext, gravity included,
-// the loops of scandyn::rnea (src/algorithm/reference.cpp) over the same step
-// functions and in the same order of summation. fext: nv body wrenches or null.
-//
-// Also a host function (under nvcc), so the tests check its logic without a device.
-//
-// State: with kUnrolled (the default for capacities 8 and 16 in float, 8 in
-// double) the loops are unrolled, so the per-body arrays are indexed at compile
-// time and live in registers; otherwise the forces live in per-thread (local)
-// memory and q, qd, qdd are read where they are used (double with 16 bodies
-// unrolled needs more than 255 registers). A body whose parent is body i - 1 or
-// the base takes v, a from registers and hands its force back in a register; only
-// tree branch points (kStacked) go through the stack arrays. kKeepXup keeps each
-// body's transform from the forward pass for the backward pass; otherwise
-// joint_transform is evaluated again there (fewer registers, more arithmetic).
-// kTrig: how joint angles become sin and cos (Trig::Library, CUDA's sinf/cosf, by
-// default: at most 64 links, so their slight bias stays below 1e-6; see joint_sincos).
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S, C>& model,
-                                                       DofColumn<const S> q, DofColumn<const S> qd,
-                                                       DofColumn<const S> qdd, const Force<S>* fext,
-                                                       DofColumn<S> tau) {
-  constexpr int kRegs = kUnrolled ? C : 1;  // register copies of the inputs when unrolled
-  constexpr int kXup = kKeepXup ? C : 1;
-  const Index n = model.nv;
-  S q_r[kRegs], qd_r[kRegs], qdd_r[kRegs];  // (nv) joint variables, loaded up front
-  Transform<S> Xup[kXup];                   // (nv) parent -> body transforms (kKeepXup)
-  Force<S> f[C];                            // (nv) net body forces from the forward pass
-  Motion<S> sv[C], sa[C];                   // stack: v, a of kStacked bodies
-  Force<S> sf[C];                           // stack: f of kStacked bodies plus their
-                                            // children other than the next body
-
-  // load: all of one instance's inputs in flight before the first use
-  if constexpr (kUnrolled) {
-#pragma unroll
-    for (Index i = 0; i < C; ++i) {
-      if (i < n) {
-        q_r[i] = q[i];
-        qd_r[i] = qd[i];
-        qdd_r[i] = qdd[i];
-      }
-    }
-  }
-  // forward: kinematics and body forces
-  const Motion<S> a0 = model.a0;
-  Motion<S> v_prev = Motion<S>::zero(), a_prev = a0;  // body i - 1's v and a
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = 0; i < C; ++i) {
-    if (i >= n) continue;  // (not break: a loop of C trips unrolls, indices stay constant)
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Motion<S> vp = Motion<S>::zero(), ap = a0;
-    if (fl & kParentIsPrev) vp = v_prev, ap = a_prev;
-    else if (!(fl & kParentIsBase)) vp = sv[b.parent], ap = sa[b.parent];
-    const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
-    const Transform<S> X = joint_transform<kTrig>(b, qi);
-    if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
-    const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
-    const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
-    const RneaForward<S> o = rnea_forward_step(b, X, vp, ap, qdi, qddi);
-    f[i] = fext ? o.f - fext[i] : o.f;
-    if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = f[i];
-    v_prev = o.v;
-    a_prev = o.a;
-  }
-  // backward: joint torques; each body's force goes to its parent, the next body's
-  // through a register (`carry`), others' through the stack. A parent receives its
-  // children in descending order, as in the reference.
-  Force<S> carry = Force<S>::zero();  // from body i + 1, when its parent is body i
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = C - 1; i >= 0; --i) {
-    if (i >= n) continue;
-    const Body<S>& b = model.body[i];
-    const int fl = model.flags[i];
-    Force<S> fi = (fl & kStacked) ? sf[i] : f[i];
-    if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) fi += carry;
-    tau[i] = joint_project(b, fi);
-    if (fl & kParentIsBase) continue;
-    Transform<S> X;
-    if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
-    else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
-    const Force<S> up = X.apply_transpose(fi);
-    if (fl & kParentIsPrev) carry = up;
-    else sf[b.parent] += up;
-  }
-}
-#endif  // __CUDACC__
 
 }  // namespace cuda
 }  // namespace scandyn

@@ -2,11 +2,11 @@
 // batch on a CUDA device, by the composite-rigid-body algorithm (CRBA).
 //
 // Layers, as for inverse and forward dynamics:
-//   crba_instance()          __host__ __device__ (scandyn/cuda/forward_dynamics.hpp): one
+//   crba_instance()          __host__ __device__ (scandyn/instance/crba_instance.hpp): one
 //                            instance's M as a packed lower triangle in per-thread
 //                            arrays; the same function builds fd_jsi_instance's M;
 //   mass_matrix_instance()   __host__ __device__: crba_instance, then the full nv x nv
-//                            matrix written out (below);
+//                            matrix written out (scandyn/instance/crba_instance.hpp);
 //   crba_instances_kernel    one thread per instance (kernels/mass_matrix.cu);
 //   launch_crba_instances()  host wrapper: device pointers, a stream, returns the
 //                            cudaError_t of the launch, never synchronises.
@@ -42,10 +42,12 @@
 #include <memory>
 #include <string>
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/instance/crba_instance.hpp"
 
 #if SCANDYN_HAS_CUDA
 #include <cuda_runtime_api.h>
@@ -127,36 +129,6 @@ class CudaMassMatrix final : public MassMatrix<S> {
   // compute()'s stream and its one allocation: q (nv x max_batch), then M (nv^2 x max_batch)
   std::unique_ptr<detail::StagingBuffer> staging_;
 };
-
-#if defined(__CUDACC__)
-// ---- device API --------------------------------------------------------------
-
-// M(q) of one instance, the full nv x nv matrix: M_out[i * nv + j] = M(i, j) for
-// every i, j < nv (row-major; both triangles; zero where neither body is an
-// ancestor of the other). crba_instance into per-thread storage (C (C + 1) / 2
-// scalars: registers when unrolled, else local memory), then nv^2 stores, row by
-// row. Also a host function (under nvcc): the tests check it against scandyn::crba
-// without a device. kUnrolled and kTrig as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C>& model,
-                                                              DofColumn<const S> q, DofColumn<S> M_out) {
-  using fd_detail::tri;
-  const Index n = model.nv;
-  S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
-  crba_instance<S, C, kUnrolled, kTrig>(model, q, M);
-#pragma unroll(kUnrolled ? C : 1)
-  for (Index i = 0; i < C; ++i) {
-    if (i >= n) continue;
-#pragma unroll(kUnrolled ? C : 1)
-    for (Index j = 0; j < C; ++j) {
-      if (j >= n) continue;
-      const Index hi = i > j ? i : j, lo = i > j ? j : i;
-      // a nonzero entry pairs a body with itself or one of its ancestors
-      M_out[i * n + j] = hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0);
-    }
-  }
-}
-#endif  // __CUDACC__
 
 }  // namespace cuda
 }  // namespace scandyn

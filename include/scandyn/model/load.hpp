@@ -101,7 +101,19 @@ Model make_generated(const std::string& spec);
 // such a string is never taken as a file path (write ./rope:1.urdf for a file).
 bool is_generator_spec(const std::string& spec);
 
-// A URDF path or a generator spec.
+// The directories a model name is looked up in, in order: $SCANDYN_MODELS_DIR when
+// set, then the models shipped with scandyn (models/ in the source tree, or
+// share/scandyn/models where it is installed): iiwa, hyq and atlas.
+std::vector<std::string> model_search_dirs();
+
+// The file a model path denotes. An absolute path is itself. A relative one is
+// looked up in first_dirs when given (a scene's directory), else as given from the
+// working directory; then in model_search_dirs(), also with ".urdf" appended
+// ("iiwa" finds iiwa.urdf). Returns the first regular file found, or (none found)
+// the path as first tried, whose loading then reports it missing.
+std::string find_model_file(const std::string& path, const std::vector<std::string>& first_dirs = {});
+
+// A generator spec, or a URDF file found by find_model_file.
 Model load_model(const std::string& path_or_spec, const BuildOptions& options = {});
 
 }  // namespace scandyn

@@ -18,6 +18,7 @@
 // which world-frame twists, accelerations and subtree wrenches are plain sums.
 #pragma once
 
+#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/spatial.hpp"
 
 namespace scandyn {
@@ -52,6 +53,43 @@ template <class S>
 SCANDYN_HD ForceAffine<S> compose(const ForceAffine<S>& o, const ForceAffine<S>& d) {
   return {d.Y * o.Y, o.B + o.Y.apply_transpose(d.B)};
 }
+
+// ---- inverse dynamics' forward elements, one body at a time -------------------
+// The local-frame elements of body i, built here for the CPU scans
+// (src/algorithm/rnea_scan.cpp) and the CUDA scans (kernels/id_scan.cu) alike.
+
+// Velocities, v_i = Xup_i v_parent + S_i qd_i: the element (Xup_i, S_i qd_i).
+template <class S>
+SCANDYN_HD MotionAffine<S> id_velocity_element(const Body<S>& b, const Transform<S>& Xup, S qd) {
+  return {Xup, joint_motion(b, qd)};
+}
+
+// Accelerations, a_i = Xup_i a_parent + S_i qdd_i + v_i x S_i qd_i (v_i from the
+// velocity scan): the element (Xup_i, S_i qdd_i + v_i x S_i qd_i).
+template <class S>
+SCANDYN_HD MotionAffine<S> id_acceleration_element(const Body<S>& b, const Transform<S>& Xup, const Motion<S>& v,
+                                                   S qd, S qdd) {
+  return {Xup, add_joint_motion(b, cross_joint_motion(b, v, qd), qdd)};
+}
+
+// A transform that maps every vector to zero.
+template <class S>
+SCANDYN_HD Transform<S> zero_transform() {
+  return {Mat3<S>::zero(), Vec3<S>::zero()};
+}
+
+// Element e of a body whose parent's value x_parent is already final (the base's
+// acceleration -g, or a CUDA segment head's parent in an earlier level), folded into
+// the offset: (0, X x_parent + b), a map that ignores whatever precedes it.
+template <class S>
+SCANDYN_HD MotionAffine<S> fold_parent(const MotionAffine<S>& e, const Motion<S>& x_parent) {
+  return {zero_transform<S>(), e.X.apply(x_parent) + e.b};
+}
+
+// The backward (force) elements differ by form: the CPU scans deliver each body's
+// force to its parent, (Xup_i, Xup_i^T f_i); the CUDA scans keep it in the body's
+// frame, (Xup_{i+1}, f_i + branch children). Both take f_i from body_force
+// (scandyn/algorithm/steps.hpp).
 
 // Operators as function objects, for the generic scan drivers (host and device).
 struct ComposeMotionAffine {

@@ -1,4 +1,4 @@
-// kernels/id_instances.cu: batched inverse dynamics, one thread per instance.
+// kernels/inverse_dynamics.cu: batched inverse dynamics, one thread per instance.
 //
 // The layers of scandyn/cuda/inverse_dynamics.hpp: rnea_instance (the header) ->
 // id_instances_kernel -> launch_id_instances -> CudaInverseDynamics (host staging
@@ -121,11 +121,6 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
 
 // ---- the engine -------------------------------------------------------------------
 
-IdStrategy choose_cuda_strategy(Index nv, Index batch) {
-  (void)batch;
-  return nv <= kMaxThreadDofs ? IdStrategy::Recursion : IdStrategy::ScanLocal;
-}
-
 template <class S>
 CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), max_batch_(options.max_batch) {
@@ -134,7 +129,7 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
                        "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const IdStrategy strategy =
-      options.strategy == IdStrategy::Auto ? choose_cuda_strategy(nv_, max_batch_) : options.strategy;
+      options.strategy == IdStrategy::Auto ? choose_id_strategy(BackendKind::Cuda, nv_, max_batch_, 1) : options.strategy;
   if (strategy == IdStrategy::Recursion && nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; strategy 'recursion' (a thread per instance) takes at most " +

@@ -1,4 +1,4 @@
-// kernels/fd_instances.cu: batched forward dynamics by the joint-space inertia or
+// kernels/forward_dynamics.cu: batched forward dynamics by the joint-space inertia or
 // the articulated-body algorithm, one thread per instance.
 //
 // The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance / aba_instance
