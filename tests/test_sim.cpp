@@ -184,7 +184,7 @@ TEST(SimScene, BackendAutoPicksCudaWhenUsableElseOpenMP) {
 
 // Every shipped scene (scenes/*.json) is valid: parsed with its model, generators
 // made (rope:10^6 included: about 1 s), robots found through SCANDYN_MODELS_DIR or
-// ../shared/models; each says "backend": "auto", so it runs on a machine without a
+// the shipped models/; each says "backend": "auto", so it runs on a machine without a
 // GPU (here: openmp when CUDA is not built).
 TEST(SimScene, ShippedScenesLoad) {
   int count = 0;

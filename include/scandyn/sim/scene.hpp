@@ -82,10 +82,9 @@ BackendKind auto_backend(std::string* why = nullptr);
 std::string backend_choice(const Scene& scene);
 
 // Reads and validates a scene file. Relative model paths are looked up, in order, in
-// the scene file's directory, in $SCANDYN_MODELS_DIR, and in ../../shared/models
-// relative to the scene file's directory (the repository's scenes/ next to the
-// project's shared/ folder). Throws SceneError (also for model errors, with the
-// model's message after "model: ").
+// the scene file's directory, then in model_search_dirs() ($SCANDYN_MODELS_DIR,
+// then the shipped models; find_model_file, scandyn/model/load.hpp). Throws
+// SceneError (also for model errors, with the model's message after "model: ").
 Scene load_scene(const std::string& path);
 
 // The same for JSON text; source names it in error messages; base_dir is where
