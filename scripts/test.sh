@@ -9,6 +9,10 @@
 #      has matplotlib), in the background while stage 3 builds
 #   3. build-asan/  AddressSanitizer + UBSan, no CUDA, no benchmarks, -O1 -g1 (line
 #                   tables for the reports' stack traces); ctest
+#   4. build-fuzz/  the libFuzzer targets (URDF, scene, CSV; clang, ASan + UBSan),
+#                   each run for SCANDYN_FUZZ_SECONDS (default 20) by scripts/fuzz.sh;
+#                   any crash, leak, timeout or sanitizer report fails. Skipped with a
+#                   warning when clang++ is missing.
 # Both stages run even if the first one's tests fail; the exit status is non-zero
 # if anything failed. Each step prints a stamp; the last line gives the total time.
 #
@@ -21,7 +25,7 @@
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
 # SCANDYN_MODELS_DIR (robot models; default the shipped models/),
 # SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_PYTHON=1 (no .venv: the Pinocchio cross-check
-# is skipped), SCANDYN_SKIP_ASAN=1.
+# is skipped), SCANDYN_SKIP_ASAN=1, SCANDYN_SKIP_FUZZ=1, SCANDYN_FUZZ_SECONDS.
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -163,6 +167,15 @@ if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
   fi
 fi
 wait_report
+
+if [[ "${SCANDYN_SKIP_FUZZ:-0}" != 1 ]]; then
+  if command -v clang++ >/dev/null 2>&1; then
+    stamp "fuzz: ${SCANDYN_FUZZ_SECONDS:-20} s per target (build-fuzz)"
+    scripts/fuzz.sh "${SCANDYN_FUZZ_SECONDS:-20}" || failed+=(fuzz)
+  else
+    echo "test.sh: warning: clang++ not found; the fuzz stage is skipped" >&2
+  fi
+fi
 
 elapsed=$((SECONDS - start))
 if ((${#failed[@]})); then

@@ -1230,7 +1230,7 @@ TEST_F(Cli, RolloutErrorsWriteNothing) {
   EXPECT_EQ(r.err, "scandyn: bad.json: dt: expected a positive number, got -1\n");
   r = run("rollout --scene missing.json --steps 3 --out t.csv");
   EXPECT_EQ(r.code, 1);
-  EXPECT_EQ(r.err, "scandyn: missing.json: cannot open file\n");
+  EXPECT_EQ(r.err, "scandyn: missing.json: cannot open file: No such file or directory\n");
   write_text(path("s.json"), kChainScene);
   r = run("rollout --scene s.json --steps 3 --out t.txt");
   EXPECT_EQ(r.code, 2);

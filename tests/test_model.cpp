@@ -671,10 +671,10 @@ TEST(Validation, ConsoleHandlerRestored) {
 }
 
 TEST(Validation, FilesAndSpecs) {
-  expect_error([] { load_urdf("/nonexistent/dir/robot.urdf"); }, {"/nonexistent/dir/robot.urdf: cannot open file"});
-  expect_error([] { load_model("/nonexistent/robot.urdf"); }, {"/nonexistent/robot.urdf: cannot open file"});
+  expect_error([] { load_urdf("/nonexistent/dir/robot.urdf"); }, {"/nonexistent/dir/robot.urdf: cannot open file: No such file or directory"});
+  expect_error([] { load_model("/nonexistent/robot.urdf"); }, {"/nonexistent/robot.urdf: cannot open file: No such file or directory"});
   const std::string dir = ::testing::TempDir();
-  expect_error([&] { load_model(dir); }, {dir + ": cannot read file"});
+  expect_error([&] { load_model(dir); }, {dir + ": not a regular file (a directory)"});
   const std::string path = dir + "/scandyn_test_model_empty.urdf";
   { std::ofstream f(path); }
   expect_error([&] { load_urdf(path); }, {path + ": ", "empty"});

@@ -208,7 +208,7 @@ TEST(SimScene, MissingFile) {
     sim::load_scene("/nonexistent/scene.json");
     FAIL() << "no error";
   } catch (const SceneError& e) {
-    EXPECT_STREQ(e.what(), "/nonexistent/scene.json: cannot open file");
+    EXPECT_STREQ(e.what(), "/nonexistent/scene.json: cannot open file: No such file or directory");
   }
 }
 

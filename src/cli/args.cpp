@@ -13,6 +13,13 @@ namespace scandyn::cli {
 Args::Args(std::string command, int argc, char** argv, int first,
            const std::vector<std::string>& allowed)
     : command_(std::move(command)) {
+  // --help anywhere wins over every other flag, a bad one included (exit 0)
+  for (int k = first; k < argc; ++k) {
+    if (std::strcmp(argv[k], "--help") == 0 || std::strcmp(argv[k], "-h") == 0) {
+      help_ = true;
+      return;
+    }
+  }
   for (int k = first; k < argc; ++k) {
     const std::string arg = argv[k];
     if (arg == "--help" || arg == "-h") {

@@ -15,7 +15,9 @@
 
 #include "engines.hpp"
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
+#include "resources.hpp"
+#include "scandyn/limits.hpp"
 #include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
@@ -28,7 +30,6 @@ constexpr const char* kBenchHeader =
     "algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,"
     "max_rel_err";
 constexpr std::uint64_t kSeed = 42;                    // random states are repeatable
-constexpr double kMaxBatchBytes = 4.0 * (1ull << 30);  // refuse batches above 4 GiB
 
 // The model column: a generator spec as given, a file's base name without ".urdf".
 std::string model_label(const std::string& spec) {
@@ -91,6 +92,22 @@ void check(const BatchStatus& st) {
   if (!st.ok())
     throw DataError("bench: instance " + std::to_string(st.first_instance) + ": forward dynamics failed: " +
                     st.reason());
+}
+
+// Every output value must be finite: the first that is not is an error naming the
+// instance and the output (random states in [-1, 1] on a valid model: a non-finite
+// result means the model or the precision overflows).
+template <class S>
+void check_finite_outputs(Algo algo, Index nv, const std::vector<S>& out, std::size_t count, const std::string& row) {
+  const std::size_t w = output_width(algo, nv);
+  for (std::size_t b = 0; b < count; ++b)
+    for (std::size_t j = 0; j < w; ++j) {
+      const double v = static_cast<double>(out[b * w + j]);
+      if (std::isfinite(v)) continue;
+      throw DataError("bench: instance " + std::to_string(b) + ": result " + output_columns(algo, nv).at(j) +
+                      " is not finite (" + (std::isnan(v) ? "NaN" : v > 0 ? "Inf" : "-Inf") + ") in the " + row +
+                      " call; nothing printed");
+    }
 }
 
 // One row of results: a way of calling the backend, its time and error.
@@ -185,6 +202,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
     });
     check_fd(resident->status());
     resident->read(out.data());
+    check_finite_outputs(algo, model.nv(), out, count, "device-resident");
     t.max_rel_err = error();
     rows.push_back(t);
   }  // (device memory of the resident batch released here)
@@ -201,6 +219,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
   t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
     for (std::size_t k = 0; k < n; ++k) engine.run(in, out.data());
   });
+  check_finite_outputs(algo, model.nv(), out, count, "host");
   t.max_rel_err = error();
   rows.push_back(t);
   return rows;
@@ -227,7 +246,8 @@ std::vector<double> state_rows(sim::Simulator<S>& s, Index count) {
 
 template <class S>
 Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time) {
-  const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(scene, backend);
+  const std::unique_ptr<sim::Simulator<S>> made =
+      make_simulator<S>(scene, backend, 2.0 * double(scene.instances) * double(scene.nv()) * sizeof(S));
   sim::Simulator<S>& s = *made;
   // error: the first instances after kStepErrSteps steps against the double serial reference
   const Index count = std::min<Index>(s.batch(), kStepErrInstances);
@@ -239,13 +259,24 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
   for (int k = 0; k < kStepErrSteps; ++k) ref.step();
   const std::vector<double> r = state_rows(ref, count);
   const std::size_t w = 2 * static_cast<std::size_t>(s.nv());
+  if (!s.status().ok() || !ref.status().ok())
+    throw DataError(scene.path + ": " + sim::failure_message(s.status().ok() ? ref.status() : s.status()));
+  for (const auto* rows : {&x, &r}) {
+    for (std::size_t k = 0; k < rows->size(); ++k) {
+      if (std::isfinite((*rows)[k])) continue;
+      const std::size_t b = k / w, j = k % w, n = w / 2;
+      throw DataError(scene.path + ": step " + std::to_string(kStepErrSteps) + ": the state is not finite in instance " +
+                      std::to_string(b) + " (" + (j < n ? "q_" : "qd_") + std::to_string(j % n) + " = " +
+                      (std::isnan((*rows)[k]) ? "nan" : (*rows)[k] > 0 ? "inf" : "-inf") + ", " +
+                      (rows == &x ? "the benchmarked simulator" : "the double serial reference") +
+                      "; the simulation overflowed); nothing printed");
+    }
+  }
   Timing t;
   for (Index b = 0; b < count; ++b) {
     const double e = rel_err(x.data() + b * w, r.data() + b * w, w);
     t.max_rel_err = std::isnan(e) || std::isnan(t.max_rel_err) ? NAN : std::max(t.max_rel_err, e);
   }
-  if (!s.status().ok() || !ref.status().ok())
-    throw DataError(scene.path + ": " + sim::failure_message(s.status().ok() ? ref.status() : s.status()));
   // timing: whole steps of all instances, synchronised after each round
   s.step();
   s.synchronize();
@@ -307,13 +338,19 @@ int run_bench(const Args& args) {
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
   const std::size_t nv = static_cast<std::size_t>(model.nv());
-  // at most: inputs in double and in the precision, outputs in the precision and in double
-  const double bytes =
-      double(count) * (3.0 * nv * 16 + double(output_width(algo, model.nv())) * 16);
-  if (bytes > kMaxBatchBytes)
-    throw UsageError("--instances " + std::to_string(count) + " needs about " +
-                     format_g(bytes / (1 << 30), 3) +
-                     " GiB for this model and algorithm (limit 4 GiB)");
+  // host memory: the random states in double (3 nv), the inputs and outputs in the
+  // precision, the outputs again in double for the error, the evaluator's
+  // workspaces (the nv x nv mass matrix per thread for jsi) and the reference's
+  const std::size_t scalar = precision == Precision::Float ? 4 : 8;
+  const double width = double(output_width(algo, model.nv()));
+  const bool jsi = algo == Algo::Fd && (options.fd_method == FdMethod::Jsi || options.fallback_aba);
+  const double bytes = double(count) * (3.0 * nv * 8 + 3.0 * nv * scalar + width * scalar + width * 8) +
+                       workspace_bytes(nv, planned_threads(options.backend, options.threads), jsi, scalar) +
+                       workspace_bytes(nv, 1, false, 8) + 2 * width * 8;
+  require_host_memory("bench --algo " + std::string(algo_name(algo)) + (algo == Algo::Fd ? std::string(" --fd ") + to_string(options.fd_method) : "") +
+                          " on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +
+                          std::to_string(count) + " instances in " + to_string(precision),
+                      bytes);
 
   const RandomStates states(count, nv);
   std::vector<Timing> timings;

@@ -8,7 +8,12 @@
 
 #include "scandyn/model/model.hpp"
 
+namespace scandyn::io {}
+
 namespace scandyn::cli {
+
+// The file formats and output files (scandyn/io/*.hpp) are the command line's own.
+using namespace scandyn::io;
 
 // Exit codes.
 constexpr int kExitOk = 0;

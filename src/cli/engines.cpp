@@ -5,7 +5,7 @@
 #include <stdexcept>
 
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
 
 namespace scandyn::cli {
 

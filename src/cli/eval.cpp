@@ -7,7 +7,9 @@
 
 #include "engines.hpp"
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
+#include "resources.hpp"
+#include "scandyn/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "states.hpp"
 
@@ -43,11 +45,28 @@ std::vector<Algo> default_algos(const StateColumns& cols, const std::string& sou
   std::vector<Algo> algos;
   for (Algo a : {Algo::Id, Algo::Fd, Algo::Bias})
     if (cols.supports(a)) algos.push_back(a);
-  if (algos.empty())
-    throw DataError(source +
-                    ": no algorithm has all its input columns (id needs q, qd, qdd; fd needs q, "
-                    "qd, tau; bias needs q, qd; mass needs q and --algo mass)");
+  if (algos.empty()) {
+    // name the first missing column of each
+    std::string lacks;
+    for (Algo a : {Algo::Id, Algo::Fd, Algo::Bias}) {
+      for (Family f : algo_inputs(a)) {
+        const Index i = cols.first_missing(f);
+        if (i < 0) continue;
+        lacks += std::string(lacks.empty() ? "" : ", ") + algo_name(a) + " lacks column " + family_prefix(f) +
+                 std::to_string(i);
+        break;
+      }
+    }
+    throw DataError(source + ": no algorithm has all its input columns: " + lacks +
+                    " (id needs q, qd, qdd; fd needs q, qd, tau; bias needs q, qd; mass needs q and --algo mass)");
+  }
   return algos;
+}
+
+std::string format_count(double x) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.4g", x);
+  return buf;
 }
 
 // Rows are evaluated in chunks, so memory stays bounded for any file length.
@@ -153,6 +172,26 @@ template <class S>
 void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, const StateColumns& cols,
                const std::vector<Algo>& algos, const std::string& out_path) {
   const std::size_t chunk = chunk_rows(in, algos, model.nv());
+  // host memory before anything large: per output column its name, the output row
+  // and the chunk's results; per input column the parsed row; the gathered inputs;
+  // the evaluators' workspaces (the nv x nv mass matrix per thread for fd by jsi)
+  {
+    const std::size_t nv = static_cast<std::size_t>(model.nv());
+    double width = 0;
+    for (Algo a : algos) width += double(output_width(a, model.nv()));
+    const double ncols = double(in.columns().size());
+    const bool jsi = std::find(algos.begin(), algos.end(), Algo::Fd) != algos.end() &&
+                     (options.fd_method == FdMethod::Jsi || options.fallback_aba);
+    const int threads = planned_threads(options.backend, options.threads);
+    const double bytes = width * (48 + 8 + double(chunk) * sizeof(S)) + ncols * 48 +
+                         double(kFamilies) * double(chunk) * double(nv) * sizeof(S) +
+                         workspace_bytes(nv, threads, jsi, sizeof(S));
+    std::string list;
+    for (Algo a : algos) list += std::string(list.empty() ? "" : ",") + algo_name(a);
+    require_host_memory("eval --algo " + list + " on " + printable(model.source) + " (" + std::to_string(nv) +
+                            " DoF, " + format_count(width) + " output columns per row)",
+                        bytes);
+  }
   // Engines are sized for this file's chunk: the CUDA link scans' scratch grows
   // with rows x links, and the auto strategies choose by it (a few rows of a long
   // chain: scans across links on OpenMP too).

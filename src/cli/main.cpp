@@ -1,15 +1,19 @@
 // src/cli/main.cpp: the `scandyn` command: subcommand dispatch, usage, and the
 // mapping of errors to one-line messages and exit codes (docs/cli.md).
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <exception>
 #include <string>
 #include <vector>
 
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/io/output_file.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/limits.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/sim/scene.hpp"
 
 namespace {
 
@@ -131,14 +135,41 @@ const Command kCommands[] = {
 };
 
 int fail(int code, const std::string& message) {
-  std::string line = "scandyn: " + message;
+  std::string line = message;
   for (char& c : line)
     if (c == '\n' || c == '\r') c = ' ';  // always exactly one line
-  std::fprintf(stderr, "%s\n", line.c_str());
+  // other control characters (a NUL included: it would cut the line short) as \xNN
+  line = "scandyn: " + scandyn::printable(line) + "\n";
+  std::fwrite(line.data(), 1, line.size(), stderr);
   return code;
 }
 
+// OMP_NUM_THREADS is capped like --threads: the OpenMP runtime crashes when asked
+// for 10^5 threads. Each entry of the (comma-separated) list is checked.
+void check_omp_environment() {
+  const char* env = std::getenv("OMP_NUM_THREADS");
+  if (!env) return;
+  const std::string value = env;
+  std::size_t start = 0;
+  for (;;) {
+    const std::size_t comma = value.find(',', start);
+    const std::string item = value.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+    std::size_t digits = 0;
+    while (digits < item.size() && item[digits] == ' ') ++digits;
+    const std::string trimmed = item.substr(digits);
+    bool numeric = !trimmed.empty();
+    for (char c : trimmed) numeric = numeric && ((c >= '0' && c <= '9') || c == ' ');
+    if (numeric && (trimmed.size() > 4 || std::atoi(trimmed.c_str()) > 4096))
+      throw UsageError("OMP_NUM_THREADS=" + value + ": at most 4096 threads (the limit of --threads); unset it "
+                       "or lower it", false);
+    if (comma == std::string::npos) break;
+    start = comma + 1;
+  }
+}
+
 int dispatch(int argc, char** argv) {
+  install_signal_handlers();
+  check_omp_environment();
   if (argc < 2) return fail(kExitUsage, "missing command (try 'scandyn --help')");
   const std::string cmd = argv[1];
   if (cmd == "--help" || cmd == "-h" || cmd == "help") {
@@ -176,8 +207,17 @@ int main(int argc, char** argv) {
     return fail(kExitData, e.what());
   } catch (const CsvError& e) {
     return fail(kExitData, e.what());
+  } catch (const scandyn::InputError& e) {
+    return fail(kExitData, e.what());
+  } catch (const scandyn::ResourceError& e) {
+    return fail(kExitData, e.what());
+  } catch (const scandyn::sim::SceneError& e) {
+    return fail(kExitData, e.what());
   } catch (const std::bad_alloc&) {
-    return fail(kExitData, "out of memory");
+    const std::string cmd = argc >= 2 ? argv[1] : "";
+    return fail(kExitData, "out of memory in '" + cmd + "' (host memory available: " +
+                               scandyn::format_bytes(double(scandyn::host_memory_available())) +
+                               "); try fewer instances, rows or links");
   } catch (const std::exception& e) {
     return fail(kExitData, std::string("error: ") + e.what());
   }

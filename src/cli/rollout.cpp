@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <charconv>
+#include <cmath>
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
@@ -12,7 +13,10 @@
 #include <vector>
 
 #include "cli.hpp"
-#include "csv.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/io/output_file.hpp"
+#include "resources.hpp"
+#include "scandyn/limits.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "simulator_cli.hpp"
 
@@ -36,12 +40,13 @@ bool ends_with(const std::string& s, const char* suffix) {
 // The header of a version 1.0 .npy file holding a C-order array of `shape` with
 // little-endian elements of `descr` ('<f8', '<f4'): magic, version, header length,
 // the dictionary padded with spaces and a newline to a multiple of 64 bytes.
-std::string npy_header(const char* descr, const std::vector<long long>& shape) {
+// total: pad to exactly this many bytes (a header rewritten in place), else 0.
+std::string npy_header(const char* descr, const std::vector<long long>& shape, std::size_t total = 0) {
   std::string dict = std::string("{'descr': '") + descr + "', 'fortran_order': False, 'shape': (";
   for (std::size_t k = 0; k < shape.size(); ++k) dict += std::to_string(shape[k]) + (shape.size() == 1 || k + 1 < shape.size() ? ", " : "");
   dict += "), }";
   const std::size_t unpadded = 10 + dict.size() + 1;
-  dict.append((64 - unpadded % 64) % 64, ' ');
+  dict.append(total > unpadded ? total - unpadded : (64 - unpadded % 64) % 64, ' ');
   dict += '\n';
   std::string h = "\x93NUMPY";
   h += '\x01';
@@ -85,21 +90,71 @@ class Progress {
   std::chrono::steady_clock::time_point last_{};
 };
 
+// The first non-finite entry of the state (nv x B, SoA views), as "instance b
+// (q_i = nan)", and how many instances have one; "" when all are finite.
+template <class S>
+std::string first_non_finite(const BatchView<const S>& q, const BatchView<const S>& qd, Index nv, long long& count) {
+  std::string first;
+  count = 0;
+  // fast path: contiguous SoA state, all finite (the common case, every step)
+  const auto all_finite = [&](const BatchView<const S>& v) {
+    if (v.dof_stride != v.batch || v.batch_stride != 1) return false;
+    const std::size_t total = static_cast<std::size_t>(nv) * static_cast<std::size_t>(v.batch);
+    bool ok = true;
+    for (std::size_t k = 0; k < total; ++k) ok &= std::isfinite(v.data[k]);
+    return ok;
+  };
+  if (all_finite(q) && all_finite(qd)) return first;
+  for (Index b = 0; b < q.batch; ++b) {
+    for (int part = 0; part < 2; ++part) {
+      const BatchView<const S>& v = part ? qd : q;
+      Index i = 0;
+      while (i < nv && std::isfinite(static_cast<double>(v.at(i, b)))) ++i;
+      if (i == nv) continue;
+      if (first.empty()) {
+        const double x = static_cast<double>(v.at(i, b));
+        first = "instance " + std::to_string(b) + " (" + (part ? "qd_" : "q_") + std::to_string(i) + " = " +
+                (std::isnan(x) ? "nan" : x > 0 ? "inf" : "-inf") + ")";
+      }
+      ++count;
+      break;
+    }
+  }
+  return first;
+}
+
 template <class S>
 int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path) {
-  const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(scene, backend);
-  sim::Simulator<S>& sim = *made;
-  const Index nv = sim.nv(), B = sim.batch();
-  const std::size_t n = static_cast<std::size_t>(nv), nb = static_cast<std::size_t>(B);
+  const std::size_t n = static_cast<std::size_t>(scene.nv()), nb = static_cast<std::size_t>(scene.instances);
   // recorded steps: 0, every, 2 every, ..., and the last one
   const long long records = steps / every + 1 + (steps % every != 0);
   const bool npy = ends_with(out_path, ".npy");
+  // the trajectory's size, checked before anything is made: %.17g numbers take up
+  // to 24 bytes with the comma; a .npy record holds 1 + 2 nv scalars per instance
+  const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + 2 * n);
+  const double out_bytes = npy ? values * sizeof(S) : values * 24.0;
+  require_disk_space(out_path,
+                     "the trajectory of " + std::to_string(records) + " records x " + std::to_string(nb) +
+                         " instances x " + std::to_string(1 + 2 * n) + " values",
+                     out_bytes);
+  const std::unique_ptr<sim::Simulator<S>> made =
+      make_simulator<S>(scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + (2u << 20));
+  sim::Simulator<S>& sim = *made;
+  const Index nv = sim.nv(), B = sim.batch();
   AtomicFileWriter file(out_path);
+  // a signal (SIGINT, SIGTERM, SIGHUP) ends the loop at the next step: the records
+  // written so far are published (.npy with its shape fixed up), exit 128 + signal
+  const SignalGuard guard;
   std::vector<S> q(n * nb), qd(n * nb);
   std::string text;
+  const char* const descr = sizeof(S) == 4 ? "<f4" : "<f8";
+  const long long width = 1 + 2 * static_cast<long long>(nv);
+  std::size_t header_size = 0;
   if (npy) {
     if (!little_endian()) throw DataError("rollout: .npy output is written on little-endian machines only");
-    file.write(npy_header(sizeof(S) == 4 ? "<f4" : "<f8", {records, B, 1 + 2 * static_cast<long long>(nv)}));
+    const std::string header = npy_header(descr, {records, B, width});
+    header_size = header.size();
+    file.write(header);
   } else {
     text = "step,time,instance";
     for (Index i = 0; i < nv; ++i) text += ",q_" + std::to_string(i);
@@ -108,8 +163,20 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     file.write(text);
   }
   std::vector<S> row(1 + 2 * n);
+  long long written = 0;  // records written
+  // a state that is not finite stops the rollout (exit 1, nothing written)
+  auto check_finite = [&](long long step, const BatchView<const S>& qv, const BatchView<const S>& qdv) {
+    long long bad = 0;
+    const std::string first = first_non_finite(qv, qdv, nv, bad);
+    if (!first.empty())
+      throw DataError(scene.path + ": step " + std::to_string(step) + ": the state is not finite in " +
+                      std::to_string(bad) + " of " + std::to_string(B) + " instances, first " + first +
+                      " (the simulation overflowed: smaller dt, coefficients or initial state)");
+  };
   auto record = [&](long long step) {
     sim.read_state(q.data(), qd.data());
+    check_finite(step, BatchView<const S>::soa(q.data(), nv, B), BatchView<const S>::soa(qd.data(), nv, B));
+    ++written;
     const double t = static_cast<double>(step) * scene.dt;
     for (std::size_t b = 0; b < nb; ++b) {
       if (npy) {
@@ -130,7 +197,21 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   Progress progress(steps, ::isatty(STDERR_FILENO) != 0);
   record(0);
   for (long long s = 1; s <= steps; ++s) {
+    if (const int sig = SignalGuard::pending()) {
+      progress.finish();
+      if (npy && !file.streaming()) file.patch(0, npy_header(descr, {written, B, width}, header_size));
+      file.commit();
+      std::fprintf(stderr, "scandyn: %s: interrupted by signal %d before step %lld; %s holds the %lld records written so far\n",
+                   scene.path.c_str(), sig, s, printable(out_path).c_str(), written);
+      return 128 + sig;
+    }
     sim.step();
+    // host-resident state (serial, openmp): checked after every step, in place
+    if (!sim.on_device()) {
+      const BatchView<S> qv = sim.q(), qdv = sim.qd();
+      check_finite(s, BatchView<const S>{qv.data, qv.batch, qv.dof_stride, qv.batch_stride},
+                   BatchView<const S>{qdv.data, qdv.batch, qdv.dof_stride, qdv.batch_stride});
+    }
     if (s % every == 0 || s == steps) {
       record(s);
       const BatchStatus st = sim.status();
@@ -153,8 +234,8 @@ int run_rollout(const Args& args) {
   const long long steps = parse_count("steps", args.required("steps"), 0, 1000000000);
   const std::string& out = args.required("out");
   const long long every = parse_count("every", args.get("every", "1"), 1, 1000000000);
-  if (!ends_with(out, ".csv") && !ends_with(out, ".npy"))
-    throw UsageError("--out must name a .csv or .npy file, got '" + out + "'");
+  if (out != "-" && !ends_with(out, ".csv") && !ends_with(out, ".npy"))
+    throw UsageError("--out must name a .csv or .npy file (or be - for CSV on stdout), got '" + out + "'");
   sim::Scene scene;
   try {
     scene = sim::load_scene(scene_path);

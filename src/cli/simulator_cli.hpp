@@ -6,6 +6,8 @@
 #include <memory>
 
 #include "cli.hpp"
+#include "resources.hpp"
+#include "scandyn/limits.hpp"
 #include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::cli {
@@ -25,11 +27,32 @@ inline BackendKind scene_backend(const sim::Scene& scene, const Args& args) {
   return scene.backend;
 }
 
+// Host memory of a simulator of the scene on backend, in precision S: the state
+// (on the CPU backends), the rows and indices reset_all() writes, the per-step
+// wrenches, the per-thread workspaces.
+template <class S>
+double simulator_host_bytes(const sim::Scene& scene, BackendKind backend) {
+  const double B = static_cast<double>(scene.instances), n = static_cast<double>(scene.nv()), s = sizeof(S);
+  double bytes = B * n * s * 2 + B * 8;  // reset rows, instance indices
+  if (backend != BackendKind::Cuda) {
+    bytes += B * n * s * 2;                                             // q, qd
+    if (scene.wrenches_per_step) bytes += B * n * s * 6;                // per-step wrenches
+    bytes += workspace_bytes(static_cast<std::size_t>(scene.nv()), planned_threads(backend, scene.threads), false, sizeof(S));
+  }
+  return bytes;
+}
+
 // A Simulator<S> of `scene` on `backend`; what the backend refuses (no device, a
 // model too large for its kernels, implicit beyond 64 DoF on cuda, ...) becomes
 // the command line's usage error (exit 2) with the backend's message.
+// extra_host_bytes: what the caller allocates besides (e.g. rollout's copies of the state).
 template <class S>
-std::unique_ptr<sim::Simulator<S>> make_simulator(const sim::Scene& scene, BackendKind backend) {
+std::unique_ptr<sim::Simulator<S>> make_simulator(const sim::Scene& scene, BackendKind backend,
+                                                  double extra_host_bytes = 0) {
+  require_host_memory("a simulator of " + std::to_string(scene.instances) + " instances of " +
+                          printable(scene.model_spec) + " (" + std::to_string(scene.nv()) + " DoF, " +
+                          (sizeof(S) == 4 ? "float" : "double") + ")",
+                      simulator_host_bytes<S>(scene, backend) + extra_host_bytes);
   try {
     return std::make_unique<sim::Simulator<S>>(scene, backend);
   } catch (const BackendError& e) {

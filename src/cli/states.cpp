@@ -2,6 +2,7 @@
 #include "states.hpp"
 
 #include "cli.hpp"
+#include "scandyn/limits.hpp"
 
 namespace scandyn::cli {
 
@@ -80,7 +81,7 @@ StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
     }
     const long i = family < 0 ? -1 : parse_index(name.substr(plen));
     if (i < 0)
-      throw DataError(source + ": unknown column '" + name +
+      throw DataError(source + ": unknown column '" + printable(name.substr(0, 100)) +
                       "' (expected q_<i>, qd_<i>, qdd_<i> or tau_<i>)");
     if (i >= nv)
       throw DataError(source + ": column " + name + ": index " + std::to_string(i) +

@@ -47,10 +47,35 @@ bool finite(const Sym3<double>& s) {
 }
 bool finite(const RawQuat& q) { return finite(q.x) && finite(q.y) && finite(q.z) && finite(q.w); }
 bool is_zero(const Vec3<double>& v) { return v.x == 0 && v.y == 0 && v.z == 0; }
+bool finite(const Mat3<double>& m) {
+  for (double x : m.m)
+    if (!finite(x)) return false;
+  return true;
+}
+bool finite(const Transform<double>& X) { return finite(X.E) && finite(X.r); }
+bool finite(const Inertia<double>& I) { return finite(I.m) && finite(I.h) && finite(I.I); }
+
+// Euclidean norm of (a, b, c, d) without overflow or underflow in the squares: scaled
+// by the largest magnitude (sqrt(x^2 + ...) of 1e155 overflows to Inf, and 1/Inf
+// turns an axis into 0 0 0).
+double safe_norm(double a, double b, double c, double d = 0) {
+  const double m = std::max({std::fabs(a), std::fabs(b), std::fabs(c), std::fabs(d)});
+  if (m == 0 || !finite(m)) return m;
+  a /= m, b /= m, c /= m, d /= m;
+  return m * std::sqrt(a * a + b * b + c * c + d * d);
+}
+
+// The unit vector along v (v finite and not zero).
+Vec3<double> unit(const Vec3<double>& v) {
+  const double m = std::max({std::fabs(v.x), std::fabs(v.y), std::fabs(v.z)});
+  const Vec3<double> s{v.x / m, v.y / m, v.z / m};  // largest component +-1: no overflow
+  const double n = std::sqrt(dot(s, s));
+  return (1.0 / n) * s;
+}
 
 // Rotation matrix (child coordinates -> parent coordinates) of a unit quaternion.
 Mat3<double> quat_matrix(const RawQuat& q) {
-  const double n = std::sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
+  const double n = safe_norm(q.x, q.y, q.z, q.w);
   const double x = q.x / n, y = q.y / n, z = q.z / n, w = q.w / n;
   return {{1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
@@ -127,9 +152,28 @@ void check_joint(const RawTree& t, const RawJoint& j) {
   if (bad_quat(j.has_quat, j.quat)) fail(t, J, j.name, "<origin> quaternion is zero");
   if (!finite(j.axis)) fail(t, J, j.name, "<axis> has a non-finite number");
   if (j.type != RawJointType::Fixed) {
-    const double n = std::sqrt(dot(j.axis, j.axis));
+    const double n = safe_norm(j.axis.x, j.axis.y, j.axis.z);
     if (!(n > kMinAxisNorm)) fail(t, J, j.name, "<axis> is zero");
+    const Vec3<double> u = unit(j.axis);
+    if (!finite(u) || std::fabs(std::sqrt(dot(u, u)) - 1) > 1e-9)
+      fail(t, J, j.name, "<axis> " + fmt(j.axis.x) + " " + fmt(j.axis.y) + " " + fmt(j.axis.z) +
+                         " cannot be normalised");
   }
+}
+
+// The derived quantities of a built body (its unit axis, joint transform and spatial
+// inertia, merged fixed links included) must be finite: inputs that are each finite
+// can still overflow in a product (a mass of 1e200 at 1e200 m: m c^2 = Inf).
+void check_body(const RawTree& t, const Model& m, std::size_t b) {
+  const Body<double>& body = m.bodies[b];
+  const std::string& joint = m.joint_names[b];
+  const auto overflow = [&](const std::string& what) {
+    fail(t, "joint", joint, what + " of its body (link '" + m.link_names[b] +
+                                "', fixed-joint children merged) overflows: a number in the model is too large");
+  };
+  if (!finite(body.axis) || std::fabs(dot(body.axis, body.axis) - 1) > 1e-6) overflow("the unit axis");
+  if (!finite(body.Xtree)) overflow("the joint transform");
+  if (!finite(body.I)) overflow("the spatial inertia");
 }
 
 // Spatial inertia of a link about its own origin, link axes.
@@ -333,11 +377,10 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
       push_children(link, e.body, false, X);
     } else {
       const int b = static_cast<int>(m.bodies.size());
-      const double n = std::sqrt(dot(j.axis, j.axis));
       Body<double> body;
       body.parent = e.body;
       body.type = j.type == RawJointType::Prismatic ? JointType::Prismatic : JointType::Revolute;
-      body.axis = (1.0 / n) * j.axis;
+      body.axis = unit(j.axis);
       body.Xtree = X;
       body.I = link_inertia(l);
       m.bodies.push_back(body);
@@ -356,6 +399,7 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
         fail(t, "link", t.links[i].name, "is not connected to the root link '" +
                                              t.links[root].name + "' (its joints form a cycle)");
   }
+  for (std::size_t b = 0; b < m.bodies.size(); ++b) check_body(t, m, b);
   return m;
 }
 

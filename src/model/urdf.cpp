@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/limits.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn {
@@ -85,6 +86,16 @@ RawJointType joint_type(int t, std::string& name) {
 }  // namespace
 
 RawTree parse_urdf(const std::string& xml, const std::string& source) {
+  // bounded before parsing: tinyxml recurses once per nesting level (50,000 levels
+  // overflow the stack), and a URDF needs 4 (robot, link, inertial, origin)
+  if (xml.size() > limits::kMaxUrdfBytes)
+    throw ModelError(source + ": the URDF text has " + std::to_string(xml.size()) + " bytes; at most " +
+                     std::to_string(limits::kMaxUrdfBytes) + " are read");
+  if (xml_depth(xml, limits::kMaxXmlDepth) > limits::kMaxXmlDepth)
+    throw ModelError(source + ": XML elements nested deeper than " + std::to_string(limits::kMaxXmlDepth) +
+                     " levels (a URDF needs 4)");
+  if (xml.find('\0') != std::string::npos)
+    throw ModelError(source + ": the URDF text contains a NUL byte at offset " + std::to_string(xml.find('\0')));
   urdf::ModelInterfaceSharedPtr model;
   std::string errors;
   {
@@ -141,16 +152,13 @@ RawTree parse_urdf(const std::string& xml, const std::string& source) {
 }
 
 Model load_urdf(const std::string& path, const BuildOptions& options) {
-  std::FILE* f = std::fopen(path.c_str(), "rb");
-  if (!f) throw ModelError(path + ": cannot open file");
   std::string text;
-  char buf[1 << 16];
-  std::size_t n;
-  while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) text.append(buf, n);
-  const bool failed = std::ferror(f) != 0;
-  std::fclose(f);
-  if (failed) throw ModelError(path + ": cannot read file");
-  return build_model(parse_urdf(text, path), options);
+  try {
+    text = read_regular_file(path, limits::kMaxUrdfBytes, "URDF file");
+  } catch (const InputError& e) {
+    throw ModelError(e.what());
+  }
+  return build_model(parse_urdf(text, printable(path)), options);
 }
 
 Model load_model(const std::string& path_or_spec, const BuildOptions& options) {

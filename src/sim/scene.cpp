@@ -13,6 +13,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "scandyn/limits.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn {
@@ -59,12 +60,14 @@ class Reader {
   explicit Reader(std::string source) : source_(std::move(source)) {}
 
   [[noreturn]] void fail(const std::string& key, const std::string& what) const {
-    throw SceneError(source_ + ": " + (key.empty() ? "" : key + ": ") + what);
+    std::string k = printable(key);
+    if (k.size() > 200) k = k.substr(0, 197) + "...";
+    throw SceneError(source_ + ": " + (k.empty() ? "" : k + ": ") + what);
   }
 
   // A value as written, shortened for messages.
   static std::string shown(const json& v) {
-    std::string s = v.dump();
+    std::string s = printable(v.dump(-1, ' ', false, json::error_handler_t::replace));
     if (s.size() > 60) s = s.substr(0, 57) + "...";
     return s;
   }
@@ -177,14 +180,25 @@ std::string dir_of(const std::string& path) {
 
 Scene parse_scene(const std::string& text, const std::string& source, const std::string& base_dir) {
   const Reader r(source);
+  // bounded before parsing: the size, the nesting depth (a value nested 10^5 deep
+  // would overflow the stack where it is quoted or destroyed) and numbers beyond a
+  // double (nlohmann reports those without a position or key)
+  if (text.size() > limits::kMaxSceneBytes)
+    r.fail("", "the scene has " + std::to_string(text.size()) + " bytes; at most " +
+                   std::to_string(limits::kMaxSceneBytes) + " are read");
+  try {
+    check_json_text(text, limits::kMaxJsonDepth);
+  } catch (const InputError& e) {
+    r.fail("", e.what());
+  }
   json doc;
   try {
     doc = json::parse(text);
-  } catch (const json::parse_error& e) {
+  } catch (const json::exception& e) {
     std::string what = e.what();
     const std::size_t k = what.find("] ");
     if (k != std::string::npos) what = what.substr(k + 2);
-    r.fail("", "not valid JSON: " + what);
+    r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
                            "backend", "threads", "instances", "initial"});
@@ -196,6 +210,8 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   // ---- model
   s.model_spec = r.string("model", doc["model"]);
   if (s.model_spec.empty()) r.expected("model", "a URDF path or a generator spec", doc["model"]);
+  if (s.model_spec.find('\0') != std::string::npos)
+    r.fail("model", "'" + printable(s.model_spec) + "' contains a NUL character");
   BuildOptions options;
   if (doc.contains("allow_nonphysical_inertia"))
     options.require_physical_inertia = !r.boolean("allow_nonphysical_inertia", doc["allow_nonphysical_inertia"]);
@@ -207,7 +223,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     if (s.model_path.empty()) {
       std::string list = base_dir;
       for (const auto& d : model_search_dirs()) list += ", " + d;
-      r.fail("model", "'" + s.model_spec + "' not found (looked in " + list + ")");
+      r.fail("model", "'" + printable(s.model_spec) + "' not found (looked in " + printable(list) + ")");
     }
   }
   try {
@@ -374,12 +390,13 @@ std::string backend_choice(const Scene& scene) {
 }
 
 Scene load_scene(const std::string& path) {
-  std::ifstream f(path, std::ios::binary);
-  if (!f) throw SceneError(path + ": cannot open file");
-  std::ostringstream text;
-  text << f.rdbuf();
-  if (f.bad()) throw SceneError(path + ": cannot read file");
-  return parse_scene(text.str(), path, dir_of(path));
+  std::string text;
+  try {
+    text = read_regular_file(path, limits::kMaxSceneBytes, "scene file");
+  } catch (const InputError& e) {
+    throw SceneError(e.what());
+  }
+  return parse_scene(text, printable(path), dir_of(path));
 }
 
 }  // namespace sim

@@ -50,8 +50,6 @@ enum class Trig {
 // that drift stays below 1e-6) use the cheaper kinds.
 template <Trig kTrig = Trig::Exact, class S>
 SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
-  using std::cos;
-  using std::sin;
 #if defined(__CUDA_ARCH__)
   if constexpr (sizeof(S) < sizeof(double) && kTrig == Trig::Exact) {
     double sd, cd;
@@ -66,8 +64,8 @@ SCANDYN_HD void joint_sincos(S q, S& s, S& c) {
     return;
   }
 #endif
-  s = sin(q);
-  c = cos(q);
+  s = ScalarMath<S>::sin(q);
+  c = ScalarMath<S>::cos(q);
 }
 
 // Xup = XJ(q) Xtree: parent frame -> body frame at joint position q (kTrig: see
@@ -124,8 +122,7 @@ SCANDYN_HD Motion<S> base_acceleration(const Vec3<S>& gravity) {
 // zero, negative values, NaN and +inf.
 template <class S>
 SCANDYN_HD bool pivot_ok(S d) {
-  using std::isfinite;
-  return d > S(0) && isfinite(d);
+  return d > S(0) && ScalarMath<S>::isfinite(d);
 }
 
 // ---- RNEA -------------------------------------------------------------------

@@ -101,13 +101,11 @@ SCANDYN_HD SmallMat<S, N, N> symmetrize(SmallMat<S, N, N> A) {
 // pivot is not positive and finite (A not numerically positive definite).
 template <class S, int N>
 SCANDYN_HD bool cholesky(SmallMat<S, N, N>& A) {
-  using std::isfinite;
-  using std::sqrt;
   for (int j = 0; j < N; ++j) {
     S d = A(j, j);
     for (int k = 0; k < j; ++k) d -= A(j, k) * A(j, k);
-    if (!(d > S(0)) || !isfinite(d)) return false;  // d <= 0, NaN or +inf
-    const S l = sqrt(d);
+    if (!(d > S(0)) || !ScalarMath<S>::isfinite(d)) return false;  // d <= 0, NaN or +inf
+    const S l = ScalarMath<S>::sqrt(d);
     A(j, j) = l;
     for (int i = j + 1; i < N; ++i) {
       S s = A(i, j);

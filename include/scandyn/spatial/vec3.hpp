@@ -7,6 +7,7 @@
 #include <cmath>
 
 #include "scandyn/config.hpp"
+#include "scandyn/spatial/scalar.hpp"
 
 namespace scandyn {
 
@@ -158,10 +159,9 @@ SCANDYN_HD Mat3<S> axis_angle(const Vec3<S>& a, S s, S c) {
 // Rotation matrix from roll-pitch-yaw (URDF convention): R = Rz(yaw) Ry(pitch) Rx(roll).
 template <class S>
 SCANDYN_HD Mat3<S> rpy_matrix(S roll, S pitch, S yaw) {
-  using std::cos;
-  using std::sin;
-  const S cr = cos(roll), sr = sin(roll), cp = cos(pitch), sp = sin(pitch);
-  const S cy = cos(yaw), sy = sin(yaw);
+  using M = ScalarMath<S>;
+  const S cr = M::cos(roll), sr = M::sin(roll), cp = M::cos(pitch), sp = M::sin(pitch);
+  const S cy = M::cos(yaw), sy = M::sin(yaw);
   return {{cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
            -sp, cp * sr, cp * cr}};

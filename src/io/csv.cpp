@@ -1,5 +1,7 @@
-// src/cli/csv.cpp: strict numeric CSV reading and atomic CSV writing.
-#include "csv.hpp"
+// src/io/csv.cpp: strict numeric CSV reading and atomic CSV writing.
+#include "scandyn/io/csv.hpp"
+
+#include "scandyn/limits.hpp"
 
 #include <fcntl.h>
 #include <sys/stat.h>
@@ -13,7 +15,7 @@
 #include <cstring>
 #include <unordered_map>
 
-namespace scandyn::cli {
+namespace scandyn::io {
 namespace {
 
 bool is_blank(char c) { return c == ' ' || c == '\t'; }
@@ -26,31 +28,13 @@ std::string_view trim(std::string_view s) {
 
 std::string system_error_text() { return std::strerror(errno); }
 
-// The whole file, or CsvError.
+// The whole file (a regular file within the stated limit), or CsvError.
 std::string read_file(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) throw CsvError(path + ": cannot open: " + system_error_text());
-  struct stat st {};
-  if (::fstat(fd, &st) == 0 && S_ISDIR(st.st_mode)) {
-    ::close(fd);
-    throw CsvError(path + ": cannot read: is a directory");
+  try {
+    return read_regular_file(path, limits::kMaxCsvBytes, "CSV file");
+  } catch (const InputError& e) {
+    throw CsvError(e.what());
   }
-  std::string text;
-  if (st.st_size > 0) text.reserve(static_cast<std::size_t>(st.st_size));
-  char buf[1 << 16];
-  for (;;) {
-    const ssize_t n = ::read(fd, buf, sizeof buf);
-    if (n == 0) break;
-    if (n < 0) {
-      if (errno == EINTR) continue;
-      const std::string err = system_error_text();
-      ::close(fd);
-      throw CsvError(path + ": cannot read: " + err);
-    }
-    text.append(buf, static_cast<std::size_t>(n));
-  }
-  ::close(fd);
-  return text;
 }
 
 }  // namespace
@@ -87,7 +71,24 @@ void append_number(std::string& out, double value) {
 
 // ---- reader -------------------------------------------------------------------
 
-CsvReader::CsvReader(std::string path) : path_(std::move(path)), text_(read_file(path_)) {
+CsvReader::CsvReader(std::string path) : path_(std::move(path)), text_(read_file(path_)) { read_header(); }
+
+CsvReader::CsvReader(std::string path, std::string text) : path_(std::move(path)), text_(std::move(text)) {
+  read_header();
+}
+
+void CsvReader::read_header() {
+  path_ = printable(path_);
+  // a CR that does not end a CRLF pair: a file with CR-only line ends (classic Mac)
+  // would otherwise read as one long header line
+  for (std::size_t k = text_.find('\r'); k != std::string::npos; k = text_.find('\r', k + 1)) {
+    if (k + 1 < text_.size() && text_[k + 1] != '\n') {
+      const std::size_t line = 1 + static_cast<std::size_t>(std::count(text_.begin(), text_.begin() + k, '\n'));
+      throw CsvError(path_ + ": line " + std::to_string(line) +
+                     ": a carriage return (CR) not followed by LF; lines must end in LF or CRLF "
+                     "(CR-only line ends are not read)");
+    }
+  }
   // skip a UTF-8 byte-order mark
   if (text_.compare(0, 3, "\xEF\xBB\xBF") == 0) pos_ = 3;
   // trailing whitespace-only lines are not data
@@ -112,7 +113,7 @@ CsvReader::CsvReader(std::string path) : path_(std::move(path)), text_(read_file
       throw CsvError(path_ + ": header: column " + std::to_string(col) + " has an empty name");
     const auto [it, inserted] = seen.emplace(name, col);
     if (!inserted)
-      throw CsvError(path_ + ": duplicate column " + std::string(name) + " (columns " +
+      throw CsvError(path_ + ": duplicate column " + printable(name.substr(0, 100)) + " (columns " +
                      std::to_string(it->second) + " and " + std::to_string(col) + ")");
     columns_.emplace_back(name);
     if (comma == std::string_view::npos) break;
@@ -125,7 +126,7 @@ std::string CsvReader::where(std::size_t r) const {
 }
 
 void CsvReader::fail_field(std::size_t column, const std::string& what) const {
-  throw CsvError(where() + ", column " + columns_[column] + ": " + what);
+  throw CsvError(where() + ", column " + printable(columns_[column].substr(0, 100)) + ": " + what);
 }
 
 bool CsvReader::next_row(std::vector<double>& values) {
@@ -147,7 +148,8 @@ bool CsvReader::next_row(std::vector<double>& values) {
           start, comma == std::string_view::npos ? std::string_view::npos : comma - start));
       double v = 0;
       if (text.empty()) fail_field(field, "empty field");
-      if (!parse_number(text, v)) fail_field(field, "not a number: '" + std::string(text) + "'");
+      if (!parse_number(text, v))
+        fail_field(field, "not a number: '" + printable(text.substr(0, 60)) + (text.size() > 60 ? "...'" : "'"));
       if (std::isnan(v)) fail_field(field, "NaN");
       if (std::isinf(v)) fail_field(field, v > 0 ? "Inf" : "-Inf");
       values[field] = v;
@@ -160,66 +162,6 @@ bool CsvReader::next_row(std::vector<double>& values) {
     throw CsvError(where() + ": expected " + std::to_string(ncol) + " fields, found " +
                    std::to_string(field));
   return true;
-}
-
-// ---- atomic writer ------------------------------------------------------------
-
-AtomicFileWriter::AtomicFileWriter(std::string path) : path_(std::move(path)) {
-  const std::size_t slash = path_.rfind('/');
-  const std::string dir = slash == std::string::npos ? std::string() : path_.substr(0, slash + 1);
-  const std::string base = slash == std::string::npos ? path_ : path_.substr(slash + 1);
-  if (base.empty()) throw CsvError(path_ + ": not a file name");
-  // a hidden name next to the destination, so that rename() stays on one file system
-  for (unsigned attempt = 0; fd_ < 0; ++attempt) {
-    tmp_path_ =
-        dir + "." + base + ".tmp." + std::to_string(::getpid()) + "." + std::to_string(attempt);
-    fd_ = ::open(tmp_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
-    if (fd_ < 0 && (errno != EEXIST || attempt >= 1000)) {
-      const std::string err = system_error_text();
-      tmp_path_.clear();
-      throw CsvError(path_ + ": cannot create file: " + err);
-    }
-  }
-}
-
-AtomicFileWriter::~AtomicFileWriter() { discard(); }
-
-void AtomicFileWriter::discard() noexcept {
-  if (fd_ >= 0) ::close(fd_);
-  fd_ = -1;
-  if (!tmp_path_.empty()) ::unlink(tmp_path_.c_str());
-  tmp_path_.clear();
-}
-
-void AtomicFileWriter::write(std::string_view bytes) {
-  buffer_.append(bytes);
-  if (buffer_.size() >= (1u << 20)) flush();
-}
-
-void AtomicFileWriter::flush() {
-  if (fd_ < 0) throw CsvError(path_ + ": write after close");
-  const char* p = buffer_.data();
-  std::size_t left = buffer_.size();
-  while (left > 0) {
-    const ssize_t n = ::write(fd_, p, left);
-    if (n < 0) {
-      if (errno == EINTR) continue;
-      throw CsvError(path_ + ": write failed: " + system_error_text());
-    }
-    p += n;
-    left -= static_cast<std::size_t>(n);
-  }
-  buffer_.clear();
-}
-
-void AtomicFileWriter::commit() {
-  flush();
-  const int fd = fd_;
-  fd_ = -1;
-  if (::close(fd) != 0) throw CsvError(path_ + ": write failed: " + system_error_text());
-  if (::rename(tmp_path_.c_str(), path_.c_str()) != 0)
-    throw CsvError(path_ + ": cannot replace file: " + system_error_text());
-  tmp_path_.clear();
 }
 
 // ---- CSV writer ---------------------------------------------------------------
@@ -284,4 +226,4 @@ void append_csv_line(const std::string& path, const std::string& header_line,
   if (!error.empty()) throw CsvError(error);
 }
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

@@ -1,4 +1,4 @@
-// src/cli/csv.hpp: the numeric CSV files of `scandyn eval` (and of the later
+// scandyn/io/csv.hpp: the numeric CSV files of `scandyn eval` (and of the later
 // backends): a strict reader of a header row plus rows of finite numbers, and a
 // writer that only ever shows a complete file under its final name.
 //
@@ -19,7 +19,9 @@
 #include <utility>
 #include <vector>
 
-namespace scandyn::cli {
+#include "scandyn/io/output_file.hpp"
+
+namespace scandyn::io {
 
 // A malformed or unreadable CSV file (what(): one line naming the file).
 class CsvError : public std::runtime_error {
@@ -34,6 +36,8 @@ class CsvReader {
   // Reads the file and its header. Throws CsvError: unreadable or empty file,
   // empty column name, duplicate column name.
   explicit CsvReader(std::string path);
+  // The same for CSV text already in memory (path only names it in messages).
+  CsvReader(std::string path, std::string text);
 
   const std::string& path() const { return path_; }
   // The header's column names, trimmed, in file order.
@@ -53,6 +57,7 @@ class CsvReader {
 
  private:
   [[noreturn]] void fail_field(std::size_t column, const std::string& what) const;
+  void read_header();
 
   std::string path_;
   std::string text_;          // whole file contents
@@ -71,33 +76,6 @@ bool parse_number(std::string_view text, double& value);
 // Appends value formatted like printf("%.17g"): 17 significant digits, enough to
 // read back the identical double.
 void append_number(std::string& out, double value);
-
-// Writes a file through a temporary file in the destination directory, renamed
-// onto path by commit(). Without commit() (an error, an exception) the temporary
-// file is removed and an existing file at path is left untouched.
-class AtomicFileWriter {
- public:
-  // Creates the temporary file. Throws CsvError (e.g. missing directory).
-  explicit AtomicFileWriter(std::string path);
-  ~AtomicFileWriter();
-  AtomicFileWriter(const AtomicFileWriter&) = delete;
-  AtomicFileWriter& operator=(const AtomicFileWriter&) = delete;
-
-  const std::string& path() const { return path_; }
-  // Buffered write. Throws CsvError on a write error (e.g. disk full).
-  void write(std::string_view bytes);
-  // Flushes, closes and renames the temporary file onto path. Throws CsvError.
-  void commit();
-
- private:
-  void flush();
-  void discard() noexcept;
-
-  std::string path_;
-  std::string tmp_path_;
-  int fd_ = -1;
-  std::string buffer_;
-};
 
 // A CSV file of numbers written atomically: header, then rows.
 class CsvWriter {
@@ -122,4 +100,4 @@ class CsvWriter {
 void append_csv_line(const std::string& path, const std::string& header_line,
                      const std::string& line);
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

@@ -1,0 +1,218 @@
+// src/algorithm/reference_impl.hpp: the definitions of the serial reference
+// algorithms (scandyn/algorithm/reference.hpp), included by the translation units
+// that instantiate them: reference.cpp for float and double (the library), and
+// src/truth/reference_wide.cpp for long double and __float128 (the
+// high-precision truth, library scandyn_truth). One definition, every scalar.
+#pragma once
+
+#include "scandyn/algorithm/reference.hpp"
+
+#include <cmath>
+#include <stdexcept>
+
+namespace scandyn {
+
+template <class S>
+DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
+  const std::size_t n = static_cast<std::size_t>(model.nv());
+  Xup.resize(n);
+  v.resize(n);
+  a.resize(n);
+  c.resize(n);
+  f.resize(n);
+  Ic.resize(n);
+  IA.resize(n);
+  U.resize(n);
+  D.resize(n);
+  u.resize(n);
+  if (mass_matrix) M.resize(n * n);
+  h.resize(n);
+  run_start.resize(n);
+  for (std::size_t i = 0; i < n; ++i)
+    run_start[i] = (i > 0 && model.bodies[i].parent == Index(i) - 1) ? run_start[i - 1] : Index(i);
+}
+
+template <class S>
+void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
+          S* tau, const Force<S>* fext) {
+  const Index n = model.nv();
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  // forward: kinematics and body forces
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform(b, q[i]);
+    const RneaForward<S> o = rnea_forward_step(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p],
+                                               p < 0 ? a0 : data.a[p], qd[i], qdd ? qdd[i] : S(0));
+    data.v[i] = o.v;
+    data.a[i] = o.a;
+    data.f[i] = fext ? o.f - fext[i] : o.f;
+  }
+  // backward: joint torques, forces accumulated into parents
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    tau[i] = joint_project(b, data.f[i]);
+    if (b.parent >= 0) data.f[b.parent] += data.Xup[i].apply_transpose(data.f[i]);
+  }
+}
+
+template <class S>
+void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, S* h,
+                 const Force<S>* fext) {
+  rnea(model, data, q, qd, static_cast<const S*>(nullptr), h, fext);
+}
+
+template <class S>
+void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
+  const Index n = model.nv();
+  for (Index i = 0; i < n; ++i) {
+    data.Xup[i] = joint_transform(model.bodies[i], q[i]);
+    data.Ic[i] = model.bodies[i].I;
+  }
+  // composite inertias, leaves to root
+  for (Index i = n - 1; i >= 0; --i) {
+    const Index p = model.bodies[i].parent;
+    if (p >= 0) data.Ic[p] += crba_composite_step(data.Xup[i], data.Ic[i]);
+  }
+  const std::size_t nn = static_cast<std::size_t>(n);  // row stride; n * n overflows Index past 46340
+  for (std::size_t k = 0; k < nn * nn; ++k) M[k] = S(0);
+  // column i: F = Ic_i S_i carried up the path to the root
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    Force<S> F = crba_column_force(b, data.Ic[i]);
+    M[i * nn + i] = joint_project(b, F);
+    Index j = i;
+    while (model.bodies[j].parent >= 0) {
+      F = crba_column_step(data.Xup[j], F);
+      j = model.bodies[j].parent;
+      const S Mij = joint_project(model.bodies[j], F);
+      M[i * nn + j] = Mij;
+      M[j * nn + i] = Mij;
+    }
+  }
+}
+
+template <class S>
+Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+           S* qdd, const Force<S>* fext, const S* armature) {
+  const Index n = model.nv();
+  // pass 1: kinematics, bias forces
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform(b, q[i]);
+    const AbaForward<S> o = aba_forward_step(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p], qd[i]);
+    data.v[i] = o.v;
+    data.c[i] = o.c;
+    data.f[i] = fext ? o.pA - fext[i] : o.pA;
+    data.IA[i] = ABInertia<S>::from(b.I);
+  }
+  // pass 2: articulated inertias, leaves to root
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    if (armature)
+      aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i], armature[i]);
+    else
+      aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i]);
+    if (!pivot_ok(data.D[i])) return Status{i};
+    if (b.parent >= 0)
+      aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
+                             data.u[i], data.IA[b.parent], data.f[b.parent]);
+  }
+  // pass 3: accelerations, root to leaves
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    qdd[i] = aba_acceleration_step(b, data.Xup[i], b.parent < 0 ? a0 : data.a[b.parent], data.c[i],
+                                   data.U[i], data.D[i], data.u[i], data.a[i]);
+  }
+  return Status{};
+}
+
+// Calls f(j) for every ancestor j of body i and i itself, from i towards the root,
+// walking contiguous chain runs as plain loops (vectorisable, no pointer chasing).
+template <class S, class F>
+inline void for_path(const ModelTpl<S>& model, const DataTpl<S>& data, Index i, F f) {
+  while (i >= 0) {
+    const Index r = data.run_start[i];
+    for (Index j = i; j >= r; --j) f(j);
+    i = model.parent(r);
+  }
+}
+
+template <class S>
+Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M) {
+  const Index n = model.nv();
+  const std::size_t nn = static_cast<std::size_t>(n);
+  for (Index k = n - 1; k >= 0; --k) {
+    S* Lk = M + k * nn;  // row k
+    const S d = Lk[k];
+    if (!pivot_ok(d)) return Status{k};
+    const S Lkk = ScalarMath<S>::sqrt(d);
+    Lk[k] = Lkk;
+    const S inv = S(1) / Lkk;
+    for_path(model, data, model.parent(k), [&](Index i) { Lk[i] *= inv; });
+    for_path(model, data, model.parent(k), [&](Index i) {
+      const S Lki = Lk[i];
+      S* Mi = M + i * nn;
+      for_path(model, data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
+    });
+  }
+  return Status{};
+}
+
+template <class S>
+void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* x) {
+  const Index n = model.nv();
+  const std::size_t nn = static_cast<std::size_t>(n);
+  // L^T y = b
+  for (Index i = n - 1; i >= 0; --i) {
+    const S* Li = L + i * nn;
+    x[i] /= Li[i];
+    const S xi = x[i];
+    for_path(model, data, model.parent(i), [&](Index j) { x[j] -= Li[j] * xi; });
+  }
+  // L x = y
+  for (Index i = 0; i < n; ++i) {
+    const S* Li = L + i * nn;
+    S acc = x[i];
+    for_path(model, data, model.parent(i), [&](Index j) { acc -= Li[j] * x[j]; });
+    x[i] = acc / Li[i];
+  }
+}
+
+template <class S>
+Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+              S* qdd, const Force<S>* fext, const S* armature) {
+  const Index n = model.nv();
+  if (data.M.size() != static_cast<std::size_t>(n) * n)
+    throw std::logic_error("fd_jsi: DataTpl was built without its mass-matrix workspace");
+  crba(model, data, q, data.M.data());
+  if (armature) {
+    const std::size_t nn = static_cast<std::size_t>(n);
+    for (Index i = 0; i < n; ++i) data.M[i * nn + i] += armature[i];
+  }
+  bias_forces(model, data, q, qd, data.h.data(), fext);
+  const Status st = ltl_factor(model, data, data.M.data());
+  if (!st.ok()) return st;
+  for (Index i = 0; i < n; ++i) qdd[i] = tau[i] - data.h[i];
+  ltl_solve(model, data, data.M.data(), qdd);
+  return st;
+}
+
+}  // namespace scandyn
+
+// Explicit instantiation of every reference algorithm for the scalar S.
+#define SCANDYN_INSTANTIATE(S)                                                                    \
+  template struct DataTpl<S>;                                                                     \
+  template void rnea(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,           \
+                     const Force<S>*);                                                            \
+  template void bias_forces(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, S*,              \
+                            const Force<S>*);                                                     \
+  template void crba(const ModelTpl<S>&, DataTpl<S>&, const S*, S*);                              \
+  template Status aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,          \
+                      const Force<S>*, const S*);                                                 \
+  template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
+                         const Force<S>*, const S*);                                              \
+  template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \
+  template void ltl_solve(const ModelTpl<S>&, const DataTpl<S>&, const S*, S*);
