@@ -87,7 +87,7 @@ void BM_CudaStep(benchmark::State& st, std::string engine, std::string model, st
   }
   cudaEventDestroy(start);
   cudaEventDestroy(stop);
-  if (!s->status().ok()) st.SkipWithError(s->status().message().c_str());
+  if (!s->status().ok()) st.SkipWithError(sim::failure_message(s->status()).c_str());
   st.counters["links"] = s->nv();
   st.counters["instances"] = static_cast<double>(instances);
   st.counters["max_rel_err"] = err;

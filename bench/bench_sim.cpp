@@ -39,7 +39,7 @@ void BM_Step(benchmark::State& st, std::string model, std::string effects, std::
     return;
   }
   for (auto _ : st) s->step();
-  if (!s->status().ok()) st.SkipWithError(s->status().message().c_str());
+  if (!s->status().ok()) st.SkipWithError(sim::failure_message(s->status()).c_str());
   st.counters["links"] = s->nv();
   st.counters["instances"] = static_cast<double>(instances);
   st.counters["max_rel_err"] = err;

@@ -82,6 +82,21 @@ __host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::Thr
       cuda::DofColumn<S>{qdd, 1}, armature);
 }
 
+// The steps' failures on the device: failed instance-steps, and the lowest failed
+// instance with the DoF at which its forward dynamics stopped, as one key
+// (instance << 32 | DoF) so that one atomicMin keeps both. The host reads it into a
+// BatchStatus (kernels/sim_step.cu).
+struct StepStatus {
+  unsigned long long failed;  // failed instance-steps
+  unsigned long long first;   // instance << 32 | DoF of the lowest failed instance; kStepStatusClear.first: none
+};
+inline constexpr StepStatus kStepStatusClear = {0ull, ~0ull};
+
+__device__ __forceinline__ void record_step_failure(StepStatus* status, Index b, Index dof) {
+  atomicAdd(&status->failed, 1ull);
+  atomicMin(&status->first, (static_cast<unsigned long long>(b) << 32) | static_cast<unsigned>(dof));
+}
+
 // Arguments of one launch (device pointers).
 template <class S>
 struct FusedArgs {
@@ -91,7 +106,7 @@ struct FusedArgs {
   const Force<S>* wrenches;  // external wrenches of instance b at wrenches + b * wrench_stride, or null
   long long wrench_stride;   // nv (per-step buffer) or 0 (the constant ones)
   Index batch;               // B
-  int* status;               // [0]: failed instances (atomicAdd), [1]: lowest failed instance (atomicMin)
+  StepStatus* status;        // the failures (record_step_failure)
 };
 
 template <class S, int C, unsigned E, Integrator I, int kSlots>
@@ -119,8 +134,7 @@ SCANDYN_SIM_UNROLL
   const StepScratch<S> w{tw, qdd, qs, qds, aq, aqd};
   const Index failed = step_instance<E, I, C>(n, p.dt, p.coef, p.armature, q, qd, tau, w, fd);
   if (failed >= 0) {
-    atomicAdd(&a.status[0], 1);
-    atomicMin(&a.status[1], static_cast<int>(b));
+    record_step_failure(a.status, static_cast<Index>(b), failed);
     return;
   }
 SCANDYN_SIM_UNROLL

@@ -14,7 +14,8 @@
 //                           only: neither takes an armature yet.
 #include <cuda_runtime.h>
 
-#include <climits>
+#include <algorithm>
+#include <limits>
 #include <memory>
 #include <string>
 #include <variant>
@@ -48,66 +49,44 @@ __global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, con
   if (k >= static_cast<long long>(nv) * B) return;
   const Index i = static_cast<Index>(k / B), b = static_cast<Index>(k % B);
   const S t = tau.data ? tau.at(i, b) : S(0);
-  tau_out[k] = t + joint_effect_force<E>(coef[i], qs[k], qds[k], S(0));
+  tau_out[k] = effect_forces<E>(t, coef[i], qs[k], qds[k], S(0));
 }
 
-// euler: qd += dt qdd, q += dt qd where the instance's forward dynamics succeeded;
-// failures counted once per instance (by the DoF-0 entries)
-template <class S>
-__global__ void euler_update_kernel(S* q, S* qd, const S* qdd, const int* failed, S dt, Index nv, Index B,
-                                    int* status) {
+// The end of a step: where the instance's forward dynamics succeeded (failed[b] <
+// 0; rk4: in every stage), euler_update with qdd = x, or rk4_finish with the sums
+// (x, y); failures recorded once per instance (by the DoF-0 entries).
+template <class S, bool kRk4>
+__global__ void finish_kernel(S* q, S* qd, const S* x, const S* y, const int* failed, S dt, Index nv, Index B,
+                              StepStatus* status) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= static_cast<long long>(nv) * B) return;
   const Index b = static_cast<Index>(k % B);
   if (failed[b] >= 0) {
-    if (k < B) atomicAdd(&status[0], 1), atomicMin(&status[1], b);
+    if (k < B) record_step_failure(status, b, failed[b]);
     return;
   }
-  qd[k] += dt * qdd[k];
-  q[k] += dt * qd[k];
+  if constexpr (kRk4) rk4_finish(dt, x[k], y[k], q[k], qd[k]);
+  else euler_update(dt, x[k], q[k], qd[k]);
 }
 
-// rk4, before the stages: (qs, qds) = (q, qd), sums zero, no failure yet
+// rk4, before the stages: rk4_begin, no failure yet
 template <class S>
 __global__ void rk4_init_kernel(const S* q, const S* qd, S* qs, S* qds, S* aq, S* aqd, int* bad, Index nv, Index B) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= static_cast<long long>(nv) * B) return;
-  qs[k] = q[k];
-  qds[k] = qd[k];
-  aq[k] = S(0);
-  aqd[k] = S(0);
+  rk4_begin(q[k], qd[k], qs[k], qds[k], aq[k], aqd[k]);
   if (k < B) bad[k] = -1;
 }
 
-// rk4, after stage s's forward dynamics: the formulas of step_instance's stage loop
+// rk4, after stage s's forward dynamics: rk4_stage; bad keeps the DoF of an
+// instance's first failed stage
 template <class S>
 __global__ void rk4_stage_kernel(const S* q, const S* qd, S* qs, S* qds, const S* qdd, S* aq, S* aqd,
                                  const int* failed, int* bad, int s, S dt, Index nv, Index B) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= static_cast<long long>(nv) * B) return;
-  if (k < B && failed[k] >= 0) bad[k] = failed[k];
-  const S weight = (s == 0 || s == 3) ? S(1) : S(2);
-  const S c = s < 2 ? S(0.5) * dt : dt;
-  const S v = qds[k], a = qdd[k];
-  aq[k] += weight * v;
-  aqd[k] += weight * a;
-  qs[k] = q[k] + c * v;
-  qds[k] = qd[k] + c * a;
-}
-
-template <class S>
-__global__ void rk4_final_kernel(S* q, S* qd, const S* aq, const S* aqd, const int* bad, S dt, Index nv, Index B,
-                                 int* status) {
-  const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (k >= static_cast<long long>(nv) * B) return;
-  const Index b = static_cast<Index>(k % B);
-  if (bad[b] >= 0) {
-    if (k < B) atomicAdd(&status[0], 1), atomicMin(&status[1], b);
-    return;
-  }
-  const S sixth = dt / S(6);
-  q[k] += sixth * aq[k];
-  qd[k] += sixth * aqd[k];
+  if (k < B && failed[k] >= 0 && bad[k] < 0) bad[k] = failed[k];
+  rk4_stage(s, dt, q[k], qd[k], qdd[k], qs[k], qds[k], aq[k], aqd[k]);
 }
 
 // reset: rows (count x nv, row r for instance idx[r]) into the SoA state
@@ -164,10 +143,10 @@ class CudaSimBackend final : public SimBackend<S> {
       bad_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
     }
     // small constants: status, the constant (or zero) wrenches, the coefficients
-    const std::size_t small = 2 * sizeof(int) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>);
+    const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>);
     check(cudaMalloc(&small_, small), "allocating the simulator's constants");
-    status_ = static_cast<int*>(small_);
-    wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + 2 * sizeof(int));
+    status_ = static_cast<StepStatus*>(small_);
+    wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + sizeof(StepStatus));
     coef_ = reinterpret_cast<JointCoefficients<S>*>(reinterpret_cast<char*>(wrenches_) + n * sizeof(Force<S>));
     std::vector<Force<S>> w = setup.wrenches;
     w.resize(n, Force<S>::zero());  // zeros for the all-effects kernels of scenes without wrenches
@@ -247,7 +226,8 @@ class CudaSimBackend final : public SimBackend<S> {
     };
     if (setup_.integrator == Integrator::Euler) {
       forces();
-      euler_update_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, failed_, setup_.dt, nv, B, status_);
+      finish_kernel<S, false><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, nullptr, failed_, setup_.dt, nv, B,
+                                                                      status_);
     } else {
       rk4_init_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, aq_, aqd_, bad_, nv, B);
       for (int s = 0; s < 4; ++s) {
@@ -255,7 +235,7 @@ class CudaSimBackend final : public SimBackend<S> {
         rk4_stage_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, qdd_, aq_, aqd_, failed_, bad_,
                                                                    s, setup_.dt, nv, B);
       }
-      rk4_final_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
+      finish_kernel<S, true><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
     }
     check(cudaGetLastError(), "launching the simulator's integration kernels");
   }
@@ -298,18 +278,21 @@ class CudaSimBackend final : public SimBackend<S> {
     check(cudaStreamSynchronize(stream_), "copying the state to the host");
   }
 
-  SimStatus status() override {
-    int s[2];
-    check(cudaMemcpyAsync(s, status_, sizeof s, cudaMemcpyDeviceToHost, stream_), "reading the step status");
+  BatchStatus status() override {
+    StepStatus s;
+    check(cudaMemcpyAsync(&s, status_, sizeof s, cudaMemcpyDeviceToHost, stream_), "reading the step status");
     check(cudaStreamSynchronize(stream_), "running the simulator's steps");
-    SimStatus st;
-    st.failed = s[0];
-    st.first_instance = s[0] > 0 ? s[1] : -1;
+    BatchStatus st;
+    if (s.failed == 0) return st;
+    // the forward dynamics the failures came from names the pivot
+    st.record(static_cast<Index>(s.first >> 32), static_cast<Index>(s.first & 0xffffffffull),
+              fused_ ? Failure::ArticulatedPivot : pivot_failure(fd_->method()));
+    st.failed = static_cast<Index>(std::min<unsigned long long>(s.failed, std::numeric_limits<Index>::max()));
     return st;
   }
   void clear_status() override {
-    check(cudaMemcpyAsync(status_, kStatusZero, sizeof kStatusZero, cudaMemcpyHostToDevice, stream_),
-          "clearing the step status");
+    const StepStatus zero = kStepStatusClear;
+    check(cudaMemcpyAsync(status_, &zero, sizeof zero, cudaMemcpyHostToDevice, stream_), "clearing the step status");
     check(cudaStreamSynchronize(stream_), "clearing the step status");
   }
   void synchronize() override { check(cudaStreamSynchronize(stream_), "running the simulator's steps"); }
@@ -318,8 +301,6 @@ class CudaSimBackend final : public SimBackend<S> {
   void* stream() const override { return stream_; }
 
  private:
-  static constexpr int kStatusZero[2] = {0, INT_MAX};
-
   // the engine takes (B x nv) wrenches, one row per instance: the per-step buffer,
   // or the constant row expanded once into a per-instance buffer
   const Force<S>* wrenches_for_engine(const Force<S>* w) {
@@ -365,7 +346,7 @@ class CudaSimBackend final : public SimBackend<S> {
   int* failed_ = nullptr;                 // (B) the engine's failed DoF per instance
   int* bad_ = nullptr;                    // (B) rk4: any stage failed
   void* small_ = nullptr;                 // status, wrenches_, coef_
-  int* status_ = nullptr;                 // [0] failures, [1] lowest failed instance
+  StepStatus* status_ = nullptr;          // failed instance-steps, the lowest failed instance and its DoF
   Force<S>* wrenches_ = nullptr;          // (nv) constant wrenches (zeros when none)
   JointCoefficients<S>* coef_ = nullptr;  // (nv)
   void* rows_ = nullptr;                  // reset staging

@@ -260,7 +260,7 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
   const std::vector<double> r = state_rows(ref, count);
   const std::size_t w = 2 * static_cast<std::size_t>(s.nv());
   if (!s.status().ok() || !ref.status().ok())
-    throw DataError(scene.path + ": " + (s.status().ok() ? ref.status() : s.status()).message());
+    throw DataError(scene.path + ": " + sim::failure_message(s.status().ok() ? ref.status() : s.status()));
   for (const auto* rows : {&x, &r}) {
     for (std::size_t k = 0; k < rows->size(); ++k) {
       if (std::isfinite((*rows)[k])) continue;
@@ -277,8 +277,6 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
     const double e = rel_err(x.data() + b * w, r.data() + b * w, w);
     t.max_rel_err = std::isnan(e) || std::isnan(t.max_rel_err) ? NAN : std::max(t.max_rel_err, e);
   }
-  if (!s.status().ok() || !ref.status().ok())
-    throw DataError(scene.path + ": " + (s.status().ok() ? ref.status() : s.status()).message());
   // timing: whole steps of all instances, synchronised after each round
   s.step();
   s.synchronize();
@@ -303,14 +301,7 @@ int run_bench_step(const Args& args) {
     throw DataError(e.what());
   }
   if (args.has("instances")) scene.instances = static_cast<Index>(parse_instances(args.required("instances")));
-  BackendKind backend = scene.backend;
-  if (args.has("backend")) {
-    try {
-      backend = parse_backend(args.required("backend"));
-    } catch (const BackendError& e) {
-      throw UsageError(e.what());
-    }
-  }
+  const BackendKind backend = scene_backend(scene, args);
   if (args.has("precision"))
     scene.precision = parse_cli_precision(args);
   const Timing t = scene.precision == Precision::Float ? time_steps<float>(scene, backend, min_time)

@@ -214,10 +214,10 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     }
     if (s % every == 0 || s == steps) {
       record(s);
-      const sim::SimStatus st = sim.status();
+      const BatchStatus st = sim.status();
       if (!st.ok()) {
         progress.finish();
-        throw DataError(scene.path + ": step " + std::to_string(s) + ": " + st.message());
+        throw DataError(scene.path + ": step " + std::to_string(s) + ": " + sim::failure_message(st));
       }
     }
     progress.update(s);
@@ -242,14 +242,7 @@ int run_rollout(const Args& args) {
   } catch (const sim::SceneError& e) {
     throw DataError(e.what());
   }
-  BackendKind backend = scene.backend;
-  if (args.has("backend")) {
-    try {
-      backend = parse_backend(args.required("backend"));
-    } catch (const BackendError& e) {
-      throw UsageError(e.what());
-    }
-  }
+  const BackendKind backend = scene_backend(scene, args);
   return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out)
                                                   : rollout<double>(scene, backend, steps, every, out);
 }

@@ -2,6 +2,7 @@
 // it (scandyn rollout, scandyn bench --algo step).
 #pragma once
 
+#include <cstdio>
 #include <memory>
 
 #include "cli.hpp"
@@ -11,9 +12,21 @@
 
 namespace scandyn::cli {
 
-// A Simulator<S> of `scene` on `backend`; what the backend refuses (no device, a
-// model too large for its kernels, implicit beyond 64 DoF on cuda, ...) becomes
-// the command line's usage error (exit 2) with the backend's message.
+// The backend a scene runs on: --backend when given, else the scene's; a scene's
+// "auto" is said on stderr in one line, e.g. "scandyn: scene backend auto: openmp
+// (cuda: no usable CUDA device: ...)".
+inline BackendKind scene_backend(const sim::Scene& scene, const Args& args) {
+  if (args.has("backend")) {
+    try {
+      return parse_backend(args.required("backend"));
+    } catch (const BackendError& e) {
+      throw UsageError(e.what());
+    }
+  }
+  if (scene.backend_auto) std::fprintf(stderr, "scandyn: %s\n", sim::backend_choice(scene).c_str());
+  return scene.backend;
+}
+
 // Host memory of a simulator of the scene on backend, in precision S: the state
 // (on the CPU backends), the rows and indices reset_all() writes, the per-step
 // wrenches, the per-thread workspaces.
@@ -29,6 +42,9 @@ double simulator_host_bytes(const sim::Scene& scene, BackendKind backend) {
   return bytes;
 }
 
+// A Simulator<S> of `scene` on `backend`; what the backend refuses (no device, a
+// model too large for its kernels, implicit beyond 64 DoF on cuda, ...) becomes
+// the command line's usage error (exit 2) with the backend's message.
 // extra_host_bytes: what the caller allocates besides (e.g. rollout's copies of the state).
 template <class S>
 std::unique_ptr<sim::Simulator<S>> make_simulator(const sim::Scene& scene, BackendKind backend,

@@ -340,7 +340,8 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     if (b == "serial") s.backend = BackendKind::Serial;
     else if (b == "openmp") s.backend = BackendKind::OpenMP;
     else if (b == "cuda") s.backend = BackendKind::Cuda;
-    else r.expected("backend", "\"serial\", \"openmp\" or \"cuda\"", doc["backend"]);
+    else if (b == "auto") s.backend = auto_backend(&s.backend_note), s.backend_auto = true;
+    else r.expected("backend", "\"auto\", \"serial\", \"openmp\" or \"cuda\"", doc["backend"]);
   }
   if (doc.contains("threads")) s.threads = static_cast<int>(r.integer("threads", doc["threads"], 0, 4096));
   if (doc.contains("instances"))
@@ -369,6 +370,23 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     }
   }
   return s;
+}
+
+BackendKind auto_backend(std::string* why) {
+  const std::string cuda = backend_unusable(BackendKind::Cuda);
+  if (cuda.empty()) {
+    if (why) *why = "";
+    return BackendKind::Cuda;
+  }
+  const std::string openmp = backend_unusable(BackendKind::OpenMP);
+  if (why) *why = "cuda: " + cuda + (openmp.empty() ? "" : "; openmp: " + openmp);
+  return openmp.empty() ? BackendKind::OpenMP : BackendKind::Serial;
+}
+
+std::string backend_choice(const Scene& scene) {
+  if (!scene.backend_auto) return "";
+  return std::string("scene backend auto: ") + to_string(scene.backend) +
+         (scene.backend_note.empty() ? "" : " (" + scene.backend_note + ")");
 }
 
 Scene load_scene(const std::string& path) {

@@ -1,30 +1,34 @@
-// src/sim/simulator.cpp: the Simulator front end (setup from a scene, resets,
-// energy) and the CPU backends (serial, OpenMP): per instance, the shared
-// step_instance (scandyn/sim/integrators.hpp) over the reference ABA.
+// src/sim/simulator.cpp: the Simulator front end: the setup from a scene, the
+// choice of backend, resets, energy, the status's wording. The steps are the
+// backends': serial and OpenMP in cpu_fallback/simulator_step.cpp, cuda in
+// kernels/sim_step.cu.
 #include "scandyn/sim/simulator.hpp"
 
 #include <algorithm>
-#include <array>
-#include <atomic>
+#include <limits>
 #include <random>
 #include <stdexcept>
-#include <utility>
 
+#include "../../cpu_fallback/simulator_step.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/build_config.hpp"
-
-#if defined(_OPENMP)
-#include <omp.h>
-#endif
 
 namespace scandyn {
 namespace sim {
 
-std::string SimStatus::message() const {
-  if (ok()) return "";
-  return "forward dynamics failed " + std::to_string(failed) + " time" + (failed > 1 ? "s" : "") +
-         " (first failing instance " + std::to_string(first_instance) +
-         "): a pivot was not positive and finite; those instances kept their state for those steps";
+std::string failure_message(const BatchStatus& st) {
+  if (st.ok()) return "";
+  return "forward dynamics failed in " + std::to_string(st.failed) + " instance-step" + (st.failed > 1 ? "s" : "") +
+         ", first in instance " + std::to_string(st.first_instance) + ": " + st.reason() +
+         "; those instances kept their state for those steps";
+}
+
+void add_step_failures(BatchStatus& status, const BatchStatus& step) {
+  BatchStatus add = step;
+  add.failed = std::min(step.failed, std::numeric_limits<Index>::max() - status.failed);
+  add.fell_back = 0;
+  status.merge(add);
+  status.failed_dof = nullptr;
 }
 
 double mechanical_energy(const Model& model, unsigned effects, const JointCoefficients<double>* coef,
@@ -50,159 +54,6 @@ double mechanical_energy(const Model& model, unsigned effects, const JointCoeffi
 }
 
 namespace detail {
-namespace {
-
-// ---- the CPU backends ------------------------------------------------------------
-
-template <class S>
-class CpuSimBackend final : public SimBackend<S> {
- public:
-  CpuSimBackend(const SimSetup<S>& setup, bool openmp) : setup_(setup), openmp_(openmp) {
-    const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
-    const std::size_t B = static_cast<std::size_t>(setup.batch);
-    q_.assign(nv * B, S(0));
-    qd_.assign(nv * B, S(0));
-    if (setup.wrenches_per_step) {
-      wrenches_.resize(B * nv);
-      for (std::size_t b = 0; b < B; ++b)
-        std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nv);
-    }
-#if defined(_OPENMP)
-    threads_ = openmp ? (setup.threads > 0 ? setup.threads : omp_get_max_threads()) : 1;
-#endif
-    threads_ = std::max(1, std::min<int>(threads_, std::max<Index>(1, setup.batch)));
-    for (int t = 0; t < threads_; ++t) work_.emplace_back(setup_.model, nv);
-    step_ = table()[static_cast<int>(setup.integrator) * kEffectSets + static_cast<int>(setup.effects)];
-  }
-
-  void step(const BatchView<const S>& tau) override {
-    const Index B = setup_.batch, n = setup_.model.nv();
-    if (tau.data && tau.batch != B)
-      throw BackendError("Simulator::step: torques for " + std::to_string(tau.batch) + " instances, the simulator has " +
-                         std::to_string(B));
-    S* const q = q_.data();
-    S* const qd = qd_.data();
-    const Force<S>* const constant = setup_.wrenches.empty() ? nullptr : setup_.wrenches.data();
-    std::atomic<long long> failed{0};
-    std::atomic<Index> first{-1};
-    // instance b with thread slot t's work arrays
-    auto one = [&](Index b, std::size_t t) {
-      Work& w = work_[t];
-      for (Index i = 0; i < n; ++i) {
-        w.q[i] = q[static_cast<std::size_t>(i) * B + b];
-        w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
-        w.tau[i] = tau.data ? tau.at(i, b) : S(0);
-      }
-      const Force<S>* fext = wrenches_.empty() ? constant : wrenches_.data() + static_cast<std::size_t>(b) * n;
-      if (step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(), fext) >= 0) {
-        failed.fetch_add(1);
-        Index f = first.load();
-        while ((f < 0 || b < f) && !first.compare_exchange_weak(f, b)) {
-        }
-        return;
-      }
-      for (Index i = 0; i < n; ++i) {
-        q[static_cast<std::size_t>(i) * B + b] = w.q[i];
-        qd[static_cast<std::size_t>(i) * B + b] = w.qd[i];
-      }
-    };
-    if (openmp_ && threads_ > 1 && B > 1) {
-#pragma omp parallel for num_threads(threads_) schedule(static)
-      for (Index b = 0; b < B; ++b) {
-#if defined(_OPENMP)
-        one(b, static_cast<std::size_t>(omp_get_thread_num()));
-#else
-        one(b, 0);
-#endif
-      }
-    } else {
-      // no parallel region: entering even a serialized one costs ~0.4 us, a fifth of
-      // a 7-DoF step
-      for (Index b = 0; b < B; ++b) one(b, 0);
-    }
-    if (failed.load() > 0) {
-      status_.failed += failed.load();
-      if (status_.first_instance < 0 || first.load() < status_.first_instance) status_.first_instance = first.load();
-    }
-  }
-
-  BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nv(), setup_.batch); }
-  BatchView<S> qd() override { return BatchView<S>::soa(qd_.data(), setup_.model.nv(), setup_.batch); }
-  Force<S>* wrenches() override { return wrenches_.empty() ? nullptr : wrenches_.data(); }
-
-  void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
-    const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
-    for (Index k = 0; k < count; ++k)
-      for (std::size_t i = 0; i < n; ++i) {
-        q_[i * B + static_cast<std::size_t>(instances[k])] = q_rows[k * n + i];
-        qd_[i * B + static_cast<std::size_t>(instances[k])] = qd_rows[k * n + i];
-      }
-  }
-  void read_state(S* q_host, S* qd_host) override {
-    std::copy(q_.begin(), q_.end(), q_host);
-    std::copy(qd_.begin(), qd_.end(), qd_host);
-  }
-  SimStatus status() override { return status_; }
-  void clear_status() override { status_ = {}; }
-  void synchronize() override {}
-  bool on_device() const override { return false; }
-  std::string strategy() const override { return openmp_ ? "openmp-aba" : "serial-aba"; }
-
- private:
-  // One thread's workspace: the ABA's scratch and the step's arrays.
-  struct Work {
-    Work(const ModelTpl<S>& model, std::size_t n)
-        : data(model, false), q(n), qd(n), tau(n), buffer(6 * n),
-          scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
-                  buffer.data() + 4 * n, buffer.data() + 5 * n} {}
-    Work(Work&& o) noexcept = default;
-    DataTpl<S> data;
-    std::vector<S> q, qd, tau;  // (n) the instance's state and torques
-    std::vector<S> buffer;      // (6 n) StepScratch's arrays
-    StepScratch<S> scratch;
-  };
-
-  using StepFn = Index (*)(const SimSetup<S>&, DataTpl<S>&, const StepScratch<S>&, S*, S*, const S*,
-                           const Force<S>*);
-
-  // One instance's step for effect set E and integrator I: step_instance over the ABA.
-  template <unsigned E, Integrator I>
-  static Index step_one(const SimSetup<S>& setup, DataTpl<S>& data, const StepScratch<S>& w, S* q, S* qd,
-                        const S* tau, const Force<S>* fext) {
-    const ModelTpl<S>& model = setup.model;
-    auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
-      return aba(model, data, qa, qda, t, qdd, (E & kExternal) ? fext : nullptr, armature).failed_dof;
-    };
-    return step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
-                               setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, w, fd);
-  }
-
-  // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
-  template <std::size_t... K>
-  static constexpr std::array<StepFn, sizeof...(K)> make_table(std::index_sequence<K...>) {
-    return {&step_one<unsigned(K % kEffectSets), Integrator(K / kEffectSets)>...};
-  }
-  static const std::array<StepFn, kIntegrators * kEffectSets>& table() {
-    static const auto t = make_table(std::make_index_sequence<kIntegrators * kEffectSets>{});
-    return t;
-  }
-
-  const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
-  bool openmp_;
-  int threads_ = 1;
-  std::vector<S> q_, qd_;          // (nv x B) state, q[i * B + b]
-  std::vector<Force<S>> wrenches_; // (B x nv) per-step wrenches, or empty
-  std::vector<Work> work_;         // one per thread
-  StepFn step_ = nullptr;
-  SimStatus status_;
-};
-
-}  // namespace
-
-template <class S>
-std::unique_ptr<SimBackend<S>> make_cpu_sim_backend(const SimSetup<S>& setup, bool openmp) {
-  return std::make_unique<CpuSimBackend<S>>(setup, openmp);
-}
 
 #if !SCANDYN_HAS_CUDA
 template <class S>
@@ -253,16 +104,8 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     setup_.wrenches_per_step = scene.wrenches_per_step;
   }
   setup_.threads = scene.threads;
-  switch (backend) {
-    case BackendKind::Serial: backend_ = detail::make_cpu_sim_backend(setup_, false); break;
-    case BackendKind::OpenMP:
-#if !SCANDYN_HAS_OPENMP
-      throw BackendError("backend 'openmp' is not available in this build");
-#endif
-      backend_ = detail::make_cpu_sim_backend(setup_, true);
-      break;
-    case BackendKind::Cuda: backend_ = detail::make_cuda_sim_backend(setup_); break;
-  }
+  backend_ = backend == BackendKind::Cuda ? detail::make_cuda_sim_backend(setup_)
+                                          : cpu::make_simulator_step(setup_, backend);
   random_ = std::make_unique<Random>(initial_.seed);
   reset_all();
 }
@@ -333,8 +176,6 @@ std::vector<double> Simulator<S>::energy() {
 template class Simulator<float>;
 template class Simulator<double>;
 namespace detail {
-template std::unique_ptr<SimBackend<float>> make_cpu_sim_backend(const SimSetup<float>&, bool);
-template std::unique_ptr<SimBackend<double>> make_cpu_sim_backend(const SimSetup<double>&, bool);
 #if !SCANDYN_HAS_CUDA
 template std::unique_ptr<SimBackend<float>> make_cuda_sim_backend(const SimSetup<float>&);
 template std::unique_ptr<SimBackend<double>> make_cuda_sim_backend(const SimSetup<double>&);

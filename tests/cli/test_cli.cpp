@@ -1255,6 +1255,38 @@ TEST_F(Cli, RolloutErrorsWriteNothing) {
   EXPECT_TRUE(f.empty()) << f[0];
 }
 
+// A scene's "backend": "auto" is said in one line on stderr by rollout and bench
+// --algo step (cuda where a device is usable, else openmp); --backend overrides it,
+// silently.
+TEST_F(Cli, RolloutAndBenchStepSayTheAutoBackend) {
+  std::string json = kChainScene;
+  json.insert(1, R"("backend": "auto", )");
+  write_text(path("auto.json"), json);
+  const scandyn::sim::Scene scene = scandyn::sim::load_scene(path("auto.json").string());
+  ASSERT_TRUE(scene.backend_auto);
+  const std::string said = "scandyn: " + scandyn::sim::backend_choice(scene) + "\n";
+  EXPECT_EQ(said.rfind(std::string("scandyn: scene backend auto: ") + to_string(scene.backend), 0), 0u) << said;
+#if !SCANDYN_HAS_CUDA && SCANDYN_HAS_OPENMP
+  EXPECT_EQ(said, "scandyn: scene backend auto: openmp (cuda: backend 'cuda' is not available in this build)\n");
+#endif
+  Result r = run("rollout --scene auto.json --steps 3 --out traj.csv");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, said);
+  r = run("rollout --scene auto.json --steps 3 --out traj.csv --backend serial");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");
+  r = run("bench --algo step --scene auto.json --min-time 0.01");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, said);
+  const std::vector<std::string> row = bench_row(r);
+  ASSERT_EQ(row.size(), 10u);
+  EXPECT_EQ(row[2], to_string(scene.backend));
+  r = run("bench --algo step --scene auto.json --min-time 0.01 --backend serial");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");
+  EXPECT_EQ(bench_row(r)[2], "serial");
+}
+
 TEST_F(Cli, BenchStepPrintsOneRow) {
   write_text(path("s.json"), kChainScene);
   const std::vector<std::string> row = bench_row(run("bench --algo step --scene s.json --instances 5 --min-time 0.01"));

@@ -120,7 +120,7 @@ double rollout_error(const Scene& scene, int steps) {
   Simulator<S> gpu(scene, BackendKind::Cuda);
   Simulator<double> cpu(scene, BackendKind::Serial);
   for (int s = 0; s < steps; ++s) gpu.step(), cpu.step();
-  EXPECT_TRUE(gpu.status().ok()) << gpu.status().message();
+  EXPECT_TRUE(gpu.status().ok()) << sim::failure_message(gpu.status());
   return state_error(gpu, cpu);
 }
 
@@ -199,21 +199,42 @@ TEST_F(CudaSim, DeviceStateResetsAndTorques) {
   EXPECT_LE(state_error(gpu, cpu), 1e-10);
 }
 
+// A failed instance-step is recorded as on the CPU (a BatchStatus: count, lowest
+// instance, the DoF where its ABA stopped, the pivot) and leaves the state alone,
+// in the fused kernel and on the engine path (euler and rk4).
 TEST_F(CudaSim, FailuresAreReportedAndLeaveTheStateAlone) {
-  const Scene scene = scene_from(R"({"model": "chain:3", "dt": 1e-3, "instances": 5})");
-  Simulator<double> gpu(scene, BackendKind::Cuda);
   const double inf = HUGE_VAL;
-  ASSERT_EQ(cudaMemcpy(&gpu.q().at(1, 3), &inf, sizeof inf, cudaMemcpyHostToDevice), cudaSuccess);
-  gpu.step();
-  const sim::SimStatus st = gpu.status();
-  EXPECT_EQ(st.failed, 1);
-  EXPECT_EQ(st.first_instance, 3);
-  std::vector<double> q(15), qd(15);
-  gpu.read_state(q.data(), qd.data());
-  EXPECT_EQ(q[1 * 5 + 3], inf);
-  EXPECT_EQ(qd[0 * 5 + 3], 0.0);
-  gpu.clear_status();
-  EXPECT_TRUE(gpu.status().ok());
+  for (const char* model : {"chain:3", "rope:70"})
+    for (const char* integrator : {"euler", "rk4"}) {
+      const Scene scene = scene_from(std::string(R"({"model": ")") + model + R"(", "dt": 1e-3, "instances": 5,
+          "integrator": ")" + integrator + R"(", "effects": {"gravity": true}, "initial": {"q": 0.2}})");
+      const Index n = scene.nv();
+      Simulator<double> gpu(scene, BackendKind::Cuda);
+      Simulator<double> cpu(scene, BackendKind::Serial);
+      ASSERT_EQ(cudaMemcpy(&gpu.q().at(1, 3), &inf, sizeof inf, cudaMemcpyHostToDevice), cudaSuccess);
+      ASSERT_EQ(cudaMemcpy(&gpu.q().at(1, 4), &inf, sizeof inf, cudaMemcpyHostToDevice), cudaSuccess);
+      cpu.q().at(1, 3) = inf;
+      cpu.q().at(1, 4) = inf;
+      gpu.step(), cpu.step();
+      gpu.step(), cpu.step();
+      const BatchStatus st = gpu.status();
+      const BatchStatus ref = cpu.status();
+      EXPECT_EQ(st.failed, 4) << model << " " << integrator;  // instances 3 and 4, two steps
+      EXPECT_EQ(st.first_instance, 3);
+      EXPECT_EQ(st.failure, Failure::ArticulatedPivot);  // the fused ABA, the engine's parallel chain FD
+      if (n <= cuda::kMaxThreadDofs) EXPECT_EQ(st.first_dof, ref.first_dof);  // the same ABA
+      else EXPECT_LE(st.first_dof, 1);  // the chain FD names the lowest failed link
+      EXPECT_EQ(ref.failed, 4);
+      std::vector<double> q(n * 5), qd(n * 5);
+      gpu.read_state(q.data(), qd.data());
+      EXPECT_EQ(q[1 * 5 + 3], inf);
+      EXPECT_EQ(qd[0 * 5 + 3], 0.0);  // instance 3 kept its state: at rest
+      EXPECT_NE(qd[(n - 1) * 5 + 2], 0.0);  // instance 2 stepped
+      EXPECT_NE(sim::failure_message(st).find("4 instance-steps, first in instance 3: articulated inertia pivot"),
+                std::string::npos) << sim::failure_message(st);
+      gpu.clear_status();
+      EXPECT_TRUE(gpu.status().ok());
+    }
 }
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <Eigen/Dense>
 #include <cmath>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -18,6 +19,7 @@
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "test_util.hpp"
+#include "../cpu_fallback/simulator_step.hpp"
 
 namespace scandyn {
 namespace {
@@ -146,9 +148,44 @@ TEST(SimScene, ErrorsNameTheFileAndTheKey) {
   }
 }
 
+// "backend": "auto" is cuda where a device is usable, else openmp (serial in a
+// build without OpenMP), resolved when the scene is read and said in one line.
+TEST(SimScene, BackendAutoPicksCudaWhenUsableElseOpenMP) {
+  const Scene s = scene_from(R"({"model": "chain:3", "dt": 0.001, "backend": "auto"})");
+  EXPECT_TRUE(s.backend_auto);
+  const std::string cuda = backend_unusable(BackendKind::Cuda);
+  const std::string openmp = backend_unusable(BackendKind::OpenMP);
+  const BackendKind expected = cuda.empty()     ? BackendKind::Cuda
+                               : openmp.empty() ? BackendKind::OpenMP
+                                                : BackendKind::Serial;
+  EXPECT_EQ(s.backend, expected);
+  EXPECT_EQ(sim::auto_backend(), expected);
+  if (cuda.empty()) {
+    EXPECT_EQ(s.backend_note, "");
+    EXPECT_EQ(sim::backend_choice(s), "scene backend auto: cuda");
+  } else {
+    EXPECT_EQ(s.backend_note.rfind("cuda: " + cuda, 0), 0u) << s.backend_note;
+    EXPECT_EQ(sim::backend_choice(s), std::string("scene backend auto: ") + to_string(expected) + " (" + s.backend_note + ")");
+  }
+#if !SCANDYN_HAS_CUDA && SCANDYN_HAS_OPENMP
+  // this build (no CUDA): openmp
+  EXPECT_EQ(s.backend, BackendKind::OpenMP);
+  EXPECT_EQ(sim::backend_choice(s), "scene backend auto: openmp (cuda: backend 'cuda' is not available in this build)");
+#endif
+  // the scene runs there
+  Simulator<double> sim(s);
+  sim.step();
+  EXPECT_TRUE(sim.status().ok());
+  // a named backend is no choice: nothing to say
+  const Scene named = scene_from(R"({"model": "chain:3", "dt": 0.001, "backend": "serial"})");
+  EXPECT_FALSE(named.backend_auto);
+  EXPECT_EQ(sim::backend_choice(named), "");
+}
+
 // Every shipped scene (scenes/*.json) is valid: parsed with its model, generators
 // made (rope:10^6 included: about 1 s), robots found through SCANDYN_MODELS_DIR or
-// the shipped models/.
+// the shipped models/; each says "backend": "auto", so it runs on a machine without a
+// GPU (here: openmp when CUDA is not built).
 TEST(SimScene, ShippedScenesLoad) {
   int count = 0;
   for (const char* name : {"iiwa_rl", "hyq_rl", "rope_1e4", "rope_1e6", "curtain"}) {
@@ -156,6 +193,11 @@ TEST(SimScene, ShippedScenesLoad) {
     const Scene s = sim::load_scene(path);
     EXPECT_GT(s.nv(), 0) << path;
     EXPECT_NE(s.effects & sim::kGravity, 0u) << path;
+    EXPECT_TRUE(s.backend_auto) << path;
+    EXPECT_EQ(s.backend, sim::auto_backend()) << path;
+#if !SCANDYN_HAS_CUDA && SCANDYN_HAS_OPENMP
+    EXPECT_EQ(s.backend, BackendKind::OpenMP) << path;
+#endif
     ++count;
   }
   EXPECT_EQ(count, 5);
@@ -391,6 +433,196 @@ TEST(Simulator, SerialAndOpenMPAgreeFor100Steps) {
         "initial": {"random": {"seed": 9, "q": 0.4, "qd": 1}}})");
     // same code, same order of operations per instance: equal bit for bit
     EXPECT_EQ(rollout<double>(scene, 100, BackendKind::Serial), rollout<double>(scene, 100, BackendKind::OpenMP));
+  }
+}
+
+// A forward dynamics that fails is recorded as the engines record a failed
+// instance: the simulator's BatchStatus counts failed instance-steps and names the
+// lowest failing instance, the DoF where its ABA stopped and the pivot; the
+// instance keeps its state for that step; serial and openmp agree.
+TEST(Simulator, FailuresAreRecordedAsTheEnginesRecordThem) {
+  const Scene scene = scene_from(R"({"model": "chain:3", "dt": 1e-3, "instances": 5, "threads": 2,
+      "effects": {"gravity": true}, "initial": {"random": {"seed": 1, "q": 0.3}}})");
+  // the DoF at which the reference aba stops for instance 3's state
+  Simulator<double> probe(scene, BackendKind::Serial);
+  std::vector<double> q(3), qd(3, 0.0), tau(3, 0.0), qdd(3);
+  for (Index i = 0; i < 3; ++i) q[i] = probe.q().at(i, 3);
+  q[1] = HUGE_VAL;
+  Data data(scene.model);
+  const Status ref = aba(scene.model, data, q.data(), qd.data(), tau.data(), qdd.data());
+  ASSERT_FALSE(ref.ok());
+  for (BackendKind backend : {BackendKind::Serial, BackendKind::OpenMP}) {
+#if !SCANDYN_HAS_OPENMP
+    if (backend == BackendKind::OpenMP) continue;
+#endif
+    Simulator<double> sim(scene, backend);
+    sim.q().at(1, 3) = HUGE_VAL;
+    const double q03 = sim.q().at(0, 3);
+    sim.step();
+    sim.step();
+    const BatchStatus st = sim.status();
+    EXPECT_EQ(st.failed, 2) << to_string(backend);  // instance 3 in both steps
+    EXPECT_EQ(st.first_instance, 3);
+    EXPECT_EQ(st.first_dof, ref.failed_dof);
+    EXPECT_EQ(st.failure, Failure::ArticulatedPivot);
+    EXPECT_EQ(st.failed_dof, nullptr);
+    EXPECT_EQ(sim.q().at(0, 3), q03);  // kept its state
+    EXPECT_EQ(sim.qd().at(0, 3), 0.0);
+    EXPECT_GT(std::abs(sim.qd().at(0, 2)) + std::abs(sim.qd().at(1, 2)) + std::abs(sim.qd().at(2, 2)), 0.0);  // the others stepped
+    EXPECT_EQ(sim::failure_message(st), "forward dynamics failed in 2 instance-steps, first in instance 3: "
+                                        "articulated inertia pivot at DoF " + std::to_string(ref.failed_dof) +
+                                        " is not positive; those instances kept their state for those steps");
+    sim.clear_status();
+    EXPECT_TRUE(sim.status().ok());
+    EXPECT_EQ(sim::failure_message(sim.status()), "");
+  }
+}
+
+// The status's count saturates instead of overflowing; the lowest instance is kept.
+TEST(Simulator, StepFailuresAddUpAndSaturate) {
+  BatchStatus total;
+  BatchStatus step;
+  step.record(7, 2, Failure::ArticulatedPivot);
+  step.record(9, 1, Failure::ArticulatedPivot);
+  sim::add_step_failures(total, step);
+  BatchStatus lower;
+  lower.record(4, 0, Failure::MassMatrixPivot);
+  sim::add_step_failures(total, lower);
+  EXPECT_EQ(total.failed, 3);
+  EXPECT_EQ(total.first_instance, 4);
+  EXPECT_EQ(total.first_dof, 0);
+  EXPECT_EQ(total.failure, Failure::MassMatrixPivot);
+  BatchStatus many;
+  many.record(5, 1, Failure::ArticulatedPivot);
+  many.failed = std::numeric_limits<Index>::max() - 1;
+  sim::add_step_failures(total, many);
+  EXPECT_EQ(total.failed, std::numeric_limits<Index>::max());
+  EXPECT_EQ(total.first_instance, 4);
+}
+
+// ---- one long chain on openmp: the parallel chain forward dynamics ---------------------
+
+// When the openmp step goes through the forward-dynamics engine: a chain from the
+// base that choose_fd_method(OpenMP) runs by the parallel method (>= 4096 links),
+// at least kEngineThreadsPerInstance threads per instance, euler or rk4.
+TEST(SimOpenMPChain, StepsPerForwardDynamicsOnlyWithEnoughThreadsPerInstance) {
+  constexpr int kT = cpu::kEngineThreadsPerInstance;
+  sim::SimSetup<double> s;
+  s.model = make_generated("rope:4096");
+  s.batch = 1;
+  s.integrator = Integrator::Euler;
+  EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT - 1));
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::Serial, kT));
+  s.integrator = Integrator::Rk4;
+  EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  s.integrator = Integrator::Implicit;  // the chain forward dynamics takes no armature
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 4 * kT));
+  s.integrator = Integrator::Euler;
+  s.batch = 2;
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 2 * kT - 1));
+  EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 2 * kT));
+  s.batch = 1;
+  s.model = make_generated("rope:4095");  // below choose_fd_method's threshold
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 4 * kT));
+  s.model = make_generated("tree:5000:1");  // branched
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 4 * kT));
+  s.model = make_generated("curtain:2:3000");  // chains hanging from the base
+  EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+}
+
+// max_i |x_i - ref_i| / max_i |ref_i| over q, and over qd, of all instances.
+double relative_state_error(Simulator<double>& s, Simulator<double>& ref) {
+  const std::size_t n = static_cast<std::size_t>(s.nv() * s.batch());
+  std::vector<double> q(n), qd(n), rq(n), rqd(n);
+  s.read_state(q.data(), qd.data());
+  ref.read_state(rq.data(), rqd.data());
+  double eq = 0, eqd = 0, sq = 0, sqd = 0;
+  for (std::size_t k = 0; k < n; ++k) {
+    eq = std::max(eq, std::abs(q[k] - rq[k]));
+    eqd = std::max(eqd, std::abs(qd[k] - rqd[k]));
+    sq = std::max(sq, std::abs(rq[k]));
+    sqd = std::max(sqd, std::abs(rqd[k]));
+  }
+  return std::max(eq / sq, eqd / sqd);
+}
+
+// rope:5000 on openmp with 16 threads per instance steps through the parallel chain
+// forward dynamics ("openmp-engine-parallel") and follows the serial ABA step: the
+// same integrator formulas around a forward dynamics equal to rounding. Measured
+// (double, the larger of max |dq| / max |q| and max |dqd| / max |qd|) for these
+// scenes after 1, 3, 10 and 99 steps: euler 2.4e-13, 9.0e-14, 1.0e-13, 2.3e-13;
+// rk4 7.5e-14, 4.1e-14, 4.4e-14, 1.2e-13; two instances as euler (with gravity and
+// damping alone: at most 1.6e-12 over 100 steps). Bound: 1e-10. Two instances
+// (with 32 threads) and external wrenches, constant (expanded per instance for the
+// engine) and per step, go through the same path.
+TEST(SimOpenMPChain, LongChainStepsThroughTheParallelChainForwardDynamics) {
+#if !SCANDYN_HAS_OPENMP
+  GTEST_SKIP() << "built without OpenMP";
+#endif
+  const int kT = cpu::kEngineThreadsPerInstance;
+  struct Case {
+    const char* integrator;
+    int instances;
+    const char* external;
+  };
+  const Case cases[] = {{"euler", 1, ""},
+                        {"rk4", 1, R"(, "external": {"wrenches": [{"link": "link_0100", "wrench": [0, 0, 0.01, 0, 0.5, 0]}], "per_step": true})"},
+                        {"euler", 2, R"(, "external": {"wrenches": [{"link": "link_4999", "wrench": [0, 0, 0, 0.2, 0, 0]}]})"}};
+  for (const Case& c : cases) {
+    const Scene scene = scene_from(std::string(R"({"model": "rope:5000", "dt": 1e-5, "integrator": ")") + c.integrator +
+                                   R"(", "instances": )" + std::to_string(c.instances) + R"(, "threads": )" +
+                                   std::to_string(kT * c.instances) + R"(, "effects": {"gravity": true, "damping": 1e-6,
+        "springs": {"stiffness": 1e-4}, "limits": {"stiffness": 10, "lower": -0.005, "upper": 0.005})" + c.external +
+                                   R"(}, "initial": {"random": {"seed": 3, "q": 0.01, "qd": 0.1}}})");
+    Simulator<double> engine(scene, BackendKind::OpenMP);
+    Simulator<double> serial(scene, BackendKind::Serial);
+    EXPECT_EQ(engine.strategy(), "openmp-engine-parallel") << c.integrator;
+    EXPECT_EQ(serial.strategy(), "serial-aba");
+    for (int s = 0; s < 3; ++s) {
+      if (engine.wrenches()) engine.wrenches()[100].f.z += 0.1, serial.wrenches()[100].f.z += 0.1;
+      engine.step();
+      serial.step();
+    }
+    ASSERT_TRUE(engine.status().ok()) << sim::failure_message(engine.status());
+    ASSERT_TRUE(serial.status().ok());
+    EXPECT_LE(relative_state_error(engine, serial), 1e-10) << c.integrator << " B = " << c.instances;
+    EXPECT_GT(std::abs(engine.qd().at(10, c.instances - 1)), 0.0);  // it moved
+  }
+  // implicit steps per instance (the chain forward dynamics takes no armature)
+  const Scene implicit = scene_from(std::string(R"({"model": "rope:4096", "dt": 1e-5, "integrator": "implicit",
+      "threads": )") + std::to_string(kT) + R"(, "effects": {"damping": 1e-6}})");
+  EXPECT_EQ(Simulator<double>(implicit, BackendKind::OpenMP).strategy(), "openmp-aba");
+  // fewer threads per instance: whole instances per thread
+  const Scene few = scene_from(R"({"model": "rope:4096", "dt": 1e-5, "threads": 2, "effects": {"gravity": true}})");
+  EXPECT_EQ(Simulator<double>(few, BackendKind::OpenMP).strategy(), "openmp-aba");
+}
+
+// A failed forward dynamics on the engine path: the instance keeps its state for
+// the step and the status names it, as on the per-instance path.
+TEST(SimOpenMPChain, EnginePathFailuresLeaveTheStateAlone) {
+#if !SCANDYN_HAS_OPENMP
+  GTEST_SKIP() << "built without OpenMP";
+#endif
+  const int kT = cpu::kEngineThreadsPerInstance;
+  for (const char* integrator : {"euler", "rk4"}) {
+    const Scene scene = scene_from(std::string(R"({"model": "rope:4096", "dt": 1e-5, "integrator": ")") + integrator +
+                                   R"(", "instances": 2, "threads": )" + std::to_string(2 * kT) +
+                                   R"(, "effects": {"gravity": true}, "initial": {"q": 0.01}})");
+    Simulator<double> sim(scene, BackendKind::OpenMP);
+    ASSERT_EQ(sim.strategy(), "openmp-engine-parallel");
+    sim.q().at(10, 1) = HUGE_VAL;  // instance 1's articulated inertias above link 10 are not finite
+    sim.step();
+    const BatchStatus st = sim.status();
+    EXPECT_EQ(st.failed, 1) << integrator;
+    EXPECT_EQ(st.first_instance, 1);
+    EXPECT_GE(st.first_dof, 0);
+    EXPECT_LT(st.first_dof, 10);
+    EXPECT_EQ(st.failure, Failure::ArticulatedPivot);
+    EXPECT_EQ(sim.q().at(10, 1), HUGE_VAL);  // instance 1 kept its state
+    EXPECT_EQ(sim.qd().at(4095, 1), 0.0);
+    EXPECT_EQ(sim.q().at(4095, 1), 0.01);
+    EXPECT_NE(sim.qd().at(4095, 0), 0.0);  // instance 0 stepped
   }
 }
 

@@ -22,6 +22,13 @@
 //             external wrenches stay explicit.
 // tau_e(q, qd) = joint_effect_force (scandyn/sim/effects.hpp) of the declared
 // joint effects; gravity and external wrenches live inside FD.
+//
+// The formulas are written once, per DoF, below ("the integrators' formulas"):
+// step_instance (one instance: the serial and OpenMP instance loop, the CUDA fused
+// kernel) and the engine paths (every DoF of every instance at once around a
+// batched forward dynamics: the CUDA elementwise kernels of kernels/sim_step.cu
+// and the OpenMP "engine-parallel" step of cpu_fallback/simulator_step.cpp) call
+// the same functions in the same order.
 #pragma once
 
 #include <string>
@@ -51,6 +58,58 @@ constexpr Integrator effective_integrator(Integrator integrator, unsigned effect
   return integrator == Integrator::Implicit && (effects & kImplicitEffects) == 0 ? Integrator::Euler
                                                                                  : integrator;
 }
+
+// ---- the integrators' formulas, one DoF at a time --------------------------------
+
+// The generalised force the forward dynamics receives on one DoF: the applied tau
+// plus the declared joint effects' force at (q, qd), springs looking h ahead (h =
+// dt for implicit, else 0).
+template <unsigned kEffects, class S>
+SCANDYN_HD S effect_forces(S tau, const JointCoefficients<S>& c, S q, S qd, S h) {
+  return tau + joint_effect_force<kEffects>(c, q, qd, h);
+}
+
+// euler (and implicit, whose qdd already holds the implicit terms): the new
+// velocity moves the position.
+template <class S>
+SCANDYN_HD void euler_update(S dt, S qdd, S& q, S& qd) {
+  qd += dt * qdd;
+  q += dt * qd;
+}
+
+// rk4 before the stages: the stage state (qs, qds) starts at (q, qd), the weighted
+// sums (aq, aqd) at zero.
+template <class S>
+SCANDYN_HD void rk4_begin(S q, S qd, S& qs, S& qds, S& aq, S& aqd) {
+  qs = q;
+  qds = qd;
+  aq = S(0);
+  aqd = S(0);
+}
+
+// rk4 after stage s's forward dynamics (qdd at the stage state (qs, qds); stages at
+// 0, dt/2, dt/2, dt): the stage's slope (qds, qdd) joins the weighted sums with
+// weight 1, 2, 2, 1, and (qs, qds) moves to the next stage's state.
+template <class S>
+SCANDYN_HD void rk4_stage(int s, S dt, S q, S qd, S qdd, S& qs, S& qds, S& aq, S& aqd) {
+  const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+  const S c = s < 2 ? S(0.5) * dt : dt;  // the next stage's offset
+  const S v = qds, a = qdd;
+  aq += weight * v;
+  aqd += weight * a;
+  qs = q + c * v;
+  qds = qd + c * a;
+}
+
+// rk4 after the four stages: x += dt / 6 (k1 + 2 k2 + 2 k3 + k4).
+template <class S>
+SCANDYN_HD void rk4_finish(S dt, S aq, S aqd, S& q, S& qd) {
+  const S sixth = dt / S(6);
+  q += sixth * aq;
+  qd += sixth * aqd;
+}
+
+// ---- one instance's step -------------------------------------------------------------
 
 // Scratch arrays of one instance's step (n entries each; the caller's memory:
 // per-thread vectors on the host, per-thread arrays in the CUDA kernel). euler and
@@ -93,43 +152,31 @@ SCANDYN_HD Index step_instance(Index n, S dt, const JointCoefficients<S>* coef, 
       SCANDYN_SIM_UNROLL
       for (Index i = 0; i < m; ++i) {
         if (kLoop > 0 && i >= n) continue;
-        w.tau[i] = tau[i] + joint_effect_force<kEffects>(coef[i], qa[i], qda[i], h);
+        w.tau[i] = effect_forces<kEffects>(tau[i], coef[i], qa[i], qda[i], h);
       }
       return w.tau;
     }
   };
 
   if constexpr (kIntegrator == Integrator::Rk4) {
-    // k_s = (qds, qdd) at the stage state (qs, qds); stages at 0, dt/2, dt/2, dt
     SCANDYN_SIM_UNROLL
     for (Index i = 0; i < m; ++i) {
       if (kLoop > 0 && i >= n) continue;
-      w.qs[i] = q[i];
-      w.qds[i] = qd[i];
-      w.aq[i] = S(0);
-      w.aqd[i] = S(0);
+      rk4_begin(q[i], qd[i], w.qs[i], w.qds[i], w.aq[i], w.aqd[i]);
     }
     for (int s = 0; s < 4; ++s) {
       const Index failed = fd(w.qs, w.qds, forces(w.qs, w.qds, S(0)), static_cast<const S*>(nullptr), w.qdd);
       if (failed >= 0) return failed;
-      const S weight = (s == 0 || s == 3) ? S(1) : S(2);
-      const S c = s < 2 ? S(0.5) * dt : dt;  // the next stage's offset
       SCANDYN_SIM_UNROLL
       for (Index i = 0; i < m; ++i) {
         if (kLoop > 0 && i >= n) continue;
-        const S v = w.qds[i], a = w.qdd[i];
-        w.aq[i] += weight * v;
-        w.aqd[i] += weight * a;
-        w.qs[i] = q[i] + c * v;
-        w.qds[i] = qd[i] + c * a;
+        rk4_stage(s, dt, q[i], qd[i], w.qdd[i], w.qs[i], w.qds[i], w.aq[i], w.aqd[i]);
       }
     }
-    const S sixth = dt / S(6);
     SCANDYN_SIM_UNROLL
     for (Index i = 0; i < m; ++i) {
       if (kLoop > 0 && i >= n) continue;
-      q[i] += sixth * w.aq[i];
-      qd[i] += sixth * w.aqd[i];
+      rk4_finish(dt, w.aq[i], w.aqd[i], q[i], qd[i]);
     }
     return -1;
   } else {
@@ -141,8 +188,7 @@ SCANDYN_HD Index step_instance(Index n, S dt, const JointCoefficients<S>* coef, 
     SCANDYN_SIM_UNROLL
     for (Index i = 0; i < m; ++i) {
       if (kLoop > 0 && i >= n) continue;
-      qd[i] += dt * w.qdd[i];
-      q[i] += dt * qd[i];
+      euler_update(dt, w.qdd[i], q[i], qd[i]);
     }
     return -1;
   }

@@ -61,7 +61,9 @@ struct Scene {
   Integrator integrator = Integrator::Euler;
   double dt = 1e-3;                   // time step (s)
   Precision precision = Precision::Double;
-  BackendKind backend = BackendKind::Serial;
+  BackendKind backend = BackendKind::Serial;  // "auto": resolved when the scene is read (auto_backend)
+  bool backend_auto = false;          // the scene said "backend": "auto"
+  std::string backend_note;           // auto: why not cuda (auto_backend's why), "" when cuda was chosen
   int threads = 0;                    // OpenMP threads, 0: all
   Index instances = 1;                // B
   InitialState initial;
@@ -69,11 +71,20 @@ struct Scene {
   Index nv() const { return model.nv(); }
 };
 
+// The backend "backend": "auto" stands for on this machine: cuda when it is built
+// and a device is usable (backend_unusable(Cuda) is ""), else openmp (serial in a
+// build without OpenMP). why, when not null, gets "" for cuda, else the reasons,
+// e.g. "cuda: no usable CUDA device: ...".
+BackendKind auto_backend(std::string* why = nullptr);
+
+// The line a program prints for a scene whose backend was "auto", e.g.
+// "scene backend auto: openmp (cuda: no usable CUDA device: ...)"; "" otherwise.
+std::string backend_choice(const Scene& scene);
+
 // Reads and validates a scene file. Relative model paths are looked up, in order, in
-// the scene file's directory, in $SCANDYN_MODELS_DIR, and in ../../shared/models
-// relative to the scene file's directory (the repository's scenes/ next to the
-// project's shared/ folder). Throws SceneError (also for model errors, with the
-// model's message after "model: ").
+// the scene file's directory, then in model_search_dirs() ($SCANDYN_MODELS_DIR,
+// then the shipped models; find_model_file, scandyn/model/load.hpp). Throws
+// SceneError (also for model errors, with the model's message after "model: ").
 Scene load_scene(const std::string& path);
 
 // The same for JSON text; source names it in error messages; base_dir is where

@@ -18,24 +18,43 @@
 // is queued on the simulator's stream (stream()); a caller touching the state on
 // another stream synchronises first (synchronize()).
 //
-// Step. Per instance, the scene's integrator (scandyn/sim/integrators.hpp) over the
-// forward dynamics with the scene's effects, instantiated for the scene's effect
-// set (scandyn/sim/effects.hpp; one of all 32 x 3 instantiations chosen here, at
-// construction):
-//   serial  the instances one after another, ABA (the reference scandyn::aba);
-//   openmp  the same, instances split over OpenMP threads;
+// Step. The scene's integrator (scandyn/sim/integrators.hpp) over the forward
+// dynamics with the scene's effects, instantiated for the scene's effect set
+// (scandyn/sim/effects.hpp; chosen here, at construction). Two shapes of work:
+//   - per instance (many instances): step_instance, the whole step of one instance
+//     (effects, forward dynamics, integration) at a time;
+//   - per forward dynamics (a few long chains): the effects of every DoF of every
+//     instance into tau, the forward-dynamics engine on the whole batch, the
+//     integration of every DoF (rk4: four times the first two), with the same
+//     per-DoF formulas (euler and rk4; the engines take no armature, so implicit
+//     runs per instance where it can).
+// Per backend (strategy()):
+//   serial  "serial-aba": the instances one after another, step_instance over the
+//           reference ABA (scandyn::aba);
+//   openmp  "openmp-aba": the same, instances split over the threads by the CPU
+//           engines' instance loop (cpu_fallback/instance_loop.hpp); bit-identical
+//           to serial. "openmp-engine-parallel": per forward dynamics over the
+//           parallel chain forward dynamics (make_forward_dynamics with
+//           FdMethod::Parallel, scans across links on all threads), for what
+//           choose_fd_method(OpenMP, model) runs by the parallel method (unbranched
+//           chains from the base of >= 4096 links) with at least 16 threads per
+//           instance (cpu::kEngineThreadsPerInstance: with fewer, threads stepping
+//           whole instances by the ABA are faster; measured in docs/scenes.md) and
+//           euler or rk4 (cpu_fallback/simulator_step.hpp);
 //   cuda    models of up to 64 DoF: one fused kernel per step, one thread per
-//           instance: the articulated-body algorithm (aba_instance), the effects
-//           and the integration, state in registers / per-thread memory (strategy
-//           "fused-aba"); beyond 64 DoF: per forward dynamics, a stage kernel
-//           (effects), CudaForwardDynamics::compute_async (Auto: the parallel chain
-//           forward dynamics for chains, jsi_dense for trees), an integration
-//           kernel (strategy "engine-parallel" / "engine-jsi_dense"; euler and rk4
-//           only).
+//           instance: step_instance over the articulated-body algorithm
+//           (aba_instance), state in registers / per-thread memory (strategy
+//           "fused-aba"); beyond 64 DoF: per forward dynamics, over
+//           CudaForwardDynamics::compute_async (Auto: the parallel chain forward
+//           dynamics for chains, jsi_dense for trees; strategy "engine-parallel" /
+//           "engine-jsi_dense"; euler and rk4 only: implicit is a BackendError).
 //
 // Failures. A forward dynamics whose pivot is not positive and finite leaves that
-// instance's state unchanged for the step and is counted; status() reports the
-// failures since the last clear_status() (on cuda it synchronises).
+// instance's state unchanged for the step and is recorded as the engines record a
+// failed instance; status() is a BatchStatus of the steps since the last
+// clear_status() (on cuda it synchronises): `failed` counts failed instance-steps
+// (saturating at the largest Index), first_instance / first_dof / failure name the
+// lowest failing instance, failed_dof is null. sim::failure_message words it.
 #pragma once
 
 #include <memory>
@@ -48,13 +67,15 @@
 namespace scandyn {
 namespace sim {
 
-// Forward-dynamics failures counted by the steps.
-struct SimStatus {
-  long long failed = 0;          // (instance, step) pairs whose forward dynamics failed
-  Index first_instance = -1;     // lowest failing instance seen, -1 when none
-  bool ok() const { return failed == 0; }
-  std::string message() const;   // "" when ok(), else one line
-};
+// "" when st is ok; else one line for a simulator's status (the steps' failures),
+// e.g. "forward dynamics failed in 12 instance-steps, first in instance 3:
+// articulated inertia pivot at DoF 6 is not positive; those instances kept their
+// state for those steps".
+std::string failure_message(const BatchStatus& st);
+
+// Adds one step's failures (a batch's BatchStatus) to a simulator's status: the
+// count saturates at the largest Index, the lowest failing instance is kept.
+void add_step_failures(BatchStatus& status, const BatchStatus& step);
 
 // What the simulator's steps read, prepared once from the scene in precision S.
 template <class S>
@@ -74,7 +95,7 @@ struct SimSetup {
 namespace detail {
 
 // A simulator backend: the resident state and the step (serial/OpenMP in
-// src/sim/simulator.cpp, cuda in kernels/sim_step.cu).
+// cpu_fallback/simulator_step.cpp, cuda in kernels/sim_step.cu).
 template <class S>
 class SimBackend {
  public:
@@ -87,7 +108,7 @@ class SimBackend {
   virtual void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) = 0;
   // copies all of q and qd (nv x B, SoA) to host memory
   virtual void read_state(S* q_host, S* qd_host) = 0;
-  virtual SimStatus status() = 0;
+  virtual BatchStatus status() = 0;  // failed instance-steps since clear_status()
   virtual void clear_status() = 0;
   virtual void synchronize() = 0;
   virtual bool on_device() const = 0;
@@ -95,8 +116,6 @@ class SimBackend {
   virtual void* stream() const { return nullptr; }
 };
 
-template <class S>
-std::unique_ptr<SimBackend<S>> make_cpu_sim_backend(const SimSetup<S>& setup, bool openmp);
 // Throws BackendError when CUDA is not built or no device is usable.
 template <class S>
 std::unique_ptr<SimBackend<S>> make_cuda_sim_backend(const SimSetup<S>& setup);
@@ -144,13 +163,16 @@ class Simulator {
   // (joint_effect_energy). External wrenches and damping are not potentials.
   std::vector<double> energy();
 
-  SimStatus status() { return backend_->status(); }
+  // the forward-dynamics failures since the last clear_status(): `failed` counts
+  // instance-steps (see "Failures" above); failure_message(status()) words them
+  BatchStatus status() { return backend_->status(); }
   void clear_status() { backend_->clear_status(); }
   void synchronize() { backend_->synchronize(); }
 
   bool on_device() const { return backend_->on_device(); }
-  // "serial-aba", "openmp-aba", "fused-aba" (cuda, thread per instance) or
-  // "engine-parallel" / "engine-jsi_dense" (cuda, beyond 64 DoF: chains / trees)
+  // "serial-aba", "openmp-aba", "openmp-engine-parallel" (openmp, a few long
+  // chains), "fused-aba" (cuda, thread per instance) or "engine-parallel" /
+  // "engine-jsi_dense" (cuda, beyond 64 DoF: chains / trees)
   std::string strategy() const { return backend_->strategy(); }
   void* stream() const { return backend_->stream(); }  // cudaStream_t on cuda, else null
 

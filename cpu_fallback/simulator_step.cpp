@@ -1,0 +1,340 @@
+// cpu_fallback/simulator_step.cpp: the simulator's serial and OpenMP step
+// (simulator_step.hpp): per instance through the instance loop, or for a few long
+// chains per forward dynamics through the parallel chain forward dynamics.
+#include "simulator_step.hpp"
+
+#include <algorithm>
+#include <array>
+#include <utility>
+#include <vector>
+
+#include "instance_loop.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/sim/integrators.hpp"
+
+namespace scandyn {
+namespace cpu {
+namespace {
+
+using sim::Integrator;
+using sim::JointCoefficients;
+using sim::SimSetup;
+using sim::StepScratch;
+
+// What both CPU steps keep: the resident state (nv x B, q[i * B + b]), the
+// per-step wrenches, the status of the steps since the last clear.
+template <class S>
+class CpuSimState : public sim::detail::SimBackend<S> {
+ public:
+  CpuSimState(const SimSetup<S>& setup, BackendKind backend, int threads)
+      : setup_(setup), backend_(backend), threads_(threads) {
+    const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
+    const std::size_t B = static_cast<std::size_t>(setup.batch);
+    q_.assign(nv * B, S(0));
+    qd_.assign(nv * B, S(0));
+    if (setup.wrenches_per_step) {
+      wrenches_.resize(B * nv);
+      for (std::size_t b = 0; b < B; ++b)
+        std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nv);
+    }
+  }
+
+  BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nv(), setup_.batch); }
+  BatchView<S> qd() override { return BatchView<S>::soa(qd_.data(), setup_.model.nv(), setup_.batch); }
+  Force<S>* wrenches() override { return wrenches_.empty() ? nullptr : wrenches_.data(); }
+
+  void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
+    const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
+    for (Index k = 0; k < count; ++k)
+      for (std::size_t i = 0; i < n; ++i) {
+        q_[i * B + static_cast<std::size_t>(instances[k])] = q_rows[k * n + i];
+        qd_[i * B + static_cast<std::size_t>(instances[k])] = qd_rows[k * n + i];
+      }
+  }
+  void read_state(S* q_host, S* qd_host) override {
+    std::copy(q_.begin(), q_.end(), q_host);
+    std::copy(qd_.begin(), qd_.end(), qd_host);
+  }
+  BatchStatus status() override { return status_; }
+  void clear_status() override { status_ = {}; }
+  void synchronize() override {}
+  bool on_device() const override { return false; }
+
+ protected:
+  void check_torques(const BatchView<const S>& tau) const {
+    if (tau.data && tau.batch != setup_.batch)
+      throw BackendError("Simulator::step: torques for " + std::to_string(tau.batch) + " instances, the simulator has " +
+                         std::to_string(setup_.batch));
+  }
+  // the wrenches of instance b (B x nv per step, or the constant nv), null without them
+  const Force<S>* instance_wrenches(Index b) const {
+    if (!wrenches_.empty()) return wrenches_.data() + static_cast<std::size_t>(b) * setup_.model.nv();
+    return setup_.wrenches.empty() ? nullptr : setup_.wrenches.data();
+  }
+
+  const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
+  BackendKind backend_;
+  int threads_;
+  std::vector<S> q_, qd_;           // (nv x B) state, q[i * B + b]
+  std::vector<Force<S>> wrenches_;  // (B x nv) per-step wrenches, or empty
+  BatchStatus status_;              // the steps' failures since the last clear
+};
+
+// ---- per instance -----------------------------------------------------------------
+
+template <class S>
+class CpuInstanceStep final : public CpuSimState<S> {
+  using Base = CpuSimState<S>;
+  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::status_;
+
+ public:
+  CpuInstanceStep(const SimSetup<S>& setup, BackendKind backend, int threads) : Base(setup, backend, threads) {
+    const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
+    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_.model, nv);
+    failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
+    step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
+  }
+
+  void step(const BatchView<const S>& tau) override {
+    this->check_torques(tau);
+    const Index B = setup_.batch, n = setup_.model.nv();
+    S* const q = q_.data();
+    S* const qd = qd_.data();
+    Index failures = 0;
+    for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
+      Work& w = work_[static_cast<std::size_t>(t)];
+      Index local = 0;
+      for (Index b = begin; b < end; ++b) {
+        for (Index i = 0; i < n; ++i) {
+          w.q[i] = q[static_cast<std::size_t>(i) * B + b];
+          w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
+          w.tau[i] = tau.data ? tau.at(i, b) : S(0);
+        }
+        const Index dof = step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
+                                this->instance_wrenches(b));
+        failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
+        if (dof >= 0) {  // the instance keeps its state for this step
+          ++local;
+          continue;
+        }
+        for (Index i = 0; i < n; ++i) {
+          q[static_cast<std::size_t>(i) * B + b] = w.q[i];
+          qd[static_cast<std::size_t>(i) * B + b] = w.qd[i];
+        }
+      }
+      if (local > 0) {
+#pragma omp atomic
+        failures += local;
+      }
+    });
+    if (failures > 0)
+      sim::add_step_failures(status_, summarize_failures(failed_.data(), B, Failure::ArticulatedPivot));
+  }
+
+  std::string strategy() const override { return this->backend_ == BackendKind::OpenMP ? "openmp-aba" : "serial-aba"; }
+
+ private:
+  // One thread's workspace: the ABA's scratch and the step's arrays.
+  struct Work {
+    Work(const ModelTpl<S>& model, std::size_t n)
+        : data(model, false), q(n), qd(n), tau(n), buffer(6 * n),
+          scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
+                  buffer.data() + 4 * n, buffer.data() + 5 * n} {}
+    Work(Work&& o) noexcept = default;
+    DataTpl<S> data;
+    std::vector<S> q, qd, tau;  // (n) the instance's state and torques
+    std::vector<S> buffer;      // (6 n) StepScratch's arrays
+    StepScratch<S> scratch;
+  };
+
+  using StepFn = Index (*)(const SimSetup<S>&, DataTpl<S>&, const StepScratch<S>&, S*, S*, const S*,
+                           const Force<S>*);
+
+  // One instance's step for effect set E and integrator I: step_instance over the ABA.
+  template <unsigned E, Integrator I>
+  static Index step_one(const SimSetup<S>& setup, DataTpl<S>& data, const StepScratch<S>& w, S* q, S* qd,
+                        const S* tau, const Force<S>* fext) {
+    const ModelTpl<S>& model = setup.model;
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
+      return aba(model, data, qa, qda, t, qdd, (E & sim::kExternal) ? fext : nullptr, armature).failed_dof;
+    };
+    return sim::step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
+                                    setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, w, fd);
+  }
+
+  // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
+  template <std::size_t... K>
+  static constexpr std::array<StepFn, sizeof...(K)> make_table(std::index_sequence<K...>) {
+    return {&step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+  }
+  static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& table() {
+    static const auto t = make_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+    return t;
+  }
+
+  std::vector<Work> work_;   // one per thread
+  std::vector<int> failed_;  // (B) this step's failed DoF per instance, -1: none
+  StepFn step_ = nullptr;
+};
+
+// ---- per forward dynamics ---------------------------------------------------------
+
+// The steps of kernels/sim_step.cu's engine path on the host: the per-DoF formulas
+// of scandyn/sim/integrators.hpp over entries k = i * B + b, split over the
+// threads in blocks, around the forward-dynamics engine's batched compute().
+template <class S>
+class CpuEngineStep final : public CpuSimState<S> {
+  using Base = CpuSimState<S>;
+  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::wrenches_, Base::status_;
+
+ public:
+  CpuEngineStep(const SimSetup<S>& setup, BackendKind backend, int threads) : Base(setup, backend, threads) {
+    if (setup.integrator == Integrator::Implicit)
+      throw BackendError(std::string("backend '") + to_string(backend) +
+                         "': the simulator's step through the forward-dynamics engine runs euler and rk4 (the "
+                         "parallel chain forward dynamics takes no armature); implicit steps per instance");
+    BackendOptions o;
+    o.backend = backend;
+    o.fd_method = FdMethod::Parallel;
+    o.threads = threads;
+    o.max_batch = std::max<Index>(setup.batch, 1);
+    fd_ = make_forward_dynamics<S>(setup.model, o);
+    const std::size_t count = static_cast<std::size_t>(setup.model.nv()) * static_cast<std::size_t>(setup.batch);
+    tau_.assign(count, S(0));
+    qdd_.assign(count, S(0));
+    if (setup.integrator == Integrator::Rk4) {
+      for (std::vector<S>* a : {&qs_, &qds_, &aq_, &aqd_}) a->assign(count, S(0));
+      bad_.assign(static_cast<std::size_t>(setup.batch), -1);
+    }
+    // the engine takes (B x nv) wrenches: the constant ones once per instance
+    if ((setup.effects & sim::kExternal) && !setup.wrenches_per_step && setup.batch > 1) {
+      expanded_.reserve(count);
+      for (Index b = 0; b < setup.batch; ++b) expanded_.insert(expanded_.end(), setup.wrenches.begin(), setup.wrenches.end());
+    }
+    forces_ = forces_table()[setup.effects & sim::kJointEffects];
+  }
+
+  void step(const BatchView<const S>& tau) override {
+    this->check_torques(tau);
+    const Index B = setup_.batch, nv = setup_.model.nv();
+    if (B == 0) return;
+    const Index count = nv * B;
+    const S dt = setup_.dt;
+    const bool rk4 = setup_.integrator == Integrator::Rk4;
+    S* const q = q_.data();
+    S* const qd = qd_.data();
+    S* const qs = rk4 ? qs_.data() : q;
+    S* const qds = rk4 ? qds_.data() : qd;
+    const S* const qdd = qdd_.data();
+    // the effects at (qs, qds) into tau_, then the forward dynamics of the batch
+    auto forward_dynamics = [&]() {
+      forces_(*this, qs, qds, tau);
+      const FdBatchIn<S> in{BatchView<const S>::soa(qs, nv, B), BatchView<const S>::soa(qds, nv, B),
+                            BatchView<const S>::soa(tau_.data(), nv, B), fext()};
+      return fd_->compute(in, BatchView<S>::soa(qdd_.data(), nv, B));
+    };
+    auto entries = [&](auto&& f) {  // f(k, b) for every entry k = i * B + b
+      for_instance_blocks(threads_, count, [&](int, Index begin, Index end) {
+        for (Index k = begin; k < end; ++k) f(k, k % B);
+      });
+    };
+    if (!rk4) {
+      const BatchStatus st = forward_dynamics();
+      const int* failed = st.failed_dof;
+      entries([&](Index k, Index b) {
+        if (st.ok() || failed[b] < 0) sim::euler_update(dt, qdd[k], q[k], qd[k]);
+      });
+      if (!st.ok()) sim::add_step_failures(status_, st);
+      return;
+    }
+    entries([&](Index k, Index) { sim::rk4_begin(q[k], qd[k], qs[k], qds[k], aq_[k], aqd_[k]); });
+    std::fill(bad_.begin(), bad_.end(), -1);
+    Failure failure = Failure::None;
+    for (int s = 0; s < 4; ++s) {
+      const BatchStatus st = forward_dynamics();
+      if (!st.ok()) {  // an instance's first failing stage names its DoF
+        for (Index b = 0; b < B; ++b)
+          if (st.failed_dof[b] >= 0 && bad_[b] < 0) bad_[b] = st.failed_dof[b];
+        failure = st.failure;
+      }
+      entries([&](Index k, Index) { sim::rk4_stage(s, dt, q[k], qd[k], qdd[k], qs[k], qds[k], aq_[k], aqd_[k]); });
+    }
+    const bool any = failure != Failure::None;
+    entries([&](Index k, Index b) {
+      if (!any || bad_[b] < 0) sim::rk4_finish(dt, aq_[k], aqd_[k], q[k], qd[k]);
+    });
+    if (any) sim::add_step_failures(status_, summarize_failures(bad_.data(), B, failure));
+  }
+
+  std::string strategy() const override { return std::string(to_string(this->backend_)) + "-engine-" + fd_->strategy(); }
+
+ private:
+  // the (B x nv) wrenches the engine reads, null without external wrenches
+  const Force<S>* fext() const {
+    if (!(setup_.effects & sim::kExternal)) return nullptr;
+    if (!wrenches_.empty()) return wrenches_.data();
+    return expanded_.empty() ? setup_.wrenches.data() : expanded_.data();
+  }
+
+  // tau_ = tau + the joint effects' forces at (qs, qds), effect set E
+  template <unsigned E>
+  static void forces(CpuEngineStep& self, const S* qs, const S* qds, const BatchView<const S>& tau) {
+    const Index B = self.setup_.batch, count = self.setup_.model.nv() * B;
+    const JointCoefficients<S>* coef = self.setup_.coef.data();
+    S* const out = self.tau_.data();
+    for_instance_blocks(self.threads_, count, [&](int, Index begin, Index end) {
+      for (Index k = begin; k < end; ++k) {
+        const Index i = k / B, b = k % B;
+        out[k] = sim::effect_forces<E>(tau.data ? tau.at(i, b) : S(0), coef[i], qs[k], qds[k], S(0));
+      }
+    });
+  }
+  using ForcesFn = void (*)(CpuEngineStep&, const S*, const S*, const BatchView<const S>&);
+  // every joint-effect set (effects & kJointEffects: 8 values of the bits 2, 4, 8)
+  template <std::size_t... K>
+  static constexpr std::array<ForcesFn, sizeof...(K)> make_forces_table(std::index_sequence<K...>) {
+    return {&forces<unsigned(K) & sim::kJointEffects>...};
+  }
+  static const std::array<ForcesFn, sim::kJointEffects + 1>& forces_table() {
+    static const auto t = make_forces_table(std::make_index_sequence<sim::kJointEffects + 1>{});
+    return t;
+  }
+
+  std::unique_ptr<ForwardDynamics<S>> fd_;  // the parallel chain forward dynamics
+  ForcesFn forces_ = nullptr;
+  std::vector<S> tau_, qdd_;                // (nv x B) tau + effects, the forward dynamics' result
+  std::vector<S> qs_, qds_, aq_, aqd_;      // (nv x B) rk4: stage state, weighted sums
+  std::vector<int> bad_;                    // (B) rk4: the DoF of an instance's first failed stage, -1: none
+  std::vector<Force<S>> expanded_;          // (B x nv) the constant wrenches per instance (B > 1)
+};
+
+}  // namespace
+
+template <class S>
+bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+         static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
+         choose_fd_method(backend, setup.model) == FdMethod::Parallel;
+}
+
+template <class S>
+std::unique_ptr<sim::detail::SimBackend<S>> make_simulator_step(const SimSetup<S>& setup, BackendKind backend) {
+  BackendOptions o;
+  o.backend = backend;
+  o.threads = setup.threads;
+  const int threads = engine_threads(o);
+  if (steps_per_forward_dynamics(setup, backend, threads))
+    return std::make_unique<CpuEngineStep<S>>(setup, backend, threads);
+  // no more threads than instances: each thread steps whole instances
+  return std::make_unique<CpuInstanceStep<S>>(setup, backend, std::max(1, std::min<int>(threads, std::max<Index>(1, setup.batch))));
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                          \
+  template bool steps_per_forward_dynamics(const SimSetup<S>&, BackendKind, int);                      \
+  template std::unique_ptr<sim::detail::SimBackend<S>> make_simulator_step(const SimSetup<S>&, BackendKind);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace cpu
+}  // namespace scandyn
