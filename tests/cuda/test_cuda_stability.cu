@@ -100,28 +100,28 @@ using namespace scandyn::stability;
 
 namespace {
 
-enum class Engine { IdThread, IdScanLocal, FdAba, FdJsi, FdParallel, FdHybrid };
+enum class CaseEngine { IdThread, IdScanLocal, FdAba, FdJsi, FdParallel, FdHybrid };
 
-bool is_id(Engine e) { return e == Engine::IdThread || e == Engine::IdScanLocal; }
+bool is_id(CaseEngine e) { return e == CaseEngine::IdThread || e == CaseEngine::IdScanLocal; }
 
-FdMethod fd_algorithm(Engine e) {
+FdMethod fd_algorithm(CaseEngine e) {
   switch (e) {
-    case Engine::FdAba: return FdMethod::Aba;
-    case Engine::FdParallel: return FdMethod::Parallel;
-    case Engine::FdHybrid: return FdMethod::Hybrid;
+    case CaseEngine::FdAba: return FdMethod::Aba;
+    case CaseEngine::FdParallel: return FdMethod::Parallel;
+    case CaseEngine::FdHybrid: return FdMethod::Hybrid;
     default: return FdMethod::Jsi;
   }
 }
 
 // The recorded method name of the engine that runs e on an nv-DoF model.
-std::string engine_name(Engine e, Index nv) {
+std::string engine_name(CaseEngine e, Index nv) {
   switch (e) {
-    case Engine::IdThread: return "cuda-id-thread";
-    case Engine::IdScanLocal: return "cuda-id-scan-local";
-    case Engine::FdAba: return "cuda-fd-aba-thread";
-    case Engine::FdJsi: return nv <= cuda::kMaxThreadDofs ? "cuda-fd-jsi-thread" : "cuda-fd-jsi-dense";
-    case Engine::FdParallel: return "cuda-fd-parallel";
-    case Engine::FdHybrid: return "cuda-fd-hybrid";
+    case CaseEngine::IdThread: return "cuda-id-thread";
+    case CaseEngine::IdScanLocal: return "cuda-id-scan-local";
+    case CaseEngine::FdAba: return "cuda-fd-aba-thread";
+    case CaseEngine::FdJsi: return nv <= cuda::kMaxThreadDofs ? "cuda-fd-jsi-thread" : "cuda-fd-jsi-dense";
+    case CaseEngine::FdParallel: return "cuda-fd-parallel";
+    case CaseEngine::FdHybrid: return "cuda-fd-hybrid";
   }
   return "?";
 }
@@ -143,11 +143,11 @@ constexpr double kLibTrig = 1e-6;       // float jsi-thread: CUDA's sinf/cosf
 
 // What a float engine's sin/cos may add to a CPU bound (see the top).
 template <class S>
-double trig_allowance(Engine e, Index nv) {
+double trig_allowance(CaseEngine e, Index nv) {
   if (sizeof(S) != 4) return 0;
-  if (e == Engine::IdThread) return kSfuId;
-  if (e == Engine::FdAba) return kSfuFd;
-  if (e == Engine::FdJsi && nv <= cuda::kMaxThreadDofs) return kLibTrig;
+  if (e == CaseEngine::IdThread) return kSfuId;
+  if (e == CaseEngine::FdAba) return kSfuFd;
+  if (e == CaseEngine::FdJsi && nv <= cuda::kMaxThreadDofs) return kLibTrig;
   return 0;
 }
 
@@ -160,7 +160,7 @@ const double kNotRun = NAN;
 // Runs engine e in precision S on p (one instance, host pointers), records the
 // measurement and returns it.
 template <class S>
-Outcome run(const Problem& p, Engine e) {
+Outcome run(const Problem& p, CaseEngine e) {
   const ModelTpl<S> m = p.model.cast<S>();
   const Index n = m.nv();
   const auto q = test::cast_vector<S>(p.q), qd = test::cast_vector<S>(p.qd), u = test::cast_vector<S>(p.u);
@@ -174,7 +174,7 @@ Outcome run(const Problem& p, Engine e) {
   Outcome o;
   std::string name;
   if (is_id(e)) {
-    options.strategy = e == Engine::IdThread ? IdStrategy::Recursion : IdStrategy::ScanLocal;
+    options.strategy = e == CaseEngine::IdThread ? IdStrategy::Recursion : IdStrategy::ScanLocal;
     cuda::CudaInverseDynamics<S> id(m, options);
     name = strategy_name("id", id.strategy());
     id.compute({vq, vqd, vu}, vout);
@@ -187,8 +187,8 @@ Outcome run(const Problem& p, Engine e) {
     // the batch status and the per-instance DoF tell the same story
     EXPECT_GE(failed, -1) << name << ": failed DoF not written";
     EXPECT_EQ(st.failed, failed >= 0 ? 1 : 0) << name;
-    EXPECT_EQ(st.failure, pivot_failure(fd.method())) << name;
     if (failed >= 0) {
+      EXPECT_EQ(st.failure, pivot_failure(fd.method())) << name;
       EXPECT_EQ(st.first_instance, 0) << name;
       EXPECT_EQ(st.first_dof, failed) << name;
       const char* pivot = fd.method() == FdMethod::Jsi ? "mass matrix pivot" : "articulated inertia pivot";
@@ -204,7 +204,7 @@ Outcome run(const Problem& p, Engine e) {
 // The expectation for one engine and precision: a bound (the CPU bound; the trig
 // allowance is added here), kReported, kDegraded or kNotRun.
 template <class S>
-void expect(const Problem& p, Engine e, double expected) {
+void expect(const Problem& p, CaseEngine e, double expected) {
   if (std::isnan(expected)) return;
   SCOPED_TRACE(p.name + " " + engine_name(e, p.model.nv()) + " " + precision_name<S>());
   const Outcome o = run<S>(p, e);
@@ -237,9 +237,9 @@ Expected long_chain(const double (&id_scan)[2], const double (&jsi)[2], const do
 }
 
 void expect_case(const Problem& p, const Expected& e) {
-  const std::pair<Engine, const double*> rows[] = {
-      {Engine::IdThread, e.id_thread}, {Engine::IdScanLocal, e.id_scan}, {Engine::FdAba, e.aba},
-      {Engine::FdJsi, e.jsi},          {Engine::FdParallel, e.parallel}, {Engine::FdHybrid, e.hybrid}};
+  const std::pair<CaseEngine, const double*> rows[] = {
+      {CaseEngine::IdThread, e.id_thread}, {CaseEngine::IdScanLocal, e.id_scan}, {CaseEngine::FdAba, e.aba},
+      {CaseEngine::FdJsi, e.jsi},          {CaseEngine::FdParallel, e.parallel}, {CaseEngine::FdHybrid, e.hybrid}};
   for (const auto& [engine, b] : rows) {
     expect<double>(p, engine, b[0]);
     expect<float>(p, engine, b[1]);
@@ -301,8 +301,8 @@ TEST(CudaStabilityRope, RopeJsi) {
   const std::pair<int, double> double_bound[] = {{30, 1e-11}, {64, 5e-10}, {100, 5e-10}, {300, 3e-9}, {1000, 5e-7}};
   for (const auto& [n, bound] : double_bound) {
     const Problem p = make_problem("rope:" + std::to_string(n), rope(n), 3);
-    expect<double>(p, Engine::FdJsi, bound);
-    if (n == 1000) expect<float>(p, Engine::FdJsi, kReported);
+    expect<double>(p, CaseEngine::FdJsi, bound);
+    if (n == 1000) expect<float>(p, CaseEngine::FdJsi, kReported);
   }
 }
 
@@ -323,9 +323,9 @@ TEST(CudaStabilityRope, FloatJsiDegradesWithoutReport) {
     const Problem p = make_problem("rope:" + std::to_string(n), rope(n), 3);
     SCOPED_TRACE(p.name);
     if (n < 300) {
-      expect<float>(p, Engine::FdJsi, kDegraded);
+      expect<float>(p, CaseEngine::FdJsi, kDegraded);
     } else {
-      const Outcome jsi = run<float>(p, Engine::FdJsi);
+      const Outcome jsi = run<float>(p, CaseEngine::FdJsi);
       if (jsi.reported()) {
         EXPECT_TRUE(jsi.untouched);
       } else {
@@ -333,7 +333,7 @@ TEST(CudaStabilityRope, FloatJsiDegradesWithoutReport) {
         EXPECT_GT(jsi.err, kFloatBudget);
       }
     }
-    const Engine sound = n <= cuda::kMaxThreadDofs ? Engine::FdAba : Engine::FdParallel;
+    const CaseEngine sound = n <= cuda::kMaxThreadDofs ? CaseEngine::FdAba : CaseEngine::FdParallel;
     const Outcome o = run<float>(p, sound);
     EXPECT_FALSE(o.reported());
     EXPECT_TRUE(o.finite);
@@ -387,7 +387,7 @@ TEST(CudaStabilityHard, FloatChainFdOnMassRatios) {
       const Problem p = make_problem(std::string("rope-mass-ratio-") + label + ":" + std::to_string(n),
                                      mass_ratio_rope(n, ratio), 4);
       const double cpu_aba = cpu_float_aba_error(p);
-      for (Engine e : {Engine::FdParallel, Engine::FdHybrid}) {
+      for (CaseEngine e : {CaseEngine::FdParallel, CaseEngine::FdHybrid}) {
         SCOPED_TRACE(p.name + " " + engine_name(e, n) + ", cpu float aba error " + std::to_string(cpu_aba));
         const Outcome o = run<float>(p, e);
         EXPECT_FALSE(o.reported()) << "pivot at DoF " << o.failed_dof;

@@ -135,10 +135,9 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         return true;
       },
       [&](Index i, const JsiCarry<S>& t, auto&& hand_off) {
-        const Body<S>& b = model.body[i];
         Transform<S> X;
         if constexpr (kKeep) X = Xup[kKeep ? i : 0];
-        else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
+        else X = joint_transform<kTrig>(model.body[i], kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
         JsiCarry<S> up{Force<S>::zero(), Inertia<S>::zero()};
         if constexpr (kBias) up.f = X.apply_transpose(t.f);
         up.I = crba_composite_step(X, t.I);
