@@ -22,7 +22,8 @@
 #
 # Environment: SCANDYN_GPU_BUILD_DIR (default build-gpu), CMAKE_CUDA_ARCHITECTURES
 # (default 90), SCANDYN_JOBS (default nproc), SCANDYN_SKIP_SANITIZER=1,
-# SCANDYN_SANITIZER_FILTER (gtest filter under memcheck; default leaves out the
+# SCANDYN_SKIP_TESTS=1 (no ctest, no compute-sanitizer), SCANDYN_BUILD_TARGETS (build
+# only these targets, e.g. "bench_cuda_id bench_cuda_fd"), SCANDYN_SANITIZER_FILTER (gtest filter under memcheck; default leaves out the
 # 10^5..10^6-link cases, which repeat the smaller ones' kernels at 10-100x the
 # time), SCANDYN_SKIP_ACCURACY=1, SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
 # SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
@@ -118,12 +119,16 @@ grep -q "urdfdom_DIR:PATH=$deps" "$build/CMakeCache.txt" ||
 # ---- 3. build ------------------------------------------------------------------
 note "build (-j$jobs) -> $out/build.log"
 set +e
-cmake --build "$build" --parallel "$jobs" 2>&1 | tee "$out/build.log"
+read -r -a targets <<<"${SCANDYN_BUILD_TARGETS:-}"
+cmake --build "$build" --parallel "$jobs" ${targets[@]+--target "${targets[@]}"} 2>&1 | tee "$out/build.log"
 rc=${PIPESTATUS[0]}
 set -e
 record build "$rc"
 ((rc == 0)) || die "build failed; see $out/build.log"
 
+if [[ "${SCANDYN_SKIP_TESTS:-0}" == 1 ]]; then
+  note "ctest and compute-sanitizer skipped (SCANDYN_SKIP_TESTS=1)"
+else
 # ---- 4. tests ------------------------------------------------------------------
 note "ctest -> $out/ctest.log"
 junit=()
@@ -171,6 +176,7 @@ else
     set -e
     record "memcheck $name" "$rc"
   done
+fi
 fi
 
 # ---- 5b. accuracy report (full mode), when matplotlib is importable ------------
