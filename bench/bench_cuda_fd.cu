@@ -213,7 +213,7 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double fa
 
 // fd_jsi_thread (fd_aba_thread with FdMethod::Aba): the engine's device path.
 template <class S>
-void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Auto) {
+void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Jsi) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   BackendOptions o;
