@@ -15,7 +15,7 @@ int engine_threads(const BackendOptions& o) {
   if (o.backend == BackendKind::Serial) return 1;
   const std::string why = backend_unusable(o.backend);
   if (!why.empty()) throw BackendError(why);
-  return o.threads > 0 ? o.threads : openmp_threads();
+  return backend_threads(o.backend, o.threads);
 }
 
 namespace {

@@ -143,6 +143,10 @@ bool is_chain_from_base(const ModelTpl<S>& model);
 // (omp_get_max_threads(); 1 in a build without OpenMP).
 int openmp_threads();
 
+// Host threads an engine of this backend runs: 1 on serial and cuda; on openmp
+// `threads` when positive, else openmp_threads().
+int backend_threads(BackendKind backend, int threads);
+
 // Why a backend cannot run on this machine ("not available in this build", "no
 // usable CUDA device: ..."), "" when it can.
 std::string backend_unusable(BackendKind backend);

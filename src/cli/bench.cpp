@@ -16,8 +16,8 @@
 #include "engines.hpp"
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
-#include "resources.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
@@ -345,7 +345,7 @@ int run_bench(const Args& args) {
   const double width = double(output_width(algo, model.nv()));
   const bool jsi = algo == Algo::Fd && (options.fd_method == FdMethod::Jsi || options.fallback_aba);
   const double bytes = double(count) * (3.0 * nv * 8 + 3.0 * nv * scalar + width * scalar + width * 8) +
-                       workspace_bytes(nv, planned_threads(options.backend, options.threads), jsi, scalar) +
+                       workspace_bytes(nv, backend_threads(options.backend, options.threads), jsi, scalar) +
                        workspace_bytes(nv, 1, false, 8) + 2 * width * 8;
   require_host_memory("bench --algo " + std::string(algo_name(algo)) + (algo == Algo::Fd ? std::string(" --fd ") + to_string(options.fd_method) : "") +
                           " on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +

@@ -8,8 +8,8 @@
 #include "engines.hpp"
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
-#include "resources.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "states.hpp"
 
@@ -182,7 +182,7 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
     const double ncols = double(in.columns().size());
     const bool jsi = std::find(algos.begin(), algos.end(), Algo::Fd) != algos.end() &&
                      (options.fd_method == FdMethod::Jsi || options.fallback_aba);
-    const int threads = planned_threads(options.backend, options.threads);
+    const int threads = backend_threads(options.backend, options.threads);
     const double bytes = width * (48 + 8 + double(chunk) * sizeof(S)) + ncols * 48 +
                          double(kFamilies) * double(chunk) * double(nv) * sizeof(S) +
                          workspace_bytes(nv, threads, jsi, sizeof(S));

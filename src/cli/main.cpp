@@ -11,7 +11,7 @@
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/output_file.hpp"
 #include "scandyn/build_config.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
 

@@ -15,8 +15,8 @@
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/output_file.hpp"
-#include "resources.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "simulator_cli.hpp"
 

@@ -6,8 +6,8 @@
 #include <memory>
 
 #include "cli.hpp"
-#include "resources.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::cli {
@@ -37,7 +37,7 @@ double simulator_host_bytes(const sim::Scene& scene, BackendKind backend) {
   if (backend != BackendKind::Cuda) {
     bytes += B * n * s * 2;                                             // q, qd
     if (scene.wrenches_per_step) bytes += B * n * s * 6;                // per-step wrenches
-    bytes += workspace_bytes(static_cast<std::size_t>(scene.nv()), planned_threads(backend, scene.threads), false, sizeof(S));
+    bytes += workspace_bytes(static_cast<std::size_t>(scene.nv()), backend_threads(backend, scene.threads), false, sizeof(S));
   }
   return bytes;
 }

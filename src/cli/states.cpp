@@ -2,7 +2,7 @@
 #include "states.hpp"
 
 #include "cli.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 
 namespace scandyn::cli {
 

@@ -222,6 +222,11 @@ int openmp_threads() {
 #endif
 }
 
+int backend_threads(BackendKind backend, int threads) {
+  if (backend != BackendKind::OpenMP) return 1;
+  return threads > 0 ? threads : openmp_threads();
+}
+
 std::string backend_unusable(BackendKind backend) {
   switch (backend) {
     case BackendKind::Serial: return "";

@@ -1,7 +1,7 @@
 // src/io/csv.cpp: strict numeric CSV reading and atomic CSV writing.
 #include "scandyn/io/csv.hpp"
 
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 
 #include <fcntl.h>
 #include <sys/stat.h>

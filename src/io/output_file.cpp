@@ -13,7 +13,7 @@
 #include <cstring>
 
 #include "scandyn/io/csv.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 
 namespace scandyn::io {
 namespace {

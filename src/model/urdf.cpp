@@ -12,7 +12,7 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn {

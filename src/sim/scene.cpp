@@ -13,7 +13,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn {

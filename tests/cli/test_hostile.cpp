@@ -21,7 +21,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/limits.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "test_util.hpp"

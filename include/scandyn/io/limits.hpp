@@ -1,9 +1,10 @@
-// scandyn/limits.hpp: the stated limits on what scandyn reads (file sizes, nesting
+// scandyn/io/limits.hpp: the stated limits on what scandyn reads (file sizes, nesting
 // depth), the one way input files are read (regular files only, size bounded before
 // reading), and the host-memory estimate that large allocations are checked against
 // (docs/cli.md, "Limits").
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 #include <stdexcept>
 #include <string>
@@ -69,5 +70,17 @@ std::string format_bytes(double bytes);
 // Throws ResourceError when bytes (an estimate) exceed the host's available memory:
 // "<what> needs about <bytes> of host memory; <free> available".
 void require_host_memory(const std::string& what, double bytes);
+
+// Free bytes on the file system that would hold path (its directory), 0 if unknown.
+double disk_space_available(const std::string& path);
+
+// Throws ResourceError when bytes exceed the free space where path would be written
+// (nothing is checked for "-" or a FIFO/device, or when the space is unknown); what
+// names what is written.
+void require_disk_space(const std::string& path, const std::string& what, double bytes);
+
+// Host bytes of `threads` reference workspaces (DataTpl) for an nv-DoF model, with
+// the nv x nv mass matrix when jsi is true, in scalars of `scalar` bytes.
+double workspace_bytes(std::size_t nv, int threads, bool jsi, std::size_t scalar);
 
 }  // namespace scandyn

@@ -1,11 +1,12 @@
-// src/model/limits.cpp: reading input files within the stated limits, the
-// pre-parse checks of XML and JSON text, and the host-memory estimate
-// (scandyn/limits.hpp, docs/cli.md "Limits").
-#include "scandyn/limits.hpp"
+// src/io/limits.cpp: reading input files within the stated limits, the
+// pre-parse checks of XML and JSON text, and the host-memory and disk estimates
+// (scandyn/io/limits.hpp, docs/cli.md "Limits").
+#include "scandyn/io/limits.hpp"
 
 #include <fcntl.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -301,6 +302,33 @@ void require_host_memory(const std::string& what, double bytes) {
   if (!(bytes <= static_cast<double>(avail)))
     throw ResourceError(what + " needs about " + format_bytes(bytes) + " of host memory; " +
                         format_bytes(static_cast<double>(avail)) + " available");
+}
+
+double disk_space_available(const std::string& path) {
+  const std::size_t slash = path.rfind('/');
+  const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+  struct statvfs vfs {};
+  if (::statvfs(dir.c_str(), &vfs) != 0) return 0;
+  return static_cast<double>(vfs.f_bavail) * static_cast<double>(vfs.f_frsize);
+}
+
+void require_disk_space(const std::string& path, const std::string& what, double bytes) {
+  if (path == "-") return;
+  struct stat st {};
+  if (::stat(path.c_str(), &st) == 0 && (S_ISFIFO(st.st_mode) || S_ISCHR(st.st_mode))) return;
+  const double free_bytes = disk_space_available(path);
+  if (free_bytes <= 0) return;
+  if (bytes > free_bytes)
+    throw ResourceError(what + " needs about " + format_bytes(bytes) + " of disk space for " + printable(path) +
+                        "; " + format_bytes(free_bytes) + " free there");
+}
+
+double workspace_bytes(std::size_t nv, int threads, bool jsi, std::size_t scalar) {
+  // DataTpl: ~90 scalars per body (transforms, motions, forces, inertias, ABA terms)
+  const double n = static_cast<double>(nv), s = static_cast<double>(scalar);
+  double per_thread = n * 90 * s;
+  if (jsi) per_thread += n * n * s;
+  return per_thread * static_cast<double>(threads < 1 ? 1 : threads);
 }
 
 }  // namespace scandyn
