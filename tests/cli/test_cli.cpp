@@ -22,11 +22,13 @@
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "cli_test_util.hpp"
 #include "test_util.hpp"
 
 namespace {
 
 namespace fs = std::filesystem;
+using namespace scandyn::test::cli;
 using scandyn::Model;
 
 // ---- helpers ------------------------------------------------------------------
@@ -42,24 +44,6 @@ std::string cuda_backend_error() {
 #else
   return "backend 'cuda' is not available in this build";
 #endif
-}
-
-std::string read_text(const fs::path& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream ss;
-  ss << f.rdbuf();
-  return ss.str();
-}
-
-void write_text(const fs::path& p, const std::string& text) {
-  std::ofstream f(p, std::ios::binary);
-  f << text;
-}
-
-std::string quote(const std::string& s) {
-  std::string q = "'";
-  for (char c : s) q += c == '\'' ? std::string("'\\''") : std::string(1, c);
-  return q + "'";
 }
 
 std::vector<std::string> split(const std::string& s, char sep) {
@@ -170,51 +154,8 @@ struct States {
   }
 };
 
-struct Result {
-  int code = -1;
-  std::string out, err;
-};
-
-class Cli : public ::testing::Test {
- protected:
-  void SetUp() override {
-    std::string tmpl = (fs::temp_directory_path() / "scandyn_cli_XXXXXX").string();
-    ASSERT_NE(::mkdtemp(&tmpl[0]), nullptr);
-    dir_ = tmpl;
-  }
-  void TearDown() override {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
-
-  fs::path path(const std::string& name) const { return dir_ / name; }
-
-  // Runs `scandyn args` in the test directory.
-  Result run(const std::string& args) const {
-    const std::string cmd =
-        "cd " + quote(dir_.string()) + " && " + quote(scandyn::test::cli_path()) + " " + args +
-        " >" + quote(path(".stdout").string()) + " 2>" + quote(path(".stderr").string());
-    const int status = std::system(cmd.c_str());
-    Result r;
-    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    r.out = read_text(path(".stdout"));
-    r.err = read_text(path(".stderr"));
-    return r;
-  }
-
-  // Files in the test directory, except the captured stdout/stderr.
-  std::vector<std::string> files() const {
-    std::vector<std::string> names;
-    for (const auto& e : fs::directory_iterator(dir_)) {
-      const std::string n = e.path().filename().string();
-      if (n != ".stdout" && n != ".stderr") names.push_back(n);
-    }
-    std::sort(names.begin(), names.end());
-    return names;
-  }
-
-  fs::path dir_;
-};
+// Each test in a fresh directory (cli_test_util.hpp).
+using Cli = CliDirTest;
 
 // The info table's DoF rows: [index, joint, type, parent, child, axis...].
 std::vector<std::vector<std::string>> info_dofs(const std::string& out) {

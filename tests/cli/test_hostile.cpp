@@ -24,37 +24,16 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
+#include "cli_test_util.hpp"
 #include "test_util.hpp"
 
 namespace {
 
 namespace fs = std::filesystem;
+using namespace scandyn::test::cli;
 using namespace scandyn;
 
-std::string read_text(const fs::path& p) {
-  std::ifstream f(p, std::ios::binary);
-  std::stringstream ss;
-  ss << f.rdbuf();
-  return ss.str();
-}
-
-void write_text(const fs::path& p, const std::string& text) {
-  std::ofstream f(p, std::ios::binary);
-  f << text;
-}
-
-std::string quote(const std::string& s) {
-  std::string q = "'";
-  for (char c : s) q += c == '\'' ? std::string("'\\''") : std::string(1, c);
-  return q + "'";
-}
-
 bool contains(const std::string& s, const std::string& needle) { return s.find(needle) != std::string::npos; }
-
-struct Result {
-  int code = -1;
-  std::string out, err;
-};
 
 // One-link URDF with the given <axis xyz> and <inertial> body.
 std::string one_link_urdf(const std::string& axis, const std::string& inertial =
@@ -66,42 +45,8 @@ std::string one_link_urdf(const std::string& axis, const std::string& inertial =
          "\"/><limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/></joint></robot>";
 }
 
-class Hostile : public ::testing::Test {
+class Hostile : public CliDirTest {
  protected:
-  void SetUp() override {
-    std::string tmpl = (fs::temp_directory_path() / "scandyn_hostile_XXXXXX").string();
-    ASSERT_NE(::mkdtemp(&tmpl[0]), nullptr);
-    dir_ = tmpl;
-  }
-  void TearDown() override {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
-  fs::path path(const std::string& name) const { return dir_ / name; }
-
-  // Runs `env scandyn args` in the test directory.
-  Result run(const std::string& args, const std::string& env = "") const {
-    const std::string cmd = "cd " + quote(dir_.string()) + " && " + env + " " + quote(test::cli_path()) + " " +
-                            args + " >" + quote(path(".stdout").string()) + " 2>" + quote(path(".stderr").string());
-    const int status = std::system(cmd.c_str());
-    Result r;
-    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    r.out = read_text(path(".stdout"));
-    r.err = read_text(path(".stderr"));
-    return r;
-  }
-
-  // Files in the test directory, hidden ones (temporary files) included, except
-  // the captured stdout/stderr.
-  std::vector<std::string> files() const {
-    std::vector<std::string> names;
-    for (const auto& e : fs::directory_iterator(dir_)) {
-      const std::string n = e.path().filename().string();
-      if (n != ".stdout" && n != ".stderr") names.push_back(n);
-    }
-    std::sort(names.begin(), names.end());
-    return names;
-  }
   bool has_temporary() const {
     for (const std::string& n : files())
       if (contains(n, ".tmp.")) return true;
@@ -141,8 +86,6 @@ class Hostile : public ::testing::Test {
     ::waitpid(pid, &status, 0);
     return WIFEXITED(status) ? WEXITSTATUS(status) : 1000 + (WIFSIGNALED(status) ? WTERMSIG(status) : 0);
   }
-
-  fs::path dir_;
 };
 
 // ---- wrong physics: a huge axis -------------------------------------------------
