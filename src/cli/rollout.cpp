@@ -123,6 +123,9 @@ std::string first_non_finite(const BatchView<const S>& q, const BatchView<const 
   return first;
 }
 
+// Outputs beyond this size are announced on stderr before the rollout starts.
+constexpr double kLargeOutputBytes = 2.0 * (1ull << 30);
+
 template <class S>
 int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path) {
   const std::size_t n = static_cast<std::size_t>(scene.nv()), nb = static_cast<std::size_t>(scene.instances);
@@ -133,10 +136,13 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   // to 24 bytes with the comma; a .npy record holds 1 + 2 nv scalars per instance
   const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + 2 * n);
   const double out_bytes = npy ? values * sizeof(S) : values * 24.0;
-  require_disk_space(out_path,
-                     "the trajectory of " + std::to_string(records) + " records x " + std::to_string(nb) +
-                         " instances x " + std::to_string(1 + 2 * n) + " values",
-                     out_bytes);
+  const std::string what = "the trajectory of " + std::to_string(records) + " records x " + std::to_string(nb) +
+                           " instances x " + std::to_string(1 + 2 * n) + " values";
+  require_disk_space(out_path, what, out_bytes);
+  // a large output is said before the first step (it fits: checked above)
+  if (out_bytes > kLargeOutputBytes)
+    std::fprintf(stderr, "scandyn: %s: %s takes about %s (--every records fewer steps)\n", printable(out_path).c_str(),
+                 what.c_str(), format_bytes(out_bytes).c_str());
   const std::unique_ptr<sim::Simulator<S>> made =
       make_simulator<S>(scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + (2u << 20));
   sim::Simulator<S>& sim = *made;

@@ -1164,6 +1164,25 @@ TEST_F(Cli, RolloutNpyHasTheDocumentedHeaderAndData) {
   }
 }
 
+// A trajectory of more than 2 GiB is announced before the first step (here the
+// simulator is then refused for its memory: 10^9 instances of chain:64); a small
+// one is not.
+TEST_F(Cli, RolloutAnnouncesALargeOutput) {
+  write_text(path("s.json"), R"({"model":"chain:64","dt":0.001,"instances":1000000000,"backend":"serial"})");
+  const Result r = run("rollout --scene s.json --steps 1 --out -");  // (stdout: no disk check)
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(r.err.rfind("scandyn: -: the trajectory of 2 records x 1000000000 instances x 129 values takes about ", 0),
+            0u)
+      << r.err;
+  EXPECT_NE(r.err.find(" TiB (--every records fewer steps)\nscandyn: a simulator of 1000000000 instances"),
+            std::string::npos)
+      << r.err;
+  write_text(path("small.json"), R"({"model":"chain:2","dt":0.001,"instances":3})");
+  const Result small = run("rollout --scene small.json --steps 2 --out t.npy --backend serial");
+  EXPECT_EQ(small.code, 0) << small.err;
+  EXPECT_EQ(small.err.find("takes about"), std::string::npos) << small.err;
+}
+
 TEST_F(Cli, RolloutErrorsWriteNothing) {
   write_text(path("bad.json"), R"({"model": "chain:3", "dt": -1})");
   Result r = run("rollout --scene bad.json --steps 3 --out t.csv");
