@@ -1,4 +1,4 @@
-// The simulator's step on the GPU (scandyn/sim/simulator.hpp, kernels/sim_step.cu):
+// The simulator's step on the GPU (scandyn/sim/simulator.hpp, kernels/simulator_step.cu):
 // the state resident on the device, one fused kernel per step (aba_instance +
 // effects + integration, one thread per instance), or beyond 64 DoF the engine path.
 //

@@ -179,7 +179,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
 
 // ---- per forward dynamics ---------------------------------------------------------
 
-// The steps of kernels/sim_step.cu's engine path on the host: the per-DoF formulas
+// The steps of kernels/simulator_step.cu's engine path on the host: the per-DoF formulas
 // of scandyn/sim/integrators.hpp over entries k = i * B + b, split over the
 // threads in blocks, around the forward-dynamics engine's batched compute().
 template <class S>

@@ -9,7 +9,7 @@
 //   dynamics       the forward-dynamics engine (make_forward_dynamics, FdMethod::
 //                  Parallel: scans across links on all threads) on the whole batch,
 //                  the integration of every DoF: "openmp-engine-parallel", as the
-//                  CUDA backend's engine path beyond 64 DoF (kernels/sim_step.cu).
+//                  CUDA backend's engine path beyond 64 DoF (kernels/simulator_step.cu).
 // A failed instance-step is recorded as the engines record a failed instance (a
 // per-instance failed-DoF array summarised by summarize_failures) and added to
 // the simulator's BatchStatus (sim::add_step_failures).

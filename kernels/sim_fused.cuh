@@ -85,7 +85,7 @@ __host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::Thr
 // The steps' failures on the device: failed instance-steps, and the lowest failed
 // instance with the DoF at which its forward dynamics stopped, as one key
 // (instance << 32 | DoF) so that one atomicMin keeps both. The host reads it into a
-// BatchStatus (kernels/sim_step.cu).
+// BatchStatus (kernels/simulator_step.cu).
 struct StepStatus {
   unsigned long long failed;  // failed instance-steps
   unsigned long long first;   // instance << 32 | DoF of the lowest failed instance; kStepStatusClear.first: none

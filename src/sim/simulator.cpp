@@ -1,7 +1,7 @@
 // src/sim/simulator.cpp: the Simulator front end: the setup from a scene, the
 // choice of backend, resets, energy, the status's wording. The steps are the
 // backends': serial and OpenMP in cpu_fallback/simulator_step.cpp, cuda in
-// kernels/sim_step.cu.
+// kernels/simulator_step.cu.
 #include "scandyn/sim/simulator.hpp"
 
 #include <algorithm>

@@ -1,4 +1,4 @@
-// Tests of the simulator's CUDA backend (kernels/sim_step.cu, kernels/sim_fused.cuh).
+// Tests of the simulator's CUDA backend (kernels/simulator_step.cu, kernels/sim_fused.cuh).
 //
 // Host part (runs in CI without a GPU): the fused kernel's per-thread composition,
 // step_instance over fused_forward_dynamics (aba_instance) with capacity-sized

@@ -26,7 +26,7 @@
 // The formulas are written once, per DoF, below ("the integrators' formulas"):
 // step_instance (one instance: the serial and OpenMP instance loop, the CUDA fused
 // kernel) and the engine paths (every DoF of every instance at once around a
-// batched forward dynamics: the CUDA elementwise kernels of kernels/sim_step.cu
+// batched forward dynamics: the CUDA elementwise kernels of kernels/simulator_step.cu
 // and the OpenMP "engine-parallel" step of cpu_fallback/simulator_step.cpp) call
 // the same functions in the same order.
 #pragma once

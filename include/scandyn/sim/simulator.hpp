@@ -95,7 +95,7 @@ struct SimSetup {
 namespace detail {
 
 // A simulator backend: the resident state and the step (serial/OpenMP in
-// cpu_fallback/simulator_step.cpp, cuda in kernels/sim_step.cu).
+// cpu_fallback/simulator_step.cpp, cuda in kernels/simulator_step.cu).
 template <class S>
 class SimBackend {
  public:

@@ -1,4 +1,4 @@
-// kernels/sim_step.cu: the simulator's CUDA backend (scandyn/sim/simulator.hpp).
+// kernels/simulator_step.cu: the simulator's CUDA backend (scandyn/sim/simulator.hpp).
 //
 // The state (q, qd: nv x B, q[i * B + b]) lives in device memory for the
 // simulator's lifetime; a step never touches the host.
