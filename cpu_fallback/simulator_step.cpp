@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <utility>
 #include <vector>
 
@@ -92,6 +93,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
     const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
     for (int t = 0; t < threads; ++t) work_.emplace_back(setup_.model, nv);
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
+    nonfinite_ = failed_;
     step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
   }
 
@@ -113,6 +115,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
         const Index dof = step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
                                 this->instance_wrenches(b));
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
+        nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
           ++local;
           continue;
@@ -120,6 +123,10 @@ class CpuInstanceStep final : public CpuSimState<S> {
         for (Index i = 0; i < n; ++i) {
           q[static_cast<std::size_t>(i) * B + b] = w.q[i];
           qd[static_cast<std::size_t>(i) * B + b] = w.qd[i];
+          if (nonfinite_[static_cast<std::size_t>(b)] < 0 && !(std::isfinite(w.q[i]) && std::isfinite(w.qd[i]))) {
+            nonfinite_[static_cast<std::size_t>(b)] = static_cast<int>(i);
+            ++local;
+          }
         }
       }
       if (local > 0) {
@@ -127,8 +134,10 @@ class CpuInstanceStep final : public CpuSimState<S> {
         failures += local;
       }
     });
-    if (failures > 0)
+    if (failures > 0) {
       sim::add_step_failures(status_, summarize_failures(failed_.data(), B, Failure::ArticulatedPivot));
+      sim::add_step_failures(status_, summarize_failures(nonfinite_.data(), B, Failure::NonFinite));
+    }
   }
 
   std::string strategy() const override { return this->backend_ == BackendKind::OpenMP ? "openmp-aba" : "serial-aba"; }
@@ -173,7 +182,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
   }
 
   std::vector<Work> work_;   // one per thread
-  std::vector<int> failed_;  // (B) this step's failed DoF per instance, -1: none
+  std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
+  std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
   StepFn step_ = nullptr;
 };
 
@@ -245,6 +255,7 @@ class CpuEngineStep final : public CpuSimState<S> {
         if (st.ok() || failed[b] < 0) sim::euler_update(dt, qdd[k], q[k], qd[k]);
       });
       if (!st.ok()) sim::add_step_failures(status_, st);
+      record_non_finite();
       return;
     }
     entries([&](Index k, Index) { sim::rk4_begin(q[k], qd[k], qs[k], qds[k], aq_[k], aqd_[k]); });
@@ -264,11 +275,39 @@ class CpuEngineStep final : public CpuSimState<S> {
       if (!any || bad_[b] < 0) sim::rk4_finish(dt, aq_[k], aqd_[k], q[k], qd[k]);
     });
     if (any) sim::add_step_failures(status_, summarize_failures(bad_.data(), B, failure));
+    record_non_finite();
   }
 
   std::string strategy() const override { return std::string(to_string(this->backend_)) + "-engine-" + fd_->strategy(); }
 
  private:
+  // After a step: each instance whose state has an entry that is not finite, with
+  // its first such DoF, into the status (Failure::NonFinite).
+  void record_non_finite() {
+    const Index B = setup_.batch, nv = setup_.model.nv();
+    const S* const q = q_.data();
+    const S* const qd = qd_.data();
+    nonfinite_.assign(static_cast<std::size_t>(B), -1);
+    Index found = 0;
+    for_instance_blocks(threads_, B, [&](int, Index begin, Index end) {
+      Index local = 0;
+      for (Index b = begin; b < end; ++b)
+        for (Index i = 0; i < nv; ++i) {
+          const std::size_t k = static_cast<std::size_t>(i) * B + b;
+          if (!(std::isfinite(q[k]) && std::isfinite(qd[k]))) {
+            nonfinite_[static_cast<std::size_t>(b)] = static_cast<int>(i);
+            ++local;
+            break;
+          }
+        }
+      if (local > 0) {
+#pragma omp atomic
+        found += local;
+      }
+    });
+    if (found > 0) sim::add_step_failures(status_, summarize_failures(nonfinite_.data(), B, Failure::NonFinite));
+  }
+
   // the (B x nv) wrenches the engine reads, null without external wrenches
   const Force<S>* fext() const {
     if (!(setup_.effects & sim::kExternal)) return nullptr;
@@ -305,6 +344,7 @@ class CpuEngineStep final : public CpuSimState<S> {
   std::vector<S> tau_, qdd_;                // (nv x B) tau + effects, the forward dynamics' result
   std::vector<S> qs_, qds_, aq_, aqd_;      // (nv x B) rk4: stage state, weighted sums
   std::vector<int> bad_;                    // (B) rk4: the DoF of an instance's first failed stage, -1: none
+  std::vector<int> nonfinite_;            // (B) the first DoF whose new state is not finite, -1: none
   std::vector<Force<S>> expanded_;          // (B x nv) the constant wrenches per instance (B > 1)
 };
 

@@ -97,6 +97,10 @@ __device__ __forceinline__ void record_step_failure(StepStatus* status, Index b,
   atomicMin(&status->first, (static_cast<unsigned long long>(b) << 32) | static_cast<unsigned>(dof));
 }
 
+// A recorded DoF with this bit set: the state at that DoF is not finite after the
+// step (Failure::NonFinite), rather than a failed pivot there.
+inline constexpr Index kNonFiniteDof = Index(1) << 30;
+
 // Arguments of one launch (device pointers).
 template <class S>
 struct FusedArgs {
@@ -137,12 +141,15 @@ SCANDYN_SIM_UNROLL
     record_step_failure(a.status, static_cast<Index>(b), failed);
     return;
   }
+  Index nonfinite = -1;  // the first DoF whose new state is not finite
 SCANDYN_SIM_UNROLL
   for (Index i = 0; i < C; ++i) {
     if (i >= n) continue;
     a.q[i * B + b] = q[i];
     a.qd[i * B + b] = qd[i];
+    if (nonfinite < 0 && !(isfinite(q[i]) && isfinite(qd[i]))) nonfinite = i;
   }
+  if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
 }
 
 // The per-set chain kernels: float, capacity 8, with SCANDYN_SIM_EFFECT_SETS.

@@ -57,7 +57,7 @@ __global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, con
 // (x, y); failures recorded once per instance (by the DoF-0 entries).
 template <class S, bool kRk4>
 __global__ void finish_kernel(S* q, S* qd, const S* x, const S* y, const int* failed, S dt, Index nv, Index B,
-                              StepStatus* status) {
+                              StepStatus* status, int* nonfinite) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (k >= static_cast<long long>(nv) * B) return;
   const Index b = static_cast<Index>(k % B);
@@ -67,6 +67,10 @@ __global__ void finish_kernel(S* q, S* qd, const S* x, const S* y, const int* fa
   }
   if constexpr (kRk4) rk4_finish(dt, x[k], y[k], q[k], qd[k]);
   else euler_update(dt, x[k], q[k], qd[k]);
+  // a state entry that is not finite: recorded once per instance (nonfinite[b], B
+  // ints cleared before the step), with the DoF of the entry that got there first
+  if (!(isfinite(q[k]) && isfinite(qd[k])) && atomicExch(&nonfinite[b], 1) == 0)
+    record_step_failure(status, b, static_cast<Index>(k / B) | kNonFiniteDof);
 }
 
 // rk4, before the stages: rk4_begin, no failure yet
@@ -119,9 +123,9 @@ class CudaSimBackend final : public SimBackend<S> {
                          std::to_string(cuda::kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv) +
                          " (the dense forward dynamics beyond takes no armature yet): use euler or rk4, or the "
                          "serial or openmp backend");
-    // q, qd; the per-step wrenches; the engine path's tau + effects, qdd, rk4 stages and two failure flags
+    // q, qd; the per-step wrenches; the engine path's tau + effects, qdd, rk4 stages and three failure flags
     const std::size_t per_instance = 2 * n * sizeof(S) + (setup.wrenches_per_step ? n * sizeof(Force<S>) : 0) +
-                                     (fused_ ? 0 : 6 * n * sizeof(S) + 2 * sizeof(int));
+                                     (fused_ ? 0 : 6 * n * sizeof(S) + 3 * sizeof(int));
     const char* what = fused_ ? "q, qd (and per-step wrenches)" : "q, qd, per-step wrenches, tau, qdd, rk4 stages, flags";
     state_ = std::make_unique<cuda::detail::StagingBuffer>(B, nv, sizeof(S) == 4 ? "float" : "double", what,
                                                             per_instance);
@@ -141,6 +145,7 @@ class CudaSimBackend final : public SimBackend<S> {
       for (S** a : arrays) *a = reinterpret_cast<S*>(take(cap * sizeof(S)));
       failed_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
       bad_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
+      nonfinite_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
     }
     // small constants: status, the constant (or zero) wrenches, the coefficients
     const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>);
@@ -220,6 +225,7 @@ class CudaSimBackend final : public SimBackend<S> {
     const BatchView<const S> qds_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qds_ : qd_, nv, B);
     const FdBatchIn<S> in{qs_view, qds_view, BatchView<const S>::soa(tau_, nv, B),
                           (setup_.effects & kExternal) ? wrenches_for_engine(wrenches) : nullptr};
+    check(cudaMemsetAsync(nonfinite_, 0, static_cast<std::size_t>(B) * sizeof(int), stream_), "cudaMemsetAsync");
     auto forces = [&] {
       launch_forces(qs_view.data, qds_view.data, tau);
       check(fd_->compute_async(in, BatchView<S>::soa(qdd_, nv, B), failed_, stream_), "running the forward dynamics");
@@ -227,7 +233,7 @@ class CudaSimBackend final : public SimBackend<S> {
     if (setup_.integrator == Integrator::Euler) {
       forces();
       finish_kernel<S, false><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qdd_, nullptr, failed_, setup_.dt, nv, B,
-                                                                      status_);
+                                                                      status_, nonfinite_);
     } else {
       rk4_init_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, aq_, aqd_, bad_, nv, B);
       for (int s = 0; s < 4; ++s) {
@@ -235,7 +241,8 @@ class CudaSimBackend final : public SimBackend<S> {
         rk4_stage_kernel<S><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, qs_, qds_, qdd_, aq_, aqd_, failed_, bad_,
                                                                    s, setup_.dt, nv, B);
       }
-      finish_kernel<S, true><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_);
+      finish_kernel<S, true><<<blocks, kElementBlock, 0, stream_>>>(q_, qd_, aq_, aqd_, bad_, setup_.dt, nv, B, status_,
+                                                                    nonfinite_);
     }
     check(cudaGetLastError(), "launching the simulator's integration kernels");
   }
@@ -285,8 +292,11 @@ class CudaSimBackend final : public SimBackend<S> {
     BatchStatus st;
     if (s.failed == 0) return st;
     // the forward dynamics the failures came from names the pivot
-    st.record(static_cast<Index>(s.first >> 32), static_cast<Index>(s.first & 0xffffffffull),
-              fused_ ? Failure::ArticulatedPivot : pivot_failure(fd_->method()));
+    const Index dof = static_cast<Index>(s.first & 0xffffffffull);
+    st.record(static_cast<Index>(s.first >> 32), dof & ~kNonFiniteDof,
+              (dof & kNonFiniteDof)   ? Failure::NonFinite
+              : fused_                ? Failure::ArticulatedPivot
+                                      : pivot_failure(fd_->method()));
     st.failed = static_cast<Index>(std::min<unsigned long long>(s.failed, std::numeric_limits<Index>::max()));
     return st;
   }
@@ -345,6 +355,7 @@ class CudaSimBackend final : public SimBackend<S> {
   S *tau_ = nullptr, *qdd_ = nullptr, *qs_ = nullptr, *qds_ = nullptr, *aq_ = nullptr, *aqd_ = nullptr;  // engine path
   int* failed_ = nullptr;                 // (B) the engine's failed DoF per instance
   int* bad_ = nullptr;                    // (B) rk4: any stage failed
+  int* nonfinite_ = nullptr;              // (B) this step: the instance's state is not finite (recorded once)
   void* small_ = nullptr;                 // status, wrenches_, coef_
   StepStatus* status_ = nullptr;          // failed instance-steps, the lowest failed instance and its DoF
   Force<S>* wrenches_ = nullptr;          // (nv) constant wrenches (zeros when none)

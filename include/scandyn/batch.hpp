@@ -63,6 +63,7 @@ enum class Failure {
   ArticulatedPivot,  // an articulated inertia pivot D_i = S_i^T IA_i S_i (aba, parallel, hybrid)
   MassMatrixPivot,   // a diagonal entry of the mass matrix's L^T L (jsi)
   BothPivots,        // jsi failed, and the aba it fell back to failed too (the DoF is the aba's)
+  NonFinite,         // a simulator step left a state entry (q or qd at the DoF) that is not finite
 };
 
 // The outcome of one batched call (or, for the simulator, of its steps since the
@@ -94,6 +95,7 @@ struct BatchStatus {
   //   "articulated inertia pivot at DoF 6 is not positive"
   //   "mass matrix pivot at DoF 6 is not positive"
   //   "mass matrix pivot not positive, and by the aba fallback the articulated inertia pivot at DoF 6 is not positive"
+  //   "the state at DoF 6 is not finite after the step"
   std::string reason() const;
   // "" when ok(); else "instance 3: " + reason(), followed by
   // " (and 41 more instances)" when others failed too.

@@ -108,6 +108,7 @@ std::string BatchStatus::reason() const {
     case Failure::MassMatrixPivot: return "mass matrix" + pivot;
     case Failure::BothPivots:
       return "mass matrix pivot not positive, and by the aba fallback the articulated inertia" + pivot;
+    case Failure::NonFinite: return "the state at DoF " + std::to_string(first_dof) + " is not finite after the step";
     case Failure::ArticulatedPivot:
     case Failure::None: break;
   }

@@ -18,9 +18,10 @@ namespace sim {
 
 std::string failure_message(const BatchStatus& st) {
   if (st.ok()) return "";
-  return "forward dynamics failed in " + std::to_string(st.failed) + " instance-step" + (st.failed > 1 ? "s" : "") +
-         ", first in instance " + std::to_string(st.first_instance) + ": " + st.reason() +
-         "; those instances kept their state for those steps";
+  const std::string steps = std::to_string(st.failed) + " instance-step" + (st.failed > 1 ? "s" : "") +
+                            ", first in instance " + std::to_string(st.first_instance) + ": " + st.reason();
+  if (st.failure == Failure::NonFinite) return "the state became non-finite in " + steps;
+  return "forward dynamics failed in " + steps + "; those instances kept their state for those steps";
 }
 
 void add_step_failures(BatchStatus& status, const BatchStatus& step) {

@@ -237,5 +237,35 @@ TEST_F(CudaSim, FailuresAreReportedAndLeaveTheStateAlone) {
     }
 }
 
+// A step that leaves an instance's state non-finite (damping 1e300 on a joint moving
+// at 1e300 rad/s) is recorded as on the CPU: Failure::NonFinite, the instance and a
+// DoF, the state kept as computed; on the fused kernel and the engine path.
+TEST_F(CudaSim, NonFiniteStateIsRecorded) {
+  const double huge = 1e300;
+  for (const char* model : {"chain:3", "rope:70"})
+    for (const char* integrator : {"euler", "rk4"}) {
+      const Scene scene = scene_from(std::string(R"({"model": ")") + model + R"(", "dt": 1e-3, "instances": 3,
+          "integrator": ")" + integrator + R"(", "effects": {"damping": 1e300}})");
+      const Index n = scene.nv();
+      Simulator<double> gpu(scene, BackendKind::Cuda);
+      Simulator<double> cpu(scene, BackendKind::Serial);
+      ASSERT_EQ(cudaMemcpy(&gpu.qd().at(0, 1), &huge, sizeof huge, cudaMemcpyHostToDevice), cudaSuccess);
+      cpu.qd().at(0, 1) = huge;
+      gpu.step(), cpu.step();
+      const BatchStatus st = gpu.status(), ref = cpu.status();
+      ASSERT_EQ(ref.failure, Failure::NonFinite) << model << " " << integrator;
+      EXPECT_EQ(st.failure, Failure::NonFinite) << model << " " << integrator;
+      EXPECT_EQ(st.failed, ref.failed);
+      EXPECT_EQ(st.first_instance, 1);
+      EXPECT_GE(st.first_dof, 0);
+      EXPECT_LT(st.first_dof, n);
+      std::vector<double> q(n * 3), qd(n * 3);
+      gpu.read_state(q.data(), qd.data());
+      EXPECT_FALSE(std::isfinite(qd[0 * 3 + 1]));  // kept as computed
+      for (Index i = 0; i < n; ++i) EXPECT_TRUE(std::isfinite(qd[i * 3 + 0]) && std::isfinite(q[i * 3 + 2]));
+      EXPECT_EQ(sim::failure_message(st).rfind("the state became non-finite in ", 0), 0u) << sim::failure_message(st);
+    }
+}
+
 }  // namespace
 }  // namespace scandyn

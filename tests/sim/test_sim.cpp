@@ -478,6 +478,33 @@ TEST(Simulator, FailuresAreRecordedAsTheEnginesRecordThem) {
   }
 }
 
+// A step that leaves the state non-finite (damping 1e300 on a joint moving at 1e300
+// rad/s: the explicit step overflows) is recorded per instance with the first
+// such DoF, and the state is kept as computed; a finite instance beside it is not.
+TEST(SimStatus, NonFiniteStateIsRecorded) {
+  Scene scene = scene_from(R"({"model": "chain:1", "dt": 0.001, "instances": 2,
+                               "effects": {"damping": 1e300}, "initial": {"qd": 0}})");
+  for (BackendKind backend : {BackendKind::Serial, BackendKind::OpenMP}) {
+#if !SCANDYN_HAS_OPENMP
+    if (backend == BackendKind::OpenMP) continue;
+#endif
+    Simulator<double> sim(scene, backend);
+    sim.qd().at(0, 1) = 1e300;
+    sim.step();
+    sim.step();
+    const BatchStatus st = sim.status();
+    EXPECT_GE(st.failed, 1) << to_string(backend);
+    EXPECT_EQ(st.first_instance, 1);
+    EXPECT_EQ(st.first_dof, 0);
+    EXPECT_EQ(st.failure, Failure::NonFinite);
+    EXPECT_FALSE(std::isfinite(sim.qd().at(0, 1)));  // kept as computed
+    EXPECT_TRUE(std::isfinite(sim.qd().at(0, 0)));
+    EXPECT_EQ(sim::failure_message(st).rfind("the state became non-finite in ", 0), 0u) << sim::failure_message(st);
+    EXPECT_NE(sim::failure_message(st).find("first in instance 1: the state at DoF 0 is not finite after the step"),
+              std::string::npos);
+  }
+}
+
 // The status's count saturates instead of overflowing; the lowest instance is kept.
 TEST(Simulator, StepFailuresAddUpAndSaturate) {
   BatchStatus total;

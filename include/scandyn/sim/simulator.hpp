@@ -55,6 +55,10 @@
 // clear_status() (on cuda it synchronises): `failed` counts failed instance-steps
 // (saturating at the largest Index), first_instance / first_dof / failure name the
 // lowest failing instance, failed_dof is null. sim::failure_message words it.
+// A step that leaves an instance's state (q or qd) not finite (a diverging
+// explicit step, an effect coefficient too large for the precision) is recorded
+// the same way, with Failure::NonFinite and the first such DoF; that state is kept
+// as computed (the caller decides: the rollout stops there).
 #pragma once
 
 #include <memory>
@@ -70,7 +74,8 @@ namespace sim {
 // "" when st is ok; else one line for a simulator's status (the steps' failures),
 // e.g. "forward dynamics failed in 12 instance-steps, first in instance 3:
 // articulated inertia pivot at DoF 6 is not positive; those instances kept their
-// state for those steps".
+// state for those steps", or "the state became non-finite in 1 instance-step, first
+// in instance 0: the state at DoF 0 is not finite after the step".
 std::string failure_message(const BatchStatus& st);
 
 // Adds one step's failures (a batch's BatchStatus) to a simulator's status: the
