@@ -238,8 +238,8 @@ TEST_F(CudaSim, FailuresAreReportedAndLeaveTheStateAlone) {
 }
 
 // A step that leaves an instance's state non-finite (damping 1e300 on a joint moving
-// at 1e300 rad/s) is recorded as on the CPU: Failure::NonFinite, the instance and a
-// DoF, the state kept as computed; on the fused kernel and the engine path.
+// at 1e300 rad/s, euler) is recorded as on the CPU: Failure::NonFinite, the instance
+// and a DoF, the state kept as computed; on the fused kernel and the engine path.
 TEST_F(CudaSim, NonFiniteStateIsRecorded) {
   const double huge = 1e300;
   for (const char* model : {"chain:3", "rope:70"})
@@ -253,17 +253,21 @@ TEST_F(CudaSim, NonFiniteStateIsRecorded) {
       cpu.qd().at(0, 1) = huge;
       gpu.step(), cpu.step();
       const BatchStatus st = gpu.status(), ref = cpu.status();
-      ASSERT_EQ(ref.failure, Failure::NonFinite) << model << " " << integrator;
-      EXPECT_EQ(st.failure, Failure::NonFinite) << model << " " << integrator;
+      // euler's update overflows (NonFinite); rk4's stages overflow first and its
+      // forward dynamics fails there (a pivot: the state is kept), as on the CPU
+      EXPECT_NE(ref.failure, Failure::None) << model << " " << integrator;
+      EXPECT_EQ(st.failure, ref.failure) << model << " " << integrator;
       EXPECT_EQ(st.failed, ref.failed);
       EXPECT_EQ(st.first_instance, 1);
       EXPECT_GE(st.first_dof, 0);
       EXPECT_LT(st.first_dof, n);
       std::vector<double> q(n * 3), qd(n * 3);
       gpu.read_state(q.data(), qd.data());
-      EXPECT_FALSE(std::isfinite(qd[0 * 3 + 1]));  // kept as computed
       for (Index i = 0; i < n; ++i) EXPECT_TRUE(std::isfinite(qd[i * 3 + 0]) && std::isfinite(q[i * 3 + 2]));
-      EXPECT_EQ(sim::failure_message(st).rfind("the state became non-finite in ", 0), 0u) << sim::failure_message(st);
+      if (ref.failure == Failure::NonFinite) {
+        EXPECT_FALSE(std::isfinite(qd[0 * 3 + 1]));  // kept as computed
+        EXPECT_EQ(sim::failure_message(st).rfind("the state became non-finite in ", 0), 0u) << sim::failure_message(st);
+      }
     }
 }
 
