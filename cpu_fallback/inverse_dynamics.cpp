@@ -22,9 +22,10 @@ namespace {
 
 // tau = RNEA(q, qd, qdd, fext), or with kBias h = RNEA(q, qd, 0, fext), for a batch.
 // The bias forces are the same engine with no qdd (bias_forces per instance, or the
-// scans with qdd = 0).
+// scans with qdd = 0); CpuInverseDynamics and CpuBiasForces below give it each
+// interface's compute().
 template <class S, class Interface, bool kBias>
-class CpuRnea final : public Interface {
+class CpuRnea : public Interface {
  public:
   CpuRnea(const ModelTpl<S>& model, const BackendOptions& o)
       : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch) {
@@ -44,20 +45,11 @@ class CpuRnea final : public Interface {
     rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? threads_ : 1, 4, static_cast<std::size_t>(nv));
   }
 
-  void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) /* InverseDynamics */ {
-    check_batch(in, tau, max_batch_);
-    run(in.q, in.qd, in.qdd, in.fext, tau);
-  }
-  void compute(const BiasBatchIn<S>& in, const BatchView<S>& h) /* BiasForces */ {
-    check_batch(in, h, max_batch_);
-    run(in.q, in.qd, BatchView<const S>{}, in.fext, h);
-  }
-
   std::string strategy() const override { return to_string(strategy_); }
   BackendKind backend() const override { return kind_; }
   bool exact() const override { return strategy_ == IdStrategy::Recursion; }
 
- private:
+ protected:
   void run(const BatchView<const S>& q, const BatchView<const S>& qd, const BatchView<const S>& qdd,
            const Force<S>* fext, const BatchView<S>& out) {
     const Index nv = model_.nv();
@@ -98,9 +90,24 @@ class CpuRnea final : public Interface {
 };
 
 template <class S>
-using CpuInverseDynamics = CpuRnea<S, InverseDynamics<S>, false>;
+class CpuInverseDynamics final : public CpuRnea<S, InverseDynamics<S>, false> {
+ public:
+  using CpuRnea<S, InverseDynamics<S>, false>::CpuRnea;
+  void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override {
+    check_batch(in, tau, this->max_batch_);
+    this->run(in.q, in.qd, in.qdd, in.fext, tau);
+  }
+};
+
 template <class S>
-using CpuBiasForces = CpuRnea<S, BiasForces<S>, true>;
+class CpuBiasForces final : public CpuRnea<S, BiasForces<S>, true> {
+ public:
+  using CpuRnea<S, BiasForces<S>, true>::CpuRnea;
+  void compute(const BiasBatchIn<S>& in, const BatchView<S>& h) override {
+    check_batch(in, h, this->max_batch_);
+    this->run(in.q, in.qd, BatchView<const S>{}, in.fext, h);
+  }
+};
 
 }  // namespace
 

@@ -16,7 +16,7 @@
 namespace scandyn::test {
 
 // Directory holding iiwa.urdf, hyq.urdf, atlas.urdf: $SCANDYN_MODELS_DIR, else the
-// build-time default (../shared/models next to the source tree).
+// build-time default (the shipped models/ of the source tree).
 inline std::string models_dir() {
   const char* env = std::getenv("SCANDYN_MODELS_DIR");
   return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
