@@ -255,7 +255,7 @@ class CpuEngineStep final : public CpuSimState<S> {
         if (st.ok() || failed[b] < 0) sim::euler_update(dt, qdd[k], q[k], qd[k]);
       });
       if (!st.ok()) sim::add_step_failures(status_, st);
-      record_non_finite();
+      record_non_finite(st.ok() ? nullptr : failed);
       return;
     }
     entries([&](Index k, Index) { sim::rk4_begin(q[k], qd[k], qs[k], qds[k], aq_[k], aqd_[k]); });
@@ -275,15 +275,17 @@ class CpuEngineStep final : public CpuSimState<S> {
       if (!any || bad_[b] < 0) sim::rk4_finish(dt, aq_[k], aqd_[k], q[k], qd[k]);
     });
     if (any) sim::add_step_failures(status_, summarize_failures(bad_.data(), B, failure));
-    record_non_finite();
+    record_non_finite(any ? bad_.data() : nullptr);
   }
 
   std::string strategy() const override { return std::string(to_string(this->backend_)) + "-engine-" + fd_->strategy(); }
 
  private:
   // After a step: each instance whose state has an entry that is not finite, with
-  // its first such DoF, into the status (Failure::NonFinite).
-  void record_non_finite() {
+  // its first such DoF, into the status (Failure::NonFinite); instances whose forward
+  // dynamics failed (failed[b] >= 0, failed may be null) kept their state and are
+  // already recorded.
+  void record_non_finite(const int* failed) {
     const Index B = setup_.batch, nv = setup_.model.nv();
     const S* const q = q_.data();
     const S* const qd = qd_.data();
@@ -292,7 +294,7 @@ class CpuEngineStep final : public CpuSimState<S> {
     for_instance_blocks(threads_, B, [&](int, Index begin, Index end) {
       Index local = 0;
       for (Index b = begin; b < end; ++b)
-        for (Index i = 0; i < nv; ++i) {
+        for (Index i = 0; i < nv && !(failed && failed[b] >= 0); ++i) {
           const std::size_t k = static_cast<std::size_t>(i) * B + b;
           if (!(std::isfinite(q[k]) && std::isfinite(qd[k]))) {
             nonfinite_[static_cast<std::size_t>(b)] = static_cast<int>(i);

@@ -228,7 +228,9 @@ TEST_F(Hostile, NonFiniteRolloutStopsWithTheStepAndInstance) {
   const Result b = run("bench --algo step --scene s.json --min-time 0");
   EXPECT_EQ(b.code, 1);
   EXPECT_EQ(b.out, "");
-  EXPECT_TRUE(contains(b.err, "scandyn: s.json: step 10: the state is not finite in instance 0")) << b.err;
+  // (the simulator's own status: a step left the state non-finite)
+  EXPECT_TRUE(contains(b.err, "scandyn: s.json: the state became non-finite in ")) << b.err;
+  EXPECT_TRUE(contains(b.err, "first in instance 0: the state at DoF 0 is not finite after the step")) << b.err;
 }
 
 TEST_F(Hostile, UnclearMessagesNameTheFileKeyAndLine) {
@@ -260,7 +262,8 @@ TEST_F(Hostile, MemoryRefusalsNameWhatIsAskedNeededAndFree) {
   ASSERT_GT(avail, 0u);
   auto expect_refusal = [&](const Result& r, const std::string& start) {
     EXPECT_EQ(r.code, 1) << r.err;
-    EXPECT_EQ(r.err.rfind("scandyn: " + start, 0), 0u) << r.err;
+    // (the last line: a rollout may first announce its large output)
+    EXPECT_TRUE(r.err.rfind("scandyn: " + start, 0) == 0 || contains(r.err, "\nscandyn: " + start)) << r.err;
     EXPECT_TRUE(contains(r.err, " of host memory; ")) << r.err;
     EXPECT_TRUE(contains(r.err, " available\n")) << r.err;
   };
