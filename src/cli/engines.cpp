@@ -9,54 +9,6 @@
 
 namespace scandyn::cli {
 
-const char* algo_name(Algo algo) {
-  switch (algo) {
-    case Algo::Id: return "id";
-    case Algo::Fd: return "fd";
-    case Algo::Mass: return "mass";
-    case Algo::Bias: return "bias";
-  }
-  return "?";
-}
-
-bool parse_algo(const std::string& name, Algo& algo) {
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
-    if (name == algo_name(a)) {
-      algo = a;
-      return true;
-    }
-  }
-  return false;
-}
-
-std::string algo_list(AlgoSet algos, const char* sep) {
-  std::string out;
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
-    if (!(algos & algo_bit(a))) continue;
-    if (!out.empty()) out += sep;
-    out += algo_name(a);
-  }
-  return out;
-}
-
-std::size_t output_width(Algo algo, Index nv) {
-  const std::size_t n = static_cast<std::size_t>(nv);
-  return algo == Algo::Mass ? n * n : n;
-}
-
-std::vector<std::string> output_columns(Algo algo, Index nv) {
-  std::vector<std::string> names;
-  names.reserve(output_width(algo, nv));
-  if (algo == Algo::Mass) {
-    for (Index i = 0; i < nv; ++i)
-      for (Index j = 0; j < nv; ++j) names.push_back("M_" + std::to_string(i) + "_" + std::to_string(j));
-    return names;
-  }
-  const char* prefix = algo == Algo::Id ? "tau_id_" : algo == Algo::Fd ? "qdd_fd_" : "h_";
-  for (Index i = 0; i < nv; ++i) names.push_back(prefix + std::to_string(i));
-  return names;
-}
-
 namespace {
 
 // parse(value of --flag), its BackendError as "--flag: unknown ..." (exit 2)

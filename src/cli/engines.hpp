@@ -11,25 +11,20 @@
 
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
+#include "scandyn/io/states.hpp"
 
 namespace scandyn::cli {
 
 class Args;
 
-enum class Algo { Id, Fd, Mass, Bias };
-const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias"
-bool parse_algo(const std::string& name, Algo& algo);  // false if unknown
-
-// A set of algorithms: bit (1 << algo) for each member.
-using AlgoSet = unsigned;
-constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo); }
-// The members' names joined by sep, in the order id, fd, mass, bias.
-std::string algo_list(AlgoSet algos, const char* sep);
-
-// Values per instance that algo writes: nv, or nv * nv for Mass.
-std::size_t output_width(Algo algo, Index nv);
-// Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>.
-std::vector<std::string> output_columns(Algo algo, Index nv);
+// The states files' algorithms and columns (scandyn/io/states.hpp).
+using io::Algo;
+using io::AlgoSet;
+using io::algo_bit;
+using io::algo_name;
+using io::output_columns;
+using io::output_width;
+using io::parse_algo;
 
 // A batch of count instances, instance-major: entry i of instance b is at [b * nv + i].
 // Inputs an algorithm does not read may be null: id reads q, qd, qdd; fd reads

@@ -11,7 +11,7 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
-#include "states.hpp"
+#include "scandyn/io/states.hpp"
 
 namespace scandyn::cli {
 namespace {

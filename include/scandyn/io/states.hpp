@@ -1,14 +1,31 @@
-// src/cli/states.hpp: the columns of a states file (q_<i>, qd_<i>, qdd_<i>,
-// tau_<i>) and which algorithms they feed.
+// scandyn/io/states.hpp: the states files of `scandyn eval` (DESIGN.md, docs/cli.md):
+// input columns q_<i>, qd_<i>, qdd_<i>, tau_<i> matched by name, and the output
+// columns of each algorithm (tau_id_<i>, qdd_fd_<i>, M_<i>_<j>, h_<i>).
 #pragma once
 
 #include <array>
+#include <cstddef>
 #include <string>
 #include <vector>
 
-#include "engines.hpp"
+#include "scandyn/model/model.hpp"
 
-namespace scandyn::cli {
+namespace scandyn::io {
+
+enum class Algo { Id, Fd, Mass, Bias };
+const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias"
+bool parse_algo(const std::string& name, Algo& algo);  // false if unknown
+
+// A set of algorithms: bit (1 << algo) for each member.
+using AlgoSet = unsigned;
+constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo); }
+// The members' names joined by sep, in the order id, fd, mass, bias.
+std::string algo_list(AlgoSet algos, const char* sep);
+
+// Values per instance that algo writes: nv, or nv * nv for Mass.
+std::size_t output_width(Algo algo, Index nv);
+// Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>.
+std::vector<std::string> output_columns(Algo algo, Index nv);
 
 // The four input families of a states file, by column-name prefix.
 enum class Family { Q = 0, Qd = 1, Qdd = 2, Tau = 3 };
@@ -31,14 +48,14 @@ struct StateColumns {
   bool supports(Algo algo) const;
 };
 
-// Matches column names to state entries. Throws DataError naming source for a
+// Matches column names to state entries. Throws CsvError naming source for a
 // name that is not <family>_<i> with i a decimal index without leading zeros, or
 // an index >= nv. (Duplicate names are already rejected by CsvReader.)
 StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
                                const std::string& source);
 
 // Checks that every family an algo reads is complete, and that no family is
-// present only in part. Throws DataError naming source and the first missing column.
+// present only in part. Throws CsvError naming source and the first missing column.
 void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algos,
                          const std::string& source);
 
@@ -49,4 +66,4 @@ void gather_family(const StateColumns& cols, Family f, const double* row, S* dst
   for (std::size_t i = 0; i < c.size(); ++i) dst[i] = static_cast<S>(row[c[i]]);
 }
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io

@@ -1,10 +1,58 @@
-// src/cli/states.cpp: mapping states-file columns to DoF entries.
-#include "states.hpp"
+// src/io/states.cpp: the states files' columns (scandyn/io/states.hpp).
+#include "scandyn/io/states.hpp"
 
-#include "cli.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/io/limits.hpp"
 
-namespace scandyn::cli {
+namespace scandyn::io {
+
+const char* algo_name(Algo algo) {
+  switch (algo) {
+    case Algo::Id: return "id";
+    case Algo::Fd: return "fd";
+    case Algo::Mass: return "mass";
+    case Algo::Bias: return "bias";
+  }
+  return "?";
+}
+
+bool parse_algo(const std::string& name, Algo& algo) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+    if (name == algo_name(a)) {
+      algo = a;
+      return true;
+    }
+  }
+  return false;
+}
+
+std::string algo_list(AlgoSet algos, const char* sep) {
+  std::string out;
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+    if (!(algos & algo_bit(a))) continue;
+    if (!out.empty()) out += sep;
+    out += algo_name(a);
+  }
+  return out;
+}
+
+std::size_t output_width(Algo algo, Index nv) {
+  const std::size_t n = static_cast<std::size_t>(nv);
+  return algo == Algo::Mass ? n * n : n;
+}
+
+std::vector<std::string> output_columns(Algo algo, Index nv) {
+  std::vector<std::string> names;
+  names.reserve(output_width(algo, nv));
+  if (algo == Algo::Mass) {
+    for (Index i = 0; i < nv; ++i)
+      for (Index j = 0; j < nv; ++j) names.push_back("M_" + std::to_string(i) + "_" + std::to_string(j));
+    return names;
+  }
+  const char* prefix = algo == Algo::Id ? "tau_id_" : algo == Algo::Fd ? "qdd_fd_" : "h_";
+  for (Index i = 0; i < nv; ++i) names.push_back(prefix + std::to_string(i));
+  return names;
+}
 
 const char* family_prefix(Family f) {
   switch (f) {
@@ -81,10 +129,10 @@ StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
     }
     const long i = family < 0 ? -1 : parse_index(name.substr(plen));
     if (i < 0)
-      throw DataError(source + ": unknown column '" + printable(name.substr(0, 100)) +
+      throw CsvError(source + ": unknown column '" + printable(name.substr(0, 100)) +
                       "' (expected q_<i>, qd_<i>, qdd_<i> or tau_<i>)");
     if (i >= nv)
-      throw DataError(source + ": column " + name + ": index " + std::to_string(i) +
+      throw CsvError(source + ": column " + name + ": index " + std::to_string(i) +
                       " out of range (the model has " + std::to_string(nv) + " DoF)");
     cols.column[family][static_cast<std::size_t>(i)] = static_cast<int>(k);
   }
@@ -97,7 +145,7 @@ void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algo
     for (Family f : algo_inputs(a)) {
       const Index i = cols.first_missing(f);
       if (i >= 0)
-        throw DataError(source + ": missing column " + family_prefix(f) + std::to_string(i) +
+        throw CsvError(source + ": missing column " + family_prefix(f) + std::to_string(i) +
                         " (needed by --algo " + algo_name(a) + ")");
     }
   }
@@ -105,9 +153,9 @@ void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algo
     const Family fam = static_cast<Family>(f);
     const Index i = cols.first_missing(fam);
     if (i >= 0 && cols.any(fam))
-      throw DataError(source + ": missing column " + family_prefix(fam) + std::to_string(i) +
+      throw CsvError(source + ": missing column " + family_prefix(fam) + std::to_string(i) +
                       " (other " + family_prefix(fam) + "<i> columns are present)");
   }
 }
 
-}  // namespace scandyn::cli
+}  // namespace scandyn::io
