@@ -40,9 +40,16 @@ __version__ = _scandyn.__version__
 has_cuda = _scandyn.has_cuda  # the CUDA backend is compiled in (a GPU may still be missing)
 has_openmp = _scandyn.has_openmp
 
+
+def backend_unusable(backend):
+    """Why a backend ("serial", "openmp", "cuda") cannot run here ("not available in this
+    build", "no usable CUDA device: ..."), or "" when it can."""
+    return _scandyn.backend_unusable(backend)
+
+
 __all__ = [
     "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
     "ForwardDynamicsError", "InverseDynamics", "MassMatrix", "Model", "ModelError", "ShapeError",
-    "Status", "bias_forces", "forward_dynamics", "has_cuda", "has_openmp", "inverse_dynamics",
+    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
 ]
