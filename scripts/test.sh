@@ -149,7 +149,7 @@ python_stage() {
   stamp "python: pytest python/tests"
   local abs_build
   abs_build=$(cd "$build" && pwd)
-  PYTHONPATH="$abs_build/python" SCANDYN_CLI="$abs_build/scandyn" \
+  PYTHONDONTWRITEBYTECODE=1 PYTHONPATH="$abs_build/python" SCANDYN_CLI="$abs_build/scandyn" \
     "$py" -m pytest -q -rs -p no:cacheprovider python/tests || return 1
 }
 if [[ "${SCANDYN_SKIP_PYTHON:-0}" == 1 ]]; then
