@@ -19,6 +19,7 @@ packages=(
   libbenchmark-dev
   python3          # scripts/
   python3-venv     # scripts/setup_python.sh (.venv with numpy and Pinocchio)
+  python3-dev      # the Python package's extension module (Python.h; docs/python.md)
   clang            # scripts/fuzz.sh: libFuzzer targets (brings libclang-rt, the fuzzer runtime)
 )
 

@@ -4,7 +4,9 @@
 #   1. scripts/setup.sh (installs missing Debian packages); scripts/setup_python.sh
 #      (.venv with numpy, Pinocchio and matplotlib) in the background, while stage 2
 #      builds: only its tests and the report use it
-#   2. build/       Ninja, Release, CUDA when nvcc is found; ctest
+#   2. build/       Ninja, Release, CUDA when nvcc is found; ctest; then the Python
+#                   package: the extension module built in build/ (SCANDYN_PYTHON=ON,
+#                   target _scandyn) and pytest python/tests (docs/python.md)
 #      then scripts/accuracy_report --quick into a temporary directory (when .venv
 #      has matplotlib), in the background while stage 3 builds
 #   3. build-asan/  AddressSanitizer + UBSan, no CUDA, no benchmarks, -O1 -g1 (line
@@ -25,7 +27,7 @@
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
 # SCANDYN_MODELS_DIR (robot models; default the shipped models/),
 # SCANDYN_SKIP_SETUP=1, SCANDYN_SKIP_PYTHON=1 (no .venv: the Pinocchio cross-check
-# is skipped), SCANDYN_SKIP_ASAN=1, SCANDYN_SKIP_FUZZ=1, SCANDYN_FUZZ_SECONDS.
+# and the Python package's tests are skipped), SCANDYN_SKIP_ASAN=1, SCANDYN_SKIP_FUZZ=1, SCANDYN_FUZZ_SECONDS.
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -118,13 +120,45 @@ variants=()
 if ! nvidia-smi -L >/dev/null 2>&1; then
   variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF)
 fi
-if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release ${variants[@]+"${variants[@]}"}; then
+# (SCANDYN_PYTHON=OFF here: the Python stage below turns it on once .venv is ready)
+if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF ${variants[@]+"${variants[@]}"}; then
   wait_python
   test_stage release "$build" || failed+=(release)
+  release_built=1
 else
   failed+=(release)
+  release_built=0
 fi
 wait_python
+
+# The Python package (python/, docs/python.md): the extension module scandyn._scandyn
+# built in the release tree against its library (a reconfigure with SCANDYN_PYTHON=ON
+# and one more target), then pytest on python/tests with the build tree's package
+# (<build>/python) and the release scandyn command (bit-identity with `scandyn eval`).
+# A missing .venv, a failed build, a failing test and "no tests collected" (pytest's
+# exit status 5) all fail the stage.
+python_stage() {
+  local py=$PWD/.venv/bin/python
+  if [[ ! -x "$py" ]] || ! "$py" -c 'import nanobind, numpy, pytest' 2>/dev/null; then
+    echo "test.sh: .venv with nanobind, numpy and pytest not found (scripts/setup_python.sh)" >&2
+    return 1
+  fi
+  stamp "python: build the module (SCANDYN_PYTHON=ON, $build)"
+  cmake -S . -B "$build" -DSCANDYN_PYTHON=ON "-DPython_EXECUTABLE=$py" >/dev/null || return 1
+  cmake --build "$build" --parallel "$jobs" --target _scandyn || return 1
+  stamp "python: pytest python/tests"
+  local abs_build
+  abs_build=$(cd "$build" && pwd)
+  PYTHONDONTWRITEBYTECODE=1 PYTHONPATH="$abs_build/python" SCANDYN_CLI="$abs_build/scandyn" \
+    "$py" -m pytest -q -rs -p no:cacheprovider python/tests || return 1
+}
+if [[ "${SCANDYN_SKIP_PYTHON:-0}" == 1 ]]; then
+  echo "test.sh: warning: SCANDYN_SKIP_PYTHON=1: the Python package's tests are skipped" >&2
+elif [[ "$release_built" == 1 ]]; then
+  python_stage || failed+=(python)
+else
+  failed+=(python)
+fi
 
 # The accuracy report in its quick mode (CPU, small sizes), into a temporary
 # directory so that the tree stays clean; needs .venv (matplotlib). A failing

@@ -1,0 +1,55 @@
+"""scandyn: rigid-body dynamics of kinematic trees (C++17/CUDA), from Python.
+
+    import numpy as np, scandyn as sd
+    m = sd.load_model("iiwa")                      # or "rope:1000", a URDF path
+    q = np.zeros((1024, m.nv)); qd = np.zeros_like(q); qdd = np.zeros_like(q)
+    tau = sd.inverse_dynamics(m, q, qd, qdd)       # (1024, nv), float64 like q
+    M = sd.mass_matrix(m, q)                       # (1024, nv, nv)
+
+Arrays are batch-first, (B, nv) or (nv,); precision follows their dtype (float32 or
+float64); they reach the library's engines with their own strides, without a copy.
+docs/python.md has the whole API, the zero-copy rules and the errors.
+"""
+
+from . import _scandyn
+from . import models
+from ._api import (
+    BiasForces,
+    ForwardDynamics,
+    InverseDynamics,
+    MassMatrix,
+    Model,
+    Status,
+    bias_forces,
+    forward_dynamics,
+    inverse_dynamics,
+    load_model,
+    mass_matrix,
+)
+from .errors import (
+    BackendError,
+    DeviceError,
+    DTypeError,
+    Error,
+    ForwardDynamicsError,
+    ModelError,
+    ShapeError,
+)
+
+__version__ = _scandyn.__version__
+has_cuda = _scandyn.has_cuda  # the CUDA backend is compiled in (a GPU may still be missing)
+has_openmp = _scandyn.has_openmp
+
+
+def backend_unusable(backend):
+    """Why a backend ("serial", "openmp", "cuda") cannot run here ("not available in this
+    build", "no usable CUDA device: ..."), or "" when it can."""
+    return _scandyn.backend_unusable(backend)
+
+
+__all__ = [
+    "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
+    "ForwardDynamicsError", "InverseDynamics", "MassMatrix", "Model", "ModelError", "ShapeError",
+    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "has_cuda", "has_openmp", "inverse_dynamics",
+    "load_model", "mass_matrix", "models",
+]

@@ -1,0 +1,603 @@
+// python/src/module.cpp: the extension module scandyn._scandyn (nanobind).
+//
+// A thin layer over the library: models (load_model), the four engines of the
+// engine API (scandyn/engine.hpp) in float and double, and the conversion of
+// caller arrays (nb::ndarray: the buffer protocol or DLPack) into BatchViews with
+// the arrays' own strides. No algorithm and no instance loop lives here; nothing is
+// copied: an array that cannot be described by a BatchView is an error.
+//
+// Checks done here (each raises an exception of scandyn.errors, python/scandyn/errors.py):
+//   - device: host memory only for now (DeviceError for a CUDA array);
+//   - dtype: every array in the engine's precision (DTypeError);
+//   - shape: (nv,) for one state or (B, nv) for a batch, every input and out with the
+//     same leading shape, B <= max_batch; (.., nv, nv) for the mass matrix with each
+//     instance's block row-major (ShapeError);
+//   - out: writable, entries that do not overlap one another or any input (ShapeError);
+//   - fext: (.., nv, 6) C-contiguous (the engines read Force structs), [moment; force].
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/shared_ptr.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/vector.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstdlib>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "scandyn/build_config.hpp"
+#include "scandyn/engine.hpp"
+#include "scandyn/model/load.hpp"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace scandyn::py {
+namespace {
+
+// ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
+
+struct ShapeError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+struct DTypeError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+struct DeviceError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+void raise_as(const char* cls, const char* what) {
+  nb::object type = nb::module_::import_("scandyn.errors").attr(cls);
+  PyErr_SetString(type.ptr(), what);
+}
+
+// ---- models --------------------------------------------------------------------
+
+// A loaded model in double, and its float copy made on first use (engines in float
+// need a ModelTpl<float> that outlives them). Engines hold a shared_ptr to it.
+struct PyModel {
+  Model md;
+  std::once_flag float_once;
+  std::unique_ptr<ModelTpl<float>> mf;
+
+  template <class S>
+  const ModelTpl<S>& get() {
+    if constexpr (std::is_same_v<S, double>) {
+      return md;
+    } else {
+      std::call_once(float_once, [this] { mf = std::make_unique<ModelTpl<float>>(md.template cast<float>()); });
+      return *mf;
+    }
+  }
+};
+
+std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia) {
+  BuildOptions options;
+  options.require_physical_inertia = !allow_nonphysical_inertia;
+  auto m = std::make_shared<PyModel>();
+  {
+    nb::gil_scoped_release release;  // a rope of 10^6 links takes a while
+    m->md = load_model(spec, options);
+  }
+  return m;
+}
+
+// ---- arrays --------------------------------------------------------------------
+
+using InArray = nb::ndarray<nb::ro>;
+using OutArray = nb::ndarray<>;
+
+template <class S>
+bool has_dtype(const nb::ndarray<nb::ro>& a) {
+  return a.dtype() == nb::dtype<S>();
+}
+template <class S>
+bool has_dtype(const nb::ndarray<>& a) {
+  return a.dtype() == nb::dtype<S>();
+}
+
+std::string dtype_name(nb::dlpack::dtype t) {
+  const char* kind = t.code == uint8_t(nb::dlpack::dtype_code::Float)   ? "float"
+                     : t.code == uint8_t(nb::dlpack::dtype_code::Int)   ? "int"
+                     : t.code == uint8_t(nb::dlpack::dtype_code::UInt)  ? "uint"
+                     : t.code == uint8_t(nb::dlpack::dtype_code::Bool)  ? "bool"
+                     : t.code == uint8_t(nb::dlpack::dtype_code::Complex) ? "complex"
+                                                                         : "dtype code " ;
+  return std::string(kind) + std::to_string(t.bits);
+}
+
+template <class S>
+const char* scalar_name() {
+  return std::is_same_v<S, float> ? "float32" : "float64";
+}
+
+template <class A>
+std::string shape_str(const A& a) {
+  std::string s = "(";
+  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
+  return s + (a.ndim() == 1 ? ",)" : ")");
+}
+
+// Where an argument's data lie: [lo, hi) bytes, for overlap checks.
+struct Extent {
+  const char* lo;
+  const char* hi;
+};
+template <class A>
+Extent extent_of(const A& a) {
+  const char* p = static_cast<const char*>(a.data());
+  const std::ptrdiff_t item = a.dtype().bits / 8;
+  std::ptrdiff_t lo = 0, hi = 0;
+  for (size_t i = 0; i < a.ndim(); ++i) {
+    if (a.shape(i) == 0) return {p, p};
+    const std::ptrdiff_t span = std::ptrdiff_t(a.shape(i) - 1) * a.stride(i) * item;
+    (span < 0 ? lo : hi) += span;
+  }
+  return {p + lo, p + hi + item};
+}
+bool overlaps(Extent a, Extent b) { return a.lo < b.hi && b.lo < a.hi && a.lo != a.hi && b.lo != b.hi; }
+
+// The common leading shape of a call: B instances, or one state ((nv,) arrays).
+struct Lead {
+  bool single = false;  // (nv,) arrays: one instance
+  Index batch = 0;
+};
+
+template <class A>
+void check_device(const A& a, const char* name) {
+  if (a.device_type() != nb::device::cpu::value)
+    throw DeviceError(std::string(name) + " is not in host memory (DLPack device type " +
+                      std::to_string(a.device_type()) +
+                      "): backend 'cuda' from Python is not implemented yet; pass host (NumPy / CPU) arrays");
+}
+
+// The BatchView of a (B, nv) or (nv,) array `a` (nv per instance). Checks device,
+// dtype and shape against `lead` (set from the first array when batch < 0).
+template <class T, class A>
+BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first) {
+  using S = std::remove_const_t<T>;
+  check_device(a, name);
+  if (!has_dtype<S>(a))
+    throw DTypeError(std::string(name) + " has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
+                     " (every array of a call shares one dtype, which sets the precision)");
+  const size_t nd = a.ndim();
+  auto shape = [&] {
+    std::string s = "(";
+    for (size_t i = 0; i < nd; ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
+    return s + (nd == 1 ? ",)" : ")");
+  };
+  if (nd != 1 && nd != 2)
+    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (nv,) or (B, nv) with nv = " +
+                     std::to_string(nv));
+  if (Index(a.shape(nd - 1)) != nv || a.shape(nd - 1) != size_t(Index(a.shape(nd - 1))))
+    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's nv = " +
+                     std::to_string(nv));
+  const bool single = nd == 1;
+  if (nd == 2 && a.shape(0) > size_t(std::numeric_limits<Index>::max()))
+    throw ShapeError(std::string(name) + ": batch of " + std::to_string(a.shape(0)) + " instances is too large");
+  const Index batch = single ? 1 : Index(a.shape(0));
+  if (first) {
+    lead = {single, batch};
+  } else if (single != lead.single || batch != lead.batch) {
+    throw ShapeError(std::string(name) + " has shape " + shape() + ", but the first array's leading shape is " +
+                     (lead.single ? std::string("() (one state)") : "(" + std::to_string(lead.batch) + ",)") +
+                     ": every array of a call has the same leading shape");
+  }
+  BatchView<T> v;
+  v.data = static_cast<T*>(const_cast<void*>(static_cast<const void*>(a.data())));
+  v.batch = batch;
+  v.dof_stride = a.stride(nd - 1);
+  v.batch_stride = single ? 0 : a.stride(0);
+  return v;
+}
+
+// Out arrays: distinct elements must not share memory (a broadcast view would have
+// threads race on one entry).
+template <class A>
+void check_no_self_overlap(const A& a, const char* name) {
+  std::vector<std::pair<std::ptrdiff_t, std::ptrdiff_t>> dims;  // |stride|, extent
+  for (size_t i = 0; i < a.ndim(); ++i) {
+    if (a.shape(i) == 0) return;
+    if (a.shape(i) > 1) dims.emplace_back(std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i)));
+  }
+  std::sort(dims.begin(), dims.end());
+  std::ptrdiff_t need = 1;
+  for (auto [stride, n] : dims) {
+    if (stride < need)
+      throw ShapeError(std::string(name) + " has overlapping entries (strides that make two entries share memory, "
+                       "e.g. a broadcast view): an output must be writable entry by entry");
+    need = stride * n;
+  }
+}
+
+template <class A>
+void check_out_alone(const A& out, const std::vector<std::pair<Extent, const char*>>& inputs) {
+  const Extent e = extent_of(out);
+  for (const auto& [in, name] : inputs)
+    if (overlaps(e, in))
+      throw ShapeError(std::string("out shares memory with ") + name +
+                       ": the engines read inputs while writing outputs; pass a separate array");
+}
+
+// fext: (nv, 6) or (B, nv, 6), C-contiguous, Force<S> = [moment; force] per body.
+template <class S>
+const Force<S>* fext_of(const std::optional<InArray>& f, Index nv, const Lead& lead) {
+  if (!f) return nullptr;
+  const InArray& a = *f;
+  check_device(a, "fext");
+  if (!has_dtype<S>(a))
+    throw DTypeError("fext has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
+                     " (every array of a call shares one dtype)");
+  const size_t want = lead.single ? 2 : 3;
+  bool ok = a.ndim() == want && Index(a.shape(want - 2)) == nv && a.shape(want - 1) == 6 &&
+            (lead.single || Index(a.shape(0)) == lead.batch);
+  if (!ok)
+    throw ShapeError("fext has shape " + shape_str(a) + ", expected " +
+                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + std::to_string(nv) +
+                     ", 6): one wrench [moment; force] per body, in the body's frame");
+  // C-contiguous: the engines read fext[b * nv + i] as a Force struct
+  std::ptrdiff_t expect = 1;
+  for (size_t i = a.ndim(); i-- > 0;) {
+    if (a.shape(i) > 1 && a.stride(i) != expect)
+      throw ShapeError("fext must be C-contiguous (the engines read it as packed [moment; force] structs); "
+                       "it is strided: pass numpy.ascontiguousarray(fext)");
+    expect *= std::ptrdiff_t(a.shape(i));
+  }
+  static_assert(sizeof(Force<S>) == 6 * sizeof(S), "Force<S> is six packed scalars");
+  return static_cast<const Force<S>*>(a.data());
+}
+
+void check_max_batch(const Lead& lead, Index max_batch) {
+  if (lead.batch > max_batch)
+    throw ShapeError("a batch of " + std::to_string(lead.batch) + " instances exceeds this engine's max_batch = " +
+                     std::to_string(max_batch));
+}
+
+BackendOptions options_of(const std::string& backend, Index max_batch, const std::string& strategy,
+                          const std::string& method, bool fallback_aba, int threads) {
+  BackendOptions o;
+  o.backend = parse_backend(backend);
+  o.strategy = parse_strategy(strategy);
+  o.fd_method = parse_fd_method(method);
+  o.fallback_aba = fallback_aba;
+  o.threads = threads;
+  if (max_batch < 1) throw ShapeError("max_batch must be at least 1, got " + std::to_string(max_batch));
+  o.max_batch = max_batch;
+  return o;
+}
+
+// ---- engines -------------------------------------------------------------------
+
+// One engine of the library in float or double, with the model it was made for.
+// compute() calls are serialised (an engine's scratch is not shared between
+// calls); the GIL is released while it runs.
+template <template <class> class E>
+struct PyEngine {
+  std::shared_ptr<PyModel> model;
+  bool is_float = false;
+  Index max_batch = 1;
+  std::unique_ptr<E<float>> ef;
+  std::unique_ptr<E<double>> ed;
+  std::mutex mutex;
+
+  Engine& engine() const { return is_float ? static_cast<Engine&>(*ef) : static_cast<Engine&>(*ed); }
+  std::string strategy() const { return engine().strategy(); }
+  std::string backend() const { return to_string(engine().backend()); }
+  bool exact() const { return engine().exact(); }
+  std::string dtype() const { return is_float ? "float32" : "float64"; }
+  Index nv() const { return model->md.nv(); }
+};
+
+template <template <class> class E, class MakeF, class MakeD>
+void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::string& dtype, Index max_batch,
+                 MakeF make_f, MakeD make_d) {
+  if (dtype != "float32" && dtype != "float64")
+    throw DTypeError("dtype must be float32 or float64, got " + dtype);
+  const bool is_float = dtype == "float32";
+  auto* e = new (self) PyEngine<E>();
+  e->model = std::move(model);
+  e->is_float = is_float;
+  e->max_batch = max_batch;
+  try {
+    nb::gil_scoped_release release;
+    if (is_float)
+      e->ef = make_f(e->model->template get<float>());
+    else
+      e->ed = make_d(e->model->template get<double>());
+  } catch (...) {
+    e->~PyEngine<E>();
+    throw;
+  }
+}
+
+using PyId = PyEngine<InverseDynamics>;
+using PyBias = PyEngine<BiasForces>;
+using PyMass = PyEngine<MassMatrix>;
+using PyFd = PyEngine<ForwardDynamics>;
+
+template <class S>
+void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& out,
+                const std::optional<InArray>& fext) {
+  const Index nv = e.nv();
+  Lead lead;
+  IdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  BatchView<S> tau = view_of<S>(out, nv, "out", lead, false);
+  in.fext = fext_of<S>(fext, nv, lead);
+  check_max_batch(lead, e.max_batch);
+  check_no_self_overlap(out, "out");
+  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}};
+  if (fext) ins.emplace_back(extent_of(*fext), "fext");
+  check_out_alone(out, ins);
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if constexpr (std::is_same_v<S, float>) e.ef->compute(in, tau);
+  else e.ed->compute(in, tau);
+}
+
+template <class S>
+void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray& out,
+                  const std::optional<InArray>& fext) {
+  const Index nv = e.nv();
+  Lead lead;
+  BiasBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  BatchView<S> h = view_of<S>(out, nv, "out", lead, false);
+  in.fext = fext_of<S>(fext, nv, lead);
+  check_max_batch(lead, e.max_batch);
+  check_no_self_overlap(out, "out");
+  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}};
+  if (fext) ins.emplace_back(extent_of(*fext), "fext");
+  check_out_alone(out, ins);
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if constexpr (std::is_same_v<S, float>) e.ef->compute(in, h);
+  else e.ed->compute(in, h);
+}
+
+template <class S>
+void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
+  const Index nv = e.nv();
+  Lead lead;
+  BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
+  check_device(out, "out");
+  if (!has_dtype<S>(out))
+    throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
+  const size_t nd = out.ndim();
+  const size_t want = lead.single ? 2 : 3;
+  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
+      (!lead.single && Index(out.shape(0)) != lead.batch))
+    throw ShapeError("out has shape " + shape_str(out) + ", expected " +
+                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + std::to_string(nv) +
+                     ", " + std::to_string(nv) + ")");
+  // entry (i, j) of instance b at data[(i * nv + j) * s + b * sb]: rows of nv entries s apart
+  const std::ptrdiff_t s = out.stride(nd - 1);
+  if (nv > 1 && out.stride(nd - 2) != s * nv)
+    throw ShapeError("out: each instance's (nv, nv) block must be row-major (strides (nv * s, s) for its last two "
+                     "dimensions), as a C-contiguous array or a slice along the batch dimension of one");
+  BatchView<S> M;
+  M.data = static_cast<S*>(out.data());
+  M.batch = lead.batch;
+  M.dof_stride = s;
+  M.batch_stride = lead.single ? 0 : out.stride(0);
+  check_max_batch(lead, e.max_batch);
+  check_no_self_overlap(out, "out");
+  check_out_alone(out, {{extent_of(q), "q"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if constexpr (std::is_same_v<S, float>) e.ef->compute(qv, M);
+  else e.ed->compute(qv, M);
+}
+
+// What a forward-dynamics call reports: BatchStatus with its per-instance failed DoFs copied.
+struct CallStatus {
+  Index failed = 0, first_instance = -1, first_dof = -1, fell_back = 0;
+  std::string reason, message;
+  std::vector<int> failed_dof;  // per instance: -1 or the DoF that failed (empty when ok)
+};
+
+template <class S>
+CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
+                    const std::optional<InArray>& fext) {
+  const Index nv = e.nv();
+  Lead lead;
+  FdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  BatchView<S> qdd = view_of<S>(out, nv, "out", lead, false);
+  in.fext = fext_of<S>(fext, nv, lead);
+  check_max_batch(lead, e.max_batch);
+  check_no_self_overlap(out, "out");
+  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
+  if (fext) ins.emplace_back(extent_of(*fext), "fext");
+  check_out_alone(out, ins);
+  CallStatus r;
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  BatchStatus st;
+  if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qdd);
+  else st = e.ed->compute(in, qdd);
+  r.failed = st.failed;
+  r.first_instance = st.first_instance;
+  r.first_dof = st.first_dof;
+  r.fell_back = st.fell_back;
+  if (!st.ok()) {
+    r.reason = st.reason();
+    r.message = st.message();
+    if (st.failed_dof) r.failed_dof.assign(st.failed_dof, st.failed_dof + lead.batch);
+  }
+  return r;
+}
+
+}  // namespace
+}  // namespace scandyn::py
+
+NB_MODULE(_scandyn, m) {
+  using namespace scandyn;
+  using namespace scandyn::py;
+  m.doc() = "scandyn's extension module: models and engines (see the scandyn package for the API)";
+  m.attr("__version__") = SCANDYN_VERSION;
+  m.attr("has_cuda") = bool(SCANDYN_HAS_CUDA);
+  m.attr("has_openmp") = bool(SCANDYN_HAS_OPENMP);
+
+  nb::register_exception_translator([](const std::exception_ptr& p, void*) {
+    try {
+      std::rethrow_exception(p);
+    } catch (const ModelError& e) {
+      raise_as("ModelError", e.what());
+    } catch (const BackendError& e) {
+      raise_as("BackendError", e.what());
+    } catch (const ShapeError& e) {
+      raise_as("ShapeError", e.what());
+    } catch (const DTypeError& e) {
+      raise_as("DTypeError", e.what());
+    } catch (const DeviceError& e) {
+      raise_as("DeviceError", e.what());
+    }
+  });
+
+  // ---- models
+  nb::class_<PyModel>(m, "Model")
+      .def_prop_ro("name", [](const PyModel& p) { return p.md.name; })
+      .def_prop_ro("source", [](const PyModel& p) { return p.md.source; })
+      .def_prop_ro("root_link", [](const PyModel& p) { return p.md.root_link; })
+      .def_prop_ro("nv", [](const PyModel& p) { return p.md.nv(); })
+      .def_prop_ro("joint_names", [](const PyModel& p) { return p.md.joint_names; })
+      .def_prop_ro("link_names", [](const PyModel& p) { return p.md.link_names; })
+      .def_prop_ro("parents",
+                   [](const PyModel& p) {
+                     std::vector<Index> r;
+                     for (const auto& b : p.md.bodies) r.push_back(b.parent);
+                     return r;
+                   })
+      .def_prop_ro("joint_types",
+                   [](const PyModel& p) {
+                     std::vector<std::string> r;
+                     for (const auto& b : p.md.bodies)
+                       r.push_back(b.type == JointType::Prismatic ? "prismatic" : "revolute");
+                     return r;
+                   })
+      .def_prop_ro("q_lower", [](const PyModel& p) { return p.md.q_lower; })
+      .def_prop_ro("q_upper", [](const PyModel& p) { return p.md.q_upper; })
+      .def_prop_ro("gravity", [](const PyModel& p) {
+        return std::vector<double>{p.md.gravity[0], p.md.gravity[1], p.md.gravity[2]};
+      });
+  m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false);
+  m.def("is_generator_spec", &is_generator_spec, "spec"_a);
+  m.def("find_model_file", [](const std::string& p) { return find_model_file(p); }, "path"_a);
+  m.def("model_search_dirs", &model_search_dirs);
+  m.def("backend_unusable", [](const std::string& b) { return backend_unusable(parse_backend(b)); }, "backend"_a);
+  m.def("openmp_threads", &openmp_threads);
+
+  // ---- status
+  nb::class_<CallStatus>(m, "Status")
+      .def_ro("failed", &CallStatus::failed)
+      .def_ro("first_instance", &CallStatus::first_instance)
+      .def_ro("first_dof", &CallStatus::first_dof)
+      .def_ro("fell_back", &CallStatus::fell_back)
+      .def_ro("reason", &CallStatus::reason)
+      .def_ro("message", &CallStatus::message)
+      .def_ro("failed_dof", &CallStatus::failed_dof)
+      .def_prop_ro("ok", [](const CallStatus& s) { return s.failed == 0; });
+
+  // ---- engines: (model, dtype, backend, max_batch, ...) and compute(..., out, fext)
+  auto common = [](auto& cls) {
+    using T = typename std::remove_reference_t<decltype(cls)>::Type;
+    cls.def_prop_ro("strategy", &T::strategy)
+        .def_prop_ro("backend", &T::backend)
+        .def_prop_ro("exact", &T::exact)
+        .def_prop_ro("dtype", &T::dtype)
+        .def_prop_ro("nv", &T::nv)
+        .def_ro("max_batch", &T::max_batch);
+  };
+
+  nb::class_<PyId> id(m, "InverseDynamics");
+  id.def("__init__",
+         [](PyId* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+            Index max_batch, const std::string& strategy, int threads) {
+           BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
+           init_engine(self, std::move(model), dtype, max_batch,
+                       [&](const ModelTpl<float>& md) { return make_inverse_dynamics<float>(md, o); },
+                       [&](const ModelTpl<double>& md) { return make_inverse_dynamics<double>(md, o); });
+         },
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0)
+      .def("compute",
+           [](PyId& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& out,
+              const std::optional<InArray>& fext) {
+             if (e.is_float) id_compute<float>(e, q, qd, qdd, out, fext);
+             else id_compute<double>(e, q, qd, qdd, out, fext);
+           },
+           "q"_a, "qd"_a, "qdd"_a, "out"_a, "fext"_a = nb::none());
+  common(id);
+
+  nb::class_<PyBias> bias(m, "BiasForces");
+  bias.def("__init__",
+           [](PyBias* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+              Index max_batch, const std::string& strategy, int threads) {
+             BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
+             init_engine(self, std::move(model), dtype, max_batch,
+                         [&](const ModelTpl<float>& md) { return make_bias_forces<float>(md, o); },
+                         [&](const ModelTpl<double>& md) { return make_bias_forces<double>(md, o); });
+           },
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0)
+      .def("compute",
+           [](PyBias& e, const InArray& q, const InArray& qd, const OutArray& out, const std::optional<InArray>& fext) {
+             if (e.is_float) bias_compute<float>(e, q, qd, out, fext);
+             else bias_compute<double>(e, q, qd, out, fext);
+           },
+           "q"_a, "qd"_a, "out"_a, "fext"_a = nb::none());
+  common(bias);
+
+  nb::class_<PyMass> mass(m, "MassMatrix");
+  mass.def("__init__",
+           [](PyMass* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+              Index max_batch, int threads) {
+             BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads);
+             init_engine(self, std::move(model), dtype, max_batch,
+                         [&](const ModelTpl<float>& md) { return make_mass_matrix<float>(md, o); },
+                         [&](const ModelTpl<double>& md) { return make_mass_matrix<double>(md, o); });
+           },
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0)
+      .def("compute",
+           [](PyMass& e, const InArray& q, const OutArray& out) {
+             if (e.is_float) mass_compute<float>(e, q, out);
+             else mass_compute<double>(e, q, out);
+           },
+           "q"_a, "out"_a);
+  common(mass);
+
+  nb::class_<PyFd> fd(m, "ForwardDynamics");
+  fd.def("__init__",
+         [](PyFd* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+            Index max_batch, const std::string& method, bool fallback_aba, int threads) {
+           BackendOptions o = options_of(backend, max_batch, "auto", method, fallback_aba, threads);
+           init_engine(self, std::move(model), dtype, max_batch,
+                       [&](const ModelTpl<float>& md) { return make_forward_dynamics<float>(md, o); },
+                       [&](const ModelTpl<double>& md) { return make_forward_dynamics<double>(md, o); });
+         },
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "method"_a = "auto", "fallback_aba"_a = false,
+         "threads"_a = 0)
+      .def("compute",
+           [](PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
+              const std::optional<InArray>& fext) {
+             return e.is_float ? fd_compute<float>(e, q, qd, tau, out, fext)
+                               : fd_compute<double>(e, q, qd, tau, out, fext);
+           },
+           "q"_a, "qd"_a, "tau"_a, "out"_a, "fext"_a = nb::none())
+      .def_prop_ro("method", [](const PyFd& e) {
+        return std::string(to_string(e.is_float ? e.ef->method() : e.ed->method()));
+      });
+  common(fd);
+}
