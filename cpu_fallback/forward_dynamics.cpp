@@ -60,7 +60,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
                                              : fd_jsi(model_, data_[t], q, qd, tau, out, fext);
         if (!st.ok() && fallback_) {
           st = aba(model_, data_[t], q, qd, tau, out, fext);
-          ++fell;
+          if (st.ok()) ++fell;
         }
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(st.failed_dof);
         if (st.ok()) scatter(out, qdd, b, nv);
@@ -69,10 +69,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
       fell_back += fell;
     });
     const Failure what = fallback_ ? Failure::BothPivots : pivot_failure(method_);
-    BatchStatus st = summarize_failures(failed_.data(), B, what);
-    st.fell_back = fell_back - st.failed;  // (with the fallback every failure fell back first)
-    if (!fallback_) st.fell_back = 0;
-    return st;
+    return summarize_failures(failed_.data(), B, what, fell_back);
   }
 
   FdMethod method() const override { return method_; }

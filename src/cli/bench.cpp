@@ -112,7 +112,7 @@ void check_finite_outputs(Algo algo, Index nv, const std::vector<S>& out, std::s
 
 // One row of results: a way of calling the backend, its time and error.
 struct Timing {
-  std::string strategy;  // as the evaluator reports it
+  std::string strategy;  // as the engine reports it
   double seconds_per_call = 0;
   double max_rel_err = 0;
 };
@@ -164,7 +164,7 @@ double time_calls(double min_time, F&& calls) {
   return elapsed / static_cast<double>(done);
 }
 
-// Times algo on the batch: a row for the evaluator's run() on host memory and,
+// Times algo on the batch: a row for the engine's run() on host memory and,
 // first, one for the batch in the backend's own memory when it has one (CUDA;
 // resident() is null otherwise). A forward dynamics that fails is an error in
 // either row: checked after the warm-up call (before any timing) and, for the
@@ -339,7 +339,7 @@ int run_bench(const Args& args) {
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   // host memory: the random states in double (3 nv), the inputs and outputs in the
-  // precision, the outputs again in double for the error, the evaluator's
+  // precision, the outputs again in double for the error, the engine's
   // workspaces (the nv x nv mass matrix per thread for jsi) and the reference's
   const std::size_t scalar = precision == Precision::Float ? 4 : 8;
   const double width = double(output_width(algo, model.nv()));

@@ -174,7 +174,7 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
   const std::size_t chunk = chunk_rows(in, algos, model.nv());
   // host memory before anything large: per output column its name, the output row
   // and the chunk's results; per input column the parsed row; the gathered inputs;
-  // the evaluators' workspaces (the nv x nv mass matrix per thread for fd by jsi)
+  // the engines' workspaces (the nv x nv mass matrix per thread for fd by jsi)
   {
     const std::size_t nv = static_cast<std::size_t>(model.nv());
     double width = 0;
