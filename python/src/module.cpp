@@ -40,6 +40,7 @@ namespace nb = nanobind;
 using namespace nb::literals;
 
 namespace scandyn::py {
+void bind_simulator(nb::module_& m);  // python/src/simulator.cpp
 namespace {
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
@@ -600,4 +601,6 @@ NB_MODULE(_scandyn, m) {
         return std::string(to_string(e.is_float ? e.ef->method() : e.ed->method()));
       });
   common(fd);
+
+  bind_simulator(m);
 }
