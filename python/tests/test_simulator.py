@@ -211,7 +211,7 @@ def test_non_finite_state_raises_with_the_library_message():
     assert sim.status()[0] == 0
     # a NaN position fails the forward dynamics: that instance keeps its state
     other = sd.Simulator(scene())
-    other.q[1, 0] = np.nan
+    other.q[1, 3] = np.nan
     before = other.qd[1].copy()
     with pytest.raises(sd.SimulationError, match=r"forward dynamics failed in 1 instance-step, first in instance 1: "
                                                   r"articulated inertia pivot at DoF \d is not positive"):
