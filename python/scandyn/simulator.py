@@ -64,14 +64,9 @@ class Simulator:
             self._s = _ext.Simulator("", text, "<dict>", os.getcwd(), backend)
         else:
             self._s = _ext.Simulator(os.fspath(scene), None, "", "", backend)
-        self._q = self._wrap(self._s.q)
-        self._qd = self._wrap(self._s.qd)
-
-    def _wrap(self, view):
-        if not self._s.on_device:
-            return view  # a NumPy array over the simulator's memory
-        torch = _torch()
-        return torch.from_dlpack(view) if torch is not None else view
+        framework = "numpy" if not self._s.on_device else ("torch" if _torch() is not None else "dlpack")
+        self._q = self._s.view(False, framework)
+        self._qd = self._s.view(True, framework)
 
     # ---- state and properties ----------------------------------------------------------
 

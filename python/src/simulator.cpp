@@ -10,7 +10,7 @@
 // (entry (DoF i, instance b) at q[i * B + b]); state_view() hands them out as (B, nv)
 // arrays with strides (1, B) (elements), whose owner is the Python Simulator, so a
 // view keeps the simulator alive. Host memory on serial / openmp, device memory on
-// cuda (DLPack device type 2 and the buffer's device).
+// cuda (DLPack device type 2 and the buffer's device); NumPy, torch or DLPack arrays.
 //
 // Streams (cuda): the simulator queues its work on its own stream. step() and
 // reset() take the caller's stream (a cudaStream_t as an integer, 0 the legacy
@@ -187,20 +187,30 @@ void init_simulator(PySimulator* self, const std::string& path, const std::optio
   }
 }
 
-// q or qd as a (B, nv) array with strides (1, B): the simulator's own memory.
-nb::object state_view(nb::handle self, bool velocities) {
+// q or qd as a (B, nv) array with strides (1, B): the simulator's own memory, as a
+// NumPy array ("numpy"; host memory only), a torch tensor ("torch") or a nanobind
+// array that speaks DLPack ("dlpack").
+nb::object state_view(nb::handle self, bool velocities, const std::string& framework) {
   PySimulator& p = nb::cast<PySimulator&>(self);
   const Index B = p.batch(), nv = p.nv();
   void* data = p.visit([&](auto& s) -> void* { return velocities ? s.qd().data : s.q().data; });
   const size_t shape[2] = {size_t(B), size_t(nv)};
   const int64_t strides[2] = {1, int64_t(B)};
   const nb::dlpack::dtype dt = p.is_float() ? nb::dtype<float>() : nb::dtype<double>();
-  if (p.on_device()) {
-    nb::ndarray<> a(data, 2, shape, self, strides, dt, nb::device::cuda::value, p.device);
-    return nb::cast(a, nb::rv_policy::reference);
+  const int device_type = p.on_device() ? int(nb::device::cuda::value) : int(nb::device::cpu::value);
+  const int device_id = p.on_device() ? p.device : 0;
+  if (framework == "numpy") {
+    if (p.on_device()) throw SimDeviceError("the simulator's state is on the GPU: no NumPy view of it");
+    return nb::cast(nb::ndarray<nb::numpy>(data, 2, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
   }
-  nb::ndarray<nb::numpy> a(data, 2, shape, self, strides, dt, nb::device::cpu::value, 0);
-  return nb::cast(a, nb::rv_policy::reference);
+  if (framework == "torch")
+    return nb::cast(nb::ndarray<nb::pytorch>(data, 2, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
+  if (framework == "dlpack")
+    return nb::cast(nb::ndarray<>(data, 2, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
+  throw SimShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
 }
 
 // tau as the (nv x B) BatchView the simulator reads: a (B, nv) array, any strides,
@@ -350,8 +360,7 @@ void bind_simulator(nb::module_& m) {
              return p.visit([](auto& s) { return s.energy(); });
            })
       .def("body_origins", &body_origins, "q"_a)
-      .def_prop_ro("q", [](nb::handle self) { return state_view(self, false); })
-      .def_prop_ro("qd", [](nb::handle self) { return state_view(self, true); })
+      .def("view", &state_view, "velocities"_a, "framework"_a)
       .def_prop_ro("nv", &PySimulator::nv)
       .def_prop_ro("num_instances", &PySimulator::batch)
       .def_prop_ro("on_device", &PySimulator::on_device)
