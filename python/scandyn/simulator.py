@@ -48,9 +48,11 @@ class Simulator:
     the CPU backends; on cuda, torch tensors on the simulator's GPU (the raw DLPack object
     without torch). Writes through them change the simulation. A view keeps the simulator
     alive; it stays valid for the simulator's whole life (the buffers never move).
+    ``arrays``: "auto" (as above), "numpy", "torch" (also on the CPU) or "dlpack" (a
+    nanobind array that torch / CuPy / JAX ``from_dlpack`` take): the kind of the views.
     """
 
-    def __init__(self, scene, backend=None):
+    def __init__(self, scene, backend=None, arrays="auto"):
         if isinstance(scene, dict):
             scene = dict(scene)
             if isinstance(scene.get("model"), str):
@@ -64,14 +66,26 @@ class Simulator:
             self._s = _ext.Simulator("", text, "<dict>", os.getcwd(), backend)
         else:
             self._s = _ext.Simulator(os.fspath(scene), None, "", "", backend)
-        framework = "numpy" if not self._s.on_device else ("torch" if _torch() is not None else "dlpack")
-        self._q = self._s.view(False, framework)
-        self._qd = self._s.view(True, framework)
+        if arrays == "auto":
+            arrays = "numpy" if not self._s.on_device else ("torch" if _torch() is not None else "dlpack")
+        if arrays not in ("numpy", "torch", "dlpack"):
+            raise ValueError(f"arrays must be 'auto', 'numpy', 'torch' or 'dlpack', got {arrays!r}")
+        self._arrays = arrays
+        self._q = self._s.view(False, arrays)
+        self._qd = self._s.view(True, arrays)
 
     # ---- state and properties ----------------------------------------------------------
 
-    q = property(lambda self: self._q, doc="(B, nv) joint positions: a view of the simulator's state")
-    qd = property(lambda self: self._qd, doc="(B, nv) joint velocities: a view of the simulator's state")
+    @property
+    def q(self):
+        """(B, nv) joint positions: a view of the simulator's state (with arrays="dlpack" a new
+        object on each access: a DLPack export can be consumed once)."""
+        return self._q if self._arrays != "dlpack" else self._s.view(False, "dlpack")
+
+    @property
+    def qd(self):
+        """(B, nv) joint velocities: a view of the simulator's state (see q)."""
+        return self._qd if self._arrays != "dlpack" else self._s.view(True, "dlpack")
     nv = property(lambda self: self._s.nv, doc="degrees of freedom of the scene's model")
     num_instances = property(lambda self: self._s.num_instances, doc="B, the scene's instances")
     dt = property(lambda self: self._s.dt, doc="the time step (s)")

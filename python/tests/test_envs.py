@@ -193,13 +193,24 @@ def test_gymnasium_vector_tools():
     assert obs.shape == (11,)
 
 
-def test_torch_cpu_actions():
+@pytest.mark.parametrize("task,kw", TASKS, ids=IDS)
+def test_torch_tensors_path_equals_numpy(task, kw):
+    """tensors="torch" on the CPU runs the GPU configuration's array code (torch tensors in
+    and out, writes through torch views of the state): the same bits as NumPy."""
     torch = pytest.importorskip("torch", reason="torch is not installed (not needed in CI)")
-    a, b = envs.IiwaReach(num_envs=2), envs.IiwaReach(num_envs=2)
-    a.reset(seed=0)
-    b.reset(seed=0)
-    act = np.full((2, 7), 0.2, np.float32)
-    assert np.array_equal(a.step(act)[0], b.step(torch.from_numpy(act))[0])
+    a = task(num_envs=4, tensors="torch", dtype=np.float64, max_episode_steps=3, **kw)
+    b = task(num_envs=4, dtype=np.float64, max_episode_steps=3, **kw)
+    oa, _ = a.reset(seed=1)
+    ob, _ = b.reset(seed=1)
+    assert isinstance(oa, torch.Tensor) and np.array_equal(oa.numpy(), ob)
+    a.sim.qd[1, 1] = float("nan")  # terminates, then resets, in both
+    b.sim.qd[1, 1] = np.nan
+    for k in range(5):
+        act = np.random.default_rng(k).uniform(-1, 1, (4, len(a.actuated)))
+        ra, rb = a.step(torch.from_numpy(act)), b.step(act)
+        assert all(isinstance(x, torch.Tensor) for x in ra[:4]) and ra[2].dtype == torch.bool
+        for x, y in zip(ra[:4], rb[:4]):
+            assert np.array_equal(x.numpy(), y)
 
 
 cuda = pytest.mark.skipif(not sd.has_cuda or sd.backend_unusable("cuda") != "",

@@ -219,6 +219,19 @@ def test_non_finite_state_raises_with_the_library_message():
     assert np.array_equal(other.qd[1], before)
 
 
+def test_torch_and_dlpack_views():
+    torch = pytest.importorskip("torch", reason="torch is not installed (not needed in CI)")
+    sim = sd.Simulator(scene(), arrays="torch")
+    assert isinstance(sim.q, torch.Tensor) and sim.q.stride() == (1, 5) and sim.q.dtype == torch.float64
+    raw = sd.Simulator(scene(), arrays="dlpack")
+    t = torch.from_dlpack(raw.q)
+    assert t.data_ptr() == torch.from_dlpack(raw.q).data_ptr() and torch.equal(t, sim.q)
+    sim.q[0, 0] = 2.0  # a write through the tensor is the simulator's state
+    assert sim._s.view(False, "numpy")[0, 0] == 2.0
+    with pytest.raises(ValueError, match="arrays"):
+        sd.Simulator(scene(), arrays="jax")
+
+
 def test_torch_cpu_torques():
     torch = pytest.importorskip("torch", reason="torch is not installed (not needed in CI)")
     a, b = sd.Simulator(scene()), sd.Simulator(scene())

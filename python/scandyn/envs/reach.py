@@ -26,10 +26,10 @@ class IiwaReach(SimulatorVectorEnv):
     end_effector = "iiwa_link_7"
 
     def __init__(self, num_envs=1, device="cpu", dtype=np.float32, max_episode_steps=200, frame_skip=5,
-                 dt=2e-3, damping=0.5, backend=None):
+                 dt=2e-3, damping=0.5, backend=None, tensors=None):
         super().__init__(num_envs, device=device, dtype=dtype, max_episode_steps=max_episode_steps,
                          frame_skip=frame_skip, dt=dt, effects={"gravity": True, "damping": damping},
-                         backend=backend)
+                         backend=backend, tensors=tensors)
         self.target = self._zeros((self.num_envs, 3))  # (B, 3) per sub-environment
         self._lower = np.asarray(self.model.q_lower)
         self._upper = np.asarray(self.model.q_upper)

@@ -6,8 +6,8 @@ the initial-state and parameter draws, the observation and the reward; this clas
 the Gymnasium side: spaces, seeding, the batched step, autoreset, arrays on the
 simulator's device.
 
-Arrays: on the CPU (device="cpu") NumPy in and out; on the GPU (device="cuda") torch
-tensors on the simulator's device in and out, nothing copied to the host in a step
+Arrays: on the CPU (device="cpu") NumPy in and out (torch CPU tensors with
+tensors="torch"); on the GPU (device="cuda") torch tensors on the simulator's device in and out, nothing copied to the host in a step
 (except through scandyn.envs.kinematics' fallback, until sd.frame_placements is in the
 package). Observations, rewards and actions have the env's dtype (float32 by default, the
 simulator's precision: float64 runs the scene in double); terminated / truncated are bool.
@@ -59,7 +59,7 @@ class SimulatorVectorEnv(VectorEnv):
     obs_dim = 0
 
     def __init__(self, num_envs=1, device="cpu", dtype=np.float32, max_episode_steps=200, frame_skip=1,
-                 dt=1e-3, effects=None, integrator="euler", backend=None):
+                 dt=1e-3, effects=None, integrator="euler", backend=None, tensors=None):
         self.num_envs = int(num_envs)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -85,11 +85,15 @@ class SimulatorVectorEnv(VectorEnv):
             "backend": backend,
             "instances": self.num_envs,
         }
+        if tensors not in (None, "numpy", "torch"):
+            raise ValueError(f"tensors must be None, 'numpy' or 'torch', got {tensors!r}")
+        if on_gpu and tensors == "numpy":
+            raise ValueError("device='cuda' keeps the tensors on the GPU: tensors='numpy' is not possible")
+        self._torch = on_gpu or tensors == "torch"
         self.model = load_model(self.model_spec)
-        self.sim = Simulator(self.scene)
+        self.sim = Simulator(self.scene, arrays="torch" if self._torch else "numpy")
         self.nv = self.sim.nv
-        self._torch = on_gpu
-        if on_gpu:
+        if self._torch:
             torch = _torch()
             self._dev = torch.device(self.sim.device)
             self._tdtype = getattr(torch, self.dtype.name)

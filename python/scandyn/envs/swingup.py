@@ -21,7 +21,7 @@ class RopeSwingUp(SimulatorVectorEnv):
     actuated = (0, 1)
 
     def __init__(self, num_envs=1, links=4, device="cpu", dtype=np.float32, max_episode_steps=200,
-                 frame_skip=10, dt=1e-3, damping=1e-5, torque_scale=0.01, backend=None):
+                 frame_skip=10, dt=1e-3, damping=1e-5, torque_scale=0.01, backend=None, tensors=None):
         if links < 2:
             raise ValueError(f"links must be >= 2, got {links}")
         self.links = int(links)
@@ -30,7 +30,7 @@ class RopeSwingUp(SimulatorVectorEnv):
         self.obs_dim = 2 * self.links + 3
         super().__init__(num_envs, device=device, dtype=dtype, max_episode_steps=max_episode_steps,
                          frame_skip=frame_skip, dt=dt, effects={"gravity": True, "damping": damping},
-                         backend=backend)
+                         backend=backend, tensors=tensors)
         self.tip = self.model.link_names[-1]
         self._reach = 0.01 * (self.links - 1)  # the tip's distance from the suspension
 
