@@ -20,7 +20,7 @@
 // synchronisation), so reading and writing q / qd on the caller's stream is ordered
 // with the steps.
 //
-// Checks here (exceptions of scandyn.errors): tau's device (host arrays for the CPU
+// Checks here (raised as scandyn.errors exceptions): tau's device (host arrays for the CPU
 // backends, the simulator's device for cuda), dtype (the simulator's precision) and
 // shape ((B, nv), any strides); scene errors (SceneError with the library's
 // one-line message); after a step with check=True, a failed status
@@ -55,23 +55,11 @@ using namespace nb::literals;
 namespace scandyn::py {
 namespace {
 
-// Errors of this file, translated to scandyn.errors classes (below).
-struct SimShapeError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-struct SimDTypeError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-struct SimDeviceError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-struct SimulationError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-
-void raise_error(const char* cls, const char* what) {
+// Raises the scandyn.errors exception `cls` with `what` (the GIL held).
+[[noreturn]] void fail(const char* cls, const std::string& what) {
   nb::object type = nb::module_::import_("scandyn.errors").attr(cls);
-  PyErr_SetString(type.ptr(), what);
+  PyErr_SetString(type.ptr(), what.c_str());
+  throw nb::python_error();
 }
 
 std::string shape_of(const nb::ndarray<nb::ro>& a) {
@@ -155,7 +143,12 @@ void init_simulator(PySimulator* self, const std::string& path, const std::optio
                     const std::string& source, const std::string& base_dir, const std::optional<std::string>& backend) {
   auto* p = new (self) PySimulator();
   try {
-    const sim::Scene scene = read_scene(path, text, source, base_dir);
+    sim::Scene scene;
+    try {
+      scene = read_scene(path, text, source, base_dir);
+    } catch (const sim::SceneError& e) {
+      fail("SceneError", e.what());
+    }
     const BackendKind kind = backend ? parse_backend(*backend) : scene.backend;
     p->scene_path = scene.path;
     p->backend = to_string(kind);
@@ -200,7 +193,7 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
   const int device_type = p.on_device() ? int(nb::device::cuda::value) : int(nb::device::cpu::value);
   const int device_id = p.on_device() ? p.device : 0;
   if (framework == "numpy") {
-    if (p.on_device()) throw SimDeviceError("the simulator's state is on the GPU: no NumPy view of it");
+    if (p.on_device()) fail("DeviceError", "the simulator's state is on the GPU: no NumPy view of it");
     return nb::cast(nb::ndarray<nb::numpy>(data, 2, shape, self, strides, dt, device_type, device_id),
                     nb::rv_policy::reference);
   }
@@ -210,7 +203,7 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
   if (framework == "dlpack")
     return nb::cast(nb::ndarray<>(data, 2, shape, self, strides, dt, device_type, device_id),
                     nb::rv_policy::reference);
-  throw SimShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
+  fail("ShapeError", "unknown array framework '" + framework + "' (numpy, torch, dlpack)");
 }
 
 // tau as the (nv x B) BatchView the simulator reads: a (B, nv) array, any strides,
@@ -220,18 +213,18 @@ BatchView<const S> torques_of(PySimulator& p, const nb::ndarray<nb::ro>& tau) {
   const Index B = p.batch(), nv = p.nv();
   const char* want = std::is_same_v<S, float> ? "float32" : "float64";
   if (tau.dtype() != nb::dtype<S>())
-    throw SimDTypeError(std::string("tau has the wrong dtype: this simulator runs in ") + want +
+    fail("DTypeError", std::string("tau has the wrong dtype: this simulator runs in ") + want +
                         " (the scene's precision); pass a " + want + " array");
   if (p.on_device()) {
     if (tau.device_type() != nb::device::cuda::value || tau.device_id() != p.device)
-      throw SimDeviceError("tau must be on CUDA device " + std::to_string(p.device) +
+      fail("DeviceError", "tau must be on CUDA device " + std::to_string(p.device) +
                            " (the simulator's state is there); nothing is copied between devices");
   } else if (tau.device_type() != nb::device::cpu::value) {
-    throw SimDeviceError("tau must be in host memory: this simulator runs on the CPU (backend '" + p.backend +
+    fail("DeviceError", "tau must be in host memory: this simulator runs on the CPU (backend '" + p.backend +
                          "')");
   }
   if (tau.ndim() != 2 || Index(tau.shape(0)) != B || Index(tau.shape(1)) != nv)
-    throw SimShapeError("tau has shape " + shape_of(tau) + ", expected (" + std::to_string(B) + ", " +
+    fail("ShapeError", "tau has shape " + shape_of(tau) + ", expected (" + std::to_string(B) + ", " +
                         std::to_string(nv) + ") (num_instances, nv)");
   BatchView<const S> v;
   v.data = static_cast<const S*>(tau.data());
@@ -261,14 +254,14 @@ void step_as(PySimulator& p, sim::Simulator<S>& s, const std::optional<nb::ndarr
       s.clear_status();
       char when[64];
       std::snprintf(when, sizeof when, "after step %lld (t = %g s): ", s.steps(), s.time());
-      throw SimulationError(when + sim::failure_message(st));
+      fail("SimulationError", when + sim::failure_message(st));
     }
   }
 }
 
 void step(PySimulator& p, const std::optional<nb::ndarray<nb::ro>>& tau, Index count, bool check,
           std::optional<std::uintptr_t> stream) {
-  if (count < 0) throw SimShapeError("step count must be >= 0, got " + std::to_string(count));
+  if (count < 0) fail("ShapeError", "step count must be >= 0, got " + std::to_string(count));
   if (p.sf)
     step_as(p, *p.sf, tau, count, check, stream);
   else
@@ -304,7 +297,7 @@ std::tuple<Index, Index, Index, std::string> status(PySimulator& p) {
 nb::ndarray<nb::numpy, double> body_origins(PySimulator& p, const nb::ndarray<const double, nb::ndim<2>, nb::device::cpu>& q) {
   const Index nv = p.nv();
   if (Index(q.shape(1)) != nv)
-    throw SimShapeError("q has shape " + std::to_string(q.shape(0)) + " x " + std::to_string(q.shape(1)) +
+    fail("ShapeError", "q has shape " + std::to_string(q.shape(0)) + " x " + std::to_string(q.shape(1)) +
                         ", expected (B, " + std::to_string(nv) + ")");
   const size_t B = q.shape(0);
   const Model model = p.visit([](auto& s) { return s.setup().model.template cast<double>(); });
@@ -327,22 +320,6 @@ nb::ndarray<nb::numpy, double> body_origins(PySimulator& p, const nb::ndarray<co
 }  // namespace
 
 void bind_simulator(nb::module_& m) {
-  nb::register_exception_translator([](const std::exception_ptr& e, void*) {
-    try {
-      std::rethrow_exception(e);
-    } catch (const sim::SceneError& x) {
-      raise_error("SceneError", x.what());
-    } catch (const SimulationError& x) {
-      raise_error("SimulationError", x.what());
-    } catch (const SimShapeError& x) {
-      raise_error("ShapeError", x.what());
-    } catch (const SimDTypeError& x) {
-      raise_error("DTypeError", x.what());
-    } catch (const SimDeviceError& x) {
-      raise_error("DeviceError", x.what());
-    }
-  });
-
   nb::class_<PySimulator>(m, "Simulator")
       .def("__init__", &init_simulator, "path"_a, "text"_a.none(), "source"_a, "base_dir"_a, "backend"_a.none())
       .def("step", &step, "tau"_a.none(), "count"_a = 1, "check"_a = true, "stream"_a.none() = nb::none())
