@@ -35,6 +35,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -86,6 +87,7 @@ struct PySimulator {
   int device = -1;             // cuda: the device holding the state
   void* caller_done = nullptr;  // cudaEvent_t: the caller's work before a step
   void* sim_done = nullptr;     // cudaEvent_t: the step
+  std::mutex mutex;             // one call at a time (calls release the GIL)
 
   bool is_float() const { return sf != nullptr; }
   template <class F>
@@ -238,24 +240,26 @@ template <class S>
 void step_as(PySimulator& p, sim::Simulator<S>& s, const std::optional<nb::ndarray<nb::ro>>& tau, Index count,
              bool check, std::optional<std::uintptr_t> stream) {
   const BatchView<const S> t = tau ? torques_of<S>(p, *tau) : BatchView<const S>{};
+  BatchStatus st;
+  long long steps = 0;
+  double time = 0;
   {
     nb::gil_scoped_release release;
+    std::lock_guard<std::mutex> lock(p.mutex);
     p.after_caller(stream);
     for (Index k = 0; k < count; ++k) s.step(t);
     p.before_caller(stream);
-  }
-  if (check) {
-    BatchStatus st;
-    {
-      nb::gil_scoped_release release;
+    if (check) {
       st = s.status();  // cuda: synchronises
+      if (!st.ok()) s.clear_status();
+      steps = s.steps();
+      time = s.time();
     }
-    if (!st.ok()) {
-      s.clear_status();
-      char when[64];
-      std::snprintf(when, sizeof when, "after step %lld (t = %g s): ", s.steps(), s.time());
-      fail("SimulationError", when + sim::failure_message(st));
-    }
+  }
+  if (!st.ok()) {
+    char when[64];
+    std::snprintf(when, sizeof when, "after step %lld (t = %g s): ", steps, time);
+    fail("SimulationError", when + sim::failure_message(st));
   }
 }
 
@@ -270,6 +274,7 @@ void step(PySimulator& p, const std::optional<nb::ndarray<nb::ro>>& tau, Index c
 
 void reset(PySimulator& p, const std::optional<std::vector<Index>>& instances, std::optional<std::uintptr_t> stream) {
   nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(p.mutex);
   p.after_caller(stream);
   p.visit([&](auto& s) {
     if (instances)
@@ -280,13 +285,17 @@ void reset(PySimulator& p, const std::optional<std::vector<Index>>& instances, s
   p.before_caller(stream);
 }
 
+// Runs f(simulator) with the GIL released and the simulator's lock held.
+template <class F>
+auto locked(PySimulator& p, F&& f) {
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(p.mutex);
+  return p.visit(std::forward<F>(f));
+}
+
 // (failed, first_instance, first_dof, message) of the steps since clear_status()
 std::tuple<Index, Index, Index, std::string> status(PySimulator& p) {
-  BatchStatus st;
-  {
-    nb::gil_scoped_release release;
-    st = p.visit([](auto& s) { return s.status(); });
-  }
+  const BatchStatus st = locked(p, [](auto& s) { return s.status(); });
   return {st.failed, st.first_instance, st.first_dof, sim::failure_message(st)};
 }
 
@@ -325,17 +334,9 @@ void bind_simulator(nb::module_& m) {
       .def("step", &step, "tau"_a.none(), "count"_a = 1, "check"_a = true, "stream"_a.none() = nb::none())
       .def("reset", &reset, "instances"_a.none(), "stream"_a.none() = nb::none())
       .def("status", &status)
-      .def("clear_status", [](PySimulator& p) { p.visit([](auto& s) { s.clear_status(); }); })
-      .def("synchronize",
-           [](PySimulator& p) {
-             nb::gil_scoped_release release;
-             p.visit([](auto& s) { s.synchronize(); });
-           })
-      .def("energy",
-           [](PySimulator& p) {
-             nb::gil_scoped_release release;
-             return p.visit([](auto& s) { return s.energy(); });
-           })
+      .def("clear_status", [](PySimulator& p) { locked(p, [](auto& s) { s.clear_status(); }); })
+      .def("synchronize", [](PySimulator& p) { locked(p, [](auto& s) { s.synchronize(); }); })
+      .def("energy", [](PySimulator& p) { return locked(p, [](auto& s) { return s.energy(); }); })
       .def("body_origins", &body_origins, "q"_a)
       .def("view", &state_view, "velocities"_a, "framework"_a)
       .def_prop_ro("nv", &PySimulator::nv)

@@ -246,14 +246,17 @@ cuda = pytest.mark.skipif(not sd.has_cuda or sd.backend_unusable("cuda") != "",
 
 
 @cuda
-def test_cuda_state_is_torch_on_the_device_and_matches_serial():
+@pytest.mark.parametrize("model", ["rope:8", "iiwa"])
+def test_cuda_state_is_torch_on_the_device_and_matches_serial(model):
     torch = pytest.importorskip("torch", reason="torch is not installed")
-    gpu = sd.Simulator(scene(backend="cuda", instances=64))
-    cpu = sd.Simulator(scene(backend="serial", instances=64))
-    assert isinstance(gpu.q, torch.Tensor) and gpu.q.is_cuda and gpu.q.shape == (64, 7)
-    assert gpu.q.stride() == (1, 64) and gpu.device.startswith("cuda")
+    gpu = sd.Simulator(scene(model=model, backend="cuda", instances=64, dt=1e-4))
+    cpu = sd.Simulator(scene(model=model, backend="serial", instances=64, dt=1e-4))
+    nv = cpu.nv
+    assert isinstance(gpu.q, torch.Tensor) and gpu.q.is_cuda and gpu.q.shape == (64, nv)
+    assert gpu.q.stride() == (1, 64) and gpu.device.startswith("cuda") and gpu.strategy == "fused-aba"
     ptr = gpu.q.data_ptr()
-    tau = np.random.default_rng(5).uniform(-3, 3, (64, 7))
+    scale = 3.0 if model == "iiwa" else 1e-4
+    tau = np.random.default_rng(5).uniform(-scale, scale, (64, nv))
     s = torch.cuda.Stream()  # a stream other than the default
     with torch.cuda.stream(s):
         t = torch.from_numpy(tau).to("cuda", non_blocking=False)
@@ -270,11 +273,17 @@ def test_cuda_state_is_torch_on_the_device_and_matches_serial():
     gpu.qd.fill_(0.0)
     cpu.q[:] = 0.0
     cpu.qd[:] = 0.0
-    gpu.step(torch.zeros(64, 7, dtype=torch.float64, device="cuda"))
+    gpu.step(torch.zeros(64, nv, dtype=torch.float64, device="cuda"))
     cpu.step()
     torch.cuda.synchronize()
     np.testing.assert_allclose(gpu.q.cpu().numpy(), cpu.q, rtol=0, atol=1e-12)
+    # resets on the device: the scene's draws, as on the CPU
+    gpu.reset([3])
+    cpu.reset([3])
+    np.testing.assert_array_equal(gpu.q[3].cpu().numpy(), cpu.q[3])
     with pytest.raises(sd.DeviceError):
-        gpu.step(np.zeros((64, 7)))
+        gpu.step(np.zeros((64, nv)))
     with pytest.raises(sd.DeviceError):
-        cpu.step(torch.zeros(64, 7, dtype=torch.float64, device="cuda"))
+        cpu.step(torch.zeros(64, nv, dtype=torch.float64, device="cuda"))
+    with pytest.raises(sd.DTypeError):
+        gpu.step(torch.zeros(64, nv, dtype=torch.float32, device="cuda"))
