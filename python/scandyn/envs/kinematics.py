@@ -2,9 +2,9 @@
 
     frame_positions(env, q, ["iiwa_link_7"]) -> (B, F, 3)
 
-Through ``scandyn.frame_placements`` (the kinematics engines of issue 18: every backend,
-CUDA tensors in place, (B, F, 4, 4) placements) when the package has it. Until those
-engines are in the package, through the simulator binding's ``body_origins`` (the
+Through ``scandyn.frame_placements`` (the kinematics engines: every backend, CUDA tensors
+in place, (B, F, 4, 4) placements) on the simulator's backend, when the package has it
+and takes q's device. Otherwise through the simulator binding's ``body_origins`` (the
 library's joint transforms composed from the base, host memory, float64): then a state on
 the GPU takes a device-to-host copy here, and the result goes back to the state's device.
 Link frames are body frames: a link's origin is its joint's origin.
@@ -25,10 +25,16 @@ def frame_positions(env, q, frames):
 
     placements = getattr(scandyn, "frame_placements", None)
     if placements is not None:
-        T = placements(env.model, q, list(frames))
-        if isinstance(T, tuple):  # (positions, quaternions)
-            return T[0]
-        return T[..., :3, 3]
+        # on the simulator's backend (serial for a few instances where openmp only costs)
+        backend = env.sim.backend
+        if backend == "cuda" and not _is_torch(q):
+            backend = "auto"  # host arrays (the targets' draws) on the CPU
+        try:
+            T = placements(env.model, q, list(frames), backend=backend)
+        except scandyn.DeviceError:
+            T = None  # CUDA tensors where the package does not take them yet: below
+        if T is not None:
+            return T[..., :3, 3]
     # fallback until sd.frame_placements: the simulator binding's body origins
     names = env.model.link_names
     try:
