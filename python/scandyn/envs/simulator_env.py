@@ -196,9 +196,9 @@ class SimulatorVectorEnv(VectorEnv):
         if tuple(a.shape) != (self.num_envs, len(self.actuated)):
             raise ValueError(f"actions have shape {tuple(a.shape)}, expected {(self.num_envs, len(self.actuated))}")
         self._tau[:, self._act_index] = a * self._scale
+        # unchecked (no synchronisation): a non-finite state ends that episode below; the
+        # simulator's status keeps counting failed instance-steps (sim.status())
         self.sim.step_many(self.frame_skip, self._tau, check=False)
-        # failures (a pivot, a non-finite state) end those episodes below; clear the record
-        self.sim.clear_status()
         self._steps += 1
         q, qd = self.sim.q, self.sim.qd
         alive = self._finite_rows(self._cat([q, qd]))
