@@ -37,8 +37,8 @@ class Simulator:
     ``scene``: a scene file's path, or a dict with the keys of a scene file (serialised to
     JSON and read by the library's scene reader: the same keys, checks and messages; the
     model is looked up as :func:`scandyn.load_model` does, so ``"iiwa"`` finds the shipped
-    arm). ``backend``: None (the scene's "backend"; "auto" is cuda where a GPU is usable,
-    else openmp) or "serial", "openmp", "cuda". The precision is the scene's ("float" or
+    arm). ``backend``: None (the scene's "backend"), "serial", "openmp", "cuda" or "auto"
+    (cuda where it is built and a GPU is usable, else openmp; ``backend_note`` says why). The precision is the scene's ("float" or
     "double", default double). Errors: SceneError (a bad key, with the library's one-line
     message), BackendError (a backend that is not built or cannot run the scene).
 

@@ -151,11 +151,20 @@ void init_simulator(PySimulator* self, const std::string& path, const std::optio
     } catch (const sim::SceneError& e) {
       fail("SceneError", e.what());
     }
-    const BackendKind kind = backend ? parse_backend(*backend) : scene.backend;
+    // backend: the scene's, or the one given ("auto": as a scene's "auto", sim::auto_backend)
+    BackendKind kind = scene.backend;
+    p->backend_auto = scene.backend_auto;
+    p->backend_note = scene.backend_note;
+    if (backend && *backend == "auto") {
+      p->backend_auto = true;
+      kind = sim::auto_backend(&p->backend_note);
+    } else if (backend) {
+      p->backend_auto = false;
+      kind = parse_backend(*backend);
+    }
+    if (!p->backend_auto) p->backend_note.clear();
     p->scene_path = scene.path;
     p->backend = to_string(kind);
-    p->backend_auto = scene.backend_auto && !backend;
-    p->backend_note = p->backend_auto ? scene.backend_note : "";
     {
       nb::gil_scoped_release release;
       if (scene.precision == Precision::Float)

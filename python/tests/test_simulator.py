@@ -154,10 +154,14 @@ def test_shipped_scene_loads():
     sim = sd.Simulator(os.path.join(ROOT, "scenes", "rope_1e4.json"), backend="serial")
     assert sim.nv == 10000 and sim.num_instances == 1 and sim.precision == "double"
     auto = sd.Simulator(os.path.join(ROOT, "scenes", "rope_1e4.json"))  # "backend": "auto"
-    if auto.backend == "cuda":
-        assert auto.backend_note == ""
-    else:  # why not cuda, as the command line says it
-        assert auto.backend in ("openmp", "serial") and auto.backend_note.startswith("cuda: ")
+    given = sd.Simulator(scene(backend="serial"), backend="auto")
+    for s in (auto, given):
+        if s.backend == "cuda":
+            assert s.backend_note == ""
+        else:  # why not cuda, as the command line says it
+            assert s.backend in ("openmp", "serial") and s.backend_note.startswith("cuda: ")
+    assert given.backend == auto.backend
+    assert sd.Simulator(os.path.join(ROOT, "scenes", "rope_1e4.json"), backend="serial").backend_note == ""
 
 
 def test_scene_errors(tmp_path):

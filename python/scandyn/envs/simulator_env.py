@@ -68,14 +68,14 @@ class SimulatorVectorEnv(VectorEnv):
             raise TypeError(f"dtype must be float32 or float64, got {dtype!r}")
         self.max_episode_steps = int(max_episode_steps)
         self.frame_skip = int(frame_skip)
-        if device == "auto":
-            from .. import backend_unusable
+        from .. import backend_unusable
 
+        if device == "auto":
             device = "cuda" if not backend_unusable("cuda") else "cpu"
         self.device = str(device)
         on_gpu = self.device.startswith("cuda")
         if backend is None:
-            backend = "cuda" if on_gpu else "openmp"
+            backend = "cuda" if on_gpu else ("openmp" if not backend_unusable("openmp") else "serial")
         self.scene = {
             "model": self.model_spec,
             "effects": effects if effects is not None else {"gravity": True},
