@@ -169,7 +169,8 @@ std::vector<std::vector<std::string>> info_dofs(const std::string& out) {
       in_table = true;
       continue;
     }
-    if (in_table && !words.empty()) rows.push_back(words);
+    if (in_table && words.empty()) break;  // the frames table follows after a blank line
+    if (in_table) rows.push_back(words);
   }
   return rows;
 }
@@ -415,6 +416,46 @@ TEST_F(Cli, EvalDefaultAlgorithmsFollowTheColumnsPresent) {
   EXPECT_FALSE(fs::exists(path("out.csv")));
   ASSERT_EQ(run("eval --model chain:3 --states states.csv --out out.csv --algo mass").code, 0);
   EXPECT_EQ(parse_csv(read_text(path("out.csv"))).names.size(), 9u);
+}
+
+// fk and jac: their columns after the dynamics', the flags they need and the error
+// for an unknown frame (values are the engine tests' and check_pinocchio.py's).
+TEST_F(Cli, EvalFkJacColumnsFlagsAndErrors) {
+  const States s(3, 2, 15);
+  write_text(path("states.csv"), s.csv({"q"}));
+  Result r = run("eval --model chain:3 --states states.csv --out out.csv --algo jac,mass,fk --frames link_2,base");
+  ASSERT_EQ(r.code, 0) << r.err;
+  Table t = parse_csv(read_text(path("out.csv")));
+  ASSERT_EQ(t.names.size(), 9u + 2 * 7 + 2 * 6 * 3);
+  EXPECT_EQ(t.names[8], "M_2_2");
+  EXPECT_EQ(t.names[9], "fk_link_2_px");
+  EXPECT_EQ(t.names[15], "fk_link_2_qw");
+  EXPECT_EQ(t.names[16], "fk_base_px");
+  EXPECT_EQ(t.names[23], "J_link_2_0_0");
+  EXPECT_EQ(t.names.back(), "J_base_5_2");
+  ASSERT_EQ(t.rows.size(), 2u);
+  for (int j = 41; j < 59; ++j) EXPECT_EQ(t.rows[0][j], 0.0) << t.names[j];  // the base does not move
+  // default: every frame (4 links); --reference local
+  ASSERT_EQ(run("eval --model chain:3 --states states.csv --out out.csv --algo fk,jac --reference local").code, 0);
+  EXPECT_EQ(parse_csv(read_text(path("out.csv"))).names.size(), 4u * 7 + 4 * 18);
+  // flags without their algorithms, a bad reference, an unknown frame: nothing written
+  fs::remove(path("out.csv"));
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo mass --frames base");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--frames needs fk or jac"), std::string::npos) << r.err;
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo jac --reference body");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("'body'"), std::string::npos) << r.err;
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo fk --frames link_0,tool");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("no frame 'tool'"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("link_2"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(path("out.csv")));
+  // q is needed
+  write_text(path("states.csv"), s.csv({"qd"}));
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo fk");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("q_0"), std::string::npos) << r.err;
 }
 
 TEST_F(Cli, EvalAcceptsCrlfSpacesAndMissingFinalNewline) {
