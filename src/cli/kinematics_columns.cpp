@@ -57,14 +57,22 @@ void KinematicsColumns<S>::run(const S* q, std::size_t count, S* out, std::size_
   const Index B = static_cast<Index>(count);
   const std::ptrdiff_t stride = static_cast<std::ptrdiff_t>(row_stride);
   // the fk block, then the jac block, of each row: strided views straight into out
-  const Index fk_width = request_.fk ? F_ * pose_width(request_.options.pose) : 0;
   const BatchView<S> poses{request_.fk ? out : nullptr, B, 1, stride};
-  const BatchView<S> J{request_.jac ? out + fk_width : nullptr, B, 1, stride};
+  const BatchView<S> J{request_.jac ? out + fk_width() : nullptr, B, 1, stride};
   try {
     engine_->compute(BatchView<const S>::aos(q, nv_, B), poses, J);
   } catch (const BackendError& e) {
     throw DataError(e.what());
   }
+}
+
+template <class S>
+std::size_t KinematicsColumns<S>::fk_width() const {
+  return request_.fk ? static_cast<std::size_t>(F_ * pose_width(request_.options.pose)) : 0;
+}
+template <class S>
+std::size_t KinematicsColumns<S>::jac_width() const {
+  return request_.jac ? static_cast<std::size_t>(F_ * 6 * nv_) : 0;
 }
 
 template class KinematicsColumns<float>;

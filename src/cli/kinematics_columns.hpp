@@ -49,6 +49,9 @@ class KinematicsColumns {
   // Writes count rows of width() values, row b at out[b * row_stride], from q (count
   // x nv, instance-major). A CUDA error is a DataError.
   void run(const S* q, std::size_t count, S* out, std::size_t row_stride);
+  Kinematics<S>& engine() { return *engine_; }
+  std::size_t fk_width() const;   // the fk columns per row (7 per frame, or 0)
+  std::size_t jac_width() const;  // the jac columns per row (6 nv per frame, or 0)
 
  private:
   Index nv_, F_;

@@ -93,8 +93,8 @@ const char* const kRolloutUsage =
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd METHOD]\n"
-    "                     [--fallback aba]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias|fk|jac --instances B [--fd METHOD]\n"
+    "                     [--fallback aba] [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -105,6 +105,8 @@ const char* const kBenchUsage =
     "device memory) and thread-host (host buffers, copies to and from the device\n"
     "included); one row, <strategy>-host (e.g. jsi_thread-host, parallel-host), for fd.\n"
     "  --fd METHOD       auto (default), aba, jsi, hybrid or parallel, as for eval\n"
+    "  --frames, --reference  fk (frame poses) and jac (frame Jacobians), as for eval\n"
+    "                    (default every frame); cuda: rows thread (resident) and thread-host\n"
     "  --fallback aba    as for eval (strategy column jsi+aba; cuda: jsi_thread+aba-host,\n"
     "                    no device-resident row)\n"
     "  --backend, --strategy, --threads   as for eval\n"
@@ -137,7 +139,7 @@ const Command kCommands[] = {
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
 };

@@ -728,6 +728,29 @@ TEST_F(Cli, BenchPrintsOneRow) {
   }
 }
 
+// bench --algo fk / jac: one row on the CPU, the serial engine its own reference;
+// --frames and --reference only with them.
+TEST_F(Cli, BenchKinematicsPrintsOneRow) {
+  const std::string base = "bench --model chain:5 --instances 9 --min-time 0.01";
+  for (const char* algo : {"fk", "jac"}) {
+    const std::vector<std::string> r = bench_row(run(base + " --algo " + algo + " --frames link_4,base"));
+    ASSERT_EQ(r.size(), 10u) << algo;
+    EXPECT_EQ(r[0], algo);
+    EXPECT_EQ(r[1], "recursion");
+    EXPECT_EQ(r[5], "5");
+    EXPECT_EQ(r[6], "9");
+    EXPECT_EQ(r[9], "0");
+    const std::vector<std::string> f = bench_row(run(base + " --algo " + algo + " --precision float"));
+    ASSERT_EQ(f.size(), 10u);
+    EXPECT_GT(std::stod(f[9]), 0);
+    EXPECT_LT(std::stod(f[9]), 1e-5);
+  }
+  const Result r = run(base + " --algo id --frames base");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--frames applies only to --algo fk or jac"), std::string::npos) << r.err;
+  EXPECT_EQ(run(base + " --algo fk --frames tool").code, 1);
+}
+
 TEST_F(Cli, BenchAppendsToCsvFile) {
   const std::string header =
       "algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,max_"
@@ -1056,6 +1079,23 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
 // bench --backend cuda: two rows, the device-resident batch (thread; crba_thread
 // for mass) and the host-staged call (thread-host; crba_thread-host), both with
 // their measured error.
+TEST_F(Cli, BenchCudaKinematicsPrintsResidentAndHostRows) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
+  for (const char* algo : {"fk", "jac"})
+    for (const char* precision : {"double", "float"}) {
+      SCOPED_TRACE(std::string(algo) + " " + precision);
+      const Result r = run("bench --model " + iiwa + " --algo " + algo + " --instances 3000 --min-time 0.02" +
+                           " --backend cuda --precision " + precision);
+      ASSERT_EQ(r.code, 0) << r.err;
+      const std::vector<std::string> ls = lines(r.out);
+      ASSERT_EQ(ls.size(), 2u) << r.out;
+      for (std::size_t k = 0; k < 2; ++k)
+        expect_cuda_iiwa_row(ls[k], algo, k == 0 ? "thread" : "thread-host", precision,
+                             std::string(precision) == "float" ? 1e-4 : 1e-10);
+    }
+}
+
 TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));

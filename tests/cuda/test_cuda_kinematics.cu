@@ -52,6 +52,10 @@ void expect_near(const std::vector<S>& got, const std::vector<S>& ref, double to
         << what << " entry " << e << ": " << got[e] << " against " << ref[e];
 }
 
+// What the kernel uses in double: the library's sin/cos.
+constexpr Trig kKernelTrig = Trig::Library;
+static_assert(cuda::kThreadTrig<double> == kKernelTrig, "the kernel's sin/cos in double");
+
 // The kernel's per-instance call, on the host: ThreadModelParams' bodies, DofColumn
 // input, the library's sin/cos (kThreadTrig<double>), exactly the serial engine's result.
 TEST(CudaKinematicsHost, TheKernelsRoutineIsTheSerialEngine) {
@@ -67,7 +71,7 @@ TEST(CudaKinematicsHost, TheKernelsRoutineIsTheSerialEngine) {
         [&](const auto& params) {
           std::vector<Transform<double>> X0(static_cast<std::size_t>(params.capacity));
           for (Index b = 0; b < B; ++b)
-            kinematics_instance<cuda::kThreadTrig<double>>(
+            kinematics_instance<kKernelTrig>(
                 params.body, params.nv, frames.data(), F, k.pose, k.reference,
                 cuda::DofColumn<const double>{q.data() + b * nv, 1}, X0.data(),
                 Strided<double>{poses.data() + b * F * 16, 1}, Strided<double>{J.data() + b * F * 6 * nv, 1});
