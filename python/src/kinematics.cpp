@@ -18,7 +18,7 @@
 #include <string>
 #include <vector>
 
-#include "py_model.hpp"
+#include "shared.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/frames.hpp"
 
@@ -30,18 +30,6 @@ namespace {
 
 using InArray = nb::ndarray<nb::ro>;
 using OutArray = nb::ndarray<>;
-
-template <class S>
-const char* scalar_name() {
-  return std::is_same_v<S, float> ? "float32" : "float64";
-}
-
-template <class A>
-std::string shape_of(const A& a) {
-  std::string s = "(";
-  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
-  return s + (a.ndim() == 1 ? ",)" : ")");
-}
 
 template <class S, class A>
 void check_array(const A& a, const char* name) {
@@ -64,7 +52,7 @@ BatchView<S> block_view(const OutArray& a, const std::vector<size_t>& block, boo
   if (!ok) {
     std::string want = single ? "(" : "(" + std::to_string(B) + ", ";
     for (size_t i = 0; i < block.size(); ++i) want += (i ? ", " : "") + std::to_string(block[i]);
-    throw ShapeError(std::string(name) + " has shape " + shape_of(a) + ", expected " + want + ")");
+    throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected " + want + ")");
   }
   const std::ptrdiff_t s = a.stride(a.ndim() - 1);
   std::ptrdiff_t expect = s;
@@ -99,7 +87,7 @@ void compute(PyKinematics& e, const InArray& q, const std::optional<OutArray>& p
   const Index nv = e.nv();
   check_array<S>(q, "q");
   if ((q.ndim() != 1 && q.ndim() != 2) || Index(q.shape(q.ndim() - 1)) != nv)
-    throw ShapeError("q has shape " + shape_of(q) + ", expected (nv,) or (B, nv) with nv = " + std::to_string(nv));
+    throw ShapeError("q has shape " + shape_str(q) + ", expected (nv,) or (B, nv) with nv = " + std::to_string(nv));
   const bool single = q.ndim() == 1;
   const Index B = single ? 1 : Index(q.shape(0));
   if (B > e.max_batch)

@@ -35,7 +35,7 @@
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
-#include "py_model.hpp"
+#include "shared.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -45,7 +45,7 @@ namespace {
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
 
-// ShapeError, DTypeError, DeviceError: py_model.hpp (shared with kinematics.cpp)
+// ShapeError, DTypeError, DeviceError: shared.hpp (shared with kinematics.cpp)
 
 void raise_as(const char* cls, const char* what) {
   nb::object type = nb::module_::import_("scandyn.errors").attr(cls);
@@ -54,7 +54,7 @@ void raise_as(const char* cls, const char* what) {
 
 // ---- models --------------------------------------------------------------------
 
-// PyModel: py_model.hpp
+// PyModel: shared.hpp
 
 std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia) {
   BuildOptions options;
@@ -91,17 +91,7 @@ std::string dtype_name(nb::dlpack::dtype t) {
   return std::string(kind) + std::to_string(t.bits);
 }
 
-template <class S>
-const char* scalar_name() {
-  return std::is_same_v<S, float> ? "float32" : "float64";
-}
-
-template <class A>
-std::string shape_str(const A& a) {
-  std::string s = "(";
-  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
-  return s + (a.ndim() == 1 ? ",)" : ")");
-}
+// scalar_name, shape_str: shared.hpp
 
 // Where an argument's data lie: [lo, hi) bytes, for overlap checks.
 struct Extent {

@@ -1,6 +1,7 @@
-// python/src/py_model.hpp: what the extension module's source files share: the
-// loaded model and the error types that module.cpp's translator turns into
-// scandyn.errors classes (ShapeError, DTypeError, DeviceError).
+// python/src/shared.hpp: what the extension module's source files (module.cpp,
+// kinematics.cpp) share: the loaded model, the error types that module.cpp's
+// translator turns into scandyn.errors classes (ShapeError, DTypeError,
+// DeviceError), and the names used in their messages.
 #pragma once
 
 #include <nanobind/nanobind.h>
@@ -8,6 +9,7 @@
 #include <memory>
 #include <mutex>
 #include <stdexcept>
+#include <string>
 #include <type_traits>
 
 #include "scandyn/model/model.hpp"
@@ -41,6 +43,20 @@ struct PyModel {
     }
   }
 };
+
+// "float32" or "float64", the dtype name of S.
+template <class S>
+const char* scalar_name() {
+  return std::is_same_v<S, float> ? "float32" : "float64";
+}
+
+// An array's shape as Python prints it: "(3,)", "(2, 7)".
+template <class A>
+std::string shape_str(const A& a) {
+  std::string s = "(";
+  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
+  return s + (a.ndim() == 1 ? ",)" : ")");
+}
 
 // Registers the Kinematics engine class (python/src/kinematics.cpp).
 void bind_kinematics(nanobind::module_& m);
