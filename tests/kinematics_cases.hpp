@@ -92,4 +92,17 @@ KinematicsResult<S> run_kinematics(const ModelTpl<S>& model, BackendKind backend
   return r;
 }
 
+// q and -q are one rotation: where a quaternion's w is within rounding of 0, two
+// computations may canonicalise (w >= 0) to opposite signs. Flips each quaternion of
+// `got` (PositionQuaternion poses, 7 entries per frame) that points away from ref's.
+template <class S, class R>
+void align_quaternion_signs(std::vector<S>& got, const std::vector<R>& ref) {
+  for (std::size_t k = 0; k + 7 <= got.size() && k + 7 <= ref.size(); k += 7) {
+    double d = 0;
+    for (int e = 3; e < 7; ++e) d += double(got[k + e]) * double(ref[k + e]);
+    if (d < 0)
+      for (int e = 3; e < 7; ++e) got[k + e] = -got[k + e];
+  }
+}
+
 }  // namespace scandyn::test

@@ -9,7 +9,9 @@
 //   double   device against serial double: 1e-11 (FMA contraction, the device's sin/cos);
 //   float    device against serial float on the same float q: 1e-4 (the SFU's sin/cos,
 //            absolute error <= 2^-21.4 per joint, over up to 64 joints).
-// Outputs start as NaN, so an entry never written fails. Tests that need a device
+// Quaternions are compared up to sign (q and -q are one rotation; with w within
+// rounding of 0 the canonical w >= 0 may pick either). Outputs start as NaN, so an
+// entry never written fails. Tests that need a device
 // skip with "no CUDA device: ...".
 #include <cuda_runtime.h>
 #include <gtest/gtest.h>
@@ -101,7 +103,8 @@ void device_matches_serial(double tol) {
       for (PoseFormat pf : {PoseFormat::Matrix, PoseFormat::PositionQuaternion}) {
         const KinematicsOptions k = test::all_frames(m, pf, ref);
         const auto ser = test::run_kinematics(m, BackendKind::Serial, k, q, B);
-        const auto dev = test::run_kinematics(m, BackendKind::Cuda, k, q, B);
+        auto dev = test::run_kinematics(m, BackendKind::Cuda, k, q, B);
+        if (pf == PoseFormat::PositionQuaternion) test::align_quaternion_signs(dev.poses, ser.poses);
         expect_near(dev.poses, ser.poses, tol, label + " poses");
         expect_near(dev.J, ser.J, tol, label + " J");
       }
