@@ -842,6 +842,38 @@ class EvalCuda : public Cli, public ::testing::WithParamInterface<const char*> {
   }
 };
 
+// fk and jac on cuda (the kinematics engine's staged compute(), both outputs
+// interleaved into the same rows after the mass matrix's) give the serial CSV up to
+// rounding: 1e-10 in double, 1e-4 in float; quaternions up to sign (q and -q).
+TEST_P(EvalCuda, KinematicsMatchSerial) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const Model model = scandyn::load_model(spec());
+  if (model.nv() > 64) GTEST_SKIP() << "the CUDA kinematics engine takes up to 64 DoF";
+  const States s(model.nv(), 5000, 32);
+  write_text(path("states.csv"), s.csv({"q"}));
+  for (const char* precision : {"double", "float"}) {
+    SCOPED_TRACE(precision);
+    const std::string base = "eval --model " + quote(spec()) + " --states states.csv --algo fk,mass,jac --precision " +
+                             precision + " --reference local";
+    Table ts, tc;
+    ASSERT_NO_FATAL_FAILURE(eval_serial_and_cuda(base, ts, tc));
+    ASSERT_EQ(tc.names, ts.names);
+    ASSERT_EQ(tc.rows.size(), s.rows());
+    const double tol = std::string(precision) == "float" ? 1e-4 : 1e-10;
+    for (std::size_t row = 0; row < s.rows(); ++row) {
+      std::vector<double>& c = tc.rows[row];
+      const std::vector<double>& r = ts.rows[row];
+      for (std::size_t j = 0; j + 3 < tc.names.size(); ++j) {  // qx, qy, qz, qw of each frame
+        const std::string& n = tc.names[j];
+        if (n.size() < 3 || n.compare(n.size() - 3, 3, "_qx") != 0) continue;
+        if (c[j] * r[j] + c[j + 1] * r[j + 1] + c[j + 2] * r[j + 2] + c[j + 3] * r[j + 3] < 0)
+          for (int e = 0; e < 4; ++e) c[j + e] = -c[j + e];
+      }
+      ASSERT_LE(scandyn::test::max_rel_err(c, r), tol) << "row " << row + 1;
+    }
+  }
+}
+
 // eval --backend cuda gives the serial backend's CSV up to rounding: the same
 // header, one row per input row (5000 rows: two chunks), every value within 1e-10
 // (double) or 1e-4 (float, against the serial float output) relative to
