@@ -45,6 +45,8 @@ class Model:
     q_lower = property(lambda self: np.array(self._m.q_lower), doc="(nv) lower position limits (-inf: none)")
     q_upper = property(lambda self: np.array(self._m.q_upper), doc="(nv) upper position limits (+inf: none)")
     gravity = property(lambda self: np.array(self._m.gravity), doc="gravity in the base frame (m/s^2)")
+    frames = property(lambda self: self._m.frames,
+                      doc="every frame's name: the URDF links, fixed ones included (scandyn.kinematics)")
 
     def clear_cache(self):
         """Drops the engines (and their scratch memory) the function API made for this model."""

@@ -20,7 +20,7 @@
 // synchronisation), so reading and writing q / qd on the caller's stream is ordered
 // with the steps.
 //
-// Checks here (raised as scandyn.errors exceptions): tau's device (host arrays for the CPU
+// Checks here (scandyn.errors exceptions): tau's device (host arrays for the CPU
 // backends, the simulator's device for cuda), dtype (the simulator's precision) and
 // shape ((B, nv), any strides); scene errors (SceneError with the library's
 // one-line message); after a step with check=True, a failed status
@@ -45,6 +45,7 @@
 #include "scandyn/build_config.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "shared.hpp"
 
 #if SCANDYN_HAS_CUDA
 #include <cuda_runtime_api.h>
@@ -56,17 +57,13 @@ using namespace nb::literals;
 namespace scandyn::py {
 namespace {
 
-// Raises the scandyn.errors exception `cls` with `what` (the GIL held).
+// Raises the scandyn.errors exception `cls` with `what` (the GIL held): for the
+// classes module.cpp's translator does not know (SceneError, SimulationError); the
+// others are thrown as shared.hpp's types.
 [[noreturn]] void fail(const char* cls, const std::string& what) {
   nb::object type = nb::module_::import_("scandyn.errors").attr(cls);
   PyErr_SetString(type.ptr(), what.c_str());
   throw nb::python_error();
-}
-
-std::string shape_of(const nb::ndarray<nb::ro>& a) {
-  std::string s = "(";
-  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
-  return s + (a.ndim() == 1 ? ",)" : ")");
 }
 
 #if SCANDYN_HAS_CUDA
@@ -204,7 +201,7 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
   const int device_type = p.on_device() ? int(nb::device::cuda::value) : int(nb::device::cpu::value);
   const int device_id = p.on_device() ? p.device : 0;
   if (framework == "numpy") {
-    if (p.on_device()) fail("DeviceError", "the simulator's state is on the GPU: no NumPy view of it");
+    if (p.on_device()) throw DeviceError("the simulator's state is on the GPU: no NumPy view of it");
     return nb::cast(nb::ndarray<nb::numpy>(data, 2, shape, self, strides, dt, device_type, device_id),
                     nb::rv_policy::reference);
   }
@@ -214,7 +211,7 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
   if (framework == "dlpack")
     return nb::cast(nb::ndarray<>(data, 2, shape, self, strides, dt, device_type, device_id),
                     nb::rv_policy::reference);
-  fail("ShapeError", "unknown array framework '" + framework + "' (numpy, torch, dlpack)");
+  throw ShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
 }
 
 // tau as the (nv x B) BatchView the simulator reads: a (B, nv) array, any strides,
@@ -222,20 +219,20 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
 template <class S>
 BatchView<const S> torques_of(PySimulator& p, const nb::ndarray<nb::ro>& tau) {
   const Index B = p.batch(), nv = p.nv();
-  const char* want = std::is_same_v<S, float> ? "float32" : "float64";
+  const char* want = scalar_name<S>();
   if (tau.dtype() != nb::dtype<S>())
-    fail("DTypeError", std::string("tau has the wrong dtype: this simulator runs in ") + want +
+    throw DTypeError(std::string("tau has the wrong dtype: this simulator runs in ") + want +
                         " (the scene's precision); pass a " + want + " array");
   if (p.on_device()) {
     if (tau.device_type() != nb::device::cuda::value || tau.device_id() != p.device)
-      fail("DeviceError", "tau must be on CUDA device " + std::to_string(p.device) +
+      throw DeviceError("tau must be on CUDA device " + std::to_string(p.device) +
                            " (the simulator's state is there); nothing is copied between devices");
   } else if (tau.device_type() != nb::device::cpu::value) {
-    fail("DeviceError", "tau must be in host memory: this simulator runs on the CPU (backend '" + p.backend +
+    throw DeviceError("tau must be in host memory: this simulator runs on the CPU (backend '" + p.backend +
                          "')");
   }
   if (tau.ndim() != 2 || Index(tau.shape(0)) != B || Index(tau.shape(1)) != nv)
-    fail("ShapeError", "tau has shape " + shape_of(tau) + ", expected (" + std::to_string(B) + ", " +
+    throw ShapeError("tau has shape " + shape_str(tau) + ", expected (" + std::to_string(B) + ", " +
                         std::to_string(nv) + ") (num_instances, nv)");
   BatchView<const S> v;
   v.data = static_cast<const S*>(tau.data());
@@ -274,7 +271,7 @@ void step_as(PySimulator& p, sim::Simulator<S>& s, const std::optional<nb::ndarr
 
 void step(PySimulator& p, const std::optional<nb::ndarray<nb::ro>>& tau, Index count, bool check,
           std::optional<std::uintptr_t> stream) {
-  if (count < 0) fail("ShapeError", "step count must be >= 0, got " + std::to_string(count));
+  if (count < 0) throw ShapeError("step count must be >= 0, got " + std::to_string(count));
   if (p.sf)
     step_as(p, *p.sf, tau, count, check, stream);
   else
@@ -315,7 +312,7 @@ std::tuple<Index, Index, Index, std::string> status(PySimulator& p) {
 nb::ndarray<nb::numpy, double> body_origins(PySimulator& p, const nb::ndarray<const double, nb::ndim<2>, nb::device::cpu>& q) {
   const Index nv = p.nv();
   if (Index(q.shape(1)) != nv)
-    fail("ShapeError", "q has shape " + std::to_string(q.shape(0)) + " x " + std::to_string(q.shape(1)) +
+    throw ShapeError("q has shape " + std::to_string(q.shape(0)) + " x " + std::to_string(q.shape(1)) +
                         ", expected (B, " + std::to_string(nv) + ")");
   const size_t B = q.shape(0);
   const Model model = p.visit([](auto& s) { return s.setup().model.template cast<double>(); });
