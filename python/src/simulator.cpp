@@ -41,7 +41,6 @@
 #include <string>
 #include <vector>
 
-#include "scandyn/algorithm/steps.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
@@ -305,33 +304,6 @@ std::tuple<Index, Index, Index, std::string> status(PySimulator& p) {
   return {st.failed, st.first_instance, st.first_dof, sim::failure_message(st)};
 }
 
-// Body origins in the base frame, (B, nv, 3) float64, of the states q (B, nv)
-// (host memory, any float dtype it can be cast from). For the environments'
-// rewards until the kinematics engines (sd.frame_placements) are in the package:
-// X_i = joint_transform(body_i, q_i) X_parent, as the library's recursions do.
-nb::ndarray<nb::numpy, double> body_origins(PySimulator& p, const nb::ndarray<const double, nb::ndim<2>, nb::device::cpu>& q) {
-  const Index nv = p.nv();
-  if (Index(q.shape(1)) != nv)
-    throw ShapeError("q has shape " + std::to_string(q.shape(0)) + " x " + std::to_string(q.shape(1)) +
-                        ", expected (B, " + std::to_string(nv) + ")");
-  const size_t B = q.shape(0);
-  const Model model = p.visit([](auto& s) { return s.setup().model.template cast<double>(); });
-  auto* out = new double[B * size_t(nv) * 3];
-  nb::capsule owner(out, [](void* d) noexcept { delete[] static_cast<double*>(d); });
-  {
-    nb::gil_scoped_release release;
-    std::vector<Transform<double>> X(static_cast<size_t>(nv));
-    for (size_t b = 0; b < B; ++b)
-      for (Index i = 0; i < nv; ++i) {
-        const Body<double>& body = model.bodies[i];
-        const Transform<double> Xup = joint_transform(body, q(b, i));
-        X[i] = body.parent < 0 ? Xup : Xup * X[body.parent];
-        for (int k = 0; k < 3; ++k) out[(b * size_t(nv) + size_t(i)) * 3 + k] = X[i].r[k];
-      }
-  }
-  return nb::ndarray<nb::numpy, double>(out, {B, size_t(nv), 3}, owner);
-}
-
 }  // namespace
 
 void bind_simulator(nb::module_& m) {
@@ -343,7 +315,6 @@ void bind_simulator(nb::module_& m) {
       .def("clear_status", [](PySimulator& p) { locked(p, [](auto& s) { s.clear_status(); }); })
       .def("synchronize", [](PySimulator& p) { locked(p, [](auto& s) { s.synchronize(); }); })
       .def("energy", [](PySimulator& p) { return locked(p, [](auto& s) { return s.energy(); }); })
-      .def("body_origins", &body_origins, "q"_a)
       .def("view", &state_view, "velocities"_a, "framework"_a)
       .def_prop_ro("nv", &PySimulator::nv)
       .def_prop_ro("num_instances", &PySimulator::batch)
