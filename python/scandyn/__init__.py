@@ -28,6 +28,7 @@ from ._api import (
     load_model,
     mass_matrix,
 )
+from .simulator import Simulator
 from .kinematics import Kinematics, frame_jacobians, frame_placements
 from .errors import (
     BackendError,
@@ -36,7 +37,9 @@ from .errors import (
     Error,
     ForwardDynamicsError,
     ModelError,
+    SceneError,
     ShapeError,
+    SimulationError,
 )
 
 __version__ = _scandyn.__version__
@@ -50,9 +53,19 @@ def backend_unusable(backend):
     return _scandyn.backend_unusable(backend)
 
 
+def __getattr__(name):
+    # scandyn.envs (Gymnasium environments) is imported on first use: it needs gymnasium
+    if name == "envs":
+        import importlib
+
+        return importlib.import_module(".envs", __name__)
+    raise AttributeError(f"module 'scandyn' has no attribute {name!r}")
+
+
 __all__ = [
     "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
     "ForwardDynamicsError", "InverseDynamics", "Kinematics", "MassMatrix", "Model", "ModelError", "ShapeError",
     "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
+    "SceneError", "SimulationError", "Simulator",
 ]

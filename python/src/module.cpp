@@ -41,6 +41,7 @@ namespace nb = nanobind;
 using namespace nb::literals;
 
 namespace scandyn::py {
+void bind_simulator(nb::module_& m);  // python/src/simulator.cpp
 namespace {
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
@@ -569,6 +570,7 @@ NB_MODULE(_scandyn, m) {
       });
   common(fd);
 
+  bind_simulator(m);
   // ---- kinematics (python/src/kinematics.cpp)
   bind_kinematics(m);
 }
