@@ -13,6 +13,7 @@
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/instance/aba_instance.hpp"
 #include "scandyn/instance/rnea_instance.hpp"
+#include "staging.hpp"
 
 namespace scandyn {
 namespace cuda {
