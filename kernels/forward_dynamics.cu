@@ -298,6 +298,7 @@ BatchStatus CudaForwardDynamics<S>::settle_checked(const FdBatchIn<S>& in, const
   return summarize_checked(failed, estimate_host_.data(), B,
                            fallback_aba_ ? Failure::BothPivots : pivot_failure(algorithm_), threshold, fell_back,
                            retried);
+}
 
 template <class S>
 void CudaForwardDynamics<S>::set_fallback_aba(bool on) {
