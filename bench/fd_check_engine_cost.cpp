@@ -23,6 +23,7 @@
 #include <string>
 #include <vector>
 
+#include "plain_bench_util.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
 
@@ -30,29 +31,7 @@ using namespace scandyn;
 
 namespace {
 
-std::string models_dir() {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
-}
-
-// Best of 3 runs of seconds per call of f().
-template <class F>
-double time_per_call(double min_time, F&& f) {
-  using Clock = std::chrono::steady_clock;
-  double best = 1e300;
-  for (int rep = 0; rep < 3; ++rep) {
-    std::size_t calls = 0;
-    const auto t0 = Clock::now();
-    double el = 0;
-    do {
-      f();
-      ++calls;
-      el = std::chrono::duration<double>(Clock::now() - t0).count();
-    } while (el < min_time);
-    best = std::min(best, el / double(calls));
-  }
-  return best;
-}
+using bench::models_dir;
 
 struct Case {
   std::string label, spec;
@@ -100,7 +79,10 @@ void run(FILE* out, BackendKind backend, const Case& c, const Model& md, double 
       if (on) strategy = fd->strategy();
       const BatchStatus st = fd->compute(in, out_view);
       if (on) flagged = st.failed;
-      t[on] = time_per_call(min_time, [&] { fd->compute(in, out_view); });
+      t[on] = bench::best_seconds_per_call(min_time, [&] {
+        fd->compute(in, out_view);
+        return std::size_t(1);
+      });
     }
     if (skip) continue;
     std::fprintf(out, "%s,%s,%s,%s,%s,%lld,%lld,%.4g,%.4g,%.3f,%lld\n", to_string(backend), to_string(method),

@@ -14,28 +14,14 @@
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "fd_states.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
 
 namespace {
 
-// B random states (nv x B, soa), float-exact: q in [-qr, qr], qd and tau in [-1, 1].
-struct States {
-  Index nv, B;
-  std::vector<double> q, qd, tau;
-  States(Index nv_, Index B_, double qr, unsigned seed) : nv(nv_), B(B_) {
-    const std::size_t n = static_cast<std::size_t>(nv * B);
-    q.resize(n), qd.resize(n), tau.resize(n);
-    std::mt19937_64 g(seed);
-    std::uniform_real_distribution<double> U(-1, 1);
-    for (std::size_t k = 0; k < n; ++k) {
-      q[k] = float(qr * U(g));
-      qd[k] = float(U(g));
-      tau[k] = float(U(g));
-    }
-  }
-};
+using States = test::FdStates;
 
 template <class S>
 struct Run {

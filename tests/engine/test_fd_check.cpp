@@ -18,6 +18,7 @@
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/truth/truth.hpp"
+#include "fd_states.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
@@ -30,32 +31,7 @@ std::vector<BackendKind> cpu_backends() {
   return b;
 }
 
-// B random states (nv x B, soa), every value exact in float: state k of kind k mod 4 as
-// in bench/fd_residual_study.cpp: 0 q, qd, tau in [-1, 1] (q in [-qr, qr]); 1 tau = 0;
-// 2 qd = tau = 0 (released from rest); 3 qd in [-3, 3], tau in [-10, 10].
-struct States {
-  Index nv, B;
-  std::vector<double> q, qd, tau;
-  States(Index nv_, Index B_, double qr, unsigned seed) : nv(nv_), B(B_) {
-    const std::size_t n = static_cast<std::size_t>(nv * B);
-    q.resize(n), qd.resize(n), tau.resize(n);
-    std::mt19937_64 g(seed);
-    std::uniform_real_distribution<double> U(-1, 1);
-    for (Index b = 0; b < B; ++b) {
-      const int kind = static_cast<int>(b % 4);
-      for (Index i = 0; i < nv; ++i) {
-        const std::size_t e = static_cast<std::size_t>(i * B + b);
-        q[e] = float(qr * U(g));
-        qd[e] = kind == 2 ? 0.f : float((kind == 3 ? 3.0 : 1.0) * U(g));
-        tau[e] = kind == 1 || kind == 2 ? 0.f : float((kind == 3 ? 10.0 : 1.0) * U(g));
-      }
-    }
-  }
-  template <class S>
-  std::vector<S> as(const std::vector<double>& v) const {
-    return std::vector<S>(v.begin(), v.end());
-  }
-};
+using States = test::FdStates;
 
 // qdd (nv x B) of the states by an engine; the status, with its per-instance failed
 // DoFs copied to `failed` (the engine's array dies with it).
