@@ -24,7 +24,7 @@ namespace {
 using States = test::FdStates;
 
 template <class S>
-struct Run {
+struct FdRun {
   BatchStatus status;
   std::vector<S> qdd;
   std::vector<int> failed;
@@ -32,10 +32,10 @@ struct Run {
 };
 
 template <class S>
-Run<S> run(const ModelTpl<S>& m, BackendOptions o, const States& s) {
+FdRun<S> run(const ModelTpl<S>& m, BackendOptions o, const States& s) {
   o.max_batch = s.B;
   auto fd = make_forward_dynamics<S>(m, o);
-  Run<S> r;
+  FdRun<S> r;
   r.strategy = fd->strategy();
   const std::vector<S> q(s.q.begin(), s.q.end()), qd(s.qd.begin(), s.qd.end()), tau(s.tau.begin(), s.tau.end());
   r.qdd.assign(q.size(), S(0));
@@ -76,7 +76,7 @@ TEST(CudaFdCheck, FloatJsiOnChain64FlaggedOnTheDevice) {
   const Model md = load_model("chain:64");
   const ModelTpl<float> mf = md.cast<float>();
   const States s(64, 8, 1.0, 3);
-  const Run<float> r = run(mf, cuda_options(FdMethod::Jsi, FdCheckMode::On), s);
+  const FdRun<float> r = run(mf, cuda_options(FdMethod::Jsi, FdCheckMode::On), s);
   EXPECT_EQ(r.strategy, "jsi_thread+check");
   EXPECT_EQ(r.status.failed, 8) << r.status.message();
   EXPECT_EQ(r.status.failure, Failure::ResidualTooLarge);
@@ -85,14 +85,14 @@ TEST(CudaFdCheck, FloatJsiOnChain64FlaggedOnTheDevice) {
   const double host = host_estimate(mf, s, r.qdd, 0);
   EXPECT_NEAR(r.status.estimate, host, 1e-6 * host);
   // the flagged results are the unchecked engine's
-  const Run<float> off = run(mf, cuda_options(FdMethod::Jsi, FdCheckMode::Off), s);
+  const FdRun<float> off = run(mf, cuda_options(FdMethod::Jsi, FdCheckMode::Off), s);
   EXPECT_TRUE(off.status.ok());
   EXPECT_EQ(r.qdd, off.qdd);
   // --fallback aba,double: every instance passes after its retries
   BackendOptions fb = cuda_options(FdMethod::Jsi, FdCheckMode::On);
   fb.fallback_aba = true;
   fb.fallback_double = true;
-  const Run<float> fixed = run(mf, fb, s);
+  const FdRun<float> fixed = run(mf, fb, s);
   EXPECT_TRUE(fixed.status.ok()) << fixed.status.message();
   EXPECT_EQ(fixed.status.retried, 8);
   EXPECT_EQ(fixed.strategy, "jsi_thread+aba+check");
@@ -173,7 +173,7 @@ TEST(CudaFdCheck, DenseAndParallelCheckedOnTheHost) {
     const Model md = load_model(spec);
     const ModelTpl<float> mf = md.cast<float>();
     const States s(md.nv(), B, 1.0, 5);
-    const Run<float> r = run(mf, cuda_options(method, FdCheckMode::On), s);
+    const FdRun<float> r = run(mf, cuda_options(method, FdCheckMode::On), s);
     EXPECT_NE(r.strategy.find("+check"), std::string::npos) << spec;
     for (Index b = 0; b < B; ++b) {
       const double h = host_estimate(mf, s, r.qdd, b);
