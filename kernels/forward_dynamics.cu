@@ -151,7 +151,9 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
   if (options.fallback_aba) set_fallback_aba(true);
-  check_ = std::make_unique<FdBatchCheck<S>>(model, options, algorithm, openmp_threads());
+  BackendOptions cuda_options = options;  // the Auto rule of the cuda backend, however the engine was made
+  cuda_options.backend = BackendKind::Cuda;
+  check_ = std::make_unique<FdBatchCheck<S>>(model, cuda_options, algorithm, openmp_threads());
   if (check_->on()) {
     const std::size_t B = static_cast<std::size_t>(std::max<Index>(max_batch_, 1));
     estimate_host_.assign(B, -1.0);

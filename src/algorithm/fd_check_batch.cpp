@@ -9,7 +9,10 @@ namespace scandyn {
 
 template <class S>
 FdBatchCheck<S>::FdBatchCheck(const ModelTpl<S>& model, const BackendOptions& o, FdMethod method, int threads)
-    : model_(model), threads_(std::max(threads, 1)), threshold_(fd_check_tol<S>(o)) {
+    // no more workspaces than instances (a 10^6-link rope's is ~1 GB)
+    : model_(model),
+      threads_(static_cast<int>(std::max<Index>(1, std::min<Index>(threads, std::max<Index>(o.max_batch, 1))))),
+      threshold_(fd_check_tol<S>(o)) {
   // the double fallback asks for the check: Auto turns it on
   on_ = o.fallback_double && o.fd_check == FdCheckMode::Auto
             ? true

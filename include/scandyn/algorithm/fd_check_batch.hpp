@@ -32,8 +32,9 @@ template <class S>
 class FdBatchCheck {
  public:
   // For an engine running `method` (resolved) on options.backend with `threads` host
-  // threads; on() tells whether options.fd_check enables the check for it. The model
-  // must outlive the check. Allocates its workspaces here only when on().
+  // threads (workspaces for at most options.max_batch of them); on() tells whether
+  // options.fd_check enables the check for it. The model must outlive the check.
+  // Allocates its workspaces here only when on().
   FdBatchCheck(const ModelTpl<S>& model, const BackendOptions& options, FdMethod method, int threads);
   FdBatchCheck(const FdBatchCheck&) = delete;
   FdBatchCheck& operator=(const FdBatchCheck&) = delete;
