@@ -60,7 +60,9 @@
 // The run-time check (BackendOptions::fd_check; Auto is off on cuda): the thread
 // engines (aba_thread, jsi_thread) check on the device (DeviceFdCheck,
 // scandyn/cuda/fd_check.hpp: one more launch after the forward dynamics, in
-// compute() and compute_async() alike, marking flagged instances in failed_dof);
+// compute() and compute_async() alike, marking flagged instances in failed_dof;
+// its estimates hold max_batch instances, so with the check on compute_async()
+// takes at most max_batch: cudaErrorInvalidValue beyond, device_estimates() reads them);
 // compute() then retries the flagged ones on the host (FdBatchCheck: aba on the
 // device for jsi_thread with fallback_aba, the double aba on the host with
 // fallback_double) and reports them as Failure::ResidualTooLarge. jsi_dense,
