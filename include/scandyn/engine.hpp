@@ -25,6 +25,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/batch.hpp"
 
 namespace scandyn {
@@ -40,6 +41,14 @@ enum class IdStrategy {
   ScanWorld,  // scans over links, world-frame form (CPU only)
 };
 
+// Whether forward dynamics checks its results at run time (scandyn/algorithm/fd_check.hpp):
+// per instance, the residual r = ID(q, qd, qdd) - tau in double and the error estimate
+// max|M^-1 r| / max(1, max|qdd|), compared with a threshold per precision.
+//   Auto  on where the check costs under ~10% of the call (fd_check_enabled)
+//   On    every instance of every call
+//   Off   never (the result is bit-identical to an engine without the check)
+enum class FdCheckMode { Auto, On, Off };
+
 struct BackendOptions {
   BackendKind backend = BackendKind::Serial;
   IdStrategy strategy = IdStrategy::Auto;  // inverse dynamics and bias forces
@@ -48,7 +57,33 @@ struct BackendOptions {
                               // computed again by aba (BatchStatus::fell_back counts them)
   int threads = 0;            // OpenMP threads, 0: openmp_threads()
   Index max_batch = 1;        // largest batch compute() will be given
+  // ---- forward dynamics' run-time check (FdCheckMode; scandyn/algorithm/fd_check_batch.hpp)
+  FdCheckMode fd_check = FdCheckMode::Auto;
+  // thresholds on the check's error estimate (a relative error of qdd), per precision;
+  // the defaults are the accuracy report's budgets (docs/accuracy.md: 0 false positives
+  // on 1.6e5 clean random states, every result beyond the budget caught)
+  double fd_check_tol_float = fd_check_threshold<float>();    // 1e-4
+  double fd_check_tol_double = fd_check_threshold<double>();  // 1e-10
+  // With the check on, a flagged instance is computed again (each retry checked again):
+  // with fallback_aba (jsi) by the aba in the engine's precision (on cuda: the host's),
+  // then with fallback_double (float engines) by the reference aba in double on the host
+  // (the model widened exactly), rounded to float. Still flagged: Failure::ResidualTooLarge.
+  bool fallback_double = false;  // float engines: flagged instances computed again by the double
+                                 // aba (turns an Auto check on; with Off: BackendError)
+                                 // (BatchStatus::fell_back counts the instances a retry fixed)
 };
+
+// True when forward dynamics by `method` (resolved) on `backend` for a model of nv DoF
+// runs the check under `mode`. Auto: on for jsi from 200 DoF on the CPU backends, where
+// one RNEA and two ABA passes in double cost under 10% of the O(nv^2..nv^3) solve
+// (bench/results/fd_check_engine_cost-*.csv); off for aba and parallel (the check costs
+// 1.2-1.5x an ABA) and on cuda (the check runs on the host there).
+bool fd_check_enabled(FdCheckMode mode, BackendKind backend, FdMethod method, Index nv);
+// The threshold of the options for precision S.
+template <class S>
+double fd_check_tol(const BackendOptions& options) {
+  return sizeof(S) <= sizeof(float) ? options.fd_check_tol_float : options.fd_check_tol_double;
+}
 
 // Thrown for a backend that is not built or cannot run, a model or option an engine
 // cannot take, or a batch that does not fit.
@@ -205,11 +240,13 @@ const char* to_string(BackendKind b);  // "serial", "openmp", "cuda"
 const char* to_string(Precision p);    // "double", "float"
 const char* to_string(IdStrategy s);   // "auto", "recursion", "scan-local", "scan-world"
 const char* to_string(FdMethod m);     // "auto", "aba", "jsi", "parallel", "hybrid"
+const char* to_string(FdCheckMode m);  // "auto", "on", "off"
 // Each throws BackendError naming the value and the accepted names.
 BackendKind parse_backend(const std::string& name);
 Precision parse_precision(const std::string& name);
 IdStrategy parse_strategy(const std::string& name);
 FdMethod parse_fd_method(const std::string& name);
+FdCheckMode parse_fd_check(const std::string& name);
 
 // Throws BackendError unless the views describe the same number of instances, at
 // most max_batch, with non-null data when there is any.

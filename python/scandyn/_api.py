@@ -276,14 +276,19 @@ class ForwardDynamics(_EngineBase):
     """qdd = FD(q, qd, tau, fext). ``method``: 'auto', 'aba', 'jsi', 'parallel' (chains),
     'hybrid' (cuda). An instance whose pivot is not positive and finite raises
     ForwardDynamicsError (its ``status`` says which; those instances' entries of out are
-    left unwritten); ``last_status`` is the last call's scandyn.Status."""
+    left unwritten); ``last_status`` is the last call's scandyn.Status.
+    ``fd_check``: 'auto', 'on', 'off': the run-time check of each result (docs/accuracy.md);
+    an instance above ``fd_check_tol`` (0: 1e-4 float, 1e-10 double) raises
+    ForwardDynamicsError too, unless ``fallback_aba`` (jsi) or ``fallback_double``
+    (float32) computes it again within the threshold (``status.retried`` counts them)."""
 
     _ext_class = _ext.ForwardDynamics
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, method="auto",
-                 fallback_aba=False, threads=0):
+                 fallback_aba=False, threads=0, fd_check="auto", fd_check_tol=0.0, fallback_double=False):
         super().__init__(model, backend, max_batch, dtype, method=method, fallback_aba=fallback_aba,
-                         threads=threads)
+                         threads=threads, fd_check=fd_check, fd_check_tol=float(fd_check_tol),
+                         fallback_double=fallback_double)
         self.last_status = None
 
     method = property(lambda self: self._e.method, doc="the method run ('auto' resolved)")

@@ -371,6 +371,7 @@ void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
 // What a forward-dynamics call reports: BatchStatus with its per-instance failed DoFs copied.
 struct CallStatus {
   Index failed = 0, first_instance = -1, first_dof = -1, fell_back = 0;
+  Index retried = 0;  // flagged by the run-time check, fixed by a fallback
   std::string reason, message;
   std::vector<int> failed_dof;  // per instance: -1 or the DoF that failed (empty when ok)
 };
@@ -401,6 +402,7 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   r.first_instance = st.first_instance;
   r.first_dof = st.first_dof;
   r.fell_back = st.fell_back;
+  r.retried = st.retried;
   if (!st.ok()) {
     r.reason = st.reason();
     r.message = st.message();
@@ -476,6 +478,7 @@ NB_MODULE(_scandyn, m) {
       .def_ro("first_instance", &CallStatus::first_instance)
       .def_ro("first_dof", &CallStatus::first_dof)
       .def_ro("fell_back", &CallStatus::fell_back)
+      .def_ro("retried", &CallStatus::retried)
       .def_ro("reason", &CallStatus::reason)
       .def_ro("message", &CallStatus::message)
       .def_ro("failed_dof", &CallStatus::failed_dof)
@@ -550,14 +553,18 @@ NB_MODULE(_scandyn, m) {
   nb::class_<PyFd> fd(m, "ForwardDynamics");
   fd.def("__init__",
          [](PyFd* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-            Index max_batch, const std::string& method, bool fallback_aba, int threads) {
+            Index max_batch, const std::string& method, bool fallback_aba, int threads, const std::string& fd_check,
+            double fd_check_tol, bool fallback_double) {
            BackendOptions o = options_of(backend, max_batch, "auto", method, fallback_aba, threads);
+           o.fd_check = parse_fd_check(fd_check);
+           if (fd_check_tol > 0) o.fd_check_tol_float = o.fd_check_tol_double = fd_check_tol;  // 0: the default
+           o.fallback_double = fallback_double;
            init_engine(self, std::move(model), dtype, max_batch,
                        [&](const ModelTpl<float>& md) { return make_forward_dynamics<float>(md, o); },
                        [&](const ModelTpl<double>& md) { return make_forward_dynamics<double>(md, o); });
          },
          "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "method"_a = "auto", "fallback_aba"_a = false,
-         "threads"_a = 0)
+         "threads"_a = 0, "fd_check"_a = "auto", "fd_check_tol"_a = 0.0, "fallback_double"_a = false)
       .def("compute",
            [](PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
               const std::optional<InArray>& fext) {

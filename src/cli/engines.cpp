@@ -25,7 +25,7 @@ auto parse_flag(const Args& args, const char* flag, const char* fallback, F&& pa
 
 Precision parse_cli_precision(const Args& args) { return parse_flag(args, "precision", "double", parse_precision); }
 
-BackendOptions parse_backend_options(const Args& args) {
+BackendOptions parse_backend_options(const Args& args, FdCheckMode default_check) {
   BackendOptions o;
   o.backend = parse_flag(args, "backend", "serial", parse_backend);
   o.strategy = parse_flag(args, "strategy", "auto", parse_strategy);
@@ -38,11 +38,36 @@ BackendOptions parse_backend_options(const Args& args) {
     o.threads = static_cast<int>(v);
   }
   if (args.has("fallback")) {
-    if (args.required("fallback") != "aba")
-      throw UsageError("unknown --fallback value '" + args.required("fallback") + "' (expected aba)");
-    if (o.fd_method != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
-    o.fallback_aba = true;
+    // a comma-separated list of aba and double
+    const std::string& list = args.required("fallback");
+    for (std::size_t at = 0; at <= list.size();) {
+      const std::size_t end = std::min(list.find(',', at), list.size());
+      const std::string name = list.substr(at, end - at);
+      if (name == "aba") {
+        if (o.fd_method != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
+        o.fallback_aba = true;
+      } else if (name == "double") {
+        if (parse_cli_precision(args) != Precision::Float)
+          throw UsageError("--fallback double applies only to --precision float");
+        o.fallback_double = true;
+      } else {
+        throw UsageError("unknown --fallback value '" + name + "' (expected aba, double or aba,double)");
+      }
+      at = end + 1;
+    }
   }
+  o.fd_check = default_check;
+  if (args.has("fd-check")) o.fd_check = parse_flag(args, "fd-check", "auto", parse_fd_check);
+  if (args.has("fd-check-tol")) {
+    const std::string& t = args.required("fd-check-tol");
+    double v = 0;
+    if (!parse_number(t, v) || !(v > 0) || !std::isfinite(v))
+      throw UsageError("--fd-check-tol must be a positive number, got '" + t + "'");
+    (parse_cli_precision(args) == Precision::Float ? o.fd_check_tol_float : o.fd_check_tol_double) = v;
+  }
+  if (o.fallback_double && o.fd_check == FdCheckMode::Off)
+    throw UsageError("--fallback double recomputes the rows the forward-dynamics check flags; it needs the check "
+                     "(not --fd-check off)");
   return o;
 }
 
@@ -52,6 +77,12 @@ void require_usable(BackendKind backend) {
   // a backend this build lacks already names itself; a device that is missing does not
   throw UsageError(why.rfind("backend '", 0) == 0 ? why : std::string("backend '") + to_string(backend) + "': " + why,
                    false);
+}
+
+std::string describe_check_retries(std::size_t retried, std::size_t total, const char* unit) {
+  return "the forward-dynamics check flagged " + std::to_string(retried) + " of " + std::to_string(total) + " " +
+         unit + " (estimated error of qdd above --fd-check-tol); " + (retried == 1 ? "it was" : "they were") +
+         " computed again by the fallback (--fallback) and passed";
 }
 
 std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit) {

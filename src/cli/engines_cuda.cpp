@@ -2,8 +2,8 @@
 // batch copied once to device memory (cuda::DeviceBatch), the engine's
 // compute_async() on its stream per call; fd's failed DoFs stay on the device until
 // status() reads them, after the timing. Every engine has one except fd by the
-// hybrid method and jsi with the aba fallback (compute() only: the host must see q,
-// or which instances failed).
+// hybrid method, jsi with the aba fallback and fd with the run-time check on
+// (compute() only: the host must see q, or which instances failed or were flagged).
 #include "engines.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -79,7 +79,11 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
   const std::size_t width = output_width(algo, nv);
   if (algo == Algo::Fd) {
     auto& e = dynamic_cast<cuda::CudaForwardDynamics<S>&>(engine);
-    if (e.method() == FdMethod::Hybrid || e.fallback_aba()) return nullptr;
+    // hybrid: compute() only; the aba fallback and the run-time check's retries and
+    // report need the host to see each instance (the check's device cost:
+    // bench_cuda_fd's +check rows)
+    if (e.method() == FdMethod::Hybrid || e.fallback_aba() || e.strategy().find("+check") != std::string::npos)
+      return nullptr;
     return std::make_unique<CudaResidentBatch<S>>(
         e.strategy(), "the forward dynamics", nv, std::vector<const S*>{in.q, in.qd, in.tau}, in.count, width,
         e.device_bytes(),

@@ -42,7 +42,8 @@ const char* const kInfoUsage =
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
-    "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba]\n"
+    "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba|double]\n"
+    "                    [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                    [--precision double|float] [--frames NAMES] [--reference world|local]\n"
     "\n"
@@ -72,7 +73,18 @@ const char* const kEvalUsage =
     "  --fallback aba    with --fd jsi: an instance whose mass matrix factorisation\n"
     "                    fails (a pivot that is not positive) is computed by aba\n"
     "                    instead, and a warning on stderr counts them (cuda: up to\n"
-    "                    64 DoF, by the ABA kernel over just those instances)\n"
+    "                    64 DoF, by the ABA kernel over just those instances); with\n"
+    "                    the check on, also an instance the check flags\n"
+    "  --fallback double with --precision float: an instance the check flags is\n"
+    "                    computed again by aba in double (aba,double: both, in order);\n"
+    "                    a warning on stderr counts them\n"
+    "  --fd-check MODE   check every forward dynamics result: the residual\n"
+    "                    ID(q, qd, qdd) - tau in double, turned into an estimate of\n"
+    "                    qdd's relative error; a row above the threshold fails (exit\n"
+    "                    1, naming the row) unless a fallback fixes it. Default on\n"
+    "                    (eval); auto: only where it costs under 10% (jsi, 200+ DoF,\n"
+    "                    CPU); off: the unchecked, bit-identical result\n"
+    "  --fd-check-tol X  the check's threshold (default 1e-4 float, 1e-10 double)\n"
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
@@ -94,7 +106,8 @@ const char* const kRolloutUsage =
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias|fk|jac --instances B [--fd METHOD]\n"
-    "                     [--fallback aba] [--frames NAMES] [--reference world|local]\n"
+    "                     [--fallback aba|double] [--fd-check on|off|auto] [--fd-check-tol X]\n"
+    "                     [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -109,6 +122,9 @@ const char* const kBenchUsage =
     "                    (default every frame); cuda: rows thread (resident) and thread-host\n"
     "  --fallback aba    as for eval (strategy column jsi+aba; cuda: jsi_thread+aba-host,\n"
     "                    no device-resident row)\n"
+    "  --fd-check MODE   as for eval, default auto; flagged instances are a warning\n"
+    "                    (strategy column <method>+check where it runs)\n"
+    "  --fd-check-tol X, --fallback double   as for eval\n"
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
@@ -134,12 +150,12 @@ const Command kCommands[] = {
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "frames", "reference"},
+      "allow-nonphysical-inertia", "frames", "reference", "fd-check", "fd-check-tol"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
 };

@@ -3,6 +3,7 @@
 #include "scandyn/engine.hpp"
 
 #include <algorithm>
+#include <cstdio>
 
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/build_config.hpp"
@@ -55,6 +56,15 @@ const char* to_string(FdMethod m) {
   return "?";
 }
 
+const char* to_string(FdCheckMode m) {
+  switch (m) {
+    case FdCheckMode::Auto: return "auto";
+    case FdCheckMode::On: return "on";
+    case FdCheckMode::Off: return "off";
+  }
+  return "?";
+}
+
 namespace {
 
 // The value of E whose to_string is name; BackendError naming what and the choices.
@@ -90,6 +100,16 @@ FdMethod parse_fd_method(const std::string& name) {
   return parse_name(name, kAll, "forward-dynamics method");
 }
 
+FdCheckMode parse_fd_check(const std::string& name) {
+  static constexpr FdCheckMode kAll[] = {FdCheckMode::Auto, FdCheckMode::On, FdCheckMode::Off};
+  return parse_name(name, kAll, "forward-dynamics check");
+}
+
+bool fd_check_enabled(FdCheckMode mode, BackendKind backend, FdMethod method, Index nv) {
+  if (mode != FdCheckMode::Auto) return mode == FdCheckMode::On;
+  return backend != BackendKind::Cuda && method == FdMethod::Jsi && nv >= 200;
+}
+
 // ---- BatchStatus ----------------------------------------------------------------
 
 void BatchStatus::merge(const BatchStatus& other) {
@@ -97,9 +117,12 @@ void BatchStatus::merge(const BatchStatus& other) {
     first_instance = other.first_instance;
     first_dof = other.first_dof;
     failure = other.failure;
+    estimate = other.estimate;
+    threshold = other.threshold;
   }
   failed += other.failed;
   fell_back += other.fell_back;
+  retried += other.retried;
 }
 
 std::string BatchStatus::reason() const {
@@ -110,6 +133,14 @@ std::string BatchStatus::reason() const {
     case Failure::BothPivots:
       return "mass matrix pivot not positive, and by the aba fallback the articulated inertia" + pivot;
     case Failure::NonFinite: return "the state at DoF " + std::to_string(first_dof) + " is not finite after the step";
+    case Failure::ResidualTooLarge: {
+      char b[256];
+      std::snprintf(b, sizeof b,
+                    "forward dynamics check: estimated error of qdd %.2g (M^-1 (ID(q, qd, qdd) - tau) relative to "
+                    "max(1, |qdd|)) above the threshold %.2g (largest at DoF %lld)",
+                    estimate, threshold, static_cast<long long>(first_dof));
+      return b;
+    }
     case Failure::ArticulatedPivot:
     case Failure::None: break;
   }
@@ -129,6 +160,24 @@ BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Ind
   st.fell_back = fell_back;
   for (Index b = 0; b < B; ++b)
     if (failed_dof[b] >= 0) st.record(b, failed_dof[b], what);
+  return st;
+}
+
+BatchStatus summarize_checked(const int* failed_dof, const double* estimate, Index B, Failure pivot,
+                              double threshold, Index fell_back, Index retried) {
+  BatchStatus st;
+  st.failed_dof = failed_dof;
+  st.fell_back = fell_back;
+  st.retried = retried;
+  for (Index b = 0; b < B; ++b) {
+    if (failed_dof[b] < 0) continue;
+    const bool check = !(estimate[b] <= threshold);
+    st.record(b, failed_dof[b], check ? Failure::ResidualTooLarge : pivot);
+    if (check && st.first_instance == b) {
+      st.estimate = estimate[b];
+      st.threshold = threshold;
+    }
+  }
   return st;
 }
 

@@ -1450,7 +1450,7 @@ TEST_F(Cli, JsiFallbackToAbaOnTheCpu) {
                            "--instances 1 --min-time 0");
   const std::vector<std::string> row = bench_row(bench);
   ASSERT_EQ(row.size(), 10u);
-  EXPECT_EQ(row[1], "jsi+aba");
+  EXPECT_EQ(row[1], "jsi+aba+check");  // bench checks jsi from 200 DoF (--fd-check auto)
   EXPECT_LT(std::stod(row[9]), 1e-5);  // float aba
   EXPECT_NE(bench.err.find("failed on 1 of 1 instances"), std::string::npos) << bench.err;
 
