@@ -199,7 +199,9 @@ def _handover(x, name, where):
             return x
         import torch.utils.dlpack
 
-        return torch.utils.dlpack.to_dlpack(x)
+        # the engines compute no gradients: a tensor that requires one is read as its
+        # detached view (the same memory)
+        return torch.utils.dlpack.to_dlpack(x.detach() if x.requires_grad else x)
     if kind == "cupy":
         return x.toDlpack()
     if kind == "jax" and _cuda_device(x, kind, name) is not None:
