@@ -85,12 +85,11 @@ def worker(args):
             R.prepare(a, b, nv=nv)
         timed = lambda: grid_peer.timed(R, args.min_time)  # noqa: E731
     elif lib == 'scandyn':
-        import mujoco_peer
         import scandyn_peer
         R = scandyn_peer.ScandynRunner(model, args.device if args.device.startswith('cuda') else 'cuda:0')
         errs = scandyn_peer.check(R, ref, S, algos)
         prep = R.prepare
-        timed = lambda: mujoco_peer.timed(R.call, R.sync, args.min_time)  # noqa: E731
+        timed = lambda: common.timed(R.call, R.sync, args.min_time)  # noqa: E731
     else:
         import mujoco_peer
         R = (mujoco_peer.MjxRunner(args.device, args.mjx_matmul_precision) if lib == 'mujoco-mjx'

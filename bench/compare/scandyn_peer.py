@@ -10,7 +10,7 @@ with "-py" (e.g. thread-py, aba_thread-py).
 
 The check runs the function API on torch CUDA tensors of the CHECK_STATES states (scandyn's
 DoF order: no permutation) against the double serial reference, like the peers. Timing:
-mujoco_peer.timed's procedure with torch.cuda.synchronize as the wait.
+common.timed (bench's procedure) with torch.cuda.synchronize as the wait.
 """
 import numpy as np
 

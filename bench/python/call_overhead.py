@@ -26,6 +26,9 @@ import time
 
 import numpy as np
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'compare'))
+from common import timed  # noqa: E402  bench's procedure, as the comparison's peers are timed
+
 ENGINES = {'id': 'InverseDynamics', 'bias': 'BiasForces', 'mass': 'MassMatrix', 'fd': 'ForwardDynamics'}
 INPUTS = {'id': ('q', 'qd', 'qdd'), 'bias': ('q', 'qd'), 'mass': ('q',), 'fd': ('q', 'qd', 'tau')}
 
@@ -40,22 +43,6 @@ def cxx_row(scandyn, model, algo, batch, min_time):
         if len(f) >= 8 and f[0] == algo and not f[1].endswith('-host') and f[1] != 'strategy':
             return float(f[7]), f[1]
     raise RuntimeError('no device-resident row in: ' + r.stdout)
-
-
-def timed(call, sync, min_time):
-    """bench's procedure: a warm-up call, then rounds (at most doubling) until min_time."""
-    call()
-    sync()
-    calls, round_, t0 = 0, 1, time.perf_counter()
-    while True:
-        for _ in range(round_):
-            call()
-        sync()
-        calls += round_
-        el = time.perf_counter() - t0
-        if el >= min_time:
-            return el / calls
-        round_ = max(1, min(calls, int((min_time - el) / (el / calls)) + 1))
 
 
 def host_time(call, sync, calls=200):

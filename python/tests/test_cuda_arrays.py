@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import scandyn as sd
-from conftest import DTYPES, states
+from conftest import DTYPES, states, degenerate_urdf
 
 cuda_reason = sd.backend_unusable("cuda")
 pytestmark = pytest.mark.skipif(bool(cuda_reason), reason=f"backend cuda: {cuda_reason}")
@@ -248,13 +248,7 @@ def test_batch_beyond_device_memory():
 def test_forward_dynamics_failure_on_device(lib, tmp_path):
     """A zero pivot on the device: not raised at call time (that would need a wait), read
     by check() (the function API checks by default), the failed instances unwritten."""
-    urdf = tmp_path / "degenerate.urdf"
-    urdf.write_text("""<robot name="degenerate">
-  <link name="base"/>
-  <link name="a"><inertial><mass value="1"/><origin xyz="0 0 0"/>
-    <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial></link>
-  <joint name="j" type="continuous"><parent link="base"/><child link="a"/><axis xyz="0 0 1"/></joint>
-</robot>""")
+    urdf = degenerate_urdf(tmp_path)
     m = sd.load_model(str(urdf), allow_nonphysical_inertia=True)
     q = np.zeros((3, 1))
     with pytest.raises(sd.ForwardDynamicsError, match="instance 0: articulated inertia pivot at DoF 0"):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import scandyn as sd
-from conftest import states
+from conftest import states, degenerate_urdf
 
 
 @pytest.fixture(scope="module")
@@ -157,13 +157,7 @@ def test_unallocatable_cuda_result_refused(iiwa):
 def test_forward_dynamics_failure(tmp_path):
     """A link whose inertia about its joint axis is zero: the articulated-inertia pivot is
     0, and forward dynamics raises with the library's BatchStatus message."""
-    urdf = tmp_path / "degenerate.urdf"
-    urdf.write_text("""<robot name="degenerate">
-  <link name="base"/>
-  <link name="a"><inertial><mass value="1"/><origin xyz="0 0 0"/>
-    <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial></link>
-  <joint name="j" type="continuous"><parent link="base"/><child link="a"/><axis xyz="0 0 1"/></joint>
-</robot>""")
+    urdf = degenerate_urdf(tmp_path)
     with pytest.raises(sd.ModelError):
         sd.load_model(str(urdf))
     m = sd.load_model(str(urdf), allow_nonphysical_inertia=True)
