@@ -90,18 +90,36 @@ _KDL_CPU, _KDL_CUDA, _KDL_CUDA_HOST = 1, 2, 3
 _LEGACY_STREAM = 1  # DLPack's and CUDA's name for the legacy default stream (cudaStreamLegacy)
 
 
+_KINDS = {np.ndarray: "numpy"}  # type -> array library, filled as types are seen
+
+
 def _kind(x):
     """The array library of x: 'numpy', 'torch', 'cupy', 'jax' or 'other'."""
-    if isinstance(x, np.ndarray):
-        return "numpy"
-    mod = type(x).__module__
-    if mod.startswith("torch"):
-        return "torch"
-    if mod.startswith("cupy"):
-        return "cupy"
-    if mod.startswith(("jax", "jaxlib")):
-        return "jax"
-    return "other"
+    t = type(x)
+    kind = _KINDS.get(t)
+    if kind is None:
+        mod = t.__module__
+        kind = ("numpy" if isinstance(x, np.ndarray) else "torch" if mod.startswith("torch")
+                else "cupy" if mod.startswith("cupy") else "jax" if mod.startswith(("jax", "jaxlib")) else "other")
+        _KINDS[t] = kind
+    return kind
+
+
+class _Torch:
+    """torch's functions the device path calls on every call, looked up once."""
+
+    raw_stream = None  # torch._C._cuda_getCurrentRawStream, or a slower equivalent
+    to_dlpack = None
+
+    @classmethod
+    def load(cls):
+        import torch
+        import torch.utils.dlpack
+
+        raw = getattr(torch._C, "_cuda_getCurrentRawStream", None)
+        cls.raw_stream = raw if raw is not None else (lambda d: torch.cuda.current_stream(d).cuda_stream)
+        cls.to_dlpack = torch.utils.dlpack.to_dlpack
+        return cls
 
 
 def _is_torch(x):
@@ -115,7 +133,7 @@ def _cuda_device(x, kind, name):
     if kind == "numpy":
         return None
     if kind == "torch":
-        return x.device.index if x.is_cuda else None
+        return x.get_device() if x.is_cuda else None
     dev = getattr(x, "__dlpack_device__", None)
     if dev is None:
         if hasattr(x, "__cuda_array_interface__"):
@@ -153,10 +171,7 @@ def _current_stream(kind, device):
     stream of the device; the legacy default stream for JAX (which exposes none) and
     others."""
     if kind == "torch":
-        import torch
-
-        raw = getattr(torch._C, "_cuda_getCurrentRawStream", None)
-        return raw(device) if raw is not None else torch.cuda.current_stream(device).cuda_stream
+        return (_Torch.raw_stream or _Torch.load().raw_stream)(device)
     if kind == "cupy":
         import cupy
 
@@ -187,21 +202,21 @@ def _where(first, stream=None):
 
 
 def _handover(x, name, where):
-    """An array as the extension reads it: host arrays as they are; CUDA arrays as a
-    DLPack capsule made without any synchronisation (JAX: one that makes the call's
-    stream wait for the array). Arrays on another device than the first are passed on
-    as they are, for the extension to name in its DeviceError."""
-    if x is None or where.cuda is None:
+    """An array as the extension reads it: torch tensors (host or CUDA) as a DLPack
+    capsule from torch.utils.dlpack.to_dlpack, which synchronises nothing (and is
+    quicker than torch's __dlpack__); CuPy arrays as toDlpack() capsules; JAX arrays
+    on a GPU through __dlpack__(stream=...), which makes the call's stream wait for the
+    array; everything else as it is. Arrays on another device than the first are
+    passed on too, for the extension to name in its DeviceError."""
+    if x is None:
         return x
     kind = _kind(x)
     if kind == "torch":
-        if not x.is_cuda:
-            return x
-        import torch.utils.dlpack
-
         # the engines compute no gradients: a tensor that requires one is read as its
         # detached view (the same memory)
-        return torch.utils.dlpack.to_dlpack(x.detach() if x.requires_grad else x)
+        return (_Torch.to_dlpack or _Torch.load().to_dlpack)(x.detach() if x.requires_grad else x)
+    if where.cuda is None:
+        return x
     if kind == "cupy":
         return x.toDlpack()
     if kind == "jax" and _cuda_device(x, kind, name) is not None:
@@ -232,22 +247,26 @@ def _normalize_dtype(dtype):
     return name
 
 
+_NOT_ARRAYS = (list, tuple, int, float)
+
+
 def _inputs(named, dtype=None):
     """The call's arrays, as given (no copy); Python lists, tuples and scalars (not
     arrays) become NumPy arrays of the call's dtype. Returns (arrays, dtype name of the
     first array)."""
     first = dtype
-    for _, x in named:
-        if x is not None and not isinstance(x, (list, tuple, int, float)):
-            if first is None:
-                first = _dtype_name(x)
-            break
-    first = first or "float64"
     out = []
+    convert = False
     for _, x in named:
-        if isinstance(x, (list, tuple, int, float)):
-            x = np.asarray(x, dtype=first if first in _FLOAT_NAMES else "float64")
+        if isinstance(x, _NOT_ARRAYS):
+            convert = True
+        elif first is None and x is not None:
+            first = _dtype_name(x)
         out.append(x)
+    first = first or "float64"
+    if convert:
+        to = first if first in _FLOAT_NAMES else "float64"
+        out = [np.asarray(x, dtype=to) if isinstance(x, _NOT_ARRAYS) else x for x in out]
     return out, first
 
 
@@ -370,7 +389,10 @@ class _EngineBase:
             out = _empty(where, _lead_of(arrays[0]) + (self.nv,) + tail, self._dtype)
         else:
             _check_out(out)
-        handed = [_handover(a, n, where) for a, (n, _) in zip(arrays, named)]
+        if where.cuda is None and where.kind == "numpy":
+            handed = arrays  # NumPy on the host: read as they are (the buffer protocol)
+        else:
+            handed = [_handover(a, n, where) for a, (n, _) in zip(arrays, named)]
         return where, handed, out, _writable(out, where)
 
     def __repr__(self):
