@@ -21,11 +21,13 @@ def _load_extension():
     their own dependencies first, so a library that another package loaded into the
     global scope with copies of C++ runtime functions (torch's RTLD_GLOBAL CUDA
     dependencies, e.g. libcufile, export std::istringstream constructors of a statically
-    linked libstdc++) cannot interpose on the URDF parser. SCANDYN_NO_DEEPBIND=1
-    imports it with the interpreter's flags (docs/python.md)."""
+    linked libstdc++) cannot interpose on the URDF parser. Not with LD_PRELOAD (an
+    allocator such as jemalloc, or a sanitizer's runtime, must stay visible to every
+    library: deep binding would hide it from these). SCANDYN_NO_DEEPBIND=1 imports it
+    with the interpreter's flags too (docs/python.md)."""
     deep = getattr(_os, "RTLD_DEEPBIND", 0)
     flags = _sys.getdlopenflags()
-    if deep and not _os.environ.get("SCANDYN_NO_DEEPBIND"):
+    if deep and not _os.environ.get("SCANDYN_NO_DEEPBIND") and not _os.environ.get("LD_PRELOAD"):
         _sys.setdlopenflags(flags | deep)
     try:
         from . import _scandyn as ext
