@@ -40,6 +40,7 @@ def _jax_gpu():
     try:
         import jax
 
+        jax.config.update("jax_enable_x64", True)  # float64 arrays stay float64 (JAX's default makes them float32)
         gpus = [d for d in jax.devices() if d.platform == "gpu"]
     except Exception:
         return None
