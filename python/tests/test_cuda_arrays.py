@@ -243,7 +243,7 @@ def test_batch_beyond_device_memory():
     """An engine whose buffers cannot fit in device memory: BackendError naming the bytes."""
     m = sd.load_model("iiwa")
     with pytest.raises(sd.BackendError, match="bytes|GiB|memory"):
-        sd.InverseDynamics(m, backend="cuda", max_batch=10**12, dtype=np.float64)
+        sd.InverseDynamics(m, backend="cuda", max_batch=10**9, dtype=np.float64)  # 10**9 x 7 DoF x 10 x 8 B: 560 GB
 
 
 def test_forward_dynamics_failure_on_device(lib, tmp_path):
