@@ -17,6 +17,7 @@ from .errors import DeviceError, DTypeError, ForwardDynamicsError, ShapeError
 Status = _ext.Status
 
 _FLOAT_NAMES = ("float32", "float64")
+_MAX_INDEX = 2**31 - 1  # scandyn::Index is a 32-bit int
 
 
 # ---- models -------------------------------------------------------------------------
@@ -370,7 +371,10 @@ class _EngineBase:
         self.model = model
         self._dtype = _normalize_dtype(dtype)
         dev = -1 if device is None else int(device)
-        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), int(max_batch), device=dev,
+        max_batch = int(max_batch)
+        if not 1 <= max_batch <= _MAX_INDEX:
+            raise ShapeError(f"max_batch must be from 1 to {_MAX_INDEX} (the engines' instance index), got {max_batch}")
+        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), max_batch, device=dev,
                                   **options)
 
     backend = property(lambda self: self._e.backend, doc="'serial', 'openmp' or 'cuda'")

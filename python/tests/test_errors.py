@@ -176,3 +176,9 @@ def test_forward_dynamics_failure(tmp_path):
     with pytest.raises(sd.ForwardDynamicsError):
         fd(q, q, q)
     assert fd.last_status.failed == 3
+
+
+def test_max_batch_range(iiwa):
+    for bad in (0, -3, 2**31):
+        with pytest.raises(sd.ShapeError, match="max_batch must be from 1 to 2147483647"):
+            sd.InverseDynamics(iiwa, backend="serial", max_batch=bad)
