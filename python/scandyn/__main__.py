@@ -17,12 +17,14 @@ _PKG = os.path.dirname(os.path.abspath(__file__))
 
 def cli_path():
     """The scandyn program this package runs: scandyn/_bin/scandyn of an installed
-    package, else the build tree's <build>/scandyn. Raises FileNotFoundError naming
-    where it looked."""
+    package, else the build tree's <build>/scandyn, else $SCANDYN_CLI. Raises
+    FileNotFoundError naming where it looked."""
     candidates = [
         os.path.join(_PKG, "_bin", "scandyn"),
         os.path.join(os.path.dirname(os.path.dirname(_PKG)), "scandyn"),  # <build>/python/scandyn -> <build>/scandyn
     ]
+    if os.environ.get("SCANDYN_CLI"):  # a build tree whose program lies elsewhere (the tests' variable)
+        candidates.append(os.environ["SCANDYN_CLI"])
     for p in candidates:
         if os.path.isfile(p) and os.access(p, os.X_OK):
             return p
