@@ -18,6 +18,7 @@
 #   5. bench/python/call_overhead.py (iiwa float, B = 1, 10^4, 10^6; C++ rows from the
 #      installed package's scandyn program)                            -> python-overhead.csv
 #      (SCANDYN_SKIP_BENCH=1 skips it)
+# SCANDYN_PY_SKIP_INSTALL=1 reuses the package already installed in the environment.
 # summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 set -uo pipefail
 
@@ -55,13 +56,17 @@ venv=${SCANDYN_PY_VENV:-/tmp/scandyn-venv}
 note "pip install . into $venv -> $out/pip.log"
 [[ -x "$venv/bin/python" ]] || python3 -m venv --system-site-packages "$venv"
 py=$venv/bin/python
-t0=$(date +%s)
-"$py" -m pip install -v --no-build-isolation --no-index --no-deps . \
-  -C cmake.define.CMAKE_CUDA_ARCHITECTURES="$CMAKE_CUDA_ARCHITECTURES" >"$out/pip.log" 2>&1
-rc=$?
-echo "pip install: $(($(date +%s) - t0)) s, exit $rc" >>"$out/pip.log"
-record "pip install ($(($(date +%s) - t0)) s)" $rc
-((rc == 0)) || exit 1
+if [[ "${SCANDYN_PY_SKIP_INSTALL:-0}" == 1 ]]; then
+  record "pip install (skipped: SCANDYN_PY_SKIP_INSTALL=1)" 0
+else
+  t0=$(date +%s)
+  "$py" -m pip install -v --no-build-isolation --no-index --no-deps . \
+    -C cmake.define.CMAKE_CUDA_ARCHITECTURES="$CMAKE_CUDA_ARCHITECTURES" >"$out/pip.log" 2>&1
+  rc=$?
+  echo "pip install: $(($(date +%s) - t0)) s, exit $rc" >>"$out/pip.log"
+  record "pip install ($(($(date +%s) - t0)) s)" $rc
+  ((rc == 0)) || exit 1
+fi
 
 # ---- 2. what is installed ----------------------------------------------------------------
 cd "$out"  # away from the source tree: `import scandyn` is the installed package
