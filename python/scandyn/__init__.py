@@ -5,6 +5,8 @@
     q = np.zeros((1024, m.nv)); qd = np.zeros_like(q); qdd = np.zeros_like(q)
     tau = sd.inverse_dynamics(m, q, qd, qdd)       # (1024, nv), float64 like q
     M = sd.mass_matrix(m, q)                       # (1024, nv, nv)
+    T = sd.frame_placements(m, q, ["iiwa_link_7"])  # (1024, 1, 4, 4) world poses
+    J = sd.frame_jacobians(m, q, ["iiwa_link_7"])   # (1024, 1, 6, nv), rows [angular; linear]
 
 Arrays are batch-first, (B, nv) or (nv,); precision follows their dtype (float32 or
 float64); they reach the library's engines with their own strides, without a copy.
@@ -51,6 +53,7 @@ from ._api import (  # noqa: E402
     load_model,
     mass_matrix,
 )
+from .kinematics import Kinematics, frame_jacobians, frame_placements  # noqa: E402
 from .errors import (  # noqa: E402
     BackendError,
     DeviceError,
@@ -74,7 +77,7 @@ def backend_unusable(backend):
 
 __all__ = [
     "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
-    "ForwardDynamicsError", "InverseDynamics", "MassMatrix", "Model", "ModelError", "ShapeError",
-    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "has_cuda", "has_openmp", "inverse_dynamics",
+    "ForwardDynamicsError", "InverseDynamics", "Kinematics", "MassMatrix", "Model", "ModelError", "ShapeError",
+    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
 ]

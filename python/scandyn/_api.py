@@ -44,6 +44,8 @@ class Model:
     q_lower = property(lambda self: np.array(self._m.q_lower), doc="(nv) lower position limits (-inf: none)")
     q_upper = property(lambda self: np.array(self._m.q_upper), doc="(nv) upper position limits (+inf: none)")
     gravity = property(lambda self: np.array(self._m.gravity), doc="gravity in the base frame (m/s^2)")
+    frames = property(lambda self: self._m.frames,
+                      doc="every frame's name: the URDF links, fixed ones included (scandyn.kinematics)")
 
     def clear_cache(self):
         """Drops the engines (and their scratch memory) the function API made for this model."""
@@ -370,12 +372,12 @@ class _EngineBase:
             raise TypeError(f"model must be a scandyn.Model (scandyn.load_model), got {type(model).__name__}")
         self.model = model
         self._dtype = _normalize_dtype(dtype)
-        dev = -1 if device is None else int(device)
         max_batch = int(max_batch)
         if not 1 <= max_batch <= _MAX_INDEX:
             raise ShapeError(f"max_batch must be from 1 to {_MAX_INDEX} (the engines' instance index), got {max_batch}")
-        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), max_batch, device=dev,
-                                  **options)
+        if device is not None:
+            options["device"] = int(device)
+        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), max_batch, **options)
 
     backend = property(lambda self: self._e.backend, doc="'serial', 'openmp' or 'cuda'")
     strategy = property(lambda self: self._e.strategy, doc="the variant the engine runs")
@@ -573,7 +575,9 @@ def _cached(cls, key_option, model, backend, first, **options):
     if engine is None or engine.max_batch < batch:
         engine = None  # the old engine's device memory goes before the new one is made
         model._engines.pop(key, None)
-        engine = cls(model, backend=backend, max_batch=max(batch, 1), dtype=dtype, device=device, **options)
+        if device is not None:
+            options["device"] = device
+        engine = cls(model, backend=backend, max_batch=max(batch, 1), dtype=dtype, **options)
         model._engines[key] = engine
     return engine
 

@@ -33,9 +33,14 @@ def test_info_same_as_program():
     assert r.returncode == 0, r.stderr
     assert "\nnv       7\n" in r.stdout
     assert r.stdout.splitlines()[0] == p.stdout.splitlines()[0] == "model    iiwa14"
-    # the DoF lines (index, joint, type, parent, child, axis) are the program's
-    dof = lambda out: [l for l in out.splitlines() if l[:1].isdigit()]
+    # the DoF table (index, joint, type, parent, child, axis: up to the blank line) is the program's
+    def dof(out):
+        lines = out.splitlines()
+        start = next(i for i, l in enumerate(lines) if l.startswith("index")) + 1
+        end = next((i for i in range(start, len(lines)) if not lines[i].strip()), len(lines))
+        return lines[start:end]
     assert len(dof(r.stdout)) == 7 and dof(r.stdout) == dof(p.stdout)
+    assert r.stdout == p.stdout.replace(p.stdout.splitlines()[1], r.stdout.splitlines()[1])  # all else alike
 
 
 def test_eval_matches_module(tmp_path):
