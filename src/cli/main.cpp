@@ -95,13 +95,17 @@ const char* const kEvalUsage =
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
-    "                       [--backend serial|openmp|cuda]\n"
+    "                       [--backend serial|openmp|cuda] [--tau TAU.npy]\n"
     "\n"
     "Simulates the scene (docs/scenes.md) for N steps from its initial state, with zero\n"
-    "joint torques, and writes the state of every instance at steps 0, K, 2K, ... and N:\n"
+    "joint torques or those of --tau, and writes the state of every instance at steps\n"
+    "0, K, 2K, ... and N:\n"
     "  .csv  columns step,time,instance,q_<i>...,qd_<i>..., 17 significant digits\n"
     "  .npy  a NumPy array of shape (records, instances, 1 + 2 nv): [time, q, qd], float64\n"
     "        (or float32 for a float scene)\n"
+    "  --tau TAU.npy  joint torques (float32 or float64 .npy, numpy.save): shape (N, B, nv),\n"
+    "        row t acting during the step from t to t + 1; (B, nv), constant per instance;\n"
+    "        or (nv,), one row for every instance and step (B: the scene's instances)\n"
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
@@ -157,7 +161,7 @@ const Command kCommands[] = {
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
       "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol"},
      &run_bench},
-    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
+    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau"}, &run_rollout},
 };
 
 int fail(int code, const std::string& message) {
