@@ -6,6 +6,7 @@
 #include <type_traits>
 
 #include "engines.hpp"
+#include "hybrid.hpp"
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/limits.hpp"
@@ -208,6 +209,8 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
 }  // namespace
 
 int run_eval(const Args& args) {
+  if (args.get("algo", "") == "hybrid") return run_eval_hybrid(args);
+  if (args.has("prescribed")) throw UsageError("--prescribed applies only to --algo hybrid");
   const std::string& model_spec = args.required("model");
   const std::string& states_path = args.required("states");
   const std::string& out_path = args.required("out");

@@ -71,7 +71,13 @@ const char* const kEvalUsage =
     "  --precision P     double (default) or float\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
-    "                    with a warning, instead of refusing the model\n";
+    "                    with a warning, instead of refusing the model\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv --algo hybrid\n"
+    "                    --prescribed LIST [--backend ...] [--threads N] [--precision P]\n"
+    "Hybrid dynamics: LIST names the DoFs whose accelerations are given (DoF indices or\n"
+    "joint names, comma-separated); reads q_<i>, qd_<i>, qdd_<i> of those DoFs and\n"
+    "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
@@ -109,7 +115,11 @@ const char* const kBenchUsage =
     "Times whole simulator steps of the scene (instances, backend and precision from the\n"
     "scene unless given); evals_per_second is instance-steps per second, strategy\n"
     "<engine>:<integrator>:<effects>, max_rel_err the state after 10 steps against the\n"
-    "double serial simulator (at most 1000 instances compared).\n";
+    "double serial simulator (at most 1000 instances compared).\n"
+    "\n"
+    "       scandyn bench --model M --algo hybrid --prescribed LIST --instances B ...\n"
+    "Times the hybrid dynamics (LIST as for eval); max_rel_err of qdd and tau against\n"
+    "the double serial hybrid dynamics.\n";
 
 // One subcommand: its name, usage text, accepted flags and body.
 struct Command {
@@ -124,12 +134,12 @@ const Command kCommands[] = {
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia"},
+      "allow-nonphysical-inertia", "prescribed"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene"},
+      "csv", "allow-nonphysical-inertia", "scene", "prescribed"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
 };
