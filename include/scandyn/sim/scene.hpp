@@ -17,6 +17,7 @@
 #include "scandyn/model/model.hpp"
 #include "scandyn/sim/effects.hpp"
 #include "scandyn/sim/integrators.hpp"
+#include "scandyn/sim/prescribed.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -67,6 +68,7 @@ struct Scene {
   int threads = 0;                    // OpenMP threads, 0: all
   Index instances = 1;                // B
   InitialState initial;
+  PrescribedMotion prescribed;        // driven DoFs and their trajectories ("prescribed"), or empty
 
   Index nv() const { return model.nv(); }
 };
