@@ -99,17 +99,27 @@ void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, 
   }
 }
 
-double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd) {
+double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd, Index* loop) {
   const Index n = model.nv(), m = loops.rows();
   std::vector<double> phi(m), J(static_cast<std::size_t>(m) * n);
   loop_kinematics(model, loops, q, qd, phi.data(), J.data(), nullptr);
   double worst = 0;
-  for (Index r = 0; r < m; ++r) {
-    double jqd = 0;
-    for (Index j = 0; j < n; ++j) jqd += J[r * n + j] * qd[j];
-    worst = std::max({worst, std::fabs(phi[r]), std::fabs(jqd)});
+  Index row = 0, where = -1;
+  for (Index k = 0; k < static_cast<Index>(loops.loops.size()); ++k) {
+    for (Index r = row; r < row + loops.loops[k].rows(); ++r) {
+      double jqd = 0;
+      for (Index j = 0; j < n; ++j) jqd += J[r * n + j] * qd[j];
+      const double e = std::max(std::fabs(phi[r]), std::fabs(jqd));
+      if (where < 0 || e > worst || std::isnan(e)) worst = e, where = k;
+    }
+    row += loops.loops[k].rows();
   }
+  if (loop) *loop = where;
   return worst;
+}
+
+bool generator_has_loops(const std::string& spec) {
+  return spec == "fivebar" || spec == "fourbar" || spec.rfind("cloth:", 0) == 0;
 }
 
 namespace {

@@ -15,7 +15,7 @@
 
 namespace scandyn::cli {
 
-std::vector<unsigned char> parse_prescribed(const std::string& list, const Model& model) {
+std::vector<unsigned char> parse_prescribed(const std::string& list, const Model& model, const std::string& flag) {
   const Index nv = model.nv();
   std::vector<unsigned char> mask(static_cast<std::size_t>(nv), 0);
   if (list.empty()) return mask;
@@ -23,7 +23,7 @@ std::vector<unsigned char> parse_prescribed(const std::string& list, const Model
   for (;;) {
     const std::size_t comma = list.find(',', start);
     const std::string item = list.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
-    if (item.empty()) throw UsageError("--prescribed: empty item in '" + printable(list) + "'");
+    if (item.empty()) throw UsageError("--" + flag + ": empty item in '" + printable(list) + "'");
     Index dof = -1;
     const auto name = std::find(model.joint_names.begin(), model.joint_names.end(), item);
     if (name != model.joint_names.end()) {
@@ -31,14 +31,14 @@ std::vector<unsigned char> parse_prescribed(const std::string& list, const Model
     } else if (item.find_first_not_of("0123456789") == std::string::npos && item.size() <= 9) {
       dof = static_cast<Index>(std::stol(item));
       if (dof >= nv)
-        throw UsageError("--prescribed: DoF " + item + " is out of range (the model has " + std::to_string(nv) +
+        throw UsageError("--" + flag + ": DoF " + item + " is out of range (the model has " + std::to_string(nv) +
                          " DoF, 0 to " + std::to_string(nv - 1) + ")");
     } else {
-      throw UsageError("--prescribed: '" + printable(item) + "' is neither a DoF index nor a joint of " +
+      throw UsageError("--" + flag + ": '" + printable(item) + "' is neither a DoF index nor a joint of " +
                        printable(model.source) + " (scandyn info lists them)");
     }
     if (mask[static_cast<std::size_t>(dof)])
-      throw UsageError("--prescribed: DoF " + std::to_string(dof) + " is listed twice");
+      throw UsageError("--" + flag + ": DoF " + std::to_string(dof) + " is listed twice");
     mask[static_cast<std::size_t>(dof)] = 1;
     if (comma == std::string::npos) break;
     start = comma + 1;

@@ -32,8 +32,10 @@ const char* const kUsage =
     "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
 
 const char* const kInfoUsage =
-    "usage: scandyn info --model M [--allow-nonphysical-inertia]\n"
+    "usage: scandyn info --model M [--allow-nonphysical-inertia] [--print-loops]\n"
     "\n"
+    "--print-loops prints the loops a generator carries (fivebar, fourbar, cloth:K:N)\n"
+    "as a loop file instead.\n"
     "Prints the model's name, source, nv, root link and gravity, the CUDA devices (or why\n"
     "there are none), then one line per DoF in DoF order: index, joint, type, parent index\n"
     "(-1 = base), child link, axis.\n";
@@ -77,7 +79,14 @@ const char* const kEvalUsage =
     "                    --prescribed LIST [--backend ...] [--threads N] [--precision P]\n"
     "Hybrid dynamics: LIST names the DoFs whose accelerations are given (DoF indices or\n"
     "joint names, comma-separated); reads q_<i>, qd_<i>, qdd_<i> of those DoFs and\n"
-    "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n";
+    "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv [--loops FILE]\n"
+    "                    [--algo fd | --algo id --actuated LIST]\n"
+    "Closed loops (a loop file, or the loops of fivebar, fourbar, cloth:K:N): fd writes\n"
+    "qdd_fd_<i> and lambda_<k> (M qdd + h = tau + J^T lambda, J qdd + Jdot qd = 0);\n"
+    "id with the actuated DoFs writes tau_id_<i> (minimum norm) and lambda_<k>. A state\n"
+    "violating its loops by more than 1e-6 is an error. Serial, double.\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
@@ -130,11 +139,11 @@ struct Command {
 };
 
 const Command kCommands[] = {
-    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
+    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "print-loops"}, &run_info},
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "prescribed"},
+      "allow-nonphysical-inertia", "prescribed", "loops", "actuated"},
      &run_eval},
     {"bench",
      kBenchUsage,

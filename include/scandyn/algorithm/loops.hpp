@@ -77,8 +77,13 @@ std::string loops_json(const LoopSet& loops);
 void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, const double* qd, double* phi,
                      double* J, double* gamma);
 
-// The largest violation of the loops by (q, qd): max over |phi| and |J qd|.
-double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd);
+// The largest violation of the loops by (q, qd): max over |phi| and |J qd|; loop,
+// when not null, receives the index of the loop where it is (-1 without loops).
+double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd,
+                      Index* loop = nullptr);
+
+// True for the generator specs that carry loops (fivebar, fourbar, cloth:K:N).
+bool generator_has_loops(const std::string& spec);
 
 // Outcome of a constrained solve.
 struct LoopSolveInfo {
