@@ -202,7 +202,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "threads", "instances", "initial", "prescribed"});
+                           "backend", "threads", "instances", "initial", "prescribed", "loops"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -369,6 +369,26 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       in.q_spread = rd.contains("q") ? r.per_dof("initial.random.q", rd["q"], nv, true) : std::vector<double>(nv, 0.0);
       in.qd_spread = rd.contains("qd") ? r.per_dof("initial.random.qd", rd["qd"], nv, true) : std::vector<double>(nv, 0.0);
     }
+  }
+
+  // ---- closed loops: the generator's, then the scene's (an array of loops, or a loop file)
+  try {
+    s.loops = generator_loops(s.model_spec, s.model);
+    if (doc.contains("loops")) {
+      const json& l = doc["loops"];
+      LoopSet more;
+      if (l.is_string()) {
+        const std::string p = l.get<std::string>();
+        more = load_loops(!p.empty() && p[0] == '/' ? p : base_dir + "/" + p, s.model);
+      } else if (l.is_array()) {
+        more = parse_loops(json{{"loops", l}}.dump(), source, s.model);
+      } else {
+        r.expected("loops", "an array of loops or a loop file's path", l);
+      }
+      for (const LoopClosure& c : more.loops) s.loops.loops.push_back(c);
+    }
+  } catch (const LoopError& e) {
+    throw SceneError(e.what());
   }
 
   // ---- prescribed joint motion

@@ -18,6 +18,7 @@
 #include "scandyn/sim/effects.hpp"
 #include "scandyn/sim/integrators.hpp"
 #include "scandyn/sim/prescribed.hpp"
+#include "scandyn/algorithm/loops.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -69,6 +70,7 @@ struct Scene {
   Index instances = 1;                // B
   InitialState initial;
   PrescribedMotion prescribed;        // driven DoFs and their trajectories ("prescribed"), or empty
+  LoopSet loops;                      // closed loops: the generator's and the scene's "loops"
 
   Index nv() const { return model.nv(); }
 };

@@ -101,6 +101,11 @@ struct SimSetup {
   PrescribedMotion prescribed;
   std::vector<unsigned char> prescribed_mask;  // (nv) 1 at driven DoFs, or empty
   double time = 0;                          // the time at the start of the step being taken
+  // closed loops (the scene's): forward dynamics with the loops
+  // (constrained_forward_dynamics, double), the state projected onto the loops after
+  // every step (project_to_loops); serial and openmp, euler and rk4
+  LoopSet loops;
+  Model loop_model;                         // the model in double for the loop solves
 };
 
 namespace detail {
