@@ -62,24 +62,11 @@ cudaError_t launch_hybrid_instances(const ThreadModel<S>& model, unsigned long l
                          !qdd_out.data || !tau_out.data))
     return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
-  const AbaKernel kernel = choose_aba_kernel(model);
-  std::visit(
-      [&](const auto& params) {
-        constexpr int C = std::decay_t<decltype(params)>::capacity;
-        auto launch = [&](auto slots) {
-          hybrid_instances_kernel<S, C, decltype(slots)::value><<<blocks, kFdInstancesBlock, 0, stream>>>(
-              params, prescribed, batch_in, qdd_out, tau_out, failed_dof_out);
-        };
-        using std::integral_constant;
-        if (kernel == AbaKernel::Chains) launch(integral_constant<int, 0>{});
-        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
-          if (kernel == AbaKernel::Branches) launch(integral_constant<int, int(kAbaRegisterSlots)>{});
-          else launch(integral_constant<int, C>{});
-        } else {
-          launch(integral_constant<int, C>{});
-        }
-      },
-      model.params());
+  visit_aba_kernel(model, [&](const auto& params, auto slots) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    hybrid_instances_kernel<S, C, decltype(slots)::value><<<blocks, kFdInstancesBlock, 0, stream>>>(
+        params, prescribed, batch_in, qdd_out, tau_out, failed_dof_out);
+  });
   return cudaGetLastError();
 }
 

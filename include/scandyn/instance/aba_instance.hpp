@@ -8,6 +8,9 @@
 #include "scandyn/instance/thread_model.hpp"
 #include "scandyn/instance/traversal.hpp"
 
+#include <type_traits>
+#include <variant>
+
 #if SCANDYN_HAS_CUDA
 namespace scandyn {
 namespace cuda {
@@ -39,6 +42,28 @@ AbaKernel choose_aba_kernel(const ThreadModel<S>& model) {
   if (model.branch_slots() == 0) return AbaKernel::Chains;
   if (sizeof(S) == 4 && model.branch_slots() <= kAbaRegisterSlots) return AbaKernel::Branches;
   return AbaKernel::Tree;
+}
+
+// Calls launch(params, std::integral_constant<int, kSlots>{}) with the model's
+// parameter block and the ABA kernel variant choose_aba_kernel picks (kSlots: 0 for
+// chains, kAbaRegisterSlots for float's register slots, the capacity for any tree):
+// the one dispatch of the ABA's kernels (forward and hybrid dynamics).
+template <class S, class F>
+void visit_aba_kernel(const ThreadModel<S>& model, F&& launch) {
+  const AbaKernel kernel = choose_aba_kernel(model);
+  std::visit(
+      [&](const auto& params) {
+        constexpr int C = std::decay_t<decltype(params)>::capacity;
+        using std::integral_constant;
+        if (kernel == AbaKernel::Chains) launch(params, integral_constant<int, 0>{});
+        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
+          if (kernel == AbaKernel::Branches) launch(params, integral_constant<int, int(kAbaRegisterSlots)>{});
+          else launch(params, integral_constant<int, C>{});
+        } else {
+          launch(params, integral_constant<int, C>{});
+        }
+      },
+      model.params());
 }
 
 #if defined(__CUDACC__)
