@@ -83,25 +83,15 @@ cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>&
   if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
     return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
-  const AbaKernel aba = kAba ? choose_aba_kernel(model) : AbaKernel::Tree;
-  std::visit(
-      [&](const auto& params) {
-        constexpr int C = std::decay_t<decltype(params)>::capacity;
-        auto launch = [&](auto algo) {
-          fd_instances_kernel<S, C, decltype(algo)::value>
-              <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
-        };
-        using std::integral_constant;
-        if constexpr (!kAba) launch(integral_constant<int, kJsiKernel>{});
-        else if (aba == AbaKernel::Chains) launch(integral_constant<int, 0>{});
-        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
-          if (aba == AbaKernel::Branches) launch(integral_constant<int, int(kAbaRegisterSlots)>{});
-          else launch(integral_constant<int, C>{});
-        } else {
-          launch(integral_constant<int, C>{});
-        }
-      },
-      model.params());
+  auto launch = [&](const auto& params, auto algo) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    fd_instances_kernel<S, C, decltype(algo)::value>
+        <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+  };
+  if constexpr (kAba)
+    visit_aba_kernel(model, launch);
+  else
+    std::visit([&](const auto& params) { launch(params, std::integral_constant<int, kJsiKernel>{}); }, model.params());
   return cudaGetLastError();
 }
 

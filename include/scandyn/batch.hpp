@@ -48,6 +48,16 @@ struct BiasBatchIn {
   const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
 };
 
+// Hybrid dynamics' inputs: each DoF has its acceleration or its force given (the
+// engine's prescribed mask, HybridDynamics).
+template <class S>
+struct HybridBatchIn {
+  BatchView<const S> q, qd;           // (nv x B) joint positions, velocities
+  BatchView<const S> qdd;             // (nv x B) accelerations: read at prescribed DoFs only
+  BatchView<const S> tau;             // (nv x B) forces: read at the other DoFs only
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
 // Forward-dynamics methods. Auto resolves by backend and shape (choose_fd_method).
 enum class FdMethod {
   Auto,

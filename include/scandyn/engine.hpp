@@ -198,6 +198,31 @@ template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                                const KinematicsOptions& kinematics);
 
+// Hybrid dynamics (Featherstone 2008, 9.2): for each DoF either its acceleration
+// (prescribed) or its force is given; computes the rest. The prescribed set is the
+// engine's, fixed at construction (prescribed(): nv entries, nonzero = the DoF's
+// acceleration is given).
+template <class S>
+class HybridDynamics : public Engine {
+ public:
+  // qdd and tau (nv x B each, full vectors) for every instance, gravity included:
+  // tau = M qdd + h (- J^T fext) on every row, qdd = in.qdd at prescribed DoFs, tau =
+  // in.tau at the others (copied through). An instance whose articulated pivot (of
+  // a DoF whose force is given) is not positive and finite is reported in the
+  // status and its outputs left unwritten.
+  virtual BatchStatus compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau) = 0;
+  virtual const std::vector<unsigned char>& prescribed() const = 0;
+};
+
+// The hybrid-dynamics engine of options.backend (serial and openmp: the reference
+// hybrid_dynamics per instance; cuda: one thread per instance up to
+// cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
+// factories, and for a prescribed mask whose size is not nv.
+template <class S>
+std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
+                                                        const std::vector<unsigned char>& prescribed,
+                                                        const BackendOptions& options);
+
 namespace cuda {
 // The CUDA backend's one-thread-per-instance kernels take models of up to this many DoF.
 inline constexpr Index kMaxThreadDofs = 64;
@@ -265,5 +290,7 @@ void check_kinematics_options(const ModelTpl<S>& model, const KinematicsOptions&
 // Kinematics: q and whichever of poses and J has data.
 template <class S>
 void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J, Index max_batch);
+template <class S>
+void check_batch(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau, Index max_batch);
 
 }  // namespace scandyn

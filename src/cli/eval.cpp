@@ -6,6 +6,8 @@
 #include <type_traits>
 
 #include "engines.hpp"
+#include "hybrid.hpp"
+#include "scandyn/algorithm/loops.hpp"
 #include "cli.hpp"
 #include "kinematics_columns.hpp"
 #include "scandyn/io/csv.hpp"
@@ -236,6 +238,10 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
 }  // namespace
 
 int run_eval(const Args& args) {
+  if (args.get("algo", "") == "hybrid") return run_eval_hybrid(args);
+  if (args.has("loops") || generator_has_loops(args.required("model"))) return run_eval_loops(args);
+  if (args.has("actuated")) throw UsageError("--actuated applies only to models with loops (--loops FILE)");
+  if (args.has("prescribed")) throw UsageError("--prescribed applies only to --algo hybrid");
   const std::string& model_spec = args.required("model");
   const std::string& states_path = args.required("states");
   const std::string& out_path = args.required("out");

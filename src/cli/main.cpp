@@ -32,8 +32,10 @@ const char* const kUsage =
     "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
 
 const char* const kInfoUsage =
-    "usage: scandyn info --model M [--allow-nonphysical-inertia]\n"
+    "usage: scandyn info --model M [--allow-nonphysical-inertia] [--print-loops]\n"
     "\n"
+    "--print-loops prints the loops a generator carries (fivebar, fourbar, cloth:K:N)\n"
+    "as a loop file instead.\n"
     "Prints the model's name, source, nv, root link and gravity, the CUDA devices (or why\n"
     "there are none), then one line per DoF in DoF order: index, joint, type, parent index\n"
     "(-1 = base), child link, axis; then one line per frame (every URDF link, fixed\n"
@@ -91,7 +93,20 @@ const char* const kEvalUsage =
     "  --precision P     double (default) or float\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
-    "                    with a warning, instead of refusing the model\n";
+    "                    with a warning, instead of refusing the model\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv --algo hybrid\n"
+    "                    --prescribed LIST [--backend ...] [--threads N] [--precision P]\n"
+    "Hybrid dynamics: LIST names the DoFs whose accelerations are given (DoF indices or\n"
+    "joint names, comma-separated); reads q_<i>, qd_<i>, qdd_<i> of those DoFs and\n"
+    "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv [--loops FILE]\n"
+    "                    [--algo fd | --algo id --actuated LIST]\n"
+    "Closed loops (a loop file, or the loops of fivebar, fourbar, cloth:K:N): fd writes\n"
+    "qdd_fd_<i> and lambda_<k> (M qdd + h = tau + J^T lambda, J qdd + Jdot qd = 0);\n"
+    "id with the actuated DoFs writes tau_id_<i> (minimum norm) and lambda_<k>. A state\n"
+    "violating its loops by more than 1e-6 is an error. Serial, double.\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
@@ -139,7 +154,11 @@ const char* const kBenchUsage =
     "Times whole simulator steps of the scene (instances, backend and precision from the\n"
     "scene unless given); evals_per_second is instance-steps per second, strategy\n"
     "<engine>:<integrator>:<effects>, max_rel_err the state after 10 steps against the\n"
-    "double serial simulator (at most 1000 instances compared).\n";
+    "double serial simulator (at most 1000 instances compared).\n"
+    "\n"
+    "       scandyn bench --model M --algo hybrid --prescribed LIST --instances B ...\n"
+    "Times the hybrid dynamics (LIST as for eval); max_rel_err of qdd and tau against\n"
+    "the double serial hybrid dynamics.\n";
 
 // One subcommand: its name, usage text, accepted flags and body.
 struct Command {
@@ -150,16 +169,17 @@ struct Command {
 };
 
 const Command kCommands[] = {
-    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia"}, &run_info},
+    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "print-loops"}, &run_info},
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "frames", "reference", "fd-check", "fd-check-tol"},
+      "allow-nonphysical-inertia", "frames", "reference", "fd-check", "fd-check-tol", "prescribed", "loops",
+      "actuated"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol", "prescribed"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau"}, &run_rollout},
 };

@@ -11,6 +11,7 @@
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
 #include "scandyn/cuda/kinematics.hpp"
@@ -227,6 +228,12 @@ template <class S>
 void check_batch(const BatchView<const S>& q, const BatchView<S>& M, Index max_batch) {
   check_views({{"q", info(q)}, {"M", info(M)}}, max_batch);
 }
+template <class S>
+void check_batch(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"tau", info(in.tau)},
+               {"qdd out", info(qdd)}, {"tau out", info(tau)}},
+              max_batch);
+}
 
 // ---- Auto choices ---------------------------------------------------------------
 
@@ -393,7 +400,25 @@ SCANDYN_INSTANTIATE_KINEMATICS(float)
 SCANDYN_INSTANTIATE_KINEMATICS(double)
 #undef SCANDYN_INSTANTIATE_KINEMATICS
 
+template <class S>
+std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
+                                                        const std::vector<unsigned char>& prescribed,
+                                                        const BackendOptions& o) {
+  require_built(o.backend);
+  if (prescribed.size() != static_cast<std::size_t>(model.nv()))
+    throw BackendError("hybrid dynamics: the prescribed mask has " + std::to_string(prescribed.size()) +
+                       " entries for a model of " + std::to_string(model.nv()) + " DoF");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
+#endif
+  return cpu::make_hybrid_dynamics(model, prescribed, o);
+}
+
 #define SCANDYN_INSTANTIATE(S)                                                                                  \
+  template void check_batch(const HybridBatchIn<S>&, const BatchView<S>&, const BatchView<S>&, Index);         \
+  template std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>&,                          \
+                                                                   const std::vector<unsigned char>&,           \
+                                                                   const BackendOptions&);                      \
   template void check_batch(const IdBatchIn<S>&, const BatchView<S>&, Index);                                  \
   template void check_batch(const FdBatchIn<S>&, const BatchView<S>&, Index);                                  \
   template void check_batch(const BiasBatchIn<S>&, const BatchView<S>&, Index);                                \
