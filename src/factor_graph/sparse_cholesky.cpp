@@ -6,6 +6,7 @@
 #include <cholmod.h>
 
 #include <algorithm>
+#include <cmath>
 #include <stdexcept>
 
 namespace scandyn::factor_graph {
@@ -33,6 +34,9 @@ struct SparseCholesky::Impl {
   cholmod_dense* Y = nullptr;     // solve2 workspaces
   cholmod_dense* E = nullptr;
   std::vector<Index> perm;        // elimination order after analysis
+  std::vector<double> d;          // (unknowns) column scaling of A: 1 / |column k of A|
+  std::vector<double> scaled;     // (nnz) values of D At (At's rows scaled), the matrix factored
+  cholmod_sparse DAt;             // view of At's pattern with the scaled values
 
   void view(const SparseMatrix& M) {
     At.nrow = static_cast<std::size_t>(M.rows);
@@ -109,6 +113,23 @@ SparseCholesky::SparseCholesky(const SparseMatrix& At, Ordering ordering, const 
 
 SparseCholesky::~SparseCholesky() = default;
 
+const std::vector<Index>& SparseCholesky::elimination_order() const { return impl_->perm; }
+
+std::vector<std::pair<Index, Index>> SparseCholesky::factor_pattern() const {
+  Impl& m = *impl_;
+  cholmod_factor* F = cholmod_copy_factor(m.L, &m.c);
+  cholmod_sparse* S = F ? cholmod_factor_to_sparse(F, &m.c) : nullptr;
+  cholmod_free_factor(&F, &m.c);
+  if (!S) throw std::runtime_error("SparseCholesky: cannot read the factor's pattern (factorize first)");
+  std::vector<std::pair<Index, Index>> out;
+  const Index* p = static_cast<const Index*>(S->p);
+  const Index* ri = static_cast<const Index*>(S->i);
+  for (Index j = 0; j < static_cast<Index>(S->ncol); ++j)
+    for (Index t = p[j]; t < p[j + 1]; ++t) out.emplace_back(ri[t], j);
+  cholmod_free_sparse(&S, &m.c);
+  return out;
+}
+
 // The elimination tree of A^T A under the analysed permutation (Liu's algorithm on
 // the rows of A, as CSparse's cs_etree with ata = 1).
 std::vector<Index> SparseCholesky::etree() const {
@@ -145,7 +166,17 @@ std::vector<Index> SparseCholesky::etree() const {
 void SparseCholesky::factorize(const SparseMatrix& At) {
   Impl& m = *impl_;
   m.view(At);
-  cholmod_factorize_p(&m.At, m.beta, nullptr, 0, m.L, &m.c);
+  // Equilibrate: unknown k's column of A scaled to unit 2-norm (the system mixes
+  // unit kinematic entries with inertias of any size; beta then acts relative to
+  // them), factor (D A^T A D + beta I).
+  m.d.assign(static_cast<std::size_t>(At.rows), 0.0);
+  for (std::size_t t = 0; t < At.val.size(); ++t) m.d[At.row_idx[t]] += At.val[t] * At.val[t];
+  for (double& v : m.d) v = v > 0 ? 1.0 / std::sqrt(v) : 1.0;
+  m.scaled.resize(At.val.size());
+  for (std::size_t t = 0; t < At.val.size(); ++t) m.scaled[t] = m.d[At.row_idx[t]] * At.val[t];
+  m.DAt = m.At;
+  m.DAt.x = m.scaled.data();
+  cholmod_factorize_p(&m.DAt, m.beta, nullptr, 0, m.L, &m.c);
   if (m.c.status == CHOLMOD_NOT_POSDEF || m.L->minor < m.L->n)
     throw std::runtime_error("SparseCholesky: A^T A + beta I is not positive definite (column " +
                              std::to_string(m.L->minor) + " of the ordered system): the factor graph's "
@@ -162,18 +193,19 @@ void SparseCholesky::solve(const SparseMatrix& At, const std::vector<double>& b,
   cholmod_dense bd;  // view of b
   bd.nrow = neq; bd.ncol = 1; bd.nzmax = neq; bd.d = neq;
   bd.x = const_cast<double*>(b.data()); bd.z = nullptr; bd.xtype = CHOLMOD_REAL; bd.dtype = CHOLMOD_DOUBLE;
-  cholmod_sdmult(&m.At, 0, one, zero, &bd, m.rhs, &m.c);  // rhs = A^T b
+  cholmod_sdmult(&m.DAt, 0, one, zero, &bd, m.rhs, &m.c);  // rhs = D A^T b
   cholmod_solve2(CHOLMOD_A, m.L, m.rhs, nullptr, &m.x, nullptr, &m.Y, &m.E, &m.c);
   x.assign(static_cast<double*>(m.x->x), static_cast<double*>(m.x->x) + n);
+  for (std::size_t k = 0; k < n; ++k) x[k] *= m.d[k];  // x = D y
   for (int it = 0; it < refine; ++it) {
     std::copy(b.begin(), b.end(), static_cast<double*>(m.r->x));
     cholmod_dense xd = bd;
     xd.nrow = n; xd.nzmax = n; xd.d = n; xd.x = x.data();
     cholmod_sdmult(&m.At, 1, minus, one, &xd, m.r, &m.c);    // r = b - A x
-    cholmod_sdmult(&m.At, 0, one, zero, m.r, m.rhs, &m.c);   // rhs = A^T r
+    cholmod_sdmult(&m.DAt, 0, one, zero, m.r, m.rhs, &m.c);  // rhs = D A^T r
     cholmod_solve2(CHOLMOD_A, m.L, m.rhs, nullptr, &m.x, nullptr, &m.Y, &m.E, &m.c);
-    const double* dx = static_cast<const double*>(m.x->x);
-    for (std::size_t k = 0; k < n; ++k) x[k] += dx[k];
+    const double* dy = static_cast<const double*>(m.x->x);
+    for (std::size_t k = 0; k < n; ++k) x[k] += m.d[k] * dy[k];
   }
 }
 

@@ -1,5 +1,6 @@
 // scandyn/factor_graph/sparse_cholesky.hpp: the factor graph's system A x = b solved
-// by SuiteSparse CHOLMOD on the normal equations (A^T A + beta I) x = A^T b, the
+// by SuiteSparse CHOLMOD on the equilibrated normal equations
+// (D A^T A D + beta I) y = D A^T b, x = D y (D: unit column norms of A), the
 // multifrontal / supernodal Cholesky that factor-graph solvers eliminate with, under
 // a chosen elimination ordering, plus iterative refinement on A x = b.
 //
@@ -10,6 +11,7 @@
 
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "scandyn/factor_graph/dynamics_graph.hpp"
@@ -50,15 +52,22 @@ class SparseCholesky {
   SparseCholesky(const SparseCholesky&) = delete;
   SparseCholesky& operator=(const SparseCholesky&) = delete;
 
-  // Numeric factorisation for At's current values (same pattern as at analysis).
+  // Numeric factorisation for At's current values (same pattern as at analysis),
+  // columns of A scaled to unit norm first.
   // Throws std::runtime_error when A^T A + beta I is not positive definite.
   void factorize(const SparseMatrix& At);
-  // x = (A^T A + beta I)^{-1} A^T b, then `refine` steps of iterative refinement
+  // x = D (D A^T A D + beta I)^{-1} D A^T b, then `refine` steps of iterative refinement
   // on A x = b. x has At.rows entries.
   void solve(const SparseMatrix& At, const std::vector<double>& b, std::vector<double>& x,
              int refine = 1);
 
   const EliminationStats& stats() const { return stats_; }
+  // The elimination order CHOLMOD uses (entry k: the k-th eliminated unknown; the
+  // given one, or the ordering method's followed by its postorder).
+  const std::vector<Index>& elimination_order() const;
+  // The pattern of the factor L after factorize(): (row, column) of each entry, in
+  // elimination positions (row >= column).
+  std::vector<std::pair<Index, Index>> factor_pattern() const;
   // The elimination tree of L (parent of each eliminated position, -1 for roots),
   // in elimination order.
   std::vector<Index> etree() const;
