@@ -109,11 +109,11 @@ def main():
             fig, axes = plt.subplots(1, len(methods), figsize=(3 * len(methods), 3.3))
             for a, m in zip(axes, methods):
                 rr, cc = pat[(model, problem, m)]
-                a.scatter(cc, rr, s=0.3, marker='s', color='k')
                 n = max(max(rr), max(cc)) + 1
-                a.set_xlim(-0.5, n - 0.5)
-                a.set_ylim(n - 0.5, -0.5)
-                a.set_aspect('equal')
+                img = [[1.0] * n for _ in range(n)]
+                for r_, c_ in zip(rr, cc):
+                    img[r_][c_] = 0.0
+                a.imshow(img, cmap='gray', vmin=0, vmax=1, interpolation='nearest')
                 a.set_xticks([])
                 a.set_yticks([])
                 a.set_title('%s\nnnz(L) = %d' % (LABEL[m], len(rr)), fontsize=9)
