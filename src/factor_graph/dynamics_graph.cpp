@@ -200,6 +200,15 @@ void DynamicsGraph::write(bool pattern, const double* q, const double* qd, const
   }
 }
 
+// Appends body i's unknowns in the order the articulated-body elimination removes
+// them: tau_i, f_i (leaving f_i = IA_i a_i + pA_i), a_i, qdd_i.
+void DynamicsGraph::push_body_block(Index i, std::vector<Index>& order) const {
+  order.push_back(var_tau(i));
+  for (int r = 0; r < 6; ++r) order.push_back(var_f(i) + r);
+  for (int r = 0; r < 6; ++r) order.push_back(var_a(i) + r);
+  order.push_back(var_qdd(i));
+}
+
 std::vector<Index> DynamicsGraph::tree_order() const {
   const Index nv = model_.nv();
   std::vector<Index> order;
@@ -213,12 +222,7 @@ std::vector<Index> DynamicsGraph::tree_order() const {
     for (Index i = nv - 1; i >= 0; --i)
       for (int r = 0; r < 6; ++r) order.push_back(var_a(i) + r);
   } else {
-    for (Index i = nv - 1; i >= 0; --i) {
-      order.push_back(var_tau(i));
-      for (int r = 0; r < 6; ++r) order.push_back(var_f(i) + r);
-      for (int r = 0; r < 6; ++r) order.push_back(var_a(i) + r);
-      order.push_back(var_qdd(i));
-    }
+    for (Index i = nv - 1; i >= 0; --i) push_body_block(i, order);
   }
   for (Index k = 14 * nv; k < At_.rows; ++k) order.push_back(k);
   return order;
@@ -237,12 +241,7 @@ std::vector<Index> DynamicsGraph::cyclic_reduction_order() const {
   std::stable_sort(bodies.begin(), bodies.end(), [&](Index x, Index y) { return level(x) < level(y); });
   std::vector<Index> order;
   order.reserve(static_cast<std::size_t>(At_.rows));
-  for (Index i : bodies) {
-    order.push_back(var_tau(i));
-    for (int r = 0; r < 6; ++r) order.push_back(var_f(i) + r);
-    for (int r = 0; r < 6; ++r) order.push_back(var_a(i) + r);
-    order.push_back(var_qdd(i));
-  }
+  for (Index i : bodies) push_body_block(i, order);
   for (Index k = 14 * nv; k < At_.rows; ++k) order.push_back(k);
   return order;
 }

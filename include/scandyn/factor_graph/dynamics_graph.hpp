@@ -101,6 +101,7 @@ class DynamicsGraph {
   std::vector<double> b_;
   std::vector<Index> slot_;       // triplet k -> position in At_.val
   std::vector<double> trip_val_;  // triplet values in the fixed assembly order
+  void push_body_block(Index i, std::vector<Index>& order) const;
   void write(bool pattern, const double* q, const double* qd, const double* qdd_in,
              const double* tau_in);
   std::vector<Index> trip_row_, trip_col_;  // (pattern pass) equation, unknown of triplet k
