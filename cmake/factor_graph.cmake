@@ -16,6 +16,9 @@ if(SCANDYN_FACTOR_GRAPH_CHOLMOD)
     message(STATUS "scandyn: CHOLMOD not found (apt-get install libsuitesparse-dev libmetis-dev): "
                    "the factor graph is assembled but has no sparse solver, bench_factor_graph is not built")
   endif()
+else()
+  message(STATUS "scandyn: factor-graph solvers off (SCANDYN_FACTOR_GRAPH_CHOLMOD=OFF): no sparse solver, "
+                 "bench_factor_graph is not built")
 endif()
 if(SCANDYN_HAS_CHOLMOD)
   set(SCANDYN_HAS_CHOLMOD_01 1)
