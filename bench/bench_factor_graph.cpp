@@ -9,7 +9,11 @@
 // analysis done once; nnz_L and flops are CHOLMOD's symbolic counts.
 //
 // Usage: bench_factor_graph [--reps 30] [--inner 200] [--cloth K:N ...] [--models DIR]
-//                           [--patterns FILE]
+//                           [--patterns FILE] [--small]
+// Instruction counts (the machine may be loaded; counts are not):
+//   valgrind --tool=callgrind --collect-atstart=no --callgrind-out-file=/tmp/fg_cg.%p \
+//     build-cpu/bench_factor_graph --small --reps 1 --inner 50 > /dev/null
+//   scripts/factor_graph_callgrind.py /tmp/fg_cg.*
 // --patterns writes the pattern of L (row, col in elimination positions) of every
 // system with at most 2000 unknowns (the robots, the five-bar) for the fill figures
 // (scripts/factor_graph_figures.py).
@@ -27,6 +31,8 @@
 #include "scandyn/factor_graph/sparse_cholesky.hpp"
 #include "scandyn/model/load.hpp"
 
+#include <valgrind/callgrind.h>
+
 using namespace scandyn;
 using namespace scandyn::factor_graph;
 
@@ -40,7 +46,18 @@ std::FILE* g_patterns = nullptr;  // --patterns FILE: the factor L of selected s
 constexpr double kLoopBeta = 1e-12;
 constexpr int kLoopRefine = 3;
 
-double time_us(const std::function<void()>& f, int inner) {
+// Under valgrind --tool=callgrind --collect-atstart=no, each measurement instead
+// runs f `inner` times with collection on and dumps the counts with the label
+// "<label> x<inner>" (scripts/factor_graph_callgrind.py divides them); returns 0.
+double time_us(const std::string& label, const std::function<void()>& f, int inner) {
+  if (RUNNING_ON_VALGRIND) {
+    CALLGRIND_TOGGLE_COLLECT;
+    for (int k = 0; k < inner; ++k) f();
+    CALLGRIND_TOGGLE_COLLECT;
+    const std::string dump = label + " x" + std::to_string(inner);
+    CALLGRIND_DUMP_STATS_AT(dump.c_str());
+    return 0;
+  }
   double best = 1e300;
   for (int r = 0; r < g_reps; ++r) {
     const auto t0 = std::chrono::steady_clock::now();
@@ -99,13 +116,14 @@ void graph_rows(const std::string& name, const char* problem, DynamicsGraph& g, 
       for (double v : r) m = std::max(m, std::abs(v));
       err = m;
     }
-    const double total = time_us([&] {
+    const std::string label = name + "," + problem + "," + o.label;
+    const double total = time_us(label + ",total", [&] {
       g.assemble(q, qd, qdd_in, tau_in);
       chol.factorize(g.At());
       chol.solve(g.At(), g.b(), x, refine);
     }, inner);
-    const double fac = time_us([&] { chol.factorize(g.At()); }, inner);
-    const double sol = time_us([&] { chol.solve(g.At(), g.b(), x, refine); }, inner);
+    const double fac = time_us(label + ",factor", [&] { chol.factorize(g.At()); }, inner);
+    const double sol = time_us(label + ",solve", [&] { chol.solve(g.At(), g.b(), x, refine); }, inner);
     const Index last = chol.elimination_order().back();
     row(name, problem, o.label, total, fac, sol, &chol.stats(), err, last < 14 * nv ? last / 14 : -1);
     if (g_patterns && g.unknowns() <= 2000)
@@ -148,17 +166,17 @@ void tree_tables(const std::string& path) {
   // Table I: inverse dynamics
   rnea(model, data, q.data(), qd.data(), qdd.data(), tau.data());
   const std::vector<double> tau_ref = tau;
-  const double t_rnea = time_us([&] { rnea(model, data, q.data(), qd.data(), qdd.data(), out.data()); }, g_inner * 10);
+  const double t_rnea = time_us(model.name + ",id,rnea,total", [&] { rnea(model, data, q.data(), qd.data(), qdd.data(), out.data()); }, g_inner * 10);
   row(model.name, "id", "rnea", t_rnea, 0, 0, nullptr, max_diff(out, tau_ref));
   DynamicsGraph gid(model, {}, std::vector<char>(nv, 1));
   graph_rows(model.name, "id", gid, q.data(), qd.data(), qdd.data(), nullptr, 0.0, &tau_ref, true, g_inner, false);
   // Table II: forward dynamics
   aba(model, data, q.data(), qd.data(), tau.data(), out.data());
   const std::vector<double> qdd_ref = out;
-  const double t_aba = time_us([&] { aba(model, data, q.data(), qd.data(), tau.data(), out.data()); }, g_inner * 10);
+  const double t_aba = time_us(model.name + ",fd,aba,total", [&] { aba(model, data, q.data(), qd.data(), tau.data(), out.data()); }, g_inner * 10);
   row(model.name, "fd", "aba", t_aba, 0, 0, nullptr, max_diff(out, qdd_ref));
-  row(model.name, "fd", "crba", time_us([&] { crba(model, data, q.data(), M.data()); }, g_inner * 10), 0, 0, nullptr, 0);
-  const double t_jsi = time_us([&] { fd_jsi(model, data, q.data(), qd.data(), tau.data(), out.data()); }, g_inner * 10);
+  row(model.name, "fd", "crba", time_us(model.name + ",fd,crba,total", [&] { crba(model, data, q.data(), M.data()); }, g_inner * 10), 0, 0, nullptr, 0);
+  const double t_jsi = time_us(model.name + ",fd,crba+ltl (fd_jsi),total", [&] { fd_jsi(model, data, q.data(), qd.data(), tau.data(), out.data()); }, g_inner * 10);
   row(model.name, "fd", "crba+ltl (fd_jsi)", t_jsi, 0, 0, nullptr, max_diff(out, qdd_ref));
   DynamicsGraph gfd(model, {}, {});
   graph_rows(model.name, "fd", gfd, q.data(), qd.data(), nullptr, tau.data(), 0.0, &qdd_ref, false, g_inner,
@@ -175,7 +193,7 @@ void loop_tables(const std::string& name, const Model& model, const std::vector<
              kLoopRefine);
   Data data(model, nv <= 2000);
   std::vector<double> out(nv);
-  row(name, "fd-tree-only", "aba", time_us([&] { aba(model, data, q.data(), qd.data(), tau.data(), out.data()); }, inner), 0, 0, nullptr, 0);
+  row(name, "fd-tree-only", "aba", time_us(name + ",fd-tree-only,aba,total", [&] { aba(model, data, q.data(), qd.data(), tau.data(), out.data()); }, inner), 0, 0, nullptr, 0);
 }
 
 // Chains: nested dissection against block cyclic reduction (the parallel chain
@@ -208,12 +226,13 @@ void chain_orderings(long long n) {
 int main(int argc, char** argv) {
   std::vector<std::string> cloths = {"10:10", "30:30", "50:50"};
   std::string models_dir = SCANDYN_DEFAULT_MODELS_DIR;
-  bool custom_cloth = false;
+  bool custom_cloth = false, small_only = false;
   for (int k = 1; k < argc; ++k) {
     const std::string a = argv[k];
     if (a == "--reps" && k + 1 < argc) g_reps = std::atoi(argv[++k]);
     else if (a == "--inner" && k + 1 < argc) g_inner = std::atoi(argv[++k]);
     else if (a == "--models" && k + 1 < argc) models_dir = argv[++k];
+    else if (a == "--small") small_only = true;  // robots and five-bar only (callgrind)
     else if (a == "--patterns" && k + 1 < argc) {
       g_patterns = std::fopen(argv[++k], "w");
       if (!g_patterns) { std::fprintf(stderr, "bench_factor_graph: cannot write '%s'\n", argv[k]); return 1; }
@@ -225,13 +244,15 @@ int main(int argc, char** argv) {
   std::printf("model,problem,method,time_us,factor_us,solve_us,nnz_A,nnz_L,flops,etree_height,top_body,max_err\n");
   tree_tables(models_dir + "/puma560.urdf");
   tree_tables(models_dir + "/iiwa.urdf");
-  for (long long n : {15LL, 63LL, 255LL, 1023LL, 4095LL}) chain_orderings(n);
+  if (!small_only)
+    for (long long n : {15LL, 63LL, 255LL, 1023LL, 4095LL}) chain_orderings(n);
   {  // five-bar
     const Model m = five_bar();
     LoopClosure L; L.body_a = 1; L.point_a = {1, 0, 0}; L.body_b = 3; L.point_b = {1, 0, 0};
     const double pi = 3.14159265358979323846;
     loop_tables("five-bar", m, {L}, {pi / 2, -pi / 6, pi / 2, pi / 6}, 1.0, g_inner);
   }
+  if (small_only) cloths.clear();
   for (const std::string& kn : cloths) {  // cloth grid: curtain:K:N + point loops between neighbouring ropes
     const Model m = make_generated("curtain:" + kn);
     const long long K = std::atoll(kn.c_str()), N = std::atoll(kn.c_str() + kn.find(':') + 1);
