@@ -11,7 +11,7 @@
 // Usage: bench_factor_graph [--reps 30] [--inner 200] [--cloth K:N ...] [--models DIR]
 //                           [--patterns FILE] [--small]
 // Instruction counts (the machine may be loaded; counts are not):
-//   valgrind --tool=callgrind --collect-atstart=no --callgrind-out-file=/tmp/fg_cg.%p \
+//   valgrind --tool=callgrind --collect-atstart=no --callgrind-out-file=/tmp/fg_cg.%p
 //     build-cpu/bench_factor_graph --small --reps 1 --inner 50 > /dev/null
 //   scripts/factor_graph_callgrind.py /tmp/fg_cg.*
 // --patterns writes the pattern of L (row, col in elimination positions) of every
