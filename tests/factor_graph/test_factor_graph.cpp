@@ -164,6 +164,9 @@ TEST(FactorGraph, ChainNestedDissectionIsCyclicReduction) {
   EXPECT_GE(tree.stats().etree_height, 255 * 4);
   EXPECT_LE(cr.stats().etree_height, 14 * 8 + 14 * 8);  // O(log n) blocks of bounded size
   EXPECT_LE(nd.stats().etree_height, 14 * 8 + 14 * 8);
+  // both eliminate the middle body last (the top separator / the last reduction level)
+  EXPECT_EQ(cr.elimination_order().back() / 14, 127);
+  EXPECT_EQ(nd.elimination_order().back() / 14, 127);
   // and both still solve the system
   const std::vector<double> q(255, 0.3), qd(255, -0.2), tau(255, 1.0);
   g.assemble(q.data(), qd.data(), nullptr, tau.data());
