@@ -199,7 +199,7 @@ def main():
     ap.add_argument('--tol', type=float, default=1e-9)
     args = ap.parse_args()
     ok = True
-    for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf'):
+    for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf', 'puma560.urdf'):
         path = os.path.join(args.models, name)
         if os.path.exists(path):
             # GRiD's atlas.urdf has links whose inertia no rigid body can have
