@@ -1,0 +1,295 @@
+// scandyn/instance/dynamics_derivatives.hpp: first-order analytical derivatives of
+// inverse and forward dynamics for one instance, __host__ __device__: the serial
+// reference (scandyn/algorithm/derivatives.hpp), the OpenMP engine and the CUDA
+// kernel (kernels/derivatives.cu) all run these functions.
+//
+// The recursions of Carpentier & Mansard, "Analytical derivatives of rigid body
+// dynamics algorithms", RSS 2018 (the ones Pinocchio's computeRNEADerivatives and
+// computeABADerivatives implement), in scandyn's conventions ([angular; linear],
+// Featherstone's names). Everything below is expressed in the world (= base) frame
+// 0, where composite quantities are plain sums over subtrees. For body i with
+// parent p = lambda(i), joint motion S_i (world), x the motion cross product and x*
+// the force cross product:
+//   v_i = v_p + S_i qd_i,  a_i = a_p + S_i qdd_i + (v_i x S_i) qd_i      (a_base = -g)
+//   f_i = I_i a_i + v_i x* I_i v_i - fext_i,     F_i = sum of f_k over subtree(i)
+//   tau_i = S_i . F_i
+// Joint j moves its subtree rigidly (dS_k/dq_j = S_j x S_k, dI_k/dq_j = S_j x* I_k -
+// I_k S_j x for j an ancestor of k, or k itself), which leaves per joint j
+//   dV_j = v_p x S_j                     (the non-rigid part of dv_k/dq_j)
+//   dA_j = a_p x S_j + v_p x dV_j        (the non-rigid part of da_k/dq_j is dA_j + dV_j x v_k)
+// and per body the matrix B_k m = v_k x* (I_k m) - I_k (v_k x m) + m x* (I_k v_k)
+// (C&M's "B", the derivative of the body force's velocity terms), summed over
+// subtrees into Bc_i next to the composite inertia Ic_i. Then, for j an ancestor of
+// i or i itself (and the transposed entries for i an ancestor of j):
+//   dtau_i/dq_j  = S_i . (Ic_i dA_j + Bc_i dV_j)          dtau_j/dq_i  = S_j . Phi_i
+//   dtau_i/dqd_j = S_i . (2 Ic_i dV_j + Bc_i S_j)         dtau_j/dqd_i = S_j . Psi_i
+//   M_ij         = S_i . Ic_i S_j                         (M_ji = M_ij)
+// with Phi_i = S_i x* F_i + Ic_i dA_i + Bc_i dV_i and Psi_i = 2 Ic_i dV_i + Bc_i S_i;
+// entries of bodies on different branches are 0. External wrenches (constant in
+// their body's frame) rotate with the body and enter only through F. One forward
+// pass (O(nv)) and one backward pass over every (body, ancestor) pair (O(nv depth)).
+//
+// Forward dynamics: qdd = FD(q, qd, tau, fext) satisfies ID(q, qd, qdd, fext) = tau,
+// so at that qdd
+//   dqdd/dq = -M^-1 dtau/dq,  dqdd/dqd = -M^-1 dtau/dqd,  dqdd/dtau = M^-1
+// (C&M section IV): fd_derivatives_instance evaluates the inverse-dynamics
+// derivatives at the caller's qdd (from the ABA), factors M = L L^T in place and
+// solves.
+#pragma once
+
+#include <cstddef>
+#include <type_traits>
+
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/spatial/small_matrix.hpp"
+
+namespace scandyn {
+
+// An nv x nv matrix of one instance: entry (i, j) at data[(i * n + j) * stride]
+// (stride 1: row-major; a batch's instance-innermost layout: stride B).
+template <class S>
+struct MatrixRef {
+  S* data;
+  Index n;
+  std::ptrdiff_t stride;
+  SCANDYN_HD S& operator()(Index i, Index j) const {
+    return data[(static_cast<std::ptrdiff_t>(i) * n + j) * stride];
+  }
+};
+
+// Body i's quantities between the two passes of rnea_derivatives_instance (world
+// frame; 94 scalars).
+template <class S>
+struct DerivativeBody {
+  Transform<S> X;  // body frame <- world (i_X_0)
+  Motion<S> J;     // joint motion subspace S_i in the world frame (C&M: the Jacobian column)
+  Motion<S> v, a;  // body velocity and acceleration (gravity included), world
+  Motion<S> dV;    // v_parent x S_i
+  Motion<S> dA;    // a_parent x S_i + v_parent x dV_i
+  Force<S> F;      // body force, then (backward pass) the sum over the subtree
+  Inertia<S> Ic;   // spatial inertia in the world frame, then the subtree's (composite)
+  Mat6<S> Bc;      // B_i, then the subtree's sum
+};
+
+namespace derivative_detail {
+
+// A x m for a 6x6 matrix A acting on a motion, the result a force.
+template <class S>
+SCANDYN_HD Force<S> apply(const Mat6<S>& A, const Motion<S>& m) {
+  S r[6];
+  for (int k = 0; k < 6; ++k) {
+    r[k] = A(k, 0) * m.w.x + A(k, 1) * m.w.y + A(k, 2) * m.w.z + A(k, 3) * m.v.x + A(k, 4) * m.v.y +
+           A(k, 5) * m.v.z;
+  }
+  return {{r[0], r[1], r[2]}, {r[3], r[4], r[5]}};
+}
+
+// A^T m, as a force (paired with motions by dot).
+template <class S>
+SCANDYN_HD Force<S> apply_transpose(const Mat6<S>& A, const Motion<S>& m) {
+  S r[6];
+  for (int k = 0; k < 6; ++k) {
+    r[k] = A(0, k) * m.w.x + A(1, k) * m.w.y + A(2, k) * m.w.z + A(3, k) * m.v.x + A(4, k) * m.v.y +
+           A(5, k) * m.v.z;
+  }
+  return {{r[0], r[1], r[2]}, {r[3], r[4], r[5]}};
+}
+
+// The unit motion e_c (component c of [w; v]).
+template <class S>
+SCANDYN_HD Motion<S> unit_motion(int c) {
+  Motion<S> e = Motion<S>::zero();
+  const S one(1);
+  if (c == 0) e.w.x = one;
+  else if (c == 1) e.w.y = one;
+  else if (c == 2) e.w.z = one;
+  else if (c == 3) e.v.x = one;
+  else if (c == 4) e.v.y = one;
+  else e.v.z = one;
+  return e;
+}
+
+}  // namespace derivative_detail
+
+// B m = v x* (I m) - I (v x m) + m x* (I v) as a 6x6 matrix (C&M's B for a body
+// of inertia I moving with v, world frame). With C = crf(v) I: -I crm(v) = C^T (I
+// symmetric), and m x* h = [-[n]x, -[f]x; -[f]x, 0] m for h = I v = [n; f].
+template <class S>
+SCANDYN_HD Mat6<S> velocity_derivative_matrix(const Inertia<S>& I, const Motion<S>& v) {
+  Mat6<S> B;
+  for (int c = 0; c < 6; ++c) {
+    const Force<S> col = cross(v, I * derivative_detail::unit_motion<S>(c));
+    for (int r = 0; r < 6; ++r) B(r, c) = col[r];
+  }
+  for (int r = 0; r < 6; ++r)
+    for (int c = r; c < 6; ++c) {
+      const S s = B(r, c) + B(c, r);
+      B(r, c) = s;
+      B(c, r) = s;
+    }
+  const Force<S> h = I * v;
+  // + [-[n]x, -[f]x; -[f]x, 0]
+  const Mat3<S> N = skew(h.n), Fx = skew(h.f);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      B(r, c) -= N(r, c);
+      B(r, c + 3) -= Fx(r, c);
+      B(r + 3, c) -= Fx(r, c);
+    }
+  return B;
+}
+
+// Forward step of the derivatives: body i's world-frame quantities from its
+// parent's (parent null: the base, at rest with acceleration a0). fext: body i's
+// external wrench in its own frame, or null.
+template <class S>
+SCANDYN_HD void derivative_forward_step(const Body<S>& b, S q, S qd, S qdd, const Force<S>* fext,
+                                        const DerivativeBody<S>* parent, const Motion<S>& a0,
+                                        DerivativeBody<S>& o) {
+  const Transform<S> Xup = joint_transform(b, q);
+  o.X = parent ? Xup * parent->X : Xup;
+  const Motion<S> vp = parent ? parent->v : Motion<S>::zero();
+  const Motion<S> ap = parent ? parent->a : a0;
+  o.J = o.X.apply_inverse(joint_motion(b, S(1)));
+  o.v = vp + qd * o.J;
+  o.a = ap + qdd * o.J + qd * cross(o.v, o.J);
+  o.dV = cross(vp, o.J);
+  o.dA = cross(ap, o.J) + cross(vp, o.dV);
+  o.Ic = b.I.transform_transpose(o.X);
+  o.F = o.Ic * o.a + cross(o.v, o.Ic * o.v);
+  if (fext) o.F -= o.X.apply_transpose(*fext);
+  o.Bc = velocity_derivative_matrix(o.Ic, o.v);
+}
+
+// Inverse-dynamics derivatives of one instance: dtau_dq, dtau_dqd and M (nv x nv
+// each; every entry written) at (q, qd, qdd, fext), gravity included; tau (optional,
+// else null) = ID(q, qd, qdd, fext). body: the nv bodies in DoF order; a0: the base
+// acceleration (-g); fext: nv body wrenches in body frames, or null; V: anything
+// indexable by DoF (a pointer, a DofColumn); T: likewise, or decltype(nullptr);
+// work: nv DerivativeBody entries of scratch.
+template <class S, class V, class T>
+SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
+                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dtau_dq,
+                                          MatrixRef<S> dtau_dqd, MatrixRef<S> M, T tau) {
+  using derivative_detail::apply;
+  using derivative_detail::apply_transpose;
+  // forward: world-frame kinematics, body forces, inertias and B
+  for (Index i = 0; i < nv; ++i) {
+    const Index p = body[i].parent;
+    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
+                            p < 0 ? nullptr : work + p, a0, work[i]);
+  }
+  for (Index i = 0; i < nv; ++i)
+    for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
+  // backward: composite sums, then row j's entries against its ancestors (and the
+  // transposed entries)
+  for (Index j = nv - 1; j >= 0; --j) {
+    const DerivativeBody<S>& w = work[j];
+    if constexpr (!std::is_same<T, decltype(nullptr)>::value) tau[j] = dot(w.J, w.F);
+    const Force<S> psi = w.Ic * w.J;            // Ic_j S_j
+    const Force<S> rho = apply_transpose(w.Bc, w.J);  // Bc_j^T S_j
+    const Force<S> Phi = cross(w.J, w.F) + w.Ic * w.dA + apply(w.Bc, w.dV);
+    const Force<S> Psi = w.Ic * (S(2) * w.dV) + apply(w.Bc, w.J);
+    for (Index i = j; i >= 0; i = body[i].parent) {
+      const DerivativeBody<S>& a = work[i];
+      dtau_dq(j, i) = dot(a.dA, psi) + dot(a.dV, rho);
+      dtau_dqd(j, i) = S(2) * dot(a.dV, psi) + dot(a.J, rho);
+      const S Mji = dot(a.J, psi);
+      M(j, i) = Mji;
+      if (i != j) {
+        dtau_dq(i, j) = dot(a.J, Phi);
+        dtau_dqd(i, j) = dot(a.J, Psi);
+        M(i, j) = Mji;
+      }
+    }
+    const Index p = body[j].parent;
+    if (p >= 0) {
+      work[p].F += w.F;
+      work[p].Ic += w.Ic;
+      work[p].Bc = work[p].Bc + w.Bc;
+    }
+  }
+}
+
+// In place A = L L^T for a symmetric positive-definite n x n A (lower triangle read,
+// L written there). Returns -1, or the first row whose pivot is not positive and
+// finite.
+template <class S>
+SCANDYN_HD Index dense_cholesky(MatrixRef<S> A) {
+  const Index n = A.n;
+  for (Index j = 0; j < n; ++j) {
+    S d = A(j, j);
+    for (Index k = 0; k < j; ++k) d -= A(j, k) * A(j, k);
+    if (!pivot_ok(d)) return j;
+    const S Ljj = ScalarMath<S>::sqrt(d);
+    A(j, j) = Ljj;
+    const S inv = S(1) / Ljj;
+    for (Index i = j + 1; i < n; ++i) {
+      S s = A(i, j);
+      for (Index k = 0; k < j; ++k) s -= A(i, k) * A(j, k);
+      A(i, j) = s * inv;
+    }
+  }
+  return -1;
+}
+
+// X = -(L L^T)^-1 X in place, column by column (L: dense_cholesky's factor).
+template <class S>
+SCANDYN_HD void dense_negated_solve(MatrixRef<S> L, MatrixRef<S> X) {
+  const Index n = L.n;
+  for (Index c = 0; c < n; ++c) {
+    for (Index i = 0; i < n; ++i) {  // L y = -x
+      S s = -X(i, c);
+      for (Index k = 0; k < i; ++k) s -= L(i, k) * X(k, c);
+      X(i, c) = s / L(i, i);
+    }
+    for (Index i = n - 1; i >= 0; --i) {  // L^T z = y
+      S s = X(i, c);
+      for (Index k = i + 1; k < n; ++k) s -= L(k, i) * X(k, c);
+      X(i, c) = s / L(i, i);
+    }
+  }
+}
+
+// In place: the factor L of dense_cholesky (lower triangle) becomes (L L^T)^-1, both
+// triangles written: L^-1 in place, then L^-T L^-1 row by row.
+template <class S>
+SCANDYN_HD void dense_cholesky_inverse(MatrixRef<S> A) {
+  const Index n = A.n;
+  for (Index j = 0; j < n; ++j) {  // column j of L^-1 (columns > j still hold L)
+    A(j, j) = S(1) / A(j, j);
+    for (Index i = j + 1; i < n; ++i) {
+      S s = S(0);
+      for (Index k = j; k < i; ++k) s += A(i, k) * A(k, j);
+      A(i, j) = -s / A(i, i);
+    }
+  }
+  for (Index i = 0; i < n; ++i)  // (L^-T L^-1)_ij = sum_{k >= i} Li_ki Li_kj, j <= i
+    for (Index j = 0; j <= i; ++j) {
+      S s = S(0);
+      for (Index k = i; k < n; ++k) s += A(k, i) * A(k, j);
+      A(i, j) = s;
+    }
+  for (Index i = 0; i < n; ++i)
+    for (Index j = i + 1; j < n; ++j) A(i, j) = A(j, i);
+}
+
+// Forward-dynamics derivatives of one instance at qdd = FD(q, qd, tau, fext) (the
+// caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
+// every entry written). Returns -1, or the DoF whose pivot of M = L L^T was not
+// positive and finite (the outputs then hold partial values). Arguments as
+// rnea_derivatives_instance.
+template <class S, class V>
+SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
+                                         const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
+                                         MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau) {
+  rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
+  const Index failed = dense_cholesky(dqdd_dtau);
+  if (failed >= 0) return failed;
+  dense_negated_solve(dqdd_dtau, dqdd_dq);
+  dense_negated_solve(dqdd_dtau, dqdd_dqd);
+  dense_cholesky_inverse(dqdd_dtau);
+  return -1;
+}
+
+}  // namespace scandyn

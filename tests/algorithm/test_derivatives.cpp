@@ -1,0 +1,159 @@
+// Tests of the first-order dynamics derivatives (scandyn/algorithm/derivatives.hpp)
+// against independent truths: central finite differences of the reference rnea and
+// aba, the identities dqdd/dtau = M^-1 (crba) and dqdd/dq = -M^-1 dtau/dq at qdd =
+// FD, on shipped robots, random trees with prismatic joints and chains, with and
+// without external wrenches.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "scandyn/algorithm/derivatives.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+namespace scandyn {
+namespace {
+
+using test::random_vector;
+
+struct State {
+  std::vector<double> q, qd, qdd, tau;
+  std::vector<Force<double>> fext;
+};
+
+State random_state(Index n, unsigned seed, bool with_fext) {
+  std::mt19937_64 rng(seed);
+  State s{random_vector(rng, n, -2, 2), random_vector(rng, n, -2, 2), random_vector(rng, n, -2, 2),
+          random_vector(rng, n, -5, 5), {}};
+  if (with_fext) s.fext = test::random_wrenches<double>(rng, n, 2.0);
+  return s;
+}
+
+// max |a - b| / max(1, max |b|)
+double matrix_err(const std::vector<double>& a, const std::vector<double>& b) {
+  double scale = 1, err = 0;
+  for (double x : b) scale = std::max(scale, std::fabs(x));
+  for (std::size_t k = 0; k < a.size(); ++k) err = std::max(err, std::fabs(a[k] - b[k]));
+  return err / scale;
+}
+
+MatrixRef<double> ref(std::vector<double>& m, Index n) { return {m.data(), n, 1}; }
+
+// d f / d x (n x n, row-major) by central differences D(h) = (f(x + h e_j) - f(x -
+// h e_j)) / 2h with one Richardson step, (4 D(h / 2) - D(h)) / 3: truncation O(h^4)
+// and rounding O(eps |f| / h), so that a step of 1e-3 is accurate to ~1e-10 relative
+// even where |f| is large next to its derivative (ropes' small inertias).
+template <class F>
+std::vector<double> central_jacobian(Index n, std::vector<double>& x, double h, F&& f) {
+  std::vector<double> J(static_cast<std::size_t>(n) * n), fp(n), fm(n);
+  auto diff = [&](Index j, double step, std::vector<double>& d) {
+    const double x0 = x[j];
+    x[j] = x0 + step;
+    f(fp.data());
+    x[j] = x0 - step;
+    f(fm.data());
+    x[j] = x0;
+    for (Index i = 0; i < n; ++i) d[i] = (fp[i] - fm[i]) / (2 * step);
+  };
+  std::vector<double> d1(n), d2(n);
+  for (Index j = 0; j < n; ++j) {
+    diff(j, h, d1);
+    diff(j, h / 2, d2);
+    for (Index i = 0; i < n; ++i) J[i * n + j] = (4 * d2[i] - d1[i]) / 3;
+  }
+  return J;
+}
+
+std::vector<std::pair<std::string, Model>> derivative_models() {
+  std::vector<std::pair<std::string, Model>> models;
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"})
+    models.emplace_back(file, test::load_robot(file));
+  for (const char* spec : {"chain:1", "chain:9", "tree:20:3", "rope:30", "curtain:3:4"})
+    models.emplace_back(spec, load_model(spec));
+  models.emplace_back("random_model(15)", test::random_model(15, 7));
+  models.emplace_back("random_model(40)", test::random_model(40, 8));
+  return models;
+}
+
+// Finite-difference step and tolerance (double): central differences with one
+// Richardson step at h = 1e-3 (central_jacobian); 1e-6 relative to the largest entry
+// (or 1); 5e-6 for forward dynamics on ropes and curtains, whose small link inertias
+// make M ill-conditioned, so that the ABA's own rounding, amplified by cond(M) and
+// divided by the step, reaches ~1e-6 (the identities below hold to 1e-9 there).
+constexpr double kStep = 1e-3;
+constexpr double kFdTol = 1e-6;
+
+TEST(RneaDerivatives, MatchCentralDifferences) {
+  for (auto& [name, model] : derivative_models()) {
+    for (bool with_fext : {false, true}) {
+      SCOPED_TRACE(name + (with_fext ? " with fext" : ""));
+      const Index n = model.nv();
+      State s = random_state(n, 11 + n, with_fext);
+      const Force<double>* fext = with_fext ? s.fext.data() : nullptr;
+      DerivativeDataTpl<double> dd(model);
+      Data data(model);
+      std::vector<double> dq(n * n, NAN), dqd(n * n, NAN), M(n * n, NAN), tau(n, NAN), tau_ref(n);
+      rnea_derivatives(model, dd, s.q.data(), s.qd.data(), s.qdd.data(), fext, ref(dq, n), ref(dqd, n), ref(M, n),
+                       tau.data());
+      rnea(model, data, s.q.data(), s.qd.data(), s.qdd.data(), tau_ref.data(), fext);
+      EXPECT_LT(test::max_rel_err(tau, tau_ref), 1e-12);
+      auto id = [&](double* out) { rnea(model, data, s.q.data(), s.qd.data(), s.qdd.data(), out, fext); };
+      EXPECT_LT(matrix_err(dq, central_jacobian(n, s.q, kStep, id)), kFdTol);
+      EXPECT_LT(matrix_err(dqd, central_jacobian(n, s.qd, kStep, id)), kFdTol);
+      std::vector<double> Mref(n * n);
+      crba(model, data, s.q.data(), Mref.data());
+      EXPECT_LT(matrix_err(M, Mref), 1e-12);
+    }
+  }
+}
+
+TEST(AbaDerivatives, MatchCentralDifferencesAndIdentities) {
+  for (auto& [name, model] : derivative_models()) {
+    for (bool with_fext : {false, true}) {
+      SCOPED_TRACE(name + (with_fext ? " with fext" : ""));
+      const Index n = model.nv();
+      State s = random_state(n, 23 + n, with_fext);
+      const Force<double>* fext = with_fext ? s.fext.data() : nullptr;
+      DerivativeDataTpl<double> dd(model);
+      Data data(model);
+      std::vector<double> dq(n * n, NAN), dqd(n * n, NAN), Minv(n * n, NAN), qdd(n, NAN), qdd_ref(n);
+      ASSERT_TRUE(aba_derivatives(model, dd, s.q.data(), s.qd.data(), s.tau.data(), fext, qdd.data(), ref(dq, n),
+                                  ref(dqd, n), ref(Minv, n))
+                      .ok());
+      ASSERT_TRUE(aba(model, data, s.q.data(), s.qd.data(), s.tau.data(), qdd_ref.data(), fext).ok());
+      EXPECT_EQ(qdd, qdd_ref);
+      auto fd = [&](double* out) { aba(model, data, s.q.data(), s.qd.data(), s.tau.data(), out, fext); };
+      const bool ill_conditioned = name.rfind("rope", 0) == 0 || name.rfind("curtain", 0) == 0;
+      const double tol = ill_conditioned ? 5e-6 : kFdTol;
+      EXPECT_LT(matrix_err(dq, central_jacobian(n, s.q, kStep, fd)), tol);
+      EXPECT_LT(matrix_err(dqd, central_jacobian(n, s.qd, kStep, fd)), tol);
+      EXPECT_LT(matrix_err(Minv, central_jacobian(n, s.tau, kStep, fd)), tol);
+      // identities: M Minv = 1, and dqdd/dq = -M^-1 dtau/dq at qdd = FD
+      std::vector<double> M(n * n), tq(n * n), tqd(n * n), Mt(n * n);
+      crba(model, data, s.q.data(), M.data());
+      double eye_err = 0;
+      for (Index i = 0; i < n; ++i)
+        for (Index j = 0; j < n; ++j) {
+          double acc = 0;
+          for (Index k = 0; k < n; ++k) acc += M[i * n + k] * Minv[k * n + j];
+          eye_err = std::max(eye_err, std::fabs(acc - (i == j ? 1.0 : 0.0)));
+        }
+      EXPECT_LT(eye_err, 1e-9);
+      rnea_derivatives(model, dd, s.q.data(), s.qd.data(), qdd.data(), fext, ref(tq, n), ref(tqd, n), ref(Mt, n));
+      std::vector<double> minus_Minv_tq(n * n);
+      for (Index i = 0; i < n; ++i)
+        for (Index j = 0; j < n; ++j) {
+          double acc = 0;
+          for (Index k = 0; k < n; ++k) acc -= Minv[i * n + k] * tq[k * n + j];
+          minus_Minv_tq[i * n + j] = acc;
+        }
+      EXPECT_LT(matrix_err(dq, minus_Minv_tq), 1e-9);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace scandyn
