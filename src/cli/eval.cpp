@@ -16,11 +16,11 @@
 namespace scandyn::cli {
 namespace {
 
-constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias};
+constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd};
 
-// --algo id,fd,...: the requested set in output order (id, fd, mass, bias).
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias, did, dfd).
 std::vector<Algo> parse_algo_list(const std::string& list) {
-  bool wanted[4] = {false, false, false, false};
+  bool wanted[std::size(kAllAlgos)] = {};
   std::size_t start = 0;
   for (;;) {
     const std::size_t comma = list.find(',', start);
@@ -29,7 +29,7 @@ std::vector<Algo> parse_algo_list(const std::string& list) {
     Algo a;
     if (!parse_algo(item, a))
       throw UsageError("unknown --algo value '" + item +
-                       "' (expected a comma-separated list of id, fd, mass, bias)");
+                       "' (expected a comma-separated list of id, fd, mass, bias, did, dfd)");
     wanted[static_cast<int>(a)] = true;
     if (comma == std::string::npos) break;
     start = comma + 1;
@@ -140,7 +140,8 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
       fell_back += static_cast<std::size_t>(st.fell_back);
       if (!st.ok())  // the pivot of the method used
         throw DataError(in.where(row0 + static_cast<std::size_t>(st.first_instance)) +
-                        ": forward dynamics failed: " + st.reason());
+                        ": " + (algos[k] == Algo::DFd ? "forward-dynamics derivatives" : "forward dynamics") +
+                        " failed: " + st.reason());
     }
 
     // write

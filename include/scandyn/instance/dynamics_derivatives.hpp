@@ -41,6 +41,7 @@
 #include <type_traits>
 
 #include "scandyn/algorithm/steps.hpp"
+#include "scandyn/batch.hpp"
 #include "scandyn/spatial/small_matrix.hpp"
 
 namespace scandyn {
@@ -56,6 +57,13 @@ struct MatrixRef {
     return data[(static_cast<std::ptrdiff_t>(i) * n + j) * stride];
   }
 };
+
+// Instance b's matrix in a batch view of nv * nv entries per instance (entry i * nv
+// + j: (i, j); the engines' output layout, scandyn/engine.hpp).
+template <class S>
+SCANDYN_HD MatrixRef<S> instance_matrix(const BatchView<S>& v, long long b, Index nv) {
+  return {v.data + b * v.batch_stride, nv, v.dof_stride};
+}
 
 // Body i's quantities between the two passes of rnea_derivatives_instance (world
 // frame; 94 scalars).
