@@ -17,7 +17,7 @@
 // views and a stream. Output layout: scandyn/engine.hpp (three nv * nv views; soa,
 // the instance innermost, is the fast layout on the device).
 //
-// Per thread: nv DerivativeBody entries (94 scalars each) in per-thread local memory,
+// Per thread: nv DerivativeBody entries (70 scalars each) in per-thread local memory,
 // plus the ABA's state for the forward dynamics.
 #pragma once
 

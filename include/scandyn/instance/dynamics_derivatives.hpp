@@ -18,8 +18,9 @@
 //   dV_j = v_p x S_j                     (the non-rigid part of dv_k/dq_j)
 //   dA_j = a_p x S_j + v_p x dV_j        (the non-rigid part of da_k/dq_j is dA_j + dV_j x v_k)
 // and per body the matrix B_k m = v_k x* (I_k m) - I_k (v_k x m) + m x* (I_k v_k)
-// (C&M's "B", the derivative of the body force's velocity terms), summed over
-// subtrees into Bc_i next to the composite inertia Ic_i. Then, for j an ancestor of
+// (C&M's "B", the derivative of the body force's velocity terms; VelocityDerivative
+// stores its 12 non-zero parameters), summed over subtrees into Bc_i next to the
+// composite inertia Ic_i. Then, for j an ancestor of
 // i or i itself (and the transposed entries for i an ancestor of j):
 //   dtau_i/dq_j  = S_i . (Ic_i dA_j + Bc_i dV_j)          dtau_j/dq_i  = S_j . Phi_i
 //   dtau_i/dqd_j = S_i . (2 Ic_i dV_j + Bc_i S_j)         dtau_j/dqd_i = S_j . Psi_i
@@ -42,7 +43,6 @@
 
 #include "scandyn/algorithm/steps.hpp"
 #include "scandyn/batch.hpp"
-#include "scandyn/spatial/small_matrix.hpp"
 
 namespace scandyn {
 
@@ -65,8 +65,46 @@ SCANDYN_HD MatrixRef<S> instance_matrix(const BatchView<S>& v, long long b, Inde
   return {v.data + b * v.batch_stride, nv, v.dof_stride};
 }
 
+// C&M's B for a body of inertia I moving with v (world frame), B m = v x* (I m) -
+// I (v x m) + m x* (I v), or a sum of them over a subtree. B vanishes on linear
+// motions: with p = I v = [n; f] (f = m v_lin + w x h) the linear columns are
+// [(w x h + m v_lin - f) x; 0] = 0, so B = [Bw 0; -2 [f]x 0] and a subtree's sum is
+// its sum of Bw and of the linear momenta f (12 scalars, not 36):
+//   Bw = [w]x Ibar + ([w]x Ibar)^T - (v h^T + h v^T) + 2 (v . h) 1 - [n]x
+// (h = m c, Ibar the rotational inertia about the frame origin).
+template <class S>
+struct VelocityDerivative {
+  Mat3<S> Bw;  // the angular-angular block
+  Vec3<S> P;   // linear momentum: the angular-to-linear block is -2 [P]x
+
+  SCANDYN_HD static VelocityDerivative of(const Inertia<S>& I, const Motion<S>& v) {
+    const Force<S> p = I * v;
+    const Mat3<S> WI = skew(v.w) * I.I.full();
+    const Mat3<S> N = skew(p.n);
+    const S vh2 = S(2) * dot(v.v, I.h);
+    VelocityDerivative o;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c)
+        o.Bw.m[3 * r + c] = WI.m[3 * r + c] + WI.m[3 * c + r] - (v.v[r] * I.h[c] + I.h[r] * v.v[c]) -
+                            N.m[3 * r + c] + (r == c ? vh2 : S(0));
+    o.P = p.f;
+    return o;
+  }
+  // B m
+  SCANDYN_HD Force<S> apply(const Motion<S>& m) const { return {Bw * m.w, S(-2) * cross(P, m.w)}; }
+  // B^T m, as a force (paired with motions by dot)
+  SCANDYN_HD Force<S> apply_transpose(const Motion<S>& m) const {
+    return {mul_transpose(Bw, m.w) + S(2) * cross(P, m.v), Vec3<S>::zero()};
+  }
+  SCANDYN_HD VelocityDerivative& operator+=(const VelocityDerivative& o) {
+    Bw = Bw + o.Bw;
+    P += o.P;
+    return *this;
+  }
+};
+
 // Body i's quantities between the two passes of rnea_derivatives_instance (world
-// frame; 94 scalars).
+// frame; 70 scalars).
 template <class S>
 struct DerivativeBody {
   Transform<S> X;  // body frame <- world (i_X_0)
@@ -76,76 +114,8 @@ struct DerivativeBody {
   Motion<S> dA;    // a_parent x S_i + v_parent x dV_i
   Force<S> F;      // body force, then (backward pass) the sum over the subtree
   Inertia<S> Ic;   // spatial inertia in the world frame, then the subtree's (composite)
-  Mat6<S> Bc;      // B_i, then the subtree's sum
+  VelocityDerivative<S> Bc;  // B_i, then the subtree's sum
 };
-
-namespace derivative_detail {
-
-// A x m for a 6x6 matrix A acting on a motion, the result a force.
-template <class S>
-SCANDYN_HD Force<S> apply(const Mat6<S>& A, const Motion<S>& m) {
-  S r[6];
-  for (int k = 0; k < 6; ++k) {
-    r[k] = A(k, 0) * m.w.x + A(k, 1) * m.w.y + A(k, 2) * m.w.z + A(k, 3) * m.v.x + A(k, 4) * m.v.y +
-           A(k, 5) * m.v.z;
-  }
-  return {{r[0], r[1], r[2]}, {r[3], r[4], r[5]}};
-}
-
-// A^T m, as a force (paired with motions by dot).
-template <class S>
-SCANDYN_HD Force<S> apply_transpose(const Mat6<S>& A, const Motion<S>& m) {
-  S r[6];
-  for (int k = 0; k < 6; ++k) {
-    r[k] = A(0, k) * m.w.x + A(1, k) * m.w.y + A(2, k) * m.w.z + A(3, k) * m.v.x + A(4, k) * m.v.y +
-           A(5, k) * m.v.z;
-  }
-  return {{r[0], r[1], r[2]}, {r[3], r[4], r[5]}};
-}
-
-// The unit motion e_c (component c of [w; v]).
-template <class S>
-SCANDYN_HD Motion<S> unit_motion(int c) {
-  Motion<S> e = Motion<S>::zero();
-  const S one(1);
-  if (c == 0) e.w.x = one;
-  else if (c == 1) e.w.y = one;
-  else if (c == 2) e.w.z = one;
-  else if (c == 3) e.v.x = one;
-  else if (c == 4) e.v.y = one;
-  else e.v.z = one;
-  return e;
-}
-
-}  // namespace derivative_detail
-
-// B m = v x* (I m) - I (v x m) + m x* (I v) as a 6x6 matrix (C&M's B for a body
-// of inertia I moving with v, world frame). With C = crf(v) I: -I crm(v) = C^T (I
-// symmetric), and m x* h = [-[n]x, -[f]x; -[f]x, 0] m for h = I v = [n; f].
-template <class S>
-SCANDYN_HD Mat6<S> velocity_derivative_matrix(const Inertia<S>& I, const Motion<S>& v) {
-  Mat6<S> B;
-  for (int c = 0; c < 6; ++c) {
-    const Force<S> col = cross(v, I * derivative_detail::unit_motion<S>(c));
-    for (int r = 0; r < 6; ++r) B(r, c) = col[r];
-  }
-  for (int r = 0; r < 6; ++r)
-    for (int c = r; c < 6; ++c) {
-      const S s = B(r, c) + B(c, r);
-      B(r, c) = s;
-      B(c, r) = s;
-    }
-  const Force<S> h = I * v;
-  // + [-[n]x, -[f]x; -[f]x, 0]
-  const Mat3<S> N = skew(h.n), Fx = skew(h.f);
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) {
-      B(r, c) -= N(r, c);
-      B(r, c + 3) -= Fx(r, c);
-      B(r + 3, c) -= Fx(r, c);
-    }
-  return B;
-}
 
 // Forward step of the derivatives: body i's world-frame quantities from its
 // parent's (parent null: the base, at rest with acceleration a0). fext: body i's
@@ -166,7 +136,7 @@ SCANDYN_HD void derivative_forward_step(const Body<S>& b, S q, S qd, S qdd, cons
   o.Ic = b.I.transform_transpose(o.X);
   o.F = o.Ic * o.a + cross(o.v, o.Ic * o.v);
   if (fext) o.F -= o.X.apply_transpose(*fext);
-  o.Bc = velocity_derivative_matrix(o.Ic, o.v);
+  o.Bc = VelocityDerivative<S>::of(o.Ic, o.v);
 }
 
 // Inverse-dynamics derivatives of one instance: dtau_dq, dtau_dqd and M (nv x nv
@@ -179,8 +149,6 @@ template <class S, class V, class T>
 SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
                                           const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dtau_dq,
                                           MatrixRef<S> dtau_dqd, MatrixRef<S> M, T tau) {
-  using derivative_detail::apply;
-  using derivative_detail::apply_transpose;
   // forward: world-frame kinematics, body forces, inertias and B
   for (Index i = 0; i < nv; ++i) {
     const Index p = body[i].parent;
@@ -195,9 +163,9 @@ SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const M
     const DerivativeBody<S>& w = work[j];
     if constexpr (!std::is_same<T, decltype(nullptr)>::value) tau[j] = dot(w.J, w.F);
     const Force<S> psi = w.Ic * w.J;            // Ic_j S_j
-    const Force<S> rho = apply_transpose(w.Bc, w.J);  // Bc_j^T S_j
-    const Force<S> Phi = cross(w.J, w.F) + w.Ic * w.dA + apply(w.Bc, w.dV);
-    const Force<S> Psi = w.Ic * (S(2) * w.dV) + apply(w.Bc, w.J);
+    const Force<S> rho = w.Bc.apply_transpose(w.J);  // Bc_j^T S_j
+    const Force<S> Phi = cross(w.J, w.F) + w.Ic * w.dA + w.Bc.apply(w.dV);
+    const Force<S> Psi = w.Ic * (S(2) * w.dV) + w.Bc.apply(w.J);
     for (Index i = j; i >= 0; i = body[i].parent) {
       const DerivativeBody<S>& a = work[i];
       dtau_dq(j, i) = dot(a.dA, psi) + dot(a.dV, rho);
@@ -214,7 +182,7 @@ SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const M
     if (p >= 0) {
       work[p].F += w.F;
       work[p].Ic += w.Ic;
-      work[p].Bc = work[p].Bc + w.Bc;
+      work[p].Bc += w.Bc;
     }
   }
 }
