@@ -34,8 +34,8 @@
 // so at that qdd
 //   dqdd/dq = -M^-1 dtau/dq,  dqdd/dqd = -M^-1 dtau/dqd,  dqdd/dtau = M^-1
 // (C&M section IV): fd_derivatives_instance evaluates the inverse-dynamics
-// derivatives at the caller's qdd (from the ABA), factors M = L L^T in place and
-// solves.
+// derivatives at the caller's qdd (from the ABA), factors M = L^T L in place with
+// the tree's sparsity and solves, all in the output blocks.
 #pragma once
 
 #include <cstddef>
@@ -104,7 +104,7 @@ struct VelocityDerivative {
 };
 
 // Body i's quantities between the two passes of rnea_derivatives_instance (world
-// frame; 70 scalars).
+// frame; 71 scalars).
 template <class S>
 struct DerivativeBody {
   Transform<S> X;  // body frame <- world (i_X_0)
@@ -115,6 +115,7 @@ struct DerivativeBody {
   Force<S> F;      // body force, then (backward pass) the sum over the subtree
   Inertia<S> Ic;   // spatial inertia in the world frame, then the subtree's (composite)
   VelocityDerivative<S> Bc;  // B_i, then the subtree's sum
+  S d;             // fd_derivatives_instance: the diagonal entry of L^-1 (M = L^T L)
 };
 
 // Forward step of the derivatives: body i's world-frame quantities from its
@@ -187,72 +188,86 @@ SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const M
   }
 }
 
-// In place A = L L^T for a symmetric positive-definite n x n A (lower triangle read,
-// L written there). Returns -1, or the first row whose pivot is not positive and
-// finite.
+// ---- M = L^T L with the tree's sparsity (Featherstone (2008) 6.5) ---------------
+// L is lower triangular with L_ij != 0 only for j an ancestor of i or i itself (the
+// branch-induced sparsity of M: no fill-in), as the serial ltl_factor / ltl_solve
+// (src/algorithm/reference_impl.hpp), here on a MatrixRef and the bodies' parents.
+
+// In place: A's lower triangle (M) becomes L, M = L^T L. Returns -1, or the DoF whose
+// pivot was not positive and finite. The strict upper triangle is not touched.
 template <class S>
-SCANDYN_HD Index dense_cholesky(MatrixRef<S> A) {
-  const Index n = A.n;
-  for (Index j = 0; j < n; ++j) {
-    S d = A(j, j);
-    for (Index k = 0; k < j; ++k) d -= A(j, k) * A(j, k);
-    if (!pivot_ok(d)) return j;
-    const S Ljj = ScalarMath<S>::sqrt(d);
-    A(j, j) = Ljj;
-    const S inv = S(1) / Ljj;
-    for (Index i = j + 1; i < n; ++i) {
-      S s = A(i, j);
-      for (Index k = 0; k < j; ++k) s -= A(i, k) * A(j, k);
-      A(i, j) = s * inv;
+SCANDYN_HD Index tree_ltl_factor(const Body<S>* body, MatrixRef<S> A) {
+  for (Index k = A.n - 1; k >= 0; --k) {
+    const S d = A(k, k);
+    if (!pivot_ok(d)) return k;
+    const S Lkk = ScalarMath<S>::sqrt(d);
+    A(k, k) = Lkk;
+    const S inv = S(1) / Lkk;
+    for (Index i = body[k].parent; i >= 0; i = body[i].parent) A(k, i) *= inv;
+    for (Index i = body[k].parent; i >= 0; i = body[i].parent) {
+      const S Lki = A(k, i);
+      for (Index j = i; j >= 0; j = body[j].parent) A(i, j) -= Lki * A(k, j);
     }
   }
   return -1;
 }
 
-// X = -(L L^T)^-1 X in place, column by column (L: dense_cholesky's factor).
+// Column c of X becomes -(L^T L)^-1 times itself (L from tree_ltl_factor).
 template <class S>
-SCANDYN_HD void dense_negated_solve(MatrixRef<S> L, MatrixRef<S> X) {
+SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, MatrixRef<S> X, Index c) {
   const Index n = L.n;
-  for (Index c = 0; c < n; ++c) {
-    for (Index i = 0; i < n; ++i) {  // L y = -x
-      S s = -X(i, c);
-      for (Index k = 0; k < i; ++k) s -= L(i, k) * X(k, c);
-      X(i, c) = s / L(i, i);
-    }
-    for (Index i = n - 1; i >= 0; --i) {  // L^T z = y
-      S s = X(i, c);
-      for (Index k = i + 1; k < n; ++k) s -= L(k, i) * X(k, c);
-      X(i, c) = s / L(i, i);
-    }
+  for (Index i = 0; i < n; ++i) X(i, c) = -X(i, c);
+  for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x
+    const S yi = X(i, c) / L(i, i);
+    X(i, c) = yi;
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) X(j, c) -= L(i, j) * yi;
+  }
+  for (Index i = 0; i < n; ++i) {  // L z = y
+    S acc = X(i, c);
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) acc -= L(i, j) * X(j, c);
+    X(i, c) = acc / L(i, i);
   }
 }
 
-// In place: the factor L of dense_cholesky (lower triangle) becomes (L L^T)^-1, both
-// triangles written: L^-1 in place, then L^-T L^-1 row by row.
-template <class S>
-SCANDYN_HD void dense_cholesky_inverse(MatrixRef<S> A) {
+// In place: A's lower triangle (L from tree_ltl_factor) becomes M^-1 = L^-1 L^-T,
+// both triangles written. L^-1 has L's sparsity (ancestor relations compose), so it
+// replaces L column by column; the diagonal of L^-1 waits in diag (n scalars) while
+// the upper triangle receives M^-1, which is dense where M is not.
+template <class S, class Diag>
+SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Diag diag) {
   const Index n = A.n;
-  for (Index j = 0; j < n; ++j) {  // column j of L^-1 (columns > j still hold L)
-    A(j, j) = S(1) / A(j, j);
-    for (Index i = j + 1; i < n; ++i) {
+  for (Index k = 0; k < n; ++k) {  // column k of L^-1 (columns > k still hold L)
+    A(k, k) = S(1) / A(k, k);
+    for (Index i = k + 1; i < n; ++i) {
       S s = S(0);
-      for (Index k = j; k < i; ++k) s += A(i, k) * A(k, j);
-      A(i, j) = -s / A(i, i);
+      Index m = body[i].parent;
+      for (; m > k; m = body[m].parent) s += A(i, m) * A(m, k);
+      if (m != k) continue;  // k is not an ancestor of i: the entry stays 0
+      s += A(i, k) * A(k, k);
+      A(i, k) = -s / A(i, i);
     }
   }
-  for (Index i = 0; i < n; ++i)  // (L^-T L^-1)_ij = sum_{k >= i} Li_ki Li_kj, j <= i
-    for (Index j = 0; j <= i; ++j) {
+  for (Index i = 0; i < n; ++i) diag[i] = A(i, i);
+  // (M^-1)_ij = sum of L^-1_ik L^-1_jk over the common ancestors k (and i or j)
+  auto linv = [&](Index r, Index k) { return r == k ? S(diag[r]) : A(r, k); };
+  for (Index i = 0; i < n; ++i)
+    for (Index j = i; j < n; ++j) {
+      Index a = i, b = j;  // their nearest common ancestor (or one of them)
+      while (a != b) {
+        if (a > b) a = body[a].parent;
+        else b = body[b].parent;
+      }
       S s = S(0);
-      for (Index k = i; k < n; ++k) s += A(k, i) * A(k, j);
+      for (Index k = a; k >= 0; k = body[k].parent) s += linv(i, k) * linv(j, k);
       A(i, j) = s;
     }
   for (Index i = 0; i < n; ++i)
-    for (Index j = i + 1; j < n; ++j) A(i, j) = A(j, i);
+    for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
 }
 
 // Forward-dynamics derivatives of one instance at qdd = FD(q, qd, tau, fext) (the
 // caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
-// every entry written). Returns -1, or the DoF whose pivot of M = L L^T was not
+// every entry written). Returns -1, or the DoF whose pivot of M = L^T L was not
 // positive and finite (the outputs then hold partial values). Arguments as
 // rnea_derivatives_instance.
 template <class S, class V>
@@ -260,11 +275,17 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
                                          MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau) {
   rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
-  const Index failed = dense_cholesky(dqdd_dtau);
+  const Index failed = tree_ltl_factor(body, dqdd_dtau);
   if (failed >= 0) return failed;
-  dense_negated_solve(dqdd_dtau, dqdd_dq);
-  dense_negated_solve(dqdd_dtau, dqdd_dqd);
-  dense_cholesky_inverse(dqdd_dtau);
+  for (Index c = 0; c < nv; ++c) {
+    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, c);
+    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dqd, c);
+  }
+  struct {
+    DerivativeBody<S>* w;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].d; }
+  } diag{work};
+  tree_ltl_inverse(body, dqdd_dtau, diag);
   return -1;
 }
 
