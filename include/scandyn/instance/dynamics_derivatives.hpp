@@ -212,20 +212,26 @@ SCANDYN_HD Index tree_ltl_factor(const Body<S>* body, MatrixRef<S> A) {
   return -1;
 }
 
-// Column c of X becomes -(L^T L)^-1 times itself (L from tree_ltl_factor).
+// X and Y become -(L^T L)^-1 X and -(L^T L)^-1 Y (L from tree_ltl_factor), by row
+// operations on all their columns at once: one walk up the tree per row, and
+// contiguous (vectorisable) rows when the matrices are row-major.
 template <class S>
-SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, MatrixRef<S> X, Index c) {
+SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
   const Index n = L.n;
-  for (Index i = 0; i < n; ++i) X(i, c) = -X(i, c);
-  for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x
-    const S yi = X(i, c) / L(i, i);
-    X(i, c) = yi;
-    for (Index j = body[i].parent; j >= 0; j = body[j].parent) X(j, c) -= L(i, j) * yi;
+  // row r of both: row r = a * row r + b * row s
+  auto rows = [&](Index r, S a, Index s, S b) {
+    for (Index c = 0; c < n; ++c) {
+      X(r, c) = a * X(r, c) + b * X(s, c);
+      Y(r, c) = a * Y(r, c) + b * Y(s, c);
+    }
+  };
+  for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x (row i holds x_i + sum of L_ki y_k when reached)
+    rows(i, S(-1) / L(i, i), i, S(0));
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(j, S(1), i, L(i, j));
   }
   for (Index i = 0; i < n; ++i) {  // L z = y
-    S acc = X(i, c);
-    for (Index j = body[i].parent; j >= 0; j = body[j].parent) acc -= L(i, j) * X(j, c);
-    X(i, c) = acc / L(i, i);
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(i, S(1), j, -L(i, j));
+    rows(i, S(1) / L(i, i), i, S(0));
   }
 }
 
@@ -277,10 +283,7 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
   rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
   const Index failed = tree_ltl_factor(body, dqdd_dtau);
   if (failed >= 0) return failed;
-  for (Index c = 0; c < nv; ++c) {
-    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, c);
-    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dqd, c);
-  }
+  tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
   struct {
     DerivativeBody<S>* w;
     SCANDYN_HD S& operator[](Index i) const { return w[i].d; }
