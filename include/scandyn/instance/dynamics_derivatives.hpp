@@ -104,7 +104,7 @@ struct VelocityDerivative {
 };
 
 // Body i's quantities between the two passes of rnea_derivatives_instance (world
-// frame; 71 scalars).
+// frame; 72 scalars).
 template <class S>
 struct DerivativeBody {
   Transform<S> X;  // body frame <- world (i_X_0)
@@ -115,7 +115,8 @@ struct DerivativeBody {
   Force<S> F;      // body force, then (backward pass) the sum over the subtree
   Inertia<S> Ic;   // spatial inertia in the world frame, then the subtree's (composite)
   VelocityDerivative<S> Bc;  // B_i, then the subtree's sum
-  S d;             // fd_derivatives_instance: the diagonal entry of L^-1 (M = L^T L)
+  S d, t;          // fd_derivatives_instance's scratch: the diagonal entry of L^-1 (M =
+                   // L^T L), and an entry of a row of L^-1
 };
 
 // Forward step of the derivatives: body i's world-frame quantities from its
@@ -238,9 +239,10 @@ SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, Matr
 // In place: A's lower triangle (L from tree_ltl_factor) becomes M^-1 = L^-1 L^-T,
 // both triangles written. L^-1 has L's sparsity (ancestor relations compose), so it
 // replaces L column by column; the diagonal of L^-1 waits in diag (n scalars) while
-// the upper triangle receives M^-1, which is dense where M is not.
-template <class S, class Diag>
-SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Diag diag) {
+// the upper triangle receives M^-1, which is dense where M is not. row: n scalars of
+// scratch.
+template <class S, class Scratch>
+SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch diag, Scratch row) {
   const Index n = A.n;
   for (Index k = 0; k < n; ++k) {  // column k of L^-1 (columns > k still hold L)
     A(k, k) = S(1) / A(k, k);
@@ -253,20 +255,19 @@ SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Diag diag)
       A(i, k) = -s / A(i, i);
     }
   }
-  for (Index i = 0; i < n; ++i) diag[i] = A(i, i);
-  // (M^-1)_ij = sum of L^-1_ik L^-1_jk over the common ancestors k (and i or j)
+  for (Index i = 0; i < n; ++i) diag[i] = A(i, i), row[i] = S(0);
+  // (M^-1)_ij = sum of L^-1_ik L^-1_jk over the common ancestors k (and i or j): row
+  // j of L^-1 scattered into `row`, then each i <= j walks its own ancestors
   auto linv = [&](Index r, Index k) { return r == k ? S(diag[r]) : A(r, k); };
-  for (Index i = 0; i < n; ++i)
-    for (Index j = i; j < n; ++j) {
-      Index a = i, b = j;  // their nearest common ancestor (or one of them)
-      while (a != b) {
-        if (a > b) a = body[a].parent;
-        else b = body[b].parent;
-      }
+  for (Index j = 0; j < n; ++j) {
+    for (Index k = j; k >= 0; k = body[k].parent) row[k] = linv(j, k);
+    for (Index i = 0; i <= j; ++i) {
       S s = S(0);
-      for (Index k = a; k >= 0; k = body[k].parent) s += linv(i, k) * linv(j, k);
+      for (Index k = i; k >= 0; k = body[k].parent) s += linv(i, k) * row[k];
       A(i, j) = s;
     }
+    for (Index k = j; k >= 0; k = body[k].parent) row[k] = S(0);
+  }
   for (Index i = 0; i < n; ++i)
     for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
 }
@@ -284,11 +285,12 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
   const Index failed = tree_ltl_factor(body, dqdd_dtau);
   if (failed >= 0) return failed;
   tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
-  struct {
+  struct Field {  // one scalar field of the work array
     DerivativeBody<S>* w;
-    SCANDYN_HD S& operator[](Index i) const { return w[i].d; }
-  } diag{work};
-  tree_ltl_inverse(body, dqdd_dtau, diag);
+    S DerivativeBody<S>::*f;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+  };
+  tree_ltl_inverse(body, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
   return -1;
 }
 
