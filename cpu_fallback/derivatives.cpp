@@ -1,6 +1,7 @@
 // cpu_fallback/derivatives.cpp: the serial and OpenMP derivatives of inverse and
 // forward dynamics, the reference rnea_derivatives / aba_derivatives per instance
 // (scandyn/algorithm/derivatives.hpp), threads over instances.
+#include <algorithm>
 #include <vector>
 
 #include "cpu_engines.hpp"
@@ -11,67 +12,71 @@ namespace scandyn {
 namespace cpu {
 namespace {
 
-// Per-thread workspaces and contiguous input rows shared by both engines.
-template <class S>
-class DerivativeScratch {
+// What both engines hold: the model, the backend and its threads, and per thread a
+// workspace and contiguous rows for one instance's inputs.
+template <class S, class Interface>
+class CpuDerivativeEngine : public Interface {
  public:
-  DerivativeScratch(const ModelTpl<S>& model, int threads) {
-    for (int t = 0; t < threads; ++t) data.emplace_back(model);
-    rows = RowScratch<S>(threads, 4, static_cast<std::size_t>(model.nv()));
+  CpuDerivativeEngine(const ModelTpl<S>& model, const BackendOptions& o, const char* strategy)
+      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch), strategy_(strategy),
+        rows_(threads_, 4, static_cast<std::size_t>(model.nv())) {
+    for (int t = 0; t < threads_; ++t) data_.emplace_back(model);
   }
-  std::vector<DerivativeDataTpl<S>> data;  // (threads) workspaces
-  RowScratch<S> rows;                      // per thread: q, qd, qdd or tau (nv each), qdd out (nv)
-};
-
-template <class S>
-class CpuIdDerivatives final : public IdDerivatives<S> {
- public:
-  CpuIdDerivatives(const ModelTpl<S>& model, const BackendOptions& o)
-      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch),
-        scratch_(model, threads_) {}
-
-  void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) override {
-    check_batch(in, out, max_batch_);
-    const Index nv = model_.nv();
-    for_instance_blocks(threads_, in.q.batch, [&](int t, Index begin, Index end) {
-      for (Index b = begin; b < end; ++b) {
-        rnea_derivatives(model_, scratch_.data[t], gather(in.q, b, nv, scratch_.rows.row(t, 0)),
-                         gather(in.qd, b, nv, scratch_.rows.row(t, 1)),
-                         gather(in.qdd, b, nv, scratch_.rows.row(t, 2)), in.fext ? in.fext + b * nv : nullptr,
-                         instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
-                         instance_matrix(out.M, b, nv));
-      }
-    });
-  }
-
-  std::string strategy() const override { return "rnea_derivatives"; }
+  std::string strategy() const override { return strategy_; }
   BackendKind backend() const override { return kind_; }
   bool exact() const override { return true; }
 
- private:
+ protected:
+  // instance b's entries of v as a contiguous array (row k of thread t's rows)
+  const S* input(const BatchView<const S>& v, Index b, int t, int k) {
+    return gather(v, b, model_.nv(), rows_.row(t, k));
+  }
   const ModelTpl<S>& model_;
   BackendKind kind_;
   int threads_;
   Index max_batch_;
-  DerivativeScratch<S> scratch_;
+  const char* strategy_;
+  std::vector<DerivativeDataTpl<S>> data_;  // (threads) workspaces
+  RowScratch<S> rows_;                      // per thread: q, qd, qdd or tau (nv each), qdd out (nv)
 };
 
 template <class S>
-class CpuFdDerivatives final : public FdDerivatives<S> {
+class CpuIdDerivatives final : public CpuDerivativeEngine<S, IdDerivatives<S>> {
+  using Base = CpuDerivativeEngine<S, IdDerivatives<S>>;
+
+ public:
+  CpuIdDerivatives(const ModelTpl<S>& model, const BackendOptions& o) : Base(model, o, "rnea_derivatives") {}
+
+  void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) override {
+    check_batch(in, out, this->max_batch_);
+    const Index nv = this->model_.nv();
+    for_instance_blocks(this->threads_, in.q.batch, [&](int t, Index begin, Index end) {
+      for (Index b = begin; b < end; ++b)
+        rnea_derivatives(this->model_, this->data_[t], this->input(in.q, b, t, 0), this->input(in.qd, b, t, 1),
+                         this->input(in.qdd, b, t, 2), in.fext ? in.fext + b * nv : nullptr,
+                         instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
+                         instance_matrix(out.M, b, nv));
+    });
+  }
+};
+
+template <class S>
+class CpuFdDerivatives final : public CpuDerivativeEngine<S, FdDerivatives<S>> {
+  using Base = CpuDerivativeEngine<S, FdDerivatives<S>>;
+
  public:
   CpuFdDerivatives(const ModelTpl<S>& model, const BackendOptions& o)
-      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch),
-        scratch_(model, threads_), failed_dof_(static_cast<std::size_t>(o.max_batch)) {}
+      : Base(model, o, "aba_derivatives"), failed_dof_(static_cast<std::size_t>(std::max<Index>(o.max_batch, 1))) {}
 
   BatchStatus compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) override {
-    check_batch(in, out, max_batch_);
-    const Index nv = model_.nv();
-    for_instance_blocks(threads_, in.q.batch, [&](int t, Index begin, Index end) {
+    check_batch(in, out, this->max_batch_);
+    const Index nv = this->model_.nv();
+    for_instance_blocks(this->threads_, in.q.batch, [&](int t, Index begin, Index end) {
       for (Index b = begin; b < end; ++b) {
-        S* qdd = out.qdd.data ? output_row(out.qdd, b, scratch_.rows.row(t, 3)) : scratch_.rows.row(t, 3);
-        const Status st = aba_derivatives(model_, scratch_.data[t], gather(in.q, b, nv, scratch_.rows.row(t, 0)),
-                                          gather(in.qd, b, nv, scratch_.rows.row(t, 1)),
-                                          gather(in.tau, b, nv, scratch_.rows.row(t, 2)),
+        S* const row = this->rows_.row(t, 3);
+        S* qdd = out.qdd.data ? output_row(out.qdd, b, row) : row;
+        const Status st = aba_derivatives(this->model_, this->data_[t], this->input(in.q, b, t, 0),
+                                          this->input(in.qd, b, t, 1), this->input(in.tau, b, t, 2),
                                           in.fext ? in.fext + b * nv : nullptr, qdd,
                                           instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
                                           instance_matrix(out.dqdd_dtau, b, nv));
@@ -82,16 +87,7 @@ class CpuFdDerivatives final : public FdDerivatives<S> {
     return summarize_failures(failed_dof_.data(), in.q.batch, Failure::ArticulatedPivot);
   }
 
-  std::string strategy() const override { return "aba_derivatives"; }
-  BackendKind backend() const override { return kind_; }
-  bool exact() const override { return true; }
-
  private:
-  const ModelTpl<S>& model_;
-  BackendKind kind_;
-  int threads_;
-  Index max_batch_;
-  DerivativeScratch<S> scratch_;
   std::vector<int> failed_dof_;  // (max_batch) per instance: -1 or the DoF whose pivot failed
 };
 

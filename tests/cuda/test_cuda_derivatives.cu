@@ -19,17 +19,8 @@
 namespace scandyn {
 namespace {
 
-// Three nv x nv outputs of B instances: instance-innermost (soa) or instance-major rows.
 template <class S>
-struct Blocks {
-  std::vector<S> data;
-  BatchView<S> v[3];
-  Blocks(Index nv, Index B, bool soa) : data(static_cast<std::size_t>(3) * nv * nv * B, S(NAN)) {
-    const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
-    for (int k = 0; k < 3; ++k)
-      v[k] = soa ? BatchView<S>{data.data() + k * nn * B, B, B, 1} : BatchView<S>{data.data() + k * nn, B, 1, 3 * nn};
-  }
-};
+using Blocks = test::DerivativeBlocks<S>;
 
 // max over instances and blocks of max |a - b| / max(1, max |b|) (per block).
 template <class S>

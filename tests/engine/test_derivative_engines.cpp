@@ -37,20 +37,9 @@ std::vector<std::pair<std::string, Model>> engine_models() {
   return models;
 }
 
-// Three nv x nv outputs of B instances in one buffer, in one of two layouts: each
-// instance's blocks next to each other (aos rows of 3 nv^2), or each block's entry
-// innermost over instances (soa).
+
 template <class S>
-struct Blocks {
-  std::vector<S> data;
-  BatchView<S> v[3];
-  Blocks(Index nv, Index B, bool soa) : data(static_cast<std::size_t>(3) * nv * nv * B, S(NAN)) {
-    const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
-    for (int k = 0; k < 3; ++k)
-      v[k] = soa ? BatchView<S>{data.data() + k * nn * B, B, B, 1} : BatchView<S>{data.data() + k * nn, B, 1, 3 * nn};
-  }
-  S at(int k, Index i, Index j, Index b, Index nv) const { return v[k].at(i * nv + j, b); }
-};
+using Blocks = test::DerivativeBlocks<S>;
 
 TEST(DerivativeEngines, SerialIsTheReferenceAndOpenMPEqualsSerial) {
   for (auto& [name, model] : engine_models()) {
