@@ -40,6 +40,7 @@ def main():
     args = ap.parse_args()
     version = subprocess.run([args.scandyn, '--version'], capture_output=True, text=True).stdout.strip()
     pin_version = subprocess.run([args.pin_bench, 'version'], capture_output=True, text=True).stdout.strip()
+    version, pin_version = version.replace(',', ';'), pin_version.replace(',', ';')  # CSV fields
     rows = []
     for model in ('iiwa', 'atlas'):
         urdf = os.path.join(args.models, model + '.urdf')
@@ -62,6 +63,11 @@ def main():
             print(rows[-2], rows[-1], sep='\n', flush=True)
     with open(args.out, 'w') as fh:
         fh.write(HEADER + '\n' + '\n'.join(rows) + '\n')
+    cpu = next((l.split(':', 1)[1].strip() for l in open('/proc/cpuinfo') if l.startswith('model name')), '?')
+    with open(os.path.splitext(args.out)[0] + '.env.txt', 'w') as fh:
+        fh.write('date: %s\ncpu: %s, %d threads\nload average: %s\nscandyn: %s\npinocchio: %s\n'
+                 % (subprocess.run(['date', '-u', '+%Y-%m-%dT%H:%M:%SZ'], capture_output=True, text=True).stdout.strip(),
+                    cpu, os.cpu_count(), ' '.join(open('/proc/loadavg').read().split()[:3]), version, pin_version))
     return 0
 
 
