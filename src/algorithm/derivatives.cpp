@@ -1,6 +1,7 @@
 // src/algorithm/derivatives.cpp: the serial reference derivatives
 // (scandyn/algorithm/derivatives.hpp) for float and double.
 #include "scandyn/algorithm/derivatives.hpp"
+#include "scandyn/algorithm/directional_derivatives.hpp"
 
 namespace scandyn {
 
@@ -29,11 +30,44 @@ Status aba_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, con
   return Status{failed};
 }
 
+template <class S>
+void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
+              const Force<S>* fext, const S* dq, const S* dqd, const S* dqdd, S* dtau, S* tau) {
+  const Index n = model.nv();
+  DataTpl<S>& d = data.rnea;
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  // forward: the RNEA's values and their tangents
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    d.Xup[i] = joint_transform(b, q[i]);
+    const Motion<S> vp = p < 0 ? Motion<S>::zero() : d.v[p], ap = p < 0 ? a0 : d.a[p];
+    const Motion<S> dvp = p < 0 ? Motion<S>::zero() : data.t[p].v, dap = p < 0 ? Motion<S>::zero() : data.t[p].a;
+    const RneaForward<S> o = rnea_forward_step(b, d.Xup[i], vp, ap, qd[i], qdd[i]);
+    d.v[i] = o.v;
+    d.a[i] = o.a;
+    d.f[i] = fext ? o.f - fext[i] : o.f;
+    data.t[i] = rnea_tangent_forward_step(b, d.Xup[i], vp, ap, dvp, dap, o, qd[i], dq[i], dqd[i], dqdd[i]);
+  }
+  // backward: subtree forces and their tangents
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    dtau[i] = joint_project(b, data.t[i].f);
+    if (tau) tau[i] = joint_project(b, d.f[i]);
+    if (b.parent < 0) continue;
+    const Transform<S>& X = d.Xup[i];
+    data.t[b.parent].f += X.apply_transpose(data.t[i].f + dq[i] * cross(joint_motion(b, S(1)), d.f[i]));
+    d.f[b.parent] += X.apply_transpose(d.f[i]);
+  }
+}
+
 #define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
   template void rnea_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,     \
                                  const Force<S>*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>, S*);               \
   template Status aba_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,    \
-                                  const Force<S>*, S*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>);
+                                  const Force<S>*, S*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>);          \
+  template void rnea_jvp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
+                         const S*, const S*, const S*, S*, S*);
 SCANDYN_INSTANTIATE_DERIVATIVES(float)
 SCANDYN_INSTANTIATE_DERIVATIVES(double)
 #undef SCANDYN_INSTANTIATE_DERIVATIVES
