@@ -61,13 +61,53 @@ void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const 
   }
 }
 
+template <class S>
+void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
+              const Force<S>* fext, const S* w, S* gq, S* gqd, S* gqdd) {
+  const Index n = model.nv();
+  DataTpl<S>& d = data.rnea;
+  rnea(model, d, q, qd, qdd, gqdd, fext);  // Xup, v, a and the subtree forces F (tau unused)
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  // root to leaves: Fbar, and the body force's own adjoints
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Motion<S> s = joint_motion(b, S(1));
+    RneaAdjoint<S>& r = data.adj[i];
+    const Motion<S> from_parent = b.parent < 0 ? Motion<S>::zero() : d.Xup[i].apply(data.adj[b.parent].F);
+    r.F = w[i] * s + from_parent;
+    gq[i] = dot(from_parent, cross(s, d.f[i]));
+    r.a = b.I * r.F;
+    r.v = -(cross(r.F, b.I * d.v[i]) + b.I * cross(d.v[i], r.F));
+  }
+  // leaves to root: the acceleration and velocity adjoints, to the parents
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    const Transform<S>& X = d.Xup[i];
+    const Motion<S> s = joint_motion(b, S(1));
+    RneaAdjoint<S>& r = data.adj[i];
+    const Motion<S> Xa = X.apply(p < 0 ? a0 : d.a[p]), Xv = X.apply(p < 0 ? Motion<S>::zero() : d.v[p]);
+    gqdd[i] = dot(s, r.a);
+    gqd[i] = dot(cross(d.v[i], s), r.a);
+    r.v += qd[i] * cross(s, r.a);
+    gq[i] -= dot(cross(s, Xa), r.a) + dot(cross(s, Xv), r.v);
+    gqd[i] += dot(s, r.v);
+    if (p >= 0) {
+      data.adj[p].a += X.apply_transpose(r.a);
+      data.adj[p].v += X.apply_transpose(r.v);
+    }
+  }
+}
+
 #define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
   template void rnea_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,     \
                                  const Force<S>*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>, S*);               \
   template Status aba_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,    \
                                   const Force<S>*, S*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>);          \
   template void rnea_jvp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
-                         const S*, const S*, const S*, S*, S*);
+                         const S*, const S*, const S*, S*, S*);                                        \
+  template void rnea_vjp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
+                         const S*, S*, S*, S*);
 SCANDYN_INSTANTIATE_DERIVATIVES(float)
 SCANDYN_INSTANTIATE_DERIVATIVES(double)
 #undef SCANDYN_INSTANTIATE_DERIVATIVES

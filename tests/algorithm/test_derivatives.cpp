@@ -157,9 +157,9 @@ TEST(AbaDerivatives, MatchCentralDifferencesAndIdentities) {
 }
 
 // The directional derivative of inverse dynamics against the dense matrices: dtau =
-// dtau/dq dq + dtau/dqd dqd + M dqdd, 1e-11 relative to max(1, max |dtau|), up to
-// rope:1000.
-TEST(RneaJvp, MatchesTheDenseDerivatives) {
+// dtau/dq dq + dtau/dqd dqd + M dqdd, and the adjoint (w^T dtau/dq, w^T dtau/dqd, M
+// w), 1e-11 relative to max(1, max |result|), up to rope:1000.
+TEST(RneaJvp, JvpAndVjpMatchTheDenseDerivatives) {
   auto models = derivative_models();
   models.emplace_back("rope:1000", load_model("rope:1000"));
   for (auto& [name, model] : models) {
@@ -181,6 +181,20 @@ TEST(RneaJvp, MatchesTheDenseDerivatives) {
              jvp.data(), tau.data());
     EXPECT_LT(test::max_rel_err(jvp, dense), 1e-11);
     EXPECT_LT(test::max_rel_err(tau, tau_ref), 1e-12);
+    // the adjoint: w^T dtau/dq, w^T dtau/dqd, M w
+    const auto w = random_vector(rng, n, -1, 1);
+    std::vector<double> gq(n, NAN), gqd(n, NAN), gqdd(n, NAN), rq(n, 0.0), rqd(n, 0.0), rqdd(n, 0.0);
+    rnea_vjp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), w.data(), gq.data(), gqd.data(),
+             gqdd.data());
+    for (Index i = 0; i < n; ++i)
+      for (Index j = 0; j < n; ++j) {
+        rq[j] += w[i] * A[i * n + j];
+        rqd[j] += w[i] * B[i * n + j];
+        rqdd[j] += w[i] * M[i * n + j];
+      }
+    EXPECT_LT(test::max_rel_err(gq, rq), 1e-11);
+    EXPECT_LT(test::max_rel_err(gqd, rqd), 1e-11);
+    EXPECT_LT(test::max_rel_err(gqdd, rqdd), 1e-11);
   }
 }
 

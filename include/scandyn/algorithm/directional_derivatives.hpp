@@ -1,6 +1,7 @@
 // scandyn/algorithm/directional_derivatives.hpp: the directional derivative (a
-// Jacobian-vector product) of inverse dynamics, O(nv), for models whose nv x nv
-// derivative matrices do not fit (ropes of 10^5 links).
+// Jacobian-vector product) of inverse dynamics and its adjoint (a vector-Jacobian
+// product), O(nv) each, for models whose nv x nv derivative matrices do not fit
+// (ropes of 10^5 links).
 //
 // Forward mode through the RNEA's recursions in body frames: every quantity x of the
 // RNEA gets its tangent dx = (d x / d(q, qd, qdd)) (dq, dqd, dqdd), and each step's
@@ -43,12 +44,21 @@ SCANDYN_HD RneaTangent<S> rnea_tangent_forward_step(const Body<S>& b, const Tran
   return t;
 }
 
-// Scratch for rnea_jvp (no allocation in a call).
+// Adjoints of one body's RNEA quantities (body frame), rnea_vjp's.
+template <class S>
+struct RneaAdjoint {
+  Motion<S> F;     // adjoint of the subtree force (pairs with forces)
+  Force<S> a, v;   // adjoints of the acceleration and velocity (pair with motions)
+};
+
+// Scratch for rnea_jvp and rnea_vjp (no allocation in a call).
 template <class S>
 struct RneaJvpData {
-  explicit RneaJvpData(const ModelTpl<S>& model) : rnea(model, /*mass_matrix=*/false), t(model.nv()) {}
+  explicit RneaJvpData(const ModelTpl<S>& model)
+      : rnea(model, /*mass_matrix=*/false), t(model.nv()), adj(model.nv()) {}
   DataTpl<S> rnea;                  // the RNEA's values (Xup, v, a, f)
-  std::vector<RneaTangent<S>> t;    // (nv) tangents
+  std::vector<RneaTangent<S>> t;    // (nv) tangents (rnea_jvp)
+  std::vector<RneaAdjoint<S>> adj;  // (nv) adjoints (rnea_vjp)
 };
 
 // dtau = (d ID / d q) dq + (d ID / d qd) dqd + M dqdd at (q, qd, qdd, fext), in
@@ -56,5 +66,14 @@ struct RneaJvpData {
 template <class S>
 void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
               const Force<S>* fext, const S* dq, const S* dqd, const S* dqdd, S* dtau, S* tau = nullptr);
+
+// The vector-Jacobian product (adjoint) of inverse dynamics in O(nv): for a weight w
+// on tau, gq = (dtau/dq)^T w, gqd = (dtau/dqd)^T w, gqdd = M w. Reverse mode through
+// the same recursions: the adjoint of the subtree forces runs root to leaves
+// (Fbar_i = w_i S_i + Xup_i Fbar_p), those of the accelerations and velocities leaves
+// to root (abar_p += Xup^T abar_i): the scans of rnea_jvp, reversed.
+template <class S>
+void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
+              const Force<S>* fext, const S* w, S* gq, S* gqd, S* gqdd);  // gqdd holds tau meanwhile
 
 }  // namespace scandyn
