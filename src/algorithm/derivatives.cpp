@@ -99,6 +99,39 @@ void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const 
   }
 }
 
+template <class S>
+AbaJvpData<S>::AbaJvpData(const ModelTpl<S>& model)
+    : id(model), at_rest(model), aba(model, /*mass_matrix=*/false), zero(model.nv(), S(0)), r0(model.nv()),
+      r1(model.nv()) {
+  at_rest.gravity = Vec3<S>::zero();
+}
+
+template <class S>
+Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd) {
+  const Status st = aba(model, data.aba, q, qd, tau, qdd, fext);
+  if (!st.ok()) return st;
+  // r0 = dtau/dq dq + dtau/dqd dqd (the JVP of ID with dqdd = 0), then dtau - r0
+  rnea_jvp(model, data.id, q, qd, static_cast<const S*>(qdd), fext, dq, dqd, data.zero.data(), data.r0.data());
+  const Index n = model.nv();
+  for (Index i = 0; i < n; ++i) data.r0[i] = dtau[i] - data.r0[i];
+  return aba(data.at_rest, data.aba, q, data.zero.data(), data.r0.data(), dqdd);
+}
+
+template <class S>
+Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd) {
+  Status st = aba(model, data.aba, q, qd, tau, qdd, fext);
+  if (!st.ok()) return st;
+  st = aba(data.at_rest, data.aba, q, data.zero.data(), w, gtau);  // u = M^-1 w
+  if (!st.ok()) return st;
+  rnea_vjp(model, data.id, q, qd, static_cast<const S*>(qdd), fext, static_cast<const S*>(gtau), gq, gqd,
+           data.r1.data());
+  const Index n = model.nv();
+  for (Index i = 0; i < n; ++i) gq[i] = -gq[i], gqd[i] = -gqd[i];
+  return st;
+}
+
 #define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
   template void rnea_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,     \
                                  const Force<S>*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>, S*);               \
@@ -107,7 +140,12 @@ void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const 
   template void rnea_jvp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
                          const S*, const S*, const S*, S*, S*);                                        \
   template void rnea_vjp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
-                         const S*, S*, S*, S*);
+                         const S*, S*, S*, S*);                                                        \
+  template struct AbaJvpData<S>;                                                                               \
+  template Status aba_jvp(const ModelTpl<S>&, AbaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
+                          const S*, const S*, const S*, S*, S*);                                               \
+  template Status aba_vjp(const ModelTpl<S>&, AbaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
+                          const S*, S*, S*, S*, S*);
 SCANDYN_INSTANTIATE_DERIVATIVES(float)
 SCANDYN_INSTANTIATE_DERIVATIVES(double)
 #undef SCANDYN_INSTANTIATE_DERIVATIVES

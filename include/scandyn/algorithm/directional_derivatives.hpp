@@ -76,4 +76,33 @@ template <class S>
 void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gqdd);  // gqdd holds tau meanwhile
 
+// ---- forward dynamics ----------------------------------------------------------
+// At qdd = FD(q, qd, tau, fext): dqdd = M^-1 (dtau - dtau/dq dq - dtau/dqd dqd), and
+// the adjoint of a weight w on qdd is u = M^-1 w: gq = -(dtau/dq)^T u, gqd =
+// -(dtau/dqd)^T u, gtau = u. M^-1 x costs one ABA of the model without gravity at rest
+// (qdd = M^-1 tau there), so both are O(nv).
+
+// Scratch for aba_jvp and aba_vjp: the inverse dynamics' scratch, the model again
+// without gravity (made once), the ABA's scratch and three nv rows.
+template <class S>
+struct AbaJvpData {
+  explicit AbaJvpData(const ModelTpl<S>& model);
+  RneaJvpData<S> id;
+  ModelTpl<S> at_rest;    // the model with gravity 0: aba(at_rest, q, 0, x) = M^-1 x
+  DataTpl<S> aba;
+  std::vector<S> zero, r0, r1;  // (nv) zeros, then two rows of scratch
+};
+
+// dqdd = (dqdd/dq) dq + (dqdd/dqd) dqd + M^-1 dtau at (q, qd, tau, fext); qdd (nv
+// entries, written) = FD(q, qd, tau, fext). Reports the ABA's failed pivot.
+template <class S>
+Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd);
+
+// gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = M^-1 w at (q, qd, tau, fext); qdd
+// (written) = FD(q, qd, tau, fext).
+template <class S>
+Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd);
+
 }  // namespace scandyn
