@@ -68,6 +68,27 @@ std::vector<double> central_jacobian(Index n, std::vector<double>& x, double h, 
   return J;
 }
 
+// d f / d eps of f(x + eps dx, y + eps dy, z + eps dz) at eps = 0 (three input
+// vectors of n entries, n outputs), by central differences with one Richardson step
+// as central_jacobian.
+template <class F>
+std::vector<double> directional_difference(Index n, const std::vector<double>* x[3], const std::vector<double>* dx[3],
+                                           double h, F&& f) {
+  std::vector<double> in[3] = {std::vector<double>(n), std::vector<double>(n), std::vector<double>(n)};
+  std::vector<double> fp(n), fm(n), d[2] = {std::vector<double>(n), std::vector<double>(n)};
+  for (int k = 0; k < 2; ++k) {
+    const double step = k == 0 ? h : h / 2;
+    for (int sign : {1, -1}) {
+      for (int a = 0; a < 3; ++a)
+        for (Index i = 0; i < n; ++i) in[a][i] = (*x[a])[i] + sign * step * (*dx[a])[i];
+      f(in[0].data(), in[1].data(), in[2].data(), sign > 0 ? fp.data() : fm.data());
+    }
+    for (Index i = 0; i < n; ++i) d[k][i] = (fp[i] - fm[i]) / (2 * step);
+  }
+  for (Index i = 0; i < n; ++i) d[0][i] = (4 * d[1][i] - d[0][i]) / 3;
+  return d[0];
+}
+
 std::vector<std::pair<std::string, Model>> derivative_models() {
   std::vector<std::pair<std::string, Model>> models;
   for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"})
@@ -210,29 +231,20 @@ TEST(RneaJvp, MatchesCentralDifferencesOnALongRope) {
   for (Index i = 0; i < n; ++i) s.q[i] *= 0.005, s.qd[i] *= 0.005;
   std::mt19937_64 rng(9);
   const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dqdd = random_vector(rng, n, -1, 1);
-  std::vector<double> jvp(n), fp(n), fm(n), d1(n), d2(n), q(n), qd(n), qdd(n);
+  std::vector<double> jvp(n);
   RneaJvpData<double> jd(model);
   rnea_jvp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), dq.data(), dqd.data(), dqdd.data(),
            jvp.data());
   Data data(model, /*mass_matrix=*/false);
-  auto diff = [&](double h, std::vector<double>& d) {
-    for (int sign : {1, -1}) {
-      for (Index i = 0; i < n; ++i) {
-        q[i] = s.q[i] + sign * h * dq[i];
-        qd[i] = s.qd[i] + sign * h * dqd[i];
-        qdd[i] = s.qdd[i] + sign * h * dqdd[i];
-      }
-      rnea(model, data, q.data(), qd.data(), qdd.data(), sign > 0 ? fp.data() : fm.data(), s.fext.data());
-    }
-    for (Index i = 0; i < n; ++i) d[i] = (fp[i] - fm[i]) / (2 * h);
-  };
   // the direction changes every joint angle, so a step h turns the rope's shape by
   // about h sqrt(nv): 1e-4 keeps that small (3e-4 to 1e-5 all pass; 1e-3 fails by
   // truncation)
-  constexpr double h = 1e-4;
-  diff(h, d1);
-  diff(h / 2, d2);
-  for (Index i = 0; i < n; ++i) d1[i] = (4 * d2[i] - d1[i]) / 3;
+  const std::vector<double>* x[3] = {&s.q, &s.qd, &s.qdd};
+  const std::vector<double>* dx[3] = {&dq, &dqd, &dqdd};
+  const std::vector<double> d1 = directional_difference(n, x, dx, 1e-4, [&](const double* q, const double* qd,
+                                                                            const double* qdd, double* out) {
+    rnea(model, data, q, qd, qdd, out, s.fext.data());
+  });
   EXPECT_LT(test::max_rel_err(jvp, d1), 1e-6);
 }
 
@@ -292,27 +304,18 @@ TEST(AbaJvp, MatchesCentralDifferencesOnARope) {
   for (Index i = 0; i < n; ++i) s.q[i] *= 0.005, s.qd[i] *= 0.005;
   std::mt19937_64 rng(10);
   const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dtau = random_vector(rng, n, -1, 1);
-  std::vector<double> jvp(n), qdd(n), fp(n), fm(n), d1(n), d2(n), q(n), qd(n), tau(n);
+  std::vector<double> jvp(n), qdd(n);
   AbaJvpData<double> jd(model);
   ASSERT_TRUE(aba_jvp(model, jd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), dq.data(), dqd.data(),
                       dtau.data(), jvp.data(), qdd.data())
                   .ok());
   Data data(model, /*mass_matrix=*/false);
-  auto diff = [&](double h, std::vector<double>& d) {
-    for (int sign : {1, -1}) {
-      for (Index i = 0; i < n; ++i) {
-        q[i] = s.q[i] + sign * h * dq[i];
-        qd[i] = s.qd[i] + sign * h * dqd[i];
-        tau[i] = s.tau[i] + sign * h * dtau[i];
-      }
-      ASSERT_TRUE(aba(model, data, q.data(), qd.data(), tau.data(), sign > 0 ? fp.data() : fm.data(), s.fext.data()).ok());
-    }
-    for (Index i = 0; i < n; ++i) d[i] = (fp[i] - fm[i]) / (2 * h);
-  };
-  constexpr double h = 1e-4;
-  diff(h, d1);
-  diff(h / 2, d2);
-  for (Index i = 0; i < n; ++i) d1[i] = (4 * d2[i] - d1[i]) / 3;
+  const std::vector<double>* x[3] = {&s.q, &s.qd, &s.tau};
+  const std::vector<double>* dx[3] = {&dq, &dqd, &dtau};
+  const std::vector<double> d1 = directional_difference(n, x, dx, 1e-4, [&](const double* q, const double* qd,
+                                                                            const double* tau, double* out) {
+    ASSERT_TRUE(aba(model, data, q, qd, tau, out, s.fext.data()).ok());
+  });
   EXPECT_LT(test::max_rel_err(jvp, d1), 1e-6);
 }
 
