@@ -293,4 +293,58 @@ void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const B
 template <class S>
 void check_batch(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau, Index max_batch);
 
+// ---- derivatives (Carpentier & Mansard 2018; scandyn/algorithm/derivatives.hpp) ----
+//
+// Output layout: three nv x nv matrices per instance, each a BatchView of nv * nv
+// entries, entry e = i * nv + j holding d y_i / d x_j (row i: the output DoF,
+// column j: the variable): BatchView::aos(p, nv * nv, B) is row-major per instance,
+// as the serial rnea_derivatives / aba_derivatives write; BatchView::soa(p, nv * nv,
+// B) puts the instance innermost (CUDA's fast layout); any strides work, e.g. the
+// three blocks of one instance next to each other: {p + k * nv * nv, B, 1, 3 * nv * nv}
+// for block k. Every entry is written.
+
+template <class S>
+struct IdDerivativesOut {
+  BatchView<S> dtau_dq;   // (nv * nv x B) d tau / d q
+  BatchView<S> dtau_dqd;  // (nv * nv x B) d tau / d qd
+  BatchView<S> M;         // (nv * nv x B) d tau / d qdd = M(q)
+};
+
+template <class S>
+class IdDerivatives : public Engine {
+ public:
+  // The derivatives of tau = ID(q, qd, qdd, fext) (gravity included) for every instance.
+  virtual void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) = 0;
+};
+
+template <class S>
+struct FdDerivativesOut {
+  BatchView<S> dqdd_dq;    // (nv * nv x B) d qdd / d q
+  BatchView<S> dqdd_dqd;   // (nv * nv x B) d qdd / d qd
+  BatchView<S> dqdd_dtau;  // (nv * nv x B) d qdd / d tau = M(q)^-1
+  BatchView<S> qdd;        // optional (nv x B): qdd = FD(q, qd, tau, fext) itself; data null: not written
+};
+
+template <class S>
+class FdDerivatives : public Engine {
+ public:
+  // The derivatives of qdd = FD(q, qd, tau, fext) (by the ABA, gravity included) for
+  // every instance. An instance whose articulated pivot (or a pivot of M = L L^T) is
+  // not positive and finite is reported in the status, its outputs not meaningful.
+  virtual BatchStatus compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) = 0;
+};
+
+// Serial and OpenMP: any model; CUDA: a thread per instance, models of up to
+// cuda::kMaxThreadDofs DoF (BackendError beyond). options.strategy and fd_method
+// must be Auto (one algorithm each).
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch);
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch);
+
 }  // namespace scandyn

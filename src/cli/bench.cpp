@@ -86,8 +86,8 @@ BatchIn<S> make_batch(Algo algo, std::size_t count, const std::vector<S>& q,
   in.count = count;
   in.q = q.data();
   if (algo != Algo::Mass) in.qd = qd.data();
-  if (algo == Algo::Id) in.qdd = third.data();
-  if (algo == Algo::Fd) in.tau = third.data();
+  if (algo == Algo::Id || algo == Algo::DId) in.qdd = third.data();
+  if (algo == Algo::Fd || algo == Algo::DFd) in.tau = third.data();
   return in;
 }
 
@@ -133,7 +133,7 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   const std::size_t width = output_width(algo, model.nv());
   BackendOptions serial;
-  serial.fd_method = FdMethod::Aba;
+  serial.fd_method = algo == Algo::Fd ? FdMethod::Aba : FdMethod::Auto;
   AlgoEngine<double> reference(algo, model, serial);
   std::vector<double> ref(width);
   double worst = 0;
@@ -495,7 +495,7 @@ int run_bench(const Args& args) {
     throw UsageError(std::string("--") + (args.has("frames") ? "frames" : "reference") + " applies only to --algo fk or jac");
   if (!kinematics && !parse_algo(algo_text, algo))
     throw UsageError("unknown --algo value '" + args.required("algo") +
-                     "' (expected id, fd, mass, bias, fk, jac or step)");
+                     "' (expected id, fd, mass, bias, did, dfd, fk, jac or step)");
   if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
   const BackendOptions options = parse_backend_options(args);

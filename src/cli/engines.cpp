@@ -1,6 +1,7 @@
 // src/cli/engines.cpp: the command line's algorithms on the library's engines.
 #include "engines.hpp"
 
+#include <array>
 #include <cmath>
 #include <stdexcept>
 
@@ -93,6 +94,20 @@ std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const c
 
 // ---- AlgoEngine -----------------------------------------------------------------
 
+namespace {
+
+// The three nv x nv blocks of did / dfd in an instance-major output row of 3 nv^2
+// values: block k of instance b at out[b * 3 nv^2 + k nv^2], row-major.
+template <class S>
+std::array<BatchView<S>, 3> derivative_blocks(S* out, Index nv, Index B) {
+  const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
+  std::array<BatchView<S>, 3> v;
+  for (int k = 0; k < 3; ++k) v[k] = BatchView<S>{out + k * nn, B, 1, 3 * nn};
+  return v;
+}
+
+}  // namespace
+
 template <class S>
 AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& o)
     : algo_(algo), nv_(model.nv()) {
@@ -102,6 +117,8 @@ AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOpti
       case Algo::Bias: bias_ = make_bias_forces(model, o); break;
       case Algo::Mass: mass_ = make_mass_matrix(model, o); break;
       case Algo::Fd: fd_ = make_forward_dynamics(model, o); break;
+      case Algo::DId: did_ = make_id_derivatives(model, o); break;
+      case Algo::DFd: dfd_ = make_fd_derivatives(model, o); break;
     }
   } catch (const BackendError& e) {
     // no device, a model beyond a kernel's limit, a method the model cannot take, no memory
@@ -118,6 +135,8 @@ const Engine& AlgoEngine<S>::engine() const {
   if (id_) return *id_;
   if (bias_) return *bias_;
   if (mass_) return *mass_;
+  if (did_) return *did_;
+  if (dfd_) return *dfd_;
   return *fd_;
 }
 
@@ -140,6 +159,17 @@ BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
       case Algo::Fd:
         return fd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                             BatchView<S>::aos(out, nv, B));
+      case Algo::DId: {
+        const auto block = derivative_blocks(out, nv, B);
+        did_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+                      IdDerivativesOut<S>{block[0], block[1], block[2]});
+        return {};
+      }
+      case Algo::DFd: {
+        const auto block = derivative_blocks(out, nv, B);
+        return dfd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+                             FdDerivativesOut<S>{block[0], block[1], block[2], {}});
+      }
     }
   } catch (const BackendError& e) {
     throw DataError(e.what());  // a CUDA error during the computation

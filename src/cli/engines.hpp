@@ -28,7 +28,7 @@ using io::parse_algo;
 
 // A batch of count instances, instance-major: entry i of instance b is at [b * nv + i].
 // Inputs an algorithm does not read may be null: id reads q, qd, qdd; fd reads
-// q, qd, tau; mass reads q; bias reads q, qd.
+// q, qd, tau; mass reads q; bias reads q, qd; did as id, dfd as fd.
 template <class S>
 struct BatchIn {
   std::size_t count = 0;
@@ -92,6 +92,8 @@ class AlgoEngine {
   std::unique_ptr<BiasForces<S>> bias_;
   std::unique_ptr<MassMatrix<S>> mass_;
   std::unique_ptr<ForwardDynamics<S>> fd_;
+  std::unique_ptr<IdDerivatives<S>> did_;
+  std::unique_ptr<FdDerivatives<S>> dfd_;
   const Engine& engine() const;
 };
 

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "cli.hpp"
+#include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -91,6 +92,32 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
           return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.failed_dof(), d.stream());
         },
         pivot_failure(e.method()));
+  }
+  if (algo == Algo::DId || algo == Algo::DFd) {
+    // the output's three nv x nv blocks, instance innermost: block k from entry k nv^2
+    const auto block = [nv](const D& d, int k) {
+      const BatchView<S> o = d.output();
+      return BatchView<S>{o.data + static_cast<std::ptrdiff_t>(k) * nv * nv * o.dof_stride, o.batch, o.dof_stride,
+                          o.batch_stride};
+    };
+    if (algo == Algo::DFd) {
+      auto& e = dynamic_cast<cuda::CudaFdDerivatives<S>&>(engine);
+      return std::make_unique<CudaResidentBatch<S>>(
+          e.strategy(), "the forward-dynamics derivatives", nv, std::vector<const S*>{in.q, in.qd, in.tau}, in.count,
+          width, std::size_t(0),
+          [&e, block](const D& d) {
+            return e.compute_async({d.input(0), d.input(1), d.input(2)},
+                                   {block(d, 0), block(d, 1), block(d, 2), {}}, d.failed_dof(), d.stream());
+          },
+          Failure::ArticulatedPivot);
+    }
+    auto& e = dynamic_cast<cuda::CudaIdDerivatives<S>&>(engine);
+    return std::make_unique<CudaResidentBatch<S>>(
+        e.strategy(), "the inverse-dynamics derivatives", nv, std::vector<const S*>{in.q, in.qd, in.qdd}, in.count,
+        width, std::size_t(0), [&e, block](const D& d) {
+          return e.compute_async({d.input(0), d.input(1), d.input(2)}, {block(d, 0), block(d, 1), block(d, 2)},
+                                 d.stream());
+        });
   }
   if (algo == Algo::Mass) {
     auto& e = dynamic_cast<cuda::CudaMassMatrix<S>&>(engine);

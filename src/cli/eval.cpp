@@ -19,12 +19,12 @@
 namespace scandyn::cli {
 namespace {
 
-constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias};
+constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd};
 
-// --algo id,fd,...: the requested set in output order (id, fd, mass, bias); fk and
-// jac (kinematics, columns after the dynamics') set the flags.
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias, did, dfd);
+// fk and jac (kinematics, columns after the dynamics') set the flags.
 std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) {
-  bool wanted[4] = {false, false, false, false};
+  bool wanted[std::size(kAllAlgos)] = {};
   std::size_t start = 0;
   for (;;) {
     const std::size_t comma = list.find(',', start);
@@ -35,7 +35,7 @@ std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) 
       (item == "fk" ? fk : jac) = true;
     } else if (!parse_algo(item, a)) {
       throw UsageError("unknown --algo value '" + item +
-                       "' (expected a comma-separated list of id, fd, mass, bias, fk, jac)");
+                       "' (expected a comma-separated list of id, fd, mass, bias, did, dfd, fk, jac)");
     } else {
       wanted[static_cast<int>(a)] = true;
     }
@@ -154,7 +154,8 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
       retried += static_cast<std::size_t>(st.retried);
       if (!st.ok())  // the pivot of the method used, or the run-time check
         throw DataError(in.where(row0 + static_cast<std::size_t>(st.first_instance)) +
-                        ": forward dynamics failed: " + st.reason() +
+                        ": " + (algos[k] == Algo::DFd ? "forward-dynamics derivatives" : "forward dynamics") +
+                        " failed: " + st.reason() +
                         (st.failure == Failure::ResidualTooLarge
                              ? "; --fallback double (float) or aba (jsi) computes such rows again, --fd-check-tol "
                                "sets the threshold, --fd-check off accepts the result"

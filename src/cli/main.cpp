@@ -124,7 +124,7 @@ const char* const kRolloutUsage =
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias|fk|jac --instances B [--fd METHOD]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias|did|dfd|fk|jac|hybrid --instances B [--fd METHOD]\n"
     "                     [--fallback aba|double] [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                     [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"

@@ -14,6 +14,7 @@
 #include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #endif
 
@@ -361,6 +362,56 @@ std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& mod
   return cpu::make_forward_dynamics(model, o);
 }
 
+// ---- derivatives ------------------------------------------------------------------
+
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"dtau_dq", info(out.dtau_dq)},
+               {"dtau_dqd", info(out.dtau_dqd)}, {"M", info(out.M)}},
+              max_batch);
+}
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"tau", info(in.tau)}, {"dqdd_dq", info(out.dqdd_dq)},
+               {"dqdd_dqd", info(out.dqdd_dqd)}, {"dqdd_dtau", info(out.dqdd_dtau)}},
+              max_batch);
+  if (out.qdd.data && out.qdd.batch != in.q.batch)
+    throw BackendError("batch sizes disagree: q " + std::to_string(in.q.batch) + ", qdd " +
+                       std::to_string(out.qdd.batch));
+}
+
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+  if (o.strategy != IdStrategy::Auto)
+    throw BackendError(std::string("strategy '") + to_string(o.strategy) +
+                       "' is not available for the inverse-dynamics derivatives (use auto)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_id_derivatives(model, o);
+#endif
+  return cpu::make_id_derivatives(model, o);
+}
+
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+  if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba)
+    throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
+                       "' is not available for the forward-dynamics derivatives (use auto or aba)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_fd_derivatives(model, o);
+#endif
+  return cpu::make_fd_derivatives(model, o);
+}
+
+#define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
+  template void check_batch(const IdBatchIn<S>&, const IdDerivativesOut<S>&, Index);                          \
+  template void check_batch(const FdBatchIn<S>&, const FdDerivativesOut<S>&, Index);                          \
+  template std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>&, const BackendOptions&);   \
+  template std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);
+SCANDYN_INSTANTIATE_DERIVATIVES(float)
+SCANDYN_INSTANTIATE_DERIVATIVES(double)
+#undef SCANDYN_INSTANTIATE_DERIVATIVES
 // ---- kinematics -------------------------------------------------------------------
 
 template <class S>
