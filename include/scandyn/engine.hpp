@@ -40,6 +40,14 @@ enum class IdStrategy {
   ScanWorld,  // scans over links, world-frame form (CPU only)
 };
 
+// The serial and OpenMP engines' SIMD path (cpu_fallback/simd_batch.hpp): the
+// recursions (inverse dynamics and bias forces by the recursion, the mass matrix, aba)
+// run W instances per vector register (W = 4 doubles / 8 floats under AVX2, 8 / 16
+// under AVX-512, 2 / 4 with SSE2: the build's target, SCANDYN_NATIVE). Auto takes it
+// where it applies (every joint revolute or prismatic); On also throws BackendError
+// for a model it cannot take; Off never takes it. Ignored on cuda.
+enum class CpuSimd { Auto, Off, On };
+
 struct BackendOptions {
   BackendKind backend = BackendKind::Serial;
   IdStrategy strategy = IdStrategy::Auto;  // inverse dynamics and bias forces
@@ -48,6 +56,7 @@ struct BackendOptions {
                               // computed again by aba (BatchStatus::fell_back counts them)
   int threads = 0;            // OpenMP threads, 0: openmp_threads()
   Index max_batch = 1;        // largest batch compute() will be given
+  CpuSimd simd = CpuSimd::Auto;  // serial and openmp: W instances per vector register (CpuSimd)
 };
 
 // Thrown for a backend that is not built or cannot run, a model or option an engine
@@ -210,6 +219,8 @@ BackendKind parse_backend(const std::string& name);
 Precision parse_precision(const std::string& name);
 IdStrategy parse_strategy(const std::string& name);
 FdMethod parse_fd_method(const std::string& name);
+const char* to_string(CpuSimd s);  // "auto", "off", "on"
+CpuSimd parse_cpu_simd(const std::string& name);
 
 // Throws BackendError unless the views describe the same number of instances, at
 // most max_batch, with non-null data when there is any.
