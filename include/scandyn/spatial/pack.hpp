@@ -24,8 +24,11 @@
 
 namespace scandyn {
 
-// Bytes of the widest vector register the build targets: 64 (AVX-512), 32 (AVX) or 16 (SSE2).
-#if defined(__AVX512F__)
+// Bytes of the widest vector register the build targets: 64 (AVX-512), 32 (AVX) or 16 (SSE2);
+// -DSCANDYN_SIMD_BYTES=N sets it (e.g. 32 for 4 doubles per pack on an AVX-512 build).
+#if defined(SCANDYN_SIMD_BYTES)
+inline constexpr int kSimdBytes = SCANDYN_SIMD_BYTES;
+#elif defined(__AVX512F__)
 inline constexpr int kSimdBytes = 64;
 #elif defined(__AVX__)
 inline constexpr int kSimdBytes = 32;
