@@ -8,9 +8,11 @@
 #
 # SCANDYN: a built scandyn command; PIN_BENCH: bench/compare/pin_bench's pin_bench
 # (cpu.sh builds both). MODEL: a URDF under models/ (default iiwa), INSTANCES per
-# batch (default 1024). Only the compute functions are counted (--toggle-collect:
-# the engine's compute(), Pinocchio's rnea / aba / crba), over the warm-up call and
-# one timed call (--min-time 0), so Ir / (2 x INSTANCES) is per instance.
+# batch (default 1024). Only the compute functions are counted (--toggle-collect: the
+# engine's compute(); Pinocchio 4's impl::rnea, impl::abaLocalConvention and
+# impl::crbaLocalConvention, what its rnea, aba and crba call), over the warm-up call
+# and one timed call (--min-time 0), so Ir / (2 x INSTANCES) is per instance. Valgrind
+# runs no AVX-512: give it a build without SCANDYN_NATIVE on such a machine.
 # Columns: algo,library,variant,model,instances,ir_per_instance
 set -euo pipefail
 scandyn=$1
@@ -33,9 +35,9 @@ ir() {
 echo "algo,library,variant,model,instances,ir_per_instance"
 for algo in id fd mass; do
   case $algo in
-    id) engine='*CpuInverseDynamics<double>::compute*'; pfn='pinocchio::rnea*' ;;
-    fd) engine='*CpuForwardDynamics<double>::compute*'; pfn='pinocchio::aba*' ;;
-    mass) engine='*CpuMassMatrix<double>::compute*'; pfn='pinocchio::crba*' ;;
+    id) engine='*CpuInverseDynamics<double>::compute*'; pfn='*pinocchio::impl::rnea<*' ;;
+    fd) engine='*CpuForwardDynamics<double>::compute*'; pfn='*pinocchio::impl::abaLocalConvention<*' ;;
+    mass) engine='*CpuMassMatrix<double>::compute*'; pfn='*pinocchio::impl::crbaLocalConvention<*' ;;
   esac
   for simd in off on; do
     n=$(ir "$engine" "$scandyn" bench --model "$urdf" --algo "$algo" --instances "$B" --backend openmp --threads 1 \
