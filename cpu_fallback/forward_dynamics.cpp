@@ -15,6 +15,7 @@
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/algorithm/fd_check_batch.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "simd_batch.hpp"
 
 namespace scandyn {
 namespace cpu {
@@ -42,6 +43,8 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     // the nv x nv workspace only for jsi (a 10^5-link rope would need 80 GB)
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
     rows_ = RowScratch<S>(threads_, 4, static_cast<std::size_t>(model.nv()));
+    // the SIMD groups when nothing is checked per instance (the check runs instance by instance)
+    if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_);
   }
 
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
@@ -58,7 +61,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     Index fell_back = 0, retried = 0;
     for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
       Index fell = 0, retry = 0;
-      for (Index b = begin; b < end; ++b) {
+      const auto one = [&](Index b) {
         const S* q = gather(in.q, b, nv, rows_.row(t, 0));
         const S* qd = gather(in.qd, b, nv, rows_.row(t, 1));
         const S* tau = gather(in.tau, b, nv, rows_.row(t, 2));
@@ -81,11 +84,20 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
             estimate_[static_cast<std::size_t>(b)] = o.estimate;
             retry += o.retried;
             scatter(out, qdd, b, nv);  // also a result the check flagged
-            continue;
+            return;
           }
         }
         if (st.ok()) scatter(out, qdd, b, nv);
-      }
+      };
+      // a group with a failed pivot in some lane is computed again by `one`, instance by instance
+      for_simd_groups(
+          simd_.empty() ? nullptr : &simd_[t], begin, end,
+          [&](Index b) {
+            if (!simd_[t].aba(in.q, in.qd, in.tau, in.fext, qdd, b)) return false;
+            std::fill(failed_.begin() + b, failed_.begin() + b + SimdBatch<S>::W, -1);
+            return true;
+          },
+          one);
 #pragma omp atomic
       fell_back += fell;
 #pragma omp atomic
@@ -100,11 +112,15 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
 
   FdMethod method() const override { return method_; }
   std::string strategy() const override {
-    return std::string(fallback_ ? "jsi+aba" : to_string(method_)) + (check_->on() ? "+check" : "");
+    const std::string base = !simd_.empty() ? "aba-simd" + std::to_string(SimdBatch<S>::W)
+                             : fallback_        ? std::string("jsi+aba")
+                                                : std::string(to_string(method_));
+    return base + (check_->on() ? "+check" : "");
   }
   BackendKind backend() const override { return kind_; }
   bool exact() const override {
-    return !check_->on() && (method_ == FdMethod::Aba || (method_ == FdMethod::Jsi && !fallback_));
+    return !check_->on() &&
+           ((method_ == FdMethod::Aba && (simd_.empty() || simd_exact())) || (method_ == FdMethod::Jsi && !fallback_));
   }
 
  private:
@@ -117,6 +133,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
   std::vector<int> failed_;                          // (max_batch) failed DoF per instance, -1: none
   std::vector<DataTpl<S>> data_;                     // (threads) workspaces (jsi: with the nv x nv one)
   RowScratch<S> rows_;                               // per thread: q, qd, tau, qdd rows of one instance
+  std::vector<SimdBatch<S>> simd_;                   // (threads, or none) aba's SIMD workspaces
   std::unique_ptr<ChainForwardDynamics<S>> chain_;  // parallel
   std::unique_ptr<FdBatchCheck<S>> check_;           // the run-time check (on() or not)
   std::vector<double> estimate_;                     // (max_batch) the check's estimates, -1: unchecked

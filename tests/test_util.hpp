@@ -32,6 +32,16 @@ inline Model load_robot(const std::string& file) {
   return load_urdf(model_path(file), o);
 }
 
+// The models every CPU engine test runs: the three robots, a random tree with
+// revolute and prismatic joints and a rope.
+inline std::vector<std::pair<std::string, Model>> engine_test_models() {
+  return {{"iiwa", load_robot("iiwa.urdf")},
+          {"hyq", load_robot("hyq.urdf")},
+          {"atlas", load_robot("atlas.urdf")},
+          {"tree:30:7", load_model("tree:30:7")},
+          {"rope:40", load_model("rope:40")}};
+}
+
 // The scandyn executable built alongside the tests.
 inline std::string cli_path() { return SCANDYN_CLI_PATH; }
 

@@ -49,6 +49,17 @@ enum class IdStrategy {
 //   Off   never (the result is bit-identical to an engine without the check)
 enum class FdCheckMode { Auto, On, Off };
 
+// The serial and OpenMP engines' SIMD path (cpu_fallback/simd_batch.hpp): the
+// recursions (inverse dynamics and bias forces by the recursion, the mass matrix, aba)
+// run W instances per vector register (W = 4 doubles / 8 floats under AVX2, 8 / 16
+// under AVX-512, 2 / 4 with SSE2: the build's target, SCANDYN_NATIVE). Auto takes it
+// where it applies (every joint revolute or prismatic; measured faster than the
+// scalar recursion on iiwa, hyq, atlas and rope:1000, every algorithm: 1.3-2x with
+// SSE2, bench/results/cpu-simd-*.csv); On also throws BackendError for a model it
+// cannot take; Off never takes it. Exact (bit-identical to Off) in builds without FMA.
+// Ignored on cuda.
+enum class CpuSimd { Auto, Off, On };
+
 struct BackendOptions {
   BackendKind backend = BackendKind::Serial;
   IdStrategy strategy = IdStrategy::Auto;  // inverse dynamics and bias forces
@@ -71,6 +82,7 @@ struct BackendOptions {
   bool fallback_double = false;  // float engines: flagged instances computed again by the double
                                  // aba (turns an Auto check on; with Off: BackendError)
                                  // (BatchStatus::fell_back counts the instances a retry fixed)
+  CpuSimd simd = CpuSimd::Auto;  // serial and openmp: W instances per vector register (CpuSimd)
 };
 
 // True when forward dynamics by `method` (resolved) on `backend` for a model of nv DoF
@@ -272,6 +284,8 @@ Precision parse_precision(const std::string& name);
 IdStrategy parse_strategy(const std::string& name);
 FdMethod parse_fd_method(const std::string& name);
 FdCheckMode parse_fd_check(const std::string& name);
+const char* to_string(CpuSimd s);  // "auto", "off", "on"
+CpuSimd parse_cpu_simd(const std::string& name);
 
 // Throws BackendError unless the views describe the same number of instances, at
 // most max_batch, with non-null data when there is any.

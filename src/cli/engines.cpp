@@ -31,6 +31,7 @@ BackendOptions parse_backend_options(const Args& args, FdCheckMode default_check
   o.backend = parse_flag(args, "backend", "serial", parse_backend);
   o.strategy = parse_flag(args, "strategy", "auto", parse_strategy);
   o.fd_method = parse_flag(args, "fd", "auto", parse_fd_method);
+  o.simd = parse_flag(args, "simd", "auto", parse_cpu_simd);
   if (args.has("threads")) {
     const std::string& t = args.required("threads");
     double v = 0;

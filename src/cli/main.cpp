@@ -90,6 +90,8 @@ const char* const kEvalUsage =
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
+    "  --simd M          serial/openmp recursions (id, bias, mass, aba) W instances\n"
+    "                    per vector register: auto (default), on or off\n"
     "  --precision P     double (default) or float\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
@@ -174,12 +176,13 @@ const Command kCommands[] = {
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
       "allow-nonphysical-inertia", "frames", "reference", "fd-check", "fd-check-tol", "prescribed", "loops",
-      "actuated"},
+      "actuated", "simd"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol", "prescribed"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol", "prescribed",
+      "simd"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau"}, &run_rollout},
 };

@@ -67,6 +67,15 @@ const char* to_string(FdCheckMode m) {
   return "?";
 }
 
+const char* to_string(CpuSimd s) {
+  switch (s) {
+    case CpuSimd::Auto: return "auto";
+    case CpuSimd::Off: return "off";
+    case CpuSimd::On: return "on";
+  }
+  return "?";
+}
+
 namespace {
 
 // The value of E whose to_string is name; BackendError naming what and the choices.
@@ -100,6 +109,10 @@ FdMethod parse_fd_method(const std::string& name) {
   static constexpr FdMethod kAll[] = {FdMethod::Auto, FdMethod::Aba, FdMethod::Jsi, FdMethod::Hybrid,
                                       FdMethod::Parallel};
   return parse_name(name, kAll, "forward-dynamics method");
+}
+CpuSimd parse_cpu_simd(const std::string& name) {
+  static constexpr CpuSimd kAll[] = {CpuSimd::Auto, CpuSimd::Off, CpuSimd::On};
+  return parse_name(name, kAll, "simd mode");
 }
 
 FdCheckMode parse_fd_check(const std::string& name) {
