@@ -11,6 +11,7 @@
 
 #include "instance_loop.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/integrators.hpp"
 
 namespace scandyn {
@@ -38,11 +39,15 @@ class CpuSimState : public sim::detail::SimBackend<S> {
       for (std::size_t b = 0; b < B; ++b)
         std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nv);
     }
+    if (setup.effects & sim::kContacts)
+      readings_.assign(B * static_cast<std::size_t>(setup.contact_count()), sim::ContactReading<S>{});
   }
 
   BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nv(), setup_.batch); }
   BatchView<S> qd() override { return BatchView<S>::soa(qd_.data(), setup_.model.nv(), setup_.batch); }
   Force<S>* wrenches() override { return wrenches_.empty() ? nullptr : wrenches_.data(); }
+  sim::ContactReading<S>* contact_forces() override { return readings_.empty() ? nullptr : readings_.data(); }
+  void read_contact_forces(sim::ContactReading<S>* host) override { std::copy(readings_.begin(), readings_.end(), host); }
 
   void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
     const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
@@ -78,6 +83,7 @@ class CpuSimState : public sim::detail::SimBackend<S> {
   int threads_;
   std::vector<S> q_, qd_;           // (nv x B) state, q[i * B + b]
   std::vector<Force<S>> wrenches_;  // (B x nv) per-step wrenches, or empty
+  std::vector<sim::ContactReading<S>> readings_;  // (B x P) the last step's contacts, or empty
   BatchStatus status_;              // the steps' failures since the last clear
 };
 
@@ -86,12 +92,12 @@ class CpuSimState : public sim::detail::SimBackend<S> {
 template <class S>
 class CpuInstanceStep final : public CpuSimState<S> {
   using Base = CpuSimState<S>;
-  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::status_;
+  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::status_, Base::readings_;
 
  public:
   CpuInstanceStep(const SimSetup<S>& setup, BackendKind backend, int threads) : Base(setup, backend, threads) {
     const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
-    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_.model, nv);
+    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv);
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
     step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
@@ -112,8 +118,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
           w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
           w.tau[i] = tau.data ? tau.at(i, b) : S(0);
         }
-        const Index dof = step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
-                                this->instance_wrenches(b));
+        const Index dof = step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(), this->instance_wrenches(b),
+                                readings_.empty() ? nullptr : readings_.data() + static_cast<std::size_t>(b) * setup_.contact_count());
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
         nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
@@ -143,32 +149,56 @@ class CpuInstanceStep final : public CpuSimState<S> {
   std::string strategy() const override { return this->backend_ == BackendKind::OpenMP ? "openmp-aba" : "serial-aba"; }
 
  private:
-  // One thread's workspace: the ABA's scratch and the step's arrays.
+  // One thread's workspace: the ABA's scratch, the step's arrays, the contact pass's.
   struct Work {
-    Work(const ModelTpl<S>& model, std::size_t n)
-        : data(model, false), q(n), qd(n), tau(n), buffer(6 * n),
+    Work(const SimSetup<S>& setup, std::size_t n)
+        : data(setup.model, false), q(n), qd(n), tau(n), buffer(6 * n),
           scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
-                  buffer.data() + 4 * n, buffer.data() + 5 * n} {}
+                  buffer.data() + 4 * n, buffer.data() + 5 * n},
+          contacts(setup.contact_set()) {
+      if (setup.effects & sim::kContacts) X.resize(n), v.resize(n), fext.resize(n), armature.resize(n);
+    }
     Work(Work&& o) noexcept = default;
     DataTpl<S> data;
     std::vector<S> q, qd, tau;  // (n) the instance's state and torques
     std::vector<S> buffer;      // (6 n) StepScratch's arrays
     StepScratch<S> scratch;
+    sim::ContactSet<S> contacts;    // over the setup's vectors
+    std::vector<Transform<S>> X;    // (n) contacts: body <- world
+    std::vector<Motion<S>> v;       // (n) contacts: body twists
+    std::vector<Force<S>> fext;     // (n) contacts: external + contact wrenches
+    std::vector<S> armature;        // (n) contacts, implicit: the armature + the contacts' bound
   };
 
-  using StepFn = Index (*)(const SimSetup<S>&, DataTpl<S>&, const StepScratch<S>&, S*, S*, const S*,
-                           const Force<S>*);
+  using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
 
-  // One instance's step for effect set E and integrator I: step_instance over the ABA.
+  // One instance's step for effect set E and integrator I: step_instance over the
+  // ABA; with contacts, the contact pass before each forward dynamics (readings:
+  // the first one's).
   template <unsigned E, Integrator I>
-  static Index step_one(const SimSetup<S>& setup, DataTpl<S>& data, const StepScratch<S>& w, S* q, S* qd,
-                        const S* tau, const Force<S>* fext) {
+  static Index step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
+                        sim::ContactReading<S>* readings) {
     const ModelTpl<S>& model = setup.model;
+    DataTpl<S>& data = work.data;
+    const Index n = model.nv();
     auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
-      return aba(model, data, qa, qda, t, qdd, (E & sim::kExternal) ? fext : nullptr, armature).failed_dof;
+      if constexpr ((E & sim::kContacts) != 0) {
+        for (Index i = 0; i < n; ++i) {
+          work.fext[i] = (E & sim::kExternal) ? fext[i] : Force<S>::zero();
+          if (armature) work.armature[i] = armature[i];
+        }
+        sim::contact_pass_any(work.contacts, model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
+                              work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
+                              readings);
+        readings = nullptr;  // rk4: the first stage's
+        return aba(model, data, qa, qda, t, qdd, work.fext.data(), armature ? work.armature.data() : nullptr).failed_dof;
+      } else {
+        (void)readings, (void)n;
+        return aba(model, data, qa, qda, t, qdd, (E & sim::kExternal) ? fext : nullptr, armature).failed_dof;
+      }
     };
-    return sim::step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
-                                    setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, w, fd);
+    return sim::step_instance<E, I>(n, setup.dt, setup.coef.data(),
+                                    setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, work.scratch, fd);
   }
 
   // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
@@ -355,6 +385,7 @@ class CpuEngineStep final : public CpuSimState<S> {
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
   return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+         (setup.effects & sim::kContacts) == 0 &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          choose_fd_method(backend, setup.model) == FdMethod::Parallel;
 }

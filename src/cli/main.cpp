@@ -75,13 +75,17 @@ const char* const kEvalUsage =
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
-    "                       [--backend serial|openmp|cuda]\n"
+    "                       [--backend serial|openmp|cuda] [--contacts]\n"
     "\n"
     "Simulates the scene (docs/scenes.md) for N steps from its initial state, with zero\n"
     "joint torques, and writes the state of every instance at steps 0, K, 2K, ... and N:\n"
     "  .csv  columns step,time,instance,q_<i>...,qd_<i>..., 17 significant digits\n"
     "  .npy  a NumPy array of shape (records, instances, 1 + 2 nv): [time, q, qd], float64\n"
     "        (or float32 for a float scene)\n"
+    "--contacts (a scene with effects.contacts) adds per contact point k the contact\n"
+    "force of the step that ended there (world frame, N) and whether it touched:\n"
+    "  .csv  columns cf_<k>_x,cf_<k>_y,cf_<k>_z,contact_<k> after qd_<i>\n"
+    "  .npy  4 more values per point: [fx, fy, fz, in_contact]\n"
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
@@ -131,7 +135,7 @@ const Command kCommands[] = {
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
       "csv", "allow-nonphysical-inertia", "scene"},
      &run_bench},
-    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
+    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "contacts"}, &run_rollout},
 };
 
 int fail(int code, const std::string& message) {

@@ -54,7 +54,7 @@ TEST(SimScene, ParsesEveryKey) {
     "initial": {"q": [0.1, 0.2, 0.3], "qd": 0.5, "random": {"seed": 7, "q": 0.01}}
   })");
   EXPECT_EQ(s.nv(), 3);
-  EXPECT_EQ(s.effects, sim::kAllEffects);
+  EXPECT_EQ(s.effects, sim::kAllEffects & ~sim::kContacts);
   EXPECT_EQ(s.model.gravity.z, -1.5);
   EXPECT_EQ(s.integrator, Integrator::Implicit);
   EXPECT_EQ(s.dt, 0.002);
@@ -356,7 +356,7 @@ TEST(SimEffects, ZeroCoefficientsEqualAbsentEffects) {
     const Scene all = scene_from("{" + in + base + R"(, "effects": {"gravity": true, "damping": 0,
         "springs": {"stiffness": 0, "rest": 0.3}, "limits": {"stiffness": 0, "damping": 0, "lower": -0.1, "upper": 0.1},
         "external": {"wrenches": [{"link": "link_2", "wrench": [0, 0, 0, 0, 0, 0]}]}}})");
-    EXPECT_EQ(all.effects, sim::kAllEffects);
+    EXPECT_EQ(all.effects, sim::kAllEffects & ~sim::kContacts);
     EXPECT_EQ(rollout<double>(only, 50, BackendKind::Serial), rollout<double>(all, 50, BackendKind::Serial)) << integrator;
     EXPECT_EQ(rollout<float>(only, 50, BackendKind::Serial), rollout<float>(all, 50, BackendKind::Serial)) << integrator;
   }
