@@ -40,17 +40,18 @@
 //
 // The implicit integrator (sim/integrators.hpp) treats the contacts' stiffness and
 // damping linearised, as the joints': the normal force looks h = dt ahead, and
-// each touching pair adds to the joint-space armature a diagonal bound of its
+// each touching pair adds to the joint-space armature the diagonal of its
 // linearised stiffness and damping J^T W J, W = wn n n^T + wt (I - n n^T), wn =
 // dt c + dt^2 k, wt = dt mu f_n / max(|v_t|, v_s) (J: the point's 3 x nv Jacobian,
-// columns J_j for the joints j on its path to the base, a_j = n . J_j, t_j = J_j -
-// a_j n): armature_j += wn |a_j| sum_l |a_l| + wt |t_j| sum_l |t_l| (Gershgorin:
-// a diagonal matrix dominating a a^T and sum_j t_j t_j^T), so the step stays
-// stable at any dt with a stiff contact, at the price of extra inertia while
-// touching (the normal part is exact for a point on prismatic joints one of
-// which is along the normal; the rest state is exact: the armature multiplies qdd
-// only). Cost: one
-// walk to the base per touching pair.
+// columns J_j for the joints j on its path to the base): armature_j += wn (n .
+// J_j)^2 + wt (|J_j|^2 - (n . J_j)^2). Exact when one joint moves the point (a
+// hinged rod, a leg's last joint) or the joints move it along orthogonal
+// directions (a point on prismatic x, y, z); otherwise the diagonal of a coupled
+// matrix, whose stable dt is measured (docs/scenes.md, "Contacts"). The rest state
+// is exact: the armature multiplies qdd only. Cost: one walk to the base per
+// touching pair. (A Gershgorin bound, a_j sum_l |a_l|, which dominates the
+// matrix, was tried: so much extra inertia on the joints near the base of a
+// rope that its changes from step to step pumped energy into a whipping rope.)
 #pragma once
 
 #include "scandyn/algorithm/steps.hpp"
@@ -211,22 +212,13 @@ SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Body<S>* bodies, Ind
     const Transform<S>& Xi = X[i];
     const Vec3<S> p = mul_transpose(Xi.E, cp.position) + Xi.r;
     const Vec3<S> pv = mul_transpose(Xi.E, v[i].v + cross(v[i].w, cp.position));
-    // implicit: the pair's bound on the joints of the point's path to the base
+    // implicit: the diagonal of the pair's J^T W J on the joints of the point's path to the base
     auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
       if (!armature) return;
-      S sum_n = S(0), sum_t = S(0);  // sum_l |a_l|, sum_l |t_l|
       for (Index j = i; j >= 0; j = bodies[j].parent) {
         const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
         const S a = dot(nrm, col);
-        const Vec3<S> t = col - a * nrm;
-        sum_n += a < S(0) ? -a : a;
-        sum_t += ScalarMath<S>::sqrt(dot(t, t));
-      }
-      for (Index j = i; j >= 0; j = bodies[j].parent) {
-        const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
-        const S a = dot(nrm, col);
-        const Vec3<S> t = col - a * nrm;
-        armature[j] += wn * (a < S(0) ? -a : a) * sum_n + wt * ScalarMath<S>::sqrt(dot(t, t)) * sum_t;
+        armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
       }
     };
     const Vec3<S> f = contact_point_force<kObstacles>(cs, p, pv, cp.radius, h, readings ? readings + k : nullptr, touched);
