@@ -87,6 +87,36 @@ __host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::Thr
       cuda::DofColumn<S>{qdd, 1}, armature);
 }
 
+// One thread's scratch for the contact pass (capacity C).
+template <class S, int C>
+struct FusedContactScratch {
+  Transform<S> X[C];  // body <- world
+  Motion<S> v[C];     // body twists
+  Force<S> f[C];      // external + contact wrenches
+  S armature[C];      // implicit: the armature + the contacts' diagonal
+};
+
+// The forward dynamics of the fused step with contacts: the contact pass
+// (contacts.hpp) at (q, qd), its wrenches added to fext (null: none), its
+// diagonal to the implicit armature (arm, null for explicit integrators: then no
+// look-ahead), then fused_forward_dynamics. readings (P, or null) gets the
+// points' contacts and is set to null (rk4: the first stage's). Host and device.
+template <class S, int C, int kSlots, int CC>
+__host__ __device__ __forceinline__ Index fused_contact_forward_dynamics(
+    const cuda::ThreadModelParams<S, C>& model, S dt, const ContactSet<S>& cs, const Force<S>* fext,
+    FusedContactScratch<S, CC>& w, ContactReading<S>*& readings, const S* q, const S* qd, const S* tau, const S* arm,
+    S* qdd) {
+  static_assert(CC == C, "the contact scratch has the kernel's capacity");
+  const Index n = model.nv;
+  for (Index i = 0; i < n; ++i) {
+    w.f[i] = fext ? fext[i] : Force<S>::zero();
+    w.armature[i] = arm ? arm[i] : S(0);
+  }
+  contact_pass_any(cs, model.body, n, q, qd, 1, arm ? dt : S(0), w.X, w.v, w.f, arm ? w.armature : nullptr, readings);
+  readings = nullptr;
+  return fused_forward_dynamics<S, C, kSlots>(model, w.f, q, qd, tau, arm ? w.armature : nullptr, qdd);
+}
+
 // The steps' failures on the device: failed instance-steps, and the lowest failed
 // instance with the DoF at which its forward dynamics stopped, as one key
 // (instance << 32 | DoF) so that one atomicMin keeps both. The host reads it into a
@@ -139,24 +169,12 @@ SCANDYN_SIM_UNROLL
     tau[i] = a.tau.data ? a.tau.at(i, b) : S(0);
   }
   const Force<S>* fext = (E & kExternal) ? a.wrenches + b * a.wrench_stride : nullptr;
-  // contacts: the contact pass before each forward dynamics (contacts.hpp), its
-  // wrenches added to the external ones, its bound to the implicit armature
-  constexpr int CC = (E & kContacts) ? C : 1;
-  Transform<S> Xc[CC];
-  Motion<S> vc[CC];
-  Force<S> fc[CC];
-  S armc[CC];
+  FusedContactScratch<S, (E & kContacts) ? C : 1> cw;
   ContactReading<S>* readings = (E & kContacts) ? a.readings + b * a.contacts.npoints : nullptr;
   auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
     if constexpr ((E & kContacts) != 0) {
-      for (Index i = 0; i < n; ++i) {
-        fc[i] = (E & kExternal) ? fext[i] : Force<S>::zero();
-        armc[i] = arm ? arm[i] : S(0);
-      }
-      contact_pass_any(a.contacts, p.model.body, n, qa, qda, 1, arm ? p.dt : S(0), Xc, vc, fc, arm ? armc : nullptr,
-                       readings);
-      readings = nullptr;  // rk4: the first stage's
-      return fused_forward_dynamics<S, C, kSlots>(p.model, fc, qa, qda, t, arm ? armc : nullptr, out);
+      return fused_contact_forward_dynamics<S, C, kSlots>(p.model, p.dt, a.contacts, fext, cw, readings, qa, qda, t,
+                                                           arm, out);
     } else {
       return fused_forward_dynamics<S, C, kSlots>(p.model, fext, qa, qda, t, arm, out);
     }
