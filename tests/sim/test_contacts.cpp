@@ -141,6 +141,20 @@ TEST(SimContactsScene, ErrorsNameTheKey) {
   for (const Case& c : cases) EXPECT_EQ(scene_error(c.json), c.message) << c.json;
 }
 
+// The shipped contact scenes load, declare contacts and step (serial, 2 instances,
+// 50 steps) without a failure.
+TEST(SimContactsScene, ShippedContactScenesLoadAndStep) {
+  for (const char* name : {"rope_drape", "curtain_drape", "hyq_stand"}) {
+    Scene s = sim::load_scene(std::string(SCANDYN_SOURCE_DIR) + "/scenes/" + name + ".json");
+    EXPECT_NE(s.effects & sim::kContacts, 0u) << name;
+    EXPECT_TRUE(s.backend_auto) << name;
+    s.instances = 2;
+    Simulator<double> sim(s, BackendKind::Serial);
+    for (int k = 0; k < 50; ++k) sim.step();
+    EXPECT_TRUE(sim.status().ok()) << name << ": " << sim::failure_message(sim.status());
+  }
+}
+
 // ---- the law -------------------------------------------------------------------------
 
 // One pair: f_n = k d + c d_dot (clamped at zero), friction -mu f_n v_t / max(|v_t|, v_s).
