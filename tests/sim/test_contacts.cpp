@@ -212,6 +212,36 @@ TEST(SimContactsPointMass, RestsAtMgOverK) {
   }
 }
 
+// A box on its four bottom corners (points (+-0.1, +-0.1, -0.1) of the ball's
+// body: a box that translates without turning; the turning box needs the floating
+// base) dropped flat comes to rest at d = m g / (4 k) and stays there: no drift
+// between 10^4 and 2 10^4 steps. Implicit at dt = 1 ms, k = 1e5, in double and
+// float (float: the depth to 1e-4 of itself, the drift below 1e-7 m).
+template <class S>
+void box_on_four_corners() {
+  const double m = 1 + 2e-6, k = 1e5;
+  std::string points;
+  for (const char* c : {"[0.1, 0.1, -0.1]", "[0.1, -0.1, -0.1]", "[-0.1, 0.1, -0.1]", "[-0.1, -0.1, -0.1]"})
+    points += std::string(points.empty() ? "" : ", ") + R"({"link": "ball", "position": )" + c + "}";
+  const Scene scene = scene_from(R"({"model": "point_mass.urdf", "dt": 1e-3, "integrator": "implicit",
+      "effects": {"gravity": true, "contacts": {"planes": [{"normal": [0, 0, 1]}], "points": [)" + points + R"(],
+                  "stiffness": 1e5, "damping": 300, "friction": 0.8}},
+      "initial": {"q": [0.15, 0, 0], "qd": [0, 0.2, 0.1]}})");
+  Simulator<S> sim(scene);
+  for (int s = 0; s < 10000; ++s) sim.step();
+  const double z1 = state0(sim).q[0];
+  for (int s = 0; s < 10000; ++s) sim.step();
+  ASSERT_TRUE(sim.status().ok());
+  const double z2 = state0(sim).q[0];
+  const double expect = m * kG / (4 * k);
+  const bool fl = sizeof(S) == 4;
+  EXPECT_NEAR(0.1 - z2, expect, (fl ? 1e-4 : 1e-9) * expect);
+  EXPECT_LE(std::abs(z2 - z1), fl ? 1e-7 : 1e-12);
+  for (const auto& r : readings(sim)) EXPECT_NEAR(double(r.force.z), m * kG / 4, (fl ? 1e-4 : 1e-9) * m * kG);
+}
+TEST(SimContactsPointMass, BoxOnFourCornersRestsAtMgOver4kDouble) { box_on_four_corners<double>(); }
+TEST(SimContactsPointMass, BoxOnFourCornersRestsAtMgOver4kFloat) { box_on_four_corners<float>(); }
+
 // The bounce: from a drop height h0 the ball lands at v0 = sqrt(2 g h0); while it
 // touches, m d'' = -k d - c d' + m g exactly (d: penetration); it leaves when the
 // clamped force k d + c d' reaches zero, at depth d1 moving up at u1, and rises to
