@@ -57,7 +57,10 @@ std::string ball_scene(const std::string& integrator, int B) {
 
 template <Integrator I>
 void check_host_composition(const std::string& model, const std::string& integrator) {
-  const Scene scene = scene_from(contact_scene(model, integrator, 1));
+  // the plane z = 0.25 passes between the first link's origin (held at the base by
+  // its joint about z: always pushed) and the second's
+  const Scene scene = scene_from(contact_scene(model, integrator, 1, R"("planes": [{"normal": [0, 0, 1], "offset": 0.25}],
+      "spheres": [{"center": [0.1, 0, 0.6], "radius": 0.15}])"));
   Simulator<double> ref(scene, BackendKind::Serial);
   const sim::SimSetup<double>& setup = ref.setup();
   const Index n = setup.model.nv();
@@ -67,7 +70,7 @@ void check_host_composition(const std::string& model, const std::string& integra
   constexpr unsigned E = sim::detail::kContactKernelSet;
   const std::vector<Force<double>> zero(static_cast<std::size_t>(n), Force<double>::zero());
   double q[8], qd[8], tau[8] = {}, tw[8], qdd[8], qs[8], qds[8], aq[8], aqd[8];
-  std::vector<JointCoefficients<double>> coef = setup.coef;
+  std::vector<sim::JointCoefficients<double>> coef = setup.coef;
   sim::detail::FusedContactScratch<double, 8> cw;
   std::vector<sim::ContactReading<double>> readings(static_cast<std::size_t>(setup.contact_count()));
   for (Index i = 0; i < n; ++i) q[i] = ref.q().at(i, 0), qd[i] = ref.qd().at(i, 0);
