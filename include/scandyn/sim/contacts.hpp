@@ -45,13 +45,14 @@
 // dt c + dt^2 k, wt = dt mu f_n / max(|v_t|, v_s) (J: the point's 3 x nv Jacobian,
 // columns J_j for the joints j on its path to the base): armature_j += wn (n .
 // J_j)^2 + wt (|J_j|^2 - (n . J_j)^2). Exact when one joint moves the point (a
-// hinged rod, a leg's last joint) or the joints move it along orthogonal
-// directions (a point on prismatic x, y, z); otherwise the diagonal of a coupled
-// matrix, whose stable dt is measured (docs/scenes.md, "Contacts"). The rest state
-// is exact: the armature multiplies qdd only. Cost: one walk to the base per
-// touching pair. (A Gershgorin bound, a_j sum_l |a_l|, which dominates the
-// matrix, was tried: so much extra inertia on the joints near the base of a
-// rope that its changes from step to step pumped energy into a whipping rope.)
+// hinged rod) or the joints move it along orthogonal directions (a point on
+// prismatic x, y, z); otherwise the diagonal of a coupled matrix, whose stable dt
+// is measured (docs/scenes.md, "Contacts"). The rest state is exact: the armature
+// multiplies qdd only. Cost: one walk to the base per touching pair. (A diagonal
+// dominating the whole matrix, Gershgorin's a_j sum_l |a_l|, would make a frozen
+// contact set unconditionally stable, but it puts so much inertia on the joints
+// near a rope's base that its changes from step to step pump energy into a
+// whipping rope; the exact diagonal does not.)
 #pragma once
 
 #include "scandyn/algorithm/steps.hpp"
