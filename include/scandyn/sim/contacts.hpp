@@ -52,7 +52,8 @@
 // dominating the whole matrix, Gershgorin's a_j sum_l |a_l|, would make a frozen
 // contact set unconditionally stable, but it puts so much inertia on the joints
 // near a rope's base that its changes from step to step pump energy into a
-// whipping rope; the exact diagonal does not.)
+// whipping rope; with the exact diagonal the drape scenes stay stable, see
+// docs/scenes.md for where it is not.)
 #pragma once
 
 #include "scandyn/algorithm/steps.hpp"
