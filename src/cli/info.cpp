@@ -76,6 +76,14 @@ int run_info(const Args& args) {
                     format_vec3(b.axis)});
   }
   print_table(rows);
+  // the frames (every URDF link): the names --frames takes, the body carrying each
+  // (-1 = base) and its origin in that body's frame
+  std::puts("");
+  std::vector<std::vector<std::string>> frames = {{"frame", "name", "body", "origin"}};
+  for (std::size_t k = 0; k < model.frames.size(); ++k)
+    frames.push_back({std::to_string(k), model.frame_names[k], std::to_string(model.frames[k].body),
+                      format_vec3(model.frames[k].X.inverse().r)});
+  print_table(frames);
   return kExitOk;
 }
 

@@ -34,6 +34,21 @@ struct Body {
   }
 };
 
+// A frame: a URDF link as a placement on the body that carries it. Every link has
+// one: the link of a moving joint sits at its body's origin (X the identity); a link
+// attached by fixed joints was merged into the body it hangs from, and X places it
+// there; the root link and the links fixed to it are on the base (body -1, X its
+// placement in the base frame, which is the world frame).
+template <class S>
+struct FramePlacement {
+  Index body;       // body carrying the frame, -1 for the fixed base
+  Transform<S> X;   // frame_X_body: body frame -> frame (E: body axes -> frame axes,
+                    // r: the frame's origin in body coordinates)
+
+  template <class T>
+  SCANDYN_HD FramePlacement<T> cast() const { return {body, X.template cast<T>()}; }
+};
+
 template <class S>
 struct ModelTpl {
   using Scalar = S;
@@ -49,6 +64,11 @@ struct ModelTpl {
                                          // (continuous joints, generators); used by the
                                          // simulator's joint-limit effect only
   Vec3<S> gravity{S(0), S(0), S(-9.81)};  // gravitational acceleration in the base frame (m/s^2)
+  std::vector<FramePlacement<S>> frames;  // (links) every URDF link, in the order the builder
+                                          // visits them: the root link first, then depth-first
+                                          // preorder (the link of body i comes after body i's
+                                          // parent's); scandyn/model/frames.hpp finds them by name
+  std::vector<std::string> frame_names;   // (links) the link name of each frame
 
   // Number of degrees of freedom (= moving bodies).
   Index nv() const { return static_cast<Index>(bodies.size()); }
@@ -67,6 +87,9 @@ struct ModelTpl {
     m.q_lower.assign(q_lower.begin(), q_lower.end());
     m.q_upper.assign(q_upper.begin(), q_upper.end());
     m.gravity = gravity.template cast<T>();
+    m.frames.reserve(frames.size());
+    for (const auto& f : frames) m.frames.push_back(f.template cast<T>());
+    m.frame_names = frame_names;
     return m;
   }
 };
