@@ -100,7 +100,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
     for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv);
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
-    step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
+    const int entry = static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects);
+    step_ = setup.prescribed.empty() && setup.loops.empty() ? table()[entry] : constrained_table()[entry];
   }
 
   void step(const BatchView<const S>& tau) override {
@@ -155,7 +156,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
         : data(setup.model, false), q(n), qd(n), tau(n), buffer(6 * n),
           scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
                   buffer.data() + 4 * n, buffer.data() + 5 * n},
-          contacts(setup.contact_set()) {
+          contacts(setup.contact_set()),
+          driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {
       if (setup.effects & sim::kContacts) X.resize(n), v.resize(n), fext.resize(n), armature.resize(n);
     }
     Work(Work&& o) noexcept = default;
@@ -168,36 +170,51 @@ class CpuInstanceStep final : public CpuSimState<S> {
     std::vector<Motion<S>> v;       // (n) contacts: body twists
     std::vector<Force<S>> fext;     // (n) contacts: external + contact wrenches
     std::vector<S> armature;        // (n) contacts, implicit: the armature + the contacts' bound
+    std::vector<S> driven;          // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
+    std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
   };
 
   using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
 
+  // What one forward dynamics at (qa, qda) receives besides the torques: the
+  // external wrenches (fext, null without kExternal) and the implicit armature (null
+  // unless implicit). With contacts (effect set E), the contact pass adds the
+  // contact wrenches to work.fext and, implicit, the contacts' linearised diagonal
+  // bound to work.armature, and writes the readings (then nulled: an rk4 step
+  // reports its first stage's contacts).
+  template <unsigned E>
+  static std::pair<const Force<S>*, const S*> with_contacts(const SimSetup<S>& setup, Work& work, const S* qa,
+                                                            const S* qda, const Force<S>* fext, const S* armature,
+                                                            sim::ContactReading<S>*& readings) {
+    const Force<S>* f = (E & sim::kExternal) ? fext : nullptr;
+    if constexpr ((E & sim::kContacts) == 0) {
+      (void)setup, (void)work, (void)qa, (void)qda, (void)readings;
+      return {f, armature};
+    } else {
+      const Index n = setup.model.nv();
+      for (Index i = 0; i < n; ++i) {
+        work.fext[i] = f ? f[i] : Force<S>::zero();
+        if (armature) work.armature[i] = armature[i];
+      }
+      sim::contact_pass_any(work.contacts, setup.model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
+                            work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
+                            readings);
+      readings = nullptr;
+      return {work.fext.data(), armature ? work.armature.data() : nullptr};
+    }
+  }
+
   // One instance's step for effect set E and integrator I: step_instance over the
-  // ABA; with contacts, the contact pass before each forward dynamics (readings:
-  // the first one's).
+  // ABA, each forward dynamics with the contact pass's wrenches (with_contacts).
   template <unsigned E, Integrator I>
   static Index step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
                         sim::ContactReading<S>* readings) {
     const ModelTpl<S>& model = setup.model;
-    DataTpl<S>& data = work.data;
-    const Index n = model.nv();
     auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
-      if constexpr ((E & sim::kContacts) != 0) {
-        for (Index i = 0; i < n; ++i) {
-          work.fext[i] = (E & sim::kExternal) ? fext[i] : Force<S>::zero();
-          if (armature) work.armature[i] = armature[i];
-        }
-        sim::contact_pass_any(work.contacts, model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
-                              work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
-                              readings);
-        readings = nullptr;  // rk4: the first stage's
-        return aba(model, data, qa, qda, t, qdd, work.fext.data(), armature ? work.armature.data() : nullptr).failed_dof;
-      } else {
-        (void)readings, (void)n;
-        return aba(model, data, qa, qda, t, qdd, (E & sim::kExternal) ? fext : nullptr, armature).failed_dof;
-      }
+      const auto [f, a] = with_contacts<E>(setup, work, qa, qda, fext, armature, readings);
+      return aba(model, work.data, qa, qda, t, qdd, f, a).failed_dof;
     };
-    return sim::step_instance<E, I>(n, setup.dt, setup.coef.data(),
+    return sim::step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
                                     setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, work.scratch, fd);
   }
 
@@ -211,10 +228,113 @@ class CpuInstanceStep final : public CpuSimState<S> {
     return t;
   }
 
+  // ---- prescribed joint motion and closed loops ----
+
+  // The step of a scene with closed loops or prescribed joints (never both).
+  template <unsigned E, Integrator I>
+  static Index constrained_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau,
+                                    const Force<S>* fext, sim::ContactReading<S>* readings) {
+    return setup.loops.empty() ? driven_step_one<E, I>(setup, w, q, qd, tau, fext, readings)
+                               : loop_step_one<E, I>(setup, w, q, qd, tau, fext, readings);
+  }
+
+  // Writes the driven DoFs' q, qd and qdd at time t (q, qd: the instance's arrays;
+  // qdd: hybrid_dynamics's qdd_in).
+  static void drive(const SimSetup<S>& setup, double t, S* q, S* qd, S* qdd) {
+    for (std::size_t j = 0; j < setup.prescribed.dofs.size(); ++j) {
+      double pq, pqd, pqdd;
+      setup.prescribed.trajectory[j].eval(t, pq, pqd, pqdd);
+      const Index i = setup.prescribed.dofs[j];
+      q[i] = S(pq), qd[i] = S(pqd);
+      if (qdd) qdd[i] = S(pqdd);
+    }
+  }
+
+  // One instance's step with closed loops: step_instance over the constrained forward
+  // dynamics (double), then the state projected onto the loops (positions by
+  // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes).
+  template <unsigned E, Integrator I>
+  static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext,
+                             sim::ContactReading<S>* readings) {
+    const Model& model = setup.loop_model;
+    const Index n = model.nv();
+    std::vector<Force<double>> f;
+    w.loop_lambda.resize(static_cast<std::size_t>(setup.loops.rows()));
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S*, S* qdd) -> Index {
+      // the external and contact wrenches at the stage (no armature: loops refuse implicit)
+      const Force<S>* const fs = with_contacts<E>(setup, w, qa, qda, fext, nullptr, readings).first;
+      f.clear();
+      if (fs)
+        for (Index i = 0; i < n; ++i) f.push_back(fs[i].template cast<double>());
+      for (Index i = 0; i < n; ++i) w.loop_q[i] = qa[i], w.loop_qd[i] = qda[i], w.loop_tau[i] = t[i];
+      try {
+        constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
+                                     w.loop_qdd.data(), w.loop_lambda.data(), f.empty() ? nullptr : f.data());
+      } catch (const LoopError&) {
+        return 0;  // the mass matrix is not positive definite
+      }
+      for (Index i = 0; i < n; ++i) qdd[i] = S(w.loop_qdd[i]);
+      return -1;
+    };
+    const Index failed =
+        sim::step_instance<E, I>(n, setup.dt, setup.coef.data(), static_cast<const S*>(nullptr), q, qd, tau, w.scratch, fd);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < n; ++i) w.loop_q[i] = q[i], w.loop_qd[i] = qd[i];
+    project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+    for (Index i = 0; i < n; ++i) q[i] = S(w.loop_q[i]), qd[i] = S(w.loop_qd[i]);
+    return -1;
+  }
+
+  // One instance's step with driven DoFs: step_instance over the hybrid dynamics.
+  // Each forward dynamics (rk4: its stages at t, t + dt/2, t + dt/2, t + dt) sees the
+  // driven DoFs on their trajectories at the stage's time, with their trajectory's
+  // acceleration; the other DoFs integrate as without driving. After the step the
+  // driven DoFs are put on their trajectories at t + dt exactly.
+  template <unsigned E, Integrator I>
+  static Index driven_step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
+                               sim::ContactReading<S>* readings) {
+    const ModelTpl<S>& model = setup.model;
+    const Index n = model.nv();
+    DataTpl<S>& data = work.data;
+    const StepScratch<S>& w = work.scratch;
+    S* const driven = work.driven.data();
+    S* const qs = driven;          // the stage state with the driven DoFs on their trajectories
+    S* const qds = driven + n;
+    S* const qdd_in = driven + 2 * n;
+    S* const tau_out = driven + 3 * n;
+    const double dt = double(setup.dt);
+    int stage = 0;
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
+      const double offset = I == Integrator::Rk4 ? (stage == 0 ? 0.0 : stage == 3 ? dt : 0.5 * dt) : 0.0;
+      ++stage;
+      std::copy(qa, qa + n, qs);
+      std::copy(qda, qda + n, qds);
+      drive(setup, setup.time + offset, qs, qds, qdd_in);
+      // the contacts where the driven DoFs are
+      const auto [f, a] = with_contacts<E>(setup, work, qs, qds, fext, armature, readings);
+      return hybrid_dynamics(model, data, qs, qds, setup.prescribed_mask.data(), qdd_in, t, qdd, tau_out, f, a)
+          .failed_dof;
+    };
+    const Index failed = sim::step_instance<E, I>(n, setup.dt, setup.coef.data(),
+                                                  setup.armature.empty() ? nullptr : setup.armature.data(), q, qd,
+                                                  tau, w, fd);
+    if (failed < 0) drive(setup, setup.time + dt, q, qd, nullptr);
+    return failed;
+  }
+
+  template <std::size_t... K>
+  static constexpr std::array<StepFn, sizeof...(K)> make_constrained_table(std::index_sequence<K...>) {
+    return {&constrained_step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+  }
+  static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& constrained_table() {
+    static const auto t = make_constrained_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+    return t;
+  }
+
   std::vector<Work> work_;   // one per thread
   std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
   std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
-  StepFn step_ = nullptr;
+  StepFn step_ = nullptr;  // the effect set's and integrator's step (constrained_step_one with prescribed motion or loops)
 };
 
 // ---- per forward dynamics ---------------------------------------------------------
@@ -385,7 +505,7 @@ class CpuEngineStep final : public CpuSimState<S> {
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
   return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
-         (setup.effects & sim::kContacts) == 0 &&
+         (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          choose_fd_method(backend, setup.model) == FdMethod::Parallel;
 }

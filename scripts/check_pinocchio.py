@@ -3,9 +3,11 @@
 
 For the robots in the models directory and for random URDF trees (arbitrary
 axes, rotated inertial frames, revolute / continuous / prismatic / fixed joints,
-shuffled joint names), runs `scandyn eval --algo id,fd,mass,bias` on random
-states and compares every column with Pinocchio's rnea, aba, crba and
-nonLinearEffects; then `scandyn eval --algo fk,jac` (every frame: every URDF link,
+shuffled joint names), runs `scandyn eval --algo id,fd,mass,bias,did,dfd` on
+random states and compares every column with Pinocchio's rnea, aba, crba,
+nonLinearEffects, computeRNEADerivatives and computeABADerivatives (derivatives
+with respect to the tangent of q: one column per DoF, continuous joints
+included); then `scandyn eval --algo fk,jac` (every frame: every URDF link,
 fixed links included) with framesForwardKinematics and computeFrameJacobian, in world
 axes (LOCAL_WORLD_ALIGNED) and the frame's own (LOCAL). Exits non-zero on any mismatch.
 
@@ -107,11 +109,11 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
             for k in range(states):
                 w.writerow(['%.17g' % x for x in np.concatenate([Q[k], QD[k], QDD[k], TAU[k]])])
         subprocess.run([scandyn, 'eval', '--model', urdf_path, '--states', inp, '--out', out,
-                        '--algo', 'id,fd,mass,bias', '--precision', precision]
+                        '--algo', 'id,fd,mass,bias,did,dfd', '--precision', precision]
                        + (['--allow-nonphysical-inertia'] if lenient else []), check=True)
         with open(out) as fh:
             rows = list(csv.DictReader(fh))
-    worst = {'id': 0.0, 'fd': 0.0, 'mass': 0.0, 'bias': 0.0}
+    worst = {'id': 0.0, 'fd': 0.0, 'mass': 0.0, 'bias': 0.0, 'did': 0.0, 'dfd': 0.0}
     for k, row in enumerate(rows):
         q = pin_q(model, Q[k])
         tau = pin.rnea(model, data, q, QD[k], QDD[k])
@@ -119,6 +121,10 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         M = pin.crba(model, data, q)
         M = np.triu(M) + np.triu(M, 1).T
         h = pin.nonLinearEffects(model, data, q, QD[k])
+        dtau_dq, dtau_dqd, dtau_dqdd = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, QD[k], QDD[k]))
+        dtau_dqdd = np.triu(dtau_dqdd) + np.triu(dtau_dqdd, 1).T
+        dqdd_dq, dqdd_dqd, dqdd_dtau = (np.array(x) for x in pin.computeABADerivatives(model, data, q, QD[k], TAU[k]))
+        dqdd_dtau = np.triu(dqdd_dtau) + np.triu(dqdd_dtau, 1).T
 
         def err(name, ref, cols):
             got = np.array([float(row[c]) for c in cols])
@@ -129,6 +135,14 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         err('fd', qdd, ['qdd_fd_%d' % i for i in range(nv)])
         err('mass', M, ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)])
         err('bias', h, ['h_%d' % i for i in range(nv)])
+
+        def matrix(prefix):
+            return ['%s_%d_%d' % (prefix, i, j) for i in range(nv) for j in range(nv)]
+
+        err('did', np.concatenate([dtau_dq.ravel(), dtau_dqd.ravel(), dtau_dqdd.ravel()]),
+            matrix('dtau_dq') + matrix('dtau_dqd') + matrix('dtau_dqdd'))
+        err('dfd', np.concatenate([dqdd_dq.ravel(), dqdd_dqd.ravel(), dqdd_dtau.ravel()]),
+            matrix('dqdd_dq') + matrix('dqdd_dqd') + matrix('dqdd_dtau'))
     worst.update(check_kinematics(scandyn, urdf_path, model, Q, precision, lenient))
     ok = all(v <= tol for v in worst.values())
     print('%-28s nv=%3d  %s  %s' % (label, nv, '  '.join('%s %.1e' % kv for kv in worst.items()),
@@ -199,7 +213,7 @@ def main():
     ap.add_argument('--tol', type=float, default=1e-9)
     args = ap.parse_args()
     ok = True
-    for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf'):
+    for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf', 'puma560.urdf'):
         path = os.path.join(args.models, name)
         if os.path.exists(path):
             # GRiD's atlas.urdf has links whose inertia no rigid body can have

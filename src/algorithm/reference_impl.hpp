@@ -92,10 +92,21 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
   }
 }
 
+namespace detail {
+
+// The articulated-body passes of aba and hybrid_dynamics. prescribed null: the ABA
+// (every DoF's force given). Otherwise DoF i with prescribed[i] != 0 has its
+// acceleration qdd_in[i] given (Featherstone 2008, 9.2: hybrid_prescribed_*) and its
+// force written to tau_out[i]; every other DoF has its force tau[i] given, copied to
+// tau_out[i], and its acceleration computed. The ABA's DoFs take exactly the ABA's
+// arithmetic. Nothing is written before every pivot passed; each output entry i is
+// written after its inputs i were read (the outputs may alias the inputs).
 template <class S>
-Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-           S* qdd, const Force<S>* fext, const S* armature) {
+Status articulated_body_passes(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+                               S* qdd, const Force<S>* fext, const S* armature, const unsigned char* prescribed,
+                               const S* qdd_in, S* tau_out) {
   const Index n = model.nv();
+  auto given = [&](Index i) { return prescribed && prescribed[i]; };
   // pass 1: kinematics, bias forces
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
@@ -110,6 +121,13 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
   // pass 2: articulated inertias, leaves to root
   for (Index i = n - 1; i >= 0; --i) {
     const Body<S>& b = model.bodies[i];
+    if (given(i)) {
+      aba_joint_terms(b, data.IA[i], data.f[i], S(0), data.U[i], data.D[i], data.u[i]);
+      if (b.parent >= 0)
+        hybrid_prescribed_to_parent(b, data.Xup[i], data.IA[i], data.f[i], data.c[i], qdd_in[i],
+                                    data.IA[b.parent], data.f[b.parent]);
+      continue;
+    }
     if (armature)
       aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i], armature[i]);
     else
@@ -119,14 +137,40 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
       aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
                              data.u[i], data.IA[b.parent], data.f[b.parent]);
   }
-  // pass 3: accelerations, root to leaves
+  // pass 3: accelerations (and the prescribed joints' forces), root to leaves
   const Motion<S> a0 = base_acceleration(model.gravity);
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
-    qdd[i] = aba_acceleration_step(b, data.Xup[i], b.parent < 0 ? a0 : data.a[b.parent], data.c[i],
-                                   data.U[i], data.D[i], data.u[i], data.a[i]);
+    const Motion<S>& ap = b.parent < 0 ? a0 : data.a[b.parent];
+    if (given(i)) {
+      const S qddi = qdd_in[i];
+      tau_out[i] = hybrid_prescribed_acceleration_step(b, data.Xup[i], ap, data.c[i], data.U[i], data.u[i], qddi,
+                                                       data.a[i]);
+      qdd[i] = qddi;
+      continue;
+    }
+    qdd[i] = aba_acceleration_step(b, data.Xup[i], ap, data.c[i], data.U[i], data.D[i], data.u[i], data.a[i]);
+    if (tau_out) tau_out[i] = tau[i];
   }
   return Status{};
+}
+
+}  // namespace detail
+
+template <class S>
+Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+           S* qdd, const Force<S>* fext, const S* armature) {
+  return detail::articulated_body_passes(model, data, q, qd, tau, qdd, fext, armature,
+                                         static_cast<const unsigned char*>(nullptr), static_cast<const S*>(nullptr),
+                                         static_cast<S*>(nullptr));
+}
+
+template <class S>
+Status hybrid_dynamics(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
+                       const unsigned char* prescribed, const S* qdd_in, const S* tau_in, S* qdd_out, S* tau_out,
+                       const Force<S>* fext, const S* armature) {
+  return detail::articulated_body_passes(model, data, q, qd, tau_in, qdd_out, fext, armature, prescribed, qdd_in,
+                                         tau_out);
 }
 
 // Calls f(j) for every ancestor j of body i and i itself, from i towards the root,
@@ -212,6 +256,8 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
   template void crba(const ModelTpl<S>&, DataTpl<S>&, const S*, S*);                              \
   template Status aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,          \
                       const Force<S>*, const S*);                                                 \
+  template Status hybrid_dynamics(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const unsigned char*,      \
+                                  const S*, const S*, S*, S*, const Force<S>*, const S*);                      \
   template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
                          const Force<S>*, const S*);                                              \
   template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \
