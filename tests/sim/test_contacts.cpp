@@ -10,9 +10,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/loops.hpp"
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
@@ -459,6 +461,135 @@ TEST(SimContactsBackends, NoContactsNoReadings) {
   Simulator<double> sim(scene);
   EXPECT_EQ(sim.contact_forces(), nullptr);
   EXPECT_EQ(sim.contact_count(), 0);
+}
+
+// ---- with prescribed joints and closed loops ------------------------------------------
+
+// Prescribed x (the point mass's DoF 2 on a sine, peak speed 0.2 * 2 pi = 1.26 m/s)
+// while the ball rests on the plane: the hybrid step sees the contacts at the driven
+// state. z rests at m g / k exactly as undriven (the friction is horizontal), y
+// stays 0 (no sideways slip), x is on its trajectory, and the reading's friction is
+// mu f_n against the slip (|v_x| > v_s: the Coulomb limit exactly). Every integrator.
+TEST(SimContactsPrescribed, DrivenSlidingBallRestsAtMgOverKWithCoulombFriction) {
+  const double m = 1 + 2e-6, k = 1e5, mu = 0.8, c = 2 * std::sqrt(k * m);
+  for (const char* integrator : {"euler", "rk4", "implicit"}) {
+    SCOPED_TRACE(integrator);
+    const bool implicit = std::string(integrator) == "implicit";
+    const double dt = implicit ? 1e-3 : 1e-4;
+    std::string json = ball_scene(integrator, dt, R"("stiffness": 1e5, "damping": )" + std::to_string(c) +
+                                                      R"(, "friction": 0.8)",
+                                  R"({"q": [0.1, 0, 0], "qd": [-0.5, 0, 0]})");
+    json.pop_back();
+    json += R"(, "prescribed": {"joints": ["c_x"], "trajectory": [{"sine": {"amplitude": 0.2, "frequency": 1}}]}})";
+    Simulator<double> sim(scene_from(json));
+    const int steps = static_cast<int>(std::lround(2.1 / dt));  // 2.1 s: x at 0.2 sin(4.2 pi), moving at 0.39 m/s
+    for (int s = 0; s < steps; ++s) sim.step();
+    ASSERT_TRUE(sim.status().ok());
+    const State st = state0(sim);
+    const double t = sim.time(), w = 2 * M_PI;
+    EXPECT_NEAR(st.q[2], 0.2 * std::sin(w * t), 1e-12);
+    EXPECT_NEAR(st.qd[2], 0.2 * w * std::cos(w * t), 1e-12);
+    EXPECT_EQ(st.q[1], 0.0);
+    EXPECT_EQ(st.qd[1], 0.0);
+    EXPECT_NEAR(0.1 - st.q[0], m * kG / k, 1e-6 * m * kG / k);
+    const auto r = readings(sim);
+    ASSERT_EQ(r[0].in_contact, 1);
+    EXPECT_NEAR(r[0].force.z, m * kG, 1e-6 * m * kG);
+    // the readings are the step's first forward dynamics': the slip at the step's start
+    const double vx = 0.2 * w * std::cos(w * (t - dt));
+    ASSERT_GT(std::abs(vx), 100 * 1e-3);
+    EXPECT_NEAR(r[0].force.x, -mu * r[0].force.z * (vx > 0 ? 1 : -1), 1e-9 * m * kG);
+    EXPECT_EQ(r[0].force.y, 0.0);
+  }
+}
+
+// The fourbar (a closed loop, no gravity) pushed by a constant torque on its crank
+// against a plane set 5 mm ahead of a point on its coupler, joint damping, no
+// friction: it comes to rest on the plane with the loop closed (1e-11 m), and at
+// rest the virtual work balances: for every velocity the loop admits (qd with J qd
+// = 0), tau . qd + f . v_p = 0 (f the reading's force, v_p the point's velocity
+// along qd by central differences of its position). euler and rk4; implicit with
+// loops is refused, naming the loops.
+TEST(SimContactsLoops, FourbarRestsOnAPlaneWithTheVirtualWorkBalanced) {
+  const Scene base = scene_from(R"({"model": "fourbar", "dt": 1e-4})");
+  const Model& model = base.model;
+  const Index n = model.nv();
+  const Index coupler = static_cast<Index>(
+      std::find(model.link_names.begin(), model.link_names.end(), "coupler") - model.link_names.begin());
+  ASSERT_LT(coupler, n);
+  const Vec3<double> point{0.2, 0, 0};  // the coupler's middle
+  auto position = [&](const std::vector<double>& q) {
+    std::vector<Transform<double>> X(static_cast<std::size_t>(n));
+    std::vector<Motion<double>> v(static_cast<std::size_t>(n));
+    const std::vector<double> zero(static_cast<std::size_t>(n), 0.0);
+    sim::contact_kinematics(model.bodies.data(), n, q.data(), zero.data(), 1, X.data(), v.data());
+    return mul_transpose(X[coupler].E, point) + X[coupler].r;
+  };
+  // a velocity the loop admits, its crank rate positive, at q
+  auto admissible = [&](std::vector<double> q) {
+    std::vector<double> qd(static_cast<std::size_t>(n), 0.0);
+    qd[0] = 1;
+    project_to_loops(model, base.loops, q.data(), qd.data());
+    if (qd[0] < 0)
+      for (double& x : qd) x = -x;
+    return qd;
+  };
+  auto point_velocity = [&](const std::vector<double>& q, const std::vector<double>& qd) {
+    const double h = 1e-6;
+    std::vector<double> qp = q, qm = q;
+    for (Index i = 0; i < n; ++i) qp[i] += h * qd[i], qm[i] -= h * qd[i];
+    return (1 / (2 * h)) * (position(qp) - position(qm));
+  };
+  const std::vector<double> q0(static_cast<std::size_t>(n), 0.0);  // closed (docs/models.md)
+  const Vec3<double> p0 = position(q0), v0 = point_velocity(q0, admissible(q0));
+  const Vec3<double> normal = (-1 / std::sqrt(dot(v0, v0))) * v0;  // facing the point, against its motion
+  const double offset = dot(normal, p0) - 0.005;
+  char plane[256];
+  std::snprintf(plane, sizeof plane, R"({"normal": [%.17g, %.17g, %.17g], "offset": %.17g})", normal.x, normal.y,
+                normal.z, offset);
+  const double k = 1e4, tau_a = 0.05;
+  for (const char* integrator : {"euler", "rk4", "implicit"}) {
+    SCOPED_TRACE(integrator);
+    const std::string json = std::string(R"({"model": "fourbar", "dt": 1e-4, "integrator": ")") + integrator +
+                             R"(", "effects": {"damping": 0.05, "contacts": {"planes": [)" + plane +
+                             R"(], "points": [{"link": "coupler", "position": [0.2, 0, 0]}], "stiffness": 1e4,
+                             "damping": 20, "friction": 0}}})";
+    if (std::string(integrator) == "implicit") {
+      try {
+        Simulator<double> sim(scene_from(json), BackendKind::Serial);
+        ADD_FAILURE() << "implicit with loops was accepted";
+      } catch (const std::exception& e) {
+        EXPECT_NE(std::string(e.what()).find("closed loops step with euler or rk4, not implicit"), std::string::npos)
+            << e.what();
+      }
+      continue;
+    }
+    Simulator<double> sim(scene_from(json), BackendKind::Serial);
+    std::vector<double> tau(static_cast<std::size_t>(n), 0.0);
+    tau[0] = tau_a;
+    const BatchView<const double> tv = BatchView<const double>::aos(tau.data(), n, 1);
+    std::vector<double> q(static_cast<std::size_t>(n)), qd(static_cast<std::size_t>(n));
+    double worst_closure = 0;
+    for (int s = 0; s < 30000; ++s) {  // 3 s
+      sim.step(tv);
+      if (s % 100 == 99) {
+        sim.read_state(q.data(), qd.data());
+        worst_closure = std::max(worst_closure, loop_violation(model, base.loops, q.data(), qd.data()));
+      }
+    }
+    ASSERT_TRUE(sim.status().ok()) << sim::failure_message(sim.status());
+    sim.read_state(q.data(), qd.data());
+    EXPECT_LE(worst_closure, 1e-11);
+    for (double x : qd) EXPECT_LT(std::abs(x), 1e-9);  // at rest
+    const auto r = readings(sim);
+    ASSERT_EQ(r[0].in_contact, 1);
+    const Vec3<double> f = r[0].force;
+    EXPECT_NEAR(dot(f, normal), k * r[0].depth, 1e-9 * k * r[0].depth);  // the normal law at rest
+    EXPECT_NEAR(std::sqrt(dot(f, f)), std::abs(dot(f, normal)), 1e-12);   // no friction
+    const std::vector<double> u = admissible(q);
+    const double power_tau = tau_a * u[0], power_f = dot(f, point_velocity(q, u));
+    EXPECT_NEAR(power_tau + power_f, 0.0, 1e-6 * std::abs(power_tau));
+  }
 }
 
 }  // namespace
