@@ -556,6 +556,16 @@ TEST(SimOpenMPChain, StepsPerForwardDynamicsOnlyWithEnoughThreadsPerInstance) {
   EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 4 * kT));
   s.model = make_generated("curtain:2:3000");  // chains hanging from the base
   EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  // the engine path steps none of contacts, prescribed motion and closed loops
+  s.effects = sim::kContacts;
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  s.effects = 0;
+  s.prescribed.dofs = {0};
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  s.prescribed.dofs.clear();
+  s.loops.loops.resize(1);
+  ASSERT_FALSE(s.loops.empty());
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
 }
 
 // max_i |x_i - ref_i| / max_i |ref_i| over q, and over qd, of all instances.
