@@ -172,6 +172,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
     std::vector<S> armature;        // (n) contacts, implicit: the armature + the contacts' bound
     std::vector<S> driven;          // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
     std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
+    std::vector<Force<double>> loop_fext;  // closed loops: the stage's external + contact wrenches, or empty
   };
 
   using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
@@ -258,7 +259,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
                              sim::ContactReading<S>* readings) {
     const Model& model = setup.loop_model;
     const Index n = model.nv();
-    std::vector<Force<double>> f;
+    std::vector<Force<double>>& f = w.loop_fext;
     w.loop_lambda.resize(static_cast<std::size_t>(setup.loops.rows()));
     auto fd = [&](const S* qa, const S* qda, const S* t, const S*, S* qdd) -> Index {
       // the external and contact wrenches at the stage (no armature: loops refuse implicit)
