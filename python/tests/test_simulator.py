@@ -353,3 +353,19 @@ def test_contact_forces_without_contacts_and_through_torch():
     assert isinstance(t, torch.Tensor) and t.stride() == (10, 5, 1)
     assert np.array_equal(t.numpy(), b.contact_forces())
     assert np.array_equal(a.in_contact().numpy(), b.in_contact())
+
+
+@cuda
+def test_cuda_contact_forces_are_device_views_matching_serial():
+    """On cuda the readings are torch tensors over the device memory; after 200 steps of the
+    resting ball (double) they equal the serial simulator's to rounding."""
+    torch = pytest.importorskip("torch", reason="torch is not installed")
+    gpu = sd.Simulator(ball_scene(backend="cuda"))
+    cpu = sd.Simulator(ball_scene())
+    gpu.step_many(200)
+    cpu.step_many(200)
+    f = gpu.contact_forces()
+    assert isinstance(f, torch.Tensor) and f.device.type == "cuda" and f.shape == (3, 2, 3)
+    torch.cuda.current_stream(gpu._s.device).synchronize()
+    np.testing.assert_allclose(f.cpu().numpy(), cpu.contact_forces(), rtol=1e-9, atol=1e-9)
+    assert torch.equal(gpu.in_contact().cpu(), torch.from_numpy(cpu.in_contact().copy()))
