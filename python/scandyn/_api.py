@@ -110,6 +110,8 @@ def _kind(x):
         kind = ("numpy" if isinstance(x, np.ndarray) else "torch" if mod.startswith("torch")
                 else "cupy" if mod.startswith("cupy") else "jax" if mod.startswith(("jax", "jaxlib")) else "other")
         _KINDS[t] = kind
+        if kind == "torch":
+            _DIRECT_IN[t] = _DIRECT_OUT[t] = _torch_capsule
     return kind
 
 
@@ -220,9 +222,7 @@ def _handover(x, name, where):
         return x
     kind = _kind(x)
     if kind == "torch":
-        # the engines compute no gradients: a tensor that requires one is read as its
-        # detached view (the same memory)
-        return (_Torch.to_dlpack or _Torch.load().to_dlpack)(x.detach() if x.requires_grad else x)
+        return _torch_capsule(x)
     if where.cuda is None:
         return x
     if kind == "cupy":
@@ -230,6 +230,38 @@ def _handover(x, name, where):
     if kind == "jax" and _cuda_device(x, kind, name) is not None:
         return x.__dlpack__(stream=where.stream)
     return x
+
+
+def _torch_capsule(x):
+    """A torch tensor's DLPack capsule (torch.utils.dlpack.to_dlpack: no synchronisation).
+    The engines compute no gradients: a tensor that requires one is read as it is (the
+    memory of its detached view); a torch that refuses to export it gets the detached view."""
+    to_dlpack = _Torch.to_dlpack or _Torch.load().to_dlpack
+    try:
+        return to_dlpack(x)
+    except RuntimeError:
+        return to_dlpack(x.detach())
+
+
+def _numpy_out(x):
+    if not x.flags.writeable:
+        raise ShapeError("out is read-only")
+    return x
+
+
+def _as_is(x):
+    return x
+
+
+# The call path's per-type handover for the common calls (arrays and out all torch
+# tensors, or all NumPy arrays; fext may be None): type -> the array as the extension
+# reads it, whatever its device. torch types are added as they are seen (_kind). Any
+# other type (CuPy, JAX, lists, other DLPack producers) and out=None take the general
+# path (_EngineBase._prepare). Measured per call on the host (iiwa, B = 1, torch CPU
+# tensors): to_dlpack 0.19 us a tensor, against 0.3 us for data_ptr(), stride(),
+# shape, dtype and device read one by one, so tensors go over as capsules.
+_DIRECT_IN = {type(None): _as_is, np.ndarray: _as_is}
+_DIRECT_OUT = {np.ndarray: _numpy_out}
 
 
 def _dtype_name(x):
@@ -345,13 +377,19 @@ def _call(fn, *args, **kw):
     try:
         return fn(*args, **kw)
     except TypeError as e:
-        if "incompatible function arguments" not in str(e):
-            raise
-        raise DTypeError(
-            "cannot read the arrays of this call without a copy: each must be a float32 or "
-            "float64 array in host memory or CUDA device memory (buffer protocol or DLPack) whose "
-            "strides are multiples of its item size, and out must be writable"
-        ) from e
+        _reraise(e)
+
+
+def _reraise(e):
+    """Raises a TypeError of the extension's argument parsing as the DTypeError that
+    says which arrays it reads; any other TypeError as it is."""
+    if "incompatible function arguments" not in str(e):
+        raise e
+    raise DTypeError(
+        "cannot read the arrays of this call without a copy: each must be a float32 or "
+        "float64 array in host memory or CUDA device memory (buffer protocol or DLPack) whose "
+        "strides are multiples of its item size, and out must be writable"
+    ) from e
 
 
 # ---- engines ------------------------------------------------------------------------
@@ -393,7 +431,31 @@ class _EngineBase:
     dtype = property(lambda self: np.dtype(self._dtype))
 
     def _prepare(self, named, out, stream, tail=()):
-        """(where, the arrays as the extension takes them, out as given, out as written)."""
+        """(where, the arrays as the extension takes them, out as given, out as written).
+        The common calls (see _DIRECT_IN) take a short path: one dictionary look-up and
+        the handover per array, the first array's device, the stream."""
+        if out is not None:
+            try:
+                handed = [_DIRECT_IN[type(x)](x) for _, x in named]
+                w = _DIRECT_OUT[type(out)](out)
+            except KeyError:
+                pass
+            else:
+                q = named[0][1]
+                if type(q) is np.ndarray:
+                    if stream is not None:
+                        _stream_handle(stream)  # checked, unused on the host
+                    return _Where(None, "numpy", None, q), handed, out, w
+                cuda = q.get_device() if q.is_cuda else None  # a torch tensor
+                s = None
+                if cuda is not None:
+                    s = _stream_handle(stream) if stream is not None else (_Torch.raw_stream or _Torch.load().raw_stream)(cuda)
+                elif stream is not None:
+                    _stream_handle(stream)
+                return _Where(cuda, "torch", s, q), handed, out, w
+        return self._prepare_general(named, out, stream, tail)
+
+    def _prepare_general(self, named, out, stream, tail):
         arrays, _ = _inputs(named, self._dtype)
         where = _where(arrays[0], stream)
         if out is None:
@@ -428,8 +490,12 @@ class InverseDynamics(_EngineBase):
     def __call__(self, q, qd, qdd, fext=None, out=None, stream=None):
         named = [("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)]
         where, (q, qd, qdd, fext), out, w = self._prepare(named, out, stream)
-        _call(self._e.compute, q, qd, qdd, w, fext, stream=where.stream or 0)
-        _finish(where)
+        try:
+            self._e.compute(q, qd, qdd, w, fext, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        if where.kind == "jax":
+            _finish(where)
         return out
 
 
@@ -444,8 +510,12 @@ class BiasForces(_EngineBase):
 
     def __call__(self, q, qd, fext=None, out=None, stream=None):
         where, (q, qd, fext), out, w = self._prepare([("q", q), ("qd", qd), ("fext", fext)], out, stream)
-        _call(self._e.compute, q, qd, w, fext, stream=where.stream or 0)
-        _finish(where)
+        try:
+            self._e.compute(q, qd, w, fext, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        if where.kind == "jax":
+            _finish(where)
         return out
 
 
@@ -459,8 +529,12 @@ class MassMatrix(_EngineBase):
 
     def __call__(self, q, out=None, stream=None):
         where, (q,), out, w = self._prepare([("q", q)], out, stream, tail=(self.nv,))
-        _call(self._e.compute, q, w, stream=where.stream or 0)
-        _finish(where)
+        try:
+            self._e.compute(q, w, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        if where.kind == "jax":
+            _finish(where)
         return out
 
 
@@ -526,7 +600,10 @@ class ForwardDynamics(_EngineBase):
             lead = _lead_of(where.like)
             failed = failed_dof if failed_dof is not None else self._failed_buffer(where, lead[0] if lead else 1)
             fd = _writable(failed, where)
-        status = _call(self._e.compute, q, qd, tau, w, fext, failed_dof=fd, stream=where.stream or 0)
+        try:
+            status = self._e.compute(q, qd, tau, w, fext, fd, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
         if status.queued:
             self.failed_dof = failed
             self._pending = (failed, where.stream)
