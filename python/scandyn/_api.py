@@ -430,18 +430,21 @@ class _EngineBase:
     device = property(lambda self: self._e.device, doc="the CUDA device of a cuda engine, -1 otherwise")
     dtype = property(lambda self: np.dtype(self._dtype))
 
-    def _prepare(self, named, out, stream, tail=()):
-        """(where, the arrays as the extension takes them, out as given, out as written).
+    _names = ()  # the names of __call__'s arrays, for the messages
+
+    def _prepare(self, arrays, out, stream, tail=()):
+        """(where, the arrays as the extension takes them, out as given, out as written),
+        for the arrays named self._names.
         The common calls (see _DIRECT_IN) take a short path: one dictionary look-up and
         the handover per array, the first array's device, the stream."""
         if out is not None:
             try:
-                handed = [_DIRECT_IN[type(x)](x) for _, x in named]
+                handed = [_DIRECT_IN[type(x)](x) for x in arrays]
                 w = _DIRECT_OUT[type(out)](out)
             except KeyError:
                 pass
             else:
-                q = named[0][1]
+                q = arrays[0]
                 if type(q) is np.ndarray:
                     if stream is not None:
                         _stream_handle(stream)  # checked, unused on the host
@@ -453,10 +456,11 @@ class _EngineBase:
                 elif stream is not None:
                     _stream_handle(stream)
                 return _Where(cuda, "torch", s, q), handed, out, w
-        return self._prepare_general(named, out, stream, tail)
+        return self._prepare_general(arrays, out, stream, tail)
 
-    def _prepare_general(self, named, out, stream, tail):
-        arrays, _ = _inputs(named, self._dtype)
+    def _prepare_general(self, arrays, out, stream, tail):
+        names = self._names
+        arrays, _ = _inputs(zip(names, arrays), self._dtype)
         where = _where(arrays[0], stream)
         if out is None:
             out = _empty(where, _lead_of(arrays[0]) + (self.nv,) + tail, self._dtype)
@@ -465,7 +469,7 @@ class _EngineBase:
         if where.cuda is None and where.kind == "numpy":
             handed = arrays  # NumPy on the host: read as they are (the buffer protocol)
         else:
-            handed = [_handover(a, n, where) for a, (n, _) in zip(arrays, named)]
+            handed = [_handover(a, n, where) for a, n in zip(arrays, names)]
         return where, handed, out, _writable(out, where)
 
     def __repr__(self):
@@ -482,14 +486,14 @@ class InverseDynamics(_EngineBase):
     CUDA device of a cuda engine (default: the current one)."""
 
     _ext_class = _ext.InverseDynamics
+    _names = ("q", "qd", "qdd", "fext")
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
                  device=None):
         super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
 
     def __call__(self, q, qd, qdd, fext=None, out=None, stream=None):
-        named = [("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)]
-        where, (q, qd, qdd, fext), out, w = self._prepare(named, out, stream)
+        where, (q, qd, qdd, fext), out, w = self._prepare((q, qd, qdd, fext), out, stream)
         try:
             self._e.compute(q, qd, qdd, w, fext, where.stream or 0)
         except TypeError as e:
@@ -503,13 +507,14 @@ class BiasForces(_EngineBase):
     """h = RNEA(q, qd, 0, fext): Coriolis, centrifugal and gravity forces."""
 
     _ext_class = _ext.BiasForces
+    _names = ("q", "qd", "fext")
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
                  device=None):
         super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
 
     def __call__(self, q, qd, fext=None, out=None, stream=None):
-        where, (q, qd, fext), out, w = self._prepare([("q", q), ("qd", qd), ("fext", fext)], out, stream)
+        where, (q, qd, fext), out, w = self._prepare((q, qd, fext), out, stream)
         try:
             self._e.compute(q, qd, w, fext, where.stream or 0)
         except TypeError as e:
@@ -523,12 +528,13 @@ class MassMatrix(_EngineBase):
     """M(q) by the CRBA: (B, nv, nv) (or (nv, nv) for one state), both triangles written."""
 
     _ext_class = _ext.MassMatrix
+    _names = ("q",)
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
         super().__init__(model, backend, max_batch, dtype, device, threads=threads)
 
     def __call__(self, q, out=None, stream=None):
-        where, (q,), out, w = self._prepare([("q", q)], out, stream, tail=(self.nv,))
+        where, (q,), out, w = self._prepare((q,), out, stream, (self.nv,))
         try:
             self._e.compute(q, w, where.stream or 0)
         except TypeError as e:
@@ -554,6 +560,7 @@ class ForwardDynamics(_EngineBase):
     them. JAX calls wait anyway (see docs/python.md) and check at once."""
 
     _ext_class = _ext.ForwardDynamics
+    _names = ("q", "qd", "tau", "fext")
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, method="auto",
                  fallback_aba=False, threads=0, fd_check="auto", fd_check_tol=0.0, fallback_double=False,
@@ -593,8 +600,7 @@ class ForwardDynamics(_EngineBase):
         return buf[:batch]
 
     def __call__(self, q, qd, tau, fext=None, out=None, stream=None, failed_dof=None, check=False):
-        named = [("q", q), ("qd", qd), ("tau", tau), ("fext", fext)]
-        where, (q, qd, tau, fext), out, w = self._prepare(named, out, stream)
+        where, (q, qd, tau, fext), out, w = self._prepare((q, qd, tau, fext), out, stream)
         failed = fd = None
         if where.cuda is not None:
             lead = _lead_of(where.like)
