@@ -36,6 +36,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "scandyn/build_config.hpp"
@@ -222,7 +223,8 @@ void check_no_self_overlap(const A& a, const char* name) {
       dims[nd++] = {std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i))};
     }
   }
-  std::sort(dims, dims + nd);
+  for (size_t k = 1; k < nd; ++k)  // insertion sort by |stride| (std::sort on 3 entries trips -Warray-bounds)
+    for (size_t j = k; j > 0 && dims[j] < dims[j - 1]; --j) std::swap(dims[j], dims[j - 1]);
   std::ptrdiff_t need = 1;
   for (size_t k = 0; k < nd; ++k) {
     const auto [stride, n] = dims[k];
