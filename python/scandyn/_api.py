@@ -264,17 +264,30 @@ _DIRECT_IN = {type(None): _as_is, np.ndarray: _as_is}
 _DIRECT_OUT = {np.ndarray: _numpy_out}
 
 
+_DTYPE_NAMES = {}  # dtype object -> its name, filled as dtypes are seen
+
+
 def _dtype_name(x):
     """'float32', 'float64', or another dtype's name, of an array-like's dtype."""
     d = getattr(x, "dtype", None)
     if d is None:
         return None
-    if _is_torch(x):
-        return str(d).replace("torch.", "")
     try:
-        return np.dtype(d).name
+        return _DTYPE_NAMES[d]
+    except (KeyError, TypeError):  # not seen yet, or not hashable
+        pass
+    if _is_torch(x):
+        name = str(d).replace("torch.", "")
+    else:
+        try:
+            name = np.dtype(d).name
+        except TypeError:
+            name = str(d)
+    try:
+        _DTYPE_NAMES[d] = name
     except TypeError:
-        return str(d)
+        pass
+    return name
 
 
 def _normalize_dtype(dtype):
@@ -395,9 +408,14 @@ def _reraise(e):
 # ---- engines ------------------------------------------------------------------------
 
 
+_HOST_AUTO = []  # backend="auto" on host arrays: "openmp", or "serial" where OpenMP is unusable (found once)
+
+
 def _resolve_backend(backend):
     if backend == "auto":
-        return "openmp" if not _ext.backend_unusable("openmp") else "serial"
+        if not _HOST_AUTO:
+            _HOST_AUTO.append("openmp" if not _ext.backend_unusable("openmp") else "serial")
+        return _HOST_AUTO[0]
     return backend
 
 
@@ -433,30 +451,35 @@ class _EngineBase:
     _names = ()  # the names of __call__'s arrays, for the messages
 
     def _prepare(self, arrays, out, stream, tail=()):
-        """(where, the arrays as the extension takes them, out as given, out as written),
-        for the arrays named self._names.
-        The common calls (see _DIRECT_IN) take a short path: one dictionary look-up and
-        the handover per array, the first array's device, the stream."""
-        if out is not None:
-            try:
-                handed = [_DIRECT_IN[type(x)](x) for x in arrays]
-                w = _DIRECT_OUT[type(out)](out)
-            except KeyError:
-                pass
-            else:
-                q = arrays[0]
-                if type(q) is np.ndarray:
-                    if stream is not None:
-                        _stream_handle(stream)  # checked, unused on the host
-                    return _Where(None, "numpy", None, q), handed, out, w
-                cuda = q.get_device() if q.is_cuda else None  # a torch tensor
-                s = None
-                if cuda is not None:
-                    s = _stream_handle(stream) if stream is not None else (_Torch.raw_stream or _Torch.load().raw_stream)(cuda)
-                elif stream is not None:
-                    _stream_handle(stream)
-                return _Where(cuda, "torch", s, q), handed, out, w
-        return self._prepare_general(arrays, out, stream, tail)
+        """(where, the arrays as the extension takes them, out as given or made, out as
+        written), for the arrays named self._names. The common calls (q a torch tensor or
+        a NumPy array, every array and out of a type in _DIRECT_IN / _DIRECT_OUT) take a
+        short path: one dictionary look-up and the hand-over per array, the first array's
+        device, the stream, a result like q when out is None."""
+        q = arrays[0]
+        try:
+            handed = [_DIRECT_IN[type(x)](x) for x in arrays]
+            out_hand = _DIRECT_OUT[type(out)] if out is not None else None
+        except KeyError:
+            return self._prepare_general(arrays, out, stream, tail)
+        if type(q) is np.ndarray:
+            where = _Where(None, "numpy", None, q)
+            if stream is not None:
+                _stream_handle(stream)  # checked, unused on the host
+        elif q is None:
+            return self._prepare_general(arrays, out, stream, tail)
+        else:  # a torch tensor
+            cuda = q.get_device() if q.is_cuda else None
+            s = None
+            if cuda is not None:
+                s = _stream_handle(stream) if stream is not None else (_Torch.raw_stream or _Torch.load().raw_stream)(cuda)
+            elif stream is not None:
+                _stream_handle(stream)
+            where = _Where(cuda, "torch", s, q)
+        if out is None:
+            out = _empty(where, _lead_of(q) + (self.nv,) + tail, self._dtype)
+            out_hand = _DIRECT_OUT[type(out)]
+        return where, handed, out, out_hand(out)
 
     def _prepare_general(self, arrays, out, stream, tail):
         names = self._names
