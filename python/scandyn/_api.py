@@ -594,11 +594,14 @@ class ForwardDynamics(_EngineBase):
         self.last_status = None
         self.failed_dof = None  # CUDA calls: the last call's (B,) int32 device array
         self._pending = None  # (failed_dof, stream) of a CUDA call not checked yet
-        self._failed_buffers = {}  # (kind, device) -> (max_batch,) int32 device array
+        self._failed_buffers = {}  # (kind, device) -> (max_batch,) int32 device array; (kind, device, B) -> its [:B]
 
     method = property(lambda self: self._e.method, doc="the method run ('auto' resolved)")
 
     def _failed_buffer(self, where, batch):
+        view = self._failed_buffers.get((where.kind, where.cuda, batch))  # the view of the last calls
+        if view is not None:
+            return view
         key = (where.kind, where.cuda)
         buf = self._failed_buffers.get(key)
         if buf is None:
@@ -619,16 +622,25 @@ class ForwardDynamics(_EngineBase):
             else:
                 raise DeviceError(f"pass failed_dof= (a (B,) int32 array on CUDA device {where.cuda}) "
                                   f"for arrays of type {type(where.like).__name__}")
-            self._failed_buffers[key] = buf
-        return buf[:batch]
+        view = buf[:batch]
+        # the buffers, and the view of this batch size only
+        kept = {k: v for k, v in self._failed_buffers.items() if len(k) == 2}
+        kept[key] = buf
+        kept[(where.kind, where.cuda, batch)] = view
+        self._failed_buffers = kept
+        return view
 
     def __call__(self, q, qd, tau, fext=None, out=None, stream=None, failed_dof=None, check=False):
         where, (q, qd, tau, fext), out, w = self._prepare((q, qd, tau, fext), out, stream)
         failed = fd = None
         if where.cuda is not None:
-            lead = _lead_of(where.like)
-            failed = failed_dof if failed_dof is not None else self._failed_buffer(where, lead[0] if lead else 1)
-            fd = _writable(failed, where)
+            if failed_dof is not None:
+                failed = failed_dof
+            else:
+                lead = where.like.shape[:-1]  # (B,) or () (the extension checks q's shape)
+                failed = self._failed_buffer(where, lead[0] if len(lead) == 1 else 1)
+            hand = _DIRECT_OUT.get(type(failed))
+            fd = hand(failed) if hand is not None else _writable(failed, where)
         try:
             status = self._e.compute(q, qd, tau, w, fext, fd, where.stream or 0)
         except TypeError as e:
