@@ -472,13 +472,18 @@ class _EngineBase:
             cuda = q.get_device() if q.is_cuda else None
             s = None
             if cuda is not None:
-                s = _stream_handle(stream) if stream is not None else (_Torch.raw_stream or _Torch.load().raw_stream)(cuda)
+                if stream is not None:
+                    s = _stream_handle(stream)
+                else:  # torch's current stream of the device (the cheapest of torch's APIs)
+                    s = (_Torch.raw_stream or _Torch.load().raw_stream)(cuda)
             elif stream is not None:
                 _stream_handle(stream)
             where = _Where(cuda, "torch", s, q)
         if out is None:
             out = _empty(where, _lead_of(q) + (self.nv,) + tail, self._dtype)
-            out_hand = _DIRECT_OUT[type(out)]
+            out_hand = _DIRECT_OUT.get(type(out))
+            if out_hand is None:  # a type not seen yet (torch.Tensor after only Parameters)
+                return where, handed, out, _writable(out, where)
         return where, handed, out, out_hand(out)
 
     def _prepare_general(self, arrays, out, stream, tail):
