@@ -29,12 +29,14 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
+#include <initializer_list>
 #include <limits>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "scandyn/build_config.hpp"
@@ -208,16 +210,24 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
 
 // Out arrays: distinct elements must not share memory (a broadcast view would have
 // threads race on one entry).
+// (No allocation: called on every call, after the shape checks, with at most 3 dimensions.)
 template <class A>
 void check_no_self_overlap(const A& a, const char* name) {
-  std::vector<std::pair<std::ptrdiff_t, std::ptrdiff_t>> dims;  // |stride|, extent
+  constexpr size_t kMaxDims = 3;
+  std::pair<std::ptrdiff_t, std::ptrdiff_t> dims[kMaxDims];  // |stride|, extent
+  size_t nd = 0;
   for (size_t i = 0; i < a.ndim(); ++i) {
     if (a.shape(i) == 0) return;
-    if (a.shape(i) > 1) dims.emplace_back(std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i)));
+    if (a.shape(i) > 1) {
+      if (nd == kMaxDims) throw ShapeError(std::string(name) + " has more than 3 dimensions");
+      dims[nd++] = {std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i))};
+    }
   }
-  std::sort(dims.begin(), dims.end());
+  for (size_t k = 1; k < nd; ++k)  // insertion sort by |stride| (std::sort on 3 entries trips -Warray-bounds)
+    for (size_t j = k; j > 0 && dims[j] < dims[j - 1]; --j) std::swap(dims[j], dims[j - 1]);
   std::ptrdiff_t need = 1;
-  for (auto [stride, n] : dims) {
+  for (size_t k = 0; k < nd; ++k) {
+    const auto [stride, n] = dims[k];
     if (stride < need)
       throw ShapeError(std::string(name) + " has overlapping entries (strides that make two entries share memory, "
                        "e.g. a broadcast view): an output must be writable entry by entry");
@@ -226,7 +236,7 @@ void check_no_self_overlap(const A& a, const char* name) {
 }
 
 template <class A>
-void check_out_alone(const A& out, const std::vector<std::pair<Extent, const char*>>& inputs) {
+void check_out_alone(const A& out, std::initializer_list<std::pair<Extent, const char*>> inputs) {
   const Extent e = extent_of(out);
   for (const auto& [in, name] : inputs)
     if (overlaps(e, in))
@@ -431,9 +441,8 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -454,9 +463,8 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -548,9 +556,8 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   int* failed = nullptr;  // CUDA arrays: the caller's (B,) int32 array on the same device
   if (lead.cuda) {
     if (!failed_dof)
