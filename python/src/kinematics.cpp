@@ -153,6 +153,7 @@ void bind_kinematics(nb::module_& m) {
                      return kinematics_options(e).pose == PoseFormat::Matrix ? "matrix" : "quaternion";
                    });
   def_engine_properties(k);
+  k.attr("cuda_max_dofs") = cuda::kMaxThreadDofs;  // the CUDA engine's largest model (one thread per instance)
 }
 
 }  // namespace scandyn::py
