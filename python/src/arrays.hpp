@@ -14,6 +14,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstdlib>
+#include <initializer_list>
 #include <limits>
 #include <string>
 #include <type_traits>
@@ -148,16 +149,25 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
 
 // Out arrays: distinct elements must not share memory (a broadcast view would have
 // threads race on one entry).
+// (No allocation: called on every call, after the shape checks, with at most 4 dimensions:
+// the kinematics' (B, F, 4, 4) and (B, F, 6, nv).)
 template <class A>
 void check_no_self_overlap(const A& a, const char* name) {
-  std::vector<std::pair<std::ptrdiff_t, std::ptrdiff_t>> dims;  // |stride|, extent
+  constexpr size_t kMaxDims = 4;
+  std::pair<std::ptrdiff_t, std::ptrdiff_t> dims[kMaxDims];  // |stride|, extent
+  size_t nd = 0;
   for (size_t i = 0; i < a.ndim(); ++i) {
     if (a.shape(i) == 0) return;
-    if (a.shape(i) > 1) dims.emplace_back(std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i)));
+    if (a.shape(i) > 1) {
+      if (nd == kMaxDims) throw ShapeError(std::string(name) + " has more than 4 dimensions");
+      dims[nd++] = {std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i))};
+    }
   }
-  std::sort(dims.begin(), dims.end());
+  for (size_t k = 1; k < nd; ++k)  // insertion sort by |stride| (std::sort on 4 entries trips -Warray-bounds)
+    for (size_t j = k; j > 0 && dims[j] < dims[j - 1]; --j) std::swap(dims[j], dims[j - 1]);
   std::ptrdiff_t need = 1;
-  for (auto [stride, n] : dims) {
+  for (size_t k = 0; k < nd; ++k) {
+    const auto [stride, n] = dims[k];
     if (stride < need)
       throw ShapeError(std::string(name) + " has overlapping entries (strides that make two entries share memory, "
                        "e.g. a broadcast view): an output must be writable entry by entry");
@@ -167,7 +177,7 @@ void check_no_self_overlap(const A& a, const char* name) {
 
 // An output (named out_name) sharing no memory with the call's other arrays.
 template <class A>
-void check_out_alone(const A& out, const std::vector<std::pair<Extent, const char*>>& inputs,
+void check_out_alone(const A& out, std::initializer_list<std::pair<Extent, const char*>> inputs,
                      const char* out_name = "out") {
   const Extent e = extent_of(out);
   for (const auto& [in, name] : inputs)

@@ -43,23 +43,23 @@ const KinematicsOptions& kinematics_options(const PyKinematics& e) {
 // An output's view: `a` has shape lead + block (lead: () or (B,), as q's), on q's
 // device, in precision S, and the entries of one instance's block are one stride
 // apart in C order, no two of them in the same memory.
-template <class S>
-BatchView<S> block_view(const OutArray& a, const std::vector<size_t>& block, Lead& lead, const char* name) {
+template <class S, size_t N>
+BatchView<S> block_view(const OutArray& a, const size_t (&block)[N], Lead& lead, const char* name) {
   check_device(a, name, lead);
   if (!has_dtype<S>(a))
     throw DTypeError(std::string(name) + " has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
                      " (every array of a call shares one dtype, which sets the precision)");
   const size_t nl = lead.single ? 0 : 1;
-  bool ok = a.ndim() == nl + block.size() && (lead.single || Index(a.shape(0)) == lead.batch);
-  for (size_t i = 0; ok && i < block.size(); ++i) ok = a.shape(nl + i) == block[i];
+  bool ok = a.ndim() == nl + N && (lead.single || Index(a.shape(0)) == lead.batch);
+  for (size_t i = 0; ok && i < N; ++i) ok = a.shape(nl + i) == block[i];
   if (!ok) {
     std::string want = lead.single ? "(" : "(" + std::to_string(lead.batch) + ", ";
-    for (size_t i = 0; i < block.size(); ++i) want += (i ? ", " : "") + std::to_string(block[i]);
+    for (size_t i = 0; i < N; ++i) want += (i ? ", " : "") + std::to_string(block[i]);
     throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected " + want + ")");
   }
   const std::ptrdiff_t s = a.stride(a.ndim() - 1);
   std::ptrdiff_t expect = s;
-  for (size_t i = block.size(); i-- > 0;) {
+  for (size_t i = N; i-- > 0;) {
     if (block[i] > 1 && a.stride(nl + i) != expect)
       throw ShapeError(std::string(name) + ": each instance's block must be C-ordered with one stride (a "
                        "C-contiguous array, or a slice of one along the batch dimension)");
@@ -78,18 +78,17 @@ void compute(PyKinematics& e, const InArray& q, const std::optional<OutArray>& p
   const BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
   check_max_batch(lead, e.max_batch);
   const size_t F = ko.frames.size();
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}};
+  const Extent qe = extent_of(q);
   BatchView<S> pv{}, Jv{};
   if (poses) {
-    const std::vector<size_t> block =
-        ko.pose == PoseFormat::Matrix ? std::vector<size_t>{F, 4, 4} : std::vector<size_t>{F, 7};
-    pv = block_view<S>(*poses, block, lead, "poses");
-    check_out_alone(*poses, ins, "poses");
-    ins.emplace_back(extent_of(*poses), "poses");
+    pv = ko.pose == PoseFormat::Matrix ? block_view<S>(*poses, {F, 4, 4}, lead, "poses")
+                                       : block_view<S>(*poses, {F, 7}, lead, "poses");
+    check_out_alone(*poses, {{qe, "q"}}, "poses");
   }
   if (J) {
     Jv = block_view<S>(*J, {F, 6, size_t(nv)}, lead, "J");
-    check_out_alone(*J, ins, "J");
+    check_out_alone(*J, {{qe, "q"}}, "J");
+    if (poses) check_out_alone(*J, {{extent_of(*poses), "poses"}}, "J");
   }
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);

@@ -29,6 +29,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
+#include <initializer_list>
 #include <limits>
 #include <memory>
 #include <mutex>
@@ -145,9 +146,8 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -168,9 +168,8 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -262,9 +261,8 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   in.fext = fext_of<S>(fext, nv, lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   int* failed = nullptr;  // CUDA arrays: the caller's (B,) int32 array on the same device
   if (lead.cuda) {
     if (!failed_dof)
