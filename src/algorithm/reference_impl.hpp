@@ -14,27 +14,154 @@ namespace scandyn {
 
 template <class S>
 DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
+  const std::size_t nb = static_cast<std::size_t>(model.nbodies());
   const std::size_t n = static_cast<std::size_t>(model.nv());
-  Xup.resize(n);
-  v.resize(n);
-  a.resize(n);
-  c.resize(n);
-  f.resize(n);
-  Ic.resize(n);
-  IA.resize(n);
+  Xup.resize(nb);
+  v.resize(nb);
+  a.resize(nb);
+  c.resize(nb);
+  f.resize(nb);
+  Ic.resize(nb);
+  IA.resize(nb);
   U.resize(n);
   D.resize(n);
   u.resize(n);
+  if (model.multi_dof()) L.resize(n * kMaxJointDofs);
   if (mass_matrix) M.resize(n * n);
   h.resize(n);
+  lambda.resize(n);
+  if (!model.multi_dof()) {
+    for (std::size_t i = 0; i < n; ++i) lambda[i] = model.bodies[i].parent;
+  } else {
+    for (const Body<S>& b : model.bodies) {
+      const Index first = b.idx_v, nj = joint_nv(b.type);
+      lambda[first] = b.parent < 0 ? Index(-1)
+                                   : model.bodies[b.parent].idx_v + joint_nv(model.bodies[b.parent].type) - 1;
+      for (Index k = 1; k < nj; ++k) lambda[first + k] = first + k - 1;
+    }
+  }
   run_start.resize(n);
   for (std::size_t i = 0; i < n; ++i)
-    run_start[i] = (i > 0 && model.bodies[i].parent == Index(i) - 1) ? run_start[i - 1] : Index(i);
+    run_start[i] = (i > 0 && lambda[i] == Index(i) - 1) ? run_start[i - 1] : Index(i);
+}
+
+// ---- the general path: models with multi-DoF joints -------------------------
+
+template <class S>
+void rnea_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
+             S* tau, const Force<S>* fext) {
+  const Index n = model.nbodies();
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform_at(b, q + b.idx_q);
+    const RneaForward<S> o = rnea_forward_step_at(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p],
+                                                  p < 0 ? a0 : data.a[p], qd + b.idx_v,
+                                                  qdd ? qdd + b.idx_v : static_cast<const S*>(nullptr));
+    data.v[i] = o.v;
+    data.a[i] = o.a;
+    data.f[i] = fext ? o.f - fext[i] : o.f;
+  }
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    joint_project_at(b, data.f[i], tau + b.idx_v);
+    if (b.parent >= 0) data.f[b.parent] += data.Xup[i].apply_transpose(data.f[i]);
+  }
+}
+
+template <class S>
+void crba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
+  const Index n = model.nbodies();
+  for (Index i = 0; i < n; ++i) {
+    data.Xup[i] = joint_transform_at(model.bodies[i], q + model.bodies[i].idx_q);
+    data.Ic[i] = model.bodies[i].I;
+  }
+  for (Index i = n - 1; i >= 0; --i) {
+    const Index p = model.bodies[i].parent;
+    if (p >= 0) data.Ic[p] += crba_composite_step(data.Xup[i], data.Ic[i]);
+  }
+  const std::size_t nn = static_cast<std::size_t>(model.nv());
+  for (std::size_t k = 0; k < nn * nn; ++k) M[k] = S(0);
+  // the columns of body i's joint: F_k = Ic_i S_i e_k carried up the path to the root
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const int nj = joint_nv(b.type);
+    for (int k = 0; k < nj; ++k) {
+      const std::size_t col = static_cast<std::size_t>(b.idx_v + k);
+      Force<S> F = data.Ic[i] * joint_column(b, k);
+      S Mcol[kMaxJointDofs];
+      joint_project_at(b, F, Mcol);
+      for (int l = 0; l < nj; ++l) M[(b.idx_v + l) * nn + col] = Mcol[l];
+      Index j = i;
+      while (model.bodies[j].parent >= 0) {
+        F = crba_column_step(data.Xup[j], F);
+        j = model.bodies[j].parent;
+        const Body<S>& bj = model.bodies[j];
+        joint_project_at(bj, F, Mcol);
+        for (int l = 0; l < joint_nv(bj.type); ++l) {
+          const std::size_t row = static_cast<std::size_t>(bj.idx_v + l);
+          M[row * nn + col] = Mcol[l];
+          M[col * nn + row] = Mcol[l];
+        }
+      }
+    }
+  }
+}
+
+template <class S>
+Status aba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+              S* qdd, const Force<S>* fext, const S* armature) {
+  const Index n = model.nbodies();
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index p = b.parent;
+    data.Xup[i] = joint_transform_at(b, q + b.idx_q);
+    const AbaForward<S> o = aba_forward_step_at(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p], qd + b.idx_v);
+    data.v[i] = o.v;
+    data.c[i] = o.c;
+    data.f[i] = fext ? o.pA - fext[i] : o.pA;
+    data.IA[i] = ABInertia<S>::from(b.I);
+  }
+  for (Index i = n - 1; i >= 0; --i) {
+    const Body<S>& b = model.bodies[i];
+    const Index iv = b.idx_v;
+    if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
+      aba_joint_terms(b, data.IA[i], data.f[i], tau[iv], data.U[iv], data.D[iv], data.u[iv],
+                      armature ? armature[iv] : S(0));
+      if (!pivot_ok(data.D[iv])) return Status{iv};
+      if (b.parent >= 0)
+        aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[iv], data.D[iv],
+                               data.u[iv], data.IA[b.parent], data.f[b.parent]);
+    } else {
+      S* L = data.L.data() + static_cast<std::size_t>(iv) * kMaxJointDofs;
+      const int k = aba_joint_terms_at(b, data.IA[i], data.f[i], tau + iv, data.U.data() + iv, L,
+                                       data.u.data() + iv, armature ? armature + iv : static_cast<const S*>(nullptr));
+      if (k >= 0) return Status{iv + k};
+      if (b.parent >= 0)
+        aba_backward_to_parent_at(joint_nv(b.type), data.Xup[i], data.IA[i], data.f[i], data.c[i],
+                                  data.U.data() + iv, data.u.data() + iv, data.IA[b.parent], data.f[b.parent]);
+    }
+  }
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = model.bodies[i];
+    const Index iv = b.idx_v;
+    const Motion<S>& ap = b.parent < 0 ? a0 : data.a[b.parent];
+    if (b.type == JointType::Revolute || b.type == JointType::Prismatic)
+      qdd[iv] = aba_acceleration_step(b, data.Xup[i], ap, data.c[i], data.U[iv], data.D[iv], data.u[iv], data.a[i]);
+    else
+      aba_acceleration_step_at(b, data.Xup[i], ap, data.c[i], data.U.data() + iv,
+                               data.L.data() + static_cast<std::size_t>(iv) * kMaxJointDofs,
+                               data.u.data() + iv, qdd + iv, data.a[i]);
+  }
+  return Status{};
 }
 
 template <class S>
 void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
           S* tau, const Force<S>* fext) {
+  if (model.multi_dof()) return rnea_at(model, data, q, qd, qdd, tau, fext);
   const Index n = model.nv();
   const Motion<S> a0 = base_acceleration(model.gravity);
   // forward: kinematics and body forces
@@ -64,6 +191,7 @@ void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S
 
 template <class S>
 void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
+  if (model.multi_dof()) return crba_at(model, data, q, M);
   const Index n = model.nv();
   for (Index i = 0; i < n; ++i) {
     data.Xup[i] = joint_transform(model.bodies[i], q[i]);
@@ -95,6 +223,7 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
 template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
            S* qdd, const Force<S>* fext, const S* armature) {
+  if (model.multi_dof()) return aba_at(model, data, q, qd, tau, qdd, fext, armature);
   const Index n = model.nv();
   // pass 1: kinematics, bias forces
   for (Index i = 0; i < n; ++i) {
@@ -129,14 +258,14 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
   return Status{};
 }
 
-// Calls f(j) for every ancestor j of body i and i itself, from i towards the root,
+// Calls f(j) for every ancestor DoF j of DoF i and i itself, from i towards the root,
 // walking contiguous chain runs as plain loops (vectorisable, no pointer chasing).
 template <class S, class F>
-inline void for_path(const ModelTpl<S>& model, const DataTpl<S>& data, Index i, F f) {
+inline void for_path(const DataTpl<S>& data, Index i, F f) {
   while (i >= 0) {
     const Index r = data.run_start[i];
     for (Index j = i; j >= r; --j) f(j);
-    i = model.parent(r);
+    i = data.lambda[r];
   }
 }
 
@@ -151,11 +280,11 @@ Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M) {
     const S Lkk = ScalarMath<S>::sqrt(d);
     Lk[k] = Lkk;
     const S inv = S(1) / Lkk;
-    for_path(model, data, model.parent(k), [&](Index i) { Lk[i] *= inv; });
-    for_path(model, data, model.parent(k), [&](Index i) {
+    for_path(data, data.lambda[k], [&](Index i) { Lk[i] *= inv; });
+    for_path(data, data.lambda[k], [&](Index i) {
       const S Lki = Lk[i];
       S* Mi = M + i * nn;
-      for_path(model, data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
+      for_path(data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
     });
   }
   return Status{};
@@ -170,13 +299,13 @@ void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* 
     const S* Li = L + i * nn;
     x[i] /= Li[i];
     const S xi = x[i];
-    for_path(model, data, model.parent(i), [&](Index j) { x[j] -= Li[j] * xi; });
+    for_path(data, data.lambda[i], [&](Index j) { x[j] -= Li[j] * xi; });
   }
   // L x = y
   for (Index i = 0; i < n; ++i) {
     const S* Li = L + i * nn;
     S acc = x[i];
-    for_path(model, data, model.parent(i), [&](Index j) { acc -= Li[j] * x[j]; });
+    for_path(data, data.lambda[i], [&](Index j) { acc -= Li[j] * x[j]; });
     x[i] = acc / Li[i];
   }
 }

@@ -64,7 +64,7 @@ std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const c
 
 template <class S>
 AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& o)
-    : algo_(algo), nv_(model.nv()) {
+    : algo_(algo), nv_(model.nv()), nq_(model.nq()) {
   try {
     switch (algo) {
       case Algo::Id: id_ = make_inverse_dynamics(model, o); break;
@@ -92,22 +92,22 @@ const Engine& AlgoEngine<S>::engine() const {
 
 template <class S>
 BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
-  const Index B = static_cast<Index>(in.count), nv = nv_;
+  const Index B = static_cast<Index>(in.count), nv = nv_, nq = nq_;
   using V = BatchView<const S>;
   try {
     switch (algo_) {
       case Algo::Id:
-        id_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+        id_->compute(IdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
                      BatchView<S>::aos(out, nv, B));
         return {};
       case Algo::Bias:
-        bias_->compute(BiasBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B)}, BatchView<S>::aos(out, nv, B));
+        bias_->compute(BiasBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B)}, BatchView<S>::aos(out, nv, B));
         return {};
       case Algo::Mass:
-        mass_->compute(V::aos(in.q, nv, B), BatchView<S>::aos(out, nv * nv, B));
+        mass_->compute(V::aos(in.q, nq, B), BatchView<S>::aos(out, nv * nv, B));
         return {};
       case Algo::Fd:
-        return fd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+        return fd_->compute(FdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                             BatchView<S>::aos(out, nv, B));
     }
   } catch (const BackendError& e) {

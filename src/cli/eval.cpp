@@ -90,7 +90,8 @@ template <class S>
 void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines, CsvReader& in,
                const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk, CsvWriter& out,
                std::size_t& rows, std::size_t& fell_back) {
-  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  const std::size_t nv = static_cast<std::size_t>(model.nv()), nq = static_cast<std::size_t>(model.nq());
+  const std::vector<Index> quaternions = quaternion_offsets(model);
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
   for (Algo a : algos) {
@@ -106,7 +107,7 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
 
   std::vector<S> input[kFamilies];
   for (int f = 0; f < kFamilies; ++f)
-    if (needed[f]) input[f].resize(chunk * nv);
+    if (needed[f]) input[f].resize(chunk * (f == static_cast<int>(Family::Q) ? nq : nv));
   std::vector<std::vector<S>> result(algos.size());
   for (std::size_t k = 0; k < algos.size(); ++k)
     result[k].resize(chunk * output_width(algos[k], model.nv()));
@@ -117,9 +118,12 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
     const std::size_t row0 = in.row() + 1;
     std::size_t count = 0;
     while (count < chunk && (more = in.next_row(row))) {
+      if (!quaternions.empty() && needed[static_cast<int>(Family::Q)])
+        normalize_quaternions(cols, quaternions, row.data(), in.where());
       for (int f = 0; f < kFamilies; ++f)
         if (needed[f])
-          gather_family(cols, static_cast<Family>(f), row.data(), input[f].data() + count * nv);
+          gather_family(cols, static_cast<Family>(f), row.data(),
+                        input[f].data() + count * (f == static_cast<int>(Family::Q) ? nq : nv));
       ++count;
     }
     if (count == 0) break;
@@ -221,7 +225,7 @@ int run_eval(const Args& args) {
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
 
   CsvReader in(states_path);
-  const StateColumns cols = map_state_columns(in.columns(), model.nv(), states_path);
+  const StateColumns cols = map_state_columns(in.columns(), model.nq(), model.nv(), states_path);
   if (algos.empty()) algos = default_algos(cols, states_path);
   check_state_columns(cols, algos, states_path);
 

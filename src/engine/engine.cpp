@@ -195,11 +195,13 @@ IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int th
 
 template <class S>
 bool is_chain_from_base(const ModelTpl<S>& model) {
-  return model.nv() > 0 && first_branching_body(model) < 0;
+  // the parallel chain forward dynamics takes 1-DoF joints only
+  return model.nv() > 0 && !model.multi_dof() && first_branching_body(model) < 0;
 }
 
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
+  if (model.multi_dof()) return FdMethod::Aba;  // the one method multi-DoF joints have on every backend
   switch (backend) {
     case BackendKind::Serial: return FdMethod::Aba;
     case BackendKind::OpenMP:
@@ -266,11 +268,30 @@ void require_built(BackendKind backend) {
   }
 }
 
+// Throws BackendError for a model with multi-DoF joints (a floating base, spherical
+// joints) on what does not take them yet: the cuda backend, the scans over links,
+// the parallel and hybrid forward dynamics. what: "inverse dynamics", ...
+template <class S>
+void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, const char* what) {
+  if (!model.multi_dof()) return;
+  const auto refuse = [&](const std::string& how) {
+    throw BackendError("model '" + model.name + "' has multi-DoF joints (a floating base or spherical joints): " +
+                       std::string(what) + " " + how + " does not take them yet; use the serial or openmp "
+                       "backend with the recursion (inverse dynamics) or aba / jsi (forward dynamics)");
+  };
+  if (o.backend == BackendKind::Cuda) refuse("on the cuda backend");
+  if (o.strategy == IdStrategy::ScanLocal || o.strategy == IdStrategy::ScanWorld)
+    refuse(std::string("by the strategy ") + to_string(o.strategy));
+  if (o.fd_method == FdMethod::Parallel || o.fd_method == FdMethod::Hybrid)
+    refuse(std::string("by the method ") + to_string(o.fd_method));
+}
+
 }  // namespace
 
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "inverse dynamics");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaInverseDynamics<S>>(model, o);
 #endif
@@ -280,6 +301,7 @@ std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& mod
 template <class S>
 std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "bias forces");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaBiasForces<S>>(model, o);
 #endif
@@ -289,6 +311,7 @@ std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const 
 template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "the mass matrix");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaMassMatrix<S>>(model, o);
 #endif
@@ -298,6 +321,7 @@ std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const 
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "forward dynamics");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaForwardDynamics<S>>(model, o);
 #endif
