@@ -424,16 +424,7 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
   if (opt.floating_base && !(m.bodies[0].I.m > 0))
     fail(t, "link", m.root_link, "the floating base (the root link and the links fixed to it) has "
                                  "no mass: its forward dynamics would be singular");
-  // offsets into q and qd
-  Index iq = 0, iv = 0;
-  for (Body<double>& b : m.bodies) {
-    b.idx_q = iq;
-    b.idx_v = iv;
-    iq += joint_nq(b.type);
-    iv += joint_nv(b.type);
-  }
-  m.extra_q = iq - static_cast<Index>(m.bodies.size());
-  m.extra_v = iv - static_cast<Index>(m.bodies.size());
+  set_joint_offsets(m);
   return m;
 }
 

@@ -109,4 +109,19 @@ struct ModelTpl {
 
 using Model = ModelTpl<double>;
 
+// Sets every body's idx_q / idx_v (running sums of joint_nq / joint_nv in body order)
+// and the model's extra_q / extra_v: what the builder does, for models made by hand.
+template <class S>
+void set_joint_offsets(ModelTpl<S>& m) {
+  Index iq = 0, iv = 0;
+  for (Body<S>& b : m.bodies) {
+    b.idx_q = iq;
+    b.idx_v = iv;
+    iq += joint_nq(b.type);
+    iv += joint_nv(b.type);
+  }
+  m.extra_q = iq - m.nbodies();
+  m.extra_v = iv - m.nbodies();
+}
+
 }  // namespace scandyn
