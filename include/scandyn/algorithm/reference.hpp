@@ -87,6 +87,19 @@ template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
               S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
+// The general path of rnea, crba and aba, for models with multi-DoF joints
+// (ModelTpl::multi_dof(): a floating base, spherical joints), to which those
+// dispatch: the same recursions over joints of 1, 3 and 6 DoFs (the *_at steps of
+// steps.hpp). Callable on any model whose Body::idx_q / idx_v are set.
+template <class S>
+void rnea_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd, S* tau,
+             const Force<S>* fext);
+template <class S>
+void crba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M);
+template <class S>
+Status aba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau, S* qdd,
+              const Force<S>* fext, const S* armature);
+
 // In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
 // L written to the lower triangle). data.lambda gives the branch-induced sparsity; the
 // ancestor walks run over data.run_start's contiguous chain runs.
