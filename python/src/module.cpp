@@ -79,9 +79,10 @@ struct PyModel {
   }
 };
 
-std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia) {
+std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia, bool floating_base) {
   BuildOptions options;
   options.require_physical_inertia = !allow_nonphysical_inertia;
+  options.floating_base = floating_base;
   auto m = std::make_shared<PyModel>();
   {
     nb::gil_scoped_release release;  // a rope of 10^6 links takes a while
@@ -159,10 +160,11 @@ void check_device(const A& a, const char* name) {
                       "): backend 'cuda' from Python is not implemented yet; pass host (NumPy / CPU) arrays");
 }
 
-// The BatchView of a (B, nv) or (nv,) array `a` (nv per instance). Checks device,
-// dtype and shape against `lead` (set from the first array when batch < 0).
+// The BatchView of a (B, nv) or (nv,) array `a` (nv per instance; dim names nv in
+// messages: "nq" for q). Checks device, dtype and shape against `lead` (set from the
+// first array when batch < 0).
 template <class T, class A>
-BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first) {
+BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first, const char* dim = "nv") {
   using S = std::remove_const_t<T>;
   check_device(a, name);
   if (!has_dtype<S>(a))
@@ -175,11 +177,11 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
     return s + (nd == 1 ? ",)" : ")");
   };
   if (nd != 1 && nd != 2)
-    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (nv,) or (B, nv) with nv = " +
-                     std::to_string(nv));
+    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (" + dim + ",) or (B, " + dim +
+                     ") with " + dim + " = " + std::to_string(nv));
   if (Index(a.shape(nd - 1)) != nv || a.shape(nd - 1) != size_t(Index(a.shape(nd - 1))))
-    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's nv = " +
-                     std::to_string(nv));
+    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's " + dim +
+                     " = " + std::to_string(nv));
   const bool single = nd == 1;
   if (nd == 2 && a.shape(0) > size_t(std::numeric_limits<Index>::max()))
     throw ShapeError(std::string(name) + ": batch of " + std::to_string(a.shape(0)) + " instances is too large");
@@ -294,6 +296,8 @@ struct PyEngine {
   bool exact() const { return engine().exact(); }
   std::string dtype() const { return is_float ? "float32" : "float64"; }
   Index nv() const { return model->md.nv(); }
+  Index nq() const { return model->md.nq(); }            // entries of q (quaternions: nq > nv)
+  Index nbodies() const { return model->md.nbodies(); }  // wrenches of fext
 };
 
 template <template <class> class E, class MakeF, class MakeD>
@@ -329,11 +333,11 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   const Index nv = e.nv();
   Lead lead;
   IdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
   BatchView<S> tau = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}};
@@ -351,10 +355,10 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   const Index nv = e.nv();
   Lead lead;
   BiasBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   BatchView<S> h = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}};
@@ -370,7 +374,7 @@ template <class S>
 void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
   const Index nv = e.nv();
   Lead lead;
-  BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
+  BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
   check_device(out, "out");
   if (!has_dtype<S>(out))
     throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
@@ -413,11 +417,11 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   const Index nv = e.nv();
   Lead lead;
   FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.tau = view_of<const S>(tau, nv, "tau", lead, false);
   BatchView<S> qdd = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
@@ -474,6 +478,8 @@ NB_MODULE(_scandyn, m) {
       .def_prop_ro("source", [](const PyModel& p) { return p.md.source; })
       .def_prop_ro("root_link", [](const PyModel& p) { return p.md.root_link; })
       .def_prop_ro("nv", [](const PyModel& p) { return p.md.nv(); })
+      .def_prop_ro("nq", [](const PyModel& p) { return p.md.nq(); })
+      .def_prop_ro("floating_base", [](const PyModel& p) { return p.md.floating_base(); })
       .def_prop_ro("joint_names", [](const PyModel& p) { return p.md.joint_names; })
       .def_prop_ro("link_names", [](const PyModel& p) { return p.md.link_names; })
       .def_prop_ro("parents",
@@ -486,7 +492,10 @@ NB_MODULE(_scandyn, m) {
                    [](const PyModel& p) {
                      std::vector<std::string> r;
                      for (const auto& b : p.md.bodies)
-                       r.push_back(b.type == JointType::Prismatic ? "prismatic" : "revolute");
+                       r.push_back(b.type == JointType::Prismatic   ? "prismatic"
+                                   : b.type == JointType::Spherical ? "spherical"
+                                   : b.type == JointType::Free      ? "free"
+                                                                    : "revolute");
                      return r;
                    })
       .def_prop_ro("q_lower", [](const PyModel& p) { return p.md.q_lower; })
@@ -494,7 +503,7 @@ NB_MODULE(_scandyn, m) {
       .def_prop_ro("gravity", [](const PyModel& p) {
         return std::vector<double>{p.md.gravity[0], p.md.gravity[1], p.md.gravity[2]};
       });
-  m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false);
+  m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false, "floating_base"_a = false);
   m.def("is_generator_spec", &is_generator_spec, "spec"_a);
   m.def("find_model_file", [](const std::string& p) { return find_model_file(p); }, "path"_a);
   m.def("model_search_dirs", &model_search_dirs);

@@ -233,6 +233,9 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   }
   const Index nv = s.model.nv();
   if (nv == 0) r.fail("model", "'" + s.model_spec + "' has no degrees of freedom");
+  if (s.model.multi_dof())
+    r.fail("model", "'" + printable(s.model_spec) + "' has spherical joints: the simulator integrates "
+                    "models of revolute and prismatic joints only (no quaternion positions yet)");
   const Vec3<double> default_gravity = s.model.gravity;
   s.model.gravity = Vec3<double>::zero();
 
