@@ -144,22 +144,8 @@ TEST(FreeSystems, MomentumAndEnergyConservedByRk4) {
 // I w' = (I w) x w (integrated here on their own, with 10x finer RK4 steps) and
 // flips: w_y changes sign.
 TEST(FreeSystems, IntermediateAxisFlip) {
-  Model m;
-  m.name = m.source = "free box";
-  Body<double> b;
-  b.parent = -1;
-  b.type = JointType::Free;
-  b.axis = {1, 0, 0};
-  b.Xtree = Transform<double>::identity();
   const double I[3] = {1.0, 2.0, 3.0};
-  b.I = Inertia<double>::from_com(1.5, {0.1, -0.2, 0.05}, Sym3<double>{I[0], I[1], I[2], 0, 0, 0});
-  m.bodies = {b};
-  m.joint_names = {"root_joint"};
-  m.link_names = {"box"};
-  m.q_lower = {-HUGE_VAL};
-  m.q_upper = {HUGE_VAL};
-  m.gravity = {0, 0, 0};
-  set_joint_offsets(m);
+  const Model m = test::free_body_model(1.5, {0.1, -0.2, 0.05}, {I[0], I[1], I[2]});
   Data data(m);
 
   // rotation about the centre of mass c: the origin's body-frame velocity is w x c

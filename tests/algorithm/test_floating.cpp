@@ -5,18 +5,21 @@
 // is the independent check of scripts/check_pinocchio.py (ctest pinocchio_crosscheck).
 #include <gtest/gtest.h>
 
-#include <Eigen/Dense>
 #include <cmath>
 #include <limits>
 #include <random>
 
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "identities.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
+using test::check_identities;
 using test::max_rel_err;
+using test::random_q;
 using test::Tol;
 
 namespace {
@@ -39,73 +42,11 @@ Model random_floating_model(int n, unsigned seed) {
   return m;
 }
 
-// A random configuration (nq): angles and positions in [-2, 2], unit quaternions.
-std::vector<double> random_q(const Model& m, std::mt19937_64& rng) {
-  std::vector<double> q = test::random_vector(rng, static_cast<int>(m.nq()), -2, 2);
-  for (const Body<double>& b : m.bodies) {
-    if (b.type != JointType::Free && b.type != JointType::Spherical) continue;
-    double* x = q.data() + b.idx_q + (b.type == JointType::Free ? 3 : 0);
-    const double n = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3]);
-    for (int k = 0; k < 4; ++k) x[k] /= n;
-  }
-  return q;
-}
-
 BuildOptions floating_options() {
   BuildOptions o;
   o.require_physical_inertia = false;  // GRiD's atlas.urdf
   o.floating_base = true;
   return o;
-}
-
-// ID(FD(tau)) = tau, ABA = CRBA + Cholesky, CRBA = RNEA columns, M SPD, M qdd + h = tau.
-template <class S>
-void check_identities(const Model& model_d, unsigned seed, const std::string& what) {
-  SCOPED_TRACE(what);
-  const ModelTpl<S> model = model_d.template cast<S>();
-  DataTpl<S> data(model);
-  const int n = model.nv();
-  std::mt19937_64 rng(seed);
-  const auto q = test::cast_vector<S>(random_q(model_d, rng));
-  const auto qd = test::cast_vector<S>(test::random_vector(rng, n, -2, 2));
-  const auto tau = test::cast_vector<S>(test::random_vector(rng, n, -5, 5));
-  const std::vector<S> zero(n, S(0));
-  const S nan = std::numeric_limits<S>::quiet_NaN();
-
-  std::vector<S> qdd_aba(n, nan), qdd_jsi(n, nan), tau_back(n, nan);
-  ASSERT_TRUE(aba(model, data, q.data(), qd.data(), tau.data(), qdd_aba.data()).ok());
-  ASSERT_TRUE(fd_jsi(model, data, q.data(), qd.data(), tau.data(), qdd_jsi.data()).ok());
-  EXPECT_LT(max_rel_err(qdd_jsi, qdd_aba), Tol<S>(1e-9, 2e-2)) << "ABA vs CRBA+Cholesky";
-  rnea(model, data, q.data(), qd.data(), qdd_aba.data(), tau_back.data());
-  EXPECT_LT(max_rel_err(tau_back, tau), Tol<S>(1e-10, 2e-3)) << "ID(FD(tau)) = tau";
-
-  std::vector<S> M(n * n, nan), g0(n, nan), col(n, nan), e(n, S(0));
-  crba(model, data, q.data(), M.data());
-  rnea(model, data, q.data(), zero.data(), zero.data(), g0.data());
-  double worst = 0, scale = 1;
-  for (int i = 0; i < n * n; ++i) scale = std::max(scale, std::fabs(double(M[i])));
-  for (int j = 0; j < n; ++j) {
-    e[j] = S(1);
-    rnea(model, data, q.data(), zero.data(), e.data(), col.data());
-    e[j] = S(0);
-    for (int i = 0; i < n; ++i) worst = std::max(worst, std::fabs(double(col[i] - g0[i]) - double(M[i * n + j])));
-  }
-  EXPECT_LT(worst / scale, Tol<S>(1e-12, 1e-5)) << "CRBA vs RNEA columns";
-
-  Eigen::MatrixXd Md(n, n);
-  for (int i = 0; i < n; ++i)
-    for (int j = 0; j < n; ++j) Md(i, j) = double(M[i * n + j]);
-  EXPECT_EQ((Md - Md.transpose()).cwiseAbs().maxCoeff(), 0.0);
-  EXPECT_EQ(Eigen::LLT<Eigen::MatrixXd>(Md).info(), Eigen::Success) << "M positive definite";
-
-  std::vector<S> h(n, nan), tau_m(n, S(0));
-  bias_forces(model, data, q.data(), qd.data(), h.data());
-  for (int i = 0; i < n; ++i) {
-    double acc = double(h[i]);
-    for (int j = 0; j < n; ++j) acc += double(M[i * n + j]) * double(qdd_aba[j]);
-    tau_m[i] = S(acc);
-  }
-  EXPECT_LT(max_rel_err(tau_m, tau), Tol<S>(1e-9, 5e-3)) << "M qdd + h = tau";
 }
 
 }  // namespace
@@ -175,21 +116,8 @@ TEST(FloatingModel, Errors) {
 // acceleration zero, i.e. the body-frame derivative vd = -w x v; with gravity, at
 // rest, vd = R^T g.
 TEST(FloatingClosedForm, SingleFreeBody) {
-  Model m;
-  m.name = m.source = "free body";
-  Body<double> b;
-  b.parent = -1;
-  b.type = JointType::Free;
-  b.axis = {1, 0, 0};
-  b.Xtree = Transform<double>::identity();
   const Vec3<double> Id{0.3, 0.5, 0.9};
-  b.I = Inertia<double>::from_com(2.0, {0, 0, 0}, Sym3<double>{Id.x, Id.y, Id.z, 0, 0, 0});
-  m.bodies = {b};
-  m.joint_names = {"root_joint"};
-  m.link_names = {"body"};
-  m.q_lower = {-HUGE_VAL};
-  m.q_upper = {HUGE_VAL};
-  set_joint_offsets(m);
+  Model m = test::free_body_model(2.0, {0, 0, 0}, Id);
   ASSERT_EQ(m.nv(), 6);
   ASSERT_EQ(m.nq(), 7);
   Data data(m);
@@ -199,7 +127,6 @@ TEST(FloatingClosedForm, SingleFreeBody) {
   const double qd[6] = {0.7, -1.3, 2.1, 0.4, 0.9, -0.2};
   const double tau[6] = {0, 0, 0, 0, 0, 0};
   double qdd[6];
-  m.gravity = {0, 0, 0};
   ASSERT_TRUE(aba(m, data, qv.data(), qd, tau, qdd).ok());
   const Vec3<double> w{qd[0], qd[1], qd[2]}, v{qd[3], qd[4], qd[5]};
   const Vec3<double> Iw{Id.x * w.x, Id.y * w.y, Id.z * w.z};
@@ -374,4 +301,21 @@ TEST(FloatingEngines, CpuEnginesMatchReference) {
     par.fd_method = FdMethod::Parallel;
     EXPECT_THROW(make_forward_dynamics<double>(m, par), BackendError);
   }
+}
+
+// The cuda backend does not take multi-DoF joints yet: a BackendError from every
+// factory (in a build without CUDA, the one saying so).
+TEST(FloatingEngines, CudaRefusesMultiDofModels) {
+  const Model m = load_model("ballrope:3");
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  try {
+    make_forward_dynamics<double>(m, o);
+    FAIL() << "expected BackendError";
+  } catch (const BackendError& e) {
+    if (SCANDYN_HAS_CUDA) EXPECT_NE(std::string(e.what()).find("multi-DoF joints"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(make_inverse_dynamics<double>(m, o), BackendError);
+  EXPECT_THROW(make_bias_forces<float>(m.cast<float>(), o), BackendError);
+  EXPECT_THROW(make_mass_matrix<double>(m, o), BackendError);
 }
