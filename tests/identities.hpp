@@ -72,4 +72,32 @@ void check_identities(const Model& model_d, unsigned seed, const std::string& wh
   EXPECT_LT(max_rel_err(tau_m, tau), Tol<S>(1e-9, 5e-3)) << "M qdd + h = tau";
 }
 
+// float results against the double reference on the same inputs (10 random states,
+// q drawn by random_q): RNEA and CRBA within 1e-5, ABA within 1e-3 (relative).
+inline void check_float_vs_double(const Model& md, const std::string& what) {
+  SCOPED_TRACE(what);
+  const ModelTpl<float> mf = md.cast<float>();
+  DataTpl<double> dd(md);
+  DataTpl<float> df(mf);
+  const int n = md.nv();
+  std::mt19937_64 rng(5);
+  for (int t = 0; t < 10; ++t) {
+    const auto q = random_q(md, rng), qd = random_vector(rng, n, -2, 2), x = random_vector(rng, n, -5, 5);
+    const auto qf = cast_vector<float>(q), qdf = cast_vector<float>(qd), xf = cast_vector<float>(x);
+    std::vector<double> od(n);
+    std::vector<float> of(n);
+    rnea(md, dd, q.data(), qd.data(), x.data(), od.data());
+    rnea(mf, df, qf.data(), qdf.data(), xf.data(), of.data());
+    EXPECT_LT(max_rel_err(of, od), 1e-5) << "RNEA float";
+    ASSERT_TRUE(aba(md, dd, q.data(), qd.data(), x.data(), od.data()).ok());
+    ASSERT_TRUE(aba(mf, df, qf.data(), qdf.data(), xf.data(), of.data()).ok());
+    EXPECT_LT(max_rel_err(of, od), 1e-3) << "ABA float";
+    std::vector<double> Md(n * n);
+    std::vector<float> Mf(n * n);
+    crba(md, dd, q.data(), Md.data());
+    crba(mf, df, qf.data(), Mf.data());
+    EXPECT_LT(max_rel_err(Mf, Md), 1e-5) << "CRBA float";
+  }
+}
+
 }  // namespace scandyn::test

@@ -183,32 +183,7 @@ TEST(FloatingRobots, Identities) {
 
 // float results against the double reference on the same inputs (floating robots).
 TEST(FloatingPrecision, FloatVsDouble) {
-  for (const char* f : {"hyq", "atlas"}) {
-    SCOPED_TRACE(f);
-    const Model md = load_model(f, floating_options());
-    const ModelTpl<float> mf = md.cast<float>();
-    Data dd(md);
-    DataTpl<float> df(mf);
-    const int n = md.nv();
-    std::mt19937_64 rng(5);
-    for (int t = 0; t < 10; ++t) {
-      const auto q = random_q(md, rng), qd = test::random_vector(rng, n, -2, 2), x = test::random_vector(rng, n, -5, 5);
-      const auto qf = test::cast_vector<float>(q), qdf = test::cast_vector<float>(qd), xf = test::cast_vector<float>(x);
-      std::vector<double> od(n);
-      std::vector<float> of(n);
-      rnea(md, dd, q.data(), qd.data(), x.data(), od.data());
-      rnea(mf, df, qf.data(), qdf.data(), xf.data(), of.data());
-      EXPECT_LT(max_rel_err(of, od), 1e-5) << "RNEA float";
-      ASSERT_TRUE(aba(md, dd, q.data(), qd.data(), x.data(), od.data()).ok());
-      ASSERT_TRUE(aba(mf, df, qf.data(), qdf.data(), xf.data(), of.data()).ok());
-      EXPECT_LT(max_rel_err(of, od), 1e-3) << "ABA float";
-      std::vector<double> Md(n * n);
-      std::vector<float> Mf(n * n);
-      crba(md, dd, q.data(), Md.data());
-      crba(mf, df, qf.data(), Mf.data());
-      EXPECT_LT(max_rel_err(Mf, Md), 1e-5) << "CRBA float";
-    }
-  }
+  for (const char* f : {"hyq", "atlas"}) test::check_float_vs_double(load_model(f, floating_options()), f);
 }
 
 // External wrenches: ABA with them inverts RNEA with them (fext per body).
