@@ -333,7 +333,7 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   const Index nv = e.nv();
   Lead lead;
   IdBatchIn<S> in;
-  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
   BatchView<S> tau = view_of<S>(out, nv, "out", lead, false);
@@ -355,7 +355,7 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   const Index nv = e.nv();
   Lead lead;
   BiasBatchIn<S> in;
-  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   BatchView<S> h = view_of<S>(out, nv, "out", lead, false);
   in.fext = fext_of<S>(fext, e.nbodies(), lead);
@@ -374,7 +374,7 @@ template <class S>
 void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
   const Index nv = e.nv();
   Lead lead;
-  BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
+  BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   check_device(out, "out");
   if (!has_dtype<S>(out))
     throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
@@ -417,7 +417,7 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   const Index nv = e.nv();
   Lead lead;
   FdBatchIn<S> in;
-  in.q = view_of<const S>(q, e.nq(), "q", lead, true, "nq");
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.tau = view_of<const S>(tau, nv, "tau", lead, false);
   BatchView<S> qdd = view_of<S>(out, nv, "out", lead, false);
