@@ -10,7 +10,10 @@ nonLinearEffects. With a floating base (--base floating or both) the same on
 block [v; w] reordered to scandyn's [w; v], its wrench [f; n] to [n; f]), and on
 ropes of ball joints (ballrope:N, fixed and free) and free rope:N against models
 built here in Python from the generators' geometry (docs/models.md) with
-JointModelSpherical. Exits non-zero on any mismatch.
+JointModelSpherical. On fixed-base models then `scandyn eval --algo fk,jac` (every
+frame: every URDF link, fixed links included) with framesForwardKinematics and
+computeFrameJacobian, in world axes (LOCAL_WORLD_ALIGNED) and the frame's own (LOCAL).
+Exits non-zero on any mismatch.
 
 Usage: check_pinocchio.py --scandyn build/scandyn [--models DIR] [--random 20] [--tol 1e-9]
                           [--base fixed|floating|both]
@@ -185,10 +188,65 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         worst['fd'] = max(worst['fd'], min(direct, backward))
         err('mass', M, ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)])
         err('bias', h, ['h_%d' % i for i in range(nv)])
+    if not floating and spec is None:  # kinematics: fixed-base URDF models (fk/jac take 1-DoF joints)
+        worst.update(check_kinematics(scandyn, urdf_path, model, Q, precision, lenient))
     ok = all(v <= tol for v in worst.values())
     print('%-36s nv=%3d  %s  %s' % (label, nv, '  '.join('%s %.1e' % kv for kv in worst.items()),
                                     'ok' if ok else 'MISMATCH'))
     return ok
+
+
+def quat_matrix(x, y, z, w):
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def check_kinematics(scandyn, urdf_path, model, Q, precision, lenient):
+    """The worst errors of fk (position and rotation) and jac (world, local) over every
+    frame of the model, against Pinocchio. scandyn's rows are [angular; linear],
+    Pinocchio's [linear; angular]."""
+    data = model.createData()
+    nv = model.nv
+    worst = {'fk': 0.0, 'jac_world': 0.0, 'jac_local': 0.0}
+    with tempfile.TemporaryDirectory() as tmp:
+        inp = os.path.join(tmp, 'in.csv')
+        with open(inp, 'w', newline='') as fh:
+            w = csv.writer(fh)
+            w.writerow(['q_%d' % i for i in range(nv)])
+            for row in Q:
+                w.writerow(['%.17g' % x for x in row])
+        rows = {}
+        for ref in ('world', 'local'):
+            out = os.path.join(tmp, 'out_%s.csv' % ref)
+            subprocess.run([scandyn, 'eval', '--model', urdf_path, '--states', inp, '--out', out,
+                            '--algo', 'fk,jac', '--reference', ref, '--precision', precision]
+                           + (['--allow-nonphysical-inertia'] if lenient else []), check=True)
+            with open(out) as fh:
+                rows[ref] = list(csv.DictReader(fh))
+    # the frames scandyn names: its fk columns, in order
+    names = [c[3:-3] for c in rows['world'][0].keys() if c.startswith('fk_') and c.endswith('_px')]
+    swap = np.r_[3:6, 0:3]  # Pinocchio's rows in scandyn's order
+    for k in range(len(Q)):
+        q = pin_q(model, Q[k])
+        pin.framesForwardKinematics(model, data, q)
+        pin.computeJointJacobians(model, data, q)
+        for name in names:
+            fid = model.getFrameId(name, pin.BODY)
+            assert fid < model.nframes, 'Pinocchio has no body frame %s' % name
+            oMf = data.oMf[fid]
+            row = rows['world'][k]
+            p = np.array([float(row['fk_%s_%s' % (name, e)]) for e in ('px', 'py', 'pz')])
+            quat = [float(row['fk_%s_%s' % (name, e)]) for e in ('qx', 'qy', 'qz', 'qw')]
+            worst['fk'] = max(worst['fk'], np.max(np.abs(p - oMf.translation)),
+                              np.max(np.abs(quat_matrix(*quat) - oMf.rotation)))
+            for ref, frame in (('world', pin.LOCAL_WORLD_ALIGNED), ('local', pin.LOCAL)):
+                J = np.asarray(pin.getFrameJacobian(model, data, fid, frame)).reshape(6, nv)[swap]  # (6,) when nv = 1
+                got = np.array([[float(rows[ref][k]['J_%s_%d_%d' % (name, r, j)]) for j in range(nv)]
+                                for r in range(6)])
+                e = np.max(np.abs(got - J)) / max(1.0, np.max(np.abs(J)))
+                worst['jac_' + ref] = max(worst['jac_' + ref], e)
+    return worst
 
 
 ROPE_MASS, ROPE_LENGTH, ROPE_RADIUS = 0.01, 0.01, 0.002  # the rope generators' links (docs/models.md)

@@ -5,7 +5,13 @@
 #   .deps/debs/   the .deb files of urdfdom and its dependencies (apt-get download)
 #   .deps/root/   the same packages unpacked (dpkg -x); gpu_check.sh points
 #                 CMAKE_PREFIX_PATH at .deps/root/usr and LD_LIBRARY_PATH at its libs
-# All three are git-ignored; they travel to the GPU machine with the working tree.
+#   .whl/         Python wheels the GPU machine's python3 lacks (pure Python):
+#                 gymnasium and farama-notifications, for scandyn.envs and its tests
+#                 (numpy, cloudpickle, typing-extensions, torch are there). On the GPU
+#                 machine: python3 -m pip install --no-index --no-deps --target /tmp/site
+#                 .whl/*.whl; export PYTHONPATH=/tmp/site (docs/python.md, "On the GPU machine")
+# All are git-ignored; they travel to the GPU machine with the working tree (the
+# device tool carries .deps and .whl when they are named in its carry list).
 #
 # The packages are the dependency closure of liburdfdom-dev (urdfdom libraries
 # and headers, console_bridge, tinyxml) and nlohmann-json3-dev (scene files;
@@ -115,5 +121,25 @@ done
   die "urdfdom_headers CMake config missing after unpacking"
 note "unpacked into .deps/root (libraries in ${multiarch#"$repo"/})"
 
-du -sh .deps/debs .deps/root | sed 's/^/prepare_device.sh: size /'
+# ---- Python wheels ---------------------------------------------------------------
+# for the GPU machine's python3 (3.12, x86-64); pure-Python wheels, one version each
+wheels=(gymnasium==1.4.0 farama-notifications==0.0.6)
+py=python3
+[[ -x .venv/bin/python ]] && py=.venv/bin/python
+mkdir -p .whl
+# one version of each (two stop the install there): drop earlier downloads of these
+for w in "${wheels[@]}"; do
+  n=${w%%==*}
+  find .whl -maxdepth 1 -iregex ".*/${n//-/[_-]}-[^-]*-.*\.whl" -delete
+done
+"$py" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: --python-version 3.12 \
+  --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+  --platform manylinux2014_x86_64 -d .whl "${wheels[@]}" || die "pip download of ${wheels[*]} failed"
+for w in "${wheels[@]}"; do
+  n=${w%%==*} v=${w##*==}
+  find .whl -maxdepth 1 -iregex ".*/${n//-/[_-]}-${v//./\\.}-.*\.whl" | grep -q . || die "no wheel of $w in .whl"
+done
+note "wheels in .whl: $(cd .whl && echo *.whl)"
+
+du -sh .deps/debs .deps/root .whl | sed 's/^/prepare_device.sh: size /'
 note "done; on the GPU machine run: scripts/gpu_check.sh \"\$OUT\""

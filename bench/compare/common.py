@@ -112,7 +112,11 @@ def scandyn_joints(scandyn, model):
                          text=True).stdout
     lines = out.splitlines()
     start = next(i for i, l in enumerate(lines) if l.startswith('index'))
-    names = [l.split()[1] for l in lines[start + 1:] if l.strip()]
+    names = []
+    for l in lines[start + 1:]:
+        if not l.strip():  # the DoF table ends at a blank line (the frames follow)
+            break
+        names.append(l.split()[1])
     return names
 
 

@@ -23,6 +23,7 @@
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "scandyn/batch.hpp"
 
@@ -102,6 +103,50 @@ class ForwardDynamics : public Engine {
   virtual FdMethod method() const = 0;
 };
 
+// ---- kinematics: where frames are and how they move ------------------------------
+//
+// Frames are the model's (ModelTpl::frames: every URDF link, including links merged
+// by fixed joints and the root; scandyn/model/frames.hpp finds them by name). The
+// world frame is the base's (the URDF root link's).
+
+// How a frame's pose is written.
+enum class PoseFormat {
+  Matrix,              // 16 entries: the 4 x 4 homogeneous matrix [R p; 0 0 0 1], row-major
+  PositionQuaternion,  // 7 entries: p (x, y, z), then the unit quaternion of R (x, y, z, w), w >= 0
+};
+// (R: the frame's axes in world coordinates, R v maps frame to world coordinates;
+// p: the frame's origin in world coordinates.)
+SCANDYN_HD constexpr Index pose_width(PoseFormat f) { return f == PoseFormat::Matrix ? 16 : 7; }
+
+// In which axes a frame Jacobian J (6 x nv) is written. Rows [angular; linear]
+// (scandyn's spatial order): J qd = [w; v], w the frame's angular velocity and v the
+// velocity of its origin. Pinocchio's frame Jacobians are [linear; angular]: its
+// rows 0-2 are scandyn's rows 3-5 and the other way around.
+enum class FrameReference {
+  World,  // world axes (Pinocchio's LOCAL_WORLD_ALIGNED): w and v in world coordinates
+  Local,  // the frame's own axes (Pinocchio's LOCAL): R^T w, R^T v
+};
+
+struct KinematicsOptions {
+  std::vector<Index> frames;  // (F) indices into model.frames, any order, repeats allowed
+  PoseFormat pose = PoseFormat::Matrix;
+  FrameReference reference = FrameReference::World;
+};
+
+template <class S>
+class Kinematics : public Engine {
+ public:
+  // For every instance, from q (nv x B), any of:
+  //   poses  F * pose_width entries per instance: frame k's at k * pose_width + e;
+  //   J      F * 6 * nv entries per instance: frame k's row r, column j at
+  //          (k * 6 + r) * nv + j (each frame's 6 x nv block row-major); columns of
+  //          joints that do not move the frame are 0.
+  // A view with null data is not computed (its batch size is not checked).
+  // BatchView::aos(poses, F * pose_width, B) is the (B, F, 4, 4) C array of Python.
+  virtual void compute(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J) = 0;
+  virtual const KinematicsOptions& options() const = 0;
+};
+
 // The factories: the engine of options.backend for the model in precision S (float
 // or double). Throw BackendError (backend not in this build, no usable device, a
 // model or strategy the backend cannot take, buffers beyond device memory).
@@ -113,6 +158,10 @@ template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
+// Frame poses and Jacobians; also throws BackendError for a frame index outside model.frames.
+template <class S>
+std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
+                                               const KinematicsOptions& kinematics);
 
 namespace cuda {
 // The CUDA backend's one-thread-per-instance kernels take models of up to this many DoF.
@@ -172,5 +221,12 @@ template <class S>
 void check_batch(const BiasBatchIn<S>& in, const BatchView<S>& h, Index max_batch);
 template <class S>
 void check_batch(const BatchView<const S>& q, const BatchView<S>& M, Index max_batch);
+// Throws BackendError for a frame index outside model.frames (every kinematics engine
+// checks its options so).
+template <class S>
+void check_kinematics_options(const ModelTpl<S>& model, const KinematicsOptions& kinematics);
+// Kinematics: q and whichever of poses and J has data.
+template <class S>
+void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J, Index max_batch);
 
 }  // namespace scandyn

@@ -5,6 +5,8 @@
     q = np.zeros((1024, m.nv)); qd = np.zeros_like(q); qdd = np.zeros_like(q)
     tau = sd.inverse_dynamics(m, q, qd, qdd)       # (1024, nv), float64 like q
     M = sd.mass_matrix(m, q)                       # (1024, nv, nv)
+    T = sd.frame_placements(m, q, ["iiwa_link_7"])  # (1024, 1, 4, 4) world poses
+    J = sd.frame_jacobians(m, q, ["iiwa_link_7"])   # (1024, 1, 6, nv), rows [angular; linear]
 
 Arrays are batch-first, (B, nv) or (nv,); precision follows their dtype (float32 or
 float64); they reach the library's engines with their own strides, without a copy.
@@ -26,6 +28,8 @@ from ._api import (
     load_model,
     mass_matrix,
 )
+from .simulator import Simulator
+from .kinematics import Kinematics, frame_jacobians, frame_placements
 from .errors import (
     BackendError,
     DeviceError,
@@ -33,7 +37,9 @@ from .errors import (
     Error,
     ForwardDynamicsError,
     ModelError,
+    SceneError,
     ShapeError,
+    SimulationError,
 )
 
 __version__ = _scandyn.__version__
@@ -47,9 +53,19 @@ def backend_unusable(backend):
     return _scandyn.backend_unusable(backend)
 
 
+def __getattr__(name):
+    # scandyn.envs (Gymnasium environments) is imported on first use: it needs gymnasium
+    if name == "envs":
+        import importlib
+
+        return importlib.import_module(".envs", __name__)
+    raise AttributeError(f"module 'scandyn' has no attribute {name!r}")
+
+
 __all__ = [
     "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
-    "ForwardDynamicsError", "InverseDynamics", "MassMatrix", "Model", "ModelError", "ShapeError",
-    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "has_cuda", "has_openmp", "inverse_dynamics",
+    "ForwardDynamicsError", "InverseDynamics", "Kinematics", "MassMatrix", "Model", "ModelError", "ShapeError",
+    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
+    "SceneError", "SimulationError", "Simulator",
 ]

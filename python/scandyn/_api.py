@@ -48,6 +48,8 @@ class Model:
     q_lower = property(lambda self: np.array(self._m.q_lower), doc="(bodies) lower position limits (-inf: none)")
     q_upper = property(lambda self: np.array(self._m.q_upper), doc="(bodies) upper position limits (+inf: none)")
     gravity = property(lambda self: np.array(self._m.gravity), doc="gravity in the base frame (m/s^2)")
+    frames = property(lambda self: self._m.frames,
+                      doc="every frame's name: the URDF links, fixed ones included (scandyn.kinematics)")
 
     def clear_cache(self):
         """Drops the engines (and their scratch memory) the function API made for this model."""
@@ -66,21 +68,26 @@ def load_model(spec, allow_nonphysical_inertia=False, floating_base=False):
     base wrench (n, f)]. Raises ModelError with the library's message (missing file,
     malformed URDF, non-physical inertia unless allow_nonphysical_inertia=True, a
     floating base on a root that is the world frame or has no mass, ...)."""
+    return Model(_ext.load_model(resolve_model_spec(spec), allow_nonphysical_inertia, floating_base))
+
+
+def resolve_model_spec(spec):
+    """The spec load_model loads: a generator spec as it is; a model file by the library's
+    lookup (the path as given, $SCANDYN_MODELS_DIR, the source tree's models/), then among
+    the models installed inside this package (".urdf" optional); else the spec unchanged
+    (the library's "not found" names where it looked)."""
     spec = os.fspath(spec)
-    resolved = spec
-    if not _ext.is_generator_spec(spec):
-        # the library's lookup first (the path as given, $SCANDYN_MODELS_DIR, the source
-        # tree's models/), then the models installed inside this package
-        found = _ext.find_model_file(spec)
-        if os.path.isfile(found):
-            resolved = found
-        elif not os.path.isabs(spec):
-            for cand in (spec, spec + ".urdf"):
-                p = os.path.join(_models.directory(), cand)
-                if os.path.isfile(p):
-                    resolved = p
-                    break
-    return Model(_ext.load_model(resolved, allow_nonphysical_inertia, floating_base))
+    if _ext.is_generator_spec(spec):
+        return spec
+    found = _ext.find_model_file(spec)
+    if os.path.isfile(found):
+        return found
+    if not os.path.isabs(spec):
+        for cand in (spec, spec + ".urdf"):
+            p = os.path.join(_models.directory(), cand)
+            if os.path.isfile(p):
+                return p
+    return spec
 
 
 # ---- arrays -------------------------------------------------------------------------

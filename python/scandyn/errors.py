@@ -42,3 +42,17 @@ class ForwardDynamicsError(Error, RuntimeError):
     def __init__(self, message, status=None):
         super().__init__(message)
         self.status = status
+
+
+class SceneError(Error, ValueError):
+    """A scene that cannot be read or is not valid (scandyn.Simulator): the library's one line
+    naming the file (or "<dict>") and the key, e.g. "<dict>: effects.damping: expected a
+    non-negative number or an array of 7 non-negative numbers, got -1"."""
+
+
+class SimulationError(Error, RuntimeError):
+    """A simulator step failed (Simulator.step with check=True): a forward dynamics whose pivot
+    is not positive (those instances kept their state for that step) or a state that became
+    non-finite (kept as computed). The message is the library's (sim::failure_message), e.g.
+    "after step 2 (t = 0.002 s): the state became non-finite in 1 instance-step, first in instance 0:
+    the state at DoF 0 is not finite after the step"."""

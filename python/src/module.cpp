@@ -35,24 +35,18 @@
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "shared.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
 
 namespace scandyn::py {
+void bind_simulator(nb::module_& m);  // python/src/simulator.cpp
 namespace {
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
 
-struct ShapeError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-struct DTypeError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
-struct DeviceError : std::runtime_error {
-  using std::runtime_error::runtime_error;
-};
+// ShapeError, DTypeError, DeviceError: shared.hpp (shared with kinematics.cpp)
 
 void raise_as(const char* cls, const char* what) {
   nb::object type = nb::module_::import_("scandyn.errors").attr(cls);
@@ -61,23 +55,7 @@ void raise_as(const char* cls, const char* what) {
 
 // ---- models --------------------------------------------------------------------
 
-// A loaded model in double, and its float copy made on first use (engines in float
-// need a ModelTpl<float> that outlives them). Engines hold a shared_ptr to it.
-struct PyModel {
-  Model md;
-  std::once_flag float_once;
-  std::unique_ptr<ModelTpl<float>> mf;
-
-  template <class S>
-  const ModelTpl<S>& get() {
-    if constexpr (std::is_same_v<S, double>) {
-      return md;
-    } else {
-      std::call_once(float_once, [this] { mf = std::make_unique<ModelTpl<float>>(md.template cast<float>()); });
-      return *mf;
-    }
-  }
-};
+// PyModel: shared.hpp
 
 std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia, bool floating_base) {
   BuildOptions options;
@@ -115,17 +93,7 @@ std::string dtype_name(nb::dlpack::dtype t) {
   return std::string(kind) + std::to_string(t.bits);
 }
 
-template <class S>
-const char* scalar_name() {
-  return std::is_same_v<S, float> ? "float32" : "float64";
-}
-
-template <class A>
-std::string shape_str(const A& a) {
-  std::string s = "(";
-  for (size_t i = 0; i < a.ndim(); ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
-  return s + (a.ndim() == 1 ? ",)" : ")");
-}
+// scalar_name, shape_str: shared.hpp
 
 // Where an argument's data lie: [lo, hi) bytes, for overlap checks.
 struct Extent {
@@ -502,7 +470,8 @@ NB_MODULE(_scandyn, m) {
       .def_prop_ro("q_upper", [](const PyModel& p) { return p.md.q_upper; })
       .def_prop_ro("gravity", [](const PyModel& p) {
         return std::vector<double>{p.md.gravity[0], p.md.gravity[1], p.md.gravity[2]};
-      });
+      })
+      .def_prop_ro("frames", [](const PyModel& p) { return p.md.frame_names; });
   m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false, "floating_base"_a = false);
   m.def("is_generator_spec", &is_generator_spec, "spec"_a);
   m.def("find_model_file", [](const std::string& p) { return find_model_file(p); }, "path"_a);
@@ -609,4 +578,8 @@ NB_MODULE(_scandyn, m) {
         return std::string(to_string(e.is_float ? e.ef->method() : e.ed->method()));
       });
   common(fd);
+
+  bind_simulator(m);
+  // ---- kinematics (python/src/kinematics.cpp)
+  bind_kinematics(m);
 }

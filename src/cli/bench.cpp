@@ -21,6 +21,7 @@
 #include "scandyn/accuracy.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "kinematics_columns.hpp"
 #include "simulator_cli.hpp"
 
 namespace scandyn::cli {
@@ -235,6 +236,72 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
   return rows;
 }
 
+// ---- --algo fk, jac ------------------------------------------------------------
+
+// Times the frame poses (fk) or Jacobians (jac) of --frames (default every frame) on
+// the batch, as time_algo does: a device-resident row first on cuda, then the
+// engine on host memory. The error is against the serial double engine.
+template <class S>
+std::vector<Timing> time_kinematics(const Model& model, const ModelTpl<S>& model_s, BackendOptions options,
+                                    const KinematicsRequest& request, const RandomStates& states,
+                                    std::size_t count, double min_time, bool float_precision) {
+  const std::vector<S> q(states.q.begin(), states.q.end());
+  options.max_batch = static_cast<Index>(count);
+  KinematicsColumns<S> columns(model_s, request, options);
+  const std::size_t width = columns.width();
+  std::vector<S> out(count * width);
+  const bool measure = float_precision || !columns.engine().exact();
+  const auto error = [&] {
+    if (!measure) return 0.0;
+    KinematicsColumns<double> reference(model, request, BackendOptions{});
+    std::vector<double> ref(width);
+    double worst = 0;
+    for (std::size_t b = 0; b < count; ++b) {
+      reference.run(states.q.data() + b * static_cast<std::size_t>(model.nv()), 1, ref.data(), width);
+      const std::vector<double> x(out.begin() + b * width, out.begin() + (b + 1) * width);
+      const double e = rel_err(x.data(), ref.data(), width);
+      if (std::isnan(e)) return e;
+      worst = std::max(worst, e);
+    }
+    return worst;
+  };
+  const auto check_finite = [&](const char* row) {
+    for (std::size_t k = 0; k < out.size(); ++k)
+      if (!std::isfinite(static_cast<double>(out[k])))
+        throw DataError("bench: instance " + std::to_string(k / width) + ": result " + columns.names()[k % width] +
+                        " is not finite in the " + row + " call; nothing printed");
+  };
+  std::vector<Timing> rows;
+#if SCANDYN_HAS_CUDA
+  if (options.backend == BackendKind::Cuda) {
+    std::unique_ptr<ResidentBatch<S>> resident = make_resident_kinematics(
+        columns.engine(), model.nv(), q.data(), count, columns.fk_width(), columns.jac_width());
+    resident->launch();
+    Timing t;
+    t.strategy = resident->strategy();
+    t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+      for (std::size_t k = 0; k < n; ++k) resident->launch();
+      resident->wait();
+    });
+    resident->read(out.data());
+    check_finite("device-resident");
+    t.max_rel_err = error();
+    rows.push_back(t);
+  }
+#endif
+  std::fill(out.begin(), out.end(), std::numeric_limits<S>::quiet_NaN());
+  columns.run(q.data(), count, out.data(), width);  // warm-up
+  Timing t;
+  t.strategy = columns.engine().strategy() + (options.backend == BackendKind::Cuda ? "-host" : "");
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+    for (std::size_t k = 0; k < n; ++k) columns.run(q.data(), count, out.data(), width);
+  });
+  check_finite("host");
+  t.max_rel_err = error();
+  rows.push_back(t);
+  return rows;
+}
+
 // ---- --algo step ---------------------------------------------------------------
 
 // Steps compared with the double serial reference for max_rel_err, and the most
@@ -333,10 +400,14 @@ int run_bench(const Args& args) {
   if (args.get("algo", "") == "step") return run_bench_step(args);
   if (args.has("scene")) throw UsageError("--scene applies only to --algo step");
   const std::string& model_spec = args.required("model");
-  Algo algo;
-  if (!parse_algo(args.required("algo"), algo))
+  const std::string& algo_text = args.required("algo");
+  const bool kinematics = algo_text == "fk" || algo_text == "jac";
+  Algo algo = Algo::Id;  // (fk and jac: not an Algo)
+  if (!kinematics && (args.has("frames") || args.has("reference")))
+    throw UsageError(std::string("--") + (args.has("frames") ? "frames" : "reference") + " applies only to --algo fk or jac");
+  if (!kinematics && !parse_algo(algo_text, algo))
     throw UsageError("unknown --algo value '" + args.required("algo") +
-                     "' (expected id, fd, mass, bias or step)");
+                     "' (expected id, fd, mass, bias, fk, jac or step)");
   if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
   const BackendOptions options = parse_backend_options(args);
@@ -352,12 +423,14 @@ int run_bench(const Args& args) {
   // precision, the outputs again in double for the error, the engine's
   // workspaces (the nv x nv mass matrix per thread for jsi) and the reference's
   const std::size_t scalar = precision == Precision::Float ? 4 : 8;
-  const double width = double(output_width(algo, model.nv()));
+  const KinematicsRequest request = parse_kinematics_request(args, model, algo_text == "fk", algo_text == "jac");
+  const double width = kinematics ? double(request.options.frames.size()) * (request.fk ? 7.0 : 6.0 * double(nv))
+                                  : double(output_width(algo, model.nv()));
   const bool jsi = algo == Algo::Fd && (options.fd_method == FdMethod::Jsi || options.fallback_aba);
   const double bytes = double(count) * (3.0 * double(model.nq()) * 8 + 3.0 * double(model.nq()) * scalar + width * scalar + width * 8) +
                        workspace_bytes(nv, backend_threads(options.backend, options.threads), jsi, scalar) +
                        workspace_bytes(nv, 1, false, 8) + 2 * width * 8;
-  require_host_memory("bench --algo " + std::string(algo_name(algo)) + (algo == Algo::Fd ? std::string(" --fd ") + to_string(options.fd_method) : "") +
+  require_host_memory("bench --algo " + (kinematics ? algo_text : std::string(algo_name(algo))) + (algo == Algo::Fd ? std::string(" --fd ") + to_string(options.fd_method) : "") +
                           " on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +
                           std::to_string(count) + " instances in " + to_string(precision),
                       bytes);
@@ -365,16 +438,18 @@ int run_bench(const Args& args) {
   const RandomStates states(count, static_cast<std::size_t>(model.nq()), nv, quaternion_offsets(model));
   std::vector<Timing> timings;
   if (precision == Precision::Double) {
-    timings = time_algo<double>(model, model, options, algo, states, count, min_time, false);
+    timings = kinematics ? time_kinematics<double>(model, model, options, request, states, count, min_time, false)
+                         : time_algo<double>(model, model, options, algo, states, count, min_time, false);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    timings = time_algo<float>(model, model_f, options, algo, states, count, min_time, true);
+    timings = kinematics ? time_kinematics<float>(model, model_f, options, request, states, count, min_time, true)
+                         : time_algo<float>(model, model_f, options, algo, states, count, min_time, true);
   }
 
   std::string rows;  // one line per timing, without the last newline
   for (const Timing& t : timings) {
     if (!rows.empty()) rows += "\n";
-    rows += std::string(algo_name(algo)) + "," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
+    rows += (kinematics ? algo_text : std::string(algo_name(algo))) + "," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
             "," + model_label(model_spec) + (model.floating_base() ? "-floating" : "") + "," + std::to_string(nv) + "," + std::to_string(count) + "," +
             format_g(t.seconds_per_call, 6) + "," + format_g(double(count) / t.seconds_per_call, 6) + "," +
             format_g(t.max_rel_err, 6);

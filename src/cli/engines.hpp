@@ -102,6 +102,17 @@ template <class S>
 std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, const BatchIn<S>& in);
 #endif
 
+#if SCANDYN_HAS_CUDA
+// The kinematics engine's device-resident batch (engines_cuda.cpp): q copied once;
+// per call compute_async() writing fk_width pose entries, then jac_width Jacobian
+// entries, per instance (either width 0: not computed). read() gives rows of
+// fk_width + jac_width values, as KinematicsColumns::run writes them.
+template <class S>
+std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine, Index nv, const S* q,
+                                                           std::size_t count, std::size_t fk_width,
+                                                           std::size_t jac_width);
+#endif
+
 // The stderr warning for instances that fell back from jsi to aba, e.g. "forward
 // dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not positive); they
 // were computed by aba (--fallback aba)".

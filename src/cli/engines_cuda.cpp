@@ -18,6 +18,7 @@
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
 
 namespace scandyn::cli {
@@ -105,6 +106,27 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
       e.device_bytes(),
       [&e](const D& d) { return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.stream()); });
 }
+template <class S>
+std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine, Index nv, const S* q,
+                                                           std::size_t count, std::size_t fk_width,
+                                                           std::size_t jac_width) {
+  auto& e = dynamic_cast<cuda::CudaKinematics<S>&>(engine);
+  return std::make_unique<CudaResidentBatch<S>>(
+      e.strategy(), "the kinematics", nv, std::vector<const S*>{q}, count, fk_width + jac_width, 0,
+      [&e, fk_width, jac_width](const cuda::DeviceBatch<S>& d) {
+        // the output (width x B, structure-of-arrays): the poses' rows, then J's
+        const BatchView<S> out = d.output();
+        const BatchView<S> poses{fk_width ? out.data : nullptr, out.batch, out.dof_stride, out.batch_stride};
+        const BatchView<S> J{jac_width ? out.data + fk_width * out.dof_stride : nullptr, out.batch, out.dof_stride,
+                             out.batch_stride};
+        return e.compute_async(d.input(0), poses, J, d.stream());
+      });
+}
+template std::unique_ptr<ResidentBatch<float>> make_resident_kinematics(Kinematics<float>&, Index, const float*,
+                                                                        std::size_t, std::size_t, std::size_t);
+template std::unique_ptr<ResidentBatch<double>> make_resident_kinematics(Kinematics<double>&, Index, const double*,
+                                                                         std::size_t, std::size_t, std::size_t);
+
 template std::unique_ptr<ResidentBatch<float>> make_resident_batch(Algo, Engine&, Index, const BatchIn<float>&);
 template std::unique_ptr<ResidentBatch<double>> make_resident_batch(Algo, Engine&, Index, const BatchIn<double>&);
 

@@ -7,6 +7,7 @@
 
 #include "engines.hpp"
 #include "cli.hpp"
+#include "kinematics_columns.hpp"
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/limits.hpp"
 #include "scandyn/io/limits.hpp"
@@ -18,8 +19,9 @@ namespace {
 
 constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias};
 
-// --algo id,fd,...: the requested set in output order (id, fd, mass, bias).
-std::vector<Algo> parse_algo_list(const std::string& list) {
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias); fk and
+// jac (kinematics, columns after the dynamics') set the flags.
+std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) {
   bool wanted[4] = {false, false, false, false};
   std::size_t start = 0;
   for (;;) {
@@ -27,10 +29,14 @@ std::vector<Algo> parse_algo_list(const std::string& list) {
     const std::string item =
         list.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
     Algo a;
-    if (!parse_algo(item, a))
+    if (item == "fk" || item == "jac") {
+      (item == "fk" ? fk : jac) = true;
+    } else if (!parse_algo(item, a)) {
       throw UsageError("unknown --algo value '" + item +
-                       "' (expected a comma-separated list of id, fd, mass, bias)");
-    wanted[static_cast<int>(a)] = true;
+                       "' (expected a comma-separated list of id, fd, mass, bias, fk, jac)");
+    } else {
+      wanted[static_cast<int>(a)] = true;
+    }
     if (comma == std::string::npos) break;
     start = comma + 1;
   }
@@ -77,19 +83,20 @@ std::size_t chunk_rows(std::size_t values_per_row) {
                                  kMaxChunkRows);
 }
 
-// Rows per chunk for this file and selection.
-std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Index nv) {
-  std::size_t width = 0;
+// Rows per chunk for this file and selection (kinematics_width: the fk and jac columns).
+std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Index nv, std::size_t kinematics_width) {
+  std::size_t width = kinematics_width;
   for (Algo a : algos) width += output_width(a, nv);
   return chunk_rows(in.columns().size() + width + kFamilies * static_cast<std::size_t>(nv));
 }
 
 // Reads, evaluates and writes the rows in chunks of `chunk` rows (at most
 // kMaxChunkRows, the engines' max_batch), whatever the backend.
+// kin: the fk and jac columns, after the algorithms', or null.
 template <class S>
-void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines, CsvReader& in,
-               const StateColumns& cols, const std::vector<Algo>& algos, std::size_t chunk, CsvWriter& out,
-               std::size_t& rows, std::size_t& fell_back) {
+void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines,
+               KinematicsColumns<S>* kin, CsvReader& in, const StateColumns& cols, const std::vector<Algo>& algos,
+               std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
   const std::size_t nv = static_cast<std::size_t>(model.nv()), nq = static_cast<std::size_t>(model.nq());
   const std::vector<Index> quaternions = quaternion_offsets(model);
   std::vector<std::string> names;
@@ -98,10 +105,13 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
     offset.push_back(names.size());
     for (std::string& n : output_columns(a, model.nv())) names.push_back(std::move(n));
   }
+  const std::size_t kin_offset = names.size();
+  if (kin) names.insert(names.end(), kin->names().begin(), kin->names().end());
   out.write_header(names);
   const std::size_t width = names.size();
 
   bool needed[kFamilies] = {false, false, false, false};
+  needed[static_cast<int>(Family::Q)] = kin != nullptr;
   for (Algo a : algos)
     for (Family f : algo_inputs(a)) needed[static_cast<int>(f)] = true;
 
@@ -111,6 +121,7 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
   std::vector<std::vector<S>> result(algos.size());
   for (std::size_t k = 0; k < algos.size(); ++k)
     result[k].resize(chunk * output_width(algos[k], model.nv()));
+  std::vector<S> kin_result(kin ? chunk * kin->width() : 0);
   std::vector<double> row, out_row(width);
 
   for (bool more = true; more;) {
@@ -146,23 +157,26 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
         throw DataError(in.where(row0 + static_cast<std::size_t>(st.first_instance)) +
                         ": forward dynamics failed: " + st.reason());
     }
+    if (kin) kin->run(batch.q, count, kin_result.data(), kin->width());
 
     // write
     for (std::size_t b = 0; b < count; ++b) {
-      for (std::size_t k = 0; k < algos.size(); ++k) {
-        const std::size_t w = output_width(algos[k], model.nv());
-        const S* src = result[k].data() + b * w;
+      for (std::size_t k = 0; k < algos.size() + (kin ? 1 : 0); ++k) {
+        const bool is_kin = k == algos.size();  // the fk and jac block, after the algorithms'
+        const std::size_t w = is_kin ? kin->width() : output_width(algos[k], model.nv());
+        const std::size_t first = is_kin ? kin_offset : offset[k];
+        const S* src = (is_kin ? kin_result.data() : result[k].data()) + b * w;
         for (std::size_t j = 0; j < w; ++j) {
           const double v = static_cast<double>(src[j]);
           if (!std::isfinite(v)) {
-            throw DataError(in.where(row0 + b) + ": result " + names[offset[k] + j] +
+            throw DataError(in.where(row0 + b) + ": result " + names[first + j] +
                             " is not finite (" +
                             (std::isnan(v) ? "NaN"
                              : v > 0       ? "Inf"
                                            : "-Inf") +
                             ")");
           }
-          out_row[offset[k] + j] = v;
+          out_row[first + j] = v;
         }
       }
       out.write_row(out_row.data(), width);
@@ -174,14 +188,18 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
 // run leaves nothing behind), then evaluates the file.
 template <class S>
 void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, const StateColumns& cols,
-               const std::vector<Algo>& algos, const std::string& out_path) {
-  const std::size_t chunk = chunk_rows(in, algos, model.nv());
+               const std::vector<Algo>& algos, const KinematicsRequest& kinematics, const std::string& out_path) {
+  // the fk and jac columns: 7 per frame, and 6 nv per frame
+  const std::size_t nframes = kinematics.options.frames.size();
+  const std::size_t kin_width = (kinematics.fk ? 7 * nframes : 0) +
+                                (kinematics.jac ? 6 * nframes * static_cast<std::size_t>(model.nv()) : 0);
+  const std::size_t chunk = chunk_rows(in, algos, model.nv(), kin_width);
   // host memory before anything large: per output column its name, the output row
   // and the chunk's results; per input column the parsed row; the gathered inputs;
   // the engines' workspaces (the nv x nv mass matrix per thread for fd by jsi)
   {
     const std::size_t nv = static_cast<std::size_t>(model.nv());
-    double width = 0;
+    double width = double(kin_width);
     for (Algo a : algos) width += double(output_width(a, model.nv()));
     const double ncols = double(in.columns().size());
     const bool jsi = std::find(algos.begin(), algos.end(), Algo::Fd) != algos.end() &&
@@ -192,6 +210,8 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
                          workspace_bytes(nv, threads, jsi, sizeof(S));
     std::string list;
     for (Algo a : algos) list += std::string(list.empty() ? "" : ",") + algo_name(a);
+    if (kinematics.fk) list += list.empty() ? "fk" : ",fk";
+    if (kinematics.jac) list += list.empty() ? "jac" : ",jac";
     require_host_memory("eval --algo " + list + " on " + printable(model.source) + " (" + std::to_string(nv) +
                             " DoF, " + format_count(width) + " output columns per row)",
                         bytes);
@@ -202,9 +222,11 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
   options.max_batch = static_cast<Index>(chunk);
   std::vector<std::unique_ptr<AlgoEngine<S>>> engines;
   for (Algo a : algos) engines.push_back(std::make_unique<AlgoEngine<S>>(a, model, options));
+  std::unique_ptr<KinematicsColumns<S>> kin;
+  if (kinematics.any()) kin = std::make_unique<KinematicsColumns<S>>(model, kinematics, options);
   CsvWriter out(out_path);
   std::size_t rows = 0, fell_back = 0;
-  eval_rows(model, engines, in, cols, algos, chunk, out, rows, fell_back);
+  eval_rows(model, engines, kin.get(), in, cols, algos, chunk, out, rows, fell_back);
   out.commit();
   if (fell_back) std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(fell_back, rows, "rows").c_str());
 }
@@ -216,7 +238,8 @@ int run_eval(const Args& args) {
   const std::string& states_path = args.required("states");
   const std::string& out_path = args.required("out");
   std::vector<Algo> algos;
-  if (args.has("algo")) algos = parse_algo_list(args.required("algo"));
+  bool fk = false, jac = false;
+  if (args.has("algo")) algos = parse_algo_list(args.required("algo"), fk, jac);
   const BackendOptions options = parse_backend_options(args);
   const Precision precision = parse_cli_precision(args);
   require_usable(options.backend);
@@ -224,16 +247,21 @@ int run_eval(const Args& args) {
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
 
+  const KinematicsRequest kinematics = parse_kinematics_request(args, model, fk, jac);
+
   CsvReader in(states_path);
   const StateColumns cols = map_state_columns(in.columns(), model.nq(), model.nv(), states_path);
-  if (algos.empty()) algos = default_algos(cols, states_path);
+  if (algos.empty() && !kinematics.any()) algos = default_algos(cols, states_path);
   check_state_columns(cols, algos, states_path);
+  if (kinematics.any() && !cols.complete(Family::Q))
+    throw DataError(states_path + ": missing column q_" + std::to_string(cols.first_missing(Family::Q)) +
+                    " (fk and jac need q)");
 
   if (precision == Precision::Double) {
-    eval_file<double>(model, options, in, cols, algos, out_path);
+    eval_file<double>(model, options, in, cols, algos, kinematics, out_path);
   } else {
     const ModelTpl<float> model_f = model.cast<float>();
-    eval_file<float>(model_f, options, in, cols, algos, out_path);
+    eval_file<float>(model_f, options, in, cols, algos, kinematics, out_path);
   }
   return kExitOk;
 }

@@ -86,6 +86,14 @@ int run_info(const Args& args) {
     if (multi) rows.back().insert(rows.back().begin() + 1, {std::to_string(b.idx_q), std::to_string(b.idx_v)});
   }
   print_table(rows);
+  // the frames (every URDF link): the names --frames takes, the body carrying each
+  // (-1 = base) and its origin in that body's frame
+  std::puts("");
+  std::vector<std::vector<std::string>> frames = {{"frame", "name", "body", "origin"}};
+  for (std::size_t k = 0; k < model.frames.size(); ++k)
+    frames.push_back({std::to_string(k), model.frame_names[k], std::to_string(model.frames[k].body),
+                      format_vec3(model.frames[k].X.inverse().r)});
+  print_table(frames);
   return kExitOk;
 }
 

@@ -38,7 +38,10 @@ const char* const kInfoUsage =
     "Prints the model's name, source, nv, nq, base (fixed or floating), root link and\n"
     "gravity, the CUDA devices (or why there are none), then one line per body in DoF\n"
     "order: index, joint, type, parent index (-1 = base), child link, axis (with\n"
-    "multi-DoF joints also q and v, where the joint's entries start in q and in qd).\n"
+    "multi-DoF joints also q and v, where the joint's entries start in q and in qd);\n"
+    "then one line per frame (every URDF link, fixed links included: the names eval\n"
+    "--frames takes): index, name, the body carrying it (-1 = base), its origin in that\n"
+    "body's frame.\n"
     "  --floating-base  give the root link a free joint: q = [p; quaternion x y z w;\n"
     "                   joints] (nq = nv + 1), qd = [base twist in the base frame (w, v);\n"
     "                   joints]\n";
@@ -47,15 +50,21 @@ const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
     "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
-    "                    [--precision double|float]\n"
+    "                    [--precision double|float] [--frames NAMES] [--reference world|local]\n"
     "\n"
     "  --states IN.csv   header row, one state per row; columns q_<i>, qd_<i>, qdd_<i>,\n"
     "                    tau_<i> (i = DoF index) in any order\n"
     "  --out OUT.csv     tau_id_<i>, qdd_fd_<i>, M_<i>_<j>, h_<i> of the selected algorithms,\n"
     "                    one row per input row, 17 significant digits\n"
     "  --algo LIST       comma-separated subset of id (needs q, qd, qdd), fd (q, qd, tau),\n"
-    "                    mass (q), bias (q, qd); default: each of id, fd, bias whose\n"
-    "                    columns are all present\n"
+    "                    mass (q), bias (q, qd), fk (q: frame poses, columns\n"
+    "                    fk_<frame>_px..pz, _qx.._qw) and jac (q: frame Jacobians, 6 x nv,\n"
+    "                    rows [angular; linear], columns J_<frame>_<row>_<dof>); default:\n"
+    "                    each of id, fd, bias whose columns are all present\n"
+    "  --frames NAMES    fk and jac: comma-separated frame (URDF link) names, fixed links\n"
+    "                    included; default: every frame, as `scandyn info` lists them\n"
+    "  --reference R     jac: world (default; world axes at the frame's origin, Pinocchio's\n"
+    "                    LOCAL_WORLD_ALIGNED) or local (the frame's axes, LOCAL)\n"
     "  --backend NAME    serial (default), openmp (threads over instances, or scans\n"
     "                    over links for fewer instances than threads on long chains)\n"
     "                    or cuda (id, fd and bias, one GPU thread per instance,\n"
@@ -93,8 +102,8 @@ const char* const kRolloutUsage =
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias --instances B [--fd METHOD]\n"
-    "                     [--fallback aba]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias|fk|jac --instances B [--fd METHOD]\n"
+    "                     [--fallback aba] [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -105,6 +114,8 @@ const char* const kBenchUsage =
     "device memory) and thread-host (host buffers, copies to and from the device\n"
     "included); one row, <strategy>-host (e.g. jsi_thread-host, parallel-host), for fd.\n"
     "  --fd METHOD       auto (default), aba, jsi, hybrid or parallel, as for eval\n"
+    "  --frames, --reference  fk (frame poses) and jac (frame Jacobians), as for eval\n"
+    "                    (default every frame); cuda: rows thread (resident) and thread-host\n"
     "  --fallback aba    as for eval (strategy column jsi+aba; cuda: jsi_thread+aba-host,\n"
     "                    no device-resident row)\n"
     "  --backend, --strategy, --threads   as for eval\n"
@@ -132,12 +143,12 @@ const Command kCommands[] = {
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "floating-base"},
+      "allow-nonphysical-inertia", "frames", "reference", "floating-base"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "floating-base"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
 };

@@ -12,6 +12,7 @@
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/cuda/kinematics.hpp"
 #endif
 
 #ifdef _OPENMP
@@ -327,6 +328,48 @@ std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& mod
 #endif
   return cpu::make_forward_dynamics(model, o);
 }
+
+// ---- kinematics -------------------------------------------------------------------
+
+template <class S>
+void check_kinematics_options(const ModelTpl<S>& model, const KinematicsOptions& k) {
+  const Index n = static_cast<Index>(model.frames.size());
+  for (std::size_t i = 0; i < k.frames.size(); ++i)
+    if (k.frames[i] < 0 || k.frames[i] >= n)
+      throw BackendError("kinematics: frame " + std::to_string(i) + " of the selection has index " +
+                         std::to_string(k.frames[i]) + ", outside the model's " + std::to_string(n) + " frames");
+}
+
+template <class S>
+void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J, Index max_batch) {
+  if (poses.data && J.data) check_views({{"q", info(q)}, {"poses", info(poses)}, {"J", info(J)}}, max_batch);
+  else if (poses.data) check_views({{"q", info(q)}, {"poses", info(poses)}}, max_batch);
+  else if (J.data) check_views({{"q", info(q)}, {"J", info(J)}}, max_batch);
+  else check_views({{"q", info(q)}}, max_batch);
+}
+
+template <class S>
+std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& o,
+                                               const KinematicsOptions& k) {
+  require_built(o.backend);
+  if (model.multi_dof())
+    throw BackendError("model '" + model.name + "' has multi-DoF joints (a floating base or spherical joints): "
+                       "kinematics does not take them yet");
+  check_kinematics_options(model, k);
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaKinematics<S>>(model, o, k);
+#endif
+  return cpu::make_kinematics(model, o, k);
+}
+
+#define SCANDYN_INSTANTIATE_KINEMATICS(S)                                                                      \
+  template void check_kinematics_options(const ModelTpl<S>&, const KinematicsOptions&);                       \
+  template void check_batch(const BatchView<const S>&, const BatchView<S>&, const BatchView<S>&, Index);       \
+  template std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>&, const BackendOptions&,           \
+                                                          const KinematicsOptions&);
+SCANDYN_INSTANTIATE_KINEMATICS(float)
+SCANDYN_INSTANTIATE_KINEMATICS(double)
+#undef SCANDYN_INSTANTIATE_KINEMATICS
 
 #define SCANDYN_INSTANTIATE(S)                                                                                  \
   template void check_batch(const IdBatchIn<S>&, const BatchView<S>&, Index);                                  \

@@ -350,6 +350,11 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
   m.link_names.reserve(nv);
   m.q_lower.reserve(nv);
   m.q_upper.reserve(nv);
+  m.frames.reserve(static_cast<std::size_t>(nl));
+  m.frame_names.reserve(static_cast<std::size_t>(nl));
+  // the root link: the base frame, or body 0 with a floating base
+  m.frames.push_back({opt.floating_base ? 0 : -1, Transform<double>::identity()});
+  m.frame_names.push_back(t.links[root].name);
 
   std::vector<Entry> stack;
   std::vector<char> reached(nl, 0);
@@ -393,6 +398,8 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
       // merged into the parent's body (dropped with the base)
       if (e.body >= 0 && l.has_inertial)
         m.bodies[e.body].I += link_inertia(l).transform_transpose(X);
+      m.frames.push_back({e.body, X});  // the merged link keeps its frame
+      m.frame_names.push_back(l.name);
       push_children(link, e.body, false, X);
     } else {
       const int b = static_cast<int>(m.bodies.size());
@@ -409,6 +416,8 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
       m.link_names.push_back(l.name);
       m.q_lower.push_back(j.type == RawJointType::Continuous ? -HUGE_VAL : j.lower);
       m.q_upper.push_back(j.type == RawJointType::Continuous ? HUGE_VAL : j.upper);
+      m.frames.push_back({b, Transform<double>::identity()});
+      m.frame_names.push_back(l.name);
       push_children(link, b, true, Transform<double>::identity());
     }
   }

@@ -169,7 +169,8 @@ std::vector<std::vector<std::string>> info_dofs(const std::string& out) {
       in_table = true;
       continue;
     }
-    if (in_table && !words.empty()) rows.push_back(words);
+    if (in_table && words.empty()) break;  // the frames table follows after a blank line
+    if (in_table) rows.push_back(words);
   }
   return rows;
 }
@@ -415,6 +416,46 @@ TEST_F(Cli, EvalDefaultAlgorithmsFollowTheColumnsPresent) {
   EXPECT_FALSE(fs::exists(path("out.csv")));
   ASSERT_EQ(run("eval --model chain:3 --states states.csv --out out.csv --algo mass").code, 0);
   EXPECT_EQ(parse_csv(read_text(path("out.csv"))).names.size(), 9u);
+}
+
+// fk and jac: their columns after the dynamics', the flags they need and the error
+// for an unknown frame (values are the engine tests' and check_pinocchio.py's).
+TEST_F(Cli, EvalFkJacColumnsFlagsAndErrors) {
+  const States s(3, 2, 15);
+  write_text(path("states.csv"), s.csv({"q"}));
+  Result r = run("eval --model chain:3 --states states.csv --out out.csv --algo jac,mass,fk --frames link_2,base");
+  ASSERT_EQ(r.code, 0) << r.err;
+  Table t = parse_csv(read_text(path("out.csv")));
+  ASSERT_EQ(t.names.size(), 9u + 2 * 7 + 2 * 6 * 3);
+  EXPECT_EQ(t.names[8], "M_2_2");
+  EXPECT_EQ(t.names[9], "fk_link_2_px");
+  EXPECT_EQ(t.names[15], "fk_link_2_qw");
+  EXPECT_EQ(t.names[16], "fk_base_px");
+  EXPECT_EQ(t.names[23], "J_link_2_0_0");
+  EXPECT_EQ(t.names.back(), "J_base_5_2");
+  ASSERT_EQ(t.rows.size(), 2u);
+  for (int j = 41; j < 59; ++j) EXPECT_EQ(t.rows[0][j], 0.0) << t.names[j];  // the base does not move
+  // default: every frame (4 links); --reference local
+  ASSERT_EQ(run("eval --model chain:3 --states states.csv --out out.csv --algo fk,jac --reference local").code, 0);
+  EXPECT_EQ(parse_csv(read_text(path("out.csv"))).names.size(), 4u * 7 + 4 * 18);
+  // flags without their algorithms, a bad reference, an unknown frame: nothing written
+  fs::remove(path("out.csv"));
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo mass --frames base");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--frames needs fk or jac"), std::string::npos) << r.err;
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo jac --reference body");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("'body'"), std::string::npos) << r.err;
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo fk --frames link_0,tool");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("no frame 'tool'"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("link_2"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(path("out.csv")));
+  // q is needed
+  write_text(path("states.csv"), s.csv({"qd"}));
+  r = run("eval --model chain:3 --states states.csv --out out.csv --algo fk");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("q_0"), std::string::npos) << r.err;
 }
 
 TEST_F(Cli, EvalAcceptsCrlfSpacesAndMissingFinalNewline) {
@@ -687,6 +728,29 @@ TEST_F(Cli, BenchPrintsOneRow) {
   }
 }
 
+// bench --algo fk / jac: one row on the CPU, the serial engine its own reference;
+// --frames and --reference only with them.
+TEST_F(Cli, BenchKinematicsPrintsOneRow) {
+  const std::string base = "bench --model chain:5 --instances 9 --min-time 0.01";
+  for (const char* algo : {"fk", "jac"}) {
+    const std::vector<std::string> r = bench_row(run(base + " --algo " + algo + " --frames link_4,base"));
+    ASSERT_EQ(r.size(), 10u) << algo;
+    EXPECT_EQ(r[0], algo);
+    EXPECT_EQ(r[1], "recursion");
+    EXPECT_EQ(r[5], "5");
+    EXPECT_EQ(r[6], "9");
+    EXPECT_EQ(r[9], "0");
+    const std::vector<std::string> f = bench_row(run(base + " --algo " + algo + " --precision float"));
+    ASSERT_EQ(f.size(), 10u);
+    EXPECT_GT(std::stod(f[9]), 0);
+    EXPECT_LT(std::stod(f[9]), 1e-5);
+  }
+  const Result r = run(base + " --algo id --frames base");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--frames applies only to --algo fk or jac"), std::string::npos) << r.err;
+  EXPECT_EQ(run(base + " --algo fk --frames tool").code, 1);
+}
+
 TEST_F(Cli, BenchAppendsToCsvFile) {
   const std::string header =
       "algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second,max_"
@@ -777,6 +841,38 @@ class EvalCuda : public Cli, public ::testing::WithParamInterface<const char*> {
     cuda = parse_csv(read_text(path("cuda.csv")));
   }
 };
+
+// fk and jac on cuda (the kinematics engine's staged compute(), both outputs
+// interleaved into the same rows after the mass matrix's) give the serial CSV up to
+// rounding: 1e-10 in double, 1e-4 in float; quaternions up to sign (q and -q).
+TEST_P(EvalCuda, KinematicsMatchSerial) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const Model model = scandyn::load_model(spec());
+  if (model.nv() > 64) GTEST_SKIP() << "the CUDA kinematics engine takes up to 64 DoF";
+  const States s(model.nv(), 5000, 32);
+  write_text(path("states.csv"), s.csv({"q"}));
+  for (const char* precision : {"double", "float"}) {
+    SCOPED_TRACE(precision);
+    const std::string base = "eval --model " + quote(spec()) + " --states states.csv --algo fk,mass,jac --precision " +
+                             precision + " --reference local";
+    Table ts, tc;
+    ASSERT_NO_FATAL_FAILURE(eval_serial_and_cuda(base, ts, tc));
+    ASSERT_EQ(tc.names, ts.names);
+    ASSERT_EQ(tc.rows.size(), s.rows());
+    const double tol = std::string(precision) == "float" ? 1e-4 : 1e-10;
+    for (std::size_t row = 0; row < s.rows(); ++row) {
+      std::vector<double>& c = tc.rows[row];
+      const std::vector<double>& r = ts.rows[row];
+      for (std::size_t j = 0; j + 3 < tc.names.size(); ++j) {  // qx, qy, qz, qw of each frame
+        const std::string& n = tc.names[j];
+        if (n.size() < 3 || n.compare(n.size() - 3, 3, "_qx") != 0) continue;
+        if (c[j] * r[j] + c[j + 1] * r[j + 1] + c[j + 2] * r[j + 2] + c[j + 3] * r[j + 3] < 0)
+          for (int e = 0; e < 4; ++e) c[j + e] = -c[j + e];
+      }
+      ASSERT_LE(scandyn::test::max_rel_err(c, r), tol) << "row " << row + 1;
+    }
+  }
+}
 
 // eval --backend cuda gives the serial backend's CSV up to rounding: the same
 // header, one row per input row (5000 rows: two chunks), every value within 1e-10
@@ -1015,6 +1111,23 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
 // bench --backend cuda: two rows, the device-resident batch (thread; crba_thread
 // for mass) and the host-staged call (thread-host; crba_thread-host), both with
 // their measured error.
+TEST_F(Cli, BenchCudaKinematicsPrintsResidentAndHostRows) {
+  SKIP_WITHOUT_CUDA_BACKEND();
+  const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));
+  for (const char* algo : {"fk", "jac"})
+    for (const char* precision : {"double", "float"}) {
+      SCOPED_TRACE(std::string(algo) + " " + precision);
+      const Result r = run("bench --model " + iiwa + " --algo " + algo + " --instances 3000 --min-time 0.02" +
+                           " --backend cuda --precision " + precision);
+      ASSERT_EQ(r.code, 0) << r.err;
+      const std::vector<std::string> ls = lines(r.out);
+      ASSERT_EQ(ls.size(), 2u) << r.out;
+      for (std::size_t k = 0; k < 2; ++k)
+        expect_cuda_iiwa_row(ls[k], algo, k == 0 ? "thread" : "thread-host", precision,
+                             std::string(precision) == "float" ? 1e-4 : 1e-10);
+    }
+}
+
 TEST_F(Cli, BenchCudaPrintsResidentAndHostRows) {
   SKIP_WITHOUT_CUDA_BACKEND();
   const std::string iiwa = quote(scandyn::test::model_path("iiwa.urdf"));

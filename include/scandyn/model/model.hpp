@@ -56,6 +56,21 @@ struct Body {
   }
 };
 
+// A frame: a URDF link as a placement on the body that carries it. Every link has
+// one: the link of a moving joint sits at its body's origin (X the identity); a link
+// attached by fixed joints was merged into the body it hangs from, and X places it
+// there; the root link and the links fixed to it are on the base (body -1, X its
+// placement in the base frame, which is the world frame).
+template <class S>
+struct FramePlacement {
+  Index body;       // body carrying the frame, -1 for the fixed base
+  Transform<S> X;   // frame_X_body: body frame -> frame (E: body axes -> frame axes,
+                    // r: the frame's origin in body coordinates)
+
+  template <class T>
+  SCANDYN_HD FramePlacement<T> cast() const { return {body, X.template cast<T>()}; }
+};
+
 template <class S>
 struct ModelTpl {
   using Scalar = S;
@@ -74,6 +89,11 @@ struct ModelTpl {
                                           // (the fixed base's frame) (m/s^2)
   Index extra_q = 0;  // sum over bodies of joint_nq - 1: 0 for a model of 1-DoF joints
   Index extra_v = 0;  // sum over bodies of joint_nv - 1: 0 for a model of 1-DoF joints
+  std::vector<FramePlacement<S>> frames;  // (links) every URDF link, in the order the builder
+                                          // visits them: the root link first, then depth-first
+                                          // preorder (the link of body i comes after body i's
+                                          // parent's); scandyn/model/frames.hpp finds them by name
+  std::vector<std::string> frame_names;   // (links) the link name of each frame
 
   // Number of degrees of freedom (entries of qd, qdd, tau; = nbodies() for 1-DoF joints).
   Index nv() const { return static_cast<Index>(bodies.size()) + extra_v; }
@@ -103,6 +123,9 @@ struct ModelTpl {
     m.gravity = gravity.template cast<T>();
     m.extra_q = extra_q;
     m.extra_v = extra_v;
+    m.frames.reserve(frames.size());
+    for (const auto& f : frames) m.frames.push_back(f.template cast<T>());
+    m.frame_names = frame_names;
     return m;
   }
 };
