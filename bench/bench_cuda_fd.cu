@@ -29,6 +29,15 @@
 //                                                    choose_aba_kernel picks), as the
 //                                                    fd_jsi_thread rows; max_rel_err
 //                                                    against the double serial aba;
+//   fd_aba_thread+check/<precision>/<model>/cuda,
+//   fd_jsi_thread+check/<precision>/<model>/cuda    the same engines with the run-time
+//                                                    check on (BackendOptions::fd_check:
+//                                                    one more launch, the double RNEA
+//                                                    residual and M^-1 r per instance,
+//                                                    scandyn/cuda/fd_check.hpp), B =
+//                                                    10^4 .. 10^6: its cost beside the
+//                                                    rows without it; `failed` counts
+//                                                    the instances it flagged;
 //   fd_aba_thread-<shape>-<loops>-<cap>[-keepxup][-libtrig]/<precision>/<model>/cuda
 //                                                    the bench's own ABA kernels, at
 //                                                    B = 10^6 and 10^7, to choose the
@@ -212,13 +221,15 @@ void set_counters(benchmark::State& st, Index nv, Index B, double err, double fa
 }
 
 // fd_jsi_thread (fd_aba_thread with FdMethod::Aba): the engine's device path.
+// check: with the run-time check on (its estimates hold max_batch = B instances).
 template <class S>
-void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Jsi) {
+void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg = FdMethod::Jsi, bool check = false) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   BackendOptions o;
   o.backend = BackendKind::Cuda;
-  o.max_batch = 0;  // no staging buffers: the device path does not use them
+  o.max_batch = check ? B : 0;  // else no staging buffers: the device path does not use them
+  o.fd_check = check ? FdCheckMode::On : FdCheckMode::Off;
   cuda::CudaForwardDynamics<S> engine(m, o, alg);
   DeviceBatch<S> buf;
   if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
@@ -470,6 +481,13 @@ int main(int argc, char** argv) {
         constexpr auto kAba = FdMethod::Aba;
         if (fl) add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<float>(st, m, b, kAba); });
         else add("fd_aba_thread/" + post, [=](benchmark::State& st) { bench_device<double>(st, m, b, kAba); });
+        if (B <= 1000000) {  // the check's rows (its engine stages max_batch = B instances)
+          for (FdMethod alg : {FdMethod::Aba, FdMethod::Jsi}) {
+            const std::string name = std::string(alg == kAba ? "fd_aba_thread" : "fd_jsi_thread") + "+check/" + post;
+            if (fl) add(name, [=](benchmark::State& st) { bench_device<float>(st, m, b, alg, true); });
+            else add(name, [=](benchmark::State& st) { bench_device<double>(st, m, b, alg, true); });
+          }
+        }
         if (label == "iiwa" && B >= 1000000) {
           if (fl) {
 #if SCANDYN_BENCH_VARIANTS

@@ -19,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "plain_bench_util.hpp"
 #include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/model/load.hpp"
 
@@ -29,27 +30,15 @@ namespace {
 constexpr int kStates = 64;
 volatile double g_sink = 0;  // keeps results alive
 
-std::string models_dir() {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
-}
+using bench::models_dir;
 
 // Best of 3 runs of seconds per call of f(k), k cycling over the states.
 template <class F>
 double time_per_call(double min_time, F&& f) {
-  using Clock = std::chrono::steady_clock;
-  double best = 1e300;
-  for (int rep = 0; rep < 3; ++rep) {
-    std::size_t calls = 0;
-    const auto t0 = Clock::now();
-    double el = 0;
-    do {
-      for (int k = 0; k < kStates; ++k, ++calls) f(k);
-      el = std::chrono::duration<double>(Clock::now() - t0).count();
-    } while (el < min_time);
-    best = std::min(best, el / double(calls));
-  }
-  return best;
+  return bench::best_seconds_per_call(min_time, [&] {
+    for (int k = 0; k < kStates; ++k) f(k);
+    return std::size_t(kStates);
+  });
 }
 
 template <class S>

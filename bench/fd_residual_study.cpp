@@ -36,6 +36,7 @@
 #include <string>
 #include <vector>
 
+#include "plain_bench_util.hpp"
 #include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/truth/truth.hpp"
@@ -44,10 +45,7 @@ using namespace scandyn;
 
 namespace {
 
-std::string models_dir() {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
-}
+using bench::models_dir;
 
 double budget(bool is_float) { return is_float ? 1e-4 : 1e-10; }
 

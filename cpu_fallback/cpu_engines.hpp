@@ -1,7 +1,7 @@
 // cpu_fallback/cpu_engines.hpp: the serial and OpenMP engines behind the factories
 // of scandyn/engine.hpp (make_inverse_dynamics, ... with BackendKind::Serial or
 // OpenMP). One source per algorithm: inverse_dynamics.cpp (with the bias forces),
-// forward_dynamics.cpp, mass_matrix.cpp, kinematics.cpp; all run their instances through
+// forward_dynamics.cpp, mass_matrix.cpp, kinematics.cpp, hybrid_dynamics.cpp; all run their instances through
 // instance_loop.hpp.
 #pragma once
 
@@ -20,9 +20,18 @@ template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
+// derivatives.cpp
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                                const KinematicsOptions& kinematics);
+template <class S>
+std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
+                                                        const std::vector<unsigned char>& prescribed,
+                                                        const BackendOptions& options);
 
 }  // namespace cpu
 }  // namespace scandyn

@@ -5,13 +5,17 @@
 //             computed again by aba;
 //   parallel  the parallel chain forward dynamics (ChainForwardDynamics: scans over
 //             links on the engine's threads) for unbranched chains from the base.
-// hybrid runs on cuda only.
+// hybrid runs on cuda only. With the run-time check on (BackendOptions::fd_check), each
+// instance's result is checked, and retried, by FdBatchCheck (in the instance loop for
+// aba and jsi, after the batch for parallel).
 #include <vector>
 
 #include "cpu_engines.hpp"
 #include "instance_loop.hpp"
 #include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/algorithm/fd_check_batch.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "simd_batch.hpp"
 
 namespace scandyn {
 namespace cpu {
@@ -30,6 +34,8 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
       throw BackendError(std::string("the aba fallback applies to forward dynamics by jsi, not ") + to_string(method_));
     fallback_ = o.fallback_aba;
     failed_.assign(static_cast<std::size_t>(std::max<Index>(max_batch_, 1)), -1);
+    check_ = std::make_unique<FdBatchCheck<S>>(model, o, method_, threads_);
+    if (check_->on()) estimate_.assign(failed_.size(), -1.0);
     if (method_ == FdMethod::Parallel) {
       chain_ = std::make_unique<ChainForwardDynamics<S>>(model, std::max<Index>(max_batch_, 1), threads_);
       return;
@@ -37,6 +43,8 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     // the nv x nv workspace only for jsi (a 10^5-link rope would need 80 GB)
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
     rows_ = RowScratch<S>(threads_, 4, static_cast<std::size_t>(model.nq()));
+    // the SIMD groups when nothing is checked per instance (the check runs instance by instance)
+    if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_);
   }
 
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
@@ -44,13 +52,16 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     const Index B = in.q.batch;
     if (chain_) {
       chain_->compute(in, qdd, failed_.data());
-      return summarize_failures(failed_.data(), B, Failure::ArticulatedPivot);
+      if (!check_->on()) return summarize_failures(failed_.data(), B, Failure::ArticulatedPivot);
+      const Index fixed = check_->settle_batch(in, qdd, failed_.data(), estimate_.data());
+      return summarize_checked(failed_.data(), estimate_.data(), B, Failure::ArticulatedPivot, check_->threshold(), 0,
+                               fixed);
     }
     const Index nv = model_.nv(), nq = model_.nq(), nb = model_.nbodies();
-    Index fell_back = 0;
+    Index fell_back = 0, retried = 0;
     for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
-      Index fell = 0;
-      for (Index b = begin; b < end; ++b) {
+      Index fell = 0, retry = 0;
+      const auto one = [&](Index b) {
         const S* q = gather(in.q, b, nq, rows_.row(t, 0));
         const S* qd = gather(in.qd, b, nv, rows_.row(t, 1));
         const S* tau = gather(in.tau, b, nv, rows_.row(t, 2));
@@ -58,24 +69,59 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
         S* out = output_row(qdd, b, rows_.row(t, 3));
         Status st = method_ == FdMethod::Aba ? aba(model_, data_[t], q, qd, tau, out, fext)
                                              : fd_jsi(model_, data_[t], q, qd, tau, out, fext);
+        bool by_aba = method_ == FdMethod::Aba;
         if (!st.ok() && fallback_) {
           st = aba(model_, data_[t], q, qd, tau, out, fext);
+          by_aba = true;
           if (st.ok()) ++fell;
         }
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(st.failed_dof);
+        if (check_->on()) {
+          estimate_[static_cast<std::size_t>(b)] = -1;
+          if (st.ok()) {
+            const auto o = check_->settle(t, q, qd, tau, fext, out, by_aba);
+            failed_[static_cast<std::size_t>(b)] = o.failed_dof;
+            estimate_[static_cast<std::size_t>(b)] = o.estimate;
+            retry += o.retried;
+            scatter(out, qdd, b, nv);  // also a result the check flagged
+            return;
+          }
+        }
         if (st.ok()) scatter(out, qdd, b, nv);
-      }
+      };
+      // a group with a failed pivot in some lane is computed again by `one`, instance by instance
+      for_simd_groups(
+          simd_.empty() ? nullptr : &simd_[t], begin, end,
+          [&](Index b) {
+            if (!simd_[t].aba(in.q, in.qd, in.tau, in.fext, qdd, b)) return false;
+            std::fill(failed_.begin() + b, failed_.begin() + b + SimdBatch<S>::W, -1);
+            return true;
+          },
+          one);
 #pragma omp atomic
       fell_back += fell;
+#pragma omp atomic
+      retried += retry;
     });
     const Failure what = fallback_ ? Failure::BothPivots : pivot_failure(method_);
+    if (check_->on())
+      return summarize_checked(failed_.data(), estimate_.data(), B, what, check_->threshold(), fell_back,
+                               retried);
     return summarize_failures(failed_.data(), B, what, fell_back);
   }
 
   FdMethod method() const override { return method_; }
-  std::string strategy() const override { return fallback_ ? "jsi+aba" : to_string(method_); }
+  std::string strategy() const override {
+    const std::string base = !simd_.empty() ? "aba-simd" + std::to_string(SimdBatch<S>::W)
+                             : fallback_        ? std::string("jsi+aba")
+                                                : std::string(to_string(method_));
+    return base + (check_->on() ? "+check" : "");
+  }
   BackendKind backend() const override { return kind_; }
-  bool exact() const override { return method_ == FdMethod::Aba || (method_ == FdMethod::Jsi && !fallback_); }
+  bool exact() const override {
+    return !check_->on() &&
+           ((method_ == FdMethod::Aba && (simd_.empty() || simd_exact())) || (method_ == FdMethod::Jsi && !fallback_));
+  }
 
  private:
   const ModelTpl<S>& model_;
@@ -87,7 +133,10 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
   std::vector<int> failed_;                          // (max_batch) failed DoF per instance, -1: none
   std::vector<DataTpl<S>> data_;                     // (threads) workspaces (jsi: with the nv x nv one)
   RowScratch<S> rows_;                               // per thread: q, qd, tau, qdd rows of one instance
+  std::vector<SimdBatch<S>> simd_;                   // (threads, or none) aba's SIMD workspaces
   std::unique_ptr<ChainForwardDynamics<S>> chain_;  // parallel
+  std::unique_ptr<FdBatchCheck<S>> check_;           // the run-time check (on() or not)
+  std::vector<double> estimate_;                     // (max_batch) the check's estimates, -1: unchecked
 };
 
 }  // namespace

@@ -7,6 +7,7 @@
 #include "instance_loop.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/algorithm/rnea_scan.hpp"
+#include "simd_batch.hpp"
 
 namespace scandyn {
 namespace cpu {
@@ -38,6 +39,7 @@ class CpuRnea : public Interface {
     const Index nv = model.nv();
     if (strategy_ == IdStrategy::Recursion) {
       for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
+      simd_ = make_simd_batches(model_, o.simd, threads_);
     } else {
       // one scan workspace using all threads across links, instances in turn
       scan_.emplace_back(model_, threads_);
@@ -46,9 +48,11 @@ class CpuRnea : public Interface {
     rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? threads_ : 1, 4, static_cast<std::size_t>(model.nq()));
   }
 
-  std::string strategy() const override { return to_string(strategy_); }
+  std::string strategy() const override {
+    return std::string(to_string(strategy_)) + (simd_.empty() ? "" : "-simd" + std::to_string(SimdBatch<S>::W));
+  }
   BackendKind backend() const override { return kind_; }
-  bool exact() const override { return strategy_ == IdStrategy::Recursion; }
+  bool exact() const override { return strategy_ == IdStrategy::Recursion && (simd_.empty() || simd_exact()); }
 
  protected:
   void run(const BatchView<const S>& q, const BatchView<const S>& qd, const BatchView<const S>& qdd,
@@ -58,14 +62,20 @@ class CpuRnea : public Interface {
     const auto instance_fext = [&](Index b) { return fext ? fext + static_cast<std::size_t>(b) * nb : nullptr; };
     if (strategy_ == IdStrategy::Recursion) {
       for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
-        for (Index b = begin; b < end; ++b) {
-          const S* qb = gather(q, b, nq, rows_.row(t, 0));
-          const S* qdb = gather(qd, b, nv, rows_.row(t, 1));
-          S* o = output_row(out, b, rows_.row(t, 3));
-          if constexpr (kBias) bias_forces(model_, data_[t], qb, qdb, o, instance_fext(b));
-          else rnea(model_, data_[t], qb, qdb, gather(qdd, b, nv, rows_.row(t, 2)), o, instance_fext(b));
-          scatter(o, out, b, nv);
-        }
+        for_simd_groups(
+            simd_.empty() ? nullptr : &simd_[t], begin, end,
+            [&](Index b) {
+              simd_[t].rnea(q, qd, qdd, fext, out, b);  // qdd without data: the bias forces
+              return true;
+            },
+            [&](Index b) {
+              const S* qb = gather(q, b, model_.nq(), rows_.row(t, 0));
+              const S* qdb = gather(qd, b, nv, rows_.row(t, 1));
+              S* o = output_row(out, b, rows_.row(t, 3));
+              if constexpr (kBias) bias_forces(model_, data_[t], qb, qdb, o, instance_fext(b));
+              else rnea(model_, data_[t], qb, qdb, gather(qdd, b, nv, rows_.row(t, 2)), o, instance_fext(b));
+              scatter(o, out, b, nv);
+            });
       });
       return;
     }
@@ -85,6 +95,7 @@ class CpuRnea : public Interface {
   int threads_;
   Index max_batch_;
   std::vector<DataTpl<S>> data_;        // (threads) recursion workspaces
+  std::vector<SimdBatch<S>> simd_;      // (threads, or none) the recursion's SIMD workspaces
   std::vector<ScanWorkspace<S>> scan_;  // (1) scan workspace
   std::vector<S> zero_;                 // (nv) the bias forces' qdd for the scans
   RowScratch<S> rows_;                  // per thread: q, qd, qdd, out rows of one instance

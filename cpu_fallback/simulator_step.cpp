@@ -95,6 +95,9 @@ class CpuInstanceStep final : public CpuSimState<S> {
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
     step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
+    if (!setup.prescribed.empty() || !setup.loops.empty())
+      driven_step_ =
+          driven_table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
   }
 
   void step(const BatchView<const S>& tau) override {
@@ -112,8 +115,11 @@ class CpuInstanceStep final : public CpuSimState<S> {
           w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
           w.tau[i] = tau.data ? tau.at(i, b) : S(0);
         }
-        const Index dof = step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
-                                this->instance_wrenches(b));
+        const Index dof = setup_.prescribed.empty() && setup_.loops.empty()
+                              ? step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
+                                      this->instance_wrenches(b))
+                              : driven_step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(),
+                                             this->instance_wrenches(b));
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
         nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
@@ -148,12 +154,15 @@ class CpuInstanceStep final : public CpuSimState<S> {
     Work(const ModelTpl<S>& model, std::size_t n)
         : data(model, false), q(n), qd(n), tau(n), buffer(6 * n),
           scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
-                  buffer.data() + 4 * n, buffer.data() + 5 * n} {}
+                  buffer.data() + 4 * n, buffer.data() + 5 * n},
+          driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {}
     Work(Work&& o) noexcept = default;
     DataTpl<S> data;
     std::vector<S> q, qd, tau;  // (n) the instance's state and torques
     std::vector<S> buffer;      // (6 n) StepScratch's arrays
     StepScratch<S> scratch;
+    std::vector<S> driven;      // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
+    std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
   };
 
   using StepFn = Index (*)(const SimSetup<S>&, DataTpl<S>&, const StepScratch<S>&, S*, S*, const S*,
@@ -181,10 +190,109 @@ class CpuInstanceStep final : public CpuSimState<S> {
     return t;
   }
 
+  // ---- prescribed joint motion and closed loops: a step through Work ----
+  using DrivenStepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*);
+
+  // The step of a scene with closed loops or prescribed joints (never both).
+  template <unsigned E, Integrator I>
+  static Index constrained_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau,
+                                    const Force<S>* fext) {
+    return setup.loops.empty() ? driven_step_one<E, I>(setup, w, q, qd, tau, fext)
+                               : loop_step_one<E, I>(setup, w, q, qd, tau, fext);
+  }
+
+  // Writes the driven DoFs' q, qd and qdd at time t (q, qd: the instance's arrays;
+  // qdd: hybrid_dynamics's qdd_in).
+  static void drive(const SimSetup<S>& setup, double t, S* q, S* qd, S* qdd) {
+    for (std::size_t j = 0; j < setup.prescribed.dofs.size(); ++j) {
+      double pq, pqd, pqdd;
+      setup.prescribed.trajectory[j].eval(t, pq, pqd, pqdd);
+      const Index i = setup.prescribed.dofs[j];
+      q[i] = S(pq), qd[i] = S(pqd);
+      if (qdd) qdd[i] = S(pqdd);
+    }
+  }
+
+  // One instance's step with closed loops: step_instance over the constrained forward
+  // dynamics (double), then the state projected onto the loops (positions by
+  // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes).
+  template <unsigned E, Integrator I>
+  static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext) {
+    const Model& model = setup.loop_model;
+    const Index n = model.nv();
+    std::vector<Force<double>> f;
+    if ((E & sim::kExternal) && fext)
+      for (Index i = 0; i < n; ++i) f.push_back(fext[i].template cast<double>());
+    w.loop_lambda.resize(static_cast<std::size_t>(setup.loops.rows()));
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S*, S* qdd) -> Index {
+      for (Index i = 0; i < n; ++i) w.loop_q[i] = qa[i], w.loop_qd[i] = qda[i], w.loop_tau[i] = t[i];
+      try {
+        constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
+                                     w.loop_qdd.data(), w.loop_lambda.data(), f.empty() ? nullptr : f.data());
+      } catch (const LoopError&) {
+        return 0;  // the mass matrix is not positive definite
+      }
+      for (Index i = 0; i < n; ++i) qdd[i] = S(w.loop_qdd[i]);
+      return -1;
+    };
+    const Index failed =
+        sim::step_instance<E, I>(n, setup.dt, setup.coef.data(), static_cast<const S*>(nullptr), q, qd, tau, w.scratch, fd);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < n; ++i) w.loop_q[i] = q[i], w.loop_qd[i] = qd[i];
+    project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+    for (Index i = 0; i < n; ++i) q[i] = S(w.loop_q[i]), qd[i] = S(w.loop_qd[i]);
+    return -1;
+  }
+
+  // One instance's step with driven DoFs: step_instance over the hybrid dynamics.
+  // Each forward dynamics (rk4: its stages at t, t + dt/2, t + dt/2, t + dt) sees the
+  // driven DoFs on their trajectories at the stage's time, with their trajectory's
+  // acceleration; the other DoFs integrate as without driving. After the step the
+  // driven DoFs are put on their trajectories at t + dt exactly.
+  template <unsigned E, Integrator I>
+  static Index driven_step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext) {
+    const ModelTpl<S>& model = setup.model;
+    const Index n = model.nv();
+    DataTpl<S>& data = work.data;
+    const StepScratch<S>& w = work.scratch;
+    S* const driven = work.driven.data();
+    S* const qs = driven;          // the stage state with the driven DoFs on their trajectories
+    S* const qds = driven + n;
+    S* const qdd_in = driven + 2 * n;
+    S* const tau_out = driven + 3 * n;
+    const double dt = double(setup.dt);
+    int stage = 0;
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
+      const double offset = I == Integrator::Rk4 ? (stage == 0 ? 0.0 : stage == 3 ? dt : 0.5 * dt) : 0.0;
+      ++stage;
+      std::copy(qa, qa + n, qs);
+      std::copy(qda, qda + n, qds);
+      drive(setup, setup.time + offset, qs, qds, qdd_in);
+      return hybrid_dynamics(model, data, qs, qds, setup.prescribed_mask.data(), qdd_in, t, qdd, tau_out,
+                             (E & sim::kExternal) ? fext : nullptr, armature)
+          .failed_dof;
+    };
+    const Index failed = sim::step_instance<E, I>(n, setup.dt, setup.coef.data(),
+                                                  setup.armature.empty() ? nullptr : setup.armature.data(), q, qd,
+                                                  tau, w, fd);
+    if (failed < 0) drive(setup, setup.time + dt, q, qd, nullptr);
+    return failed;
+  }
+
+  template <std::size_t... K>
+  static constexpr std::array<DrivenStepFn, sizeof...(K)> make_driven_table(std::index_sequence<K...>) {
+    return {&constrained_step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+  }
+  static const std::array<DrivenStepFn, sim::kIntegrators * sim::kEffectSets>& driven_table() {
+    static const auto t = make_driven_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+    return t;
+  }
+
   std::vector<Work> work_;   // one per thread
   std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
   std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
   StepFn step_ = nullptr;
+  DrivenStepFn driven_step_ = nullptr;  // with prescribed joint motion
 };
 
 // ---- per forward dynamics ---------------------------------------------------------
@@ -354,7 +462,7 @@ class CpuEngineStep final : public CpuSimState<S> {
 
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
-  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit && setup.prescribed.empty() &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          choose_fd_method(backend, setup.model) == FdMethod::Parallel;
 }

@@ -13,6 +13,7 @@
 
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/fd_check.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -82,25 +83,15 @@ cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>&
   if (model.nv() > 0 && (!batch_in.q.data || !batch_in.qd.data || !batch_in.tau.data || !qdd_out.data))
     return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
-  const AbaKernel aba = kAba ? choose_aba_kernel(model) : AbaKernel::Tree;
-  std::visit(
-      [&](const auto& params) {
-        constexpr int C = std::decay_t<decltype(params)>::capacity;
-        auto launch = [&](auto algo) {
-          fd_instances_kernel<S, C, decltype(algo)::value>
-              <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
-        };
-        using std::integral_constant;
-        if constexpr (!kAba) launch(integral_constant<int, kJsiKernel>{});
-        else if (aba == AbaKernel::Chains) launch(integral_constant<int, 0>{});
-        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
-          if (aba == AbaKernel::Branches) launch(integral_constant<int, int(kAbaRegisterSlots)>{});
-          else launch(integral_constant<int, C>{});
-        } else {
-          launch(integral_constant<int, C>{});
-        }
-      },
-      model.params());
+  auto launch = [&](const auto& params, auto algo) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    fd_instances_kernel<S, C, decltype(algo)::value>
+        <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+  };
+  if constexpr (kAba)
+    visit_aba_kernel(model, launch);
+  else
+    std::visit([&](const auto& params) { launch(params, std::integral_constant<int, kJsiKernel>{}); }, model.params());
   return cudaGetLastError();
 }
 
@@ -150,18 +141,39 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
   if (options.fallback_aba) set_fallback_aba(true);
+  BackendOptions cuda_options = options;  // the Auto rule of the cuda backend, however the engine was made
+  cuda_options.backend = BackendKind::Cuda;
+  check_ = std::make_unique<FdBatchCheck<S>>(model, cuda_options, algorithm, openmp_threads());
+  if (check_->on()) {
+    const std::size_t B = static_cast<std::size_t>(std::max<Index>(max_batch_, 1));
+    estimate_host_.assign(B, -1.0);
+    before_.assign(B, -1);
+    check_rows_.assign(4 * static_cast<std::size_t>(nv_), S(0));
+    if (thread_) {
+      device_check_ = std::make_unique<DeviceFdCheck<S>>(model);
+      check(cudaMalloc(reinterpret_cast<void**>(&check_estimates_), B * sizeof(double)),
+            "allocating the forward-dynamics check's estimates");
+      bytes_ += B * sizeof(double);
+    }
+  }
 }
 
 template <class S>
-CudaForwardDynamics<S>::~CudaForwardDynamics() = default;
+CudaForwardDynamics<S>::~CudaForwardDynamics() {
+  if (check_estimates_) cudaFree(check_estimates_);
+}
 
 template <class S>
 cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
                                                   cudaStream_t stream) {
   if (chain_) return algorithm_ == FdMethod::Hybrid ? cudaErrorNotSupported : chain_->launch(in, qdd, failed_dof, stream);
-  if (aba_) return launch_aba_instances(*thread_, in, qdd, failed_dof, stream);
-  return dense_ ? dense_->launch(in, qdd, failed_dof, stream)
-                : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
+  if (dense_) return dense_->launch(in, qdd, failed_dof, stream);
+  const cudaError_t e = aba_ ? launch_aba_instances(*thread_, in, qdd, failed_dof, stream)
+                             : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
+  if (e != cudaSuccess || !device_check_) return e;
+  if (in.q.batch > max_batch_) return cudaErrorInvalidValue;  // the estimates hold max_batch
+  return device_check_->launch(in, BatchView<const S>{qdd.data, qdd.batch, qdd.dof_stride, qdd.batch_stride},
+                               check_->threshold(), failed_dof, check_estimates_, stream);
 }
 
 template <class S>
@@ -199,15 +211,22 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
   // which instances failed, before qdd comes back over their entries
   check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
         "copying the failed DoFs to the host");
+  if (device_check_)
+    check(cudaMemcpyAsync(estimate_host_.data(), check_estimates_, static_cast<std::size_t>(B) * sizeof(double),
+                          cudaMemcpyDeviceToHost, stream),
+          "copying the forward-dynamics check's estimates to the host");
   check(cudaStreamSynchronize(stream), "running the forward dynamics");
   status = summarize_failures(failed, B, pivot_failure(algorithm_));
+  // a failed pivot leaves qdd unwritten on the device; an instance the device check
+  // flagged (estimate not -1) has its result there
+  const auto pivot_failed = [&](Index b) { return failed[b] >= 0 && (!device_check_ || estimate_host_[b] == -1.0); };
   // keep the failed instances' qdd entries (the device holds nothing for them)
   if (status.failed > 0) {
     const std::size_t need = static_cast<std::size_t>(status.failed) * nv;
     if (kept_.size() < need) kept_.resize(need);
     std::size_t k = 0;
     for (Index b = 0; b < B; ++b)
-      if (failed[b] >= 0)
+      if (pivot_failed(b))
         for (Index i = 0; i < nv; ++i) kept_[k++] = qdd.at(i, b);
   }
   // copy out: qdd's entries only
@@ -216,11 +235,61 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
   if (status.failed > 0) {
     std::size_t k = 0;
     for (Index b = 0; b < B; ++b)
-      if (failed[b] >= 0)
+      if (pivot_failed(b))
         for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
   }
-  if (fallback_aba_ && status.failed > 0) return compute_failed_by_aba(in, qdd, failed, status.failed);
-  return status;
+  if (!check_->on()) {
+    if (fallback_aba_ && status.failed > 0) return compute_failed_by_aba(in, qdd, failed, status.failed);
+    return status;
+  }
+  std::copy_n(failed, B, before_.begin());
+  if (!device_check_) std::fill_n(estimate_host_.begin(), B, -1.0);
+  // the aba fallback takes the device's flagged instances with the failed pivots
+  const bool fell = fallback_aba_ && status.failed > 0;
+  if (fell) compute_failed_by_aba(in, qdd, failed, status.failed);
+  return settle_checked(in, qdd, failed, fell);
+}
+
+template <class S>
+BatchStatus CudaForwardDynamics<S>::settle_checked(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
+                                                   bool fell_back_ran) {
+  const Index B = in.q.batch, n = nv_;
+  const double threshold = check_->threshold();
+  Index fell_back = 0, retried = 0;
+  if (!device_check_) {
+    // jsi_dense, parallel, hybrid: every instance checked on the host
+    retried = check_->settle_batch(in, qdd, failed, estimate_host_.data());
+  } else {
+    for (Index b = 0; b < B; ++b) {
+      const bool flagged = before_[b] >= 0 && !(estimate_host_[b] <= threshold) && estimate_host_[b] != -1.0;
+      const bool pivot = before_[b] >= 0 && !flagged;
+      if (failed[b] >= 0 && !(flagged && !fell_back_ran)) {  // a pivot that stayed failed
+        estimate_host_[b] = -1;
+        continue;
+      }
+      if (!flagged && !pivot) continue;  // passed on the device
+      // flagged (or computed by the aba fallback): checked and retried on the host
+      S* row = check_rows_.data();
+      for (Index i = 0; i < n; ++i) {
+        row[i] = in.q.at(i, b);
+        row[n + i] = in.qd.at(i, b);
+        row[2 * n + i] = in.tau.at(i, b);
+        row[3 * n + i] = qdd.at(i, b);
+      }
+      const auto o = check_->settle(0, row, row + n, row + 2 * n,
+                                    in.fext ? in.fext + static_cast<std::size_t>(b) * n : nullptr, row + 3 * n,
+                                    aba_ || fell_back_ran);
+      if (o.changed)
+        for (Index i = 0; i < n; ++i) qdd.at(i, b) = row[3 * n + i];
+      failed[b] = o.failed_dof;
+      estimate_host_[b] = o.estimate;
+      if (pivot && o.failed_dof < 0) ++fell_back;
+      if (flagged && o.failed_dof < 0) ++retried;
+    }
+  }
+  return summarize_checked(failed, estimate_host_.data(), B,
+                           fallback_aba_ ? Failure::BothPivots : pivot_failure(algorithm_), threshold, fell_back,
+                           retried);
 }
 
 template <class S>

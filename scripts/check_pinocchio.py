@@ -3,10 +3,12 @@
 
 For the robots in the models directory and for random URDF trees (arbitrary
 axes, rotated inertial frames, revolute / continuous / prismatic / fixed joints,
-shuffled joint names), runs `scandyn eval --algo id,fd,mass,bias` on random
-states and compares every column with Pinocchio's rnea, aba, crba and
-nonLinearEffects. With a floating base (--base floating or both) the same on
-`--floating-base` models against Pinocchio's JointModelFreeFlyer (its velocity
+shuffled joint names), runs `scandyn eval --algo id,fd,mass,bias,did,dfd` on
+random states and compares every column with Pinocchio's rnea, aba, crba,
+nonLinearEffects, computeRNEADerivatives and computeABADerivatives (derivatives
+with respect to the tangent of q: one column per DoF, continuous joints
+included). With a floating base (--base floating or both) id, fd, mass and bias
+on `--floating-base` models against Pinocchio's JointModelFreeFlyer (its velocity
 block [v; w] reordered to scandyn's [w; v], its wrench [f; n] to [n; f]), and on
 ropes of ball joints (ballrope:N, fixed and free) and free rope:N against models
 built here in Python from the generators' geometry (docs/models.md) with
@@ -154,13 +156,17 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
                        ['qdd_%d' % i for i in range(nv)] + ['tau_%d' % i for i in range(nv)])
             for k in range(states):
                 w.writerow(['%.17g' % x for x in np.concatenate([Q[k], QD[k], QDD[k], TAU[k]])])
+        multi = floating or spec is not None  # multi-DoF joints: no derivatives (did, dfd take 1-DoF joints)
+        algos = 'id,fd,mass,bias' + ('' if multi else ',did,dfd')
         subprocess.run([scandyn, 'eval', '--model', spec or urdf_path, '--states', inp, '--out', out,
-                        '--algo', 'id,fd,mass,bias', '--precision', precision]
+                        '--algo', algos, '--precision', precision]
                        + (['--allow-nonphysical-inertia'] if lenient else [])
                        + (['--floating-base'] if floating else []), check=True)
         with open(out) as fh:
             rows = list(csv.DictReader(fh))
     worst = {'id': 0.0, 'fd': 0.0, 'mass': 0.0, 'bias': 0.0}
+    if not multi:
+        worst.update({'did': 0.0, 'dfd': 0.0})
     inv = np.argsort(perm)  # ours = pin[inv]
     for k, row in enumerate(rows):
         q = pin_q(model, Q[k])
@@ -170,6 +176,11 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         M = pin.crba(model, data, q)
         M = (np.triu(M) + np.triu(M, 1).T)[np.ix_(inv, inv)]
         h = pin.nonLinearEffects(model, data, q, v)[inv]
+        if not multi:  # perm is the identity
+            dtau_dq, dtau_dqd, dtau_dqdd = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, v, a))
+            dtau_dqdd = np.triu(dtau_dqdd) + np.triu(dtau_dqdd, 1).T
+            dqdd_dq, dqdd_dqd, dqdd_dtau = (np.array(x) for x in pin.computeABADerivatives(model, data, q, v, t))
+            dqdd_dtau = np.triu(dqdd_dtau) + np.triu(dqdd_dtau, 1).T
 
         def err(name, ref, cols):
             got = np.array([float(row[c]) for c in cols])
@@ -188,8 +199,17 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         worst['fd'] = max(worst['fd'], min(direct, backward))
         err('mass', M, ['M_%d_%d' % (i, j) for i in range(nv) for j in range(nv)])
         err('bias', h, ['h_%d' % i for i in range(nv)])
-    if not floating and spec is None:  # kinematics: fixed-base URDF models (fk/jac take 1-DoF joints)
-        worst.update(check_kinematics(scandyn, urdf_path, model, Q, precision, lenient))
+
+        def matrix(prefix):
+            return ['%s_%d_%d' % (prefix, i, j) for i in range(nv) for j in range(nv)]
+
+        if not multi:
+            err('did', np.concatenate([dtau_dq.ravel(), dtau_dqd.ravel(), dtau_dqdd.ravel()]),
+                matrix('dtau_dq') + matrix('dtau_dqd') + matrix('dtau_dqdd'))
+            err('dfd', np.concatenate([dqdd_dq.ravel(), dqdd_dqd.ravel(), dqdd_dtau.ravel()]),
+                matrix('dqdd_dq') + matrix('dqdd_dqd') + matrix('dqdd_dtau'))
+    if spec is None:  # kinematics: the URDF models, fixed and floating (the frames are the URDF's links)
+        worst.update(check_kinematics(scandyn, urdf_path, model, Q, precision, lenient, floating))
     ok = all(v <= tol for v in worst.values())
     print('%-36s nv=%3d  %s  %s' % (label, nv, '  '.join('%s %.1e' % kv for kv in worst.items()),
                                     'ok' if ok else 'MISMATCH'))
@@ -202,18 +222,19 @@ def quat_matrix(x, y, z, w):
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def check_kinematics(scandyn, urdf_path, model, Q, precision, lenient):
+def check_kinematics(scandyn, urdf_path, model, Q, precision, lenient, floating=False):
     """The worst errors of fk (position and rotation) and jac (world, local) over every
     frame of the model, against Pinocchio. scandyn's rows are [angular; linear],
-    Pinocchio's [linear; angular]."""
+    Pinocchio's [linear; angular]; with a floating base its free joint's columns too."""
     data = model.createData()
     nv = model.nv
+    inv = np.argsort(free_perm(model))  # scandyn's columns = Pinocchio's[:, inv]
     worst = {'fk': 0.0, 'jac_world': 0.0, 'jac_local': 0.0}
     with tempfile.TemporaryDirectory() as tmp:
         inp = os.path.join(tmp, 'in.csv')
         with open(inp, 'w', newline='') as fh:
             w = csv.writer(fh)
-            w.writerow(['q_%d' % i for i in range(nv)])
+            w.writerow(['q_%d' % i for i in range(len(Q[0]))])
             for row in Q:
                 w.writerow(['%.17g' % x for x in row])
         rows = {}
@@ -221,7 +242,8 @@ def check_kinematics(scandyn, urdf_path, model, Q, precision, lenient):
             out = os.path.join(tmp, 'out_%s.csv' % ref)
             subprocess.run([scandyn, 'eval', '--model', urdf_path, '--states', inp, '--out', out,
                             '--algo', 'fk,jac', '--reference', ref, '--precision', precision]
-                           + (['--allow-nonphysical-inertia'] if lenient else []), check=True)
+                           + (['--allow-nonphysical-inertia'] if lenient else [])
+                           + (['--floating-base'] if floating else []), check=True)
             with open(out) as fh:
                 rows[ref] = list(csv.DictReader(fh))
     # the frames scandyn names: its fk columns, in order
@@ -241,7 +263,7 @@ def check_kinematics(scandyn, urdf_path, model, Q, precision, lenient):
             worst['fk'] = max(worst['fk'], np.max(np.abs(p - oMf.translation)),
                               np.max(np.abs(quat_matrix(*quat) - oMf.rotation)))
             for ref, frame in (('world', pin.LOCAL_WORLD_ALIGNED), ('local', pin.LOCAL)):
-                J = np.asarray(pin.getFrameJacobian(model, data, fid, frame)).reshape(6, nv)[swap]  # (6,) when nv = 1
+                J = np.asarray(pin.getFrameJacobian(model, data, fid, frame)).reshape(6, nv)[swap][:, inv]  # (6,): nv = 1
                 got = np.array([[float(rows[ref][k]['J_%s_%d_%d' % (name, r, j)]) for j in range(nv)]
                                 for r in range(6)])
                 e = np.max(np.abs(got - J)) / max(1.0, np.max(np.abs(J)))
@@ -290,7 +312,8 @@ def main():
     bases = [False, True] if args.base == 'both' else [args.base == 'floating']
     for floating in bases:
         tag = ' floating' if floating else ''
-        for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf'):
+        # puma560's base link has no mass: no floating base
+        for name in ('iiwa.urdf', 'hyq.urdf', 'atlas.urdf') + (() if floating else ('puma560.urdf',)):
             path = os.path.join(args.models, name)
             if os.path.exists(path):
                 # GRiD's atlas.urdf has links whose inertia no rigid body can have

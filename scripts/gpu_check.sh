@@ -27,7 +27,12 @@
 # 10^5..10^6-link cases, which repeat the smaller ones' kernels at 10-100x the
 # time), SCANDYN_SKIP_ACCURACY=1, SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
 # SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
-# --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300).
+# --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300),
+# SCANDYN_VARIANTS=OFF (configure without the fused-step effect sets and the bench
+# variants: a faster build), SCANDYN_CTEST_REGEX (ctest -R: only these tests, for a
+# build of some targets), SCANDYN_ACCURACY_ARGS (extra accuracy_report flags, e.g.
+# "--backends cuda"), SCANDYN_FD_CHECK_COST=1 (bench/fd_check_engine_cost on serial,
+# openmp and cuda -> fd_check_engine_cost.csv).
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -105,7 +110,7 @@ note "configure $build (CUDA architectures $arch) -> $out/configure.log"
 set +e
 cmake -S "$repo" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
   -DSCANDYN_CUDA=ON -DCMAKE_CUDA_ARCHITECTURES="$arch" -DSCANDYN_NATIVE=ON \
-  -DSCANDYN_SIM_EFFECT_SETS=ON -DSCANDYN_BENCH_VARIANTS=ON \
+  -DSCANDYN_SIM_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" -DSCANDYN_BENCH_VARIANTS="${SCANDYN_VARIANTS:-ON}" \
   -DCMAKE_PREFIX_PATH="$deps/usr" -DSCANDYN_MODELS_DIR="$SCANDYN_MODELS_DIR" \
   2>&1 | tee "$out/configure.log"
 rc=${PIPESTATUS[0]}
@@ -137,7 +142,10 @@ if [[ "$(printf '%s\n' 3.21 "$ctest_version" | sort -V | head -n1)" == 3.21 ]]; 
   junit=(--output-junit "$out/ctest.xml")  # CMake >= 3.21
 fi
 set +e
+ctest_only=()
+[[ -n "${SCANDYN_CTEST_REGEX:-}" ]] && ctest_only=(-R "$SCANDYN_CTEST_REGEX")
 ctest --test-dir "$build" --output-on-failure --parallel "$jobs" ${junit[@]+"${junit[@]}"} \
+  ${ctest_only[@]+"${ctest_only[@]}"} \
   2>&1 | tee "$out/ctest.log"
 rc=${PIPESTATUS[0]}
 set -e
@@ -187,8 +195,9 @@ if [[ "${SCANDYN_SKIP_ACCURACY:-0}" == 1 ]]; then
 elif "$py" -c 'import matplotlib' 2>/dev/null; then
   note "accuracy report (full) -> $out/accuracy (accuracy-h100.md, accuracy-h100/: copy both to docs/)"
   set +e
+  read -r -a accuracy_args <<<"${SCANDYN_ACCURACY_ARGS:-}"
   "$py" scripts/accuracy_report --full --name accuracy-h100 --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
-    --stability-test "$build/tests/test_stability" \
+    --stability-test "$build/tests/test_stability" ${accuracy_args[@]+"${accuracy_args[@]}"} \
     --machine "$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), host $(nproc) cores" \
     2>&1 | tee "$out/accuracy.log"
   rc=${PIPESTATUS[0]}
@@ -196,6 +205,17 @@ elif "$py" -c 'import matplotlib' 2>/dev/null; then
   record "accuracy report (full)" "$rc"
 else
   note "accuracy report skipped: no matplotlib (scripts/setup_python.sh; or run scripts/accuracy_report --full later)"
+fi
+
+# ---- 5c. the forward-dynamics check's cost per engine ---------------------------
+if [[ "${SCANDYN_FD_CHECK_COST:-0}" == 1 ]]; then
+  note "fd_check_engine_cost (serial, openmp, cuda) -> $out/fd_check_engine_cost.csv"
+  set +e
+  timeout "${SCANDYN_BENCH_TIMEOUT:-300}" "$build/bench/fd_check_engine_cost" --min-time 0.1 \
+    --backend serial,openmp,cuda --out "$out/fd_check_engine_cost.csv" 2>&1 | tee "$out/fd_check_engine_cost.log"
+  rc=${PIPESTATUS[0]}
+  set -e
+  record "fd_check_engine_cost" "$rc"
 fi
 
 # ---- 6. benchmarks -------------------------------------------------------------

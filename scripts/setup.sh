@@ -21,6 +21,8 @@ packages=(
   python3-venv     # scripts/setup_python.sh (.venv with numpy and Pinocchio)
   python3-dev      # the Python package's extension module (Python.h; docs/python.md)
   clang            # scripts/fuzz.sh: libFuzzer targets (brings libclang-rt, the fuzzer runtime)
+  libsuitesparse-dev  # optional: CHOLMOD for the factor-graph solvers (docs/factor-graph.md)
+  libmetis-dev        # optional: METIS nested dissection for CHOLMOD
 )
 
 missing=()

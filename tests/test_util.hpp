@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "scandyn/accuracy.hpp"
+#include "scandyn/batch.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn::test {
@@ -29,6 +30,16 @@ inline Model load_robot(const std::string& file) {
   BuildOptions o;
   o.require_physical_inertia = false;
   return load_urdf(model_path(file), o);
+}
+
+// The models every CPU engine test runs: the three robots, a random tree with
+// revolute and prismatic joints and a rope.
+inline std::vector<std::pair<std::string, Model>> engine_test_models() {
+  return {{"iiwa", load_robot("iiwa.urdf")},
+          {"hyq", load_robot("hyq.urdf")},
+          {"atlas", load_robot("atlas.urdf")},
+          {"tree:30:7", load_model("tree:30:7")},
+          {"rope:40", load_model("rope:40")}};
 }
 
 // The scandyn executable built alongside the tests.
@@ -196,5 +207,22 @@ inline std::vector<std::pair<std::string, Model>> thread_shape_models() {
   models.emplace_back("random_model(64)", random_model(64, 5));
   return models;
 }
+
+// Three nv x nv outputs of B instances in one buffer (the derivative engines'
+// blocks), NaN-filled: instance-innermost (soa: block k's entry e of instance b at
+// [(k nv^2 + e) B + b]) or each instance's three blocks side by side ([b 3 nv^2 + k
+// nv^2 + e]).
+template <class S>
+struct DerivativeBlocks {
+  std::vector<S> data;
+  BatchView<S> v[3];
+  DerivativeBlocks(Index nv, Index B, bool soa)
+      : data(static_cast<std::size_t>(3) * nv * nv * B, std::numeric_limits<S>::quiet_NaN()) {
+    const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
+    for (int k = 0; k < 3; ++k)
+      v[k] = soa ? BatchView<S>{data.data() + k * nn * B, B, B, 1} : BatchView<S>{data.data() + k * nn, B, 1, 3 * nn};
+  }
+  S at(int k, Index i, Index j, Index b, Index nv) const { return v[k].at(i * nv + j, b); }
+};
 
 }  // namespace scandyn::test

@@ -212,3 +212,20 @@ def parse_bench_rows(text):
         if len(parts) == 10 and parts[0] in ALGOS:
             out.append(dict(zip(keys, parts)))
     return out
+
+
+def timed(call, sync, min_time):
+    """scandyn bench's procedure: a warm-up call, then rounds (at most doubling) until min_time."""
+    call()
+    sync()
+    calls, round_, t0 = 0, 1, time.perf_counter()
+    while True:
+        for _ in range(round_):
+            call()
+        sync()
+        calls += round_
+        el = time.perf_counter() - t0
+        if el >= min_time:
+            return el / calls
+        per = el / calls
+        round_ = max(1, min(calls, int((min_time - el) / per) + 1))

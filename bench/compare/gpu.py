@@ -10,7 +10,10 @@ Per model: the double serial reference (`scandyn eval`) on CHECK_STATES random s
 library the equality check on those states and the timings (float32, the precision every peer
 computes in; scandyn's `bench` rows for id, bias, mass and fd: the engine's strategy (`thread`,
 `scan-local`, `crba_thread`, `crba_block`, `aba_thread`, ...) with the batch resident in device
-memory, and the same with `-host`: host buffers, copies included).
+memory, and the same with `-host`: host buffers, copies included). With --scandyn-via module,
+scandyn's rows come from the Python package instead (scandyn_peer.py: the engines on torch
+CUDA tensors, strategy `<engine strategy>-py`, checked on the same states), run as a worker
+like the peers; the installed package (pip install .) must be importable.
 """
 import argparse
 import json
@@ -81,6 +84,12 @@ def worker(args):
         def prep(a, b):
             R.prepare(a, b, nv=nv)
         timed = lambda: grid_peer.timed(R, args.min_time)  # noqa: E731
+    elif lib == 'scandyn':
+        import scandyn_peer
+        R = scandyn_peer.ScandynRunner(model, args.device if args.device.startswith('cuda') else 'cuda:0')
+        errs = scandyn_peer.check(R, ref, S, algos)
+        prep = R.prepare
+        timed = lambda: common.timed(R.call, R.sync, args.min_time)  # noqa: E731
     else:
         import mujoco_peer
         R = (mujoco_peer.MjxRunner(args.device, args.mjx_matmul_precision) if lib == 'mujoco-mjx'
@@ -114,7 +123,10 @@ def worker(args):
 # ---- driver ---------------------------------------------------------------------------------------
 
 def scandyn_rows(args, rows, model, nv, S_csv, ref):
-    """scandyn cuda: the check (eval --backend cuda) and the timings (bench --backend cuda)."""
+    """scandyn cuda: the check (eval --backend cuda) and the timings (bench --backend cuda);
+    with --scandyn-via module the main loop runs the Python package as a worker instead."""
+    if args.scandyn_via == 'module':
+        return
     version = args.scandyn_version
     algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
     # mass (nv x nv per state, both triangles, scandyn's DoF order) up to 1000 DoF as algos_for says;
@@ -220,6 +232,9 @@ def main():
     ap.add_argument('--warp-device', default='cuda:0')
     ap.add_argument('--models', default=','.join(ROBOTS + ROPES))
     ap.add_argument('--peers', default='mujoco-warp,mujoco-mjx,grid')
+    ap.add_argument('--scandyn-via', choices=('command', 'module'), default='command',
+                    help="scandyn's rows from the command (bench --backend cuda) or from the Python package "
+                         "(scandyn_peer.py: engines on torch CUDA tensors)")
     ap.add_argument('--algos', default='id,bias,mass,fd')
     ap.add_argument('--batches', default='1,100,10000,1000000')
     ap.add_argument('--mjx-batches', default='1000000')
@@ -259,6 +274,11 @@ def main():
             if r.returncode != 0:
                 missing[p] = (r.stderr.strip().splitlines() or ['import failed'])[-1]
                 log('%s: not importable: %s' % (p, missing[p]))
+    if args.scandyn_via == 'module':
+        r = subprocess.run([sys.executable, '-c', 'import scandyn, torch'], capture_output=True, text=True)
+        if r.returncode != 0:
+            missing['scandyn'] = (r.stderr.strip().splitlines() or ['import failed'])[-1]
+            log('scandyn module: not importable: %s' % missing['scandyn'])
     # The order fits the most into one 10-minute command: scandyn on the robots, MuJoCo Warp,
     # GRiD on iiwa (it compiles CUDA per robot, a minute or more each), MJX (an XLA compilation
     # per computation and batch size), GRiD on the other robots, then the ropes in the same
@@ -292,7 +312,7 @@ def main():
                 np.savez(ref_npz, **ref)
                 refs[name] = (nv, ref_npz)
                 scandyn_rows(args, rows, model, nv, s_csv, ref)
-        if p == 'scandyn':
+        if p == 'scandyn' and args.scandyn_via == 'command':
             continue
         nv, ref_npz = refs[name]
         if p in missing:

@@ -143,21 +143,7 @@ def from_mj(y, perm, algo):
     return y[:, perm]
 
 
-def timed(call, sync, min_time):
-    """scandyn bench's procedure: a warm-up call, then rounds (at most doubling) until min_time."""
-    call()
-    sync()
-    calls, round_, t0 = 0, 1, time.perf_counter()
-    while True:
-        for _ in range(round_):
-            call()
-        sync()
-        calls += round_
-        el = time.perf_counter() - t0
-        if el >= min_time:
-            return el / calls
-        per = el / calls
-        round_ = max(1, min(calls, int((min_time - el) / per) + 1))
+timed = common.timed  # bench's timing procedure (common.py)
 
 
 # ---- MuJoCo Warp ----------------------------------------------------------------------------------

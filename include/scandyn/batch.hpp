@@ -48,6 +48,16 @@ struct BiasBatchIn {
   const Force<S>* fext = nullptr;     // optional (B x nbodies) body wrenches, fext[b * nbodies + i], body frames
 };
 
+// Hybrid dynamics' inputs: each DoF has its acceleration or its force given (the
+// engine's prescribed mask, HybridDynamics).
+template <class S>
+struct HybridBatchIn {
+  BatchView<const S> q, qd;           // (nv x B) joint positions, velocities
+  BatchView<const S> qdd;             // (nv x B) accelerations: read at prescribed DoFs only
+  BatchView<const S> tau;             // (nv x B) forces: read at the other DoFs only
+  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+};
+
 // Forward-dynamics methods. Auto resolves by backend and shape (choose_fd_method).
 enum class FdMethod {
   Auto,
@@ -64,6 +74,9 @@ enum class Failure {
   MassMatrixPivot,   // a diagonal entry of the mass matrix's L^T L (jsi)
   BothPivots,        // jsi failed, and the aba it fell back to failed too (the DoF is the aba's)
   NonFinite,         // a simulator step left a state entry (q or qd at the DoF) that is not finite
+  ResidualTooLarge,  // forward dynamics' run-time check (BackendOptions::fd_check): the estimated
+                     // error of qdd, from the residual ID(q, qd, qdd) - tau, is above the threshold
+                     // (the DoF is that of the largest correction); qdd holds the flagged result
 };
 
 // The outcome of one batched call (or, for the simulator, of its steps since the
@@ -75,6 +88,10 @@ struct BatchStatus {
   Failure failure = Failure::None;  // what failed in first_instance
   Index fell_back = 0;         // instances whose jsi failed and that aba computed instead
                                // (FdOptions::fallback_aba); not counted in `failed`
+  Index retried = 0;           // instances the run-time check flagged whose retry (fallback_aba,
+                               // fallback_double) passed it; not counted in `failed`
+  double estimate = 0;         // ResidualTooLarge: first_instance's estimated error of qdd
+  double threshold = 0;        // ResidualTooLarge: the threshold it exceeded
   const int* failed_dof = nullptr;  // (B) per instance: -1, or the DoF that failed; host memory
                                     // owned by the engine, valid until its next call; null when
                                     // the engine does not keep them (the simulator)
@@ -96,6 +113,7 @@ struct BatchStatus {
   //   "mass matrix pivot at DoF 6 is not positive"
   //   "mass matrix pivot not positive, and by the aba fallback the articulated inertia pivot at DoF 6 is not positive"
   //   "the state at DoF 6 is not finite after the step"
+  //   "forward dynamics check: estimated error of qdd 2.1e-01 above the threshold 1e-04 (largest at DoF 6)"
   std::string reason() const;
   // "" when ok(); else "instance 3: " + reason(), followed by
   // " (and 41 more instances)" when others failed too.
@@ -106,6 +124,12 @@ struct BatchStatus {
 // failed_dof[b] >= 0: instance b failed at that DoF), each failure of kind `what`;
 // the status keeps failed_dof as its per-instance array.
 BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Index fell_back = 0);
+
+// The same with forward dynamics' run-time check: an instance b that failed with
+// estimate[b] not at most threshold (above it, or NaN) failed the check
+// (Failure::ResidualTooLarge), any other failed one failed a pivot (`pivot`).
+BatchStatus summarize_checked(const int* failed_dof, const double* estimate, Index B, Failure pivot,
+                              double threshold, Index fell_back, Index retried);
 
 // The pivot a method's failure names: jsi's mass matrix, every other method's articulated inertia.
 inline Failure pivot_failure(FdMethod method) {

@@ -25,6 +25,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/batch.hpp"
 
 namespace scandyn {
@@ -40,6 +41,25 @@ enum class IdStrategy {
   ScanWorld,  // scans over links, world-frame form (CPU only)
 };
 
+// Whether forward dynamics checks its results at run time (scandyn/algorithm/fd_check.hpp):
+// per instance, the residual r = ID(q, qd, qdd) - tau in double and the error estimate
+// max|M^-1 r| / max(1, max|qdd|), compared with a threshold per precision.
+//   Auto  on where the check costs under ~10% of the call (fd_check_enabled)
+//   On    every instance of every call
+//   Off   never (the result is bit-identical to an engine without the check)
+enum class FdCheckMode { Auto, On, Off };
+
+// The serial and OpenMP engines' SIMD path (cpu_fallback/simd_batch.hpp): the
+// recursions (inverse dynamics and bias forces by the recursion, the mass matrix, aba)
+// run W instances per vector register (W = 4 doubles / 8 floats under AVX2, 8 / 16
+// under AVX-512, 2 / 4 with SSE2: the build's target, SCANDYN_NATIVE). Auto takes it
+// where it applies (every joint revolute or prismatic; measured faster than the
+// scalar recursion on iiwa, hyq, atlas and rope:1000, every algorithm: 1.3-2x with
+// SSE2, bench/results/cpu-simd-*.csv); On also throws BackendError for a model it
+// cannot take; Off never takes it. Exact (bit-identical to Off) in builds without FMA.
+// Ignored on cuda.
+enum class CpuSimd { Auto, Off, On };
+
 struct BackendOptions {
   BackendKind backend = BackendKind::Serial;
   IdStrategy strategy = IdStrategy::Auto;  // inverse dynamics and bias forces
@@ -48,7 +68,34 @@ struct BackendOptions {
                               // computed again by aba (BatchStatus::fell_back counts them)
   int threads = 0;            // OpenMP threads, 0: openmp_threads()
   Index max_batch = 1;        // largest batch compute() will be given
+  // ---- forward dynamics' run-time check (FdCheckMode; scandyn/algorithm/fd_check_batch.hpp)
+  FdCheckMode fd_check = FdCheckMode::Auto;
+  // thresholds on the check's error estimate (a relative error of qdd), per precision;
+  // the defaults are the accuracy report's budgets (docs/accuracy.md: 0 false positives
+  // on 1.6e5 clean random states, every result beyond the budget caught)
+  double fd_check_tol_float = fd_check_threshold<float>();    // 1e-4
+  double fd_check_tol_double = fd_check_threshold<double>();  // 1e-10
+  // With the check on, a flagged instance is computed again (each retry checked again):
+  // with fallback_aba (jsi) by the aba in the engine's precision (on cuda: the host's),
+  // then with fallback_double (float engines) by the reference aba in double on the host
+  // (the model widened exactly), rounded to float. Still flagged: Failure::ResidualTooLarge.
+  bool fallback_double = false;  // float engines: flagged instances computed again by the double
+                                 // aba (turns an Auto check on; with Off: BackendError)
+                                 // (BatchStatus::fell_back counts the instances a retry fixed)
+  CpuSimd simd = CpuSimd::Auto;  // serial and openmp: W instances per vector register (CpuSimd)
 };
+
+// True when forward dynamics by `method` (resolved) on `backend` for a model of nv DoF
+// runs the check under `mode`. Auto: on for jsi from 200 DoF on the CPU backends, where
+// one RNEA and two ABA passes in double cost under 10% of the O(nv^2..nv^3) solve
+// (bench/results/fd_check_engine_cost-*.csv); off for aba and parallel (the check costs
+// 1.2-1.5x an ABA) and on cuda (the check runs on the host there).
+bool fd_check_enabled(FdCheckMode mode, BackendKind backend, FdMethod method, Index nv);
+// The threshold of the options for precision S.
+template <class S>
+double fd_check_tol(const BackendOptions& options) {
+  return sizeof(S) <= sizeof(float) ? options.fd_check_tol_float : options.fd_check_tol_double;
+}
 
 // Thrown for a backend that is not built or cannot run, a model or option an engine
 // cannot take, or a batch that does not fit.
@@ -163,6 +210,31 @@ template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                                const KinematicsOptions& kinematics);
 
+// Hybrid dynamics (Featherstone 2008, 9.2): for each DoF either its acceleration
+// (prescribed) or its force is given; computes the rest. The prescribed set is the
+// engine's, fixed at construction (prescribed(): nv entries, nonzero = the DoF's
+// acceleration is given).
+template <class S>
+class HybridDynamics : public Engine {
+ public:
+  // qdd and tau (nv x B each, full vectors) for every instance, gravity included:
+  // tau = M qdd + h (- J^T fext) on every row, qdd = in.qdd at prescribed DoFs, tau =
+  // in.tau at the others (copied through). An instance whose articulated pivot (of
+  // a DoF whose force is given) is not positive and finite is reported in the
+  // status and its outputs left unwritten.
+  virtual BatchStatus compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau) = 0;
+  virtual const std::vector<unsigned char>& prescribed() const = 0;
+};
+
+// The hybrid-dynamics engine of options.backend (serial and openmp: the reference
+// hybrid_dynamics per instance; cuda: one thread per instance up to
+// cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
+// factories, and for a prescribed mask whose size is not nv.
+template <class S>
+std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
+                                                        const std::vector<unsigned char>& prescribed,
+                                                        const BackendOptions& options);
+
 namespace cuda {
 // The CUDA backend's one-thread-per-instance kernels take models of up to this many DoF.
 inline constexpr Index kMaxThreadDofs = 64;
@@ -205,11 +277,15 @@ const char* to_string(BackendKind b);  // "serial", "openmp", "cuda"
 const char* to_string(Precision p);    // "double", "float"
 const char* to_string(IdStrategy s);   // "auto", "recursion", "scan-local", "scan-world"
 const char* to_string(FdMethod m);     // "auto", "aba", "jsi", "parallel", "hybrid"
+const char* to_string(FdCheckMode m);  // "auto", "on", "off"
 // Each throws BackendError naming the value and the accepted names.
 BackendKind parse_backend(const std::string& name);
 Precision parse_precision(const std::string& name);
 IdStrategy parse_strategy(const std::string& name);
 FdMethod parse_fd_method(const std::string& name);
+FdCheckMode parse_fd_check(const std::string& name);
+const char* to_string(CpuSimd s);  // "auto", "off", "on"
+CpuSimd parse_cpu_simd(const std::string& name);
 
 // Throws BackendError unless the views describe the same number of instances, at
 // most max_batch, with non-null data when there is any.
@@ -228,5 +304,61 @@ void check_kinematics_options(const ModelTpl<S>& model, const KinematicsOptions&
 // Kinematics: q and whichever of poses and J has data.
 template <class S>
 void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J, Index max_batch);
+template <class S>
+void check_batch(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau, Index max_batch);
+
+// ---- derivatives (Carpentier & Mansard 2018; scandyn/algorithm/derivatives.hpp) ----
+//
+// Output layout: three nv x nv matrices per instance, each a BatchView of nv * nv
+// entries, entry e = i * nv + j holding d y_i / d x_j (row i: the output DoF,
+// column j: the variable): BatchView::aos(p, nv * nv, B) is row-major per instance,
+// as the serial rnea_derivatives / aba_derivatives write; BatchView::soa(p, nv * nv,
+// B) puts the instance innermost (CUDA's fast layout); any strides work, e.g. the
+// three blocks of one instance next to each other: {p + k * nv * nv, B, 1, 3 * nv * nv}
+// for block k. Every entry is written.
+
+template <class S>
+struct IdDerivativesOut {
+  BatchView<S> dtau_dq;   // (nv * nv x B) d tau / d q
+  BatchView<S> dtau_dqd;  // (nv * nv x B) d tau / d qd
+  BatchView<S> M;         // (nv * nv x B) d tau / d qdd = M(q)
+};
+
+template <class S>
+class IdDerivatives : public Engine {
+ public:
+  // The derivatives of tau = ID(q, qd, qdd, fext) (gravity included) for every instance.
+  virtual void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) = 0;
+};
+
+template <class S>
+struct FdDerivativesOut {
+  BatchView<S> dqdd_dq;    // (nv * nv x B) d qdd / d q
+  BatchView<S> dqdd_dqd;   // (nv * nv x B) d qdd / d qd
+  BatchView<S> dqdd_dtau;  // (nv * nv x B) d qdd / d tau = M(q)^-1
+  BatchView<S> qdd;        // optional (nv x B): qdd = FD(q, qd, tau, fext) itself; data null: not written
+};
+
+template <class S>
+class FdDerivatives : public Engine {
+ public:
+  // The derivatives of qdd = FD(q, qd, tau, fext) (by the ABA, gravity included) for
+  // every instance. An instance whose articulated pivot (or a pivot of M = L L^T) is
+  // not positive and finite is reported in the status, its outputs not meaningful.
+  virtual BatchStatus compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) = 0;
+};
+
+// Serial and OpenMP: any model; CUDA: a thread per instance, models of up to
+// cuda::kMaxThreadDofs DoF (BackendError beyond). options.strategy and fd_method
+// must be Auto (one algorithm each).
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch);
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch);
 
 }  // namespace scandyn

@@ -13,9 +13,34 @@ float64); they reach the library's engines with their own strides, without a cop
 docs/python.md has the whole API, the zero-copy rules and the errors.
 """
 
-from . import _scandyn
-from . import models
-from ._api import (
+import os as _os
+import sys as _sys
+
+
+def _load_extension():
+    """Imports the extension module with RTLD_DEEPBIND (Linux): the module and the
+    libraries it brings (urdfdom, tinyxml, console_bridge) resolve their symbols in
+    their own dependencies first, so a library that another package loaded into the
+    global scope with copies of C++ runtime functions (torch's RTLD_GLOBAL CUDA
+    dependencies, e.g. libcufile, export std::istringstream constructors of a statically
+    linked libstdc++) cannot interpose on the URDF parser. Not with LD_PRELOAD (an
+    allocator such as jemalloc, or a sanitizer's runtime, must stay visible to every
+    library: deep binding would hide it from these). SCANDYN_NO_DEEPBIND=1 imports it
+    with the interpreter's flags too (docs/python.md)."""
+    deep = getattr(_os, "RTLD_DEEPBIND", 0)
+    flags = _sys.getdlopenflags()
+    if deep and not _os.environ.get("SCANDYN_NO_DEEPBIND") and not _os.environ.get("LD_PRELOAD"):
+        _sys.setdlopenflags(flags | deep)
+    try:
+        from . import _scandyn as ext
+    finally:
+        _sys.setdlopenflags(flags)
+    return ext
+
+
+_scandyn = _load_extension()
+from . import models  # noqa: E402
+from ._api import (  # noqa: E402
     BiasForces,
     ForwardDynamics,
     InverseDynamics,
@@ -28,9 +53,9 @@ from ._api import (
     load_model,
     mass_matrix,
 )
-from .simulator import Simulator
-from .kinematics import Kinematics, frame_jacobians, frame_placements
-from .errors import (
+from .simulator import Simulator  # noqa: E402
+from .kinematics import Kinematics, frame_jacobians, frame_placements  # noqa: E402
+from .errors import (  # noqa: E402
     BackendError,
     DeviceError,
     DTypeError,

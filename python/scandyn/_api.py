@@ -17,8 +17,7 @@ from .errors import DeviceError, DTypeError, ForwardDynamicsError, ShapeError
 Status = _ext.Status
 
 _FLOAT_NAMES = ("float32", "float64")
-_KDL_CPU = 1  # DLPack device types that are host memory: CPU, CUDA pinned host
-_KDL_CUDA_HOST = 3
+_MAX_INDEX = 2**31 - 1  # scandyn::Index is a 32-bit int
 
 
 # ---- models -------------------------------------------------------------------------
@@ -91,10 +90,152 @@ def resolve_model_spec(spec):
 
 
 # ---- arrays -------------------------------------------------------------------------
+#
+# Where a call's arrays live decides the path: host memory (NumPy, torch CPU, JAX CPU,
+# any buffer-protocol or DLPack producer) goes to the engine's compute(); CUDA memory
+# (torch CUDA tensors, CuPy, JAX on a GPU, any DLPack producer with device type CUDA)
+# to the CUDA engine's compute_async() on the caller's stream (the extension checks
+# that every array is on the same device). CUDA arrays are handed over as DLPack
+# capsules made without synchronisation (torch.utils.dlpack.to_dlpack, CuPy's
+# toDlpack); JAX arrays through __dlpack__(stream=...), which makes that stream wait
+# until JAX has produced them.
+
+_KDL_CPU, _KDL_CUDA, _KDL_CUDA_HOST = 1, 2, 3
+_LEGACY_STREAM = 1  # DLPack's and CUDA's name for the legacy default stream (cudaStreamLegacy)
+
+
+_KINDS = {np.ndarray: "numpy"}  # type -> array library, filled as types are seen
+
+
+def _kind(x):
+    """The array library of x: 'numpy', 'torch', 'cupy', 'jax' or 'other'."""
+    t = type(x)
+    kind = _KINDS.get(t)
+    if kind is None:
+        mod = t.__module__
+        kind = ("numpy" if isinstance(x, np.ndarray) else "torch" if mod.startswith("torch")
+                else "cupy" if mod.startswith("cupy") else "jax" if mod.startswith(("jax", "jaxlib")) else "other")
+        _KINDS[t] = kind
+    return kind
+
+
+class _Torch:
+    """torch's functions the device path calls on every call, looked up once."""
+
+    raw_stream = None  # torch._C._cuda_getCurrentRawStream, or a slower equivalent
+    to_dlpack = None
+
+    @classmethod
+    def load(cls):
+        import torch
+        import torch.utils.dlpack
+
+        raw = getattr(torch._C, "_cuda_getCurrentRawStream", None)
+        cls.raw_stream = raw if raw is not None else (lambda d: torch.cuda.current_stream(d).cuda_stream)
+        cls.to_dlpack = torch.utils.dlpack.to_dlpack
+        return cls
 
 
 def _is_torch(x):
-    return type(x).__module__.startswith("torch")
+    return _kind(x) == "torch"
+
+
+def _cuda_device(x, kind, name):
+    """The CUDA ordinal of an array in CUDA device memory, None for host memory. Raises
+    DeviceError for any other device and for arrays that offer only
+    __cuda_array_interface__ (which names no device and no DLPack capsule)."""
+    if kind == "numpy":
+        return None
+    if kind == "torch":
+        return x.get_device() if x.is_cuda else None
+    dev = getattr(x, "__dlpack_device__", None)
+    if dev is None:
+        if hasattr(x, "__cuda_array_interface__"):
+            raise DeviceError(
+                f"{name} offers only __cuda_array_interface__: scandyn reads CUDA arrays through "
+                "DLPack (torch, CuPy, JAX, ...); wrap it with cupy.asarray or torch.as_tensor (no copy)"
+            )
+        return None
+    kind_code, ordinal = dev()
+    kind_code = int(kind_code)
+    if kind_code in (_KDL_CPU, _KDL_CUDA_HOST):
+        return None
+    if kind_code == _KDL_CUDA:
+        return int(ordinal)
+    raise DeviceError(
+        f"{name} is on DLPack device type {kind_code}: scandyn takes host memory or CUDA device memory"
+    )
+
+
+def _stream_handle(stream):
+    """A cudaStream_t as an integer: an int, a torch.cuda.Stream (.cuda_stream) or a CuPy
+    stream (.ptr)."""
+    if isinstance(stream, (int, np.integer)):
+        return int(stream)
+    for attr in ("cuda_stream", "ptr"):
+        v = getattr(stream, attr, None)
+        if isinstance(v, int):
+            return v
+    raise TypeError(f"stream must be an int (a cudaStream_t), a torch.cuda.Stream or a CuPy stream, "
+                    f"got {type(stream).__name__}")
+
+
+def _current_stream(kind, device):
+    """The stream the caller's library queues work on now: torch's and CuPy's current
+    stream of the device; the legacy default stream for JAX (which exposes none) and
+    others."""
+    if kind == "torch":
+        return (_Torch.raw_stream or _Torch.load().raw_stream)(device)
+    if kind == "cupy":
+        import cupy
+
+        with cupy.cuda.Device(device):
+            return cupy.cuda.get_current_stream().ptr
+    return _LEGACY_STREAM
+
+
+class _Where:
+    """Where a call runs: host memory (cuda is None) or a CUDA ordinal, the array
+    library of its first array, and the stream (CUDA)."""
+
+    __slots__ = ("cuda", "kind", "stream", "like")
+
+    def __init__(self, cuda, kind, stream, like):
+        self.cuda, self.kind, self.stream, self.like = cuda, kind, stream, like
+
+
+def _where(first, stream=None):
+    kind = _kind(first)
+    cuda = _cuda_device(first, kind, "q")
+    s = None
+    if cuda is not None:
+        s = _stream_handle(stream) if stream is not None else _current_stream(kind, cuda)
+    elif stream is not None:
+        _stream_handle(stream)  # checked, unused on the host
+    return _Where(cuda, kind, s, first)
+
+
+def _handover(x, name, where):
+    """An array as the extension reads it: torch tensors (host or CUDA) as a DLPack
+    capsule from torch.utils.dlpack.to_dlpack, which synchronises nothing (and is
+    quicker than torch's __dlpack__); CuPy arrays as toDlpack() capsules; JAX arrays
+    on a GPU through __dlpack__(stream=...), which makes the call's stream wait for the
+    array; everything else as it is. Arrays on another device than the first are
+    passed on too, for the extension to name in its DeviceError."""
+    if x is None:
+        return x
+    kind = _kind(x)
+    if kind == "torch":
+        # the engines compute no gradients: a tensor that requires one is read as its
+        # detached view (the same memory)
+        return (_Torch.to_dlpack or _Torch.load().to_dlpack)(x.detach() if x.requires_grad else x)
+    if where.cuda is None:
+        return x
+    if kind == "cupy":
+        return x.toDlpack()
+    if kind == "jax" and _cuda_device(x, kind, name) is not None:
+        return x.__dlpack__(stream=where.stream)
+    return x
 
 
 def _dtype_name(x):
@@ -120,40 +261,26 @@ def _normalize_dtype(dtype):
     return name
 
 
-def _check_host(x, name):
-    """Raises DeviceError for an array on a CUDA (or any non-host) device: nothing is ever
-    copied to the host behind the caller's back."""
-    if hasattr(x, "__cuda_array_interface__"):
-        raise DeviceError(
-            f"{name} is a CUDA array: backend 'cuda' from Python is not implemented yet; "
-            "pass host (NumPy / CPU) arrays"
-        )
-    dev = getattr(x, "__dlpack_device__", None)
-    if dev is not None and not isinstance(x, np.ndarray):
-        kind = dev()[0]
-        if int(kind) not in (_KDL_CPU, _KDL_CUDA_HOST):
-            raise DeviceError(
-                f"{name} is on DLPack device type {int(kind)} (not host memory): backend 'cuda' "
-                "from Python is not implemented yet; pass host (NumPy / CPU) arrays"
-            )
+_NOT_ARRAYS = (list, tuple, int, float)
 
 
 def _inputs(named, dtype=None):
-    """The call's arrays, as given (no copy), after the device check; Python lists,
-    tuples and scalars (not arrays) become NumPy arrays of the call's dtype. Returns
-    (arrays, dtype name of the first array)."""
+    """The call's arrays, as given (no copy); Python lists, tuples and scalars (not
+    arrays) become NumPy arrays of the call's dtype. Returns (arrays, dtype name of the
+    first array)."""
     first = dtype
-    for name, x in named:
-        if x is not None and not isinstance(x, (list, tuple, int, float)):
-            _check_host(x, name)
-            if first is None:
-                first = _dtype_name(x)
-    first = first or "float64"
     out = []
-    for name, x in named:
-        if isinstance(x, (list, tuple, int, float)):
-            x = np.asarray(x, dtype=first if first in _FLOAT_NAMES else "float64")
+    convert = False
+    for _, x in named:
+        if isinstance(x, _NOT_ARRAYS):
+            convert = True
+        elif first is None and x is not None:
+            first = _dtype_name(x)
         out.append(x)
+    first = first or "float64"
+    if convert:
+        to = first if first in _FLOAT_NAMES else "float64"
+        out = [np.asarray(x, dtype=to) if isinstance(x, _NOT_ARRAYS) else x for x in out]
     return out, first
 
 
@@ -164,20 +291,60 @@ def _lead_of(q, name="q"):
     return shape[:-1]
 
 
-def _empty(like, shape, dtype):
-    if _is_torch(like):
+def _empty(where, shape, dtype):
+    """A new result array of the inputs' kind on their device: NumPy for host arrays
+    (a torch CPU tensor for torch inputs), a torch / CuPy / JAX array on the inputs'
+    CUDA device. JAX arrays are immutable: a new one is made (jnp.empty) and written
+    through DLPack before anyone else sees it."""
+    kind, like = where.kind, where.like
+    if kind == "torch":
         import torch
 
-        return torch.empty(shape, dtype=getattr(torch, dtype))
-    return np.empty(shape, dtype=dtype)
+        return torch.empty(shape, dtype=getattr(torch, dtype), device=like.device)
+    if where.cuda is None:
+        if kind == "jax":
+            import jax.numpy as jnp
+
+            return jnp.empty(shape, dtype, device=next(iter(like.devices())))
+        return np.empty(shape, dtype=dtype)
+    if kind == "cupy":
+        import cupy
+
+        with cupy.cuda.Device(where.cuda):
+            return cupy.empty(shape, dtype=dtype)
+    if kind == "jax":
+        import jax.numpy as jnp
+
+        return jnp.empty(shape, dtype, device=next(iter(like.devices())))
+    raise DeviceError(
+        f"cannot allocate a result for a CUDA array of type {type(like).__name__}: pass out= "
+        "(a torch or CuPy array on the same device)"
+    )
+
+
+def _writable(out, where):
+    """out as the extension writes it: JAX arrays (results this module made) through
+    DLPack, CUDA arrays as capsules (no synchronisation), host arrays as they are."""
+    if where.kind == "jax" and _kind(out) == "jax":
+        return out.__dlpack__(stream=where.stream) if where.cuda is not None else out.__dlpack__()
+    return _handover(out, "out", where)
 
 
 def _check_out(out):
     if isinstance(out, (list, tuple)) or getattr(out, "shape", None) is None:
         raise DTypeError(f"out must be an array (NumPy or DLPack), got {type(out).__name__}")
-    _check_host(out, "out")
+    if _kind(out) == "jax":
+        raise ShapeError("out is a JAX array: JAX arrays are immutable; leave out=None (a new JAX array is returned)")
     if isinstance(out, np.ndarray) and not out.flags.writeable:
         raise ShapeError("out is read-only")
+
+
+def _finish(where):
+    """JAX knows nothing of the stream scandyn's work was queued on: a JAX result is
+    handed back only once that work is done (the one synchronisation of the device
+    path, JAX only)."""
+    if where.kind == "jax" and where.cuda is not None:
+        _ext.synchronize_stream(where.stream)
 
 
 def _call(fn, *args, **kw):
@@ -188,8 +355,8 @@ def _call(fn, *args, **kw):
             raise
         raise DTypeError(
             "cannot read the arrays of this call without a copy: each must be a float32 or "
-            "float64 array in host memory (buffer protocol or DLPack) whose strides are "
-            "multiples of its item size, and out must be writable"
+            "float64 array in host memory or CUDA device memory (buffer protocol or DLPack) whose "
+            "strides are multiples of its item size, and out must be writable"
         ) from e
 
 
@@ -203,50 +370,72 @@ def _resolve_backend(backend):
 
 
 class _EngineBase:
+    """One engine of the library (scandyn/engine.hpp). On host arrays a call runs the
+    engine's compute() and returns when done; on CUDA arrays (backend='cuda', the arrays
+    on the engine's device) it queues compute_async() on the caller's stream (``stream=``,
+    else torch's or CuPy's current stream) and returns at once: no copy, no
+    synchronisation."""
+
     _ext_class = None
 
-    def __init__(self, model, backend, max_batch, dtype, **options):
+    def __init__(self, model, backend, max_batch, dtype, device=None, **options):
         if not isinstance(model, Model):
             raise TypeError(f"model must be a scandyn.Model (scandyn.load_model), got {type(model).__name__}")
         self.model = model
         self._dtype = _normalize_dtype(dtype)
-        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), int(max_batch), **options)
+        max_batch = int(max_batch)
+        if not 1 <= max_batch <= _MAX_INDEX:
+            raise ShapeError(f"max_batch must be from 1 to {_MAX_INDEX} (the engines' instance index), got {max_batch}")
+        if device is not None:
+            options["device"] = int(device)
+        self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), max_batch, **options)
 
     backend = property(lambda self: self._e.backend, doc="'serial', 'openmp' or 'cuda'")
     strategy = property(lambda self: self._e.strategy, doc="the variant the engine runs")
     exact = property(lambda self: self._e.exact, doc="bit-identical to the serial reference")
     max_batch = property(lambda self: self._e.max_batch)
     nv = property(lambda self: self._e.nv)
+    device = property(lambda self: self._e.device, doc="the CUDA device of a cuda engine, -1 otherwise")
     dtype = property(lambda self: np.dtype(self._dtype))
 
-    def _prepare(self, named, out, tail=()):
+    def _prepare(self, named, out, stream, tail=()):
+        """(where, the arrays as the extension takes them, out as given, out as written)."""
         arrays, _ = _inputs(named, self._dtype)
+        where = _where(arrays[0], stream)
         if out is None:
-            lead = _lead_of(arrays[0])
-            out = _empty(arrays[0], lead + (self.nv,) + tail, self._dtype)
+            out = _empty(where, _lead_of(arrays[0]) + (self.nv,) + tail, self._dtype)
         else:
             _check_out(out)
-        return arrays, out
+        if where.cuda is None and where.kind == "numpy":
+            handed = arrays  # NumPy on the host: read as they are (the buffer protocol)
+        else:
+            handed = [_handover(a, n, where) for a, (n, _) in zip(arrays, named)]
+        return where, handed, out, _writable(out, where)
 
     def __repr__(self):
+        dev = f", device={self.device}" if self.backend == "cuda" else ""
         return (
             f"scandyn.{type(self).__name__}(model={self.model.name!r}, backend={self.backend!r}, "
-            f"strategy={self.strategy!r}, dtype={self._dtype}, max_batch={self.max_batch})"
+            f"strategy={self.strategy!r}, dtype={self._dtype}, max_batch={self.max_batch}{dev})"
         )
 
 
 class InverseDynamics(_EngineBase):
     """tau = ID(q, qd, qdd, fext): RNEA with gravity, for up to max_batch instances.
-    ``strategy``: 'auto', 'recursion', 'scan-local', 'scan-world' (CPU)."""
+    ``strategy``: 'auto', 'recursion', 'scan-local', 'scan-world' (CPU). ``device``: the
+    CUDA device of a cuda engine (default: the current one)."""
 
     _ext_class = _ext.InverseDynamics
 
-    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0):
-        super().__init__(model, backend, max_batch, dtype, strategy=strategy, threads=threads)
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
+                 device=None):
+        super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
 
-    def __call__(self, q, qd, qdd, fext=None, out=None):
-        (q, qd, qdd, fext), out = self._prepare([("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)], out)
-        _call(self._e.compute, q, qd, qdd, out, fext)
+    def __call__(self, q, qd, qdd, fext=None, out=None, stream=None):
+        named = [("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)]
+        where, (q, qd, qdd, fext), out, w = self._prepare(named, out, stream)
+        _call(self._e.compute, q, qd, qdd, w, fext, stream=where.stream or 0)
+        _finish(where)
         return out
 
 
@@ -255,12 +444,14 @@ class BiasForces(_EngineBase):
 
     _ext_class = _ext.BiasForces
 
-    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0):
-        super().__init__(model, backend, max_batch, dtype, strategy=strategy, threads=threads)
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
+                 device=None):
+        super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
 
-    def __call__(self, q, qd, fext=None, out=None):
-        (q, qd, fext), out = self._prepare([("q", q), ("qd", qd), ("fext", fext)], out)
-        _call(self._e.compute, q, qd, out, fext)
+    def __call__(self, q, qd, fext=None, out=None, stream=None):
+        where, (q, qd, fext), out, w = self._prepare([("q", q), ("qd", qd), ("fext", fext)], out, stream)
+        _call(self._e.compute, q, qd, w, fext, stream=where.stream or 0)
+        _finish(where)
         return out
 
 
@@ -269,38 +460,114 @@ class MassMatrix(_EngineBase):
 
     _ext_class = _ext.MassMatrix
 
-    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0):
-        super().__init__(model, backend, max_batch, dtype, threads=threads)
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
+        super().__init__(model, backend, max_batch, dtype, device, threads=threads)
 
-    def __call__(self, q, out=None):
-        (q,), out = self._prepare([("q", q)], out, tail=(self.nv,))
-        _call(self._e.compute, q, out)
+    def __call__(self, q, out=None, stream=None):
+        where, (q,), out, w = self._prepare([("q", q)], out, stream, tail=(self.nv,))
+        _call(self._e.compute, q, w, stream=where.stream or 0)
+        _finish(where)
         return out
 
 
 class ForwardDynamics(_EngineBase):
     """qdd = FD(q, qd, tau, fext). ``method``: 'auto', 'aba', 'jsi', 'parallel' (chains),
-    'hybrid' (cuda). An instance whose pivot is not positive and finite raises
-    ForwardDynamicsError (its ``status`` says which; those instances' entries of out are
-    left unwritten); ``last_status`` is the last call's scandyn.Status."""
+    'hybrid' (cuda, host arrays only). An instance whose pivot is not positive and finite
+    raises ForwardDynamicsError (its ``status`` says which; those instances' entries of
+    out are left unwritten); ``last_status`` is the last call's scandyn.Status.
+    ``fd_check``: 'auto', 'on', 'off': the run-time check of each result (docs/accuracy.md);
+    an instance above ``fd_check_tol`` (0: 1e-4 float, 1e-10 double) raises
+    ForwardDynamicsError too, unless ``fallback_aba`` (jsi) or ``fallback_double``
+    (float32) computes it again within the threshold (``status.retried`` counts them).
+
+    On CUDA arrays a call only queues the work: the failed DoFs go to a (B,) int32 array
+    on the device, ``failed_dof`` (the engine's own, or the caller's ``failed_dof=``), and
+    nothing is raised until ``check()`` (or ``check=True``) waits for the stream and reads
+    them. JAX calls wait anyway (see docs/python.md) and check at once."""
 
     _ext_class = _ext.ForwardDynamics
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, method="auto",
-                 fallback_aba=False, threads=0):
-        super().__init__(model, backend, max_batch, dtype, method=method, fallback_aba=fallback_aba,
-                         threads=threads)
+                 fallback_aba=False, threads=0, fd_check="auto", fd_check_tol=0.0, fallback_double=False,
+                 device=None):
+        super().__init__(model, backend, max_batch, dtype, device, method=method, fallback_aba=fallback_aba,
+                         threads=threads, fd_check=fd_check, fd_check_tol=float(fd_check_tol),
+                         fallback_double=fallback_double)
         self.last_status = None
+        self.failed_dof = None  # CUDA calls: the last call's (B,) int32 device array
+        self._pending = None  # (failed_dof, stream) of a CUDA call not checked yet
+        self._failed_buffers = {}  # (kind, device) -> (max_batch,) int32 device array
 
     method = property(lambda self: self._e.method, doc="the method run ('auto' resolved)")
 
-    def __call__(self, q, qd, tau, fext=None, out=None):
-        (q, qd, tau, fext), out = self._prepare([("q", q), ("qd", qd), ("tau", tau), ("fext", fext)], out)
-        status = _call(self._e.compute, q, qd, tau, out, fext)
+    def _failed_buffer(self, where, batch):
+        key = (where.kind, where.cuda)
+        buf = self._failed_buffers.get(key)
+        if buf is None:
+            n = self.max_batch
+            if where.kind == "torch":
+                import torch
+
+                buf = torch.empty(n, dtype=torch.int32, device=where.like.device)
+            elif where.kind == "cupy":
+                import cupy
+
+                with cupy.cuda.Device(where.cuda):
+                    buf = cupy.empty(n, dtype=np.int32)
+            elif where.kind == "jax":  # a fresh one per call, written through DLPack, read at once
+                import jax.numpy as jnp
+
+                return jnp.empty(batch, np.int32, device=next(iter(where.like.devices())))
+            else:
+                raise DeviceError(f"pass failed_dof= (a (B,) int32 array on CUDA device {where.cuda}) "
+                                  f"for arrays of type {type(where.like).__name__}")
+            self._failed_buffers[key] = buf
+        return buf[:batch]
+
+    def __call__(self, q, qd, tau, fext=None, out=None, stream=None, failed_dof=None, check=False):
+        named = [("q", q), ("qd", qd), ("tau", tau), ("fext", fext)]
+        where, (q, qd, tau, fext), out, w = self._prepare(named, out, stream)
+        failed = fd = None
+        if where.cuda is not None:
+            lead = _lead_of(where.like)
+            failed = failed_dof if failed_dof is not None else self._failed_buffer(where, lead[0] if lead else 1)
+            fd = _writable(failed, where)
+        status = _call(self._e.compute, q, qd, tau, w, fext, failed_dof=fd, stream=where.stream or 0)
+        if status.queued:
+            self.failed_dof = failed
+            self._pending = (failed, where.stream)
+            self.last_status = None
+            if check or where.kind == "jax":
+                _finish(where)
+                self.check()
+            return out
         self.last_status = status
         if not status.ok:
             raise ForwardDynamicsError(f"forward dynamics failed: {status.message}", status)
         return out
+
+    def check(self):
+        """Waits for the stream of the last CUDA call, reads its failed DoFs and raises
+        ForwardDynamicsError as a host call would (the failed instances' entries of out
+        were left unwritten). Returns the call's scandyn.Status. A no-op after host calls
+        (they raise at once)."""
+        if self._pending is None:
+            return self.last_status
+        failed, stream = self._pending
+        self._pending = None
+        _ext.synchronize_stream(stream)
+        kind = _kind(failed)
+        if kind == "torch":
+            host = failed.cpu().numpy()
+        elif kind == "cupy":
+            host = failed.get()
+        else:
+            host = np.asarray(failed)
+        status = _ext.status_of_failed_dofs(np.ascontiguousarray(host, dtype=np.int32), self.method)
+        self.last_status = status
+        if not status.ok:
+            raise ForwardDynamicsError(f"forward dynamics failed: {status.message}", status)
+        return status
 
 
 # ---- the function API: engines cached per model ------------------------------------
@@ -314,38 +581,52 @@ def _cached(cls, key_option, model, backend, first, **options):
         raise DTypeError(f"q has dtype {dtype}, expected float32 or float64")
     lead = _lead_of(first)
     batch = lead[0] if lead else 1
+    device = _cuda_device(first, _kind(first), "q")
+    if device is not None and backend == "auto":
+        backend = "cuda"  # "auto" follows the arrays
     backend = _resolve_backend(backend)
-    key = (cls.__name__, backend, dtype, key_option)
+    if backend != "cuda":
+        device = None
+    key = (cls.__name__, backend, dtype, key_option, device)
     engine = model._engines.get(key)
     if engine is None or engine.max_batch < batch:
+        engine = None  # the old engine's device memory goes before the new one is made
+        model._engines.pop(key, None)
+        if device is not None:
+            options["device"] = device
         engine = cls(model, backend=backend, max_batch=max(batch, 1), dtype=dtype, **options)
         model._engines[key] = engine
     return engine
 
 
-def inverse_dynamics(model, q, qd, qdd, fext=None, backend="auto", out=None):
+def inverse_dynamics(model, q, qd, qdd, fext=None, backend="auto", out=None, stream=None):
     """tau = ID(q, qd, qdd, fext), gravity included. q, qd, qdd: (B, nv) or (nv,);
     fext: optional (B, nv, 6) body wrenches [moment; force] in body frames. Returns tau
-    (out when given)."""
+    (out when given). CUDA arrays: queued on ``stream`` (default: the array library's
+    current stream), no synchronisation."""
     (q, qd, qdd, fext), _ = _inputs([("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)])
-    return _cached(InverseDynamics, None, model, backend, q)(q, qd, qdd, fext=fext, out=out)
+    return _cached(InverseDynamics, None, model, backend, q)(q, qd, qdd, fext=fext, out=out, stream=stream)
 
 
-def bias_forces(model, q, qd, fext=None, backend="auto", out=None):
+def bias_forces(model, q, qd, fext=None, backend="auto", out=None, stream=None):
     """h = RNEA(q, qd, 0, fext): (B, nv) or (nv,)."""
     (q, qd, fext), _ = _inputs([("q", q), ("qd", qd), ("fext", fext)])
-    return _cached(BiasForces, None, model, backend, q)(q, qd, fext=fext, out=out)
+    return _cached(BiasForces, None, model, backend, q)(q, qd, fext=fext, out=out, stream=stream)
 
 
-def mass_matrix(model, q, backend="auto", out=None):
+def mass_matrix(model, q, backend="auto", out=None, stream=None):
     """M(q): (B, nv, nv), or (nv, nv) for q of shape (nv,)."""
     (q,), _ = _inputs([("q", q)])
-    return _cached(MassMatrix, None, model, backend, q)(q, out=out)
+    return _cached(MassMatrix, None, model, backend, q)(q, out=out, stream=stream)
 
 
-def forward_dynamics(model, q, qd, tau, fext=None, method="auto", backend="auto", out=None):
+def forward_dynamics(model, q, qd, tau, fext=None, method="auto", backend="auto", out=None, stream=None,
+                     check=None):
     """qdd = FD(q, qd, tau, fext), gravity included: (B, nv) or (nv,). Raises
-    ForwardDynamicsError (with .status) when an instance's pivot is not positive."""
+    ForwardDynamicsError (with .status) when an instance's pivot is not positive. On CUDA
+    arrays that check waits for the stream (check=None: yes, as on the host); check=False
+    only queues the work (failures are then not reported: use a ForwardDynamics engine
+    and its check() to read them later)."""
     (q, qd, tau, fext), _ = _inputs([("q", q), ("qd", qd), ("tau", tau), ("fext", fext)])
     engine = _cached(ForwardDynamics, method, model, backend, q, method=method)
-    return engine(q, qd, tau, fext=fext, out=out)
+    return engine(q, qd, tau, fext=fext, out=out, stream=stream, check=check is None or bool(check))

@@ -10,7 +10,11 @@ angular]: ``J[..., [3, 4, 5, 0, 1, 2], :]`` is Pinocchio's Jacobian.
 import numpy as np
 
 from . import _scandyn as _ext
-from ._api import _EngineBase, _call, _cached, _check_out, _empty, _inputs, _lead_of
+from ._api import _EngineBase, _call, _cached, _check_out, _empty, _inputs, _lead_of, _where, _writable
+from .errors import DeviceError
+
+_HOST_ONLY = ("kinematics from Python takes host arrays (NumPy, torch CPU, JAX CPU); its CUDA-array path is "
+              "not written yet: nothing is copied between devices")
 
 _POSES = {"matrix": (4, 4), "quaternion": (7,)}
 
@@ -24,7 +28,9 @@ class Kinematics(_EngineBase):
     _ext_class = _ext.Kinematics
 
     def __init__(self, model, frames=None, backend="auto", max_batch=1, dtype=np.float64, reference="world",
-                 pose="matrix", threads=0):
+                 pose="matrix", threads=0, device=None):
+        if device is not None:
+            raise DeviceError(f"device={device}: " + _HOST_ONLY)
         if isinstance(frames, str):
             frames = [frames]
         super().__init__(model, backend, max_batch, dtype, frames=None if frames is None else list(frames),
@@ -36,19 +42,23 @@ class Kinematics(_EngineBase):
 
     def _out(self, q, out, tail):
         if out is None:
-            return _empty(q, _lead_of(q) + (len(self.frames),) + tail, self._dtype)
+            return _empty(_where(q), _lead_of(q) + (len(self.frames),) + tail, self._dtype)
         _check_out(out)
         return out
 
     def __call__(self, q, poses=True, jacobians=True):
-        """(poses, J) of q ((B, nv) or (nv,)): poses (B, F, 4, 4) or (B, F, 7), J (B, F, 6,
+        """(poses, J) of q ((B, nq) or (nq,)): poses (B, F, 4, 4) or (B, F, 7), J (B, F, 6,
         nv). Each of poses and jacobians is True (allocate), an array to write (out), or
         False / None (skip: None returned in its place)."""
         (q,), _ = _inputs([("q", q)], self._dtype)
+        where = _where(q)
+        if where.cuda is not None:
+            raise DeviceError("q is a CUDA array: " + _HOST_ONLY)
         P = self._out(q, None if poses is True else poses, _POSES[self.pose]) if poses is not False and poses is not None else None
         J = self._out(q, None if jacobians is True else jacobians, (6, self.nv)) \
             if jacobians is not False and jacobians is not None else None
-        _call(self._e.compute, q, P, J)
+        _call(self._e.compute, q, None if P is None else _writable(P, where),
+              None if J is None else _writable(J, where))
         return P, J
 
     def placements(self, q, out=None):
@@ -69,7 +79,8 @@ def _names(frames):
 def frame_placements(model, q, frames=None, quaternion=False, backend="auto", out=None):
     """World poses of the frames (names; None: every frame, ``model.frames``): (B, F, 4,
     4) homogeneous matrices, or with quaternion=True (B, F, 7) rows px, py, pz, qx, qy,
-    qz, qw. q: (B, nv) or (nv,) (then (F, 4, 4) / (F, 7))."""
+    qz, qw. q: (B, nq) or (nq,) (then (F, 4, 4) / (F, 7)); nq = nv unless the model has a
+    floating base or ball joints (their quaternions)."""
     (q,), _ = _inputs([("q", q)])
     names = _names(frames)
     pose = "quaternion" if quaternion else "matrix"

@@ -79,15 +79,18 @@ struct PyKinematics {
 
   const Engine& engine() const { return is_float ? static_cast<const Engine&>(*ef) : *ed; }
   Index nv() const { return model->md.nv(); }
+  Index nq() const { return model->md.nq(); }  // entries of q (quaternions: nq > nv)
 };
 
 template <class S>
 void compute(PyKinematics& e, const InArray& q, const std::optional<OutArray>& poses,
              const std::optional<OutArray>& J) {
-  const Index nv = e.nv();
+  const Index nv = e.nv(), nq = e.nq();
   check_array<S>(q, "q");
-  if ((q.ndim() != 1 && q.ndim() != 2) || Index(q.shape(q.ndim() - 1)) != nv)
-    throw ShapeError("q has shape " + shape_str(q) + ", expected (nv,) or (B, nv) with nv = " + std::to_string(nv));
+  const std::string dim = nq == nv ? "nv" : "nq";
+  if ((q.ndim() != 1 && q.ndim() != 2) || Index(q.shape(q.ndim() - 1)) != nq)
+    throw ShapeError("q has shape " + shape_str(q) + ", expected (" + dim + ",) or (B, " + dim + ") with " + dim +
+                     " = " + std::to_string(nq));
   const bool single = q.ndim() == 1;
   const Index B = single ? 1 : Index(q.shape(0));
   if (B > e.max_batch)

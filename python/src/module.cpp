@@ -7,7 +7,12 @@
 // copied: an array that cannot be described by a BatchView is an error.
 //
 // Checks done here (each raises an exception of scandyn.errors, python/scandyn/errors.py):
-//   - device: host memory only for now (DeviceError for a CUDA array);
+//   - device: every array of a call in host memory, or every one on the same CUDA
+//     device (DeviceError otherwise). Host arrays go to the engine's compute(); CUDA
+//     arrays to the CUDA engine's compute_async() on the caller's stream (a
+//     cudaStream_t passed as an integer by the Python layer): one launch, no copy,
+//     no synchronisation (DeviceError for a CUDA array and an engine of another
+//     backend or device);
 //   - dtype: every array in the engine's precision (DTypeError);
 //   - shape: (nv,) for one state or (B, nv) for a batch, every input and out with the
 //     same leading shape, B <= max_batch; (.., nv, nv) for the mass matrix with each
@@ -37,12 +42,24 @@
 #include "scandyn/model/load.hpp"
 #include "shared.hpp"
 
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/cuda/mass_matrix.hpp"
+#endif
+
 namespace nb = nanobind;
 using namespace nb::literals;
 
 namespace scandyn::py {
 void bind_simulator(nb::module_& m);  // python/src/simulator.cpp
 namespace {
+
+#if !SCANDYN_HAS_CUDA
+using cudaStream_t = struct CUstream_st*;  // the type of the device path's lambdas; never called
+#endif
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
 
@@ -114,18 +131,39 @@ Extent extent_of(const A& a) {
 }
 bool overlaps(Extent a, Extent b) { return a.lo < b.hi && b.lo < a.hi && a.lo != a.hi && b.lo != b.hi; }
 
-// The common leading shape of a call: B instances, or one state ((nv,) arrays).
+// The common leading shape of a call: B instances, or one state ((nv,) arrays),
+// and where the call's arrays are (set by the first array, checked for the others).
 struct Lead {
   bool single = false;  // (nv,) arrays: one instance
   Index batch = 0;
+  bool placed = false;  // the device below is set
+  bool cuda = false;    // on a CUDA device (else host memory)
+  int device = 0;       // the CUDA device's ordinal
 };
 
+std::string where_str(bool cuda, int device) {
+  return cuda ? "CUDA device " + std::to_string(device) : std::string("host memory");
+}
+
+// Host memory (DLPack CPU or CUDA-pinned host) or one CUDA device for every array of a call.
 template <class A>
-void check_device(const A& a, const char* name) {
-  if (a.device_type() != nb::device::cpu::value)
-    throw DeviceError(std::string(name) + " is not in host memory (DLPack device type " +
-                      std::to_string(a.device_type()) +
-                      "): backend 'cuda' from Python is not implemented yet; pass host (NumPy / CPU) arrays");
+void check_device(const A& a, const char* name, Lead& lead) {
+  const int type = a.device_type();
+  const bool host = type == nb::device::cpu::value || type == nb::device::cuda_host::value;
+  if (!host && type != nb::device::cuda::value)
+    throw DeviceError(std::string(name) + " is on DLPack device type " + std::to_string(type) +
+                      ": scandyn takes host memory or CUDA device memory");
+  const bool cuda = !host;
+  const int device = cuda ? a.device_id() : 0;
+  if (!lead.placed) {
+    lead.placed = true;
+    lead.cuda = cuda;
+    lead.device = device;
+  } else if (cuda != lead.cuda || device != lead.device) {
+    throw DeviceError(std::string(name) + " is in " + where_str(cuda, device) + ", the call's first array in " +
+                      where_str(lead.cuda, lead.device) +
+                      ": every array of a call is on one device (scandyn copies nothing between devices)");
+  }
 }
 
 // The BatchView of a (B, nv) or (nv,) array `a` (nv per instance; dim names nv in
@@ -134,7 +172,7 @@ void check_device(const A& a, const char* name) {
 template <class T, class A>
 BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first, const char* dim = "nv") {
   using S = std::remove_const_t<T>;
-  check_device(a, name);
+  check_device(a, name, lead);
   if (!has_dtype<S>(a))
     throw DTypeError(std::string(name) + " has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
                      " (every array of a call shares one dtype, which sets the precision)");
@@ -155,7 +193,8 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
     throw ShapeError(std::string(name) + ": batch of " + std::to_string(a.shape(0)) + " instances is too large");
   const Index batch = single ? 1 : Index(a.shape(0));
   if (first) {
-    lead = {single, batch};
+    lead.single = single;
+    lead.batch = batch;
   } else if (single != lead.single || batch != lead.batch) {
     throw ShapeError(std::string(name) + " has shape " + shape() + ", but the first array's leading shape is " +
                      (lead.single ? std::string("() (one state)") : "(" + std::to_string(lead.batch) + ",)") +
@@ -199,10 +238,10 @@ void check_out_alone(const A& out, const std::vector<std::pair<Extent, const cha
 
 // fext: (nv, 6) or (B, nv, 6), C-contiguous, Force<S> = [moment; force] per body.
 template <class S>
-const Force<S>* fext_of(const std::optional<InArray>& f, Index nv, const Lead& lead) {
+const Force<S>* fext_of(const std::optional<InArray>& f, Index nv, Lead& lead) {
   if (!f) return nullptr;
   const InArray& a = *f;
-  check_device(a, "fext");
+  check_device(a, "fext", lead);
   if (!has_dtype<S>(a))
     throw DTypeError("fext has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
                      " (every array of a call shares one dtype)");
@@ -268,9 +307,92 @@ struct PyEngine {
   Index nbodies() const { return model->md.nbodies(); }  // wrenches of fext
 };
 
+// ---- CUDA: the device path ------------------------------------------------------
+
+#if SCANDYN_HAS_CUDA
+// Makes `device` current for a scope (engines are made on, and launch to, the
+// current device) and restores the caller's on exit; -1 keeps the current one.
+class DeviceScope {
+ public:
+  explicit DeviceScope(int device) {
+    if (device < 0 || cudaGetDevice(&previous_) != cudaSuccess || previous_ == device) return;
+    if (const cudaError_t err = cudaSetDevice(device); err != cudaSuccess)
+      throw BackendError("backend 'cuda': cannot use CUDA device " + std::to_string(device) + ": " +
+                         cudaGetErrorString(err));
+    restore_ = true;
+  }
+  ~DeviceScope() {
+    if (restore_) cudaSetDevice(previous_);
+  }
+  DeviceScope(const DeviceScope&) = delete;
+  DeviceScope& operator=(const DeviceScope&) = delete;
+
+ private:
+  int previous_ = -1;
+  bool restore_ = false;
+};
+
+template <class S>
+cuda::CudaInverseDynamics<S>* as_cuda(InverseDynamics<S>* e) { return dynamic_cast<cuda::CudaInverseDynamics<S>*>(e); }
+template <class S>
+cuda::CudaBiasForces<S>* as_cuda(BiasForces<S>* e) { return dynamic_cast<cuda::CudaBiasForces<S>*>(e); }
+template <class S>
+cuda::CudaMassMatrix<S>* as_cuda(MassMatrix<S>* e) { return dynamic_cast<cuda::CudaMassMatrix<S>*>(e); }
+template <class S>
+cuda::CudaForwardDynamics<S>* as_cuda(ForwardDynamics<S>* e) { return dynamic_cast<cuda::CudaForwardDynamics<S>*>(e); }
+template <class E>
+int device_of(const E& e) { return e.device(); }
+template <class S>
+int device_of(const cuda::CudaBiasForces<S>& e) { return e.inverse_dynamics().device(); }
+#endif
+
+// The engine's device: its CUDA ordinal, -1 for the CPU backends.
+template <template <class> class E>
+int engine_device(const PyEngine<E>& e) {
+#if SCANDYN_HAS_CUDA
+  if (e.is_float) {
+    if (auto* c = as_cuda(e.ef.get())) return device_of(*c);
+  } else if (auto* c = as_cuda(e.ed.get())) {
+    return device_of(*c);
+  }
+#else
+  (void)e;
+#endif
+  return -1;
+}
+
+// Queues `queue(cuda_engine, stream)` (its compute_async) for arrays on CUDA device
+// lead.device, on the caller's stream; checks that the engine is a CUDA engine of
+// that device; throws BackendError for a launch error. No synchronisation.
+template <class S, template <class> class E, class Queue>
+void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Queue&& queue) {
+#if SCANDYN_HAS_CUDA
+  E<S>* base = nullptr;
+  if constexpr (std::is_same_v<S, float>) base = e.ef.get();
+  else base = e.ed.get();
+  auto* c = as_cuda(base);
+  if (!c)
+    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine runs on backend '" +
+                      e.backend() + "': make it with backend='cuda' (the function API's backend='auto' follows "
+                      "the arrays)");
+  if (device_of(*c) != lead.device)
+    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine was made on " +
+                      where_str(true, device_of(*c)) + ": make one with device=" + std::to_string(lead.device));
+  DeviceScope scope(lead.device);
+  const cudaError_t err = queue(*c, reinterpret_cast<cudaStream_t>(stream));
+  if (err != cudaSuccess)
+    throw BackendError(std::string("backend 'cuda': queuing the computation on the caller's stream failed: ") +
+                       cudaGetErrorName(err) + ": " + cudaGetErrorString(err));
+#else
+  (void)e, (void)stream, (void)queue;
+  throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                    ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+#endif
+}
+
 template <template <class> class E, class MakeF, class MakeD>
 void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::string& dtype, Index max_batch,
-                 MakeF make_f, MakeD make_d) {
+                 int device, MakeF make_f, MakeD make_d) {
   if (dtype != "float32" && dtype != "float64")
     throw DTypeError("dtype must be float32 or float64, got " + dtype);
   const bool is_float = dtype == "float32";
@@ -280,6 +402,11 @@ void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::s
   e->max_batch = max_batch;
   try {
     nb::gil_scoped_release release;
+#if SCANDYN_HAS_CUDA
+    DeviceScope scope(device);  // a CUDA engine lives on the device current at construction
+#else
+    (void)device;
+#endif
     if (is_float)
       e->ef = make_f(e->model->template get<float>());
     else
@@ -297,7 +424,7 @@ using PyFd = PyEngine<ForwardDynamics>;
 
 template <class S>
 void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& out,
-                const std::optional<InArray>& fext) {
+                const std::optional<InArray>& fext, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
   IdBatchIn<S> in;
@@ -313,13 +440,15 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   check_out_alone(out, ins);
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, tau, s); });
   if constexpr (std::is_same_v<S, float>) e.ef->compute(in, tau);
   else e.ed->compute(in, tau);
 }
 
 template <class S>
 void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray& out,
-                  const std::optional<InArray>& fext) {
+                  const std::optional<InArray>& fext, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
   BiasBatchIn<S> in;
@@ -334,16 +463,18 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   check_out_alone(out, ins);
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, h, s); });
   if constexpr (std::is_same_v<S, float>) e.ef->compute(in, h);
   else e.ed->compute(in, h);
 }
 
 template <class S>
-void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
+void mass_compute(PyMass& e, const InArray& q, const OutArray& out, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
   BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
-  check_device(out, "out");
+  check_device(out, "out", lead);
   if (!has_dtype<S>(out))
     throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
   const size_t nd = out.ndim();
@@ -368,6 +499,8 @@ void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
   check_out_alone(out, {{extent_of(q), "q"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(qv, M, s); });
   if constexpr (std::is_same_v<S, float>) e.ef->compute(qv, M);
   else e.ed->compute(qv, M);
 }
@@ -375,13 +508,40 @@ void mass_compute(PyMass& e, const InArray& q, const OutArray& out) {
 // What a forward-dynamics call reports: BatchStatus with its per-instance failed DoFs copied.
 struct CallStatus {
   Index failed = 0, first_instance = -1, first_dof = -1, fell_back = 0;
+  Index retried = 0;  // flagged by the run-time check, fixed by a fallback
   std::string reason, message;
   std::vector<int> failed_dof;  // per instance: -1 or the DoF that failed (empty when ok)
+  bool queued = false;          // CUDA arrays: the call was queued; the failed DoFs are in the
+                                // caller's device array once the stream reaches them
 };
+
+CallStatus call_status(const BatchStatus& st, Index batch) {
+  CallStatus r;
+  r.failed = st.failed;
+  r.first_instance = st.first_instance;
+  r.first_dof = st.first_dof;
+  r.fell_back = st.fell_back;
+  r.retried = st.retried;
+  if (!st.ok()) {
+    r.reason = st.reason();
+    r.message = st.message();
+    if (st.failed_dof) r.failed_dof.assign(st.failed_dof, st.failed_dof + batch);
+  }
+  return r;
+}
+
+// The status of a CUDA call from its failed DoFs read back by the caller (B ints:
+// -1 or the DoF whose pivot failed), for the method `method` ran.
+CallStatus status_of_failed_dofs(const nb::ndarray<const int, nb::ndim<1>, nb::c_contig, nb::device::cpu>& failed,
+                                 const std::string& method) {
+  const Index B = Index(failed.shape(0));
+  return call_status(summarize_failures(failed.data(), B, pivot_failure(parse_fd_method(method))), B);
+}
 
 template <class S>
 CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
-                    const std::optional<InArray>& fext) {
+                    const std::optional<InArray>& fext, const std::optional<OutArray>& failed_dof,
+                    std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
   FdBatchIn<S> in;
@@ -395,22 +555,32 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
   if (fext) ins.emplace_back(extent_of(*fext), "fext");
   check_out_alone(out, ins);
-  CallStatus r;
+  int* failed = nullptr;  // CUDA arrays: the caller's (B,) int32 array on the same device
+  if (lead.cuda) {
+    if (!failed_dof)
+      throw ShapeError("failed_dof: forward dynamics on CUDA arrays needs a (B,) int32 array on the same device");
+    const OutArray& f = *failed_dof;
+    check_device(f, "failed_dof", lead);
+    if (f.dtype() != nb::dtype<int32_t>() || f.ndim() != 1 || Index(f.shape(0)) != lead.batch ||
+        (lead.batch > 1 && f.stride(0) != 1))
+      throw ShapeError("failed_dof has shape " + shape_str(f) + " and dtype " + dtype_name(f.dtype()) +
+                       ", expected a contiguous (" + std::to_string(lead.batch) + ",) int32 array");
+    check_out_alone(f, {{extent_of(out), "out"}});
+    failed = static_cast<int*>(f.data());
+  }
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda) {
+    queue_on_device<S>(e, lead, stream,
+                       [&](auto& c, cudaStream_t s) { return c.compute_async(in, qdd, failed, s); });
+    CallStatus r;
+    r.queued = true;
+    return r;
+  }
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qdd);
   else st = e.ed->compute(in, qdd);
-  r.failed = st.failed;
-  r.first_instance = st.first_instance;
-  r.first_dof = st.first_dof;
-  r.fell_back = st.fell_back;
-  if (!st.ok()) {
-    r.reason = st.reason();
-    r.message = st.message();
-    if (st.failed_dof) r.failed_dof.assign(st.failed_dof, st.failed_dof + lead.batch);
-  }
-  return r;
+  return call_status(st, lead.batch);
 }
 
 }  // namespace
@@ -485,10 +655,30 @@ NB_MODULE(_scandyn, m) {
       .def_ro("first_instance", &CallStatus::first_instance)
       .def_ro("first_dof", &CallStatus::first_dof)
       .def_ro("fell_back", &CallStatus::fell_back)
+      .def_ro("retried", &CallStatus::retried)
       .def_ro("reason", &CallStatus::reason)
       .def_ro("message", &CallStatus::message)
       .def_ro("failed_dof", &CallStatus::failed_dof)
+      .def_ro("queued", &CallStatus::queued)
       .def_prop_ro("ok", [](const CallStatus& s) { return s.failed == 0; });
+  m.def("status_of_failed_dofs", &status_of_failed_dofs, "failed_dof"_a, "method"_a);
+
+  // ---- CUDA streams (the device path's one explicit wait, for JAX results)
+  m.def("synchronize_stream", [](std::uintptr_t stream) {
+#if SCANDYN_HAS_CUDA
+    cudaError_t err;
+    {
+      nb::gil_scoped_release release;
+      err = cudaStreamSynchronize(reinterpret_cast<cudaStream_t>(stream));
+    }
+    if (err != cudaSuccess)
+      throw BackendError(std::string("backend 'cuda': waiting for the stream: ") + cudaGetErrorName(err) + ": " +
+                         cudaGetErrorString(err));
+#else
+    (void)stream;
+    throw BackendError("backend 'cuda' is not available in this build");
+#endif
+  }, "stream"_a);
 
   // ---- engines: (model, dtype, backend, max_batch, ...) and compute(..., out, fext)
   auto common = [](auto& cls) {
@@ -498,82 +688,89 @@ NB_MODULE(_scandyn, m) {
         .def_prop_ro("exact", &T::exact)
         .def_prop_ro("dtype", &T::dtype)
         .def_prop_ro("nv", &T::nv)
+        .def_prop_ro("device", [](const T& e) { return engine_device(e); })
         .def_ro("max_batch", &T::max_batch);
   };
 
   nb::class_<PyId> id(m, "InverseDynamics");
   id.def("__init__",
          [](PyId* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-            Index max_batch, const std::string& strategy, int threads) {
+            Index max_batch, const std::string& strategy, int threads, int device) {
            BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
-           init_engine(self, std::move(model), dtype, max_batch,
+           init_engine(self, std::move(model), dtype, max_batch, device,
                        [&](const ModelTpl<float>& md) { return make_inverse_dynamics<float>(md, o); },
                        [&](const ModelTpl<double>& md) { return make_inverse_dynamics<double>(md, o); });
          },
-         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0)
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1)
       .def("compute",
            [](PyId& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& out,
-              const std::optional<InArray>& fext) {
-             if (e.is_float) id_compute<float>(e, q, qd, qdd, out, fext);
-             else id_compute<double>(e, q, qd, qdd, out, fext);
+              const std::optional<InArray>& fext, std::uintptr_t stream) {
+             if (e.is_float) id_compute<float>(e, q, qd, qdd, out, fext, stream);
+             else id_compute<double>(e, q, qd, qdd, out, fext, stream);
            },
-           "q"_a, "qd"_a, "qdd"_a, "out"_a, "fext"_a = nb::none());
+           "q"_a, "qd"_a, "qdd"_a, "out"_a, "fext"_a = nb::none(), "stream"_a = 0);
   common(id);
 
   nb::class_<PyBias> bias(m, "BiasForces");
   bias.def("__init__",
            [](PyBias* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-              Index max_batch, const std::string& strategy, int threads) {
+              Index max_batch, const std::string& strategy, int threads, int device) {
              BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
-             init_engine(self, std::move(model), dtype, max_batch,
+             init_engine(self, std::move(model), dtype, max_batch, device,
                          [&](const ModelTpl<float>& md) { return make_bias_forces<float>(md, o); },
                          [&](const ModelTpl<double>& md) { return make_bias_forces<double>(md, o); });
            },
-           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0)
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1)
       .def("compute",
-           [](PyBias& e, const InArray& q, const InArray& qd, const OutArray& out, const std::optional<InArray>& fext) {
-             if (e.is_float) bias_compute<float>(e, q, qd, out, fext);
-             else bias_compute<double>(e, q, qd, out, fext);
+           [](PyBias& e, const InArray& q, const InArray& qd, const OutArray& out, const std::optional<InArray>& fext,
+              std::uintptr_t stream) {
+             if (e.is_float) bias_compute<float>(e, q, qd, out, fext, stream);
+             else bias_compute<double>(e, q, qd, out, fext, stream);
            },
-           "q"_a, "qd"_a, "out"_a, "fext"_a = nb::none());
+           "q"_a, "qd"_a, "out"_a, "fext"_a = nb::none(), "stream"_a = 0);
   common(bias);
 
   nb::class_<PyMass> mass(m, "MassMatrix");
   mass.def("__init__",
            [](PyMass* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-              Index max_batch, int threads) {
+              Index max_batch, int threads, int device) {
              BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads);
-             init_engine(self, std::move(model), dtype, max_batch,
+             init_engine(self, std::move(model), dtype, max_batch, device,
                          [&](const ModelTpl<float>& md) { return make_mass_matrix<float>(md, o); },
                          [&](const ModelTpl<double>& md) { return make_mass_matrix<double>(md, o); });
            },
-           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0)
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
       .def("compute",
-           [](PyMass& e, const InArray& q, const OutArray& out) {
-             if (e.is_float) mass_compute<float>(e, q, out);
-             else mass_compute<double>(e, q, out);
+           [](PyMass& e, const InArray& q, const OutArray& out, std::uintptr_t stream) {
+             if (e.is_float) mass_compute<float>(e, q, out, stream);
+             else mass_compute<double>(e, q, out, stream);
            },
-           "q"_a, "out"_a);
+           "q"_a, "out"_a, "stream"_a = 0);
   common(mass);
 
   nb::class_<PyFd> fd(m, "ForwardDynamics");
   fd.def("__init__",
          [](PyFd* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-            Index max_batch, const std::string& method, bool fallback_aba, int threads) {
+            Index max_batch, const std::string& method, bool fallback_aba, int threads, const std::string& fd_check,
+            double fd_check_tol, bool fallback_double, int device) {
            BackendOptions o = options_of(backend, max_batch, "auto", method, fallback_aba, threads);
-           init_engine(self, std::move(model), dtype, max_batch,
+           o.fd_check = parse_fd_check(fd_check);
+           if (fd_check_tol > 0) o.fd_check_tol_float = o.fd_check_tol_double = fd_check_tol;  // 0: the default
+           o.fallback_double = fallback_double;
+           init_engine(self, std::move(model), dtype, max_batch, device,
                        [&](const ModelTpl<float>& md) { return make_forward_dynamics<float>(md, o); },
                        [&](const ModelTpl<double>& md) { return make_forward_dynamics<double>(md, o); });
          },
          "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "method"_a = "auto", "fallback_aba"_a = false,
-         "threads"_a = 0)
+         "threads"_a = 0, "fd_check"_a = "auto", "fd_check_tol"_a = 0.0, "fallback_double"_a = false,
+         "device"_a = -1)
       .def("compute",
            [](PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
-              const std::optional<InArray>& fext) {
-             return e.is_float ? fd_compute<float>(e, q, qd, tau, out, fext)
-                               : fd_compute<double>(e, q, qd, tau, out, fext);
+              const std::optional<InArray>& fext, const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+             return e.is_float ? fd_compute<float>(e, q, qd, tau, out, fext, failed_dof, stream)
+                               : fd_compute<double>(e, q, qd, tau, out, fext, failed_dof, stream);
            },
-           "q"_a, "qd"_a, "tau"_a, "out"_a, "fext"_a = nb::none())
+           "q"_a, "qd"_a, "tau"_a, "out"_a, "fext"_a = nb::none(), "failed_dof"_a = nb::none(), "stream"_a = 0)
       .def_prop_ro("method", [](const PyFd& e) {
         return std::string(to_string(e.is_float ? e.ef->method() : e.ed->method()));
       });

@@ -80,3 +80,20 @@ def run_cli(cli, model_spec, cols, algo, tmp_path, backend="serial", precision="
         rows = [[float(x) for x in line.strip().split(",")] for line in f if line.strip()]
     table = np.array(rows, dtype=np.float64).reshape(len(rows), len(header))
     return {name: table[:, k] for k, name in enumerate(header)}
+
+
+# One link whose inertia about its joint axis is zero: forward dynamics' articulated
+# pivot is 0 (a model loaded with allow_nonphysical_inertia=True).
+DEGENERATE_URDF = """<robot name="degenerate">
+  <link name="base"/>
+  <link name="a"><inertial><mass value="1"/><origin xyz="0 0 0"/>
+    <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial></link>
+  <joint name="j" type="continuous"><parent link="base"/><child link="a"/><axis xyz="0 0 1"/></joint>
+</robot>"""
+
+
+def degenerate_urdf(tmp_path):
+    """The path of DEGENERATE_URDF written into tmp_path."""
+    urdf = tmp_path / "degenerate.urdf"
+    urdf.write_text(DEGENERATE_URDF)
+    return urdf

@@ -181,7 +181,7 @@ def test_engine_classes(model):
     assert "InverseDynamics" in repr(idf)
     for strategy in ("recursion", "scan-local", "scan-world"):
         e = sd.InverseDynamics(model, backend="openmp", max_batch=6, dtype="float64", strategy=strategy)
-        assert e.strategy == strategy
+        assert e.strategy.split("-simd")[0] == strategy  # recursion-simd<W>: the CPU SIMD path
         q64, qd64, qdd64, _ = states(model, 6, np.float64)
         np.testing.assert_allclose(e(q64, qd64, qdd64), sd.inverse_dynamics(model, q64, qd64, qdd64),
                                    rtol=1e-9, atol=1e-9)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import scandyn as sd
-from conftest import states
+from conftest import states, degenerate_urdf
 
 
 @pytest.fixture(scope="module")
@@ -139,26 +139,25 @@ class _FakeDlpackDevice:
         raise AssertionError("must not be imported")
 
 
-@pytest.mark.parametrize("fake", [_FakeCudaArray, _FakeDlpackDevice])
-def test_device_arrays_refused(iiwa, fake):
-    x = fake()
-    with pytest.raises(sd.DeviceError, match="backend 'cuda' from Python is not implemented yet"):
+def test_cuda_array_interface_only_refused(iiwa):
+    """__cuda_array_interface__ names no device: such arrays are refused, never copied."""
+    x = _FakeCudaArray()
+    with pytest.raises(sd.DeviceError, match="__cuda_array_interface__"):
         sd.inverse_dynamics(iiwa, x, x, x)
-    q = np.zeros((2, 7), np.float32)
-    with pytest.raises(sd.DeviceError, match="out"):
-        sd.inverse_dynamics(iiwa, q, q, q, out=x)
+
+
+def test_unallocatable_cuda_result_refused(iiwa):
+    """A CUDA DLPack array of an unknown library: no result can be allocated for it (and in
+    a build without CUDA the backend is missing); an error, and the array is never read."""
+    x = _FakeDlpackDevice()
+    with pytest.raises(sd.Error):
+        sd.inverse_dynamics(iiwa, x, x, x)
 
 
 def test_forward_dynamics_failure(tmp_path):
     """A link whose inertia about its joint axis is zero: the articulated-inertia pivot is
     0, and forward dynamics raises with the library's BatchStatus message."""
-    urdf = tmp_path / "degenerate.urdf"
-    urdf.write_text("""<robot name="degenerate">
-  <link name="base"/>
-  <link name="a"><inertial><mass value="1"/><origin xyz="0 0 0"/>
-    <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial></link>
-  <joint name="j" type="continuous"><parent link="base"/><child link="a"/><axis xyz="0 0 1"/></joint>
-</robot>""")
+    urdf = degenerate_urdf(tmp_path)
     with pytest.raises(sd.ModelError):
         sd.load_model(str(urdf))
     m = sd.load_model(str(urdf), allow_nonphysical_inertia=True)
@@ -177,3 +176,37 @@ def test_forward_dynamics_failure(tmp_path):
     with pytest.raises(sd.ForwardDynamicsError):
         fd(q, q, q)
     assert fd.last_status.failed == 3
+
+
+def test_forward_dynamics_check():
+    """The run-time check (fd_check): float32 jsi on chain:64 is 0.02..0.3 off on random
+    states; with the check on it raises ForwardDynamicsError naming the estimate, with
+    fallback_double every instance is recomputed in double (status.retried), with it off
+    the unchecked result comes back."""
+    m = sd.load_model("chain:64")
+    rng = np.random.default_rng(3)
+    q, qd, tau = (rng.uniform(-1, 1, (4, 64)).astype(np.float32) for _ in range(3))
+    fd = sd.ForwardDynamics(m, max_batch=4, dtype=np.float32, method="jsi", fd_check="on")
+    with pytest.raises(sd.ForwardDynamicsError) as e:
+        fd(q, qd, tau)
+    assert e.value.status.failed == 4
+    assert "forward dynamics check: estimated error of qdd" in str(e.value)
+    assert "above the threshold 0.0001" in str(e.value)
+    fixed = sd.ForwardDynamics(m, max_batch=4, dtype=np.float32, method="jsi", fd_check="on",
+                               fallback_double=True)
+    a = fixed(q, qd, tau)
+    assert fixed.last_status.ok and fixed.last_status.retried == 4
+    ref = sd.ForwardDynamics(m, max_batch=4, method="aba", fd_check="off")(
+        q.astype(np.float64), qd.astype(np.float64), tau.astype(np.float64))
+    assert np.abs(a - ref).max() / max(1.0, np.abs(ref).max()) < 1e-6
+    loose = sd.ForwardDynamics(m, max_batch=4, dtype=np.float32, method="jsi", fd_check="on", fd_check_tol=10)
+    off = sd.ForwardDynamics(m, max_batch=4, dtype=np.float32, method="jsi", fd_check="off")
+    assert (loose(q, qd, tau) == off(q, qd, tau)).all()
+    with pytest.raises(sd.Error):
+        sd.ForwardDynamics(m, max_batch=4, dtype=np.float32, fd_check="maybe")
+
+
+def test_max_batch_range(iiwa):
+    for bad in (0, -3, 2**31):
+        with pytest.raises(sd.ShapeError, match="max_batch must be from 1 to 2147483647"):
+            sd.InverseDynamics(iiwa, backend="serial", max_batch=bad)

@@ -52,3 +52,44 @@ def test_floating_against_pinocchio():
     for k in range(3):
         ref = pin.aba(pm, pd, q[k], qd[k][perm], tau[k][perm])[perm]
         np.testing.assert_allclose(qdd[k], ref, rtol=0, atol=1e-10 * max(1, np.abs(ref).max()))
+
+
+def test_floating_kinematics():
+    """Frames of a floating base: the root link where q puts it, q with nq columns; the
+    Jacobians' free-joint columns against Pinocchio's free flyer (when installed)."""
+    m = sd.load_model("hyq", floating_base=True)
+    rng = np.random.default_rng(3)
+    q, _, _ = random_state(m, 4, rng)
+    P = sd.frame_placements(m, q, quaternion=True)
+    assert P.shape == (4, len(m.frames), 7)
+    np.testing.assert_allclose(P[:, 0, :3], q[:, :3], rtol=0, atol=1e-14)  # frame 0: the root link
+    np.testing.assert_allclose(np.abs(np.einsum("bi,bi->b", P[:, 0, 3:], q[:, 3:7])), 1, rtol=0, atol=1e-14)
+    J = sd.frame_jacobians(m, q)
+    assert J.shape == (4, len(m.frames), 6, m.nv)
+    with pytest.raises(sd.ShapeError, match="nq = 19"):
+        sd.frame_placements(m, q[:, :18])
+    pin = pytest.importorskip("pinocchio")
+    import scandyn.models
+
+    pm = pin.buildModelFromUrdf(scandyn.models.path("hyq"), pin.JointModelFreeFlyer())
+    pd = pm.createData()
+    perm = np.r_[3, 4, 5, 0, 1, 2, 6:18]
+    inv = np.argsort(perm)
+    swap = np.r_[3:6, 0:3]
+    for k in range(4):
+        pin.computeJointJacobians(pm, pd, q[k])
+        pin.framesForwardKinematics(pm, pd, q[k])
+        for f, name in enumerate(m.frames):
+            ref = pin.getFrameJacobian(pm, pd, pm.getFrameId(name, pin.BODY), pin.LOCAL_WORLD_ALIGNED)[swap][:, inv]
+            np.testing.assert_allclose(J[k, f], ref, rtol=0, atol=1e-12)
+
+
+def test_multi_dof_refusals():
+    """What takes 1-DoF joints only says so, naming the joint."""
+    m = sd.load_model("hyq", floating_base=True)
+    rng = np.random.default_rng(4)
+    q, qd, tau = random_state(m, 2, rng)
+    with pytest.raises(sd.BackendError, match="forward-dynamics check.*root_joint"):
+        sd.ForwardDynamics(m, fd_check="on")
+    with pytest.raises(sd.SceneError, match="spherical"):
+        sd.Simulator({"model": "ballrope:3", "dt": 1e-3, "backend": "serial", "instances": 1})

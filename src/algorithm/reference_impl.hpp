@@ -48,7 +48,8 @@ DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
 template <class S>
 void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
           S* tau, const Force<S>* fext) {
-  if (model.multi_dof()) return rnea_at(model, data, q, qd, qdd, tau, fext);
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return rnea_at(model, data, q, qd, qdd, tau, fext);
   const Index n = model.nv();
   const Motion<S> a0 = base_acceleration(model.gravity);
   // forward: kinematics and body forces
@@ -78,7 +79,8 @@ void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S
 
 template <class S>
 void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
-  if (model.multi_dof()) return crba_at(model, data, q, M);
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return crba_at(model, data, q, M);
   const Index n = model.nv();
   for (Index i = 0; i < n; ++i) {
     data.Xup[i] = joint_transform(model.bodies[i], q[i]);
@@ -107,11 +109,21 @@ void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
   }
 }
 
+namespace detail {
+
+// The articulated-body passes of aba and hybrid_dynamics. prescribed null: the ABA
+// (every DoF's force given). Otherwise DoF i with prescribed[i] != 0 has its
+// acceleration qdd_in[i] given (Featherstone 2008, 9.2: hybrid_prescribed_*) and its
+// force written to tau_out[i]; every other DoF has its force tau[i] given, copied to
+// tau_out[i], and its acceleration computed. The ABA's DoFs take exactly the ABA's
+// arithmetic. Nothing is written before every pivot passed; each output entry i is
+// written after its inputs i were read (the outputs may alias the inputs).
 template <class S>
-Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
-           S* qdd, const Force<S>* fext, const S* armature) {
-  if (model.multi_dof()) return aba_at(model, data, q, qd, tau, qdd, fext, armature);
+Status articulated_body_passes(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+                               S* qdd, const Force<S>* fext, const S* armature, const unsigned char* prescribed,
+                               const S* qdd_in, S* tau_out) {
   const Index n = model.nv();
+  auto given = [&](Index i) { return prescribed && prescribed[i]; };
   // pass 1: kinematics, bias forces
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
@@ -126,6 +138,13 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
   // pass 2: articulated inertias, leaves to root
   for (Index i = n - 1; i >= 0; --i) {
     const Body<S>& b = model.bodies[i];
+    if (given(i)) {
+      aba_joint_terms(b, data.IA[i], data.f[i], S(0), data.U[i], data.D[i], data.u[i]);
+      if (b.parent >= 0)
+        hybrid_prescribed_to_parent(b, data.Xup[i], data.IA[i], data.f[i], data.c[i], qdd_in[i],
+                                    data.IA[b.parent], data.f[b.parent]);
+      continue;
+    }
     if (armature)
       aba_joint_terms(b, data.IA[i], data.f[i], tau[i], data.U[i], data.D[i], data.u[i], armature[i]);
     else
@@ -135,14 +154,45 @@ Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, 
       aba_backward_to_parent(data.Xup[i], data.IA[i], data.f[i], data.c[i], data.U[i], data.D[i],
                              data.u[i], data.IA[b.parent], data.f[b.parent]);
   }
-  // pass 3: accelerations, root to leaves
+  // pass 3: accelerations (and the prescribed joints' forces), root to leaves
   const Motion<S> a0 = base_acceleration(model.gravity);
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = model.bodies[i];
-    qdd[i] = aba_acceleration_step(b, data.Xup[i], b.parent < 0 ? a0 : data.a[b.parent], data.c[i],
-                                   data.U[i], data.D[i], data.u[i], data.a[i]);
+    const Motion<S>& ap = b.parent < 0 ? a0 : data.a[b.parent];
+    if (given(i)) {
+      const S qddi = qdd_in[i];
+      tau_out[i] = hybrid_prescribed_acceleration_step(b, data.Xup[i], ap, data.c[i], data.U[i], data.u[i], qddi,
+                                                       data.a[i]);
+      qdd[i] = qddi;
+      continue;
+    }
+    qdd[i] = aba_acceleration_step(b, data.Xup[i], ap, data.c[i], data.U[i], data.D[i], data.u[i], data.a[i]);
+    if (tau_out) tau_out[i] = tau[i];
   }
   return Status{};
+}
+
+}  // namespace detail
+
+template <class S>
+Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
+           S* qdd, const Force<S>* fext, const S* armature) {
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return aba_at(model, data, q, qd, tau, qdd, fext, armature);
+  return detail::articulated_body_passes(model, data, q, qd, tau, qdd, fext, armature,
+                                         static_cast<const unsigned char*>(nullptr), static_cast<const S*>(nullptr),
+                                         static_cast<S*>(nullptr));
+}
+
+template <class S>
+Status hybrid_dynamics(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
+                       const unsigned char* prescribed, const S* qdd_in, const S* tau_in, S* qdd_out, S* tau_out,
+                       const Force<S>* fext, const S* armature) {
+  if (model.multi_dof())  // the engines and the simulator refuse such models first
+    throw std::invalid_argument("hybrid dynamics: model '" + model.name + "' has multi-DoF joints (joint '" +
+                                first_multi_dof_joint(model) + "'); hybrid dynamics takes 1-DoF joints only");
+  return detail::articulated_body_passes(model, data, q, qd, tau_in, qdd_out, fext, armature, prescribed, qdd_in,
+                                         tau_out);
 }
 
 // Calls f(j) for every ancestor DoF j of DoF i and i itself, from i towards the root,
@@ -228,6 +278,8 @@ Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* q
   template void crba(const ModelTpl<S>&, DataTpl<S>&, const S*, S*);                              \
   template Status aba(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,          \
                       const Force<S>*, const S*);                                                 \
+  template Status hybrid_dynamics(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const unsigned char*,      \
+                                  const S*, const S*, S*, S*, const Force<S>*, const S*);                      \
   template Status fd_jsi(const ModelTpl<S>&, DataTpl<S>&, const S*, const S*, const S*, S*,       \
                          const Force<S>*, const S*);                                              \
   template Status ltl_factor(const ModelTpl<S>&, const DataTpl<S>&, S*);                          \

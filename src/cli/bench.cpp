@@ -14,6 +14,8 @@
 #include <random>
 
 #include "engines.hpp"
+#include "hybrid.hpp"
+#include "scandyn/algorithm/reference.hpp"
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/limits.hpp"
@@ -94,12 +96,19 @@ BatchIn<S> make_batch(Algo algo, std::size_t count, const std::vector<S>& q,
   in.count = count;
   in.q = q.data();
   if (algo != Algo::Mass) in.qd = qd.data();
-  if (algo == Algo::Id) in.qdd = third.data();
-  if (algo == Algo::Fd) in.tau = third.data();
+  if (algo == Algo::Id || algo == Algo::DId) in.qdd = third.data();
+  if (algo == Algo::Fd || algo == Algo::DFd) in.tau = third.data();
   return in;
 }
 
+// A failed pivot is an error; the forward-dynamics check's flags are a warning (the
+// row's max_rel_err shows the error; instances whose pivot failed too are caught as
+// outputs that are not finite).
 void check(const BatchStatus& st) {
+  if (!st.ok() && st.failure == Failure::ResidualTooLarge) {
+    std::fprintf(stderr, "scandyn: warning: bench: %s\n", st.message().c_str());
+    return;
+  }
   if (!st.ok())
     throw DataError("bench: instance " + std::to_string(st.first_instance) + ": forward dynamics failed: " +
                     st.reason());
@@ -134,7 +143,7 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
   const std::size_t nv = static_cast<std::size_t>(model.nv());
   const std::size_t width = output_width(algo, model.nv());
   BackendOptions serial;
-  serial.fd_method = FdMethod::Aba;
+  serial.fd_method = algo == Algo::Fd ? FdMethod::Aba : FdMethod::Auto;
   AlgoEngine<double> reference(algo, model, serial);
   std::vector<double> ref(width);
   double worst = 0;
@@ -225,6 +234,9 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
   if (first.fell_back)
     std::fprintf(stderr, "scandyn: warning: %s\n",
                  describe_fallbacks(static_cast<std::size_t>(first.fell_back), count, "instances").c_str());
+  if (first.retried)
+    std::fprintf(stderr, "scandyn: warning: %s\n",
+                 describe_check_retries(static_cast<std::size_t>(first.retried), count, "instances").c_str());
   Timing t;
   t.strategy = engine.strategy();
   t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
@@ -394,10 +406,96 @@ int run_bench_step(const Args& args) {
   return kExitOk;
 }
 
+// ---- --algo hybrid -------------------------------------------------------------
+
+// The hybrid dynamics on the states' q, qd and third (qdd at prescribed DoFs, tau at
+// the others), timed on host memory; max_rel_err of [qdd, tau] per instance against
+// the double serial engine (0 for the serial double engine, which is that reference).
+template <class S>
+Timing time_hybrid(const Model& model, const ModelTpl<S>& model_s, const std::vector<unsigned char>& mask,
+                   BackendOptions options, const RandomStates& states, std::size_t count, double min_time) {
+  const Index n = model.nv(), B = static_cast<Index>(count);
+  const std::size_t nv = static_cast<std::size_t>(n);
+  const std::vector<S> q(states.q.begin(), states.q.end()), qd(states.qd.begin(), states.qd.end());
+  const std::vector<S> third(states.third.begin(), states.third.end());
+  std::vector<S> qdd(count * nv, std::numeric_limits<S>::quiet_NaN()), tau(qdd);
+  options.max_batch = B;
+  std::unique_ptr<HybridDynamics<S>> engine;
+  try {
+    engine = make_hybrid_dynamics(model_s, mask, options);
+  } catch (const BackendError& e) {
+    throw UsageError(std::string("--algo hybrid: ") + e.what(), false);
+  }
+  using V = BatchView<const S>;
+  const HybridBatchIn<S> in{V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(third.data(), n, B),
+                            V::aos(third.data(), n, B)};
+  const auto run = [&] {
+    const BatchStatus st = engine->compute(in, BatchView<S>::aos(qdd.data(), n, B), BatchView<S>::aos(tau.data(), n, B));
+    if (!st.ok())
+      throw DataError("bench: instance " + std::to_string(st.first_instance) + ": hybrid dynamics failed: " +
+                      st.reason());
+  };
+  run();
+  Timing t;
+  t.strategy = engine->strategy() + (engine->backend() == BackendKind::Cuda ? "-host" : "");
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t calls) {
+    for (std::size_t k = 0; k < calls; ++k) run();
+  });
+  if (std::is_same<S, double>::value && engine->exact()) return t;
+  Data d(model, false);
+  std::vector<double> x(2 * nv), ref(2 * nv);
+  for (std::size_t b = 0; b < count; ++b) {
+    const std::size_t k = b * nv;
+    const Status st = hybrid_dynamics(model, d, &states.q[k], &states.qd[k], mask.data(), &states.third[k],
+                                      &states.third[k], ref.data(), ref.data() + nv);
+    if (!st.ok()) throw DataError("bench: instance " + std::to_string(b) + ": the reference hybrid dynamics failed");
+    for (std::size_t i = 0; i < nv; ++i) x[i] = double(qdd[k + i]), x[nv + i] = double(tau[k + i]);
+    const double e = rel_err(x.data(), ref.data(), 2 * nv);
+    t.max_rel_err = std::isnan(e) || std::isnan(t.max_rel_err) ? NAN : std::max(t.max_rel_err, e);
+  }
+  return t;
+}
+
+int run_bench_hybrid(const Args& args) {
+  for (const char* f : {"fd", "fallback", "strategy", "scene"})
+    if (args.has(f)) throw UsageError(std::string("--") + f + " does not apply to --algo hybrid");
+  if (!args.has("prescribed"))
+    throw UsageError("--algo hybrid needs --prescribed LIST (DoF indices or joint names whose accelerations are given)");
+  const std::string& model_spec = args.required("model");
+  const std::size_t count = parse_instances(args.required("instances"));
+  const BackendOptions options = parse_backend_options(args);
+  const Precision precision = parse_cli_precision(args);
+  const double min_time = parse_min_time(args.get("min-time", "0.5"));
+  require_usable(options.backend);
+  const Model model = load_cli_model(args);
+  if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  const std::vector<unsigned char> mask = parse_prescribed(args.required("prescribed"), model);
+  const std::size_t nv = static_cast<std::size_t>(model.nv()), scalar = precision == Precision::Float ? 4 : 8;
+  require_host_memory("bench --algo hybrid on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +
+                          std::to_string(count) + " instances in " + to_string(precision),
+                      double(count) * nv * (3.0 * 8 + 5.0 * scalar) +
+                          workspace_bytes(nv, backend_threads(options.backend, options.threads), false, scalar) +
+                          workspace_bytes(nv, 1, false, 8));
+  const RandomStates states(count, nv, nv, {});  // 1-DoF models: make_hybrid_dynamics refuses the others
+  const Timing t = precision == Precision::Double
+                       ? time_hybrid<double>(model, model, mask, options, states, count, min_time)
+                       : time_hybrid<float>(model, model.cast<float>(), mask, options, states, count, min_time);
+  const std::string row = "hybrid," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
+                          "," + model_label(model_spec) + "," + std::to_string(nv) + "," + std::to_string(count) +
+                          "," + format_g(t.seconds_per_call, 6) + "," +
+                          format_g(double(count) / t.seconds_per_call, 6) + "," + format_g(t.max_rel_err, 6);
+  if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, row);
+  if (::isatty(STDOUT_FILENO)) std::puts(kBenchHeader);
+  std::puts(row.c_str());
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_bench(const Args& args) {
   if (args.get("algo", "") == "step") return run_bench_step(args);
+  if (args.get("algo", "") == "hybrid") return run_bench_hybrid(args);
+  if (args.has("prescribed")) throw UsageError("--prescribed applies only to --algo hybrid");
   if (args.has("scene")) throw UsageError("--scene applies only to --algo step");
   const std::string& model_spec = args.required("model");
   const std::string& algo_text = args.required("algo");
@@ -407,7 +505,7 @@ int run_bench(const Args& args) {
     throw UsageError(std::string("--") + (args.has("frames") ? "frames" : "reference") + " applies only to --algo fk or jac");
   if (!kinematics && !parse_algo(algo_text, algo))
     throw UsageError("unknown --algo value '" + args.required("algo") +
-                     "' (expected id, fd, mass, bias, fk, jac or step)");
+                     "' (expected id, fd, mass, bias, did, dfd, fk, jac or step)");
   if (args.has("fd") && algo != Algo::Fd) throw UsageError("--fd applies only to --algo fd");
   const std::size_t count = parse_instances(args.required("instances"));
   const BackendOptions options = parse_backend_options(args);

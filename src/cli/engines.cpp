@@ -1,6 +1,7 @@
 // src/cli/engines.cpp: the command line's algorithms on the library's engines.
 #include "engines.hpp"
 
+#include <array>
 #include <cmath>
 #include <stdexcept>
 
@@ -25,11 +26,12 @@ auto parse_flag(const Args& args, const char* flag, const char* fallback, F&& pa
 
 Precision parse_cli_precision(const Args& args) { return parse_flag(args, "precision", "double", parse_precision); }
 
-BackendOptions parse_backend_options(const Args& args) {
+BackendOptions parse_backend_options(const Args& args, FdCheckMode default_check) {
   BackendOptions o;
   o.backend = parse_flag(args, "backend", "serial", parse_backend);
   o.strategy = parse_flag(args, "strategy", "auto", parse_strategy);
   o.fd_method = parse_flag(args, "fd", "auto", parse_fd_method);
+  o.simd = parse_flag(args, "simd", "auto", parse_cpu_simd);
   if (args.has("threads")) {
     const std::string& t = args.required("threads");
     double v = 0;
@@ -38,11 +40,36 @@ BackendOptions parse_backend_options(const Args& args) {
     o.threads = static_cast<int>(v);
   }
   if (args.has("fallback")) {
-    if (args.required("fallback") != "aba")
-      throw UsageError("unknown --fallback value '" + args.required("fallback") + "' (expected aba)");
-    if (o.fd_method != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
-    o.fallback_aba = true;
+    // a comma-separated list of aba and double
+    const std::string& list = args.required("fallback");
+    for (std::size_t at = 0; at <= list.size();) {
+      const std::size_t end = std::min(list.find(',', at), list.size());
+      const std::string name = list.substr(at, end - at);
+      if (name == "aba") {
+        if (o.fd_method != FdMethod::Jsi) throw UsageError("--fallback aba applies only to --fd jsi");
+        o.fallback_aba = true;
+      } else if (name == "double") {
+        if (parse_cli_precision(args) != Precision::Float)
+          throw UsageError("--fallback double applies only to --precision float");
+        o.fallback_double = true;
+      } else {
+        throw UsageError("unknown --fallback value '" + name + "' (expected aba, double or aba,double)");
+      }
+      at = end + 1;
+    }
   }
+  o.fd_check = default_check;
+  if (args.has("fd-check")) o.fd_check = parse_flag(args, "fd-check", "auto", parse_fd_check);
+  if (args.has("fd-check-tol")) {
+    const std::string& t = args.required("fd-check-tol");
+    double v = 0;
+    if (!parse_number(t, v) || !(v > 0) || !std::isfinite(v))
+      throw UsageError("--fd-check-tol must be a positive number, got '" + t + "'");
+    (parse_cli_precision(args) == Precision::Float ? o.fd_check_tol_float : o.fd_check_tol_double) = v;
+  }
+  if (o.fallback_double && o.fd_check == FdCheckMode::Off)
+    throw UsageError("--fallback double recomputes the rows the forward-dynamics check flags; it needs the check "
+                     "(not --fd-check off)");
   return o;
 }
 
@@ -54,6 +81,12 @@ void require_usable(BackendKind backend) {
                    false);
 }
 
+std::string describe_check_retries(std::size_t retried, std::size_t total, const char* unit) {
+  return "the forward-dynamics check flagged " + std::to_string(retried) + " of " + std::to_string(total) + " " +
+         unit + " (estimated error of qdd above --fd-check-tol); " + (retried == 1 ? "it was" : "they were") +
+         " computed again by the fallback (--fallback) and passed";
+}
+
 std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit) {
   return "forward dynamics by jsi failed on " + std::to_string(fell_back) + " of " + std::to_string(total) + " " +
          unit + " (mass matrix pivot not positive); " + (fell_back == 1 ? "it was" : "they were") +
@@ -61,6 +94,20 @@ std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const c
 }
 
 // ---- AlgoEngine -----------------------------------------------------------------
+
+namespace {
+
+// The three nv x nv blocks of did / dfd in an instance-major output row of 3 nv^2
+// values: block k of instance b at out[b * 3 nv^2 + k nv^2], row-major.
+template <class S>
+std::array<BatchView<S>, 3> derivative_blocks(S* out, Index nv, Index B) {
+  const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
+  std::array<BatchView<S>, 3> v;
+  for (int k = 0; k < 3; ++k) v[k] = BatchView<S>{out + k * nn, B, 1, 3 * nn};
+  return v;
+}
+
+}  // namespace
 
 template <class S>
 AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& o)
@@ -71,6 +118,8 @@ AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOpti
       case Algo::Bias: bias_ = make_bias_forces(model, o); break;
       case Algo::Mass: mass_ = make_mass_matrix(model, o); break;
       case Algo::Fd: fd_ = make_forward_dynamics(model, o); break;
+      case Algo::DId: did_ = make_id_derivatives(model, o); break;
+      case Algo::DFd: dfd_ = make_fd_derivatives(model, o); break;
     }
   } catch (const BackendError& e) {
     // no device, a model beyond a kernel's limit, a method the model cannot take, no memory
@@ -87,6 +136,8 @@ const Engine& AlgoEngine<S>::engine() const {
   if (id_) return *id_;
   if (bias_) return *bias_;
   if (mass_) return *mass_;
+  if (did_) return *did_;
+  if (dfd_) return *dfd_;
   return *fd_;
 }
 
@@ -109,6 +160,17 @@ BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
       case Algo::Fd:
         return fd_->compute(FdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                             BatchView<S>::aos(out, nv, B));
+      case Algo::DId: {
+        const auto block = derivative_blocks(out, nv, B);
+        did_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+                      IdDerivativesOut<S>{block[0], block[1], block[2]});
+        return {};
+      }
+      case Algo::DFd: {
+        const auto block = derivative_blocks(out, nv, B);
+        return dfd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+                             FdDerivativesOut<S>{block[0], block[1], block[2], {}});
+      }
     }
   } catch (const BackendError& e) {
     throw DataError(e.what());  // a CUDA error during the computation

@@ -28,7 +28,7 @@ using io::parse_algo;
 
 // A batch of count instances, instance-major: entry i of instance b is at [b * nv + i].
 // Inputs an algorithm does not read may be null: id reads q, qd, qdd; fd reads
-// q, qd, tau; mass reads q; bias reads q, qd.
+// q, qd, tau; mass reads q; bias reads q, qd; did as id, dfd as fd.
 template <class S>
 struct BatchIn {
   std::size_t count = 0;
@@ -41,9 +41,10 @@ struct BatchIn {
 // --precision (default double); throws UsageError for a bad value.
 Precision parse_cli_precision(const Args& args);
 
-// --backend, --strategy, --threads, --fd and --fallback as BackendOptions (max_batch
-// 1); throws UsageError for bad values.
-BackendOptions parse_backend_options(const Args& args);
+// --backend, --strategy, --threads, --fd, --fallback (aba, double), --fd-check
+// (default default_check) and --fd-check-tol (the threshold of --precision) as
+// BackendOptions (max_batch 1); throws UsageError for bad values.
+BackendOptions parse_backend_options(const Args& args, FdCheckMode default_check = FdCheckMode::Auto);
 
 // Throws UsageError (no --help hint) when the backend cannot run here:
 // "backend 'cuda': no usable CUDA device: ...".
@@ -92,6 +93,8 @@ class AlgoEngine {
   std::unique_ptr<BiasForces<S>> bias_;
   std::unique_ptr<MassMatrix<S>> mass_;
   std::unique_ptr<ForwardDynamics<S>> fd_;
+  std::unique_ptr<IdDerivatives<S>> did_;
+  std::unique_ptr<FdDerivatives<S>> dfd_;
   const Engine& engine() const;
 };
 
@@ -117,5 +120,8 @@ std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine
 // dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not positive); they
 // were computed by aba (--fallback aba)".
 std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const char* unit);
+// The stderr warning for instances the forward-dynamics check flagged and a retry
+// fixed (BatchStatus::retried).
+std::string describe_check_retries(std::size_t retried, std::size_t total, const char* unit);
 
 }  // namespace scandyn::cli

@@ -2,8 +2,8 @@
 // batch copied once to device memory (cuda::DeviceBatch), the engine's
 // compute_async() on its stream per call; fd's failed DoFs stay on the device until
 // status() reads them, after the timing. Every engine has one except fd by the
-// hybrid method and jsi with the aba fallback (compute() only: the host must see q,
-// or which instances failed).
+// hybrid method, jsi with the aba fallback and fd with the run-time check on
+// (compute() only: the host must see q, or which instances failed or were flagged).
 #include "engines.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "cli.hpp"
+#include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -79,7 +80,11 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
   const std::size_t width = output_width(algo, nv);
   if (algo == Algo::Fd) {
     auto& e = dynamic_cast<cuda::CudaForwardDynamics<S>&>(engine);
-    if (e.method() == FdMethod::Hybrid || e.fallback_aba()) return nullptr;
+    // hybrid: compute() only; the aba fallback and the run-time check's retries and
+    // report need the host to see each instance (the check's device cost:
+    // bench_cuda_fd's +check rows)
+    if (e.method() == FdMethod::Hybrid || e.fallback_aba() || e.strategy().find("+check") != std::string::npos)
+      return nullptr;
     return std::make_unique<CudaResidentBatch<S>>(
         e.strategy(), "the forward dynamics", nv, std::vector<const S*>{in.q, in.qd, in.tau}, in.count, width,
         e.device_bytes(),
@@ -87,6 +92,32 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
           return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.failed_dof(), d.stream());
         },
         pivot_failure(e.method()));
+  }
+  if (algo == Algo::DId || algo == Algo::DFd) {
+    // the output's three nv x nv blocks, instance innermost: block k from entry k nv^2
+    const auto block = [nv](const D& d, int k) {
+      const BatchView<S> o = d.output();
+      return BatchView<S>{o.data + static_cast<std::ptrdiff_t>(k) * nv * nv * o.dof_stride, o.batch, o.dof_stride,
+                          o.batch_stride};
+    };
+    if (algo == Algo::DFd) {
+      auto& e = dynamic_cast<cuda::CudaFdDerivatives<S>&>(engine);
+      return std::make_unique<CudaResidentBatch<S>>(
+          e.strategy(), "the forward-dynamics derivatives", nv, std::vector<const S*>{in.q, in.qd, in.tau}, in.count,
+          width, std::size_t(0),
+          [&e, block](const D& d) {
+            return e.compute_async({d.input(0), d.input(1), d.input(2)},
+                                   {block(d, 0), block(d, 1), block(d, 2), {}}, d.failed_dof(), d.stream());
+          },
+          Failure::ArticulatedPivot);
+    }
+    auto& e = dynamic_cast<cuda::CudaIdDerivatives<S>&>(engine);
+    return std::make_unique<CudaResidentBatch<S>>(
+        e.strategy(), "the inverse-dynamics derivatives", nv, std::vector<const S*>{in.q, in.qd, in.qdd}, in.count,
+        width, std::size_t(0), [&e, block](const D& d) {
+          return e.compute_async({d.input(0), d.input(1), d.input(2)}, {block(d, 0), block(d, 1), block(d, 2)},
+                                 d.stream());
+        });
   }
   if (algo == Algo::Mass) {
     auto& e = dynamic_cast<cuda::CudaMassMatrix<S>&>(engine);

@@ -6,6 +6,8 @@
 #include <type_traits>
 
 #include "engines.hpp"
+#include "hybrid.hpp"
+#include "scandyn/algorithm/loops.hpp"
 #include "cli.hpp"
 #include "kinematics_columns.hpp"
 #include "scandyn/io/csv.hpp"
@@ -17,12 +19,12 @@
 namespace scandyn::cli {
 namespace {
 
-constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias};
+constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd};
 
-// --algo id,fd,...: the requested set in output order (id, fd, mass, bias); fk and
-// jac (kinematics, columns after the dynamics') set the flags.
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias, did, dfd);
+// fk and jac (kinematics, columns after the dynamics') set the flags.
 std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) {
-  bool wanted[4] = {false, false, false, false};
+  bool wanted[std::size(kAllAlgos)] = {};
   std::size_t start = 0;
   for (;;) {
     const std::size_t comma = list.find(',', start);
@@ -33,7 +35,7 @@ std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) 
       (item == "fk" ? fk : jac) = true;
     } else if (!parse_algo(item, a)) {
       throw UsageError("unknown --algo value '" + item +
-                       "' (expected a comma-separated list of id, fd, mass, bias, fk, jac)");
+                       "' (expected a comma-separated list of id, fd, mass, bias, did, dfd, fk, jac)");
     } else {
       wanted[static_cast<int>(a)] = true;
     }
@@ -96,7 +98,7 @@ std::size_t chunk_rows(const CsvReader& in, const std::vector<Algo>& algos, Inde
 template <class S>
 void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines,
                KinematicsColumns<S>* kin, CsvReader& in, const StateColumns& cols, const std::vector<Algo>& algos,
-               std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back) {
+               std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back, std::size_t& retried) {
   const std::size_t nv = static_cast<std::size_t>(model.nv()), nq = static_cast<std::size_t>(model.nq());
   const std::vector<Index> quaternions = quaternion_offsets(model);
   std::vector<std::string> names;
@@ -153,9 +155,15 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
     for (std::size_t k = 0; k < algos.size(); ++k) {
       const BatchStatus st = engines[k]->run(batch, result[k].data());
       fell_back += static_cast<std::size_t>(st.fell_back);
-      if (!st.ok())  // the pivot of the method used
+      retried += static_cast<std::size_t>(st.retried);
+      if (!st.ok())  // the pivot of the method used, or the run-time check
         throw DataError(in.where(row0 + static_cast<std::size_t>(st.first_instance)) +
-                        ": forward dynamics failed: " + st.reason());
+                        ": " + (algos[k] == Algo::DFd ? "forward-dynamics derivatives" : "forward dynamics") +
+                        " failed: " + st.reason() +
+                        (st.failure == Failure::ResidualTooLarge
+                             ? "; --fallback double (float) or aba (jsi) computes such rows again, --fd-check-tol "
+                               "sets the threshold, --fd-check off accepts the result"
+                             : ""));
     }
     if (kin) kin->run(batch.q, count, kin_result.data(), kin->width());
 
@@ -225,27 +233,36 @@ void eval_file(const ModelTpl<S>& model, BackendOptions options, CsvReader& in, 
   std::unique_ptr<KinematicsColumns<S>> kin;
   if (kinematics.any()) kin = std::make_unique<KinematicsColumns<S>>(model, kinematics, options);
   CsvWriter out(out_path);
-  std::size_t rows = 0, fell_back = 0;
-  eval_rows(model, engines, kin.get(), in, cols, algos, chunk, out, rows, fell_back);
+  std::size_t rows = 0, fell_back = 0, retried = 0;
+  eval_rows(model, engines, kin.get(), in, cols, algos, chunk, out, rows, fell_back, retried);
   out.commit();
   if (fell_back) std::fprintf(stderr, "scandyn: warning: %s\n", describe_fallbacks(fell_back, rows, "rows").c_str());
+  if (retried) std::fprintf(stderr, "scandyn: warning: %s\n", describe_check_retries(retried, rows, "rows").c_str());
 }
 
 }  // namespace
 
 int run_eval(const Args& args) {
+  if (args.get("algo", "") == "hybrid") return run_eval_hybrid(args);
+  if (args.has("loops") || generator_has_loops(args.required("model"))) return run_eval_loops(args);
+  if (args.has("actuated")) throw UsageError("--actuated applies only to models with loops (--loops FILE)");
+  if (args.has("prescribed")) throw UsageError("--prescribed applies only to --algo hybrid");
   const std::string& model_spec = args.required("model");
   const std::string& states_path = args.required("states");
   const std::string& out_path = args.required("out");
   std::vector<Algo> algos;
   bool fk = false, jac = false;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"), fk, jac);
-  const BackendOptions options = parse_backend_options(args);
+  // eval checks forward dynamics by default: its time goes to reading and writing CSV
+  BackendOptions options = parse_backend_options(args, FdCheckMode::On);
   const Precision precision = parse_cli_precision(args);
   require_usable(options.backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  // the check takes 1-DoF joints: off by default on a floating base or ball joints
+  // (an explicit --fd-check on is refused by the engine, naming the joint)
+  if (model.multi_dof() && !args.has("fd-check")) options.fd_check = FdCheckMode::Off;
 
   const KinematicsRequest kinematics = parse_kinematics_request(args, model, fk, jac);
 

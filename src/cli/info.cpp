@@ -1,4 +1,5 @@
 // src/cli/info.cpp: `scandyn info`, a model's summary and DoF order.
+#include "scandyn/algorithm/loops.hpp"
 #include <algorithm>
 #include <cstdio>
 
@@ -56,6 +57,10 @@ void add_cuda_rows(std::vector<std::vector<std::string>>& rows) {
 
 int run_info(const Args& args) {
   const Model model = load_cli_model(args);
+  if (args.has("print-loops")) {  // the generator's loops as a loop file
+    std::fputs(loops_json(generator_loops(args.required("model"), model)).c_str(), stdout);
+    return kExitOk;
+  }
   std::vector<std::vector<std::string>> summary = {
       {"model", model.name},
       {"source", model.source},

@@ -33,7 +33,7 @@ const char* const kUsage =
     "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
 
 const char* const kInfoUsage =
-    "usage: scandyn info --model M [--floating-base] [--allow-nonphysical-inertia]\n"
+    "usage: scandyn info --model M [--floating-base] [--allow-nonphysical-inertia] [--print-loops]\n"
     "\n"
     "Prints the model's name, source, nv, nq, base (fixed or floating), root link and\n"
     "gravity, the CUDA devices (or why there are none), then one line per body in DoF\n"
@@ -44,11 +44,14 @@ const char* const kInfoUsage =
     "body's frame.\n"
     "  --floating-base  give the root link a free joint: q = [p; quaternion x y z w;\n"
     "                   joints] (nq = nv + 1), qd = [base twist in the base frame (w, v);\n"
-    "                   joints]\n";
+    "                   joints]\n"
+    "  --print-loops    print the loops a generator carries (fivebar, fourbar, cloth:K:N)\n"
+    "                   as a loop file instead.\n";
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
-    "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba]\n"
+    "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba|double]\n"
+    "                    [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                    [--precision double|float] [--frames NAMES] [--reference world|local]\n"
     "\n"
@@ -78,32 +81,63 @@ const char* const kEvalUsage =
     "  --fallback aba    with --fd jsi: an instance whose mass matrix factorisation\n"
     "                    fails (a pivot that is not positive) is computed by aba\n"
     "                    instead, and a warning on stderr counts them (cuda: up to\n"
-    "                    64 DoF, by the ABA kernel over just those instances)\n"
+    "                    64 DoF, by the ABA kernel over just those instances); with\n"
+    "                    the check on, also an instance the check flags\n"
+    "  --fallback double with --precision float: an instance the check flags is\n"
+    "                    computed again by aba in double (aba,double: both, in order);\n"
+    "                    a warning on stderr counts them\n"
+    "  --fd-check MODE   check every forward dynamics result: the residual\n"
+    "                    ID(q, qd, qdd) - tau in double, turned into an estimate of\n"
+    "                    qdd's relative error; a row above the threshold fails (exit\n"
+    "                    1, naming the row) unless a fallback fixes it. Default on\n"
+    "                    (eval); auto: only where it costs under 10% (jsi, 200+ DoF,\n"
+    "                    CPU); off: the unchecked, bit-identical result\n"
+    "  --fd-check-tol X  the check's threshold (default 1e-4 float, 1e-10 double)\n"
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
+    "  --simd M          serial/openmp recursions (id, bias, mass, aba) W instances\n"
+    "                    per vector register: auto (default), on or off\n"
     "  --precision P     double (default) or float\n"
     "  --floating-base   the model on a free joint at its root (as for info): q_0..q_{nq-1}\n"
     "                    (the base quaternion q_3..q_6 normalised, a data error when its\n"
     "                    norm is off from 1 by more than 1e-6), qd, qdd, tau nv each\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
-    "                    with a warning, instead of refusing the model\n";
+    "                    with a warning, instead of refusing the model\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv --algo hybrid\n"
+    "                    --prescribed LIST [--backend ...] [--threads N] [--precision P]\n"
+    "Hybrid dynamics: LIST names the DoFs whose accelerations are given (DoF indices or\n"
+    "joint names, comma-separated); reads q_<i>, qd_<i>, qdd_<i> of those DoFs and\n"
+    "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n"
+    "\n"
+    "       scandyn eval --model M --states IN.csv --out OUT.csv [--loops FILE]\n"
+    "                    [--algo fd | --algo id --actuated LIST]\n"
+    "Closed loops (a loop file, or the loops of fivebar, fourbar, cloth:K:N): fd writes\n"
+    "qdd_fd_<i> and lambda_<k> (M qdd + h = tau + J^T lambda, J qdd + Jdot qd = 0);\n"
+    "id with the actuated DoFs writes tau_id_<i> (minimum norm) and lambda_<k>. A state\n"
+    "violating its loops by more than 1e-6 is an error. Serial, double.\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
-    "                       [--backend serial|openmp|cuda]\n"
+    "                       [--backend serial|openmp|cuda] [--tau TAU.npy]\n"
     "\n"
     "Simulates the scene (docs/scenes.md) for N steps from its initial state, with zero\n"
-    "joint torques, and writes the state of every instance at steps 0, K, 2K, ... and N:\n"
+    "joint torques or those of --tau, and writes the state of every instance at steps\n"
+    "0, K, 2K, ... and N:\n"
     "  .csv  columns step,time,instance,q_<i>...,qd_<i>..., 17 significant digits\n"
     "  .npy  a NumPy array of shape (records, instances, 1 + 2 nv): [time, q, qd], float64\n"
     "        (or float32 for a float scene)\n"
+    "  --tau TAU.npy  joint torques (float32 or float64 .npy, numpy.save): shape (N, B, nv),\n"
+    "        row t acting during the step from t to t + 1; (B, nv), constant per instance;\n"
+    "        or (nv,), one row for every instance and step (B: the scene's instances)\n"
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias|fk|jac --instances B [--fd METHOD]\n"
-    "                     [--fallback aba] [--frames NAMES] [--reference world|local]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias|did|dfd|fk|jac|hybrid --instances B [--fd METHOD]\n"
+    "                     [--fallback aba|double] [--fd-check on|off|auto] [--fd-check-tol X]\n"
+    "                     [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
@@ -118,6 +152,9 @@ const char* const kBenchUsage =
     "                    (default every frame); cuda: rows thread (resident) and thread-host\n"
     "  --fallback aba    as for eval (strategy column jsi+aba; cuda: jsi_thread+aba-host,\n"
     "                    no device-resident row)\n"
+    "  --fd-check MODE   as for eval, default auto; flagged instances are a warning\n"
+    "                    (strategy column <method>+check where it runs)\n"
+    "  --fd-check-tol X, --fallback double   as for eval\n"
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
@@ -128,7 +165,11 @@ const char* const kBenchUsage =
     "Times whole simulator steps of the scene (instances, backend and precision from the\n"
     "scene unless given); evals_per_second is instance-steps per second, strategy\n"
     "<engine>:<integrator>:<effects>, max_rel_err the state after 10 steps against the\n"
-    "double serial simulator (at most 1000 instances compared).\n";
+    "double serial simulator (at most 1000 instances compared).\n"
+    "\n"
+    "       scandyn bench --model M --algo hybrid --prescribed LIST --instances B ...\n"
+    "Times the hybrid dynamics (LIST as for eval); max_rel_err of qdd and tau against\n"
+    "the double serial hybrid dynamics.\n";
 
 // One subcommand: its name, usage text, accepted flags and body.
 struct Command {
@@ -139,18 +180,20 @@ struct Command {
 };
 
 const Command kCommands[] = {
-    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "floating-base"}, &run_info},
+    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "floating-base", "print-loops"}, &run_info},
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "frames", "reference", "floating-base"},
+      "allow-nonphysical-inertia", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed", "loops",
+      "actuated", "simd"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base"},
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed",
+      "simd"},
      &run_bench},
-    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend"}, &run_rollout},
+    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau"}, &run_rollout},
 };
 
 int fail(int code, const std::string& message) {

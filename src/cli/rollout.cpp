@@ -16,8 +16,9 @@
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/output_file.hpp"
 #include "scandyn/io/limits.hpp"
-#include "scandyn/io/limits.hpp"
+#include "scandyn/io/npy.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "rollout_torques.hpp"
 #include "simulator_cli.hpp"
 
 namespace scandyn::cli {
@@ -35,33 +36,6 @@ long long parse_count(const std::string& flag, const std::string& text, long lon
 bool ends_with(const std::string& s, const char* suffix) {
   const std::size_t n = std::strlen(suffix);
   return s.size() >= n && s.compare(s.size() - n, n, suffix) == 0;
-}
-
-// The header of a version 1.0 .npy file holding a C-order array of `shape` with
-// little-endian elements of `descr` ('<f8', '<f4'): magic, version, header length,
-// the dictionary padded with spaces and a newline to a multiple of 64 bytes.
-// total: pad to exactly this many bytes (a header rewritten in place), else 0.
-std::string npy_header(const char* descr, const std::vector<long long>& shape, std::size_t total = 0) {
-  std::string dict = std::string("{'descr': '") + descr + "', 'fortran_order': False, 'shape': (";
-  for (std::size_t k = 0; k < shape.size(); ++k) dict += std::to_string(shape[k]) + (shape.size() == 1 || k + 1 < shape.size() ? ", " : "");
-  dict += "), }";
-  const std::size_t unpadded = 10 + dict.size() + 1;
-  dict.append(total > unpadded ? total - unpadded : (64 - unpadded % 64) % 64, ' ');
-  dict += '\n';
-  std::string h = "\x93NUMPY";
-  h += '\x01';
-  h += '\x00';
-  const std::uint16_t len = static_cast<std::uint16_t>(dict.size());
-  h += static_cast<char>(len & 0xff);
-  h += static_cast<char>(len >> 8);
-  return h + dict;
-}
-
-bool little_endian() {
-  const std::uint16_t x = 1;
-  unsigned char c;
-  std::memcpy(&c, &x, 1);
-  return c == 1;
 }
 
 // "\r[#####.....]  45%  450/1000 steps" on stderr, at most every 0.1 s
@@ -127,7 +101,8 @@ std::string first_non_finite(const BatchView<const S>& q, const BatchView<const 
 constexpr double kLargeOutputBytes = 2.0 * (1ull << 30);
 
 template <class S>
-int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path) {
+int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path,
+            const std::string& tau_path) {
   const std::size_t n = static_cast<std::size_t>(scene.nv()), nb = static_cast<std::size_t>(scene.instances);
   // recorded steps: 0, every, 2 every, ..., and the last one
   const long long records = steps / every + 1 + (steps % every != 0);
@@ -143,10 +118,15 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   if (out_bytes > kLargeOutputBytes)
     std::fprintf(stderr, "scandyn: %s: %s takes about %s (--every records fewer steps)\n", printable(out_path).c_str(),
                  what.c_str(), format_bytes(out_bytes).c_str());
+  const double tau_bytes = tau_path.empty() ? 0.0 : RolloutTorques<S>::host_bytes(scene.instances, scene.nv());
   const std::unique_ptr<sim::Simulator<S>> made =
-      make_simulator<S>(scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + (2u << 20));
+      make_simulator<S>(scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + tau_bytes + (2u << 20));
   sim::Simulator<S>& sim = *made;
   const Index nv = sim.nv(), B = sim.batch();
+  // --tau: checked (shape, dtype, size; the constant shapes' values) before the output is made
+  std::unique_ptr<RolloutTorques<S>> tau;
+  if (!tau_path.empty())
+    tau = std::make_unique<RolloutTorques<S>>(tau_path, steps, B, nv, sim.on_device(), sim.stream());
   AtomicFileWriter file(out_path);
   // a signal (SIGINT, SIGTERM, SIGHUP) ends the loop at the next step: the records
   // written so far are published (.npy with its shape fixed up), exit 128 + signal
@@ -211,7 +191,8 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
                    scene.path.c_str(), sig, s, printable(out_path).c_str(), written);
       return 128 + sig;
     }
-    sim.step();
+    if (tau) sim.step(tau->for_step(s));
+    else sim.step();
     // host-resident state (serial, openmp): checked after every step, in place
     if (!sim.on_device()) {
       const BatchView<S> qv = sim.q(), qdv = sim.qd();
@@ -249,8 +230,10 @@ int run_rollout(const Args& args) {
     throw DataError(e.what());
   }
   const BackendKind backend = scene_backend(scene, args);
-  return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out)
-                                                  : rollout<double>(scene, backend, steps, every, out);
+  const std::string tau = args.get("tau", "");
+  if (args.has("tau") && tau.empty()) throw UsageError("--tau needs a .npy file");
+  return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out, tau)
+                                                  : rollout<double>(scene, backend, steps, every, out, tau);
 }
 
 }  // namespace scandyn::cli

@@ -3,6 +3,7 @@
 #include "scandyn/engine.hpp"
 
 #include <algorithm>
+#include <cstdio>
 
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/build_config.hpp"
@@ -10,8 +11,10 @@
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #endif
 
@@ -55,6 +58,24 @@ const char* to_string(FdMethod m) {
   return "?";
 }
 
+const char* to_string(FdCheckMode m) {
+  switch (m) {
+    case FdCheckMode::Auto: return "auto";
+    case FdCheckMode::On: return "on";
+    case FdCheckMode::Off: return "off";
+  }
+  return "?";
+}
+
+const char* to_string(CpuSimd s) {
+  switch (s) {
+    case CpuSimd::Auto: return "auto";
+    case CpuSimd::Off: return "off";
+    case CpuSimd::On: return "on";
+  }
+  return "?";
+}
+
 namespace {
 
 // The value of E whose to_string is name; BackendError naming what and the choices.
@@ -89,6 +110,20 @@ FdMethod parse_fd_method(const std::string& name) {
                                       FdMethod::Parallel};
   return parse_name(name, kAll, "forward-dynamics method");
 }
+CpuSimd parse_cpu_simd(const std::string& name) {
+  static constexpr CpuSimd kAll[] = {CpuSimd::Auto, CpuSimd::Off, CpuSimd::On};
+  return parse_name(name, kAll, "simd mode");
+}
+
+FdCheckMode parse_fd_check(const std::string& name) {
+  static constexpr FdCheckMode kAll[] = {FdCheckMode::Auto, FdCheckMode::On, FdCheckMode::Off};
+  return parse_name(name, kAll, "forward-dynamics check");
+}
+
+bool fd_check_enabled(FdCheckMode mode, BackendKind backend, FdMethod method, Index nv) {
+  if (mode != FdCheckMode::Auto) return mode == FdCheckMode::On;
+  return backend != BackendKind::Cuda && method == FdMethod::Jsi && nv >= 200;
+}
 
 // ---- BatchStatus ----------------------------------------------------------------
 
@@ -97,9 +132,12 @@ void BatchStatus::merge(const BatchStatus& other) {
     first_instance = other.first_instance;
     first_dof = other.first_dof;
     failure = other.failure;
+    estimate = other.estimate;
+    threshold = other.threshold;
   }
   failed += other.failed;
   fell_back += other.fell_back;
+  retried += other.retried;
 }
 
 std::string BatchStatus::reason() const {
@@ -110,6 +148,14 @@ std::string BatchStatus::reason() const {
     case Failure::BothPivots:
       return "mass matrix pivot not positive, and by the aba fallback the articulated inertia" + pivot;
     case Failure::NonFinite: return "the state at DoF " + std::to_string(first_dof) + " is not finite after the step";
+    case Failure::ResidualTooLarge: {
+      char b[256];
+      std::snprintf(b, sizeof b,
+                    "forward dynamics check: estimated error of qdd %.2g (M^-1 (ID(q, qd, qdd) - tau) relative to "
+                    "max(1, |qdd|)) above the threshold %.2g (largest at DoF %lld)",
+                    estimate, threshold, static_cast<long long>(first_dof));
+      return b;
+    }
     case Failure::ArticulatedPivot:
     case Failure::None: break;
   }
@@ -129,6 +175,24 @@ BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Ind
   st.fell_back = fell_back;
   for (Index b = 0; b < B; ++b)
     if (failed_dof[b] >= 0) st.record(b, failed_dof[b], what);
+  return st;
+}
+
+BatchStatus summarize_checked(const int* failed_dof, const double* estimate, Index B, Failure pivot,
+                              double threshold, Index fell_back, Index retried) {
+  BatchStatus st;
+  st.failed_dof = failed_dof;
+  st.fell_back = fell_back;
+  st.retried = retried;
+  for (Index b = 0; b < B; ++b) {
+    if (failed_dof[b] < 0) continue;
+    const bool check = !(estimate[b] <= threshold);
+    st.record(b, failed_dof[b], check ? Failure::ResidualTooLarge : pivot);
+    if (check && st.first_instance == b) {
+      st.estimate = estimate[b];
+      st.threshold = threshold;
+    }
+  }
   return st;
 }
 
@@ -177,6 +241,12 @@ void check_batch(const BiasBatchIn<S>& in, const BatchView<S>& h, Index max_batc
 template <class S>
 void check_batch(const BatchView<const S>& q, const BatchView<S>& M, Index max_batch) {
   check_views({{"q", info(q)}, {"M", info(M)}}, max_batch);
+}
+template <class S>
+void check_batch(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"tau", info(in.tau)},
+               {"qdd out", info(qdd)}, {"tau out", info(tau)}},
+              max_batch);
 }
 
 // ---- Auto choices ---------------------------------------------------------------
@@ -287,6 +357,17 @@ void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, co
     refuse(std::string("by the method ") + to_string(o.fd_method));
 }
 
+// Throws BackendError for a model with multi-DoF joints on what takes 1-DoF joints
+// only (every backend): what names it ("kinematics", ...), the message the joint.
+template <class S>
+void require_one_dof_joints(const ModelTpl<S>& model, const char* what) {
+  if (!model.multi_dof()) return;
+  throw BackendError(std::string(what) + ": model '" + model.name + "' has the multi-DoF joint '" +
+                     first_multi_dof_joint(model) + "' (" +
+                     (model.floating_base() ? "the floating base" : "a spherical joint") + "); " + what +
+                     " takes revolute and prismatic joints only");
+}
+
 }  // namespace
 
 template <class S>
@@ -329,6 +410,58 @@ std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& mod
   return cpu::make_forward_dynamics(model, o);
 }
 
+// ---- derivatives ------------------------------------------------------------------
+
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"dtau_dq", info(out.dtau_dq)},
+               {"dtau_dqd", info(out.dtau_dqd)}, {"M", info(out.M)}},
+              max_batch);
+}
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"tau", info(in.tau)}, {"dqdd_dq", info(out.dqdd_dq)},
+               {"dqdd_dqd", info(out.dqdd_dqd)}, {"dqdd_dtau", info(out.dqdd_dtau)}},
+              max_batch);
+  if (out.qdd.data && out.qdd.batch != in.q.batch)
+    throw BackendError("batch sizes disagree: q " + std::to_string(in.q.batch) + ", qdd " +
+                       std::to_string(out.qdd.batch));
+}
+
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+  require_one_dof_joints(model, "the inverse-dynamics derivatives");
+  if (o.strategy != IdStrategy::Auto)
+    throw BackendError(std::string("strategy '") + to_string(o.strategy) +
+                       "' is not available for the inverse-dynamics derivatives (use auto)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_id_derivatives(model, o);
+#endif
+  return cpu::make_id_derivatives(model, o);
+}
+
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o.backend);
+  require_one_dof_joints(model, "the forward-dynamics derivatives");
+  if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba)
+    throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
+                       "' is not available for the forward-dynamics derivatives (use auto or aba)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_fd_derivatives(model, o);
+#endif
+  return cpu::make_fd_derivatives(model, o);
+}
+
+#define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
+  template void check_batch(const IdBatchIn<S>&, const IdDerivativesOut<S>&, Index);                          \
+  template void check_batch(const FdBatchIn<S>&, const FdDerivativesOut<S>&, Index);                          \
+  template std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>&, const BackendOptions&);   \
+  template std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);
+SCANDYN_INSTANTIATE_DERIVATIVES(float)
+SCANDYN_INSTANTIATE_DERIVATIVES(double)
+#undef SCANDYN_INSTANTIATE_DERIVATIVES
 // ---- kinematics -------------------------------------------------------------------
 
 template <class S>
@@ -352,9 +485,7 @@ template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& o,
                                                const KinematicsOptions& k) {
   require_built(o.backend);
-  if (model.multi_dof())
-    throw BackendError("model '" + model.name + "' has multi-DoF joints (a floating base or spherical joints): "
-                       "kinematics does not take them yet");
+  if (o.backend == BackendKind::Cuda) require_one_dof_joints(model, "kinematics on the cuda backend");
   check_kinematics_options(model, k);
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaKinematics<S>>(model, o, k);
@@ -371,7 +502,26 @@ SCANDYN_INSTANTIATE_KINEMATICS(float)
 SCANDYN_INSTANTIATE_KINEMATICS(double)
 #undef SCANDYN_INSTANTIATE_KINEMATICS
 
+template <class S>
+std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
+                                                        const std::vector<unsigned char>& prescribed,
+                                                        const BackendOptions& o) {
+  require_built(o.backend);
+  require_one_dof_joints(model, "hybrid dynamics");
+  if (prescribed.size() != static_cast<std::size_t>(model.nv()))
+    throw BackendError("hybrid dynamics: the prescribed mask has " + std::to_string(prescribed.size()) +
+                       " entries for a model of " + std::to_string(model.nv()) + " DoF");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
+#endif
+  return cpu::make_hybrid_dynamics(model, prescribed, o);
+}
+
 #define SCANDYN_INSTANTIATE(S)                                                                                  \
+  template void check_batch(const HybridBatchIn<S>&, const BatchView<S>&, const BatchView<S>&, Index);         \
+  template std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>&,                          \
+                                                                   const std::vector<unsigned char>&,           \
+                                                                   const BackendOptions&);                      \
   template void check_batch(const IdBatchIn<S>&, const BatchView<S>&, Index);                                  \
   template void check_batch(const FdBatchIn<S>&, const BatchView<S>&, Index);                                  \
   template void check_batch(const BiasBatchIn<S>&, const BatchView<S>&, Index);                                \

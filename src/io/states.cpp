@@ -15,12 +15,14 @@ const char* algo_name(Algo algo) {
     case Algo::Fd: return "fd";
     case Algo::Mass: return "mass";
     case Algo::Bias: return "bias";
+    case Algo::DId: return "did";
+    case Algo::DFd: return "dfd";
   }
   return "?";
 }
 
 bool parse_algo(const std::string& name, Algo& algo) {
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd}) {
     if (name == algo_name(a)) {
       algo = a;
       return true;
@@ -31,7 +33,7 @@ bool parse_algo(const std::string& name, Algo& algo) {
 
 std::string algo_list(AlgoSet algos, const char* sep) {
   std::string out;
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias}) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd}) {
     if (!(algos & algo_bit(a))) continue;
     if (!out.empty()) out += sep;
     out += algo_name(a);
@@ -41,15 +43,26 @@ std::string algo_list(AlgoSet algos, const char* sep) {
 
 std::size_t output_width(Algo algo, Index nv) {
   const std::size_t n = static_cast<std::size_t>(nv);
+  if (algo == Algo::DId || algo == Algo::DFd) return 3 * n * n;
   return algo == Algo::Mass ? n * n : n;
 }
 
 std::vector<std::string> output_columns(Algo algo, Index nv) {
   std::vector<std::string> names;
   names.reserve(output_width(algo, nv));
-  if (algo == Algo::Mass) {
+  auto matrix = [&](const char* prefix) {
     for (Index i = 0; i < nv; ++i)
-      for (Index j = 0; j < nv; ++j) names.push_back("M_" + std::to_string(i) + "_" + std::to_string(j));
+      for (Index j = 0; j < nv; ++j) names.push_back(prefix + std::to_string(i) + "_" + std::to_string(j));
+  };
+  if (algo == Algo::Mass) {
+    matrix("M_");
+    return names;
+  }
+  if (algo == Algo::DId || algo == Algo::DFd) {
+    const bool id = algo == Algo::DId;
+    for (const char* p : id ? std::array<const char*, 3>{"dtau_dq_", "dtau_dqd_", "dtau_dqdd_"}
+                            : std::array<const char*, 3>{"dqdd_dq_", "dqdd_dqd_", "dqdd_dtau_"})
+      matrix(p);
     return names;
   }
   const char* prefix = algo == Algo::Id ? "tau_id_" : algo == Algo::Fd ? "qdd_fd_" : "h_";
@@ -73,6 +86,8 @@ std::vector<Family> algo_inputs(Algo algo) {
     case Algo::Fd: return {Family::Q, Family::Qd, Family::Tau};
     case Algo::Mass: return {Family::Q};
     case Algo::Bias: return {Family::Q, Family::Qd};
+    case Algo::DId: return {Family::Q, Family::Qd, Family::Qdd};
+    case Algo::DFd: return {Family::Q, Family::Qd, Family::Tau};
   }
   return {};
 }

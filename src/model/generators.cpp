@@ -1,5 +1,5 @@
 // src/model/generators.cpp: built-in model generators (chain:N, rope:N, ballrope:N,
-// tree:N:SEED, curtain:K:N). Each one writes a RawTree, exactly as a URDF file would describe
+// tree:N:SEED, curtain:K:N, cloth:K:N (the curtain's tree), fivebar, fourbar). Each one writes a RawTree, exactly as a URDF file would describe
 // it, and goes through build_model like any file. Geometry: docs/models.md.
 //
 // Names are zero-padded to the width of the largest index, so byte-wise name order
@@ -267,13 +267,67 @@ RawTree random_tree(long long n, std::uint64_t seed) {
   return t;
 }
 
+// --- fourbar and fivebar: planar closed linkages, all joints about z -------------
+// Slender rods of 1 kg per m along their link vector (a link frame at the joint, the
+// rod from it to the next joint or the closing point), in the xy-plane; the loop
+// that closes them is generator_loops's (scandyn/algorithm/loops.hpp). The
+// configuration q = 0 is closed and away from singularities.
+
+// A rod link from the joint to `tip` (link frame): mass 1 kg/m, centre at tip / 2,
+// inertia about the centre m L^2 / 12 across the rod plus 1e-5 kg m^2 on all axes
+// (so that it is a physical inertia).
+RawLink& add_rod(RawTree& t, std::string name, const Vec3<double>& tip) {
+  const double L = std::sqrt(tip.x * tip.x + tip.y * tip.y + tip.z * tip.z), m = L;
+  const Vec3<double> u{tip.x / L, tip.y / L, tip.z / L};
+  const double k = m * L * L / 12, e = 1e-5;
+  // k (I - u u^T) + e I
+  const Sym3<double> Ic{k * (1 - u.x * u.x) + e, k * (1 - u.y * u.y) + e, k * (1 - u.z * u.z) + e,
+                        -k * u.x * u.y, -k * u.x * u.z, -k * u.y * u.z};
+  return add_link(t, std::move(name), m, {tip.x / 2, tip.y / 2, tip.z / 2}, Ic);
+}
+
+// fourbar: ground pivots A = (0, 0) and D = (0.5, 0); crank A-B (0, 0.2), coupler
+// B-C (0.4, 0), rocker D-C (-0.1, 0.2) at q = 0; the loop joins the coupler's tip C
+// to the rocker's tip.
+RawTree fourbar() {
+  RawTree t;
+  const Vec3<double> z{0, 0, 1};
+  add_frame(t, "ground");
+  add_rod(t, "crank", {0, 0.2, 0});
+  add_rod(t, "coupler", {0.4, 0, 0});
+  add_rod(t, "rocker", {-0.1, 0.2, 0});
+  add_joint(t, "joint_a", RawJointType::Revolute, "ground", "crank", {0, 0, 0}, z);
+  add_joint(t, "joint_b", RawJointType::Revolute, "crank", "coupler", {0, 0.2, 0}, z);
+  add_joint(t, "joint_d", RawJointType::Revolute, "ground", "rocker", {0.5, 0, 0}, z);
+  return t;
+}
+
+// fivebar: ground pivots A = (0, 0) and E = (0.3, 0); left proximal A-B (0, 0.25),
+// left distal B-P (0.15, 0.15), right proximal E-D (0, 0.25), right distal D-P
+// (-0.15, 0.15) at q = 0; the loop joins the two distal tips at P = (0.15, 0.4).
+RawTree fivebar() {
+  RawTree t;
+  const Vec3<double> z{0, 0, 1};
+  add_frame(t, "ground");
+  add_rod(t, "left_proximal", {0, 0.25, 0});
+  add_rod(t, "left_distal", {0.15, 0.15, 0});
+  add_rod(t, "right_proximal", {0, 0.25, 0});
+  add_rod(t, "right_distal", {-0.15, 0.15, 0});
+  add_joint(t, "joint_l0", RawJointType::Revolute, "ground", "left_proximal", {0, 0, 0}, z);
+  add_joint(t, "joint_l1", RawJointType::Revolute, "left_proximal", "left_distal", {0, 0.25, 0}, z);
+  add_joint(t, "joint_r0", RawJointType::Revolute, "ground", "right_proximal", {0.3, 0, 0}, z);
+  add_joint(t, "joint_r1", RawJointType::Revolute, "right_proximal", "right_distal", {0, 0.25, 0}, z);
+  return t;
+}
+
 bool starts_with(const std::string& s, const char* p) { return s.rfind(p, 0) == 0; }
 
 }  // namespace
 
 bool is_generator_spec(const std::string& s) {
   return starts_with(s, "chain:") || starts_with(s, "rope:") || starts_with(s, "tree:") ||
-         starts_with(s, "curtain:") || starts_with(s, "ballrope:");
+         starts_with(s, "curtain:") || starts_with(s, "cloth:") || s == "fivebar" || s == "fourbar" ||
+         starts_with(s, "ballrope:");
 }
 
 RawTree generate_tree(const std::string& spec) { return generate_tree(spec, false); }
@@ -304,15 +358,20 @@ RawTree generate_tree(const std::string& spec, bool floating_base) {
       add_random_link(base, "base", rng);
       t.links[0] = base.links[0];
     }
-  } else if (kind == "curtain") {
-    if (parts.size() != 3) bad_spec(spec, "expected curtain:K:N");
+  } else if (kind == "fivebar" || kind == "fourbar") {
+    if (parts.size() != 1) bad_spec(spec, "expected " + kind + " (no parameters)");
+    t = kind == "fivebar" ? fivebar() : fourbar();
+  } else if (kind == "curtain" || kind == "cloth") {
+    // cloth:K:N is curtain:K:N's tree; its point loops are generator_loops's
+    if (parts.size() != 3) bad_spec(spec, "expected " + kind + ":K:N");
     const long long k = parse_count(spec, parts[1], "K");
     const long long n = parse_count(spec, parts[2], "N");
     if (k * n > kMaxGeneratedBodies)
       bad_spec(spec, "K*N is too large (at most " + std::to_string(kMaxGeneratedBodies) + ")");
     t = curtain(k, n);
   } else {
-    bad_spec(spec, "unknown generator (expected chain:N, rope:N, ballrope:N, tree:N:SEED or curtain:K:N)");
+    bad_spec(spec, "unknown generator (expected chain:N, rope:N, ballrope:N, tree:N:SEED, curtain:K:N, cloth:K:N, "
+                   "fivebar or fourbar)");
   }
   t.name = spec;
   t.source = spec;

@@ -2,6 +2,7 @@
 // naming the file and the key. Format: docs/scenes.md.
 #include "scandyn/sim/scene.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
@@ -201,7 +202,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "threads", "instances", "initial"});
+                           "backend", "threads", "instances", "initial", "prescribed", "loops"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -370,6 +371,81 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       in.seed = seed.get<std::uint64_t>();
       in.q_spread = rd.contains("q") ? r.per_dof("initial.random.q", rd["q"], nv, true) : std::vector<double>(nv, 0.0);
       in.qd_spread = rd.contains("qd") ? r.per_dof("initial.random.qd", rd["qd"], nv, true) : std::vector<double>(nv, 0.0);
+    }
+  }
+
+  // ---- closed loops: the generator's, then the scene's (an array of loops, or a loop file)
+  try {
+    s.loops = generator_loops(s.model_spec, s.model);
+    if (doc.contains("loops")) {
+      const json& l = doc["loops"];
+      LoopSet more;
+      if (l.is_string()) {
+        const std::string p = l.get<std::string>();
+        more = load_loops(!p.empty() && p[0] == '/' ? p : base_dir + "/" + p, s.model);
+      } else if (l.is_array()) {
+        more = parse_loops(json{{"loops", l}}.dump(), source, s.model);
+      } else {
+        r.expected("loops", "an array of loops or a loop file's path", l);
+      }
+      for (const LoopClosure& c : more.loops) s.loops.loops.push_back(c);
+    }
+  } catch (const LoopError& e) {
+    throw SceneError(e.what());
+  }
+
+  // ---- prescribed joint motion
+  if (doc.contains("prescribed")) {
+    const json& p = doc["prescribed"];
+    r.check_object("prescribed", p, {"joints", "trajectory"});
+    if (!p.contains("joints")) r.fail("prescribed.joints", "missing (an array of joint names or DoF indices)");
+    if (!p.contains("trajectory")) r.fail("prescribed.trajectory", "missing (an array, one trajectory per joint)");
+    const json& js = p["joints"];
+    const json& ts = p["trajectory"];
+    if (!js.is_array() || js.empty()) r.expected("prescribed.joints", "a non-empty array of joint names or DoF indices", js);
+    if (!ts.is_array() || ts.size() != js.size())
+      r.expected("prescribed.trajectory", "an array of " + std::to_string(js.size()) + " trajectories (one per joint)", ts);
+    std::vector<unsigned char> seen(static_cast<std::size_t>(nv), 0);
+    for (std::size_t k = 0; k < js.size(); ++k) {
+      const std::string key = "prescribed.joints[" + std::to_string(k) + "]";
+      Index dof = -1;
+      if (js[k].is_string()) {
+        const std::string name = js[k].get<std::string>();
+        const auto it = std::find(s.model.joint_names.begin(), s.model.joint_names.end(), name);
+        if (it == s.model.joint_names.end()) r.fail(key, "unknown joint '" + name + "' (scandyn info lists the joints)");
+        dof = static_cast<Index>(it - s.model.joint_names.begin());
+      } else {
+        dof = static_cast<Index>(r.integer(key, js[k], 0, nv - 1));
+      }
+      if (seen[static_cast<std::size_t>(dof)]) r.fail(key, "DoF " + std::to_string(dof) + " is listed twice");
+      seen[static_cast<std::size_t>(dof)] = 1;
+      s.prescribed.dofs.push_back(dof);
+      const std::string tkey = "prescribed.trajectory[" + std::to_string(k) + "]";
+      const json& t = ts[k];
+      r.check_object(tkey, t, {"sine", "table"});
+      if (t.size() != 1) r.expected(tkey, "an object with one key, \"sine\" or \"table\"", t);
+      if (t.contains("sine")) {
+        const json& sn = t["sine"];
+        const std::string skey = tkey + ".sine";
+        r.check_object(skey, sn, {"amplitude", "frequency", "phase", "offset"});
+        auto get = [&](const char* name) { return sn.contains(name) ? r.number(skey + "." + name, sn[name]) : 0.0; };
+        const double f = get("frequency");
+        if (f < 0) r.expected(skey + ".frequency", "a non-negative number (Hz)", sn["frequency"]);
+        s.prescribed.trajectory.push_back(sine_trajectory(get("amplitude"), f, get("phase"), get("offset")));
+      } else {
+        const json& tb = t["table"];
+        const std::string bkey = tkey + ".table";
+        if (!tb.is_array() || tb.size() < 2) r.expected(bkey, "an array of at least 2 [t, q] pairs", tb);
+        std::vector<double> tt, qq;
+        for (std::size_t j = 0; j < tb.size(); ++j) {
+          const std::string pkey = bkey + "[" + std::to_string(j) + "]";
+          if (!tb[j].is_array() || tb[j].size() != 2) r.expected(pkey, "a [t, q] pair", tb[j]);
+          tt.push_back(r.number(pkey + "[0]", tb[j][0]));
+          qq.push_back(r.number(pkey + "[1]", tb[j][1]));
+          if (j > 0 && !(tt[j] > tt[j - 1])) r.fail(pkey, "times must increase strictly");
+        }
+        s.prescribed.trajectory.push_back(table_trajectory(std::move(tt), std::move(qq)));
+      }
     }
   }
   return s;

@@ -105,6 +105,22 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     setup_.wrenches_per_step = scene.wrenches_per_step;
   }
   setup_.threads = scene.threads;
+  if (!scene.loops.empty()) {
+    if (backend == BackendKind::Cuda)
+      throw BackendError("backend 'cuda': closed loops (the scene's \"loops\") run on the serial and openmp backends only");
+    if (setup_.integrator == Integrator::Implicit)
+      throw BackendError("closed loops step with euler or rk4, not implicit");
+    if (!scene.prescribed.empty()) throw BackendError("a scene cannot have both closed loops and prescribed joints");
+    setup_.loops = scene.loops;
+    setup_.loop_model = scene.model;
+  }
+  if (!scene.prescribed.empty()) {
+    if (backend == BackendKind::Cuda)
+      throw BackendError("backend 'cuda': prescribed joint motion (the scene's \"prescribed\") runs on the serial and "
+                         "openmp backends only");
+    setup_.prescribed = scene.prescribed;
+    setup_.prescribed_mask = scene.prescribed.mask(nv);
+  }
   backend_ = backend == BackendKind::Cuda ? detail::make_cuda_sim_backend(setup_)
                                           : cpu::make_simulator_step(setup_, backend);
   random_ = std::make_unique<Random>(initial_.seed);
@@ -116,6 +132,7 @@ Simulator<S>::~Simulator() = default;
 
 template <class S>
 void Simulator<S>::step(const BatchView<const S>& tau) {
+  setup_.time = time_;
   backend_->step(tau);
   ++steps_;
   time_ = static_cast<double>(steps_) * static_cast<double>(setup_.dt);
@@ -142,6 +159,20 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
       for (Index i = 0; i < n; ++i)
         qd_rows_[k * n + i] = S(initial_.random ? initial_.qd[i] + random_->uniform(-initial_.qd_spread[i], initial_.qd_spread[i])
                                                : initial_.qd[i]);
+      // with closed loops, the state is projected onto them
+      if (!setup_.loops.empty()) {
+        std::vector<double> lq(q_rows_.begin() + k * n, q_rows_.begin() + (k + 1) * n);
+        std::vector<double> lqd(qd_rows_.begin() + k * n, qd_rows_.begin() + (k + 1) * n);
+        project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data());
+        for (Index i = 0; i < n; ++i) q_rows_[k * n + i] = S(lq[i]), qd_rows_[k * n + i] = S(lqd[i]);
+      }
+      // driven DoFs start on their trajectories, at the current time
+      for (std::size_t j = 0; j < setup_.prescribed.dofs.size(); ++j) {
+        double pq, pqd, pqdd;
+        setup_.prescribed.trajectory[j].eval(time_, pq, pqd, pqdd);
+        q_rows_[k * n + setup_.prescribed.dofs[j]] = S(pq);
+        qd_rows_[k * n + setup_.prescribed.dofs[j]] = S(pqd);
+      }
     }
     backend_->write_instances(instances.data() + start, count, q_rows_.data(), qd_rows_.data());
   }

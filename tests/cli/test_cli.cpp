@@ -696,8 +696,10 @@ TEST_F(Cli, BenchPrintsOneRow) {
   const std::string base = "bench --model chain:5 --instances 7 --min-time 0.01";
   const std::vector<std::string> id = bench_row(run(base + " --algo id"));
   ASSERT_EQ(id.size(), 10u);
+  // the strategy without the SIMD path's suffix (-simd<W>, when --simd auto takes it)
+  const auto base_strategy = [](const std::string& st) { return st.substr(0, st.find("-simd")); };
   EXPECT_EQ(id[0], "id");
-  EXPECT_EQ(id[1], "recursion");
+  EXPECT_EQ(base_strategy(id[1]), "recursion");
   EXPECT_EQ(id[2], "serial");
   EXPECT_EQ(id[3], "double");
   EXPECT_EQ(id[4], "chain:5");
@@ -723,8 +725,12 @@ TEST_F(Cli, BenchPrintsOneRow) {
   for (const char* algo : {"fd", "mass", "bias"}) {
     const std::vector<std::string> row = bench_row(run(base + " --algo " + algo));
     ASSERT_EQ(row.size(), 10u) << algo;
-    EXPECT_EQ(row[1], std::string(algo) == "fd" ? "aba" : std::string(algo) == "mass" ? "crba" : "recursion");
+    const std::string scalar = std::string(algo) == "fd" ? "aba" : std::string(algo) == "mass" ? "crba" : "recursion";
+    EXPECT_EQ(base_strategy(row[1]), scalar);
     EXPECT_EQ(row[9], "0") << algo;
+    // --simd off: the scalar recursion; on: W instances per register (W >= 2 in every build)
+    EXPECT_EQ(bench_row(run(base + " --algo " + algo + " --simd off"))[1], scalar);
+    EXPECT_EQ(bench_row(run(base + " --algo " + algo + " --simd on"))[1].rfind(scalar + "-simd", 0), 0u);
   }
 }
 
@@ -1450,7 +1456,7 @@ TEST_F(Cli, JsiFallbackToAbaOnTheCpu) {
                            "--instances 1 --min-time 0");
   const std::vector<std::string> row = bench_row(bench);
   ASSERT_EQ(row.size(), 10u);
-  EXPECT_EQ(row[1], "jsi+aba");
+  EXPECT_EQ(row[1], "jsi+aba+check");  // bench checks jsi from 200 DoF (--fd-check auto)
   EXPECT_LT(std::stod(row[9]), 1e-5);  // float aba
   EXPECT_NE(bench.err.find("failed on 1 of 1 instances"), std::string::npos) << bench.err;
 

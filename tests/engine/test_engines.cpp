@@ -28,15 +28,7 @@ std::vector<BackendKind> cpu_backends() {
   return b;
 }
 
-std::vector<std::pair<std::string, Model>> models() {
-  BuildOptions lenient;
-  lenient.require_physical_inertia = false;
-  return {{"iiwa", test::load_robot("iiwa.urdf")},
-          {"hyq", test::load_robot("hyq.urdf")},
-          {"atlas", load_model(test::model_path("atlas.urdf"), lenient)},
-          {"tree:30:7", load_model("tree:30:7")},
-          {"rope:40", load_model("rope:40")}};
-}
+std::vector<std::pair<std::string, Model>> models() { return test::engine_test_models(); }
 
 // Three layouts of one (nv x B) array: structure of arrays, instance rows, and a
 // strided one with gaps (every entry twice as far apart as in aos).
@@ -85,6 +77,7 @@ void expect_engines_equal_reference(const Model& md, BackendKind backend, Layout
   o.backend = backend;
   o.threads = 2;
   o.max_batch = kB;
+  o.simd = CpuSimd::Off;  // the scalar path; the SIMD path against it: test_simd_batch.cpp
   DataTpl<S> data(m);
   const S nan = std::numeric_limits<S>::quiet_NaN();
   std::vector<S> out(storage(nv, kB, l), nan), ref(static_cast<std::size_t>(nv * nv));

@@ -2,7 +2,7 @@
 //
 //   pin_bench info  --urdf F                       DoF order: one line per DoF, "index joint nq"
 //   pin_bench eval  --urdf F --states IN.csv --out OUT.csv
-//   pin_bench bench --urdf F --name NAME --algo id|fd|mass|bias --instances B
+//   pin_bench bench --urdf F --name NAME --algo id|fd|mass|bias|did|dfd --instances B
 //                   [--threads N] [--min-time S] [--root free]
 //   pin_bench version
 //
@@ -22,7 +22,9 @@
 // instances with one Data per thread (strategy `omp-loop`).
 // Algorithms: id = rnea, fd = aba, mass = crba (upper triangle, LOCAL convention, both
 // Pinocchio's defaults; copied out whole as scandyn's batch copies its nv x nv output),
-// bias = nonLinearEffects. Everything in double, spatial conventions irrelevant here
+// bias = nonLinearEffects, did = computeRNEADerivatives and dfd = computeABADerivatives
+// (their three nv x nv matrices copied out per instance, as scandyn's engines write
+// theirs; no --threads). Everything in double, spatial conventions irrelevant here
 // (only joint-space quantities cross the interface).
 // --root free (bench only): the model on a free flyer (buildModel(urdf,
 // JointModelFreeFlyer()), scandyn's --floating-base); its states are drawn like scandyn
@@ -32,6 +34,8 @@
 #include <pinocchio/algorithm/aba.hpp>
 #include <pinocchio/algorithm/crba.hpp>
 #include <pinocchio/algorithm/rnea.hpp>
+#include <pinocchio/algorithm/aba-derivatives.hpp>
+#include <pinocchio/algorithm/rnea-derivatives.hpp>
 #include <pinocchio/algorithm/parallel/aba.hpp>
 #include <pinocchio/algorithm/parallel/rnea.hpp>
 #include <pinocchio/multibody/data.hpp>
@@ -202,10 +206,14 @@ int cmd_bench(const pinocchio::Model &model, const std::map<std::string, std::st
   if (B < 1) die("--instances must be >= 1");
   const int threads = f.count("threads") ? std::atoi(f.at("threads").c_str()) : 0;
   const double min_time = f.count("min-time") ? std::atof(f.at("min-time").c_str()) : 0.5;
-  if (algo != "id" && algo != "fd" && algo != "mass" && algo != "bias") die("unknown --algo " + algo);
+  const bool derivatives = algo == "did" || algo == "dfd";
+  if (algo != "id" && algo != "fd" && algo != "mass" && algo != "bias" && !derivatives)
+    die("unknown --algo " + algo);
+  if (derivatives && threads > 0) die("--algo " + algo + " runs serially (no --threads)");
   const int nv = model.nv;
-  const bool need_M_out = algo == "mass";
-  const double bytes = 8.0 * B * (model.nq + 3.0 * nv + (need_M_out ? double(nv) * nv : nv));
+  const bool need_M_out = algo == "mass" || derivatives;
+  const int blocks = derivatives ? 3 : 1;  // nv x nv outputs per instance
+  const double bytes = 8.0 * B * (model.nq + 3.0 * nv + (need_M_out ? blocks * double(nv) * nv : nv));
   if (bytes > 4.0 * (1u << 30)) die("batch needs more than 4 GiB");
 
   // states as `scandyn bench` draws them: all q (B x nv), then qd, then the third input
@@ -230,7 +238,7 @@ int cmd_bench(const pinocchio::Model &model, const std::map<std::string, std::st
     for (int i = 0; i < nv; ++i) V(i, b) = U(gen);
   for (long b = 0; b < B; ++b)
     for (int i = 0; i < nv; ++i) X(i, b) = U(gen);
-  std::vector<double> Mout(need_M_out ? (size_t)B * nv * nv : 0);
+  std::vector<double> Mout(need_M_out ? (size_t)B * blocks * nv * nv : 0);
 
   std::string strategy, backend = threads > 0 ? "openmp" : "serial";
   std::unique_ptr<pinocchio::ModelPool> pool;
@@ -250,6 +258,19 @@ int cmd_bench(const pinocchio::Model &model, const std::map<std::string, std::st
       Out.col(b) = pinocchio::rnea(model, data, Q.col(b), V.col(b), X.col(b));
     } else if (algo == "fd") {
       Out.col(b) = pinocchio::aba(model, data, Q.col(b), V.col(b), X.col(b));
+    } else if (derivatives) {
+      const auto out = [&](int k) { return Eigen::Map<Mat>(Mout.data() + ((size_t)b * 3 + k) * nv * nv, nv, nv); };
+      if (algo == "did") {
+        pinocchio::computeRNEADerivatives(model, data, Q.col(b), V.col(b), X.col(b));
+        out(0) = data.dtau_dq;
+        out(1) = data.dtau_dv;
+        out(2) = data.M;
+      } else {
+        pinocchio::computeABADerivatives(model, data, Q.col(b), V.col(b), X.col(b));
+        out(0) = data.ddq_dq;
+        out(1) = data.ddq_dv;
+        out(2) = data.Minv;
+      }
     } else if (algo == "bias") {
       Out.col(b) = pinocchio::nonLinearEffects(model, data, Q.col(b), V.col(b));
     } else {

@@ -80,6 +80,23 @@ template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
            S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
+// Hybrid dynamics (Featherstone 2008, 9.2, the articulated-body hybrid algorithm):
+// every DoF has either its acceleration given (prescribed[i] != 0: qdd_in[i]) or its
+// force (prescribed[i] == 0: tau_in[i]); computes the other of each pair, so that
+// tau_out = M(q) qdd_out + h(q, qd) (- J^T fext) on every row, with qdd_out[i] =
+// qdd_in[i] and tau_out[i] = tau_in[i] at the given entries (copied through).
+// qdd_in is read at prescribed DoFs only, tau_in at the others only (the other
+// entries may hold anything, NaN included). Outputs may alias the inputs. With no
+// DoF prescribed, qdd_out is aba's exactly (the same arithmetic); with all of them,
+// tau_out is the inverse dynamics (articulated-body forces S^T (IA a + pA), equal
+// to rnea's to rounding). Stops and reports the DoF (outputs untouched) when an
+// articulated pivot of a DoF whose force is given is not positive and finite.
+// armature as for aba (enters the pivots of the DoFs whose force is given).
+template <class S>
+Status hybrid_dynamics(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
+                       const unsigned char* prescribed, const S* qdd_in, const S* tau_in, S* qdd_out, S* tau_out,
+                       const Force<S>* fext = nullptr, const S* armature = nullptr);
+
 // qdd = M^{-1} (tau - h) with M from CRBA and the tree-sparse L^T L factorisation
 // (Featherstone 6.5). Reports the first DoF whose pivot is not positive. armature as
 // for aba: added to M's diagonal after the CRBA, before the factorisation.

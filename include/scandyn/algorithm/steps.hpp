@@ -259,6 +259,38 @@ SCANDYN_HD S aba_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
   return qdd;
 }
 
+// ---- hybrid dynamics (Featherstone 2008, 9.2) ---------------------------------
+//
+// The articulated-body hybrid dynamics: each DoF has either its force tau_i given
+// (its acceleration unknown: the ABA's steps above) or its acceleration qdd_i given
+// (prescribed motion, its force unknown: the steps below). A prescribed joint is
+// rigid for the articulated-body recursion: the parent receives the body's whole
+// articulated inertia, and its bias force moved by the known joint acceleration.
+// Pass 2 computes U = IA S and u = -S^T pA for it with aba_joint_terms(tau = 0) (no
+// pivot: D is not divided by); pass 3 gives its force from them.
+
+// Pass 2 step of a prescribed joint: Ia = IA, pa = pA + IA (c + S qdd), which the
+// parent receives as Xup^T Ia Xup and Xup^T pa.
+template <class S>
+SCANDYN_HD void hybrid_prescribed_to_parent(const Body<S>& b, const Transform<S>& Xup, const ABInertia<S>& IA,
+                                            const Force<S>& pA, const Motion<S>& c, S qdd,
+                                            ABInertia<S>& IA_parent, Force<S>& pA_parent) {
+  const Force<S> pa = pA + IA * add_joint_motion(b, c, qdd);
+  IA_parent += IA.transform_transpose(Xup);
+  pA_parent += Xup.apply_transpose(pa);
+}
+
+// Pass 3 step of a prescribed joint: a = Xup a_parent + c + S qdd, and the joint
+// force tau = S^T (IA a + pA) = U^T a - u (U = IA S, u = -S^T pA from pass 2), the
+// force the articulated body beyond the joint needs to move with a.
+template <class S>
+SCANDYN_HD S hybrid_prescribed_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
+                                                 const Motion<S>& a_parent, const Motion<S>& c,
+                                                 const Force<S>& U, S u, S qdd, Motion<S>& a) {
+  a = add_joint_motion(b, Xup.apply(a_parent) + c, qdd);
+  return dot(a, U) - u;
+}
+
 // ---- joints of any type (spherical and free included) -----------------------
 // The general path of every algorithm, for models with multi-DoF joints
 // (ModelTpl::multi_dof()): q and qd point at the body's own entries (b.idx_q,

@@ -56,6 +56,18 @@
 // no spills except 8 B in the unrolled float chain; per thread, 32 B (float) of
 // local memory per body for the rolled kernels' per-body state, plus the slots of
 // the tree kernels (only branch points touch them).
+//
+// The run-time check (BackendOptions::fd_check; Auto is off on cuda): the thread
+// engines (aba_thread, jsi_thread) check on the device (DeviceFdCheck,
+// scandyn/cuda/fd_check.hpp: one more launch after the forward dynamics, in
+// compute() and compute_async() alike, marking flagged instances in failed_dof;
+// its estimates hold max_batch instances, so with the check on compute_async()
+// takes at most max_batch: cudaErrorInvalidValue beyond, device_estimates() reads them);
+// compute() then retries the flagged ones on the host (FdBatchCheck: aba on the
+// device for jsi_thread with fallback_aba, the double aba on the host with
+// fallback_double) and reports them as Failure::ResidualTooLarge. jsi_dense,
+// parallel and hybrid are checked on the host after the copy back (compute() only;
+// their compute_async() is unchecked).
 #pragma once
 
 #include <cstddef>
@@ -65,7 +77,9 @@
 
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/algorithm/fd_check_batch.hpp"
 #include "scandyn/cuda/chain_fd.hpp"
+#include "scandyn/cuda/fd_check.hpp"
 #include "scandyn/cuda/fd_dense.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/instance/aba_instance.hpp"
@@ -180,11 +194,16 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   // "aba_thread" (FdMethod::Aba: ABA, one thread per instance)
   // "parallel" and "hybrid" (ChainFdPlan) likewise.
   // With set_fallback_aba: "jsi_thread+aba".
+  // With the check on: "+check" appended.
   std::string strategy() const override {
-    if (chain_) return algorithm_ == FdMethod::Hybrid ? "hybrid" : "parallel";
-    if (fallback_aba_) return "jsi_thread+aba";
-    return aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread";
+    const std::string check = check_ && check_->on() ? "+check" : "";
+    if (chain_) return (algorithm_ == FdMethod::Hybrid ? "hybrid" : "parallel") + check;
+    if (fallback_aba_) return "jsi_thread+aba" + check;
+    return (aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread") + check;
   }
+  // the check's estimates of the last compute() / compute_async() on the device
+  // (thread engines with the check on; B doubles, device memory), else null
+  const double* device_estimates() const { return device_check_ ? check_estimates_ : nullptr; }
   // the method the engine runs (Auto resolved)
   FdMethod method() const override { return algorithm_; }
   // the hybrid's timeline of its last compute() when record_timeline(true) was set
@@ -219,6 +238,16 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   // compute()'s second pass for set_fallback_aba: the failed instances by the ABA
   BatchStatus compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
                                       Index count);
+  // the run-time check: its host side (always made; on() or not), the device kernel
+  // (thread engines) and its device estimates (max_batch doubles)
+  std::unique_ptr<FdBatchCheck<S>> check_;
+  std::unique_ptr<DeviceFdCheck<S>> device_check_;
+  double* check_estimates_ = nullptr;
+  std::vector<double> estimate_host_;  // (max_batch) estimates, -1: not flagged by the device
+  std::vector<int> before_;            // (max_batch) failed DoFs before the aba fallback
+  std::vector<S> check_rows_;          // (4 nv) one instance's q, qd, tau, qdd for a host retry
+  // compute()'s last step with the check on: retries and the status
+  BatchStatus settle_checked(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed, bool fell_back_ran);
 };
 
 

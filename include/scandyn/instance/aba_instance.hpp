@@ -8,6 +8,9 @@
 #include "scandyn/instance/thread_model.hpp"
 #include "scandyn/instance/traversal.hpp"
 
+#include <type_traits>
+#include <variant>
+
 #if SCANDYN_HAS_CUDA
 namespace scandyn {
 namespace cuda {
@@ -39,6 +42,28 @@ AbaKernel choose_aba_kernel(const ThreadModel<S>& model) {
   if (model.branch_slots() == 0) return AbaKernel::Chains;
   if (sizeof(S) == 4 && model.branch_slots() <= kAbaRegisterSlots) return AbaKernel::Branches;
   return AbaKernel::Tree;
+}
+
+// Calls launch(params, std::integral_constant<int, kSlots>{}) with the model's
+// parameter block and the ABA kernel variant choose_aba_kernel picks (kSlots: 0 for
+// chains, kAbaRegisterSlots for float's register slots, the capacity for any tree):
+// the one dispatch of the ABA's kernels (forward and hybrid dynamics).
+template <class S, class F>
+void visit_aba_kernel(const ThreadModel<S>& model, F&& launch) {
+  const AbaKernel kernel = choose_aba_kernel(model);
+  std::visit(
+      [&](const auto& params) {
+        constexpr int C = std::decay_t<decltype(params)>::capacity;
+        using std::integral_constant;
+        if (kernel == AbaKernel::Chains) launch(params, integral_constant<int, 0>{});
+        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
+          if (kernel == AbaKernel::Branches) launch(params, integral_constant<int, int(kAbaRegisterSlots)>{});
+          else launch(params, integral_constant<int, C>{});
+        } else {
+          launch(params, integral_constant<int, C>{});
+        }
+      },
+      model.params());
 }
 
 #if defined(__CUDACC__)
@@ -103,6 +128,15 @@ __host__ __device__ __forceinline__ void slot_update(T (&slots)[K], int s, F&& f
 
 }  // namespace fd_detail
 
+// The hybrid dynamics' extra arguments of aba_instance (kHybrid): which DoFs have
+// their acceleration given, those accelerations, and where the forces go.
+template <class S>
+struct HybridColumns {
+  unsigned long long prescribed = 0;  // bit i: DoF i's acceleration is given (qdd_in[i])
+  DofColumn<const S> qdd_in{};        // (nv) given accelerations, read at prescribed DoFs only
+  DofColumn<S> tau_out{};             // (nv) every DoF's force (the given ones copied through)
+};
+
 // Forward dynamics of one instance by the articulated-body algorithm (ABA,
 // Featherstone (2008) 7.3): the three passes of the serial scandyn::aba
 // (src/algorithm/reference.cpp) over the same step functions (steps.hpp), with the
@@ -152,13 +186,24 @@ __host__ __device__ __forceinline__ void slot_update(T (&slots)[K], int s, F&& f
 // kKeepXup keeps each body's transform from pass 1 for passes 2 and 3; otherwise
 // joint_transform is evaluated again in each (fewer registers, more arithmetic).
 // kTrig: how joint angles become sin and cos (see joint_sincos).
+//
+// kHybrid: the hybrid dynamics of the serial scandyn::hybrid_dynamics (Featherstone
+// 2008, 9.2) instead, with the same steps in the same order: the DoFs whose bit is
+// set in hd.prescribed take their acceleration from hd.qdd_in (tau not read there)
+// and get their force in hd.tau_out (hybrid_prescribed_to_parent in pass 2,
+// hybrid_prescribed_acceleration_step in pass 3, U_i and u_i of pass 2 in their
+// AbaBodyState); the others are the ABA's, their tau copied to hd.tau_out. Returns
+// -1 or the failed DoF as above (nothing written). Without kHybrid, hd is not read.
+// Models of up to 64 DoF (one bit per DoF).
 template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library,
-          int kSlots = C>
+          int kSlots = C, bool kHybrid = false>
 __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
                                                        DofColumn<const S> qd, DofColumn<const S> tau,
                                                        const Force<S>* fext, DofColumn<S> qdd,
-                                                       const S* armature = nullptr) {
+                                                       const S* armature = nullptr,
+                                                       HybridColumns<S> hd = {}) {
   static_assert(kSlots >= 0 && kSlots <= C, "aba_instance: kSlots is 0 (chains), below C (registers) or C");
+  static_assert(!kHybrid || C <= 64, "aba_instance: the hybrid's prescribed mask has 64 bits");
   using fd_detail::slot_get;
   using fd_detail::slot_update;
   constexpr bool kBranches = kSlots > 0;     // are there branch children at all
@@ -186,6 +231,11 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     else return joint_transform<kTrig>(b, q_at(i));
   };
   auto slot_of = [&](Index j) -> int { return branch_slot(model.flags[j]); };
+  // kHybrid: DoF i's acceleration is given
+  auto given = [&](Index i) -> bool {
+    if constexpr (kHybrid) return (hd.prescribed >> i) & 1ull;
+    else return false;
+  };
   // v_p of a body p < i while pass 2 is at body i (its state still holds v_p)
   auto velocity_of = [&](Index p, Index i) -> Motion<S> {
     if constexpr (kUnrolled) {
@@ -261,6 +311,11 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         return t;
       },
       [&](Index i, int, const AbaCarry<S>& t) {
+        if (given(i)) {
+          aba_joint_terms(model.body[i], t.IA, t.pA, S(0), Ui, Di, ui);
+          st[i].set_terms(Ui, Di, ui);
+          return true;
+        }
         aba_joint_terms(model.body[i], t.IA, t.pA, tau[i], Ui, Di, ui, armature ? armature[i] : S(0));
         if (!pivot_ok(Di)) return false;
         st[i].set_terms(Ui, Di, ui);
@@ -271,6 +326,11 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         // the reference's)
         const Body<S>& b = model.body[i];
         AbaCarry<S> up{ABInertia<S>{}, Force<S>::zero()};
+        if (given(i)) {
+          hybrid_prescribed_to_parent(b, xup(i, b), t.IA, t.pA, aba_velocity_product(b, v, qd_at(i)), hd.qdd_in[i],
+                                      up.IA, up.pA);
+          return up;
+        }
         aba_backward_to_parent(xup(i, b), t.IA, t.pA, aba_velocity_product(b, v, qd_at(i)), Ui, Di, ui, up.IA, up.pA);
         return up;
       },
@@ -310,7 +370,14 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         const Transform<S> X = xup(i, b);
         const AbaForward<S> o = aba_forward_step(b, X, p.v, qd_at(i));
         Motion<S> a;
-        qdd[i] = aba_acceleration_step(b, X, p.a, o.c, st[i].U(), st[i].D, st[i].u, a);
+        if (given(i)) {
+          const S qddi = hd.qdd_in[i];
+          hd.tau_out[i] = hybrid_prescribed_acceleration_step(b, X, p.a, o.c, st[i].U(), st[i].u, qddi, a);
+          qdd[i] = qddi;
+        } else {
+          qdd[i] = aba_acceleration_step(b, X, p.a, o.c, st[i].U(), st[i].D, st[i].u, a);
+          if constexpr (kHybrid) hd.tau_out[i] = tau[i];
+        }
         if (kBranches && (fl & kStacked)) {
           slot_update<K, C>(sv, slot_of(i), [&](Motion<S>& s) { s = o.v; });
           slot_update<K, C>(sa, slot_of(i), [&](Motion<S>& s) { s = a; });

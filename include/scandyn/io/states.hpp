@@ -12,8 +12,9 @@
 
 namespace scandyn::io {
 
-enum class Algo { Id, Fd, Mass, Bias };
-const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias"
+// DId, DFd: the first-order derivatives of inverse and forward dynamics.
+enum class Algo { Id, Fd, Mass, Bias, DId, DFd };
+const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias", "did", "dfd"
 bool parse_algo(const std::string& name, Algo& algo);  // false if unknown
 
 // A set of algorithms: bit (1 << algo) for each member.
@@ -22,9 +23,13 @@ constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo)
 // The members' names joined by sep, in the order id, fd, mass, bias.
 std::string algo_list(AlgoSet algos, const char* sep);
 
-// Values per instance that algo writes: nv, or nv * nv for Mass.
+// Values per instance that algo writes: nv, nv * nv for Mass, 3 * nv * nv for DId
+// and DFd.
 std::size_t output_width(Algo algo, Index nv);
-// Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>.
+// Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>;
+// did: dtau_dq_<i>_<j>, dtau_dqd_<i>_<j>, dtau_dqdd_<i>_<j> (= M); dfd:
+// dqdd_dq_<i>_<j>, dqdd_dqd_<i>_<j>, dqdd_dtau_<i>_<j> (= M^-1); each block
+// row-major, (i, j) = d output_i / d input_j.
 std::vector<std::string> output_columns(Algo algo, Index nv);
 
 // The four input families of a states file, by column-name prefix.
@@ -32,7 +37,8 @@ enum class Family { Q = 0, Qd = 1, Qdd = 2, Tau = 3 };
 constexpr int kFamilies = 4;
 
 const char* family_prefix(Family f);  // "q_", "qd_", "qdd_", "tau_"
-// The families algo reads: id q, qd, qdd; fd q, qd, tau; mass q; bias q, qd.
+// The families algo reads: id q, qd, qdd; fd q, qd, tau; mass q; bias q, qd; did as
+// id, dfd as fd.
 std::vector<Family> algo_inputs(Algo algo);
 
 // Where each state entry sits in a CSV row.

@@ -147,4 +147,13 @@ void set_joint_offsets(ModelTpl<S>& m) {
   m.extra_v = iv - m.nbodies();
 }
 
+// Name of the first joint with more than one DoF (the free joint is "root_joint"),
+// for the errors of what takes 1-DoF joints only; "" in a model of 1-DoF joints.
+template <class S>
+std::string first_multi_dof_joint(const ModelTpl<S>& m) {
+  for (std::size_t i = 0; i < m.bodies.size(); ++i)
+    if (joint_nv(m.bodies[i].type) > 1) return i < m.joint_names.size() ? m.joint_names[i] : std::to_string(i);
+  return "";
+}
+
 }  // namespace scandyn

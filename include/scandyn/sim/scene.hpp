@@ -17,6 +17,8 @@
 #include "scandyn/model/model.hpp"
 #include "scandyn/sim/effects.hpp"
 #include "scandyn/sim/integrators.hpp"
+#include "scandyn/sim/prescribed.hpp"
+#include "scandyn/algorithm/loops.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -67,6 +69,8 @@ struct Scene {
   int threads = 0;                    // OpenMP threads, 0: all
   Index instances = 1;                // B
   InitialState initial;
+  PrescribedMotion prescribed;        // driven DoFs and their trajectories ("prescribed"), or empty
+  LoopSet loops;                      // closed loops: the generator's and the scene's "loops"
 
   Index nv() const { return model.nv(); }
 };

@@ -95,6 +95,17 @@ struct SimSetup {
   std::vector<Force<S>> wrenches;           // (nv) the constant external wrenches (kExternal), else empty
   bool wrenches_per_step = false;           // (B x nv) buffer the caller rewrites
   int threads = 0;                          // OpenMP threads (0: all)
+  // prescribed joint motion (scene key "prescribed"): the driven DoFs follow their
+  // trajectories exactly, the others respond through the hybrid dynamics (serial
+  // and openmp backends; cuda refuses it)
+  PrescribedMotion prescribed;
+  std::vector<unsigned char> prescribed_mask;  // (nv) 1 at driven DoFs, or empty
+  double time = 0;                          // the time at the start of the step being taken
+  // closed loops (the scene's): forward dynamics with the loops
+  // (constrained_forward_dynamics, double), the state projected onto the loops after
+  // every step (project_to_loops); serial and openmp, euler and rk4
+  LoopSet loops;
+  Model loop_model;                         // the model in double for the loop solves
 };
 
 namespace detail {

@@ -1,0 +1,38 @@
+// bench/plain_bench_util.hpp: what the plain timing programs (no Google Benchmark:
+// fd_residual_cost, fd_residual_study, fd_check_engine_cost) share.
+#pragma once
+
+#include <algorithm>
+#include <chrono>
+#include <cstddef>
+#include <cstdlib>
+#include <string>
+
+namespace scandyn::bench {
+
+// Directory of the shipped robots: $SCANDYN_MODELS_DIR, else the build-time default.
+inline std::string models_dir() {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
+}
+
+// Best of 3 runs of seconds per call: each run repeats batch() (which makes some
+// calls and returns how many) until min_time seconds have passed.
+template <class F>
+double best_seconds_per_call(double min_time, F&& batch) {
+  using Clock = std::chrono::steady_clock;
+  double best = 1e300;
+  for (int rep = 0; rep < 3; ++rep) {
+    std::size_t calls = 0;
+    const auto t0 = Clock::now();
+    double el = 0;
+    do {
+      calls += batch();
+      el = std::chrono::duration<double>(Clock::now() - t0).count();
+    } while (el < min_time);
+    best = std::min(best, el / double(calls));
+  }
+  return best;
+}
+
+}  // namespace scandyn::bench

@@ -1,0 +1,106 @@
+// scandyn/cuda/derivatives.hpp: the first-order derivatives of inverse and forward
+// dynamics of a batch on a CUDA device, one thread per instance (models of up to
+// kMaxThreadDofs DoF).
+//
+// Layers, as for the other CUDA engines:
+//   rnea_derivatives_instance(), fd_derivatives_instance()
+//                               __host__ __device__ (scandyn/instance/dynamics_derivatives.hpp):
+//                               one instance, the serial reference's functions;
+//   id_derivatives_kernel, fd_derivatives_kernel
+//                               one thread per instance (kernels/derivatives.cu); the
+//                               forward-dynamics kernel runs aba_instance for qdd first;
+//   launch_id_derivatives(), launch_fd_derivatives()
+//                               host wrappers: device pointers, a stream, the launch's
+//                               cudaError_t, never synchronise;
+// and the engines CudaIdDerivatives / CudaFdDerivatives on top: compute() on HOST
+// views (copies in, launches, copies out, synchronises), compute_async() on DEVICE
+// views and a stream. Output layout: scandyn/engine.hpp (three nv * nv views; soa,
+// the instance innermost, is the fast layout on the device).
+//
+// Per thread: nv DerivativeBody entries (70 scalars each) in per-thread local memory,
+// plus the ABA's state for the forward dynamics.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/build_config.hpp"
+#include "scandyn/engine.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+#include "scandyn/instance/thread_model.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+namespace detail {
+class StagingBuffer;  // kernels/staging.hpp
+}  // namespace detail
+
+// Threads per block of the derivative kernels.
+inline constexpr int kDerivativesBlock = 64;
+
+// out = the inverse-dynamics derivatives of the B = in.q.batch instances; DEVICE
+// pointers, any strides. cudaErrorInvalidValue for batch sizes that disagree or a null
+// pointer with B > 0; else the launch's error.
+template <class S>
+cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S>& in, const IdDerivativesOut<S>& out,
+                                  cudaStream_t stream);
+
+// out = the forward-dynamics derivatives (and qdd when out.qdd.data is set);
+// failed_dof (B ints, device memory, or null): -1, or the DoF whose pivot failed.
+template <class S>
+cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
+                                  int* failed_dof, cudaStream_t stream);
+
+template <class S>
+class CudaIdDerivatives final : public IdDerivatives<S> {
+ public:
+  // Throws BackendError for a model beyond kMaxThreadDofs, no usable device, or
+  // staging buffers (q, qd, qdd, fext and three nv x nv outputs per instance, for
+  // max_batch instances) that do not fit.
+  CudaIdDerivatives(const ModelTpl<S>& model, const BackendOptions& options);
+  ~CudaIdDerivatives() override;
+  void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) override;
+  cudaError_t compute_async(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, cudaStream_t stream);
+  std::string strategy() const override { return "thread"; }
+  BackendKind backend() const override { return BackendKind::Cuda; }
+
+ private:
+  Index nv_ = 0, max_batch_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<detail::StagingBuffer> staging_;
+};
+
+template <class S>
+class CudaFdDerivatives final : public FdDerivatives<S> {
+ public:
+  CudaFdDerivatives(const ModelTpl<S>& model, const BackendOptions& options);
+  ~CudaFdDerivatives() override;
+  BatchStatus compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) override;
+  // failed_dof: B ints of device memory, or null
+  cudaError_t compute_async(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, int* failed_dof,
+                            cudaStream_t stream);
+  std::string strategy() const override { return "thread"; }
+  BackendKind backend() const override { return BackendKind::Cuda; }
+
+ private:
+  Index nv_ = 0, max_batch_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<detail::StagingBuffer> staging_;
+  std::vector<int> failed_host_;  // (max_batch) the failed DoFs of the last compute()
+};
+
+// The factories' CUDA branch (scandyn/engine.hpp: make_id_derivatives, make_fd_derivatives).
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_cuda_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_cuda_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+
+}  // namespace cuda
+}  // namespace scandyn
+
+#endif  // SCANDYN_HAS_CUDA

@@ -1,0 +1,297 @@
+// scandyn/instance/dynamics_derivatives.hpp: first-order analytical derivatives of
+// inverse and forward dynamics for one instance, __host__ __device__: the serial
+// reference (scandyn/algorithm/derivatives.hpp), the OpenMP engine and the CUDA
+// kernel (kernels/derivatives.cu) all run these functions.
+//
+// The recursions of Carpentier & Mansard, "Analytical derivatives of rigid body
+// dynamics algorithms", RSS 2018 (the ones Pinocchio's computeRNEADerivatives and
+// computeABADerivatives implement), in scandyn's conventions ([angular; linear],
+// Featherstone's names). Everything below is expressed in the world (= base) frame
+// 0, where composite quantities are plain sums over subtrees. For body i with
+// parent p = lambda(i), joint motion S_i (world), x the motion cross product and x*
+// the force cross product:
+//   v_i = v_p + S_i qd_i,  a_i = a_p + S_i qdd_i + (v_i x S_i) qd_i      (a_base = -g)
+//   f_i = I_i a_i + v_i x* I_i v_i - fext_i,     F_i = sum of f_k over subtree(i)
+//   tau_i = S_i . F_i
+// Joint j moves its subtree rigidly (dS_k/dq_j = S_j x S_k, dI_k/dq_j = S_j x* I_k -
+// I_k S_j x for j an ancestor of k, or k itself), which leaves per joint j
+//   dV_j = v_p x S_j                     (the non-rigid part of dv_k/dq_j)
+//   dA_j = a_p x S_j + v_p x dV_j        (the non-rigid part of da_k/dq_j is dA_j + dV_j x v_k)
+// and per body the matrix B_k m = v_k x* (I_k m) - I_k (v_k x m) + m x* (I_k v_k)
+// (C&M's "B", the derivative of the body force's velocity terms; VelocityDerivative
+// stores its 12 non-zero parameters), summed over subtrees into Bc_i next to the
+// composite inertia Ic_i. Then, for j an ancestor of
+// i or i itself (and the transposed entries for i an ancestor of j):
+//   dtau_i/dq_j  = S_i . (Ic_i dA_j + Bc_i dV_j)          dtau_j/dq_i  = S_j . Phi_i
+//   dtau_i/dqd_j = S_i . (2 Ic_i dV_j + Bc_i S_j)         dtau_j/dqd_i = S_j . Psi_i
+//   M_ij         = S_i . Ic_i S_j                         (M_ji = M_ij)
+// with Phi_i = S_i x* F_i + Ic_i dA_i + Bc_i dV_i and Psi_i = 2 Ic_i dV_i + Bc_i S_i;
+// entries of bodies on different branches are 0. External wrenches (constant in
+// their body's frame) rotate with the body and enter only through F. One forward
+// pass (O(nv)) and one backward pass over every (body, ancestor) pair (O(nv depth)).
+//
+// Forward dynamics: qdd = FD(q, qd, tau, fext) satisfies ID(q, qd, qdd, fext) = tau,
+// so at that qdd
+//   dqdd/dq = -M^-1 dtau/dq,  dqdd/dqd = -M^-1 dtau/dqd,  dqdd/dtau = M^-1
+// (C&M section IV): fd_derivatives_instance evaluates the inverse-dynamics
+// derivatives at the caller's qdd (from the ABA), factors M = L^T L in place with
+// the tree's sparsity and solves, all in the output blocks.
+#pragma once
+
+#include <cstddef>
+#include <type_traits>
+
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/batch.hpp"
+
+namespace scandyn {
+
+// An nv x nv matrix of one instance: entry (i, j) at data[(i * n + j) * stride]
+// (stride 1: row-major; a batch's instance-innermost layout: stride B).
+template <class S>
+struct MatrixRef {
+  S* data;
+  Index n;
+  std::ptrdiff_t stride;
+  SCANDYN_HD S& operator()(Index i, Index j) const {
+    return data[(static_cast<std::ptrdiff_t>(i) * n + j) * stride];
+  }
+};
+
+// Instance b's matrix in a batch view of nv * nv entries per instance (entry i * nv
+// + j: (i, j); the engines' output layout, scandyn/engine.hpp).
+template <class S>
+SCANDYN_HD MatrixRef<S> instance_matrix(const BatchView<S>& v, long long b, Index nv) {
+  return {v.data + b * v.batch_stride, nv, v.dof_stride};
+}
+
+// C&M's B for a body of inertia I moving with v (world frame), B m = v x* (I m) -
+// I (v x m) + m x* (I v), or a sum of them over a subtree. B vanishes on linear
+// motions: with p = I v = [n; f] (f = m v_lin + w x h) the linear columns are
+// [(w x h + m v_lin - f) x; 0] = 0, so B = [Bw 0; -2 [f]x 0] and a subtree's sum is
+// its sum of Bw and of the linear momenta f (12 scalars, not 36):
+//   Bw = [w]x Ibar + ([w]x Ibar)^T - (v h^T + h v^T) + 2 (v . h) 1 - [n]x
+// (h = m c, Ibar the rotational inertia about the frame origin).
+template <class S>
+struct VelocityDerivative {
+  Mat3<S> Bw;  // the angular-angular block
+  Vec3<S> P;   // linear momentum: the angular-to-linear block is -2 [P]x
+
+  SCANDYN_HD static VelocityDerivative of(const Inertia<S>& I, const Motion<S>& v) {
+    const Force<S> p = I * v;
+    const Mat3<S> WI = skew(v.w) * I.I.full();
+    const Mat3<S> N = skew(p.n);
+    const S vh2 = S(2) * dot(v.v, I.h);
+    VelocityDerivative o;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c)
+        o.Bw.m[3 * r + c] = WI.m[3 * r + c] + WI.m[3 * c + r] - (v.v[r] * I.h[c] + I.h[r] * v.v[c]) -
+                            N.m[3 * r + c] + (r == c ? vh2 : S(0));
+    o.P = p.f;
+    return o;
+  }
+  // B m
+  SCANDYN_HD Force<S> apply(const Motion<S>& m) const { return {Bw * m.w, S(-2) * cross(P, m.w)}; }
+  // B^T m, as a force (paired with motions by dot)
+  SCANDYN_HD Force<S> apply_transpose(const Motion<S>& m) const {
+    return {mul_transpose(Bw, m.w) + S(2) * cross(P, m.v), Vec3<S>::zero()};
+  }
+  SCANDYN_HD VelocityDerivative& operator+=(const VelocityDerivative& o) {
+    Bw = Bw + o.Bw;
+    P += o.P;
+    return *this;
+  }
+};
+
+// Body i's quantities between the two passes of rnea_derivatives_instance (world
+// frame; 72 scalars).
+template <class S>
+struct DerivativeBody {
+  Transform<S> X;  // body frame <- world (i_X_0)
+  Motion<S> J;     // joint motion subspace S_i in the world frame (C&M: the Jacobian column)
+  Motion<S> v, a;  // body velocity and acceleration (gravity included), world
+  Motion<S> dV;    // v_parent x S_i
+  Motion<S> dA;    // a_parent x S_i + v_parent x dV_i
+  Force<S> F;      // body force, then (backward pass) the sum over the subtree
+  Inertia<S> Ic;   // spatial inertia in the world frame, then the subtree's (composite)
+  VelocityDerivative<S> Bc;  // B_i, then the subtree's sum
+  S d, t;          // fd_derivatives_instance's scratch: the diagonal entry of L^-1 (M =
+                   // L^T L), and an entry of a row of L^-1
+};
+
+// Forward step of the derivatives: body i's world-frame quantities from its
+// parent's (parent null: the base, at rest with acceleration a0). fext: body i's
+// external wrench in its own frame, or null.
+template <class S>
+SCANDYN_HD void derivative_forward_step(const Body<S>& b, S q, S qd, S qdd, const Force<S>* fext,
+                                        const DerivativeBody<S>* parent, const Motion<S>& a0,
+                                        DerivativeBody<S>& o) {
+  const Transform<S> Xup = joint_transform(b, q);
+  o.X = parent ? Xup * parent->X : Xup;
+  const Motion<S> vp = parent ? parent->v : Motion<S>::zero();
+  const Motion<S> ap = parent ? parent->a : a0;
+  o.J = o.X.apply_inverse(joint_motion(b, S(1)));
+  o.v = vp + qd * o.J;
+  o.a = ap + qdd * o.J + qd * cross(o.v, o.J);
+  o.dV = cross(vp, o.J);
+  o.dA = cross(ap, o.J) + cross(vp, o.dV);
+  o.Ic = b.I.transform_transpose(o.X);
+  o.F = o.Ic * o.a + cross(o.v, o.Ic * o.v);
+  if (fext) o.F -= o.X.apply_transpose(*fext);
+  o.Bc = VelocityDerivative<S>::of(o.Ic, o.v);
+}
+
+// Inverse-dynamics derivatives of one instance: dtau_dq, dtau_dqd and M (nv x nv
+// each; every entry written) at (q, qd, qdd, fext), gravity included; tau (optional,
+// else null) = ID(q, qd, qdd, fext). body: the nv bodies in DoF order; a0: the base
+// acceleration (-g); fext: nv body wrenches in body frames, or null; V: anything
+// indexable by DoF (a pointer, a DofColumn); T: likewise, or decltype(nullptr);
+// work: nv DerivativeBody entries of scratch.
+template <class S, class V, class T>
+SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
+                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dtau_dq,
+                                          MatrixRef<S> dtau_dqd, MatrixRef<S> M, T tau) {
+  // forward: world-frame kinematics, body forces, inertias and B
+  for (Index i = 0; i < nv; ++i) {
+    const Index p = body[i].parent;
+    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
+                            p < 0 ? nullptr : work + p, a0, work[i]);
+  }
+  for (Index i = 0; i < nv; ++i)
+    for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
+  // backward: composite sums, then row j's entries against its ancestors (and the
+  // transposed entries)
+  for (Index j = nv - 1; j >= 0; --j) {
+    const DerivativeBody<S>& w = work[j];
+    if constexpr (!std::is_same<T, decltype(nullptr)>::value) tau[j] = dot(w.J, w.F);
+    const Force<S> psi = w.Ic * w.J;            // Ic_j S_j
+    const Force<S> rho = w.Bc.apply_transpose(w.J);  // Bc_j^T S_j
+    const Force<S> Phi = cross(w.J, w.F) + w.Ic * w.dA + w.Bc.apply(w.dV);
+    const Force<S> Psi = w.Ic * (S(2) * w.dV) + w.Bc.apply(w.J);
+    for (Index i = j; i >= 0; i = body[i].parent) {
+      const DerivativeBody<S>& a = work[i];
+      dtau_dq(j, i) = dot(a.dA, psi) + dot(a.dV, rho);
+      dtau_dqd(j, i) = S(2) * dot(a.dV, psi) + dot(a.J, rho);
+      const S Mji = dot(a.J, psi);
+      M(j, i) = Mji;
+      if (i != j) {
+        dtau_dq(i, j) = dot(a.J, Phi);
+        dtau_dqd(i, j) = dot(a.J, Psi);
+        M(i, j) = Mji;
+      }
+    }
+    const Index p = body[j].parent;
+    if (p >= 0) {
+      work[p].F += w.F;
+      work[p].Ic += w.Ic;
+      work[p].Bc += w.Bc;
+    }
+  }
+}
+
+// ---- M = L^T L with the tree's sparsity (Featherstone (2008) 6.5) ---------------
+// L is lower triangular with L_ij != 0 only for j an ancestor of i or i itself (the
+// branch-induced sparsity of M: no fill-in), as the serial ltl_factor / ltl_solve
+// (src/algorithm/reference_impl.hpp), here on a MatrixRef and the bodies' parents.
+
+// In place: A's lower triangle (M) becomes L, M = L^T L. Returns -1, or the DoF whose
+// pivot was not positive and finite. The strict upper triangle is not touched.
+template <class S>
+SCANDYN_HD Index tree_ltl_factor(const Body<S>* body, MatrixRef<S> A) {
+  for (Index k = A.n - 1; k >= 0; --k) {
+    const S d = A(k, k);
+    if (!pivot_ok(d)) return k;
+    const S Lkk = ScalarMath<S>::sqrt(d);
+    A(k, k) = Lkk;
+    const S inv = S(1) / Lkk;
+    for (Index i = body[k].parent; i >= 0; i = body[i].parent) A(k, i) *= inv;
+    for (Index i = body[k].parent; i >= 0; i = body[i].parent) {
+      const S Lki = A(k, i);
+      for (Index j = i; j >= 0; j = body[j].parent) A(i, j) -= Lki * A(k, j);
+    }
+  }
+  return -1;
+}
+
+// X and Y become -(L^T L)^-1 X and -(L^T L)^-1 Y (L from tree_ltl_factor), by row
+// operations on all their columns at once: one walk up the tree per row, and
+// contiguous (vectorisable) rows when the matrices are row-major.
+template <class S>
+SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
+  const Index n = L.n;
+  // row r of both: row r = a * row r + b * row s
+  auto rows = [&](Index r, S a, Index s, S b) {
+    for (Index c = 0; c < n; ++c) {
+      X(r, c) = a * X(r, c) + b * X(s, c);
+      Y(r, c) = a * Y(r, c) + b * Y(s, c);
+    }
+  };
+  for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x (row i holds x_i + sum of L_ki y_k when reached)
+    rows(i, S(-1) / L(i, i), i, S(0));
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(j, S(1), i, L(i, j));
+  }
+  for (Index i = 0; i < n; ++i) {  // L z = y
+    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(i, S(1), j, -L(i, j));
+    rows(i, S(1) / L(i, i), i, S(0));
+  }
+}
+
+// In place: A's lower triangle (L from tree_ltl_factor) becomes M^-1 = L^-1 L^-T,
+// both triangles written. L^-1 has L's sparsity (ancestor relations compose), so it
+// replaces L column by column; the diagonal of L^-1 waits in diag (n scalars) while
+// the upper triangle receives M^-1, which is dense where M is not. row: n scalars of
+// scratch.
+template <class S, class Scratch>
+SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch diag, Scratch row) {
+  const Index n = A.n;
+  for (Index k = 0; k < n; ++k) {  // column k of L^-1 (columns > k still hold L)
+    A(k, k) = S(1) / A(k, k);
+    for (Index i = k + 1; i < n; ++i) {
+      S s = S(0);
+      Index m = body[i].parent;
+      for (; m > k; m = body[m].parent) s += A(i, m) * A(m, k);
+      if (m != k) continue;  // k is not an ancestor of i: the entry stays 0
+      s += A(i, k) * A(k, k);
+      A(i, k) = -s / A(i, i);
+    }
+  }
+  for (Index i = 0; i < n; ++i) diag[i] = A(i, i), row[i] = S(0);
+  // (M^-1)_ij = sum of L^-1_ik L^-1_jk over the common ancestors k (and i or j): row
+  // j of L^-1 scattered into `row`, then each i <= j walks its own ancestors
+  auto linv = [&](Index r, Index k) { return r == k ? S(diag[r]) : A(r, k); };
+  for (Index j = 0; j < n; ++j) {
+    for (Index k = j; k >= 0; k = body[k].parent) row[k] = linv(j, k);
+    for (Index i = 0; i <= j; ++i) {
+      S s = S(0);
+      for (Index k = i; k >= 0; k = body[k].parent) s += linv(i, k) * row[k];
+      A(i, j) = s;
+    }
+    for (Index k = j; k >= 0; k = body[k].parent) row[k] = S(0);
+  }
+  for (Index i = 0; i < n; ++i)
+    for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
+}
+
+// Forward-dynamics derivatives of one instance at qdd = FD(q, qd, tau, fext) (the
+// caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
+// every entry written). Returns -1, or the DoF whose pivot of M = L^T L was not
+// positive and finite (the outputs then hold partial values). Arguments as
+// rnea_derivatives_instance.
+template <class S, class V>
+SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
+                                         const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
+                                         MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau) {
+  rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
+  const Index failed = tree_ltl_factor(body, dqdd_dtau);
+  if (failed >= 0) return failed;
+  tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
+  struct Field {  // one scalar field of the work array
+    DerivativeBody<S>* w;
+    S DerivativeBody<S>::*f;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+  };
+  tree_ltl_inverse(body, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+  return -1;
+}
+
+}  // namespace scandyn

@@ -1,0 +1,267 @@
+// kernels/derivatives.cu: the batched first-order derivatives of inverse and forward
+// dynamics, one thread per instance (scandyn/cuda/derivatives.hpp): the per-instance
+// functions of scandyn/instance/dynamics_derivatives.hpp (the serial reference's),
+// after aba_instance for the forward dynamics' qdd.
+#include <cuda_runtime.h>
+
+#include <string>
+#include <type_traits>
+
+#include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/instance/aba_instance.hpp"
+#include "scandyn/instance/dof_column.hpp"
+#include "scandyn/instance/dynamics_derivatives.hpp"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+using detail::check;
+using detail::copy;
+using detail::plan;
+using detail::Staging;
+
+// ---- kernels and launches ----------------------------------------------------------
+
+// One thread per instance b < B: dtau/dq, dtau/dqd and M of instance b.
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    id_derivatives_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const IdBatchIn<S> in,
+                          const IdDerivativesOut<S> out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Index nv = model.nv;
+  DerivativeBody<S> work[C];  // per-thread local memory
+  rnea_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+                            instance_column(in.qdd, b), in.fext ? in.fext + b * nv : nullptr, work,
+                            instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
+                            instance_matrix(out.M, b, nv), nullptr);
+}
+
+// One thread per instance b < B: qdd by the ABA, then dqdd/dq, dqdd/dqd, M^-1.
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    fd_derivatives_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
+                          const FdDerivativesOut<S> out, int* failed_dof) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Index nv = model.nv;
+  const Force<S>* fext = in.fext ? in.fext + b * nv : nullptr;
+  S qdd_local[C];
+  const DofColumn<S> qdd = out.qdd.data ? instance_column(out.qdd, b) : DofColumn<S>{qdd_local, 1};
+  const DofColumn<const S> q = instance_column(in.q, b), qd = instance_column(in.qd, b);
+  Index failed = aba_instance<S, C>(model, q, qd, instance_column(in.tau, b), fext, qdd);
+  if (failed < 0) {
+    DerivativeBody<S> work[C];  // per-thread local memory
+    failed = fd_derivatives_instance(model.body, nv, model.a0, q, qd, DofColumn<const S>{qdd.data, qdd.stride}, fext,
+                                     work, instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
+                                     instance_matrix(out.dqdd_dtau, b, nv));
+  }
+  if (failed_dof) failed_dof[b] = failed;
+}
+
+namespace {
+
+unsigned blocks_for(Index B) {
+  return static_cast<unsigned>((static_cast<long long>(B) + kDerivativesBlock - 1) / kDerivativesBlock);
+}
+
+}  // namespace
+
+template <class S>
+cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S>& in, const IdDerivativesOut<S>& out,
+                                  cudaStream_t stream) {
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.dtau_dq.batch != B || out.dtau_dqd.batch != B ||
+      out.M.batch != B)
+    return cudaErrorInvalidValue;
+  if (B == 0 || model.nv() == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
+    return cudaErrorInvalidValue;
+  std::visit(
+      [&](const auto& params) {
+        using P = std::decay_t<decltype(params)>;
+        id_derivatives_kernel<S, P::capacity><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+      },
+      model.params());
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
+                                  int* failed_dof, cudaStream_t stream) {
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.tau.batch != B || out.dqdd_dq.batch != B || out.dqdd_dqd.batch != B ||
+      out.dqdd_dtau.batch != B || (out.qdd.data && out.qdd.batch != B))
+    return cudaErrorInvalidValue;
+  if (B == 0 || model.nv() == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
+    return cudaErrorInvalidValue;
+  std::visit(
+      [&](const auto& params) {
+        using P = std::decay_t<decltype(params)>;
+        fd_derivatives_kernel<S, P::capacity>
+            <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+      },
+      model.params());
+  return cudaGetLastError();
+}
+
+// ---- the engines --------------------------------------------------------------------
+//
+// Staging buffer per engine, for max_batch instances (cap = nv x max_batch scalars):
+// the three inputs in slots 0..2, qdd in slot 3 (forward dynamics), the wrenches (6
+// slots, detail::stage_inputs' layout), then the three nv x nv outputs (nv slots
+// each), then (forward dynamics) max_batch ints of failed DoFs.
+
+namespace {
+
+constexpr std::size_t kInputSlots = 10;  // q, qd, qdd / tau, qdd out, fext (6)
+
+template <class S>
+std::unique_ptr<detail::StagingBuffer> derivative_staging(const ModelTpl<S>& model, Index max_batch, bool fd) {
+  if (model.nv() > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(model.nv()) +
+                       " DoF; the derivatives run a thread per instance, which takes at most " +
+                       std::to_string(kMaxThreadDofs));
+  if (max_batch < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch) + " is negative");
+  const std::size_t n = static_cast<std::size_t>(model.nv());
+  return std::make_unique<detail::StagingBuffer>(
+      max_batch, model.nv(), sizeof(S) == 4 ? "float" : "double",
+      fd ? "q, qd, tau, qdd, fext and three nv x nv derivatives" : "q, qd, qdd, fext and three nv x nv derivatives",
+      (kInputSlots + 3 * n) * n * sizeof(S) + (fd ? sizeof(int) : 0));
+}
+
+// Stages the three nv x nv outputs (device views in `dev`), returns their plans.
+template <class S, std::size_t N>
+void plan_outputs(const BatchView<S> (&host)[N], const char* const (&names)[N], Index nv, std::size_t cap, S* base,
+                  Staging (&st)[N], BatchView<S> (&dev)[N]) {
+  const std::size_t mcap = static_cast<std::size_t>(nv) * cap;
+  for (std::size_t k = 0; k < N; ++k) {
+    st[k] = plan(host[k], nv * nv, mcap, true, names[k]);
+    dev[k] = st[k].device_view(base + k * mcap, host[k].batch);
+  }
+}
+
+template <class S, std::size_t N>
+void copy_outputs(const Staging (&st)[N], const BatchView<S> (&host)[N], const char* const (&names)[N], Index nv,
+                  std::size_t cap, S* base, cudaStream_t stream) {
+  const std::size_t mcap = static_cast<std::size_t>(nv) * cap;
+  for (std::size_t k = 0; k < N; ++k)
+    check(copy(st[k], host[k], nv * nv, base + k * mcap, cudaMemcpyDeviceToHost, stream),
+          (std::string("copying ") + names[k] + " to the host").c_str());
+}
+
+}  // namespace
+
+template <class S>
+CudaIdDerivatives<S>::CudaIdDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
+    : nv_(model.nv()), max_batch_(options.max_batch) {
+  staging_ = derivative_staging(model, max_batch_, false);
+  thread_ = std::make_unique<ThreadModel<S>>(model);
+}
+template <class S>
+CudaIdDerivatives<S>::~CudaIdDerivatives() = default;
+
+template <class S>
+cudaError_t CudaIdDerivatives<S>::compute_async(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out,
+                                                cudaStream_t stream) {
+  return launch_id_derivatives(*thread_, in, out, stream);
+}
+
+template <class S>
+void CudaIdDerivatives<S>::compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) {
+  check_batch(in, out, max_batch_);
+  const Index B = in.q.batch, nv = nv_;
+  if (B == 0 || nv == 0) return;
+  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  S* const buffer = static_cast<S*>(staging_->data());
+  const cudaStream_t stream = staging_->stream();
+  static const char* const kNames[3] = {"dtau_dq", "dtau_dqd", "M"};
+  const BatchView<S> host[3] = {out.dtau_dq, out.dtau_dqd, out.M};
+  Staging st[3];
+  BatchView<S> dev[3];
+  plan_outputs(host, kNames, nv, cap, buffer + kInputSlots * cap, st, dev);
+  const detail::StagedInputs<S> d =
+      detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext, nv, cap, buffer, stream);
+  check(compute_async(IdBatchIn<S>{d.in[0], d.in[1], d.in[2], d.fext}, IdDerivativesOut<S>{dev[0], dev[1], dev[2]},
+                      stream),
+        "launching id_derivatives_kernel");
+  copy_outputs(st, host, kNames, nv, cap, buffer + kInputSlots * cap, stream);
+  check(cudaStreamSynchronize(stream), "running id_derivatives_kernel");
+}
+
+template <class S>
+CudaFdDerivatives<S>::CudaFdDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
+    : nv_(model.nv()), max_batch_(options.max_batch), failed_host_(static_cast<std::size_t>(options.max_batch)) {
+  staging_ = derivative_staging(model, max_batch_, true);
+  thread_ = std::make_unique<ThreadModel<S>>(model);
+}
+template <class S>
+CudaFdDerivatives<S>::~CudaFdDerivatives() = default;
+
+template <class S>
+cudaError_t CudaFdDerivatives<S>::compute_async(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
+                                                int* failed_dof, cudaStream_t stream) {
+  return launch_fd_derivatives(*thread_, in, out, failed_dof, stream);
+}
+
+template <class S>
+BatchStatus CudaFdDerivatives<S>::compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) {
+  check_batch(in, out, max_batch_);
+  const Index B = in.q.batch, nv = nv_;
+  if (B == 0 || nv == 0) return BatchStatus{};
+  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  S* const buffer = static_cast<S*>(staging_->data());
+  const cudaStream_t stream = staging_->stream();
+  static const char* const kNames[3] = {"dqdd_dq", "dqdd_dqd", "dqdd_dtau"};
+  const BatchView<S> host[3] = {out.dqdd_dq, out.dqdd_dqd, out.dqdd_dtau};
+  Staging st[3];
+  BatchView<S> dev[3];
+  S* const mats = buffer + kInputSlots * cap;
+  plan_outputs(host, kNames, nv, cap, mats, st, dev);
+  int* const dfailed = reinterpret_cast<int*>(mats + 3 * static_cast<std::size_t>(nv) * cap);
+  Staging sqdd;
+  BatchView<S> dqdd{};
+  if (out.qdd.data) {
+    sqdd = plan(out.qdd, nv, cap, true, "qdd");
+    dqdd = sqdd.device_view(buffer + 3 * cap, B);
+  }
+  const detail::StagedInputs<S> d =
+      detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext, nv, cap, buffer, stream);
+  check(compute_async(FdBatchIn<S>{d.in[0], d.in[1], d.in[2], d.fext},
+                      FdDerivativesOut<S>{dev[0], dev[1], dev[2], dqdd}, dfailed, stream),
+        "launching fd_derivatives_kernel");
+  copy_outputs(st, host, kNames, nv, cap, mats, stream);
+  if (out.qdd.data) check(copy(sqdd, out.qdd, nv, buffer + 3 * cap, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
+  check(cudaMemcpyAsync(failed_host_.data(), dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost,
+                        stream),
+        "copying the failed DoFs to the host");
+  check(cudaStreamSynchronize(stream), "running fd_derivatives_kernel");
+  return summarize_failures(failed_host_.data(), B, Failure::ArticulatedPivot);
+}
+
+template <class S>
+std::unique_ptr<IdDerivatives<S>> make_cuda_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options) {
+  return std::make_unique<CudaIdDerivatives<S>>(model, options);
+}
+template <class S>
+std::unique_ptr<FdDerivatives<S>> make_cuda_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options) {
+  return std::make_unique<CudaFdDerivatives<S>>(model, options);
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                                      \
+  template class CudaIdDerivatives<S>;                                                                             \
+  template class CudaFdDerivatives<S>;                                                                             \
+  template cudaError_t launch_id_derivatives(const ThreadModel<S>&, const IdBatchIn<S>&, const IdDerivativesOut<S>&, \
+                                             cudaStream_t);                                                        \
+  template cudaError_t launch_fd_derivatives(const ThreadModel<S>&, const FdBatchIn<S>&, const FdDerivativesOut<S>&, \
+                                             int*, cudaStream_t);                                                  \
+  template std::unique_ptr<IdDerivatives<S>> make_cuda_id_derivatives(const ModelTpl<S>&, const BackendOptions&);    \
+  template std::unique_ptr<FdDerivatives<S>> make_cuda_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace cuda
+}  // namespace scandyn

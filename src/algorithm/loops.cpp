@@ -1,0 +1,232 @@
+// src/algorithm/loops.cpp: loop-closure kinematics and the constrained dynamics
+// (scandyn/algorithm/loops.hpp): the tree's recursions for M, h and the body motion
+// (crba, bias_forces, rnea_forward_step), the point kinematics of
+// point_kinematics.hpp, and dense rank-revealing solves (Eigen).
+#include "scandyn/algorithm/loops.hpp"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+
+#include "scandyn/algorithm/reference.hpp"
+
+namespace scandyn {
+
+using MatX = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using VecX = Eigen::VectorXd;
+
+Index LoopSet::rows() const {
+  Index m = 0;
+  for (const LoopClosure& l : loops) m += l.rows();
+  return m;
+}
+
+namespace {
+
+// The bodies' poses, velocities and velocity-product accelerations (qdd = 0, no
+// gravity): what the loops' kinematics read.
+struct BodyMotion {
+  std::vector<Transform<double>> X0;  // (nv) body <- base
+  std::vector<Motion<double>> v, a;   // (nv) body frames
+  BodyMotion(const Model& model, const double* q, const double* qd) {
+    const Index n = model.nv();
+    X0.resize(n), v.resize(n), a.resize(n);
+    for (Index i = 0; i < n; ++i) {
+      const Body<double>& b = model.bodies[i];
+      const Index p = b.parent;
+      const Transform<double> Xup = joint_transform(b, q[i]);
+      X0[i] = world_transform_step(Xup, p < 0 ? nullptr : &X0[p]);
+      const RneaForward<double> o = rnea_forward_step(b, Xup, p < 0 ? Motion<double>::zero() : v[p],
+                                                      p < 0 ? Motion<double>::zero() : a[p], qd ? qd[i] : 0.0, 0.0);
+      v[i] = o.v, a[i] = o.a;
+    }
+  }
+};
+
+Vec3<double> vee_antisym(const Mat3<double>& C) {  // 1/2 vee(C - C^T)
+  return {0.5 * (C(2, 1) - C(1, 2)), 0.5 * (C(0, 2) - C(2, 0)), 0.5 * (C(1, 0) - C(0, 1))};
+}
+
+}  // namespace
+
+void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, const double* qd, double* phi,
+                     double* J, double* gamma) {
+  const Index n = model.nv(), m = loops.rows();
+  const BodyMotion bm(model, q, qd);
+  if (J) std::fill(J, J + static_cast<std::size_t>(m) * n, 0.0);
+  const Transform<double> I{Mat3<double>::identity(), Vec3<double>::zero()};
+  Index row = 0;
+  for (const LoopClosure& l : loops.loops) {
+    const Index lin = l.type == LoopType::Weld ? row + 3 : row;  // the linear rows
+    const Transform<double>& Xa = l.body_a < 0 ? I : bm.X0[l.body_a];
+    const Transform<double>& Xb = l.body_b < 0 ? I : bm.X0[l.body_b];
+    const Vec3<double> pa = point_position(Xa, l.point_a), pb = point_position(Xb, l.point_b);
+    auto put = [](double* dst, Index r, const Vec3<double>& x) { dst[r] = x.x, dst[r + 1] = x.y, dst[r + 2] = x.z; };
+    if (phi) {
+      put(phi, lin, pa - pb);
+      if (l.type == LoopType::Weld) put(phi, row, vee_antisym(mul_transpose(Xa.E, Xb.E)));
+    }
+    if (gamma) {
+      const Motion<double> z = Motion<double>::zero();
+      const Vec3<double> ga = l.body_a < 0 ? Vec3<double>::zero()
+                                           : point_acceleration(Xa, bm.v[l.body_a], bm.a[l.body_a], l.point_a);
+      const Vec3<double> gb = l.body_b < 0 ? Vec3<double>::zero()
+                                           : point_acceleration(Xb, bm.v[l.body_b], bm.a[l.body_b], l.point_b);
+      put(gamma, lin, ga - gb);
+      if (l.type == LoopType::Weld) {
+        const Vec3<double> wa = l.body_a < 0 ? z.w : to_world(Xa, bm.a[l.body_a].w);
+        const Vec3<double> wb = l.body_b < 0 ? z.w : to_world(Xb, bm.a[l.body_b].w);
+        put(gamma, row, wa - wb);
+      }
+    }
+    if (J) {
+      // joint j's column on the paths to the base: + for body a, - for body b
+      for (int side = 0; side < 2; ++side) {
+        const double sign = side == 0 ? 1.0 : -1.0;
+        const Vec3<double> p = side == 0 ? pa : pb;
+        for (Index j = side == 0 ? l.body_a : l.body_b; j >= 0; j = model.bodies[j].parent) {
+          Vec3<double> w, v;
+          joint_point_column(model.bodies[j], bm.X0[j], p, w, v);
+          const double c[3] = {v.x, v.y, v.z}, d[3] = {w.x, w.y, w.z};
+          for (int k = 0; k < 3; ++k) {
+            J[(lin + k) * n + j] += sign * c[k];
+            if (l.type == LoopType::Weld) J[(row + k) * n + j] += sign * d[k];
+          }
+        }
+      }
+    }
+    row += l.rows();
+  }
+}
+
+double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd, Index* loop) {
+  const Index n = model.nv(), m = loops.rows();
+  std::vector<double> phi(m), J(static_cast<std::size_t>(m) * n);
+  loop_kinematics(model, loops, q, qd, phi.data(), J.data(), nullptr);
+  double worst = 0;
+  Index row = 0, where = -1;
+  for (Index k = 0; k < static_cast<Index>(loops.loops.size()); ++k) {
+    for (Index r = row; r < row + loops.loops[k].rows(); ++r) {
+      double jqd = 0;
+      for (Index j = 0; j < n; ++j) jqd += J[r * n + j] * qd[j];
+      const double e = std::max(std::fabs(phi[r]), std::fabs(jqd));
+      if (where < 0 || e > worst || std::isnan(e)) worst = e, where = k;
+    }
+    row += loops.loops[k].rows();
+  }
+  if (loop) *loop = where;
+  return worst;
+}
+
+bool generator_has_loops(const std::string& spec) {
+  return spec == "fivebar" || spec == "fourbar" || spec.rfind("cloth:", 0) == 0;
+}
+
+namespace {
+
+// min-norm least-squares solver of A x = b with the loops' rank threshold
+Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> rank_revealing(const Eigen::MatrixXd& A) {
+  Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod;
+  cod.setThreshold(kLoopRankTolerance);
+  cod.compute(A);
+  return cod;
+}
+
+}  // namespace
+
+LoopSolveInfo constrained_forward_dynamics(const Model& model, const LoopSet& loops, const double* q, const double* qd,
+                                           const double* tau, double* qdd, double* lambda,
+                                           const Force<double>* fext) {
+  const Index n = model.nv(), m = loops.rows();
+  Data data(model);
+  MatX M(n, n);
+  VecX h(n);
+  crba(model, data, q, M.data());
+  bias_forces(model, data, q, qd, h.data(), fext);
+  const Eigen::LLT<Eigen::MatrixXd> llt(M);
+  if (llt.info() != Eigen::Success) throw LoopError("constrained forward dynamics: the mass matrix is not positive definite");
+  const VecX qdd0 = llt.solve(Eigen::Map<const VecX>(tau, n) - h);
+  LoopSolveInfo info;
+  if (m == 0) {
+    Eigen::Map<VecX>(qdd, n) = qdd0;
+    return info;
+  }
+  MatX J(m, n);
+  VecX gamma(m);
+  loop_kinematics(model, loops, q, qd, nullptr, J.data(), gamma.data());
+  const Eigen::MatrixXd MinvJt = llt.solve(J.transpose());
+  const Eigen::MatrixXd A = J * MinvJt;
+  const auto cod = rank_revealing(A);
+  VecX lam = cod.solve(VecX(-gamma - J * qdd0));
+  VecX x = qdd0 + MinvJt * lam;
+  // one step of iterative refinement on J qdd + gamma = 0 (ill-conditioned A: cloth grids)
+  const VecX dlam = cod.solve(VecX(-(J * x + gamma)));
+  lam += dlam;
+  x += MinvJt * dlam;
+  Eigen::Map<VecX>(qdd, n) = x;
+  Eigen::Map<VecX>(lambda, m) = lam;
+  info.rank = cod.rank();
+  info.residual = (J * x + gamma).cwiseAbs().maxCoeff();
+  return info;
+}
+
+LoopSolveInfo constrained_inverse_dynamics(const Model& model, const LoopSet& loops, const double* q, const double* qd,
+                                           const double* qdd, const unsigned char* actuated, double* tau,
+                                           double* lambda, const Force<double>* fext) {
+  const Index n = model.nv(), m = loops.rows();
+  Data data(model, false);
+  VecX b(n);
+  rnea(model, data, q, qd, qdd, b.data(), fext);  // M qdd + h
+  MatX J(m, n);
+  loop_kinematics(model, loops, q, qd, nullptr, J.data(), nullptr);
+  std::vector<Index> act, un;
+  for (Index i = 0; i < n; ++i) (actuated[i] ? act : un).push_back(i);
+  // J^T's rows at the unactuated DoFs (JU, |U| x m) and at the actuated ones (JA)
+  Eigen::MatrixXd JU(un.size(), m), JA(act.size(), m);
+  VecX bU(un.size()), bA(act.size());
+  for (std::size_t k = 0; k < un.size(); ++k) JU.row(k) = J.col(un[k]).transpose(), bU[k] = b[un[k]];
+  for (std::size_t k = 0; k < act.size(); ++k) JA.row(k) = J.col(act[k]).transpose(), bA[k] = b[act[k]];
+  // lambda = lambda_p + N z: JU lambda = bU, N spans JU's null space
+  VecX lp = VecX::Zero(m);
+  Eigen::MatrixXd N = Eigen::MatrixXd::Identity(m, m);
+  LoopSolveInfo info;
+  if (!un.empty() && m > 0) {
+    Eigen::JacobiSVD<Eigen::MatrixXd> svd(JU, Eigen::ComputeThinU | Eigen::ComputeFullV);
+    svd.setThreshold(kLoopRankTolerance);
+    lp = svd.solve(bU);
+    const Index r = svd.rank();
+    N = svd.matrixV().rightCols(m - r);
+    info.rank = r;
+  }
+  // tau_A = bA - JA lambda, of minimum norm over z
+  VecX lam = lp;
+  if (N.cols() > 0 && !act.empty()) {
+    const auto cod = rank_revealing(JA * N);
+    lam = lp + N * cod.solve(VecX(bA - JA * lp));
+  }
+  const VecX tA = bA - JA * lam;
+  Eigen::Map<VecX> t(tau, n);
+  t.setZero();
+  for (std::size_t k = 0; k < act.size(); ++k) t[act[k]] = tA[k];
+  if (m > 0) Eigen::Map<VecX>(lambda, m) = lam;
+  info.residual = (t + J.transpose() * lam - b).cwiseAbs().maxCoeff();
+  return info;
+}
+
+double project_to_loops(const Model& model, const LoopSet& loops, double* q, double* qd, double tol, int iterations) {
+  const Index n = model.nv(), m = loops.rows();
+  if (m == 0) return 0;
+  MatX J(m, n);
+  VecX phi(m);
+  Eigen::Map<VecX> qv(q, n), qdv(qd, n);
+  for (int it = 0; it < iterations; ++it) {
+    loop_kinematics(model, loops, q, nullptr, phi.data(), J.data(), nullptr);
+    if (phi.cwiseAbs().maxCoeff() <= tol) break;
+    qv -= rank_revealing(J).solve(phi);
+  }
+  loop_kinematics(model, loops, q, nullptr, phi.data(), J.data(), nullptr);
+  qdv -= rank_revealing(J).solve(VecX(J * qdv));
+  return phi.cwiseAbs().maxCoeff();
+}
+
+}  // namespace scandyn

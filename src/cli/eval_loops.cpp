@@ -1,0 +1,89 @@
+// src/cli/eval_loops.cpp: `scandyn eval` on a model with closed loops (--loops FILE, or
+// a generator that carries loops: fivebar, fourbar, cloth:K:N): forward dynamics
+// (qdd_fd_<i>, lambda_<k>) and, with --actuated LIST, inverse dynamics (tau_id_<i>,
+// lambda_<k>) of the constrained system (scandyn/algorithm/loops.hpp), serial double.
+#include <cmath>
+#include <cstdio>
+
+#include "hybrid.hpp"
+#include "engines.hpp"
+#include "scandyn/algorithm/loops.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/io/limits.hpp"
+#include "scandyn/io/states.hpp"
+#include "scandyn/model/load.hpp"
+
+namespace scandyn::cli {
+
+LoopSet load_cli_loops(const Args& args, const Model& model) {
+  LoopSet loops = generator_loops(args.required("model"), model);
+  if (args.has("loops")) {
+    try {
+      for (const LoopClosure& l : load_loops(args.required("loops"), model).loops) loops.loops.push_back(l);
+    } catch (const LoopError& e) {
+      throw DataError(e.what());
+    }
+  }
+  return loops;
+}
+
+int run_eval_loops(const Args& args) {
+  const std::string& states_path = args.required("states");
+  const std::string& out_path = args.required("out");
+  const std::string algo = args.get("algo", args.has("actuated") ? "id" : "fd");
+  if (algo != "fd" && algo != "id")
+    throw UsageError("--algo " + algo + ": with loops, eval computes fd (constrained forward dynamics) or id "
+                     "(with --actuated LIST)");
+  if (algo == "id" && !args.has("actuated"))
+    throw UsageError("--algo id with loops needs --actuated LIST (the DoFs with actuators)");
+  if (algo == "fd" && args.has("actuated")) throw UsageError("--actuated applies only to --algo id");
+  for (const char* f : {"fd", "fallback", "strategy", "prescribed"})
+    if (args.has(f)) throw UsageError(std::string("--") + f + " does not apply to a model with loops");
+  if (args.get("backend", "serial") != "serial" || args.get("precision", "double") != "double")
+    throw UsageError("a model with loops runs on the serial backend in double (the dense loop solver)");
+  const Model model = load_cli_model(args);
+  const LoopSet loops = load_cli_loops(args, model);
+  const Index n = model.nv(), m = loops.rows();
+  std::vector<unsigned char> actuated;
+  if (args.has("actuated")) actuated = parse_prescribed(args.required("actuated"), model, "actuated");
+
+  CsvReader in(states_path);
+  const StateColumns cols = map_state_columns(in.columns(), n, states_path);
+  const Family given = algo == "fd" ? Family::Tau : Family::Qdd;
+  for (Family f : {Family::Q, Family::Qd, given}) {
+    const Index i = cols.first_missing(f);
+    if (i >= 0)
+      throw CsvError(states_path + ": missing column " + family_prefix(f) + std::to_string(i) + " (needed by --algo " +
+                     algo + " with loops)");
+  }
+  require_host_memory("eval with loops on " + printable(model.source), 8.0 * double(n) * double(n + m) * 4 + 1e6);
+  CsvWriter out(out_path);
+  std::vector<std::string> names;
+  for (Index i = 0; i < n; ++i) names.push_back((algo == "fd" ? "qdd_fd_" : "tau_id_") + std::to_string(i));
+  for (Index k = 0; k < m; ++k) names.push_back("lambda_" + std::to_string(k));
+  out.write_header(names);
+  std::vector<double> row, q(n), qd(n), u(n), res(n + m);
+  while (in.next_row(row)) {
+    gather_family(cols, Family::Q, row.data(), q.data());
+    gather_family(cols, Family::Qd, row.data(), qd.data());
+    gather_family(cols, given, row.data(), u.data());
+    Index loop = -1;
+    const double v = loop_violation(model, loops, q.data(), qd.data(), &loop);
+    if (!(v <= kLoopStateTolerance))
+      throw DataError(in.where() + ": the state violates loop " + std::to_string(loop) + " (" +
+                      loops.loops[loop].link_a + " - " + loops.loops[loop].link_b + ") by " + std::to_string(v) +
+                      " (tolerance " + std::to_string(kLoopStateTolerance) + " m, rad, m/s, rad/s)");
+    if (algo == "fd")
+      constrained_forward_dynamics(model, loops, q.data(), qd.data(), u.data(), res.data(), res.data() + n);
+    else
+      constrained_inverse_dynamics(model, loops, q.data(), qd.data(), u.data(), actuated.data(), res.data(),
+                                   res.data() + n);
+    for (std::size_t j = 0; j < res.size(); ++j)
+      if (!std::isfinite(res[j])) throw DataError(in.where() + ": result " + names[j] + " is not finite");
+    out.write_row(res.data(), res.size());
+  }
+  out.commit();
+  return kExitOk;
+}
+
+}  // namespace scandyn::cli

@@ -1,0 +1,100 @@
+// `scandyn eval` on models with closed loops and `scandyn info --print-loops`
+// (docs/loops.md): the columns, the result against the library's constrained
+// dynamics to the printed digits, a generator's loops equal to its printed loop file,
+// and the errors (exit code, one message, no output file).
+#include <gtest/gtest.h>
+#include <stdlib.h>
+#include <sys/wait.h>
+
+#include <filesystem>
+#include <sstream>
+
+#include "cli_test_util.hpp"
+#include "scandyn/algorithm/loops.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+namespace {
+
+using namespace scandyn;
+using scandyn::test::cli::CliDirTest;
+using scandyn::test::cli::read_text;
+using scandyn::test::cli::write_text;
+
+class CliLoops : public CliDirTest {};
+
+std::vector<double> last_row(const std::string& text) {
+  std::istringstream in(text);
+  std::string line, last;
+  while (std::getline(in, line)) last = line;
+  std::vector<double> r;
+  std::istringstream ls(last);
+  for (std::string f; std::getline(ls, f, ',');) r.push_back(std::stod(f));
+  return r;
+}
+
+TEST_F(CliLoops, FivebarForwardAndInverseDynamics) {
+  const Model m = load_model("fivebar");
+  const LoopSet loops = generator_loops("fivebar", m);
+  std::vector<double> q{0.05, -0.1, 0.02, 0.0}, qd{0.3, -0.2, 0.1, 0.4};
+  project_to_loops(m, loops, q.data(), qd.data());
+  const std::vector<double> tau{0.5, 0, -0.5, 0};
+  std::ostringstream csv;
+  csv.precision(17);
+  csv << "q_0,q_1,q_2,q_3,qd_0,qd_1,qd_2,qd_3,tau_0,tau_1,tau_2,tau_3\n";
+  for (double x : q) csv << x << ",";
+  for (double x : qd) csv << x << ",";
+  csv << "0.5,0,-0.5,0\n";
+  write_text(path("s.csv"), csv.str());
+  auto r = run("eval --model fivebar --states s.csv --out o.csv");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string text = read_text(path("o.csv"));
+  EXPECT_EQ(text.rfind("qdd_fd_0,qdd_fd_1,qdd_fd_2,qdd_fd_3,lambda_0,lambda_1,lambda_2\n", 0), 0u);
+  std::vector<double> qdd(4), lam(3);
+  constrained_forward_dynamics(m, loops, q.data(), qd.data(), tau.data(), qdd.data(), lam.data());
+  const auto row = last_row(text);
+  ASSERT_EQ(row.size(), 7u);
+  for (int i = 0; i < 4; ++i) EXPECT_EQ(row[i], qdd[i]);
+  for (int k = 0; k < 3; ++k) EXPECT_EQ(row[4 + k], lam[k]);
+  // the same loops from the printed loop file, on the plain tree (the generator carries them)
+  r = run("info --model fivebar --print-loops");
+  ASSERT_EQ(r.code, 0) << r.err;
+  write_text(path("l.json"), r.out);
+  // inverse dynamics of that motion with the proximal joints actuated: the torques back
+  std::ostringstream csv2;
+  csv2.precision(17);
+  csv2 << "q_0,q_1,q_2,q_3,qd_0,qd_1,qd_2,qd_3,qdd_0,qdd_1,qdd_2,qdd_3\n";
+  for (double x : q) csv2 << x << ",";
+  for (double x : qd) csv2 << x << ",";
+  csv2 << qdd[0] << "," << qdd[1] << "," << qdd[2] << "," << qdd[3] << "\n";
+  write_text(path("s2.csv"), csv2.str());
+  r = run("eval --model fivebar --states s2.csv --out o2.csv --algo id --actuated joint_l0,joint_r0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto row2 = last_row(read_text(path("o2.csv")));
+  for (int i = 0; i < 4; ++i) EXPECT_NEAR(row2[i], tau[i], 1e-9);
+}
+
+TEST_F(CliLoops, Errors) {
+  write_text(path("s.csv"), "q_0,q_1,q_2,q_3,qd_0,qd_1,qd_2,qd_3,tau_0,tau_1,tau_2,tau_3\n0.2,0,0,0,0,0,0,0,0,0,0,0\n");
+  write_text(path("bad.json"), R"({"loops": [{"type": "point", "link_a": "x", "point_a": [0,0,0], "link_b": "left_distal", "point_b": [0,0,0]}]})");
+  struct Case {
+    std::string args, message;
+    int code;
+  } cases[] = {
+      {"--model fivebar", "row 1 (line 2): the state violates loop 0 (left_distal - right_distal) by", 1},
+      {"--model chain:4 --loops bad.json", "bad.json: loops[0].link_a: unknown link 'x'", 1},
+      {"--model fivebar --backend openmp", "a model with loops runs on the serial backend in double", 2},
+      {"--model fivebar --algo id", "--algo id with loops needs --actuated LIST", 2},
+      {"--model fivebar --algo mass", "with loops, eval computes fd", 2},
+      {"--model chain:4 --actuated 0", "--actuated applies only to models with loops", 2},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.args);
+    const auto res = run("eval --states s.csv --out o.csv " + c.args);
+    EXPECT_EQ(res.code, c.code);
+    EXPECT_NE(res.err.find(c.message), std::string::npos) << res.err;
+    EXPECT_FALSE(std::filesystem::exists(path("o.csv")));
+  }
+}
+
+}  // namespace

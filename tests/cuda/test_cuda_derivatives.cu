@@ -1,0 +1,164 @@
+// The CUDA derivative engines (scandyn/cuda/derivatives.hpp) against the serial
+// engines: every model shape of the thread-per-instance kernels (chains at the
+// capacities 8..64 and past them, trees, chains from the base, random trees with
+// prismatic joints), the robots, with external wrenches, double and float, host
+// views in aos and soa layouts, and compute_async on device pointers. Device tests
+// skip with the reason when no device is usable; the argument checks run everywhere.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/engine.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+namespace scandyn {
+namespace {
+
+template <class S>
+using Blocks = test::DerivativeBlocks<S>;
+
+// max over instances and blocks of max |a - b| / max(1, max |b|) (per block).
+template <class S>
+double block_err(const Blocks<S>& a, const Blocks<S>& b, Index nv, Index B) {
+  double worst = 0;
+  for (int k = 0; k < 3; ++k)
+    for (Index i = 0; i < B; ++i) {
+      double scale = 1, err = 0;
+      for (Index e = 0; e < nv * nv; ++e) {
+        const double x = double(a.v[k].at(e, i)), y = double(b.v[k].at(e, i));
+        if (!std::isfinite(x)) return INFINITY;
+        scale = std::max(scale, std::fabs(y));
+        err = std::max(err, std::fabs(x - y));
+      }
+      worst = std::max(worst, err / scale);
+    }
+  return worst;
+}
+
+std::vector<std::pair<std::string, Model>> models() {
+  auto m = test::thread_shape_models();
+  for (const char* f : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) m.emplace_back(f, test::load_robot(f));
+  return m;
+}
+
+// Tolerances against the serial engine in the same precision (the device contracts
+// to FMA and its ABA uses the library's sin/cos): double 1e-9 relative to each
+// block's largest entry (or 1); float, on models of up to 16 DoF, 1e-3 for inverse
+// dynamics and 1e-2 for forward dynamics (float rounding times cond(M)).
+template <class S>
+void compare_with_serial(const std::string& name, const Model& model_d, bool soa) {
+  const ModelTpl<S> model = model_d.cast<S>();
+  const Index nv = model.nv(), B = 37;
+  std::mt19937_64 rng(nv + 3);
+  const auto cast = [](const std::vector<double>& v) { return std::vector<S>(v.begin(), v.end()); };
+  const std::vector<S> q = cast(test::random_vector(rng, nv * B, -1.5, 1.5)),
+                       qd = cast(test::random_vector(rng, nv * B, -1.5, 1.5)),
+                       x = cast(test::random_vector(rng, nv * B, -3, 3));
+  std::vector<Force<S>> fext;
+  for (const auto& f : test::random_wrenches<double>(rng, nv * B, 1.0)) fext.push_back(f.template cast<S>());
+  using V = BatchView<const S>;
+  const IdBatchIn<S> id_in{V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(x.data(), nv, B), fext.data()};
+  const FdBatchIn<S> fd_in{V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(x.data(), nv, B), fext.data()};
+  BackendOptions o;
+  o.max_batch = B;
+  Blocks<S> id_ref(nv, B, false), fd_ref(nv, B, false), id_cuda(nv, B, soa), fd_cuda(nv, B, soa);
+  std::vector<S> qdd_ref(nv * B), qdd_cuda(nv * B, S(NAN));
+  make_id_derivatives(model, o)->compute(id_in, {id_ref.v[0], id_ref.v[1], id_ref.v[2]});
+  ASSERT_TRUE(make_fd_derivatives(model, o)
+                  ->compute(fd_in, {fd_ref.v[0], fd_ref.v[1], fd_ref.v[2], BatchView<S>::aos(qdd_ref.data(), nv, B)})
+                  .ok());
+  o.backend = BackendKind::Cuda;
+  make_id_derivatives(model, o)->compute(id_in, {id_cuda.v[0], id_cuda.v[1], id_cuda.v[2]});
+  const BatchStatus st = make_fd_derivatives(model, o)->compute(
+      fd_in, {fd_cuda.v[0], fd_cuda.v[1], fd_cuda.v[2], BatchView<S>::aos(qdd_cuda.data(), nv, B)});
+  ASSERT_TRUE(st.ok()) << st.message();
+  const bool dbl = sizeof(S) == 8;
+  EXPECT_LT(block_err(id_cuda, id_ref, nv, B), dbl ? 1e-9 : 1e-3) << name;
+  EXPECT_LT(block_err(fd_cuda, fd_ref, nv, B), dbl ? 1e-9 : 1e-2) << name;
+  EXPECT_LT(test::max_rel_err(qdd_cuda, qdd_ref), dbl ? 1e-9 : 1e-2) << name;
+}
+
+TEST(CudaDerivatives, MatchSerialDouble) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (auto& [name, model] : models())
+    for (bool soa : {false, true}) compare_with_serial<double>(name, model, soa);
+}
+
+TEST(CudaDerivatives, MatchSerialFloat) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (auto& [name, model] : models())
+    if (model.nv() <= 16) compare_with_serial<float>(name, model, true);
+}
+
+TEST(CudaDerivatives, DevicePointersOnAStream) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model model = test::load_robot("iiwa.urdf");
+  const Index nv = model.nv(), B = 1000;
+  const std::size_t nn = static_cast<std::size_t>(nv) * nv;
+  std::mt19937_64 rng(5);
+  const std::vector<double> q = test::random_vector(rng, nv * B, -1, 1), qd = test::random_vector(rng, nv * B, -1, 1),
+                            tau = test::random_vector(rng, nv * B, -1, 1);
+  test::DeviceArray<double> dq, dqd, dtau, dout;
+  ASSERT_CUDA(dq.alloc(q.size()));
+  ASSERT_CUDA(dqd.alloc(q.size()));
+  ASSERT_CUDA(dtau.alloc(q.size()));
+  ASSERT_CUDA(dout.alloc(3 * nn * B));
+  test::DeviceArray<int> dfailed;
+  ASSERT_CUDA(dfailed.alloc(B));
+  ASSERT_CUDA(cudaMemcpy(dq.ptr, q.data(), q.size() * 8, cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dqd.ptr, qd.data(), q.size() * 8, cudaMemcpyHostToDevice));
+  ASSERT_CUDA(cudaMemcpy(dtau.ptr, tau.data(), q.size() * 8, cudaMemcpyHostToDevice));
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 1;  // compute_async is not limited by max_batch
+  cuda::CudaFdDerivatives<double> e(model, o);
+  using V = BatchView<const double>;
+  BatchView<double> out[3];
+  for (int k = 0; k < 3; ++k) out[k] = BatchView<double>::soa(dout.ptr + k * nn * B, nv * nv, B);
+  cudaStream_t stream;
+  ASSERT_CUDA(cudaStreamCreate(&stream));
+  ASSERT_CUDA(e.compute_async({V::soa(dq.ptr, nv, B), V::soa(dqd.ptr, nv, B), V::soa(dtau.ptr, nv, B)},
+                              {out[0], out[1], out[2], {}}, dfailed.ptr, stream));
+  ASSERT_CUDA(cudaStreamSynchronize(stream));
+  ASSERT_CUDA(cudaStreamDestroy(stream));
+  std::vector<double> got(3 * nn * B);
+  std::vector<int> failed(B);
+  ASSERT_CUDA(cudaMemcpy(got.data(), dout.ptr, got.size() * 8, cudaMemcpyDeviceToHost));
+  ASSERT_CUDA(cudaMemcpy(failed.data(), dfailed.ptr, B * sizeof(int), cudaMemcpyDeviceToHost));
+  // against the serial engine on soa host views of the same inputs
+  Blocks<double> ref(nv, B, true);
+  BackendOptions s;
+  s.max_batch = B;
+  ASSERT_TRUE(make_fd_derivatives(model, s)
+                  ->compute({V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)},
+                            {ref.v[0], ref.v[1], ref.v[2], {}})
+                  .ok());
+  double err = 0;
+  for (std::size_t k = 0; k < got.size(); ++k) err = std::max(err, std::fabs(got[k] - ref.data[k]));
+  EXPECT_LT(err, 1e-9);
+  for (int f : failed) EXPECT_EQ(f, -1);
+}
+
+TEST(CudaDerivativesErrors, ArgumentsAndNoDevice) {
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 4;
+  // beyond the thread-per-instance capacity: refused before any device work
+  EXPECT_THROW(make_id_derivatives(load_model("chain:65"), o), BackendError);
+  EXPECT_THROW(make_fd_derivatives(load_model("chain:65"), o), BackendError);
+  o.fd_method = FdMethod::Jsi;
+  EXPECT_THROW(make_fd_derivatives(load_model("chain:3"), o), BackendError);
+  o.fd_method = FdMethod::Auto;
+  if (!test::no_device_reason().empty()) {
+    EXPECT_THROW(make_id_derivatives(load_model("chain:3"), o), BackendError);
+    EXPECT_THROW(make_fd_derivatives(load_model("chain:3"), o), BackendError);
+  }
+}
+
+}  // namespace
+}  // namespace scandyn
