@@ -154,6 +154,15 @@ inline std::vector<double> random_q(const Model& m, std::mt19937_64& rng, double
   return q;
 }
 
+// A model on a free joint at its root (--floating-base), nonphysical inertias allowed
+// (GRiD's atlas.urdf).
+inline Model load_floating(const std::string& spec) {
+  BuildOptions o;
+  o.floating_base = true;
+  o.require_physical_inertia = false;
+  return load_model(spec, o);
+}
+
 // One free rigid body (a floating base alone, no gravity): mass, centre of mass and
 // principal moments along the body axes.
 inline Model free_body_model(double mass, const Vec3<double>& com, const Vec3<double>& moments) {

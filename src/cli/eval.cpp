@@ -254,15 +254,12 @@ int run_eval(const Args& args) {
   bool fk = false, jac = false;
   if (args.has("algo")) algos = parse_algo_list(args.required("algo"), fk, jac);
   // eval checks forward dynamics by default: its time goes to reading and writing CSV
-  BackendOptions options = parse_backend_options(args, FdCheckMode::On);
+  const BackendOptions options = parse_backend_options(args, FdCheckMode::On);
   const Precision precision = parse_cli_precision(args);
   require_usable(options.backend);
 
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
-  // the check takes 1-DoF joints: off by default on a floating base or ball joints
-  // (an explicit --fd-check on is refused by the engine, naming the joint)
-  if (model.multi_dof() && !args.has("fd-check")) options.fd_check = FdCheckMode::Off;
 
   const KinematicsRequest kinematics = parse_kinematics_request(args, model, fk, jac);
 

@@ -19,10 +19,7 @@ using namespace scandyn;
 namespace {
 
 Model free_model(const std::string& spec) {
-  BuildOptions o;
-  o.floating_base = true;
-  o.require_physical_inertia = false;
-  Model m = load_model(spec, o);
+  Model m = test::load_floating(spec);
   m.gravity = {0, 0, 0};
   return m;
 }

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/configuration.hpp"
+#include "scandyn/algorithm/fd_check_batch.hpp"
 #include "scandyn/algorithm/loops.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
@@ -22,13 +23,6 @@
 using namespace scandyn;
 
 namespace {
-
-Model floating(const std::string& spec) {
-  BuildOptions o;
-  o.require_physical_inertia = false;
-  o.floating_base = true;
-  return load_model(spec, o);
-}
 
 std::vector<Index> all_frames(const Model& m) {
   std::vector<Index> f;
@@ -74,7 +68,7 @@ void expect_throws_naming(F f, const std::vector<std::string>& words) {
 // The root link of a floating base sits where q puts it: p = q[0..2], R = quat(q[3..6]).
 TEST(MultiDofKinematics, FloatingRootLinkIsTheBasePose) {
   for (const char* spec : {"hyq", "atlas", "tree:20:3"}) {
-    const Model m = floating(spec);
+    const Model m = test::load_floating(spec);
     std::mt19937_64 rng(7);
     const std::vector<double> q = test::random_q(m, rng);
     std::vector<double> poses, J;
@@ -92,7 +86,7 @@ TEST(MultiDofKinematics, FloatingRootLinkIsTheBasePose) {
 // axes (v of the frame's origin) and the frame's own axes; floating bases and ball joints.
 TEST(MultiDofKinematics, JacobianIsTheDerivativeAlongTheManifold) {
   for (const char* spec : {"hyq", "tree:12:5", "ballrope:5"}) {
-    const Model m = std::string(spec).rfind("ballrope", 0) == 0 ? load_model(spec) : floating(spec);
+    const Model m = std::string(spec).rfind("ballrope", 0) == 0 ? load_model(spec) : test::load_floating(spec);
     SCOPED_TRACE(spec);
     std::mt19937_64 rng(11);
     const std::vector<double> q = test::random_q(m, rng);
@@ -135,15 +129,12 @@ TEST(MultiDofKinematics, JacobianIsTheDerivativeAlongTheManifold) {
 }
 
 TEST(MultiDofSupport, RefusedWithTheFeatureAndTheJoint) {
-  const Model m = floating("hyq");
+  const Model m = test::load_floating("hyq");
   const BackendOptions serial;
   expect_throws_naming([&] { make_id_derivatives(m, serial); }, {"inverse-dynamics derivatives", "root_joint"});
   expect_throws_naming([&] { make_fd_derivatives(m, serial); }, {"forward-dynamics derivatives", "root_joint"});
   expect_throws_naming([&] { make_hybrid_dynamics(m, std::vector<unsigned char>(std::size_t(m.nv()), 0), serial); },
                        {"hybrid dynamics", "root_joint"});
-  BackendOptions check = serial;
-  check.fd_check = FdCheckMode::On;
-  expect_throws_naming([&] { make_forward_dynamics(m, check); }, {"forward-dynamics check", "root_joint"});
   BackendOptions simd = serial;
   simd.simd = CpuSimd::On;
   expect_throws_naming([&] { make_inverse_dynamics(m, simd); }, {"simd", "root_joint"});
@@ -152,15 +143,57 @@ TEST(MultiDofSupport, RefusedWithTheFeatureAndTheJoint) {
   expect_throws_naming([&] { make_fd_derivatives(ball, serial); }, {"forward-dynamics derivatives", "spherical"});
 }
 
-// Auto settings leave out what multi-DoF joints do not take: the check (Auto: off)
-// and the SIMD path (Auto: the scalar recursion), with the reference's results.
-TEST(MultiDofSupport, AutoLeavesOutTheCheckAndTheSimdPath) {
-  const Model m = floating("hyq");
-  BackendOptions o;
-  o.fd_check = FdCheckMode::Auto;
-  const auto fd = make_forward_dynamics(m, o);
-  EXPECT_EQ(fd->strategy().find("simd"), std::string::npos) << fd->strategy();
-  EXPECT_EQ(fd->strategy().find("check"), std::string::npos) << fd->strategy();
-  const auto id = make_inverse_dynamics(m, o);
-  EXPECT_EQ(id->strategy().find("simd"), std::string::npos) << id->strategy();
+// Auto leaves out the SIMD path (1-DoF joints only): the scalar recursion.
+TEST(MultiDofSupport, AutoLeavesOutTheSimdPath) {
+  const Model m = test::load_floating("hyq");
+  const BackendOptions o;
+  EXPECT_EQ(make_forward_dynamics(m, o)->strategy().find("simd"), std::string::npos);
+  EXPECT_EQ(make_inverse_dynamics(m, o)->strategy().find("simd"), std::string::npos);
+}
+
+// The forward-dynamics check on multi-DoF models: clean results (float and double
+// engines) pass; a result off by e at one DoF is estimated at e / max(1, |qdd|) and
+// flagged at that DoF (delta = M^-1 (M qdd' + h - tau) = qdd' - qdd exactly).
+TEST(MultiDofSupport, ForwardDynamicsCheck) {
+  for (const char* spec : {"hyq", "ballrope:6"}) {
+    SCOPED_TRACE(spec);
+    const Model m = std::string(spec) == "hyq" ? test::load_floating(spec) : load_model(spec);
+    std::mt19937_64 rng(5);
+    const Index B = 8, nv = m.nv(), nq = m.nq();
+    std::vector<double> q, qd = test::random_vector(rng, int(B * nv), -1, 1),
+                           tau = test::random_vector(rng, int(B * nv), -1, 1), qdd(std::size_t(B * nv));
+    for (Index b = 0; b < B; ++b) {
+      const std::vector<double> qb = test::random_q(m, rng);
+      q.insert(q.end(), qb.begin(), qb.end());
+    }
+    BackendOptions o;
+    o.fd_check = FdCheckMode::On;
+    o.max_batch = B;
+    const auto fd = make_forward_dynamics(m, o);
+    EXPECT_NE(fd->strategy().find("check"), std::string::npos);
+    FdBatchIn<double> in{BatchView<const double>::aos(q.data(), nq, B), BatchView<const double>::aos(qd.data(), nv, B),
+                         BatchView<const double>::aos(tau.data(), nv, B)};
+    EXPECT_TRUE(fd->compute(in, BatchView<double>::aos(qdd.data(), nv, B)).ok());
+    // float: checked in double against the float result
+    const ModelTpl<float> mf = m.cast<float>();
+    std::vector<float> qf(q.begin(), q.end()), qdf(qd.begin(), qd.end()), tf(tau.begin(), tau.end()),
+        qddf(qdd.size());
+    const auto fdf = make_forward_dynamics(mf, o);
+    FdBatchIn<float> inf{BatchView<const float>::aos(qf.data(), nq, B), BatchView<const float>::aos(qdf.data(), nv, B),
+                         BatchView<const float>::aos(tf.data(), nv, B)};
+    EXPECT_TRUE(fdf->compute(inf, BatchView<float>::aos(qddf.data(), nv, B)).ok());
+    // a perturbed result
+    FdBatchCheck<double> check(m, o, FdMethod::Aba, 1);
+    std::vector<double> bad(qdd.begin(), qdd.begin() + nv);
+    const Index k = nv - 2;
+    double top = 1;
+    for (double x : bad) top = std::max(top, std::abs(x));
+    const double e = 1e-6 * top;  // an error of 1e-6 (ball-joint ropes: |qdd| up to 1e5)
+    bad[std::size_t(k)] += e;
+    top = 1;
+    for (double x : bad) top = std::max(top, std::abs(x));
+    const auto out = check.settle(0, q.data(), qd.data(), tau.data(), nullptr, bad.data());
+    EXPECT_NEAR(out.estimate, e / top, 1e-9 * e / top);
+    EXPECT_EQ(out.failed_dof, int(k));
+  }
 }
