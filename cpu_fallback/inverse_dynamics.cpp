@@ -69,7 +69,7 @@ class CpuRnea : public Interface {
               return true;
             },
             [&](Index b) {
-              const S* qb = gather(q, b, model_.nq(), rows_.row(t, 0));
+              const S* qb = gather(q, b, nq, rows_.row(t, 0));
               const S* qdb = gather(qd, b, nv, rows_.row(t, 1));
               S* o = output_row(out, b, rows_.row(t, 3));
               if constexpr (kBias) bias_forces(model_, data_[t], qb, qdb, o, instance_fext(b));

@@ -56,7 +56,7 @@ void crba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
     for (int k = 0; k < nj; ++k) {
       const std::size_t col = static_cast<std::size_t>(b.idx_v + k);
       Force<S> F = data.Ic[i] * joint_column(b, k);
-      S Mcol[kMaxJointDofs];
+      S Mcol[kMaxJointDofs] = {};  // joint_project_at writes nj entries (zeros: no maybe-uninitialized)
       joint_project_at(b, F, Mcol);
       for (int l = 0; l < nj; ++l) M[(b.idx_v + l) * nn + col] = Mcol[l];
       Index j = i;

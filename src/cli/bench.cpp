@@ -469,6 +469,11 @@ int run_bench_hybrid(const Args& args) {
   require_usable(options.backend);
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  try {
+    require_one_dof_joints(model, "bench --algo hybrid");
+  } catch (const BackendError& e) {
+    throw UsageError(e.what(), false);
+  }
   const std::vector<unsigned char> mask = parse_prescribed(args.required("prescribed"), model);
   const std::size_t nv = static_cast<std::size_t>(model.nv()), scalar = precision == Precision::Float ? 4 : 8;
   require_host_memory("bench --algo hybrid on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +

@@ -357,18 +357,20 @@ void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, co
     refuse(std::string("by the method ") + to_string(o.fd_method));
 }
 
-// Throws BackendError for a model with multi-DoF joints on what takes 1-DoF joints
-// only (every backend): what names it ("kinematics", ...), the message the joint.
+
+}  // namespace
+
 template <class S>
 void require_one_dof_joints(const ModelTpl<S>& model, const char* what) {
   if (!model.multi_dof()) return;
   throw BackendError(std::string(what) + ": model '" + model.name + "' has the multi-DoF joint '" +
                      first_multi_dof_joint(model) + "' (" +
-                     (model.floating_base() ? "the floating base" : "a spherical joint") + "); " + what +
-                     " takes revolute and prismatic joints only");
+                     (model.floating_base() ? "the floating base" : "a spherical joint") +
+                     "), and this takes revolute and prismatic joints only");
 }
 
-}  // namespace
+template void require_one_dof_joints(const ModelTpl<float>&, const char*);
+template void require_one_dof_joints(const ModelTpl<double>&, const char*);
 
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {

@@ -148,3 +148,25 @@ TEST_F(CliFloating, BenchRowsNameTheFloatingModel) {
   const Result c = run("bench --model hyq --floating-base --algo fd --instances 8 --min-time 0 --backend cuda");
   EXPECT_NE(c.code, 0) << "cuda does not take multi-DoF joints yet (or is not built here)";
 }
+
+// fk and jac take the floating base (values: ctest pinocchio_crosscheck); the
+// forward-dynamics check is on by default (float too); what takes 1-DoF joints only
+// says so, naming the feature and the joint, and writes nothing.
+TEST_F(CliFloating, KinematicsCheckAndRefusals) {
+  write_states("s.csv", 19, 18, 3, 1.0);
+  Result r = run("eval --model hyq --floating-base --states s.csv --out k.csv --algo fd,fk,jac --precision float");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string k = read_text(path("k.csv"));
+  EXPECT_NE(k.find("J_base_link_0_5_17"), std::string::npos);
+  EXPECT_EQ(k.find("J_base_link_0_5_18"), std::string::npos);
+  r = run("eval --model hyq --floating-base --states s.csv --out d.csv --algo dfd");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("derivatives"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("root_joint"), std::string::npos) << r.err;
+  r = run("eval --model hyq --floating-base --states s.csv --out h.csv --algo hybrid --prescribed 0");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--algo hybrid"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("root_joint"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(path("d.csv")));
+  EXPECT_FALSE(std::filesystem::exists(path("h.csv")));
+}
