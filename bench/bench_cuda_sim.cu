@@ -21,7 +21,13 @@
 //       100 links from one base (chains from the base: the parallel chain forward
 //       dynamics too);
 //   step_engine-jsi_dense:euler:gravity/<precision>/tree:128:4/cuda, B = 10^3: the
-//       same path for trees (the dense JSI).
+//       same path for trees (the dense JSI);
+//   the cost of contacts (sim_bench_util.hpp's contacts_json), each next to the same
+//   scene without them: step_fused-aba:<euler|implicit>:gravity+damping[+contacts]/
+//       float/<iiwa|hyq>/cuda, B = 10^6 (a plane, a point at every link origin: the
+//       contacts kernel); step_engine-parallel:euler:gravity[+contacts]/float/
+//       rope:10000/cuda, one rope on a plane and a sphere (the engine path's contact
+//       kernel: one thread walks the rope).
 // Each row checks that the simulator runs the engine its name says (else it is
 // skipped with the strategy it got).
 // Timing: CUDA events around `iterations` steps queued on the simulator's stream
@@ -126,6 +132,12 @@ int main(int argc, char** argv) {
   add<float>("fused-aba", "hyq", "gravity+damping", "euler", 1000000LL);
   for (const char* integ : {"euler", "rk4", "implicit"})
     for (const char* effects : {"gravity", "all-zero"}) add<float>("fused-aba", "iiwa", effects, integ, 1000000LL);
+  for (const char* model : {"iiwa", "hyq"})
+    for (const char* integ : {"euler", "implicit"})
+      for (const char* effects : {"gravity+damping", "gravity+damping+contacts"})
+        add<float>("fused-aba", model, effects, integ, 1000000LL);
+  for (const char* effects : {"gravity", "gravity+contacts"})
+    add<float>("engine-parallel", "rope:10000", effects, "euler", 1LL, 1e-6);
   // The explicit step's dt limit on the bench's random initial state (0.3 rad,
   // 0.1 rad/s per joint): rope:128 at dt 1e-3 or 1e-4 gains energy until qd passes
   // 200 rad/s within 0.3 s and the forward dynamics meets non-finite pivots

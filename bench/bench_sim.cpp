@@ -9,7 +9,13 @@
 //       zero coefficients (the same trajectory), per integrator (the name gives the
 //       integrator asked for: implicit with gravity alone runs as euler);
 //   step_serial-aba:euler:gravity/double/rope:N/serial, one rope of 10^3 .. 10^6
-//       links.
+//       links;
+//   the cost of contacts (sim_bench_util.hpp's contacts_json: a point at every link
+//   origin, a plane for robots, a plane and a sphere for ropes), each next to the
+//   same scene without them:
+//   step_openmp-aba:<integrator>:gravity+damping[+contacts]/float/iiwa/openmp, B = 10^4,
+//   step_serial-aba:<integrator>:gravity[+contacts]/double/rope:10000/serial, one rope
+//       (euler, and implicit: the contacts' diagonal on the armature).
 // One iteration = one step of all B instances; evals_per_second = instance-steps/s.
 // Counters: links, instances, max_rel_err (q and qd after 10 steps against the
 // double serial simulator, first 64 instances).
@@ -64,6 +70,18 @@ void register_all() {
           (std::string("step_openmp-aba:") + integrator + ":" + effects + "/float/iiwa/openmp").c_str(),
           BM_Step<float>, "iiwa", effects, integrator, "openmp", 10000LL, 1e-3)
           ->Unit(benchmark::kMillisecond)->UseRealTime();
+  for (const char* integrator : {"euler", "implicit"})
+    for (const char* effects : {"gravity+damping", "gravity+damping+contacts"})
+      benchmark::RegisterBenchmark(
+          (std::string("step_openmp-aba:") + integrator + ":" + effects + "/float/iiwa/openmp").c_str(),
+          BM_Step<float>, "iiwa", effects, integrator, "openmp", 10000LL, 1e-3)
+          ->Unit(benchmark::kMillisecond)->UseRealTime();
+  for (const char* integrator : {"euler", "implicit"})
+    for (const char* effects : {"gravity", "gravity+contacts"})
+      benchmark::RegisterBenchmark(
+          (std::string("step_serial-aba:") + integrator + ":" + effects + "/double/rope:10000/serial").c_str(),
+          BM_Step<double>, "rope:10000", effects, integrator, "serial", 1LL, 1e-5)
+          ->Unit(benchmark::kMillisecond)->UseRealTime()->MinTime(0.2);
   for (long long n : {1000LL, 10000LL, 100000LL, 1000000LL})
     benchmark::RegisterBenchmark(("step_serial-aba:euler:gravity/double/rope:" + std::to_string(n) + "/serial").c_str(),
                                  BM_Step<double>, "rope:" + std::to_string(n), "gravity", "euler", "serial", 1LL, 1e-5)

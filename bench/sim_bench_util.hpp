@@ -38,9 +38,36 @@ inline std::string effects_json(const std::string& set) {
   return "{}";
 }
 
+// The contacts of the "+contacts" effect sets: a point at every link origin
+// (radius 2 mm), k = 1e3, c = 1, mu = 0.5, against a plane 1 m (robots) or 1% of
+// the rope's length (rope:N, hanging along -z: 0.01 N m long) below its lowest
+// point at rest, and, for ropes, a sphere of radius 0.2 L beside it at mid-length.
+// Planes only for robots (the RL case), a plane and a sphere for ropes.
+inline std::string contacts_json(const std::string& model) {
+  std::string obstacles = R"("planes": [{"normal": [0, 0, 1], "offset": -1}])";
+  if (model.rfind("rope:", 0) == 0) {
+    const double L = 0.01 * std::atof(model.c_str() + 5);
+    obstacles = R"("planes": [{"normal": [0, 0, 1], "offset": )" + std::to_string(-1.01 * L) +
+                R"(}], "spheres": [{"center": [)" + std::to_string(0.3 * L) + ", 0, " + std::to_string(-0.5 * L) +
+                R"(], "radius": )" + std::to_string(0.2 * L) + "}]";
+  }
+  return R"("contacts": {)" + obstacles +
+         R"(, "all_links": {"radius": 0.002}, "stiffness": 1e3, "damping": 1, "friction": 0.5})";
+}
+
+// effects_json of `set`, or of set without a "+contacts" suffix with contacts_json added
+inline std::string effects_json_for(const std::string& set, const std::string& model) {
+  const std::string suffix = "+contacts";
+  if (set.size() <= suffix.size() || set.compare(set.size() - suffix.size(), suffix.size(), suffix) != 0)
+    return effects_json(set);
+  std::string base = effects_json(set.substr(0, set.size() - suffix.size()));
+  base.pop_back();  // the closing brace
+  return base + ", " + contacts_json(model) + "}";
+}
+
 inline sim::Scene make_scene(const std::string& model, const std::string& effects, const std::string& integrator,
                              const char* precision, const char* backend, long long instances, double dt) {
-  const std::string json = R"({"model": ")" + model_for_scene(model) + R"(", "effects": )" + effects_json(effects) +
+  const std::string json = R"({"model": ")" + model_for_scene(model) + R"(", "effects": )" + effects_json_for(effects, model) +
                            R"(, "integrator": ")" + integrator + R"(", "dt": )" + std::to_string(dt) +
                            R"(, "precision": ")" + precision + R"(", "backend": ")" + backend +
                            R"(", "instances": )" + std::to_string(instances) +

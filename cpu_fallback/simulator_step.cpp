@@ -11,6 +11,7 @@
 
 #include "instance_loop.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/integrators.hpp"
 
 namespace scandyn {
@@ -38,11 +39,15 @@ class CpuSimState : public sim::detail::SimBackend<S> {
       for (std::size_t b = 0; b < B; ++b)
         std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nv);
     }
+    if (setup.effects & sim::kContacts)
+      readings_.assign(B * static_cast<std::size_t>(setup.contact_count()), sim::ContactReading<S>{});
   }
 
   BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nv(), setup_.batch); }
   BatchView<S> qd() override { return BatchView<S>::soa(qd_.data(), setup_.model.nv(), setup_.batch); }
   Force<S>* wrenches() override { return wrenches_.empty() ? nullptr : wrenches_.data(); }
+  sim::ContactReading<S>* contact_forces() override { return readings_.empty() ? nullptr : readings_.data(); }
+  void read_contact_forces(sim::ContactReading<S>* host) override { std::copy(readings_.begin(), readings_.end(), host); }
 
   void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
     const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
@@ -78,6 +83,7 @@ class CpuSimState : public sim::detail::SimBackend<S> {
   int threads_;
   std::vector<S> q_, qd_;           // (nv x B) state, q[i * B + b]
   std::vector<Force<S>> wrenches_;  // (B x nv) per-step wrenches, or empty
+  std::vector<sim::ContactReading<S>> readings_;  // (B x P) the last step's contacts, or empty
   BatchStatus status_;              // the steps' failures since the last clear
 };
 
@@ -86,18 +92,16 @@ class CpuSimState : public sim::detail::SimBackend<S> {
 template <class S>
 class CpuInstanceStep final : public CpuSimState<S> {
   using Base = CpuSimState<S>;
-  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::status_;
+  using Base::setup_, Base::threads_, Base::q_, Base::qd_, Base::status_, Base::readings_;
 
  public:
   CpuInstanceStep(const SimSetup<S>& setup, BackendKind backend, int threads) : Base(setup, backend, threads) {
     const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
-    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_.model, nv);
+    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv);
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
-    step_ = table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
-    if (!setup.prescribed.empty() || !setup.loops.empty())
-      driven_step_ =
-          driven_table()[static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects)];
+    const int entry = static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects);
+    step_ = setup.prescribed.empty() && setup.loops.empty() ? table()[entry] : constrained_table()[entry];
   }
 
   void step(const BatchView<const S>& tau) override {
@@ -115,11 +119,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
           w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
           w.tau[i] = tau.data ? tau.at(i, b) : S(0);
         }
-        const Index dof = setup_.prescribed.empty() && setup_.loops.empty()
-                              ? step_(setup_, w.data, w.scratch, w.q.data(), w.qd.data(), w.tau.data(),
-                                      this->instance_wrenches(b))
-                              : driven_step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(),
-                                             this->instance_wrenches(b));
+        const Index dof = step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(), this->instance_wrenches(b),
+                                readings_.empty() ? nullptr : readings_.data() + static_cast<std::size_t>(b) * setup_.contact_count());
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
         nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
@@ -149,35 +150,73 @@ class CpuInstanceStep final : public CpuSimState<S> {
   std::string strategy() const override { return this->backend_ == BackendKind::OpenMP ? "openmp-aba" : "serial-aba"; }
 
  private:
-  // One thread's workspace: the ABA's scratch and the step's arrays.
+  // One thread's workspace: the ABA's scratch, the step's arrays, the contact pass's.
   struct Work {
-    Work(const ModelTpl<S>& model, std::size_t n)
-        : data(model, false), q(n), qd(n), tau(n), buffer(6 * n),
+    Work(const SimSetup<S>& setup, std::size_t n)
+        : data(setup.model, false), q(n), qd(n), tau(n), buffer(6 * n),
           scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
                   buffer.data() + 4 * n, buffer.data() + 5 * n},
-          driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {}
+          contacts(setup.contact_set()),
+          driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {
+      if (setup.effects & sim::kContacts) X.resize(n), v.resize(n), fext.resize(n), armature.resize(n);
+    }
     Work(Work&& o) noexcept = default;
     DataTpl<S> data;
     std::vector<S> q, qd, tau;  // (n) the instance's state and torques
     std::vector<S> buffer;      // (6 n) StepScratch's arrays
     StepScratch<S> scratch;
-    std::vector<S> driven;      // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
+    sim::ContactSet<S> contacts;    // over the setup's vectors
+    std::vector<Transform<S>> X;    // (n) contacts: body <- world
+    std::vector<Motion<S>> v;       // (n) contacts: body twists
+    std::vector<Force<S>> fext;     // (n) contacts: external + contact wrenches
+    std::vector<S> armature;        // (n) contacts, implicit: the armature + the contacts' bound
+    std::vector<S> driven;          // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
     std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
+    std::vector<Force<double>> loop_fext;  // closed loops: the stage's external + contact wrenches, or empty
   };
 
-  using StepFn = Index (*)(const SimSetup<S>&, DataTpl<S>&, const StepScratch<S>&, S*, S*, const S*,
-                           const Force<S>*);
+  using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
 
-  // One instance's step for effect set E and integrator I: step_instance over the ABA.
+  // What one forward dynamics at (qa, qda) receives besides the torques: the
+  // external wrenches (fext, null without kExternal) and the implicit armature (null
+  // unless implicit). With contacts (effect set E), the contact pass adds the
+  // contact wrenches to work.fext and, implicit, the contacts' linearised diagonal
+  // bound to work.armature, and writes the readings (then nulled: an rk4 step
+  // reports its first stage's contacts).
+  template <unsigned E>
+  static std::pair<const Force<S>*, const S*> with_contacts(const SimSetup<S>& setup, Work& work, const S* qa,
+                                                            const S* qda, const Force<S>* fext, const S* armature,
+                                                            sim::ContactReading<S>*& readings) {
+    const Force<S>* f = (E & sim::kExternal) ? fext : nullptr;
+    if constexpr ((E & sim::kContacts) == 0) {
+      (void)setup, (void)work, (void)qa, (void)qda, (void)readings;
+      return {f, armature};
+    } else {
+      const Index n = setup.model.nv();
+      for (Index i = 0; i < n; ++i) {
+        work.fext[i] = f ? f[i] : Force<S>::zero();
+        if (armature) work.armature[i] = armature[i];
+      }
+      sim::contact_pass_any(work.contacts, setup.model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
+                            work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
+                            readings);
+      readings = nullptr;
+      return {work.fext.data(), armature ? work.armature.data() : nullptr};
+    }
+  }
+
+  // One instance's step for effect set E and integrator I: step_instance over the
+  // ABA, each forward dynamics with the contact pass's wrenches (with_contacts).
   template <unsigned E, Integrator I>
-  static Index step_one(const SimSetup<S>& setup, DataTpl<S>& data, const StepScratch<S>& w, S* q, S* qd,
-                        const S* tau, const Force<S>* fext) {
+  static Index step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
+                        sim::ContactReading<S>* readings) {
     const ModelTpl<S>& model = setup.model;
     auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
-      return aba(model, data, qa, qda, t, qdd, (E & sim::kExternal) ? fext : nullptr, armature).failed_dof;
+      const auto [f, a] = with_contacts<E>(setup, work, qa, qda, fext, armature, readings);
+      return aba(model, work.data, qa, qda, t, qdd, f, a).failed_dof;
     };
     return sim::step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
-                                    setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, w, fd);
+                                    setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, work.scratch, fd);
   }
 
   // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
@@ -190,15 +229,14 @@ class CpuInstanceStep final : public CpuSimState<S> {
     return t;
   }
 
-  // ---- prescribed joint motion and closed loops: a step through Work ----
-  using DrivenStepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*);
+  // ---- prescribed joint motion and closed loops ----
 
   // The step of a scene with closed loops or prescribed joints (never both).
   template <unsigned E, Integrator I>
   static Index constrained_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau,
-                                    const Force<S>* fext) {
-    return setup.loops.empty() ? driven_step_one<E, I>(setup, w, q, qd, tau, fext)
-                               : loop_step_one<E, I>(setup, w, q, qd, tau, fext);
+                                    const Force<S>* fext, sim::ContactReading<S>* readings) {
+    return setup.loops.empty() ? driven_step_one<E, I>(setup, w, q, qd, tau, fext, readings)
+                               : loop_step_one<E, I>(setup, w, q, qd, tau, fext, readings);
   }
 
   // Writes the driven DoFs' q, qd and qdd at time t (q, qd: the instance's arrays;
@@ -217,14 +255,18 @@ class CpuInstanceStep final : public CpuSimState<S> {
   // dynamics (double), then the state projected onto the loops (positions by
   // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes).
   template <unsigned E, Integrator I>
-  static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext) {
+  static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext,
+                             sim::ContactReading<S>* readings) {
     const Model& model = setup.loop_model;
     const Index n = model.nv();
-    std::vector<Force<double>> f;
-    if ((E & sim::kExternal) && fext)
-      for (Index i = 0; i < n; ++i) f.push_back(fext[i].template cast<double>());
+    std::vector<Force<double>>& f = w.loop_fext;
     w.loop_lambda.resize(static_cast<std::size_t>(setup.loops.rows()));
     auto fd = [&](const S* qa, const S* qda, const S* t, const S*, S* qdd) -> Index {
+      // the external and contact wrenches at the stage (no armature: loops refuse implicit)
+      const Force<S>* const fs = with_contacts<E>(setup, w, qa, qda, fext, nullptr, readings).first;
+      f.clear();
+      if (fs)
+        for (Index i = 0; i < n; ++i) f.push_back(fs[i].template cast<double>());
       for (Index i = 0; i < n; ++i) w.loop_q[i] = qa[i], w.loop_qd[i] = qda[i], w.loop_tau[i] = t[i];
       try {
         constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
@@ -250,7 +292,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
   // acceleration; the other DoFs integrate as without driving. After the step the
   // driven DoFs are put on their trajectories at t + dt exactly.
   template <unsigned E, Integrator I>
-  static Index driven_step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext) {
+  static Index driven_step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
+                               sim::ContactReading<S>* readings) {
     const ModelTpl<S>& model = setup.model;
     const Index n = model.nv();
     DataTpl<S>& data = work.data;
@@ -268,8 +311,9 @@ class CpuInstanceStep final : public CpuSimState<S> {
       std::copy(qa, qa + n, qs);
       std::copy(qda, qda + n, qds);
       drive(setup, setup.time + offset, qs, qds, qdd_in);
-      return hybrid_dynamics(model, data, qs, qds, setup.prescribed_mask.data(), qdd_in, t, qdd, tau_out,
-                             (E & sim::kExternal) ? fext : nullptr, armature)
+      // the contacts where the driven DoFs are
+      const auto [f, a] = with_contacts<E>(setup, work, qs, qds, fext, armature, readings);
+      return hybrid_dynamics(model, data, qs, qds, setup.prescribed_mask.data(), qdd_in, t, qdd, tau_out, f, a)
           .failed_dof;
     };
     const Index failed = sim::step_instance<E, I>(n, setup.dt, setup.coef.data(),
@@ -280,19 +324,18 @@ class CpuInstanceStep final : public CpuSimState<S> {
   }
 
   template <std::size_t... K>
-  static constexpr std::array<DrivenStepFn, sizeof...(K)> make_driven_table(std::index_sequence<K...>) {
+  static constexpr std::array<StepFn, sizeof...(K)> make_constrained_table(std::index_sequence<K...>) {
     return {&constrained_step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
   }
-  static const std::array<DrivenStepFn, sim::kIntegrators * sim::kEffectSets>& driven_table() {
-    static const auto t = make_driven_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+  static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& constrained_table() {
+    static const auto t = make_constrained_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
     return t;
   }
 
   std::vector<Work> work_;   // one per thread
   std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
   std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
-  StepFn step_ = nullptr;
-  DrivenStepFn driven_step_ = nullptr;  // with prescribed joint motion
+  StepFn step_ = nullptr;  // the effect set's and integrator's step (constrained_step_one with prescribed motion or loops)
 };
 
 // ---- per forward dynamics ---------------------------------------------------------
@@ -462,7 +505,8 @@ class CpuEngineStep final : public CpuSimState<S> {
 
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
-  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit && setup.prescribed.empty() &&
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+         (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          choose_fd_method(backend, setup.model) == FdMethod::Parallel;
 }

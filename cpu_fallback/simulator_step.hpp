@@ -37,7 +37,8 @@ inline constexpr int kEngineThreadsPerInstance = 16;
 // chains from the base of >= 4096 links), at least kEngineThreadsPerInstance
 // threads per instance (with fewer, the threads stepping whole instances with the
 // serial ABA are faster, one thread per instance at most), and euler or rk4 (the
-// chain forward dynamics takes no armature: implicit steps per instance).
+// chain forward dynamics takes no armature: implicit steps per instance), without
+// contacts (their pass runs per instance).
 template <class S>
 bool steps_per_forward_dynamics(const sim::SimSetup<S>& setup, BackendKind backend, int threads);
 

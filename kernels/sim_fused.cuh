@@ -31,10 +31,14 @@
 //     wrenches), which gives the same numbers as the absent effect (test_sim's
 //     ZeroCoefficientsEqualAbsentEffects checks that identity on the host) at the
 //     cost of a few per-DoF operations.
-// 44 + 3 + 3 x 3 (float) + 4 x 3 (double) = 68 kernels. With
+//   - scenes with contacts: one kernel per (precision, capacity, integrator) with
+//     every effect and the contact pass compiled in (kContactKernelSet), over the
+//     any-tree ABA; its per-thread scratch (the bodies' poses, twists, wrenches)
+//     is C transforms, twists and wrenches in local memory.
+// 44 + 3 + 3 x 3 (float) + 4 x 3 (double) = 68 kernels, and 24 with contacts. With
 // SCANDYN_SIM_EFFECT_SETS=0 (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what
 // scripts/test.sh uses on machines without a GPU) only the all-effects any-tree
-// kernels: 24.
+// kernels: 24 + 24.
 #pragma once
 
 #include <cuda_runtime.h>
@@ -44,6 +48,7 @@
 #include <utility>
 
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/integrators.hpp"
 
 #if !defined(SCANDYN_SIM_EFFECT_SETS)
@@ -82,6 +87,36 @@ __host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::Thr
       cuda::DofColumn<S>{qdd, 1}, armature);
 }
 
+// One thread's scratch for the contact pass (capacity C).
+template <class S, int C>
+struct FusedContactScratch {
+  Transform<S> X[C];  // body <- world
+  Motion<S> v[C];     // body twists
+  Force<S> f[C];      // external + contact wrenches
+  S armature[C];      // implicit: the armature + the contacts' diagonal
+};
+
+// The forward dynamics of the fused step with contacts: the contact pass
+// (contacts.hpp) at (q, qd), its wrenches added to fext (null: none), its
+// diagonal to the implicit armature (arm, null for explicit integrators: then no
+// look-ahead), then fused_forward_dynamics. readings (P, or null) gets the
+// points' contacts and is set to null (rk4: the first stage's). Host and device.
+template <class S, int C, int kSlots, int CC>
+__host__ __device__ __forceinline__ Index fused_contact_forward_dynamics(
+    const cuda::ThreadModelParams<S, C>& model, S dt, const ContactSet<S>& cs, const Force<S>* fext,
+    FusedContactScratch<S, CC>& w, ContactReading<S>*& readings, const S* q, const S* qd, const S* tau, const S* arm,
+    S* qdd) {
+  static_assert(CC == C, "the contact scratch has the kernel's capacity");
+  const Index n = model.nv;
+  for (Index i = 0; i < n; ++i) {
+    w.f[i] = fext ? fext[i] : Force<S>::zero();
+    w.armature[i] = arm ? arm[i] : S(0);
+  }
+  contact_pass_any(cs, model.body, n, q, qd, 1, arm ? dt : S(0), w.X, w.v, w.f, arm ? w.armature : nullptr, readings);
+  readings = nullptr;
+  return fused_forward_dynamics<S, C, kSlots>(model, w.f, q, qd, tau, arm ? w.armature : nullptr, qdd);
+}
+
 // The steps' failures on the device: failed instance-steps, and the lowest failed
 // instance with the DoF at which its forward dynamics stopped, as one key
 // (instance << 32 | DoF) so that one atomicMin keeps both. The host reads it into a
@@ -111,6 +146,8 @@ struct FusedArgs {
   long long wrench_stride;   // nv (per-step buffer) or 0 (the constant ones)
   Index batch;               // B
   StepStatus* status;        // the failures (record_step_failure)
+  ContactSet<S> contacts;    // contacts (kContacts): points and obstacles in device memory
+  ContactReading<S>* readings;  // (B x P) the step's contacts, or null without contacts
 };
 
 template <class S, int C, unsigned E, Integrator I, int kSlots>
@@ -132,8 +169,15 @@ SCANDYN_SIM_UNROLL
     tau[i] = a.tau.data ? a.tau.at(i, b) : S(0);
   }
   const Force<S>* fext = (E & kExternal) ? a.wrenches + b * a.wrench_stride : nullptr;
+  FusedContactScratch<S, (E & kContacts) ? C : 1> cw;
+  ContactReading<S>* readings = (E & kContacts) ? a.readings + b * a.contacts.npoints : nullptr;
   auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
-    return fused_forward_dynamics<S, C, kSlots>(p.model, fext, qa, qda, t, arm, out);
+    if constexpr ((E & kContacts) != 0) {
+      return fused_contact_forward_dynamics<S, C, kSlots>(p.model, p.dt, a.contacts, fext, cw, readings, qa, qda, t,
+                                                           arm, out);
+    } else {
+      return fused_forward_dynamics<S, C, kSlots>(p.model, fext, qa, qda, t, arm, out);
+    }
   };
   const StepScratch<S> w{tw, qdd, qs, qds, aq, aqd};
   const Index failed = step_instance<E, I, C>(n, p.dt, p.coef, p.armature, q, qd, tau, w, fd);
@@ -156,11 +200,17 @@ SCANDYN_SIM_UNROLL
 template <class S, int C>
 constexpr bool kPerSetKernels = SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8;
 
+// The one kernel per (S, C, I) that runs scenes with contacts: every effect
+// compiled in, over the any-tree ABA (undeclared effects with neutral
+// coefficients, as the all-effects kernel).
+inline constexpr unsigned kContactKernelSet = kJointEffects | kExternal | kContacts;
+
 // Does the kernel of effect set e with kSlots branch slots exist for (S, C, I)?
 // (the header comment's subset)
 template <class S, int C, Integrator I>
 constexpr bool compiled_kernel(unsigned e, int slots) {
   if (e & kGravity) return false;
+  if (e & kContacts) return e == kContactKernelSet && slots == C;
   const bool all_effects_tree = e == (kJointEffects | kExternal) && slots == C;
   if (kPerSetKernels<S, C> && slots == 0)
     return I == Integrator::Implicit ? (e & kImplicitEffects) != 0 : true;
@@ -173,6 +223,10 @@ constexpr bool compiled_kernel(unsigned e, int slots) {
 // zero wrenches when the scene has none). Returns the set; slots gets kSlots.
 template <class S, int C, Integrator I>
 constexpr unsigned kernel_set(unsigned effects, Index branch_slots, int& slots) {
+  if (effects & kContacts) {
+    slots = C;
+    return kContactKernelSet;
+  }
   if (kPerSetKernels<S, C> && branch_slots == 0) {
     slots = 0;
     return effects & ~unsigned(kGravity);

@@ -11,7 +11,10 @@
 //                           (its Auto choice: the parallel chain forward dynamics for
 //                           chains, jsi_dense for trees), an elementwise integration
 //                           kernel (strategy "engine-<that choice>"). euler and rk4
-//                           only: neither takes an armature yet.
+//                           only: neither takes an armature yet. With contacts, a
+//                           kernel of one thread per instance runs the contact
+//                           pass (contacts.hpp) into (B x nv) wrenches before each
+//                           forward dynamics.
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -50,6 +53,22 @@ __global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, con
   const Index i = static_cast<Index>(k / B), b = static_cast<Index>(k % B);
   const S t = tau.data ? tau.at(i, b) : S(0);
   tau_out[k] = effect_forces<E>(t, coef[i], qs[k], qds[k], S(0));
+}
+
+// The engine path's contact pass, one thread per instance b: fext (B x nv) = the
+// external wrenches (base + b * base_stride, or zeros when base is null) plus the
+// contact wrenches at (qs, qds) (nv x B); X, v: (B x nv) scratch; readings (B x P)
+// or null.
+template <class S>
+__global__ void contacts_kernel(const Body<S>* bodies, Index nv, const ContactSet<S> cs, const S* qs, const S* qds,
+                                Index B, const Force<S>* base, long long base_stride, Transform<S>* X, Motion<S>* v,
+                                Force<S>* fext, ContactReading<S>* readings) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= B) return;
+  const long long off = b * nv;
+  for (Index i = 0; i < nv; ++i) fext[off + i] = base ? base[b * base_stride + i] : Force<S>::zero();
+  contact_pass_any(cs, bodies, nv, qs + b, qds + b, B, S(0), X + off, v + off, fext + off, static_cast<S*>(nullptr),
+                   readings ? readings + b * cs.npoints : nullptr);
 }
 
 // The end of a step: where the instance's forward dynamics succeeded (failed[b] <
@@ -163,6 +182,7 @@ class CudaSimBackend final : public SimBackend<S> {
                        cudaMemcpyHostToDevice),
             "initialising the per-step wrenches");
     clear_status();
+    if (setup.effects & kContacts) setup_contacts();
 
     if (fused_) {
       const cuda::ThreadModel<S> tm(setup.model);
@@ -189,6 +209,7 @@ class CudaSimBackend final : public SimBackend<S> {
   }
 
   ~CudaSimBackend() override {
+    if (contacts_raw_) cudaFree(contacts_raw_);
     if (small_) cudaFree(small_);
     if (rows_) cudaFree(rows_);
     if (expanded_raw_) cudaFree(expanded_raw_);
@@ -203,7 +224,7 @@ class CudaSimBackend final : public SimBackend<S> {
     const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
     const long long stride = step_wrenches_ ? nv : 0;
     if (fused_) {
-      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_};
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
       cudaError_t err = cudaSuccess;
       std::visit(
           [&](const auto& sp) {
@@ -223,11 +244,20 @@ class CudaSimBackend final : public SimBackend<S> {
     const unsigned blocks = element_blocks(count);
     const BatchView<const S> qs_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qs_ : q_, nv, B);
     const BatchView<const S> qds_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qds_ : qd_, nv, B);
+    const bool contacts = (setup_.effects & kContacts) != 0;
     const FdBatchIn<S> in{qs_view, qds_view, BatchView<const S>::soa(tau_, nv, B),
-                          (setup_.effects & kExternal) ? wrenches_for_engine(wrenches) : nullptr};
+                          contacts ? contact_fext_
+                          : (setup_.effects & kExternal) ? wrenches_for_engine(wrenches) : nullptr};
     check(cudaMemsetAsync(nonfinite_, 0, static_cast<std::size_t>(B) * sizeof(int), stream_), "cudaMemsetAsync");
+    ContactReading<S>* readings = readings_;  // rk4: the first stage's
     auto forces = [&] {
       launch_forces(qs_view.data, qds_view.data, tau);
+      if (contacts) {
+        contacts_kernel<S><<<element_blocks(B), kElementBlock, 0, stream_>>>(
+            contact_bodies_, nv, contacts_, qs_view.data, qds_view.data, B,
+            (setup_.effects & kExternal) ? wrenches : nullptr, stride, contact_X_, contact_v_, contact_fext_, readings);
+        readings = nullptr;
+      }
       check(fd_->compute_async(in, BatchView<S>::soa(qdd_, nv, B), failed_, stream_), "running the forward dynamics");
     };
     if (setup_.integrator == Integrator::Euler) {
@@ -250,6 +280,13 @@ class CudaSimBackend final : public SimBackend<S> {
   BatchView<S> q() override { return BatchView<S>::soa(q_, setup_.model.nv(), setup_.batch); }
   BatchView<S> qd() override { return BatchView<S>::soa(qd_, setup_.model.nv(), setup_.batch); }
   Force<S>* wrenches() override { return step_wrenches_; }
+  ContactReading<S>* contact_forces() override { return readings_; }
+  void read_contact_forces(ContactReading<S>* host) override {
+    if (!readings_) return;
+    const std::size_t bytes = static_cast<std::size_t>(setup_.batch) * setup_.contact_count() * sizeof(ContactReading<S>);
+    check(cudaMemcpyAsync(host, readings_, bytes, cudaMemcpyDeviceToHost, stream_), "copying the contact forces");
+    check(cudaStreamSynchronize(stream_), "copying the contact forces");
+  }
 
   void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
     if (count == 0) return;
@@ -311,6 +348,46 @@ class CudaSimBackend final : public SimBackend<S> {
   void* stream() const override { return stream_; }
 
  private:
+  // The contacts in device memory: points, planes, spheres, the readings (zeros),
+  // and for the engine path the bodies and the contact pass's scratch.
+  void setup_contacts() {
+    const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
+    const std::size_t P = static_cast<std::size_t>(setup_.contact_count());
+    const std::size_t np = setup_.contact_planes.size(), ns = setup_.contact_spheres.size();
+    const std::size_t a = 16;  // alignment of each array
+    auto up = [&](std::size_t x) { return (x + a - 1) / a * a; };
+    std::size_t bytes = up(P * sizeof(ContactPoint<S>)) + up(np * sizeof(ContactPlane<S>)) +
+                        up(ns * sizeof(ContactSphere<S>)) + up(B * P * sizeof(ContactReading<S>));
+    if (!fused_) bytes += up(n * sizeof(Body<S>)) + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
+    check(cudaMalloc(&contacts_raw_, bytes), "allocating the contacts");
+    char* p = static_cast<char*>(contacts_raw_);
+    auto take = [&](std::size_t b) {
+      char* r = p;
+      p += up(b);
+      return r;
+    };
+    auto copy = [&](void* dst, const void* src, std::size_t b) {
+      if (b) check(cudaMemcpy(dst, src, b, cudaMemcpyHostToDevice), "copying the contacts");
+    };
+    auto* points = reinterpret_cast<ContactPoint<S>*>(take(P * sizeof(ContactPoint<S>)));
+    auto* planes = reinterpret_cast<ContactPlane<S>*>(take(np * sizeof(ContactPlane<S>)));
+    auto* spheres = reinterpret_cast<ContactSphere<S>*>(take(ns * sizeof(ContactSphere<S>)));
+    readings_ = reinterpret_cast<ContactReading<S>*>(take(B * P * sizeof(ContactReading<S>)));
+    copy(points, setup_.contact_points.data(), P * sizeof(ContactPoint<S>));
+    copy(planes, setup_.contact_planes.data(), np * sizeof(ContactPlane<S>));
+    copy(spheres, setup_.contact_spheres.data(), ns * sizeof(ContactSphere<S>));
+    check(cudaMemset(readings_, 0, B * P * sizeof(ContactReading<S>)), "clearing the contact forces");
+    contacts_ = setup_.contact_set();
+    contacts_.points = points, contacts_.planes = planes, contacts_.spheres = spheres;
+    if (!fused_) {
+      contact_bodies_ = reinterpret_cast<Body<S>*>(take(n * sizeof(Body<S>)));
+      copy(contact_bodies_, setup_.model.bodies.data(), n * sizeof(Body<S>));
+      contact_X_ = reinterpret_cast<Transform<S>*>(p);
+      contact_v_ = reinterpret_cast<Motion<S>*>(p + B * n * sizeof(Transform<S>));
+      contact_fext_ = reinterpret_cast<Force<S>*>(p + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>)));
+    }
+  }
+
   // the engine takes (B x nv) wrenches, one row per instance: the per-step buffer,
   // or the constant row expanded once into a per-instance buffer
   const Force<S>* wrenches_for_engine(const Force<S>* w) {
@@ -366,6 +443,14 @@ class CudaSimBackend final : public SimBackend<S> {
   Force<S>* expanded_ = nullptr;          // (B x nv) constant wrenches for the engine
   ParamsVariant<S> params_;
   std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_;
+  // contacts (setup_contacts), one allocation
+  void* contacts_raw_ = nullptr;
+  ContactSet<S> contacts_;                 // device pointers
+  ContactReading<S>* readings_ = nullptr;  // (B x P) device, or null without contacts
+  Body<S>* contact_bodies_ = nullptr;      // (nv) engine path
+  Transform<S>* contact_X_ = nullptr;      // (B x nv) engine path: poses
+  Motion<S>* contact_v_ = nullptr;         // (B x nv) engine path: twists
+  Force<S>* contact_fext_ = nullptr;       // (B x nv) engine path: external + contact wrenches
 };
 
 }  // namespace

@@ -6,8 +6,10 @@
 # Needs what gpu_check.sh needs (.deps/root from scripts/prepare_device.sh, nvcc) and,
 # on the machine, pip with scikit-build-core and nanobind (no download: the build is
 # not isolated), pytest, and the array libraries to test with (torch, JAX, CuPy). Steps:
-#   1. a virtual environment seeing the machine's packages (--system-site-packages) in
-#      $SCANDYN_PY_VENV (default /tmp/scandyn-venv); pip install --no-build-isolation
+#   1. the machine's python3 (its numpy, torch, JAX, CuPy, scikit-build-core, nanobind:
+#      python3 may itself be a virtual environment, whose packages a --system-site-packages
+#      venv would not see); pip install --target $SCANDYN_PY_TARGET (default
+#      /tmp/scandyn-site, put first on PYTHONPATH) --no-build-isolation
 #      --no-index --no-deps . with CUDA (nvcc), urdfdom from .deps/root  -> pip.log
 #   2. what was installed: versions, has_cuda, the CUDA backend's state   -> python-env.txt
 #   3. loading a URDF after `import torch` (and jax, cupy), with and without
@@ -52,15 +54,15 @@ export CMAKE_CUDA_ARCHITECTURES=${CMAKE_CUDA_ARCHITECTURES:-90}
 export CMAKE_BUILD_PARALLEL_LEVEL=${SCANDYN_JOBS:-$(nproc)}
 
 # ---- 1. install --------------------------------------------------------------------
-venv=${SCANDYN_PY_VENV:-/tmp/scandyn-venv}
-note "pip install . into $venv -> $out/pip.log"
-[[ -x "$venv/bin/python" ]] || python3 -m venv --system-site-packages "$venv"
-py=$venv/bin/python
+target=${SCANDYN_PY_TARGET:-/tmp/scandyn-site}
+note "pip install . into $target -> $out/pip.log"
+py=$(command -v python3)
+export PYTHONPATH=$target${PYTHONPATH:+:$PYTHONPATH}
 if [[ "${SCANDYN_PY_SKIP_INSTALL:-0}" == 1 ]]; then
   record "pip install (skipped: SCANDYN_PY_SKIP_INSTALL=1)" 0
 else
   t0=$(date +%s)
-  "$py" -m pip install -v --no-build-isolation --no-index --no-deps . \
+  "$py" -m pip install -v --no-build-isolation --no-index --no-deps --upgrade --target "$target" . \
     -C cmake.define.CMAKE_CUDA_ARCHITECTURES="$CMAKE_CUDA_ARCHITECTURES" >"$out/pip.log" 2>&1
   rc=$?
   echo "pip install: $(($(date +%s) - t0)) s, exit $rc" >>"$out/pip.log"

@@ -63,6 +63,7 @@ fi
 
 if ((with_warp)); then
   rm -rf .whl-warp && mkdir -p .whl-warp/fetch
+  mkdir -p "$(git rev-parse --git-common-dir)/info"
   grep -qx '/.whl-warp/' "$(git rev-parse --git-common-dir)/info/exclude" 2>/dev/null ||
     echo '/.whl-warp/' >>"$(git rev-parse --git-common-dir)/info/exclude"
   for w in "${warp_wheels[@]}"; do

@@ -5,6 +5,7 @@
     sim.step(tau)                                       # tau (B, nv), or None: zero torques
     sim.q, sim.qd                                       # (B, nv) views of the simulator's state
     sim.reset([3, 17])                                  # those instances restart
+    sim.contact_forces()                                # (B, P, 3) views of the last step's contacts
 
 The binding is python/src/simulator.cpp; docs/python.md ("The simulator") has the rules.
 """
@@ -73,6 +74,7 @@ class Simulator:
         self._arrays = arrays
         self._q = self._s.view(False, arrays)
         self._qd = self._s.view(True, arrays)
+        self._contact_views = {}  # field -> the view of the contact readings, made on first use
 
     # ---- state and properties ----------------------------------------------------------
 
@@ -182,6 +184,37 @@ class Simulator:
     def synchronize(self):
         """Waits for the simulator's queued work (cuda; nothing on the CPU backends)."""
         self._s.synchronize()
+
+    # ---- contacts ----------------------------------------------------------------------
+
+    num_contact_points = property(lambda self: self._s.num_contact_points,
+                                  doc="P, the scene's contact points (effects.contacts; 0 without)")
+
+    def _contact(self, field):
+        if self._arrays == "dlpack":
+            return self._s.contact_view(field, "dlpack")
+        if field not in self._contact_views:
+            self._contact_views[field] = self._s.contact_view(field, self._arrays)
+        return self._contact_views[field]
+
+    def contact_forces(self):
+        """(B, P, 3) the total contact force on each contact point (world frame, N) in the
+        last step (its first forward dynamics: the state the step started from); zeros
+        before the first step. A zero-copy view of the simulator's readings
+        (Simulator::contact_forces(); entry [b, k] is point k of effects.contacts, the listed
+        points first, then all_links' in link order), in the state's dtype and memory, kept
+        up to date by every step. ShapeError for a scene without effects.contacts."""
+        return self._contact("force")
+
+    def contact_depths(self):
+        """(B, P) each point's largest penetration over the obstacles (m; 0 when apart), a
+        view like :meth:`contact_forces`."""
+        return self._contact("depth")
+
+    def in_contact(self):
+        """(B, P) int32: 1 where an obstacle pushed on the point in the last step, else 0; a
+        view like :meth:`contact_forces`."""
+        return self._contact("in_contact")
 
     def energy(self):
         """(B,) mechanical energy of every instance, float64 (a host copy of the state)."""

@@ -25,6 +25,10 @@
 // shape ((B, nv), any strides); scene errors (SceneError with the library's
 // one-line message); after a step with check=True, a failed status
 // (SimulationError with sim::failure_message).
+//
+// Contacts (effects.contacts): contact_view() hands out the last step's readings
+// (Simulator::contact_forces(), (B x P) ContactReading in the backend's memory) as
+// zero-copy views of their fields, owned by the Python Simulator like q and qd.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/optional.h>
@@ -32,6 +36,7 @@
 #include <nanobind/stl/tuple.h>
 #include <nanobind/stl/vector.h>
 
+#include <cstddef>
 #include <cstdint>
 #include <cstdio>
 #include <memory>
@@ -39,6 +44,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "scandyn/build_config.hpp"
@@ -187,9 +193,29 @@ void init_simulator(PySimulator* self, const std::string& path, const std::optio
   }
 }
 
-// q or qd as a (B, nv) array with strides (1, B): the simulator's own memory, as a
-// NumPy array ("numpy"; host memory only), a torch tensor ("torch") or a nanobind
-// array that speaks DLPack ("dlpack").
+// A view of `ndim` dimensions of the simulator's own memory at `data` (element type
+// dt, strides in elements), owned by the Python Simulator `self`: a NumPy array
+// ("numpy"; host memory only), a torch tensor ("torch") or a nanobind array that
+// speaks DLPack ("dlpack").
+nb::object own_view(nb::handle self, PySimulator& p, void* data, size_t ndim, const size_t* shape,
+                    const int64_t* strides, nb::dlpack::dtype dt, const std::string& framework) {
+  const int device_type = p.on_device() ? int(nb::device::cuda::value) : int(nb::device::cpu::value);
+  const int device_id = p.on_device() ? p.device : 0;
+  if (framework == "numpy") {
+    if (p.on_device()) throw DeviceError("the simulator's state is on the GPU: no NumPy view of it");
+    return nb::cast(nb::ndarray<nb::numpy>(data, ndim, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
+  }
+  if (framework == "torch")
+    return nb::cast(nb::ndarray<nb::pytorch>(data, ndim, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
+  if (framework == "dlpack")
+    return nb::cast(nb::ndarray<>(data, ndim, shape, self, strides, dt, device_type, device_id),
+                    nb::rv_policy::reference);
+  throw ShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
+}
+
+// q or qd as a (B, nv) array with strides (1, B): the simulator's own memory.
 nb::object state_view(nb::handle self, bool velocities, const std::string& framework) {
   PySimulator& p = nb::cast<PySimulator&>(self);
   const Index B = p.batch(), nv = p.nv();
@@ -197,20 +223,46 @@ nb::object state_view(nb::handle self, bool velocities, const std::string& frame
   const size_t shape[2] = {size_t(B), size_t(nv)};
   const int64_t strides[2] = {1, int64_t(B)};
   const nb::dlpack::dtype dt = p.is_float() ? nb::dtype<float>() : nb::dtype<double>();
-  const int device_type = p.on_device() ? int(nb::device::cuda::value) : int(nb::device::cpu::value);
-  const int device_id = p.on_device() ? p.device : 0;
-  if (framework == "numpy") {
-    if (p.on_device()) throw DeviceError("the simulator's state is on the GPU: no NumPy view of it");
-    return nb::cast(nb::ndarray<nb::numpy>(data, 2, shape, self, strides, dt, device_type, device_id),
-                    nb::rv_policy::reference);
+  return own_view(self, p, data, 2, shape, strides, dt, framework);
+}
+
+// The contact readings (sim::ContactReading, (B x P) in the backend's memory, entry
+// b * P + k) seen through their fields: five scalars of the precision per reading
+// (force x, y, z, depth, then the int in_contact padded to a scalar), so "force" is
+// a (B, P, 3) array, "depth" (B, P) and "in_contact" (B, P) int32, strides (5 P, 5, 1)
+// in scalars (in_contact: in int32s, 5 P s and 5 s with s = sizeof(S) / 4).
+template <class S>
+constexpr bool kReadingIsFiveScalars = std::is_standard_layout_v<sim::ContactReading<S>> &&
+                                       sizeof(sim::ContactReading<S>) == 5 * sizeof(S) &&
+                                       offsetof(sim::ContactReading<S>, depth) == 3 * sizeof(S) &&
+                                       offsetof(sim::ContactReading<S>, in_contact) == 4 * sizeof(S);
+static_assert(kReadingIsFiveScalars<float> && kReadingIsFiveScalars<double>,
+              "contact_view's strides assume five scalars per ContactReading");
+
+nb::object contact_view(nb::handle self, const std::string& field, const std::string& framework) {
+  PySimulator& p = nb::cast<PySimulator&>(self);
+  const Index P = p.visit([](auto& s) { return s.contact_count(); });
+  if (P == 0) throw ShapeError("the scene declares no effects.contacts: no contact readings");
+  const size_t B = size_t(p.batch());
+  char* base = static_cast<char*>(p.visit([](auto& s) -> void* { return s.contact_forces(); }));
+  const size_t scalar = p.is_float() ? sizeof(float) : sizeof(double);
+  const nb::dlpack::dtype dt = p.is_float() ? nb::dtype<float>() : nb::dtype<double>();
+  if (field == "force") {
+    const size_t shape[3] = {B, size_t(P), 3};
+    const int64_t strides[3] = {5 * int64_t(P), 5, 1};
+    return own_view(self, p, base, 3, shape, strides, dt, framework);
   }
-  if (framework == "torch")
-    return nb::cast(nb::ndarray<nb::pytorch>(data, 2, shape, self, strides, dt, device_type, device_id),
-                    nb::rv_policy::reference);
-  if (framework == "dlpack")
-    return nb::cast(nb::ndarray<>(data, 2, shape, self, strides, dt, device_type, device_id),
-                    nb::rv_policy::reference);
-  throw ShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
+  const size_t shape[2] = {B, size_t(P)};
+  if (field == "depth") {
+    const int64_t strides[2] = {5 * int64_t(P), 5};
+    return own_view(self, p, base + 3 * scalar, 2, shape, strides, dt, framework);
+  }
+  if (field == "in_contact") {
+    const int64_t per = int64_t(5 * scalar / sizeof(int));  // a reading in ints
+    const int64_t strides[2] = {per * int64_t(P), per};
+    return own_view(self, p, base + 4 * scalar, 2, shape, strides, nb::dtype<int>(), framework);
+  }
+  throw ShapeError("unknown contact field '" + field + "' (force, depth, in_contact)");
 }
 
 // tau as the (nv x B) BatchView the simulator reads: a (B, nv) array, any strides,
@@ -316,6 +368,8 @@ void bind_simulator(nb::module_& m) {
       .def("synchronize", [](PySimulator& p) { locked(p, [](auto& s) { s.synchronize(); }); })
       .def("energy", [](PySimulator& p) { return locked(p, [](auto& s) { return s.energy(); }); })
       .def("view", &state_view, "velocities"_a, "framework"_a)
+      .def("contact_view", &contact_view, "field"_a, "framework"_a)
+      .def_prop_ro("num_contact_points", [](PySimulator& p) { return p.visit([](auto& s) { return s.contact_count(); }); })
       .def_prop_ro("nv", &PySimulator::nv)
       .def_prop_ro("num_instances", &PySimulator::batch)
       .def_prop_ro("on_device", &PySimulator::on_device)

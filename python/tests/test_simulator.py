@@ -257,8 +257,11 @@ cuda = pytest.mark.skipif(not sd.has_cuda or sd.backend_unusable("cuda") != "",
 @pytest.mark.parametrize("model", ["rope:8", "iiwa"])
 def test_cuda_state_is_torch_on_the_device_and_matches_serial(model):
     torch = pytest.importorskip("torch", reason="torch is not installed")
-    gpu = sd.Simulator(scene(model=model, backend="cuda", instances=64, dt=1e-4))
-    cpu = sd.Simulator(scene(model=model, backend="serial", instances=64, dt=1e-4))
+    # the rope's 1 cm links have inertias ~3e-7 kg m^2: explicit damping is stable for
+    # dt d / I < 2, so the rope gets d = 1e-4 (iiwa keeps the scene's 0.5)
+    effects = {"gravity": True, "damping": 0.5 if model == "iiwa" else 1e-4}
+    gpu = sd.Simulator(scene(model=model, backend="cuda", instances=64, dt=1e-4, effects=effects))
+    cpu = sd.Simulator(scene(model=model, backend="serial", instances=64, dt=1e-4, effects=effects))
     nv = cpu.nv
     assert isinstance(gpu.q, torch.Tensor) and gpu.q.is_cuda and gpu.q.shape == (64, nv)
     assert gpu.q.stride() == (1, 64) and gpu.device.startswith("cuda") and gpu.strategy == "fused-aba"
@@ -295,3 +298,77 @@ def test_cuda_state_is_torch_on_the_device_and_matches_serial(model):
         cpu.step(torch.zeros(64, nv, dtype=torch.float64, device="cuda"))
     with pytest.raises(sd.DTypeError):
         gpu.step(torch.zeros(64, nv, dtype=torch.float32, device="cuda"))
+
+
+def ball_scene(**kw):
+    """The point mass (models/point_mass.urdf: a 1 kg ball of radius 0.1 on prismatic z, y,
+    x) above the plane z = 0, critically damped contact, implicit at 1 ms; 3 instances."""
+    m, k = 1 + 2e-6, 1e5
+    s = {"model": os.path.join(ROOT, "models", "point_mass.urdf"), "dt": 1e-3, "integrator": "implicit",
+         "backend": "serial", "instances": 3,
+         "effects": {"gravity": True, "contacts": {
+             "planes": [{"normal": [0, 0, 1], "offset": 0}],
+             "points": [{"link": "ball", "radius": 0.1}, {"link": "ball", "position": [0, 0, 0.5]}],
+             "stiffness": k, "damping": 2 * np.sqrt(k * m), "friction": 0.8}},
+         "initial": {"q": [0.1, 0, 0], "qd": [-0.5, 0, 0]}}
+    s.update(kw)
+    return s
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_contact_forces_are_views_of_the_readings(precision):
+    """At rest on the plane the ball's contact carries m g (closed form: the z carriages'
+    2 mg included), its depth is m g / k; the point 0.5 m above touches nothing. The views
+    are the simulator's memory: the same objects show every step's readings."""
+    m, k, g = 1 + 2e-6, 1e5, 9.81
+    sim = sd.Simulator(ball_scene(precision=precision))
+    assert sim.num_contact_points == 2
+    f, d, c = sim.contact_forces(), sim.contact_depths(), sim.in_contact()
+    assert f.shape == (3, 2, 3) and d.shape == (3, 2) and c.shape == (3, 2)
+    assert f.dtype == sim.dtype and d.dtype == sim.dtype and c.dtype == np.int32
+    assert not f.any() and not c.any()  # before the first step
+    sim.step_many(2000)  # 2 s: at rest
+    rtol = 1e-9 if precision == "double" else 1e-4
+    assert f is sim.contact_forces()
+    np.testing.assert_allclose(f[:, 0, 2], m * g, rtol=rtol)
+    np.testing.assert_allclose(f[:, 0, :2], 0, atol=rtol * m * g)
+    np.testing.assert_allclose(d[:, 0], m * g / k, rtol=rtol)
+    assert (c[:, 0] == 1).all() and (c[:, 1] == 0).all()
+    assert not f[:, 1].any() and not d[:, 1].any()
+    # the ball lifted clear of the plane: the next step's readings are zeros, in the same views
+    sim.q[:, 0] = 1.0
+    sim.qd[:, :] = 0
+    sim.step()
+    assert not f.any() and not d.any() and not c.any()
+
+
+def test_contact_forces_without_contacts_and_through_torch():
+    sim = sd.Simulator(scene())
+    assert sim.num_contact_points == 0
+    with pytest.raises(sd.ShapeError, match="declares no effects.contacts"):
+        sim.contact_forces()
+    torch = pytest.importorskip("torch", reason="torch is not installed (not needed in CI)")
+    a = sd.Simulator(ball_scene(), arrays="torch")
+    a.step_many(50)
+    b = sd.Simulator(ball_scene())
+    b.step_many(50)
+    t = a.contact_forces()
+    assert isinstance(t, torch.Tensor) and t.stride() == (10, 5, 1)
+    assert np.array_equal(t.numpy(), b.contact_forces())
+    assert np.array_equal(a.in_contact().numpy(), b.in_contact())
+
+
+@cuda
+def test_cuda_contact_forces_are_device_views_matching_serial():
+    """On cuda the readings are torch tensors over the device memory; after 200 steps of the
+    resting ball (double) they equal the serial simulator's to rounding."""
+    torch = pytest.importorskip("torch", reason="torch is not installed")
+    gpu = sd.Simulator(ball_scene(backend="cuda"))
+    cpu = sd.Simulator(ball_scene())
+    gpu.step_many(200)
+    cpu.step_many(200)
+    f = gpu.contact_forces()
+    assert isinstance(f, torch.Tensor) and f.device.type == "cuda" and f.shape == (3, 2, 3)
+    torch.cuda.current_stream(gpu._s.device).synchronize()
+    np.testing.assert_allclose(f.cpu().numpy(), cpu.contact_forces(), rtol=1e-9, atol=1e-9)
+    assert torch.equal(gpu.in_contact().cpu(), torch.from_numpy(cpu.in_contact().copy()))

@@ -121,7 +121,7 @@ const char* const kEvalUsage =
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
-    "                       [--backend serial|openmp|cuda] [--tau TAU.npy]\n"
+    "                       [--backend serial|openmp|cuda] [--tau TAU.npy] [--contacts]\n"
     "\n"
     "Simulates the scene (docs/scenes.md) for N steps from its initial state, with zero\n"
     "joint torques or those of --tau, and writes the state of every instance at steps\n"
@@ -132,6 +132,10 @@ const char* const kRolloutUsage =
     "  --tau TAU.npy  joint torques (float32 or float64 .npy, numpy.save): shape (N, B, nv),\n"
     "        row t acting during the step from t to t + 1; (B, nv), constant per instance;\n"
     "        or (nv,), one row for every instance and step (B: the scene's instances)\n"
+    "  --contacts  (a scene with effects.contacts) adds per contact point k the contact\n"
+    "        force of the step that ended there (world frame, N) and whether it touched:\n"
+    "        .csv  columns cf_<k>_x,cf_<k>_y,cf_<k>_z,contact_<k> after qd_<i>\n"
+    "        .npy  4 more values per point: [fx, fy, fz, in_contact]\n"
     "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
 
 const char* const kBenchUsage =
@@ -193,7 +197,7 @@ const Command kCommands[] = {
       "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed",
       "simd"},
      &run_bench},
-    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau"}, &run_rollout},
+    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau", "contacts"}, &run_rollout},
 };
 
 int fail(int code, const std::string& message) {

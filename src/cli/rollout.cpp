@@ -102,25 +102,29 @@ constexpr double kLargeOutputBytes = 2.0 * (1ull << 30);
 
 template <class S>
 int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path,
-            const std::string& tau_path) {
+            const std::string& tau_path, bool contacts) {
   const std::size_t n = static_cast<std::size_t>(scene.nv()), nb = static_cast<std::size_t>(scene.instances);
+  // --contacts: 4 values per contact point (force, flag)
+  const std::size_t np = contacts ? scene.contacts.points.size() : 0;
   // recorded steps: 0, every, 2 every, ..., and the last one
   const long long records = steps / every + 1 + (steps % every != 0);
   const bool npy = ends_with(out_path, ".npy");
   // the trajectory's size, checked before anything is made: %.17g numbers take up
-  // to 24 bytes with the comma; a .npy record holds 1 + 2 nv scalars per instance
-  const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + 2 * n);
+  // to 24 bytes with the comma; a .npy record holds 1 + 2 nv (+ 4 P with --contacts)
+  // scalars per instance
+  const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + 2 * n + 4 * np);
   const double out_bytes = npy ? values * sizeof(S) : values * 24.0;
   const std::string what = "the trajectory of " + std::to_string(records) + " records x " + std::to_string(nb) +
-                           " instances x " + std::to_string(1 + 2 * n) + " values";
+                           " instances x " + std::to_string(1 + 2 * n + 4 * np) + " values";
   require_disk_space(out_path, what, out_bytes);
   // a large output is said before the first step (it fits: checked above)
   if (out_bytes > kLargeOutputBytes)
     std::fprintf(stderr, "scandyn: %s: %s takes about %s (--every records fewer steps)\n", printable(out_path).c_str(),
                  what.c_str(), format_bytes(out_bytes).c_str());
   const double tau_bytes = tau_path.empty() ? 0.0 : RolloutTorques<S>::host_bytes(scene.instances, scene.nv());
-  const std::unique_ptr<sim::Simulator<S>> made =
-      make_simulator<S>(scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + tau_bytes + (2u << 20));
+  const double contact_bytes = static_cast<double>(np * nb) * sizeof(sim::ContactReading<S>);
+  const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(
+      scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + tau_bytes + contact_bytes + (2u << 20));
   sim::Simulator<S>& sim = *made;
   const Index nv = sim.nv(), B = sim.batch();
   // --tau: checked (shape, dtype, size; the constant shapes' values) before the output is made
@@ -132,9 +136,10 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   // written so far are published (.npy with its shape fixed up), exit 128 + signal
   const SignalGuard guard;
   std::vector<S> q(n * nb), qd(n * nb);
+  std::vector<sim::ContactReading<S>> readings(np * nb);  // (B x P), zeros before the first step
   std::string text;
   const char* const descr = sizeof(S) == 4 ? "<f4" : "<f8";
-  const long long width = 1 + 2 * static_cast<long long>(nv);
+  const long long width = 1 + 2 * static_cast<long long>(nv) + 4 * static_cast<long long>(np);
   std::size_t header_size = 0;
   if (npy) {
     if (!little_endian()) throw DataError("rollout: .npy output is written on little-endian machines only");
@@ -145,10 +150,14 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     text = "step,time,instance";
     for (Index i = 0; i < nv; ++i) text += ",q_" + std::to_string(i);
     for (Index i = 0; i < nv; ++i) text += ",qd_" + std::to_string(i);
+    for (std::size_t k = 0; k < np; ++k) {
+      const std::string c = std::to_string(k);
+      text += ",cf_" + c + "_x,cf_" + c + "_y,cf_" + c + "_z,contact_" + c;
+    }
     text += "\n";
     file.write(text);
   }
-  std::vector<S> row(1 + 2 * n);
+  std::vector<S> row(1 + 2 * n + 4 * np);
   long long written = 0;  // records written
   // a state that is not finite stops the rollout (exit 1, nothing written)
   auto check_finite = [&](long long step, const BatchView<const S>& qv, const BatchView<const S>& qdv) {
@@ -161,6 +170,7 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   };
   auto record = [&](long long step) {
     sim.read_state(q.data(), qd.data());
+    if (np > 0 && step > 0) sim.read_contact_forces(readings.data());
     check_finite(step, BatchView<const S>::soa(q.data(), nv, B), BatchView<const S>::soa(qd.data(), nv, B));
     ++written;
     const double t = static_cast<double>(step) * scene.dt;
@@ -168,6 +178,11 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
       if (npy) {
         row[0] = S(t);
         for (std::size_t i = 0; i < n; ++i) row[1 + i] = q[i * nb + b], row[1 + n + i] = qd[i * nb + b];
+        for (std::size_t k = 0; k < np; ++k) {
+          const sim::ContactReading<S>& c = readings[b * np + k];
+          S* const out = row.data() + 1 + 2 * n + 4 * k;
+          out[0] = c.force.x, out[1] = c.force.y, out[2] = c.force.z, out[3] = S(c.in_contact);
+        }
         file.write(std::string_view(reinterpret_cast<const char*>(row.data()), row.size() * sizeof(S)));
       } else {
         text = std::to_string(step) + ",";
@@ -175,6 +190,11 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
         text += "," + std::to_string(b);
         for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(q[i * nb + b]));
         for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(qd[i * nb + b]));
+        for (std::size_t k = 0; k < np; ++k) {
+          const sim::ContactReading<S>& c = readings[b * np + k];
+          for (S x : {c.force.x, c.force.y, c.force.z}) text += ",", append_number(text, double(x));
+          text += c.in_contact ? ",1" : ",0";
+        }
         text += "\n";
         file.write(text);
       }
@@ -229,11 +249,14 @@ int run_rollout(const Args& args) {
   } catch (const sim::SceneError& e) {
     throw DataError(e.what());
   }
+  const bool contacts = args.has("contacts");
+  if (contacts && !(scene.effects & sim::kContacts))
+    throw UsageError("--contacts: the scene " + scene.path + " declares no effects.contacts", false);
   const BackendKind backend = scene_backend(scene, args);
   const std::string tau = args.get("tau", "");
   if (args.has("tau") && tau.empty()) throw UsageError("--tau needs a .npy file");
-  return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out, tau)
-                                                  : rollout<double>(scene, backend, steps, every, out, tau);
+  return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out, tau, contacts)
+                                                  : rollout<double>(scene, backend, steps, every, out, tau, contacts);
 }
 
 }  // namespace scandyn::cli

@@ -23,9 +23,9 @@ namespace sim {
 using json = nlohmann::json;
 
 std::string effect_names(unsigned effects) {
-  static const char* const names[] = {"gravity", "damping", "springs", "limits", "external"};
+  static const char* const names[] = {"gravity", "damping", "springs", "limits", "external", "contacts"};
   std::string s;
-  for (int k = 0; k < 5; ++k) {
+  for (int k = 0; k < 6; ++k) {
     if (!(effects & (1u << k))) continue;
     if (!s.empty()) s += "+";
     s += names[k];
@@ -167,6 +167,94 @@ class Reader {
   std::string source_;
 };
 
+// [x, y, z] at key
+Vec3<double> vec3(const Reader& r, const std::string& key, const json& v, const char* what) {
+  if (!v.is_array() || v.size() != 3) r.expected(key, what, v);
+  double x[3];
+  for (int k = 0; k < 3; ++k) x[k] = r.number(key + "[" + std::to_string(k) + "]", v[static_cast<std::size_t>(k)]);
+  return {x[0], x[1], x[2]};
+}
+
+double non_negative(const Reader& r, const std::string& key, const json& v) {
+  const double x = r.number(key, v, "a non-negative number");
+  if (x < 0) r.expected(key, "a non-negative number", v);
+  return x;
+}
+
+// An array at key of objects with exactly the required members (and the optional ones).
+const json& object_list(const Reader& r, const std::string& key, const json& v, const std::set<std::string>& required,
+                        const std::set<std::string>& optional, const char* what) {
+  if (!v.is_array()) r.expected(key, what, v);
+  std::set<std::string> allowed = required;
+  allowed.insert(optional.begin(), optional.end());
+  for (std::size_t k = 0; k < v.size(); ++k) {
+    const std::string item = key + "[" + std::to_string(k) + "]";
+    r.check_object(item, v[k], allowed);
+    for (const std::string& m : required)
+      if (!v[k].contains(m)) r.fail(item + "." + m, "missing");
+  }
+  return v;
+}
+
+// effects.contacts -> c (docs/scenes.md, "contacts")
+void parse_contacts(const Reader& r, const json& v, const Model& model, SceneContacts& c) {
+  const std::string key = "effects.contacts";
+  r.check_object(key, v, {"planes", "spheres", "points", "all_links", "stiffness", "damping", "friction", "creep_speed"});
+  if (!v.contains("stiffness")) r.fail(key + ".stiffness", "missing (the normal stiffness k, N/m)");
+  c.law.stiffness = non_negative(r, key + ".stiffness", v["stiffness"]);
+  if (v.contains("damping")) c.law.damping = non_negative(r, key + ".damping", v["damping"]);
+  if (v.contains("friction")) c.law.friction = non_negative(r, key + ".friction", v["friction"]);
+  if (v.contains("creep_speed")) c.law.creep_speed = r.positive(key + ".creep_speed", v["creep_speed"]);
+  if (v.contains("planes")) {
+    const json& ps = object_list(r, key + ".planes", v["planes"], {"normal"}, {"offset"},
+                                 "an array of {\"normal\": [nx, ny, nz], \"offset\": o}");
+    for (std::size_t k = 0; k < ps.size(); ++k) {
+      const std::string item = key + ".planes[" + std::to_string(k) + "]";
+      const Vec3<double> n = vec3(r, item + ".normal", ps[k]["normal"], "[nx, ny, nz], a unit vector");
+      const double len = std::sqrt(dot(n, n));
+      if (!(std::abs(len - 1) <= 1e-6))
+        r.fail(item + ".normal", "expected a unit vector, got " + Reader::shown(ps[k]["normal"]) + " (length " +
+                                     std::to_string(len) + ")");
+      const double o = ps[k].contains("offset") ? r.number(item + ".offset", ps[k]["offset"]) : 0.0;
+      c.planes.push_back({(1 / len) * n, o});
+    }
+  }
+  if (v.contains("spheres")) {
+    const json& ss = object_list(r, key + ".spheres", v["spheres"], {"center", "radius"}, {},
+                                 "an array of {\"center\": [x, y, z], \"radius\": R}");
+    for (std::size_t k = 0; k < ss.size(); ++k) {
+      const std::string item = key + ".spheres[" + std::to_string(k) + "]";
+      c.spheres.push_back({vec3(r, item + ".center", ss[k]["center"], "[x, y, z] (m)"),
+                           r.positive(item + ".radius", ss[k]["radius"])});
+    }
+  }
+  if (v.contains("points")) {
+    const json& ps = object_list(r, key + ".points", v["points"], {"link"}, {"position", "radius"},
+                                 "an array of {\"link\": NAME, \"position\": [x, y, z], \"radius\": r}");
+    std::map<std::string, Index> body_of;
+    for (Index i = 0; i < model.nv(); ++i) body_of[model.link_names[i]] = i;
+    for (std::size_t k = 0; k < ps.size(); ++k) {
+      const std::string item = key + ".points[" + std::to_string(k) + "]";
+      const std::string link = r.string(item + ".link", ps[k]["link"]);
+      const auto it = body_of.find(link);
+      if (it == body_of.end()) r.fail(item + ".link", "no moving link named '" + printable(link) + "' in the model");
+      const Vec3<double> pos = ps[k].contains("position")
+                                   ? vec3(r, item + ".position", ps[k]["position"], "[x, y, z] (m, link frame)")
+                                   : Vec3<double>::zero();
+      const double rho = ps[k].contains("radius") ? non_negative(r, item + ".radius", ps[k]["radius"]) : 0.0;
+      c.points.push_back({it->second, pos, rho});
+    }
+  }
+  if (v.contains("all_links")) {
+    const json& a = v["all_links"];
+    r.check_object(key + ".all_links", a, {"radius"});
+    const double rho = a.contains("radius") ? non_negative(r, key + ".all_links.radius", a["radius"]) : 0.0;
+    for (Index i = 0; i < model.nv(); ++i) c.points.push_back({i, Vec3<double>::zero(), rho});
+  }
+  if (c.points.empty()) r.fail(key, "no contact points (give \"points\" or \"all_links\")");
+  if (c.planes.empty() && c.spheres.empty()) r.fail(key, "no obstacles (give \"planes\" or \"spheres\")");
+}
+
 bool file_exists(const std::string& p) {
   struct stat st;
   return ::stat(p.c_str(), &st) == 0 && S_ISREG(st.st_mode);
@@ -244,7 +332,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   s.joints.assign(static_cast<std::size_t>(nv), JointCoefficients<double>{0, 0, 0, -kInf, kInf, 0, 0});
   if (doc.contains("effects")) {
     const json& e = doc["effects"];
-    r.check_object("effects", e, {"gravity", "damping", "springs", "limits", "external"});
+    r.check_object("effects", e, {"gravity", "damping", "springs", "limits", "external", "contacts"});
     if (e.contains("gravity")) {
       const json& g = e["gravity"];
       if (g.is_boolean()) {
@@ -324,6 +412,10 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
         }
       }
       s.effects |= kExternal;
+    }
+    if (e.contains("contacts")) {
+      parse_contacts(r, e["contacts"], s.model, s.contacts);
+      s.effects |= kContacts;
     }
   }
 

@@ -104,6 +104,15 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     for (const SceneWrench& w : scene.wrenches) setup_.wrenches[w.body] += w.wrench.template cast<S>();
     setup_.wrenches_per_step = scene.wrenches_per_step;
   }
+  if (scene.effects & kContacts) {
+    const SceneContacts& c = scene.contacts;
+    for (const ContactPoint<double>& p : c.points)
+      setup_.contact_points.push_back({p.body, p.position.template cast<S>(), S(p.radius)});
+    for (const ContactPlane<double>& p : c.planes) setup_.contact_planes.push_back({p.normal.template cast<S>(), S(p.offset)});
+    for (const ContactSphere<double>& p : c.spheres)
+      setup_.contact_spheres.push_back({p.center.template cast<S>(), S(p.radius)});
+    setup_.contact_law = {S(c.law.stiffness), S(c.law.damping), S(c.law.friction), S(c.law.creep_speed)};
+  }
   setup_.threads = scene.threads;
   if (!scene.loops.empty()) {
     if (backend == BackendKind::Cuda)
@@ -197,10 +206,29 @@ std::vector<double> Simulator<S>::energy() {
     coef[i] = {double(c.damping), double(c.stiffness), double(c.rest), double(c.lower), double(c.upper),
                double(c.limit_stiffness), double(c.limit_damping)};
   }
+  // the contacts in double
+  std::vector<ContactPoint<double>> points;
+  std::vector<ContactPlane<double>> planes;
+  std::vector<ContactSphere<double>> spheres;
+  for (const auto& p : setup_.contact_points) points.push_back({p.body, p.position.template cast<double>(), double(p.radius)});
+  for (const auto& p : setup_.contact_planes) planes.push_back({p.normal.template cast<double>(), double(p.offset)});
+  for (const auto& p : setup_.contact_spheres) spheres.push_back({p.center.template cast<double>(), double(p.radius)});
+  ContactSet<double> cs;
+  cs.points = points.data(), cs.npoints = static_cast<Index>(points.size());
+  cs.planes = planes.data(), cs.nplanes = static_cast<Index>(planes.size());
+  cs.spheres = spheres.data(), cs.nspheres = static_cast<Index>(spheres.size());
+  cs.law.stiffness = double(setup_.contact_law.stiffness);
+  std::vector<Transform<double>> X(n);
+  std::vector<Motion<double>> v(n);
   std::vector<double> e(B), qb(n), qdb(n);
   for (std::size_t b = 0; b < B; ++b) {
     for (std::size_t i = 0; i < n; ++i) qb[i] = double(q[i * B + b]), qdb[i] = double(qd[i * B + b]);
     e[b] = mechanical_energy(model, setup_.effects, coef.data(), qb.data(), qdb.data());
+    if (setup_.effects & kContacts) {
+      contact_kinematics(model.bodies.data(), model.nv(), qb.data(), qdb.data(), 1, X.data(), v.data());
+      for (const ContactPoint<double>& p : points)
+        e[b] += contact_energy_at(cs, mul_transpose(X[p.body].E, p.position) + X[p.body].r, p.radius);
+    }
   }
   return e;
 }

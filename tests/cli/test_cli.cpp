@@ -359,11 +359,13 @@ TEST_F(Cli, EvalOutputDoesNotDependOnInputColumnOrder) {
 
 TEST_F(Cli, EvalBackendsAndStrategiesAgree) {
   // OpenMP splits instances over threads running the same recursion: identical
-  // bytes. The scan forms reassociate the sums: equal to rounding.
+  // bytes (--simd off: the SIMD groups differ from the scalar remainder at rounding
+  // where the build contracts to FMA, -march=native). The scan forms reassociate the
+  // sums: equal to rounding.
   const States s(7, 40, 21);
   write_text(path("in.csv"), s.csv({"q", "qd", "qdd", "tau"}));
   const std::string model = " --model " + quote(scandyn::test::model_path("iiwa.urdf"));
-  const std::string io = " --states in.csv --algo id,fd,mass,bias";
+  const std::string io = " --states in.csv --algo id,fd,mass,bias --simd off";
   ASSERT_EQ(run("eval --out serial.csv" + model + io).code, 0);
   const Result omp = run("eval --out omp.csv --backend openmp --threads 2" + model + io);
 #if SCANDYN_HAS_OPENMP
@@ -1258,6 +1260,43 @@ TEST_F(Cli, RolloutCsvMatchesTheSimulator) {
       }
     }
   }
+}
+
+// --contacts: four columns per contact point after qd, the Simulator's readings of
+// the step that ended at the record (zeros at step 0); on a scene without contacts
+// it is a usage error (exit 2).
+TEST_F(Cli, RolloutContactsWritesTheContactForces) {
+  write_text(path("c.json"), R"({"model": "chain:3", "dt": 0.001, "instances": 2, "integrator": "euler",
+    "effects": {"gravity": true, "contacts": {"planes": [{"normal": [0, 0, 1], "offset": 0.25}],
+      "all_links": {"radius": 0.01}, "stiffness": 1e4, "damping": 10, "friction": 0.5}},
+    "initial": {"random": {"seed": 4, "q": 0.3, "qd": 0.2}}})");
+  const Result r = run("rollout --scene c.json --steps 3 --out traj.csv --contacts");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::vector<std::string> rows = lines(read_text(path("traj.csv")));
+  ASSERT_EQ(rows.size(), 1u + 4 * 2);
+  EXPECT_EQ(rows[0], "step,time,instance,q_0,q_1,q_2,qd_0,qd_1,qd_2,cf_0_x,cf_0_y,cf_0_z,contact_0,cf_1_x,cf_1_y,"
+                     "cf_1_z,contact_1,cf_2_x,cf_2_y,cf_2_z,contact_2");
+  scandyn::sim::Simulator<double> sim(scandyn::sim::load_scene(path("c.json").string()));
+  for (int step = 0; step <= 3; ++step) {
+    if (step > 0) sim.step();
+    std::vector<scandyn::sim::ContactReading<double>> c(2 * 3);
+    sim.read_contact_forces(c.data());
+    for (int b = 0; b < 2; ++b) {
+      const std::vector<std::string> f = split(rows[1 + step * 2 + b], ',');
+      ASSERT_EQ(f.size(), 21u);
+      for (int k = 0; k < 3; ++k) {
+        const auto& x = c[static_cast<std::size_t>(b * 3 + k)];
+        EXPECT_EQ(std::stod(f[9 + 4 * k]), x.force.x);
+        EXPECT_EQ(std::stod(f[11 + 4 * k]), x.force.z);
+        EXPECT_EQ(std::stoi(f[12 + 4 * k]), x.in_contact);
+      }
+    }
+  }
+  EXPECT_EQ(split(rows[3], ',')[12], "1");  // step 1: the first link's origin is below the plane, pushed
+  write_text(path("s.json"), kChainScene);
+  const Result none = run("rollout --scene s.json --steps 3 --out t2.csv --contacts");
+  EXPECT_EQ(none.code, 2);
+  EXPECT_NE(none.err.find("--contacts: the scene s.json declares no effects.contacts"), std::string::npos) << none.err;
 }
 
 // The .npy file: the version 1.0 header numpy writes (checked byte by byte here, as

@@ -230,3 +230,43 @@ TEST_F(RolloutTau, MalformedFilesAreOneClearError) {
 }
 
 }  // namespace
+
+// --tau and --contacts together: the torques push chain:3 onto a plane, the record
+// holds the state and the four contact columns per point, all equal to the
+// Simulator stepped with the same torques and read after the last step.
+TEST_F(RolloutTau, TorquesWithContactsEqualTheSimulator) {
+  write_text(path("c.json"), R"({"model": "chain:3", "dt": 0.001, "instances": 2, "integrator": "euler",
+    "effects": {"gravity": true, "contacts": {"planes": [{"normal": [0, 0, 1], "offset": 0.25}],
+      "all_links": {"radius": 0.01}, "stiffness": 1e4, "damping": 10, "friction": 0.5}},
+    "initial": {"q": [0.7, -0.4, 0.9]}, "backend": "serial"})");
+  std::vector<double> tau(kSteps * kB * kNv);
+  for (std::size_t k = 0; k < tau.size(); ++k) tau[k] = std::sin(0.37 * double(k)) * 3.0;
+  write_text(path("tau.npy"), npy_of<double>({kSteps, kB, kNv}, tau));
+  const Result r = run("rollout --scene c.json --steps 40 --every 40 --out t.npy --tau tau.npy --contacts");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::size_t points = 3, width = 1 + 2 * kNv + 4 * points;
+  const std::vector<double> t = read_npy_doubles(read_text(path("t.npy")), 2 * kB * width);
+  sim::Simulator<double> s(sim::load_scene(path("c.json").string()));
+  for (int step = 0; step < kSteps; ++step)
+    s.step(BatchView<const double>::aos(tau.data() + std::size_t(step) * kB * kNv, kNv, kB));
+  std::vector<sim::ContactReading<double>> c(kB * points);
+  s.read_contact_forces(c.data());
+  int touching = 0;
+  for (int b = 0; b < kB; ++b) {
+    const double* row = t.data() + (kB + b) * width;
+    for (int i = 0; i < kNv; ++i) {
+      EXPECT_EQ(row[1 + i], s.q().at(i, b)) << b << " " << i;
+      EXPECT_EQ(row[1 + kNv + i], s.qd().at(i, b)) << b << " " << i;
+    }
+    for (std::size_t k = 0; k < points; ++k) {
+      const auto& x = c[b * points + k];
+      const double* f = row + 1 + 2 * kNv + 4 * k;
+      EXPECT_EQ(f[0], x.force.x);
+      EXPECT_EQ(f[1], x.force.y);
+      EXPECT_EQ(f[2], x.force.z);
+      EXPECT_EQ(f[3], double(x.in_contact));
+      touching += x.in_contact;
+    }
+  }
+  EXPECT_GT(touching, 0);  // the scene does touch the plane
+}

@@ -79,7 +79,9 @@ void compare_with_serial(const std::string& name, const Model& model_d, bool soa
   ASSERT_TRUE(st.ok()) << st.message();
   const bool dbl = sizeof(S) == 8;
   EXPECT_LT(block_err(id_cuda, id_ref, nv, B), dbl ? 1e-9 : 1e-3) << name;
-  EXPECT_LT(block_err(fd_cuda, fd_ref, nv, B), dbl ? 1e-9 : 1e-2) << name;
+  // FD derivatives go through M^-1: on chain:64 (cond(M) ~ 1e7) the device's rounding
+  // (FMA, sin/cos) shows at ~1e-9, so long chains get 1e-8 in double
+  EXPECT_LT(block_err(fd_cuda, fd_ref, nv, B), dbl ? (nv > 32 ? 1e-8 : 1e-9) : 1e-2) << name;
   EXPECT_LT(test::max_rel_err(qdd_cuda, qdd_ref), dbl ? 1e-9 : 1e-2) << name;
 }
 

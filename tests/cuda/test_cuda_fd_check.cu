@@ -122,7 +122,9 @@ void expect_clean_robot(const std::string& file, FdMethod method) {
             cudaSuccess);
   for (Index b = 0; b < s.B; b += 97) {
     const double h = host_estimate(m, s, qdd, b);
-    EXPECT_NEAR(est[b], h, 1e-3 * h + 1e-15) << what << " instance " << b;
+    // agreement to 0.1%, or to 0.1% of the threshold for estimates at rounding level
+    // (1e-15 in double, where device and host round differently)
+    EXPECT_NEAR(est[b], h, 1e-3 * (h + fd_check_threshold<S>())) << what << " instance " << b;
   }
 }
 

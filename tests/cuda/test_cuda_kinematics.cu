@@ -59,7 +59,7 @@ constexpr Trig kKernelTrig = Trig::Library;
 static_assert(cuda::kThreadTrig<double> == kKernelTrig, "the kernel's sin/cos in double");
 
 // The kernel's per-instance call, on the host: ThreadModelParams' bodies, DofColumn
-// input, the library's sin/cos (kThreadTrig<double>), exactly the serial engine's result.
+// input, the library's sin/cos (kThreadTrig<double>): the serial engine's result (to FMA contraction).
 TEST(CudaKinematicsHost, TheKernelsRoutineIsTheSerialEngine) {
   for (const auto& [label, m] : models()) {
     const KinematicsOptions k = test::all_frames(m, PoseFormat::Matrix, FrameReference::Local);
@@ -79,8 +79,10 @@ TEST(CudaKinematicsHost, TheKernelsRoutineIsTheSerialEngine) {
                 Strided<double>{poses.data() + b * F * 16, 1}, Strided<double>{J.data() + b * F * 6 * nv, 1});
         },
         tm.params());
-    EXPECT_EQ(poses, ser.poses) << label;
-    EXPECT_EQ(J, ser.J) << label;
+    // the same routine and arithmetic; the CUDA file's host code may contract a*b+c to an FMA
+    // where the serial engine's file does not (-march=native): equal to a few ulps
+    EXPECT_LT(test::max_rel_err(poses, ser.poses), 1e-14) << label;
+    EXPECT_LT(test::max_rel_err(J, ser.J), 1e-14) << label;
   }
 }
 

@@ -76,7 +76,7 @@ Index fused_step_on_host(const cuda::ThreadModelParams<S, C>& model, const sim::
 // kSlots: 0 (the chain kernels; models without branch children) or 8 (any model)
 template <Integrator I, int kSlots>
 void check_host_composition(const std::string& model, const std::string& integrator) {
-  constexpr unsigned E = sim::kAllEffects;
+  constexpr unsigned E = sim::kAllEffects & ~sim::kContacts;
   const Scene scene = scene_from(scene_json(model, integrator, kAllEffects, 1));
   Simulator<double> ref(scene, BackendKind::Serial);
   const sim::SimSetup<double>& setup = ref.setup();

@@ -54,7 +54,7 @@ TEST(SimScene, ParsesEveryKey) {
     "initial": {"q": [0.1, 0.2, 0.3], "qd": 0.5, "random": {"seed": 7, "q": 0.01}}
   })");
   EXPECT_EQ(s.nv(), 3);
-  EXPECT_EQ(s.effects, sim::kAllEffects);
+  EXPECT_EQ(s.effects, sim::kAllEffects & ~sim::kContacts);
   EXPECT_EQ(s.model.gravity.z, -1.5);
   EXPECT_EQ(s.integrator, Integrator::Implicit);
   EXPECT_EQ(s.dt, 0.002);
@@ -356,7 +356,7 @@ TEST(SimEffects, ZeroCoefficientsEqualAbsentEffects) {
     const Scene all = scene_from("{" + in + base + R"(, "effects": {"gravity": true, "damping": 0,
         "springs": {"stiffness": 0, "rest": 0.3}, "limits": {"stiffness": 0, "damping": 0, "lower": -0.1, "upper": 0.1},
         "external": {"wrenches": [{"link": "link_2", "wrench": [0, 0, 0, 0, 0, 0]}]}}})");
-    EXPECT_EQ(all.effects, sim::kAllEffects);
+    EXPECT_EQ(all.effects, sim::kAllEffects & ~sim::kContacts);
     EXPECT_EQ(rollout<double>(only, 50, BackendKind::Serial), rollout<double>(all, 50, BackendKind::Serial)) << integrator;
     EXPECT_EQ(rollout<float>(only, 50, BackendKind::Serial), rollout<float>(all, 50, BackendKind::Serial)) << integrator;
   }
@@ -556,6 +556,16 @@ TEST(SimOpenMPChain, StepsPerForwardDynamicsOnlyWithEnoughThreadsPerInstance) {
   EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, 4 * kT));
   s.model = make_generated("curtain:2:3000");  // chains hanging from the base
   EXPECT_TRUE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  // the engine path steps none of contacts, prescribed motion and closed loops
+  s.effects = sim::kContacts;
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  s.effects = 0;
+  s.prescribed.dofs = {0};
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
+  s.prescribed.dofs.clear();
+  s.loops.loops.resize(1);
+  ASSERT_FALSE(s.loops.empty());
+  EXPECT_FALSE(cpu::steps_per_forward_dynamics(s, BackendKind::OpenMP, kT));
 }
 
 // max_i |x_i - ref_i| / max_i |ref_i| over q, and over qd, of all instances.

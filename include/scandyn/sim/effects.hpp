@@ -18,8 +18,12 @@
 //             tau_i += kl_i (lower_i - q_i) - dl_i qd_i below lower_i,
 //             tau_i += kl_i (upper_i - q_i) - dl_i qd_i above upper_i, nothing inside;
 //   external  body wrenches fext (body frames, [moment; force] about the body's
-//             origin), passed to the forward dynamics as its fext argument.
-// The implicit integrator treats damping and springs implicitly (integrators.hpp).
+//             origin), passed to the forward dynamics as its fext argument;
+//   contacts  spheres fixed on links against fixed world planes and spheres: a
+//             compliant normal force and regularised Coulomb friction per touching
+//             pair, entering as body wrenches added to fext (scandyn/sim/contacts.hpp).
+// The implicit integrator treats damping, springs and the contacts' stiffness and
+// damping implicitly (integrators.hpp, contacts.hpp).
 //
 // These functions are SCANDYN_HD: the CPU backends and the CUDA kernel call them.
 #pragma once
@@ -38,15 +42,17 @@ enum Effect : unsigned {
   kSprings = 4u,
   kLimits = 8u,
   kExternal = 16u,
+  kContacts = 32u,
 };
-inline constexpr unsigned kAllEffects = 31u;
-inline constexpr int kEffectSets = 32;  // every subset is instantiated
+inline constexpr unsigned kAllEffects = 63u;
+inline constexpr int kEffectSets = 64;  // every subset is instantiated on the host
 // The effects that add a generalised force on each joint.
 inline constexpr unsigned kJointEffects = kDamping | kSprings | kLimits;
-// The effects the implicit integrator treats implicitly (an armature dt d + dt^2 k).
-inline constexpr unsigned kImplicitEffects = kDamping | kSprings;
+// The effects the implicit integrator treats implicitly (an armature dt d + dt^2 k;
+// the contacts' bound of contacts.hpp).
+inline constexpr unsigned kImplicitEffects = kDamping | kSprings | kContacts;
 
-// "gravity+damping+springs+limits+external" order, "none" for the empty set.
+// "gravity+damping+springs+limits+external+contacts" order, "none" for the empty set.
 std::string effect_names(unsigned effects);
 
 // The per-DoF coefficients of the joint effects (only those of declared effects

@@ -15,6 +15,7 @@
 
 #include "scandyn/engine.hpp"
 #include "scandyn/model/model.hpp"
+#include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/effects.hpp"
 #include "scandyn/sim/integrators.hpp"
 #include "scandyn/sim/prescribed.hpp"
@@ -34,6 +35,16 @@ class SceneError : public std::runtime_error {
 struct SceneWrench {
   Index body;             // the body (DoF index) it acts on
   Force<double> wrench;   // [moment; force] in the body's frame about its origin (N m, N)
+};
+
+// The contact effect as declared (effects.contacts; docs/scenes.md): the points
+// (those listed, then one at every link origin for all_links, in DoF order), the
+// obstacles and the law.
+struct SceneContacts {
+  std::vector<ContactPoint<double>> points;
+  std::vector<ContactPlane<double>> planes;
+  std::vector<ContactSphere<double>> spheres;
+  ContactLaw<double> law{0, 0, 0, 1e-3};
 };
 
 // How instances start (and restart after reset()).
@@ -59,6 +70,7 @@ struct Scene {
   std::vector<JointCoefficients<double>> joints;
   std::vector<SceneWrench> wrenches;  // external: constant wrenches (one per listed body)
   bool wrenches_per_step = false;     // external: the caller may rewrite them before each step
+  SceneContacts contacts;             // contacts: points, obstacles, law (empty without the effect)
 
   Integrator integrator = Integrator::Euler;
   double dt = 1e-3;                   // time step (s)

@@ -95,6 +95,23 @@ struct SimSetup {
   std::vector<Force<S>> wrenches;           // (nv) the constant external wrenches (kExternal), else empty
   bool wrenches_per_step = false;           // (B x nv) buffer the caller rewrites
   int threads = 0;                          // OpenMP threads (0: all)
+  // contacts (kContacts), else empty
+  std::vector<ContactPoint<S>> contact_points;    // (P) points on the bodies
+  std::vector<ContactPlane<S>> contact_planes;    // world planes
+  std::vector<ContactSphere<S>> contact_spheres;  // world spheres
+  ContactLaw<S> contact_law{};
+
+  Index contact_count() const { return static_cast<Index>(contact_points.size()); }  // P
+  // the contacts over these host vectors
+  ContactSet<S> contact_set() const {
+    ContactSet<S> cs;
+    cs.points = contact_points.data(), cs.npoints = contact_count();
+    cs.planes = contact_planes.data(), cs.nplanes = static_cast<Index>(contact_planes.size());
+    cs.spheres = contact_spheres.data(), cs.nspheres = static_cast<Index>(contact_spheres.size());
+    cs.law = contact_law;
+    cs.obstacles = (contact_planes.empty() ? 0u : unsigned(kPlanes)) | (contact_spheres.empty() ? 0u : unsigned(kSpheres));
+    return cs;
+  }
   // prescribed joint motion (scene key "prescribed"): the driven DoFs follow their
   // trajectories exactly, the others respond through the hybrid dynamics (serial
   // and openmp backends; cuda refuses it)
@@ -120,6 +137,9 @@ class SimBackend {
   virtual BatchView<S> q() = 0;
   virtual BatchView<S> qd() = 0;
   virtual Force<S>* wrenches() = 0;                // (B x nv) per-step wrenches, or null
+  virtual ContactReading<S>* contact_forces() = 0;  // (B x P) the last step's contacts, or null
+  // copies contact_forces() (B x P) to host memory
+  virtual void read_contact_forces(ContactReading<S>* host) = 0;
   // writes the rows (count x nv each, host memory) of the listed instances
   virtual void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) = 0;
   // copies all of q and qd (nv x B, SoA) to host memory
@@ -170,13 +190,25 @@ class Simulator {
   // (initialised to the scene's constant wrenches); null otherwise.
   Force<S>* wrenches() { return backend_->wrenches(); }
 
+  // With contacts (effects.contacts): the contacts of the last step, (B x P) in
+  // the backend's memory, entry [b * P + k] for point k (setup().contact_points) of
+  // instance b: the total contact force on the point (world frame), its largest
+  // penetration and whether an obstacle pushes on it, at the state the step
+  // started from (rk4: its first stage); zeros before the first step. Null without
+  // contacts. On cuda, synchronise() before reading it from another stream.
+  ContactReading<S>* contact_forces() { return backend_->contact_forces(); }
+  Index contact_count() const { return setup_.contact_count(); }  // P
+  // Copies contact_forces() to host memory (B x P); synchronises on cuda.
+  void read_contact_forces(ContactReading<S>* host) { backend_->read_contact_forces(host); }
+
   // Copies the state to host memory (nv x B each, SoA); synchronises on cuda.
   void read_state(S* q_host, S* qd_host) { backend_->read_state(q_host, qd_host); }
   // Mechanical energy of every instance (B values, computed in double on the host
   // from a copy of the state): kinetic 1/2 sum v_i . I_i v_i, plus the potential of
   // gravity (-sum m_i g . c_i, c_i the centre of mass of body i in the base frame;
-  // when gravity is declared) and of the declared springs and violated limits
-  // (joint_effect_energy). External wrenches and damping are not potentials.
+  // when gravity is declared), of the declared springs and violated limits
+  // (joint_effect_energy) and of the contacts' springs (contact_energy_at: 1/2 k d^2
+  // per touching pair). External wrenches and damping are not potentials.
   std::vector<double> energy();
 
   // the forward-dynamics failures since the last clear_status(): `failed` counts

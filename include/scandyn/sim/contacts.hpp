@@ -1,0 +1,270 @@
+// scandyn/sim/contacts.hpp: the contact effect: spheres fixed on links against
+// fixed world planes and spheres, a compliant normal law and regularised Coulomb
+// friction. One SCANDYN_HD routine, shared by the serial and OpenMP step
+// (cpu_fallback/simulator_step.cpp) and the CUDA steps (kernels/sim_fused.cuh,
+// kernels/simulator_step.cu).
+//
+// Geometry. A contact point is a sphere of radius rho >= 0 whose centre c is fixed
+// in body i's frame. "World" is the frame of the model's base (the fixed base
+// today; for a floating base, the frame the base pose is given in). With X_i (body
+// i <- world, (E, r)) and v_i (body i's twist in its frame, [w; v] of its origin),
+// the centre is at p = E^T c + r and moves with p_dot = E^T (v + w x c).
+// Obstacles:
+//   plane  {x : n . x = o}, unit normal n pointing out of the solid side:
+//          penetration d = o + rho - n . p, contact normal n;
+//   sphere centre s, radius R: d = R + rho - |p - s|, contact normal (p - s) / |p - s|.
+// A pair touches when d > 0; its penetration rate is d_dot = -n . p_dot.
+//
+// Normal law (a clamped linear spring-damper, Kelvin-Voigt, never pulling):
+//   f_n = max(0, k (d + h d_dot) + c d_dot)          (d > 0; zero otherwise)
+// k = "stiffness" (N/m), c = "damping" (N s/m), h the implicit integrator's look-ahead
+// (dt for implicit, 0 for euler and rk4; see below). The contact ends when the
+// force reaches zero (k d + c d_dot = 0), slightly before d = 0 on the way out.
+// Closed forms the tests use: a point of mass m resting on a plane sinks to
+// d = m g / k; a body of mass m landing with speed v0 leaves when k d + c d_dot = 0
+// on the solution of m d'' = -k d - c d' + m g (d(0) = 0, d'(0) = v0), which the
+// tests solve exactly and compare the bounce height with.
+//
+// Friction (regularised Coulomb, viscous below a creep speed):
+//   f_t = -mu f_n v_t / max(|v_t|, v_s)
+// v_t = p_dot - (n . p_dot) n the sliding velocity, mu = "friction", v_s =
+// "creep_speed" (m/s, default 1e-3). |f_t| <= mu f_n always (inside the Coulomb
+// cone); sliding faster than v_s feels exactly mu f_n; a load that static friction
+// would hold (tangential load F < mu f_n) creeps at |v_t| = v_s F / (mu f_n) < v_s:
+// v_s is the stated creep tolerance.
+//
+// The force on each point, f = f_n n + f_t summed over the obstacles, enters the
+// dynamics as the body wrench of body i in its frame about its origin,
+// [c x E f; E f], added to the external wrenches (fext) every forward dynamics
+// takes, so every engine and backend gets it.
+//
+// The implicit integrator (sim/integrators.hpp) treats the contacts' stiffness and
+// damping linearised, as the joints': the normal force looks h = dt ahead, and
+// each touching pair adds to the joint-space armature the diagonal of its
+// linearised stiffness and damping J^T W J, W = wn n n^T + wt (I - n n^T), wn =
+// dt c + dt^2 k, wt = dt mu f_n / max(|v_t|, v_s) (J: the point's 3 x nv Jacobian,
+// columns J_j for the joints j on its path to the base): armature_j += wn (n .
+// J_j)^2 + wt (|J_j|^2 - (n . J_j)^2). Exact when one joint moves the point (a
+// hinged rod) or the joints move it along orthogonal directions (a point on
+// prismatic x, y, z); otherwise the diagonal of a coupled matrix, whose stable dt
+// is measured (docs/scenes.md, "Contacts"). The rest state is exact: the armature
+// multiplies qdd only. Cost: one walk to the base per touching pair. (A diagonal
+// dominating the whole matrix, Gershgorin's a_j sum_l |a_l|, would make a frozen
+// contact set unconditionally stable, but it puts so much inertia on the joints
+// near a rope's base that its changes from step to step pump energy into a
+// whipping rope; with the exact diagonal the drape scenes stay stable, see
+// docs/scenes.md for where it is not.)
+#pragma once
+
+#include "scandyn/algorithm/steps.hpp"
+#include "scandyn/config.hpp"
+#include "scandyn/spatial.hpp"
+
+namespace scandyn {
+namespace sim {
+
+// A contact point: a sphere fixed on a body.
+template <class S>
+struct ContactPoint {
+  Index body;         // the body (DoF index) it is fixed on
+  Vec3<S> position;   // its centre in the body's frame (m)
+  S radius;           // >= 0 (m)
+};
+
+// A fixed world plane {x : normal . x = offset}; normal unit, out of the solid.
+template <class S>
+struct ContactPlane {
+  Vec3<S> normal;
+  S offset;  // (m)
+};
+
+// A fixed world sphere.
+template <class S>
+struct ContactSphere {
+  Vec3<S> center;  // (m)
+  S radius;        // > 0 (m)
+};
+
+// The contact law's coefficients (see the header comment).
+template <class S>
+struct ContactLaw {
+  S stiffness;    // k >= 0 (N/m)
+  S damping;      // c >= 0 (N s/m)
+  S friction;     // mu >= 0
+  S creep_speed;  // v_s > 0 (m/s)
+};
+
+// Which obstacles a scene declares: the contact loop is specialised on them.
+enum ContactObstacles : unsigned { kPlanes = 1u, kSpheres = 2u };
+
+// Everything the contact pass reads (pointers into the backend's memory).
+template <class S>
+struct ContactSet {
+  const ContactPoint<S>* points = nullptr;    // (P)
+  Index npoints = 0;
+  const ContactPlane<S>* planes = nullptr;    // (nplanes)
+  Index nplanes = 0;
+  const ContactSphere<S>* spheres = nullptr;  // (nspheres)
+  Index nspheres = 0;
+  ContactLaw<S> law{};
+  unsigned obstacles = 0;                     // ContactObstacles bits of the non-empty lists
+};
+
+// One point's contact after a step (the state the step started from; rk4: its
+// first stage): the per-instance output Simulator::contact_forces() exposes.
+template <class S>
+struct ContactReading {
+  Vec3<S> force;    // total contact force on the point, world frame (N)
+  S depth;          // largest penetration over the obstacles (m), 0 when apart
+  int in_contact;   // 1 when some obstacle pushes on it (f_n > 0), else 0
+};
+
+// The force of one obstacle on one point (normal n, penetration d > 0, rate d_dot,
+// centre velocity pv), look-ahead h. Returns f_n (>= 0); adds f_n n + f_t to f;
+// gain gets the friction's velocity gain mu f_n / max(|v_t|, v_s).
+template <class S>
+SCANDYN_HD S contact_pair_force(const ContactLaw<S>& law, const Vec3<S>& n, S d, const Vec3<S>& pv, S h,
+                                Vec3<S>& f, S& gain) {
+  const S d_dot = -dot(n, pv);
+  S fn = law.stiffness * (d + h * d_dot) + law.damping * d_dot;
+  if (!(fn > S(0))) return S(0);
+  const Vec3<S> vt = pv - dot(n, pv) * n;
+  const S speed = ScalarMath<S>::sqrt(dot(vt, vt));
+  gain = law.friction * fn / (speed > law.creep_speed ? speed : law.creep_speed);
+  f += fn * n;
+  f -= gain * vt;
+  return fn;
+}
+
+// The forces of every obstacle on one point with centre p moving at pv (world
+// frame). Returns the total force; reading (when not null) gets it with the depth
+// and the flag; touched(n, wn, wt) is called for each pair that pushes, with the
+// implicit weights of the header comment: wn = h c + h^2 k along the normal n, wt
+// = h mu f_n / max(|v_t|, v_s) across it (zero when h is).
+template <unsigned kObstacles, class S, class Touched>
+SCANDYN_HD Vec3<S> contact_point_force(const ContactSet<S>& cs, const Vec3<S>& p, const Vec3<S>& pv, S rho, S h,
+                                       ContactReading<S>* reading, Touched&& touched) {
+  const ContactLaw<S>& law = cs.law;
+  Vec3<S> f = Vec3<S>::zero();
+  S depth = S(0);
+  bool touching = false;
+  const S wn = h * law.damping + h * h * law.stiffness;
+  auto pair = [&](const Vec3<S>& n, S d) {
+    if (!(d > S(0))) return;
+    depth = d > depth ? d : depth;
+    S gain = S(0);
+    if (contact_pair_force(law, n, d, pv, h, f, gain) > S(0)) {
+      touching = true;
+      touched(n, wn, h * gain);
+    }
+  };
+  if constexpr ((kObstacles & kPlanes) != 0) {
+    for (Index k = 0; k < cs.nplanes; ++k) {
+      const ContactPlane<S>& pl = cs.planes[k];
+      pair(pl.normal, pl.offset + rho - dot(pl.normal, p));
+    }
+  }
+  if constexpr ((kObstacles & kSpheres) != 0) {
+    for (Index k = 0; k < cs.nspheres; ++k) {
+      const ContactSphere<S>& sp = cs.spheres[k];
+      const Vec3<S> e = p - sp.center;
+      const S dist = ScalarMath<S>::sqrt(dot(e, e));
+      if (!(dist > S(0))) continue;  // the centre at the obstacle's centre: no normal
+      pair(S(1) / dist * e, sp.radius + rho - dist);
+    }
+  }
+  if (reading) *reading = {f, depth, touching ? 1 : 0};
+  return f;
+}
+
+// The world pose and twist of every body (the contact pass's kinematics):
+// X[i] body i <- world, v[i] body i's twist in its frame. q and qd at q[j * stride].
+template <class S>
+SCANDYN_HD void contact_kinematics(const Body<S>* bodies, Index n, const S* q, const S* qd, long long stride,
+                                   Transform<S>* X, Motion<S>* v) {
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = bodies[i];
+    const Transform<S> Xup = joint_transform(b, q[i * stride]);
+    X[i] = b.parent < 0 ? Xup : Xup * X[b.parent];
+    v[i] = add_joint_motion(b, b.parent < 0 ? Motion<S>::zero() : Xup.apply(v[b.parent]), qd[i * stride]);
+  }
+}
+
+// The velocity of a world point p per unit rate of joint j (world frame): the
+// column J_j of the point's Jacobian.
+template <class S>
+SCANDYN_HD Vec3<S> contact_jacobian_column(const Body<S>& b, const Transform<S>& X, const Vec3<S>& p) {
+  const Vec3<S> axis = mul_transpose(X.E, b.axis);  // world frame
+  if (b.type == JointType::Prismatic) return axis;
+  return cross(axis, p - X.r);
+}
+
+// The contact pass of one instance at (q, qd) (q[j * stride]): adds every point's
+// contact wrench to fext (n body wrenches, body frames); with armature (n, or
+// null) adds the implicit bound; readings (P, or null) get the points' forces.
+// X, v: n entries of scratch. h: the look-ahead (dt for implicit, else 0).
+template <unsigned kObstacles, class S>
+SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Body<S>* bodies, Index n, const S* q, const S* qd,
+                             long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
+                             ContactReading<S>* readings) {
+  contact_kinematics(bodies, n, q, qd, stride, X, v);
+  for (Index k = 0; k < cs.npoints; ++k) {
+    const ContactPoint<S>& cp = cs.points[k];
+    const Index i = cp.body;
+    const Transform<S>& Xi = X[i];
+    const Vec3<S> p = mul_transpose(Xi.E, cp.position) + Xi.r;
+    const Vec3<S> pv = mul_transpose(Xi.E, v[i].v + cross(v[i].w, cp.position));
+    // implicit: the diagonal of the pair's J^T W J on the joints of the point's path to the base
+    auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
+      if (!armature) return;
+      for (Index j = i; j >= 0; j = bodies[j].parent) {
+        const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
+        const S a = dot(nrm, col);
+        armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
+      }
+    };
+    const Vec3<S> f = contact_point_force<kObstacles>(cs, p, pv, cp.radius, h, readings ? readings + k : nullptr, touched);
+    const Vec3<S> fb = Xi.E * f;
+    fext[i].n += cross(cp.position, fb);
+    fext[i].f += fb;
+  }
+}
+
+// contact_pass with the specialisation of cs.obstacles chosen at run time (one
+// switch per pass: planes only, spheres only, both).
+template <class S>
+SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Body<S>* bodies, Index n, const S* q, const S* qd,
+                                 long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
+                                 ContactReading<S>* readings) {
+  switch (cs.obstacles) {
+    case kPlanes: contact_pass<kPlanes>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
+    case kSpheres: contact_pass<kSpheres>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
+    case kPlanes | kSpheres:
+      contact_pass<kPlanes | kSpheres>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings);
+      break;
+    default:  // no obstacles: the points touch nothing
+      for (Index k = 0; readings && k < cs.npoints; ++k) readings[k] = {Vec3<S>::zero(), S(0), 0};
+      break;
+  }
+}
+
+// The elastic energy of the contacts at the world positions of the points: sum
+// over touching pairs of 1/2 k d^2 (a diagnostic; the clamp and the damping make
+// the law dissipative, never a source).
+template <class S>
+SCANDYN_HD S contact_energy_at(const ContactSet<S>& cs, const Vec3<S>& p, S rho) {
+  S e = S(0);
+  for (Index k = 0; k < cs.nplanes; ++k) {
+    const S d = cs.planes[k].offset + rho - dot(cs.planes[k].normal, p);
+    if (d > S(0)) e += S(0.5) * cs.law.stiffness * d * d;
+  }
+  for (Index k = 0; k < cs.nspheres; ++k) {
+    const Vec3<S> x = p - cs.spheres[k].center;
+    const S d = cs.spheres[k].radius + rho - ScalarMath<S>::sqrt(dot(x, x));
+    if (d > S(0)) e += S(0.5) * cs.law.stiffness * d * d;
+  }
+  return e;
+}
+
+}  // namespace sim
+}  // namespace scandyn
