@@ -99,6 +99,11 @@ CudaKinematics<S>::~CudaKinematics() {
 }
 
 template <class S>
+int CudaKinematics<S>::device() const {
+  return staging_->device();
+}
+
+template <class S>
 cudaError_t CudaKinematics<S>::compute_async(const BatchView<const S>& q, const BatchView<S>& poses,
                                              const BatchView<S>& J, cudaStream_t stream) {
   return launch_kinematics_instances(*thread_, frames_, static_cast<Index>(options_.frames.size()), options_.pose,

@@ -1,5 +1,7 @@
 // kernels/mass_matrix.cu: the batched mass matrix by the CRBA, one thread per
-// instance up to kMaxThreadDofs DoF, one thread block per instance beyond.
+// instance up to kMaxThreadDofs DoF (its entries written by each thread, or staged
+// by warps through shared memory for per-instance row-major outputs), one thread
+// block per instance beyond.
 //
 // The layers of scandyn/cuda/mass_matrix.hpp: crba_instance (forward_dynamics.hpp)
 // -> mass_matrix_instance (the header) -> crba_instances_kernel ->
@@ -42,15 +44,72 @@ struct MassKernelChoice {
   static constexpr int kMinBlocks = sizeof(S) == 8 ? 1 : 4;
 };
 
-// One thread per instance b < B: M(q) of instance b, all nv^2 entries.
-template <class S, int C>
+// Warp-staged output (kStaged): a warp's 32 instances put their entries, kMassTileEntries
+// at a time, into a shared tile (entry e of lane r at tile[e][r], rows padded to 33 so that
+// neither the lanes' writes nor the reads below meet in a bank), then the warp stores the
+// tile instance by instance: consecutive lanes write consecutive entries of one instance.
+// With each instance's matrix contiguous (a (B, nv, nv) C-contiguous array, BatchView::aos)
+// a store instruction covers 32 consecutive scalars instead of 32 lines nv^2 scalars apart.
+// Tile: 4 warps x 32 x 33 scalars per block (16.9 KB float, 33.8 KB double).
+constexpr int kWarpSize = 32;
+constexpr int kMassTileEntries = 32;
+constexpr int kMassTileRow = kWarpSize + 1;
+
+// Stores a warp's staged entries first .. first + count - 1 of its instances b0 ..
+// b0 + lanes - 1 (lanes <= 32): all of the warp's threads call it together.
+template <class S>
+__device__ __noinline__ void store_mass_tile(const S* tile, const BatchView<S> M_out, long long b0, int lanes,
+                                             Index first, int count) {
+  __syncwarp();
+  const int lane = static_cast<int>(threadIdx.x) % kWarpSize;
+  for (int k = lane; k < lanes * count; k += kWarpSize) {
+    const int r = k / count, e = k - r * count;
+    M_out.data[(b0 + r) * M_out.batch_stride + (first + e) * M_out.dof_stride] = tile[e * kMassTileRow + r];
+  }
+  __syncwarp();
+}
+
+// One thread per instance b < B: M(q) of instance b, all nv^2 entries, written by
+// each thread (kStaged false: coalesced when instances are innermost, BatchView::soa)
+// or staged by warps (kStaged true: coalesced when each instance's entries are).
+template <class S, int C, bool kStaged>
 __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::kMinBlocks)
     crba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const BatchView<const S> q,
                           const BatchView<S> M_out) {
+  constexpr bool kUnrolled = MassKernelChoice<S, C>::kUnrolled;
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (b >= q.batch) return;
-  mass_matrix_instance<S, C, MassKernelChoice<S, C>::kUnrolled>(model, instance_column(q, b),
-                                                                instance_column(M_out, b));
+  if constexpr (!kStaged) {
+    if (b >= q.batch) return;
+    mass_matrix_instance<S, C, kUnrolled>(model, instance_column(q, b), instance_column(M_out, b));
+  } else {
+    static_assert(kMassInstancesBlock % kWarpSize == 0, "whole warps per block");
+    __shared__ S tiles[kMassInstancesBlock / kWarpSize][kMassTileEntries * kMassTileRow];
+    const int lane = static_cast<int>(threadIdx.x) % kWarpSize;
+    const long long b0 = b - lane;  // the warp's first instance
+    if (b0 >= q.batch) return;      // the whole warp (a uniform exit)
+    const int lanes = static_cast<int>(q.batch - b0 < kWarpSize ? q.batch - b0 : kWarpSize);
+    S* const tile = tiles[threadIdx.x / kWarpSize];
+    // lanes past the batch compute the warp's last instance again (and store nothing),
+    // so that every thread takes part in the tile's stores
+    S M[C * (C + 1) / 2];
+    crba_instance<S, C, kUnrolled>(model, instance_column(q, b0 + (lane < lanes ? lane : lanes - 1)), M);
+    for_each_mass_entry<S, C, kUnrolled>(model, M, [&](Index e, S v) {
+      const int slot = static_cast<int>(e % kMassTileEntries);
+      tile[slot * kMassTileRow + lane] = v;
+      if (slot == kMassTileEntries - 1) store_mass_tile(tile, M_out, b0, lanes, e - slot, kMassTileEntries);
+    });
+    const Index entries = model.nv * model.nv;
+    if (const int rest = static_cast<int>(entries % kMassTileEntries))
+      store_mass_tile(tile, M_out, b0, lanes, entries - rest, rest);
+  }
+}
+
+// The staged kernel when each instance's entries lie closer together than
+// consecutive instances do (|dof_stride| < |batch_stride|: (B, nv, nv) arrays).
+template <class S>
+bool stage_mass_entries(const BatchView<S>& M_out) {
+  const auto mag = [](std::ptrdiff_t s) { return s < 0 ? -s : s; };
+  return M_out.batch > 1 && mag(M_out.dof_stride) < mag(M_out.batch_stride);
 }
 
 template <class S>
@@ -62,10 +121,14 @@ cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<c
   if (!q.data || !M_out.data) return cudaErrorInvalidValue;
   const unsigned blocks =
       static_cast<unsigned>((static_cast<long long>(B) + kMassInstancesBlock - 1) / kMassInstancesBlock);
+  const bool staged = stage_mass_entries(M_out);
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        crba_instances_kernel<S, P::capacity><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+        if (staged)
+          crba_instances_kernel<S, P::capacity, true><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+        else
+          crba_instances_kernel<S, P::capacity, false><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
       },
       model.params());
   return cudaGetLastError();

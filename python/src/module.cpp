@@ -29,26 +29,22 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
+#include <initializer_list>
 #include <limits>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
+#include "arrays.hpp"
+#include "engines.hpp"
 #include "scandyn/model/load.hpp"
 #include "shared.hpp"
-
-#if SCANDYN_HAS_CUDA
-#include <cuda_runtime_api.h>
-
-#include "scandyn/cuda/forward_dynamics.hpp"
-#include "scandyn/cuda/inverse_dynamics.hpp"
-#include "scandyn/cuda/mass_matrix.hpp"
-#endif
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -56,10 +52,6 @@ using namespace nb::literals;
 namespace scandyn::py {
 void bind_simulator(nb::module_& m);  // python/src/simulator.cpp
 namespace {
-
-#if !SCANDYN_HAS_CUDA
-using cudaStream_t = struct CUstream_st*;  // the type of the device path's lambdas; never called
-#endif
 
 // ---- errors: C++ exceptions translated to scandyn.errors classes ---------------
 
@@ -86,155 +78,10 @@ std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_in
   return m;
 }
 
-// ---- arrays --------------------------------------------------------------------
+// ---- arrays ------------------------------------------------------------------
 
-using InArray = nb::ndarray<nb::ro>;
-using OutArray = nb::ndarray<>;
-
-template <class S>
-bool has_dtype(const nb::ndarray<nb::ro>& a) {
-  return a.dtype() == nb::dtype<S>();
-}
-template <class S>
-bool has_dtype(const nb::ndarray<>& a) {
-  return a.dtype() == nb::dtype<S>();
-}
-
-std::string dtype_name(nb::dlpack::dtype t) {
-  const char* kind = t.code == uint8_t(nb::dlpack::dtype_code::Float)   ? "float"
-                     : t.code == uint8_t(nb::dlpack::dtype_code::Int)   ? "int"
-                     : t.code == uint8_t(nb::dlpack::dtype_code::UInt)  ? "uint"
-                     : t.code == uint8_t(nb::dlpack::dtype_code::Bool)  ? "bool"
-                     : t.code == uint8_t(nb::dlpack::dtype_code::Complex) ? "complex"
-                                                                         : "dtype code " ;
-  return std::string(kind) + std::to_string(t.bits);
-}
-
-// scalar_name, shape_str: shared.hpp
-
-// Where an argument's data lie: [lo, hi) bytes, for overlap checks.
-struct Extent {
-  const char* lo;
-  const char* hi;
-};
-template <class A>
-Extent extent_of(const A& a) {
-  const char* p = static_cast<const char*>(a.data());
-  const std::ptrdiff_t item = a.dtype().bits / 8;
-  std::ptrdiff_t lo = 0, hi = 0;
-  for (size_t i = 0; i < a.ndim(); ++i) {
-    if (a.shape(i) == 0) return {p, p};
-    const std::ptrdiff_t span = std::ptrdiff_t(a.shape(i) - 1) * a.stride(i) * item;
-    (span < 0 ? lo : hi) += span;
-  }
-  return {p + lo, p + hi + item};
-}
-bool overlaps(Extent a, Extent b) { return a.lo < b.hi && b.lo < a.hi && a.lo != a.hi && b.lo != b.hi; }
-
-// The common leading shape of a call: B instances, or one state ((nv,) arrays),
-// and where the call's arrays are (set by the first array, checked for the others).
-struct Lead {
-  bool single = false;  // (nv,) arrays: one instance
-  Index batch = 0;
-  bool placed = false;  // the device below is set
-  bool cuda = false;    // on a CUDA device (else host memory)
-  int device = 0;       // the CUDA device's ordinal
-};
-
-std::string where_str(bool cuda, int device) {
-  return cuda ? "CUDA device " + std::to_string(device) : std::string("host memory");
-}
-
-// Host memory (DLPack CPU or CUDA-pinned host) or one CUDA device for every array of a call.
-template <class A>
-void check_device(const A& a, const char* name, Lead& lead) {
-  const int type = a.device_type();
-  const bool host = type == nb::device::cpu::value || type == nb::device::cuda_host::value;
-  if (!host && type != nb::device::cuda::value)
-    throw DeviceError(std::string(name) + " is on DLPack device type " + std::to_string(type) +
-                      ": scandyn takes host memory or CUDA device memory");
-  const bool cuda = !host;
-  const int device = cuda ? a.device_id() : 0;
-  if (!lead.placed) {
-    lead.placed = true;
-    lead.cuda = cuda;
-    lead.device = device;
-  } else if (cuda != lead.cuda || device != lead.device) {
-    throw DeviceError(std::string(name) + " is in " + where_str(cuda, device) + ", the call's first array in " +
-                      where_str(lead.cuda, lead.device) +
-                      ": every array of a call is on one device (scandyn copies nothing between devices)");
-  }
-}
-
-// The BatchView of a (B, nv) or (nv,) array `a` (nv per instance; dim names nv in
-// messages: "nq" for q). Checks device, dtype and shape against `lead` (set from the
-// first array when batch < 0).
-template <class T, class A>
-BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first, const char* dim = "nv") {
-  using S = std::remove_const_t<T>;
-  check_device(a, name, lead);
-  if (!has_dtype<S>(a))
-    throw DTypeError(std::string(name) + " has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
-                     " (every array of a call shares one dtype, which sets the precision)");
-  const size_t nd = a.ndim();
-  auto shape = [&] {
-    std::string s = "(";
-    for (size_t i = 0; i < nd; ++i) s += (i ? ", " : "") + std::to_string(a.shape(i));
-    return s + (nd == 1 ? ",)" : ")");
-  };
-  if (nd != 1 && nd != 2)
-    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (" + dim + ",) or (B, " + dim +
-                     ") with " + dim + " = " + std::to_string(nv));
-  if (Index(a.shape(nd - 1)) != nv || a.shape(nd - 1) != size_t(Index(a.shape(nd - 1))))
-    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's " + dim +
-                     " = " + std::to_string(nv));
-  const bool single = nd == 1;
-  if (nd == 2 && a.shape(0) > size_t(std::numeric_limits<Index>::max()))
-    throw ShapeError(std::string(name) + ": batch of " + std::to_string(a.shape(0)) + " instances is too large");
-  const Index batch = single ? 1 : Index(a.shape(0));
-  if (first) {
-    lead.single = single;
-    lead.batch = batch;
-  } else if (single != lead.single || batch != lead.batch) {
-    throw ShapeError(std::string(name) + " has shape " + shape() + ", but the first array's leading shape is " +
-                     (lead.single ? std::string("() (one state)") : "(" + std::to_string(lead.batch) + ",)") +
-                     ": every array of a call has the same leading shape");
-  }
-  BatchView<T> v;
-  v.data = static_cast<T*>(const_cast<void*>(static_cast<const void*>(a.data())));
-  v.batch = batch;
-  v.dof_stride = a.stride(nd - 1);
-  v.batch_stride = single ? 0 : a.stride(0);
-  return v;
-}
-
-// Out arrays: distinct elements must not share memory (a broadcast view would have
-// threads race on one entry).
-template <class A>
-void check_no_self_overlap(const A& a, const char* name) {
-  std::vector<std::pair<std::ptrdiff_t, std::ptrdiff_t>> dims;  // |stride|, extent
-  for (size_t i = 0; i < a.ndim(); ++i) {
-    if (a.shape(i) == 0) return;
-    if (a.shape(i) > 1) dims.emplace_back(std::abs(std::ptrdiff_t(a.stride(i))), std::ptrdiff_t(a.shape(i)));
-  }
-  std::sort(dims.begin(), dims.end());
-  std::ptrdiff_t need = 1;
-  for (auto [stride, n] : dims) {
-    if (stride < need)
-      throw ShapeError(std::string(name) + " has overlapping entries (strides that make two entries share memory, "
-                       "e.g. a broadcast view): an output must be writable entry by entry");
-    need = stride * n;
-  }
-}
-
-template <class A>
-void check_out_alone(const A& out, const std::vector<std::pair<Extent, const char*>>& inputs) {
-  const Extent e = extent_of(out);
-  for (const auto& [in, name] : inputs)
-    if (overlaps(e, in))
-      throw ShapeError(std::string("out shares memory with ") + name +
-                       ": the engines read inputs while writing outputs; pass a separate array");
-}
+// InArray, OutArray, Lead, view_of, the device / dtype / shape / overlap checks:
+// arrays.hpp (shared with kinematics.cpp)
 
 // fext: (nv, 6) or (B, nv, 6), C-contiguous, Force<S> = [moment; force] per body.
 template <class S>
@@ -264,12 +111,6 @@ const Force<S>* fext_of(const std::optional<InArray>& f, Index nv, Lead& lead) {
   return static_cast<const Force<S>*>(a.data());
 }
 
-void check_max_batch(const Lead& lead, Index max_batch) {
-  if (lead.batch > max_batch)
-    throw ShapeError("a batch of " + std::to_string(lead.batch) + " instances exceeds this engine's max_batch = " +
-                     std::to_string(max_batch));
-}
-
 BackendOptions options_of(const std::string& backend, Index max_batch, const std::string& strategy,
                           const std::string& method, bool fallback_aba, int threads) {
   BackendOptions o;
@@ -284,138 +125,10 @@ BackendOptions options_of(const std::string& backend, Index max_batch, const std
 }
 
 // ---- engines -------------------------------------------------------------------
+// ---- engines -------------------------------------------------------------------
 
-// One engine of the library in float or double, with the model it was made for.
-// compute() calls are serialised (an engine's scratch is not shared between
-// calls); the GIL is released while it runs.
-template <template <class> class E>
-struct PyEngine {
-  std::shared_ptr<PyModel> model;
-  bool is_float = false;
-  Index max_batch = 1;
-  std::unique_ptr<E<float>> ef;
-  std::unique_ptr<E<double>> ed;
-  std::mutex mutex;
-
-  Engine& engine() const { return is_float ? static_cast<Engine&>(*ef) : static_cast<Engine&>(*ed); }
-  std::string strategy() const { return engine().strategy(); }
-  std::string backend() const { return to_string(engine().backend()); }
-  bool exact() const { return engine().exact(); }
-  std::string dtype() const { return is_float ? "float32" : "float64"; }
-  Index nv() const { return model->md.nv(); }
-  Index nq() const { return model->md.nq(); }            // entries of q (quaternions: nq > nv)
-  Index nbodies() const { return model->md.nbodies(); }  // wrenches of fext
-};
-
-// ---- CUDA: the device path ------------------------------------------------------
-
-#if SCANDYN_HAS_CUDA
-// Makes `device` current for a scope (engines are made on, and launch to, the
-// current device) and restores the caller's on exit; -1 keeps the current one.
-class DeviceScope {
- public:
-  explicit DeviceScope(int device) {
-    if (device < 0 || cudaGetDevice(&previous_) != cudaSuccess || previous_ == device) return;
-    if (const cudaError_t err = cudaSetDevice(device); err != cudaSuccess)
-      throw BackendError("backend 'cuda': cannot use CUDA device " + std::to_string(device) + ": " +
-                         cudaGetErrorString(err));
-    restore_ = true;
-  }
-  ~DeviceScope() {
-    if (restore_) cudaSetDevice(previous_);
-  }
-  DeviceScope(const DeviceScope&) = delete;
-  DeviceScope& operator=(const DeviceScope&) = delete;
-
- private:
-  int previous_ = -1;
-  bool restore_ = false;
-};
-
-template <class S>
-cuda::CudaInverseDynamics<S>* as_cuda(InverseDynamics<S>* e) { return dynamic_cast<cuda::CudaInverseDynamics<S>*>(e); }
-template <class S>
-cuda::CudaBiasForces<S>* as_cuda(BiasForces<S>* e) { return dynamic_cast<cuda::CudaBiasForces<S>*>(e); }
-template <class S>
-cuda::CudaMassMatrix<S>* as_cuda(MassMatrix<S>* e) { return dynamic_cast<cuda::CudaMassMatrix<S>*>(e); }
-template <class S>
-cuda::CudaForwardDynamics<S>* as_cuda(ForwardDynamics<S>* e) { return dynamic_cast<cuda::CudaForwardDynamics<S>*>(e); }
-template <class E>
-int device_of(const E& e) { return e.device(); }
-template <class S>
-int device_of(const cuda::CudaBiasForces<S>& e) { return e.inverse_dynamics().device(); }
-#endif
-
-// The engine's device: its CUDA ordinal, -1 for the CPU backends.
-template <template <class> class E>
-int engine_device(const PyEngine<E>& e) {
-#if SCANDYN_HAS_CUDA
-  if (e.is_float) {
-    if (auto* c = as_cuda(e.ef.get())) return device_of(*c);
-  } else if (auto* c = as_cuda(e.ed.get())) {
-    return device_of(*c);
-  }
-#else
-  (void)e;
-#endif
-  return -1;
-}
-
-// Queues `queue(cuda_engine, stream)` (its compute_async) for arrays on CUDA device
-// lead.device, on the caller's stream; checks that the engine is a CUDA engine of
-// that device; throws BackendError for a launch error. No synchronisation.
-template <class S, template <class> class E, class Queue>
-void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Queue&& queue) {
-#if SCANDYN_HAS_CUDA
-  E<S>* base = nullptr;
-  if constexpr (std::is_same_v<S, float>) base = e.ef.get();
-  else base = e.ed.get();
-  auto* c = as_cuda(base);
-  if (!c)
-    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine runs on backend '" +
-                      e.backend() + "': make it with backend='cuda' (the function API's backend='auto' follows "
-                      "the arrays)");
-  if (device_of(*c) != lead.device)
-    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine was made on " +
-                      where_str(true, device_of(*c)) + ": make one with device=" + std::to_string(lead.device));
-  DeviceScope scope(lead.device);
-  const cudaError_t err = queue(*c, reinterpret_cast<cudaStream_t>(stream));
-  if (err != cudaSuccess)
-    throw BackendError(std::string("backend 'cuda': queuing the computation on the caller's stream failed: ") +
-                       cudaGetErrorName(err) + ": " + cudaGetErrorString(err));
-#else
-  (void)e, (void)stream, (void)queue;
-  throw DeviceError("the arrays are on " + where_str(true, lead.device) +
-                    ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
-#endif
-}
-
-template <template <class> class E, class MakeF, class MakeD>
-void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::string& dtype, Index max_batch,
-                 int device, MakeF make_f, MakeD make_d) {
-  if (dtype != "float32" && dtype != "float64")
-    throw DTypeError("dtype must be float32 or float64, got " + dtype);
-  const bool is_float = dtype == "float32";
-  auto* e = new (self) PyEngine<E>();
-  e->model = std::move(model);
-  e->is_float = is_float;
-  e->max_batch = max_batch;
-  try {
-    nb::gil_scoped_release release;
-#if SCANDYN_HAS_CUDA
-    DeviceScope scope(device);  // a CUDA engine lives on the device current at construction
-#else
-    (void)device;
-#endif
-    if (is_float)
-      e->ef = make_f(e->model->template get<float>());
-    else
-      e->ed = make_d(e->model->template get<double>());
-  } catch (...) {
-    e->~PyEngine<E>();
-    throw;
-  }
-}
+// PyEngine, init_engine, engine_device and the CUDA device path (queue_on_device):
+// engines.hpp (shared with kinematics.cpp)
 
 using PyId = PyEngine<InverseDynamics>;
 using PyBias = PyEngine<BiasForces>;
@@ -435,9 +148,8 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -458,9 +170,8 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
@@ -552,9 +263,8 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
-  std::vector<std::pair<Extent, const char*>> ins{{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}};
-  if (fext) ins.emplace_back(extent_of(*fext), "fext");
-  check_out_alone(out, ins);
+  check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+  if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   int* failed = nullptr;  // CUDA arrays: the caller's (B,) int32 array on the same device
   if (lead.cuda) {
     if (!failed_dof)
@@ -681,16 +391,7 @@ NB_MODULE(_scandyn, m) {
   }, "stream"_a);
 
   // ---- engines: (model, dtype, backend, max_batch, ...) and compute(..., out, fext)
-  auto common = [](auto& cls) {
-    using T = typename std::remove_reference_t<decltype(cls)>::Type;
-    cls.def_prop_ro("strategy", &T::strategy)
-        .def_prop_ro("backend", &T::backend)
-        .def_prop_ro("exact", &T::exact)
-        .def_prop_ro("dtype", &T::dtype)
-        .def_prop_ro("nv", &T::nv)
-        .def_prop_ro("device", [](const T& e) { return engine_device(e); })
-        .def_ro("max_batch", &T::max_batch);
-  };
+  auto common = [](auto& cls) { def_engine_properties(cls); };  // engines.hpp
 
   nb::class_<PyId> id(m, "InverseDynamics");
   id.def("__init__",

@@ -189,15 +189,19 @@ def test_torch_side_stream_no_sync():
     dq, dqd, dqdd = (torch.from_numpy(a).cuda() for a in (q, qd, qdd))
     e(dq, dqd, dqdd)  # first launch (module loading) outside the measured call
     torch.cuda.synchronize()
+    out3 = torch.full_like(dq, float("nan"))
+    torch.cuda.synchronize()
     with torch.cuda.stream(side):
         torch.cuda._sleep(200_000_000)  # ~0.1 s of GPU time queued ahead on the side stream
         out = e(dq, dqd, dqdd)  # torch's current stream: side
+        e(dq, dqd, dqdd, out=out3)  # the engines' short path (all torch, out=): side too
         done_event = torch.cuda.Event()
         done_event.record(side)
     assert not done_event.query(), "the call waited for the side stream's work"
     assert torch.cuda.default_stream().query(), "the default stream was made to wait for the side stream"
     side.synchronize()
     _close(out.cpu().numpy(), ref, np.float32, "side stream")
+    _close(out3.cpu().numpy(), ref, np.float32, "side stream, out=")
     # stream= names the stream explicitly, from outside a stream context
     out2 = torch.empty_like(dq)
     s2 = torch.cuda.Stream()

@@ -4,7 +4,8 @@ Checked against the command line (the C++ serial engine, `scandyn eval --algo fk
 17 significant digits, so equal bit for bit), finite differences of the placements
 (J qd is the frame's velocity), Pinocchio when importable (framesForwardKinematics,
 getFrameJacobian), OpenMP against serial (bit-identical) and float32 against float64
-(2e-5, positions in metres); plus shapes, out=, torch tensors and the errors."""
+(2e-5, positions in metres); plus shapes, out=, torch tensors and the errors. CUDA arrays:
+test_cuda_kinematics.py."""
 
 import csv
 import os
@@ -15,6 +16,7 @@ import pytest
 
 import scandyn as sd
 from conftest import DTYPES, MODELS
+from test_errors import _FakeCudaArray, _FakeDlpackDevice
 
 
 def random_q(model, B, dtype=np.float64, seed=0):
@@ -174,3 +176,34 @@ def test_errors():
         sd.frame_jacobians(m, q, reference="body")
     with pytest.raises(sd.ShapeError, match="max_batch"):
         sd.Kinematics(m, max_batch=1)(q)
+
+
+def test_output_overlaps():
+    """Outputs that share memory with q, with each other or within themselves: ShapeError
+    naming them (the engines read q while writing, threads write entries independently)."""
+    m = sd.load_model("iiwa")
+    F = len(m.frames)
+    e = sd.Kinematics(m, max_batch=2)
+    buf = np.zeros(2 * F * (16 + 6 * m.nv))
+    q = buf[:2 * m.nv].reshape(2, m.nv)
+    with pytest.raises(sd.ShapeError, match="poses shares memory with q"):
+        e(q, poses=buf[:2 * F * 16].reshape(2, F, 4, 4), jacobians=False)
+    q = np.zeros((2, m.nv))
+    P = buf[:2 * F * 16].reshape(2, F, 4, 4)
+    with pytest.raises(sd.ShapeError, match="J shares memory with poses"):
+        e(q, poses=P, jacobians=buf[2 * F * 16 - 8:2 * F * 16 - 8 + 2 * F * 6 * m.nv].reshape(2, F, 6, m.nv))
+    one = np.zeros((F, 4, 4))
+    both = np.lib.stride_tricks.as_strided(one, shape=(2, F, 4, 4), strides=(0,) + one.strides)
+    with pytest.raises(sd.ShapeError, match="overlapping entries"):
+        e(q, poses=both, jacobians=False)
+
+
+def test_device_arrays_without_dlpack_refused():
+    """Kinematics takes device arrays through the dynamics engines' path: an array with only
+    __cuda_array_interface__ is refused (DeviceError), one of an unknown DLPack library
+    raises (no result can be allocated for it; no CUDA backend in a CPU build), never read."""
+    m = sd.load_model("iiwa")
+    with pytest.raises(sd.DeviceError, match="__cuda_array_interface__"):
+        sd.frame_placements(m, _FakeCudaArray())
+    with pytest.raises(sd.Error):
+        sd.frame_jacobians(m, _FakeDlpackDevice())

@@ -124,3 +124,47 @@ def test_torch_cpu_tensors(iiwa):
     np.testing.assert_array_equal(r.numpy(), sd.inverse_dynamics(iiwa, q, qd, qdd))
     out = torch.empty(4, iiwa.nv)
     assert sd.inverse_dynamics(iiwa, tq, tqd, tqdd, out=out) is out
+
+
+def test_engine_calls_short_path(iiwa):
+    """The engines' short path (arrays and out= all torch tensors, or all NumPy arrays):
+    the same bits as the general path (lists, out=None), tensors that require grad read
+    as they are, torch subclasses (Parameter), mixed torch / NumPy host arrays, and its
+    errors (read-only out, wrong shapes) as the general path's."""
+    torch = pytest.importorskip("torch", reason="torch is not installed (not needed in CI)")
+    q, qd, qdd, tau = states(iiwa, 5, np.float32)
+    ref = {
+        "id": sd.InverseDynamics(iiwa, backend="serial", max_batch=5, dtype=np.float32)(q.tolist(), qd, qdd),
+        "bias": sd.BiasForces(iiwa, backend="serial", max_batch=5, dtype=np.float32)(q.tolist(), qd),
+        "mass": sd.MassMatrix(iiwa, backend="serial", max_batch=5, dtype=np.float32)(q.tolist()),
+        "fd": sd.ForwardDynamics(iiwa, backend="serial", max_batch=5, dtype=np.float32)(q.tolist(), qd, tau),
+    }
+    engines = {
+        "id": (sd.InverseDynamics, (q, qd, qdd)),
+        "bias": (sd.BiasForces, (q, qd)),
+        "mass": (sd.MassMatrix, (q,)),
+        "fd": (sd.ForwardDynamics, (q, qd, tau)),
+    }
+    for name, (cls, ins) in engines.items():
+        e = cls(iiwa, backend="serial", max_batch=5, dtype=np.float32)
+        shape = ref[name].shape
+        out = np.full(shape, np.nan, np.float32)
+        assert e(*ins, out=out) is out
+        np.testing.assert_array_equal(out, ref[name])
+        t_ins = [torch.from_numpy(a).clone().requires_grad_(True) for a in ins]
+        t_ins[0] = torch.nn.Parameter(t_ins[0].detach().clone())
+        t_out = torch.full(shape, float("nan"))
+        assert e(*t_ins, out=t_out) is t_out
+        np.testing.assert_array_equal(t_out.numpy(), ref[name])
+        mixed = [torch.from_numpy(a) if k % 2 else a for k, a in enumerate(ins)]
+        t_out.fill_(float("nan"))
+        e(*mixed, out=t_out)
+        np.testing.assert_array_equal(t_out.numpy(), ref[name])
+        ro = np.empty(shape, np.float32)
+        ro.flags.writeable = False
+        with pytest.raises(sd.ShapeError, match="read-only"):
+            e(*ins, out=ro)
+        with pytest.raises(sd.ShapeError, match="out has shape"):
+            e(*ins, out=torch.empty((4,) + shape[1:]))
+        with pytest.raises(sd.DTypeError, match="dtype"):
+            e(*ins, out=torch.empty(shape, dtype=torch.float64))

@@ -342,15 +342,18 @@ double host_run(const Model& md, Index B, const Layout& lq, const Layout& lM, un
   return worst_error<S>(md, q, B, M, lM);
 }
 
-// The device path: q and M in device memory (soa or aos), on a stream of its own.
+// The device path: q and M in device memory (layouts lq and lM), on a stream of its
+// own. Entries start as NaN, gaps as the sentinel, which must survive.
 template <class S>
-double device_run(const Model& md, Index B, bool soa_layout, unsigned seed) {
+double device_run(const Model& md, Index B, const Layout& lq, const Layout& lM, unsigned seed) {
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv();
   const std::vector<double> q = random_q<S>(md, B, seed);
-  const Layout lq = soa_layout ? soa(nv, B) : aos(nv, B), lM = soa_layout ? soa(nv * nv, B) : aos(nv * nv, B);
   const std::vector<S> qs = test::pack<S>(q, nv, B, lq, 0);
-  std::vector<S> M(lM.size, std::numeric_limits<S>::quiet_NaN());
+  std::vector<S> M(lM.size, S(kSentinel));
+  std::vector<bool> entry(lM.size, false);
+  for (Index e = 0; e < nv * nv; ++e)
+    for (Index b = 0; b < B; ++b) M[lM.at(e, b)] = std::numeric_limits<S>::quiet_NaN(), entry[lM.at(e, b)] = true;
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
@@ -362,11 +365,21 @@ double device_run(const Model& md, Index B, bool soa_layout, unsigned seed) {
   EXPECT_EQ(cudaStreamCreate(&stream), cudaSuccess);
   EXPECT_EQ(cudaMemcpy(dq.ptr, qs.data(), lq.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
   EXPECT_EQ(cudaMemcpy(dM.ptr, M.data(), lM.size * sizeof(S), cudaMemcpyHostToDevice), cudaSuccess);
-  EXPECT_EQ(engine.compute_async({dq.ptr, B, lq.ds, lq.bs}, {dM.ptr, B, lM.ds, lM.bs}, stream), cudaSuccess);
+  EXPECT_EQ(engine.compute_async({dq.ptr + lq.base, B, lq.ds, lq.bs}, {dM.ptr + lM.base, B, lM.ds, lM.bs}, stream),
+            cudaSuccess);
   EXPECT_EQ(cudaStreamSynchronize(stream), cudaSuccess);
   EXPECT_EQ(cudaMemcpy(M.data(), dM.ptr, lM.size * sizeof(S), cudaMemcpyDeviceToHost), cudaSuccess);
   cudaStreamDestroy(stream);
+  for (std::size_t k = 0; k < M.size(); ++k)
+    if (!entry[k]) EXPECT_EQ(M[k], S(kSentinel)) << "gap " << k << " was written";
   return worst_error<S>(md, q, B, M, lM);
+}
+
+template <class S>
+double device_run(const Model& md, Index B, bool soa_layout, unsigned seed) {
+  const Index nv = md.nv();
+  return soa_layout ? device_run<S>(md, B, soa(nv, B), soa(nv * nv, B), seed)
+                    : device_run<S>(md, B, aos(nv, B), aos(nv * nv, B), seed);
 }
 
 }  // namespace
@@ -422,6 +435,33 @@ TEST(CudaMass, DevicePointersOnAStream) {
     SCOPED_TRACE(name);
     EXPECT_LE(device_run<double>(md, 5, true, 5), kDeviceTol);
   }
+}
+
+// compute_async into per-instance layouts (each instance's entries closer together than
+// consecutive instances: the kernel that stages its stores through shared memory, as for
+// a (B, nv, nv) array from Python): padded, reversed, interleaved, batches that end in
+// a partial warp; soa-like layouts alongside (the direct stores).
+TEST(CudaMass, DevicePointersStridedLayouts) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  std::mt19937_64 g(23);
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (Index B : {2, 31, 33, 1000}) {
+      for (int trial = 0; trial < 3; ++trial) {
+        Layout lq = random_layout(g, nv, B, false);
+        while (lq.bs == 0) lq = random_layout(g, nv, B, false);
+        const Layout lM = random_layout(g, nv * nv, B, true);
+        SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " q " + lq.name + " M " + lM.name);
+        EXPECT_LE(device_run<double>(md, B, lq, lM, 40 + trial), kDeviceTol);
+        const std::vector<double> qf = random_q<float>(md, B, 40 + trial);
+        EXPECT_LE(device_run<float>(md, B, lq, lM, 40 + trial), float_tol(md, qf, B));
+      }
+    }
+  }
+  SCOPED_TRACE("iiwa B=100000 aos");
+  const std::vector<double> qf = random_q<float>(robot("iiwa.urdf"), 100000, 6);
+  EXPECT_LE(device_run<float>(robot("iiwa.urdf"), 100000, false, 6), float_tol(robot("iiwa.urdf"), qf, 100000));
 }
 
 TEST(CudaMass, ErrorsWithADevice) {

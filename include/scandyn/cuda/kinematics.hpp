@@ -77,6 +77,8 @@ class CudaKinematics final : public Kinematics<S> {
   std::string strategy() const override { return "thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
   Index max_batch() const { return max_batch_; }
+  // The CUDA device the engine was made on (its frames and buffers live there).
+  int device() const;
 
  private:
   Index nv_ = 0;

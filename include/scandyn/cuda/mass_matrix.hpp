@@ -18,12 +18,15 @@
 // Layout of M: a BatchView with nv * nv entries per instance, entry e = i * nv + j
 // of instance b holding M(i, j): M.at(i * nv + j, b). Every entry is written, both
 // triangles, zeros where neither body is an ancestor of the other (M is symmetric,
-// so reading it column-major gives the same). The fast layout for a thread per
-// instance is BatchView::soa(M, nv * nv, B): M[(i * nv + j) * B + b], a warp's 32
-// threads writing 32 consecutive scalars. BatchView::aos(M, nv * nv, B):
-// M[b * nv * nv + i * nv + j], each instance's matrix contiguous and row-major, is
-// what scandyn::crba writes per instance and `scandyn eval --algo mass` prints
-// (columns M_<i>_<j>). q is (nv x B) as for the other engines, any strides.
+// so reading it column-major gives the same). Both usual layouts store coalesced:
+// BatchView::soa(M, nv * nv, B), M[(i * nv + j) * B + b], each thread writing its
+// own entries (a warp's 32 threads write 32 consecutive scalars); and
+// BatchView::aos(M, nv * nv, B), M[b * nv * nv + i * nv + j], each instance's matrix
+// contiguous and row-major (what scandyn::crba writes per instance, `scandyn eval
+// --algo mass` prints as columns M_<i>_<j>, and Python's (B, nv, nv) arrays are),
+// which the kernel stages a warp's 32 matrices at a time through shared memory and
+// stores instance by instance (any layout whose |dof_stride| < |batch_stride|).
+// q is (nv x B) as for the other engines, any strides.
 //
 // Strategies: "crba_thread", one thread per instance, models of up to kMaxThreadDofs
 // DoF (kernels for capacities 8, 16, 32 and 64, the model as a __grid_constant__

@@ -267,19 +267,16 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
   return -1;
 }
 
-// M(q) of one instance, the full nv x nv matrix: M_out[i * nv + j] = M(i, j) for
-// every i, j < nv (row-major; both triangles; zero where neither body is an
-// ancestor of the other). crba_instance into per-thread storage (C (C + 1) / 2
-// scalars: registers when unrolled, else local memory), then nv^2 stores, row by
-// row. Also a host function (under nvcc): the tests check it against scandyn::crba
-// without a device. kUnrolled and kTrig as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C>& model,
-                                                              DofColumn<const S> q, DofColumn<S> M_out) {
+// Every entry of one instance's full nv x nv matrix from crba_instance's packed
+// triangle M, in row-major order: put(i * nv + j, M(i, j)) for i, j < nv (both
+// triangles; zero where neither body is an ancestor of the other). The order and
+// the indices are the same on every thread of a model (a warp may stage the
+// entries together: kernels/mass_matrix.cu). kUnrolled as for crba_instance.
+template <class S, int C, bool kUnrolled = (C <= 8), class Put>
+__host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelParams<S, C>& model,
+                                                            const S (&M)[C * (C + 1) / 2], Put&& put) {
   using fd_detail::tri;
   const Index n = model.nv;
-  S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
-  crba_instance<S, C, kUnrolled, kTrig>(model, q, M);
 #pragma unroll(kUnrolled ? C : 1)
   for (Index i = 0; i < C; ++i) {
     if (i >= n) continue;
@@ -288,9 +285,23 @@ __host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelP
       if (j >= n) continue;
       const Index hi = i > j ? i : j, lo = i > j ? j : i;
       // a nonzero entry pairs a body with itself or one of its ancestors
-      M_out[i * n + j] = hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0);
+      put(i * n + j, hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0));
     }
   }
+}
+
+// M(q) of one instance, the full nv x nv matrix: M_out[i * nv + j] = M(i, j) for
+// every i, j < nv (row-major; both triangles; zero where neither body is an
+// ancestor of the other). crba_instance into per-thread storage (C (C + 1) / 2
+// scalars: registers when unrolled, else local memory), then nv^2 stores, row by
+// row (for_each_mass_entry). Also a host function (under nvcc): the tests check it
+// against scandyn::crba without a device. kUnrolled and kTrig as for crba_instance.
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
+__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C>& model,
+                                                              DofColumn<const S> q, DofColumn<S> M_out) {
+  S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
+  crba_instance<S, C, kUnrolled, kTrig>(model, q, M);
+  for_each_mass_entry<S, C, kUnrolled>(model, M, [&](Index e, S v) { M_out[e] = v; });
 }
 #endif  // __CUDACC__
 

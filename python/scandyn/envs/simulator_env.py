@@ -9,7 +9,7 @@ simulator's device.
 Arrays: on the CPU (device="cpu") NumPy in and out (torch CPU tensors with
 tensors="torch"); on the GPU (device="cuda") torch tensors on the simulator's device in
 and out; a step reads one bool per instance back to the host (whether the state is
-finite), and q where sd.frame_placements does not take CUDA tensors (envs/kinematics.py).
+finite).
 Observations, rewards and actions have the env's dtype (float32 by default, the
 simulator's precision: float64 runs the scene in double); terminated / truncated are bool.
 """

@@ -1,0 +1,191 @@
+// python/src/engines.hpp: an engine of the library as the extension module's bindings
+// hold it (module.cpp's four dynamics engines, kinematics.cpp's Kinematics), shared
+// by them:
+//   PyEngine<E>      the engine E<float> or E<double> with its model and max_batch;
+//   init_engine      makes it (on a CUDA device: the device given, else the current one);
+//   engine_device    the CUDA ordinal of a cuda engine, -1 for the CPU backends;
+//   queue_on_device  the device path: the CUDA engine's compute_async() on the caller's
+//                    stream for arrays on its device (DeviceError for arrays on another
+//                    device or an engine of a CPU backend), no copy, no synchronisation.
+#pragma once
+
+#include <nanobind/nanobind.h>
+
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <type_traits>
+#include <utility>
+
+#include "arrays.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/engine.hpp"
+#include "shared.hpp"
+
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/cuda/kinematics.hpp"
+#include "scandyn/cuda/mass_matrix.hpp"
+#endif
+
+namespace scandyn::py {
+
+namespace nb = nanobind;
+
+#if !SCANDYN_HAS_CUDA
+using cudaStream_t = struct CUstream_st*;  // the type of the device path's lambdas; never called
+#endif
+
+// One engine of the library in float or double, with the model it was made for.
+// compute() calls are serialised (an engine's scratch is not shared between
+// calls); the GIL is released while it runs.
+template <template <class> class E>
+struct PyEngine {
+  std::shared_ptr<PyModel> model;
+  bool is_float = false;
+  Index max_batch = 1;
+  std::unique_ptr<E<float>> ef;
+  std::unique_ptr<E<double>> ed;
+  std::mutex mutex;
+
+  Engine& engine() const { return is_float ? static_cast<Engine&>(*ef) : static_cast<Engine&>(*ed); }
+  std::string strategy() const { return engine().strategy(); }
+  std::string backend() const { return to_string(engine().backend()); }
+  bool exact() const { return engine().exact(); }
+  std::string dtype() const { return is_float ? "float32" : "float64"; }
+  Index nv() const { return model->md.nv(); }
+  Index nq() const { return model->md.nq(); }            // entries of q (quaternions: nq > nv)
+  Index nbodies() const { return model->md.nbodies(); }  // wrenches of fext
+};
+
+// ---- CUDA: the device path ------------------------------------------------------
+
+#if SCANDYN_HAS_CUDA
+// Makes `device` current for a scope (engines are made on, and launch to, the
+// current device) and restores the caller's on exit; -1 keeps the current one.
+class DeviceScope {
+ public:
+  explicit DeviceScope(int device) {
+    if (device < 0 || cudaGetDevice(&previous_) != cudaSuccess || previous_ == device) return;
+    if (const cudaError_t err = cudaSetDevice(device); err != cudaSuccess)
+      throw BackendError("backend 'cuda': cannot use CUDA device " + std::to_string(device) + ": " +
+                         cudaGetErrorString(err));
+    restore_ = true;
+  }
+  ~DeviceScope() {
+    if (restore_) cudaSetDevice(previous_);
+  }
+  DeviceScope(const DeviceScope&) = delete;
+  DeviceScope& operator=(const DeviceScope&) = delete;
+
+ private:
+  int previous_ = -1;
+  bool restore_ = false;
+};
+
+template <class S>
+cuda::CudaInverseDynamics<S>* as_cuda(InverseDynamics<S>* e) { return dynamic_cast<cuda::CudaInverseDynamics<S>*>(e); }
+template <class S>
+cuda::CudaBiasForces<S>* as_cuda(BiasForces<S>* e) { return dynamic_cast<cuda::CudaBiasForces<S>*>(e); }
+template <class S>
+cuda::CudaMassMatrix<S>* as_cuda(MassMatrix<S>* e) { return dynamic_cast<cuda::CudaMassMatrix<S>*>(e); }
+template <class S>
+cuda::CudaForwardDynamics<S>* as_cuda(ForwardDynamics<S>* e) { return dynamic_cast<cuda::CudaForwardDynamics<S>*>(e); }
+template <class S>
+cuda::CudaKinematics<S>* as_cuda(Kinematics<S>* e) { return dynamic_cast<cuda::CudaKinematics<S>*>(e); }
+template <class E>
+int device_of(const E& e) { return e.device(); }
+template <class S>
+int device_of(const cuda::CudaBiasForces<S>& e) { return e.inverse_dynamics().device(); }
+#endif
+
+// The engine's device: its CUDA ordinal, -1 for the CPU backends.
+template <template <class> class E>
+int engine_device(const PyEngine<E>& e) {
+#if SCANDYN_HAS_CUDA
+  if (e.is_float) {
+    if (auto* c = as_cuda(e.ef.get())) return device_of(*c);
+  } else if (auto* c = as_cuda(e.ed.get())) {
+    return device_of(*c);
+  }
+#else
+  (void)e;
+#endif
+  return -1;
+}
+
+// Queues `queue(cuda_engine, stream)` (its compute_async) for arrays on CUDA device
+// lead.device, on the caller's stream; checks that the engine is a CUDA engine of
+// that device; throws BackendError for a launch error. No synchronisation.
+template <class S, template <class> class E, class Queue>
+void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Queue&& queue) {
+#if SCANDYN_HAS_CUDA
+  E<S>* base = nullptr;
+  if constexpr (std::is_same_v<S, float>) base = e.ef.get();
+  else base = e.ed.get();
+  auto* c = as_cuda(base);
+  if (!c)
+    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine runs on backend '" +
+                      e.backend() + "': make it with backend='cuda' (the function API's backend='auto' follows "
+                      "the arrays)");
+  if (device_of(*c) != lead.device)
+    throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine was made on " +
+                      where_str(true, device_of(*c)) + ": make one with device=" + std::to_string(lead.device));
+  DeviceScope scope(lead.device);
+  const cudaError_t err = queue(*c, reinterpret_cast<cudaStream_t>(stream));
+  if (err != cudaSuccess)
+    throw BackendError(std::string("backend 'cuda': queuing the computation on the caller's stream failed: ") +
+                       cudaGetErrorName(err) + ": " + cudaGetErrorString(err));
+#else
+  (void)e, (void)stream, (void)queue;
+  throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                    ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+#endif
+}
+
+template <template <class> class E, class MakeF, class MakeD>
+void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::string& dtype, Index max_batch,
+                 int device, MakeF make_f, MakeD make_d) {
+  if (dtype != "float32" && dtype != "float64")
+    throw DTypeError("dtype must be float32 or float64, got " + dtype);
+  const bool is_float = dtype == "float32";
+  auto* e = new (self) PyEngine<E>();
+  e->model = std::move(model);
+  e->is_float = is_float;
+  e->max_batch = max_batch;
+  try {
+    nb::gil_scoped_release release;
+#if SCANDYN_HAS_CUDA
+    DeviceScope scope(device);  // a CUDA engine lives on the device current at construction
+#else
+    (void)device;
+#endif
+    if (is_float)
+      e->ef = make_f(e->model->template get<float>());
+    else
+      e->ed = make_d(e->model->template get<double>());
+  } catch (...) {
+    e->~PyEngine<E>();
+    throw;
+  }
+}
+
+// The read-only properties every engine class of the module has: strategy, backend,
+// exact, dtype, nv, device, max_batch (cls: an nb::class_<PyEngine<E>>).
+template <class Class>
+void def_engine_properties(Class& cls) {
+  using T = typename Class::Type;
+  cls.def_prop_ro("strategy", &T::strategy)
+      .def_prop_ro("backend", &T::backend)
+      .def_prop_ro("exact", &T::exact)
+      .def_prop_ro("dtype", &T::dtype)
+      .def_prop_ro("nv", &T::nv)
+      .def_prop_ro("device", [](const T& e) { return engine_device(e); })
+      .def_ro("max_batch", &T::max_batch);
+}
+
+}  // namespace scandyn::py
