@@ -42,7 +42,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     }
     // the nv x nv workspace only for jsi (a 10^5-link rope would need 80 GB)
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
-    rows_ = RowScratch<S>(threads_, 4, static_cast<std::size_t>(model.nv()));
+    rows_ = RowScratch<S>(threads_, 4, static_cast<std::size_t>(model.nq()));
     // the SIMD groups when nothing is checked per instance (the check runs instance by instance)
     if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_);
   }
@@ -57,15 +57,15 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
       return summarize_checked(failed_.data(), estimate_.data(), B, Failure::ArticulatedPivot, check_->threshold(), 0,
                                fixed);
     }
-    const Index nv = model_.nv();
+    const Index nv = model_.nv(), nq = model_.nq(), nb = model_.nbodies();
     Index fell_back = 0, retried = 0;
     for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
       Index fell = 0, retry = 0;
       const auto one = [&](Index b) {
-        const S* q = gather(in.q, b, nv, rows_.row(t, 0));
+        const S* q = gather(in.q, b, nq, rows_.row(t, 0));
         const S* qd = gather(in.qd, b, nv, rows_.row(t, 1));
         const S* tau = gather(in.tau, b, nv, rows_.row(t, 2));
-        const Force<S>* fext = in.fext ? in.fext + static_cast<std::size_t>(b) * nv : nullptr;
+        const Force<S>* fext = in.fext ? in.fext + static_cast<std::size_t>(b) * nb : nullptr;
         S* out = output_row(qdd, b, rows_.row(t, 3));
         Status st = method_ == FdMethod::Aba ? aba(model_, data_[t], q, qd, tau, out, fext)
                                              : fd_jsi(model_, data_[t], q, qd, tau, out, fext);

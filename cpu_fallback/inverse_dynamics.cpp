@@ -35,6 +35,7 @@ class CpuRnea : public Interface {
     strategy_ = o.strategy != IdStrategy::Auto ? o.strategy
                 : kBias                        ? IdStrategy::Recursion
                                                : choose_id_strategy(kind_, model.nv(), max_batch_, threads_);
+    if (model.multi_dof()) strategy_ = IdStrategy::Recursion;  // the scans take 1-DoF joints only
     const Index nv = model.nv();
     if (strategy_ == IdStrategy::Recursion) {
       for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
@@ -44,7 +45,7 @@ class CpuRnea : public Interface {
       scan_.emplace_back(model_, threads_);
       zero_.assign(static_cast<std::size_t>(nv), S(0));
     }
-    rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? threads_ : 1, 4, static_cast<std::size_t>(nv));
+    rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? threads_ : 1, 4, static_cast<std::size_t>(model.nq()));
   }
 
   std::string strategy() const override {
@@ -56,9 +57,9 @@ class CpuRnea : public Interface {
  protected:
   void run(const BatchView<const S>& q, const BatchView<const S>& qd, const BatchView<const S>& qdd,
            const Force<S>* fext, const BatchView<S>& out) {
-    const Index nv = model_.nv();
+    const Index nv = model_.nv(), nq = model_.nq(), nb = model_.nbodies();
     const Index B = q.batch;
-    const auto instance_fext = [&](Index b) { return fext ? fext + static_cast<std::size_t>(b) * nv : nullptr; };
+    const auto instance_fext = [&](Index b) { return fext ? fext + static_cast<std::size_t>(b) * nb : nullptr; };
     if (strategy_ == IdStrategy::Recursion) {
       for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
         for_simd_groups(
@@ -68,7 +69,7 @@ class CpuRnea : public Interface {
               return true;
             },
             [&](Index b) {
-              const S* qb = gather(q, b, nv, rows_.row(t, 0));
+              const S* qb = gather(q, b, nq, rows_.row(t, 0));
               const S* qdb = gather(qd, b, nv, rows_.row(t, 1));
               S* o = output_row(out, b, rows_.row(t, 3));
               if constexpr (kBias) bias_forces(model_, data_[t], qb, qdb, o, instance_fext(b));

@@ -18,21 +18,26 @@ class CpuKinematics final : public Kinematics<S> {
       : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch), options_(k) {
     check_kinematics_options(model, k);
     for (Index f : k.frames) frames_.push_back(model.frames[static_cast<std::size_t>(f)]);
-    X0_.resize(static_cast<std::size_t>(threads_) * static_cast<std::size_t>(model.nv()));
-    q_rows_ = RowScratch<S>(threads_, 1, static_cast<std::size_t>(model.nv()));
+    X0_.resize(static_cast<std::size_t>(threads_) * static_cast<std::size_t>(model.nbodies()));
+    q_rows_ = RowScratch<S>(threads_, 1, static_cast<std::size_t>(model.nq()));
   }
 
   void compute(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J) override {
     check_batch(q, poses, J, max_batch_);
-    const Index nv = model_.nv(), F = static_cast<Index>(frames_.size());
+    const Index nv = model_.nv(), nq = model_.nq(), nb = model_.nbodies(), F = static_cast<Index>(frames_.size());
+    const bool multi = model_.multi_dof();
     for_instance_blocks(threads_, q.batch, [&](int t, Index begin, Index end) {
-      Transform<S>* X0 = X0_.data() + static_cast<std::size_t>(t) * static_cast<std::size_t>(nv);
+      Transform<S>* X0 = X0_.data() + static_cast<std::size_t>(t) * static_cast<std::size_t>(nb);
       for (Index b = begin; b < end; ++b) {
-        const S* qb = gather(q, b, nv, q_rows_.row(t, 0));
+        const S* qb = gather(q, b, nq, q_rows_.row(t, 0));
         const Strided<S> pb{poses.data ? poses.data + b * poses.batch_stride : nullptr, poses.dof_stride};
         const Strided<S> Jb{J.data ? J.data + b * J.batch_stride : nullptr, J.dof_stride};
-        kinematics_instance(model_.bodies.data(), nv, frames_.data(), F, options_.pose, options_.reference, qb, X0,
-                            pb, Jb);
+        if (multi)
+          kinematics_instance_at(model_.bodies.data(), nb, nv, frames_.data(), F, options_.pose, options_.reference,
+                                 qb, X0, pb, Jb);
+        else
+          kinematics_instance(model_.bodies.data(), nv, frames_.data(), F, options_.pose, options_.reference, qb, X0,
+                              pb, Jb);
       }
     });
   }
@@ -49,8 +54,8 @@ class CpuKinematics final : public Kinematics<S> {
   Index max_batch_;
   KinematicsOptions options_;
   std::vector<FramePlacement<S>> frames_;  // (F) the selected frames' placements
-  std::vector<Transform<S>> X0_;           // (threads x nv) body placements per thread
-  RowScratch<S> q_rows_;                   // per thread: one instance's q (nv)
+  std::vector<Transform<S>> X0_;           // (threads x nbodies) body placements per thread
+  RowScratch<S> q_rows_;                   // per thread: one instance's q (nq)
 };
 
 }  // namespace

@@ -18,7 +18,7 @@ class CpuMassMatrix final : public MassMatrix<S> {
       : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch) {
     const std::size_t nv = static_cast<std::size_t>(model.nv());
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
-    q_rows_ = RowScratch<S>(threads_, 1, nv);
+    q_rows_ = RowScratch<S>(threads_, 1, static_cast<std::size_t>(model.nq()));
     M_rows_ = RowScratch<S>(threads_, 1, nv * nv);
     simd_ = make_simd_batches(model_, o.simd, threads_);
   }
@@ -35,7 +35,7 @@ class CpuMassMatrix final : public MassMatrix<S> {
           },
           [&](Index b) {
             S* m = output_row(M, b, M_rows_.row(t, 0));
-            crba(model_, data_[t], gather(q, b, nv, q_rows_.row(t, 0)), m);
+            crba(model_, data_[t], gather(q, b, model_.nq(), q_rows_.row(t, 0)), m);
             scatter(m, M, b, nv * nv);
           });
     });

@@ -139,6 +139,51 @@ inline Model random_model(int n, unsigned seed) {
   return m;
 }
 
+// A random configuration (nq entries) of m: uniform in [lo, hi], then each quaternion
+// (spherical joints, the floating base's q_3..q_6) normalised. For a model of 1-DoF
+// joints the same draws as random_vector(rng, nv, lo, hi).
+inline std::vector<double> random_q(const Model& m, std::mt19937_64& rng, double lo = -2, double hi = 2) {
+  std::vector<double> q = random_vector(rng, static_cast<int>(m.nq()), lo, hi);
+  if (!m.multi_dof()) return q;
+  for (const Body<double>& b : m.bodies) {
+    if (b.type != JointType::Free && b.type != JointType::Spherical) continue;
+    double* x = q.data() + b.idx_q + (b.type == JointType::Free ? 3 : 0);
+    const double n = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3]);
+    for (int k = 0; k < 4; ++k) x[k] /= n;
+  }
+  return q;
+}
+
+// A model on a free joint at its root (--floating-base), nonphysical inertias allowed
+// (GRiD's atlas.urdf).
+inline Model load_floating(const std::string& spec) {
+  BuildOptions o;
+  o.floating_base = true;
+  o.require_physical_inertia = false;
+  return load_model(spec, o);
+}
+
+// One free rigid body (a floating base alone, no gravity): mass, centre of mass and
+// principal moments along the body axes.
+inline Model free_body_model(double mass, const Vec3<double>& com, const Vec3<double>& moments) {
+  Model m;
+  m.name = m.source = "free body";
+  Body<double> b;
+  b.parent = -1;
+  b.type = JointType::Free;
+  b.axis = {1, 0, 0};
+  b.Xtree = Transform<double>::identity();
+  b.I = Inertia<double>::from_com(mass, com, Sym3<double>{moments.x, moments.y, moments.z, 0, 0, 0});
+  m.bodies = {b};
+  m.joint_names = {"root_joint"};
+  m.link_names = {"body"};
+  m.q_lower = {-HUGE_VAL};
+  m.q_upper = {HUGE_VAL};
+  m.gravity = {0, 0, 0};
+  set_joint_offsets(m);
+  return m;
+}
+
 // random_model's bodies as an unbranched chain (body i's parent is body i - 1).
 inline Model random_chain(int n, unsigned seed) {
   Model m = random_model(n, seed);

@@ -30,22 +30,22 @@ struct BatchView {
 // Inverse dynamics' inputs: tau = ID(q, qd, qdd, fext).
 template <class S>
 struct IdBatchIn {
-  BatchView<const S> q, qd, qdd;      // (nv x B) joint positions, velocities, accelerations
-  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+  BatchView<const S> q, qd, qdd;      // (nq x B) joint positions, (nv x B) velocities, accelerations
+  const Force<S>* fext = nullptr;     // optional (B x nbodies) body wrenches, fext[b * nbodies + i], body frames
 };
 
 // Forward dynamics' inputs: qdd = FD(q, qd, tau, fext).
 template <class S>
 struct FdBatchIn {
-  BatchView<const S> q, qd, tau;      // (nv x B) joint positions, velocities, forces
-  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+  BatchView<const S> q, qd, tau;      // (nq x B) joint positions, (nv x B) velocities, forces
+  const Force<S>* fext = nullptr;     // optional (B x nbodies) body wrenches, fext[b * nbodies + i], body frames
 };
 
 // Bias forces' inputs: h = RNEA(q, qd, 0, fext).
 template <class S>
 struct BiasBatchIn {
-  BatchView<const S> q, qd;           // (nv x B) joint positions, velocities
-  const Force<S>* fext = nullptr;     // optional (B x nv) body wrenches, fext[b * nv + i], body frames
+  BatchView<const S> q, qd;           // (nq x B) joint positions, (nv x B) velocities
+  const Force<S>* fext = nullptr;     // optional (B x nbodies) body wrenches, fext[b * nbodies + i], body frames
 };
 
 // Hybrid dynamics' inputs: each DoF has its acceleration or its force given (the

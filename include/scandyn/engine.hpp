@@ -230,6 +230,12 @@ class HybridDynamics : public Engine {
 // hybrid_dynamics per instance; cuda: one thread per instance up to
 // cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
 // factories, and for a prescribed mask whose size is not nv.
+// Throws BackendError naming `what` ("hybrid dynamics", ...) and the model's first
+// multi-DoF joint when the model has one (a floating base, a spherical joint): what
+// takes revolute and prismatic joints only calls it first.
+template <class S>
+void require_one_dof_joints(const ModelTpl<S>& model, const char* what);
+
 template <class S>
 std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
                                                         const std::vector<unsigned char>& prescribed,

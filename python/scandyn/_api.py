@@ -33,16 +33,19 @@ class Model:
         self._m = ext_model
         self._engines = {}  # the function API's engines: (algo, backend, dtype, option) -> engine
 
-    nv = property(lambda self: self._m.nv, doc="degrees of freedom (= moving bodies)")
+    nv = property(lambda self: self._m.nv, doc="degrees of freedom: entries of qd, qdd, tau")
+    nq = property(lambda self: self._m.nq, doc="entries of q (nv + 1 per quaternion: floating base, ball joints)")
+    floating_base = property(lambda self: self._m.floating_base, doc="True when body 0 is a free joint")
     name = property(lambda self: self._m.name, doc="robot name (URDF) or generator spec")
     source = property(lambda self: self._m.source, doc="file path or generator spec it was loaded from")
     root_link = property(lambda self: self._m.root_link, doc="the URDF root link (the fixed base)")
-    joint_names = property(lambda self: self._m.joint_names, doc="(nv) joint of each DoF")
-    link_names = property(lambda self: self._m.link_names, doc="(nv) URDF child link of each joint")
-    parents = property(lambda self: self._m.parents, doc="(nv) parent body of each body, -1 for the base")
-    joint_types = property(lambda self: self._m.joint_types, doc="(nv) 'revolute' or 'prismatic'")
-    q_lower = property(lambda self: np.array(self._m.q_lower), doc="(nv) lower position limits (-inf: none)")
-    q_upper = property(lambda self: np.array(self._m.q_upper), doc="(nv) upper position limits (+inf: none)")
+    joint_names = property(lambda self: self._m.joint_names, doc="(bodies) joint of each body")
+    link_names = property(lambda self: self._m.link_names, doc="(bodies) URDF child link of each joint")
+    parents = property(lambda self: self._m.parents, doc="(bodies) parent body of each body, -1 for the base")
+    joint_types = property(lambda self: self._m.joint_types,
+                           doc="(bodies) 'revolute', 'prismatic', 'spherical' or 'free'")
+    q_lower = property(lambda self: np.array(self._m.q_lower), doc="(bodies) lower position limits (-inf: none)")
+    q_upper = property(lambda self: np.array(self._m.q_upper), doc="(bodies) upper position limits (+inf: none)")
     gravity = property(lambda self: np.array(self._m.gravity), doc="gravity in the base frame (m/s^2)")
     frames = property(lambda self: self._m.frames,
                       doc="every frame's name: the URDF links, fixed ones included (scandyn.kinematics)")
@@ -55,13 +58,16 @@ class Model:
         return f"scandyn.Model(name={self.name!r}, nv={self.nv}, source={self.source!r})"
 
 
-def load_model(spec, allow_nonphysical_inertia=False):
-    """Loads a model: a generator spec ("rope:1000", "chain:N", "tree:N:SEED",
-    "curtain:K:N"), a URDF path, or the name of a model in $SCANDYN_MODELS_DIR or shipped
-    with the package ("iiwa", "hyq", "atlas"; scandyn.models). Raises ModelError with the
-    library's message (missing file, malformed URDF, non-physical inertia unless
-    allow_nonphysical_inertia=True, ...)."""
-    return Model(_ext.load_model(resolve_model_spec(spec), allow_nonphysical_inertia))
+def load_model(spec, allow_nonphysical_inertia=False, floating_base=False):
+    """Loads a model: a generator spec ("rope:1000", "ballrope:N", "chain:N",
+    "tree:N:SEED", "curtain:K:N"), a URDF path, or the name of a model in
+    $SCANDYN_MODELS_DIR or shipped with the package ("iiwa", "hyq", "atlas";
+    scandyn.models). floating_base=True gives the root link a free joint: q (nq = nv + 1)
+    starts [px, py, pz, qx, qy, qz, qw], qd/qdd/tau [base twist (w, v) in the base frame /
+    base wrench (n, f)]. Raises ModelError with the library's message (missing file,
+    malformed URDF, non-physical inertia unless allow_nonphysical_inertia=True, a
+    floating base on a root that is the world frame or has no mass, ...)."""
+    return Model(_ext.load_model(resolve_model_spec(spec), allow_nonphysical_inertia, floating_base))
 
 
 def resolve_model_spec(spec):
@@ -326,7 +332,7 @@ def _inputs(named, dtype=None):
 def _lead_of(q, name="q"):
     shape = tuple(getattr(q, "shape", ()))
     if len(shape) not in (1, 2):
-        raise ShapeError(f"{name} has shape {shape}, expected (nv,) or (B, nv)")
+        raise ShapeError(f"{name} has shape {shape}, expected (nq,) or (B, nq)")
     return shape[:-1]
 
 

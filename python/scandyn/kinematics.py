@@ -51,7 +51,7 @@ class Kinematics(_EngineBase):
         return given
 
     def __call__(self, q, poses=True, jacobians=True, stream=None):
-        """(poses, J) of q ((B, nv) or (nv,)): poses (B, F, 4, 4) or (B, F, 7), J (B, F, 6,
+        """(poses, J) of q ((B, nq) or (nq,)): poses (B, F, 4, 4) or (B, F, 7), J (B, F, 6,
         nv). Each of poses and jacobians is True (allocate), an array to write (out), or
         False / None (skip: None returned in its place). CUDA arrays: queued on ``stream``
         (default: the array library's current stream), no synchronisation (JAX results
@@ -84,7 +84,8 @@ def _names(frames):
 def frame_placements(model, q, frames=None, quaternion=False, backend="auto", out=None, stream=None):
     """World poses of the frames (names; None: every frame, ``model.frames``): (B, F, 4,
     4) homogeneous matrices, or with quaternion=True (B, F, 7) rows px, py, pz, qx, qy,
-    qz, qw. q: (B, nv) or (nv,) (then (F, 4, 4) / (F, 7)). backend="auto" follows q: CUDA
+    qz, qw. q: (B, nq) or (nq,) (then (F, 4, 4) / (F, 7); nq = nv unless the model has a
+    floating base or ball joints, their quaternions). backend="auto" follows q: CUDA
     arrays run on their device (queued on ``stream``, default the array library's current
     one), host arrays on OpenMP; the result is an array of q's library on q's device."""
     (q,), _ = _inputs([("q", q)])

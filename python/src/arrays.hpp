@@ -109,7 +109,7 @@ void check_device(const A& a, const char* name, Lead& lead) {
 // The BatchView of a (B, nv) or (nv,) array `a` (nv per instance). Checks device,
 // dtype and shape against `lead` (set from the first array when batch < 0).
 template <class T, class A>
-BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first) {
+BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool first, const char* dim = "nv") {
   using S = std::remove_const_t<T>;
   check_device(a, name, lead);
   if (!has_dtype<S>(a))
@@ -122,11 +122,11 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
     return s + (nd == 1 ? ",)" : ")");
   };
   if (nd != 1 && nd != 2)
-    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (nv,) or (B, nv) with nv = " +
-                     std::to_string(nv));
+    throw ShapeError(std::string(name) + " has shape " + shape() + ", expected (" + dim + ",) or (B, " + dim +
+                     ") with " + dim + " = " + std::to_string(nv));
   if (Index(a.shape(nd - 1)) != nv || a.shape(nd - 1) != size_t(Index(a.shape(nd - 1))))
-    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's nv = " +
-                     std::to_string(nv));
+    throw ShapeError(std::string(name) + " has shape " + shape() + ": its last dimension must be the model's " + dim +
+                     " = " + std::to_string(nv));
   const bool single = nd == 1;
   if (nd == 2 && a.shape(0) > size_t(std::numeric_limits<Index>::max()))
     throw ShapeError(std::string(name) + ": batch of " + std::to_string(a.shape(0)) + " instances is too large");

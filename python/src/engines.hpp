@@ -58,6 +58,8 @@ struct PyEngine {
   bool exact() const { return engine().exact(); }
   std::string dtype() const { return is_float ? "float32" : "float64"; }
   Index nv() const { return model->md.nv(); }
+  Index nq() const { return model->md.nq(); }            // entries of q (quaternions: nq > nv)
+  Index nbodies() const { return model->md.nbodies(); }  // wrenches of fext
 };
 
 // ---- CUDA: the device path ------------------------------------------------------

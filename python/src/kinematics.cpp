@@ -1,7 +1,7 @@
 // python/src/kinematics.cpp: the Kinematics engine (frame poses and frame Jacobians,
 // scandyn/engine.hpp) in the extension module, in float and double.
 //
-// compute(q, poses, J, stream): q (nv,) or (B, nv); poses (F, 4, 4) / (B, F, 4, 4)
+// compute(q, poses, J, stream): q (nq,) or (B, nq); poses (F, 4, 4) / (B, F, 4, 4)
 // for the matrix format or (F, 7) / (B, F, 7) for position + quaternion; J (F, 6, nv)
 // / (B, F, 6, nv); either output may be None (not computed). Each array is read with
 // its own strides, no copy: q any strides; within an instance, an output's entries
@@ -75,7 +75,7 @@ void compute(PyKinematics& e, const InArray& q, const std::optional<OutArray>& p
   const Index nv = e.nv();
   const KinematicsOptions& ko = kinematics_options(e);
   Lead lead;
-  const BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
+  const BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == nv ? "nv" : "nq");
   check_max_batch(lead, e.max_batch);
   const size_t F = ko.frames.size();
   const Extent qe = extent_of(q);

@@ -66,9 +66,10 @@ void raise_as(const char* cls, const char* what) {
 
 // PyModel: shared.hpp
 
-std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia) {
+std::shared_ptr<PyModel> load(const std::string& spec, bool allow_nonphysical_inertia, bool floating_base) {
   BuildOptions options;
   options.require_physical_inertia = !allow_nonphysical_inertia;
+  options.floating_base = floating_base;
   auto m = std::make_shared<PyModel>();
   {
     nb::gil_scoped_release release;  // a rope of 10^6 links takes a while
@@ -140,11 +141,11 @@ void id_compute(PyId& e, const InArray& q, const InArray& qd, const InArray& qdd
   const Index nv = e.nv();
   Lead lead;
   IdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
   BatchView<S> tau = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
@@ -163,10 +164,10 @@ void bias_compute(PyBias& e, const InArray& q, const InArray& qd, const OutArray
   const Index nv = e.nv();
   Lead lead;
   BiasBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   BatchView<S> h = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}});
@@ -183,7 +184,7 @@ template <class S>
 void mass_compute(PyMass& e, const InArray& q, const OutArray& out, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
-  BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
+  BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   check_device(out, "out", lead);
   if (!has_dtype<S>(out))
     throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
@@ -255,11 +256,11 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   const Index nv = e.nv();
   Lead lead;
   FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.tau = view_of<const S>(tau, nv, "tau", lead, false);
   BatchView<S> qdd = view_of<S>(out, nv, "out", lead, false);
-  in.fext = fext_of<S>(fext, nv, lead);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
@@ -325,6 +326,8 @@ NB_MODULE(_scandyn, m) {
       .def_prop_ro("source", [](const PyModel& p) { return p.md.source; })
       .def_prop_ro("root_link", [](const PyModel& p) { return p.md.root_link; })
       .def_prop_ro("nv", [](const PyModel& p) { return p.md.nv(); })
+      .def_prop_ro("nq", [](const PyModel& p) { return p.md.nq(); })
+      .def_prop_ro("floating_base", [](const PyModel& p) { return p.md.floating_base(); })
       .def_prop_ro("joint_names", [](const PyModel& p) { return p.md.joint_names; })
       .def_prop_ro("link_names", [](const PyModel& p) { return p.md.link_names; })
       .def_prop_ro("parents",
@@ -337,7 +340,10 @@ NB_MODULE(_scandyn, m) {
                    [](const PyModel& p) {
                      std::vector<std::string> r;
                      for (const auto& b : p.md.bodies)
-                       r.push_back(b.type == JointType::Prismatic ? "prismatic" : "revolute");
+                       r.push_back(b.type == JointType::Prismatic   ? "prismatic"
+                                   : b.type == JointType::Spherical ? "spherical"
+                                   : b.type == JointType::Free      ? "free"
+                                                                    : "revolute");
                      return r;
                    })
       .def_prop_ro("q_lower", [](const PyModel& p) { return p.md.q_lower; })
@@ -346,7 +352,7 @@ NB_MODULE(_scandyn, m) {
         return std::vector<double>{p.md.gravity[0], p.md.gravity[1], p.md.gravity[2]};
       })
       .def_prop_ro("frames", [](const PyModel& p) { return p.md.frame_names; });
-  m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false);
+  m.def("load_model", &load, "spec"_a, "allow_nonphysical_inertia"_a = false, "floating_base"_a = false);
   m.def("is_generator_spec", &is_generator_spec, "spec"_a);
   m.def("find_model_file", [](const std::string& p) { return find_model_file(p); }, "path"_a);
   m.def("model_search_dirs", &model_search_dirs);

@@ -2,6 +2,8 @@
 // OpenMP over chunks, the same walks and scans as the CUDA driver.
 #include "scandyn/algorithm/chain_fd.hpp"
 
+#include <stdexcept>
+
 #include <algorithm>
 #include <climits>
 #include <cstring>
@@ -88,6 +90,9 @@ void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
 template <class S>
 ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
     : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)) {
+  if (model.multi_dof())
+    throw std::invalid_argument("ChainForwardDynamics: model '" + model.name + "' has multi-DoF joints; the "
+                                "parallel chain forward dynamics takes revolute and prismatic joints only");
   bodies_ = ChainBodies<S>::from(model, max_batch_);
   threads_ = threads > 0 ? threads : openmp_threads();
   const Index links = n_ * max_batch_;

@@ -14,27 +14,42 @@ namespace scandyn {
 
 template <class S>
 DataTpl<S>::DataTpl(const ModelTpl<S>& model, bool mass_matrix) {
+  const std::size_t nb = static_cast<std::size_t>(model.nbodies());
   const std::size_t n = static_cast<std::size_t>(model.nv());
-  Xup.resize(n);
-  v.resize(n);
-  a.resize(n);
-  c.resize(n);
-  f.resize(n);
-  Ic.resize(n);
-  IA.resize(n);
+  Xup.resize(nb);
+  v.resize(nb);
+  a.resize(nb);
+  c.resize(nb);
+  f.resize(nb);
+  Ic.resize(nb);
+  IA.resize(nb);
   U.resize(n);
   D.resize(n);
   u.resize(n);
+  if (model.multi_dof()) L.resize(n * kMaxJointDofs);
   if (mass_matrix) M.resize(n * n);
   h.resize(n);
+  lambda.resize(n);
+  if (!model.multi_dof()) {
+    for (std::size_t i = 0; i < n; ++i) lambda[i] = model.bodies[i].parent;
+  } else {
+    for (const Body<S>& b : model.bodies) {
+      const Index first = b.idx_v, nj = joint_nv(b.type);
+      lambda[first] = b.parent < 0 ? Index(-1)
+                                   : model.bodies[b.parent].idx_v + joint_nv(model.bodies[b.parent].type) - 1;
+      for (Index k = 1; k < nj; ++k) lambda[first + k] = first + k - 1;
+    }
+  }
   run_start.resize(n);
   for (std::size_t i = 0; i < n; ++i)
-    run_start[i] = (i > 0 && model.bodies[i].parent == Index(i) - 1) ? run_start[i - 1] : Index(i);
+    run_start[i] = (i > 0 && lambda[i] == Index(i) - 1) ? run_start[i - 1] : Index(i);
 }
 
 template <class S>
 void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd,
           S* tau, const Force<S>* fext) {
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return rnea_at(model, data, q, qd, qdd, tau, fext);
   const Index n = model.nv();
   const Motion<S> a0 = base_acceleration(model.gravity);
   // forward: kinematics and body forces
@@ -64,6 +79,8 @@ void bias_forces(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S
 
 template <class S>
 void crba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M) {
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return crba_at(model, data, q, M);
   const Index n = model.nv();
   for (Index i = 0; i < n; ++i) {
     data.Xup[i] = joint_transform(model.bodies[i], q[i]);
@@ -160,6 +177,8 @@ Status articulated_body_passes(const ModelTpl<S>& model, DataTpl<S>& data, const
 template <class S>
 Status aba(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
            S* qdd, const Force<S>* fext, const S* armature) {
+  if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
+    if (model.multi_dof()) return aba_at(model, data, q, qd, tau, qdd, fext, armature);
   return detail::articulated_body_passes(model, data, q, qd, tau, qdd, fext, armature,
                                          static_cast<const unsigned char*>(nullptr), static_cast<const S*>(nullptr),
                                          static_cast<S*>(nullptr));
@@ -169,18 +188,21 @@ template <class S>
 Status hybrid_dynamics(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd,
                        const unsigned char* prescribed, const S* qdd_in, const S* tau_in, S* qdd_out, S* tau_out,
                        const Force<S>* fext, const S* armature) {
+  if (model.multi_dof())  // the engines and the simulator refuse such models first
+    throw std::invalid_argument("hybrid dynamics: model '" + model.name + "' has multi-DoF joints (joint '" +
+                                first_multi_dof_joint(model) + "'); hybrid dynamics takes 1-DoF joints only");
   return detail::articulated_body_passes(model, data, q, qd, tau_in, qdd_out, fext, armature, prescribed, qdd_in,
                                          tau_out);
 }
 
-// Calls f(j) for every ancestor j of body i and i itself, from i towards the root,
+// Calls f(j) for every ancestor DoF j of DoF i and i itself, from i towards the root,
 // walking contiguous chain runs as plain loops (vectorisable, no pointer chasing).
 template <class S, class F>
-inline void for_path(const ModelTpl<S>& model, const DataTpl<S>& data, Index i, F f) {
+inline void for_path(const DataTpl<S>& data, Index i, F f) {
   while (i >= 0) {
     const Index r = data.run_start[i];
     for (Index j = i; j >= r; --j) f(j);
-    i = model.parent(r);
+    i = data.lambda[r];
   }
 }
 
@@ -195,11 +217,11 @@ Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M) {
     const S Lkk = ScalarMath<S>::sqrt(d);
     Lk[k] = Lkk;
     const S inv = S(1) / Lkk;
-    for_path(model, data, model.parent(k), [&](Index i) { Lk[i] *= inv; });
-    for_path(model, data, model.parent(k), [&](Index i) {
+    for_path(data, data.lambda[k], [&](Index i) { Lk[i] *= inv; });
+    for_path(data, data.lambda[k], [&](Index i) {
       const S Lki = Lk[i];
       S* Mi = M + i * nn;
-      for_path(model, data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
+      for_path(data, i, [&](Index j) { Mi[j] -= Lki * Lk[j]; });
     });
   }
   return Status{};
@@ -214,13 +236,13 @@ void ltl_solve(const ModelTpl<S>& model, const DataTpl<S>& data, const S* L, S* 
     const S* Li = L + i * nn;
     x[i] /= Li[i];
     const S xi = x[i];
-    for_path(model, data, model.parent(i), [&](Index j) { x[j] -= Li[j] * xi; });
+    for_path(data, data.lambda[i], [&](Index j) { x[j] -= Li[j] * xi; });
   }
   // L x = y
   for (Index i = 0; i < n; ++i) {
     const S* Li = L + i * nn;
     S acc = x[i];
-    for_path(model, data, model.parent(i), [&](Index j) { acc -= Li[j] * x[j]; });
+    for_path(data, data.lambda[i], [&](Index j) { acc -= Li[j] * x[j]; });
     x[i] = acc / Li[i];
   }
 }

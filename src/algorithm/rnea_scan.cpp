@@ -1,12 +1,17 @@
 // Inverse dynamics as scans over links: local-frame affine form and world-frame form.
 #include "scandyn/algorithm/rnea_scan.hpp"
 
+#include <stdexcept>
+
 #include "scandyn/scan/omp_scan.hpp"
 
 namespace scandyn {
 
 template <class S>
 ScanWorkspace<S>::ScanWorkspace(const ModelTpl<S>& model, int threads_) : threads(threads_ < 1 ? 1 : threads_) {
+  if (model.multi_dof())
+    throw std::invalid_argument("rnea_scan: model '" + model.name + "' has multi-DoF joints; the scans take "
+                                "revolute and prismatic joints only");
   const Index n = model.nv();
   std::vector<Index> parent(static_cast<std::size_t>(n));
   for (Index i = 0; i < n; ++i) parent[i] = model.bodies[i].parent;

@@ -66,6 +66,7 @@ Model load_cli_model(const Args& args) {
   BuildOptions options;
   std::vector<std::string> warnings;
   options.require_physical_inertia = !args.has("allow-nonphysical-inertia");
+  options.floating_base = args.has("floating-base");
   options.warnings = &warnings;
   Model model = load_model(args.required("model"), options);
   for (const auto& w : warnings) std::fprintf(stderr, "scandyn: warning: %s\n", w.c_str());

@@ -65,17 +65,27 @@ std::string format_g(double x, int digits) {
   return buf;
 }
 
-// Random inputs of the benchmark, in double: q, qd, then qdd (used as tau for fd),
-// each count x nv, uniform in [-1, 1], drawn in that order from one seeded stream.
+// Random inputs of the benchmark, in double: q (count x nq), qd, then qdd (used as
+// tau for fd) (count x nv each), uniform in [-1, 1], drawn in that order from one
+// seeded stream; the quaternions in q (at quaternions, from quaternion_offsets)
+// normalised.
 struct RandomStates {
+  std::size_t nq = 0, nv = 0;
   std::vector<double> q, qd, third;
-  RandomStates(std::size_t count, std::size_t nv) {
+  RandomStates(std::size_t count, std::size_t nq_, std::size_t nv_, const std::vector<Index>& quaternions)
+      : nq(nq_), nv(nv_) {
     std::mt19937_64 rng(kSeed);
     std::uniform_real_distribution<double> uniform(-1.0, 1.0);
     for (std::vector<double>* v : {&q, &qd, &third}) {
-      v->resize(count * nv);
+      v->resize(count * (v == &q ? nq : nv));
       for (double& x : *v) x = uniform(rng);
     }
+    for (std::size_t b = 0; b < count; ++b)
+      for (Index k : quaternions) {
+        double* x = q.data() + b * nq + static_cast<std::size_t>(k);
+        const double n = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3]);
+        for (int j = 0; j < 4; ++j) x[j] /= n;
+      }
   }
 };
 
@@ -140,7 +150,7 @@ double max_rel_err_vs_reference(const Model& model, Algo algo, const RandomState
   for (std::size_t b = 0; b < count; ++b) {
     BatchIn<double> in = make_batch(algo, 1, states.q, states.qd, states.third);
     const std::size_t k = b * nv;
-    in.q += k;
+    in.q += b * states.nq;
     if (in.qd) in.qd += k;
     if (in.qdd) in.qdd += k;
     if (in.tau) in.tau += k;
@@ -459,6 +469,11 @@ int run_bench_hybrid(const Args& args) {
   require_usable(options.backend);
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  try {
+    require_one_dof_joints(model, "bench --algo hybrid");
+  } catch (const BackendError& e) {
+    throw UsageError(e.what(), false);
+  }
   const std::vector<unsigned char> mask = parse_prescribed(args.required("prescribed"), model);
   const std::size_t nv = static_cast<std::size_t>(model.nv()), scalar = precision == Precision::Float ? 4 : 8;
   require_host_memory("bench --algo hybrid on " + printable(model_spec) + " (" + std::to_string(nv) + " DoF), " +
@@ -466,7 +481,7 @@ int run_bench_hybrid(const Args& args) {
                       double(count) * nv * (3.0 * 8 + 5.0 * scalar) +
                           workspace_bytes(nv, backend_threads(options.backend, options.threads), false, scalar) +
                           workspace_bytes(nv, 1, false, 8));
-  const RandomStates states(count, nv);
+  const RandomStates states(count, nv, nv, {});  // 1-DoF models: make_hybrid_dynamics refuses the others
   const Timing t = precision == Precision::Double
                        ? time_hybrid<double>(model, model, mask, options, states, count, min_time)
                        : time_hybrid<float>(model, model.cast<float>(), mask, options, states, count, min_time);
@@ -515,7 +530,7 @@ int run_bench(const Args& args) {
   const double width = kinematics ? double(request.options.frames.size()) * (request.fk ? 7.0 : 6.0 * double(nv))
                                   : double(output_width(algo, model.nv()));
   const bool jsi = algo == Algo::Fd && (options.fd_method == FdMethod::Jsi || options.fallback_aba);
-  const double bytes = double(count) * (3.0 * nv * 8 + 3.0 * nv * scalar + width * scalar + width * 8) +
+  const double bytes = double(count) * (3.0 * double(model.nq()) * 8 + 3.0 * double(model.nq()) * scalar + width * scalar + width * 8) +
                        workspace_bytes(nv, backend_threads(options.backend, options.threads), jsi, scalar) +
                        workspace_bytes(nv, 1, false, 8) + 2 * width * 8;
   require_host_memory("bench --algo " + (kinematics ? algo_text : std::string(algo_name(algo))) + (algo == Algo::Fd ? std::string(" --fd ") + to_string(options.fd_method) : "") +
@@ -523,7 +538,7 @@ int run_bench(const Args& args) {
                           std::to_string(count) + " instances in " + to_string(precision),
                       bytes);
 
-  const RandomStates states(count, nv);
+  const RandomStates states(count, static_cast<std::size_t>(model.nq()), nv, quaternion_offsets(model));
   std::vector<Timing> timings;
   if (precision == Precision::Double) {
     timings = kinematics ? time_kinematics<double>(model, model, options, request, states, count, min_time, false)
@@ -538,7 +553,7 @@ int run_bench(const Args& args) {
   for (const Timing& t : timings) {
     if (!rows.empty()) rows += "\n";
     rows += (kinematics ? algo_text : std::string(algo_name(algo))) + "," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
-            "," + model_label(model_spec) + "," + std::to_string(nv) + "," + std::to_string(count) + "," +
+            "," + model_label(model_spec) + (model.floating_base() ? "-floating" : "") + "," + std::to_string(nv) + "," + std::to_string(count) + "," +
             format_g(t.seconds_per_call, 6) + "," + format_g(double(count) / t.seconds_per_call, 6) + "," +
             format_g(t.max_rel_err, 6);
   }

@@ -59,7 +59,7 @@ class Args {
 };
 
 // Flags that take no value.
-inline const std::vector<std::string> kSwitches = {"allow-nonphysical-inertia", "print-loops", "contacts"};
+inline const std::vector<std::string> kSwitches = {"allow-nonphysical-inertia", "floating-base", "print-loops", "contacts"};
 
 // Loads --model, honouring --allow-nonphysical-inertia (waived inertia checks are
 // printed to stderr as warnings). Throws ModelError.

@@ -111,7 +111,7 @@ std::array<BatchView<S>, 3> derivative_blocks(S* out, Index nv, Index B) {
 
 template <class S>
 AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOptions& o)
-    : algo_(algo), nv_(model.nv()) {
+    : algo_(algo), nv_(model.nv()), nq_(model.nq()) {
   try {
     switch (algo) {
       case Algo::Id: id_ = make_inverse_dynamics(model, o); break;
@@ -143,22 +143,22 @@ const Engine& AlgoEngine<S>::engine() const {
 
 template <class S>
 BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
-  const Index B = static_cast<Index>(in.count), nv = nv_;
+  const Index B = static_cast<Index>(in.count), nv = nv_, nq = nq_;
   using V = BatchView<const S>;
   try {
     switch (algo_) {
       case Algo::Id:
-        id_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+        id_->compute(IdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
                      BatchView<S>::aos(out, nv, B));
         return {};
       case Algo::Bias:
-        bias_->compute(BiasBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B)}, BatchView<S>::aos(out, nv, B));
+        bias_->compute(BiasBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B)}, BatchView<S>::aos(out, nv, B));
         return {};
       case Algo::Mass:
-        mass_->compute(V::aos(in.q, nv, B), BatchView<S>::aos(out, nv * nv, B));
+        mass_->compute(V::aos(in.q, nq, B), BatchView<S>::aos(out, nv * nv, B));
         return {};
       case Algo::Fd:
-        return fd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+        return fd_->compute(FdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                             BatchView<S>::aos(out, nv, B));
       case Algo::DId: {
         const auto block = derivative_blocks(out, nv, B);

@@ -32,7 +32,7 @@ using io::parse_algo;
 template <class S>
 struct BatchIn {
   std::size_t count = 0;
-  const S* q = nullptr;
+  const S* q = nullptr;  // count x nq
   const S* qd = nullptr;
   const S* qdd = nullptr;
   const S* tau = nullptr;
@@ -88,6 +88,7 @@ class AlgoEngine {
  private:
   Algo algo_;
   Index nv_;
+  Index nq_;  // entries of q per instance
   std::unique_ptr<InverseDynamics<S>> id_;
   std::unique_ptr<BiasForces<S>> bias_;
   std::unique_ptr<MassMatrix<S>> mass_;

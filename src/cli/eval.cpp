@@ -99,7 +99,8 @@ template <class S>
 void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<S>>>& engines,
                KinematicsColumns<S>* kin, CsvReader& in, const StateColumns& cols, const std::vector<Algo>& algos,
                std::size_t chunk, CsvWriter& out, std::size_t& rows, std::size_t& fell_back, std::size_t& retried) {
-  const std::size_t nv = static_cast<std::size_t>(model.nv());
+  const std::size_t nv = static_cast<std::size_t>(model.nv()), nq = static_cast<std::size_t>(model.nq());
+  const std::vector<Index> quaternions = quaternion_offsets(model);
   std::vector<std::string> names;
   std::vector<std::size_t> offset;  // start of each algo's block in an output row
   for (Algo a : algos) {
@@ -118,7 +119,7 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
 
   std::vector<S> input[kFamilies];
   for (int f = 0; f < kFamilies; ++f)
-    if (needed[f]) input[f].resize(chunk * nv);
+    if (needed[f]) input[f].resize(chunk * (f == static_cast<int>(Family::Q) ? nq : nv));
   std::vector<std::vector<S>> result(algos.size());
   for (std::size_t k = 0; k < algos.size(); ++k)
     result[k].resize(chunk * output_width(algos[k], model.nv()));
@@ -130,9 +131,12 @@ void eval_rows(const ModelTpl<S>& model, std::vector<std::unique_ptr<AlgoEngine<
     const std::size_t row0 = in.row() + 1;
     std::size_t count = 0;
     while (count < chunk && (more = in.next_row(row))) {
+      if (!quaternions.empty() && needed[static_cast<int>(Family::Q)])
+        normalize_quaternions(cols, quaternions, row.data(), in.where());
       for (int f = 0; f < kFamilies; ++f)
         if (needed[f])
-          gather_family(cols, static_cast<Family>(f), row.data(), input[f].data() + count * nv);
+          gather_family(cols, static_cast<Family>(f), row.data(),
+                        input[f].data() + count * (f == static_cast<int>(Family::Q) ? nq : nv));
       ++count;
     }
     if (count == 0) break;
@@ -260,7 +264,7 @@ int run_eval(const Args& args) {
   const KinematicsRequest kinematics = parse_kinematics_request(args, model, fk, jac);
 
   CsvReader in(states_path);
-  const StateColumns cols = map_state_columns(in.columns(), model.nv(), states_path);
+  const StateColumns cols = map_state_columns(in.columns(), model.nq(), model.nv(), states_path);
   if (algos.empty() && !kinematics.any()) algos = default_algos(cols, states_path);
   check_state_columns(cols, algos, states_path);
   if (kinematics.any() && !cols.complete(Family::Q))

@@ -136,6 +136,11 @@ int run_eval_hybrid(const Args& args) {
   require_usable(options.backend);
   const Model model = load_cli_model(args);
   if (model.nv() == 0) throw DataError(model_spec + ": the model has no degrees of freedom");
+  try {
+    require_one_dof_joints(model, "--algo hybrid");
+  } catch (const BackendError& e) {
+    throw UsageError(e.what(), false);
+  }
   const std::vector<unsigned char> mask = parse_prescribed(args.required("prescribed"), model);
 
   CsvReader in(states_path);

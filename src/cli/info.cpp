@@ -65,20 +65,30 @@ int run_info(const Args& args) {
       {"model", model.name},
       {"source", model.source},
       {"nv", std::to_string(model.nv())},
+      {"nq", std::to_string(model.nq())},
+      {"base", model.floating_base() ? "floating" : "fixed"},
       {"root", model.root_link},
       {"gravity", format_vec3(model.gravity)},
   };
   add_cuda_rows(summary);
   print_table(summary);
   std::puts("");
-  std::vector<std::vector<std::string>> rows = {
-      {"index", "joint", "type", "parent", "child", "axis"}};
-  for (Index i = 0; i < model.nv(); ++i) {
+  // one row per body; with multi-DoF joints also where each joint's entries start
+  // in q and in qd
+  const bool multi = model.multi_dof();
+  std::vector<std::vector<std::string>> rows = {{"index", "joint", "type", "parent", "child", "axis"}};
+  if (multi) rows[0].insert(rows[0].begin() + 1, {"q", "v"});
+  for (Index i = 0; i < model.nbodies(); ++i) {
     const Body<double>& b = model.bodies[static_cast<std::size_t>(i)];
+    const bool one = b.type == JointType::Revolute || b.type == JointType::Prismatic;
     rows.push_back({std::to_string(i), model.joint_names[static_cast<std::size_t>(i)],
-                    b.type == JointType::Revolute ? "revolute" : "prismatic",
+                    b.type == JointType::Revolute    ? "revolute"
+                    : b.type == JointType::Prismatic ? "prismatic"
+                    : b.type == JointType::Spherical ? "spherical"
+                                                     : "free",
                     std::to_string(b.parent), model.link_names[static_cast<std::size_t>(i)],
-                    format_vec3(b.axis)});
+                    one ? format_vec3(b.axis) : "-"});
+    if (multi) rows.back().insert(rows.back().begin() + 1, {std::to_string(b.idx_q), std::to_string(b.idx_v)});
   }
   print_table(rows);
   // the frames (every URDF link): the names --frames takes, the body carrying each

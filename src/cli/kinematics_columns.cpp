@@ -34,7 +34,7 @@ KinematicsRequest parse_kinematics_request(const Args& args, const Model& model,
 template <class S>
 KinematicsColumns<S>::KinematicsColumns(const ModelTpl<S>& model, const KinematicsRequest& request,
                                         const BackendOptions& options)
-    : nv_(model.nv()), F_(static_cast<Index>(request.options.frames.size())), request_(request) {
+    : nv_(model.nv()), nq_(model.nq()), F_(static_cast<Index>(request.options.frames.size())), request_(request) {
   if (request.fk)
     for (const std::string& f : request.frame_names)
       for (const char* e : {"px", "py", "pz", "qx", "qy", "qz", "qw"}) names_.push_back("fk_" + f + "_" + e);
@@ -60,7 +60,7 @@ void KinematicsColumns<S>::run(const S* q, std::size_t count, S* out, std::size_
   const BatchView<S> poses{request_.fk ? out : nullptr, B, 1, stride};
   const BatchView<S> J{request_.jac ? out + fk_width() : nullptr, B, 1, stride};
   try {
-    engine_->compute(BatchView<const S>::aos(q, nv_, B), poses, J);
+    engine_->compute(BatchView<const S>::aos(q, nq_, B), poses, J);
   } catch (const BackendError& e) {
     throw DataError(e.what());
   }

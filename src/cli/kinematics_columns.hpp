@@ -54,7 +54,7 @@ class KinematicsColumns {
   std::size_t jac_width() const;  // the jac columns per row (6 nv per frame, or 0)
 
  private:
-  Index nv_, F_;
+  Index nv_, nq_, F_;  // DoFs (Jacobian columns), entries of q, frames
   KinematicsRequest request_;
   std::vector<std::string> names_;
   std::unique_ptr<Kinematics<S>> engine_;

@@ -28,19 +28,25 @@ const char* const kUsage =
     "  bench  time one algorithm on random states, print one benchmark CSV row\n"
     "  rollout  simulate a scene file for N steps, write the trajectory (CSV or .npy)\n"
     "\n"
-    "M, a model, is a URDF file or a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N.\n"
+    "M, a model, is a URDF file or a generator spec: chain:N, rope:N, ballrope:N, tree:N:SEED,\n"
+    "curtain:K:N; --floating-base gives its root link a free joint (6 DoF, first in q and qd).\n"
     "'scandyn <command> --help' lists a command's flags; docs/cli.md is the reference.\n";
 
 const char* const kInfoUsage =
-    "usage: scandyn info --model M [--allow-nonphysical-inertia] [--print-loops]\n"
+    "usage: scandyn info --model M [--floating-base] [--allow-nonphysical-inertia] [--print-loops]\n"
     "\n"
-    "--print-loops prints the loops a generator carries (fivebar, fourbar, cloth:K:N)\n"
-    "as a loop file instead.\n"
-    "Prints the model's name, source, nv, root link and gravity, the CUDA devices (or why\n"
-    "there are none), then one line per DoF in DoF order: index, joint, type, parent index\n"
-    "(-1 = base), child link, axis; then one line per frame (every URDF link, fixed\n"
-    "links included: the names eval --frames takes): index, name, the body carrying it\n"
-    "(-1 = base), its origin in that body's frame.\n";
+    "Prints the model's name, source, nv, nq, base (fixed or floating), root link and\n"
+    "gravity, the CUDA devices (or why there are none), then one line per body in DoF\n"
+    "order: index, joint, type, parent index (-1 = base), child link, axis (with\n"
+    "multi-DoF joints also q and v, where the joint's entries start in q and in qd);\n"
+    "then one line per frame (every URDF link, fixed links included: the names eval\n"
+    "--frames takes): index, name, the body carrying it (-1 = base), its origin in that\n"
+    "body's frame.\n"
+    "  --floating-base  give the root link a free joint: q = [p; quaternion x y z w;\n"
+    "                   joints] (nq = nv + 1), qd = [base twist in the base frame (w, v);\n"
+    "                   joints]\n"
+    "  --print-loops    print the loops a generator carries (fivebar, fourbar, cloth:K:N)\n"
+    "                   as a loop file instead.\n";
 
 const char* const kEvalUsage =
     "usage: scandyn eval --model M --states IN.csv --out OUT.csv [--algo LIST]\n"
@@ -93,6 +99,9 @@ const char* const kEvalUsage =
     "  --simd M          serial/openmp recursions (id, bias, mass, aba) W instances\n"
     "                    per vector register: auto (default), on or off\n"
     "  --precision P     double (default) or float\n"
+    "  --floating-base   the model on a free joint at its root (as for info): q_0..q_{nq-1}\n"
+    "                    (the base quaternion q_3..q_6 normalised, a data error when its\n"
+    "                    norm is off from 1 by more than 1e-6), qd, qdd, tau nv each\n"
     "  --allow-nonphysical-inertia  load links whose inertia no rigid body can have\n"
     "                    (not positive definite, or breaking the triangle inequality),\n"
     "                    with a warning, instead of refusing the model\n"
@@ -153,7 +162,7 @@ const char* const kBenchUsage =
     "  --backend, --strategy, --threads   as for eval\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
-    "  --allow-nonphysical-inertia  as for eval\n"
+    "  --allow-nonphysical-inertia, --floating-base  as for eval\n"
     "\n"
     "       scandyn bench --algo step --scene S.json [--instances B] [--backend ...]\n"
     "                     [--precision ...] [--min-time SECONDS] [--csv FILE]\n"
@@ -175,17 +184,17 @@ struct Command {
 };
 
 const Command kCommands[] = {
-    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "print-loops"}, &run_info},
+    {"info", kInfoUsage, {"model", "allow-nonphysical-inertia", "floating-base", "print-loops"}, &run_info},
     {"eval",
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
-      "allow-nonphysical-inertia", "frames", "reference", "fd-check", "fd-check-tol", "prescribed", "loops",
+      "allow-nonphysical-inertia", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed", "loops",
       "actuated", "simd"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
-      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "fd-check", "fd-check-tol", "prescribed",
+      "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed",
       "simd"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau", "contacts"}, &run_rollout},

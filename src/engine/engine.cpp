@@ -266,11 +266,13 @@ IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int th
 
 template <class S>
 bool is_chain_from_base(const ModelTpl<S>& model) {
-  return model.nv() > 0 && first_branching_body(model) < 0;
+  // the parallel chain forward dynamics takes 1-DoF joints only
+  return model.nv() > 0 && !model.multi_dof() && first_branching_body(model) < 0;
 }
 
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
+  if (model.multi_dof()) return FdMethod::Aba;  // the one method multi-DoF joints have on every backend
   switch (backend) {
     case BackendKind::Serial: return FdMethod::Aba;
     case BackendKind::OpenMP:
@@ -337,11 +339,43 @@ void require_built(BackendKind backend) {
   }
 }
 
+// Throws BackendError for a model with multi-DoF joints (a floating base, spherical
+// joints) on what does not take them yet: the cuda backend, the scans over links,
+// the parallel and hybrid forward dynamics. what: "inverse dynamics", ...
+template <class S>
+void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, const char* what) {
+  if (!model.multi_dof()) return;
+  const auto refuse = [&](const std::string& how) {
+    throw BackendError("model '" + model.name + "' has multi-DoF joints (a floating base or spherical joints): " +
+                       std::string(what) + " " + how + " does not take them yet; use the serial or openmp "
+                       "backend with the recursion (inverse dynamics) or aba / jsi (forward dynamics)");
+  };
+  if (o.backend == BackendKind::Cuda) refuse("on the cuda backend");
+  if (o.strategy == IdStrategy::ScanLocal || o.strategy == IdStrategy::ScanWorld)
+    refuse(std::string("by the strategy ") + to_string(o.strategy));
+  if (o.fd_method == FdMethod::Parallel || o.fd_method == FdMethod::Hybrid)
+    refuse(std::string("by the method ") + to_string(o.fd_method));
+}
+
+
 }  // namespace
+
+template <class S>
+void require_one_dof_joints(const ModelTpl<S>& model, const char* what) {
+  if (!model.multi_dof()) return;
+  throw BackendError(std::string(what) + ": model '" + model.name + "' has the multi-DoF joint '" +
+                     first_multi_dof_joint(model) + "' (" +
+                     (model.floating_base() ? "the floating base" : "a spherical joint") +
+                     "), and this takes revolute and prismatic joints only");
+}
+
+template void require_one_dof_joints(const ModelTpl<float>&, const char*);
+template void require_one_dof_joints(const ModelTpl<double>&, const char*);
 
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "inverse dynamics");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaInverseDynamics<S>>(model, o);
 #endif
@@ -351,6 +385,7 @@ std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& mod
 template <class S>
 std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "bias forces");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaBiasForces<S>>(model, o);
 #endif
@@ -360,6 +395,7 @@ std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const 
 template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "the mass matrix");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaMassMatrix<S>>(model, o);
 #endif
@@ -369,6 +405,7 @@ std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const 
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_joint_support(model, o, "forward dynamics");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaForwardDynamics<S>>(model, o);
 #endif
@@ -396,6 +433,7 @@ void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index m
 template <class S>
 std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_one_dof_joints(model, "the inverse-dynamics derivatives");
   if (o.strategy != IdStrategy::Auto)
     throw BackendError(std::string("strategy '") + to_string(o.strategy) +
                        "' is not available for the inverse-dynamics derivatives (use auto)");
@@ -408,6 +446,7 @@ std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, 
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o.backend);
+  require_one_dof_joints(model, "the forward-dynamics derivatives");
   if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba)
     throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
                        "' is not available for the forward-dynamics derivatives (use auto or aba)");
@@ -448,6 +487,7 @@ template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& o,
                                                const KinematicsOptions& k) {
   require_built(o.backend);
+  if (o.backend == BackendKind::Cuda) require_one_dof_joints(model, "kinematics on the cuda backend");
   check_kinematics_options(model, k);
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaKinematics<S>>(model, o, k);
@@ -469,6 +509,7 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& o) {
   require_built(o.backend);
+  require_one_dof_joints(model, "hybrid dynamics");
   if (prescribed.size() != static_cast<std::size_t>(model.nv()))
     throw BackendError("hybrid dynamics: the prescribed mask has " + std::to_string(prescribed.size()) +
                        " entries for a model of " + std::to_string(model.nv()) + " DoF");

@@ -22,6 +22,10 @@ Motion<double> unit_motion(int k) {
 DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
                              std::vector<char> known_qdd)
     : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)) {
+  if (model.multi_dof())
+    throw std::invalid_argument("factor graph: model '" + model.name + "' has the multi-DoF joint '" +
+                                first_multi_dof_joint(model) + "'; the factor graph takes revolute and prismatic "
+                                "joints only");
   const Index nv = model.nv();
   if (known_qdd_.empty()) known_qdd_.assign(static_cast<std::size_t>(nv), 0);
   if (static_cast<Index>(known_qdd_.size()) != nv)

@@ -23,9 +23,18 @@ Index link_body(const Model& model, const std::string& name, const std::string& 
   throw LoopError(where + ": unknown link '" + printable(name) + "' (not a link of " + printable(model.source) + ")");
 }
 
+// Loops act on models of 1-DoF joints (nv positions): one clear error for the others.
+void require_one_dof(const Model& model, const std::string& where) {
+  if (model.multi_dof())
+    throw LoopError(where + ": model '" + printable(model.name) + "' has the multi-DoF joint '" +
+                    printable(first_multi_dof_joint(model)) +
+                    "'; closed loops take models of revolute and prismatic joints only");
+}
+
 }  // namespace
 
 LoopSet parse_loops(const std::string& json_text, const std::string& source, const Model& model) {
+  require_one_dof(model, source);
   json doc;
   try {
     doc = json::parse(json_text);
@@ -85,6 +94,7 @@ LoopSet load_loops(const std::string& path, const Model& model) {
 }
 
 LoopSet generator_loops(const std::string& spec, const Model& model) {
+  require_one_dof(model, spec);
   LoopSet out;
   auto add = [&](const std::string& a, const Vec3<double>& pa, const std::string& b, const Vec3<double>& pb) {
     LoopClosure c;

@@ -1,6 +1,9 @@
 // src/io/states.cpp: the states files' columns (scandyn/io/states.hpp).
 #include "scandyn/io/states.hpp"
 
+#include <cmath>
+#include <cstdio>
+
 #include "scandyn/io/csv.hpp"
 #include "scandyn/io/limits.hpp"
 
@@ -123,13 +126,48 @@ long parse_index(const std::string& digits) {
   return v;
 }
 
+// For a model with nq != nv, what a missing column of family f may mean: a file
+// written for the model without its floating base (or with nv positions).
+std::string size_hint(const StateColumns& cols, Family f) {
+  if (cols.nq == cols.nv) return "";
+  return std::string("; the model has nq = ") + std::to_string(cols.nq) + " positions (q_0..q_" +
+         std::to_string(cols.nq - 1) + ": a quaternion takes 4) and nv = " + std::to_string(cols.nv) +
+         " velocities (" + family_prefix(f == Family::Q ? Family::Qd : f) + "0..." +
+         std::to_string(cols.nv - 1) + ")";
+}
+
 }  // namespace
+
+void normalize_quaternions(const StateColumns& cols, const std::vector<Index>& offsets, double* row,
+                           const std::string& where) {
+  const std::vector<int>& c = cols.of(Family::Q);
+  for (Index k : offsets) {
+    double* x[4];
+    for (int j = 0; j < 4; ++j) x[j] = row + c[static_cast<std::size_t>(k + j)];
+    const double n = std::sqrt(*x[0] * *x[0] + *x[1] * *x[1] + *x[2] * *x[2] + *x[3] * *x[3]);
+    if (!(std::fabs(n - 1) <= kQuaternionNormTol)) {
+      char buf[64];
+      std::snprintf(buf, sizeof buf, "%.9g", n);
+      throw CsvError(where + ": columns q_" + std::to_string(k) + "..q_" + std::to_string(k + 3) +
+                     ": the quaternion (x, y, z, w) has norm " + buf + ", not 1 (within a relative " +
+                     "1e-6 it is normalised)");
+    }
+    for (int j = 0; j < 4; ++j) *x[j] /= n;
+  }
+}
 
 StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
                                const std::string& source) {
+  return map_state_columns(names, nv, nv, source);
+}
+
+StateColumns map_state_columns(const std::vector<std::string>& names, Index nq, Index nv,
+                               const std::string& source) {
   StateColumns cols;
   cols.nv = nv;
+  cols.nq = nq;
   for (auto& c : cols.column) c.assign(static_cast<std::size_t>(nv), -1);
+  cols.column[static_cast<int>(Family::Q)].assign(static_cast<std::size_t>(nq), -1);
   for (std::size_t k = 0; k < names.size(); ++k) {
     const std::string& name = names[k];
     // the prefixes are prefix-free ("q_" does not start "qd_"): at most one matches
@@ -146,9 +184,14 @@ StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
     if (i < 0)
       throw CsvError(source + ": unknown column '" + printable(name.substr(0, 100)) +
                       "' (expected q_<i>, qd_<i>, qdd_<i> or tau_<i>)");
-    if (i >= nv)
+    const Index n = family == static_cast<int>(Family::Q) ? nq : nv;
+    if (i >= n)
       throw CsvError(source + ": column " + name + ": index " + std::to_string(i) +
-                      " out of range (the model has " + std::to_string(nv) + " DoF)");
+                     " out of range (the model has " +
+                     (nq == nv ? std::to_string(nv) + " DoF"
+                               : "nq = " + std::to_string(nq) + " positions q_<i> and nv = " + std::to_string(nv) +
+                                     " velocities qd_<i>, qdd_<i>, tau_<i>") +
+                     ")");
     cols.column[family][static_cast<std::size_t>(i)] = static_cast<int>(k);
   }
   return cols;
@@ -161,7 +204,7 @@ void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algo
       const Index i = cols.first_missing(f);
       if (i >= 0)
         throw CsvError(source + ": missing column " + family_prefix(f) + std::to_string(i) +
-                        " (needed by --algo " + algo_name(a) + ")");
+                       " (needed by --algo " + algo_name(a) + ")" + size_hint(cols, f));
     }
   }
   for (int f = 0; f < kFamilies; ++f) {
@@ -169,7 +212,7 @@ void check_state_columns(const StateColumns& cols, const std::vector<Algo>& algo
     const Index i = cols.first_missing(fam);
     if (i >= 0 && cols.any(fam))
       throw CsvError(source + ": missing column " + family_prefix(fam) + std::to_string(i) +
-                      " (other " + family_prefix(fam) + "<i> columns are present)");
+                     " (other " + family_prefix(fam) + "<i> columns are present)" + size_hint(cols, fam));
   }
 }
 

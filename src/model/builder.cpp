@@ -139,6 +139,7 @@ void check_joint(const RawTree& t, const RawJoint& j) {
     case RawJointType::Continuous:
     case RawJointType::Prismatic:
     case RawJointType::Fixed:
+    case RawJointType::Spherical:
       break;
     case RawJointType::Floating:
     case RawJointType::Planar:
@@ -151,7 +152,7 @@ void check_joint(const RawTree& t, const RawJoint& j) {
     fail(t, J, j.name, "<origin> has a non-finite number");
   if (bad_quat(j.has_quat, j.quat)) fail(t, J, j.name, "<origin> quaternion is zero");
   if (!finite(j.axis)) fail(t, J, j.name, "<axis> has a non-finite number");
-  if (j.type != RawJointType::Fixed) {
+  if (j.type != RawJointType::Fixed && j.type != RawJointType::Spherical) {
     const double n = safe_norm(j.axis.x, j.axis.y, j.axis.z);
     if (!(n > kMinAxisNorm)) fail(t, J, j.name, "<axis> is zero");
     const Vec3<double> u = unit(j.axis);
@@ -342,7 +343,7 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
   m.name = t.name;
   m.source = t.source;
   m.root_link = t.links[root].name;
-  int nv = 0;
+  int nv = opt.floating_base ? 1 : 0;  // moving bodies
   for (int k = 0; k < nj; ++k) nv += t.joints[k].type != RawJointType::Fixed;
   m.bodies.reserve(nv);
   m.joint_names.reserve(nv);
@@ -351,7 +352,8 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
   m.q_upper.reserve(nv);
   m.frames.reserve(static_cast<std::size_t>(nl));
   m.frame_names.reserve(static_cast<std::size_t>(nl));
-  m.frames.push_back({-1, Transform<double>::identity()});  // the root link: the base frame
+  // the root link: the base frame, or body 0 with a floating base
+  m.frames.push_back({opt.floating_base ? 0 : -1, Transform<double>::identity()});
   m.frame_names.push_back(t.links[root].name);
 
   std::vector<Entry> stack;
@@ -362,7 +364,25 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
     for (int c = nchildren[link + 1] - 1; c >= nchildren[link]; --c)
       stack.push_back({child_joints[c], body, at_origin, X});
   };
-  push_children(root, -1, true, Transform<double>::identity());
+  if (opt.floating_base) {
+    // body 0: the root link on a free joint
+    if (t.links[root].name == "world")
+      fail(t, "link", "world", "the root link is the world frame: the model is fixed to the world "
+                               "through its child joints, so it has no floating base to free (remove "
+                               "the world link to float the robot's own base)");
+    Body<double> body;
+    body.parent = -1;
+    body.type = JointType::Free;
+    body.axis = {1, 0, 0};  // unused by a free joint
+    body.Xtree = Transform<double>::identity();
+    body.I = link_inertia(t.links[root]);
+    m.bodies.push_back(body);
+    m.joint_names.push_back("root_joint");
+    m.link_names.push_back(t.links[root].name);
+    m.q_lower.push_back(-HUGE_VAL);
+    m.q_upper.push_back(HUGE_VAL);
+  }
+  push_children(root, opt.floating_base ? 0 : -1, true, Transform<double>::identity());
   while (!stack.empty()) {
     const Entry e = stack.back();
     stack.pop_back();
@@ -385,8 +405,10 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
       const int b = static_cast<int>(m.bodies.size());
       Body<double> body;
       body.parent = e.body;
-      body.type = j.type == RawJointType::Prismatic ? JointType::Prismatic : JointType::Revolute;
-      body.axis = unit(j.axis);
+      body.type = j.type == RawJointType::Prismatic   ? JointType::Prismatic
+                  : j.type == RawJointType::Spherical ? JointType::Spherical
+                                                      : JointType::Revolute;
+      body.axis = j.type == RawJointType::Spherical ? Vec3<double>{1, 0, 0} : unit(j.axis);  // unused by a ball
       body.Xtree = X;
       body.I = link_inertia(l);
       m.bodies.push_back(body);
@@ -408,6 +430,10 @@ Model build_model(const RawTree& t, const BuildOptions& opt) {
                                              t.links[root].name + "' (its joints form a cycle)");
   }
   for (std::size_t b = 0; b < m.bodies.size(); ++b) check_body(t, m, b);
+  if (opt.floating_base && !(m.bodies[0].I.m > 0))
+    fail(t, "link", m.root_link, "the floating base (the root link and the links fixed to it) has "
+                                 "no mass: its forward dynamics would be singular");
+  set_joint_offsets(m);
   return m;
 }
 

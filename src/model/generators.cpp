@@ -1,5 +1,5 @@
-// src/model/generators.cpp: built-in model generators (chain:N, rope:N, tree:N:SEED,
-// curtain:K:N, cloth:K:N (the curtain's tree), fivebar, fourbar). Each one writes a RawTree, exactly as a URDF file would describe
+// src/model/generators.cpp: built-in model generators (chain:N, rope:N, ballrope:N,
+// tree:N:SEED, curtain:K:N, cloth:K:N (the curtain's tree), fivebar, fourbar). Each one writes a RawTree, exactly as a URDF file would describe
 // it, and goes through build_model like any file. Geometry: docs/models.md.
 //
 // Names are zero-padded to the width of the largest index, so byte-wise name order
@@ -115,9 +115,10 @@ RawJoint& add_joint(RawTree& t, std::string name, RawJointType type, const std::
   RawJoint& j = t.joints.back();
   j.name = std::move(name);
   j.type = type;
-  j.type_name = type == RawJointType::Prismatic ? "prismatic"
-                : type == RawJointType::Fixed   ? "fixed"
-                                                : "revolute";
+  j.type_name = type == RawJointType::Prismatic   ? "prismatic"
+                : type == RawJointType::Fixed     ? "fixed"
+                : type == RawJointType::Spherical ? "spherical"
+                                                  : "revolute";
   j.parent = parent;
   j.child = child;
   j.xyz = xyz;
@@ -158,7 +159,7 @@ Sym3<double> rope_inertia() {
 // joint at `origin`. Names: joint_i / link_i, or joint_k_i / link_k_i when wk > 0
 // (k padded to width wk, i to the width of n - 1).
 void add_rope(RawTree& t, std::size_t parent_index, const Vec3<double>& origin, long long n,
-              long long k, int wk) {
+              long long k, int wk, RawJointType type = RawJointType::Revolute) {
   const Sym3<double> Ic = rope_inertia();
   const int wi = index_width(n);
   for (long long i = 0; i < n; ++i) {
@@ -167,18 +168,19 @@ void add_rope(RawTree& t, std::size_t parent_index, const Vec3<double>& origin, 
     if (wk > 0) add_link(t, make_name("link_", k, wk, i, wi), kRopeMass, {0, 0, -kRopeLength / 2}, Ic);
     else add_link(t, make_name("link_", i, wi), kRopeMass, {0, 0, -kRopeLength / 2}, Ic);
     add_joint(t, wk > 0 ? make_name("joint_", k, wk, i, wi) : make_name("joint_", i, wi),
-              RawJointType::Revolute, t.links[parent].name, t.links[child].name,
+              type, t.links[parent].name, t.links[child].name,
               i == 0 ? origin : Vec3<double>{0, 0, -kRopeLength},
               i % 2 == 0 ? Vec3<double>{1, 0, 0} : Vec3<double>{0, 1, 0});
   }
 }
 
-RawTree rope(long long n) {
+// rope:N (revolute joints) and ballrope:N (spherical joints).
+RawTree rope(long long n, RawJointType type = RawJointType::Revolute) {
   RawTree t;
   t.links.reserve(static_cast<std::size_t>(n) + 1);
   t.joints.reserve(static_cast<std::size_t>(n));
   add_frame(t, "base");
-  add_rope(t, 0, {0, 0, 0}, n, 0, 0);
+  add_rope(t, 0, {0, 0, 0}, n, 0, 0, type);
   return t;
 }
 
@@ -324,21 +326,38 @@ bool starts_with(const std::string& s, const char* p) { return s.rfind(p, 0) == 
 
 bool is_generator_spec(const std::string& s) {
   return starts_with(s, "chain:") || starts_with(s, "rope:") || starts_with(s, "tree:") ||
-         starts_with(s, "curtain:") || starts_with(s, "cloth:") || s == "fivebar" || s == "fourbar";
+         starts_with(s, "curtain:") || starts_with(s, "cloth:") || s == "fivebar" || s == "fourbar" ||
+         starts_with(s, "ballrope:");
 }
 
-RawTree generate_tree(const std::string& spec) {
+RawTree generate_tree(const std::string& spec) { return generate_tree(spec, false); }
+
+RawTree generate_tree(const std::string& spec, bool floating_base) {
   const std::vector<std::string> parts = split(spec, ':');
   const std::string& kind = parts[0];
   RawTree t;
-  if (kind == "chain" || kind == "rope") {
+  if (kind == "chain" || kind == "rope" || kind == "ballrope") {
     if (parts.size() != 2) bad_spec(spec, "expected " + kind + ":N");
     const long long n = parse_count(spec, parts[1], "N");
-    t = kind == "chain" ? chain(n) : rope(n);
+    t = kind == "chain" ? chain(n) : rope(n, kind == "rope" ? RawJointType::Revolute : RawJointType::Spherical);
+    if (floating_base) {
+      // free chain: the first link is the root (the floating base), its joint and the
+      // massless base frame are dropped
+      t.links.erase(t.links.begin());
+      t.joints.erase(t.joints.begin());
+    }
   } else if (kind == "tree") {
     if (parts.size() != 3) bad_spec(spec, "expected tree:N:SEED");
     const long long n = parse_count(spec, parts[1], "N");
-    t = random_tree(n, parse_seed(spec, parts[2]));
+    const std::uint64_t seed = parse_seed(spec, parts[2]);
+    t = random_tree(n, seed);
+    if (floating_base) {
+      // the base frame gets a random link's mass and inertia (drawn after the tree's)
+      Random rng(seed ^ 0x9e3779b97f4a7c15ull);
+      RawTree base;
+      add_random_link(base, "base", rng);
+      t.links[0] = base.links[0];
+    }
   } else if (kind == "fivebar" || kind == "fourbar") {
     if (parts.size() != 1) bad_spec(spec, "expected " + kind + " (no parameters)");
     t = kind == "fivebar" ? fivebar() : fourbar();
@@ -351,14 +370,16 @@ RawTree generate_tree(const std::string& spec) {
       bad_spec(spec, "K*N is too large (at most " + std::to_string(kMaxGeneratedBodies) + ")");
     t = curtain(k, n);
   } else {
-    bad_spec(spec, "unknown generator (expected chain:N, rope:N, tree:N:SEED, curtain:K:N, cloth:K:N, fivebar or "
-                   "fourbar)");
+    bad_spec(spec, "unknown generator (expected chain:N, rope:N, ballrope:N, tree:N:SEED, curtain:K:N, cloth:K:N, "
+                   "fivebar or fourbar)");
   }
   t.name = spec;
   t.source = spec;
   return t;
 }
 
-Model make_generated(const std::string& spec) { return build_model(generate_tree(spec)); }
+Model make_generated(const std::string& spec, const BuildOptions& options) {
+  return build_model(generate_tree(spec, options.floating_base), options);
+}
 
 }  // namespace scandyn

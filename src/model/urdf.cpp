@@ -162,7 +162,7 @@ Model load_urdf(const std::string& path, const BuildOptions& options) {
 }
 
 Model load_model(const std::string& path_or_spec, const BuildOptions& options) {
-  if (is_generator_spec(path_or_spec)) return make_generated(path_or_spec);
+  if (is_generator_spec(path_or_spec)) return make_generated(path_or_spec, options);
   return load_urdf(find_model_file(path_or_spec), options);
 }
 

@@ -290,7 +290,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "threads", "instances", "initial", "prescribed", "loops"});
+                           "backend", "threads", "instances", "initial", "prescribed", "loops", "base"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -302,6 +302,13 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   if (s.model_spec.find('\0') != std::string::npos)
     r.fail("model", "'" + printable(s.model_spec) + "' contains a NUL character");
   BuildOptions options;
+  if (doc.contains("base")) {  // "fixed" (the default) or "floating" (not simulated yet)
+    const std::string base = r.string("base", doc["base"]);
+    if (base == "floating")
+      r.fail("base", "\"floating\": the simulator does not integrate a floating base yet (quaternion positions); "
+                     "the engines and scandyn eval / bench --floating-base take it");
+    if (base != "fixed") r.expected("base", "\"fixed\" or \"floating\"", doc["base"]);
+  }
   if (doc.contains("allow_nonphysical_inertia"))
     options.require_physical_inertia = !r.boolean("allow_nonphysical_inertia", doc["allow_nonphysical_inertia"]);
   if (is_generator_spec(s.model_spec) || s.model_spec[0] == '/') {
@@ -322,6 +329,10 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   }
   const Index nv = s.model.nv();
   if (nv == 0) r.fail("model", "'" + s.model_spec + "' has no degrees of freedom");
+  if (s.model.multi_dof())
+    r.fail("model", "'" + printable(s.model_spec) + "' has the spherical joint '" +
+                        printable(first_multi_dof_joint(s.model)) + "': the simulator integrates models of "
+                        "revolute and prismatic joints only (no quaternion positions yet)");
   const Vec3<double> default_gravity = s.model.gravity;
   s.model.gravity = Vec3<double>::zero();
 

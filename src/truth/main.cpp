@@ -100,11 +100,16 @@ Args parse_args(int argc, char** argv, const std::vector<std::string>& known) {
 Model load(const Args& a) {
   BuildOptions o;
   o.require_physical_inertia = !a.has("allow-nonphysical-inertia");
+  Model m;
   try {
-    return load_model(a.required("model"), o);
+    m = load_model(a.required("model"), o);
   } catch (const std::exception& e) {
     throw DataError(e.what());
   }
+  if (m.multi_dof())  // its states files have one q column per DoF
+    throw DataError(a.required("model") + ": the model has spherical joints; scandyn-truth takes models of "
+                    "revolute and prismatic joints only (no quaternion states yet)");
+  return m;
 }
 
 // ---- CSV ---------------------------------------------------------------------

@@ -3,7 +3,7 @@
 //   pin_bench info  --urdf F                       DoF order: one line per DoF, "index joint nq"
 //   pin_bench eval  --urdf F --states IN.csv --out OUT.csv
 //   pin_bench bench --urdf F --name NAME --algo id|fd|mass|bias|did|dfd --instances B
-//                   [--threads N] [--min-time S]
+//                   [--threads N] [--min-time S] [--root free]
 //   pin_bench version
 //
 // eval reads scandyn's state columns (q_i, qd_i, qdd_i, tau_i; DoF index i in Pinocchio's
@@ -26,6 +26,10 @@
 // (their three nv x nv matrices copied out per instance, as scandyn's engines write
 // theirs; no --threads). Everything in double, spatial conventions irrelevant here
 // (only joint-space quantities cross the interface).
+// --root free (bench only): the model on a free flyer (buildModel(urdf,
+// JointModelFreeFlyer()), scandyn's --floating-base); its states are drawn like scandyn
+// bench's: all q (B x nq, scandyn's layout: an angle per 1-DoF joint, the base's
+// position and quaternion, normalised), then qd, then the third input.
 // Prints one CSV row: algo,strategy,backend,precision,model,links,instances,seconds_per_call,evals_per_second
 #include <pinocchio/algorithm/aba.hpp>
 #include <pinocchio/algorithm/crba.hpp>
@@ -80,10 +84,28 @@ std::string need(const std::map<std::string, std::string> &f, const std::string 
   return it->second;
 }
 
-pinocchio::Model load(const std::string &urdf) {
+pinocchio::Model load(const std::string &urdf, bool free_root = false) {
   pinocchio::Model model;
-  pinocchio::urdf::buildModel(urdf, model);
+  if (free_root) pinocchio::urdf::buildModel(urdf, pinocchio::JointModelFreeFlyer(), model);
+  else pinocchio::urdf::buildModel(urdf, model);
   return model;
+}
+
+// scandyn's q of a floating-base model (nq = nv + 1: the base's 7 entries, then an
+// angle per joint) -> Pinocchio's configuration (cos, sin for a continuous joint).
+void to_config_free(const pinocchio::Model &model, const double *sq, Eigen::Ref<Vec> q) {
+  int k = 0;
+  for (pinocchio::JointIndex j = 1; j < (pinocchio::JointIndex)model.njoints; ++j) {
+    const int iq = model.idx_qs[j], nq = model.nqs[j], nv = model.nvs[j];
+    if (nq == 2 && nv == 1) {
+      q[iq] = std::cos(sq[k]);
+      q[iq + 1] = std::sin(sq[k]);
+      k += 1;
+    } else {
+      for (int i = 0; i < nq; ++i) q[iq + i] = sq[k + i];
+      k += nq;
+    }
+  }
 }
 
 // angle per DoF -> Pinocchio configuration (cos, sin for a continuous joint)
@@ -197,10 +219,21 @@ int cmd_bench(const pinocchio::Model &model, const std::map<std::string, std::st
   // states as `scandyn bench` draws them: all q (B x nv), then qd, then the third input
   std::mt19937_64 gen(42);
   std::uniform_real_distribution<double> U(-1.0, 1.0);
-  std::vector<double> ang((size_t)B * nv);
+  const bool free_root = f.count("root") && f.at("root") == "free";
+  const int snq = free_root ? nv + 1 : nv;  // scandyn's q entries per instance
+  std::vector<double> ang((size_t)B * snq);
   Mat Q(model.nq, B), V(nv, B), X(nv, B), Out(nv, need_M_out ? 0 : B);
   for (auto &a : ang) a = U(gen);
-  for (long b = 0; b < B; ++b) to_config(model, ang.data() + (size_t)b * nv, Q.col(b));
+  for (long b = 0; b < B; ++b) {
+    double *a = ang.data() + (size_t)b * snq;
+    if (!free_root) {
+      to_config(model, a, Q.col(b));
+      continue;
+    }
+    const double n = std::sqrt(a[3] * a[3] + a[4] * a[4] + a[5] * a[5] + a[6] * a[6]);
+    for (int k = 3; k < 7; ++k) a[k] /= n;
+    to_config_free(model, a, Q.col(b));
+  }
   for (long b = 0; b < B; ++b)
     for (int i = 0; i < nv; ++i) V(i, b) = U(gen);
   for (long b = 0; b < B; ++b)
@@ -292,7 +325,8 @@ int main(int argc, char **argv) {
   }
   const auto f = parse_flags(argc, argv, 2);
   try {
-    const pinocchio::Model model = load(need(f, "urdf"));
+    if (f.count("root") && f.at("root") != "free") die("--root takes 'free'");
+    const pinocchio::Model model = load(need(f, "urdf"), cmd == "bench" && f.count("root"));
     if (cmd == "info") return cmd_info(model);
     if (cmd == "eval") return cmd_eval(model, need(f, "states"), need(f, "out"));
     if (cmd == "bench") return cmd_bench(model, f);

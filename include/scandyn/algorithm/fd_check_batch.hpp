@@ -49,8 +49,8 @@ class FdBatchCheck {
     bool retried = false;   // a retry (2 or 3 above) produced the result that passed
     bool changed = false;   // qdd was overwritten by a retry
   };
-  // Steps 1-4 for one instance on workspace t < threads: q, qd, tau, qdd (nv each,
-  // host memory) and fext (nv wrenches or null); qdd is overwritten by a retry.
+  // Steps 1-4 for one instance on workspace t < threads: q (nq), qd, tau, qdd (nv each,
+  // host memory) and fext (one wrench per body, or null); qdd is overwritten by a retry.
   // by_aba: qdd came from an aba in S already (step 2 would repeat it).
   Outcome settle(int t, const S* q, const S* qd, const S* tau, const Force<S>* fext, S* qdd, bool by_aba = false);
 
@@ -62,6 +62,11 @@ class FdBatchCheck {
 
  private:
   double check(int t, const S* q, const S* qd, const S* tau, const Force<S>* fext, const S* qdd, int* worst);
+  // The check of a model with multi-DoF joints (a floating base, spherical joints):
+  // r = ID(q, qd, qdd) - tau by the reference rnea, delta = M^-1 r by the reference
+  // aba at rest (qd = 0, no gravity: rest_), the same estimate; into delta (nv).
+  FdCheck<double> check_at(int t, const S* q, const S* qd, const S* tau, const Force<S>* fext, const S* qdd,
+                           double* delta);
 
   const ModelTpl<S>& model_;
   bool on_ = false;
@@ -72,9 +77,12 @@ class FdBatchCheck {
   const Model* check_model_ = nullptr;  // the model the check (and the double retry) runs on
   std::vector<Data> data_;            // (threads) double workspaces of the check
   std::vector<DataTpl<S>> data_s_;    // (threads) workspaces of the aba retry in S
-  std::vector<double> rows_;          // (threads x 5 nv) per thread: delta, q, qd, tau, qdd in double
-  std::vector<Force<double>> fext_;   // (threads x nv) the double retry's wrenches
-  std::vector<S> rows_s_;             // (threads x 4 nv) settle_batch's gathered q, qd, tau, qdd
+  std::vector<double> rows_;          // (threads x 5 nq) per thread: delta, q, qd, tau, qdd in double
+  std::vector<Force<double>> fext_;   // (threads x nbodies) the double retry's wrenches
+  std::vector<S> rows_s_;             // (threads x 4 nq) settle_batch's gathered q, qd, tau, qdd
+  std::unique_ptr<Model> rest_;       // multi-DoF models: check_model_ without gravity (M^-1 r by aba)
+  std::vector<double> at_rows_;       // multi-DoF: (threads x 2 nv) per thread: ID, then r; zeros_ the rest qd
+  std::vector<double> zeros_;         // multi-DoF: (nv) zero joint rates
 };
 
 }  // namespace scandyn

@@ -5,9 +5,13 @@
 // Every call reads the model, writes only its outputs and the preallocated scratch
 // in DataTpl, and allocates nothing.
 //
-// Arrays q, qd, qdd, tau, h have nv entries in DoF order. fext, when given, has nv
-// wrenches: fext[i] acts on body i, expressed in body i's frame about its origin,
-// [moment; force]. Gravity is the model's (entered as base acceleration -g).
+// Arrays qd, qdd, tau, h have nv entries in DoF order, q has nq (= nv unless a
+// spherical or free joint holds a unit quaternion; the floating base's block comes
+// first: scandyn/model/model.hpp). fext, when given, has nbodies wrenches: fext[i]
+// acts on body i, expressed in body i's frame about its origin, [moment; force].
+// Gravity is the model's (entered as base acceleration -g). Models with multi-DoF
+// joints take a general path per algorithm (the *_at steps); 1-DoF models run the
+// 1-DoF steps alone.
 #pragma once
 
 #include <vector>
@@ -23,20 +27,26 @@ struct DataTpl {
   // 10^5-link rope would need 80 GB); fd_jsi then throws std::logic_error.
   explicit DataTpl(const ModelTpl<S>& model, bool mass_matrix = true);
 
-  std::vector<Transform<S>> Xup;  // (nv) parent -> body transform at the current q
-  std::vector<Motion<S>> v;       // (nv) body velocities, body frames
-  std::vector<Motion<S>> a;       // (nv) body accelerations (gravity included)
-  std::vector<Motion<S>> c;       // (nv) ABA velocity-product accelerations
-  std::vector<Force<S>> f;        // (nv) RNEA joint forces / ABA bias forces pA
-  std::vector<Inertia<S>> Ic;     // (nv) CRBA composite inertias
-  std::vector<ABInertia<S>> IA;   // (nv) ABA articulated inertias
-  std::vector<Force<S>> U;        // (nv) ABA IA S
-  std::vector<S> D;               // (nv) ABA S^T IA S
-  std::vector<S> u;               // (nv) ABA tau - S^T pA
+  std::vector<Transform<S>> Xup;  // (nbodies) parent -> body transform at the current q
+  std::vector<Motion<S>> v;       // (nbodies) body velocities, body frames
+  std::vector<Motion<S>> a;       // (nbodies) body accelerations (gravity included)
+  std::vector<Motion<S>> c;       // (nbodies) ABA velocity-product accelerations
+  std::vector<Force<S>> f;        // (nbodies) RNEA joint forces / ABA bias forces pA
+  std::vector<Inertia<S>> Ic;     // (nbodies) CRBA composite inertias
+  std::vector<ABInertia<S>> IA;   // (nbodies) ABA articulated inertias
+  std::vector<Force<S>> U;        // (nv) ABA IA S per DoF (multi-DoF joints: Y = U L^-T)
+  std::vector<S> D;               // (nv) ABA S^T IA S per DoF (multi-DoF joints: unused)
+  std::vector<S> u;               // (nv) ABA tau - S^T pA per DoF (multi-DoF joints: w = L^-1 u)
+  std::vector<S> L;               // (kMaxJointDofs nv) multi-DoF joints' Cholesky factors of
+                                  // D = S^T IA S: row k of body i's at (idx_v + k) * kMaxJointDofs;
+                                  // empty for a model of 1-DoF joints
   std::vector<S> M;               // (nv x nv) row-major mass matrix / its factor (fd_jsi), or empty
   std::vector<S> h;               // (nv) bias forces for JSI
-  std::vector<Index> run_start;   // (nv) first body of the chain run holding body i: bodies
-                                  // run_start[i]..i each have the previous one as parent
+  std::vector<Index> lambda;      // (nv) parent DoF of each DoF (Featherstone 6.5's lambda): the
+                                  // previous DoF of the same joint, else the parent body's last
+                                  // DoF, -1 at the base; = the body parents for 1-DoF joints
+  std::vector<Index> run_start;   // (nv) first DoF of the chain run holding DoF i: DoFs
+                                  // run_start[i]..i each have the previous one as lambda
 };
 
 using Data = DataTpl<double>;
@@ -94,8 +104,21 @@ template <class S>
 Status fd_jsi(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau,
               S* qdd, const Force<S>* fext = nullptr, const S* armature = nullptr);
 
+// The general path of rnea, crba and aba, for models with multi-DoF joints
+// (ModelTpl::multi_dof(): a floating base, spherical joints), to which those
+// dispatch: the same recursions over joints of 1, 3 and 6 DoFs (the *_at steps of
+// steps.hpp). Callable on any model whose Body::idx_q / idx_v are set.
+template <class S>
+void rnea_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* qdd, S* tau,
+             const Force<S>* fext);
+template <class S>
+void crba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, S* M);
+template <class S>
+Status aba_at(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, const S* tau, S* qdd,
+              const Force<S>* fext, const S* armature);
+
 // In place M = L^T L for a tree mass matrix (nv x nv row-major, lower triangle used,
-// L written to the lower triangle). parent gives the branch-induced sparsity; the
+// L written to the lower triangle). data.lambda gives the branch-induced sparsity; the
 // ancestor walks run over data.run_start's contiguous chain runs.
 template <class S>
 Status ltl_factor(const ModelTpl<S>& model, const DataTpl<S>& data, S* M);

@@ -291,4 +291,158 @@ SCANDYN_HD S hybrid_prescribed_acceleration_step(const Body<S>& b, const Transfo
   return dot(a, U) - u;
 }
 
+// ---- joints of any type (spherical and free included) -----------------------
+// The general path of every algorithm, for models with multi-DoF joints
+// (ModelTpl::multi_dof()): q and qd point at the body's own entries (b.idx_q,
+// b.idx_v); a 1-DoF joint goes through the functions above, unchanged. Motion
+// subspaces: revolute / prismatic the axis; spherical S = [I3; 0]; free S = I6, both
+// in the body frame (Featherstone 2008, table 4.1; a free joint's qd is the body's
+// own twist and its S is constant in the body frame, so v x (S qd) = 0 at the root).
+
+// Largest number of DoFs of one joint.
+inline constexpr int kMaxJointDofs = 6;
+
+// Xup = XJ(q) Xtree at the joint's positions q (b.idx_q's entries).
+template <Trig kTrig = Trig::Exact, class S>
+SCANDYN_HD Transform<S> joint_transform_at(const Body<S>& b, const S* q) {
+  if (b.type == JointType::Spherical)  // XJ = rot(R^T): E = R^T Etree, r = rtree
+    return {mul_transpose(quat_to_matrix(q), b.Xtree.E), b.Xtree.r};
+  if (b.type == JointType::Free)  // XJ: pose (R, p) of the body in its parent
+    return Transform<S>::from_pose(quat_to_matrix(q + 3), Vec3<S>{q[0], q[1], q[2]}) * b.Xtree;
+  return joint_transform<kTrig>(b, q[0]);
+}
+
+// Column k of S (k < joint_nv(b.type)).
+template <class S>
+SCANDYN_HD Motion<S> joint_column(const Body<S>& b, int k) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return joint_motion(b, S(1));
+  Motion<S> m = Motion<S>::zero();
+  if (k < 3) (k == 0 ? m.w.x : k == 1 ? m.w.y : m.w.z) = S(1);
+  else (k == 3 ? m.v.x : k == 4 ? m.v.y : m.v.z) = S(1);
+  return m;
+}
+
+// S qd for the joint's rates qd (b.idx_v's entries).
+template <class S>
+SCANDYN_HD Motion<S> joint_motion_at(const Body<S>& b, const S* qd) {
+  if (b.type == JointType::Spherical) return {Vec3<S>{qd[0], qd[1], qd[2]}, Vec3<S>::zero()};
+  if (b.type == JointType::Free) return {Vec3<S>{qd[0], qd[1], qd[2]}, Vec3<S>{qd[3], qd[4], qd[5]}};
+  return joint_motion(b, qd[0]);
+}
+
+// S^T f, written to out (joint_nv(b.type) entries).
+template <class S>
+SCANDYN_HD void joint_project_at(const Body<S>& b, const Force<S>& f, S* out) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
+    out[0] = joint_project(b, f);
+    return;
+  }
+  out[0] = f.n.x, out[1] = f.n.y, out[2] = f.n.z;
+  if (b.type == JointType::Free) out[3] = f.f.x, out[4] = f.f.y, out[5] = f.f.z;
+}
+
+// RNEA forward step at any joint (qdd null: zero accelerations).
+template <class S>
+SCANDYN_HD RneaForward<S> rnea_forward_step_at(const Body<S>& b, const Transform<S>& Xup,
+                                               const Motion<S>& v_parent, const Motion<S>& a_parent,
+                                               const S* qd, const S* qdd) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic)
+    return rnea_forward_step(b, Xup, v_parent, a_parent, qd[0], qdd ? qdd[0] : S(0));
+  RneaForward<S> o;
+  const Motion<S> vJ = joint_motion_at(b, qd);
+  o.v = Xup.apply(v_parent) + vJ;
+  o.a = Xup.apply(a_parent) + cross(o.v, vJ);
+  if (qdd) o.a = o.a + joint_motion_at(b, qdd);
+  o.f = body_force(b, o.v, o.a);
+  return o;
+}
+
+// ABA pass 1 at any joint.
+template <class S>
+SCANDYN_HD AbaForward<S> aba_forward_step_at(const Body<S>& b, const Transform<S>& Xup,
+                                             const Motion<S>& v_parent, const S* qd) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic)
+    return aba_forward_step(b, Xup, v_parent, qd[0]);
+  AbaForward<S> o;
+  const Motion<S> vJ = joint_motion_at(b, qd);
+  o.v = Xup.apply(v_parent) + vJ;
+  o.c = cross(o.v, vJ);
+  o.pA = aba_bias_force(b, o.v);
+  return o;
+}
+
+// ABA pass 2 at a joint of nj = joint_nv(b.type) DoFs (Featherstone 2008, 7.3):
+// U = IA S, D = S^T U + diag(armature), u = tau - S^T pA, with D factored as L L^T
+// and carried as Y = U L^-T (nj forces) and w = L^-1 u, so that U D^-1 U^T = Y Y^T and
+// U D^-1 u = Y w. L is written row k at L[k * kMaxJointDofs] (lower triangle).
+// Returns the first k whose pivot is not positive and finite, or -1. For nj = 1 this
+// is not the 1-DoF path's arithmetic (aba_joint_terms), which 1-DoF joints keep.
+template <class S>
+SCANDYN_HD int aba_joint_terms_at(const Body<S>& b, const ABInertia<S>& IA, const Force<S>& pA,
+                                  const S* tau, Force<S>* Y, S* L, S* w, const S* armature) {
+  const int nj = joint_nv(b.type);
+  S pAS[kMaxJointDofs];
+  joint_project_at(b, pA, pAS);
+  for (int k = 0; k < nj; ++k) Y[k] = IA * joint_column(b, k);  // U
+  for (int k = 0; k < nj; ++k) {
+    S Uk[kMaxJointDofs];  // column k of D: S^T U_k
+    joint_project_at(b, Y[k], Uk);
+    // Cholesky row by row: L_kl for l < k from D_kl, then the pivot
+    for (int l = 0; l < k; ++l) {
+      S x = Uk[l];
+      for (int m = 0; m < l; ++m) x -= L[k * kMaxJointDofs + m] * L[l * kMaxJointDofs + m];
+      L[k * kMaxJointDofs + l] = x / L[l * kMaxJointDofs + l];
+    }
+    S d = Uk[k] + (armature ? armature[k] : S(0));
+    for (int m = 0; m < k; ++m) d -= L[k * kMaxJointDofs + m] * L[k * kMaxJointDofs + m];
+    if (!pivot_ok(d)) return k;
+    L[k * kMaxJointDofs + k] = ScalarMath<S>::sqrt(d);
+  }
+  // Y = U L^-T (forward substitution over columns), w = L^-1 (tau - S^T pA)
+  for (int k = 0; k < nj; ++k) {
+    Force<S> y = Y[k];
+    S x = tau[k] - pAS[k];
+    for (int l = 0; l < k; ++l) {
+      const S Lkl = L[k * kMaxJointDofs + l];
+      y = y - Lkl * Y[l];
+      x -= Lkl * w[l];
+    }
+    const S inv = S(1) / L[k * kMaxJointDofs + k];
+    Y[k] = inv * y;
+    w[k] = inv * x;
+  }
+  return -1;
+}
+
+// ABA pass 2, the parent's share at a joint of nj DoFs:
+//   Ia = IA - Y Y^T,  pa = pA + Ia c + Y w,  IA_parent += Xup^T Ia Xup,  pA_parent += Xup^T pa.
+template <class S>
+SCANDYN_HD void aba_backward_to_parent_at(int nj, const Transform<S>& Xup, const ABInertia<S>& IA,
+                                          const Force<S>& pA, const Motion<S>& c, const Force<S>* Y,
+                                          const S* w, ABInertia<S>& IA_parent, Force<S>& pA_parent) {
+  ABInertia<S> Ia = IA;
+  for (int k = 0; k < nj; ++k) Ia = Ia.minus_outer(Y[k], S(1));
+  Force<S> pa = pA + Ia * c;
+  for (int k = 0; k < nj; ++k) pa = pa + w[k] * Y[k];
+  IA_parent += Ia.transform_transpose(Xup);
+  pA_parent += Xup.apply_transpose(pa);
+}
+
+// ABA pass 3 at a joint of nj DoFs: a' = Xup a_parent + c, qdd = L^-T (w - Y^T a'),
+// a = a' + S qdd.
+template <class S>
+SCANDYN_HD void aba_acceleration_step_at(const Body<S>& b, const Transform<S>& Xup,
+                                         const Motion<S>& a_parent, const Motion<S>& c,
+                                         const Force<S>* Y, const S* L, const S* w, S* qdd,
+                                         Motion<S>& a) {
+  const int nj = joint_nv(b.type);
+  const Motion<S> ap = Xup.apply(a_parent) + c;
+  for (int k = nj - 1; k >= 0; --k) {
+    S x = w[k] - dot(ap, Y[k]);
+    for (int l = k + 1; l < nj; ++l) x -= L[l * kMaxJointDofs + k] * qdd[l];
+    qdd[k] = x / L[k * kMaxJointDofs + k];
+  }
+  a = ap + joint_motion_at(b, qdd);
+}
+
 }  // namespace scandyn

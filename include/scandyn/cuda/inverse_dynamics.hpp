@@ -25,7 +25,7 @@
 // DoF. fext, when given, is (B x nv) wrenches, fext[b * nv + i], as in IdBatchIn.
 //
 // Model constants. The kernels read the model from the constant bank through the
-// kernel parameter (ThreadModelParams, at most 14.1 KB: sm_70+ with CUDA >= 12.1
+// kernel parameter (ThreadModelParams, at most 14.6 KB: sm_70+ with CUDA >= 12.1
 // take parameters of up to 32 KB). It is built once per engine on the host and
 // travels with each launch; the kernel then reads every body constant at a
 // compile-time address as an operand of the arithmetic (no load instruction), and

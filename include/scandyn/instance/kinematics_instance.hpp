@@ -111,4 +111,58 @@ SCANDYN_HD void kinematics_instance(const Body<S>* body, Index nv, const FramePl
   }
 }
 
+// ---- joints of any type (a floating base, spherical joints) ----------------------
+// The same quantities for a model with multi-DoF joints (ModelTpl::multi_dof()): nb
+// bodies, body i's joint at q[idx_q..] (a quaternion for spherical and free joints)
+// and at columns idx_v.. of the Jacobian (joint_nv of them; a free joint's six are
+// the base twist [w; v] in the base frame, so its columns are the base frame's axes).
+// The serial and OpenMP engines; the CUDA engine takes 1-DoF joints.
+
+// X0[i] = i_X_0 for every body at positions q (nq entries).
+template <class S>
+SCANDYN_HD void body_placements_at(const Body<S>* body, Index nb, const S* q, Transform<S>* X0) {
+  for (Index i = 0; i < nb; ++i) {
+    const Transform<S> Xup = joint_transform_at(body[i], q + body[i].idx_q);
+    const Index p = body[i].parent;
+    X0[i] = p < 0 ? Xup : Xup * X0[p];
+  }
+}
+
+// The frame's 6 x nv Jacobian into out[r * nv + j]: the columns of every joint on the
+// path from the frame's body to the base, zeros elsewhere (each entry written once).
+template <class S, class Out>
+SCANDYN_HD void write_frame_jacobian_at(const Body<S>* body, Index nb, Index nv, const FramePlacement<S>& f,
+                                        const Transform<S>* X0, const Transform<S>& fX0, FrameReference reference,
+                                        const Out& out) {
+  Index next = f.body;  // the next ancestor (or the body itself) below i, -1 past the base
+  for (Index i = nb - 1; i >= 0; --i) {
+    const Body<S>& b = body[i];
+    const int nj = joint_nv(b.type);
+    const bool on_path = i == next;
+    if (on_path) next = b.parent;
+    for (int k = 0; k < nj; ++k) {
+      Motion<S> c = Motion<S>::zero();
+      if (on_path) {
+        const Motion<S> s0 = X0[i].apply_inverse(joint_column(b, k));
+        c = reference == FrameReference::Local ? fX0.apply(s0) : Motion<S>{s0.w, s0.v + cross(s0.w, fX0.r)};
+      }
+      for (int r = 0; r < 6; ++r) out[r * nv + b.idx_v + k] = c[r];
+    }
+  }
+}
+
+// kinematics_instance for a model with multi-DoF joints: nb scratch transforms X0.
+template <class S>
+SCANDYN_HD void kinematics_instance_at(const Body<S>* body, Index nb, Index nv, const FramePlacement<S>* frames,
+                                       Index F, PoseFormat format, FrameReference reference, const S* q,
+                                       Transform<S>* X0, Strided<S> poses, Strided<S> J) {
+  body_placements_at(body, nb, q, X0);
+  const Index pw = pose_width(format);
+  for (Index k = 0; k < F; ++k) {
+    const Transform<S> fX0 = frame_placement(frames[k], X0);
+    if (poses.data) write_pose(fX0, format, poses.from(k * pw));
+    if (J.data) write_frame_jacobian_at(body, nb, nv, frames[k], X0, fX0, reference, J.from(k * 6 * nv));
+  }
+}
+
 }  // namespace scandyn

@@ -44,7 +44,9 @@ std::vector<Family> algo_inputs(Algo algo);
 // Where each state entry sits in a CSV row.
 struct StateColumns {
   Index nv = 0;
+  Index nq = 0;  // entries of q (= nv unless the model has quaternions: floating base, ball joints)
   std::array<std::vector<int>, kFamilies> column;  // [family][i]: CSV column, -1 if absent
+                                                   // (nq entries for q, nv for the others)
 
   const std::vector<int>& of(Family f) const { return column[static_cast<int>(f)]; }
   bool any(Family f) const;             // at least one column of f present
@@ -59,6 +61,33 @@ struct StateColumns {
 // an index >= nv. (Duplicate names are already rejected by CsvReader.)
 StateColumns map_state_columns(const std::vector<std::string>& names, Index nv,
                                const std::string& source);
+// The same for a model of nq positions (q_0..q_{nq-1}) and nv velocities.
+StateColumns map_state_columns(const std::vector<std::string>& names, Index nq, Index nv,
+                               const std::string& source);
+
+// Relative tolerance on a quaternion's norm in a states file: |‖q‖ - 1| above it is
+// a data error, within it the quaternion is normalised.
+inline constexpr double kQuaternionNormTol = 1e-6;
+
+// The positions in q of the model's unit quaternions (the x of each (x, y, z, w)):
+// idx_q + 3 of a free joint, idx_q of a spherical one. Empty for 1-DoF models.
+template <class S>
+std::vector<Index> quaternion_offsets(const ModelTpl<S>& model) {
+  std::vector<Index> out;
+  if (!model.multi_dof()) return out;
+  for (const auto& b : model.bodies) {
+    if (b.type == JointType::Free) out.push_back(b.idx_q + 3);
+    else if (b.type == JointType::Spherical) out.push_back(b.idx_q);
+  }
+  return out;
+}
+
+// Normalises the quaternions (at offsets, from quaternion_offsets) of one CSV row's
+// q family in place. Throws CsvError naming where (the file and row) and the
+// columns of a quaternion whose norm is not finite or is off from 1 by more than
+// kQuaternionNormTol relative.
+void normalize_quaternions(const StateColumns& cols, const std::vector<Index>& offsets, double* row,
+                           const std::string& where);
 
 // Checks that every family an algo reads is complete, and that no family is
 // present only in part. Throws CsvError naming source and the first missing column.

@@ -37,7 +37,8 @@ struct RawLink {
   Sym3<double> inertia{0, 0, 0, 0, 0, 0};  // about the centre of mass, inertial-frame axes (kg m^2)
 };
 
-enum class RawJointType { Revolute, Continuous, Prismatic, Fixed, Floating, Planar, Unknown };
+// Spherical: a ball joint (3 DoF); no URDF type maps to it, generators make it.
+enum class RawJointType { Revolute, Continuous, Prismatic, Fixed, Floating, Planar, Unknown, Spherical };
 
 // A joint as written in a URDF file.
 struct RawJoint {
@@ -73,6 +74,11 @@ struct BuildOptions {
   // When non-null, each inertia check waived by require_physical_inertia = false
   // appends its message (the line ModelError would have had) here.
   std::vector<std::string>* warnings = nullptr;
+  // Give the root link a free joint (6 DoF, body 0, joint name "root_joint"): the
+  // floating base, as Pinocchio's buildModel(urdf, JointModelFreeFlyer()). The root
+  // link and the links fixed to it are body 0. A root link named "world" (the model
+  // is bolted to the world through it) or a massless base are a ModelError.
+  bool floating_base = false;
 };
 
 // Builds and validates a model: DoF order, fixed-joint merging, every check
@@ -88,16 +94,21 @@ RawTree parse_urdf(const std::string& xml, const std::string& source);
 // Reads and builds a URDF file. Throws ModelError (missing file included).
 Model load_urdf(const std::string& path, const BuildOptions& options = {});
 
-// The raw tree of a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N
-// (geometry in docs/models.md). N, K >= 1, at most kMaxGeneratedBodies moving bodies.
+// The raw tree of a generator spec: chain:N, rope:N, tree:N:SEED, curtain:K:N,
+// ballrope:N (the rope:N geometry on spherical joints) (geometry in docs/models.md). N, K >= 1, at most kMaxGeneratedBodies moving bodies.
 // Throws ModelError naming the spec when it is malformed.
 RawTree generate_tree(const std::string& spec);
+// With floating_base, the tree a free model is built from: chain, rope and ballrope
+// lose the massless base frame and their first joint (the first link is the floating
+// base: N bodies, nv = 6 + (N - 1) joint DoFs); tree:N:SEED's base frame gets a
+// random link's mass. build_model(..., floating_base) frees the root.
+RawTree generate_tree(const std::string& spec, bool floating_base);
 inline constexpr long long kMaxGeneratedBodies = 10000000;
 
 // build_model(generate_tree(spec)). Throws ModelError for a malformed spec.
-Model make_generated(const std::string& spec);
+Model make_generated(const std::string& spec, const BuildOptions& options = {});
 
-// True when spec names a generator (starts with chain:, rope:, tree: or curtain:);
+// True when spec names a generator (starts with chain:, rope:, tree:, curtain: or ballrope:);
 // such a string is never taken as a file path (write ./rope:1.urdf for a file).
 bool is_generator_spec(const std::string& spec);
 

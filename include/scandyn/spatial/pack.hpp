@@ -96,6 +96,9 @@ struct PackMask {
   PackMask operator!() const { return {!m}; }
 };
 
+template <class T, int W>
+inline constexpr bool kIsPack<Pack<T, W>> = true;
+
 // Lane-wise library calls: the same functions the scalar code calls, lane by lane.
 template <class T, int W>
 struct ScalarMath<Pack<T, W>> {

@@ -30,4 +30,10 @@ struct ScalarMath {
   SCANDYN_HD static constexpr S epsilon() { return std::numeric_limits<S>::epsilon(); }
 };
 
+// True for a SIMD pack of scalars (scandyn/spatial/pack.hpp), one lane per instance:
+// code over a pack must not branch on data values, so the algorithms' paths that do
+// (the multi-DoF joints' general path) are compiled for plain scalars only.
+template <class S>
+inline constexpr bool kIsPack = false;
+
 }  // namespace scandyn
