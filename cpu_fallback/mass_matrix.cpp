@@ -20,7 +20,7 @@ class CpuMassMatrix final : public MassMatrix<S> {
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
     q_rows_ = RowScratch<S>(threads_, 1, static_cast<std::size_t>(model.nq()));
     M_rows_ = RowScratch<S>(threads_, 1, nv * nv);
-    simd_ = make_simd_batches(model_, o.simd, threads_);
+    simd_ = make_simd_batches(model_, o.simd, threads_, /*mass_matrix=*/true);
   }
 
   void compute(const BatchView<const S>& q, const BatchView<S>& M) override {

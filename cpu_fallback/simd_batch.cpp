@@ -34,13 +34,13 @@ bool use_simd(const ModelTpl<S>& model, CpuSimd simd) {
 }
 
 template <class S>
-SimdBatch<S>::SimdBatch(const ModelTpl<S>& model)
+SimdBatch<S>::SimdBatch(const ModelTpl<S>& model, bool mass_matrix)
     : nv_(model.nv()), model_(model.template cast<P>()), data_(model_, /*mass_matrix=*/false) {
   const std::size_t n = static_cast<std::size_t>(nv_);
   q_.resize(n);
   qd_.resize(n);
   x_.resize(n);
-  out_.resize(n * n);
+  out_.resize(mass_matrix ? n * n : n);  // a 10^5-link rope's id must not reserve nv^2 packs
   fext_.resize(n);
 }
 

@@ -48,7 +48,8 @@ class SimdBatch {
   using P = NativePack<S>;
   static constexpr int W = P::width;
 
-  explicit SimdBatch(const ModelTpl<S>& model);
+  // mass_matrix: the workspace of crba() (an nv x nv output), else of rnea() and aba() (nv)
+  explicit SimdBatch(const ModelTpl<S>& model, bool mass_matrix = false);
   SimdBatch(const SimdBatch&) = delete;
   SimdBatch(SimdBatch&&) = default;
 
@@ -70,7 +71,7 @@ class SimdBatch {
   Index nv_;
   ModelTpl<P> model_;        // the model, broadcast
   DataTpl<P> data_;          // workspace of the reference algorithms
-  std::vector<P> q_, qd_, x_, out_;  // (nv; out: nv x nv for crba) one group's inputs, output
+  std::vector<P> q_, qd_, x_, out_;  // (nv; out: nv x nv for a mass-matrix batch) one group's inputs, output
   std::vector<Force<P>> fext_;       // (nv) one group's external wrenches
 };
 
@@ -81,11 +82,13 @@ template <class S>
 bool use_simd(const ModelTpl<S>& model, CpuSimd simd);
 
 // One thread's SIMD workspaces: empty when the engine does not take the SIMD path.
+// mass_matrix: workspaces for crba() (nv x nv per thread; the others hold nv).
 template <class S>
-std::vector<SimdBatch<S>> make_simd_batches(const ModelTpl<S>& model, CpuSimd simd, int threads) {
+std::vector<SimdBatch<S>> make_simd_batches(const ModelTpl<S>& model, CpuSimd simd, int threads,
+                                            bool mass_matrix = false) {
   std::vector<SimdBatch<S>> v;
   if (use_simd(model, simd))
-    for (int t = 0; t < threads; ++t) v.emplace_back(model);
+    for (int t = 0; t < threads; ++t) v.emplace_back(model, mass_matrix);
   return v;
 }
 

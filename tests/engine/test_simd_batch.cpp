@@ -173,3 +173,34 @@ TEST(SimdBatch, ModesParseAndOffIsTheScalarPath) {
   EXPECT_EQ(make_mass_matrix<double>(iiwa, o)->strategy(), "crba");
   EXPECT_TRUE(make_forward_dynamics<double>(iiwa, o)->exact());
 }
+
+// The SIMD workspaces of inverse and forward dynamics hold nv packs per entry, not
+// nv x nv (the mass matrix's): a 10^5-link rope's engines are made and run (its
+// nv x nv workspace would be 1.6e11 bytes), with the result of the reference.
+TEST(SimdBatch, LongChainEnginesReserveLinearWorkspaces) {
+  const Model m = make_generated("rope:100000");
+  const Index nv = m.nv(), B = 2;
+  std::mt19937 g(5);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  std::vector<double> q(nv * B), qd(nv * B), qdd(nv * B), tau(nv * B), ref(nv);
+  for (auto* v : {&q, &qd, &qdd})
+    for (double& x : *v) x = u(g);
+  BackendOptions o;
+  o.max_batch = B;
+  o.simd = CpuSimd::Auto;
+  o.strategy = IdStrategy::Recursion;
+  using V = BatchView<const double>;
+  make_inverse_dynamics<double>(m, o)->compute(
+      {V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B)},
+      BatchView<double>::soa(tau.data(), nv, B));
+  Data data(m, false);
+  std::vector<double> q0(nv), qd0(nv), qdd0(nv);
+  for (Index i = 0; i < nv; ++i) q0[i] = q[i * B], qd0[i] = qd[i * B], qdd0[i] = qdd[i * B];
+  rnea(m, data, q0.data(), qd0.data(), qdd0.data(), ref.data());
+  std::vector<double> tau0(nv);
+  for (Index i = 0; i < nv; ++i) tau0[i] = tau[i * B];
+  EXPECT_LT(test::max_rel_err(tau0, ref), 1e-12);
+  o.fd_method = FdMethod::Aba;
+  o.fd_check = FdCheckMode::Off;
+  EXPECT_NO_THROW(make_forward_dynamics<double>(m, o));
+}
