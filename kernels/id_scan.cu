@@ -353,6 +353,7 @@ HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
     for (Index i = 0; i < n; ++i) {
       Body<S> b = model.bodies[i];
       b.parent = -1;
+      b.idx_q = b.idx_v = 0;  // positions in q / qd: per body, not a constant of the body
       std::string key(reinterpret_cast<const char*>(&b), sizeof b);
       auto [it, fresh] = seen.emplace(std::move(key), static_cast<int>(table->size()));
       if (fresh) table->push_back(b);

@@ -48,6 +48,7 @@ ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   for (Index i = 0; i < n; ++i) {
     Body<S> b = model.bodies[i];
     b.parent = model.parent(i) == -1 ? -1 : kChainPrevious;
+    b.idx_q = b.idx_v = 0;  // positions in q / qd: per link, not a constant of the link
     Index k = static_cast<Index>(o.body.size()) - 1;
     if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
       o.body.push_back(b);

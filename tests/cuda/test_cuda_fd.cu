@@ -258,6 +258,9 @@ Errors device_run(const Model& md, Index B, const Layout& lin, const Layout& lou
   EXPECT_EQ(cudaMemcpy(dfailed.ptr, failed.data(), B * sizeof(int), cudaMemcpyHostToDevice), cudaSuccess);
   cudaStream_t stream;
   EXPECT_EQ(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking), cudaSuccess);
+  // a cudaMemcpy from pageable memory may return before its DMA lands, and a non-blocking
+  // stream does not wait for the legacy stream: finish the uploads first
+  EXPECT_EQ(cudaDeviceSynchronize(), cudaSuccess);
   const FdBatchIn<S> in{{dq.ptr + lin.base, B, lin.ds, lin.bs},
                         {dqd.ptr + lin.base, B, lin.ds, lin.bs},
                         {dtau.ptr + lin.base, B, lin.ds, lin.bs},

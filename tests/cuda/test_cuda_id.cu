@@ -395,6 +395,9 @@ void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout,
   ASSERT_CUDA(cudaMemcpy(dtau.ptr, tau.data(), lout.size * sizeof(S), cudaMemcpyHostToDevice));
   cudaStream_t stream;
   ASSERT_CUDA(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking));
+  // a cudaMemcpy from pageable memory may return before its DMA lands, and a non-blocking
+  // stream does not wait for the legacy stream: finish the uploads first
+  ASSERT_CUDA(cudaDeviceSynchronize());
   const IdBatchIn<S> in{{dq.ptr + lin.base, B, lin.ds, lin.bs},
                         {dqd.ptr + lin.base, B, lin.ds, lin.bs},
                         {dqdd.ptr + lin.base, B, lin.ds, lin.bs},
