@@ -6,7 +6,7 @@
 //                        [--precision float128|longdouble]
 //   scandyn-truth error  --truth TRUTH.csv --result OUT.csv [--result-precision double|longdouble|float128]
 //   scandyn-truth check  --model M --states IN.csv --result OUT.csv [--precision float|double]
-//                        [--threshold X]
+//                        [--threshold X] [--truth TRUTH.csv]
 //   (states, eval and check also take --allow-nonphysical-inertia, and --floating-base:
 //   the model on a free joint at its root, as `scandyn --floating-base`)
 //
@@ -31,7 +31,13 @@
 //   rounded to --precision, the result's): one line
 //   `rows,flagged,threshold,max_error_estimate,max_relative_residual`, flagged =
 //   rows whose error_estimate exceeds --threshold (default fd_check_threshold of
-//   the precision: float 1e-4, double 1e-10).
+//   the precision: float 1e-4, double 1e-10). With --truth TRUTH.csv (eval's output on
+//   the same states) also each row's true error (as `error` measures it): the line
+//   gains `budget,bad,caught,false_positives,missed,max_error`, bad = rows whose error
+//   exceeds the precision's budget (float 1e-4, double 1e-10), caught = bad and
+//   flagged, false_positives = flagged and not bad, missed = bad and not flagged.
+//   Models with multi-DoF joints are checked as the engines check them
+//   (FdBatchCheck: the residual's scale without joint loads).
 //
 // Exit status: 0 success, 1 bad data (file, model, failed computation), 2 bad command line.
 #include <algorithm>
@@ -73,7 +79,7 @@ const char* kUsage =
     "       scandyn-truth error --truth TRUTH.csv --result OUT.csv\n"
     "                          [--result-precision double|longdouble|float128]\n"
     "       scandyn-truth check --model M --states IN.csv --result OUT.csv [--precision float|double]\n"
-    "                          [--threshold X]\n"
+    "                          [--threshold X] [--truth TRUTH.csv]\n"
     "       (states, eval and check also take --allow-nonphysical-inertia and --floating-base)\n";
 
 // --name value pairs after the subcommand; flags without a value: --allow-nonphysical-inertia,
@@ -443,6 +449,22 @@ int run_check(const Args& a) {
     if (!complete(rows.of(fam))) throw DataError(in.path + ": needs the columns q_<i>, qd_<i>, tau_<i>");
   const auto cqdd = family_columns(result, "qdd_fd_", nv);
   if (!complete(cqdd)) throw DataError(result.path + ": needs the columns qdd_fd_<i>");
+  // --truth: each row's true error too (the result against the truth's qdd_fd, as
+  // `error` measures it), bad = above the precision's budget
+  const double budget = is_float ? fd_check_threshold<float>() : fd_check_threshold<double>();
+  Csv truth_csv;
+  std::vector<int> ctruth;
+  if (a.has("truth")) {
+    truth_csv = read_csv(a.required("truth"));
+    ctruth = family_columns(truth_csv, "qdd_fd_", nv);
+    if (!complete(ctruth)) throw DataError(truth_csv.path + ": needs the columns qdd_fd_<i>");
+    if (truth_csv.rows.size() != in.rows.size())
+      throw DataError(truth_csv.path + ": " + std::to_string(truth_csv.rows.size()) + " rows, the states have " +
+                      std::to_string(in.rows.size()));
+  }
+  std::size_t bad = 0, caught = 0, false_positives = 0;
+  double worst_err = 0;
+  std::vector<float128> xq(nv), tq(nv);
   // 1-DoF models: fd_check itself (with the joint loads in the residual's scale);
   // multi-DoF models: the engines' check (FdBatchCheck: the general RNEA's residual,
   // M^-1 r by the general ABA at rest), on the double model either way
@@ -478,12 +500,33 @@ int run_check(const Args& a) {
       estimate = c.error_estimate;
       relative_residual = c.relative_residual;
     }
-    flagged += !(estimate <= threshold);
+    const bool flag = !(estimate <= threshold);
+    flagged += flag;
+    if (!ctruth.empty()) {
+      const std::string where = truth_csv.path + ": row " + std::to_string(r);
+      for (std::size_t i = 0; i < nv; ++i) {
+        xq[i] = float128(qdd[i]);
+        tq[i] = parse_wide<float128>(truth_csv.rows[r][static_cast<std::size_t>(ctruth[i])], where, "float128");
+      }
+      const double e = truth::rel_err(xq.data(), tq.data(), nv);
+      const bool is_bad = !(e <= budget);
+      bad += is_bad;
+      caught += is_bad && flag;
+      false_positives += flag && !is_bad;
+      worst_err = std::isnan(e) ? e : std::max(worst_err, e);
+    }
     worst_est = std::isnan(estimate) ? estimate : std::max(worst_est, estimate);
     worst_res = std::max(worst_res, relative_residual);
   }
-  std::printf("rows,flagged,threshold,max_error_estimate,max_relative_residual\n%zu,%zu,%.3g,%.6g,%.6g\n",
-              in.rows.size(), flagged, threshold, worst_est, worst_res);
+  if (ctruth.empty()) {
+    std::printf("rows,flagged,threshold,max_error_estimate,max_relative_residual\n%zu,%zu,%.3g,%.6g,%.6g\n",
+                in.rows.size(), flagged, threshold, worst_est, worst_res);
+  } else {
+    std::printf("rows,flagged,threshold,max_error_estimate,max_relative_residual,budget,bad,caught,false_positives,"
+                "missed,max_error\n%zu,%zu,%.3g,%.6g,%.6g,%.3g,%zu,%zu,%zu,%zu,%.6g\n",
+                in.rows.size(), flagged, threshold, worst_est, worst_res, budget, bad, caught, false_positives,
+                bad - caught, worst_err);
+  }
   return 0;
 }
 
@@ -501,7 +544,7 @@ int main(int argc, char** argv) {
       return run_eval(parse_args(argc, argv, {"model", "states", "out", "algo", "precision", "allow-nonphysical-inertia", "floating-base"}));
     if (cmd == "check")
       return run_check(parse_args(argc, argv, {"model", "states", "result", "precision", "threshold",
-                                               "allow-nonphysical-inertia", "floating-base"}));
+                                               "truth", "allow-nonphysical-inertia", "floating-base"}));
     if (cmd == "error") return run_error(parse_args(argc, argv, {"truth", "result", "result-precision"}));
     throw UsageError("unknown command '" + cmd + "'");
   } catch (const UsageError& e) {

@@ -76,6 +76,11 @@ class CliTruth : public CliDirTest {
       r = truth("check --model " + model + " --states s.csv --result d.csv --precision " + precision);
       ASSERT_EQ(r.code, 0) << r.err;
       EXPECT_EQ(flagged(r.out), 0) << r.out;
+      // with the truth: no row over the budget, none flagged
+      r = truth("check --model " + model + " --states s.csv --result d.csv --truth t.csv --precision " + precision);
+      ASSERT_EQ(r.code, 0) << r.err;
+      EXPECT_NE(r.out.find("bad,caught,false_positives,missed"), std::string::npos) << r.out;
+      EXPECT_NE(r.out.find(",0,0,0,0,"), std::string::npos) << r.out;
     }
   }
 };
@@ -103,6 +108,32 @@ TEST_F(CliTruth, StatesOfAFloatingBaseHaveNqPositionColumns) {
 TEST_F(CliTruth, FloatingHyqAgainstEval) { round_trip("hyq --floating-base"); }
 TEST_F(CliTruth, BallRopeAgainstEval) { round_trip("ballrope:10"); }
 TEST_F(CliTruth, FreeRopeAgainstEval) { round_trip("rope:12 --floating-base"); }
+
+// A double result made wrong in one row (qdd_fd_0 + 1e-3) is bad against the truth
+// and caught by the check; the other rows are clean and not flagged.
+TEST_F(CliTruth, CheckWithTheTruthCountsCatches) {
+  const std::string model = "hyq --floating-base";
+  ASSERT_EQ(truth("states --model " + model + " --rows 3 --out s.csv").code, 0);
+  ASSERT_EQ(truth("eval --model " + model + " --states s.csv --out t.csv --algo fd").code, 0);
+  ASSERT_EQ(run("eval --model " + model + " --states s.csv --out d.csv --algo fd").code, 0);
+  std::istringstream s(read_text(path("d.csv")));
+  std::string text, line;
+  for (int k = 0; std::getline(s, line); ++k) {
+    if (k == 2) {  // row 1
+      const auto c = line.find(',');
+      char buf[40];
+      std::snprintf(buf, sizeof buf, "%.17g", std::stod(line.substr(0, c)) + 1e-3);
+      line = buf + line.substr(c);
+    }
+    text += line + "\n";
+  }
+  write_text(path("d.csv"), text);
+  const Result r = truth("check --model " + model + " --states s.csv --result d.csv --truth t.csv");
+  ASSERT_EQ(r.code, 0) << r.err;
+  // rows,flagged,...,bad,caught,false_positives,missed,max_error
+  EXPECT_EQ(flagged(r.out), 1) << r.out;
+  EXPECT_NE(r.out.find(",1,1,0,0,"), std::string::npos) << r.out;
+}
 
 TEST_F(CliTruth, BadQuaternionIsADataErrorNamingRowAndColumns) {
   ASSERT_EQ(truth("states --model hyq --floating-base --rows 2 --out s.csv").code, 0);
