@@ -26,14 +26,7 @@ class CliTruth : public CliDirTest {
   // Runs `scandyn-truth args` in the test directory.
   Result truth(const std::string& args) const {
 #ifdef SCANDYN_TRUTH_CLI_PATH
-    const std::string cmd = "cd " + quote(dir_.string()) + " && " + quote(SCANDYN_TRUTH_CLI_PATH) + " " + args +
-                            " >" + quote(path(".stdout").string()) + " 2>" + quote(path(".stderr").string());
-    const int status = std::system(cmd.c_str());
-    Result r;
-    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    r.out = read_text(path(".stdout"));
-    r.err = read_text(path(".stderr"));
-    return r;
+    return run_program(SCANDYN_TRUTH_CLI_PATH, args);
 #else
     (void)args;
     return {};
