@@ -13,8 +13,9 @@
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
 #   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
-#   5b. scripts/accuracy_report --full --name accuracy-h100, when matplotlib is
-#       importable -> accuracy/accuracy-h100.md, accuracy/accuracy-h100/ (for docs/)
+#   5b. scripts/accuracy_report --full --name accuracy-h100, when numpy is
+#       importable (plots where matplotlib is too) -> accuracy-h100.tar.gz (its
+#       accuracy-h100.md and accuracy-h100/ go to docs/) and accuracy-h100.md
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
 #   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 # A failed configure or build stops the run; later steps run even if an earlier
@@ -187,13 +188,17 @@ else
 fi
 fi
 
-# ---- 5b. accuracy report (full mode), when matplotlib is importable ------------
+# ---- 5b. accuracy report (full mode), when numpy is importable -----------------
+# (matplotlib draws its plots where it is importable; without it the report has its
+# tables and CSVs only.) The report's files go back as one archive (the device tool
+# returns few files): accuracy-h100.tar.gz, unpacked into docs/ it gives
+# docs/accuracy-h100.md and docs/accuracy-h100/; accuracy-h100.md also lies beside it.
 py=.venv/bin/python
 [[ -x "$py" ]] || py=python3
 if [[ "${SCANDYN_SKIP_ACCURACY:-0}" == 1 ]]; then
   note "accuracy report skipped (SCANDYN_SKIP_ACCURACY=1)"
-elif "$py" -c 'import matplotlib' 2>/dev/null; then
-  note "accuracy report (full) -> $out/accuracy (accuracy-h100.md, accuracy-h100/: copy both to docs/)"
+elif "$py" -c 'import numpy' 2>/dev/null; then
+  note "accuracy report (full) -> $out/accuracy-h100.tar.gz (accuracy-h100.md, accuracy-h100/: unpack into docs/)"
   set +e
   read -r -a accuracy_args <<<"${SCANDYN_ACCURACY_ARGS:-}"
   "$py" scripts/accuracy_report --full --name accuracy-h100 --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
@@ -201,10 +206,15 @@ elif "$py" -c 'import matplotlib' 2>/dev/null; then
     --machine "$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), host $(nproc) cores" \
     2>&1 | tee "$out/accuracy.log"
   rc=${PIPESTATUS[0]}
+  if [[ -d "$out/accuracy" ]]; then
+    tar -czf "$out/accuracy-h100.tar.gz" -C "$out/accuracy" . &&
+      cp "$out/accuracy/accuracy-h100.md" "$out/" 2>/dev/null
+    rm -rf "$out/accuracy"
+  fi
   set -e
   record "accuracy report (full)" "$rc"
 else
-  note "accuracy report skipped: no matplotlib (scripts/setup_python.sh; or run scripts/accuracy_report --full later)"
+  note "accuracy report skipped: no numpy for $py (scripts/setup_python.sh; or run scripts/accuracy_report --full later)"
 fi
 
 # ---- 5c. the forward-dynamics check's cost per engine ---------------------------

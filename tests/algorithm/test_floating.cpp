@@ -24,24 +24,6 @@ using test::Tol;
 
 namespace {
 
-// A random tree on a free root: random_model's bodies (revolute and prismatic,
-// arbitrary axes, rotated inertias) with body 0 a free joint and about a third of
-// the others spherical.
-Model random_floating_model(int n, unsigned seed) {
-  Model m = test::random_model(n, seed);
-  std::mt19937_64 g(seed * 7 + 1);
-  m.bodies[0].type = JointType::Free;
-  m.bodies[0].parent = -1;
-  m.bodies[0].Xtree = Transform<double>::identity();
-  for (int i = 1; i < n; ++i) {
-    Body<double>& b = m.bodies[static_cast<std::size_t>(i)];
-    if (b.parent < 0) b.parent = 0;  // one root: the free body
-    if (std::uniform_real_distribution<double>(0, 1)(g) < 0.35) b.type = JointType::Spherical;
-  }
-  set_joint_offsets(m);
-  return m;
-}
-
 BuildOptions floating_options() {
   BuildOptions o;
   o.require_physical_inertia = false;  // GRiD's atlas.urdf
@@ -160,11 +142,11 @@ class RandomFloatingTrees : public ::testing::TestWithParam<int> {};
 TEST_P(RandomFloatingTrees, IdentitiesDouble) {
   const int n = GetParam();
   for (unsigned seed = 1; seed <= 3; ++seed)
-    check_identities<double>(random_floating_model(n, seed * 31 + n), seed, "n=" + std::to_string(n));
+    check_identities<double>(test::random_floating_model(n, seed * 31 + n), seed, "n=" + std::to_string(n));
 }
 TEST_P(RandomFloatingTrees, IdentitiesFloat) {
   const int n = GetParam();
-  check_identities<float>(random_floating_model(n, 3 * n + 2), 7, "n=" + std::to_string(n));
+  check_identities<float>(test::random_floating_model(n, 3 * n + 2), 7, "n=" + std::to_string(n));
 }
 INSTANTIATE_TEST_SUITE_P(Sizes, RandomFloatingTrees, ::testing::Values(1, 2, 3, 5, 8, 13, 30, 64));
 
@@ -188,7 +170,7 @@ TEST(FloatingPrecision, FloatVsDouble) {
 
 // External wrenches: ABA with them inverts RNEA with them (fext per body).
 TEST(FloatingExternalForces, AbaInvertsRnea) {
-  const Model m = random_floating_model(13, 5);
+  const Model m = test::random_floating_model(13, 5);
   Data data(m);
   std::mt19937_64 rng(3);
   const auto q = random_q(m, rng);
@@ -209,7 +191,7 @@ TEST(FloatingExternalForces, AbaInvertsRnea) {
 // A massless spherical leaf: a pivot of its joint fails (ABA factors the joint's
 // 3x3 D from its first DoF, the L^T L factorisation of M runs from the last DoF).
 TEST(FloatingFailure, SingularPivotIsReported) {
-  Model m = random_floating_model(4, 9);
+  Model m = test::random_floating_model(4, 9);
   m.bodies[3].type = JointType::Spherical;
   m.bodies[3].I = Inertia<double>::zero();
   m.bodies[3].parent = 2;

@@ -47,6 +47,19 @@ std::vector<Case> models() {
   return out;
 }
 
+// Models with multi-DoF joints (the reference's general path): the robots on a
+// floating base, random trees on a free root with spherical joints, a free rope, a
+// rope of ball joints, and both at once.
+std::vector<Case> multi_dof_models() {
+  std::vector<Case> out;
+  for (const char* spec : {"iiwa", "hyq", "atlas", "rope:40", "ballrope:30", "tree:40:3"})
+    out.push_back({std::string("floating ") + spec, test::load_floating(spec)});
+  out.push_back({"ballrope:20", load_model("ballrope:20")});
+  for (int n : {6, 25}) out.push_back({"random_floating_model(" + std::to_string(n) + ")",
+                                       test::random_floating_model(n, 11u * n + 3)});
+  return out;
+}
+
 // cond_2(M) of a binary128 mass matrix (eigenvalues in double: plenty for a factor).
 double condition(const std::vector<float128>& M, int n) {
   Eigen::MatrixXd A(n, n);
@@ -59,16 +72,18 @@ double condition(const std::vector<float128>& M, int n) {
 struct State {
   std::vector<double> q, qd, x;
 };
-State random_state(int n, std::mt19937_64& g) {
-  return {test::random_vector(g, n, -3.1, 3.1), test::random_vector(g, n, -2, 2), test::random_vector(g, n, -5, 5)};
+// q (nq: quaternions unit, test::random_q), qd and a third vector (qdd or tau, nv).
+State random_state(const Model& m, std::mt19937_64& g) {
+  const int n = m.nv();
+  return {test::random_q(m, g, -3.1, 3.1), test::random_vector(g, n, -2, 2), test::random_vector(g, n, -5, 5)};
 }
 
 }  // namespace
 
 // The double reference against the binary128 truth, and long double against
 // binary128, on every algorithm.
-TEST(Truth, AgreesWithDoubleAndLongDouble) {
-  for (const Case& c : models()) {
+static void check_agreement(const Case& c) {
+  {
     SCOPED_TRACE(c.name);
     const int n = c.model.nv();
     truth::Truth<float128> tq(c.model);
@@ -77,7 +92,7 @@ TEST(Truth, AgreesWithDoubleAndLongDouble) {
     std::mt19937_64 g(17);
     double worst_d = 0, worst_ld = 0, worst_fd_d = 0, worst_fd_ld = 0;
     for (int k = 0; k < 20; ++k) {
-      const State s = random_state(n, g);
+      const State s = random_state(c.model, g);
       std::vector<float128> xq(static_cast<std::size_t>(n) * n);
       std::vector<long double> xl(static_cast<std::size_t>(n) * n);
       std::vector<double> xd(static_cast<std::size_t>(n) * n);
@@ -124,22 +139,22 @@ TEST(Truth, AgreesWithDoubleAndLongDouble) {
       EXPECT_LE(truth::rel_err(fq_jsi.data(), fq.data(), n), 1e-30 * std::max(1.0, kappa));
     }
     // the measured constants (in units of nv eps and nv eps kappa)
-    RecordProperty(c.name + ".id_bias_mass.double", std::to_string(worst_d));
-    RecordProperty(c.name + ".id_bias_mass.longdouble", std::to_string(worst_ld));
-    RecordProperty(c.name + ".fd.double", std::to_string(worst_fd_d));
-    RecordProperty(c.name + ".fd.longdouble", std::to_string(worst_fd_ld));
+    ::testing::Test::RecordProperty(c.name + ".id_bias_mass.double", std::to_string(worst_d));
+    ::testing::Test::RecordProperty(c.name + ".id_bias_mass.longdouble", std::to_string(worst_ld));
+    ::testing::Test::RecordProperty(c.name + ".fd.double", std::to_string(worst_fd_d));
+    ::testing::Test::RecordProperty(c.name + ".fd.longdouble", std::to_string(worst_fd_ld));
   }
 }
 
 // Identities in binary128.
-TEST(Truth, Float128Identities) {
-  for (const Case& c : models()) {
+static void check_float128_identities(const Case& c) {
+  {
     SCOPED_TRACE(c.name);
     const int n = c.model.nv();
     truth::Truth<float128> t(c.model);
     std::mt19937_64 g(29);
     for (int k = 0; k < 5; ++k) {
-      const State s = random_state(n, g);
+      const State s = random_state(c.model, g);
       // M symmetric, positive definite, = columns of RNEA(q, 0, e_j) - RNEA(q, 0, 0)
       std::vector<float128> M(static_cast<std::size_t>(n) * n), g0(n), col(n), L;
       t.mass(s.q.data(), M.data());
@@ -167,13 +182,31 @@ TEST(Truth, Float128Identities) {
       // ID(FD(tau)) = tau
       std::vector<float128> qdd(n), back(n);
       ASSERT_TRUE(t.fd(s.q.data(), s.qd.data(), s.x.data(), qdd.data()).ok());
-      std::vector<float128> qq(n), qdq(n);
-      for (int i = 0; i < n; ++i) qq[i] = s.q[i], qdq[i] = s.qd[i];
+      const std::vector<float128> qq = t.q();  // the q fd used (quaternions unit in binary128)
+      std::vector<float128> qdq(n);
+      for (int i = 0; i < n; ++i) qdq[i] = s.qd[i];
       rnea(t.model(), data, qq.data(), qdq.data(), qdd.data(), back.data());
       EXPECT_LE(truth::rel_err(back.data(), s.x.data(), n), 1e-30 * std::max(1.0, kappa / 1e3))
           << "ID(FD(tau)), cond " << kappa;
     }
   }
+}
+
+TEST(Truth, AgreesWithDoubleAndLongDouble) {
+  for (const Case& c : models()) check_agreement(c);
+}
+TEST(Truth, Float128Identities) {
+  for (const Case& c : models()) check_float128_identities(c);
+}
+// The same on models with a floating base and spherical joints: q with nq entries,
+// the quaternions normalised again in binary128 / long double by the truth (the
+// double reference reads the double ones as they are, unit to ~1e-16: within its
+// tolerances above).
+TEST(Truth, MultiDofAgreesWithDoubleAndLongDouble) {
+  for (const Case& c : multi_dof_models()) check_agreement(c);
+}
+TEST(Truth, MultiDofFloat128Identities) {
+  for (const Case& c : multi_dof_models()) check_float128_identities(c);
 }
 
 // ---- the forward-dynamics check ---------------------------------------------------
@@ -187,7 +220,7 @@ TEST(FdCheck, EstimatesAKnownError) {
     Data d(c.model);
     std::mt19937_64 g(31);
     for (int k = 0; k < 5; ++k) {
-      const State s = random_state(n, g);
+      const State s = random_state(c.model, g);
       std::vector<double> qdd(n), delta(n), off(n);
       ASSERT_TRUE(aba(c.model, d, s.q.data(), s.qd.data(), s.x.data(), qdd.data()).ok());
       const FdCheck<double> ok = fd_check(c.model, d, s.q.data(), s.qd.data(), s.x.data(), qdd.data());
@@ -220,7 +253,7 @@ TEST(FdCheck, ExternalWrenchesAndArmature) {
     const int n = m.nv();
     Data d(m);
     std::mt19937_64 g(37);
-    const State s = random_state(n, g);
+    const State s = random_state(m, g);
     const auto fext = test::random_wrenches<double>(g, n, 2.0);
     const auto arm = test::random_vector(g, n, 0.0, 0.5);
     std::vector<double> qdd(n);
@@ -240,7 +273,7 @@ TEST(FdCheck, ZeroTorqueRows) {
     const int n = c.model.nv();
     Data d(c.model);
     std::mt19937_64 g(41);
-    const State s = random_state(n, g);
+    const State s = random_state(c.model, g);
     const std::vector<double> zero(n, 0.0);
     std::vector<double> qdd(n);
     for (const std::vector<double>* qd : {&s.qd, &zero}) {

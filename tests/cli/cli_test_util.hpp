@@ -62,8 +62,11 @@ class CliDirTest : public ::testing::Test {
   fs::path path(const std::string& name) const { return dir_ / name; }
 
   // Runs `env scandyn args` in the test directory (env: variable assignments or "").
-  Result run(const std::string& args, const std::string& env = "") const {
-    const std::string cmd = "cd " + quote(dir_.string()) + " && " + env + " " + quote(cli_path()) + " " + args +
+  Result run(const std::string& args, const std::string& env = "") const { return run_program(cli_path(), args, env); }
+
+  // Runs `env program args` in the test directory, its output captured.
+  Result run_program(const std::string& program, const std::string& args, const std::string& env = "") const {
+    const std::string cmd = "cd " + quote(dir_.string()) + " && " + env + " " + quote(program) + " " + args +
                             " >" + quote(path(".stdout").string()) + " 2>" + quote(path(".stderr").string());
     const int status = std::system(cmd.c_str());
     Result r;

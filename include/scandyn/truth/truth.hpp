@@ -16,6 +16,7 @@
 #include <limits>
 #include <vector>
 
+#include "scandyn/algorithm/configuration.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/truth/float128.hpp"
 
@@ -48,8 +49,17 @@ ModelTpl<T> truth_model(const Model& model) {
   return m;
 }
 
-// The reference algorithms in T (long double or float128) on double inputs, each
-// array nv long (fext: nv body wrenches, or null), results in T.
+// The reference algorithms in T (long double or float128) on double inputs: q has
+// nq entries, qd, qdd and tau nv (nq = nv + the quaternions' extra entries for a
+// floating base or spherical joints: scandyn/model/model.hpp), fext nbodies body
+// wrenches or null; results in T. Models with multi-DoF joints run the reference's
+// general path (rnea_at, crba_at, aba_at) in T.
+//
+// Quaternions: a double unit quaternion is unit only to about 1e-16, and the joint
+// transform (quat_to_matrix) assumes a unit one, so (as for the model's rotations
+// above) each quaternion of q is normalised again in T before use: the truth solves
+// the problem at the exactly unit quaternion nearest the double one, which differs
+// from the double input by its rounding (a relative 1e-16).
 template <class T>
 class Truth {
  public:
@@ -57,57 +67,63 @@ class Truth {
   explicit Truth(const Model& model, bool mass_matrix = true)
       : model_(truth_model<T>(model)), data_(model_, mass_matrix) {
     const std::size_t n = static_cast<std::size_t>(model_.nv());
-    a_.resize(n);
+    q_.resize(static_cast<std::size_t>(model_.nq()));
     b_.resize(n);
     c_.resize(n);
   }
   const ModelTpl<T>& model() const { return model_; }
   Index nv() const { return model_.nv(); }
+  Index nq() const { return model_.nq(); }
+  // q (nq) in T as the last call used it: the double q widened, quaternions
+  // normalised in T (what the truth's results are the exact dynamics of)
+  const std::vector<T>& q() const { return q_; }
 
   // tau = RNEA(q, qd, qdd)
   void id(const double* q, const double* qd, const double* qdd, T* tau, const Force<double>* fext = nullptr) {
     widen(q, qd, qdd, fext);
-    rnea(model_, data_, a_.data(), b_.data(), c_.data(), tau, fext ? f_.data() : nullptr);
+    rnea(model_, data_, q_.data(), b_.data(), c_.data(), tau, fext ? f_.data() : nullptr);
   }
   // h = RNEA(q, qd, 0)
   void bias(const double* q, const double* qd, T* h, const Force<double>* fext = nullptr) {
     widen(q, qd, nullptr, fext);
-    bias_forces(model_, data_, a_.data(), b_.data(), h, fext ? f_.data() : nullptr);
+    bias_forces(model_, data_, q_.data(), b_.data(), h, fext ? f_.data() : nullptr);
   }
   // M(q), nv x nv row-major
   void mass(const double* q, T* M) {
     widen(q, nullptr, nullptr, nullptr);
-    crba(model_, data_, a_.data(), M);
+    crba(model_, data_, q_.data(), M);
   }
   // qdd = FD(q, qd, tau) by ABA (the truth of every forward dynamics)
   Status fd(const double* q, const double* qd, const double* tau, T* qdd, const Force<double>* fext = nullptr) {
     widen(q, qd, tau, fext);
-    return aba(model_, data_, a_.data(), b_.data(), c_.data(), qdd, fext ? f_.data() : nullptr);
+    return aba(model_, data_, q_.data(), b_.data(), c_.data(), qdd, fext ? f_.data() : nullptr);
   }
   // qdd = FD(q, qd, tau) by CRBA + L^T L (a second route, for the tests)
   Status fd_jsi(const double* q, const double* qd, const double* tau, T* qdd, const Force<double>* fext = nullptr) {
     widen(q, qd, tau, fext);
-    return scandyn::fd_jsi(model_, data_, a_.data(), b_.data(), c_.data(), qdd, fext ? f_.data() : nullptr);
+    return scandyn::fd_jsi(model_, data_, q_.data(), b_.data(), c_.data(), qdd, fext ? f_.data() : nullptr);
   }
 
  private:
-  void widen(const double* x, const double* y, const double* z, const Force<double>* fext) {
-    const std::size_t n = a_.size();
-    for (std::size_t i = 0; i < n; ++i) {
-      a_[i] = T(x[i]);
+  void widen(const double* q, const double* y, const double* z, const Force<double>* fext) {
+    for (std::size_t i = 0; i < q_.size(); ++i) q_[i] = T(q[i]);
+    normalize_configuration(model_, q_.data());  // quaternions unit in T
+    for (std::size_t i = 0; i < b_.size(); ++i) {
       if (y) b_[i] = T(y[i]);
       if (z) c_[i] = T(z[i]);
     }
     if (fext) {
-      f_.resize(n);
-      for (std::size_t i = 0; i < n; ++i) f_[i] = fext[i].template cast<T>();
+      const std::size_t nb = static_cast<std::size_t>(model_.nbodies());
+      f_.resize(nb);
+      for (std::size_t i = 0; i < nb; ++i) f_[i] = fext[i].template cast<T>();
     }
   }
 
   ModelTpl<T> model_;
   DataTpl<T> data_;
-  std::vector<T> a_, b_, c_;   // (nv) inputs in T
-  std::vector<Force<T>> f_;    // (nv) external wrenches in T
+  std::vector<T> q_;           // (nq) positions in T
+  std::vector<T> b_, c_;       // (nv) the other inputs in T
+  std::vector<Force<T>> f_;    // (nbodies) external wrenches in T
 };
 
 // scandyn::rel_err against a truth in T: max_i |x_i - ref_i| / max(1, max_i |ref_i|),
