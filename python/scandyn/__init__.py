@@ -55,6 +55,7 @@ from ._api import (  # noqa: E402
 )
 from .simulator import Simulator  # noqa: E402
 from .kinematics import Kinematics, frame_jacobians, frame_placements  # noqa: E402
+from .hybrid import HybridDynamics, hybrid_dynamics  # noqa: E402
 from .errors import (  # noqa: E402
     BackendError,
     DeviceError,
@@ -93,4 +94,5 @@ __all__ = [
     "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
     "SceneError", "SimulationError", "Simulator",
+    "HybridDynamics", "hybrid_dynamics",
 ]
