@@ -56,12 +56,15 @@ from ._api import (  # noqa: E402
 from .simulator import Simulator  # noqa: E402
 from .kinematics import Kinematics, frame_jacobians, frame_placements  # noqa: E402
 from .hybrid import HybridDynamics, hybrid_dynamics  # noqa: E402
+from .loops import (ConstrainedForwardDynamics, Loops, constrained_forward_dynamics, generator_loops,  # noqa: E402
+                    load_loops, loop_residual, parse_loops)
 from .errors import (  # noqa: E402
     BackendError,
     DeviceError,
     DTypeError,
     Error,
     ForwardDynamicsError,
+    LoopError,
     ModelError,
     SceneError,
     ShapeError,
@@ -95,4 +98,6 @@ __all__ = [
     "load_model", "mass_matrix", "models",
     "SceneError", "SimulationError", "Simulator",
     "HybridDynamics", "hybrid_dynamics",
+    "ConstrainedForwardDynamics", "LoopError", "Loops", "constrained_forward_dynamics", "generator_loops",
+    "load_loops", "loop_residual", "parse_loops",
 ]
