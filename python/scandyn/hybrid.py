@@ -11,9 +11,7 @@ CPU backends to the reference's rnea / aba orders of operations: docs/hybrid.md)
 import numpy as np
 
 from . import _scandyn as _ext
-from ._api import (ForwardDynamics, _EngineBase, _cached, _check_out, _empty, _handover, _inputs, _lead_of, _where,
-                   _writable, _DIRECT_OUT, _reraise, _finish)
-from .errors import ForwardDynamicsError
+from ._api import ForwardDynamics, _EngineBase, _cached, _check_out, _empty, _inputs, _writable, _DIRECT_OUT, _reraise
 
 
 def _mask(model, prescribed):
@@ -67,7 +65,10 @@ class HybridDynamics(_EngineBase):
     method = "aba"  # the pivots that can fail are the articulated-body algorithm's (status messages)
 
     # the CUDA calls' failed-DoF buffers and their check: ForwardDynamics' own
+    _what = "hybrid dynamics"
     _failed_buffer = ForwardDynamics._failed_buffer
+    _failed_of = ForwardDynamics._failed_of
+    _settle = ForwardDynamics._settle
     check = ForwardDynamics.check
 
     def __call__(self, q, qd, qdd, tau, fext=None, qdd_out=None, tau_out=None, stream=None, failed_dof=None,
@@ -79,30 +80,12 @@ class HybridDynamics(_EngineBase):
             _check_out(tau_out)
         hand = _DIRECT_OUT.get(type(tau_out))
         wt = hand(tau_out) if hand is not None else _writable(tau_out, where)
-        failed = fd = None
-        if where.cuda is not None:
-            if failed_dof is not None:
-                failed = failed_dof
-            else:
-                lead = where.like.shape[:-1]
-                failed = self._failed_buffer(where, lead[0] if len(lead) == 1 else 1)
-            hand = _DIRECT_OUT.get(type(failed))
-            fd = hand(failed) if hand is not None else _writable(failed, where)
+        failed, fd = self._failed_of(where, failed_dof)
         try:
             status = self._e.compute(q, qd, qdd, tau, wq, wt, fext, fd, where.stream or 0)
         except TypeError as e:
             _reraise(e)
-        if status.queued:
-            self.failed_dof = failed
-            self._pending = (failed, where.stream)
-            self.last_status = None
-            if check or where.kind == "jax":
-                _finish(where)
-                self.check()
-            return qdd_out, tau_out
-        self.last_status = status
-        if not status.ok:
-            raise ForwardDynamicsError(f"hybrid dynamics failed: {status.message}", status)
+        self._settle(status, where, failed, check)
         return qdd_out, tau_out
 
 

@@ -20,7 +20,6 @@ import numpy as np
 from . import _scandyn as _ext
 from ._api import (ForwardDynamics, Model, _EngineBase, _cached, _call, _check_out, _empty, _finish, _handover,
                    _inputs, _lead_of, _where, _writable, _DIRECT_OUT, _reraise)
-from .errors import ForwardDynamicsError
 
 
 class Loops:
@@ -101,7 +100,10 @@ class ConstrainedForwardDynamics(_EngineBase):
     method = "jsi"  # what fails is a pivot of the mass matrix's factor (status messages)
 
     # the CUDA calls' failed-DoF buffers and their check: ForwardDynamics' own
+    _what = "closed-loop forward dynamics"
     _failed_buffer = ForwardDynamics._failed_buffer
+    _failed_of = ForwardDynamics._failed_of
+    _settle = ForwardDynamics._settle
     check = ForwardDynamics.check
 
     def _out(self, where, given, width):
@@ -116,30 +118,12 @@ class ConstrainedForwardDynamics(_EngineBase):
         lambda_out = self._out(where, lambda_out, self.rows)
         hand = _DIRECT_OUT.get(type(lambda_out))
         wl = hand(lambda_out) if hand is not None else _writable(lambda_out, where)
-        failed = fd = None
-        if where.cuda is not None:
-            if failed_dof is not None:
-                failed = failed_dof
-            else:
-                lead = where.like.shape[:-1]
-                failed = self._failed_buffer(where, lead[0] if len(lead) == 1 else 1)
-            hand = _DIRECT_OUT.get(type(failed))
-            fd = hand(failed) if hand is not None else _writable(failed, where)
+        failed, fd = self._failed_of(where, failed_dof)
         try:
             status = self._e.compute(q, qd, tau, wq, wl, fext, fd, where.stream or 0)
         except TypeError as e:
             _reraise(e)
-        if status.queued:
-            self.failed_dof = failed
-            self._pending = (failed, where.stream)
-            self.last_status = None
-            if check or where.kind == "jax":
-                _finish(where)
-                self.check()
-            return qdd_out, lambda_out
-        self.last_status = status
-        if not status.ok:
-            raise ForwardDynamicsError(f"closed-loop forward dynamics failed: {status.message}", status)
+        self._settle(status, where, failed, check)
         return qdd_out, lambda_out
 
     def residual(self, q, qd, phi=True, velocity=True, stream=None):

@@ -16,32 +16,16 @@
 #include "scandyn/algorithm/loops.hpp"
 #include "scandyn/cuda/constrained_dynamics.hpp"
 #include "scandyn/model/load.hpp"
+#include "loop_cases.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
 
 namespace {
 
-struct Case {
-  std::string spec;
-  Model model;
-  LoopSet loops;
-};
+using Case = test::LoopCase;
 
-std::vector<Case> cases() {
-  std::vector<Case> v;
-  for (const char* s : {"fivebar", "fourbar"}) {
-    Model m = load_model(s);
-    LoopSet l = generator_loops(s, m);
-    v.push_back({s, std::move(m), std::move(l)});
-  }
-  Case w{"fivebar+weld", load_model("fivebar"), {}};
-  w.loops = generator_loops("fivebar", w.model);
-  w.loops.loops[0].type = LoopType::Weld;
-  w.loops.loops[0].point_b = w.loops.loops[0].point_a;
-  v.push_back(std::move(w));
-  return v;
-}
+std::vector<Case> cases() { return test::loop_cases({"fivebar", "fourbar", "fivebar+weld"}); }
 
 template <class S>
 void check_case(const Case& c) {
@@ -51,12 +35,7 @@ void check_case(const Case& c) {
   std::vector<S> q(B * n), qd(B * n), tau(B * n);
   for (Index b = 0; b < B; ++b) {
     std::vector<double> qb, qdb;
-    double r = 1;
-    for (int attempt = 0; attempt < 50 && r > 1e-12; ++attempt) {
-      qb = test::random_vector(g, n, -0.2, 0.2), qdb = test::random_vector(g, n, -1, 1);
-      r = project_to_loops(c.model, c.loops, qb.data(), qdb.data());
-    }
-    ASSERT_LE(r, 1e-12);
+    ASSERT_LE(test::closed_state(c, g, qb, qdb), 1e-12);
     const auto tb = test::random_vector(g, n, -1, 1);
     for (Index i = 0; i < n; ++i) q[b * n + i] = S(qb[i]), qd[b * n + i] = S(qdb[i]), tau[b * n + i] = S(tb[i]);
   }

@@ -17,31 +17,17 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "loop_cases.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
 
 namespace {
 
-struct Case {
-  std::string spec;
-  Model model;
-  LoopSet loops;
-};
+using Case = test::LoopCase;
 
 std::vector<Case> cases() {
-  std::vector<Case> v;
-  for (const char* s : {"fourbar", "fivebar", "cloth:3:4", "cloth:4:6"}) {
-    Model m = load_model(s);
-    LoopSet l = generator_loops(s, m);
-    v.push_back({s, std::move(m), std::move(l)});
-  }
-  Case w{"fivebar+weld", load_model("fivebar"), {}};
-  w.loops = generator_loops("fivebar", w.model);
-  w.loops.loops[0].type = LoopType::Weld;
-  w.loops.loops[0].point_b = w.loops.loops[0].point_a;
-  v.push_back(std::move(w));
-  return v;
+  return test::loop_cases({"fourbar", "fivebar", "cloth:3:4", "cloth:4:6", "fivebar+weld"});
 }
 
 // B random closed states (projected onto the loops), instance-major (B x nv) each.
@@ -50,15 +36,8 @@ void closed_states(const Case& c, Index B, std::mt19937_64& g, std::vector<doubl
   const Index n = c.model.nv();
   q.assign(B * n, 0), qd.assign(B * n, 0), tau.assign(B * n, 0);
   for (Index b = 0; b < B; ++b) {
-    // a draw whose Gauss-Newton projection converges (the weld-closed five-bar is a rigid
-    // structure: some draws lead elsewhere)
     std::vector<double> qb, qdb;
-    double r = 1;
-    for (int attempt = 0; attempt < 50 && r > 1e-12; ++attempt) {
-      qb = test::random_vector(g, n, -0.2, 0.2), qdb = test::random_vector(g, n, -1, 1);
-      r = project_to_loops(c.model, c.loops, qb.data(), qdb.data());
-    }
-    ASSERT_LE(r, 1e-12);
+    ASSERT_LE(test::closed_state(c, g, qb, qdb), 1e-12);
     auto tb = test::random_vector(g, n, -1, 1);
     std::copy(qb.begin(), qb.end(), q.begin() + b * n);
     std::copy(qdb.begin(), qdb.end(), qd.begin() + b * n);
