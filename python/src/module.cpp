@@ -646,8 +646,7 @@ NB_MODULE(_scandyn, m) {
   nb::class_<PyLoops>(m, "Loops")
       .def_prop_ro("rows", [](const PyLoops& l) { return l.loops.rows(); })
       .def("__len__", [](const PyLoops& l) { return l.loops.loops.size(); })
-      .def_prop_ro("json", [](const PyLoops& l) { return loops_json(l.loops); })
-      .def("same_model", [](const PyLoops& l, const std::shared_ptr<PyModel>& md) { return l.model == md; });
+      .def_prop_ro("json", [](const PyLoops& l) { return loops_json(l.loops); });
   m.def("load_loops", [](std::shared_ptr<PyModel> model, const std::string& path) {
     return PyLoops{model, load_loops(path, model->md)};
   }, "model"_a, "path"_a);
@@ -657,7 +656,6 @@ NB_MODULE(_scandyn, m) {
   m.def("generator_loops", [](std::shared_ptr<PyModel> model) {
     return PyLoops{model, generator_loops(model->md.source, model->md)};
   }, "model"_a);
-  m.def("generator_has_loops", &generator_has_loops, "spec"_a);
 
   nb::class_<PyConstrained> cfd(m, "ConstrainedForwardDynamics");
   cfd.def("__init__",
