@@ -184,6 +184,24 @@ double time_calls(double min_time, F&& calls) {
   return elapsed / static_cast<double>(done);
 }
 
+// A device-resident batch's row: a warm-up call, then rounds of queued calls, each
+// round waited for; check_status sees the warm-up's and the last call's status; the
+// last call's results are read into out (max_rel_err is the caller's).
+template <class S, class Check>
+Timing time_resident(ResidentBatch<S>& r, double min_time, Check&& check_status, S* out) {
+  r.launch();
+  check_status(r.status());
+  Timing t;
+  t.strategy = r.strategy();
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+    for (std::size_t k = 0; k < n; ++k) r.launch();
+    r.wait();
+  });
+  check_status(r.status());
+  r.read(out);
+  return t;
+}
+
 // Times algo on the batch: a row for the engine's run() on host memory and,
 // first, one for the batch in the backend's own memory when it has one (CUDA;
 // resident() is null otherwise). A forward dynamics that fails is an error in
@@ -211,17 +229,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
   std::vector<Timing> rows;
 
   if (std::unique_ptr<ResidentBatch<S>> resident = engine.resident(in)) {
-    // warm-up call, then rounds of queued calls, each round waited for
-    resident->launch();
-    check_fd(resident->status());
-    Timing t;
-    t.strategy = resident->strategy();
-    t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
-      for (std::size_t k = 0; k < n; ++k) resident->launch();
-      resident->wait();
-    });
-    check_fd(resident->status());
-    resident->read(out.data());
+    Timing t = time_resident(*resident, min_time, check_fd, out.data());
     check_finite_outputs(algo, model.nv(), out, count, "device-resident");
     t.max_rel_err = error();
     rows.push_back(t);
@@ -563,17 +571,7 @@ std::vector<Timing> time_loops(const Model& model, const LoopSet& loops, Backend
 #if SCANDYN_HAS_CUDA
   if (engine->backend() == BackendKind::Cuda) {
     std::unique_ptr<ResidentBatch<S>> r = make_resident_loops(*engine, n, q.data(), qd.data(), tau.data(), count);
-    r->launch();
-    r->wait();
-    fail(r->status());
-    Timing t;
-    t.strategy = engine->strategy();
-    t.seconds_per_call = time_calls(min_time, [&](std::size_t calls) {
-      for (std::size_t k = 0; k < calls; ++k) r->launch();
-      r->wait();
-    });
-    fail(r->status());
-    r->read(out.data());
+    Timing t = time_resident(*r, min_time, fail, out.data());
     t.max_rel_err = error();
     rows.push_back(t);
   }
