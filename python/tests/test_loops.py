@@ -1,7 +1,7 @@
 """Closed kinematic loops from Python (scandyn.Loops, ConstrainedForwardDynamics,
 constrained_forward_dynamics, loop_residual): loop sets from generators, files, text
 and dicts; the constrained forward dynamics against `scandyn eval` on the same closed
-states (the Eigen reference there), the equations M qdd + h = tau + J^T lambda and
+states (the Eigen reference there) and against Pinocchio's constraintDynamics, the equations M qdd + h = tau + J^T lambda and
 J qdd + Jdot qd = 0 (J and Jdot qd from the residual: its velocity at unit rates and
 its central difference along qd), float32 within float tolerance, CUDA arrays against
 the host engine, and the errors.
@@ -182,3 +182,32 @@ def test_constrained_cuda_arrays(spec, dtype):
     phi, v = e.residual(torch.from_numpy(q).cuda(), torch.from_numpy(qd).cuda())
     torch.cuda.synchronize()
     assert float(phi.abs().max()) < (1e-12 if dtype == np.float64 else 1e-5)
+
+
+@pytest.mark.parametrize("spec", ["fivebar", "fourbar"])
+@pytest.mark.parametrize("backend", ["serial", "openmp"])
+def test_constrained_against_pinocchio(spec, backend):
+    """qdd against Pinocchio's constraintDynamics (CONTACT_3D between the loop's two points)
+    on the models re-described in Pinocchio by scripts/check_loops_pinocchio.py, on its
+    random closed states: an independent library, 1e-9 relative."""
+    pytest.importorskip("pinocchio")
+    if sd.backend_unusable(backend):
+        pytest.skip(sd.backend_unusable(backend))
+    import importlib.util
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    where = os.path.join(root, "scripts", "check_loops_pinocchio.py")
+    mod_spec = importlib.util.spec_from_file_location("check_loops_pinocchio", where)
+    clp = importlib.util.module_from_spec(mod_spec)
+    mod_spec.loader.exec_module(clp)
+    pm, loop = clp.build(spec)
+    rng = np.random.default_rng(5)
+    rows = [clp.closed_state(spec, pm, loop, rng) for _ in range(8)]
+    q = np.stack([r[0] for r in rows])
+    qd = np.stack([r[1] for r in rows])
+    tau = rng.uniform(-1, 1, q.shape)
+    ref = np.stack([clp.pinocchio_fd(pm, loop, q[b], qd[b], tau[b]) for b in range(len(rows))])
+    m = sd.load_model(spec)
+    qdd, _ = sd.constrained_forward_dynamics(m, sd.generator_loops(m), q, qd, tau, backend=backend)
+    np.testing.assert_allclose(qdd, ref, rtol=0, atol=1e-9 * max(1.0, np.abs(ref).max()))

@@ -158,16 +158,14 @@ template <class S>
 std::unique_ptr<ResidentBatch<S>> make_resident_loops(ConstrainedForwardDynamics<S>& engine, Index nv, const S* q,
                                                       const S* qd, const S* tau, std::size_t count) {
   auto& e = dynamic_cast<cuda::CudaConstrainedForwardDynamics<S>&>(engine);
-  const Index m = e.rows();
   return std::make_unique<CudaResidentBatch<S>>(
       e.strategy(), "the closed-loop forward dynamics", nv, std::vector<const S*>{q, qd, tau}, count,
-      static_cast<std::size_t>(nv + m), std::size_t(0),
-      [&e, nv, m](const cuda::DeviceBatch<S>& d) {
+      static_cast<std::size_t>(nv + e.rows()), std::size_t(0),
+      [&e, nv](const cuda::DeviceBatch<S>& d) {
         // the output (nv + m x B, structure-of-arrays): qdd's rows, then lambda's
         const BatchView<S> out = d.output();
         const BatchView<S> qdd{out.data, out.batch, out.dof_stride, out.batch_stride};
         const BatchView<S> lambda{out.data + nv * out.dof_stride, out.batch, out.dof_stride, out.batch_stride};
-        (void)m;
         return e.compute_async({d.input(0), d.input(1), d.input(2), nullptr}, qdd, lambda, d.failed_dof(),
                                d.stream());
       },
