@@ -227,7 +227,10 @@ class HybridDynamics : public Engine {
 };
 
 // The hybrid-dynamics engine of options.backend (serial and openmp: the reference
-// hybrid_dynamics per instance; cuda: one thread per instance up to
+// hybrid_dynamics per instance, or for long unbranched chains, where
+// choose_fd_method picks Parallel or options.fd_method is Parallel, the parallel chain
+// hybrid dynamics (scandyn/algorithm/chain_hybrid.hpp); fd_method Aba keeps the
+// recursion, other methods are a BackendError; cuda: one thread per instance up to
 // cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
 // factories, and for a prescribed mask whose size is not nv.
 // Throws BackendError naming `what` ("hybrid dynamics", ...) and the model's first
