@@ -33,5 +33,10 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& options);
 
+template <class S>
+std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(const ModelTpl<S>& model,
+                                                                                 const LoopSet& loops,
+                                                                                 const BackendOptions& options);
+
 }  // namespace cpu
 }  // namespace scandyn

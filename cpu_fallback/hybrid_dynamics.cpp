@@ -1,10 +1,14 @@
 // cpu_fallback/hybrid_dynamics.cpp: the serial and OpenMP hybrid dynamics: the
 // reference hybrid_dynamics (Featherstone 2008, 9.2) per instance, threads over
-// instances (instance_loop.hpp); bit-identical to the reference.
+// instances (instance_loop.hpp), bit-identical to the reference ("recursion"); and
+// for long unbranched chains the parallel chain hybrid dynamics ("parallel":
+// ChainHybridDynamics, scans over links, scandyn/algorithm/chain_hybrid.hpp), chosen
+// as forward dynamics' parallel method is (choose_fd_method), or by fd_method.
 #include <vector>
 
 #include "cpu_engines.hpp"
 #include "instance_loop.hpp"
+#include "scandyn/algorithm/chain_hybrid.hpp"
 #include "scandyn/algorithm/reference.hpp"
 
 namespace scandyn {
@@ -62,12 +66,49 @@ class CpuHybridDynamics final : public HybridDynamics<S> {
   RowScratch<S> rows_;            // per thread: q, qd, qdd in, tau in, qdd out, tau out of one instance
 };
 
+// The parallel chain hybrid dynamics on the engine API.
+template <class S>
+class CpuChainHybridDynamics final : public HybridDynamics<S> {
+ public:
+  CpuChainHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed,
+                         const BackendOptions& o)
+      : prescribed_(prescribed), kind_(o.backend), max_batch_(o.max_batch),
+        chain_(model, prescribed, std::max<Index>(o.max_batch, 1), engine_threads(o)) {
+    failed_.assign(static_cast<std::size_t>(std::max<Index>(max_batch_, 1)), -1);
+  }
+
+  BatchStatus compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau) override {
+    check_batch(in, qdd, tau, max_batch_);
+    chain_.compute(in, qdd, tau, failed_.data());
+    return summarize_failures(failed_.data(), in.q.batch, Failure::ArticulatedPivot);
+  }
+
+  const std::vector<unsigned char>& prescribed() const override { return prescribed_; }
+  std::string strategy() const override { return "parallel"; }
+  BackendKind backend() const override { return kind_; }
+
+ private:
+  std::vector<unsigned char> prescribed_;
+  BackendKind kind_;
+  Index max_batch_;
+  ChainHybridDynamics<S> chain_;
+  std::vector<int> failed_;  // (max_batch) first failed link per instance, -1: none
+};
+
 }  // namespace
 
 template <class S>
 std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& o) {
+  // fd_method: Auto (the parallel chain where forward dynamics would take it), Aba (the
+  // recursion), Parallel (the chain scans; BackendError for a model that is not chains)
+  if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba && o.fd_method != FdMethod::Parallel)
+    throw BackendError(std::string("hybrid dynamics: method '") + to_string(o.fd_method) +
+                       "' is not offered (auto, aba or parallel)");
+  const bool parallel = o.fd_method == FdMethod::Parallel ||
+                        (o.fd_method == FdMethod::Auto && choose_fd_method(o.backend, model) == FdMethod::Parallel);
+  if (parallel) return std::make_unique<CpuChainHybridDynamics<S>>(model, prescribed, o);
   return std::make_unique<CpuHybridDynamics<S>>(model, prescribed, o);
 }
 template std::unique_ptr<HybridDynamics<float>> make_hybrid_dynamics(const ModelTpl<float>&,

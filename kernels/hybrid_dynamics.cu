@@ -87,6 +87,7 @@ CudaHybridDynamics<S>::CudaHybridDynamics(const ModelTpl<S>& model, const std::v
       12 * static_cast<std::size_t>(nv_) * sizeof(S) + sizeof(int));
   thread_ = std::make_unique<ThreadModel<S>>(model);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
+  device_ = staging_->device();
 }
 
 template <class S>

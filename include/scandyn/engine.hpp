@@ -227,7 +227,10 @@ class HybridDynamics : public Engine {
 };
 
 // The hybrid-dynamics engine of options.backend (serial and openmp: the reference
-// hybrid_dynamics per instance; cuda: one thread per instance up to
+// hybrid_dynamics per instance, or for long unbranched chains, where
+// choose_fd_method picks Parallel or options.fd_method is Parallel, the parallel chain
+// hybrid dynamics (scandyn/algorithm/chain_hybrid.hpp); fd_method Aba keeps the
+// recursion, other methods are a BackendError; cuda: one thread per instance up to
 // cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
 // factories, and for a prescribed mask whose size is not nv.
 // Throws BackendError naming `what` ("hybrid dynamics", ...) and the model's first
@@ -366,5 +369,40 @@ template <class S>
 void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch);
 template <class S>
 void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch);
+
+// ---- closed kinematic loops (scandyn/algorithm/loops.hpp, loop_solver.hpp) ---------
+
+struct LoopSet;
+
+// Forward dynamics of a tree closed by loops: for every instance qdd (nv) and lambda
+// (m = loops.rows()) with M qdd + h = tau + J^T lambda and J qdd + Jdot qd = 0,
+// gravity included, exactly (no stabilisation), lambda of minimum norm (redundant
+// loop rows are normal: the rank-revealing solve of loop_solver.hpp, one source on
+// every backend). The loops are the engine's, fixed at construction.
+template <class S>
+class ConstrainedForwardDynamics : public Engine {
+ public:
+  // qdd (nv x B), lambda (m x B). An instance whose mass matrix is not positive
+  // definite is reported (Failure::MassMatrixPivot, its DoF) and its outputs left
+  // unwritten.
+  virtual BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& lambda) = 0;
+  // The loop-closure residual of every instance: phi (m x B), the position residual
+  // (point loops: point a - point b in base coordinates; welds: 3 rotation rows first),
+  // and velocity (m x B), J qd. A view with null data is not computed.
+  virtual void residual(const BatchView<const S>& q, const BatchView<const S>& qd, const BatchView<S>& phi,
+                        const BatchView<S>& velocity) = 0;
+  virtual Index rows() const = 0;  // m: constraint rows (3 per point loop, 6 per weld)
+};
+
+// Serial and OpenMP: any size (dense per instance, O(nv^3 + m^3)); cuda: one thread
+// per instance for small loop systems (scandyn/cuda/constrained_dynamics.hpp).
+// The loops must outlive the engine's construction only (they are copied). Throws
+// BackendError as the other factories, and for a model with multi-DoF joints.
+template <class S>
+std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(const ModelTpl<S>& model,
+                                                                                 const LoopSet& loops,
+                                                                                 const BackendOptions& options);
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& lambda, Index max_batch);
 
 }  // namespace scandyn

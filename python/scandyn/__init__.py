@@ -55,12 +55,16 @@ from ._api import (  # noqa: E402
 )
 from .simulator import Simulator  # noqa: E402
 from .kinematics import Kinematics, frame_jacobians, frame_placements  # noqa: E402
+from .hybrid import HybridDynamics, hybrid_dynamics  # noqa: E402
+from .loops import (ConstrainedForwardDynamics, Loops, constrained_forward_dynamics, generator_loops,  # noqa: E402
+                    load_loops, loop_residual, parse_loops)
 from .errors import (  # noqa: E402
     BackendError,
     DeviceError,
     DTypeError,
     Error,
     ForwardDynamicsError,
+    LoopError,
     ModelError,
     SceneError,
     ShapeError,
@@ -93,4 +97,7 @@ __all__ = [
     "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
     "SceneError", "SimulationError", "Simulator",
+    "HybridDynamics", "hybrid_dynamics",
+    "ConstrainedForwardDynamics", "LoopError", "Loops", "constrained_forward_dynamics", "generator_loops",
+    "load_loops", "loop_residual", "parse_loops",
 ]

@@ -641,21 +641,23 @@ class ForwardDynamics(_EngineBase):
         self._failed_buffers = kept
         return view
 
-    def __call__(self, q, qd, tau, fext=None, out=None, stream=None, failed_dof=None, check=False):
-        where, (q, qd, tau, fext), out, w = self._prepare((q, qd, tau, fext), out, stream)
-        failed = fd = None
-        if where.cuda is not None:
-            if failed_dof is not None:
-                failed = failed_dof
-            else:
-                lead = where.like.shape[:-1]  # (B,) or () (the extension checks q's shape)
-                failed = self._failed_buffer(where, lead[0] if len(lead) == 1 else 1)
-            hand = _DIRECT_OUT.get(type(failed))
-            fd = hand(failed) if hand is not None else _writable(failed, where)
-        try:
-            status = self._e.compute(q, qd, tau, w, fext, fd, where.stream or 0)
-        except TypeError as e:
-            _reraise(e)
+    _what = "forward dynamics"  # the computation, as the errors name it
+
+    def _failed_of(self, where, failed_dof):
+        """CUDA calls: the (B,) int32 failed-DoF array (the caller's failed_dof, else the
+        engine's own) and its handover to the extension; (None, None) on the host."""
+        if where.cuda is None:
+            return None, None
+        failed = failed_dof
+        if failed is None:
+            lead = where.like.shape[:-1]  # (B,) or () (the extension checks q's shape)
+            failed = self._failed_buffer(where, lead[0] if len(lead) == 1 else 1)
+        hand = _DIRECT_OUT.get(type(failed))
+        return failed, (hand(failed) if hand is not None else _writable(failed, where))
+
+    def _settle(self, status, where, failed, check):
+        """After a call: a queued CUDA call keeps its failed DoFs for check() (run at once
+        with check=True, and for JAX); a host call's failure raises ForwardDynamicsError."""
         if status.queued:
             self.failed_dof = failed
             self._pending = (failed, where.stream)
@@ -663,10 +665,19 @@ class ForwardDynamics(_EngineBase):
             if check or where.kind == "jax":
                 _finish(where)
                 self.check()
-            return out
+            return
         self.last_status = status
         if not status.ok:
-            raise ForwardDynamicsError(f"forward dynamics failed: {status.message}", status)
+            raise ForwardDynamicsError(f"{self._what} failed: {status.message}", status)
+
+    def __call__(self, q, qd, tau, fext=None, out=None, stream=None, failed_dof=None, check=False):
+        where, (q, qd, tau, fext), out, w = self._prepare((q, qd, tau, fext), out, stream)
+        failed, fd = self._failed_of(where, failed_dof)
+        try:
+            status = self._e.compute(q, qd, tau, w, fext, fd, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check)
         return out
 
     def check(self):
@@ -689,7 +700,7 @@ class ForwardDynamics(_EngineBase):
         status = _ext.status_of_failed_dofs(np.ascontiguousarray(host, dtype=np.int32), self.method)
         self.last_status = status
         if not status.ok:
-            raise ForwardDynamicsError(f"forward dynamics failed: {status.message}", status)
+            raise ForwardDynamicsError(f"{self._what} failed: {status.message}", status)
         return status
 
 

@@ -56,3 +56,9 @@ class SimulationError(Error, RuntimeError):
     non-finite (kept as computed). The message is the library's (sim::failure_message), e.g.
     "after step 2 (t = 0.002 s): the state became non-finite in 1 instance-step, first in instance 0:
     the state at DoF 0 is not finite after the step"."""
+
+
+class LoopError(Error, ValueError):
+    """A loop file or loop set that cannot be used (scandyn.load_loops, scandyn.parse_loops):
+    JSON that is not the schema, an unknown link, a loop between a link and itself, loops
+    made for another model. The message names the file (or "<text>"), the loop and the key."""

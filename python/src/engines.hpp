@@ -27,6 +27,8 @@
 #include <cuda_runtime_api.h>
 
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/hybrid_dynamics.hpp"
+#include "scandyn/cuda/constrained_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
@@ -97,6 +99,12 @@ template <class S>
 cuda::CudaForwardDynamics<S>* as_cuda(ForwardDynamics<S>* e) { return dynamic_cast<cuda::CudaForwardDynamics<S>*>(e); }
 template <class S>
 cuda::CudaKinematics<S>* as_cuda(Kinematics<S>* e) { return dynamic_cast<cuda::CudaKinematics<S>*>(e); }
+template <class S>
+cuda::CudaHybridDynamics<S>* as_cuda(HybridDynamics<S>* e) { return dynamic_cast<cuda::CudaHybridDynamics<S>*>(e); }
+template <class S>
+cuda::CudaConstrainedForwardDynamics<S>* as_cuda(ConstrainedForwardDynamics<S>* e) {
+  return dynamic_cast<cuda::CudaConstrainedForwardDynamics<S>*>(e);
+}
 template <class E>
 int device_of(const E& e) { return e.device(); }
 template <class S>

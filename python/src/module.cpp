@@ -36,6 +36,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -44,6 +45,7 @@
 #include "arrays.hpp"
 #include "engines.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/algorithm/loops.hpp"
 #include "shared.hpp"
 
 namespace nb = nanobind;
@@ -249,6 +251,22 @@ CallStatus status_of_failed_dofs(const nb::ndarray<const int, nb::ndim<1>, nb::c
   return call_status(summarize_failures(failed.data(), B, pivot_failure(parse_fd_method(method))), B);
 }
 
+// The failed-DoF array of a CUDA call: the caller's (B,) int32 array on the arrays' device.
+int* failed_dof_of(const std::optional<OutArray>& failed_dof, const Lead& lead, const char* what,
+                   std::initializer_list<std::pair<Extent, const char*>> outputs) {
+  if (!failed_dof)
+    throw ShapeError(std::string("failed_dof: ") + what + " on CUDA arrays needs a (B,) int32 array on the same device");
+  const OutArray& f = *failed_dof;
+  Lead l = lead;
+  check_device(f, "failed_dof", l);
+  if (f.dtype() != nb::dtype<int32_t>() || f.ndim() != 1 || Index(f.shape(0)) != lead.batch ||
+      (lead.batch > 1 && f.stride(0) != 1))
+    throw ShapeError("failed_dof has shape " + shape_str(f) + " and dtype " + dtype_name(f.dtype()) +
+                     ", expected a contiguous (" + std::to_string(lead.batch) + ",) int32 array");
+  check_out_alone(f, outputs, "failed_dof");
+  return static_cast<int*>(f.data());
+}
+
 template <class S>
 CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
                     const std::optional<InArray>& fext, const std::optional<OutArray>& failed_dof,
@@ -266,18 +284,7 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   check_out_alone(out, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
   if (fext) check_out_alone(out, {{extent_of(*fext), "fext"}});
   int* failed = nullptr;  // CUDA arrays: the caller's (B,) int32 array on the same device
-  if (lead.cuda) {
-    if (!failed_dof)
-      throw ShapeError("failed_dof: forward dynamics on CUDA arrays needs a (B,) int32 array on the same device");
-    const OutArray& f = *failed_dof;
-    check_device(f, "failed_dof", lead);
-    if (f.dtype() != nb::dtype<int32_t>() || f.ndim() != 1 || Index(f.shape(0)) != lead.batch ||
-        (lead.batch > 1 && f.stride(0) != 1))
-      throw ShapeError("failed_dof has shape " + shape_str(f) + " and dtype " + dtype_name(f.dtype()) +
-                       ", expected a contiguous (" + std::to_string(lead.batch) + ",) int32 array");
-    check_out_alone(f, {{extent_of(out), "out"}});
-    failed = static_cast<int*>(f.data());
-  }
+  if (lead.cuda) failed = failed_dof_of(failed_dof, lead, "forward dynamics", {{extent_of(out), "out"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda) {
@@ -291,6 +298,132 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qdd);
   else st = e.ed->compute(in, qdd);
   return call_status(st, lead.batch);
+}
+
+// ---- hybrid dynamics ---------------------------------------------------------------
+
+using PyHybrid = PyEngine<HybridDynamics>;
+
+// qdd_out, tau_out = hybrid dynamics of (q, qd, qdd at the prescribed DoFs, tau at the others).
+template <class S>
+CallStatus hybrid_compute(PyHybrid& e, const InArray& q, const InArray& qd, const InArray& qdd, const InArray& tau,
+                          const OutArray& qdd_out, const OutArray& tau_out, const std::optional<InArray>& fext,
+                          const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+  const Index nv = e.nv();
+  Lead lead;
+  HybridBatchIn<S> in;
+  in.q = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  BatchView<S> qo = view_of<S>(qdd_out, nv, "qdd_out", lead, false);
+  BatchView<S> to = view_of<S>(tau_out, nv, "tau_out", lead, false);
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
+  check_max_batch(lead, e.max_batch);
+  for (const auto& [a, name] : {std::pair<const OutArray*, const char*>{&qdd_out, "qdd_out"}, {&tau_out, "tau_out"}}) {
+    check_no_self_overlap(*a, name);
+    check_out_alone(*a, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}, {extent_of(tau), "tau"}},
+                    name);
+    if (fext) check_out_alone(*a, {{extent_of(*fext), "fext"}}, name);
+  }
+  check_out_alone(tau_out, {{extent_of(qdd_out), "qdd_out"}}, "tau_out");
+  int* failed = nullptr;
+  if (lead.cuda)
+    failed = failed_dof_of(failed_dof, lead, "hybrid dynamics",
+                           {{extent_of(qdd_out), "qdd_out"}, {extent_of(tau_out), "tau_out"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda) {
+    queue_on_device<S>(e, lead, stream,
+                       [&](auto& c, cudaStream_t s) { return c.compute_async(in, qo, to, failed, s); });
+    CallStatus r;
+    r.queued = true;
+    return r;
+  }
+  BatchStatus st;
+  if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qo, to);
+  else st = e.ed->compute(in, qo, to);
+  return call_status(st, lead.batch);
+}
+
+// ---- closed loops --------------------------------------------------------------------
+
+// A loop set with the model it was made for (its bodies are that model's indices).
+struct PyLoops {
+  std::shared_ptr<PyModel> model;
+  LoopSet loops;
+};
+
+using PyConstrained = PyEngine<ConstrainedForwardDynamics>;
+
+Index rows_of(const PyConstrained& e) { return e.is_float ? e.ef->rows() : e.ed->rows(); }
+
+// qdd_out, lambda_out = closed-loop forward dynamics of (q, qd, tau).
+template <class S>
+CallStatus constrained_compute(PyConstrained& e, const InArray& q, const InArray& qd, const InArray& tau,
+                               const OutArray& qdd_out, const OutArray& lambda_out, const std::optional<InArray>& fext,
+                               const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+  const Index nv = e.nv(), m = rows_of(e);
+  Lead lead;
+  FdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  BatchView<S> qo = view_of<S>(qdd_out, nv, "qdd_out", lead, false);
+  BatchView<S> lo = view_of<S>(lambda_out, m, "lambda_out", lead, false, "m");
+  in.fext = fext_of<S>(fext, e.nbodies(), lead);
+  check_max_batch(lead, e.max_batch);
+  for (const auto& [a, name] :
+       {std::pair<const OutArray*, const char*>{&qdd_out, "qdd_out"}, {&lambda_out, "lambda_out"}}) {
+    check_no_self_overlap(*a, name);
+    check_out_alone(*a, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}}, name);
+    if (fext) check_out_alone(*a, {{extent_of(*fext), "fext"}}, name);
+  }
+  check_out_alone(lambda_out, {{extent_of(qdd_out), "qdd_out"}}, "lambda_out");
+  int* failed = nullptr;
+  if (lead.cuda)
+    failed = failed_dof_of(failed_dof, lead, "closed-loop forward dynamics",
+                           {{extent_of(qdd_out), "qdd_out"}, {extent_of(lambda_out), "lambda_out"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda) {
+    queue_on_device<S>(e, lead, stream,
+                       [&](auto& c, cudaStream_t s) { return c.compute_async(in, qo, lo, failed, s); });
+    CallStatus r;
+    r.queued = true;
+    return r;
+  }
+  BatchStatus st;
+  if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qo, lo);
+  else st = e.ed->compute(in, qo, lo);
+  return call_status(st, lead.batch);
+}
+
+// phi, velocity (J qd) of (q, qd); either output may be None.
+template <class S>
+void residual_compute(PyConstrained& e, const InArray& q, const InArray& qd, const std::optional<OutArray>& phi,
+                      const std::optional<OutArray>& velocity, std::uintptr_t stream) {
+  const Index nv = e.nv(), m = rows_of(e);
+  Lead lead;
+  const BatchView<const S> qv = view_of<const S>(q, nv, "q", lead, true);
+  const BatchView<const S> qdv = view_of<const S>(qd, nv, "qd", lead, false);
+  BatchView<S> pv{}, vv{};
+  for (const auto& [a, v, name] : {std::tuple<const std::optional<OutArray>*, BatchView<S>*, const char*>{
+                                       &phi, &pv, "phi"}, {&velocity, &vv, "velocity"}}) {
+    if (!*a) continue;
+    *v = view_of<S>(**a, m, name, lead, false, "m");
+    check_no_self_overlap(**a, name);
+    check_out_alone(**a, {{extent_of(q), "q"}, {extent_of(qd), "qd"}}, name);
+  }
+  if (phi && velocity) check_out_alone(*velocity, {{extent_of(*phi), "phi"}}, "velocity");
+  check_max_batch(lead, e.max_batch);
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream,
+                              [&](auto& c, cudaStream_t s) { return c.residual_async(qv, qdv, pv, vv, s); });
+  if constexpr (std::is_same_v<S, float>) e.ef->residual(qv, qdv, pv, vv);
+  else e.ed->residual(qv, qdv, pv, vv);
 }
 
 }  // namespace
@@ -317,6 +450,8 @@ NB_MODULE(_scandyn, m) {
       raise_as("DTypeError", e.what());
     } catch (const DeviceError& e) {
       raise_as("DeviceError", e.what());
+    } catch (const LoopError& e) {
+      raise_as("LoopError", e.what());
     }
   });
 
@@ -476,6 +611,85 @@ NB_MODULE(_scandyn, m) {
         return std::string(to_string(e.is_float ? e.ef->method() : e.ed->method()));
       });
   common(fd);
+
+  nb::class_<PyHybrid> hybrid(m, "HybridDynamics");
+  hybrid.def("__init__",
+             [](PyHybrid* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+                Index max_batch, const std::vector<int>& prescribed, int threads, int device) {
+               const Index nv = model->md.nv();
+               if (Index(prescribed.size()) != nv)
+                 throw ShapeError("prescribed has " + std::to_string(prescribed.size()) + " entries, expected nv = " +
+                                  std::to_string(nv) + " (nonzero: the DoF's acceleration is given)");
+               const std::vector<unsigned char> mask(prescribed.begin(), prescribed.end());
+               BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads);
+               init_engine(self, std::move(model), dtype, max_batch, device,
+                           [&](const ModelTpl<float>& md) { return make_hybrid_dynamics<float>(md, mask, o); },
+                           [&](const ModelTpl<double>& md) { return make_hybrid_dynamics<double>(md, mask, o); });
+             },
+             "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "prescribed"_a, "threads"_a = 0, "device"_a = -1)
+      .def("compute",
+           [](PyHybrid& e, const InArray& q, const InArray& qd, const InArray& qdd, const InArray& tau,
+              const OutArray& qdd_out, const OutArray& tau_out, const std::optional<InArray>& fext,
+              const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+             return e.is_float ? hybrid_compute<float>(e, q, qd, qdd, tau, qdd_out, tau_out, fext, failed_dof, stream)
+                               : hybrid_compute<double>(e, q, qd, qdd, tau, qdd_out, tau_out, fext, failed_dof, stream);
+           },
+           "q"_a, "qd"_a, "qdd"_a, "tau"_a, "qdd_out"_a, "tau_out"_a, "fext"_a = nb::none(),
+           "failed_dof"_a = nb::none(), "stream"_a = 0)
+      .def_prop_ro("prescribed", [](const PyHybrid& e) {
+        const auto& p = e.is_float ? e.ef->prescribed() : e.ed->prescribed();
+        return std::vector<int>(p.begin(), p.end());
+      });
+  common(hybrid);
+
+  // ---- closed loops (scandyn/algorithm/loops.hpp)
+  nb::class_<PyLoops>(m, "Loops")
+      .def_prop_ro("rows", [](const PyLoops& l) { return l.loops.rows(); })
+      .def("__len__", [](const PyLoops& l) { return l.loops.loops.size(); })
+      .def_prop_ro("json", [](const PyLoops& l) { return loops_json(l.loops); });
+  m.def("load_loops", [](std::shared_ptr<PyModel> model, const std::string& path) {
+    return PyLoops{model, load_loops(path, model->md)};
+  }, "model"_a, "path"_a);
+  m.def("parse_loops", [](std::shared_ptr<PyModel> model, const std::string& text, const std::string& source) {
+    return PyLoops{model, parse_loops(text, source, model->md)};
+  }, "model"_a, "text"_a, "source"_a);
+  m.def("generator_loops", [](std::shared_ptr<PyModel> model) {
+    return PyLoops{model, generator_loops(model->md.source, model->md)};
+  }, "model"_a);
+
+  nb::class_<PyConstrained> cfd(m, "ConstrainedForwardDynamics");
+  cfd.def("__init__",
+          [](PyConstrained* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+             Index max_batch, const PyLoops& loops, int threads, int device) {
+            if (loops.model != model)
+              throw LoopError("the loops were made for model '" + loops.model->md.name + "', not for this model '" +
+                              model->md.name + "' (load them with this model)");
+            BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads);
+            const LoopSet& ls = loops.loops;
+            init_engine(self, std::move(model), dtype, max_batch, device,
+                        [&](const ModelTpl<float>& md) { return make_constrained_forward_dynamics<float>(md, ls, o); },
+                        [&](const ModelTpl<double>& md) { return make_constrained_forward_dynamics<double>(md, ls, o); });
+          },
+          "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "loops"_a, "threads"_a = 0, "device"_a = -1)
+      .def("compute",
+           [](PyConstrained& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& qdd_out,
+              const OutArray& lambda_out, const std::optional<InArray>& fext,
+              const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+             return e.is_float
+                        ? constrained_compute<float>(e, q, qd, tau, qdd_out, lambda_out, fext, failed_dof, stream)
+                        : constrained_compute<double>(e, q, qd, tau, qdd_out, lambda_out, fext, failed_dof, stream);
+           },
+           "q"_a, "qd"_a, "tau"_a, "qdd_out"_a, "lambda_out"_a, "fext"_a = nb::none(), "failed_dof"_a = nb::none(),
+           "stream"_a = 0)
+      .def("residual",
+           [](PyConstrained& e, const InArray& q, const InArray& qd, const std::optional<OutArray>& phi,
+              const std::optional<OutArray>& velocity, std::uintptr_t stream) {
+             if (e.is_float) residual_compute<float>(e, q, qd, phi, velocity, stream);
+             else residual_compute<double>(e, q, qd, phi, velocity, stream);
+           },
+           "q"_a, "qd"_a, "phi"_a = nb::none(), "velocity"_a = nb::none(), "stream"_a = 0)
+      .def_prop_ro("rows", [](const PyConstrained& e) { return rows_of(e); });
+  common(cfd);
 
   bind_simulator(m);
   // ---- kinematics (python/src/kinematics.cpp)

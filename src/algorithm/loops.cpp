@@ -1,13 +1,15 @@
 // src/algorithm/loops.cpp: loop-closure kinematics and the constrained dynamics
-// (scandyn/algorithm/loops.hpp): the tree's recursions for M, h and the body motion
-// (crba, bias_forces, rnea_forward_step), the point kinematics of
-// point_kinematics.hpp, and dense rank-revealing solves (Eigen).
+// (scandyn/algorithm/loops.hpp): the loops' rows by the per-instance routines of
+// loop_solver.hpp (shared with the loop engines), the tree's recursions for M and h
+// (crba, bias_forces), and dense rank-revealing solves (Eigen): the reference the
+// engines' own solve (constrained_fd_solve) is tested against.
 #include "scandyn/algorithm/loops.hpp"
 
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
 
+#include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/algorithm/reference.hpp"
 
 namespace scandyn {
@@ -21,82 +23,15 @@ Index LoopSet::rows() const {
   return m;
 }
 
-namespace {
-
-// The bodies' poses, velocities and velocity-product accelerations (qdd = 0, no
-// gravity): what the loops' kinematics read.
-struct BodyMotion {
-  std::vector<Transform<double>> X0;  // (nv) body <- base
-  std::vector<Motion<double>> v, a;   // (nv) body frames
-  BodyMotion(const Model& model, const double* q, const double* qd) {
-    const Index n = model.nv();
-    X0.resize(n), v.resize(n), a.resize(n);
-    for (Index i = 0; i < n; ++i) {
-      const Body<double>& b = model.bodies[i];
-      const Index p = b.parent;
-      const Transform<double> Xup = joint_transform(b, q[i]);
-      X0[i] = world_transform_step(Xup, p < 0 ? nullptr : &X0[p]);
-      const RneaForward<double> o = rnea_forward_step(b, Xup, p < 0 ? Motion<double>::zero() : v[p],
-                                                      p < 0 ? Motion<double>::zero() : a[p], qd ? qd[i] : 0.0, 0.0);
-      v[i] = o.v, a[i] = o.a;
-    }
-  }
-};
-
-Vec3<double> vee_antisym(const Mat3<double>& C) {  // 1/2 vee(C - C^T)
-  return {0.5 * (C(2, 1) - C(1, 2)), 0.5 * (C(0, 2) - C(2, 0)), 0.5 * (C(1, 0) - C(0, 1))};
-}
-
-}  // namespace
-
 void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, const double* qd, double* phi,
                      double* J, double* gamma) {
-  const Index n = model.nv(), m = loops.rows();
-  const BodyMotion bm(model, q, qd);
-  if (J) std::fill(J, J + static_cast<std::size_t>(m) * n, 0.0);
-  const Transform<double> I{Mat3<double>::identity(), Vec3<double>::zero()};
-  Index row = 0;
-  for (const LoopClosure& l : loops.loops) {
-    const Index lin = l.type == LoopType::Weld ? row + 3 : row;  // the linear rows
-    const Transform<double>& Xa = l.body_a < 0 ? I : bm.X0[l.body_a];
-    const Transform<double>& Xb = l.body_b < 0 ? I : bm.X0[l.body_b];
-    const Vec3<double> pa = point_position(Xa, l.point_a), pb = point_position(Xb, l.point_b);
-    auto put = [](double* dst, Index r, const Vec3<double>& x) { dst[r] = x.x, dst[r + 1] = x.y, dst[r + 2] = x.z; };
-    if (phi) {
-      put(phi, lin, pa - pb);
-      if (l.type == LoopType::Weld) put(phi, row, vee_antisym(mul_transpose(Xa.E, Xb.E)));
-    }
-    if (gamma) {
-      const Motion<double> z = Motion<double>::zero();
-      const Vec3<double> ga = l.body_a < 0 ? Vec3<double>::zero()
-                                           : point_acceleration(Xa, bm.v[l.body_a], bm.a[l.body_a], l.point_a);
-      const Vec3<double> gb = l.body_b < 0 ? Vec3<double>::zero()
-                                           : point_acceleration(Xb, bm.v[l.body_b], bm.a[l.body_b], l.point_b);
-      put(gamma, lin, ga - gb);
-      if (l.type == LoopType::Weld) {
-        const Vec3<double> wa = l.body_a < 0 ? z.w : to_world(Xa, bm.a[l.body_a].w);
-        const Vec3<double> wb = l.body_b < 0 ? z.w : to_world(Xb, bm.a[l.body_b].w);
-        put(gamma, row, wa - wb);
-      }
-    }
-    if (J) {
-      // joint j's column on the paths to the base: + for body a, - for body b
-      for (int side = 0; side < 2; ++side) {
-        const double sign = side == 0 ? 1.0 : -1.0;
-        const Vec3<double> p = side == 0 ? pa : pb;
-        for (Index j = side == 0 ? l.body_a : l.body_b; j >= 0; j = model.bodies[j].parent) {
-          Vec3<double> w, v;
-          joint_point_column(model.bodies[j], bm.X0[j], p, w, v);
-          const double c[3] = {v.x, v.y, v.z}, d[3] = {w.x, w.y, w.z};
-          for (int k = 0; k < 3; ++k) {
-            J[(lin + k) * n + j] += sign * c[k];
-            if (l.type == LoopType::Weld) J[(row + k) * n + j] += sign * d[k];
-          }
-        }
-      }
-    }
-    row += l.rows();
-  }
+  const Index n = model.nv();
+  std::vector<Transform<double>> X0(n);  // (nv) body <- base
+  std::vector<Motion<double>> v(n), a(n);  // (nv) body frames, qdd = 0 and no gravity
+  loop_body_motion(model.bodies.data(), n, q, qd, X0.data(), v.data(), a.data());
+  const std::vector<LoopRow<double>> rows = loop_rows_of<double>(loops);
+  loop_rows(model.bodies.data(), n, rows.data(), static_cast<Index>(rows.size()), X0.data(), v.data(), a.data(), phi,
+            J, gamma);
 }
 
 double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd, Index* loop) {

@@ -184,6 +184,24 @@ double time_calls(double min_time, F&& calls) {
   return elapsed / static_cast<double>(done);
 }
 
+// A device-resident batch's row: a warm-up call, then rounds of queued calls, each
+// round waited for; check_status sees the warm-up's and the last call's status; the
+// last call's results are read into out (max_rel_err is the caller's).
+template <class S, class Check>
+Timing time_resident(ResidentBatch<S>& r, double min_time, Check&& check_status, S* out) {
+  r.launch();
+  check_status(r.status());
+  Timing t;
+  t.strategy = r.strategy();
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
+    for (std::size_t k = 0; k < n; ++k) r.launch();
+    r.wait();
+  });
+  check_status(r.status());
+  r.read(out);
+  return t;
+}
+
 // Times algo on the batch: a row for the engine's run() on host memory and,
 // first, one for the batch in the backend's own memory when it has one (CUDA;
 // resident() is null otherwise). A forward dynamics that fails is an error in
@@ -211,17 +229,7 @@ std::vector<Timing> time_algo(const Model& model, const ModelTpl<S>& model_s, Ba
   std::vector<Timing> rows;
 
   if (std::unique_ptr<ResidentBatch<S>> resident = engine.resident(in)) {
-    // warm-up call, then rounds of queued calls, each round waited for
-    resident->launch();
-    check_fd(resident->status());
-    Timing t;
-    t.strategy = resident->strategy();
-    t.seconds_per_call = time_calls(min_time, [&](std::size_t n) {
-      for (std::size_t k = 0; k < n; ++k) resident->launch();
-      resident->wait();
-    });
-    check_fd(resident->status());
-    resident->read(out.data());
+    Timing t = time_resident(*resident, min_time, check_fd, out.data());
     check_finite_outputs(algo, model.nv(), out, count, "device-resident");
     t.max_rel_err = error();
     rows.push_back(t);
@@ -495,11 +503,129 @@ int run_bench_hybrid(const Args& args) {
   return kExitOk;
 }
 
+// ---- models with closed loops ----------------------------------------------------
+
+// The closed-loop forward dynamics (ConstrainedForwardDynamics) of `count` instances
+// tiling kLoopStates random closed states (q near 0 projected onto the loops, qd in
+// J's null space, tau in [-1, 1]); rows as time_algo's: on cuda first the
+// device-resident batch, then the host-memory call. max_rel_err: [qdd, lambda] of the
+// first kLoopStates instances against the Eigen reference constrained_forward_dynamics.
+constexpr std::size_t kLoopStates = 256;
+
+template <class S>
+std::vector<Timing> time_loops(const Model& model, const LoopSet& loops, BackendOptions options, std::size_t count,
+                               double min_time) {
+  const Index n = model.nv(), m = loops.rows();
+  const std::size_t nv = static_cast<std::size_t>(n), w = nv + static_cast<std::size_t>(m);
+  std::mt19937_64 rng(42);
+  std::uniform_real_distribution<double> u(-1, 1);
+  std::vector<double> q0(kLoopStates * nv), qd0(q0.size()), tau0(q0.size());
+  for (std::size_t k = 0; k < kLoopStates; ++k) {
+    double r = 1;
+    for (int attempt = 0; attempt < 50 && r > 1e-12; ++attempt) {
+      for (std::size_t i = 0; i < nv; ++i) q0[k * nv + i] = 0.2 * u(rng), qd0[k * nv + i] = u(rng);
+      r = project_to_loops(model, loops, &q0[k * nv], &qd0[k * nv]);
+    }
+    if (r > 1e-12) throw DataError("bench: no closed state found for the loops of " + printable(model.source));
+    for (std::size_t i = 0; i < nv; ++i) tau0[k * nv + i] = u(rng);
+  }
+  std::vector<S> q(count * nv), qd(q.size()), tau(q.size()), out(count * w);
+  for (std::size_t b = 0; b < count; ++b)
+    for (std::size_t i = 0; i < nv; ++i) {
+      const std::size_t k = (b % kLoopStates) * nv + i;
+      q[b * nv + i] = S(q0[k]), qd[b * nv + i] = S(qd0[k]), tau[b * nv + i] = S(tau0[k]);
+    }
+  options.max_batch = static_cast<Index>(count);
+  const ModelTpl<S> model_s = model.cast<S>();
+  std::unique_ptr<ConstrainedForwardDynamics<S>> engine;
+  try {
+    engine = make_constrained_forward_dynamics<S>(model_s, loops, options);
+  } catch (const BackendError& e) {
+    throw UsageError(std::string("closed loops: ") + e.what(), false);
+  }
+  const Index B = static_cast<Index>(count);
+  using V = BatchView<const S>;
+  const FdBatchIn<S> in{V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(tau.data(), n, B), nullptr};
+  // rows of nv qdd then m lambda per instance
+  const BatchView<S> qdd{out.data(), B, 1, static_cast<std::ptrdiff_t>(w)};
+  const BatchView<S> lambda{out.data() + nv, B, 1, static_cast<std::ptrdiff_t>(w)};
+  auto fail = [&](const BatchStatus& st) {
+    if (!st.ok()) throw DataError("bench: closed-loop forward dynamics failed: " + st.message());
+  };
+  auto error = [&] {
+    double worst = 0;
+    std::vector<double> ref(w), x(w);
+    for (std::size_t b = 0; b < std::min(count, kLoopStates); ++b) {
+      std::vector<double> qb(nv), qdb(nv), tb(nv);
+      for (std::size_t i = 0; i < nv; ++i)
+        qb[i] = double(q[b * nv + i]), qdb[i] = double(qd[b * nv + i]), tb[i] = double(tau[b * nv + i]);
+      constrained_forward_dynamics(model, loops, qb.data(), qdb.data(), tb.data(), ref.data(), ref.data() + nv);
+      for (std::size_t i = 0; i < w; ++i) x[i] = double(out[b * w + i]);
+      const double e = rel_err(x.data(), ref.data(), w);
+      if (std::isnan(e)) return e;
+      worst = std::max(worst, e);
+    }
+    return worst;
+  };
+  std::vector<Timing> rows;
+#if SCANDYN_HAS_CUDA
+  if (engine->backend() == BackendKind::Cuda) {
+    std::unique_ptr<ResidentBatch<S>> r = make_resident_loops(*engine, n, q.data(), qd.data(), tau.data(), count);
+    Timing t = time_resident(*r, min_time, fail, out.data());
+    t.max_rel_err = error();
+    rows.push_back(t);
+  }
+#endif
+  fail(engine->compute(in, qdd, lambda));
+  Timing t;
+  t.strategy = engine->strategy() + (engine->backend() == BackendKind::Cuda ? "-host" : "");
+  t.seconds_per_call = time_calls(min_time, [&](std::size_t calls) {
+    for (std::size_t k = 0; k < calls; ++k) fail(engine->compute(in, qdd, lambda));
+  });
+  t.max_rel_err = error();
+  rows.push_back(t);
+  return rows;
+}
+
+// `scandyn bench --model fivebar --algo fd ...` (a generator with loops, or --loops
+// FILE): the closed-loop forward dynamics, one row per way of calling the backend.
+int run_bench_loops(const Args& args) {
+  for (const char* f : {"fd", "fallback", "strategy", "scene", "prescribed", "actuated"})
+    if (args.has(f)) throw UsageError(std::string("--") + f + " does not apply to bench with loops");
+  const std::string algo = args.get("algo", "fd");
+  if (algo != "fd") throw UsageError("--algo " + algo + ": with loops, bench times fd (constrained forward dynamics)");
+  const std::string& model_spec = args.required("model");
+  const std::size_t count = parse_instances(args.required("instances"));
+  const BackendOptions options = parse_backend_options(args);
+  const Precision precision = parse_cli_precision(args);
+  const double min_time = parse_min_time(args.get("min-time", "0.5"));
+  require_usable(options.backend);
+  const Model model = load_cli_model(args);
+  const LoopSet loops = load_cli_loops(args, model);
+  const std::size_t nv = static_cast<std::size_t>(model.nv()), scalar = precision == Precision::Float ? 4 : 8;
+  require_host_memory("bench with loops on " + printable(model_spec) + ", " + std::to_string(count) + " instances",
+                      double(count) * (4.0 * nv + loops.rows()) * scalar);
+  const std::vector<Timing> rows = precision == Precision::Double
+                                       ? time_loops<double>(model, loops, options, count, min_time)
+                                       : time_loops<float>(model, loops, options, count, min_time);
+  if (::isatty(STDOUT_FILENO)) std::puts(kBenchHeader);
+  for (const Timing& t : rows) {
+    const std::string row = "fd-loops," + t.strategy + "," + to_string(options.backend) + "," + to_string(precision) +
+                            "," + model_label(model_spec) + "," + std::to_string(nv) + "," + std::to_string(count) +
+                            "," + format_g(t.seconds_per_call, 6) + "," +
+                            format_g(double(count) / t.seconds_per_call, 6) + "," + format_g(t.max_rel_err, 6);
+    if (args.has("csv")) append_csv_line(args.required("csv"), kBenchHeader, row);
+    std::puts(row.c_str());
+  }
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_bench(const Args& args) {
   if (args.get("algo", "") == "step") return run_bench_step(args);
   if (args.get("algo", "") == "hybrid") return run_bench_hybrid(args);
+  if (args.has("loops") || generator_has_loops(args.required("model"))) return run_bench_loops(args);
   if (args.has("prescribed")) throw UsageError("--prescribed applies only to --algo hybrid");
   if (args.has("scene")) throw UsageError("--scene applies only to --algo step");
   const std::string& model_spec = args.required("model");

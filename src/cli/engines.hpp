@@ -116,6 +116,15 @@ std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine
                                                            std::size_t jac_width);
 #endif
 
+#if SCANDYN_HAS_CUDA
+// The closed-loop forward dynamics' device-resident batch (engines_cuda.cpp): q, qd,
+// tau copied once; per call compute_async() writing nv qdd then m lambda entries per
+// instance; read() gives rows of nv + m values.
+template <class S>
+std::unique_ptr<ResidentBatch<S>> make_resident_loops(ConstrainedForwardDynamics<S>& engine, Index nv, const S* q,
+                                                      const S* qd, const S* tau, std::size_t count);
+#endif
+
 // The stderr warning for instances that fell back from jsi to aba, e.g. "forward
 // dynamics by jsi failed on 3 of 100 rows (mass matrix pivot not positive); they
 // were computed by aba (--fallback aba)".

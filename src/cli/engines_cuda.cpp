@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "cli.hpp"
+#include "scandyn/cuda/constrained_dynamics.hpp"
 #include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
@@ -153,6 +154,29 @@ std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine
         return e.compute_async(d.input(0), poses, J, d.stream());
       });
 }
+template <class S>
+std::unique_ptr<ResidentBatch<S>> make_resident_loops(ConstrainedForwardDynamics<S>& engine, Index nv, const S* q,
+                                                      const S* qd, const S* tau, std::size_t count) {
+  auto& e = dynamic_cast<cuda::CudaConstrainedForwardDynamics<S>&>(engine);
+  return std::make_unique<CudaResidentBatch<S>>(
+      e.strategy(), "the closed-loop forward dynamics", nv, std::vector<const S*>{q, qd, tau}, count,
+      static_cast<std::size_t>(nv + e.rows()), std::size_t(0),
+      [&e, nv](const cuda::DeviceBatch<S>& d) {
+        // the output (nv + m x B, structure-of-arrays): qdd's rows, then lambda's
+        const BatchView<S> out = d.output();
+        const BatchView<S> qdd{out.data, out.batch, out.dof_stride, out.batch_stride};
+        const BatchView<S> lambda{out.data + nv * out.dof_stride, out.batch, out.dof_stride, out.batch_stride};
+        return e.compute_async({d.input(0), d.input(1), d.input(2), nullptr}, qdd, lambda, d.failed_dof(),
+                               d.stream());
+      },
+      Failure::MassMatrixPivot);
+}
+template std::unique_ptr<ResidentBatch<float>> make_resident_loops(ConstrainedForwardDynamics<float>&, Index,
+                                                                   const float*, const float*, const float*,
+                                                                   std::size_t);
+template std::unique_ptr<ResidentBatch<double>> make_resident_loops(ConstrainedForwardDynamics<double>&, Index,
+                                                                    const double*, const double*, const double*,
+                                                                    std::size_t);
 template std::unique_ptr<ResidentBatch<float>> make_resident_kinematics(Kinematics<float>&, Index, const float*,
                                                                         std::size_t, std::size_t, std::size_t);
 template std::unique_ptr<ResidentBatch<double>> make_resident_kinematics(Kinematics<double>&, Index, const double*,

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "cli.hpp"
+#include "scandyn/algorithm/loops.hpp"
 
 namespace scandyn::cli {
 
@@ -24,5 +25,9 @@ int run_eval_hybrid(const Args& args);
 // `scandyn eval` on a model with closed loops: --loops FILE, or a generator that
 // carries loops (run_eval hands it over; src/cli/eval_loops.cpp).
 int run_eval_loops(const Args& args);
+
+// The loops of a command: the generator's (fivebar, fourbar, cloth:K:N) and those of
+// --loops FILE (DataError naming the file, loop and key); eval_loops.cpp.
+LoopSet load_cli_loops(const Args& args, const Model& model);
 
 }  // namespace scandyn::cli

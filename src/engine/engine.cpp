@@ -6,6 +6,7 @@
 #include <cstdio>
 
 #include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/algorithm/loops.hpp"
 #include "scandyn/build_config.hpp"
 #include "../../cpu_fallback/cpu_engines.hpp"
 #if SCANDYN_HAS_CUDA
@@ -16,6 +17,7 @@
 #include "scandyn/cuda/mass_matrix.hpp"
 #include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/kinematics.hpp"
+#include "scandyn/cuda/constrained_dynamics.hpp"
 #endif
 
 #ifdef _OPENMP
@@ -534,6 +536,40 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
   template std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>&, const BackendOptions&);           \
   template std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>&, const BackendOptions&);           \
   template std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>&, const BackendOptions&);
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+// ---- closed loops ------------------------------------------------------------------
+
+template <class S>
+void check_batch(const FdBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& lambda, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"tau", info(in.tau)}, {"qdd", info(qdd)},
+               {"lambda", info(lambda)}},
+              max_batch);
+}
+
+template <class S>
+std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(const ModelTpl<S>& model,
+                                                                                 const LoopSet& loops,
+                                                                                 const BackendOptions& o) {
+  require_built(o.backend);
+  require_one_dof_joints(model, "closed loops");
+  for (const LoopClosure& l : loops.loops)
+    for (Index body : {l.body_a, l.body_b})
+      if (body < -1 || body >= model.nv())
+        throw BackendError("closed loops: a loop names body " + std::to_string(body) + " of a model of " +
+                           std::to_string(model.nv()) + " bodies (the loops were made for another model)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) return cuda::make_constrained_forward_dynamics(model, loops, o);
+#endif
+  return cpu::make_constrained_forward_dynamics(model, loops, o);
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                                 \
+  template void check_batch(const FdBatchIn<S>&, const BatchView<S>&, const BatchView<S>&, Index);            \
+  template std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(                   \
+      const ModelTpl<S>&, const LoopSet&, const BackendOptions&);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)
 #undef SCANDYN_INSTANTIATE

@@ -1,4 +1,4 @@
-// `scandyn eval` on models with closed loops and `scandyn info --print-loops`
+// `scandyn eval` and `scandyn bench` on models with closed loops and `scandyn info --print-loops`
 // (docs/loops.md): the columns, the result against the library's constrained
 // dynamics to the printed digits, a generator's loops equal to its printed loop file,
 // and the errors (exit code, one message, no output file).
@@ -94,6 +94,26 @@ TEST_F(CliLoops, Errors) {
     EXPECT_EQ(res.code, c.code);
     EXPECT_NE(res.err.find(c.message), std::string::npos) << res.err;
     EXPECT_FALSE(std::filesystem::exists(path("o.csv")));
+  }
+}
+
+// `scandyn bench` on a model with loops: one row of the bench CSV (fd-loops, the
+// engine's strategy, 10 fields) whose max_rel_err (the engine against the Eigen
+// reference) is at rounding level; the flags that do not apply are usage errors.
+TEST_F(CliLoops, Bench) {
+  auto r = run("bench --model fivebar --algo fd --instances 300 --min-time 0.01");
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::istringstream in(r.out);
+  std::string line, last;
+  while (std::getline(in, line))
+    if (!line.empty()) last = line;
+  EXPECT_EQ(last.rfind("fd-loops,dense,serial,double,fivebar,4,300,", 0), 0u) << last;
+  const double err = std::stod(last.substr(last.rfind(',') + 1));
+  EXPECT_LE(err, 1e-12);
+  for (const char* bad : {"--algo id", "--algo fd --prescribed 0", "--algo fd --fd aba"}) {
+    SCOPED_TRACE(bad);
+    r = run(std::string("bench --model fivebar --instances 10 ") + bad);
+    EXPECT_EQ(r.code, 2) << r.err;
   }
 }
 

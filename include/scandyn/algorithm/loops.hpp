@@ -26,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/algorithm/point_kinematics.hpp"
 #include "scandyn/model/model.hpp"
 
@@ -58,6 +59,17 @@ struct LoopSet {
 // loop violation (m and rad of the position residual; m/s and rad/s of J qd).
 inline constexpr double kLoopRankTolerance = 1e-10;
 inline constexpr double kLoopStateTolerance = 1e-6;
+
+// The loops as the per-instance routines read them (loop_solver.hpp), in scalar S.
+template <class S>
+std::vector<LoopRow<S>> loop_rows_of(const LoopSet& loops) {
+  std::vector<LoopRow<S>> r;
+  r.reserve(loops.loops.size());
+  for (const LoopClosure& l : loops.loops)
+    r.push_back({l.type == LoopType::Weld ? 1 : 0, l.body_a, l.body_b, l.point_a.template cast<S>(),
+                 l.point_b.template cast<S>()});
+  return r;
+}
 
 // Parses a loop file's JSON text for `model` (source names it in messages). Throws
 // LoopError for JSON that is not the schema (unknown or missing keys, wrong types,

@@ -78,8 +78,10 @@ class CudaHybridDynamics final : public HybridDynamics<S> {
   std::string strategy() const override { return "aba_thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
   const ThreadModel<S>& thread_model() const { return *thread_; }
+  int device() const { return device_; }  // the CUDA device the engine was made on
 
  private:
+  int device_ = 0;
   Index nv_ = 0;
   Index max_batch_ = 0;
   std::vector<unsigned char> prescribed_;  // (nv)

@@ -1,0 +1,132 @@
+// The CPU driver of the hybrid chain dynamics (scandyn/algorithm/chain_hybrid.hpp):
+// OpenMP over chunks, the chain forward dynamics' chunking and level scans with the
+// hybrid's walks.
+#include "scandyn/algorithm/chain_hybrid.hpp"
+
+#include <algorithm>
+#include <string>
+
+namespace scandyn {
+
+namespace {
+
+// The aggregates above level 0 and the carries of every level, for one pass whose
+// level-0 aggregates are in agg[0] (chain_fd.cpp's level scan, for the hybrid's
+// element types).
+template <class E>
+void hybrid_scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
+                        std::vector<std::vector<typename E::Value>>& carry, bool forward, int threads) {
+  const Index levels = static_cast<Index>(ck.level_size.size());
+  for (Index k = 0; k + 1 < levels; ++k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    E* upper = agg[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) upper[j] = fold_range(lower, j * f, std::min(size, (j + 1) * f), forward);
+  }
+  carry_range(agg[levels - 1].data(), carry[levels - 1].data(), 0, ck.level_size[levels - 1], forward, E::start());
+  for (Index k = levels - 2; k >= 0; --k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    auto* lc = carry[k].data();
+    const auto* uc = carry[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) carry_range(lower, lc, j * f, std::min(size, (j + 1) * f), forward, uc[j]);
+  }
+}
+
+}  // namespace
+
+template <class S>
+ChainHybridDynamics<S>::ChainHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed,
+                                            Index max_batch, int threads, Index chunk)
+    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)), prescribed_(prescribed) {
+  require_one_dof_joints(model, "the parallel chain hybrid dynamics");
+  if (static_cast<Index>(prescribed.size()) != n_)
+    throw BackendError("the parallel chain hybrid dynamics: the prescribed mask has " +
+                       std::to_string(prescribed.size()) + " entries for a model of " + std::to_string(n_) + " DoF");
+  bodies_ = ChainBodies<S>::from(model, max_batch_);
+  threads_ = threads > 0 ? threads : openmp_threads();
+  const Index links = n_ * max_batch_;
+  chunk_ = chunk > 0 ? chunk : std::clamp<Index>(links / (8 * threads_), 8, 64);
+  a0_ = base_acceleration(model.gravity);
+  v_.resize(links);
+  U_.resize(links);
+  w_.resize(links);
+  D_.resize(links);
+  u_.resize(links);
+  failed_.resize(static_cast<std::size_t>(max_batch_));
+  const ChainChunking ck(links, chunk_, 16);
+  for (Index size : ck.level_size) {
+    aff_.emplace_back(static_cast<std::size_t>(size));
+    aff_carry_.emplace_back(static_cast<std::size_t>(size));
+    dual_.emplace_back(static_cast<std::size_t>(size));
+    dual_carry_.emplace_back(static_cast<std::size_t>(size));
+  }
+}
+
+template <class S>
+Index ChainHybridDynamics<S>::compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd_out,
+                                      const BatchView<S>& tau_out, int* failed) {
+  check_batch(in, qdd_out, tau_out, max_batch_);
+  const Index B = in.q.batch;
+  if (B == 0) return 0;
+  ChainHybridData<S> d;
+  d.n = n_;
+  d.batch = B;
+  d.body = bodies_.body.data();
+  d.Phi = bodies_.Phi.data();
+  d.body_class = bodies_.body_class.data();
+  d.a0 = a0_;
+  d.q = in.q;
+  d.qd = in.qd;
+  d.tau = in.tau;
+  d.fext = in.fext;
+  d.qdd = qdd_out;
+  d.v = v_.data();
+  d.U = U_.data();
+  d.D = D_.data();
+  d.w = w_.data();
+  d.u = u_.data();
+  d.failed = failed_.data();
+  d.prescribed = prescribed_.data();
+  d.qdd_in = in.qdd;
+  d.tau_out = tau_out;
+  std::fill(failed_.begin(), failed_.begin() + B, -1);
+
+  const ChainChunking ck(d.count(), chunk_, 16);
+  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+  const int T = threads_;
+  auto first = [&](Index c) { return c * L; };
+  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+
+  // pass 0: velocities (and pass 1's aggregates)
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate<S>(d, first(c), last(c));
+  hybrid_scan_levels(ck, aff_, aff_carry_, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) dual_[0][c] = hybrid_velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
+  // pass 1: articulated inertias, prescribed joints rigid (and pass 2's aggregates)
+  hybrid_scan_levels(ck, dual_, dual_carry_, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c)
+    aff_[0][c] = hybrid_inertia_walk(d, first(c), last(c), hybrid_inertia_carry(d, last(c), dual_carry_[0][c]));
+  // pass 2: bias forces, prescribed accelerations included (and pass 3's aggregates)
+  hybrid_scan_levels(ck, aff_, aff_carry_, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff_[0][c] = hybrid_bias_walk(d, first(c), last(c), aff_carry_[0][c]);
+  // pass 3: accelerations and the prescribed joints' forces
+  hybrid_scan_levels(ck, aff_, aff_carry_, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) hybrid_acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+
+  Index bad = 0;
+  for (Index b = 0; b < B; ++b) bad += failed_[b] >= 0;
+  if (failed) std::copy(failed_.begin(), failed_.begin() + B, failed);
+  return bad;
+}
+
+template class ChainHybridDynamics<float>;
+template class ChainHybridDynamics<double>;
+
+}  // namespace scandyn

@@ -1,0 +1,170 @@
+// The parallel chain hybrid dynamics (ChainHybridDynamics, scandyn/algorithm/
+// chain_hybrid.hpp) against the serial hybrid_dynamics: random chains (revolute and
+// prismatic joints, arbitrary axes), chains hanging from the base, ropes of 10^3 and
+// 10^5 links, random prescribed sets (none, all, half, runs at the base, at the tip,
+// across chunks), every chunk size, with and without external wrenches; qdd and tau
+// (the full vectors) to 1e-9 relative in double (the scans' rounding, as the chain
+// forward dynamics'), 1e-2 in float; the given entries copied through exactly.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "scandyn/algorithm/chain_hybrid.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/engine.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+// max relative error of [qdd, tau] against the serial hybrid, B instances, SoA.
+template <class S>
+double hybrid_error(const Model& model, const std::vector<unsigned char>& mask, Index B, unsigned seed, int threads,
+                    Index chunk, bool with_fext) {
+  std::mt19937_64 rng(seed);
+  const Index n = model.nv();
+  const auto q = test::random_vector(rng, n * B, -3, 3);
+  const auto qd = test::random_vector(rng, n * B, -1, 1);
+  const auto qdd_in = test::random_vector(rng, n * B, -2, 2);
+  const auto tau_in = test::random_vector(rng, n * B, -2, 2);
+  std::vector<Force<double>> fext;
+  if (with_fext) fext = test::random_wrenches<double>(rng, n * B, 1.0);
+  // the reference, instance by instance
+  Data data(model, false);
+  std::vector<double> ref_qdd(q.size()), ref_tau(q.size()), qi(n), qdi(n), ai(n), ti(n), ao(n), to(n);
+  std::vector<Force<double>> fi(n);
+  for (Index b = 0; b < B; ++b) {
+    for (Index i = 0; i < n; ++i)
+      qi[i] = q[i * B + b], qdi[i] = qd[i * B + b], ai[i] = qdd_in[i * B + b], ti[i] = tau_in[i * B + b];
+    if (with_fext)
+      for (Index i = 0; i < n; ++i) fi[i] = fext[b * n + i];
+    const Status st = hybrid_dynamics(model, data, qi.data(), qdi.data(), mask.data(), ai.data(), ti.data(), ao.data(),
+                                      to.data(), with_fext ? fi.data() : nullptr);
+    EXPECT_TRUE(st.ok());
+    for (Index i = 0; i < n; ++i) ref_qdd[i * B + b] = ao[i], ref_tau[i * B + b] = to[i];
+  }
+  const ModelTpl<S> m = model.cast<S>();
+  ChainHybridDynamics<S> hd(m, mask, B, threads, chunk);
+  const auto qs = test::cast_vector<S>(q), qds = test::cast_vector<S>(qd), as = test::cast_vector<S>(qdd_in),
+             ts = test::cast_vector<S>(tau_in);
+  std::vector<Force<S>> fs;
+  for (const auto& f : fext) fs.push_back(f.cast<S>());
+  std::vector<S> qdd(q.size(), S(NAN)), tau(q.size(), S(NAN));
+  using V = BatchView<const S>;
+  const HybridBatchIn<S> in{V::soa(qs.data(), n, B), V::soa(qds.data(), n, B), V::soa(as.data(), n, B),
+                            V::soa(ts.data(), n, B), with_fext ? fs.data() : nullptr};
+  EXPECT_EQ(hd.compute(in, BatchView<S>::soa(qdd.data(), n, B), BatchView<S>::soa(tau.data(), n, B)), 0);
+  for (Index i = 0; i < n; ++i)
+    for (Index b = 0; b < B; ++b) {
+      if (mask[i]) EXPECT_EQ(qdd[i * B + b], as[i * B + b]);
+      else EXPECT_EQ(tau[i * B + b], ts[i * B + b]);
+    }
+  // qdd and tau, each relative to its own scale
+  const double eq = test::max_rel_err(qdd, ref_qdd), et = test::max_rel_err(tau, ref_tau);
+  return std::max(eq, et);
+}
+
+std::vector<unsigned char> random_mask(Index n, double p, std::mt19937_64& g) {
+  std::bernoulli_distribution coin(p);
+  std::vector<unsigned char> m(n);
+  for (auto& x : m) x = coin(g);
+  return m;
+}
+
+// Masks that exercise every case: none, all, random, a run at the base, a run at the tip,
+// alternating, one long run in the middle.
+std::vector<std::vector<unsigned char>> masks(Index n, std::mt19937_64& g) {
+  std::vector<std::vector<unsigned char>> v;
+  v.push_back(std::vector<unsigned char>(n, 0));
+  v.push_back(std::vector<unsigned char>(n, 1));
+  v.push_back(random_mask(n, 0.5, g));
+  v.push_back(random_mask(n, 0.1, g));
+  v.push_back(random_mask(n, 0.9, g));
+  std::vector<unsigned char> base(n, 0), tip(n, 0), alt(n, 0), mid(n, 0);
+  for (Index i = 0; i < n; ++i) {
+    base[i] = i < n / 3;
+    tip[i] = i >= n - n / 3;
+    alt[i] = i % 2;
+    mid[i] = i > n / 4 && i < 3 * n / 4;
+  }
+  for (auto* m : {&base, &tip, &alt, &mid}) v.push_back(*m);
+  return v;
+}
+
+}  // namespace
+
+TEST(ChainHybrid, RandomChainsMatchSerialHybrid) {
+  std::mt19937_64 g(3);
+  for (unsigned seed : {1u, 2u}) {
+    const Model m = test::random_chain(41, seed);
+    for (const auto& mask : masks(m.nv(), g))
+      for (Index chunk : {1, 3, 8, 64}) {
+        EXPECT_LT(hybrid_error<double>(m, mask, 3, seed, 2, chunk, false), 1e-9) << "seed " << seed << " chunk " << chunk;
+        EXPECT_LT(hybrid_error<double>(m, mask, 2, seed, 1, chunk, true), 1e-9) << "fext, seed " << seed;
+      }
+  }
+}
+
+TEST(ChainHybrid, ChainsFromTheBase) {
+  std::mt19937_64 g(4);
+  const Model m = test::random_chains_from_base(40, 5, {1, 3, 10, 23});
+  for (const auto& mask : masks(m.nv(), g))
+    for (Index chunk : {1, 2, 5, 64}) EXPECT_LT(hybrid_error<double>(m, mask, 3, 6, 2, chunk, false), 1e-9) << chunk;
+  const Model curtain = make_generated("curtain:4:30");
+  for (const auto& mask : masks(curtain.nv(), g)) EXPECT_LT(hybrid_error<double>(curtain, mask, 2, 7, 2, 0, true), 1e-9);
+}
+
+TEST(ChainHybrid, RopesWithRandomPrescribedSets) {
+  std::mt19937_64 g(5);
+  for (int n : {1000, 100000}) {
+    const Model m = make_generated("rope:" + std::to_string(n));
+    for (double p : {0.0, 0.3, 0.7}) {
+      const auto mask = random_mask(n, p, g);
+      const double ed = hybrid_error<double>(m, mask, 1, 8, 2, 0, false);
+      EXPECT_LT(ed, 1e-9) << "rope:" << n << " p " << p;
+      std::printf("rope:%d, %.0f%% prescribed: chain hybrid max rel err (double) %.2e\n", n, 100 * p, ed);
+      if (n == 1000) {
+        const double ef = hybrid_error<float>(m, mask, 1, 8, 2, 0, false);
+        EXPECT_LT(ef, 1e-2) << "rope:" << n << " p " << p;
+      }
+    }
+  }
+}
+
+// The engine API: openmp takes the chain scans where forward dynamics would (chains of
+// 4096 links and more), fd_method Parallel forces them (also on serial), Aba keeps the
+// recursion; the results agree with the recursion engine.
+TEST(ChainHybrid, EngineChoosesTheScansForLongChains) {
+  const Model m = make_generated("rope:5000");
+  std::mt19937_64 g(9);
+  const auto mask = random_mask(m.nv(), 0.4, g);
+  BackendOptions o;
+  o.max_batch = 2;
+  auto recursion = make_hybrid_dynamics<double>(m, mask, o);
+  EXPECT_EQ(recursion->strategy(), "recursion");
+  o.fd_method = FdMethod::Parallel;
+  auto forced = make_hybrid_dynamics<double>(m, mask, o);
+  EXPECT_EQ(forced->strategy(), "parallel");
+  o.fd_method = FdMethod::Jsi;
+  EXPECT_THROW(make_hybrid_dynamics<double>(m, mask, o), BackendError);
+  o.fd_method = FdMethod::Auto;
+  if (backend_unusable(BackendKind::OpenMP).empty()) {
+    o.backend = BackendKind::OpenMP;
+    EXPECT_EQ(make_hybrid_dynamics<double>(m, mask, o)->strategy(), "parallel");
+  }
+  const Index n = m.nv(), B = 2;
+  const auto q = test::random_vector(g, n * B, -1, 1), qd = test::random_vector(g, n * B, -1, 1),
+             a = test::random_vector(g, n * B, -1, 1), t = test::random_vector(g, n * B, -1, 1);
+  using V = BatchView<const double>;
+  const HybridBatchIn<double> in{V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(a.data(), n, B),
+                                 V::aos(t.data(), n, B), nullptr};
+  std::vector<double> q1(n * B), t1(n * B), q2(n * B), t2(n * B);
+  ASSERT_TRUE(recursion->compute(in, BatchView<double>::aos(q1.data(), n, B), BatchView<double>::aos(t1.data(), n, B)).ok());
+  ASSERT_TRUE(forced->compute(in, BatchView<double>::aos(q2.data(), n, B), BatchView<double>::aos(t2.data(), n, B)).ok());
+  EXPECT_LT(test::max_rel_err(q2, q1), 1e-9);
+  EXPECT_LT(test::max_rel_err(t2, t1), 1e-9);
+}
