@@ -9,7 +9,8 @@ above the C++ time).
 Per (algo, B): the C++ row (`scandyn bench ... --backend cuda --precision float`, its
 device-resident row: strategy without `-host`) and, in this process, the engine of the
 same algorithm (sd.InverseDynamics, ... backend='cuda', float32) called with out= on
-device-resident torch tensors, timed by the same procedure as bench (a warm-up call, then
+device-resident torch tensors (column out_layout: which out=; for the mass matrix also
+the entry-major view that is its default result on CUDA arrays, and out=None), timed by the same procedure as bench (a warm-up call, then
 rounds of calls until --min-time, one torch.cuda.synchronize per round). Two Python
 columns: seconds_per_call (back-to-back calls; on the GPU, what the loop sustains) and
 host_seconds_per_call (the time a call takes to return, the GPU work queued, not waited
@@ -83,20 +84,27 @@ def main():
             g = torch.Generator(device=dev).manual_seed(1)
             S = {k: torch.rand(b, m.nv, generator=g, device=dev) * 2 - 1 for k in ('q', 'qd', 'qdd', 'tau')}
             e = getattr(sd, ENGINES[algo])(m, backend='cuda', max_batch=b, dtype=np.float32)
-            out = torch.empty((b, m.nv) + ((m.nv,) if algo == 'mass' else ()), device=dev)
             ins = [S[k] for k in INPUTS[algo]]
-
-            def call():
-                e(*ins, out=out)
-            py = timed(call, torch.cuda.synchronize, args.min_time)
-            host = host_time(call, torch.cuda.synchronize)
-            row = dict(algo=algo, model=args.model, precision='float', instances=b, cxx_strategy=strategy,
-                       py_strategy=e.strategy, cxx_seconds_per_call='%.6g' % cxx, py_seconds_per_call='%.6g' % py,
-                       host_seconds_per_call='%.6g' % host, overhead_us='%.3f' % ((py - cxx) * 1e6),
-                       device=torch.cuda.get_device_name(), torch=torch.__version__, scandyn=sd.__version__)
-            rows.append(row)
-            print(','.join(str(v) for v in row.values()), flush=True)
-            del S, out, e, ins
+            # out= a preallocated row-major array; for the mass matrix also out= the
+            # entry-major view its default result has (the C++ row's layout) and the
+            # default call itself (out=None: a new entry-major result per call)
+            outs = [('row-major out=', torch.empty((b, m.nv) + ((m.nv,) if algo == 'mass' else ()), device=dev))]
+            if algo == 'mass':
+                outs = [('entry-major out=', torch.empty((m.nv, m.nv, b), device=dev).permute(2, 0, 1)),
+                        ('default (out=None)', None)] + outs
+            for layout, out in outs:
+                def call():
+                    e(*ins, out=out)
+                py = timed(call, torch.cuda.synchronize, args.min_time)
+                host = host_time(call, torch.cuda.synchronize)
+                row = dict(algo=algo, model=args.model, precision='float', instances=b, out_layout=layout,
+                           cxx_strategy=strategy, py_strategy=e.strategy, cxx_seconds_per_call='%.6g' % cxx,
+                           py_seconds_per_call='%.6g' % py, host_seconds_per_call='%.6g' % host,
+                           overhead_us='%.3f' % ((py - cxx) * 1e6), device=torch.cuda.get_device_name(),
+                           torch=torch.__version__, scandyn=sd.__version__)
+                rows.append(row)
+                print(','.join(str(v) for v in row.values()), flush=True)
+            del S, outs, out, e, ins
             torch.cuda.empty_cache()
     with open(args.out, 'w', newline='') as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))

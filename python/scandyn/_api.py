@@ -336,6 +336,31 @@ def _lead_of(q, name="q"):
     return shape[:-1]
 
 
+def _entry_major_mass(q, nv, dtype):
+    """The default result of a mass matrix on CUDA arrays: a (B, nv, nv) view of
+    entry-major memory (M[b, i, j] at (i * nv + j) * B + b), the layout the kernel
+    stores coalesced, so a call costs what the C++ engine's device row costs.
+    Indexing, matmul, torch.linalg and CuPy read it as any strided array;
+    .contiguous() / cupy.ascontiguousarray copy it row-major, and an out= array
+    of any layout (row-major included) is written as given. None (a row-major
+    result from _empty) for one state, JAX arrays (no strides) and host arrays."""
+    if getattr(q, "ndim", 0) != 2:
+        return None
+    b = q.shape[0]
+    if type(q).__module__.startswith("torch"):
+        if not q.is_cuda:
+            return None
+        import torch
+
+        return torch.empty((nv, nv, b), dtype=getattr(torch, dtype), device=q.device).permute(2, 0, 1)
+    if type(q).__module__.startswith("cupy"):
+        import cupy
+
+        with q.device:
+            return cupy.empty((nv, nv, b), dtype=dtype).transpose(2, 0, 1)
+    return None
+
+
 def _empty(where, shape, dtype):
     """A new result array of the inputs' kind on their device: NumPy for host arrays
     (a torch CPU tensor for torch inputs), a torch / CuPy / JAX array on the inputs'
@@ -568,6 +593,8 @@ class MassMatrix(_EngineBase):
         super().__init__(model, backend, max_batch, dtype, device, threads=threads)
 
     def __call__(self, q, out=None, stream=None):
+        if out is None and self.backend == "cuda":
+            out = _entry_major_mass(q, self.nv, self._dtype)
         where, (q,), out, w = self._prepare((q,), out, stream, (self.nv,))
         try:
             self._e.compute(q, w, where.stream or 0)

@@ -159,6 +159,26 @@ def test_engines_out_aliases_caller_memory(lib, dtype):
         assert np.isnan(h[1::2]).all()
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_mass_matrix_default_result_is_entry_major(lib, dtype):
+    """Without out=, M of a batch of torch / CuPy arrays is a (B, nv, nv) view of
+    entry-major memory (the kernel's coalesced layout); it reads as any array, and
+    its row-major copy equals the serial reference."""
+    if lib.name == "jax":
+        pytest.skip("JAX arrays have no strides: M comes back row-major")
+    m = sd.load_model("iiwa")
+    B, nv = 129, m.nv
+    (q,) = states(m, B, dtype, seed=11)[:1]
+    M = sd.mass_matrix(m, lib.dev(q))
+    item = np.dtype(dtype).itemsize
+    strides = tuple(s * item for s in M.stride()) if lib.name == "torch" else M.strides
+    assert M.shape == (B, nv, nv) and strides == (item, nv * B * item, B * item)
+    ref = sd.mass_matrix(m, q, backend="serial")
+    _close(lib.host(M), ref, dtype, "entry-major M")
+    Mc = M.contiguous() if lib.name == "torch" else lib.dev(lib.host(M))
+    _close(lib.host(Mc @ Mc[:, :, :1]), ref @ ref[:, :, :1], dtype, "matmul of entry-major M")
+
+
 def test_strided_device_inputs(lib):
     """Transposed (soa) and sliced device inputs reach the kernels through their strides."""
     if lib.name == "jax":
