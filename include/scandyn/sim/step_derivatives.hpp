@@ -165,14 +165,17 @@ SCANDYN_HD Index step_jacobian_instance(Index n, S dt, const JointCoefficients<S
     for (int s = 0; s < 4; ++s) {
       const Index failed = stage(qs, qds, S(0), static_cast<const S*>(nullptr));
       if (failed >= 0) return failed;
-      // K_b = A_q Dq_b + A_qd Dqd_b (+ A_tau for b = tau)
+      // K_b = A_q Dq_b + A_qd Dqd_b (+ A_tau for b = tau), by rows (contiguous, vectorised);
+      // at stage 0 (Dq, Dqd) = ([1 0 0], [0 1 0]): K_b = A_b exactly
       for (int b = 0; b < 3; ++b)
-        for (Index i = 0; i < n; ++i)
-          for (Index j = 0; j < n; ++j) {
-            S k = b == 2 ? A[2](i, j) : S(0);
-            for (Index l = 0; l < n; ++l) k += A[0](i, l) * Dq[b](l, j) + A[1](i, l) * Dqd[b](l, j);
-            K[b](i, j) = k;
+        for (Index i = 0; i < n; ++i) {
+          for (Index j = 0; j < n; ++j) K[b](i, j) = (s == 0 || b == 2) ? A[b](i, j) : S(0);
+          if (s == 0) continue;
+          for (Index l = 0; l < n; ++l) {
+            const S a0 = A[0](i, l), a1 = A[1](i, l);
+            for (Index j = 0; j < n; ++j) K[b](i, j) += a0 * Dq[b](l, j) + a1 * Dqd[b](l, j);
           }
+        }
       for (int b = 0; b < 3; ++b)
         for (Index i = 0; i < n; ++i)
           for (Index j = 0; j < n; ++j)
