@@ -156,39 +156,29 @@ def _torch_functions():
     def vec_mat(g, m):  # g^T m over the leading dimensions: (..., n) x (..., n, k) -> (..., k)
         return torch.einsum("...i,...ij->...j", g, m)
 
-    class InverseDynamicsFunction(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, model, backend, q, qd, qdd):
-            ctx.model, ctx.backend = model, backend
-            ctx.save_for_backward(q, qd, qdd)
-            qh = _host(q)
-            return tensor(_api.inverse_dynamics(model, qh, _host(qd, qh.dtype), _host(qdd, qh.dtype),
-                                                backend=_backend(backend)), q)
+    def dynamics_function(values, derivatives):
+        """A Function (model, backend, q, qd, x) -> y = values(...) whose backward
+        contracts g with derivatives(model, q, qd, x, backend) = (dy/dq, dy/dqd, dy/dx)."""
 
-        @staticmethod
-        def backward(ctx, g):
-            q, qd, qdd = ctx.saved_tensors
-            dq, dqd, M = (tensor(m, q) for m in id_derivatives(ctx.model, q, qd, qdd, ctx.backend))
-            need = ctx.needs_input_grad
-            return (None, None, vec_mat(g, dq) if need[2] else None, vec_mat(g, dqd) if need[3] else None,
-                    vec_mat(g, M) if need[4] else None)
+        class DynamicsFunction(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx, model, backend, q, qd, x):
+                ctx.model, ctx.backend = model, backend
+                ctx.save_for_backward(q, qd, x)
+                qh = _host(q)
+                return tensor(values(model, qh, _host(qd, qh.dtype), _host(x, qh.dtype), backend=_backend(backend)), q)
 
-    class ForwardDynamicsFunction(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, model, backend, q, qd, tau):
-            ctx.model, ctx.backend = model, backend
-            ctx.save_for_backward(q, qd, tau)
-            qh = _host(q)
-            return tensor(_api.forward_dynamics(model, qh, _host(qd, qh.dtype), _host(tau, qh.dtype),
-                                                backend=_backend(backend)), q)
+            @staticmethod
+            def backward(ctx, g):
+                q, qd, x = ctx.saved_tensors
+                mats = derivatives(ctx.model, q, qd, x, ctx.backend)
+                return (None, None) + tuple(vec_mat(g, tensor(m, q)) if need else None
+                                            for m, need in zip(mats, ctx.needs_input_grad[2:]))
 
-        @staticmethod
-        def backward(ctx, g):
-            q, qd, tau = ctx.saved_tensors
-            _, dq, dqd, dtau = (tensor(m, q) for m in fd_derivatives(ctx.model, q, qd, tau, ctx.backend))
-            need = ctx.needs_input_grad
-            return (None, None, vec_mat(g, dq) if need[2] else None, vec_mat(g, dqd) if need[3] else None,
-                    vec_mat(g, dtau) if need[4] else None)
+        return DynamicsFunction
+
+    InverseDynamicsFunction = dynamics_function(_api.inverse_dynamics, id_derivatives)
+    ForwardDynamicsFunction = dynamics_function(_api.forward_dynamics, lambda *a: fd_derivatives(*a)[1:])
 
     class StepFunction(torch.autograd.Function):
         @staticmethod
