@@ -11,6 +11,8 @@
 #include <vector>
 
 #include "instance_loop.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/step_derivatives.hpp"
 #include "scandyn/algorithm/derivatives.hpp"
 #include "scandyn/algorithm/directional_derivatives.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
@@ -180,7 +182,14 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
 
 template <class S>
 std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& setup, const BackendOptions& options) {
-  require_differentiable_step(setup, options.backend, "the step derivatives");
+  require_differentiable_step(setup, "the step derivatives");
+  if (options.backend == BackendKind::Cuda) {
+#if SCANDYN_HAS_CUDA
+    return cuda::make_cuda_step_derivatives(setup, options);
+#else
+    throw BackendError("backend 'cuda' is not available in this build");
+#endif
+  }
   return std::make_unique<CpuStepDerivatives<S>>(setup, options);
 }
 
@@ -239,7 +248,9 @@ void store(const S* row, const BatchView<S>& v, Index b, Index n) {
 template <class S>
 RolloutDerivatives<S>::RolloutDerivatives(const SimSetup<S>& setup, const BackendOptions& options,
                                           Index checkpoint_interval) {
-  require_differentiable_step(setup, options.backend, "the rollout derivatives");
+  require_differentiable_step(setup, "the rollout derivatives");
+  if (options.backend == BackendKind::Cuda)
+    throw BackendError("backend 'cuda': the rollout derivatives run on the serial and openmp backends");
   if (checkpoint_interval < 0)
     throw BackendError("the rollout derivatives: checkpoint interval " + std::to_string(checkpoint_interval) +
                        " is negative");

@@ -7,10 +7,8 @@ namespace scandyn {
 namespace sim {
 
 template <class S>
-void require_differentiable_step(const SimSetup<S>& setup, BackendKind backend, const char* what) {
+void require_differentiable_step(const SimSetup<S>& setup, const char* what) {
   const std::string name(what);
-  if (backend == BackendKind::Cuda)
-    throw BackendError("backend 'cuda': " + name + " run on the serial and openmp backends");
   if (setup.effects & kContacts)
     throw BackendError(name + " do not cover the contacts effect (its force switches with the contact set)");
   if (!setup.prescribed.empty()) throw BackendError(name + " do not cover prescribed joint motion");
@@ -18,8 +16,8 @@ void require_differentiable_step(const SimSetup<S>& setup, BackendKind backend, 
   require_one_dof_joints(setup.model, what);
 }
 
-template void require_differentiable_step(const SimSetup<float>&, BackendKind, const char*);
-template void require_differentiable_step(const SimSetup<double>&, BackendKind, const char*);
+template void require_differentiable_step(const SimSetup<float>&, const char*);
+template void require_differentiable_step(const SimSetup<double>&, const char*);
 
 }  // namespace sim
 }  // namespace scandyn

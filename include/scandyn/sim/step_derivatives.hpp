@@ -26,9 +26,10 @@
 // rk4, implicit), the effects gravity, damping, springs, limits (the derivative of
 // the branch the state is on: exact away from the limit itself, where the penalty
 // force has a kink) and external wrenches (constant in their body frames over the
-// step, not differentiated). Refused by name (BackendError from the factories):
-// contacts, prescribed joint motion, closed loops, multi-DoF joints (a floating
-// base, spherical joints), and the cuda backend.
+// step, not differentiated). Backends: serial, openmp and (the Jacobian) cuda.
+// Refused by name (BackendError from the factories): contacts, prescribed joint
+// motion, closed loops, multi-DoF joints (a floating
+// base, spherical joints); the rollouts also refuse the cuda backend.
 #pragma once
 
 #include <memory>
@@ -363,16 +364,17 @@ class StepDerivatives : public Engine {
 };
 
 // The step derivatives of a simulator's setup (Simulator::setup(); copied) on
-// options.backend (serial or openmp; threads over instances). Throws BackendError
-// naming what is not covered (see the header comment).
+// options.backend: serial or openmp (threads over instances), or cuda (one thread
+// per instance, models of up to cuda::kMaxThreadDofs DoF; scandyn/cuda/
+// step_derivatives.hpp). Throws BackendError naming what is not covered (see the
+// header comment).
 template <class S>
 std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& setup, const BackendOptions& options);
 
 // Throws BackendError naming `what` and the first of the setup's features the step
-// derivatives do not cover (contacts, prescribed motion, loops, multi-DoF joints,
-// the cuda backend).
+// derivatives do not cover (contacts, prescribed motion, loops, multi-DoF joints).
 template <class S>
-void require_differentiable_step(const SimSetup<S>& setup, BackendKind backend, const char* what);
+void require_differentiable_step(const SimSetup<S>& setup, const char* what);
 
 // A sequence of T per-step batches: step t's view is `first` moved by t *
 // time_stride elements. A (T, B, nv) C array is {BatchView::aos(p, nv, B), B * nv, T}.
