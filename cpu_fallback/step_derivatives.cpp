@@ -122,6 +122,24 @@ const Force<S>* instance_wrenches(const SimSetup<S>& setup, const Force<S>* fext
   return fext ? fext + static_cast<std::size_t>(b) * setup.model.nv() : setup.wrenches.data();
 }
 
+// The first of n entries that is not finite, or -1.
+template <class S>
+Index first_nonfinite(const S* a, Index n) {
+  for (Index i = 0; i < n; ++i)
+    if (!std::isfinite(a[i])) return i;
+  return -1;
+}
+
+// The status of a batch whose instance b failed at failed[b] >= 0 for reason what[b].
+inline BatchStatus status_of(const std::vector<int>& failed, const std::vector<Failure>& what, Index B) {
+  BatchStatus st;
+  for (Index b = 0; b < B; ++b)
+    if (failed[static_cast<std::size_t>(b)] >= 0)
+      st.record(b, failed[static_cast<std::size_t>(b)], what[static_cast<std::size_t>(b)]);
+  st.failed_dof = failed.data();
+  return st;
+}
+
 template <class S>
 void refuse_wrenches_without_effect(const SimSetup<S>& setup, const Force<S>* fext) {
   if (fext && !(setup.effects & kExternal))
@@ -157,7 +175,17 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
         const StepJacobian<S> J{instance_matrix(out.q_q, b, n),  instance_matrix(out.q_qd, b, n),
                                 instance_matrix(out.q_tau, b, n), instance_matrix(out.qd_q, b, n),
                                 instance_matrix(out.qd_qd, b, n), instance_matrix(out.qd_tau, b, n)};
-        const Index failed = kernels_.jacobian(setup_, w, instance_wrenches(setup_, in.fext, b), q, qd, tau, J);
+        Index failed = kernels_.jacobian(setup_, w, instance_wrenches(setup_, in.fext, b), q, qd, tau, J);
+        what_[static_cast<std::size_t>(b)] = Failure::ArticulatedPivot;
+        if (failed < 0) {  // a state or derivative that is not finite is a failure, never a silent NaN
+          const MatrixRef<S> blocks[6] = {J.q_q, J.q_qd, J.q_tau, J.qd_q, J.qd_qd, J.qd_tau};
+          for (Index i = 0; i < n && failed < 0; ++i) {
+            bool finite = std::isfinite(q[i]) && std::isfinite(qd[i]);
+            for (int k = 0; k < 6; ++k)
+              for (Index j = 0; j < n; ++j) finite = finite && std::isfinite(blocks[k](i, j));
+            if (!finite) failed = i, what_[static_cast<std::size_t>(b)] = Failure::NonFinite;
+          }
+        }
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(failed);
         for (Index i = 0; i < n && failed < 0; ++i) {
           if (out.q_next.data) out.q_next.at(i, b) = q[i];
@@ -165,7 +193,7 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
         }
       }
     });
-    return summarize_failures(failed_.data(), B, Failure::ArticulatedPivot);
+    return status_of(failed_, what_, B);
   }
 
  private:
@@ -176,6 +204,7 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
   KernelSet<S> kernels_;
   std::vector<StepWork<S>> work_;  // (threads)
   std::vector<int> failed_;        // (max_batch) -1 or the failed DoF
+  std::vector<Failure> what_ = std::vector<Failure>(failed_.size());  // (max_batch) why
 };
 
 }  // namespace
@@ -207,16 +236,20 @@ struct RolloutDerivatives<S>::Impl {
   KernelSet<S> kernels;
   std::vector<StepWork<S>> work;  // (threads)
   std::vector<int> failed;        // (B)
+  std::vector<Failure> what;      // (B)
 
-  // body(w, b, failed) per instance; the status of the failed DoFs it records
+  // body(w, b, what) per instance returns -1 or the failed DoF (what: why, a pivot by
+  // default); the status of the failures
   template <class F>
   BatchStatus instances(Index B, F&& body) {
     failed.assign(static_cast<std::size_t>(std::max<Index>(B, 1)), -1);
+    what.assign(failed.size(), Failure::ArticulatedPivot);
     cpu::for_instance_blocks(threads, B, [&](int t, Index begin, Index end) {
       for (Index b = begin; b < end; ++b)
-        failed[static_cast<std::size_t>(b)] = static_cast<int>(body(work[static_cast<std::size_t>(t)], b));
+        failed[static_cast<std::size_t>(b)] =
+            static_cast<int>(body(work[static_cast<std::size_t>(t)], b, what[static_cast<std::size_t>(b)]));
     });
-    return summarize_failures(failed.data(), B, Failure::ArticulatedPivot);
+    return status_of(failed, what, B);
   }
 };
 
@@ -281,13 +314,17 @@ BatchStatus RolloutDerivatives<S>::rollout(const BatchView<const S>& q0, const B
   check_sequence("q", q, T, B);
   check_sequence("qd", qd, T, B);
   const SimSetup<S>& setup = impl_->setup;
-  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
     S *x = w.row(0), *xd = w.row(1), *u = w.row(2);
     load(q0, b, n, x), load(qd0, b, n, xd);
     for (Index t = 0; t < T; ++t) {
       load(tau.at(t), b, n, u);
       const Index failed = impl_->kernels.step(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u);
       if (failed >= 0) return failed;
+      if (const Index bad = std::max(first_nonfinite(x, n), first_nonfinite(xd, n)); bad >= 0) {
+        why = Failure::NonFinite;
+        return bad;
+      }
       if (q.first.data) store(x, q.at(t), b, n);
       if (qd.first.data) store(xd, qd.at(t), b, n);
     }
@@ -309,7 +346,7 @@ BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const Batch
   check_sequence("dq", dq, T, B);
   check_sequence("dqd", dqd, T, B);
   const SimSetup<S>& setup = impl_->setup;
-  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
     S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *dx = w.row(3), *dxd = w.row(4), *du = w.row(5);
     load(q0, b, n, x), load(qd0, b, n, xd), load(dq0, b, n, dx), load(dqd0, b, n, dxd);
     for (Index t = 0; t < T; ++t) {
@@ -317,6 +354,10 @@ BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const Batch
       load(dtau.first.data ? dtau.at(t) : BatchView<const S>{}, b, n, du);
       const Index failed = impl_->kernels.jvp(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u, dx, dxd, du);
       if (failed >= 0) return failed;
+      if (const Index bad = std::max(first_nonfinite(dx, n), first_nonfinite(dxd, n)); bad >= 0) {
+        why = Failure::NonFinite;
+        return bad;
+      }
       if (dq.first.data) store(dx, dq.at(t), b, n);
       if (dqd.first.data) store(dxd, dqd.at(t), b, n);
     }
@@ -341,7 +382,7 @@ BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const Batch
   const Index K = checkpoint_interval(T), segments = (T + K - 1) / K;
   const std::size_t state = 2 * static_cast<std::size_t>(n);
   for (StepWork<S>& w : impl_->work) w.store.resize(static_cast<std::size_t>(segments + K) * state);
-  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
     S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *lq = w.row(3), *lqd = w.row(4), *gu = w.row(5), *g = w.row(6);
     S* const checkpoints = w.store.data();                      // (segments x 2 nv) x_{kK}
     S* const segment = checkpoints + static_cast<std::size_t>(segments) * state;  // (K x 2 nv) x_t of one segment
@@ -386,6 +427,10 @@ BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const Batch
         load(tau.at(t), b, n, u);
         const Index failed = impl_->kernels.vjp(setup, w, fext, s, s + n, u, lq, lqd, gu);
         if (failed >= 0) return failed;
+        if (const Index bad = std::max(first_nonfinite(lq, n), first_nonfinite(gu, n)); bad >= 0) {
+          why = Failure::NonFinite;
+          return bad;
+        }
         if (gtau.first.data) store(gu, gtau.at(t), b, n);
       }
     }

@@ -53,9 +53,17 @@ __global__ void __launch_bounds__(kStepJacobianBlock)
   const sim::StepJacobian<S> J{instance_matrix(out.q_q, b, n),  instance_matrix(out.q_qd, b, n),
                                instance_matrix(out.q_tau, b, n), instance_matrix(out.qd_q, b, n),
                                instance_matrix(out.qd_qd, b, n), instance_matrix(out.qd_tau, b, n)};
-  const Index failed = sim::step_jacobian_instance<sim::kJointEffects, I>(
+  Index failed = sim::step_jacobian_instance<sim::kJointEffects, I>(
       n, p.dt, p.coef, p.armature, q, qd, tau, scratch + static_cast<std::size_t>(b) * per_instance, J, fd, dfd);
-  if (failed < 0)
+  // a state or derivative that is not finite: -2 - its DoF (compute() reports it, never a silent NaN)
+  const MatrixRef<S> blocks[6] = {J.q_q, J.q_qd, J.q_tau, J.qd_q, J.qd_qd, J.qd_tau};
+  for (Index i = 0; i < n && failed < 0; ++i) {
+    bool finite = isfinite(q[i]) && isfinite(qd[i]);
+    for (int k = 0; k < 6; ++k)
+      for (Index j = 0; j < n; ++j) finite = finite && isfinite(blocks[k](i, j));
+    if (!finite) failed = -2 - i;
+  }
+  if (failed == -1)
     for (Index i = 0; i < n; ++i) {
       if (out.q_next.data) out.q_next.at(i, b) = q[i];
       if (out.qd_next.data) out.qd_next.at(i, b) = qd[i];
@@ -196,7 +204,14 @@ BatchStatus CudaStepDerivatives<S>::compute(const FdBatchIn<S>& in, const sim::S
                         stream),
         "copying the failed DoFs to the host");
   check(cudaStreamSynchronize(stream), "running step_jacobian_kernel");
-  return summarize_failures(failed_host_.data(), B, Failure::ArticulatedPivot);
+  BatchStatus status;
+  for (Index b = 0; b < B; ++b) {
+    int& f = failed_host_[static_cast<std::size_t>(b)];
+    if (f >= 0) status.record(b, f, Failure::ArticulatedPivot);
+    if (f <= -2) f = -2 - f, status.record(b, f, Failure::NonFinite);
+  }
+  status.failed_dof = failed_host_.data();
+  return status;
 }
 
 template <class S>

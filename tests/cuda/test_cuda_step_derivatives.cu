@@ -80,6 +80,26 @@ TEST(CudaStepDerivatives, EqualsTheSerialEngine) {
   }
 }
 
+TEST(CudaStepDerivatives, ANonFiniteResultIsAFailure) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  sim::Scene scene = sim::parse_scene(kScenes[0], "t.json");
+  scene.instances = 1;
+  sim::Simulator<double> sim(scene, BackendKind::Serial);
+  const Index n = scene.nv(), B = 3;
+  std::vector<double> q(n * B, 0.1), qd(n * B, 0.2), tau(n * B, 1.0), blocks(6 * n * n * B);
+  tau[1 * n + 2] = NAN;
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  auto v = [&](int k) { return BatchView<double>::aos(blocks.data() + k * n * n * B, n * n, B); };
+  using V = BatchView<const double>;
+  const BatchStatus st = sim::make_step_derivatives(sim.setup(), o)->compute(
+      {V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(tau.data(), n, B)}, {v(0), v(1), v(2), v(3), v(4), v(5), {}, {}});
+  EXPECT_EQ(st.failed, 1);
+  EXPECT_EQ(st.first_instance, 1);
+  EXPECT_EQ(st.failure, Failure::NonFinite);
+}
+
 TEST(CudaStepDerivatives, RefusesModelsBeyondTheThreadCapacity) {
   SKIP_WITHOUT_CUDA_DEVICE();
   sim::Simulator<double> sim(sim::parse_scene(R"({"model": "rope:65", "dt": 1e-5, "effects": {"gravity": true}})", "t.json"),

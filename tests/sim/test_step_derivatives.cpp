@@ -230,7 +230,7 @@ struct Rollout {
 
 Rollout random_rollout(Index n, Index B, Index T, unsigned seed, double tau_scale) {
   std::mt19937_64 rng(seed);
-  Rollout r{n, B, T};
+  Rollout r{n, B, T, {}, {}, {}, {}, {}};
   r.q0 = test::random_vector(rng, n * B, -0.4, 0.4);
   r.qd0 = test::random_vector(rng, n * B, -0.5, 0.5);
   r.tau = test::random_vector(rng, T * B * n, -tau_scale, tau_scale);
@@ -424,6 +424,32 @@ TEST(StepDerivatives, OneStepDirectionalDerivativesAreTheDenseJacobiansProducts)
       EXPECT_NEAR(an, gJ, 1e-12 * scale + 1e-300) << "column " << k;
     }
   }
+}
+
+TEST(StepDerivatives, ANonFiniteResultIsAFailureNeverASilentNaN) {
+  const Case c = cases()[0];
+  const Index n = scene_of(c, 1).nv(), B = 3;
+  std::vector<double> q(n * B, 0.1), qd(n * B, 0.2), tau(n * B, 1.0);
+  tau[1 * n + 2] = NAN;  // instance 1
+  Simulator<double> base(scene_of(c, 1), BackendKind::Serial);
+  BackendOptions o;
+  o.max_batch = B;
+  using V = BatchView<const double>;
+  Jacobians J(n, B);
+  const BatchStatus st =
+      sim::make_step_derivatives(base.setup(), o)->compute({V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(tau.data(), n, B)}, J.out());
+  EXPECT_EQ(st.failed, 1);
+  EXPECT_EQ(st.first_instance, 1);
+  EXPECT_EQ(st.failure, Failure::NonFinite);
+  sim::RolloutDerivatives<double> rd(base.setup(), o);
+  std::vector<double> qs(2 * n * B), qds(2 * n * B), taus(2 * n * B, 1.0);
+  taus[n * B + 2 * n] = INFINITY;  // step 1, instance 2
+  const BatchStatus rs = rd.rollout(V::aos(q.data(), n, B), V::aos(qd.data(), n, B), {V::aos(taus.data(), n, B), n * B, 2},
+                                    {BatchView<double>::aos(qs.data(), n, B), n * B, 2},
+                                    {BatchView<double>::aos(qds.data(), n, B), n * B, 2});
+  EXPECT_EQ(rs.failed, 1);
+  EXPECT_EQ(rs.first_instance, 2);
+  EXPECT_EQ(rs.failure, Failure::NonFinite);
 }
 
 TEST(StepDerivatives, RefusesWhatItDoesNotCoverByName) {

@@ -41,8 +41,9 @@ class CudaStepDerivatives final : public sim::StepDerivatives<S> {
   // Host views: copies in, launches, copies out, synchronises.
   BatchStatus compute(const FdBatchIn<S>& in, const sim::StepDerivativesOut<S>& out) override;
   // DEVICE views (inputs, outputs, in.fext or null for the scene's constant
-  // wrenches) on `stream`; failed_dof: B ints of device memory (-1 or the failed
-  // DoF), or null. Scratch: the engine's (one call at a time per engine).
+  // wrenches) on `stream`; failed_dof: B ints of device memory, or null: -1, the
+  // DoF whose pivot failed, or -2 - i when the new state or a derivative in row i
+  // is not finite. Scratch: the engine's (one call at a time per engine).
   cudaError_t compute_async(const FdBatchIn<S>& in, const sim::StepDerivativesOut<S>& out, int* failed_dof,
                             cudaStream_t stream);
   std::string strategy() const override { return std::string("thread-step-jacobian-") + sim::to_string(setup_.integrator); }
