@@ -694,4 +694,5 @@ NB_MODULE(_scandyn, m) {
   bind_simulator(m);
   // ---- kinematics (python/src/kinematics.cpp)
   bind_kinematics(m);
+  bind_derivatives(m);
 }

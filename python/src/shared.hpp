@@ -61,4 +61,7 @@ std::string shape_str(const A& a) {
 // Registers the Kinematics engine class (python/src/kinematics.cpp).
 void bind_kinematics(nanobind::module_& m);
 
+// Registers the derivatives (python/src/derivatives.cpp).
+void bind_derivatives(nanobind::module_& m);
+
 }  // namespace scandyn::py

@@ -21,12 +21,12 @@ void rnea_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, cons
 template <class S>
 Status aba_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, const S* q, const S* qd,
                        const S* tau, const Force<S>* fext, S* qdd, MatrixRef<S> dqdd_dq, MatrixRef<S> dqdd_dqd,
-                       MatrixRef<S> dqdd_dtau) {
-  const Status st = aba(model, data.aba, q, qd, tau, qdd, fext);
+                       MatrixRef<S> dqdd_dtau, const S* armature) {
+  const Status st = aba(model, data.aba, q, qd, tau, qdd, fext, armature);
   if (!st.ok()) return st;
   const Index failed = fd_derivatives_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q,
                                                qd, static_cast<const S*>(qdd), fext, data.work.data(), dqdd_dq,
-                                               dqdd_dqd, dqdd_dtau);
+                                               dqdd_dqd, dqdd_dtau, armature);
   return Status{failed};
 }
 
@@ -108,22 +108,22 @@ AbaJvpData<S>::AbaJvpData(const ModelTpl<S>& model)
 
 template <class S>
 Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
-               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd) {
-  const Status st = aba(model, data.aba, q, qd, tau, qdd, fext);
+               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd, const S* armature) {
+  const Status st = aba(model, data.aba, q, qd, tau, qdd, fext, armature);
   if (!st.ok()) return st;
   // r0 = dtau/dq dq + dtau/dqd dqd (the JVP of ID with dqdd = 0), then dtau - r0
   rnea_jvp(model, data.id, q, qd, static_cast<const S*>(qdd), fext, dq, dqd, data.zero.data(), data.r0.data());
   const Index n = model.nv();
   for (Index i = 0; i < n; ++i) data.r0[i] = dtau[i] - data.r0[i];
-  return aba(data.at_rest, data.aba, q, data.zero.data(), data.r0.data(), dqdd);
+  return aba(data.at_rest, data.aba, q, data.zero.data(), data.r0.data(), dqdd, static_cast<const Force<S>*>(nullptr), armature);
 }
 
 template <class S>
 Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
-               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd) {
-  Status st = aba(model, data.aba, q, qd, tau, qdd, fext);
+               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd, const S* armature) {
+  Status st = aba(model, data.aba, q, qd, tau, qdd, fext, armature);
   if (!st.ok()) return st;
-  st = aba(data.at_rest, data.aba, q, data.zero.data(), w, gtau);  // u = M^-1 w
+  st = aba(data.at_rest, data.aba, q, data.zero.data(), w, gtau, static_cast<const Force<S>*>(nullptr), armature);  // u = M^-1 w
   if (!st.ok()) return st;
   rnea_vjp(model, data.id, q, qd, static_cast<const S*>(qdd), fext, static_cast<const S*>(gtau), gq, gqd,
            data.r1.data());
@@ -136,16 +136,16 @@ Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const 
   template void rnea_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,     \
                                  const Force<S>*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>, S*);               \
   template Status aba_derivatives(const ModelTpl<S>&, DerivativeDataTpl<S>&, const S*, const S*, const S*,    \
-                                  const Force<S>*, S*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>);          \
+                                  const Force<S>*, S*, MatrixRef<S>, MatrixRef<S>, MatrixRef<S>, const S*);     \
   template void rnea_jvp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
                          const S*, const S*, const S*, S*, S*);                                        \
   template void rnea_vjp(const ModelTpl<S>&, RneaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
                          const S*, S*, S*, S*);                                                        \
   template struct AbaJvpData<S>;                                                                               \
   template Status aba_jvp(const ModelTpl<S>&, AbaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
-                          const S*, const S*, const S*, S*, S*);                                               \
+                          const S*, const S*, const S*, S*, S*, const S*);                                     \
   template Status aba_vjp(const ModelTpl<S>&, AbaJvpData<S>&, const S*, const S*, const S*, const Force<S>*,    \
-                          const S*, S*, S*, S*, S*);
+                          const S*, S*, S*, S*, S*, const S*);
 SCANDYN_INSTANTIATE_DERIVATIVES(float)
 SCANDYN_INSTANTIATE_DERIVATIVES(double)
 #undef SCANDYN_INSTANTIATE_DERIVATIVES

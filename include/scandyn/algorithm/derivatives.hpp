@@ -35,10 +35,11 @@ void rnea_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, cons
 
 // qdd = FD(q, qd, tau, fext) by the ABA, then dqdd/dq, dqdd/dqd and dqdd/dtau = M^-1
 // there. A pivot that is not positive and finite (the ABA's, or M's) is reported;
-// the outputs are then not meaningful.
+// the outputs are then not meaningful. armature (nv, or null): joint-space inertia
+// on M's diagonal, as aba's (fd_derivatives_instance).
 template <class S>
 Status aba_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, const S* q, const S* qd,
                        const S* tau, const Force<S>* fext, S* qdd, MatrixRef<S> dqdd_dq, MatrixRef<S> dqdd_dqd,
-                       MatrixRef<S> dqdd_dtau);
+                       MatrixRef<S> dqdd_dtau, const S* armature = nullptr);
 
 }  // namespace scandyn

@@ -95,14 +95,17 @@ struct AbaJvpData {
 
 // dqdd = (dqdd/dq) dq + (dqdd/dqd) dqd + M^-1 dtau at (q, qd, tau, fext); qdd (nv
 // entries, written) = FD(q, qd, tau, fext). Reports the ABA's failed pivot.
+// armature (nv, or null): joint-space inertia on M's diagonal, as aba's (then M
+// reads M + diag(armature) above, in both functions).
 template <class S>
 Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
-               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd);
+               const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd,
+               const S* armature = nullptr);
 
 // gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = M^-1 w at (q, qd, tau, fext); qdd
 // (written) = FD(q, qd, tau, fext).
 template <class S>
 Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
-               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd);
+               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd, const S* armature = nullptr);
 
 }  // namespace scandyn

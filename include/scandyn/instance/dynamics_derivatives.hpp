@@ -276,12 +276,18 @@ SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch di
 // caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
 // every entry written). Returns -1, or the DoF whose pivot of M = L^T L was not
 // positive and finite (the outputs then hold partial values). Arguments as
-// rnea_derivatives_instance.
+// rnea_derivatives_instance; armature (nv entries, or null): a joint-space inertia
+// added to M's diagonal, as the ABA's armature argument (the simulator's implicit
+// integrator): then qdd solves (M + diag(armature)) qdd = tau - h, and the
+// derivatives are those of that solve, dqdd/dtau = (M + diag(armature))^-1.
 template <class S, class V>
 SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
-                                         MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau) {
+                                         MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau,
+                                         const S* armature = nullptr) {
   rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
+  if (armature)
+    for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
   const Index failed = tree_ltl_factor(body, dqdd_dtau);
   if (failed >= 0) return failed;
   tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);

@@ -1,0 +1,451 @@
+// cpu_fallback/step_derivatives.cpp: the serial and OpenMP derivatives of the
+// simulator's step (scandyn/sim/step_derivatives.hpp): the step-Jacobian engine and
+// the rollouts (forward, JVP, checkpointed VJP), threads over instances through the
+// CPU engines' instance loop, each instance's step over the reference aba, its
+// derivatives (fd_derivatives_instance) and directional derivatives (aba_jvp,
+// aba_vjp).
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <utility>
+#include <vector>
+
+#include "instance_loop.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/step_derivatives.hpp"
+#include "scandyn/algorithm/derivatives.hpp"
+#include "scandyn/algorithm/directional_derivatives.hpp"
+#include "scandyn/sim/step_derivatives.hpp"
+
+namespace scandyn {
+namespace sim {
+namespace {
+
+// One thread's workspace.
+template <class S>
+struct StepWork {
+  explicit StepWork(const SimSetup<S>& setup)
+      : deriv(setup.model), directional(setup.model),
+        scratch(std::max(step_jacobian_scratch(setup.model.nv(), setup.integrator),
+                         step_directional_scratch(setup.model.nv()))),
+        rows(8 * static_cast<std::size_t>(setup.model.nv())) {}
+  DerivativeDataTpl<S> deriv;       // the ABA's and the dense derivatives' scratch
+  AbaJvpData<S> directional;        // aba_jvp / aba_vjp's scratch
+  std::vector<S> scratch;           // the step functions' scratch
+  std::vector<S> rows;              // (8 nv) q, qd, tau, dq, dqd, dtau, gq, gqd of one instance
+  std::vector<S> store;             // rollout vjp: checkpoints and one segment of states
+  S* row(int k) { return rows.data() + static_cast<std::size_t>(k) * rows.size() / 8; }
+};
+
+// The step functions of one instance for joint-effect set E and integrator I over
+// the reference aba, as the simulator's CpuInstanceStep::step_one calls them.
+template <unsigned E, Integrator I, class S>
+struct InstanceKernels {
+  static auto fd(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext) {
+    return [&setup, &w, fext](const S* qa, const S* qda, const S* t, const S* arm, S* qdd) -> Index {
+      return aba(setup.model, w.deriv.aba, qa, qda, t, qdd, fext, arm).failed_dof;
+    };
+  }
+  static Index step(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau) {
+    const Index n = setup.model.nv();
+    S* const r = w.scratch.data();
+    const StepScratch<S> sc{r, r + n, r + 2 * n, r + 3 * n, r + 4 * n, r + 5 * n};
+    return step_instance<E, I>(n, setup.dt, setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(),
+                               q, qd, tau, sc, fd(setup, w, fext));
+  }
+  static Index jacobian(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau,
+                        const StepJacobian<S>& J) {
+    const ModelTpl<S>& model = setup.model;
+    const Index n = model.nv();
+    const Motion<S> a0 = base_acceleration(model.gravity);
+    auto dfd = [&](const S* qa, const S* qda, const S* qdd, const S* arm, MatrixRef<S> Fq, MatrixRef<S> Fqd,
+                   MatrixRef<S> Ft) -> Index {
+      return fd_derivatives_instance(model.bodies.data(), n, a0, qa, qda, qdd, fext, w.deriv.work.data(), Fq, Fqd, Ft,
+                                     arm);
+    };
+    return step_jacobian_instance<E, I>(n, setup.dt, setup.coef.data(),
+                                        setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau,
+                                        w.scratch.data(), J, fd(setup, w, fext), dfd);
+  }
+  static Index jvp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau, S* dq,
+                   S* dqd, const S* dtau) {
+    auto fd_jvp = [&](const S* qa, const S* qda, const S* t, const S* dqa, const S* dqda, const S* dt,
+                      const S* arm, S* dqdd, S* qdd) -> Index {
+      return aba_jvp(setup.model, w.directional, qa, qda, t, fext, dqa, dqda, dt, dqdd, qdd, arm).failed_dof;
+    };
+    return step_jvp_instance<E, I>(setup.model.nv(), setup.dt, setup.coef.data(),
+                                   setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, dq, dqd, dtau,
+                                   w.scratch.data(), fd_jvp);
+  }
+  static Index vjp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, const S* q, const S* qd,
+                   const S* tau, S* gq, S* gqd, S* gtau) {
+    const Index n = setup.model.nv();
+    S* const qdd = w.scratch.data() + 30 * static_cast<std::size_t>(n);  // past step_vjp_instance's rows
+    auto fd_vjp = [&](const S* qa, const S* qda, const S* t, const S* arm, const S* wt, S* a, S* b, S* gt) -> Index {
+      return aba_vjp(setup.model, w.directional, qa, qda, t, fext, wt, a, b, gt, qdd, arm).failed_dof;
+    };
+    return step_vjp_instance<E, I>(n, setup.dt, setup.coef.data(),
+                                   setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, gq, gqd, gtau,
+                                   w.scratch.data(), fd(setup, w, fext), fd_vjp);
+  }
+};
+
+template <class S>
+struct KernelSet {
+  Index (*step)(const SimSetup<S>&, StepWork<S>&, const Force<S>*, S*, S*, const S*);
+  Index (*jacobian)(const SimSetup<S>&, StepWork<S>&, const Force<S>*, S*, S*, const S*, const StepJacobian<S>&);
+  Index (*jvp)(const SimSetup<S>&, StepWork<S>&, const Force<S>*, S*, S*, const S*, S*, S*, const S*);
+  Index (*vjp)(const SimSetup<S>&, StepWork<S>&, const Force<S>*, const S*, const S*, const S*, S*, S*, S*);
+};
+
+// Every (integrator, joint-effect set) instantiation, indexed integrator * 16 +
+// (effects & kJointEffects): gravity and external wrenches are the forward
+// dynamics' business (the model's gravity, the fext pointer), contacts are refused.
+template <class S, std::size_t... K>
+constexpr std::array<KernelSet<S>, sizeof...(K)> make_kernels(std::index_sequence<K...>) {
+  return {KernelSet<S>{&InstanceKernels<unsigned(K % 16) & kJointEffects, Integrator(K / 16), S>::step,
+                       &InstanceKernels<unsigned(K % 16) & kJointEffects, Integrator(K / 16), S>::jacobian,
+                       &InstanceKernels<unsigned(K % 16) & kJointEffects, Integrator(K / 16), S>::jvp,
+                       &InstanceKernels<unsigned(K % 16) & kJointEffects, Integrator(K / 16), S>::vjp}...};
+}
+template <class S>
+const KernelSet<S>& kernels_of(const SimSetup<S>& setup) {
+  static const auto table = make_kernels<S>(std::make_index_sequence<kIntegrators * 16>{});
+  return table[static_cast<std::size_t>(setup.integrator) * 16 + (setup.effects & kJointEffects)];
+}
+
+// Instance b's wrenches: the caller's per-step ones, the scene's constant ones, or
+// null without the external effect.
+template <class S>
+const Force<S>* instance_wrenches(const SimSetup<S>& setup, const Force<S>* fext, Index b) {
+  if (!(setup.effects & kExternal)) return nullptr;
+  return fext ? fext + static_cast<std::size_t>(b) * setup.model.nv() : setup.wrenches.data();
+}
+
+// The first of n entries that is not finite, or -1.
+template <class S>
+Index first_nonfinite(const S* a, Index n) {
+  for (Index i = 0; i < n; ++i)
+    if (!std::isfinite(a[i])) return i;
+  return -1;
+}
+
+// The status of a batch whose instance b failed at failed[b] >= 0 for reason what[b].
+inline BatchStatus status_of(const std::vector<int>& failed, const std::vector<Failure>& what, Index B) {
+  BatchStatus st;
+  for (Index b = 0; b < B; ++b)
+    if (failed[static_cast<std::size_t>(b)] >= 0)
+      st.record(b, failed[static_cast<std::size_t>(b)], what[static_cast<std::size_t>(b)]);
+  st.failed_dof = failed.data();
+  return st;
+}
+
+template <class S>
+void refuse_wrenches_without_effect(const SimSetup<S>& setup, const Force<S>* fext) {
+  if (fext && !(setup.effects & kExternal))
+    throw BackendError("the step derivatives: wrenches were given, but the scene declares no external effect");
+}
+
+template <class S>
+class CpuStepDerivatives final : public StepDerivatives<S> {
+ public:
+  CpuStepDerivatives(const SimSetup<S>& setup, const BackendOptions& o)
+      : setup_(setup), kind_(o.backend), threads_(cpu::engine_threads(o)), max_batch_(o.max_batch),
+        kernels_(kernels_of(setup_)), failed_(static_cast<std::size_t>(std::max<Index>(o.max_batch, 1)), -1) {
+    for (int t = 0; t < threads_; ++t) work_.emplace_back(setup_);
+  }
+  std::string strategy() const override { return std::string("step-jacobian-") + to_string(setup_.integrator); }
+  BackendKind backend() const override { return kind_; }
+  const SimSetup<S>& setup() const override { return setup_; }
+
+  BatchStatus compute(const FdBatchIn<S>& in, const StepDerivativesOut<S>& out) override {
+    check_batch(in, FdDerivativesOut<S>{out.q_q, out.q_qd, out.q_tau, {}}, max_batch_);
+    check_batch(in, FdDerivativesOut<S>{out.qd_q, out.qd_qd, out.qd_tau, {}}, max_batch_);
+    for (const BatchView<S>* v : {&out.q_next, &out.qd_next})
+      if (v->data && v->batch != in.q.batch)
+        throw BackendError("the step derivatives: the new state's batch size " + std::to_string(v->batch) +
+                           " is not q's " + std::to_string(in.q.batch));
+    refuse_wrenches_without_effect(setup_, in.fext);
+    const Index n = setup_.model.nv(), B = in.q.batch;
+    cpu::for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
+      StepWork<S>& w = work_[static_cast<std::size_t>(t)];
+      S *q = w.row(0), *qd = w.row(1), *tau = w.row(2);
+      for (Index b = begin; b < end; ++b) {
+        for (Index i = 0; i < n; ++i) q[i] = in.q.at(i, b), qd[i] = in.qd.at(i, b), tau[i] = in.tau.at(i, b);
+        const StepJacobian<S> J{instance_matrix(out.q_q, b, n),  instance_matrix(out.q_qd, b, n),
+                                instance_matrix(out.q_tau, b, n), instance_matrix(out.qd_q, b, n),
+                                instance_matrix(out.qd_qd, b, n), instance_matrix(out.qd_tau, b, n)};
+        Index failed = kernels_.jacobian(setup_, w, instance_wrenches(setup_, in.fext, b), q, qd, tau, J);
+        what_[static_cast<std::size_t>(b)] = Failure::ArticulatedPivot;
+        if (failed < 0) {  // a state or derivative that is not finite is a failure, never a silent NaN
+          const MatrixRef<S> blocks[6] = {J.q_q, J.q_qd, J.q_tau, J.qd_q, J.qd_qd, J.qd_tau};
+          for (Index i = 0; i < n && failed < 0; ++i) {
+            bool finite = std::isfinite(q[i]) && std::isfinite(qd[i]);
+            for (int k = 0; k < 6; ++k)
+              for (Index j = 0; j < n; ++j) finite = finite && std::isfinite(blocks[k](i, j));
+            if (!finite) failed = i, what_[static_cast<std::size_t>(b)] = Failure::NonFinite;
+          }
+        }
+        failed_[static_cast<std::size_t>(b)] = static_cast<int>(failed);
+        for (Index i = 0; i < n && failed < 0; ++i) {
+          if (out.q_next.data) out.q_next.at(i, b) = q[i];
+          if (out.qd_next.data) out.qd_next.at(i, b) = qd[i];
+        }
+      }
+    });
+    return status_of(failed_, what_, B);
+  }
+
+ private:
+  SimSetup<S> setup_;
+  BackendKind kind_;
+  int threads_;
+  Index max_batch_;
+  KernelSet<S> kernels_;
+  std::vector<StepWork<S>> work_;  // (threads)
+  std::vector<int> failed_;        // (max_batch) -1 or the failed DoF
+  std::vector<Failure> what_ = std::vector<Failure>(failed_.size());  // (max_batch) why
+};
+
+}  // namespace
+
+template <class S>
+std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& setup, const BackendOptions& options) {
+  require_differentiable_step(setup, "the step derivatives");
+  if (options.backend == BackendKind::Cuda) {
+#if SCANDYN_HAS_CUDA
+    return cuda::make_cuda_step_derivatives(setup, options);
+#else
+    throw BackendError("backend 'cuda' is not available in this build");
+#endif
+  }
+  return std::make_unique<CpuStepDerivatives<S>>(setup, options);
+}
+
+// ---- rollouts ------------------------------------------------------------------------
+
+template <class S>
+struct RolloutDerivatives<S>::Impl {
+  Impl(const SimSetup<S>& s, const BackendOptions& o, Index interval)
+      : setup(s), threads(cpu::engine_threads(o)), interval(interval), kernels(kernels_of(setup)) {
+    for (int t = 0; t < threads; ++t) work.emplace_back(setup);
+  }
+  SimSetup<S> setup;
+  int threads;
+  Index interval;  // 0: sqrt(T)
+  KernelSet<S> kernels;
+  std::vector<StepWork<S>> work;  // (threads)
+  std::vector<int> failed;        // (B)
+  std::vector<Failure> what;      // (B)
+
+  // body(w, b, what) per instance returns -1 or the failed DoF (what: why, a pivot by
+  // default); the status of the failures
+  template <class F>
+  BatchStatus instances(Index B, F&& body) {
+    failed.assign(static_cast<std::size_t>(std::max<Index>(B, 1)), -1);
+    what.assign(failed.size(), Failure::ArticulatedPivot);
+    cpu::for_instance_blocks(threads, B, [&](int t, Index begin, Index end) {
+      for (Index b = begin; b < end; ++b)
+        failed[static_cast<std::size_t>(b)] =
+            static_cast<int>(body(work[static_cast<std::size_t>(t)], b, what[static_cast<std::size_t>(b)]));
+    });
+    return status_of(failed, what, B);
+  }
+};
+
+namespace {
+template <class S>
+void check_sequence(const char* name, const StepSequence<S>& s, Index T, Index B) {
+  if (!s.first.data) return;
+  if (s.steps != T || s.first.batch != B)
+    throw BackendError(std::string("the rollout derivatives: ") + name + " has " + std::to_string(s.steps) +
+                       " steps of " + std::to_string(s.first.batch) + " instances, expected " + std::to_string(T) +
+                       " of " + std::to_string(B));
+}
+template <class S>
+void check_state(const char* name, const BatchView<S>& v, Index B) {
+  if (!v.data || v.batch != B)
+    throw BackendError(std::string("the rollout derivatives: ") + name + " must hold " + std::to_string(B) +
+                       " instances");
+}
+template <class S, class T>
+void load(const BatchView<T>& v, Index b, Index n, S* row) {
+  for (Index i = 0; i < n; ++i) row[i] = v.data ? S(v.at(i, b)) : S(0);
+}
+template <class S>
+void store(const S* row, const BatchView<S>& v, Index b, Index n) {
+  for (Index i = 0; i < n; ++i) v.at(i, b) = row[i];
+}
+}  // namespace
+
+template <class S>
+RolloutDerivatives<S>::RolloutDerivatives(const SimSetup<S>& setup, const BackendOptions& options,
+                                          Index checkpoint_interval) {
+  require_differentiable_step(setup, "the rollout derivatives");
+  if (options.backend == BackendKind::Cuda)
+    throw BackendError("backend 'cuda': the rollout derivatives run on the serial and openmp backends");
+  if (checkpoint_interval < 0)
+    throw BackendError("the rollout derivatives: checkpoint interval " + std::to_string(checkpoint_interval) +
+                       " is negative");
+  impl_ = std::make_unique<Impl>(setup, options, checkpoint_interval);
+}
+
+template <class S>
+RolloutDerivatives<S>::~RolloutDerivatives() = default;
+
+template <class S>
+const SimSetup<S>& RolloutDerivatives<S>::setup() const {
+  return impl_->setup;
+}
+
+template <class S>
+Index RolloutDerivatives<S>::checkpoint_interval(Index T) const {
+  if (impl_->interval > 0) return std::min(impl_->interval, std::max<Index>(T, 1));
+  return std::max<Index>(1, static_cast<Index>(std::ceil(std::sqrt(static_cast<double>(std::max<Index>(T, 1))))));
+}
+
+template <class S>
+BatchStatus RolloutDerivatives<S>::rollout(const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                           const StepSequence<const S>& tau, const StepSequence<S>& q,
+                                           const StepSequence<S>& qd) {
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  check_state("qd0", qd0, B);
+  check_sequence("tau", tau, T, B);
+  check_sequence("q", q, T, B);
+  check_sequence("qd", qd, T, B);
+  const SimSetup<S>& setup = impl_->setup;
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
+    S *x = w.row(0), *xd = w.row(1), *u = w.row(2);
+    load(q0, b, n, x), load(qd0, b, n, xd);
+    for (Index t = 0; t < T; ++t) {
+      load(tau.at(t), b, n, u);
+      const Index failed = impl_->kernels.step(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u);
+      if (failed >= 0) return failed;
+      if (const Index bad = std::max(first_nonfinite(x, n), first_nonfinite(xd, n)); bad >= 0) {
+        why = Failure::NonFinite;
+        return bad;
+      }
+      if (q.first.data) store(x, q.at(t), b, n);
+      if (qd.first.data) store(xd, qd.at(t), b, n);
+    }
+    return -1;
+  });
+}
+
+template <class S>
+BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                       const StepSequence<const S>& tau, const BatchView<const S>& dq0,
+                                       const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
+                                       const StepSequence<S>& dq, const StepSequence<S>& dqd) {
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  check_state("qd0", qd0, B);
+  check_state("dq0", dq0, B);
+  check_state("dqd0", dqd0, B);
+  check_sequence("tau", tau, T, B);
+  check_sequence("dtau", dtau, T, B);
+  check_sequence("dq", dq, T, B);
+  check_sequence("dqd", dqd, T, B);
+  const SimSetup<S>& setup = impl_->setup;
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
+    S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *dx = w.row(3), *dxd = w.row(4), *du = w.row(5);
+    load(q0, b, n, x), load(qd0, b, n, xd), load(dq0, b, n, dx), load(dqd0, b, n, dxd);
+    for (Index t = 0; t < T; ++t) {
+      load(tau.at(t), b, n, u);
+      load(dtau.first.data ? dtau.at(t) : BatchView<const S>{}, b, n, du);
+      const Index failed = impl_->kernels.jvp(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u, dx, dxd, du);
+      if (failed >= 0) return failed;
+      if (const Index bad = std::max(first_nonfinite(dx, n), first_nonfinite(dxd, n)); bad >= 0) {
+        why = Failure::NonFinite;
+        return bad;
+      }
+      if (dq.first.data) store(dx, dq.at(t), b, n);
+      if (dqd.first.data) store(dxd, dqd.at(t), b, n);
+    }
+    return -1;
+  });
+}
+
+template <class S>
+BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                       const StepSequence<const S>& tau, const StepSequence<const S>& gq,
+                                       const StepSequence<const S>& gqd, const BatchView<S>& gq0,
+                                       const BatchView<S>& gqd0, const StepSequence<S>& gtau) {
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  check_state("qd0", qd0, B);
+  check_state("gq0", gq0, B);
+  check_state("gqd0", gqd0, B);
+  check_sequence("tau", tau, T, B);
+  check_sequence("gq", gq, T, B);
+  check_sequence("gqd", gqd, T, B);
+  check_sequence("gtau", gtau, T, B);
+  const SimSetup<S>& setup = impl_->setup;
+  const Index K = checkpoint_interval(T), segments = (T + K - 1) / K;
+  const std::size_t state = 2 * static_cast<std::size_t>(n);
+  for (StepWork<S>& w : impl_->work) w.store.resize(static_cast<std::size_t>(segments + K) * state);
+  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
+    S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *lq = w.row(3), *lqd = w.row(4), *gu = w.row(5), *g = w.row(6);
+    S* const checkpoints = w.store.data();                      // (segments x 2 nv) x_{kK}
+    S* const segment = checkpoints + static_cast<std::size_t>(segments) * state;  // (K x 2 nv) x_t of one segment
+    const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
+    // forward: the checkpoints
+    load(q0, b, n, x), load(qd0, b, n, xd);
+    for (Index t = 0; t < T; ++t) {
+      if (t % K == 0) {
+        std::copy(x, x + n, checkpoints + static_cast<std::size_t>(t / K) * state);
+        std::copy(xd, xd + n, checkpoints + static_cast<std::size_t>(t / K) * state + n);
+      }
+      if (t + 1 == T) break;  // the last state is not needed
+      load(tau.at(t), b, n, u);
+      const Index failed = impl_->kernels.step(setup, w, fext, x, xd, u);
+      if (failed >= 0) return failed;
+    }
+    // reverse: segment by segment, the segment's states again from its checkpoint
+    std::fill(lq, lq + n, S(0));
+    std::fill(lqd, lqd + n, S(0));
+    for (Index k = segments - 1; k >= 0; --k) {
+      const Index t0 = k * K, t1 = std::min(T, t0 + K);
+      std::copy(checkpoints + static_cast<std::size_t>(k) * state, checkpoints + static_cast<std::size_t>(k + 1) * state,
+                segment);
+      for (Index t = t0; t + 1 < t1; ++t) {
+        S* const s = segment + static_cast<std::size_t>(t - t0) * state;
+        std::copy(s, s + state, s + state);
+        load(tau.at(t), b, n, u);
+        const Index failed = impl_->kernels.step(setup, w, fext, s + state, s + state + n, u);
+        if (failed >= 0) return failed;
+      }
+      for (Index t = t1 - 1; t >= t0; --t) {
+        // the loss's gradient at x_{t+1}, then the step's adjoint at x_t
+        if (gq.first.data) {
+          load(gq.at(t), b, n, g);
+          for (Index i = 0; i < n; ++i) lq[i] += g[i];
+        }
+        if (gqd.first.data) {
+          load(gqd.at(t), b, n, g);
+          for (Index i = 0; i < n; ++i) lqd[i] += g[i];
+        }
+        const S* const s = segment + static_cast<std::size_t>(t - t0) * state;
+        load(tau.at(t), b, n, u);
+        const Index failed = impl_->kernels.vjp(setup, w, fext, s, s + n, u, lq, lqd, gu);
+        if (failed >= 0) return failed;
+        if (const Index bad = std::max(first_nonfinite(lq, n), first_nonfinite(gu, n)); bad >= 0) {
+          why = Failure::NonFinite;
+          return bad;
+        }
+        if (gtau.first.data) store(gu, gtau.at(t), b, n);
+      }
+    }
+    store(lq, gq0, b, n);
+    store(lqd, gqd0, b, n);
+    return -1;
+  });
+}
+
+#define SCANDYN_INSTANTIATE(S)                                                                                 \
+  template std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>&, const BackendOptions&); \
+  template class RolloutDerivatives<S>;
+SCANDYN_INSTANTIATE(float)
+SCANDYN_INSTANTIATE(double)
+#undef SCANDYN_INSTANTIATE
+
+}  // namespace sim
+}  // namespace scandyn

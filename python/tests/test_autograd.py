@@ -1,0 +1,179 @@
+"""scandyn.autograd: the analytical derivatives from Python, and the
+torch.autograd.Function / jax.custom_vjp wrappers whose backward runs them.
+
+Truths: central differences of the library's own inverse dynamics, forward dynamics,
+simulator step and rollout (float64, steps 1e-6; 1e-6 relative), torch.autograd.gradcheck
+(float64: its default tolerances, against its own finite differences), the identity
+<vjp(g), v> = <g, jvp(v)> (1e-10). The JAX tests skip visibly when jax is missing."""
+
+import numpy as np
+import pytest
+
+import scandyn as sd
+import scandyn.autograd as ad
+
+IIWA_SCENE = {"model": "iiwa", "dt": 2e-3, "integrator": "rk4",
+              "effects": {"gravity": True, "damping": 0.5, "springs": {"stiffness": 2.0}}}
+
+
+def _states(nv, B, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(-1, 1, (B, nv)) for _ in range(3)]
+
+
+def _central(f, x, h=1e-6):
+    """d f / d x (f: (B, nv) -> (B, nv)), (B, nv, nv) by central differences."""
+    B, n = x.shape
+    J = np.zeros((B, n, n))
+    for j in range(n):
+        e = np.zeros_like(x)
+        e[:, j] = h
+        J[:, :, j] = (f(x + e) - f(x - e)) / (2 * h)
+    return J
+
+
+def _close(a, b, rel=1e-6):
+    assert np.max(np.abs(a - b)) <= rel * max(1.0, np.max(np.abs(b))), np.max(np.abs(a - b))
+
+
+@pytest.mark.parametrize("name", ["iiwa", "hyq"])
+def test_id_and_fd_derivatives_are_the_central_differences(name):
+    m = sd.load_model(name)
+    q, qd, x = _states(m.nv, 3)
+    dq, dqd, M = ad.id_derivatives(m, q, qd, x)
+    _close(dq, _central(lambda v: sd.inverse_dynamics(m, v, qd, x), q))
+    _close(dqd, _central(lambda v: sd.inverse_dynamics(m, q, v, x), qd))
+    _close(M, sd.mass_matrix(m, q), 1e-12)
+    qdd, fq, fqd, ft = ad.fd_derivatives(m, q, qd, x)
+    _close(qdd, sd.forward_dynamics(m, q, qd, x), 1e-12)
+    _close(fq, _central(lambda v: sd.forward_dynamics(m, v, qd, x), q))
+    _close(fqd, _central(lambda v: sd.forward_dynamics(m, q, v, x), qd))
+    _close(ft @ M, np.broadcast_to(np.eye(m.nv), M.shape), 1e-9)
+    # one state: (nv, nv)
+    assert ad.id_derivatives(m, q[0], qd[0], x[0])[0].shape == (m.nv, m.nv)
+
+
+def test_step_jacobian_is_the_central_differences_of_the_simulators_step():
+    step = ad.StepDerivatives(IIWA_SCENE)
+    n = step.nv
+    q, qd, tau = _states(n, 2, 3)
+    qn, qdn, J = step.jacobian(q, qd, tau)
+    # the simulator's own step
+    sim = sd.Simulator(dict(IIWA_SCENE, instances=2, backend="serial"))
+    sim.q[:] = q
+    sim.qd[:] = qd
+    sim.step(tau)
+    np.testing.assert_array_equal(qn, sim.q)
+    np.testing.assert_array_equal(qdn, sim.qd)
+
+    def next_state(z):
+        a, b, _ = step.jacobian(z[:, :n], z[:, n:2 * n], z[:, 2 * n:])
+        return np.concatenate([a, b], axis=1)
+
+    z = np.concatenate([q, qd, tau], axis=1)
+    h = np.concatenate([np.full(2 * n, 1e-6), np.full(n, 1e-2)])
+    fd = np.zeros_like(J)
+    for j in range(3 * n):
+        e = np.zeros_like(z)
+        e[:, j] = h[j]
+        fd[:, :, j] = (next_state(z + e) - next_state(z - e)) / (2 * h[j])
+    for r in range(2):  # each block relative to its own scale (the tau blocks are ~dt^2)
+        for c in range(3):
+            blk = (slice(None), slice(r * n, (r + 1) * n), slice(c * n, (c + 1) * n))
+            assert np.max(np.abs(J[blk] - fd[blk])) <= 1e-6 * np.max(np.abs(fd[blk])), (r, c)
+
+
+def test_rollout_vjp_is_the_transpose_of_the_jvp_and_the_central_differences():
+    step = ad.StepDerivatives(IIWA_SCENE)
+    n, T, B = step.nv, 20, 2
+    rng = np.random.default_rng(4)
+    q0, qd0 = rng.uniform(-0.5, 0.5, (2, B, n))
+    tau = rng.uniform(-2, 2, (T, B, n))
+    gq, gqd = rng.uniform(-1, 1, (2, T, B, n))
+    g0, gd0, gt = step.rollout_vjp(q0, qd0, tau, gq, gqd)
+    v0, vd0 = rng.uniform(-1, 1, (2, B, n))
+    vt = rng.uniform(-1, 1, (T, B, n))
+    dq, dqd = step.rollout_jvp(q0, qd0, tau, v0, vd0, vt)
+    lhs = np.sum(g0 * v0) + np.sum(gd0 * vd0) + np.sum(gt * vt)
+    rhs = np.sum(gq * dq) + np.sum(gqd * dqd)
+    assert abs(lhs - rhs) <= 1e-10 * (np.sum(np.abs(gq * dq)) + np.sum(np.abs(gqd * dqd)))
+
+    def loss(q0_):
+        q, qd = step.rollout(q0_, qd0, tau)
+        return np.sum(gq * q) + np.sum(gqd * qd)
+
+    h = 1e-6
+    for j in range(n):
+        e = np.zeros_like(q0)
+        e[0, j] = h
+        assert abs((loss(q0 + e) - loss(q0 - e)) / (2 * h) - g0[0, j]) <= 1e-6 * max(1.0, np.max(np.abs(g0)))
+
+
+def test_step_refuses_contacts_by_name():
+    scene = {"model": "rope:3", "dt": 1e-3, "effects": {"gravity": True, "contacts": {
+        "stiffness": 1000, "points": [{"link": "link_1", "position": [0, 0, 0]}],
+        "planes": [{"normal": [0, 0, 1], "offset": -5}]}}}
+    with pytest.raises(sd.BackendError, match="contacts"):
+        ad.StepDerivatives(scene)
+
+
+# ---- torch ------------------------------------------------------------------------
+
+
+@pytest.fixture
+def torch():
+    return pytest.importorskip("torch")
+
+
+def test_torch_gradcheck_inverse_and_forward_dynamics(torch):
+    m = sd.load_model("iiwa")
+    q, qd, x = (torch.tensor(a, requires_grad=True) for a in _states(m.nv, 2, 5))
+    assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_inverse_dynamics(m, a, b, c), (q, qd, x))
+    assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_forward_dynamics(m, a, b, c), (q, qd, x))
+    # one state, and loss.backward() through both
+    q1 = q[0].detach().clone().requires_grad_(True)
+    tau = ad.torch_inverse_dynamics(m, q1, qd[0].detach(), x[0].detach())
+    ad.torch_forward_dynamics(m, q1, qd[0].detach(), tau).sum().backward()
+    # FD(ID(qdd)) = qdd for every q: the composite's gradient in q is 0
+    assert torch.max(torch.abs(q1.grad)) < 1e-8
+
+
+def test_torch_gradcheck_step_and_rollout(torch):
+    step = ad.StepDerivatives(IIWA_SCENE)
+    n = step.nv
+    rng = np.random.default_rng(6)
+    q, qd = (torch.tensor(rng.uniform(-0.5, 0.5, (2, n)), requires_grad=True) for _ in range(2))
+    tau = torch.tensor(rng.uniform(-2, 2, (2, n)), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_step(step, a, b, c), (q, qd, tau))
+    taus = torch.tensor(rng.uniform(-2, 2, (6, 2, n)), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_rollout(step, a, b, c), (q, qd, taus))
+    qs, qds = ad.torch_rollout(step, q, qd, taus)
+    (qs.pow(2).sum() + qds.sum()).backward()
+    assert taus.grad.shape == taus.shape and torch.all(torch.isfinite(taus.grad))
+
+
+# ---- jax --------------------------------------------------------------------------
+
+
+def test_jax_custom_vjp_matches_the_derivatives():
+    jax = pytest.importorskip("jax", reason="jax is not installed: the jax.custom_vjp wrappers are not tested here")
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    m = sd.load_model("iiwa")
+    q, qd, x = _states(m.nv, 2, 7)
+    g = np.ones((2, m.nv))
+    _, vjp = jax.vjp(lambda a, b, c: ad.jax_inverse_dynamics(m, a, b, c), jnp.asarray(q), jnp.asarray(qd), jnp.asarray(x))
+    dq, dqd, M = ad.id_derivatives(m, q, qd, x)
+    gq, gqd, gx = vjp(jnp.asarray(g))
+    _close(np.asarray(gq), np.einsum("bi,bij->bj", g, dq), 1e-12)
+    _close(np.asarray(gx), np.einsum("bi,bij->bj", g, M), 1e-12)
+    _, vjp = jax.vjp(lambda a, b, c: ad.jax_forward_dynamics(m, a, b, c), jnp.asarray(q), jnp.asarray(qd), jnp.asarray(x))
+    _, fq, _, ft = ad.fd_derivatives(m, q, qd, x)
+    gq, _, gt = vjp(jnp.asarray(g))
+    _close(np.asarray(gq), np.einsum("bi,bij->bj", g, fq), 1e-12)
+    _close(np.asarray(gt), np.einsum("bi,bij->bj", g, ft), 1e-12)
+    step = ad.StepDerivatives(IIWA_SCENE)
+    taus = np.random.default_rng(8).uniform(-1, 1, (5, 2, m.nv))
+    grad = jax.grad(lambda a: jnp.sum(ad.jax_rollout(step, a, jnp.asarray(qd), jnp.asarray(taus))[0]))(jnp.asarray(q))
+    _close(np.asarray(grad), step.rollout_vjp(q, qd, taus, np.ones_like(taus), np.zeros_like(taus))[0], 1e-12)

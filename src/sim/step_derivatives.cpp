@@ -1,0 +1,23 @@
+// src/sim/step_derivatives.cpp: what the derivatives of the simulator's step cover
+// (scandyn/sim/step_derivatives.hpp); the engines are in
+// cpu_fallback/step_derivatives.cpp.
+#include "scandyn/sim/step_derivatives.hpp"
+
+namespace scandyn {
+namespace sim {
+
+template <class S>
+void require_differentiable_step(const SimSetup<S>& setup, const char* what) {
+  const std::string name(what);
+  if (setup.effects & kContacts)
+    throw BackendError(name + " do not cover the contacts effect (its force switches with the contact set)");
+  if (!setup.prescribed.empty()) throw BackendError(name + " do not cover prescribed joint motion");
+  if (!setup.loops.empty()) throw BackendError(name + " do not cover closed loops");
+  require_one_dof_joints(setup.model, what);
+}
+
+template void require_differentiable_step(const SimSetup<float>&, const char*);
+template void require_differentiable_step(const SimSetup<double>&, const char*);
+
+}  // namespace sim
+}  // namespace scandyn

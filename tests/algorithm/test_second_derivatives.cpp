@@ -1,0 +1,122 @@
+// The second-order derivatives of inverse dynamics (rnea_second_derivatives,
+// scandyn/algorithm/second_derivatives.hpp). Truths: central differences of the
+// analytical first-order derivatives (rnea_derivatives; step 1e-5, 1e-7 relative to
+// the tensor's largest entry in double), the symmetry of the second derivatives in
+// their two variables, and the mixed partials both ways (1e-9 relative).
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "scandyn/algorithm/second_derivatives.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+namespace scandyn {
+namespace {
+
+struct First {
+  std::vector<double> dq, dqd, M;
+};
+
+First first_order(const Model& model, DerivativeDataTpl<double>& dd, const std::vector<double>& q,
+                  const std::vector<double>& qd, const std::vector<double>& qdd, const Force<double>* fext) {
+  const Index n = model.nv();
+  First f{std::vector<double>(n * n), std::vector<double>(n * n), std::vector<double>(n * n)};
+  rnea_derivatives(model, dd, q.data(), qd.data(), qdd.data(), fext, MatrixRef<double>{f.dq.data(), n, 1},
+                   MatrixRef<double>{f.dqd.data(), n, 1}, MatrixRef<double>{f.M.data(), n, 1});
+  return f;
+}
+
+double max_abs(const std::vector<double>& v) {
+  double m = 0;
+  for (double x : v) m = std::max(m, std::abs(x));
+  return m;
+}
+
+TEST(SecondDerivatives, CentralDifferencesOfTheFirstOrderDerivativesAndSymmetry) {
+  std::vector<std::pair<std::string, Model>> models;
+  models.emplace_back("iiwa", test::load_robot("iiwa.urdf"));
+  models.emplace_back("hyq", test::load_robot("hyq.urdf"));
+  models.emplace_back("random_model(12) (prismatic joints)", test::random_model(12, 9));
+  for (const auto& [name, model] : models) {
+    for (bool with_wrenches : {false, true}) {
+      SCOPED_TRACE(name + (with_wrenches ? " with external wrenches" : ""));
+      const Index n = model.nv();
+      std::mt19937_64 rng(17 + n);
+      const std::vector<double> q = test::random_vector(rng, n, -1.5, 1.5), qd = test::random_vector(rng, n, -1.5, 1.5),
+                                qdd = test::random_vector(rng, n, -2, 2);
+      const std::vector<Force<double>> wrenches = test::random_wrenches<double>(rng, n, 1.0);
+      const Force<double>* fext = with_wrenches ? wrenches.data() : nullptr;
+      SecondDerivativeData<double> sd(model);
+      const std::size_t nnn = static_cast<std::size_t>(n) * n * n;
+      std::vector<double> Hqq(nnn), Hvv(nnn), Hqv(nnn), dM(nnn);
+      rnea_second_derivatives(model, sd, q.data(), qd.data(), qdd.data(), fext, Hqq.data(), Hvv.data(), Hqv.data(),
+                              dM.data());
+      DerivativeDataTpl<double> dd(model);
+      auto at = [&](Index i, Index j, Index k) { return (static_cast<std::size_t>(i) * n + j) * n + k; };
+      // central differences along q_k and qd_k of the analytical first-order blocks
+      std::vector<double> Fqq(nnn), Fqv(nnn), Fvv(nnn), FM(nnn), Fvq(nnn);
+      const double h = 1e-5;
+      for (Index k = 0; k < n; ++k)
+        for (int var = 0; var < 2; ++var) {
+          std::vector<double> qp = q, qm = q, vp = qd, vm = qd;
+          (var == 0 ? qp : vp)[k] += h;
+          (var == 0 ? qm : vm)[k] -= h;
+          const First p = first_order(model, dd, qp, vp, qdd, fext), m = first_order(model, dd, qm, vm, qdd, fext);
+          for (Index i = 0; i < n; ++i)
+            for (Index j = 0; j < n; ++j) {
+              const std::size_t e = static_cast<std::size_t>(i) * n + j;
+              if (var == 0) {
+                Fqq[at(i, j, k)] = (p.dq[e] - m.dq[e]) / (2 * h);
+                FM[at(i, j, k)] = (p.M[e] - m.M[e]) / (2 * h);
+                Fvq[at(i, j, k)] = (p.dqd[e] - m.dqd[e]) / (2 * h);  // d/dq_k of dtau_i/dqd_j
+              } else {
+                Fvv[at(i, j, k)] = (p.dqd[e] - m.dqd[e]) / (2 * h);
+                Fqv[at(i, j, k)] = (p.dq[e] - m.dq[e]) / (2 * h);  // d/dqd_k of dtau_i/dq_j
+              }
+            }
+        }
+      auto expect_close = [&](const std::vector<double>& a, const std::vector<double>& b, double tol, const char* what) {
+        double err = 0;
+        for (std::size_t e = 0; e < a.size(); ++e) err = std::max(err, std::abs(a[e] - b[e]));
+        EXPECT_LE(err, tol * std::max(1.0, max_abs(b))) << what;
+      };
+      EXPECT_GT(max_abs(Hqq), 1e-2);  // the tensors are not trivially zero
+      EXPECT_GT(max_abs(Hqv), 1e-2);
+      EXPECT_GT(max_abs(Hvv), 1e-2);
+      expect_close(Hqq, Fqq, 1e-7, "d2tau/dq2 vs differences");
+      expect_close(Hvv, Fvv, 1e-7, "d2tau/dqd2 vs differences");
+      expect_close(Hqv, Fqv, 1e-7, "d2tau/dq dqd vs differences");
+      expect_close(dM, FM, 1e-7, "dM/dq vs differences");
+      // symmetry, and the mixed partials the other way round: d/dq_j (dtau_i/dqd_k)
+      std::vector<double> Hqq_t(nnn), Hvv_t(nnn), Hqv_t(nnn);
+      for (Index i = 0; i < n; ++i)
+        for (Index j = 0; j < n; ++j)
+          for (Index k = 0; k < n; ++k) {
+            Hqq_t[at(i, j, k)] = Hqq[at(i, k, j)];
+            Hvv_t[at(i, j, k)] = Hvv[at(i, k, j)];
+            Hqv_t[at(i, j, k)] = Fvq[at(i, k, j)];
+          }
+      expect_close(Hqq, Hqq_t, 1e-9, "d2tau/dq2 symmetric");
+      expect_close(Hvv, Hvv_t, 1e-9, "d2tau/dqd2 symmetric");
+      expect_close(Hqv, Hqv_t, 1e-7, "mixed partials both ways");
+      // float follows double
+      SecondDerivativeData<float> sf(model.cast<float>());
+      const Model& md = model;
+      const ModelTpl<float> mf = md.cast<float>();
+      std::vector<float> qf(q.begin(), q.end()), qdf(qd.begin(), qd.end()), qddf(qdd.begin(), qdd.end());
+      std::vector<Force<float>> wf;
+      for (const auto& w : wrenches) wf.push_back(w.cast<float>());
+      std::vector<float> a(nnn), b(nnn), c(nnn);
+      rnea_second_derivatives(mf, sf, qf.data(), qdf.data(), qddf.data(), with_wrenches ? wf.data() : nullptr, a.data(),
+                              b.data(), c.data());
+      expect_close(std::vector<double>(a.begin(), a.end()), Hqq, 1e-4, "float d2tau/dq2");
+    }
+  }
+}
+
+}  // namespace
+}  // namespace scandyn
