@@ -28,18 +28,24 @@ ChainChunking::ChainChunking(Index links_, Index chunk_, Index fan_in_)
 
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what) {
-  if (model.nv() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
+  if (model.nbodies() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
   const Index i = first_branching_body(model);
   if (i >= 0)
     throw BackendError(std::string(what) + " needs unbranched chains hanging from the base (every body's parent " +
                        "the previous body or the base); body " + std::to_string(i) + " (joint '" +
                        model.joint_names[i] + "') has parent " + std::to_string(model.parent(i)));
+  const Index j = first_unsupported_chain_joint(model);
+  if (j >= 0)
+    throw BackendError(std::string(what) + " takes revolute and prismatic joints and a floating base (a free rope); " +
+                       "body " + std::to_string(j) + " (joint '" + model.joint_names[j] + "') is " +
+                       (model.bodies[j].type == JointType::Spherical ? "a spherical joint" : "a free joint") +
+                       " (use aba or jsi)");
 }
 
 template <class S>
 ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   require_chain(model, "the parallel chain forward dynamics");
-  const Index n = model.nv();
+  const Index n = model.nbodies();
   if (static_cast<long long>(n) * max_batch > INT_MAX / 2)
     throw BackendError("the parallel chain forward dynamics: " + std::to_string(n) + " links x " +
                        std::to_string(max_batch) + " instances exceed 2^30 links per call");
@@ -48,6 +54,7 @@ ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   for (Index i = 0; i < n; ++i) {
     Body<S> b = model.bodies[i];
     b.parent = model.parent(i) == -1 ? -1 : kChainPrevious;
+    b.idx_q = b.idx_v = 0;  // the drivers place link i by ChainFdData::q_row / v_row: equal links share an entry
     Index k = static_cast<Index>(o.body.size()) - 1;
     if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
       o.body.push_back(b);
@@ -89,11 +96,9 @@ void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
 
 template <class S>
 ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
-    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)) {
-  if (model.multi_dof())
-    throw std::invalid_argument("ChainForwardDynamics: model '" + model.name + "' has multi-DoF joints; the "
-                                "parallel chain forward dynamics takes revolute and prismatic joints only");
+    : n_(model.nbodies()), max_batch_(std::max<Index>(max_batch, 1)) {
   bodies_ = ChainBodies<S>::from(model, max_batch_);
+  floating_ = model.floating_base();
   threads_ = threads > 0 ? threads : openmp_threads();
   const Index links = n_ * max_batch_;
   // chunks: at least 8 per thread, at most 64 links each, at least 8 links each
@@ -105,6 +110,11 @@ ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index ma
   D_.resize(links);
   u_.resize(links);
   failed_.resize(static_cast<std::size_t>(max_batch_));
+  if (floating_) {
+    IA_base_.resize(static_cast<std::size_t>(max_batch_));
+    a_base_.resize(static_cast<std::size_t>(max_batch_));
+    qdd_base_.resize(static_cast<std::size_t>(max_batch_));
+  }
   const ChainChunking ck(links, chunk_, 16);
   for (Index size : ck.level_size) {
     aff_.emplace_back(static_cast<std::size_t>(size));
@@ -137,6 +147,13 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   d.w = w_.data();
   d.u = u_.data();
   d.failed = failed_.data();
+  if (floating_) {
+    d.dq = 6;
+    d.dv = 5;
+    d.IA_base = IA_base_.data();
+    d.a_base = a_base_.data();
+    d.qdd_base = qdd_base_.data();
+  }
   std::fill(failed_.begin(), failed_.begin() + B, -1);
 
   const ChainChunking ck(d.count(), chunk_, 16);
