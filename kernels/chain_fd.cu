@@ -114,11 +114,12 @@ std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; 
 
 template <class S>
 ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk, Index fan_in)
-    : n_(model.nv()),
+    : n_(model.nbodies()),
       max_batch_(std::max<Index>(max_batch, 1)),
       chunk_(chunk > 0 ? chunk : kDefaultChunk),
       fan_in_(fan_in > 1 ? fan_in : kDefaultFanIn) {
   host_ = ChainBodies<S>::from(model, max_batch_);
+  floating_ = model.floating_base();
   a0_ = base_acceleration(model.gravity);
   const std::vector<InverseInertia<DualScalar>>& Phi = host_.Phi;
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
@@ -136,6 +137,10 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
                     o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
                     o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S)),
                     o_Ia = take(chunks * sizeof(ABInertia<S>));
+  // a floating base's IA_0, acceleration and qdd per instance
+  const std::size_t nbase = floating_ ? static_cast<std::size_t>(max_batch_) : 0;
+  const std::size_t o_IAb = take(nbase * sizeof(ABInertia<S>)), o_ab = take(nbase * sizeof(Motion<S>)),
+                    o_qddb = take(nbase * sizeof(Vec6<S>));
   std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
   for (Index size : level_size_) {
     o_aff.push_back(take(size * sizeof(Affine6<S>)));
@@ -164,6 +169,11 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   D_ = reinterpret_cast<S*>(base + o_D);
   u_ = reinterpret_cast<S*>(base + o_u);
   Ia_carry_ = reinterpret_cast<ABInertia<S>*>(base + o_Ia);
+  if (floating_) {
+    IA_base_ = reinterpret_cast<ABInertia<S>*>(base + o_IAb);
+    a_base_ = reinterpret_cast<Motion<S>*>(base + o_ab);
+    qdd_base_ = reinterpret_cast<Vec6<S>*>(base + o_qddb);
+  }
   for (std::size_t k = 0; k < level_size_.size(); ++k) {
     aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
     aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
@@ -209,6 +219,13 @@ ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& 
   d.D = D_;
   d.u = u_;
   d.failed = failed;
+  if (floating_) {
+    d.dq = 6;
+    d.dv = 5;
+    d.IA_base = IA_base_;
+    d.a_base = a_base_;
+    d.qdd_base = qdd_base_;
+  }
   return d;
 }
 
@@ -267,6 +284,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
   auto ms_since = [&](clock::time_point t) { return std::chrono::duration<double, std::milli>(t - t0).count(); };
   const Index B = in.q.batch;
   if (B > max_batch_ || B < 0 || q_host.batch != B) return cudaErrorInvalidValue;
+  if (floating_) return cudaErrorNotSupported;  // the host recursion takes 1-DoF joints (the engine refuses hybrid)
   if (B == 0) return cudaSuccess;
   cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);
   if (err != cudaSuccess) return err;

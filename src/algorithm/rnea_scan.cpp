@@ -66,8 +66,8 @@ struct FoldPlus {
 // (kGeneral: multi-DoF joints) at Body::idx_q.
 template <bool kGeneral, class S>
 Transform<S> scan_joint_transform(const Body<S>& b, Index i, const S* q) {
-  if constexpr (kGeneral) return joint_transform_at(b, q + b.idx_q);
-  else return joint_transform(b, q[i]);
+  if (kGeneral && joint_nv(b.type) > 1) return joint_transform_at(b, q + b.idx_q);
+  return joint_transform(b, q[kGeneral ? b.idx_q : i]);
 }
 
 template <bool kGeneral, class S>
@@ -123,30 +123,32 @@ void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) ws.P[i] = scan_joint_transform<kGeneral>(m.bodies[i], i, q);
   tree_prefix_scan(ws.plan, ws.P.data(), ws.carry_pose.data(), ComposePose{}, ComposePose{});
-  // world joint twists (1-DoF: the unit twist sw; general: sw = the joint's twist
-  // S qd); velocities are their root-path sums
+  // world joint twists: sw the unit twist of a 1-DoF joint, S qd of a multi-DoF one;
+  // velocities are the root-path sums of the joints' twists
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = m.bodies[i];
-    if constexpr (kGeneral) {
-      ws.sw[i] = ws.P[i].apply_inverse(joint_motion_at(b, qd + b.idx_v));
+    const Index iv = kGeneral ? b.idx_v : i;
+    if (kGeneral && joint_nv(b.type) > 1) {
+      ws.sw[i] = ws.P[i].apply_inverse(joint_motion_at(b, qd + iv));
       ws.Vw[i] = ws.sw[i];
     } else {
       ws.sw[i] = ws.P[i].apply_inverse(joint_motion(b, S(1)));
-      ws.Vw[i] = qd[i] * ws.sw[i];
+      ws.Vw[i] = qd[iv] * ws.sw[i];
     }
   }
   tree_prefix_scan(ws.plan, ws.Vw.data(), ws.carry_motion.data(), Plus{}, Plus{});
-  // accelerations: root-path sums of sw qdd + V x sw qd, plus the base's -g
+  // accelerations: root-path sums of S qdd + V x S qd (world), plus the base's -g
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = m.bodies[i];
+    const Index iv = kGeneral ? b.idx_v : i;
     Motion<S> c;
-    if constexpr (kGeneral) {
+    if (kGeneral && joint_nv(b.type) > 1) {
       c = cross(ws.Vw[i], ws.sw[i]);
-      if (qdd) c += ws.P[i].apply_inverse(joint_motion_at(b, qdd + b.idx_v));
+      if (qdd) c += ws.P[i].apply_inverse(joint_motion_at(b, qdd + iv));
     } else {
-      c = (qdd ? qdd[i] : S(0)) * ws.sw[i] + cross(ws.Vw[i], qd[i] * ws.sw[i]);
+      c = (qdd ? qdd[iv] : S(0)) * ws.sw[i] + cross(ws.Vw[i], qd[iv] * ws.sw[i]);
     }
     if (b.parent < 0) c += a0;
     ws.Aw[i] = c;
@@ -163,8 +165,8 @@ void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = m.bodies[i];
-    if constexpr (kGeneral) joint_project_at(b, ws.P[i].apply(ws.Fw[i]), tau + b.idx_v);  // S^T in the body frame
-    else tau[i] = dot(ws.sw[i], ws.Fw[i]);
+    if (kGeneral && joint_nv(b.type) > 1) joint_project_at(b, ws.P[i].apply(ws.Fw[i]), tau + b.idx_v);  // body frame
+    else tau[kGeneral ? b.idx_v : i] = dot(ws.sw[i], ws.Fw[i]);
   }
 }
 
