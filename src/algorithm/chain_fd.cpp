@@ -6,8 +6,8 @@
 
 #include <algorithm>
 #include <climits>
-#include <cstring>
 #include <string>
+#include <unordered_map>
 
 #if defined(_OPENMP)
 #include <omp.h>
@@ -51,17 +51,18 @@ ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
                        std::to_string(max_batch) + " instances exceed 2^30 links per call");
   ChainBodies o;
   o.body_class.resize(static_cast<std::size_t>(n));
+  std::unordered_map<std::string, int> seen;  // a body's bytes -> its entry
   for (Index i = 0; i < n; ++i) {
     Body<S> b = model.bodies[i];
     b.parent = model.parent(i) == -1 ? -1 : kChainPrevious;
-    b.idx_q = b.idx_v = 0;  // the drivers place link i by ChainFdData::q_row / v_row: equal links share an entry
-    Index k = static_cast<Index>(o.body.size()) - 1;
-    if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
+    b.idx_q = b.idx_v = 0;  // the drivers place link i by ChainFdData::q_row / v_row
+    auto [it, fresh] = seen.emplace(std::string(reinterpret_cast<const char*>(&b), sizeof b),
+                                    static_cast<int>(o.body.size()));
+    if (fresh) {
       o.body.push_back(b);
       o.Phi.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
-      k = static_cast<Index>(o.body.size()) - 1;
     }
-    o.body_class[i] = static_cast<int>(k);
+    o.body_class[i] = it->second;
   }
   return o;
 }

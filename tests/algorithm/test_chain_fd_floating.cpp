@@ -180,3 +180,12 @@ TEST(ChainFdFloating, EngineParallelMethodOnAFreeRope) {
   o.fd_method = FdMethod::Hybrid;
   EXPECT_THROW(make_forward_dynamics(m, o), BackendError);
 }
+
+// Equal links share one table entry whatever their rows in q and qd (Body::idx_q /
+// idx_v differ per link): a rope's links are three body classes (the first, at the
+// origin; then axes y and x in turn), a free rope's three (the base; y, x).
+TEST(ChainFdFloating, EqualLinksShareOneBodyClass) {
+  EXPECT_EQ(ChainBodies<double>::from(load_model("rope:1000"), 1).body.size(), 3u);
+  EXPECT_EQ(ChainBodies<float>::from(load_model("rope:1000").cast<float>(), 1).body.size(), 3u);
+  EXPECT_EQ(ChainBodies<double>::from(test::load_floating("rope:1000"), 1).body.size(), 3u);
+}

@@ -123,6 +123,15 @@ TEST(CudaFloatingIdScan, FloatingTreesBallRopesAndRobots) {
     }
 }
 
+// Equal links share one entry of the device body table whatever their rows in q and
+// qd: a rope's links are three classes (the first, at the origin; then axes y and x
+// in turn), a free rope's three (the base; y, x).
+TEST(CudaFloatingIdScan, EqualLinksShareOneBodyClass) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  EXPECT_EQ(cuda::IdScanPlan<double>(load_model("rope:1000"), 1).body_classes(), 3);
+  EXPECT_EQ(cuda::IdScanPlan<float>(test::load_floating("rope:1000").cast<float>(), 1).body_classes(), 3);
+}
+
 TEST(CudaFloatingIdScan, LongFreeRopes) {
   SKIP_WITHOUT_CUDA_DEVICE();
   for (const char* spec : {"rope:10000", "rope:100000"}) {

@@ -649,9 +649,10 @@ void require_chain(const ModelTpl<S>& model, const char* what);
 // link (-1: the base).
 inline constexpr Index kChainPrevious = 0;
 
-// A chain's constants as every driver keeps them: its distinct bodies (consecutive
-// equal bodies share one entry: every link of a generated rope is one), their
-// inverse inertias in pass 1's scalar, and each body's entry.
+// A chain's constants as every driver keeps them: its distinct bodies (equal bodies
+// share one entry, whatever their rows in q and qd: a generated rope's links are
+// three, the first and then axes y and x in turn), their inverse inertias in pass
+// 1's scalar, and each body's entry.
 template <class S>
 struct ChainBodies {
   std::vector<Body<S>> body;                   // (classes) distinct bodies; parent -1 (a chain's
