@@ -18,48 +18,16 @@ using namespace scandyn;
 
 namespace {
 
-struct FloatingBatch {
-  Index nq, nv, B;
-  std::vector<double> q, qd, tau;  // SoA: entry (i, b) at i * B + b
-  std::vector<Force<double>> fext;  // (B x nbodies)
-};
-
-FloatingBatch random_batch(const Model& m, Index B, unsigned seed, bool with_fext) {
-  std::mt19937_64 g(seed);
-  FloatingBatch o{m.nq(), m.nv(), B, {}, {}, {}, {}};
-  o.q.resize(static_cast<std::size_t>(o.nq * B));
-  for (Index b = 0; b < B; ++b) {
-    const auto qb = test::random_q(m, g, -3, 3);
-    for (Index i = 0; i < o.nq; ++i) o.q[static_cast<std::size_t>(i * B + b)] = qb[static_cast<std::size_t>(i)];
-  }
-  o.qd = test::random_vector(g, static_cast<int>(o.nv * B), -1, 1);
-  o.tau = test::random_vector(g, static_cast<int>(o.nv * B), -2, 2);
-  if (with_fext) o.fext = test::random_wrenches<double>(g, static_cast<int>(m.nbodies() * B), 1.0);
-  return o;
-}
-
-// The serial double ABA (the general path) of every instance, SoA (nv x B).
-std::vector<double> reference_fd(const Model& m, const FloatingBatch& x) {
-  Data data(m, false);
-  std::vector<double> out(x.qd.size()), qi(x.nq), qdi(x.nv), ti(x.nv), qddi(x.nv);
-  for (Index b = 0; b < x.B; ++b) {
-    for (Index i = 0; i < x.nq; ++i) qi[i] = x.q[i * x.B + b];
-    for (Index i = 0; i < x.nv; ++i) qdi[i] = x.qd[i * x.B + b], ti[i] = x.tau[i * x.B + b];
-    const Status st = aba(m, data, qi.data(), qdi.data(), ti.data(), qddi.data(),
-                          x.fext.empty() ? nullptr : x.fext.data() + b * m.nbodies());
-    EXPECT_TRUE(st.ok());
-    for (Index i = 0; i < x.nv; ++i) out[i * x.B + b] = qddi[i];
-  }
-  return out;
-}
+using test::random_soa_states;
+using test::SoaStates;
 
 template <class S>
 double free_chain_error(const Model& model, Index B, unsigned seed, int threads, Index chunk, bool with_fext) {
-  const FloatingBatch x = random_batch(model, B, seed, with_fext);
-  const auto ref = reference_fd(model, x);
+  const SoaStates x = random_soa_states(model, B, seed, with_fext);
+  const auto ref = test::soa_reference(model, x, true);
   const ModelTpl<S> m = model.cast<S>();
   ChainForwardDynamics<S> fd(m, B, threads, chunk);
-  const auto qs = test::cast_vector<S>(x.q), qds = test::cast_vector<S>(x.qd), taus = test::cast_vector<S>(x.tau);
+  const auto qs = test::cast_vector<S>(x.q), qds = test::cast_vector<S>(x.qd), taus = test::cast_vector<S>(x.u);
   std::vector<Force<S>> fs;
   for (const auto& f : x.fext) fs.push_back(f.cast<S>());
   std::vector<S> qdd(x.qd.size(), S(NAN));
@@ -137,13 +105,13 @@ TEST(ChainFdFloating, RefusesSphericalJointsAndFloatingTrees) {
 TEST(ChainFdFloating, FailedPivotIsReportedAsADof) {
   const Model m = test::load_floating("rope:30");
   const Index nq = m.nq(), nv = m.nv(), B = 2;
-  FloatingBatch x = random_batch(m, B, 9, false);
+  SoaStates x = random_soa_states(m, B, 9, false);
   x.q[static_cast<std::size_t>((7 + 11) * B + 1)] = NAN;  // instance 1, link 12's joint (DoF 17)
   ChainForwardDynamics<double> fd(m, B, 2, 4);
   std::vector<double> qdd(x.qd.size(), 7.0);
   std::vector<int> failed(2, 9);
   FdBatchIn<double> in{BatchView<const double>::soa(x.q.data(), nq, B), BatchView<const double>::soa(x.qd.data(), nv, B),
-                       BatchView<const double>::soa(x.tau.data(), nv, B), nullptr};
+                       BatchView<const double>::soa(x.u.data(), nv, B), nullptr};
   EXPECT_EQ(fd.compute(in, BatchView<double>::soa(qdd.data(), nv, B), failed.data()), 1);
   EXPECT_EQ(failed[0], -1);
   EXPECT_GE(failed[1], 0);
@@ -162,8 +130,8 @@ TEST(ChainFdFloating, EngineParallelMethodOnAFreeRope) {
   EXPECT_EQ(choose_fd_method(BackendKind::Serial, m), FdMethod::Aba);
   EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, test::load_floating("ballrope:5000")), FdMethod::Aba);
   const Index B = 2;
-  const FloatingBatch x = random_batch(m, B, 4, false);
-  const auto ref = reference_fd(m, x);
+  const SoaStates x = random_soa_states(m, B, 4, false);
+  const auto ref = test::soa_reference(m, x, true);
   BackendOptions o;
   o.backend = backend_unusable(BackendKind::OpenMP).empty() ? BackendKind::OpenMP : BackendKind::Serial;
   o.fd_method = FdMethod::Parallel;
@@ -174,7 +142,7 @@ TEST(ChainFdFloating, EngineParallelMethodOnAFreeRope) {
   std::vector<double> qdd(x.qd.size(), NAN);
   FdBatchIn<double> in{BatchView<const double>::soa(x.q.data(), x.nq, B),
                        BatchView<const double>::soa(x.qd.data(), x.nv, B),
-                       BatchView<const double>::soa(x.tau.data(), x.nv, B), nullptr};
+                       BatchView<const double>::soa(x.u.data(), x.nv, B), nullptr};
   EXPECT_TRUE(engine->compute(in, BatchView<double>::soa(qdd.data(), x.nv, B)).ok());
   EXPECT_LT(test::max_rel_err(qdd, ref), 1e-9);
   o.fd_method = FdMethod::Hybrid;

@@ -109,21 +109,14 @@ TEST(RneaScanFloating, FreeRopeOfOneHundredThousandLinksOnThreads) {
 TEST(RneaScanFloating, EnginesScanStrategiesMatchTheRecursion) {
   for (const Model& m : {test::load_floating("rope:3000"), test::random_floating_model(60, 9)}) {
     const Index nq = m.nq(), nv = m.nv(), B = 3;
-    std::mt19937_64 g(5);
-    std::vector<double> q(static_cast<std::size_t>(nq * B)), qd(static_cast<std::size_t>(nv * B)),
-        qdd(static_cast<std::size_t>(nv * B));
-    for (Index b = 0; b < B; ++b) {  // SoA: entry (i, b) at i * B + b
-      const auto qb = test::random_q(m, g);
-      for (Index i = 0; i < nq; ++i) q[static_cast<std::size_t>(i * B + b)] = qb[static_cast<std::size_t>(i)];
-    }
-    for (auto& x : qd) x = std::uniform_real_distribution<double>(-1, 1)(g);
-    for (auto& x : qdd) x = std::uniform_real_distribution<double>(-1, 1)(g);
-    const IdBatchIn<double> in{BatchView<const double>::soa(q.data(), nq, B), BatchView<const double>::soa(qd.data(), nv, B),
-                               BatchView<const double>::soa(qdd.data(), nv, B)};
+    const test::SoaStates x = test::random_soa_states(m, B, 5, false);
+    const IdBatchIn<double> in{BatchView<const double>::soa(x.q.data(), nq, B),
+                               BatchView<const double>::soa(x.qd.data(), nv, B),
+                               BatchView<const double>::soa(x.u.data(), nv, B)};
     BackendOptions o;
     o.backend = BackendKind::Serial;
     o.max_batch = B;
-    std::vector<double> ref(qd.size());
+    std::vector<double> ref(x.qd.size());
     make_inverse_dynamics(m, o)->compute(in, BatchView<double>::soa(ref.data(), nv, B));
     for (BackendKind backend : {BackendKind::Serial, BackendKind::OpenMP}) {
       if (!backend_unusable(backend).empty()) continue;
@@ -133,7 +126,7 @@ TEST(RneaScanFloating, EnginesScanStrategiesMatchTheRecursion) {
         o.threads = 2;
         const auto engine = make_inverse_dynamics(m, o);
         EXPECT_EQ(engine->strategy(), to_string(s));
-        std::vector<double> tau(qd.size(), std::numeric_limits<double>::quiet_NaN());
+        std::vector<double> tau(x.qd.size(), std::numeric_limits<double>::quiet_NaN());
         engine->compute(in, BatchView<double>::soa(tau.data(), nv, B));
         EXPECT_LT(test::max_rel_err(tau, ref), 1e-10) << m.name << " " << to_string(s);
       }

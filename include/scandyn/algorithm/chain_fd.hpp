@@ -345,18 +345,18 @@ struct ChainFdData {
 template <class S>
 SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g, int k = 0) {
   int* slot = d.failed + g / d.n;
-  const int link = static_cast<int>(d.v_row(g % d.n)) + k;
+  const int dof = static_cast<int>(d.v_row(g % d.n)) + k;
 #if defined(__CUDA_ARCH__)
   int cur = *slot;
-  while (cur < 0 || link < cur) {
-    const int seen = atomicCAS(slot, cur, link);
+  while (cur < 0 || dof < cur) {
+    const int seen = atomicCAS(slot, cur, dof);
     if (seen == cur) break;
     cur = seen;
   }
 #else
   int cur = __atomic_load_n(slot, __ATOMIC_RELAXED);
-  while ((cur < 0 || link < cur) &&
-         !__atomic_compare_exchange_n(slot, &cur, link, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+  while ((cur < 0 || dof < cur) &&
+         !__atomic_compare_exchange_n(slot, &cur, dof, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
   }
 #endif
 }
@@ -683,7 +683,7 @@ class ChainForwardDynamics {
   // qdd = FD(q, qd, tau, fext) for in.q.batch instances, gravity included. Returns
   // the number of instances whose articulated pivot D = S^T IA S was not positive
   // and finite (their qdd is left unwritten); failed, when not null, receives B
-  // entries: -1 or the first failed link of each instance.
+  // entries: -1 or the first failed DoF of each instance (the link, for 1-DoF joints).
   Index compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed = nullptr);
 
   Index links() const { return n_; }

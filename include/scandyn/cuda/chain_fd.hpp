@@ -57,7 +57,7 @@ class ChainFdPlan {
 
   // parallel: qdd (nv x B) = FD(q, qd, tau, fext) for B = in.q.batch <= max_batch
   // (device views, any strides), on `stream`, no synchronisation. failed: B device
-  // ints, -1 or the first link whose articulated pivot failed (qdd of that instance
+  // ints, -1 or the first DoF whose articulated pivot failed (qdd of that instance
   // unwritten). Returns cudaErrorInvalidValue for B > max_batch, else the first
   // launch error.
   cudaError_t launch(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed, cudaStream_t stream);
