@@ -29,14 +29,14 @@ struct ChunkRange {
   __host__ __device__ Index last(Index c) const { return min(count, (c + 1) * chunk) - 1; }
 };
 
-template <class S>
-__global__ void velocity_aggregate_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
+template <class S, bool kB>
+__global__ void velocity_aggregate_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) agg[c] = velocity_aggregate(d, r.first(c), r.last(c));
 }
 
-template <bool kDual, class S>
-__global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+template <bool kDual, class S, bool kB>
+__global__ void velocity_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
                                      DualRiccati<DualScalar>* dual) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= chunks) return;
@@ -46,8 +46,8 @@ __global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index
 
 // Pass 1's walks of chunks [c0, c1): from the dual carries (parallel) or the host's
 // articulated inertias (hybrid).
-template <class S>
-__global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index c0, Index c1, const Mat5<DualScalar>* dual_carry,
+template <class S, bool kB>
+__global__ void inertia_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index c0, Index c1, const Mat5<DualScalar>* dual_carry,
                                     const ABInertia<S>* Ia_carry, Affine6<S>* agg) {
   const Index c = c0 + static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= c1) return;
@@ -56,15 +56,15 @@ __global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index 
   agg[c] = inertia_walk(d, r.first(c), e, Ia);
 }
 
-template <class S>
-__global__ void bias_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+template <class S, bool kB>
+__global__ void bias_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
                                  Affine6<S>* agg) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) agg[c] = bias_walk(d, r.first(c), r.last(c), carry[c]);
 }
 
-template <class S>
-__global__ void acceleration_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
+template <class S, bool kB>
+__global__ void acceleration_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) acceleration_walk(d, r.first(c), r.last(c), carry[c]);
 }
@@ -200,8 +200,9 @@ ChainFdPlan<S>::~ChainFdPlan() {
 }
 
 template <class S>
-ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
-  ChainFdData<S> d;
+template <bool kB>
+ChainFdData<S, kB> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
+  ChainFdData<S, kB> d;
   d.n = n_;
   d.batch = in.q.batch;
   d.body = body_;
@@ -230,7 +231,8 @@ ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& 
 }
 
 template <class S>
-cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream) {
+template <bool kB>
+cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S, kB>& d, bool dual, cudaStream_t stream) {
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -244,7 +246,8 @@ cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaS
 }
 
 template <class S>
-cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S>& d, cudaStream_t stream) {
+template <bool kB>
+cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S, kB>& d, cudaStream_t stream) {
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -262,9 +265,15 @@ cudaError_t ChainFdPlan<S>::launch(const FdBatchIn<S>& in, const BatchView<S>& q
   const Index B = in.q.batch;
   if (B > max_batch_ || B < 0) return cudaErrorInvalidValue;
   if (B == 0) return cudaSuccess;
-  cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
+  const cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
   if (err != cudaSuccess) return err;
-  const ChainFdData<S> d = data(in, qdd, failed);
+  return floating_ ? passes(data<true>(in, qdd, failed), stream) : passes(data<false>(in, qdd, failed), stream);
+}
+
+template <class S>
+template <bool kB>
+cudaError_t ChainFdPlan<S>::passes(const ChainFdData<S, kB>& d, cudaStream_t stream) {
+  cudaError_t err = cudaSuccess;
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -290,7 +299,7 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
   if (err != cudaSuccess) return err;
   cudaEvent_t start = events_[0], after_velocities = events_[1], end = events_[2];
   if ((err = cudaEventRecord(start, stream)) != cudaSuccess) return err;
-  const ChainFdData<S> d = data(in, qdd, failed);
+  const ChainFdData<S> d = data<false>(in, qdd, failed);
   const Index count = d.count();
   const ChunkRange r{chunk_, count};
   const Index chunks = level_sizes(count, chunk_, fan_in_)[0];

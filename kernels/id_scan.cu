@@ -62,8 +62,12 @@ std::size_t scratch_bound(unsigned n, unsigned max_batch) {
   return std::size_t(max_batch) * (n + std::min(n, kMaxRun) - 1) + 31 * kMaxRun;
 }
 
-template <class S>
+// kMulti: a model with multi-DoF joints (idx_q / idx_v set); the kernels are
+// instantiated for it separately, so that a model of 1-DoF joints runs code without
+// the general path (and its registers).
+template <class S, bool kMulti = false>
 struct Level {
+  static constexpr bool kMultiDof = kMulti;
   // model (device)
   const Body<S>* __restrict__ table;         // distinct bodies
   const int* __restrict__ body_class;        // (nv) body -> table entry
@@ -112,17 +116,17 @@ struct Level {
   __device__ __forceinline__ Body<S> body(int i) const { return table[body_class[i]]; }
   // Xup of body i (bd its body) in instance b; a multi-DoF joint from its q rows
   __device__ __forceinline__ Transform<S> Xup(const Body<S>& bd, int i, unsigned b) const {
-    if (!idx_q) return joint_transform(bd, in.q.at(i, b));
+    if constexpr (!kMulti) return joint_transform(bd, in.q.at(i, b));
+    if (joint_nv(bd.type) == 1) return joint_transform(bd, in.q.at(idx_q[i], b));
     S x[7];
     for (int k = 0; k < joint_nq(bd.type); ++k) x[k] = in.q.at(idx_q[i] + k, b);
     return joint_transform_at(bd, x);
   }
   __device__ __forceinline__ Transform<S> Xup(int i, unsigned b) const { return Xup(body(i), i, b); }
-  // body i's joint rates from v (qd or qdd) into x (joint_nv entries)
+  // body i's joint rates from v (qd or qdd) into x (joint_nv entries; kMulti)
   __device__ __forceinline__ void rates(const BatchView<const S>& v, const Body<S>& bd, int i, unsigned b,
                                         S* x) const {
-    const int r = idx_v ? idx_v[i] : i;
-    for (int k = 0; k < joint_nv(bd.type); ++k) x[k] = v.at(r + k, b);
+    for (int k = 0; k < joint_nv(bd.type); ++k) x[k] = v.at(idx_v[i] + k, b);
   }
 };
 
@@ -133,12 +137,17 @@ struct Level {
 // from: the base, or the stored values of a branch point of a lower level.
 
 // velocities: (Xup_i, S qd_i); a segment head (0, Xup_i v_parent + S qd_i)
-template <class S>
-__device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+template <class S, bool kM>
+__device__ MotionAffine<S> velocity_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s, const Body<S>& bd,
                                             const Transform<S>& X) {
-  S qd[kMaxJointDofs];
-  L.rates(L.in.qd, bd, s.i, s.b, qd);
-  const MotionAffine<S> e = id_velocity_element_at(bd, X, qd);
+  MotionAffine<S> e;
+  if constexpr (kM) {
+    S qd[kMaxJointDofs];
+    L.rates(L.in.qd, bd, s.i, s.b, qd);
+    e = id_velocity_element_at(bd, X, qd);
+  } else {
+    e = id_velocity_element(bd, X, L.in.qd.at(s.i, s.b));
+  }
   if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.vb[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
@@ -146,13 +155,18 @@ __device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Le
 }
 
 // accelerations: (Xup_i, S qdd + v x S qd); a head folds in Xup_i a_parent (-g at the base)
-template <class S>
-__device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typename Level<S>::Site& s,
+template <class S, bool kM>
+__device__ MotionAffine<S> acceleration_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s,
                                                 const Body<S>& bd, const Transform<S>& X, const Motion<S>& v) {
-  S qd[kMaxJointDofs], qdd[kMaxJointDofs];
-  L.rates(L.in.qd, bd, s.i, s.b, qd);
-  L.rates(L.in.qdd, bd, s.i, s.b, qdd);
-  const MotionAffine<S> e = id_acceleration_element_at(bd, X, v, qd, qdd);
+  MotionAffine<S> e;
+  if constexpr (kM) {
+    S qd[kMaxJointDofs], qdd[kMaxJointDofs];
+    L.rates(L.in.qd, bd, s.i, s.b, qd);
+    L.rates(L.in.qdd, bd, s.i, s.b, qdd);
+    e = id_acceleration_element_at(bd, X, v, qd, qdd);
+  } else {
+    e = id_acceleration_element(bd, X, v, L.in.qd.at(s.i, s.b), L.in.qdd.at(s.i, s.b));
+  }
   if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> ap = p < 0 ? L.a0 : L.ab[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
@@ -162,8 +176,8 @@ __device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typenam
 // forces, leaves to root: G -> B + Y^T G with G = F_{i+1}, Y = Xup_{i+1} (zero at a
 // segment's tail), B = f_i = I a + v x* I v - fext (body_force) plus the forces of
 // the branch children (heads of higher levels, final when this level runs)
-template <class S>
-__device__ ForceAffine<S> force_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+template <class S, bool kM>
+__device__ ForceAffine<S> force_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s, const Body<S>& bd,
                                         const Motion<S>& v, const Motion<S>& a) {
   Force<S> f = body_force(bd, v, a);
   if (L.in.fext) f -= L.in.fext[std::size_t(s.b) * L.nb + s.i];
@@ -188,8 +202,8 @@ struct ComposeForceSuffix {
 // ---- pass kernels: one thread per run -----------------------------------------------
 
 // velocity aggregates
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, MotionAffine<S>* __restrict__ agg) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S, kM> L, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r);
@@ -204,9 +218,9 @@ __global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, Mot
 }
 
 // velocities from the carry-in; acceleration aggregates
-template <class S>
+template <class S, bool kM>
 __global__ void __launch_bounds__(kRunBlock)
-    velocity_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, MotionAffine<S>* __restrict__ agg) {
+    velocity_walk(const Level<S, kM> L, const MotionAffine<S>* __restrict__ pre, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r);
@@ -228,9 +242,9 @@ __global__ void __launch_bounds__(kRunBlock)
 
 // accelerations from the carry-in; with kForces (a model of one level) also the
 // force offsets and aggregates, which otherwise wait for force_runs
-template <class S, bool kForces>
+template <class S, bool kM, bool kForces>
 __global__ void __launch_bounds__(kRunBlock)
-    acceleration_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, ForceAffine<S>* __restrict__ agg) {
+    acceleration_walk(const Level<S, kM> L, const MotionAffine<S>* __restrict__ pre, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r);
@@ -254,8 +268,8 @@ __global__ void __launch_bounds__(kRunBlock)
 }
 
 // force offsets and aggregates of a level whose branch children are final
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S> L, ForceAffine<S>* __restrict__ agg) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S, kM> L, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r);
@@ -271,8 +285,8 @@ __global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S> L, ForceA
 
 // forces from the carry-in (the force of the next run's first body), last step
 // first; tau, and the forces of branch children for their parents
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S> L, const ForceAffine<S>* __restrict__ suffix) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S, kM> L, const ForceAffine<S>* __restrict__ suffix) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r), count = L.shape.B * L.shape.C;
@@ -286,8 +300,8 @@ __global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S> L, const 
     G = L.offset[s.st] + Y.apply_transpose(G);
     const int pos = L.branch_pos[s.i];
     if (pos >= 0) L.Fb[std::size_t(pos) * L.shape.B + s.b] = G;
-    if (!L.idx_v) {
-      L.tau.at(s.i, s.b) = joint_project(bd, G);
+    if (!kM || joint_nv(bd.type) == 1) {
+      L.tau.at(kM ? L.idx_v[s.i] : s.i, s.b) = joint_project(bd, G);
     } else {  // a floating base: its wrench, tau_0..5
       S t[kMaxJointDofs];
       joint_project_at(bd, G, t);
@@ -552,61 +566,70 @@ cudaError_t IdScanPlan<S>::launch(const IdBatchIn<S>& in, const BatchView<S>& ta
   if (B < 0 || in.qd.batch != B || in.qdd.batch != B || tau.batch != B || B > max_batch_) return cudaErrorInvalidValue;
   if (B == 0 || nv_ == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.qdd.data || !tau.data) return cudaErrorInvalidValue;
-  const Index nl = levels();
-  // every level's scratch region, for this batch size
-  Level<S> L{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_, branch_point_,
-             branch_pos_, idx_q_, idx_v_, in, tau, v_, a_, offset_, vb_, ab_, Fb_, 0, static_cast<int>(nb_),
-             RunShape{}, a0_};
-  std::vector<std::size_t> base(static_cast<std::size_t>(nl) + 1, 0);
-  auto at_level = [&](Index l) {
-    L.order = order_ + level_begin_[l];
-    L.role = role_ + level_begin_[l];
-    L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B),
-                        target_runs_);
-    L.base = base[l];
-  };
-  for (Index l = 0; l < nl; ++l) {
-    at_level(l);
-    base[l + 1] = base[l] + scratch_entries(L.shape);
-  }
-  auto* magg = static_cast<MotionAffine<S>*>(agg_);
-  auto* mpre = static_cast<MotionAffine<S>*>(pre_);
-  auto* fagg = static_cast<ForceAffine<S>*>(agg_);
-  auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
-  auto blocks = [](const RunShape& R) { return (R.R + kRunBlock - 1) / kRunBlock; };
-  cudaError_t err = cudaSuccess;
-  // forward, level by level: velocities, then accelerations (and a chain's force offsets)
-  for (Index l = 0; l < nl; ++l) {
-    at_level(l);
-    const RunShape& R = L.shape;
-    std::size_t bytes = temp_bytes_;
-    velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, magg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
-    velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, magg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-    bytes = temp_bytes_;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
-    if (nl == 1) acceleration_walk<S, true><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
-    else acceleration_walk<S, false><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-  }
-  // backward, deepest level first: forces and torques. A level's force offsets
-  // need its branch children's forces, which the deeper levels produce: with more
-  // than one level they are made here.
-  for (Index l = nl - 1; l >= 0; --l) {
-    at_level(l);
-    const RunShape& R = L.shape;
-    if (nl > 1) {
-      force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, fagg);
+  // the passes over L, a Level<S, kMulti> (the kernels of a model with multi-DoF
+  // joints are other instances)
+  auto passes = [&](auto L) -> cudaError_t {
+    constexpr bool kM = decltype(L)::kMultiDof;
+    const Index nl = levels();
+    // every level's scratch region, for this batch size
+    std::vector<std::size_t> base(static_cast<std::size_t>(nl) + 1, 0);
+    auto at_level = [&](Index l) {
+      L.order = order_ + level_begin_[l];
+      L.role = role_ + level_begin_[l];
+      L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B),
+                          target_runs_);
+      L.base = base[l];
+    };
+    for (Index l = 0; l < nl; ++l) {
+      at_level(l);
+      base[l + 1] = base[l] + scratch_entries(L.shape);
+    }
+    auto* magg = static_cast<MotionAffine<S>*>(agg_);
+    auto* mpre = static_cast<MotionAffine<S>*>(pre_);
+    auto* fagg = static_cast<ForceAffine<S>*>(agg_);
+    auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
+    auto blocks = [](const RunShape& R) { return (R.R + kRunBlock - 1) / kRunBlock; };
+    cudaError_t err = cudaSuccess;
+    // forward, level by level: velocities, then accelerations (and a chain's force offsets)
+    for (Index l = 0; l < nl; ++l) {
+      at_level(l);
+      const RunShape& R = L.shape;
+      std::size_t bytes = temp_bytes_;
+      velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, magg);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+      velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, magg);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      bytes = temp_bytes_;
+      if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+      if (nl == 1) acceleration_walk<S, kM, true><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
+      else acceleration_walk<S, kM, false><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
       if ((err = cudaGetLastError()) != cudaSuccess) return err;
     }
-    std::size_t bytes = temp_bytes_;
-    if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.R, stream)) != cudaSuccess) return err;
-    force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, fsuf);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-  }
-  return cudaSuccess;
+    // backward, deepest level first: forces and torques. A level's force offsets
+    // need its branch children's forces, which the deeper levels produce: with more
+    // than one level they are made here.
+    for (Index l = nl - 1; l >= 0; --l) {
+      at_level(l);
+      const RunShape& R = L.shape;
+      if (nl > 1) {
+        force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, fagg);
+        if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      }
+      std::size_t bytes = temp_bytes_;
+      if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.R, stream)) != cudaSuccess) return err;
+      force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, fsuf);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+    }
+    return cudaSuccess;
+  };
+  if (idx_q_)
+    return passes(Level<S, true>{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_,
+                                 branch_point_, branch_pos_, idx_q_, idx_v_, in, tau, v_, a_, offset_, vb_, ab_, Fb_,
+                                 0, static_cast<int>(nb_), RunShape{}, a0_});
+  return passes(Level<S, false>{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_,
+                                branch_point_, branch_pos_, nullptr, nullptr, in, tau, v_, a_, offset_, vb_, ab_, Fb_,
+                                0, static_cast<int>(nb_), RunShape{}, a0_});
 }
 
 template class IdScanPlan<float>;

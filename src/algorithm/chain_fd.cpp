@@ -130,58 +130,67 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   check_batch(in, qdd, max_batch_);
   const Index B = in.q.batch;
   if (B == 0) return 0;
-  ChainFdData<S> d;
-  d.n = n_;
-  d.batch = B;
-  d.body = bodies_.body.data();
-  d.Phi = bodies_.Phi.data();
-  d.body_class = bodies_.body_class.data();
-  d.a0 = a0_;
-  d.q = in.q;
-  d.qd = in.qd;
-  d.tau = in.tau;
-  d.fext = in.fext;
-  d.qdd = qdd;
-  d.v = v_.data();
-  d.U = U_.data();
-  d.D = D_.data();
-  d.w = w_.data();
-  d.u = u_.data();
-  d.failed = failed_.data();
-  if (floating_) {
-    d.dq = 6;
-    d.dv = 5;
-    d.IA_base = IA_base_.data();
-    d.a_base = a_base_.data();
-    d.qdd_base = qdd_base_.data();
-  }
   std::fill(failed_.begin(), failed_.begin() + B, -1);
+  // the passes over d, a ChainFdData<S> or, for a free rope, a ChainFdData<S, true>
+  auto passes = [&](auto& d) {
+    d.n = n_;
+    d.batch = B;
+    d.body = bodies_.body.data();
+    d.Phi = bodies_.Phi.data();
+    d.body_class = bodies_.body_class.data();
+    d.a0 = a0_;
+    d.q = in.q;
+    d.qd = in.qd;
+    d.tau = in.tau;
+    d.fext = in.fext;
+    d.qdd = qdd;
+    d.v = v_.data();
+    d.U = U_.data();
+    d.D = D_.data();
+    d.w = w_.data();
+    d.u = u_.data();
+    d.failed = failed_.data();
+    if (floating_) {
+      d.dq = 6;
+      d.dv = 5;
+      d.IA_base = IA_base_.data();
+      d.a_base = a_base_.data();
+      d.qdd_base = qdd_base_.data();
+    }
 
-  const ChainChunking ck(d.count(), chunk_, 16);
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
-  const int T = threads_;
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+    const ChainChunking ck(d.count(), chunk_, 16);
+    const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+    const int T = threads_;
+    auto first = [&](Index c) { return c * L; };
+    auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
 
-  // pass 0: velocities (and pass 1's aggregates)
+    // pass 0: velocities (and pass 1's aggregates)
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
-  scan_levels(ck, aff_, aff_carry_, true, T);
+    for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
+    scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
-  // pass 1: articulated inertias (and pass 2's aggregates)
-  scan_levels(ck, dual_, dual_carry_, false, T);
+    for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
+    // pass 1: articulated inertias (and pass 2's aggregates)
+    scan_levels(ck, dual_, dual_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c)
-    aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
-  // pass 2: bias forces (and pass 3's aggregates)
-  scan_levels(ck, aff_, aff_carry_, false, T);
+    for (Index c = 0; c < chunks; ++c)
+      aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
+    // pass 2: bias forces (and pass 3's aggregates)
+    scan_levels(ck, aff_, aff_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
-  // pass 3: accelerations
-  scan_levels(ck, aff_, aff_carry_, true, T);
+    for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
+    // pass 3: accelerations
+    scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+    for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+  };
+  if (floating_) {
+    ChainFdData<S, true> d;
+    passes(d);
+  } else {
+    ChainFdData<S> d;
+    passes(d);
+  }
 
   Index bad = 0;
   for (Index b = 0; b < B; ++b) bad += failed_[b] >= 0;

@@ -241,9 +241,6 @@ template <class S>
 SCANDYN_HD DualRiccati<DualScalar> dual_element(const Body<S>& b, const InverseInertia<DualScalar>& Phi, bool has_child,
                                                 const Body<S>& next, const Transform<S>& Xup_next_s) {
   using D = DualScalar;
-  // a floating base: the dual of a joint that transmits every force has no
-  // coordinates, and no link reads the base's (a constant map, as at a leaf)
-  if (b.type == JointType::Free) return {Mat5<D>::identity(), Mat5<D>::zero(), Mat5<D>::zero(), true};
   const Transform<D> Xup_next = Xup_next_s.template cast<D>();
   Force<D> G[10];       // [T_i, B_{i+1}] as forces in body i's frame
   Motion<D> PhiG[10];   // Phi_i G
@@ -271,8 +268,10 @@ SCANDYN_HD DualRiccati<DualScalar> dual_element(const Body<S>& b, const InverseI
 // B instances of an n-link model of unbranched chains from the base (every body's
 // parent the previous one or the base) and the per-link scratch of the passes; link
 // g = b * n + i is body i of instance b. Pointers are host or device memory, as the
-// driver needs.
-template <class S>
+// driver needs. kBase: link 0 of every instance is a floating base (a free rope); the
+// drivers instantiate the walks for it separately, so that a fixed chain's walks
+// carry no code (and no registers) of the base's.
+template <class S, bool kBase = false>
 struct ChainFdData {
   Index n = 0;                              // links per instance (nbodies)
   Index batch = 0;                          // instances B
@@ -305,9 +304,9 @@ struct ChainFdData {
   SCANDYN_HD const Body<S>& body_of(Index g) const { return body[body_class[g % n]]; }
   SCANDYN_HD const InverseInertia<DualScalar>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
   // rows of link i (> 0 for a floating base) in q and in qd, tau, qdd
-  SCANDYN_HD Index q_row(Index i) const { return i > 0 ? i + dq : i; }
-  SCANDYN_HD Index v_row(Index i) const { return i > 0 ? i + dv : i; }
-  SCANDYN_HD bool is_base(Index g) const { return body_of(g).type == JointType::Free; }
+  SCANDYN_HD Index q_row(Index i) const { return kBase && i > 0 ? i + dq : i; }
+  SCANDYN_HD Index v_row(Index i) const { return kBase && i > 0 ? i + dv : i; }
+  SCANDYN_HD bool is_base(Index g) const { return kBase && g % n == 0; }
   SCANDYN_HD S q_of(Index g) const { return q.at(q_row(g % n), g / n); }
   SCANDYN_HD S qd_of(Index g) const { return qd.at(v_row(g % n), g / n); }
   SCANDYN_HD S tau_of(Index g) const { return tau.at(v_row(g % n), g / n); }
@@ -342,8 +341,8 @@ struct ChainFdData {
 
 // Records that the articulated pivot of link g's joint DoF k failed: failed[instance]
 // becomes the smallest such DoF (-1: none), safely from concurrent threads.
-template <class S>
-SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g, int k = 0) {
+template <class S, bool kB>
+SCANDYN_HD void record_failure(const ChainFdData<S, kB>& d, Index g, int k = 0) {
   int* slot = d.failed + g / d.n;
   const int dof = static_cast<int>(d.v_row(g % d.n)) + k;
 #if defined(__CUDA_ARCH__)
@@ -364,8 +363,8 @@ SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g, int k = 0) {
 // ---- chunk walks: links s..e (inclusive, s <= e), shared by every driver ------
 
 // Pass 0's aggregate of links s..e: v_e as a map of v_{s-1}.
-template <class S>
-SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index e) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S, kB>& d, Index s, Index e) {
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
   for (Index g = s; g <= e; ++g) {
     const Vec6<S> Sqd = to_vec6(d.joint_velocity(g));
@@ -377,8 +376,8 @@ SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index
 
 // Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk,
 // Y_s as a map of Y_{e+1} (kDual; otherwise nothing, for the hybrid).
-template <bool kDual = true, class S>
-SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
+template <bool kDual = true, class S, bool kB>
+SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& v_in) {
   Motion<S> v_parent = to_motion(v_in);
   Transform<S> X = d.Xup(s);
   DualRiccati<DualScalar> agg{};
@@ -394,7 +393,12 @@ SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index 
     const Transform<S> Xnext = more ? d.Xup(g + 1) : X;  // the next link's (the next instance's first)
     if constexpr (kDual) {
       const bool child = d.has_child(g);
-      const DualRiccati<DualScalar> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+      // a floating base: the dual of a joint that transmits every force has no
+      // coordinates, and no link reads the base's (a constant map, as at a leaf)
+      const DualRiccati<DualScalar> el =
+          d.is_base(g) ? DualRiccati<DualScalar>{Mat5<DualScalar>::identity(), Mat5<DualScalar>::zero(),
+                                                 Mat5<DualScalar>::zero(), true}
+                       : dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
       agg = g == s ? el : DualRiccati<DualScalar>::compose(agg, el);
     }
     X = Xnext;
@@ -406,8 +410,8 @@ SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index 
 // frame; ignored when link e has no child): the ABA articulated-inertia recursion
 // over e..s with the step functions; stores U, D, w = Ia c and records a failed
 // pivot; returns pass 2's aggregate of the chunk, z_s as a map of z_{e+1}.
-template <class S>
-SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S, kB>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
   ABInertia<S> Ia_next = Ia_in;  // Ia of link g + 1, its frame
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -463,8 +467,8 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, co
 // base's acceleration and qdd from IA_0 = D (L L^T), as aba_at does it; stores them
 // (a_base, qdd_base) and returns the acceleration (NaN, and the failure recorded,
 // when IA_0 is not positive definite).
-template <class S>
-SCANDYN_HD Motion<S> base_acceleration_walk(const ChainFdData<S>& d, Index g, const Force<S>& pA) {
+template <class S, bool kB>
+SCANDYN_HD Motion<S> base_acceleration_walk(const ChainFdData<S, kB>& d, Index g, const Force<S>& pA) {
   const Body<S>& b = d.body_of(g);
   const Index inst = g / d.n;
   S tau[6], L[kMaxJointDofs * kMaxJointDofs], w[6], qdd[6];
@@ -486,8 +490,8 @@ SCANDYN_HD Motion<S> base_acceleration_walk(const ChainFdData<S>& d, Index g, co
 
 // Pass 2's walk from z_{e+1}: stores u = tau - S^T pA; returns pass 3's aggregate of
 // the chunk, a_e as a map of a_{s-1}.
-template <class S>
-SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& z_in) {
   Force<S> z_next = to_force(z_in);
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -538,8 +542,8 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const
 }
 
 // Pass 3's walk from a_{s-1}: qdd by aba_acceleration_step.
-template <class S>
-SCANDYN_HD void acceleration_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& a_in) {
+template <class S, bool kB>
+SCANDYN_HD void acceleration_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& a_in) {
   Motion<S> a_parent = to_motion(a_in);
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);
@@ -592,8 +596,8 @@ SCANDYN_HD void carry_range(const E* el, typename E::Value* carry, Index a, Inde
 
 // The carried dual Y of link e + 1 as the articulated inertia the walk of pass 1
 // starts from (link e + 1 exists: e is not an instance's last link).
-template <class S>
-SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S>& d, Index e, const Mat5<DualScalar>& Y) {
+template <class S, bool kB>
+SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S, kB>& d, Index e, const Mat5<DualScalar>& Y) {
   return d.has_child(e) ? articulated_from_dual(d.body_of(e + 1), Y) : ABInertia<S>{};
 }
 

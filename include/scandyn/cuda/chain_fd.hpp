@@ -81,9 +81,15 @@ class ChainFdPlan {
   std::size_t device_bytes() const { return bytes_; }
 
  private:
-  ChainFdData<S> data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
-  cudaError_t velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream);
-  cudaError_t finish(const ChainFdData<S>& d, cudaStream_t stream);  // passes 2 and 3
+  // kB: a free rope's walks (ChainFdData's kBase)
+  template <bool kB>
+  ChainFdData<S, kB> data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
+  template <bool kB>
+  cudaError_t passes(const ChainFdData<S, kB>& d, cudaStream_t stream);  // launch()'s passes 0 to 3
+  template <bool kB>
+  cudaError_t velocities(const ChainFdData<S, kB>& d, bool dual, cudaStream_t stream);
+  template <bool kB>
+  cudaError_t finish(const ChainFdData<S, kB>& d, cudaStream_t stream);  // passes 2 and 3
 
   Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;  // n_: links (bodies) per instance
   bool floating_ = false;                   // link 0 is a floating base (a free rope)
