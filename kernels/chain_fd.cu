@@ -204,29 +204,18 @@ template <bool kB>
 ChainFdData<S, kB> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
   ChainFdData<S, kB> d;
   d.n = n_;
-  d.batch = in.q.batch;
+  d.bind(in, qdd);
   d.body = body_;
   d.Phi = Phi_;
   d.body_class = body_class_;
   d.a0 = a0_;
-  d.q = in.q;
-  d.qd = in.qd;
-  d.tau = in.tau;
-  d.fext = in.fext;
-  d.qdd = qdd;
   d.v = v_;
   d.U = U_;
   d.w = w_;
   d.D = D_;
   d.u = u_;
   d.failed = failed;
-  if (floating_) {
-    d.dq = 6;
-    d.dv = 5;
-    d.IA_base = IA_base_;
-    d.a_base = a_base_;
-    d.qdd_base = qdd_base_;
-  }
+  if (floating_) d.bind_base(IA_base_, a_base_, qdd_base_);
   return d;
 }
 

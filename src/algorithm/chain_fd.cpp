@@ -134,29 +134,18 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   // the passes over d, a ChainFdData<S> or, for a free rope, a ChainFdData<S, true>
   auto passes = [&](auto& d) {
     d.n = n_;
-    d.batch = B;
+    d.bind(in, qdd);
     d.body = bodies_.body.data();
     d.Phi = bodies_.Phi.data();
     d.body_class = bodies_.body_class.data();
     d.a0 = a0_;
-    d.q = in.q;
-    d.qd = in.qd;
-    d.tau = in.tau;
-    d.fext = in.fext;
-    d.qdd = qdd;
     d.v = v_.data();
     d.U = U_.data();
     d.D = D_.data();
     d.w = w_.data();
     d.u = u_.data();
     d.failed = failed_.data();
-    if (floating_) {
-      d.dq = 6;
-      d.dv = 5;
-      d.IA_base = IA_base_.data();
-      d.a_base = a_base_.data();
-      d.qdd_base = qdd_base_.data();
-    }
+    if (floating_) d.bind_base(IA_base_.data(), a_base_.data(), qdd_base_.data());
 
     const ChainChunking ck(d.count(), chunk_, 16);
     const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();

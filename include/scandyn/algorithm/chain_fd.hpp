@@ -296,6 +296,24 @@ struct ChainFdData {
   Motion<S>* a_base = nullptr;              // (B) its acceleration, gravity included (pass 2)
   Vec6<S>* qdd_base = nullptr;              // (B) its qdd_0..5 (pass 2)
 
+  // the drivers' setup: a batch's views (batch = in.q.batch), and a floating base's
+  // rows and per-instance scratch (each B entries)
+  void bind(const FdBatchIn<S>& in, const BatchView<S>& qdd_out) {
+    batch = in.q.batch;
+    q = in.q;
+    qd = in.qd;
+    tau = in.tau;
+    fext = in.fext;
+    qdd = qdd_out;
+  }
+  void bind_base(ABInertia<S>* IA, Motion<S>* a, Vec6<S>* qdd_b) {
+    dq = 6;
+    dv = 5;
+    IA_base = IA;
+    a_base = a;
+    qdd_base = qdd_b;
+  }
+
   SCANDYN_HD Index count() const { return n * batch; }
   SCANDYN_HD Index link(Index g) const { return g % n; }
   SCANDYN_HD Index instance(Index g) const { return g / n; }
