@@ -20,9 +20,15 @@
 //   fd_parallel-c<L>f<F>/float/rope:N/cuda    ChainFdPlan with L links per chunk and fan-in F
 //                                             (the engine's default: c8f8), N = 10^4, 10^6;
 //   fd_parallel-graph/float/rope:N/cuda       the default plan's launch captured in a CUDA
-//                                             graph and replayed.
+//                                             graph and replayed;
+//   fd_parallel-plan/<precision>/rope:N[-floating]/cuda
+//                                             the default ChainFdPlan's launch on device
+//                                             buffers, the fixed rope and the free one
+//                                             (--floating-base: a floating base, then N - 1
+//                                             links) side by side, N = 10^4 .. 10^6.
 // max_rel_err: every qdd entry against the double serial aba on the same
-// (precision-rounded) inputs: q uniform in [-1, 1] rad, qd and tau in [-1, 1].
+// (precision-rounded) inputs: q uniform in [-1, 1] rad, qd and tau in [-1, 1] (a free
+// rope's base quaternion normalised).
 // Counters: links, instances, max_rel_err, failed (instances reported failed).
 //
 // Before the rows: the device, and the hybrid's timeline for rope:10^6 in float as
@@ -56,29 +62,37 @@ namespace {
 
 // Inputs of one configuration in double (the reference's) and the reference qdd.
 struct Inputs {
-  std::vector<double> q, qd, tau, ref;  // SoA (n x B)
+  std::vector<double> q, qd, tau, ref;  // SoA: q (nq x B), the others (nv x B)
 };
 
 std::map<std::string, std::shared_ptr<Inputs>> g_inputs;  // by "<precision>/<spec>/<B>"
 
 template <class S>
 std::shared_ptr<Inputs> inputs(const Model& m, Index B) {
-  const std::string key = std::string(sizeof(S) == 4 ? "f/" : "d/") + m.source + "/" + std::to_string(B);
+  const std::string key = std::string(sizeof(S) == 4 ? "f/" : "d/") + m.source +
+                          (m.floating_base() ? "-floating/" : "/") + std::to_string(B);
   auto& slot = g_inputs[key];
   if (slot) return slot;
   slot = std::make_shared<Inputs>();
-  const Index n = m.nv();
+  const Index n = m.nv(), nq = m.nq();
   std::mt19937_64 rng(42);
   std::uniform_real_distribution<double> u(-1, 1);
   for (auto* v : {&slot->q, &slot->qd, &slot->tau}) {
-    v->resize(static_cast<std::size_t>(n) * B);
+    v->resize(static_cast<std::size_t>(v == &slot->q ? nq : n) * B);
     for (auto& x : *v) x = double(S(u(rng)));
   }
-  slot->ref.resize(slot->q.size());
+  if (m.floating_base())  // the base's quaternion, rows 3..6: unit in precision S
+    for (Index b = 0; b < B; ++b) {
+      double nrm = 0;
+      for (Index k = 3; k < 7; ++k) nrm += slot->q[k * B + b] * slot->q[k * B + b];
+      for (Index k = 3; k < 7; ++k) slot->q[k * B + b] = double(S(slot->q[k * B + b] / std::sqrt(nrm)));
+    }
+  slot->ref.resize(slot->qd.size());
   Data data(m, false);
-  std::vector<double> qi(n), qdi(n), ti(n), qddi(n);
+  std::vector<double> qi(nq), qdi(n), ti(n), qddi(n);
   for (Index b = 0; b < B; ++b) {
-    for (Index i = 0; i < n; ++i) qi[i] = slot->q[i * B + b], qdi[i] = slot->qd[i * B + b], ti[i] = slot->tau[i * B + b];
+    for (Index i = 0; i < nq; ++i) qi[i] = slot->q[i * B + b];
+    for (Index i = 0; i < n; ++i) qdi[i] = slot->qd[i * B + b], ti[i] = slot->tau[i * B + b];
     aba(m, data, qi.data(), qdi.data(), ti.data(), qddi.data());
     for (Index i = 0; i < n; ++i) slot->ref[i * B + b] = qddi[i];
   }
@@ -99,8 +113,8 @@ void set(benchmark::State& st, Index n, Index B, double err, Index failed) {
   st.counters["failed"] = failed;
 }
 
-// One configuration's inputs on the device (q, qd, tau, then qdd; SoA n x B) and B
-// failed links; freed on scope exit.
+// One configuration's inputs on the device (q, qd, tau, then qdd; SoA: q nq x B, the
+// others n x B, each given count = nq B entries) and B failed links; freed on scope exit.
 template <class S>
 struct DeviceInputs {
   S* p = nullptr;
@@ -111,25 +125,25 @@ struct DeviceInputs {
   BatchView<S> qdd{};
 
   bool upload(benchmark::State& st, const Inputs& h, Index n_, Index B_) {
-    n = n_, B = B_, count = static_cast<std::size_t>(n) * B;
+    n = n_, B = B_, count = h.q.size();
     if (!cuda_ok(st, cudaMalloc(&p, 4 * count * sizeof(S)), "cudaMalloc") ||
         !cuda_ok(st, cudaMalloc(&failed, B * sizeof(int)), "cudaMalloc"))
       return false;
     const std::vector<double>* src[3] = {&h.q, &h.qd, &h.tau};
     for (int a = 0; a < 3; ++a) {
       const std::vector<S> v(src[a]->begin(), src[a]->end());
-      cudaMemcpy(p + a * count, v.data(), count * sizeof(S), cudaMemcpyHostToDevice);
+      cudaMemcpy(p + a * count, v.data(), v.size() * sizeof(S), cudaMemcpyHostToDevice);
     }
     using V = BatchView<const S>;
-    in = {V::soa(p, n, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
+    in = {V::soa(p, static_cast<Index>(count) / B, B), V::soa(p + count, n, B), V::soa(p + 2 * count, n, B), nullptr};
     qdd = BatchView<S>::soa(p + 3 * count, n, B);
     return true;
   }
   // qdd back on the host, and how many instances reported a failed pivot
   std::vector<S> result(Index& bad) const {
-    std::vector<S> out(count);
+    std::vector<S> out(static_cast<std::size_t>(n) * B);
     std::vector<int> f(static_cast<std::size_t>(B));
-    cudaMemcpy(out.data(), p + 3 * count, count * sizeof(S), cudaMemcpyDeviceToHost);
+    cudaMemcpy(out.data(), p + 3 * count, out.size() * sizeof(S), cudaMemcpyDeviceToHost);
     cudaMemcpy(f.data(), failed, B * sizeof(int), cudaMemcpyDeviceToHost);
     bad = 0;
     for (int x : f) bad += x >= 0;
@@ -320,6 +334,24 @@ int main(int argc, char** argv) {
                                  [m](benchmark::State& st) { run_plan<float>(st, m, 0, 0, true); })
         ->UseManualTime()
         ->Unit(benchmark::kMicrosecond);
+  }
+  // the free rope against the fixed one on the same plan (issue: within 1.2x)
+  for (long N = 10000; N <= max_links; N *= 10) {
+    for (bool floating : {false, true}) {
+      BuildOptions o;
+      o.floating_base = floating;
+      g_models.push_back(std::make_unique<Model>(make_generated("rope:" + std::to_string(N), o)));
+      const Model* m = g_models.back().get();
+      const std::string label = m->source + (floating ? "-floating" : "");
+      benchmark::RegisterBenchmark(("fd_parallel-plan/float/" + label + "/cuda").c_str(),
+                                   [m](benchmark::State& st) { run_plan<float>(st, m, 0, 0, false); })
+          ->UseManualTime()
+          ->Unit(benchmark::kMicrosecond);
+      benchmark::RegisterBenchmark(("fd_parallel-plan/double/" + label + "/cuda").c_str(),
+                                   [m](benchmark::State& st) { run_plan<double>(st, m, 0, 0, false); })
+          ->UseManualTime()
+          ->Unit(benchmark::kMicrosecond);
+    }
   }
   // batches of rope:1000
   g_models.push_back(std::make_unique<Model>(make_generated("rope:1000")));

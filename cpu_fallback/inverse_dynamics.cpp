@@ -35,7 +35,6 @@ class CpuRnea : public Interface {
     strategy_ = o.strategy != IdStrategy::Auto ? o.strategy
                 : kBias                        ? IdStrategy::Recursion
                                                : choose_id_strategy(kind_, model.nv(), max_batch_, threads_);
-    if (model.multi_dof()) strategy_ = IdStrategy::Recursion;  // the scans take 1-DoF joints only
     const Index nv = model.nv();
     if (strategy_ == IdStrategy::Recursion) {
       for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
@@ -83,7 +82,7 @@ class CpuRnea : public Interface {
     for (Index b = 0; b < B; ++b) {
       const S* qddb = kBias ? zero_.data() : gather(qdd, b, nv, rows_.row(0, 2));
       S* o = output_row(out, b, rows_.row(0, 3));
-      rnea_scan(model_, scan_[0], form, gather(q, b, nv, rows_.row(0, 0)), gather(qd, b, nv, rows_.row(0, 1)), qddb,
+      rnea_scan(model_, scan_[0], form, gather(q, b, nq, rows_.row(0, 0)), gather(qd, b, nv, rows_.row(0, 1)), qddb,
                 o, instance_fext(b));
       scatter(o, out, b, nv);
     }

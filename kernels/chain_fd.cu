@@ -29,14 +29,14 @@ struct ChunkRange {
   __host__ __device__ Index last(Index c) const { return min(count, (c + 1) * chunk) - 1; }
 };
 
-template <class S>
-__global__ void velocity_aggregate_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
+template <class S, bool kB>
+__global__ void velocity_aggregate_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) agg[c] = velocity_aggregate(d, r.first(c), r.last(c));
 }
 
-template <bool kDual, class S>
-__global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+template <bool kDual, class S, bool kB>
+__global__ void velocity_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
                                      DualRiccati<DualScalar>* dual) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= chunks) return;
@@ -46,8 +46,8 @@ __global__ void velocity_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index
 
 // Pass 1's walks of chunks [c0, c1): from the dual carries (parallel) or the host's
 // articulated inertias (hybrid).
-template <class S>
-__global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index c0, Index c1, const Mat5<DualScalar>* dual_carry,
+template <class S, bool kB>
+__global__ void inertia_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index c0, Index c1, const Mat5<DualScalar>* dual_carry,
                                     const ABInertia<S>* Ia_carry, Affine6<S>* agg) {
   const Index c = c0 + static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c >= c1) return;
@@ -56,15 +56,15 @@ __global__ void inertia_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index 
   agg[c] = inertia_walk(d, r.first(c), e, Ia);
 }
 
-template <class S>
-__global__ void bias_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
+template <class S, bool kB>
+__global__ void bias_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
                                  Affine6<S>* agg) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) agg[c] = bias_walk(d, r.first(c), r.last(c), carry[c]);
 }
 
-template <class S>
-__global__ void acceleration_walk_kernel(const ChainFdData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
+template <class S, bool kB>
+__global__ void acceleration_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) acceleration_walk(d, r.first(c), r.last(c), carry[c]);
 }
@@ -114,11 +114,12 @@ std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; 
 
 template <class S>
 ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk, Index fan_in)
-    : n_(model.nv()),
+    : n_(model.nbodies()),
       max_batch_(std::max<Index>(max_batch, 1)),
       chunk_(chunk > 0 ? chunk : kDefaultChunk),
       fan_in_(fan_in > 1 ? fan_in : kDefaultFanIn) {
   host_ = ChainBodies<S>::from(model, max_batch_);
+  floating_ = model.floating_base();
   a0_ = base_acceleration(model.gravity);
   const std::vector<InverseInertia<DualScalar>>& Phi = host_.Phi;
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
@@ -136,6 +137,10 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
                     o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
                     o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S)),
                     o_Ia = take(chunks * sizeof(ABInertia<S>));
+  // a floating base's IA_0, acceleration and qdd per instance
+  const std::size_t nbase = floating_ ? static_cast<std::size_t>(max_batch_) : 0;
+  const std::size_t o_IAb = take(nbase * sizeof(ABInertia<S>)), o_ab = take(nbase * sizeof(Motion<S>)),
+                    o_qddb = take(nbase * sizeof(Vec6<S>));
   std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
   for (Index size : level_size_) {
     o_aff.push_back(take(size * sizeof(Affine6<S>)));
@@ -164,6 +169,11 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   D_ = reinterpret_cast<S*>(base + o_D);
   u_ = reinterpret_cast<S*>(base + o_u);
   Ia_carry_ = reinterpret_cast<ABInertia<S>*>(base + o_Ia);
+  if (floating_) {
+    IA_base_ = reinterpret_cast<ABInertia<S>*>(base + o_IAb);
+    a_base_ = reinterpret_cast<Motion<S>*>(base + o_ab);
+    qdd_base_ = reinterpret_cast<Vec6<S>*>(base + o_qddb);
+  }
   for (std::size_t k = 0; k < level_size_.size(); ++k) {
     aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
     aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
@@ -190,30 +200,28 @@ ChainFdPlan<S>::~ChainFdPlan() {
 }
 
 template <class S>
-ChainFdData<S> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
-  ChainFdData<S> d;
+template <bool kB>
+ChainFdData<S, kB> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const {
+  ChainFdData<S, kB> d;
   d.n = n_;
-  d.batch = in.q.batch;
+  d.bind(in, qdd);
   d.body = body_;
   d.Phi = Phi_;
   d.body_class = body_class_;
   d.a0 = a0_;
-  d.q = in.q;
-  d.qd = in.qd;
-  d.tau = in.tau;
-  d.fext = in.fext;
-  d.qdd = qdd;
   d.v = v_;
   d.U = U_;
   d.w = w_;
   d.D = D_;
   d.u = u_;
   d.failed = failed;
+  if (floating_) d.bind_base(IA_base_, a_base_, qdd_base_);
   return d;
 }
 
 template <class S>
-cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream) {
+template <bool kB>
+cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S, kB>& d, bool dual, cudaStream_t stream) {
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -227,7 +235,8 @@ cudaError_t ChainFdPlan<S>::velocities(const ChainFdData<S>& d, bool dual, cudaS
 }
 
 template <class S>
-cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S>& d, cudaStream_t stream) {
+template <bool kB>
+cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S, kB>& d, cudaStream_t stream) {
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -245,9 +254,15 @@ cudaError_t ChainFdPlan<S>::launch(const FdBatchIn<S>& in, const BatchView<S>& q
   const Index B = in.q.batch;
   if (B > max_batch_ || B < 0) return cudaErrorInvalidValue;
   if (B == 0) return cudaSuccess;
-  cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
+  const cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);  // -1
   if (err != cudaSuccess) return err;
-  const ChainFdData<S> d = data(in, qdd, failed);
+  return floating_ ? passes(data<true>(in, qdd, failed), stream) : passes(data<false>(in, qdd, failed), stream);
+}
+
+template <class S>
+template <bool kB>
+cudaError_t ChainFdPlan<S>::passes(const ChainFdData<S, kB>& d, cudaStream_t stream) {
+  cudaError_t err = cudaSuccess;
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
@@ -267,12 +282,13 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
   auto ms_since = [&](clock::time_point t) { return std::chrono::duration<double, std::milli>(t - t0).count(); };
   const Index B = in.q.batch;
   if (B > max_batch_ || B < 0 || q_host.batch != B) return cudaErrorInvalidValue;
+  if (floating_) return cudaErrorNotSupported;  // the host recursion takes 1-DoF joints (the engine refuses hybrid)
   if (B == 0) return cudaSuccess;
   cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);
   if (err != cudaSuccess) return err;
   cudaEvent_t start = events_[0], after_velocities = events_[1], end = events_[2];
   if ((err = cudaEventRecord(start, stream)) != cudaSuccess) return err;
-  const ChainFdData<S> d = data(in, qdd, failed);
+  const ChainFdData<S> d = data<false>(in, qdd, failed);
   const Index count = d.count();
   const ChunkRange r{chunk_, count};
   const Index chunks = level_sizes(count, chunk_, fan_in_)[0];

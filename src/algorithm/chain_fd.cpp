@@ -6,8 +6,8 @@
 
 #include <algorithm>
 #include <climits>
-#include <cstring>
 #include <string>
+#include <unordered_map>
 
 #if defined(_OPENMP)
 #include <omp.h>
@@ -28,34 +28,41 @@ ChainChunking::ChainChunking(Index links_, Index chunk_, Index fan_in_)
 
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what) {
-  if (model.nv() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
+  if (model.nbodies() == 0) throw BackendError(std::string(what) + ": the model has no moving bodies");
   const Index i = first_branching_body(model);
   if (i >= 0)
     throw BackendError(std::string(what) + " needs unbranched chains hanging from the base (every body's parent " +
                        "the previous body or the base); body " + std::to_string(i) + " (joint '" +
                        model.joint_names[i] + "') has parent " + std::to_string(model.parent(i)));
+  const Index j = first_unsupported_chain_joint(model);
+  if (j >= 0)
+    throw BackendError(std::string(what) + " takes revolute and prismatic joints and a floating base (a free rope); " +
+                       "body " + std::to_string(j) + " (joint '" + model.joint_names[j] + "') is " +
+                       (model.bodies[j].type == JointType::Spherical ? "a spherical joint" : "a free joint") +
+                       " (use aba or jsi)");
 }
 
 template <class S>
 ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   require_chain(model, "the parallel chain forward dynamics");
-  const Index n = model.nv();
+  const Index n = model.nbodies();
   if (static_cast<long long>(n) * max_batch > INT_MAX / 2)
     throw BackendError("the parallel chain forward dynamics: " + std::to_string(n) + " links x " +
                        std::to_string(max_batch) + " instances exceed 2^30 links per call");
   ChainBodies o;
   o.body_class.resize(static_cast<std::size_t>(n));
+  std::unordered_map<std::string, int> seen;  // a body's bytes -> its entry
   for (Index i = 0; i < n; ++i) {
     Body<S> b = model.bodies[i];
     b.parent = model.parent(i) == -1 ? -1 : kChainPrevious;
-    b.idx_q = b.idx_v = 0;  // positions in q / qd: per link, not a constant of the link
-    Index k = static_cast<Index>(o.body.size()) - 1;
-    if (k < 0 || std::memcmp(&o.body[k], &b, sizeof b) != 0) {
+    b.idx_q = b.idx_v = 0;  // the drivers place link i by ChainFdData::q_row / v_row
+    auto [it, fresh] = seen.emplace(std::string(reinterpret_cast<const char*>(&b), sizeof b),
+                                    static_cast<int>(o.body.size()));
+    if (fresh) {
       o.body.push_back(b);
       o.Phi.push_back(InverseInertia<DualScalar>::from(b.I.template cast<DualScalar>()));
-      k = static_cast<Index>(o.body.size()) - 1;
     }
-    o.body_class[i] = static_cast<int>(k);
+    o.body_class[i] = it->second;
   }
   return o;
 }
@@ -90,11 +97,9 @@ void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
 
 template <class S>
 ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
-    : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)) {
-  if (model.multi_dof())
-    throw std::invalid_argument("ChainForwardDynamics: model '" + model.name + "' has multi-DoF joints; the "
-                                "parallel chain forward dynamics takes revolute and prismatic joints only");
+    : n_(model.nbodies()), max_batch_(std::max<Index>(max_batch, 1)) {
   bodies_ = ChainBodies<S>::from(model, max_batch_);
+  floating_ = model.floating_base();
   threads_ = threads > 0 ? threads : openmp_threads();
   const Index links = n_ * max_batch_;
   // chunks: at least 8 per thread, at most 64 links each, at least 8 links each
@@ -106,6 +111,11 @@ ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index ma
   D_.resize(links);
   u_.resize(links);
   failed_.resize(static_cast<std::size_t>(max_batch_));
+  if (floating_) {
+    IA_base_.resize(static_cast<std::size_t>(max_batch_));
+    a_base_.resize(static_cast<std::size_t>(max_batch_));
+    qdd_base_.resize(static_cast<std::size_t>(max_batch_));
+  }
   const ChainChunking ck(links, chunk_, 16);
   for (Index size : ck.level_size) {
     aff_.emplace_back(static_cast<std::size_t>(size));
@@ -120,51 +130,56 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   check_batch(in, qdd, max_batch_);
   const Index B = in.q.batch;
   if (B == 0) return 0;
-  ChainFdData<S> d;
-  d.n = n_;
-  d.batch = B;
-  d.body = bodies_.body.data();
-  d.Phi = bodies_.Phi.data();
-  d.body_class = bodies_.body_class.data();
-  d.a0 = a0_;
-  d.q = in.q;
-  d.qd = in.qd;
-  d.tau = in.tau;
-  d.fext = in.fext;
-  d.qdd = qdd;
-  d.v = v_.data();
-  d.U = U_.data();
-  d.D = D_.data();
-  d.w = w_.data();
-  d.u = u_.data();
-  d.failed = failed_.data();
   std::fill(failed_.begin(), failed_.begin() + B, -1);
+  // the passes over d, a ChainFdData<S> or, for a free rope, a ChainFdData<S, true>
+  auto passes = [&](auto& d) {
+    d.n = n_;
+    d.bind(in, qdd);
+    d.body = bodies_.body.data();
+    d.Phi = bodies_.Phi.data();
+    d.body_class = bodies_.body_class.data();
+    d.a0 = a0_;
+    d.v = v_.data();
+    d.U = U_.data();
+    d.D = D_.data();
+    d.w = w_.data();
+    d.u = u_.data();
+    d.failed = failed_.data();
+    if (floating_) d.bind_base(IA_base_.data(), a_base_.data(), qdd_base_.data());
 
-  const ChainChunking ck(d.count(), chunk_, 16);
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
-  const int T = threads_;
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+    const ChainChunking ck(d.count(), chunk_, 16);
+    const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+    const int T = threads_;
+    auto first = [&](Index c) { return c * L; };
+    auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
 
-  // pass 0: velocities (and pass 1's aggregates)
+    // pass 0: velocities (and pass 1's aggregates)
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
-  scan_levels(ck, aff_, aff_carry_, true, T);
+    for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
+    scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
-  // pass 1: articulated inertias (and pass 2's aggregates)
-  scan_levels(ck, dual_, dual_carry_, false, T);
+    for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
+    // pass 1: articulated inertias (and pass 2's aggregates)
+    scan_levels(ck, dual_, dual_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c)
-    aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
-  // pass 2: bias forces (and pass 3's aggregates)
-  scan_levels(ck, aff_, aff_carry_, false, T);
+    for (Index c = 0; c < chunks; ++c)
+      aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
+    // pass 2: bias forces (and pass 3's aggregates)
+    scan_levels(ck, aff_, aff_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
-  // pass 3: accelerations
-  scan_levels(ck, aff_, aff_carry_, true, T);
+    for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
+    // pass 3: accelerations
+    scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+    for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+  };
+  if (floating_) {
+    ChainFdData<S, true> d;
+    passes(d);
+  } else {
+    ChainFdData<S> d;
+    passes(d);
+  }
 
   Index bad = 0;
   for (Index b = 0; b < B; ++b) bad += failed_[b] >= 0;

@@ -9,10 +9,9 @@ namespace scandyn {
 
 template <class S>
 ScanWorkspace<S>::ScanWorkspace(const ModelTpl<S>& model, int threads_) : threads(threads_ < 1 ? 1 : threads_) {
-  if (model.multi_dof())
-    throw std::invalid_argument("rnea_scan: model '" + model.name + "' has multi-DoF joints; the scans take "
-                                "revolute and prismatic joints only");
-  const Index n = model.nv();
+  // per body (nbodies; = nv for 1-DoF joints): a floating base and spherical joints
+  // are one scan element each
+  const Index n = model.nbodies();
   std::vector<Index> parent(static_cast<std::size_t>(n));
   for (Index i = 0; i < n; ++i) parent[i] = model.bodies[i].parent;
   plan = make_tree_scan_plan(parent, default_max_piece(n, threads));
@@ -63,16 +62,26 @@ struct FoldPlus {
   }
 };
 
-template <class S>
+// Body i's Xup: a model of 1-DoF joints indexes q by the body, the general path
+// (kGeneral: multi-DoF joints) at Body::idx_q.
+template <bool kGeneral, class S>
+Transform<S> scan_joint_transform(const Body<S>& b, Index i, const S* q) {
+  if (kGeneral && joint_nv(b.type) > 1) return joint_transform_at(b, q + b.idx_q);
+  return joint_transform(b, q[kGeneral ? b.idx_q : i]);
+}
+
+template <bool kGeneral, class S>
 void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, const S* qd, const S* qdd,
                      S* tau, const Force<S>* fext) {
-  const Index n = m.nv();
+  const Index n = m.nbodies();
   const Motion<S> a0 = base_acceleration(m.gravity);
-  // velocities: x_i = Xup_i x_parent + S qd
+  // velocities: x_i = Xup_i x_parent + S qd (a floating base: its twist, the root's offset)
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
-    ws.Xup[i] = joint_transform(m.bodies[i], q[i]);
-    ws.fwd[i] = id_velocity_element(m.bodies[i], ws.Xup[i], qd[i]);
+    const Body<S>& b = m.bodies[i];
+    ws.Xup[i] = scan_joint_transform<kGeneral>(b, i, q);
+    if constexpr (kGeneral) ws.fwd[i] = id_velocity_element_at(b, ws.Xup[i], qd + b.idx_v);
+    else ws.fwd[i] = id_velocity_element(b, ws.Xup[i], qd[i]);
   }
   tree_prefix_scan(ws.plan, ws.fwd.data(), ws.carry_fwd.data(), ComposeMotionAffine{}, KnownMotionAffine{});
   // accelerations: x_i = Xup_i x_parent + S qdd + v x S qd, the base moving with -g
@@ -80,7 +89,10 @@ void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
   for (Index i = 0; i < n; ++i) {
     const Body<S>& b = m.bodies[i];
     ws.v[i] = ws.fwd[i].b;
-    const MotionAffine<S> e = id_acceleration_element(b, ws.Xup[i], ws.v[i], qd[i], qdd ? qdd[i] : S(0));
+    MotionAffine<S> e;
+    if constexpr (kGeneral)
+      e = id_acceleration_element_at(b, ws.Xup[i], ws.v[i], qd + b.idx_v, qdd ? qdd + b.idx_v : nullptr);
+    else e = id_acceleration_element(b, ws.Xup[i], ws.v[i], qd[i], qdd ? qdd[i] : S(0));
     ws.fwd[i] = b.parent < 0 ? fold_parent(e, a0) : e;
   }
   tree_prefix_scan(ws.plan, ws.fwd.data(), ws.carry_fwd.data(), ComposeMotionAffine{}, KnownMotionAffine{});
@@ -92,32 +104,53 @@ void rnea_scan_local(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
   }
   tree_suffix_scan(ws.plan, ws.bwd.data(), ws.carry_bwd.data(), ComposeForceAffine{}, KnownForceAffine{},
                    FoldForceAffine{});
-  // tau_i = S^T F_i with F_i = Xup_i^{-T} B_i
+  // tau_i = S^T F_i with F_i = Xup_i^{-T} B_i (a floating base: its wrench, tau's first 6)
 #pragma omp for schedule(static)
-  for (Index i = 0; i < n; ++i) tau[i] = joint_project(m.bodies[i], ws.Xup[i].apply(ws.bwd[i].B));
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = m.bodies[i];
+    const Force<S> F = ws.Xup[i].apply(ws.bwd[i].B);
+    if constexpr (kGeneral) joint_project_at(b, F, tau + b.idx_v);
+    else tau[i] = joint_project(b, F);
+  }
 }
 
-template <class S>
+template <bool kGeneral, class S>
 void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, const S* qd, const S* qdd,
                      S* tau, const Force<S>* fext) {
-  const Index n = m.nv();
+  const Index n = m.nbodies();
   const Motion<S> a0 = base_acceleration(m.gravity);
-  // poses P_i = Xup_i P_parent (world -> body)
+  // poses P_i = Xup_i P_parent (world -> body; a floating base's pose is the root's)
 #pragma omp for schedule(static)
-  for (Index i = 0; i < n; ++i) ws.P[i] = joint_transform(m.bodies[i], q[i]);
+  for (Index i = 0; i < n; ++i) ws.P[i] = scan_joint_transform<kGeneral>(m.bodies[i], i, q);
   tree_prefix_scan(ws.plan, ws.P.data(), ws.carry_pose.data(), ComposePose{}, ComposePose{});
-  // world joint twists; velocities are their root-path sums
+  // world joint twists: sw the unit twist of a 1-DoF joint, S qd of a multi-DoF one;
+  // velocities are the root-path sums of the joints' twists
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
-    ws.sw[i] = ws.P[i].apply_inverse(joint_motion(m.bodies[i], S(1)));
-    ws.Vw[i] = qd[i] * ws.sw[i];
+    const Body<S>& b = m.bodies[i];
+    const Index iv = kGeneral ? b.idx_v : i;
+    if (kGeneral && joint_nv(b.type) > 1) {
+      ws.sw[i] = ws.P[i].apply_inverse(joint_motion_at(b, qd + iv));
+      ws.Vw[i] = ws.sw[i];
+    } else {
+      ws.sw[i] = ws.P[i].apply_inverse(joint_motion(b, S(1)));
+      ws.Vw[i] = qd[iv] * ws.sw[i];
+    }
   }
   tree_prefix_scan(ws.plan, ws.Vw.data(), ws.carry_motion.data(), Plus{}, Plus{});
-  // accelerations: root-path sums of sw qdd + V x sw qd, plus the base's -g
+  // accelerations: root-path sums of S qdd + V x S qd (world), plus the base's -g
 #pragma omp for schedule(static)
   for (Index i = 0; i < n; ++i) {
-    Motion<S> c = (qdd ? qdd[i] : S(0)) * ws.sw[i] + cross(ws.Vw[i], qd[i] * ws.sw[i]);
-    if (m.bodies[i].parent < 0) c += a0;
+    const Body<S>& b = m.bodies[i];
+    const Index iv = kGeneral ? b.idx_v : i;
+    Motion<S> c;
+    if (kGeneral && joint_nv(b.type) > 1) {
+      c = cross(ws.Vw[i], ws.sw[i]);
+      if (qdd) c += ws.P[i].apply_inverse(joint_motion_at(b, qdd + iv));
+    } else {
+      c = (qdd ? qdd[iv] : S(0)) * ws.sw[i] + cross(ws.Vw[i], qd[iv] * ws.sw[i]);
+    }
+    if (b.parent < 0) c += a0;
     ws.Aw[i] = c;
   }
   tree_prefix_scan(ws.plan, ws.Aw.data(), ws.carry_motion.data(), Plus{}, Plus{});
@@ -130,7 +163,11 @@ void rnea_scan_world(const ModelTpl<S>& m, ScanWorkspace<S>& ws, const S* q, con
   }
   tree_suffix_scan(ws.plan, ws.Fw.data(), ws.carry_force.data(), Plus{}, Plus{}, FoldPlus{});
 #pragma omp for schedule(static)
-  for (Index i = 0; i < n; ++i) tau[i] = dot(ws.sw[i], ws.Fw[i]);
+  for (Index i = 0; i < n; ++i) {
+    const Body<S>& b = m.bodies[i];
+    if (kGeneral && joint_nv(b.type) > 1) joint_project_at(b, ws.P[i].apply(ws.Fw[i]), tau + b.idx_v);  // body frame
+    else tau[kGeneral ? b.idx_v : i] = dot(ws.sw[i], ws.Fw[i]);
+  }
 }
 
 }  // namespace
@@ -139,8 +176,14 @@ template <class S>
 void rnea_scan(const ModelTpl<S>& model, ScanWorkspace<S>& ws, ScanForm form, const S* q, const S* qd,
                const S* qdd, S* tau, const Force<S>* fext) {
   auto run = [&] {
-    if (form == ScanForm::Local) rnea_scan_local(model, ws, q, qd, qdd, tau, fext);
-    else rnea_scan_world(model, ws, q, qd, qdd, tau, fext);
+    if (model.multi_dof()) {
+      if (form == ScanForm::Local) rnea_scan_local<true>(model, ws, q, qd, qdd, tau, fext);
+      else rnea_scan_world<true>(model, ws, q, qd, qdd, tau, fext);
+    } else if (form == ScanForm::Local) {
+      rnea_scan_local<false>(model, ws, q, qd, qdd, tau, fext);
+    } else {
+      rnea_scan_world<false>(model, ws, q, qd, qdd, tau, fext);
+    }
   };
   if (ws.threads == 1) {
     run();  // the worksharing constructs run serially outside a parallel region

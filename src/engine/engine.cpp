@@ -268,13 +268,14 @@ IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int th
 
 template <class S>
 bool is_chain_from_base(const ModelTpl<S>& model) {
-  // the parallel chain forward dynamics takes 1-DoF joints only
-  return model.nv() > 0 && !model.multi_dof() && first_branching_body(model) < 0;
+  // the parallel chain forward dynamics takes 1-DoF joints and a floating base (a free rope)
+  return model.nv() > 0 && first_branching_body(model) < 0 && first_unsupported_chain_joint(model) < 0;
 }
 
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
-  if (model.multi_dof()) return FdMethod::Aba;  // the one method multi-DoF joints have on every backend
+  // multi-DoF joints: aba, or a free rope's parallel chain forward dynamics
+  if (model.multi_dof() && !is_chain_from_base(model)) return FdMethod::Aba;
   switch (backend) {
     case BackendKind::Serial: return FdMethod::Aba;
     case BackendKind::OpenMP:
@@ -353,10 +354,9 @@ void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, co
                        "backend with the recursion (inverse dynamics) or aba / jsi (forward dynamics)");
   };
   if (o.backend == BackendKind::Cuda) refuse("on the cuda backend");
-  if (o.strategy == IdStrategy::ScanLocal || o.strategy == IdStrategy::ScanWorld)
-    refuse(std::string("by the strategy ") + to_string(o.strategy));
-  if (o.fd_method == FdMethod::Parallel || o.fd_method == FdMethod::Hybrid)
-    refuse(std::string("by the method ") + to_string(o.fd_method));
+  // the link scans (scan-local, scan-world) take every joint type; the parallel chain
+  // forward dynamics a free rope (ChainBodies::from names what it refuses)
+  if (o.fd_method == FdMethod::Hybrid) refuse(std::string("by the method ") + to_string(o.fd_method));
 }
 
 

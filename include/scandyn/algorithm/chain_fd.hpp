@@ -36,6 +36,18 @@
 // with no parent (i = 0) or no child (i = n - 1) has an element that ignores its
 // input (M = 0, or C = 0), so scans run across instance boundaries unchanged.
 //
+// A free rope (the floating base, body 0's free joint, then 1-DoF links, each the
+// previous one's child) is one chain whose first link has no parent either: its
+// velocity element is the constant base twist, and its element of pass 1 and 2 is
+// never read (nothing lies above the base). Pass 1's scan delivers the projected
+// articulated inertia of link 1 to the base, whose 6x6 articulated inertia
+// IA_0 = I_0 + Xup_1^T Ia_1 Xup_1 the walk of pass 1 keeps (per instance); pass 2's
+// walk, with z_1, solves the base's acceleration from it (the steps of the serial
+// ABA's general path, aba_joint_terms_at and aba_acceleration_step_at: a Cholesky
+// factor of IA_0), and that acceleration is pass 3's constant first element.
+// Spherical joints are not offered (their 3-DoF joints break the 5-dimensional
+// constraint space of the dual Riccati maps).
+//
 // The same holds inside an instance whose model is several unbranched chains
 // hanging from the base (every body's parent the previous body or the base, bodies
 // numbered chain by chain: a curtain of ropes, a hand's fingers on a fixed palm):
@@ -256,11 +268,15 @@ SCANDYN_HD DualRiccati<DualScalar> dual_element(const Body<S>& b, const InverseI
 // B instances of an n-link model of unbranched chains from the base (every body's
 // parent the previous one or the base) and the per-link scratch of the passes; link
 // g = b * n + i is body i of instance b. Pointers are host or device memory, as the
-// driver needs.
-template <class S>
+// driver needs. kBase: link 0 of every instance is a floating base (a free rope); the
+// drivers instantiate the walks for it separately, so that a fixed chain's walks
+// carry no code (and no registers) of the base's.
+template <class S, bool kBase = false>
 struct ChainFdData {
-  Index n = 0;                              // links per instance (nv)
+  Index n = 0;                              // links per instance (nbodies)
   Index batch = 0;                          // instances B
+  Index dq = 0, dv = 0;                     // a floating base's extra entries of q (6) and qd (5):
+                                            // link i > 0 at q row i + dq, qd / tau / qdd row i + dv
   const Body<S>* body = nullptr;            // (table) distinct bodies; parent: -1 (the base) or
                                             // kChainPrevious (the previous link), see ChainBodies
   const InverseInertia<DualScalar>* Phi = nullptr;  // (table) their inverse inertias (pass 1's scalar)
@@ -274,7 +290,29 @@ struct ChainFdData {
   S* D = nullptr;                           // (B n) S^T IA S (pass 1)
   Force<S>* w = nullptr;                    // (B n) Ia c (pass 1)
   S* u = nullptr;                           // (B n) tau - S^T pA (pass 2)
-  int* failed = nullptr;                    // (B) -1, or the first link whose pivot D failed
+  int* failed = nullptr;                    // (B) -1, or the first DoF whose pivot D failed
+  // a floating base (link 0 a free joint), per instance:
+  ABInertia<S>* IA_base = nullptr;          // (B) the base's articulated inertia IA_0 (pass 1)
+  Motion<S>* a_base = nullptr;              // (B) its acceleration, gravity included (pass 2)
+  Vec6<S>* qdd_base = nullptr;              // (B) its qdd_0..5 (pass 2)
+
+  // the drivers' setup: a batch's views (batch = in.q.batch), and a floating base's
+  // rows and per-instance scratch (each B entries)
+  void bind(const FdBatchIn<S>& in, const BatchView<S>& qdd_out) {
+    batch = in.q.batch;
+    q = in.q;
+    qd = in.qd;
+    tau = in.tau;
+    fext = in.fext;
+    qdd = qdd_out;
+  }
+  void bind_base(ABInertia<S>* IA, Motion<S>* a, Vec6<S>* qdd_b) {
+    dq = 6;
+    dv = 5;
+    IA_base = IA;
+    a_base = a;
+    qdd_base = qdd_b;
+  }
 
   SCANDYN_HD Index count() const { return n * batch; }
   SCANDYN_HD Index link(Index g) const { return g % n; }
@@ -283,36 +321,59 @@ struct ChainFdData {
   SCANDYN_HD bool has_child(Index g) const { return g % n != n - 1 && body_of(g + 1).parent != -1; }
   SCANDYN_HD const Body<S>& body_of(Index g) const { return body[body_class[g % n]]; }
   SCANDYN_HD const InverseInertia<DualScalar>& Phi_of(Index g) const { return Phi[body_class[g % n]]; }
-  SCANDYN_HD S q_of(Index g) const { return q.at(g % n, g / n); }
-  SCANDYN_HD S qd_of(Index g) const { return qd.at(g % n, g / n); }
-  SCANDYN_HD S tau_of(Index g) const { return tau.at(g % n, g / n); }
-  SCANDYN_HD Transform<S> Xup(Index g) const { return joint_transform(body_of(g), q_of(g)); }
+  // rows of link i (> 0 for a floating base) in q and in qd, tau, qdd
+  SCANDYN_HD Index q_row(Index i) const { return kBase && i > 0 ? i + dq : i; }
+  SCANDYN_HD Index v_row(Index i) const { return kBase && i > 0 ? i + dv : i; }
+  SCANDYN_HD bool is_base(Index g) const { return kBase && g % n == 0; }
+  SCANDYN_HD S q_of(Index g) const { return q.at(q_row(g % n), g / n); }
+  SCANDYN_HD S qd_of(Index g) const { return qd.at(v_row(g % n), g / n); }
+  SCANDYN_HD S tau_of(Index g) const { return tau.at(v_row(g % n), g / n); }
+  SCANDYN_HD Transform<S> Xup(Index g) const {
+    if (is_base(g)) {  // the base's pose, q_0..q_6
+      S qb[7];
+      for (int k = 0; k < 7; ++k) qb[k] = q.at(k, g / n);
+      return joint_transform_at(body_of(g), qb);
+    }
+    return joint_transform(body_of(g), q_of(g));
+  }
+  // S qd of link g: a floating base's twist, qd_0..qd_5
+  SCANDYN_HD Motion<S> joint_velocity(Index g) const {
+    if (is_base(g)) {
+      S v[6];
+      for (int k = 0; k < 6; ++k) v[k] = qd.at(k, g / n);
+      return joint_motion_at(body_of(g), v);
+    }
+    return joint_motion(body_of(g), qd_of(g));
+  }
   // bias force v x* I v - fext of link g (pass 0's velocities complete)
   SCANDYN_HD Force<S> pA(Index g) const {
     const Body<S>& b = body_of(g);
     const Force<S> p = cross(v[g], b.I * v[g]);
     return fext ? p - fext[g] : p;
   }
-  SCANDYN_HD Motion<S> c(Index g) const { return cross_joint_motion(body_of(g), v[g], qd_of(g)); }
+  // v x S qd (0 at a floating base, whose velocity is its S qd)
+  SCANDYN_HD Motion<S> c(Index g) const {
+    return is_base(g) ? Motion<S>::zero() : cross_joint_motion(body_of(g), v[g], qd_of(g));
+  }
 };
 
-// Records that link g's articulated pivot failed: failed[instance] becomes the
-// smallest such link (-1: none), safely from concurrent threads.
-template <class S>
-SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g) {
+// Records that the articulated pivot of link g's joint DoF k failed: failed[instance]
+// becomes the smallest such DoF (-1: none), safely from concurrent threads.
+template <class S, bool kB>
+SCANDYN_HD void record_failure(const ChainFdData<S, kB>& d, Index g, int k = 0) {
   int* slot = d.failed + g / d.n;
-  const int link = static_cast<int>(g % d.n);
+  const int dof = static_cast<int>(d.v_row(g % d.n)) + k;
 #if defined(__CUDA_ARCH__)
   int cur = *slot;
-  while (cur < 0 || link < cur) {
-    const int seen = atomicCAS(slot, cur, link);
+  while (cur < 0 || dof < cur) {
+    const int seen = atomicCAS(slot, cur, dof);
     if (seen == cur) break;
     cur = seen;
   }
 #else
   int cur = __atomic_load_n(slot, __ATOMIC_RELAXED);
-  while ((cur < 0 || link < cur) &&
-         !__atomic_compare_exchange_n(slot, &cur, link, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+  while ((cur < 0 || dof < cur) &&
+         !__atomic_compare_exchange_n(slot, &cur, dof, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
   }
 #endif
 }
@@ -320,12 +381,11 @@ SCANDYN_HD void record_failure(const ChainFdData<S>& d, Index g) {
 // ---- chunk walks: links s..e (inclusive, s <= e), shared by every driver ------
 
 // Pass 0's aggregate of links s..e: v_e as a map of v_{s-1}.
-template <class S>
-SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index e) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S, kB>& d, Index s, Index e) {
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
   for (Index g = s; g <= e; ++g) {
-    const Body<S>& b = d.body_of(g);
-    const Vec6<S> Sqd = to_vec6(joint_motion(b, d.qd_of(g)));
+    const Vec6<S> Sqd = to_vec6(d.joint_velocity(g));
     const Affine6<S> el = d.has_parent(g) ? Affine6<S>{to_mat6(d.Xup(g)), Sqd} : Affine6<S>::make_constant(Sqd);
     agg = Affine6<S>::compose(el, agg);
   }
@@ -334,21 +394,29 @@ SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S>& d, Index s, Index
 
 // Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk,
 // Y_s as a map of Y_{e+1} (kDual; otherwise nothing, for the hybrid).
-template <bool kDual = true, class S>
-SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
+template <bool kDual = true, class S, bool kB>
+SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& v_in) {
   Motion<S> v_parent = to_motion(v_in);
   Transform<S> X = d.Xup(s);
   DualRiccati<DualScalar> agg{};
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);
-    const AbaForward<S> o = aba_forward_step(b, X, d.has_parent(g) ? v_parent : Motion<S>::zero(), d.qd_of(g));
-    d.v[g] = o.v;
-    v_parent = o.v;
+    // a floating base moves with its twist (c = 0); other links by the ABA step
+    const Motion<S> v = d.is_base(g) ? d.joint_velocity(g)
+                                     : aba_forward_step(b, X, d.has_parent(g) ? v_parent : Motion<S>::zero(),
+                                                        d.qd_of(g)).v;
+    d.v[g] = v;
+    v_parent = v;
     const bool more = g + 1 < d.count();
     const Transform<S> Xnext = more ? d.Xup(g + 1) : X;  // the next link's (the next instance's first)
     if constexpr (kDual) {
       const bool child = d.has_child(g);
-      const DualRiccati<DualScalar> el = dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+      // a floating base: the dual of a joint that transmits every force has no
+      // coordinates, and no link reads the base's (a constant map, as at a leaf)
+      const DualRiccati<DualScalar> el =
+          d.is_base(g) ? DualRiccati<DualScalar>{Mat5<DualScalar>::identity(), Mat5<DualScalar>::zero(),
+                                                 Mat5<DualScalar>::zero(), true}
+                       : dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
       agg = g == s ? el : DualRiccati<DualScalar>::compose(agg, el);
     }
     X = Xnext;
@@ -360,8 +428,8 @@ SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S>& d, Index 
 // frame; ignored when link e has no child): the ABA articulated-inertia recursion
 // over e..s with the step functions; stores U, D, w = Ia c and records a failed
 // pivot; returns pass 2's aggregate of the chunk, z_s as a map of z_{e+1}.
-template <class S>
-SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S, kB>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
   ABInertia<S> Ia_next = Ia_in;  // Ia of link g + 1, its frame
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -370,6 +438,12 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, co
     const bool child = d.has_child(g);
     ABInertia<S> IA = ABInertia<S>::from(b.I);
     if (child) IA += Ia_next.transform_transpose(Xnext);
+    if (d.is_base(g)) {
+      // the floating base: IA_0 for pass 2's walk; its z (nothing above) is never read
+      d.IA_base[g / d.n] = IA;
+      agg = Affine6<S>::compose(Affine6<S>::make_constant(Vec6<S>::zero()), agg);
+      continue;  // the link before it (another instance's last) does not read Ia_next, Xnext, z_next
+    }
     const Force<S> pA = d.pA(g);
     Force<S> U;
     S D, u_unused;
@@ -407,10 +481,35 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S>& d, Index s, Index e, co
   return agg;
 }
 
+// Pass 2's step at a floating base g with its bias force pA (z_1 included): the
+// base's acceleration and qdd from IA_0 = D (L L^T), as aba_at does it; stores them
+// (a_base, qdd_base) and returns the acceleration (NaN, and the failure recorded,
+// when IA_0 is not positive definite).
+template <class S, bool kB>
+SCANDYN_HD Motion<S> base_acceleration_walk(const ChainFdData<S, kB>& d, Index g, const Force<S>& pA) {
+  const Body<S>& b = d.body_of(g);
+  const Index inst = g / d.n;
+  S tau[6], L[kMaxJointDofs * kMaxJointDofs], w[6], qdd[6];
+  Force<S> Y[6];
+  for (int k = 0; k < 6; ++k) tau[k] = d.tau.at(k, inst);
+  Motion<S> a;
+  const int k = aba_joint_terms_at(b, d.IA_base[inst], pA, tau, Y, L, w, static_cast<const S*>(nullptr));
+  if (k >= 0) {
+    record_failure(d, g, k);
+    a = {Vec3<S>{S(NAN), S(NAN), S(NAN)}, Vec3<S>{S(NAN), S(NAN), S(NAN)}};
+    for (int j = 0; j < 6; ++j) qdd[j] = S(NAN);
+  } else {
+    aba_acceleration_step_at(b, d.Xup(g), d.a0, Motion<S>::zero(), Y, L, w, qdd, a);
+  }
+  d.a_base[inst] = a;
+  for (int j = 0; j < 6; ++j) d.qdd_base[inst].m[j] = qdd[j];
+  return a;
+}
+
 // Pass 2's walk from z_{e+1}: stores u = tau - S^T pA; returns pass 3's aggregate of
 // the chunk, a_e as a map of a_{s-1}.
-template <class S>
-SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& z_in) {
   Force<S> z_next = to_force(z_in);
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -418,6 +517,12 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const
     const Body<S>& b = d.body_of(g);
     Force<S> pA = d.pA(g);
     if (d.has_child(g)) pA += Xnext.apply_transpose(z_next);
+    if (d.is_base(g)) {
+      // the floating base: a_0 = IA_0^{-1} (tau_0 - pA_0), by the serial ABA's steps,
+      // pass 3's constant first element
+      agg = Affine6<S>::compose(agg, Affine6<S>::make_constant(to_vec6(base_acceleration_walk(d, g, pA))));
+      continue;  // the link before it (another instance's last) reads neither Xnext nor z_next
+    }
     const S D = d.D[g], Dinv = S(1) / D;
     const Force<S> U = d.U[g];
     const S u = d.tau_of(g) - joint_project(b, pA);
@@ -455,15 +560,22 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S>& d, Index s, Index e, const
 }
 
 // Pass 3's walk from a_{s-1}: qdd by aba_acceleration_step.
-template <class S>
-SCANDYN_HD void acceleration_walk(const ChainFdData<S>& d, Index s, Index e, const Vec6<S>& a_in) {
+template <class S, bool kB>
+SCANDYN_HD void acceleration_walk(const ChainFdData<S, kB>& d, Index s, Index e, const Vec6<S>& a_in) {
   Motion<S> a_parent = to_motion(a_in);
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);
     Motion<S> a;
+    if (d.is_base(g)) {  // pass 2's walk solved it
+      const Index inst = g / d.n;
+      if (d.failed[inst] < 0)
+        for (int k = 0; k < 6; ++k) d.qdd.at(k, inst) = d.qdd_base[inst].m[k];
+      a_parent = d.a_base[inst];
+      continue;
+    }
     const S qdd = aba_acceleration_step(b, d.Xup(g), d.has_parent(g) ? a_parent : d.a0, d.c(g), d.U[g], d.D[g],
                                         d.u[g], a);
-    if (d.failed[g / d.n] < 0) d.qdd.at(g % d.n, g / d.n) = qdd;  // a failed instance's qdd stays unwritten
+    if (d.failed[g / d.n] < 0) d.qdd.at(d.v_row(g % d.n), g / d.n) = qdd;  // a failed instance's qdd stays unwritten
     a_parent = a;
   }
 }
@@ -502,8 +614,8 @@ SCANDYN_HD void carry_range(const E* el, typename E::Value* carry, Index a, Inde
 
 // The carried dual Y of link e + 1 as the articulated inertia the walk of pass 1
 // starts from (link e + 1 exists: e is not an instance's last link).
-template <class S>
-SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S>& d, Index e, const Mat5<DualScalar>& Y) {
+template <class S, bool kB>
+SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S, kB>& d, Index e, const Mat5<DualScalar>& Y) {
   return d.has_child(e) ? articulated_from_dual(d.body_of(e + 1), Y) : ABInertia<S>{};
 }
 
@@ -533,13 +645,25 @@ struct ChainChunking {
 // -1 for a model without bodies).
 template <class S>
 Index first_branching_body(const ModelTpl<S>& model) {
-  for (Index i = 0; i < model.nv(); ++i)
+  for (Index i = 0; i < model.nbodies(); ++i)
     if (model.parent(i) != i - 1 && model.parent(i) != -1) return i;
   return -1;
 }
 
-// Throws BackendError unless the model has bodies and first_branching_body is -1,
-// naming the body that breaks it.
+// The chain forward dynamics' joints: revolute and prismatic, and a floating base
+// (a free joint at body 0: a free rope). Returns the first body whose joint it does
+// not take (a spherical joint), or -1.
+template <class S>
+Index first_unsupported_chain_joint(const ModelTpl<S>& model) {
+  for (Index i = 0; i < model.nbodies(); ++i) {
+    const JointType t = model.bodies[i].type;
+    if (t == JointType::Spherical || (t == JointType::Free && i != 0)) return i;
+  }
+  return -1;
+}
+
+// Throws BackendError unless the model has bodies, first_branching_body is -1 and
+// first_unsupported_chain_joint is -1, naming the body (and joint) that breaks it.
 template <class S>
 void require_chain(const ModelTpl<S>& model, const char* what);
 
@@ -547,9 +671,10 @@ void require_chain(const ModelTpl<S>& model, const char* what);
 // link (-1: the base).
 inline constexpr Index kChainPrevious = 0;
 
-// A chain's constants as every driver keeps them: its distinct bodies (consecutive
-// equal bodies share one entry: every link of a generated rope is one), their
-// inverse inertias in pass 1's scalar, and each body's entry.
+// A chain's constants as every driver keeps them: its distinct bodies (equal bodies
+// share one entry, whatever their rows in q and qd: a generated rope's links are
+// three, the first and then axes y and x in turn), their inverse inertias in pass
+// 1's scalar, and each body's entry.
 template <class S>
 struct ChainBodies {
   std::vector<Body<S>> body;                   // (classes) distinct bodies; parent -1 (a chain's
@@ -580,17 +705,21 @@ class ChainForwardDynamics {
   // qdd = FD(q, qd, tau, fext) for in.q.batch instances, gravity included. Returns
   // the number of instances whose articulated pivot D = S^T IA S was not positive
   // and finite (their qdd is left unwritten); failed, when not null, receives B
-  // entries: -1 or the first failed link of each instance.
+  // entries: -1 or the first failed DoF of each instance (the link, for 1-DoF joints).
   Index compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed = nullptr);
 
-  Index nv() const { return n_; }
+  Index links() const { return n_; }
   Index max_batch() const { return max_batch_; }
   int threads() const { return threads_; }
   Index chunk() const { return chunk_; }
 
  private:
-  Index n_ = 0, max_batch_ = 0, chunk_ = 0;
+  Index n_ = 0, max_batch_ = 0, chunk_ = 0;  // n_: links (bodies) per instance
   int threads_ = 1;
+  bool floating_ = false;                    // link 0 is a floating base
+  std::vector<ABInertia<S>> IA_base_;        // (max_batch) a floating base's IA_0
+  std::vector<Motion<S>> a_base_;            // (max_batch) its acceleration
+  std::vector<Vec6<S>> qdd_base_;            // (max_batch) its qdd
   Motion<S> a0_;
   ChainBodies<S> bodies_;
   std::vector<Motion<S>> v_;

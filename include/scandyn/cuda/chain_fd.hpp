@@ -57,31 +57,42 @@ class ChainFdPlan {
 
   // parallel: qdd (nv x B) = FD(q, qd, tau, fext) for B = in.q.batch <= max_batch
   // (device views, any strides), on `stream`, no synchronisation. failed: B device
-  // ints, -1 or the first link whose articulated pivot failed (qdd of that instance
+  // ints, -1 or the first DoF whose articulated pivot failed (qdd of that instance
   // unwritten). Returns cudaErrorInvalidValue for B > max_batch, else the first
   // launch error.
   cudaError_t launch(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed, cudaStream_t stream);
+
+  // A free rope (a floating base, then 1-DoF links): q has nq = n + 6 rows, qd, tau
+  // and qdd nv = n + 5; the base's 6x6 articulated inertia is solved on the device
+  // (scandyn/algorithm/chain_fd.hpp). Spherical joints: BackendError naming the joint.
 
   // hybrid: the same result, with the articulated inertias computed on the host
   // from q_host (the same positions as in.q, in host memory). Returns after the
   // host recursion and the queuing of every kernel (not after the kernels). When
   // timeline is not null it receives the host and device events of the call, and
-  // the call then waits for the device at the end.
+  // the call then waits for the device at the end. A free rope: cudaErrorNotSupported.
   cudaError_t launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in, const BatchView<S>& qdd,
                             int* failed, cudaStream_t stream, std::vector<ChainTimelineEvent>* timeline = nullptr);
 
-  Index nv() const { return n_; }
+  Index links() const { return n_; }  // bodies per instance (nv, or nv - 5 for a free rope)
   Index max_batch() const { return max_batch_; }
   Index chunk() const { return chunk_; }
   Index fan_in() const { return fan_in_; }
   std::size_t device_bytes() const { return bytes_; }
 
  private:
-  ChainFdData<S> data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
-  cudaError_t velocities(const ChainFdData<S>& d, bool dual, cudaStream_t stream);
-  cudaError_t finish(const ChainFdData<S>& d, cudaStream_t stream);  // passes 2 and 3
+  // kB: a free rope's walks (ChainFdData's kBase)
+  template <bool kB>
+  ChainFdData<S, kB> data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
+  template <bool kB>
+  cudaError_t passes(const ChainFdData<S, kB>& d, cudaStream_t stream);  // launch()'s passes 0 to 3
+  template <bool kB>
+  cudaError_t velocities(const ChainFdData<S, kB>& d, bool dual, cudaStream_t stream);
+  template <bool kB>
+  cudaError_t finish(const ChainFdData<S, kB>& d, cudaStream_t stream);  // passes 2 and 3
 
-  Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;
+  Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;  // n_: links (bodies) per instance
+  bool floating_ = false;                   // link 0 is a floating base (a free rope)
   Motion<S> a0_;
   ChainBodies<S> host_;                     // the chain's constants (hybrid's host recursion)
   std::size_t bytes_ = 0;
@@ -99,6 +110,9 @@ class ChainFdPlan {
   std::vector<Vec6<S>*> aff_carry_;
   std::vector<DualRiccati<DualScalar>*> dual_;
   std::vector<Mat5<DualScalar>*> dual_carry_;
+  ABInertia<S>* IA_base_ = nullptr;         // (max_batch) a floating base's IA_0 (pass 1), or null
+  Motion<S>* a_base_ = nullptr;             // (max_batch) its acceleration (pass 2)
+  Vec6<S>* qdd_base_ = nullptr;             // (max_batch) its qdd (pass 2)
   ABInertia<S>* Ia_carry_ = nullptr;        // (chunks) hybrid: Ia of each chunk's link e + 1
   ABInertia<S>* Ia_pinned_ = nullptr;       // (chunks) host pinned staging of the same
   std::vector<cudaEvent_t> events_;         // hybrid timeline and group ordering

@@ -35,6 +35,12 @@
 // Model constants are deduplicated: identical bodies (every link of a generated
 // rope) share one entry of a body table, and each link reads a 4-byte index.
 //
+// Multi-DoF joints: one element per body (the elements' _at forms), the joint's rows
+// of q, qd, qdd and tau from two index arrays (Body::idx_q / idx_v), read only for
+// such models. A floating base is the root segment's head: its pose and twist (and
+// its qdd with -g) are the forward scans' first element, and the backward scan
+// writes its wrench to tau_0..5; spherical joints are ordinary elements.
+//
 // Every pointer given to launch() is a DEVICE pointer. The plan owns its device
 // memory (model tables, scratch for max_batch instances, CUB's temporary storage):
 // nothing is allocated per call and nothing is synchronised; one plan serves one
@@ -76,8 +82,8 @@ class IdScanPlan {
   IdScanPlan(const IdScanPlan&) = delete;
   IdScanPlan& operator=(const IdScanPlan&) = delete;
 
-  // tau (nv x B) = RNEA(q, qd, qdd) - sum J^T fext for B = in.q.batch <= max_batch
-  // instances (device views, any strides; fext: B x nv body wrenches or null), on
+  // tau (nv x B) = RNEA(q (nq x B), qd, qdd) - sum J^T fext for B = in.q.batch <= max_batch
+  // instances (device views, any strides; fext: B x nbodies body wrenches or null), on
   // `stream`: 3 scans per level, no synchronisation. Returns cudaErrorInvalidValue
   // for disagreeing batch sizes, B > max_batch or a null pointer, else the first
   // launch error.
@@ -94,7 +100,8 @@ class IdScanPlan {
   static std::size_t bytes_needed(const ModelTpl<S>& model, Index max_batch);
 
  private:
-  Index nv_ = 0;
+  Index nv_ = 0;                        // DoFs (rows of qd, qdd, tau)
+  Index nb_ = 0;                        // bodies (scan elements per instance)
   Index max_batch_ = 0;
   unsigned target_runs_ = kDefaultTargetRuns;
   Index classes_ = 0;
@@ -104,14 +111,16 @@ class IdScanPlan {
   void* block_ = nullptr;               // one device allocation holding all below
   // device arrays inside block_
   const Body<S>* body_table_ = nullptr;   // (classes) distinct bodies
-  const int* body_class_ = nullptr;       // (nv) body i -> table entry
-  const int* parent_ = nullptr;           // (nv) parent body, -1 at the base
-  const int* order_ = nullptr;            // (nv) bodies level by level, segments contiguous
-  const unsigned char* role_ = nullptr;   // (nv) ScanRole bits of order_[k]
-  const int* branch_begin_ = nullptr;     // (nv + 1) CSR offsets of branch children per body
+  const int* body_class_ = nullptr;       // (nbodies) body i -> table entry
+  const int* parent_ = nullptr;           // (nbodies) parent body, -1 at the base
+  const int* order_ = nullptr;            // (nbodies) bodies level by level, segments contiguous
+  const unsigned char* role_ = nullptr;   // (nbodies) ScanRole bits of order_[k]
+  const int* branch_begin_ = nullptr;     // (nbodies + 1) CSR offsets of branch children per body
   const int* branch_child_ = nullptr;     // branch children (children other than body i + 1)
-  const int* branch_point_ = nullptr;     // (nv) index among bodies with branch children, or -1
-  const int* branch_pos_ = nullptr;       // (nv) a branch child's index in branch_child_, or -1
+  const int* branch_point_ = nullptr;     // (nbodies) index among bodies with branch children, or -1
+  const int* branch_pos_ = nullptr;       // (nbodies) a branch child's index in branch_child_, or -1
+  const int* idx_q_ = nullptr;            // (nbodies) multi-DoF models: body i's first row of q, else null
+  const int* idx_v_ = nullptr;            // (nbodies) multi-DoF models: its first row of qd, qdd, tau
   Motion<S>* v_ = nullptr;                // per-level scratch by (run, step): velocities
   Motion<S>* a_ = nullptr;                //   accelerations
   Force<S>* offset_ = nullptr;            //   force-pass offsets

@@ -72,6 +72,26 @@ SCANDYN_HD MotionAffine<S> id_acceleration_element(const Body<S>& b, const Trans
   return {Xup, add_joint_motion(b, cross_joint_motion(b, v, qd), qdd)};
 }
 
+// The same elements at a joint of any type (spherical, free; 1-DoF joints through
+// the functions above), with the joint's rates qd, qdd at b.idx_v's entries (qdd
+// null: zero). A free joint is the root: its parent's velocity is zero, so its
+// velocity element's offset S qd is the base twist, and v x S qd = 0 in its
+// acceleration element, whose parent value is the base acceleration -g (folded in
+// with fold_parent): the floating base enters the prefix scans as their first
+// element, its pose in Xup.
+template <class S>
+SCANDYN_HD MotionAffine<S> id_velocity_element_at(const Body<S>& b, const Transform<S>& Xup, const S* qd) {
+  return {Xup, joint_motion_at(b, qd)};
+}
+template <class S>
+SCANDYN_HD MotionAffine<S> id_acceleration_element_at(const Body<S>& b, const Transform<S>& Xup, const Motion<S>& v,
+                                                      const S* qd, const S* qdd) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic)
+    return id_acceleration_element(b, Xup, v, qd[0], qdd ? qdd[0] : S(0));
+  const Motion<S> c = cross(v, joint_motion_at(b, qd));
+  return {Xup, qdd ? c + joint_motion_at(b, qdd) : c};
+}
+
 // A transform that maps every vector to zero.
 template <class S>
 SCANDYN_HD Transform<S> zero_transform() {
