@@ -63,7 +63,7 @@ inline constexpr int kSimBlock = 128;
 
 // The kernel parameter of capacity C: the model as fd_instances_kernel reads it
 // (z-axis frames: ZThreadModel), plus the joint coefficients and the implicit
-// armature (__grid_constant__: read from the constant bank; 23 KB at C = 64 in double).
+// armature (__grid_constant__: read from the constant bank; about 21 KB at C = 64 in double).
 template <class S, int C>
 struct SimParams {
   static constexpr int capacity = C;

@@ -112,6 +112,13 @@ SCANDYN_HD S joint_project(const Body<S>& b, const Force<S>& f) {
   return dot(b.axis, b.type == JointType::Revolute ? f.n : f.f);
 }
 
+// I S: an inertia's (rigid or articulated) column along the joint's unit motion (the
+// ABA's U = IA S, the CRBA's column force Ic S).
+template <class In, class S>
+SCANDYN_HD Force<S> inertia_joint_column(const In& I, const Body<S>& b) {
+  return I * joint_motion(b, S(1));
+}
+
 // ---- joints about / along the body frame's z axis (ZJointBody) ----------------
 // The same primitives for a model re-expressed by z_axis_model
 // (scandyn/model/joint_frames.hpp): S = e_z in the angular (revolute) or linear
@@ -168,6 +175,25 @@ SCANDYN_HD Motion<S> cross_joint_motion(const ZJointBody<S>& b, const Motion<S>&
 template <class S>
 SCANDYN_HD S joint_project(const ZJointBody<S>& b, const Force<S>& f) {
   return b.type == JointType::Revolute ? f.n.z : f.f.z;
+}
+
+// I S and IA S: an inertia's (rigid or articulated) column along the joint's unit
+// motion: the force I e_z picks from I without a multiplication (and without the
+// products with S's zeros, which IEEE arithmetic keeps: 0 * x is not folded).
+template <class S>
+SCANDYN_HD Force<S> inertia_joint_column(const Inertia<S>& I, const ZJointBody<S>& b) {
+  const bool rev = b.type == JointType::Revolute;
+  // revolute: {Ibar e_z, -h x e_z}; prismatic: {h x e_z, m e_z}  (h x e_z = (h.y, -h.x, 0))
+  return {Vec3<S>{rev ? I.I.xz : I.h.y, rev ? I.I.yz : -I.h.x, rev ? I.I.zz : S(0)},
+          Vec3<S>{rev ? -I.h.y : S(0), rev ? I.h.x : S(0), rev ? S(0) : I.m}};
+}
+template <class S>
+SCANDYN_HD Force<S> inertia_joint_column(const ABInertia<S>& I, const ZJointBody<S>& b) {
+  const bool rev = b.type == JointType::Revolute;
+  // revolute: {Iww e_z, Iwv^T e_z} (row 2 of Iwv); prismatic: {Iwv e_z (column 2), Ivv e_z}
+  const Mat3<S>& H = I.Iwv;
+  return {Vec3<S>{rev ? I.Iww.xz : H.m[2], rev ? I.Iww.yz : H.m[5], rev ? I.Iww.zz : H.m[8]},
+          Vec3<S>{rev ? H.m[6] : I.Ivv.xz, rev ? H.m[7] : I.Ivv.yz, rev ? H.m[8] : I.Ivv.zz}};
 }
 
 // The joint's unit axis in its body frame: the stored one, or +z.
@@ -245,7 +271,7 @@ SCANDYN_HD Inertia<S> crba_composite_step(const Transform<S>& Xup, const Inertia
 // Column i of M starts from the force F = Ic_i S_i (M_ii = S_i^T F) ...
 template <class S, class Bd>
 SCANDYN_HD Force<S> crba_column_force(const Bd& b, const Inertia<S>& Ic) {
-  return Ic * joint_motion(b, S(1));
+  return inertia_joint_column(Ic, b);
 }
 
 // ... and is carried to the root one joint at a time: F = Xup_j^T F moves it from
@@ -301,7 +327,7 @@ SCANDYN_HD AbaForward<S> aba_forward_step(const Bd& b, const Transform<S>& Xup,
 template <class S, class Bd>
 SCANDYN_HD void aba_joint_terms(const Bd& b, const ABInertia<S>& IA, const Force<S>& pA,
                                 S tau, Force<S>& U, S& D, S& u, S armature = S(0)) {
-  U = IA * joint_motion(b, S(1));
+  U = inertia_joint_column(IA, b);
   D = joint_project(b, U) + armature;
   u = tau - joint_project(b, pA);
 }

@@ -24,9 +24,14 @@
 // (BatchView::soa): a warp's 32 threads then read 32 consecutive scalars of each
 // DoF. fext, when given, is (B x nv) wrenches, fext[b * nv + i], as in IdBatchIn.
 //
+// Joint frames. The engine's kernels run on the z-axis model (ZThreadModel,
+// scandyn/model/joint_frames.hpp): every joint frame turned so that its axis is +z,
+// so that a joint transform is one rotation about z with no axis test; tau is the
+// same, and fext, given in the user's body frames, is turned on reading.
+//
 // Model constants. The kernels read the model from the constant bank through the
-// kernel parameter (ThreadModelParams, at most 14.6 KB: sm_70+ with CUDA >= 12.1
-// take parameters of up to 32 KB). It is built once per engine on the host and
+// kernel parameter (ThreadModelParams, at most 17.2 KB with the z-axis frames'
+// rotations: sm_70+ with CUDA >= 12.1 take parameters of up to 32 KB). It is built once per engine on the host and
 // travels with each launch; the kernel then reads every body constant at a
 // compile-time address as an operand of the arithmetic (no load instruction), and
 // two engines on two streams cannot overwrite each other's model, as they could in
