@@ -137,24 +137,13 @@ int main(int argc, char** argv) {
         for (int z = 0; z < 2; ++z) {
           const std::string name = std::string(name_of(algo)) + "_thread-" + (z ? "zaxis/" : "userframes/") +
                                    (prec ? "float/" : "double/") + label + "/cuda";
-          benchmark::Benchmark* r = nullptr;
-          if (prec && z)
-            r = benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) {
-              bench_kernel<float, ZJointBody<float>>(st, m, algo, B);
-            });
-          else if (prec)
-            r = benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) {
-              bench_kernel<float, Body<float>>(st, m, algo, B);
-            });
-          else if (z)
-            r = benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) {
-              bench_kernel<double, ZJointBody<double>>(st, m, algo, B);
-            });
-          else
-            r = benchmark::RegisterBenchmark(name.c_str(), [=](benchmark::State& st) {
-              bench_kernel<double, Body<double>>(st, m, algo, B);
-            });
-          r->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
+          auto add = [&](auto run) {
+            benchmark::RegisterBenchmark(name.c_str(), run)->UseManualTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
+          };
+          if (prec && z) add([=](benchmark::State& st) { bench_kernel<float, ZJointBody<float>>(st, m, algo, B); });
+          else if (prec) add([=](benchmark::State& st) { bench_kernel<float, Body<float>>(st, m, algo, B); });
+          else if (z) add([=](benchmark::State& st) { bench_kernel<double, ZJointBody<double>>(st, m, algo, B); });
+          else add([=](benchmark::State& st) { bench_kernel<double, Body<double>>(st, m, algo, B); });
         }
       }
     }
