@@ -87,10 +87,18 @@ struct ZAxisModel {
 
 // The model with every revolute / prismatic axis re-expressed as its body frame's +z
 // (see the header comment). Frames attached to bodies (model.frames) are re-placed so
-// that they stay where they were. Throws std::invalid_argument naming the joint when
-// an axis is not a unit vector (|axis| off 1 by more than 1e-5).
+// that they stay where they were. A float model is re-expressed in double and rounded
+// once (the turned transforms and inertias then carry one rounding, not a float
+// product's). Throws std::invalid_argument naming the joint when an axis is not a
+// unit vector (|axis| off 1 by more than 1e-5).
 template <class S>
 ZAxisModel<S> z_axis_model(const ModelTpl<S>& model) {
+  if constexpr (sizeof(S) < sizeof(double)) {
+    const ZAxisModel<double> wide = z_axis_model(model.template cast<double>());
+    ZAxisModel<S> out{wide.model.template cast<S>(), {}, wide.turned};
+    for (const Mat3<double>& Q : wide.frame_Q) out.frame_Q.push_back(Q.template cast<S>());
+    return out;
+  }
   ZAxisModel<S> out;
   out.model = model;
   const Index n = model.nbodies();
