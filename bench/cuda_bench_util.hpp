@@ -11,6 +11,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstdio>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -18,6 +19,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "scandyn/model/load.hpp"
 
 namespace scandyn::bench {
 
@@ -188,6 +190,28 @@ inline void print_device_and_roofline(const char* program) {
   if (a) cudaFree(a);
   if (b) cudaFree(b);
   (void)cudaGetLastError();
+}
+
+// Is there a CUDA device? Without one, a line on stderr (the program has nothing to run).
+inline bool have_device(const char* program) {
+  const auto count = cuda::device_count();
+  if (count && count.value > 0) return true;
+  std::fprintf(stderr, "%s: %s; nothing to run\n", program,
+               count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
+  return false;
+}
+
+// A robot file from dir, nonphysical inertias allowed (GRiD's atlas.urdf); null, and a
+// line on stderr, when it cannot be loaded.
+inline std::unique_ptr<Model> load_bench_robot(const char* program, const std::string& dir, const std::string& file) {
+  BuildOptions bo;
+  bo.require_physical_inertia = false;
+  try {
+    return std::make_unique<Model>(load_urdf(dir + "/" + file, bo));
+  } catch (const ModelError& e) {
+    std::fprintf(stderr, "%s: skipping %s: %s\n", program, file.c_str(), e.what());
+    return nullptr;
+  }
 }
 
 }  // namespace scandyn::bench

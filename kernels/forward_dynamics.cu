@@ -52,9 +52,9 @@ struct FdKernelChoice {
 
 // One thread per instance b < B: the forward dynamics of instance b, by the
 // joint-space inertia (kAlgo == kJsiKernel) or the ABA with kAlgo branch slots.
-template <class S, int C, int kAlgo>
+template <class S, int C, int kAlgo, class Bd>
 __global__ void __launch_bounds__(kFdInstancesBlock, FdKernelChoice<S, C, kAlgo>::kMinBlocks)
-    fd_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> batch_in,
+    fd_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const FdBatchIn<S> batch_in,
                         const BatchView<S> qdd_out, int* const failed_dof_out) {
   using Choice = FdKernelChoice<S, C, kAlgo>;
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -73,8 +73,8 @@ __global__ void __launch_bounds__(kFdInstancesBlock, FdKernelChoice<S, C, kAlgo>
 namespace {
 
 // The checks and the launch of launch_fd_jsi_instances and launch_aba_instances.
-template <bool kAba, class S>
-cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in, const BatchView<S>& qdd_out,
+template <bool kAba, class S, class Bd>
+cudaError_t launch_fd_instances(const ThreadModel<S, Bd>& model, const FdBatchIn<S>& batch_in, const BatchView<S>& qdd_out,
                                 int* failed_dof_out, cudaStream_t stream) {
   const Index B = batch_in.q.batch;
   if (B < 0 || batch_in.qd.batch != B || batch_in.tau.batch != B || qdd_out.batch != B) return cudaErrorInvalidValue;
@@ -85,7 +85,7 @@ cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>&
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
   auto launch = [&](const auto& params, auto algo) {
     constexpr int C = std::decay_t<decltype(params)>::capacity;
-    fd_instances_kernel<S, C, decltype(algo)::value>
+    fd_instances_kernel<S, C, decltype(algo)::value, Bd>
         <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
   };
   if constexpr (kAba)
@@ -97,14 +97,14 @@ cudaError_t launch_fd_instances(const ThreadModel<S>& model, const FdBatchIn<S>&
 
 }  // namespace
 
-template <class S>
-cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+template <class S, class Bd>
+cudaError_t launch_fd_jsi_instances(const ThreadModel<S, Bd>& model, const FdBatchIn<S>& batch_in,
                                     const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
   return launch_fd_instances<false>(model, batch_in, qdd_out, failed_dof_out, stream);
 }
 
-template <class S>
-cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+template <class S, class Bd>
+cudaError_t launch_aba_instances(const ThreadModel<S, Bd>& model, const FdBatchIn<S>& batch_in,
                                  const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream) {
   return launch_fd_instances<true>(model, batch_in, qdd_out, failed_dof_out, stream);
 }
@@ -136,7 +136,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       10 * static_cast<std::size_t>(nv_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
   if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
-  else if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ThreadModel<S>>(model);
+  else if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ZThreadModel<S>>(model);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
@@ -358,6 +358,10 @@ BatchStatus CudaForwardDynamics<S>::compute_failed_by_aba(const FdBatchIn<S>& in
   template cudaError_t launch_fd_jsi_instances(const ThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
                                                int*, cudaStream_t);                             \
   template cudaError_t launch_aba_instances(const ThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
+                                            int*, cudaStream_t);                                           \
+  template cudaError_t launch_fd_jsi_instances(const ZThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
+                                               int*, cudaStream_t);                                        \
+  template cudaError_t launch_aba_instances(const ZThreadModel<S>&, const FdBatchIn<S>&, const BatchView<S>&, \
                                             int*, cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)

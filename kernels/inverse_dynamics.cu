@@ -7,6 +7,8 @@
 
 #include <algorithm>
 #include <cstdlib>
+#include <memory>
+#include <stdexcept>
 #include <string>
 #include <type_traits>
 
@@ -26,20 +28,46 @@ using detail::Staging;
 
 namespace {
 
+// Body i of the parameter block: the model's (user frames), or its z-axis body
+// (zm: z_axis_model(model)), with its frame's rotation and kTurned.
+template <class S, int C>
+void set_body(ThreadModelParams<S, C, Body<S>>& p, const ModelTpl<S>& model, const ZAxisModel<S>*, Index i) {
+  p.body[i] = model.bodies[i];
+}
+template <class S, int C>
+void set_body(ThreadModelParams<S, C, ZJointBody<S>>& p, const ModelTpl<S>& model, const ZAxisModel<S>* zm, Index i) {
+  const JointType t = model.bodies[i].type;
+  if (t != JointType::Revolute && t != JointType::Prismatic)
+    throw BackendError("backend 'cuda': joint '" +
+                       (i < Index(model.joint_names.size()) ? model.joint_names[i] : "of body " + std::to_string(i)) +
+                       "' is neither revolute nor prismatic; the z-axis thread-per-instance kernels take 1-DoF joints only");
+  p.body[i] = z_joint_body(zm->model.bodies[i]);
+  p.frame_Q[i] = zm->frame_Q[i];
+  if (zm->turned[i]) p.flags[i] |= kTurned;
+}
+
 // The model's parameter block; slots_out receives ThreadModel::branch_slots().
-template <int C, class S>
-ThreadModelParams<S, C> make_params(const ModelTpl<S>& model, Index& slots_out) {
-  ThreadModelParams<S, C> p{};  // zero-filled, unused bodies included
+template <int C, class Bd, class S>
+ThreadModelParams<S, C, Bd> make_params(const ModelTpl<S>& model, Index& slots_out) {
+  ThreadModelParams<S, C, Bd> p{};  // zero-filled, unused bodies included
   const Index n = model.nv();
   p.nv = n;
   p.a0 = base_acceleration(model.gravity);
+  std::unique_ptr<ZAxisModel<S>> zm;  // z-axis bodies: the re-expressed model
+  if constexpr (ThreadModelParams<S, C, Bd>::z_axes) {
+    try {
+      zm = std::make_unique<ZAxisModel<S>>(z_axis_model(model));
+    } catch (const std::invalid_argument& e) {
+      throw BackendError(std::string("backend 'cuda': ") + e.what());
+    }
+  }
   Index last_branch_child[C];  // (nv) highest-numbered branch child of each body, -1 if none
   for (Index i = 0; i < n; ++i) {
     const Index parent = model.bodies[i].parent;
     if (parent >= i || parent < -1)
       throw BackendError("backend 'cuda': body " + std::to_string(i) + " has parent " + std::to_string(parent) +
                          " (bodies must come after their parent)");
-    p.body[i] = model.bodies[i];
+    set_body(p, model, zm.get(), i);
     last_branch_child[i] = -1;
     if (parent >= 0) p.ancestors[i] = p.ancestors[parent] | (1ull << parent);
     if (parent < 0) p.flags[i] |= kParentIsBase;
@@ -70,25 +98,27 @@ ThreadModelParams<S, C> make_params(const ModelTpl<S>& model, Index& slots_out) 
 // of parameters per launch (the views and pointers after it need < 256).
 static_assert(sizeof(ThreadModelParams<double, kMaxThreadDofs>) + 256 <= 32764,
               "ThreadModelParams no longer fits in a kernel parameter block");
+static_assert(sizeof(ThreadModelParams<double, kMaxThreadDofs, ZJointBody<double>>) + 256 <= 32764,
+              "ThreadModelParams (z-axis) no longer fits in a kernel parameter block");
 
-template <class S>
-ThreadModel<S>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
+template <class S, class Bd>
+ThreadModel<S, Bd>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
   if (nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; the thread-per-instance kernels take at most " + std::to_string(kMaxThreadDofs) +
                        " (per-thread state is sized at compile time)");
-  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8>(model, branch_slots_);
-  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16>(model, branch_slots_);
-  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32>(model, branch_slots_);
-  else capacity_ = 64, params_ = make_params<64>(model, branch_slots_);
+  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8, Bd>(model, branch_slots_);
+  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16, Bd>(model, branch_slots_);
+  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32, Bd>(model, branch_slots_);
+  else capacity_ = 64, params_ = make_params<64, Bd>(model, branch_slots_);
 }
 
 // ---- kernel and launch ---------------------------------------------------------
 
 // One thread per instance b < B: the RNEA of instance b.
-template <class S, int C>
+template <class S, int C, class Bd>
 __global__ void __launch_bounds__(kIdInstancesBlock)
-    id_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const IdBatchIn<S> batch_in,
+    id_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const IdBatchIn<S> batch_in,
                         const BatchView<S> tau_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
@@ -101,8 +131,8 @@ __global__ void __launch_bounds__(kIdInstancesBlock)
       instance_column(tau_out, b));
 }
 
-template <class S>
-cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>& batch_in,
+template <class S, class Bd>
+cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn<S>& batch_in,
                                 const BatchView<S>& tau_out, cudaStream_t stream) {
   const Index B = batch_in.q.batch;
   if (B < 0 || batch_in.qd.batch != B || batch_in.qdd.batch != B || tau_out.batch != B) return cudaErrorInvalidValue;
@@ -112,7 +142,7 @@ cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>&
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        id_instances_kernel<S, P::capacity>
+        id_instances_kernel<S, P::capacity, Bd>
             <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
       },
       model.params());
@@ -140,7 +170,7 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
                                                      10 * static_cast<std::size_t>(nv_) * sizeof(S));
   device_ = staging_->device();
   if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
-  else thread_ = std::make_unique<ThreadModel<S>>(model);
+  else thread_ = std::make_unique<ZThreadModel<S>>(model);
   bytes_ = staging_->bytes() + (scan_ ? scan_->device_bytes() : 0);
 }
 
@@ -207,9 +237,12 @@ cudaError_t CudaBiasForces<S>::compute_async(const BiasBatchIn<S>& in, const Bat
 
 #define SCANDYN_INSTANTIATE(S)                                                                           \
   template class ThreadModel<S>;                                                                         \
+  template class ThreadModel<S, ZJointBody<S>>;                                                          \
   template class CudaInverseDynamics<S>;                                                                 \
   template class CudaBiasForces<S>;                                                                      \
   template cudaError_t launch_id_instances(const ThreadModel<S>&, const IdBatchIn<S>&, const BatchView<S>&, \
+                                           cudaStream_t);                                                 \
+  template cudaError_t launch_id_instances(const ZThreadModel<S>&, const IdBatchIn<S>&, const BatchView<S>&, \
                                            cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)

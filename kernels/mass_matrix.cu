@@ -72,9 +72,9 @@ __device__ __noinline__ void store_mass_tile(const S* tile, const BatchView<S> M
 // One thread per instance b < B: M(q) of instance b, all nv^2 entries, written by
 // each thread (kStaged false: coalesced when instances are innermost, BatchView::soa)
 // or staged by warps (kStaged true: coalesced when each instance's entries are).
-template <class S, int C, bool kStaged>
+template <class S, int C, bool kStaged, class Bd>
 __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::kMinBlocks)
-    crba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const BatchView<const S> q,
+    crba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const BatchView<const S> q,
                           const BatchView<S> M_out) {
   constexpr bool kUnrolled = MassKernelChoice<S, C>::kUnrolled;
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -112,8 +112,8 @@ bool stage_mass_entries(const BatchView<S>& M_out) {
   return M_out.batch > 1 && mag(M_out.dof_stride) < mag(M_out.batch_stride);
 }
 
-template <class S>
-cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
+template <class S, class Bd>
+cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
                                   cudaStream_t stream) {
   const Index B = q.batch;
   if (B < 0 || M_out.batch != B) return cudaErrorInvalidValue;
@@ -126,9 +126,9 @@ cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<c
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
         if (staged)
-          crba_instances_kernel<S, P::capacity, true><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+          crba_instances_kernel<S, P::capacity, true, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
         else
-          crba_instances_kernel<S, P::capacity, false><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+          crba_instances_kernel<S, P::capacity, false, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
       },
       model.params());
   return cudaGetLastError();
@@ -149,7 +149,7 @@ CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions
                                                      (n + n * n) * sizeof(S));
   device_ = staging_->device();
   if (nv_ > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
-  else thread_ = std::make_unique<ThreadModel<S>>(model);
+  else thread_ = std::make_unique<ZThreadModel<S>>(model);
   bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0);
 }
 
@@ -197,6 +197,8 @@ void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>&
 #define SCANDYN_INSTANTIATE(S)         \
   template class CudaMassMatrix<S>;   \
   template cudaError_t launch_crba_instances(const ThreadModel<S>&, const BatchView<const S>&, const BatchView<S>&, \
+                                             cudaStream_t);                                                       \
+  template cudaError_t launch_crba_instances(const ZThreadModel<S>&, const BatchView<const S>&, const BatchView<S>&, \
                                              cudaStream_t);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)

@@ -61,13 +61,13 @@ namespace detail {
 
 inline constexpr int kSimBlock = 128;
 
-// The kernel parameter of capacity C: the model as fd_instances_kernel reads it,
-// plus the joint coefficients and the implicit armature (__grid_constant__: read
-// from the constant bank; 18 KB at C = 64 in double).
+// The kernel parameter of capacity C: the model as fd_instances_kernel reads it
+// (z-axis frames: ZThreadModel), plus the joint coefficients and the implicit
+// armature (__grid_constant__: read from the constant bank; about 21 KB at C = 64 in double).
 template <class S, int C>
 struct SimParams {
   static constexpr int capacity = C;
-  cuda::ThreadModelParams<S, C> model;  // a0 = -g, or zero without gravity
+  cuda::ThreadModelParams<S, C, ZJointBody<S>> model;  // a0 = -g, or zero without gravity
   JointCoefficients<S> coef[C];         // (nv) joint coefficients
   S armature[C];                        // (nv) dt d + dt^2 k (implicit), else unused
   S dt;                                 // time step
@@ -78,8 +78,8 @@ struct SimParams {
 // kSlots branch slots (0: models without branch children; C: any model), rolled
 // loops (FdKernelChoice's choice for the ABA), the armature on the pivots. Also a
 // host function, so that tests run the fused composition without a device.
-template <class S, int C, int kSlots>
-__host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::ThreadModelParams<S, C>& model,
+template <class S, int C, int kSlots, class Bd>
+__host__ __device__ __forceinline__ Index fused_forward_dynamics(const cuda::ThreadModelParams<S, C, Bd>& model,
                                                                  const Force<S>* fext, const S* q, const S* qd,
                                                                  const S* tau, const S* armature, S* qdd) {
   return cuda::aba_instance<S, C, false, false, cuda::kThreadTrig<S>, kSlots>(
@@ -101,18 +101,25 @@ struct FusedContactScratch {
 // diagonal to the implicit armature (arm, null for explicit integrators: then no
 // look-ahead), then fused_forward_dynamics. readings (P, or null) gets the
 // points' contacts and is set to null (rk4: the first stage's). Host and device.
-template <class S, int C, int kSlots, int CC>
+// The contact points' positions are in the model's body frames (z-axis frames for
+// a ZJointBody model); fext in the user's, as everywhere: the contact wrenches are
+// turned back to the user's frames before they join it (cuda::user_wrench).
+template <class S, int C, int kSlots, int CC, class Bd>
 __host__ __device__ __forceinline__ Index fused_contact_forward_dynamics(
-    const cuda::ThreadModelParams<S, C>& model, S dt, const ContactSet<S>& cs, const Force<S>* fext,
+    const cuda::ThreadModelParams<S, C, Bd>& model, S dt, const ContactSet<S>& cs, const Force<S>* fext,
     FusedContactScratch<S, CC>& w, ContactReading<S>*& readings, const S* q, const S* qd, const S* tau, const S* arm,
     S* qdd) {
   static_assert(CC == C, "the contact scratch has the kernel's capacity");
   const Index n = model.nv;
   for (Index i = 0; i < n; ++i) {
-    w.f[i] = fext ? fext[i] : Force<S>::zero();
+    w.f[i] = Force<S>::zero();
     w.armature[i] = arm ? arm[i] : S(0);
   }
   contact_pass_any(cs, model.body, n, q, qd, 1, arm ? dt : S(0), w.X, w.v, w.f, arm ? w.armature : nullptr, readings);
+  for (Index i = 0; i < n; ++i) {
+    w.f[i] = cuda::user_wrench(model, i, w.f[i]);
+    if (fext) w.f[i] += fext[i];
+  }
   readings = nullptr;
   return fused_forward_dynamics<S, C, kSlots>(model, w.f, q, qd, tau, arm ? w.armature : nullptr, qdd);
 }

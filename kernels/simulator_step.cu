@@ -185,7 +185,7 @@ class CudaSimBackend final : public SimBackend<S> {
     if (setup.effects & kContacts) setup_contacts();
 
     if (fused_) {
-      const cuda::ThreadModel<S> tm(setup.model);
+      const cuda::ZThreadModel<S> tm(setup.model);
       std::visit(
           [&](const auto& mp) {
             using MP = std::decay_t<decltype(mp)>;
@@ -373,7 +373,14 @@ class CudaSimBackend final : public SimBackend<S> {
     auto* planes = reinterpret_cast<ContactPlane<S>*>(take(np * sizeof(ContactPlane<S>)));
     auto* spheres = reinterpret_cast<ContactSphere<S>*>(take(ns * sizeof(ContactSphere<S>)));
     readings_ = reinterpret_cast<ContactReading<S>*>(take(B * P * sizeof(ContactReading<S>)));
-    copy(points, setup_.contact_points.data(), P * sizeof(ContactPoint<S>));
+    if (fused_) {  // the fused kernels' bodies are z-axis frames (ZThreadModel): the points in them
+      const ZAxisModel<S> zm = z_axis_model(setup_.model);
+      std::vector<ContactPoint<S>> turned = setup_.contact_points;
+      for (ContactPoint<S>& cp : turned) cp.position = zm.to_z_frame(cp.body, cp.position);
+      copy(points, turned.data(), P * sizeof(ContactPoint<S>));
+    } else {
+      copy(points, setup_.contact_points.data(), P * sizeof(ContactPoint<S>));
+    }
     copy(planes, setup_.contact_planes.data(), np * sizeof(ContactPlane<S>));
     copy(spheres, setup_.contact_spheres.data(), ns * sizeof(ContactSphere<S>));
     check(cudaMemset(readings_, 0, B * P * sizeof(ContactReading<S>)), "clearing the contact forces");

@@ -14,6 +14,7 @@
 
 #include <cmath>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "cuda_test_util.hpp"
@@ -81,7 +82,10 @@ std::string ball_scene(const std::string& integrator, int B) {
 
 // ---- host: the fused kernel's composition ------------------------------------------------
 
-template <Integrator I>
+// Bd: the bodies of the thread-per-instance model, the user's frames (Body) or the
+// z-axis frames the fused kernels run on (ZJointBody: the contact points turned
+// into them as kernels/simulator_step.cu does).
+template <Integrator I, class Bd = Body<double>>
 void check_host_composition(const std::string& model, const std::string& integrator) {
   // the plane z = 0.25 passes between the first link's origin (held at the base by
   // its joint about z: always pushed) and the second's
@@ -90,9 +94,15 @@ void check_host_composition(const std::string& model, const std::string& integra
   Simulator<double> ref(scene, BackendKind::Serial);
   const sim::SimSetup<double>& setup = ref.setup();
   const Index n = setup.model.nv();
-  const cuda::ThreadModel<double> tm(setup.model);
-  const auto& params = std::get<cuda::ThreadModelParams<double, 8>>(tm.params());
-  const sim::ContactSet<double> cs = setup.contact_set();
+  const cuda::ThreadModel<double, Bd> tm(setup.model);
+  const auto& params = std::get<cuda::ThreadModelParams<double, 8, Bd>>(tm.params());
+  sim::ContactSet<double> cs = setup.contact_set();
+  std::vector<sim::ContactPoint<double>> points = setup.contact_points;
+  if constexpr (!std::is_same_v<Bd, Body<double>>) {
+    const ZAxisModel<double> zm = z_axis_model(setup.model);
+    for (sim::ContactPoint<double>& cp : points) cp.position = zm.to_z_frame(cp.body, cp.position);
+    cs.points = points.data();
+  }
   constexpr unsigned E = sim::detail::kContactKernelSet;
   const std::vector<Force<double>> zero(static_cast<std::size_t>(n), Force<double>::zero());
   double q[8], qd[8], tau[8] = {}, tw[8], qdd[8], qs[8], qds[8], aq[8], aqd[8];
@@ -133,6 +143,11 @@ TEST(CudaContactsHost, FusedCompositionMatchesTheSerialSimulator) {
   check_host_composition<Integrator::Implicit>("chain:6", "implicit");
   check_host_composition<Integrator::Euler>("tree:8:3", "euler");
   check_host_composition<Integrator::Implicit>("tree:8:3", "implicit");
+  // the z-axis frames of the fused kernels (tree:8:3: every axis slanted, all turned)
+  check_host_composition<Integrator::Euler, ZJointBody<double>>("chain:6", "euler");
+  check_host_composition<Integrator::Euler, ZJointBody<double>>("tree:8:3", "euler");
+  check_host_composition<Integrator::Rk4, ZJointBody<double>>("tree:8:3", "rk4");
+  check_host_composition<Integrator::Implicit, ZJointBody<double>>("tree:8:3", "implicit");
 }
 
 // ---- device ---------------------------------------------------------------------------------

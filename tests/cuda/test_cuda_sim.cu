@@ -60,8 +60,8 @@ double state_error(Simulator<S>& s, Simulator<double>& ref) {
 // ---- host: the fused kernel's composition ------------------------------------------------
 
 // One step of one instance as sim_fused_kernel runs it, on the host.
-template <unsigned E, Integrator I, int kSlots, class S, int C>
-Index fused_step_on_host(const cuda::ThreadModelParams<S, C>& model, const sim::SimSetup<S>& setup, S* q, S* qd,
+template <unsigned E, Integrator I, int kSlots, class S, int C, class Bd>
+Index fused_step_on_host(const cuda::ThreadModelParams<S, C, Bd>& model, const sim::SimSetup<S>& setup, S* q, S* qd,
                          const S* tau) {
   S tw[C], qdd[C], qs[C], qds[C], aq[C], aqd[C];
   const Force<S>* fext = (E & sim::kExternal) ? setup.wrenches.data() : nullptr;
@@ -73,17 +73,18 @@ Index fused_step_on_host(const cuda::ThreadModelParams<S, C>& model, const sim::
                                      setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, w, fd);
 }
 
-// kSlots: 0 (the chain kernels; models without branch children) or 8 (any model)
-template <Integrator I, int kSlots>
+// kSlots: 0 (the chain kernels; models without branch children) or 8 (any model).
+// Bd: the user's frames (Body) or the z-axis frames the fused kernels run on.
+template <Integrator I, int kSlots, class Bd = Body<double>>
 void check_host_composition(const std::string& model, const std::string& integrator) {
   constexpr unsigned E = sim::kAllEffects & ~sim::kContacts;
   const Scene scene = scene_from(scene_json(model, integrator, kAllEffects, 1));
   Simulator<double> ref(scene, BackendKind::Serial);
   const sim::SimSetup<double>& setup = ref.setup();
   const Index n = setup.model.nv();
-  const cuda::ThreadModel<double> tm(setup.model);
+  const cuda::ThreadModel<double, Bd> tm(setup.model);
   ASSERT_TRUE(kSlots == 8 || tm.branch_slots() == 0) << model;
-  const auto& params = std::get<cuda::ThreadModelParams<double, 8>>(tm.params());
+  const auto& params = std::get<cuda::ThreadModelParams<double, 8, Bd>>(tm.params());
   double q[8], qd[8], tau[8] = {};
   for (Index i = 0; i < n; ++i) q[i] = ref.q().at(i, 0), qd[i] = ref.qd().at(i, 0);
   for (int s = 0; s < 100; ++s) {
@@ -103,6 +104,12 @@ TEST(CudaSimHost, FusedCompositionMatchesTheSerialSimulator) {
   check_host_composition<Integrator::Euler, 8>("tree:8:3", "euler");
   check_host_composition<Integrator::Rk4, 8>("tree:8:3", "rk4");
   check_host_composition<Integrator::Implicit, 8>("tree:8:3", "implicit");
+  // the z-axis frames of the fused kernels (tree:8:3: every joint frame turned)
+  check_host_composition<Integrator::Euler, 0, ZJointBody<double>>("chain:6", "euler");
+  check_host_composition<Integrator::Implicit, 0, ZJointBody<double>>("chain:6", "implicit");
+  check_host_composition<Integrator::Euler, 8, ZJointBody<double>>("tree:8:3", "euler");
+  check_host_composition<Integrator::Rk4, 8, ZJointBody<double>>("tree:8:3", "rk4");
+  check_host_composition<Integrator::Implicit, 8, ZJointBody<double>>("tree:8:3", "implicit");
 }
 
 // ---- device ---------------------------------------------------------------------------------

@@ -8,6 +8,7 @@
 
 #include <cmath>
 
+#include "scandyn/model/joint_frames.hpp"
 #include "scandyn/model/model.hpp"
 
 namespace scandyn {
@@ -111,6 +112,100 @@ SCANDYN_HD S joint_project(const Body<S>& b, const Force<S>& f) {
   return dot(b.axis, b.type == JointType::Revolute ? f.n : f.f);
 }
 
+// I S: an inertia's (rigid or articulated) column along the joint's unit motion (the
+// ABA's U = IA S, the CRBA's column force Ic S).
+template <class In, class S>
+SCANDYN_HD Force<S> inertia_joint_column(const In& I, const Body<S>& b) {
+  return I * joint_motion(b, S(1));
+}
+
+// ---- joints about / along the body frame's z axis (ZJointBody) ----------------
+// The same primitives for a model re-expressed by z_axis_model
+// (scandyn/model/joint_frames.hpp): S = e_z in the angular (revolute) or linear
+// (prismatic) half, known at compile time, so that no step tests an axis; revolute
+// and prismatic differ by selects only. The composite steps below take either body.
+
+// Xup = XJ(q) Xtree: a revolute joint turns rows 0 and 1 of Etree by (c, s) (R_z(q)^T
+// Etree); a prismatic one moves the origin along row 2 of Etree (Etree^T e_z q). Both
+// are evaluated for either type with the other's motion zero: s = 0, c = 1 and a zero
+// displacement leave E and r exactly as they are.
+template <Trig kTrig = Trig::Exact, class S>
+SCANDYN_HD Transform<S> joint_transform(const ZJointBody<S>& b, S q) {
+  const bool rev = b.type == JointType::Revolute;
+  S s, c;
+  joint_sincos<kTrig>(rev ? q : S(0), s, c);
+  const S d = rev ? S(0) : q;  // prismatic displacement
+  const Mat3<S>& E = b.Xtree.E;
+  Transform<S> X;
+  for (int k = 0; k < 3; ++k) {
+    X.E.m[k] = c * E.m[k] + s * E.m[3 + k];
+    X.E.m[3 + k] = c * E.m[3 + k] - s * E.m[k];
+    X.E.m[6 + k] = E.m[6 + k];
+  }
+  X.r = Vec3<S>{b.Xtree.r.x + d * E.m[6], b.Xtree.r.y + d * E.m[7], b.Xtree.r.z + d * E.m[8]};
+  return X;
+}
+
+// S s.
+template <class S>
+SCANDYN_HD Motion<S> joint_motion(const ZJointBody<S>& b, S s) {
+  const bool rev = b.type == JointType::Revolute;
+  return {Vec3<S>{S(0), S(0), rev ? s : S(0)}, Vec3<S>{S(0), S(0), rev ? S(0) : s}};
+}
+
+// v + S s.
+template <class S>
+SCANDYN_HD Motion<S> add_joint_motion(const ZJointBody<S>& b, Motion<S> v, S s) {
+  const bool rev = b.type == JointType::Revolute;
+  v.w.z += rev ? s : S(0);
+  v.v.z += rev ? S(0) : s;
+  return v;
+}
+
+// v x (S s): a x (0, 0, s) = (a.y s, -a.x s, 0) for a = w, v (revolute) or 0, w (prismatic).
+template <class S>
+SCANDYN_HD Motion<S> cross_joint_motion(const ZJointBody<S>& b, const Motion<S>& v, S s) {
+  const bool rev = b.type == JointType::Revolute;
+  const Vec3<S>& lin = rev ? v.v : v.w;
+  const S ws = rev ? s : S(0);
+  return {Vec3<S>{v.w.y * ws, -v.w.x * ws, S(0)}, Vec3<S>{lin.y * s, -lin.x * s, S(0)}};
+}
+
+// S^T f.
+template <class S>
+SCANDYN_HD S joint_project(const ZJointBody<S>& b, const Force<S>& f) {
+  return b.type == JointType::Revolute ? f.n.z : f.f.z;
+}
+
+// I S and IA S: an inertia's (rigid or articulated) column along the joint's unit
+// motion: the force I e_z picks from I without a multiplication (and without the
+// products with S's zeros, which IEEE arithmetic keeps: 0 * x is not folded).
+template <class S>
+SCANDYN_HD Force<S> inertia_joint_column(const Inertia<S>& I, const ZJointBody<S>& b) {
+  const bool rev = b.type == JointType::Revolute;
+  // revolute: {Ibar e_z, -h x e_z}; prismatic: {h x e_z, m e_z}  (h x e_z = (h.y, -h.x, 0))
+  return {Vec3<S>{rev ? I.I.xz : I.h.y, rev ? I.I.yz : -I.h.x, rev ? I.I.zz : S(0)},
+          Vec3<S>{rev ? -I.h.y : S(0), rev ? I.h.x : S(0), rev ? S(0) : I.m}};
+}
+template <class S>
+SCANDYN_HD Force<S> inertia_joint_column(const ABInertia<S>& I, const ZJointBody<S>& b) {
+  const bool rev = b.type == JointType::Revolute;
+  // revolute: {Iww e_z, Iwv^T e_z} (row 2 of Iwv); prismatic: {Iwv e_z (column 2), Ivv e_z}
+  const Mat3<S>& H = I.Iwv;
+  return {Vec3<S>{rev ? I.Iww.xz : H.m[2], rev ? I.Iww.yz : H.m[5], rev ? I.Iww.zz : H.m[8]},
+          Vec3<S>{rev ? H.m[6] : I.Ivv.xz, rev ? H.m[7] : I.Ivv.yz, rev ? H.m[8] : I.Ivv.zz}};
+}
+
+// The joint's unit axis in its body frame: the stored one, or +z.
+template <class S>
+SCANDYN_HD Vec3<S> joint_axis(const Body<S>& b) {
+  return b.axis;
+}
+template <class S>
+SCANDYN_HD Vec3<S> joint_axis(const ZJointBody<S>&) {
+  return {S(0), S(0), S(1)};
+}
+
 // The base's spatial acceleration: gravity entered as a base acceleration -g.
 template <class S>
 SCANDYN_HD Motion<S> base_acceleration(const Vec3<S>& gravity) {
@@ -133,8 +228,8 @@ SCANDYN_HD bool pivot_ok(S d) {
 // fext: the external wrench on the body, or null for none. The RNEA's forward step,
 // the scans over links (CPU and CUDA) and the per-instance functions all take their
 // body forces from here.
-template <class S>
-SCANDYN_HD Force<S> body_force(const Body<S>& b, const Motion<S>& v, const Motion<S>& a,
+template <class S, class Bd>
+SCANDYN_HD Force<S> body_force(const Bd& b, const Motion<S>& v, const Motion<S>& a,
                                const Force<S>* fext = nullptr) {
   const Force<S> f = b.I * a + cross(v, b.I * v);
   return fext ? f - *fext : f;
@@ -151,8 +246,8 @@ struct RneaForward {
   Force<S> f;   // force the parent transmits across the joint, before children
 };
 
-template <class S>
-SCANDYN_HD RneaForward<S> rnea_forward_step(const Body<S>& b, const Transform<S>& Xup,
+template <class S, class Bd>
+SCANDYN_HD RneaForward<S> rnea_forward_step(const Bd& b, const Transform<S>& Xup,
                                             const Motion<S>& v_parent, const Motion<S>& a_parent,
                                             S qd, S qdd) {
   RneaForward<S> o;
@@ -174,9 +269,9 @@ SCANDYN_HD Inertia<S> crba_composite_step(const Transform<S>& Xup, const Inertia
 }
 
 // Column i of M starts from the force F = Ic_i S_i (M_ii = S_i^T F) ...
-template <class S>
-SCANDYN_HD Force<S> crba_column_force(const Body<S>& b, const Inertia<S>& Ic) {
-  return Ic * joint_motion(b, S(1));
+template <class S, class Bd>
+SCANDYN_HD Force<S> crba_column_force(const Bd& b, const Inertia<S>& Ic) {
+  return inertia_joint_column(Ic, b);
 }
 
 // ... and is carried to the root one joint at a time: F = Xup_j^T F moves it from
@@ -197,19 +292,19 @@ struct AbaForward {
 };
 
 // The velocity-product acceleration c = v x (S qd) of a body moving with v.
-template <class S>
-SCANDYN_HD Motion<S> aba_velocity_product(const Body<S>& b, const Motion<S>& v, S qd) {
+template <class S, class Bd>
+SCANDYN_HD Motion<S> aba_velocity_product(const Bd& b, const Motion<S>& v, S qd) {
   return cross_joint_motion(b, v, qd);
 }
 
 // The bias force v x* I v of a body moving with v (pA before external forces).
-template <class S>
-SCANDYN_HD Force<S> aba_bias_force(const Body<S>& b, const Motion<S>& v) {
+template <class S, class Bd>
+SCANDYN_HD Force<S> aba_bias_force(const Bd& b, const Motion<S>& v) {
   return cross(v, b.I * v);
 }
 
-template <class S>
-SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& Xup,
+template <class S, class Bd>
+SCANDYN_HD AbaForward<S> aba_forward_step(const Bd& b, const Transform<S>& Xup,
                                           const Motion<S>& v_parent, S qd) {
   AbaForward<S> o;
   o.v = add_joint_motion(b, Xup.apply(v_parent), qd);
@@ -229,10 +324,10 @@ SCANDYN_HD AbaForward<S> aba_forward_step(const Body<S>& b, const Transform<S>& 
 // of the same tree with a massless rotor of that inertia on each joint, and in the
 // ABA it enters only D (Featherstone 2008, 7.3 / exercise 7.3). 0 adds nothing
 // (D + 0 == D exactly).
-template <class S>
-SCANDYN_HD void aba_joint_terms(const Body<S>& b, const ABInertia<S>& IA, const Force<S>& pA,
+template <class S, class Bd>
+SCANDYN_HD void aba_joint_terms(const Bd& b, const ABInertia<S>& IA, const Force<S>& pA,
                                 S tau, Force<S>& U, S& D, S& u, S armature = S(0)) {
-  U = IA * joint_motion(b, S(1));
+  U = inertia_joint_column(IA, b);
   D = joint_project(b, U) + armature;
   u = tau - joint_project(b, pA);
 }
@@ -249,8 +344,8 @@ SCANDYN_HD void aba_backward_to_parent(const Transform<S>& Xup, const ABInertia<
 }
 
 // Pass 3 step: a' = Xup a_parent + c, qdd = (u - U^T a') / D, a = a' + S qdd.
-template <class S>
-SCANDYN_HD S aba_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
+template <class S, class Bd>
+SCANDYN_HD S aba_acceleration_step(const Bd& b, const Transform<S>& Xup,
                                    const Motion<S>& a_parent, const Motion<S>& c,
                                    const Force<S>& U, S D, S u, Motion<S>& a) {
   const Motion<S> ap = Xup.apply(a_parent) + c;
@@ -271,8 +366,8 @@ SCANDYN_HD S aba_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
 
 // Pass 2 step of a prescribed joint: Ia = IA, pa = pA + IA (c + S qdd), which the
 // parent receives as Xup^T Ia Xup and Xup^T pa.
-template <class S>
-SCANDYN_HD void hybrid_prescribed_to_parent(const Body<S>& b, const Transform<S>& Xup, const ABInertia<S>& IA,
+template <class S, class Bd>
+SCANDYN_HD void hybrid_prescribed_to_parent(const Bd& b, const Transform<S>& Xup, const ABInertia<S>& IA,
                                             const Force<S>& pA, const Motion<S>& c, S qdd,
                                             ABInertia<S>& IA_parent, Force<S>& pA_parent) {
   const Force<S> pa = pA + IA * add_joint_motion(b, c, qdd);
@@ -283,8 +378,8 @@ SCANDYN_HD void hybrid_prescribed_to_parent(const Body<S>& b, const Transform<S>
 // Pass 3 step of a prescribed joint: a = Xup a_parent + c + S qdd, and the joint
 // force tau = S^T (IA a + pA) = U^T a - u (U = IA S, u = -S^T pA from pass 2), the
 // force the articulated body beyond the joint needs to move with a.
-template <class S>
-SCANDYN_HD S hybrid_prescribed_acceleration_step(const Body<S>& b, const Transform<S>& Xup,
+template <class S, class Bd>
+SCANDYN_HD S hybrid_prescribed_acceleration_step(const Bd& b, const Transform<S>& Xup,
                                                  const Motion<S>& a_parent, const Motion<S>& c,
                                                  const Force<S>& U, S u, S qdd, Motion<S>& a) {
   a = add_joint_motion(b, Xup.apply(a_parent) + c, qdd);

@@ -26,7 +26,7 @@
 namespace scandyn {
 namespace cuda {
 
-template <class T>
+template <class T, class Bd>
 class ThreadModel;
 
 // Threads per block of the check kernel.
@@ -52,7 +52,7 @@ class DeviceFdCheck {
                      double* estimate_out, cudaStream_t stream) const;
 
  private:
-  std::unique_ptr<ThreadModel<double>> model_;  // with gravity: the RNEA's
+  std::unique_ptr<ThreadModel<double, Body<double>>> model_;  // with gravity: the RNEA's
   void* free_params_ = nullptr;                 // device copy of its parameters without gravity
 };
 

@@ -113,16 +113,16 @@ inline constexpr int kFdInstancesBlock = 128;
 // Returns cudaErrorInvalidValue for views whose batch sizes disagree or a null
 // pointer (failed_dof_out included) with B > 0, else the launch's error (kernel
 // faults surface later, at your synchronisation). B = 0 launches nothing.
-template <class S>
-cudaError_t launch_fd_jsi_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+template <class S, class Bd>
+cudaError_t launch_fd_jsi_instances(const ThreadModel<S, Bd>& model, const FdBatchIn<S>& batch_in,
                                     const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
 
 // The same by the articulated-body algorithm (aba_instance in fd_instances_kernel,
 // the variant choose_aba_kernel picks), with the same arguments, checks and return
 // values; failed_dof_out[b] is -1 or the DoF whose articulated pivot D failed (qdd
 // of that instance unwritten).
-template <class S>
-cudaError_t launch_aba_instances(const ThreadModel<S>& model, const FdBatchIn<S>& batch_in,
+template <class S, class Bd>
+cudaError_t launch_aba_instances(const ThreadModel<S, Bd>& model, const FdBatchIn<S>& batch_in,
                                  const BatchView<S>& qdd_out, int* failed_dof_out, cudaStream_t stream);
 
 // The batched forward-dynamics engine on one CUDA device (the device current at
@@ -211,7 +211,7 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   const std::vector<ChainTimelineEvent>& timeline() const { return timeline_; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
-  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
+  const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
   Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
@@ -221,7 +221,7 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   Index nv_ = 0;
   bool aba_ = false;
   FdMethod algorithm_ = FdMethod::Jsi;
-  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<ZThreadModel<S>> thread_;
   std::unique_ptr<DenseJsiPlan<S>> dense_;
   std::unique_ptr<ChainFdPlan<S>> chain_;
   bool record_timeline_ = false;

@@ -24,9 +24,14 @@
 // (BatchView::soa): a warp's 32 threads then read 32 consecutive scalars of each
 // DoF. fext, when given, is (B x nv) wrenches, fext[b * nv + i], as in IdBatchIn.
 //
+// Joint frames. The engine's kernels run on the z-axis model (ZThreadModel,
+// scandyn/model/joint_frames.hpp): every joint frame turned so that its axis is +z,
+// so that a joint transform is one rotation about z with no axis test; tau is the
+// same, and fext, given in the user's body frames, is turned on reading.
+//
 // Model constants. The kernels read the model from the constant bank through the
-// kernel parameter (ThreadModelParams, at most 14.6 KB: sm_70+ with CUDA >= 12.1
-// take parameters of up to 32 KB). It is built once per engine on the host and
+// kernel parameter (ThreadModelParams, at most 17.2 KB with the z-axis frames'
+// rotations: sm_70+ with CUDA >= 12.1 take parameters of up to 32 KB). It is built once per engine on the host and
 // travels with each launch; the kernel then reads every body constant at a
 // compile-time address as an operand of the arithmetic (no load instruction), and
 // two engines on two streams cannot overwrite each other's model, as they could in
@@ -78,9 +83,11 @@ inline constexpr int kIdInstancesBlock = 128;
 // Every pointer is a DEVICE pointer (views with any strides); nothing is copied,
 // allocated or synchronised. Returns cudaErrorInvalidValue for views whose batch
 // sizes disagree or a null pointer with B > 0, else the launch's error (kernel
-// faults surface later, at your synchronisation). B = 0 launches nothing.
-template <class S>
-cudaError_t launch_id_instances(const ThreadModel<S>& model, const IdBatchIn<S>& batch_in,
+// faults surface later, at your synchronisation). B = 0 launches nothing. model: the
+// user's frames (ThreadModel) or z-axis frames (ZThreadModel, the engine's), either
+// giving the same tau.
+template <class S, class Bd>
+cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn<S>& batch_in,
                                 const BatchView<S>& tau_out, cudaStream_t stream);
 
 // The batched engine on one CUDA device (the device current at construction),
@@ -123,7 +130,7 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   std::string strategy() const override { return scan_ ? "scan-local" : "thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
-  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for the scan strategy
+  const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for the scan strategy
   const IdScanPlan<S>* scan_plan() const { return scan_.get(); }        // null for the thread strategy
   Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
@@ -132,7 +139,7 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
 
  private:
   Index nv_ = 0;
-  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<ZThreadModel<S>> thread_;
   std::unique_ptr<IdScanPlan<S>> scan_;
   Index max_batch_ = 0;
   int device_ = 0;

@@ -72,8 +72,8 @@ inline constexpr int kMassInstancesBlock = 128;
 // allocated or synchronised. Returns cudaErrorInvalidValue when the batch sizes
 // disagree or a pointer is null with B > 0, else the launch's error (kernel faults
 // surface later, at your synchronisation). B = 0 launches nothing.
-template <class S>
-cudaError_t launch_crba_instances(const ThreadModel<S>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
+template <class S, class Bd>
+cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchView<const S>& q, const BatchView<S>& M_out,
                                   cudaStream_t stream);
 
 // The batched mass-matrix engine on one CUDA device (the device current at
@@ -116,7 +116,7 @@ class CudaMassMatrix final : public MassMatrix<S> {
   std::string strategy() const override { return blocks_ ? "crba_block" : "crba_thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
-  const ThreadModel<S>* thread_model() const { return thread_.get(); }  // null for crba_block
+  const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for crba_block
   Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
@@ -127,7 +127,7 @@ class CudaMassMatrix final : public MassMatrix<S> {
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;
-  std::unique_ptr<ThreadModel<S>> thread_;              // crba_thread
+  std::unique_ptr<ZThreadModel<S>> thread_;              // crba_thread
   std::unique_ptr<detail::CrbaBlocks<S>> blocks_;       // crba_block
   // compute()'s stream and its one allocation: q (nv x max_batch), then M (nv^2 x max_batch)
   std::unique_ptr<detail::StagingBuffer> staging_;

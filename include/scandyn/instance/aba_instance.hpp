@@ -37,8 +37,8 @@ inline const char* to_string(AbaKernel k) {
 }
 
 // The ABA kernel launch_aba_instances runs for `model` in precision S.
-template <class S>
-AbaKernel choose_aba_kernel(const ThreadModel<S>& model) {
+template <class S, class Bd>
+AbaKernel choose_aba_kernel(const ThreadModel<S, Bd>& model) {
   if (model.branch_slots() == 0) return AbaKernel::Chains;
   if (sizeof(S) == 4 && model.branch_slots() <= kAbaRegisterSlots) return AbaKernel::Branches;
   return AbaKernel::Tree;
@@ -48,8 +48,8 @@ AbaKernel choose_aba_kernel(const ThreadModel<S>& model) {
 // parameter block and the ABA kernel variant choose_aba_kernel picks (kSlots: 0 for
 // chains, kAbaRegisterSlots for float's register slots, the capacity for any tree):
 // the one dispatch of the ABA's kernels (forward and hybrid dynamics).
-template <class S, class F>
-void visit_aba_kernel(const ThreadModel<S>& model, F&& launch) {
+template <class S, class Bd, class F>
+void visit_aba_kernel(const ThreadModel<S, Bd>& model, F&& launch) {
   const AbaKernel kernel = choose_aba_kernel(model);
   std::visit(
       [&](const auto& params) {
@@ -196,8 +196,8 @@ struct HybridColumns {
 // -1 or the failed DoF as above (nothing written). Without kHybrid, hd is not read.
 // Models of up to 64 DoF (one bit per DoF).
 template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library,
-          int kSlots = C, bool kHybrid = false>
-__host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
+          int kSlots = C, bool kHybrid = false, class Bd = Body<S>>
+__host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                        DofColumn<const S> qd, DofColumn<const S> tau,
                                                        const Force<S>* fext, DofColumn<S> qdd,
                                                        const S* armature = nullptr,
@@ -226,7 +226,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     if constexpr (kUnrolled) return qd_r[kUnrolled ? i : 0];
     else return qd[i];
   };
-  auto xup = [&](Index i, const Body<S>& b) -> Transform<S> {
+  auto xup = [&](Index i, const auto& b) -> Transform<S> {
     if constexpr (kKeepXup) return Xup[kKeepXup ? i : 0];
     else return joint_transform<kTrig>(b, q_at(i));
   };
@@ -268,7 +268,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         else return Motion<S>::zero();
       },
       [&](Index i, int fl, const Motion<S>& vp) {
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         const Transform<S> X = joint_transform<kTrig>(b, q_at(i));
         if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
         const Motion<S> v = aba_forward_step(b, X, vp, qd_at(i)).v;
@@ -297,7 +297,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
       [&](Index i, int fl) {
         // IA_i and pA_i: from the branch slot (rigid inertia, bias force and the
         // branch children), or the rigid inertia and bias force
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         v = st[i].v();
         AbaCarry<S> t;
         if (kBranches && (fl & kStacked)) {
@@ -306,7 +306,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         } else {
           t.IA = ABInertia<S>::from(b.I);
           t.pA = aba_bias_force(b, v);
-          if (fext) t.pA = t.pA - fext[i];
+          if (fext) t.pA = t.pA - external_wrench(model, i, fext);
         }
         return t;
       },
@@ -324,7 +324,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
       [&](Index i, const AbaCarry<S>& t) {
         // the contribution to the parent, from zero (0 + x == x: the parent's sums are
         // the reference's)
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         AbaCarry<S> up{ABInertia<S>{}, Force<S>::zero()};
         if (given(i)) {
           hybrid_prescribed_to_parent(b, xup(i, b), t.IA, t.pA, aba_velocity_product(b, v, qd_at(i)), hd.qdd_in[i],
@@ -339,9 +339,9 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
           const Index par = model.body[i].parent;
           if (fl & kOpensSlot) {
             // the first branch child to arrive: the parent's rigid inertia and bias force first
-            const Body<S>& bp = model.body[par];
+            const auto& bp = model.body[par];
             Force<S> pA = aba_bias_force(bp, velocity_of(par, i));
-            if (fext) pA = pA - fext[par];
+            if (fext) pA = pA - external_wrench(model, par, fext);
             const ABInertia<S> IAp = ABInertia<S>::from(bp.I) + up.IA;
             pA += up.pA;
             slot_update<K, C>(sIA, slot_of(par), [&](ABInertia<S>& s) { s = IAp; });
@@ -366,7 +366,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         }
       },
       [&](Index i, int fl, const BodyKinematics<S>& p) {
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         const Transform<S> X = xup(i, b);
         const AbaForward<S> o = aba_forward_step(b, X, p.v, qd_at(i));
         Motion<S> a;

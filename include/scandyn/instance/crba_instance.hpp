@@ -61,8 +61,8 @@ __host__ __device__ __forceinline__ JsiCarry<S>& operator+=(JsiCarry<S>& a, cons
 // the functors are created: nvcc's #549, as in rnea_instance.)
 #pragma nv_diagnostic push
 #pragma nv_diag_suppress 549
-template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig>
-__host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
+template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                     DofColumn<const S> qd, DofColumn<const S> tau,
                                                     const Force<S>* fext, const S* armature, S (&x)[C],
                                                     S (&M)[C * (C + 1) / 2]) {
@@ -98,12 +98,12 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
         [&](Index i) { return BodyKinematics<S>{sv[model.body[i].parent], sa[model.body[i].parent]}; },
         [&](Index i, int fl, const BodyKinematics<S>& p) {
-          const Body<S>& b = model.body[i];
+          const auto& b = model.body[i];
           const Transform<S> X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
           if constexpr (kKeep) Xup[kKeep ? i : 0] = X;
           const RneaForward<S> o =
               rnea_forward_step(b, X, p.v, p.a, kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i], S(0));
-          w[i] = fext ? o.f - fext[i] : o.f;
+          w[i] = fext ? o.f - external_wrench(model, i, fext) : o.f;
           if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = w[i], sI[i] = b.I;
           return BodyKinematics<S>{o.v, o.a};
         });
@@ -125,7 +125,7 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         return t;
       },
       [&](Index i, int, const JsiCarry<S>& t) {
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         if constexpr (kBias) x[i] -= joint_project(b, t.f);  // tau_i - h_i
         // the columns of i's descendants have reached its frame: M(k, i) = S_i^T F_k
         for_descendants<kUnrolled>(model, i, [&](Index k) { M[tri(k, i)] = joint_project(b, w[k]); });
@@ -175,8 +175,8 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
 // M (C (C + 1) / 2 scalars), the column forces and the inputs can stay in
 // registers; otherwise per-thread (local) memory and walks up the parents. kTrig:
 // how joint angles become sin and cos (see joint_sincos).
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void crba_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void crba_instance(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                       S (&M)[C * (C + 1) / 2], const S* armature = nullptr) {
   S unused[C];  // the bias forces' tau - h, which the CRBA alone does not compute (never touched)
   fd_detail::jsi_passes<false, S, C, false, kUnrolled, kTrig>(model, q, DofColumn<const S>{nullptr, 0},
@@ -217,8 +217,8 @@ __host__ __device__ __forceinline__ void crba_instance(const ThreadModelParams<S
 // armature (optional, nv scalars, any memory the thread can read): joint-space
 // inertias added to M's diagonal before the factorisation, as in the serial fd_jsi
 // (scandyn/sim's implicit damping and springs); null adds nothing.
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParams<S, C>& model,
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>>
+__host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParams<S, C, Bd>& model,
                                                           DofColumn<const S> q, DofColumn<const S> qd,
                                                           DofColumn<const S> tau, const Force<S>* fext,
                                                           DofColumn<S> qdd, const S* armature = nullptr) {
@@ -272,8 +272,8 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
 // triangles; zero where neither body is an ancestor of the other). The order and
 // the indices are the same on every thread of a model (a warp may stage the
 // entries together: kernels/mass_matrix.cu). kUnrolled as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), class Put>
-__host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelParams<S, C>& model,
+template <class S, int C, bool kUnrolled = (C <= 8), class Put, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelParams<S, C, Bd>& model,
                                                             const S (&M)[C * (C + 1) / 2], Put&& put) {
   using fd_detail::tri;
   const Index n = model.nv;
@@ -296,8 +296,8 @@ __host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelPa
 // scalars: registers when unrolled, else local memory), then nv^2 stores, row by
 // row (for_each_mass_entry). Also a host function (under nvcc): the tests check it
 // against scandyn::crba without a device. kUnrolled and kTrig as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C>& model,
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C, Bd>& model,
                                                               DofColumn<const S> q, DofColumn<S> M_out) {
   S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
   crba_instance<S, C, kUnrolled, kTrig>(model, q, M);

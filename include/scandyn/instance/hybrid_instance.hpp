@@ -17,8 +17,8 @@ namespace cuda {
 // template arguments are aba_instance's; models of up to 64 DoF. Also a host
 // function under nvcc.
 template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library,
-          int kSlots = C>
-__host__ __device__ __forceinline__ Index hybrid_instance(const ThreadModelParams<S, C>& model, DofColumn<const S> q,
+          int kSlots = C, class Bd = Body<S>>
+__host__ __device__ __forceinline__ Index hybrid_instance(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                           DofColumn<const S> qd, DofColumn<const S> tau_in,
                                                           const Force<S>* fext, DofColumn<S> qdd_out,
                                                           const HybridColumns<S>& hd) {

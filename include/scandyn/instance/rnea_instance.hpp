@@ -34,8 +34,8 @@ namespace cuda {
 // joint_transform is evaluated again there (fewer registers, more arithmetic).
 // kTrig: how joint angles become sin and cos (Trig::Library, CUDA's sinf/cosf, by
 // default: at most 64 links, so their slight bias stays below 1e-6; see joint_sincos).
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library>
-__host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S, C>& model,
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S, C, Bd>& model,
                                                        DofColumn<const S> q, DofColumn<const S> qd,
                                                        DofColumn<const S> qdd, const Force<S>* fext,
                                                        DofColumn<S> tau) {
@@ -65,14 +65,14 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
       model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
       [&](Index i) { return BodyKinematics<S>{sv[model.body[i].parent], sa[model.body[i].parent]}; },
       [&](Index i, int fl, const BodyKinematics<S>& p) {
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         const S qi = kUnrolled ? q_r[kUnrolled ? i : 0] : q[i];
         const Transform<S> X = joint_transform<kTrig>(b, qi);
         if constexpr (kKeepXup) Xup[kKeepXup ? i : 0] = X;
         const S qdi = kUnrolled ? qd_r[kUnrolled ? i : 0] : qd[i];
         const S qddi = kUnrolled ? qdd_r[kUnrolled ? i : 0] : qdd[i];
         const RneaForward<S> o = rnea_forward_step(b, X, p.v, p.a, qdi, qddi);
-        f[i] = fext ? o.f - fext[i] : o.f;
+        f[i] = fext ? o.f - external_wrench(model, i, fext) : o.f;
         if (fl & kStacked) sv[i] = o.v, sa[i] = o.a, sf[i] = f[i];
         return BodyKinematics<S>{o.v, o.a};
       });
@@ -86,7 +86,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
         return true;
       },
       [&](Index i, const Force<S>& fi) {
-        const Body<S>& b = model.body[i];
+        const auto& b = model.body[i];
         Transform<S> X;
         if constexpr (kKeepXup) X = Xup[kKeepXup ? i : 0];
         else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);

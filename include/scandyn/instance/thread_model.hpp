@@ -10,9 +10,11 @@
 // holds a model (8, 16, 32 or 64).
 #pragma once
 
+#include <type_traits>
 #include <variant>
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
+#include "scandyn/model/joint_frames.hpp"
 #include "scandyn/model/model.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -31,6 +33,8 @@ enum ThreadBodyFlag : int {
                       // adds to f_i: body i is a branch point of the tree
   kOpensSlot = 8,     // body i is the highest-numbered branch child of its parent: the
                       // first of them to reach the parent going leaves to root
+  kTurned = 16,       // (z-axis models) body i's frame is its user frame turned by
+                      // frame_Q[i]: body wrenches given by the user are turned on reading
 };
 
 // Bits kSlotShift.. of a kStacked body's flags: its branch slot, a small number
@@ -44,27 +48,62 @@ enum ThreadBodyFlag : int {
 inline constexpr int kSlotShift = 8;
 SCANDYN_HD constexpr int branch_slot(int flags) { return flags >> kSlotShift; }
 
-// The model as the kernels read it, for capacity C (nv <= C): the kernel parameter.
-template <class S, int C>
+// The model as the kernels read it, for capacity C (nv <= C): the kernel parameter
+// (__grid_constant__: it stays in the constant bank, read without copies). Bd: the
+// body type, Body<S> (the user's frames, any joint axis) or ZJointBody<S> (every
+// frame turned so that its joint axis is +z, scandyn/model/joint_frames.hpp: the
+// step functions then test no axis).
+template <class S, int C, class Bd = Body<S>>
 struct ThreadModelParams {
   static constexpr int capacity = C;
-  Body<S> body[C];                 // (nv) bodies in DoF order; entries past nv unused
+  static constexpr bool z_axes = !std::is_same_v<Bd, Body<S>>;
+  Bd body[C];                      // (nv) bodies in DoF order; entries past nv unused
   int flags[C];                    // (nv) ThreadBodyFlag bits of each body
   unsigned long long ancestors[C]; // (nv) bit j of ancestors[i]: body j is a proper ancestor
                                    // of body i (the sparsity of row i of M; forward dynamics)
   Motion<S> a0;                    // base acceleration: gravity entered as -g
   Index nv;                        // number of bodies (DoF), <= C
+  Mat3<S> frame_Q[z_axes ? C : 1]; // (nv, z-axis models) Q_i: body i's user-frame
+                                   // coordinates -> its z-axis frame's (kTurned bodies)
 };
 
+// Body i's external wrench fext[i], given in body i's user frame, in the frame the
+// kernels work in (turned by Q_i for a kTurned body of a z-axis model).
+template <class S, int C, class Bd>
+SCANDYN_HD Force<S> external_wrench(const ThreadModelParams<S, C, Bd>& model, Index i, const Force<S>* fext) {
+  if constexpr (ThreadModelParams<S, C, Bd>::z_axes) {
+    if (model.flags[i] & kTurned) {
+      const Mat3<S>& Q = model.frame_Q[i];
+      return {Q * fext[i].n, Q * fext[i].f};
+    }
+  }
+  return fext[i];
+}
+
+// The inverse: a wrench on body i in the kernels' frame, in body i's user frame.
+template <class S, int C, class Bd>
+SCANDYN_HD Force<S> user_wrench(const ThreadModelParams<S, C, Bd>& model, Index i, const Force<S>& f) {
+  if constexpr (ThreadModelParams<S, C, Bd>::z_axes) {
+    if (model.flags[i] & kTurned) {
+      const Mat3<S>& Q = model.frame_Q[i];
+      return {mul_transpose(Q, f.n), mul_transpose(Q, f.f)};
+    }
+  }
+  return f;
+}
+
 // One model prepared for the kernels: the parameter block of the smallest capacity
-// that holds it. Host memory only; built once, then copied into each launch.
-template <class S>
+// that holds it. Host memory only; built once, then copied into each launch. With
+// Bd = ZJointBody<S> (ZThreadModel) the bodies are z_axis_model's, their joints
+// revolute or prismatic only.
+template <class S, class Bd = Body<S>>
 class ThreadModel {
  public:
-  using Params = std::variant<ThreadModelParams<S, 8>, ThreadModelParams<S, 16>,
-                              ThreadModelParams<S, 32>, ThreadModelParams<S, 64>>;
+  using Params = std::variant<ThreadModelParams<S, 8, Bd>, ThreadModelParams<S, 16, Bd>,
+                              ThreadModelParams<S, 32, Bd>, ThreadModelParams<S, 64, Bd>>;
 
-  // Throws BackendError when model.nv() > kMaxThreadDofs.
+  // Throws BackendError when model.nv() > kMaxThreadDofs, or (z-axis) when a joint is
+  // neither revolute nor prismatic.
   explicit ThreadModel(const ModelTpl<S>& model);
 
   Index nv() const { return nv_; }
@@ -80,6 +119,13 @@ class ThreadModel {
   Index branch_slots_ = 0;
   Params params_;
 };
+
+// The thread-per-instance model with every joint axis on its frame's z axis: what the
+// inverse dynamics, mass matrix, forward dynamics and fused simulator step kernels
+// run on (results in the user's frames: joint-space quantities do not change, and
+// body wrenches are turned on reading, external_wrench).
+template <class S>
+using ZThreadModel = ThreadModel<S, ZJointBody<S>>;
 
 }  // namespace cuda
 }  // namespace scandyn

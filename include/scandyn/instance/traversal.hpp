@@ -15,8 +15,8 @@ namespace cuda {
 namespace fd_detail {
 
 // Is body j a proper ancestor of body k?
-template <class S, int C>
-__host__ __device__ __forceinline__ bool is_ancestor(const ThreadModelParams<S, C>& m, Index j, Index k) {
+template <class S, int C, class Bd = Body<S>>
+__host__ __device__ __forceinline__ bool is_ancestor(const ThreadModelParams<S, C, Bd>& m, Index j, Index k) {
   return (m.ancestors[k] >> j) & 1ull;
 }
 
@@ -24,8 +24,8 @@ __host__ __device__ __forceinline__ bool is_ancestor(const ThreadModelParams<S, 
 // reference's for_path). Unrolled: a loop of compile-time indices (once k is one)
 // over the ancestor bits, so that arrays indexed by j stay in registers; otherwise
 // the walk up the parents.
-template <bool kUnrolled, class S, int C, class F>
-__host__ __device__ __forceinline__ void for_ancestors(const ThreadModelParams<S, C>& m, Index k, F&& f) {
+template <bool kUnrolled, class S, int C, class F, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void for_ancestors(const ThreadModelParams<S, C, Bd>& m, Index k, F&& f) {
   if constexpr (kUnrolled) {
 #pragma unroll
     for (Index j = C - 2; j >= 0; --j)
@@ -36,8 +36,8 @@ __host__ __device__ __forceinline__ void for_ancestors(const ThreadModelParams<S
 }
 
 // Calls f(k) for every proper descendant k of body i (any order; ascending here).
-template <bool kUnrolled, class S, int C, class F>
-__host__ __device__ __forceinline__ void for_descendants(const ThreadModelParams<S, C>& m, Index i, F&& f) {
+template <bool kUnrolled, class S, int C, class F, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void for_descendants(const ThreadModelParams<S, C, Bd>& m, Index i, F&& f) {
 #pragma unroll(kUnrolled ? C : 1)
   for (Index k = 1; k < C; ++k)
     if (k > i && k < m.nv && is_ancestor(m, i, k)) f(k);
@@ -73,8 +73,8 @@ struct BodyKinematics {
 // parent is body i - 1, else branch_parent(i), the caller's read of body i's
 // parent's value (which step stored when it visited that kStacked body). T: what a
 // body hands its children (a Motion, or BodyKinematics).
-template <bool kUnrolled, class S, int C, class T, class BranchParent, class Step>
-__host__ __device__ __forceinline__ void forward_pass(const ThreadModelParams<S, C>& model, Index n, const T& base,
+template <bool kUnrolled, class S, int C, class T, class BranchParent, class Step, class Bd = Body<S>>
+__host__ __device__ __forceinline__ void forward_pass(const ThreadModelParams<S, C, Bd>& model, Index n, const T& base,
                                                       BranchParent&& branch_parent, Step&& step) {
   T prev = base;  // body i - 1's value
 #pragma unroll(kUnrolled ? C : 1)
@@ -118,8 +118,8 @@ struct PassEnd {
 // then runs after the hand-off, as in a hand-written loop, in registers that up no
 // longer holds (jsi_passes moves its columns on so; work ahead of the hand-off
 // costs registers).
-template <bool kUnrolled, class S, int C, class T, class Own, class Step, class Lift, class ToBranchParent>
-__host__ __device__ __forceinline__ PassEnd backward_pass(const ThreadModelParams<S, C>& model, Index n, Own&& own,
+template <bool kUnrolled, class S, int C, class T, class Own, class Step, class Lift, class ToBranchParent, class Bd = Body<S>>
+__host__ __device__ __forceinline__ PassEnd backward_pass(const ThreadModelParams<S, C, Bd>& model, Index n, Own&& own,
                                                           Step&& step, Lift&& lift,
                                                           ToBranchParent&& to_branch_parent) {
   T carry{};  // body i + 1's contribution, when its parent is body i

@@ -179,11 +179,11 @@ SCANDYN_HD Vec3<S> contact_point_force(const ContactSet<S>& cs, const Vec3<S>& p
 
 // The world pose and twist of every body (the contact pass's kinematics):
 // X[i] body i <- world, v[i] body i's twist in its frame. q and qd at q[j * stride].
-template <class S>
-SCANDYN_HD void contact_kinematics(const Body<S>* bodies, Index n, const S* q, const S* qd, long long stride,
+template <class S, class Bd>
+SCANDYN_HD void contact_kinematics(const Bd* bodies, Index n, const S* q, const S* qd, long long stride,
                                    Transform<S>* X, Motion<S>* v) {
   for (Index i = 0; i < n; ++i) {
-    const Body<S>& b = bodies[i];
+    const Bd& b = bodies[i];
     const Transform<S> Xup = joint_transform(b, q[i * stride]);
     X[i] = b.parent < 0 ? Xup : Xup * X[b.parent];
     v[i] = add_joint_motion(b, b.parent < 0 ? Motion<S>::zero() : Xup.apply(v[b.parent]), qd[i * stride]);
@@ -192,9 +192,9 @@ SCANDYN_HD void contact_kinematics(const Body<S>* bodies, Index n, const S* q, c
 
 // The velocity of a world point p per unit rate of joint j (world frame): the
 // column J_j of the point's Jacobian.
-template <class S>
-SCANDYN_HD Vec3<S> contact_jacobian_column(const Body<S>& b, const Transform<S>& X, const Vec3<S>& p) {
-  const Vec3<S> axis = mul_transpose(X.E, b.axis);  // world frame
+template <class S, class Bd>
+SCANDYN_HD Vec3<S> contact_jacobian_column(const Bd& b, const Transform<S>& X, const Vec3<S>& p) {
+  const Vec3<S> axis = mul_transpose(X.E, joint_axis(b));  // world frame
   if (b.type == JointType::Prismatic) return axis;
   return cross(axis, p - X.r);
 }
@@ -203,8 +203,10 @@ SCANDYN_HD Vec3<S> contact_jacobian_column(const Body<S>& b, const Transform<S>&
 // contact wrench to fext (n body wrenches, body frames); with armature (n, or
 // null) adds the implicit bound; readings (P, or null) get the points' forces.
 // X, v: n entries of scratch. h: the look-ahead (dt for implicit, else 0).
-template <unsigned kObstacles, class S>
-SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Body<S>* bodies, Index n, const S* q, const S* qd,
+// bodies: Body<S> (the user's frames) or ZJointBody<S> (z-axis frames,
+// scandyn/model/joint_frames.hpp); the points' positions and fext are in the same frames.
+template <unsigned kObstacles, class S, class Bd>
+SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
                              long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
                              ContactReading<S>* readings) {
   contact_kinematics(bodies, n, q, qd, stride, X, v);
@@ -232,8 +234,8 @@ SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Body<S>* bodies, Ind
 
 // contact_pass with the specialisation of cs.obstacles chosen at run time (one
 // switch per pass: planes only, spheres only, both).
-template <class S>
-SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Body<S>* bodies, Index n, const S* q, const S* qd,
+template <class S, class Bd>
+SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
                                  long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
                                  ContactReading<S>* readings) {
   switch (cs.obstacles) {
