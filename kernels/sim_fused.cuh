@@ -64,10 +64,12 @@ inline constexpr int kSimBlock = 128;
 // The kernel parameter of capacity C: the model as fd_instances_kernel reads it
 // (z-axis frames: ZThreadModel), plus the joint coefficients and the implicit
 // armature (__grid_constant__: read from the constant bank; about 21 KB at C = 64 in double).
-template <class S, int C>
+// Bd: the body type of the model view (ZJointBody: the fused step's z-axis frames;
+// Body: user frames, for kernels that also run the user-frame derivative routines).
+template <class S, int C, class Bd = ZJointBody<S>>
 struct SimParams {
   static constexpr int capacity = C;
-  cuda::ThreadModelParams<S, C, ZJointBody<S>> model;  // a0 = -g, or zero without gravity
+  cuda::ThreadModelParams<S, C, Bd> model;  // a0 = -g, or zero without gravity
   JointCoefficients<S> coef[C];         // (nv) joint coefficients
   S armature[C];                        // (nv) dt d + dt^2 k (implicit), else unused
   S dt;                                 // time step

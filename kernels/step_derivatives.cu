@@ -25,15 +25,16 @@ using sim::Integrator;
 
 template <class S>
 struct CudaStepDerivatives<S>::Params {
-  std::variant<sim::detail::SimParams<S, 8>, sim::detail::SimParams<S, 16>, sim::detail::SimParams<S, 32>,
-               sim::detail::SimParams<S, 64>>
+  // user frames (Body): the step and its derivatives (fd_derivatives_instance) read one model
+  std::variant<sim::detail::SimParams<S, 8, Body<S>>, sim::detail::SimParams<S, 16, Body<S>>,
+               sim::detail::SimParams<S, 32, Body<S>>, sim::detail::SimParams<S, 64, Body<S>>>
       v;
 };
 
 // One thread per instance b < B: the step of instance b and its Jacobian.
 template <class S, int C, Integrator I>
 __global__ void __launch_bounds__(kStepJacobianBlock)
-    step_jacobian_kernel(const __grid_constant__ sim::detail::SimParams<S, C> p, const FdBatchIn<S> in,
+    step_jacobian_kernel(const __grid_constant__ sim::detail::SimParams<S, C, Body<S>> p, const FdBatchIn<S> in,
                          const Force<S>* wrenches, const sim::StepDerivativesOut<S> out, S* scratch,
                          std::size_t per_instance, int* failed_dof) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -101,7 +102,7 @@ CudaStepDerivatives<S>::CudaStepDerivatives(const sim::SimSetup<S>& setup, const
   std::visit(
       [&](const auto& mp) {
         using MP = std::decay_t<decltype(mp)>;
-        sim::detail::SimParams<S, MP::capacity> sp{};
+        sim::detail::SimParams<S, MP::capacity, Body<S>> sp{};
         sp.model = mp;
         for (Index i = 0; i < nv_; ++i) {
           sp.coef[i] = setup.coef[i];
