@@ -12,36 +12,39 @@ using namespace scandyn::test::cli;
 
 namespace {
 
-std::vector<std::string> split_on(const std::string& s, char c) {
+std::vector<std::string> split(const std::string& s, char c) {
   std::vector<std::string> out(1);
-  for (char x : s) x == c ? out.emplace_back() : out.back().push_back(x);
+  for (char x : s) {
+    if (x == c) out.emplace_back();
+    else out.back().push_back(x);
+  }
   return out;
 }
-std::vector<std::string> text_lines(const std::string& s) {
-  std::vector<std::string> out = split_on(s, '\n');
+std::vector<std::string> lines(const std::string& s) {
+  std::vector<std::string> out = split(s, '\n');
   if (!out.empty() && out.back().empty()) out.pop_back();
   return out;
 }
 
 class CliRolloutFloating : public CliDirTest {};
 
-// rope:2 with a free base: nv = 7, nq = 8
-const char* const kFreeRope = R"({"model": "rope:2", "base": "floating", "dt": 0.001, "instances": 2,
+// chain:2 with a free base: nv = 7, nq = 8
+const char* const kFreeChain = R"({"model": "chain:2", "base": "floating", "dt": 0.001, "instances": 2,
   "integrator": "rk4", "effects": {"gravity": true, "damping": 0.1},
   "initial": {"q": [0, 0, 1, 0, 0, 0, 1, 0.2], "random": {"seed": 4, "q": 0.3, "qd": 0.2}}})";
 
 TEST_F(CliRolloutFloating, CsvAndNpyHaveNqPositionColumns) {
-  write_text(path("s.json"), kFreeRope);
+  write_text(path("s.json"), kFreeChain);
   const Result r = run("rollout --scene s.json --steps 5 --every 5 --out traj.csv");
   ASSERT_EQ(r.code, 0) << r.err;
-  const std::vector<std::string> rows = text_lines(read_text(path("traj.csv")));
+  const std::vector<std::string> rows = lines(read_text(path("traj.csv")));
   ASSERT_EQ(rows.size(), 1u + 2 * 2);
   EXPECT_EQ(rows[0], "step,time,instance,q_0,q_1,q_2,q_3,q_4,q_5,q_6,q_7,qd_0,qd_1,qd_2,qd_3,qd_4,qd_5,qd_6");
   scandyn::sim::Simulator<double> sim(scandyn::sim::load_scene(path("s.json").string()));
   ASSERT_EQ(sim.nq(), 8);
   for (int s = 0; s < 5; ++s) sim.step();
   for (int b = 0; b < 2; ++b) {
-    const std::vector<std::string> f = split_on(rows[3 + b], ',');
+    const std::vector<std::string> f = split(rows[3 + b], ',');
     ASSERT_EQ(f.size(), 3u + 8 + 7);
     for (int i = 0; i < 8; ++i) EXPECT_EQ(std::stod(f[3 + i]), sim.q().at(i, b)) << "q_" << i;
     for (int i = 0; i < 7; ++i) EXPECT_EQ(std::stod(f[11 + i]), sim.qd().at(i, b)) << "qd_" << i;
