@@ -180,12 +180,12 @@ void Simulator<S>::step(const BatchView<const S>& tau) {
 
 template <class S>
 void Simulator<S>::reset(const std::vector<Index>& instances) {
-  if (setup_.model.multi_dof()) return reset_manifold(instances);
   const Index n = nv(), B = batch();
   for (Index b : instances)
     if (b < 0 || b >= B)
       throw std::out_of_range("Simulator::reset: instance " + std::to_string(b) + " is outside [0, " +
                               std::to_string(B) + ")");
+  if (setup_.model.multi_dof()) return reset_manifold(instances);
   // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer
   const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
@@ -219,35 +219,31 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
   }
 }
 
-// reset for a model with quaternion positions: q (nq) = initial.q ⊕ delta, delta
+// reset for a model with quaternion positions (instances in [0, B)): q (nq) = initial.q ⊕ delta, delta
 // (nv) drawn as the 1-DoF q draws (per DoF, U(-q_spread_i, q_spread_i)): the
 // quaternions move by a rotation vector and stay unit
 template <class S>
 void Simulator<S>::reset_manifold(const std::vector<Index>& instances) {
-  const Index n = nv(), nq = this->nq(), B = batch();
-  for (Index b : instances)
-    if (b < 0 || b >= B)
-      throw std::out_of_range("Simulator::reset: instance " + std::to_string(b) + " is outside [0, " +
-                              std::to_string(B) + ")");
-  const Model model = setup_.model.template cast<double>();
-  std::vector<double> qrow(static_cast<std::size_t>(nq)), delta(static_cast<std::size_t>(n));
+  const Index n = nv(), nq = this->nq(), B = batch();  // the instances are checked by reset
+  const Body<S>* bodies = setup_.model.bodies.data();
+  const Index nb = setup_.model.nbodies();
+  std::vector<S> delta(static_cast<std::size_t>(n));
   const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, nq)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
     const Index count = static_cast<Index>(std::min<std::size_t>(chunk, instances.size() - start));
     q_rows_.resize(static_cast<std::size_t>(count) * nq);
     qd_rows_.resize(static_cast<std::size_t>(count) * n);
     for (Index k = 0; k < count; ++k) {
-      std::copy(initial_.q.begin(), initial_.q.end(), qrow.begin());
-      if (initial_.random) {
-        for (Index i = 0; i < n; ++i) delta[i] = random_->uniform(-initial_.q_spread[i], initial_.q_spread[i]);
-        integrate_bodies(model.bodies.data(), model.nbodies(), qrow.data(), delta.data(), 1.0);
+      S* const qrow = q_rows_.data() + k * nq;
+      for (Index i = 0; i < nq; ++i) qrow[i] = S(initial_.q[i]);
+      if (initial_.random) {  // per instance: all q draws, then all qd draws, as for 1-DoF models
+        for (Index i = 0; i < n; ++i) delta[i] = S(random_->uniform(-initial_.q_spread[i], initial_.q_spread[i]));
+        integrate_bodies(bodies, nb, qrow, delta.data(), S(1));
       }
-      for (Index i = 0; i < nq; ++i) q_rows_[k * nq + i] = S(qrow[i]);
+      normalize_bodies(bodies, nb, qrow);  // unit in precision S
       for (Index i = 0; i < n; ++i)
         qd_rows_[k * n + i] = S(initial_.random ? initial_.qd[i] + random_->uniform(-initial_.qd_spread[i], initial_.qd_spread[i])
                                                : initial_.qd[i]);
-      // in precision S the quaternions are renormalised there
-      normalize_bodies(setup_.model.bodies.data(), setup_.model.nbodies(), q_rows_.data() + k * nq);
     }
     backend_->write_instances(instances.data() + start, count, q_rows_.data(), qd_rows_.data());
   }
