@@ -91,8 +91,10 @@ def test_multi_dof_refusals():
     q, qd, tau = random_state(m, 2, rng)
     fd = sd.ForwardDynamics(m, max_batch=2, fd_check="on")  # the check takes multi-DoF joints
     np.testing.assert_allclose(fd(q, qd, tau), sd.forward_dynamics(m, q, qd, tau), rtol=0, atol=1e-12)
-    with pytest.raises(sd.SceneError, match="spherical"):
-        sd.Simulator({"model": "ballrope:3", "dt": 1e-3, "backend": "serial", "instances": 1})
+    # the simulator takes ball joints; prescribed motion (the hybrid dynamics) does not
+    with pytest.raises(sd.SceneError, match="prescribed: the model has the multi-DoF joint 'joint_0'"):
+        sd.Simulator({"model": "ballrope:3", "dt": 1e-3, "backend": "serial", "instances": 1,
+                      "prescribed": {"joints": [0], "trajectory": [{"sine": {"amplitude": 1}}]}})
 
 
 def test_simulator_state_has_nq_positions():
