@@ -102,6 +102,16 @@ Simulator<S>::Simulator(const Scene& scene) : Simulator(scene, scene.backend) {}
 template <class S>
 Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scene.initial) {
   const Index nv = scene.nv();
+  // a Scene made in code: the initial state's sizes (parse_scene checks them by key)
+  auto check_size = [&](const std::vector<double>& v, Index n, const char* key, const char* what, bool optional) {
+    if ((optional && v.empty()) || static_cast<Index>(v.size()) == n) return;
+    throw std::invalid_argument(std::string("Simulator: the scene's ") + key + " has " + std::to_string(v.size()) +
+                                " entries, the model takes " + std::to_string(n) + " (" + what + ")");
+  };
+  check_size(scene.initial.q, scene.nq(), "initial.q", "nq", false);
+  check_size(scene.initial.qd, nv, "initial.qd", "nv", false);
+  check_size(scene.initial.q_spread, nv, "initial.random.q", "nv", !scene.initial.random);
+  check_size(scene.initial.qd_spread, nv, "initial.random.qd", "nv", !scene.initial.random);
   if (scene.model.multi_dof()) {
     // the scene refuses these first; a Scene made in code meets the same refusals
     const std::string joint = printable(first_multi_dof_joint(scene.model));

@@ -463,6 +463,18 @@ TEST(SimFloatingScene, ErrorsNameTheKey) {
             "test.json: base: expected \"fixed\" or \"floating\", got \"wobbly\"");
 }
 
+// A Scene made in code with nv initial positions where nq are needed.
+TEST(SimFloatingScene, SimulatorRefusesInitialStatesOfTheWrongSize) {
+  Scene scene = scene_from(R"({"model": "chain:2", "base": "floating", "dt": 1e-3})");
+  scene.initial.q.resize(static_cast<std::size_t>(scene.nv()));
+  try {
+    Simulator<double> sim(scene);
+    FAIL() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_STREQ(e.what(), "Simulator: the scene's initial.q has 7 entries, the model takes 8 (nq)");
+  }
+}
+
 TEST(SimFloatingScene, RandomInitialStatesStayOnTheManifold) {
   const Scene scene = scene_from(R"({"model": "ballrope:4", "base": "floating", "dt": 1e-3, "instances": 5,
       "initial": {"random": {"seed": 2, "q": 1.0, "qd": 0.1}}})");

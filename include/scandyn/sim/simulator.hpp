@@ -169,7 +169,8 @@ class Simulator {
   // field tells the command line which S to use) on the scene's backend, or on
   // `backend` when given, and puts every instance in its initial state. Throws
   // BackendError (backend not built, no device, no memory, a combination the
-  // backend does not run).
+  // backend does not run); std::invalid_argument for an initial state whose sizes
+  // are not the model's (q: nq, the others nv; a Scene made in code).
   explicit Simulator(const Scene& scene);
   Simulator(const Scene& scene, BackendKind backend);
   ~Simulator();
