@@ -83,19 +83,19 @@ double max_rel_err_after(sim::Simulator<S>& s, const sim::Scene& scene, int step
   rs.instances = count;
   sim::Simulator<double> ref(rs, BackendKind::Serial);
   for (int k = 0; k < steps; ++k) ref.step(), s.step();
-  const std::size_t n = static_cast<std::size_t>(s.nv()), B = static_cast<std::size_t>(s.batch());
-  std::vector<S> q(n * B), qd(n * B);
+  // q has nq rows (quaternion models), qd nv
+  const std::size_t n = static_cast<std::size_t>(s.nv()), nq = static_cast<std::size_t>(s.nq());
+  const std::size_t B = static_cast<std::size_t>(s.batch());
+  std::vector<S> q(nq * B), qd(n * B);
   s.read_state(q.data(), qd.data());
-  std::vector<double> rq(n * count), rqd(n * count);
+  std::vector<double> rq(nq * count), rqd(n * count);
   ref.read_state(rq.data(), rqd.data());
   double worst = 0;
-  std::vector<double> x(2 * n), r(2 * n);
+  std::vector<double> x(nq + n), r(nq + n);
   for (Index b = 0; b < count; ++b) {
-    for (std::size_t i = 0; i < n; ++i) {
-      x[i] = q[i * B + b], x[n + i] = qd[i * B + b];
-      r[i] = rq[i * count + b], r[n + i] = rqd[i * count + b];
-    }
-    const double e = rel_err(x.data(), r.data(), 2 * n);
+    for (std::size_t i = 0; i < nq; ++i) x[i] = q[i * B + b], r[i] = rq[i * count + b];
+    for (std::size_t i = 0; i < n; ++i) x[nq + i] = qd[i * B + b], r[nq + i] = rqd[i * count + b];
+    const double e = rel_err(x.data(), r.data(), nq + n);
     if (std::isnan(e)) return e;
     worst = std::max(worst, e);
   }

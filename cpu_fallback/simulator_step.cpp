@@ -23,27 +23,29 @@ using sim::JointCoefficients;
 using sim::SimSetup;
 using sim::StepScratch;
 
-// What both CPU steps keep: the resident state (nv x B, q[i * B + b]), the
-// per-step wrenches, the status of the steps since the last clear.
+// What both CPU steps keep: the resident state (q: nq x B, qd: nv x B, q[i * B +
+// b]), the per-step wrenches, the status of the steps since the last clear.
 template <class S>
 class CpuSimState : public sim::detail::SimBackend<S> {
  public:
   CpuSimState(const SimSetup<S>& setup, BackendKind backend, int threads)
       : setup_(setup), backend_(backend), threads_(threads) {
     const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
+    const std::size_t nq = static_cast<std::size_t>(setup.model.nq());
+    const std::size_t nb = static_cast<std::size_t>(setup.model.nbodies());
     const std::size_t B = static_cast<std::size_t>(setup.batch);
-    q_.assign(nv * B, S(0));
+    q_.assign(nq * B, S(0));
     qd_.assign(nv * B, S(0));
     if (setup.wrenches_per_step) {
-      wrenches_.resize(B * nv);
+      wrenches_.resize(B * nb);
       for (std::size_t b = 0; b < B; ++b)
-        std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nv);
+        std::copy(setup.wrenches.begin(), setup.wrenches.end(), wrenches_.begin() + b * nb);
     }
     if (setup.effects & sim::kContacts)
       readings_.assign(B * static_cast<std::size_t>(setup.contact_count()), sim::ContactReading<S>{});
   }
 
-  BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nv(), setup_.batch); }
+  BatchView<S> q() override { return BatchView<S>::soa(q_.data(), setup_.model.nq(), setup_.batch); }
   BatchView<S> qd() override { return BatchView<S>::soa(qd_.data(), setup_.model.nv(), setup_.batch); }
   Force<S>* wrenches() override { return wrenches_.empty() ? nullptr : wrenches_.data(); }
   sim::ContactReading<S>* contact_forces() override { return readings_.empty() ? nullptr : readings_.data(); }
@@ -51,11 +53,11 @@ class CpuSimState : public sim::detail::SimBackend<S> {
 
   void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
     const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), B = static_cast<std::size_t>(setup_.batch);
-    for (Index k = 0; k < count; ++k)
-      for (std::size_t i = 0; i < n; ++i) {
-        q_[i * B + static_cast<std::size_t>(instances[k])] = q_rows[k * n + i];
-        qd_[i * B + static_cast<std::size_t>(instances[k])] = qd_rows[k * n + i];
-      }
+    const std::size_t nq = static_cast<std::size_t>(setup_.model.nq());
+    for (Index k = 0; k < count; ++k) {
+      for (std::size_t i = 0; i < nq; ++i) q_[i * B + static_cast<std::size_t>(instances[k])] = q_rows[k * nq + i];
+      for (std::size_t i = 0; i < n; ++i) qd_[i * B + static_cast<std::size_t>(instances[k])] = qd_rows[k * n + i];
+    }
   }
   void read_state(S* q_host, S* qd_host) override {
     std::copy(q_.begin(), q_.end(), q_host);
@@ -72,17 +74,17 @@ class CpuSimState : public sim::detail::SimBackend<S> {
       throw BackendError("Simulator::step: torques for " + std::to_string(tau.batch) + " instances, the simulator has " +
                          std::to_string(setup_.batch));
   }
-  // the wrenches of instance b (B x nv per step, or the constant nv), null without them
+  // the wrenches of instance b (B x nbodies per step, or the constant nbodies), null without them
   const Force<S>* instance_wrenches(Index b) const {
-    if (!wrenches_.empty()) return wrenches_.data() + static_cast<std::size_t>(b) * setup_.model.nv();
+    if (!wrenches_.empty()) return wrenches_.data() + static_cast<std::size_t>(b) * setup_.model.nbodies();
     return setup_.wrenches.empty() ? nullptr : setup_.wrenches.data();
   }
 
   const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
   BackendKind backend_;
   int threads_;
-  std::vector<S> q_, qd_;           // (nv x B) state, q[i * B + b]
-  std::vector<Force<S>> wrenches_;  // (B x nv) per-step wrenches, or empty
+  std::vector<S> q_, qd_;           // (nq x B), (nv x B) state, q[i * B + b]
+  std::vector<Force<S>> wrenches_;  // (B x nbodies) per-step wrenches, or empty
   std::vector<sim::ContactReading<S>> readings_;  // (B x P) the last step's contacts, or empty
   BatchStatus status_;              // the steps' failures since the last clear
 };
@@ -97,16 +99,18 @@ class CpuInstanceStep final : public CpuSimState<S> {
  public:
   CpuInstanceStep(const SimSetup<S>& setup, BackendKind backend, int threads) : Base(setup, backend, threads) {
     const std::size_t nv = static_cast<std::size_t>(setup.model.nv());
-    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv);
+    for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv, static_cast<std::size_t>(setup.model.nq()));
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
     const int entry = static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects);
-    step_ = setup.prescribed.empty() && setup.loops.empty() ? table()[entry] : constrained_table()[entry];
+    step_ = setup.model.multi_dof()                              ? manifold_table()[entry]
+            : setup.prescribed.empty() && setup.loops.empty() ? table()[entry]
+                                                              : constrained_table()[entry];
   }
 
   void step(const BatchView<const S>& tau) override {
     this->check_torques(tau);
-    const Index B = setup_.batch, n = setup_.model.nv();
+    const Index B = setup_.batch, n = setup_.model.nv(), nq = setup_.model.nq();
     S* const q = q_.data();
     S* const qd = qd_.data();
     Index failures = 0;
@@ -119,6 +123,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
           w.qd[i] = qd[static_cast<std::size_t>(i) * B + b];
           w.tau[i] = tau.data ? tau.at(i, b) : S(0);
         }
+        for (Index i = n; i < nq; ++i) w.q[i] = q[static_cast<std::size_t>(i) * B + b];
         const Index dof = step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(), this->instance_wrenches(b),
                                 readings_.empty() ? nullptr : readings_.data() + static_cast<std::size_t>(b) * setup_.contact_count());
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
@@ -131,6 +136,13 @@ class CpuInstanceStep final : public CpuSimState<S> {
           q[static_cast<std::size_t>(i) * B + b] = w.q[i];
           qd[static_cast<std::size_t>(i) * B + b] = w.qd[i];
           if (nonfinite_[static_cast<std::size_t>(b)] < 0 && !(std::isfinite(w.q[i]) && std::isfinite(w.qd[i]))) {
+            nonfinite_[static_cast<std::size_t>(b)] = static_cast<int>(i);
+            ++local;
+          }
+        }
+        for (Index i = n; i < nq; ++i) {  // quaternion models: q's last nq - nv entries
+          q[static_cast<std::size_t>(i) * B + b] = w.q[i];
+          if (nonfinite_[static_cast<std::size_t>(b)] < 0 && !std::isfinite(w.q[i])) {
             nonfinite_[static_cast<std::size_t>(b)] = static_cast<int>(i);
             ++local;
           }
@@ -151,20 +163,24 @@ class CpuInstanceStep final : public CpuSimState<S> {
 
  private:
   // One thread's workspace: the ABA's scratch, the step's arrays, the contact pass's.
+  // n = nv, nq: the model's (nq > n with quaternions).
   struct Work {
-    Work(const SimSetup<S>& setup, std::size_t n)
-        : data(setup.model, false), q(n), qd(n), tau(n), buffer(6 * n),
+    Work(const SimSetup<S>& setup, std::size_t n, std::size_t nq)
+        : data(setup.model, false), q(nq), qd(n), tau(n), buffer(nq > n ? 6 * n + nq : 6 * n),
           scratch{buffer.data(), buffer.data() + n, buffer.data() + 2 * n, buffer.data() + 3 * n,
                   buffer.data() + 4 * n, buffer.data() + 5 * n},
+          scratch_at{buffer.data(), buffer.data() + n, buffer.data() + 6 * n, buffer.data() + 3 * n,
+                     buffer.data() + 4 * n, buffer.data() + 5 * n, buffer.data() + 2 * n},
           contacts(setup.contact_set()),
           driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {
       if (setup.effects & sim::kContacts) X.resize(n), v.resize(n), fext.resize(n), armature.resize(n);
     }
     Work(Work&& o) noexcept = default;
     DataTpl<S> data;
-    std::vector<S> q, qd, tau;  // (n) the instance's state and torques
-    std::vector<S> buffer;      // (6 n) StepScratch's arrays
-    StepScratch<S> scratch;
+    std::vector<S> q, qd, tau;  // (nq), (n), (n) the instance's state and torques
+    std::vector<S> buffer;      // (6 n, + nq with quaternions) StepScratch's arrays
+    StepScratch<S> scratch;     // 1-DoF models
+    sim::StepScratchAt<S> scratch_at;  // models with multi-DoF joints (over the same buffer; qs its last nq)
     sim::ContactSet<S> contacts;    // over the setup's vectors
     std::vector<Transform<S>> X;    // (n) contacts: body <- world
     std::vector<Motion<S>> v;       // (n) contacts: body twists
@@ -183,7 +199,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
   // contact wrenches to work.fext and, implicit, the contacts' linearised diagonal
   // bound to work.armature, and writes the readings (then nulled: an rk4 step
   // reports its first stage's contacts).
-  template <unsigned E>
+  // kMultiDof: a model with multi-DoF joints (q with nq entries, fext per body).
+  template <unsigned E, bool kMultiDof = false>
   static std::pair<const Force<S>*, const S*> with_contacts(const SimSetup<S>& setup, Work& work, const S* qa,
                                                             const S* qda, const Force<S>* fext, const S* armature,
                                                             sim::ContactReading<S>*& readings) {
@@ -192,12 +209,11 @@ class CpuInstanceStep final : public CpuSimState<S> {
       (void)setup, (void)work, (void)qa, (void)qda, (void)readings;
       return {f, armature};
     } else {
-      const Index n = setup.model.nv();
-      for (Index i = 0; i < n; ++i) {
-        work.fext[i] = f ? f[i] : Force<S>::zero();
-        if (armature) work.armature[i] = armature[i];
-      }
-      sim::contact_pass_any(work.contacts, setup.model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
+      const Index n = setup.model.nbodies(), nv = setup.model.nv();
+      for (Index i = 0; i < n; ++i) work.fext[i] = f ? f[i] : Force<S>::zero();
+      if (armature)
+        for (Index i = 0; i < nv; ++i) work.armature[i] = armature[i];
+      sim::contact_pass_any<kMultiDof>(work.contacts, setup.model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
                             work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
                             readings);
       readings = nullptr;
@@ -217,6 +233,29 @@ class CpuInstanceStep final : public CpuSimState<S> {
     };
     return sim::step_instance<E, I>(model.nv(), setup.dt, setup.coef.data(),
                                     setup.armature.empty() ? nullptr : setup.armature.data(), q, qd, tau, work.scratch, fd);
+  }
+
+  // One instance's step of a model with multi-DoF joints (a floating base, ball
+  // joints): step_instance_at on the configuration manifold over the ABA.
+  template <unsigned E, Integrator I>
+  static Index step_one_at(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau, const Force<S>* fext,
+                           sim::ContactReading<S>* readings) {
+    const ModelTpl<S>& model = setup.model;
+    auto fd = [&](const S* qa, const S* qda, const S* t, const S* armature, S* qdd) -> Index {
+      const auto [f, a] = with_contacts<E, true>(setup, work, qa, qda, fext, armature, readings);
+      return aba(model, work.data, qa, qda, t, qdd, f, a).failed_dof;
+    };
+    return sim::step_instance_at<E, I>(model.bodies.data(), model.nbodies(), model.nq(), model.nv(), setup.dt,
+                                       setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(), q,
+                                       qd, tau, work.scratch_at, fd);
+  }
+  template <std::size_t... K>
+  static constexpr std::array<StepFn, sizeof...(K)> make_manifold_table(std::index_sequence<K...>) {
+    return {&step_one_at<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+  }
+  static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& manifold_table() {
+    static const auto t = make_manifold_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+    return t;
   }
 
   // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
@@ -505,7 +544,9 @@ class CpuEngineStep final : public CpuSimState<S> {
 
 template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
-  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+  // models with multi-DoF joints step per instance (step_instance_at; the engine
+  // path integrates per DoF in R^n)
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit && !setup.model.multi_dof() &&
          (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          !setup.model.multi_dof() &&  // CpuEngineStep integrates per DoF (a free rope's FD is parallel too)

@@ -3,7 +3,7 @@
 
     sim = sd.Simulator("scenes/iiwa_rl.json")           # or a dict with the same keys
     sim.step(tau)                                       # tau (B, nv), or None: zero torques
-    sim.q, sim.qd                                       # (B, nv) views of the simulator's state
+    sim.q, sim.qd                                       # (B, nq), (B, nv) views of the simulator's state
     sim.reset([3, 17])                                  # those instances restart
     sim.contact_forces()                                # (B, P, 3) views of the last step's contacts
 
@@ -43,8 +43,9 @@ class Simulator:
     "double", default double). Errors: SceneError (a bad key, with the library's one-line
     message), BackendError (a backend that is not built or cannot run the scene).
 
-    State: :attr:`q` and :attr:`qd` are the simulator's own buffers, no copies: (B, nv)
-    views of the (nv x B) structure of arrays the simulator keeps (entry (DoF i, instance
+    State: :attr:`q` and :attr:`qd` are the simulator's own buffers, no copies: (B, nq) and
+    (B, nv) views of the (nq x B), (nv x B) structures of arrays the simulator keeps (nq > nv
+    for a floating base and ball joints; entry (DoF i, instance
     b) at element i * B + b, so the view's strides are (1, B) elements). NumPy arrays on
     the CPU backends; on cuda, torch tensors on the simulator's GPU (the raw DLPack object
     without torch). Writes through them change the simulation. A view keeps the simulator
@@ -80,7 +81,8 @@ class Simulator:
 
     @property
     def q(self):
-        """(B, nv) joint positions: a view of the simulator's state (with arrays="dlpack" a new
+        """(B, nq) joint positions (nq = nv unless the model has quaternions: a floating base's
+        [p, quaternion x y z w] first, ball joints' quaternions): a view of the simulator's state (with arrays="dlpack" a new
         object on each access: a DLPack export can be consumed once)."""
         return self._q if self._arrays != "dlpack" else self._s.view(False, "dlpack")
 
@@ -89,6 +91,7 @@ class Simulator:
         """(B, nv) joint velocities: a view of the simulator's state (see q)."""
         return self._qd if self._arrays != "dlpack" else self._s.view(True, "dlpack")
     nv = property(lambda self: self._s.nv, doc="degrees of freedom of the scene's model")
+    nq = property(lambda self: self._s.nq, doc="entries of q (nv + 1 with a floating base, + 1 per ball joint)")
     num_instances = property(lambda self: self._s.num_instances, doc="B, the scene's instances")
     dt = property(lambda self: self._s.dt, doc="the time step (s)")
     t = property(lambda self: self._s.t, doc="simulated time: steps taken since construction times dt")

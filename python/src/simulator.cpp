@@ -98,6 +98,7 @@ struct PySimulator {
     return f(*sd);
   }
   Index nv() { return visit([](auto& s) { return s.nv(); }); }
+  Index nq() { return visit([](auto& s) { return s.nq(); }); }  // q's columns (> nv with quaternions)
   Index batch() { return visit([](auto& s) { return s.batch(); }); }
   bool on_device() { return visit([](auto& s) { return s.on_device(); }); }
 
@@ -215,10 +216,11 @@ nb::object own_view(nb::handle self, PySimulator& p, void* data, size_t ndim, co
   throw ShapeError("unknown array framework '" + framework + "' (numpy, torch, dlpack)");
 }
 
-// q or qd as a (B, nv) array with strides (1, B): the simulator's own memory.
+// q as a (B, nq) array, qd as a (B, nv) one, strides (1, B): the simulator's own
+// memory (nq = nv unless the model has quaternions: a floating base, ball joints).
 nb::object state_view(nb::handle self, bool velocities, const std::string& framework) {
   PySimulator& p = nb::cast<PySimulator&>(self);
-  const Index B = p.batch(), nv = p.nv();
+  const Index B = p.batch(), nv = velocities ? p.nv() : p.nq();
   void* data = p.visit([&](auto& s) -> void* { return velocities ? s.qd().data : s.q().data; });
   const size_t shape[2] = {size_t(B), size_t(nv)};
   const int64_t strides[2] = {1, int64_t(B)};
@@ -371,6 +373,7 @@ void bind_simulator(nb::module_& m) {
       .def("contact_view", &contact_view, "field"_a, "framework"_a)
       .def_prop_ro("num_contact_points", [](PySimulator& p) { return p.visit([](auto& s) { return s.contact_count(); }); })
       .def_prop_ro("nv", &PySimulator::nv)
+      .def_prop_ro("nq", &PySimulator::nq)
       .def_prop_ro("num_instances", &PySimulator::batch)
       .def_prop_ro("on_device", &PySimulator::on_device)
       .def_ro("device", &PySimulator::device)

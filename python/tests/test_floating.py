@@ -91,5 +91,24 @@ def test_multi_dof_refusals():
     q, qd, tau = random_state(m, 2, rng)
     fd = sd.ForwardDynamics(m, max_batch=2, fd_check="on")  # the check takes multi-DoF joints
     np.testing.assert_allclose(fd(q, qd, tau), sd.forward_dynamics(m, q, qd, tau), rtol=0, atol=1e-12)
-    with pytest.raises(sd.SceneError, match="spherical"):
-        sd.Simulator({"model": "ballrope:3", "dt": 1e-3, "backend": "serial", "instances": 1})
+    # the simulator takes ball joints; prescribed motion (the hybrid dynamics) does not
+    with pytest.raises(sd.SceneError, match="prescribed: the model has the multi-DoF joint 'joint_0'"):
+        sd.Simulator({"model": "ballrope:3", "dt": 1e-3, "backend": "serial", "instances": 1,
+                      "prescribed": {"joints": [0], "trajectory": [{"sine": {"amplitude": 1}}]}})
+
+
+def test_simulator_state_has_nq_positions():
+    """The simulator of a floating ballrope: q is (B, nq) with unit quaternions after
+    steps, qd (B, nv); the free fall of gravity moves the base by -g t^2 / 2."""
+    s = sd.Simulator({"model": "ballrope:3", "base": "floating", "dt": 1e-3, "backend": "serial",
+                      "instances": 4, "integrator": "rk4", "effects": {"gravity": True}})
+    assert (s.nq, s.nv) == (15, 12)  # a free base (7, 6) and two ball joints (4, 3)
+    assert s.q.shape == (4, s.nq) and s.qd.shape == (4, s.nv)
+    z0 = s.q[:, 2].copy()
+    for _ in range(100):
+        s.step(None)
+    np.testing.assert_allclose(np.linalg.norm(s.q[:, 3:7], axis=1), 1.0, atol=1e-12)
+    # at rest in the neutral pose the rope falls as one body
+    np.testing.assert_allclose(s.q[:, 2] - z0, -0.5 * 9.81 * 0.1 ** 2, rtol=1e-9)
+    with pytest.raises(sd.ShapeError, match=r"\(4, %d\)" % s.nv):
+        s.step(np.zeros((4, s.nq)))

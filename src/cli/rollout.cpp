@@ -64,27 +64,29 @@ class Progress {
   std::chrono::steady_clock::time_point last_{};
 };
 
-// The first non-finite entry of the state (nv x B, SoA views), as "instance b
-// (q_i = nan)", and how many instances have one; "" when all are finite.
+// The first non-finite entry of the state (q: nq x B, qd: nv x B, SoA views), as
+// "instance b (q_i = nan)", and how many instances have one; "" when all are finite.
 template <class S>
-std::string first_non_finite(const BatchView<const S>& q, const BatchView<const S>& qd, Index nv, long long& count) {
+std::string first_non_finite(const BatchView<const S>& q, const BatchView<const S>& qd, Index nq, Index nv,
+                             long long& count) {
   std::string first;
   count = 0;
   // fast path: contiguous SoA state, all finite (the common case, every step)
-  const auto all_finite = [&](const BatchView<const S>& v) {
+  const auto all_finite = [&](const BatchView<const S>& v, Index rows) {
     if (v.dof_stride != v.batch || v.batch_stride != 1) return false;
-    const std::size_t total = static_cast<std::size_t>(nv) * static_cast<std::size_t>(v.batch);
+    const std::size_t total = static_cast<std::size_t>(rows) * static_cast<std::size_t>(v.batch);
     bool ok = true;
     for (std::size_t k = 0; k < total; ++k) ok &= std::isfinite(v.data[k]);
     return ok;
   };
-  if (all_finite(q) && all_finite(qd)) return first;
+  if (all_finite(q, nq) && all_finite(qd, nv)) return first;
   for (Index b = 0; b < q.batch; ++b) {
     for (int part = 0; part < 2; ++part) {
       const BatchView<const S>& v = part ? qd : q;
+      const Index rows = part ? nv : nq;
       Index i = 0;
-      while (i < nv && std::isfinite(static_cast<double>(v.at(i, b)))) ++i;
-      if (i == nv) continue;
+      while (i < rows && std::isfinite(static_cast<double>(v.at(i, b)))) ++i;
+      if (i == rows) continue;
       if (first.empty()) {
         const double x = static_cast<double>(v.at(i, b));
         first = "instance " + std::to_string(b) + " (" + (part ? "qd_" : "q_") + std::to_string(i) + " = " +
@@ -103,19 +105,21 @@ constexpr double kLargeOutputBytes = 2.0 * (1ull << 30);
 template <class S>
 int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long long every, const std::string& out_path,
             const std::string& tau_path, bool contacts) {
+  // q has nq columns (a floating base's or ball joints' quaternions), qd nv
   const std::size_t n = static_cast<std::size_t>(scene.nv()), nb = static_cast<std::size_t>(scene.instances);
+  const std::size_t nqs = static_cast<std::size_t>(scene.nq());
   // --contacts: 4 values per contact point (force, flag)
   const std::size_t np = contacts ? scene.contacts.points.size() : 0;
   // recorded steps: 0, every, 2 every, ..., and the last one
   const long long records = steps / every + 1 + (steps % every != 0);
   const bool npy = ends_with(out_path, ".npy");
   // the trajectory's size, checked before anything is made: %.17g numbers take up
-  // to 24 bytes with the comma; a .npy record holds 1 + 2 nv (+ 4 P with --contacts)
+  // to 24 bytes with the comma; a .npy record holds 1 + nq + nv (+ 4 P with --contacts)
   // scalars per instance
-  const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + 2 * n + 4 * np);
+  const double values = static_cast<double>(records) * static_cast<double>(nb) * static_cast<double>(1 + nqs + n + 4 * np);
   const double out_bytes = npy ? values * sizeof(S) : values * 24.0;
   const std::string what = "the trajectory of " + std::to_string(records) + " records x " + std::to_string(nb) +
-                           " instances x " + std::to_string(1 + 2 * n + 4 * np) + " values";
+                           " instances x " + std::to_string(1 + nqs + n + 4 * np) + " values";
   require_disk_space(out_path, what, out_bytes);
   // a large output is said before the first step (it fits: checked above)
   if (out_bytes > kLargeOutputBytes)
@@ -124,9 +128,9 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   const double tau_bytes = tau_path.empty() ? 0.0 : RolloutTorques<S>::host_bytes(scene.instances, scene.nv());
   const double contact_bytes = static_cast<double>(np * nb) * sizeof(sim::ContactReading<S>);
   const std::unique_ptr<sim::Simulator<S>> made = make_simulator<S>(
-      scene, backend, 2.0 * static_cast<double>(n * nb) * sizeof(S) + tau_bytes + contact_bytes + (2u << 20));
+      scene, backend, static_cast<double>((nqs + n) * nb) * sizeof(S) + tau_bytes + contact_bytes + (2u << 20));
   sim::Simulator<S>& sim = *made;
-  const Index nv = sim.nv(), B = sim.batch();
+  const Index nv = sim.nv(), nq = sim.nq(), B = sim.batch();
   // --tau: checked (shape, dtype, size; the constant shapes' values) before the output is made
   std::unique_ptr<RolloutTorques<S>> tau;
   if (!tau_path.empty())
@@ -135,11 +139,11 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   // a signal (SIGINT, SIGTERM, SIGHUP) ends the loop at the next step: the records
   // written so far are published (.npy with its shape fixed up), exit 128 + signal
   const SignalGuard guard;
-  std::vector<S> q(n * nb), qd(n * nb);
+  std::vector<S> q(nqs * nb), qd(n * nb);
   std::vector<sim::ContactReading<S>> readings(np * nb);  // (B x P), zeros before the first step
   std::string text;
   const char* const descr = sizeof(S) == 4 ? "<f4" : "<f8";
-  const long long width = 1 + 2 * static_cast<long long>(nv) + 4 * static_cast<long long>(np);
+  const long long width = 1 + static_cast<long long>(nq) + static_cast<long long>(nv) + 4 * static_cast<long long>(np);
   std::size_t header_size = 0;
   if (npy) {
     if (!little_endian()) throw DataError("rollout: .npy output is written on little-endian machines only");
@@ -148,7 +152,7 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     file.write(header);
   } else {
     text = "step,time,instance";
-    for (Index i = 0; i < nv; ++i) text += ",q_" + std::to_string(i);
+    for (Index i = 0; i < nq; ++i) text += ",q_" + std::to_string(i);
     for (Index i = 0; i < nv; ++i) text += ",qd_" + std::to_string(i);
     for (std::size_t k = 0; k < np; ++k) {
       const std::string c = std::to_string(k);
@@ -157,12 +161,12 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
     text += "\n";
     file.write(text);
   }
-  std::vector<S> row(1 + 2 * n + 4 * np);
+  std::vector<S> row(1 + nqs + n + 4 * np);
   long long written = 0;  // records written
   // a state that is not finite stops the rollout (exit 1, nothing written)
   auto check_finite = [&](long long step, const BatchView<const S>& qv, const BatchView<const S>& qdv) {
     long long bad = 0;
-    const std::string first = first_non_finite(qv, qdv, nv, bad);
+    const std::string first = first_non_finite(qv, qdv, nq, nv, bad);
     if (!first.empty())
       throw DataError(scene.path + ": step " + std::to_string(step) + ": the state is not finite in " +
                       std::to_string(bad) + " of " + std::to_string(B) + " instances, first " + first +
@@ -171,16 +175,17 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   auto record = [&](long long step) {
     sim.read_state(q.data(), qd.data());
     if (np > 0 && step > 0) sim.read_contact_forces(readings.data());
-    check_finite(step, BatchView<const S>::soa(q.data(), nv, B), BatchView<const S>::soa(qd.data(), nv, B));
+    check_finite(step, BatchView<const S>::soa(q.data(), nq, B), BatchView<const S>::soa(qd.data(), nv, B));
     ++written;
     const double t = static_cast<double>(step) * scene.dt;
     for (std::size_t b = 0; b < nb; ++b) {
       if (npy) {
         row[0] = S(t);
-        for (std::size_t i = 0; i < n; ++i) row[1 + i] = q[i * nb + b], row[1 + n + i] = qd[i * nb + b];
+        for (std::size_t i = 0; i < nqs; ++i) row[1 + i] = q[i * nb + b];
+        for (std::size_t i = 0; i < n; ++i) row[1 + nqs + i] = qd[i * nb + b];
         for (std::size_t k = 0; k < np; ++k) {
           const sim::ContactReading<S>& c = readings[b * np + k];
-          S* const out = row.data() + 1 + 2 * n + 4 * k;
+          S* const out = row.data() + 1 + nqs + n + 4 * k;
           out[0] = c.force.x, out[1] = c.force.y, out[2] = c.force.z, out[3] = S(c.in_contact);
         }
         file.write(std::string_view(reinterpret_cast<const char*>(row.data()), row.size() * sizeof(S)));
@@ -188,7 +193,7 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
         text = std::to_string(step) + ",";
         append_number(text, t);
         text += "," + std::to_string(b);
-        for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(q[i * nb + b]));
+        for (std::size_t i = 0; i < nqs; ++i) text += ",", append_number(text, double(q[i * nb + b]));
         for (std::size_t i = 0; i < n; ++i) text += ",", append_number(text, double(qd[i * nb + b]));
         for (std::size_t k = 0; k < np; ++k) {
           const sim::ContactReading<S>& c = readings[b * np + k];

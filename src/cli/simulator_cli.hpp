@@ -33,9 +33,10 @@ inline BackendKind scene_backend(const sim::Scene& scene, const Args& args) {
 template <class S>
 double simulator_host_bytes(const sim::Scene& scene, BackendKind backend) {
   const double B = static_cast<double>(scene.instances), n = static_cast<double>(scene.nv()), s = sizeof(S);
-  double bytes = B * n * s * 2 + B * 8;  // reset rows, instance indices
+  const double nq = static_cast<double>(scene.nq());  // q's rows (> nv with quaternions)
+  double bytes = B * (nq + n) * s + B * 8;  // reset rows, instance indices
   if (backend != BackendKind::Cuda) {
-    bytes += B * n * s * 2;                                             // q, qd
+    bytes += B * (nq + n) * s;                                          // q, qd
     if (scene.wrenches_per_step) bytes += B * n * s * 6;                // per-step wrenches
     bytes += workspace_bytes(static_cast<std::size_t>(scene.nv()), backend_threads(backend, scene.threads), false, sizeof(S));
   }

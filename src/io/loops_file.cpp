@@ -94,9 +94,10 @@ LoopSet load_loops(const std::string& path, const Model& model) {
 }
 
 LoopSet generator_loops(const std::string& spec, const Model& model) {
-  require_one_dof(model, spec);
   LoopSet out;
+  // generators without loops (a free rope, a ballrope) give none, whatever their joints
   auto add = [&](const std::string& a, const Vec3<double>& pa, const std::string& b, const Vec3<double>& pb) {
+    require_one_dof(model, spec);
     LoopClosure c;
     c.type = LoopType::Point;
     c.link_a = a, c.link_b = b;

@@ -14,7 +14,9 @@
 
 #include <nlohmann/json.hpp>
 
+#include "scandyn/algorithm/configuration.hpp"
 #include "scandyn/io/limits.hpp"
+#include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
 
 namespace scandyn {
@@ -232,7 +234,7 @@ void parse_contacts(const Reader& r, const json& v, const Model& model, SceneCon
     const json& ps = object_list(r, key + ".points", v["points"], {"link"}, {"position", "radius"},
                                  "an array of {\"link\": NAME, \"position\": [x, y, z], \"radius\": r}");
     std::map<std::string, Index> body_of;
-    for (Index i = 0; i < model.nv(); ++i) body_of[model.link_names[i]] = i;
+    for (Index i = 0; i < model.nbodies(); ++i) body_of[model.link_names[i]] = i;
     for (std::size_t k = 0; k < ps.size(); ++k) {
       const std::string item = key + ".points[" + std::to_string(k) + "]";
       const std::string link = r.string(item + ".link", ps[k]["link"]);
@@ -249,10 +251,93 @@ void parse_contacts(const Reader& r, const json& v, const Model& model, SceneCon
     const json& a = v["all_links"];
     r.check_object(key + ".all_links", a, {"radius"});
     const double rho = a.contains("radius") ? non_negative(r, key + ".all_links.radius", a["radius"]) : 0.0;
-    for (Index i = 0; i < model.nv(); ++i) c.points.push_back({i, Vec3<double>::zero(), rho});
+    for (Index i = 0; i < model.nbodies(); ++i) c.points.push_back({i, Vec3<double>::zero(), rho});
   }
   if (c.points.empty()) r.fail(key, "no contact points (give \"points\" or \"all_links\")");
   if (c.planes.empty() && c.spheres.empty()) r.fail(key, "no obstacles (give \"planes\" or \"spheres\")");
+}
+
+// Per DoF (qd's order): which joint effects apply and the joint it belongs to.
+struct DofDomains {
+  std::vector<unsigned char> joint;    // (nv) 1 unless the floating base's: damping applies
+  std::vector<unsigned char> one_dof;  // (nv) 1 on 1-DoF joints: springs and limits apply
+  std::vector<Index> body;             // (nv) the body whose joint has the DoF
+  std::vector<std::string> joint_name; // (nv) that joint's name
+  bool restricted = false;             // some DoF is outside one_dof (multi-DoF joints)
+
+  // A per-DoF quantity (values, read from v at key) kept to the DoFs in domain: a
+  // single number applies there only (neutral elsewhere); an array entry other
+  // than neutral outside it is an error naming the entry and the joint.
+  std::vector<double> restrict(const Reader& r, const std::string& key, const json& v, std::vector<double> values,
+                               const std::vector<unsigned char>& domain, double neutral, const char* effect) const {
+    if (!restricted) return values;
+    for (std::size_t i = 0; i < values.size(); ++i) {
+      if (domain[i]) continue;
+      if (v.is_array() && values[i] != neutral) {
+        const bool base = !joint[i];
+        r.fail(key + "[" + std::to_string(i) + "]",
+               "DoF " + std::to_string(i) + " belongs to " +
+                   (base ? std::string("the floating base ('") : std::string("the ball joint '")) +
+                   printable(joint_name[i]) + (base ? "'), which takes no " : "', which takes no ") + effect +
+                   " (expected " + (neutral == 0 ? std::string("0") : std::string("null")) + " there)");
+      }
+      values[i] = neutral;
+    }
+    return values;
+  }
+
+  // A per-body quantity (the model's joint limits) per DoF: the body's value on
+  // 1-DoF joints, fill elsewhere.
+  std::vector<double> per_body(const std::vector<double>& values, double fill) const {
+    std::vector<double> out(body.size(), fill);
+    for (std::size_t i = 0; i < body.size(); ++i)
+      if (one_dof[i]) out[i] = values[static_cast<std::size_t>(body[i])];
+    return out;
+  }
+};
+
+DofDomains dof_domains(const Model& model) {
+  DofDomains d;
+  for (Index i = 0; i < model.nbodies(); ++i) {
+    const Body<double>& b = model.bodies[i];
+    for (int k = 0; k < joint_nv(b.type); ++k) {
+      d.joint.push_back(b.type != JointType::Free);
+      d.one_dof.push_back(joint_nv(b.type) == 1);
+      d.body.push_back(i);
+      d.joint_name.push_back(i < static_cast<Index>(model.joint_names.size()) ? model.joint_names[i] : std::to_string(i));
+    }
+  }
+  d.restricted = model.multi_dof();
+  return d;
+}
+
+// initial.q of a model with quaternion positions: an array of nq numbers; each
+// quaternion's norm within io::kQuaternionNormTol of 1 (then normalised), else an
+// error naming its entries and joint.
+std::vector<double> initial_positions(const Reader& r, const json& v, const Model& model) {
+  const Index nq = model.nq();
+  if (!v.is_array())
+    r.expected("initial.q", "an array of " + std::to_string(nq) + " numbers (nq: the model has quaternion positions)", v);
+  if (v.size() != static_cast<std::size_t>(nq))
+    r.fail("initial.q", "expected " + std::to_string(nq) + " entries (nq: positions with quaternions x, y, z, w; " +
+                            std::to_string(model.nv()) + " is nv, the velocities' count), got " + std::to_string(v.size()));
+  std::vector<double> q(static_cast<std::size_t>(nq));
+  for (Index i = 0; i < nq; ++i)
+    q[i] = r.number("initial.q[" + std::to_string(i) + "]", v[static_cast<std::size_t>(i)]);
+  for (Index i = 0; i < model.nbodies(); ++i) {
+    const Body<double>& b = model.bodies[i];
+    if (joint_nq(b.type) == 1) continue;
+    const Index at = b.idx_q + (b.type == JointType::Free ? 3 : 0);
+    const double norm = std::sqrt(q[at] * q[at] + q[at + 1] * q[at + 1] + q[at + 2] * q[at + 2] + q[at + 3] * q[at + 3]);
+    if (!(std::abs(norm - 1) <= io::kQuaternionNormTol)) {
+      std::ostringstream m;
+      m << "the quaternion (x, y, z, w) of joint '" << printable(model.joint_names[i]) << "' has norm " << norm
+        << "; expected a unit quaternion (within " << io::kQuaternionNormTol << " relative)";
+      r.fail("initial.q[" + std::to_string(at) + ".." + std::to_string(at + 3) + "]", m.str());
+    }
+    for (int k = 0; k < 4; ++k) q[at + k] /= norm;
+  }
+  return q;
 }
 
 bool file_exists(const std::string& p) {
@@ -302,12 +387,10 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   if (s.model_spec.find('\0') != std::string::npos)
     r.fail("model", "'" + printable(s.model_spec) + "' contains a NUL character");
   BuildOptions options;
-  if (doc.contains("base")) {  // "fixed" (the default) or "floating" (not simulated yet)
+  if (doc.contains("base")) {  // "fixed" (the default) or "floating" (a free joint at the root)
     const std::string base = r.string("base", doc["base"]);
-    if (base == "floating")
-      r.fail("base", "\"floating\": the simulator does not integrate a floating base yet (quaternion positions); "
-                     "the engines and scandyn eval / bench --floating-base take it");
-    if (base != "fixed") r.expected("base", "\"fixed\" or \"floating\"", doc["base"]);
+    if (base == "floating") options.floating_base = true;
+    else if (base != "fixed") r.expected("base", "\"fixed\" or \"floating\"", doc["base"]);
   }
   if (doc.contains("allow_nonphysical_inertia"))
     options.require_physical_inertia = !r.boolean("allow_nonphysical_inertia", doc["allow_nonphysical_inertia"]);
@@ -327,12 +410,12 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   } catch (const ModelError& e) {
     r.fail("model", e.what());
   }
-  const Index nv = s.model.nv();
+  const Index nv = s.model.nv(), nq = s.model.nq();
   if (nv == 0) r.fail("model", "'" + s.model_spec + "' has no degrees of freedom");
-  if (s.model.multi_dof())
-    r.fail("model", "'" + printable(s.model_spec) + "' has the spherical joint '" +
-                        printable(first_multi_dof_joint(s.model)) + "': the simulator integrates models of "
-                        "revolute and prismatic joints only (no quaternion positions yet)");
+  // Where the per-DoF joint effects apply (docs/scenes.md, "Floating base and ball
+  // joints"): damping on every DoF of a joint (not the floating base's six),
+  // springs and limits on 1-DoF joints only (a quaternion has no q - q0).
+  const DofDomains domains = dof_domains(s.model);
   const Vec3<double> default_gravity = s.model.gravity;
   s.model.gravity = Vec3<double>::zero();
 
@@ -355,7 +438,9 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       }
     }
     if (e.contains("damping")) {
-      const std::vector<double> d = r.per_dof("effects.damping", e["damping"], nv, true);
+      const std::vector<double> d =
+          domains.restrict(r, "effects.damping", e["damping"], r.per_dof("effects.damping", e["damping"], nv, true),
+                           domains.joint, 0.0, "joint damping");
       for (Index i = 0; i < nv; ++i) s.joints[i].damping = d[i];
       s.effects |= kDamping;
     }
@@ -363,9 +448,15 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       const json& sp = e["springs"];
       r.check_object("effects.springs", sp, {"stiffness", "rest"});
       if (!sp.contains("stiffness")) r.fail("effects.springs.stiffness", "missing");
-      const std::vector<double> k = r.per_dof("effects.springs.stiffness", sp["stiffness"], nv, true);
+      const std::vector<double> k =
+          domains.restrict(r, "effects.springs.stiffness", sp["stiffness"],
+                           r.per_dof("effects.springs.stiffness", sp["stiffness"], nv, true), domains.one_dof, 0.0,
+                           "joint springs");
       const std::vector<double> q0 =
-          sp.contains("rest") ? r.per_dof("effects.springs.rest", sp["rest"], nv, false) : std::vector<double>(nv, 0.0);
+          sp.contains("rest") ? domains.restrict(r, "effects.springs.rest", sp["rest"],
+                                                 r.per_dof("effects.springs.rest", sp["rest"], nv, false),
+                                                 domains.one_dof, 0.0, "joint springs")
+                              : std::vector<double>(nv, 0.0);
       for (Index i = 0; i < nv; ++i) s.joints[i].stiffness = k[i], s.joints[i].rest = q0[i];
       s.effects |= kSprings;
     }
@@ -373,17 +464,29 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       const json& l = e["limits"];
       r.check_object("effects.limits", l, {"stiffness", "damping", "lower", "upper"});
       if (!l.contains("stiffness")) r.fail("effects.limits.stiffness", "missing");
-      const std::vector<double> k = r.per_dof("effects.limits.stiffness", l["stiffness"], nv, true);
+      const std::vector<double> k =
+          domains.restrict(r, "effects.limits.stiffness", l["stiffness"],
+                           r.per_dof("effects.limits.stiffness", l["stiffness"], nv, true), domains.one_dof, 0.0,
+                           "joint limits");
       const std::vector<double> d =
-          l.contains("damping") ? r.per_dof("effects.limits.damping", l["damping"], nv, true) : std::vector<double>(nv, 0.0);
-      const std::vector<double> lo = l.contains("lower") ? r.per_dof("effects.limits.lower", l["lower"], nv, false, true, -kInf)
-                                                         : s.model.q_lower;
-      const std::vector<double> hi = l.contains("upper") ? r.per_dof("effects.limits.upper", l["upper"], nv, false, true, kInf)
-                                                         : s.model.q_upper;
+          l.contains("damping") ? domains.restrict(r, "effects.limits.damping", l["damping"],
+                                                   r.per_dof("effects.limits.damping", l["damping"], nv, true),
+                                                   domains.one_dof, 0.0, "joint limits")
+                                : std::vector<double>(nv, 0.0);
+      const std::vector<double> lo =
+          l.contains("lower") ? domains.restrict(r, "effects.limits.lower", l["lower"],
+                                                 r.per_dof("effects.limits.lower", l["lower"], nv, false, true, -kInf),
+                                                 domains.one_dof, -kInf, "joint limits")
+                              : domains.per_body(s.model.q_lower, -kInf);
+      const std::vector<double> hi =
+          l.contains("upper") ? domains.restrict(r, "effects.limits.upper", l["upper"],
+                                                 r.per_dof("effects.limits.upper", l["upper"], nv, false, true, kInf),
+                                                 domains.one_dof, kInf, "joint limits")
+                              : domains.per_body(s.model.q_upper, kInf);
       for (Index i = 0; i < nv; ++i) {
         if (lo[i] > hi[i]) {
           std::ostringstream m;
-          m << "DoF " << i << " (joint '" << s.model.joint_names[i] << "'): lower limit " << lo[i]
+          m << "DoF " << i << " (joint '" << domains.joint_name[i] << "'): lower limit " << lo[i]
             << " is above upper limit " << hi[i];
           r.fail("effects.limits", m.str());
         }
@@ -402,7 +505,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
         const json& ws = x["wrenches"];
         if (!ws.is_array()) r.expected("effects.external.wrenches", "an array of {\"link\": NAME, \"wrench\": [6 numbers]}", ws);
         std::map<std::string, Index> body_of;
-        for (Index i = 0; i < nv; ++i) body_of[s.model.link_names[i]] = i;
+        for (Index i = 0; i < s.model.nbodies(); ++i) body_of[s.model.link_names[i]] = i;
         for (std::size_t k = 0; k < ws.size(); ++k) {
           const std::string key = "effects.external.wrenches[" + std::to_string(k) + "]";
           r.check_object(key, ws[k], {"link", "wrench"});
@@ -453,12 +556,13 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
 
   // ---- initial state
   InitialState& in = s.initial;
-  in.q.assign(static_cast<std::size_t>(nv), 0.0);
+  in.q.assign(static_cast<std::size_t>(nq), 0.0);  // the neutral configuration (identity quaternions)
+  neutral_bodies(s.model.bodies.data(), s.model.nbodies(), in.q.data());
   in.qd.assign(static_cast<std::size_t>(nv), 0.0);
   if (doc.contains("initial")) {
     const json& i = doc["initial"];
     r.check_object("initial", i, {"q", "qd", "random"});
-    if (i.contains("q")) in.q = r.per_dof("initial.q", i["q"], nv, false);
+    if (i.contains("q")) in.q = s.model.multi_dof() ? initial_positions(r, i["q"], s.model) : r.per_dof("initial.q", i["q"], nv, false);
     if (i.contains("qd")) in.qd = r.per_dof("initial.qd", i["qd"], nv, false);
     if (i.contains("random")) {
       const json& rd = i["random"];
@@ -497,6 +601,9 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   // ---- prescribed joint motion
   if (doc.contains("prescribed")) {
     const json& p = doc["prescribed"];
+    if (s.model.multi_dof())
+      r.fail("prescribed", "the model has the multi-DoF joint '" + printable(first_multi_dof_joint(s.model)) +
+                               "': prescribed joint motion (the hybrid dynamics) takes models of 1-DoF joints only");
     r.check_object("prescribed", p, {"joints", "trajectory"});
     if (!p.contains("joints")) r.fail("prescribed.joints", "missing (an array of joint names or DoF indices)");
     if (!p.contains("trajectory")) r.fail("prescribed.trajectory", "missing (an array, one trajectory per joint)");

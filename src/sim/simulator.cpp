@@ -10,7 +10,9 @@
 #include <stdexcept>
 
 #include "../../cpu_fallback/simulator_step.hpp"
+#include "scandyn/algorithm/configuration.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/io/limits.hpp"
 #include "scandyn/build_config.hpp"
 
 namespace scandyn {
@@ -34,6 +36,24 @@ void add_step_failures(BatchStatus& status, const BatchStatus& step) {
 
 double mechanical_energy(const Model& model, unsigned effects, const JointCoefficients<double>* coef,
                          const double* q, const double* qd) {
+  if (model.multi_dof()) {  // quaternion positions: the general kinematics, the world frame
+    const Index nb = model.nbodies();
+    std::vector<Transform<double>> X(static_cast<std::size_t>(nb));  // body <- world
+    std::vector<Motion<double>> v(static_cast<std::size_t>(nb));     // body velocities, body frames
+    contact_kinematics_at(model.bodies.data(), nb, q, qd, X.data(), v.data());
+    double kinetic = 0, potential = 0;
+    for (Index i = 0; i < nb; ++i) {
+      const Body<double>& b = model.bodies[i];
+      kinetic += 0.5 * dot(v[i], b.I * v[i]);
+      if (effects & kGravity) {
+        const Vec3<double> c = (1.0 / b.I.m) * b.I.h;
+        potential -= b.I.m * dot(model.gravity, mul_transpose(X[i].E, c) + X[i].r);
+      }
+      // springs and limits act on 1-DoF joints only (the scene refuses them elsewhere)
+      if (coef && joint_nv(b.type) == 1) potential += joint_effect_energy(effects, coef[b.idx_v], q[b.idx_q]);
+    }
+    return kinetic + potential;
+  }
   const Index n = model.nv();
   std::vector<Transform<double>> X(static_cast<std::size_t>(n));  // body <- base
   std::vector<Motion<double>> v(static_cast<std::size_t>(n));     // body velocities, body frames
@@ -82,6 +102,27 @@ Simulator<S>::Simulator(const Scene& scene) : Simulator(scene, scene.backend) {}
 template <class S>
 Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scene.initial) {
   const Index nv = scene.nv();
+  // a Scene made in code: the initial state's sizes (parse_scene checks them by key)
+  auto check_size = [&](const std::vector<double>& v, Index n, const char* key, const char* what, bool optional) {
+    if ((optional && v.empty()) || static_cast<Index>(v.size()) == n) return;
+    throw std::invalid_argument(std::string("Simulator: the scene's ") + key + " has " + std::to_string(v.size()) +
+                                " entries, the model takes " + std::to_string(n) + " (" + what + ")");
+  };
+  check_size(scene.initial.q, scene.nq(), "initial.q", "nq", false);
+  check_size(scene.initial.qd, nv, "initial.qd", "nv", false);
+  check_size(scene.initial.q_spread, nv, "initial.random.q", "nv", !scene.initial.random);
+  check_size(scene.initial.qd_spread, nv, "initial.random.qd", "nv", !scene.initial.random);
+  if (scene.model.multi_dof()) {
+    // the scene refuses these first; a Scene made in code meets the same refusals
+    const std::string joint = printable(first_multi_dof_joint(scene.model));
+    if (backend == BackendKind::Cuda)
+      throw BackendError("backend 'cuda': the simulator's CUDA step does not take multi-DoF joints yet (joint '" +
+                         joint + "'); the serial and openmp backends do");
+    if (!scene.loops.empty())
+      throw BackendError("closed loops take models of 1-DoF joints only (joint '" + joint + "')");
+    if (!scene.prescribed.empty())
+      throw BackendError("prescribed joint motion takes models of 1-DoF joints only (joint '" + joint + "')");
+  }
   setup_.model = scene.model.template cast<S>();
   setup_.effects = scene.effects;
   setup_.integrator = effective_integrator(scene.integrator, scene.effects);
@@ -100,7 +141,7 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
                            S(scene.effects & kSprings ? scene.dt * scene.dt * scene.joints[i].stiffness : 0.0);
   }
   if (scene.effects & kExternal) {
-    setup_.wrenches.assign(static_cast<std::size_t>(nv), Force<S>::zero());
+    setup_.wrenches.assign(static_cast<std::size_t>(scene.model.nbodies()), Force<S>::zero());
     for (const SceneWrench& w : scene.wrenches) setup_.wrenches[w.body] += w.wrench.template cast<S>();
     setup_.wrenches_per_step = scene.wrenches_per_step;
   }
@@ -154,6 +195,7 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
     if (b < 0 || b >= B)
       throw std::out_of_range("Simulator::reset: instance " + std::to_string(b) + " is outside [0, " +
                               std::to_string(B) + ")");
+  if (setup_.model.multi_dof()) return reset_manifold(instances);
   // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer
   const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
@@ -187,6 +229,36 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
   }
 }
 
+// reset for a model with quaternion positions (instances in [0, B)): q (nq) = initial.q ⊕ delta, delta
+// (nv) drawn as the 1-DoF q draws (per DoF, U(-q_spread_i, q_spread_i)): the
+// quaternions move by a rotation vector and stay unit
+template <class S>
+void Simulator<S>::reset_manifold(const std::vector<Index>& instances) {
+  const Index n = nv(), nq = this->nq(), B = batch();  // the instances are checked by reset
+  const Body<S>* bodies = setup_.model.bodies.data();
+  const Index nb = setup_.model.nbodies();
+  std::vector<S> delta(static_cast<std::size_t>(n));
+  const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, nq)));
+  for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
+    const Index count = static_cast<Index>(std::min<std::size_t>(chunk, instances.size() - start));
+    q_rows_.resize(static_cast<std::size_t>(count) * nq);
+    qd_rows_.resize(static_cast<std::size_t>(count) * n);
+    for (Index k = 0; k < count; ++k) {
+      S* const qrow = q_rows_.data() + k * nq;
+      for (Index i = 0; i < nq; ++i) qrow[i] = S(initial_.q[i]);
+      if (initial_.random) {  // per instance: all q draws, then all qd draws, as for 1-DoF models
+        for (Index i = 0; i < n; ++i) delta[i] = S(random_->uniform(-initial_.q_spread[i], initial_.q_spread[i]));
+        integrate_bodies(bodies, nb, qrow, delta.data(), S(1));
+      }
+      normalize_bodies(bodies, nb, qrow);  // unit in precision S
+      for (Index i = 0; i < n; ++i)
+        qd_rows_[k * n + i] = S(initial_.random ? initial_.qd[i] + random_->uniform(-initial_.qd_spread[i], initial_.qd_spread[i])
+                                               : initial_.qd[i]);
+    }
+    backend_->write_instances(instances.data() + start, count, q_rows_.data(), qd_rows_.data());
+  }
+}
+
 template <class S>
 void Simulator<S>::reset_all() {
   std::vector<Index> all(static_cast<std::size_t>(batch()));
@@ -197,7 +269,8 @@ void Simulator<S>::reset_all() {
 template <class S>
 std::vector<double> Simulator<S>::energy() {
   const std::size_t n = static_cast<std::size_t>(nv()), B = static_cast<std::size_t>(batch());
-  std::vector<S> q(n * B), qd(n * B);
+  const std::size_t nq = static_cast<std::size_t>(this->nq()), nb = static_cast<std::size_t>(setup_.model.nbodies());
+  std::vector<S> q(nq * B), qd(n * B);
   read_state(q.data(), qd.data());
   const Model model = setup_.model.template cast<double>();
   std::vector<JointCoefficients<double>> coef(n);
@@ -218,14 +291,16 @@ std::vector<double> Simulator<S>::energy() {
   cs.planes = planes.data(), cs.nplanes = static_cast<Index>(planes.size());
   cs.spheres = spheres.data(), cs.nspheres = static_cast<Index>(spheres.size());
   cs.law.stiffness = double(setup_.contact_law.stiffness);
-  std::vector<Transform<double>> X(n);
-  std::vector<Motion<double>> v(n);
-  std::vector<double> e(B), qb(n), qdb(n);
+  std::vector<Transform<double>> X(nb);
+  std::vector<Motion<double>> v(nb);
+  std::vector<double> e(B), qb(nq), qdb(n);
   for (std::size_t b = 0; b < B; ++b) {
-    for (std::size_t i = 0; i < n; ++i) qb[i] = double(q[i * B + b]), qdb[i] = double(qd[i * B + b]);
+    for (std::size_t i = 0; i < nq; ++i) qb[i] = double(q[i * B + b]);
+    for (std::size_t i = 0; i < n; ++i) qdb[i] = double(qd[i * B + b]);
     e[b] = mechanical_energy(model, setup_.effects, coef.data(), qb.data(), qdb.data());
     if (setup_.effects & kContacts) {
-      contact_kinematics(model.bodies.data(), model.nv(), qb.data(), qdb.data(), 1, X.data(), v.data());
+      if (model.multi_dof()) contact_kinematics_at(model.bodies.data(), model.nbodies(), qb.data(), qdb.data(), X.data(), v.data());
+      else contact_kinematics(model.bodies.data(), model.nv(), qb.data(), qdb.data(), 1, X.data(), v.data());
       for (const ContactPoint<double>& p : points)
         e[b] += contact_energy_at(cs, mul_transpose(X[p.body].E, p.position) + X[p.body].r, p.radius);
     }

@@ -5,8 +5,9 @@
 // kernels/simulator_step.cu).
 //
 // Geometry. A contact point is a sphere of radius rho >= 0 whose centre c is fixed
-// in body i's frame. "World" is the frame of the model's base (the fixed base
-// today; for a floating base, the frame the base pose is given in). With X_i (body
+// in body i's frame. "World" is the frame of the model's fixed base, or for a
+// floating base the frame its pose (q's first 7 entries) is given in
+// (contact_kinematics_at). With X_i (body
 // i <- world, (E, r)) and v_i (body i's twist in its frame, [w; v] of its origin),
 // the centre is at p = E^T c + r and moves with p_dot = E^T (v + w x c).
 // Obstacles:
@@ -190,6 +191,22 @@ SCANDYN_HD void contact_kinematics(const Bd* bodies, Index n, const S* q, const 
   }
 }
 
+// contact_kinematics for a model with multi-DoF joints (a floating base, ball
+// joints): q (nq) and qd (nv) contiguous, bodies[0..nb) with idx_q / idx_v set.
+// The floating base's joint places body 0 in the world from q's first 7 entries
+// (position, quaternion), so X is body <- world for every body.
+template <class S>
+SCANDYN_HD void contact_kinematics_at(const Body<S>* bodies, Index nb, const S* q, const S* qd, Transform<S>* X,
+                                      Motion<S>* v) {
+  for (Index i = 0; i < nb; ++i) {
+    const Body<S>& b = bodies[i];
+    const Transform<S> Xup = joint_transform_at(b, q + b.idx_q);
+    X[i] = b.parent < 0 ? Xup : Xup * X[b.parent];
+    const Motion<S> vJ = joint_motion_at(b, qd + b.idx_v);
+    v[i] = b.parent < 0 ? vJ : Xup.apply(v[b.parent]) + vJ;
+  }
+}
+
 // The velocity of a world point p per unit rate of joint j (world frame): the
 // column J_j of the point's Jacobian.
 template <class S, class Bd>
@@ -199,17 +216,35 @@ SCANDYN_HD Vec3<S> contact_jacobian_column(const Bd& b, const Transform<S>& X, c
   return cross(axis, p - X.r);
 }
 
+// Column k of the point's Jacobian for body b's joint of any type (world frame):
+// a ball joint's and the free joint's rotations about the body's axes through its
+// origin (k < 3), the free joint's translations along them (k >= 3).
+template <class S>
+SCANDYN_HD Vec3<S> contact_jacobian_column_at(const Body<S>& b, const Transform<S>& X, const Vec3<S>& p, int k) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return contact_jacobian_column(b, X, p);
+  const Vec3<S> e{S(k % 3 == 0), S(k % 3 == 1), S(k % 3 == 2)};
+  const Vec3<S> axis = mul_transpose(X.E, e);  // world frame
+  return k < 3 ? cross(axis, p - X.r) : axis;
+}
+
 // The contact pass of one instance at (q, qd) (q[j * stride]): adds every point's
 // contact wrench to fext (n body wrenches, body frames); with armature (n, or
 // null) adds the implicit bound; readings (P, or null) get the points' forces.
 // X, v: n entries of scratch. h: the look-ahead (dt for implicit, else 0).
 // bodies: Body<S> (the user's frames) or ZJointBody<S> (z-axis frames,
 // scandyn/model/joint_frames.hpp); the points' positions and fext are in the same frames.
-template <unsigned kObstacles, class S, class Bd>
+// kMultiDof: a model with multi-DoF joints (contact_kinematics_at; Body<S> only; n
+// bodies, q with nq and qd and armature with nv entries, stride 1).
+template <unsigned kObstacles, bool kMultiDof = false, class S, class Bd>
 SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
                              long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
                              ContactReading<S>* readings) {
-  contact_kinematics(bodies, n, q, qd, stride, X, v);
+  if constexpr (kMultiDof) {
+    (void)stride;
+    contact_kinematics_at(bodies, n, q, qd, X, v);
+  } else {
+    contact_kinematics(bodies, n, q, qd, stride, X, v);
+  }
   for (Index k = 0; k < cs.npoints; ++k) {
     const ContactPoint<S>& cp = cs.points[k];
     const Index i = cp.body;
@@ -220,9 +255,17 @@ SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n,
     auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
       if (!armature) return;
       for (Index j = i; j >= 0; j = bodies[j].parent) {
-        const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
-        const S a = dot(nrm, col);
-        armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
+        if constexpr (kMultiDof) {
+          for (int k = 0; k < joint_nv(bodies[j].type); ++k) {
+            const Vec3<S> col = contact_jacobian_column_at(bodies[j], X[j], p, k);
+            const S a = dot(nrm, col);
+            armature[bodies[j].idx_v + k] += wn * a * a + wt * (dot(col, col) - a * a);
+          }
+        } else {
+          const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
+          const S a = dot(nrm, col);
+          armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
+        }
       }
     };
     const Vec3<S> f = contact_point_force<kObstacles>(cs, p, pv, cp.radius, h, readings ? readings + k : nullptr, touched);
@@ -234,15 +277,15 @@ SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n,
 
 // contact_pass with the specialisation of cs.obstacles chosen at run time (one
 // switch per pass: planes only, spheres only, both).
-template <class S, class Bd>
+template <bool kMultiDof = false, class S, class Bd>
 SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
                                  long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
                                  ContactReading<S>* readings) {
   switch (cs.obstacles) {
-    case kPlanes: contact_pass<kPlanes>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
-    case kSpheres: contact_pass<kSpheres>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
+    case kPlanes: contact_pass<kPlanes, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
+    case kSpheres: contact_pass<kSpheres, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
     case kPlanes | kSpheres:
-      contact_pass<kPlanes | kSpheres>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings);
+      contact_pass<kPlanes | kSpheres, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings);
       break;
     default:  // no obstacles: the points touch nothing
       for (Index k = 0; readings && k < cs.npoints; ++k) readings[k] = {Vec3<S>::zero(), S(0), 0};

@@ -20,6 +20,12 @@
 //             dt d + dt^2 k enters the forward dynamics as extra joint-space inertia
 //             on M's diagonal (fd_jsi's / aba's armature argument). Limits and
 //             external wrenches stay explicit.
+// Models with quaternion positions (a floating base, ball joints: nq > nv) step on
+// the configuration manifold (step_instance_at below): the velocity update is the
+// same, the position update is q ⊕ dt qd (scandyn/algorithm/configuration.hpp:
+// the quaternion exponential, renormalised), and rk4 combines its stages' slopes in
+// the tangent space at q (the stage positions q ⊕ theta_s; Munthe-Kaas). 1-DoF
+// models keep step_instance unchanged.
 // tau_e(q, qd) = joint_effect_force (scandyn/sim/effects.hpp) of the declared
 // joint effects; gravity and external wrenches live inside FD.
 //
@@ -33,6 +39,7 @@
 
 #include <string>
 
+#include "scandyn/algorithm/configuration.hpp"
 #include "scandyn/sim/effects.hpp"
 
 #if defined(__CUDA_ARCH__)
@@ -190,6 +197,112 @@ SCANDYN_HD Index step_instance(Index n, S dt, const JointCoefficients<S>* coef, 
       if (kLoop > 0 && i >= n) continue;
       euler_update(dt, w.qdd[i], q[i], qd[i]);
     }
+    return -1;
+  }
+}
+
+// ---- one instance's step on the configuration manifold --------------------------
+//
+// For models with multi-DoF joints (ModelTpl::multi_dof(): the floating base, ball
+// joints): q has nq entries, qd, tau and qdd nv. Per integrator:
+//   euler     qdd = FD(q, qd, tau + tau_e),  qd += dt qdd,  q = q ⊕ dt qd;
+//   implicit  the same with the armature dt d + dt^2 k and the springs looking dt
+//             ahead: the stiff terms are linear in the tangent space (damping on
+//             the joints' rates, springs on 1-DoF joints' positions), so the
+//             1-DoF linearisation holds as it is;
+//   rk4       stage s at (q ⊕ theta_s, qd + c_s qdd_{s-1}); its position slope
+//             in the tangent space at q is tangent_slope(theta_s, qd_s)
+//             (configuration.hpp; Jr^-1 on the rotations), the next stage's
+//             offset theta_{s+1} = c_{s+1} slope_s; after the four stages
+//             q = q ⊕ dt/6 (k1 + 2 k2 + 2 k3 + k4), qd as in step_instance.
+//             Fourth order on the manifold (the quaternions stay unit).
+// The joint effects act per DoF: damping on every joint DoF (ball joints' three
+// rates), springs and limits on 1-DoF joints (at q[idx_q]); the scene gives the
+// floating base's six DoFs and the ball joints' springs and limits zero
+// coefficients (docs/scenes.md), so a DoF of a multi-DoF joint reads q = 0.
+
+// Scratch of step_instance_at (the caller's memory).
+template <class S>
+struct StepScratchAt {
+  S* tau;    // (nv) tau + the joint effects' forces
+  S* qdd;    // (nv) forward dynamics' result
+  S* qs;     // (nq) rk4: the stage's position q ⊕ theta
+  S* qds;    // (nv) rk4: the stage's velocity
+  S* aq;     // (nv) rk4: weighted sum of the stages' tangent slopes
+  S* aqd;    // (nv) rk4: weighted sum of the stages' accelerations
+  S* theta;  // (nv) rk4: the stage's tangent offset, then (in place) its slope
+};
+
+// The joint effects' forces tau + tau_e(q, qd) (nv) into out, springs looking h
+// ahead, over the bodies (1-DoF joints at q[idx_q], the others' DoFs at q = 0).
+template <unsigned kEffects, class S>
+SCANDYN_HD void effect_forces_at(const Body<S>* bodies, Index nb, const JointCoefficients<S>* coef, const S* tau,
+                                 const S* q, const S* qd, S h, S* out) {
+  for (Index i = 0; i < nb; ++i) {
+    const Body<S>& b = bodies[i];
+    const Index k = b.idx_v;
+    if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
+      out[k] = effect_forces<kEffects>(tau[k], coef[k], q[b.idx_q], qd[k], h);
+      continue;
+    }
+    for (int j = 0; j < joint_nv(b.type); ++j)
+      out[k + j] = effect_forces<kEffects>(tau[k + j], coef[k + j], S(0), qd[k + j], h);
+  }
+}
+
+// One step of one instance of a model with multi-DoF joints: q (nq) and qd (nv),
+// contiguous, advanced by dt in place under tau (nv); bodies[0..nb) with idx_q /
+// idx_v set. coef, armature and fd as for step_instance (fd reads q with nq
+// entries). Returns -1, or the failed DoF (q and qd then as they were).
+template <unsigned kEffects, Integrator kIntegrator, class S, class Fd>
+SCANDYN_HD Index step_instance_at(const Body<S>* bodies, Index nb, Index nq, Index nv, S dt,
+                                  const JointCoefficients<S>* coef, const S* armature, S* q, S* qd, const S* tau,
+                                  const StepScratchAt<S>& w, Fd&& fd) {
+  constexpr bool kJoint = (kEffects & kJointEffects) != 0;
+  auto forces = [&](const S* qa, const S* qda, S h) -> const S* {
+    if constexpr (!kJoint) {
+      (void)qa, (void)qda, (void)h, (void)coef;
+      return tau;
+    } else {
+      effect_forces_at<kEffects>(bodies, nb, coef, tau, qa, qda, h, w.tau);
+      return w.tau;
+    }
+  };
+  if constexpr (kIntegrator == Integrator::Rk4) {
+    for (Index i = 0; i < nq; ++i) w.qs[i] = q[i];
+    for (Index i = 0; i < nv; ++i) w.qds[i] = qd[i], w.theta[i] = S(0), w.aq[i] = S(0), w.aqd[i] = S(0);
+    for (int s = 0; s < 4; ++s) {
+      const Index failed = fd(w.qs, w.qds, forces(w.qs, w.qds, S(0)), static_cast<const S*>(nullptr), w.qdd);
+      if (failed >= 0) return failed;
+      // the stage's position slope in the tangent space at q (over theta: its offset)
+      for (Index i = 0; i < nb; ++i) {  // theta_s -> slope_s, joint by joint
+        const Index k = bodies[i].idx_v;
+        S slope[kMaxJointDofs];
+        joint_tangent_slope(bodies[i], w.theta + k, w.qds + k, slope);
+        for (int j = 0; j < joint_nv(bodies[i].type); ++j) w.theta[k + j] = slope[j];
+      }
+      const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+      const S c = s < 2 ? S(0.5) * dt : dt;  // the next stage's offset
+      for (Index i = 0; i < nv; ++i) {
+        w.aq[i] += weight * w.theta[i];
+        w.aqd[i] += weight * w.qdd[i];
+        w.theta[i] *= c;
+        w.qds[i] = qd[i] + c * w.qdd[i];
+      }
+      for (Index i = 0; i < nq; ++i) w.qs[i] = q[i];
+      integrate_bodies(bodies, nb, w.qs, w.theta, S(1));
+    }
+    const S sixth = dt / S(6);
+    integrate_bodies(bodies, nb, q, w.aq, sixth);
+    for (Index i = 0; i < nv; ++i) qd[i] += sixth * w.aqd[i];
+    return -1;
+  } else {
+    constexpr bool kImplicit = kIntegrator == Integrator::Implicit && (kEffects & kImplicitEffects) != 0;
+    const S h = kImplicit ? dt : S(0);
+    const Index failed = fd(q, qd, forces(q, qd, h), kImplicit ? armature : static_cast<const S*>(nullptr), w.qdd);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < nv; ++i) qd[i] += dt * w.qdd[i];
+    integrate_bodies(bodies, nb, q, qd, dt);
     return -1;
   }
 }

@@ -49,10 +49,11 @@ struct SceneContacts {
 
 // How instances start (and restart after reset()).
 struct InitialState {
-  std::vector<double> q;      // (nv) joint positions
+  std::vector<double> q;      // (nq) joint positions (unit quaternions where the model has them)
   std::vector<double> qd;     // (nv) joint velocities
   // randomised: each reset draws q_i + U(-q_spread_i, q_spread_i), qd_i + U(-qd_spread_i,
-  // qd_spread_i) from one std::mt19937_64 seeded once with seed (docs/scenes.md gives the order)
+  // qd_spread_i) from one std::mt19937_64 seeded once with seed (docs/scenes.md gives the order);
+  // with quaternion positions q = initial.q ⊕ delta, delta_i ~ U(-q_spread_i, q_spread_i) (nv)
   bool random = false;
   std::uint64_t seed = 0;
   std::vector<double> q_spread;   // (nv) half-widths, >= 0
@@ -85,6 +86,7 @@ struct Scene {
   LoopSet loops;                      // closed loops: the generator's and the scene's "loops"
 
   Index nv() const { return model.nv(); }
+  Index nq() const { return model.nq(); }  // rows of q (> nv with a floating base or ball joints)
 };
 
 // The backend "backend": "auto" stands for on this machine: cuda when it is built

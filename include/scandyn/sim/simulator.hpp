@@ -12,6 +12,10 @@
 //
 // State. q and qd live in the backend's memory, structure of arrays with the
 // instance innermost: entry (DoF i, instance b) at q[i * B + b] (BatchView::soa).
+// q has nq rows, qd nv (nq = nv for models of 1-DoF joints; a floating base's
+// q = [p, quaternion x y z w, joints...], ball joints' quaternions, as the model's
+// convention: scandyn/model/model.hpp). Such models step on the configuration
+// manifold (integrators.hpp, step_instance_at) on the serial and openmp backends.
 // Host memory for the serial and OpenMP backends; device memory for cuda, where the
 // state stays resident across steps (no host round trip per step). q()/qd() return
 // views of that memory; writes through them change the simulation. On cuda, work
@@ -92,8 +96,8 @@ struct SimSetup {
   Index batch = 0;                          // B
   std::vector<JointCoefficients<S>> coef;   // (nv) joint coefficients
   std::vector<S> armature;                  // (nv) dt d + dt^2 k for implicit, else empty
-  std::vector<Force<S>> wrenches;           // (nv) the constant external wrenches (kExternal), else empty
-  bool wrenches_per_step = false;           // (B x nv) buffer the caller rewrites
+  std::vector<Force<S>> wrenches;           // (nbodies) the constant external wrenches (kExternal), else empty
+  bool wrenches_per_step = false;           // (B x nbodies) buffer the caller rewrites
   int threads = 0;                          // OpenMP threads (0: all)
   // contacts (kContacts), else empty
   std::vector<ContactPoint<S>> contact_points;    // (P) points on the bodies
@@ -136,13 +140,13 @@ class SimBackend {
   virtual void step(const BatchView<const S>& tau) = 0;
   virtual BatchView<S> q() = 0;
   virtual BatchView<S> qd() = 0;
-  virtual Force<S>* wrenches() = 0;                // (B x nv) per-step wrenches, or null
+  virtual Force<S>* wrenches() = 0;                // (B x nbodies) per-step wrenches, or null
   virtual ContactReading<S>* contact_forces() = 0;  // (B x P) the last step's contacts, or null
   // copies contact_forces() (B x P) to host memory
   virtual void read_contact_forces(ContactReading<S>* host) = 0;
-  // writes the rows (count x nv each, host memory) of the listed instances
+  // writes the rows (count x nq of q, count x nv of qd, host memory) of the listed instances
   virtual void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) = 0;
-  // copies all of q and qd (nv x B, SoA) to host memory
+  // copies all of q (nq x B) and qd (nv x B), SoA, to host memory
   virtual void read_state(S* q_host, S* qd_host) = 0;
   virtual BatchStatus status() = 0;  // failed instance-steps since clear_status()
   virtual void clear_status() = 0;
@@ -165,7 +169,8 @@ class Simulator {
   // field tells the command line which S to use) on the scene's backend, or on
   // `backend` when given, and puts every instance in its initial state. Throws
   // BackendError (backend not built, no device, no memory, a combination the
-  // backend does not run).
+  // backend does not run); std::invalid_argument for an initial state whose sizes
+  // are not the model's (q: nq, the others nv; a Scene made in code).
   explicit Simulator(const Scene& scene);
   Simulator(const Scene& scene, BackendKind backend);
   ~Simulator();
@@ -183,9 +188,9 @@ class Simulator {
   void reset(const std::vector<Index>& instances);
   void reset_all();
 
-  BatchView<S> q() { return backend_->q(); }    // (nv x B) joint positions, resident
+  BatchView<S> q() { return backend_->q(); }    // (nq x B) joint positions, resident
   BatchView<S> qd() { return backend_->qd(); }  // (nv x B) joint velocities, resident
-  // (B x nv) external wrenches, wrench[b * nv + i] on body i of instance b, in the
+  // (B x nbodies) external wrenches, wrench[b * nbodies + i] on body i of instance b, in the
   // backend's memory, read by every step: with "external": {"per_step": true}
   // (initialised to the scene's constant wrenches); null otherwise.
   Force<S>* wrenches() { return backend_->wrenches(); }
@@ -201,7 +206,7 @@ class Simulator {
   // Copies contact_forces() to host memory (B x P); synchronises on cuda.
   void read_contact_forces(ContactReading<S>* host) { backend_->read_contact_forces(host); }
 
-  // Copies the state to host memory (nv x B each, SoA); synchronises on cuda.
+  // Copies the state to host memory (q: nq x B, qd: nv x B, SoA); synchronises on cuda.
   void read_state(S* q_host, S* qd_host) { backend_->read_state(q_host, qd_host); }
   // Mechanical energy of every instance (B values, computed in double on the host
   // from a copy of the state): kinetic 1/2 sum v_i . I_i v_i, plus the potential of
@@ -227,6 +232,7 @@ class Simulator {
   const SimSetup<S>& setup() const { return setup_; }
   Index batch() const { return setup_.batch; }
   Index nv() const { return setup_.model.nv(); }
+  Index nq() const { return setup_.model.nq(); }  // rows of q (> nv with quaternions)
   double time() const { return time_; }        // steps taken since construction, times dt
   long long steps() const { return steps_; }
 
@@ -237,6 +243,7 @@ class Simulator {
   // the initial-state generator (std::mt19937_64 state, kept opaque here)
   struct Random;
   std::unique_ptr<Random> random_;
+  void reset_manifold(const std::vector<Index>& instances);  // reset with quaternion positions
   std::vector<S> q_rows_, qd_rows_;  // reset scratch
   double time_ = 0;
   long long steps_ = 0;
@@ -244,6 +251,8 @@ class Simulator {
 
 // Mechanical energy of one state (see Simulator::energy): model in double, its
 // gravity used when effects has kGravity; coef (nv) for springs and limits.
+// q has nq entries (the world frame for a floating base; springs and limits of
+// 1-DoF joints only).
 double mechanical_energy(const Model& model, unsigned effects, const JointCoefficients<double>* coef,
                          const double* q, const double* qd);
 
