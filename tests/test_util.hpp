@@ -154,24 +154,6 @@ inline std::vector<double> random_q(const Model& m, std::mt19937_64& rng, double
   return q;
 }
 
-// A random tree on a free root: random_model's bodies (revolute and prismatic,
-// arbitrary axes, rotated inertias) with body 0 a free joint and about a third of
-// the others spherical.
-inline Model random_floating_model(int n, unsigned seed) {
-  Model m = test::random_model(n, seed);
-  std::mt19937_64 g(seed * 7 + 1);
-  m.bodies[0].type = JointType::Free;
-  m.bodies[0].parent = -1;
-  m.bodies[0].Xtree = Transform<double>::identity();
-  for (int i = 1; i < n; ++i) {
-    Body<double>& b = m.bodies[static_cast<std::size_t>(i)];
-    if (b.parent < 0) b.parent = 0;  // one root: the free body
-    if (std::uniform_real_distribution<double>(0, 1)(g) < 0.35) b.type = JointType::Spherical;
-  }
-  set_joint_offsets(m);
-  return m;
-}
-
 // A model on a free joint at its root (--floating-base), nonphysical inertias allowed
 // (GRiD's atlas.urdf).
 inline Model load_floating(const std::string& spec) {

@@ -24,6 +24,7 @@
 #include "scandyn/algorithm/fd_check.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/truth/truth.hpp"
+#include "floating_models.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
