@@ -62,8 +62,12 @@ std::size_t scratch_bound(unsigned n, unsigned max_batch) {
   return std::size_t(max_batch) * (n + std::min(n, kMaxRun) - 1) + 31 * kMaxRun;
 }
 
-template <class S>
+// kMulti: a model with multi-DoF joints (idx_q / idx_v set); the kernels are
+// instantiated for it separately, so that a model of 1-DoF joints runs code without
+// the general path (and its registers).
+template <class S, bool kMulti = false>
 struct Level {
+  static constexpr bool kMultiDof = kMulti;
   // model (device)
   const Body<S>* __restrict__ table;         // distinct bodies
   const int* __restrict__ body_class;        // (nv) body -> table entry
@@ -74,6 +78,8 @@ struct Level {
   const int* __restrict__ branch_child;      // branch children, by parent
   const int* __restrict__ branch_point;      // (nv) index among bodies with branch children, or -1
   const int* __restrict__ branch_pos;        // (nv) index of a branch child in branch_child, or -1
+  const int* __restrict__ idx_q;             // (nbodies) first q row of body i's joint, or null: a model
+  const int* __restrict__ idx_v;             // (nbodies) of 1-DoF joints, body i at row i of q, qd, qdd, tau
   // batch (device views)
   IdBatchIn<S> in;
   BatchView<S> tau;
@@ -85,7 +91,7 @@ struct Level {
   Motion<S>* ab;        // (branch points x B) a of the same
   Force<S>* Fb;         // (branch children x B) forces of branch children (segment heads)
   std::size_t base;     // this level's first scratch entry
-  int nv;
+  int nb;               // bodies (fext's stride)
   RunShape shape;
   Motion<S> a0;         // base acceleration
 
@@ -108,7 +114,20 @@ struct Level {
     return b * shape.C + c;
   }
   __device__ __forceinline__ Body<S> body(int i) const { return table[body_class[i]]; }
-  __device__ __forceinline__ S q(int i, unsigned b) const { return in.q.at(i, b); }
+  // Xup of body i (bd its body) in instance b; a multi-DoF joint from its q rows
+  __device__ __forceinline__ Transform<S> Xup(const Body<S>& bd, int i, unsigned b) const {
+    if constexpr (!kMulti) return joint_transform(bd, in.q.at(i, b));
+    if (joint_nv(bd.type) == 1) return joint_transform(bd, in.q.at(idx_q[i], b));
+    S x[7];
+    for (int k = 0; k < joint_nq(bd.type); ++k) x[k] = in.q.at(idx_q[i] + k, b);
+    return joint_transform_at(bd, x);
+  }
+  __device__ __forceinline__ Transform<S> Xup(int i, unsigned b) const { return Xup(body(i), i, b); }
+  // body i's joint rates from v (qd or qdd) into x (joint_nv entries; kMulti)
+  __device__ __forceinline__ void rates(const BatchView<const S>& v, const Body<S>& bd, int i, unsigned b,
+                                        S* x) const {
+    for (int k = 0; k < joint_nv(bd.type); ++k) x[k] = v.at(idx_v[i] + k, b);
+  }
 };
 
 // ---- scan elements ------------------------------------------------------------------
@@ -118,10 +137,17 @@ struct Level {
 // from: the base, or the stored values of a branch point of a lower level.
 
 // velocities: (Xup_i, S qd_i); a segment head (0, Xup_i v_parent + S qd_i)
-template <class S>
-__device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+template <class S, bool kM>
+__device__ MotionAffine<S> velocity_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s, const Body<S>& bd,
                                             const Transform<S>& X) {
-  const MotionAffine<S> e = id_velocity_element(bd, X, L.in.qd.at(s.i, s.b));
+  MotionAffine<S> e;
+  if constexpr (kM) {
+    S qd[kMaxJointDofs];
+    L.rates(L.in.qd, bd, s.i, s.b, qd);
+    e = id_velocity_element_at(bd, X, qd);
+  } else {
+    e = id_velocity_element(bd, X, L.in.qd.at(s.i, s.b));
+  }
   if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> vp = p < 0 ? Motion<S>::zero() : L.vb[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
@@ -129,11 +155,18 @@ __device__ MotionAffine<S> velocity_element(const Level<S>& L, const typename Le
 }
 
 // accelerations: (Xup_i, S qdd + v x S qd); a head folds in Xup_i a_parent (-g at the base)
-template <class S>
-__device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typename Level<S>::Site& s,
+template <class S, bool kM>
+__device__ MotionAffine<S> acceleration_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s,
                                                 const Body<S>& bd, const Transform<S>& X, const Motion<S>& v) {
-  const S qd = L.in.qd.at(s.i, s.b);
-  const MotionAffine<S> e = id_acceleration_element(bd, X, v, qd, L.in.qdd.at(s.i, s.b));
+  MotionAffine<S> e;
+  if constexpr (kM) {
+    S qd[kMaxJointDofs], qdd[kMaxJointDofs];
+    L.rates(L.in.qd, bd, s.i, s.b, qd);
+    L.rates(L.in.qdd, bd, s.i, s.b, qdd);
+    e = id_acceleration_element_at(bd, X, v, qd, qdd);
+  } else {
+    e = id_acceleration_element(bd, X, v, L.in.qd.at(s.i, s.b), L.in.qdd.at(s.i, s.b));
+  }
   if (!(s.role & kSegmentHead)) return e;
   const int p = L.parent[s.i];
   const Motion<S> ap = p < 0 ? L.a0 : L.ab[std::size_t(L.branch_point[p]) * L.shape.B + s.b];
@@ -143,18 +176,18 @@ __device__ MotionAffine<S> acceleration_element(const Level<S>& L, const typenam
 // forces, leaves to root: G -> B + Y^T G with G = F_{i+1}, Y = Xup_{i+1} (zero at a
 // segment's tail), B = f_i = I a + v x* I v - fext (body_force) plus the forces of
 // the branch children (heads of higher levels, final when this level runs)
-template <class S>
-__device__ ForceAffine<S> force_element(const Level<S>& L, const typename Level<S>::Site& s, const Body<S>& bd,
+template <class S, bool kM>
+__device__ ForceAffine<S> force_element(const Level<S, kM>& L, const typename Level<S, kM>::Site& s, const Body<S>& bd,
                                         const Motion<S>& v, const Motion<S>& a) {
   Force<S> f = body_force(bd, v, a);
-  if (L.in.fext) f -= L.in.fext[std::size_t(s.b) * L.nv + s.i];
+  if (L.in.fext) f -= L.in.fext[std::size_t(s.b) * L.nb + s.i];
   for (int k = L.branch_begin[s.i]; k < L.branch_begin[s.i + 1]; ++k) {
     const int c = L.branch_child[k];
-    const Transform<S> Xc = joint_transform(L.body(c), L.q(c, s.b));
+    const Transform<S> Xc = L.Xup(c, s.b);
     f += Xc.apply_transpose(L.Fb[std::size_t(k) * L.shape.B + s.b]);
   }
   if (s.role & kSegmentTail) return {zero_transform<S>(), f};
-  return {joint_transform(L.body(s.i + 1), L.q(s.i + 1, s.b)), f};
+  return {L.Xup(s.i + 1, s.b), f};
 }
 
 // CUB's operator sees (prefix so far, next element): for the force aggregates,
@@ -169,8 +202,8 @@ struct ComposeForceSuffix {
 // ---- pass kernels: one thread per run -----------------------------------------------
 
 // velocity aggregates
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, MotionAffine<S>* __restrict__ agg) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S, kM> L, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r);
@@ -178,16 +211,16 @@ __global__ void __launch_bounds__(kRunBlock) velocity_runs(const Level<S> L, Mot
   for (unsigned j = 0; j < n; ++j) {
     const auto s = L.site(r, j);
     const Body<S> bd = L.body(s.i);
-    const MotionAffine<S> el = velocity_element(L, s, bd, joint_transform(bd, L.q(s.i, s.b)));
+    const MotionAffine<S> el = velocity_element(L, s, bd, L.Xup(bd, s.i, s.b));
     acc = j == 0 ? el : compose(acc, el);
   }
   agg[L.scan_index(r)] = acc;
 }
 
 // velocities from the carry-in; acceleration aggregates
-template <class S>
+template <class S, bool kM>
 __global__ void __launch_bounds__(kRunBlock)
-    velocity_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, MotionAffine<S>* __restrict__ agg) {
+    velocity_walk(const Level<S, kM> L, const MotionAffine<S>* __restrict__ pre, MotionAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r);
@@ -196,7 +229,7 @@ __global__ void __launch_bounds__(kRunBlock)
   for (unsigned j = 0; j < n; ++j) {
     const auto s = L.site(r, j);
     const Body<S> bd = L.body(s.i);
-    const Transform<S> X = joint_transform(bd, L.q(s.i, s.b));
+    const Transform<S> X = L.Xup(bd, s.i, s.b);
     x = apply(velocity_element(L, s, bd, X), x);
     L.v[s.st] = x;
     const int bp = L.branch_point[s.i];
@@ -209,9 +242,9 @@ __global__ void __launch_bounds__(kRunBlock)
 
 // accelerations from the carry-in; with kForces (a model of one level) also the
 // force offsets and aggregates, which otherwise wait for force_runs
-template <class S, bool kForces>
+template <class S, bool kM, bool kForces>
 __global__ void __launch_bounds__(kRunBlock)
-    acceleration_walk(const Level<S> L, const MotionAffine<S>* __restrict__ pre, ForceAffine<S>* __restrict__ agg) {
+    acceleration_walk(const Level<S, kM> L, const MotionAffine<S>* __restrict__ pre, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r);
@@ -221,7 +254,7 @@ __global__ void __launch_bounds__(kRunBlock)
     const auto s = L.site(r, j);
     const Body<S> bd = L.body(s.i);
     const Motion<S> v = L.v[s.st];
-    x = apply(acceleration_element(L, s, bd, joint_transform(bd, L.q(s.i, s.b)), v), x);
+    x = apply(acceleration_element(L, s, bd, L.Xup(bd, s.i, s.b), v), x);
     L.a[s.st] = x;
     const int bp = L.branch_point[s.i];
     if (bp >= 0) L.ab[std::size_t(bp) * L.shape.B + s.b] = x;
@@ -235,8 +268,8 @@ __global__ void __launch_bounds__(kRunBlock)
 }
 
 // force offsets and aggregates of a level whose branch children are final
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S> L, ForceAffine<S>* __restrict__ agg) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S, kM> L, ForceAffine<S>* __restrict__ agg) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r);
@@ -252,8 +285,8 @@ __global__ void __launch_bounds__(kRunBlock) force_runs(const Level<S> L, ForceA
 
 // forces from the carry-in (the force of the next run's first body), last step
 // first; tau, and the forces of branch children for their parents
-template <class S>
-__global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S> L, const ForceAffine<S>* __restrict__ suffix) {
+template <class S, bool kM>
+__global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S, kM> L, const ForceAffine<S>* __restrict__ suffix) {
   const unsigned r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= L.shape.R) return;
   const unsigned n = L.steps(r), si = L.scan_index(r), count = L.shape.B * L.shape.C;
@@ -263,11 +296,17 @@ __global__ void __launch_bounds__(kRunBlock) force_walk(const Level<S> L, const 
     const auto s = L.site(r, j);
     const Body<S> bd = L.body(s.i);
     const Transform<S> Y = (s.role & kSegmentTail) ? zero_transform<S>()
-                                                   : joint_transform(L.body(s.i + 1), L.q(s.i + 1, s.b));
+                                                   : L.Xup(s.i + 1, s.b);
     G = L.offset[s.st] + Y.apply_transpose(G);
     const int pos = L.branch_pos[s.i];
     if (pos >= 0) L.Fb[std::size_t(pos) * L.shape.B + s.b] = G;
-    L.tau.at(s.i, s.b) = joint_project(bd, G);
+    if (!kM || joint_nv(bd.type) == 1) {
+      L.tau.at(kM ? L.idx_v[s.i] : s.i, s.b) = joint_project(bd, G);
+    } else {  // a floating base: its wrench, tau_0..5
+      S t[kMaxJointDofs];
+      joint_project_at(bd, G, t);
+      for (int k = 0; k < joint_nv(bd.type); ++k) L.tau.at(L.idx_v[s.i] + k, s.b) = t[k];
+    }
   }
 }
 
@@ -296,6 +335,7 @@ cudaError_t scan_force_runs(void* temp, std::size_t& bytes, const ForceAffine<S>
 // Host-side layout of a plan: the level order, roles, branch children, body classes.
 struct HostPlan {
   std::vector<int> order, parent, branch_begin, branch_child, body_class;
+  std::vector<int> idx_q, idx_v;  // (nbodies) a multi-DoF model's joint rows; empty otherwise
   std::vector<int> branch_point;  // (nv) index among bodies with branch children, or -1
   std::vector<int> branch_pos;    // (nv) position of a branch child in branch_child, or -1
   int branch_points = 0;
@@ -306,7 +346,7 @@ struct HostPlan {
 
 template <class S>
 HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
-  const Index n = model.nv();
+  const Index n = model.nbodies();
   HostPlan h;
   std::vector<Index> parent(static_cast<std::size_t>(n));
   for (Index i = 0; i < n; ++i) {
@@ -346,14 +386,20 @@ HostPlan host_plan(const ModelTpl<S>& model, std::vector<Body<S>>* table) {
   h.branch_point.assign(static_cast<std::size_t>(n), -1);
   for (Index i = 0; i < n; ++i)
     if (h.branch_begin[i + 1] > h.branch_begin[i]) h.branch_point[i] = h.branch_points++;
-  // body classes: bodies equal in everything but the parent index share an entry
+  if (model.multi_dof())
+    for (const Body<S>& b : model.bodies) {
+      h.idx_q.push_back(static_cast<int>(b.idx_q));
+      h.idx_v.push_back(static_cast<int>(b.idx_v));
+    }
+  // body classes: bodies equal in everything but the parent index and their rows in
+  // q and qd share an entry (every link of a generated rope)
   if (table) {
     std::unordered_map<std::string, int> seen;
     h.body_class.resize(static_cast<std::size_t>(n));
     for (Index i = 0; i < n; ++i) {
       Body<S> b = model.bodies[i];
       b.parent = -1;
-      b.idx_q = b.idx_v = 0;  // positions in q / qd: per body, not a constant of the body
+      b.idx_q = b.idx_v = 0;
       std::string key(reinterpret_cast<const char*>(&b), sizeof b);
       auto [it, fresh] = seen.emplace(std::move(key), static_cast<int>(table->size()));
       if (fresh) table->push_back(b);
@@ -384,12 +430,13 @@ struct Parts {
   std::size_t total() const { return ints + role + table + v + a + offset + vb + ab + Fb + agg + pre + temp; }
 };
 
-// ints: body_class, parent, order, branch_point, branch_pos (nv each), branch_begin (nv + 1), branch_child
+// ints: body_class, parent, order, branch_point, branch_pos (nb each), branch_begin (nb + 1), branch_child,
+// idx_q, idx_v (nb each, multi-DoF models)
 template <class S>
-Parts parts(const HostPlan& h, std::size_t classes, Index nv, Index max_batch) {
-  const std::size_t n = static_cast<std::size_t>(nv), B = static_cast<std::size_t>(max_batch);
+Parts parts(const HostPlan& h, std::size_t classes, Index nb, Index max_batch) {
+  const std::size_t n = static_cast<std::size_t>(nb), B = static_cast<std::size_t>(max_batch);
   Parts p{};
-  p.ints = aligned((6 * n + 1 + h.branch_child.size()) * sizeof(int));
+  p.ints = aligned((6 * n + 1 + h.branch_child.size() + h.idx_q.size() + h.idx_v.size()) * sizeof(int));
   p.role = aligned(n);
   p.table = aligned(classes * sizeof(Body<S>));
   std::size_t scratch = 0, runs = 0;
@@ -422,28 +469,28 @@ template <class S>
 std::size_t IdScanPlan<S>::bytes_needed(const ModelTpl<S>& model, Index max_batch) {
   std::vector<Body<S>> table;
   const HostPlan h = host_plan(model, &table);
-  check_count(model.nv(), max_batch, h.max_level);
-  return parts<S>(h, table.size(), model.nv(), max_batch).total();
+  check_count(model.nbodies(), max_batch, h.max_level);
+  return parts<S>(h, table.size(), model.nbodies(), max_batch).total();
 }
 
 template <class S>
 IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned target_runs)
-    : nv_(model.nv()), max_batch_(max_batch), target_runs_(std::max(1u, target_runs)) {
+    : nv_(model.nv()), nb_(model.nbodies()), max_batch_(max_batch), target_runs_(std::max(1u, target_runs)) {
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   std::vector<Body<S>> table;
   const HostPlan h = host_plan(model, &table);
-  check_count(nv_, max_batch_, h.max_level);
+  check_count(nb_, max_batch_, h.max_level);
   classes_ = static_cast<Index>(table.size());
   level_begin_ = h.level_begin;
   a0_ = base_acceleration(model.gravity);
-  const Parts p = parts<S>(h, table.size(), nv_, max_batch_);
+  const Parts p = parts<S>(h, table.size(), nb_, max_batch_);
   bytes_ = p.total();
   temp_bytes_ = p.temp;
   if (bytes_ == 0) return;
 
   block_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t total_bytes) {
     return "backend 'cuda': the link scans for max_batch " + std::to_string(max_batch_) + " instances of a " +
-           std::to_string(nv_) + "-body model in " + (sizeof(S) == 4 ? "float" : "double") + " need " +
+           std::to_string(nb_) + "-body model in " + (sizeof(S) == 4 ? "float" : "double") + " need " +
            std::to_string(bytes_) + " bytes of device memory (v, a and force offsets: " +
            std::to_string(3 * sizeof(Motion<S>)) +
            " bytes per body and instance, plus model tables and scan storage); the device has " +
@@ -465,7 +512,7 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned ta
   };
   const std::size_t o_class = pack(h.body_class), o_parent = pack(h.parent), o_order = pack(h.order);
   const std::size_t o_bp = pack(h.branch_point), o_pos = pack(h.branch_pos), o_bb = pack(h.branch_begin);
-  const std::size_t o_bc = pack(h.branch_child);
+  const std::size_t o_bc = pack(h.branch_child), o_iq = pack(h.idx_q), o_iv = pack(h.idx_v);
   int* ints_d = reinterpret_cast<int*>(take(p.ints));
   unsigned char* role_d = reinterpret_cast<unsigned char*>(take(p.role));
   Body<S>* table_d = reinterpret_cast<Body<S>*>(take(p.table));
@@ -473,6 +520,7 @@ IdScanPlan<S>::IdScanPlan(const ModelTpl<S>& model, Index max_batch, unsigned ta
   body_class_ = ints_d + o_class, parent_ = ints_d + o_parent, order_ = ints_d + o_order;
   branch_point_ = ints_d + o_bp, branch_pos_ = ints_d + o_pos;
   branch_begin_ = ints_d + o_bb, branch_child_ = ints_d + o_bc;
+  if (!h.idx_q.empty()) idx_q_ = ints_d + o_iq, idx_v_ = ints_d + o_iv;
   v_ = reinterpret_cast<Motion<S>*>(take(p.v));
   a_ = reinterpret_cast<Motion<S>*>(take(p.a));
   offset_ = reinterpret_cast<Force<S>*>(take(p.offset));
@@ -518,60 +566,70 @@ cudaError_t IdScanPlan<S>::launch(const IdBatchIn<S>& in, const BatchView<S>& ta
   if (B < 0 || in.qd.batch != B || in.qdd.batch != B || tau.batch != B || B > max_batch_) return cudaErrorInvalidValue;
   if (B == 0 || nv_ == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.qdd.data || !tau.data) return cudaErrorInvalidValue;
-  const Index nl = levels();
-  // every level's scratch region, for this batch size
-  Level<S> L{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_, branch_point_,
-             branch_pos_, in, tau, v_, a_, offset_, vb_, ab_, Fb_, 0, nv_, RunShape{}, a0_};
-  std::vector<std::size_t> base(static_cast<std::size_t>(nl) + 1, 0);
-  auto at_level = [&](Index l) {
-    L.order = order_ + level_begin_[l];
-    L.role = role_ + level_begin_[l];
-    L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B),
-                        target_runs_);
-    L.base = base[l];
-  };
-  for (Index l = 0; l < nl; ++l) {
-    at_level(l);
-    base[l + 1] = base[l] + scratch_entries(L.shape);
-  }
-  auto* magg = static_cast<MotionAffine<S>*>(agg_);
-  auto* mpre = static_cast<MotionAffine<S>*>(pre_);
-  auto* fagg = static_cast<ForceAffine<S>*>(agg_);
-  auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
-  auto blocks = [](const RunShape& R) { return (R.R + kRunBlock - 1) / kRunBlock; };
-  cudaError_t err = cudaSuccess;
-  // forward, level by level: velocities, then accelerations (and a chain's force offsets)
-  for (Index l = 0; l < nl; ++l) {
-    at_level(l);
-    const RunShape& R = L.shape;
-    std::size_t bytes = temp_bytes_;
-    velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, magg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
-    velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, magg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-    bytes = temp_bytes_;
-    if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
-    if (nl == 1) acceleration_walk<S, true><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
-    else acceleration_walk<S, false><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-  }
-  // backward, deepest level first: forces and torques. A level's force offsets
-  // need its branch children's forces, which the deeper levels produce: with more
-  // than one level they are made here.
-  for (Index l = nl - 1; l >= 0; --l) {
-    at_level(l);
-    const RunShape& R = L.shape;
-    if (nl > 1) {
-      force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, fagg);
+  // the passes over L, a Level<S, kMulti> (the kernels of a model with multi-DoF
+  // joints are other instances)
+  auto passes = [&](auto L) -> cudaError_t {
+    constexpr bool kM = decltype(L)::kMultiDof;
+    const Index nl = levels();
+    // every level's scratch region, for this batch size
+    std::vector<std::size_t> base(static_cast<std::size_t>(nl) + 1, 0);
+    auto at_level = [&](Index l) {
+      L.order = order_ + level_begin_[l];
+      L.role = role_ + level_begin_[l];
+      L.shape = run_shape(static_cast<unsigned>(level_begin_[l + 1] - level_begin_[l]), static_cast<unsigned>(B),
+                          target_runs_);
+      L.base = base[l];
+    };
+    for (Index l = 0; l < nl; ++l) {
+      at_level(l);
+      base[l + 1] = base[l] + scratch_entries(L.shape);
+    }
+    auto* magg = static_cast<MotionAffine<S>*>(agg_);
+    auto* mpre = static_cast<MotionAffine<S>*>(pre_);
+    auto* fagg = static_cast<ForceAffine<S>*>(agg_);
+    auto* fsuf = static_cast<ForceAffine<S>*>(pre_);
+    auto blocks = [](const RunShape& R) { return (R.R + kRunBlock - 1) / kRunBlock; };
+    cudaError_t err = cudaSuccess;
+    // forward, level by level: velocities, then accelerations (and a chain's force offsets)
+    for (Index l = 0; l < nl; ++l) {
+      at_level(l);
+      const RunShape& R = L.shape;
+      std::size_t bytes = temp_bytes_;
+      velocity_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, magg);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+      velocity_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, magg);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      bytes = temp_bytes_;
+      if ((err = scan_motion_runs<S>(temp_, bytes, magg, mpre, R.R, stream)) != cudaSuccess) return err;
+      if (nl == 1) acceleration_walk<S, kM, true><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
+      else acceleration_walk<S, kM, false><<<blocks(R), kRunBlock, 0, stream>>>(L, mpre, fagg);
       if ((err = cudaGetLastError()) != cudaSuccess) return err;
     }
-    std::size_t bytes = temp_bytes_;
-    if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.R, stream)) != cudaSuccess) return err;
-    force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, fsuf);
-    if ((err = cudaGetLastError()) != cudaSuccess) return err;
-  }
-  return cudaSuccess;
+    // backward, deepest level first: forces and torques. A level's force offsets
+    // need its branch children's forces, which the deeper levels produce: with more
+    // than one level they are made here.
+    for (Index l = nl - 1; l >= 0; --l) {
+      at_level(l);
+      const RunShape& R = L.shape;
+      if (nl > 1) {
+        force_runs<<<blocks(R), kRunBlock, 0, stream>>>(L, fagg);
+        if ((err = cudaGetLastError()) != cudaSuccess) return err;
+      }
+      std::size_t bytes = temp_bytes_;
+      if ((err = scan_force_runs<S>(temp_, bytes, fagg, fsuf, R.R, stream)) != cudaSuccess) return err;
+      force_walk<<<blocks(R), kRunBlock, 0, stream>>>(L, fsuf);
+      if ((err = cudaGetLastError()) != cudaSuccess) return err;
+    }
+    return cudaSuccess;
+  };
+  if (idx_q_)
+    return passes(Level<S, true>{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_,
+                                 branch_point_, branch_pos_, idx_q_, idx_v_, in, tau, v_, a_, offset_, vb_, ab_, Fb_,
+                                 0, static_cast<int>(nb_), RunShape{}, a0_});
+  return passes(Level<S, false>{body_table_, body_class_, parent_, nullptr, nullptr, branch_begin_, branch_child_,
+                                branch_point_, branch_pos_, nullptr, nullptr, in, tau, v_, a_, offset_, vb_, ab_, Fb_,
+                                0, static_cast<int>(nb_), RunShape{}, a0_});
 }
 
 template class IdScanPlan<float>;
