@@ -213,6 +213,7 @@ class CudaSimBackend final : public SimBackend<S> {
     if (small_) cudaFree(small_);
     if (rows_) cudaFree(rows_);
     if (expanded_raw_) cudaFree(expanded_raw_);
+    if (device_tau_) cudaFree(device_tau_);
   }
 
   void step(const BatchView<const S>& tau) override {
@@ -275,6 +276,25 @@ class CudaSimBackend final : public SimBackend<S> {
                                                                     nonfinite_);
     }
     check(cudaGetLastError(), "launching the simulator's integration kernels");
+  }
+
+  // tau in host memory (a shard of a simulator across devices): packed into (nv x B)
+  // here, copied on the stream (pageable memory: the call returns once the rows are
+  // staged, so the next step may repack them), then the step on the device's copy
+  void step_host(const BatchView<const S>& tau) override {
+    if (!tau.data) return step(tau);
+    const Index B = setup_.batch, nv = setup_.model.nv();
+    if (tau.batch != B)
+      throw BackendError("Simulator::step: torques for " + std::to_string(tau.batch) + " instances, the simulator has " +
+                         std::to_string(B));
+    const std::size_t count = static_cast<std::size_t>(nv) * static_cast<std::size_t>(B);
+    host_tau_.resize(count);
+    for (Index i = 0; i < nv; ++i)
+      for (Index b = 0; b < B; ++b) host_tau_[static_cast<std::size_t>(i) * B + b] = tau.at(i, b);
+    if (!device_tau_) check(cudaMalloc(reinterpret_cast<void**>(&device_tau_), count * sizeof(S)), "allocating the torques");
+    check(cudaMemcpyAsync(device_tau_, host_tau_.data(), count * sizeof(S), cudaMemcpyHostToDevice, stream_),
+          "copying the torques to the device");
+    step(BatchView<const S>::soa(device_tau_, nv, B));
   }
 
   BatchView<S> q() override { return BatchView<S>::soa(q_, setup_.model.nv(), setup_.batch); }
@@ -448,6 +468,8 @@ class CudaSimBackend final : public SimBackend<S> {
   std::size_t rows_bytes_ = 0;
   void* expanded_raw_ = nullptr;
   Force<S>* expanded_ = nullptr;          // (B x nv) constant wrenches for the engine
+  std::vector<S> host_tau_;               // (nv x B) step_host: the torques packed
+  S* device_tau_ = nullptr;               // (nv x B) step_host: their device copy
   ParamsVariant<S> params_;
   std::unique_ptr<cuda::CudaForwardDynamics<S>> fd_;
   // contacts (setup_contacts), one allocation

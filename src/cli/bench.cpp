@@ -352,6 +352,7 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
   const std::vector<double> x = state_rows(s, count);
   sim::Scene ref_scene = scene;
   ref_scene.instances = count;
+  ref_scene.devices.clear();  // the reference runs on the host
   sim::Simulator<double> ref(ref_scene, BackendKind::Serial);
   for (int k = 0; k < kStepErrSteps; ++k) ref.step();
   const std::vector<double> r = state_rows(ref, count);
@@ -399,6 +400,7 @@ int run_bench_step(const Args& args) {
   }
   if (args.has("instances")) scene.instances = static_cast<Index>(parse_instances(args.required("instances")));
   const BackendKind backend = scene_backend(scene, args);
+  scene_devices(scene, backend, args);
   if (args.has("precision"))
     scene.precision = parse_cli_precision(args);
   const Timing t = scene.precision == Precision::Float ? time_steps<float>(scene, backend, min_time)

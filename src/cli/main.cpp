@@ -121,7 +121,8 @@ const char* const kEvalUsage =
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
-    "                       [--backend serial|openmp|cuda] [--tau TAU.npy] [--contacts]\n"
+    "                       [--backend serial|openmp|cuda] [--devices all|current|0,1,...]\n"
+    "                       [--tau TAU.npy] [--contacts]\n"
     "\n"
     "Simulates the scene (docs/scenes.md) for N steps from its initial state, with zero\n"
     "joint torques or those of --tau, and writes the state of every instance at steps\n"
@@ -138,7 +139,11 @@ const char* const kRolloutUsage =
     "        force of the step that ended there (world frame, N) and whether it touched:\n"
     "        .csv  columns cf_<k>_x,cf_<k>_y,cf_<k>_z,contact_<k> after qd_<i>\n"
     "        .npy  4 more values per point: [fx, fy, fz, in_contact]\n"
-    "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's.\n";
+    "  --devices D  cuda: the GPUs the instances are split across, contiguous ranges,\n"
+    "        one simulator shard per device stepping at once: all, current or ordinals\n"
+    "        such as 0,1 (overrides the scene's \"devices\"; the trajectory is the same)\n"
+    "A progress bar goes to stderr when it is a terminal. --backend overrides the scene's\n"
+    "(and, other than cuda, drops the scene's devices).\n";
 
 const char* const kBenchUsage =
     "usage: scandyn bench --model M --algo id|fd|mass|bias|did|dfd|fk|jac|hybrid --instances B [--fd METHOD]\n"
@@ -167,11 +172,12 @@ const char* const kBenchUsage =
     "  --allow-nonphysical-inertia, --floating-base  as for eval\n"
     "\n"
     "       scandyn bench --algo step --scene S.json [--instances B] [--backend ...]\n"
-    "                     [--precision ...] [--min-time SECONDS] [--csv FILE]\n"
+    "                     [--devices ...] [--precision ...] [--min-time SECONDS] [--csv FILE]\n"
     "Times whole simulator steps of the scene (instances, backend and precision from the\n"
     "scene unless given); evals_per_second is instance-steps per second, strategy\n"
     "<engine>:<integrator>:<effects>, max_rel_err the state after 10 steps against the\n"
-    "double serial simulator (at most 1000 instances compared).\n"
+    "double serial simulator (at most 1000 instances compared). --devices as for rollout\n"
+    "(strategy <engine>-x<devices>:...).\n"
     "\n"
     "       scandyn bench --model M --algo hybrid --prescribed LIST --instances B ...\n"
     "Times the hybrid dynamics (LIST as for eval); max_rel_err of qdd and tau against\n"
@@ -199,7 +205,7 @@ const Command kCommands[] = {
       "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed",
       "simd"},
      &run_bench},
-    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "tau", "contacts"}, &run_rollout},
+    {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "devices", "tau", "contacts"}, &run_rollout},
 };
 
 int fail(int code, const std::string& message) {

@@ -134,7 +134,7 @@ int rollout(const sim::Scene& scene, BackendKind backend, long long steps, long 
   // --tau: checked (shape, dtype, size; the constant shapes' values) before the output is made
   std::unique_ptr<RolloutTorques<S>> tau;
   if (!tau_path.empty())
-    tau = std::make_unique<RolloutTorques<S>>(tau_path, steps, B, nv, sim.on_device(), sim.stream());
+    tau = std::make_unique<RolloutTorques<S>>(tau_path, steps, B, nv, sim.torques_on_device(), sim.stream());
   AtomicFileWriter file(out_path);
   // a signal (SIGINT, SIGTERM, SIGHUP) ends the loop at the next step: the records
   // written so far are published (.npy with its shape fixed up), exit 128 + signal
@@ -258,6 +258,7 @@ int run_rollout(const Args& args) {
   if (contacts && !(scene.effects & sim::kContacts))
     throw UsageError("--contacts: the scene " + scene.path + " declares no effects.contacts", false);
   const BackendKind backend = scene_backend(scene, args);
+  scene_devices(scene, backend, args);
   const std::string tau = args.get("tau", "");
   if (args.has("tau") && tau.empty()) throw UsageError("--tau needs a .npy file");
   return scene.precision == Precision::Float ? rollout<float>(scene, backend, steps, every, out, tau, contacts)

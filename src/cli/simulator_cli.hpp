@@ -7,7 +7,7 @@
 
 #include "cli.hpp"
 #include "scandyn/io/limits.hpp"
-#include "scandyn/io/limits.hpp"
+#include "scandyn/sharded.hpp"
 #include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::cli {
@@ -25,6 +25,24 @@ inline BackendKind scene_backend(const sim::Scene& scene, const Args& args) {
   }
   if (scene.backend_auto) std::fprintf(stderr, "scandyn: %s\n", sim::backend_choice(scene).c_str());
   return scene.backend;
+}
+
+// The devices a scene's simulator shards across on `backend`: --devices when given
+// (all, current, 0,1: scandyn/sharded.hpp's parse_devices), else the scene's "devices",
+// none when --backend chose a backend other than cuda. A bad value, or a device list
+// on another backend, is a usage error.
+inline void scene_devices(sim::Scene& scene, BackendKind backend, const Args& args) {
+  if (!args.has("devices")) {
+    if (args.has("backend") && backend != BackendKind::Cuda) scene.devices.clear();
+    return;
+  }
+  try {
+    scene.devices = parse_devices(args.required("devices"));
+  } catch (const BackendError& e) {
+    throw UsageError(std::string("--devices: ") + e.what());
+  }
+  if (!scene.devices.empty() && backend != BackendKind::Cuda)
+    throw UsageError("--devices applies only to --backend cuda (backend '" + std::string(to_string(backend)) + "')");
 }
 
 // Host memory of a simulator of the scene on backend, in precision S: the state

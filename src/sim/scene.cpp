@@ -18,6 +18,7 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/sharded.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -350,6 +351,33 @@ std::string dir_of(const std::string& path) {
   return k == std::string::npos ? "." : k == 0 ? "/" : path.substr(0, k);
 }
 
+// "devices" (after "backend"): "all", "current", "0,1" or [0, 1] (parse_devices): the
+// cuda backend's devices; none where "auto" chose another backend; an error for a
+// non-empty list on a backend named serial or openmp.
+std::vector<int> scene_devices(const Reader& r, const json& v, const Scene& s) {
+  const char* what = "\"all\", \"current\", a list of CUDA device ordinals such as [0, 1] or a string such as \"0,1\"";
+  std::string text;
+  if (v.is_string()) {
+    text = v.get<std::string>();
+  } else if (v.is_array()) {
+    for (std::size_t k = 0; k < v.size(); ++k)
+      text += (k ? "," : "") + std::to_string(r.integer("devices[" + std::to_string(k) + "]", v[k], 0, 999999));
+  } else {
+    r.expected("devices", what, v);
+  }
+  std::vector<int> devices;
+  try {
+    // "all" asks the CUDA runtime: only where the devices are used
+    if (text != "all" || s.backend == BackendKind::Cuda) devices = parse_devices(text);
+  } catch (const BackendError& e) {
+    r.fail("devices", e.what());
+  }
+  if (s.backend == BackendKind::Cuda || (devices.empty() && text != "all")) return devices;
+  if (s.backend_auto) return {};  // auto chose a CPU backend: the scene runs there
+  r.fail("devices", "CUDA devices for the cuda backend; the scene's backend is '" + std::string(to_string(s.backend)) +
+                        "' (remove \"devices\" or use \"backend\": \"cuda\")");
+}
+
 }  // namespace
 
 Scene parse_scene(const std::string& text, const std::string& source, const std::string& base_dir) {
@@ -375,7 +403,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "threads", "instances", "initial", "prescribed", "loops", "base"});
+                           "backend", "devices", "threads", "instances", "initial", "prescribed", "loops", "base"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -550,6 +578,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     else if (b == "auto") s.backend = auto_backend(&s.backend_note), s.backend_auto = true;
     else r.expected("backend", "\"auto\", \"serial\", \"openmp\" or \"cuda\"", doc["backend"]);
   }
+  if (doc.contains("devices")) s.devices = scene_devices(r, doc["devices"], s);
   if (doc.contains("threads")) s.threads = static_cast<int>(r.integer("threads", doc["threads"], 0, 4096));
   if (doc.contains("instances"))
     s.instances = static_cast<Index>(r.integer("instances", doc["instances"], 1, 1000000000));

@@ -112,6 +112,9 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
   check_size(scene.initial.qd, nv, "initial.qd", "nv", false);
   check_size(scene.initial.q_spread, nv, "initial.random.q", "nv", !scene.initial.random);
   check_size(scene.initial.qd_spread, nv, "initial.random.qd", "nv", !scene.initial.random);
+  if (!scene.devices.empty() && backend != BackendKind::Cuda)
+    throw BackendError("devices " + devices_string(scene.devices) + ": only the cuda backend runs on devices (backend '" +
+                       to_string(backend) + "')");
   if (scene.model.multi_dof()) {
     // the scene refuses these first; a Scene made in code meets the same refusals
     const std::string joint = printable(first_multi_dof_joint(scene.model));
@@ -171,14 +174,54 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     setup_.prescribed = scene.prescribed;
     setup_.prescribed_mask = scene.prescribed.mask(nv);
   }
-  backend_ = backend == BackendKind::Cuda ? detail::make_cuda_sim_backend(setup_)
-                                          : cpu::make_simulator_step(setup_, backend);
+  if (backend != BackendKind::Cuda) backend_ = cpu::make_simulator_step(setup_, backend);
+  else if (detail::spans_devices(scene.devices))
+    backend_ = detail::make_sharded_sim_backend<S>(setup_, scene.devices, true, &detail::make_cuda_sim_backend<S>);
+  else backend_ = detail::make_cuda_sim_backend(setup_);
   random_ = std::make_unique<Random>(initial_.seed);
   reset_all();
 }
 
 template <class S>
 Simulator<S>::~Simulator() = default;
+
+template <class S>
+int Simulator<S>::checked_shard(int k) const {
+  if (k < 0 || k >= shards())
+    throw std::out_of_range("Simulator: shard " + std::to_string(k) + " is outside [0, " + std::to_string(shards()) + ")");
+  return k;
+}
+
+template <class S>
+detail::SimBackend<S>* Simulator<S>::shard_backend(int k) const {
+  return backend_->shard(checked_shard(k));
+}
+
+template <class S>
+BatchView<S> Simulator<S>::q(int k) {
+  detail::SimBackend<S>* b = shard_backend(k);
+  return b ? b->q() : BatchView<S>{};
+}
+template <class S>
+BatchView<S> Simulator<S>::qd(int k) {
+  detail::SimBackend<S>* b = shard_backend(k);
+  return b ? b->qd() : BatchView<S>{};
+}
+template <class S>
+Force<S>* Simulator<S>::wrenches(int k) {
+  detail::SimBackend<S>* b = shard_backend(k);
+  return b ? b->wrenches() : nullptr;
+}
+template <class S>
+ContactReading<S>* Simulator<S>::contact_forces(int k) {
+  detail::SimBackend<S>* b = shard_backend(k);
+  return b ? b->contact_forces() : nullptr;
+}
+template <class S>
+void* Simulator<S>::stream(int k) const {
+  detail::SimBackend<S>* b = shard_backend(k);
+  return b ? b->stream() : nullptr;
+}
 
 template <class S>
 void Simulator<S>::step(const BatchView<const S>& tau) {

@@ -80,6 +80,9 @@ struct Scene {
   bool backend_auto = false;          // the scene said "backend": "auto"
   std::string backend_note;           // auto: why not cuda (auto_backend's why), "" when cuda was chosen
   int threads = 0;                    // OpenMP threads, 0: all
+  // cuda: the devices the batch is sharded across ("devices"; Simulator's "Devices"),
+  // empty: the current device only. A scene whose backend "auto" chose another keeps none.
+  std::vector<int> devices;
   Index instances = 1;                // B
   InitialState initial;
   PrescribedMotion prescribed;        // driven DoFs and their trajectories ("prescribed"), or empty

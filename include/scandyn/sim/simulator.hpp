@@ -53,6 +53,20 @@
 //           dynamics for chains, jsi_dense for trees; strategy "engine-parallel" /
 //           "engine-jsi_dense"; euler and rk4 only: implicit is a BackendError).
 //
+// Devices. On the cuda backend the scene's "devices" (Scene::devices; docs/scenes.md)
+// shards the batch across devices as the sharded engines do (scandyn/sharded.hpp):
+// with more than one device, or one that is not the current one, shard k holds the
+// instances shard_range(B, n, k) on devices[k] (its own CUDA backend, state, stream
+// and memory; a device named twice holds two shards), and the shards step at once,
+// one host thread each (strategy "<shard's>-x<n>"). The state then has no single
+// resident view: q(), qd() (and wrenches(), contact_forces() where the scene has
+// them) throw BackendError; read_state(), read_contact_forces(), reset(), status()
+// (instances numbered as the whole batch's) work as before, and q(k), qd(k), ...
+// view shard k's memory on its device. step() takes the torques in host memory then
+// (torques_on_device() is false): each shard copies its instances' to its device.
+// Errors of a shard begin "device D: ". The serial and openmp backends refuse a
+// non-empty device list.
+//
 // Failures. A forward dynamics whose pivot is not positive and finite leaves that
 // instance's state unchanged for the step and is recorded as the engines record a
 // failed instance; status() is a BatchStatus of the steps since the last
@@ -69,7 +83,10 @@
 #include <string>
 #include <vector>
 
+#include <functional>
+
 #include "scandyn/engine.hpp"
+#include "scandyn/sharded.hpp"
 #include "scandyn/sim/scene.hpp"
 
 namespace scandyn {
@@ -154,11 +171,50 @@ class SimBackend {
   virtual bool on_device() const = 0;
   virtual std::string strategy() const = 0;
   virtual void* stream() const { return nullptr; }
+  // step() with tau (nv x B, any strides, or empty) in host memory: a backend on the
+  // device copies it there first (on its stream), the host backends step on it
+  virtual void step_host(const BatchView<const S>& tau) { step(tau); }
+  // where step() reads tau: the backend's memory, host memory for a sharded backend
+  virtual bool tau_on_device() const { return on_device(); }
+  // the shards (a backend over several devices); one, this backend, otherwise
+  virtual int shard_count() const { return 1; }
+  virtual int shard_device(int) const { return -1; }               // its device ordinal, -1 when not sharded
+  virtual SimBackend<S>* shard(int) { return this; }                // null for a shard with no instances
 };
 
 // Throws BackendError when CUDA is not built or no device is usable.
 template <class S>
 std::unique_ptr<SimBackend<S>> make_cuda_sim_backend(const SimSetup<S>& setup);
+
+// Makes one shard's backend from its setup (the simulator's, batch its count).
+template <class S>
+using MakeSimBackend = std::function<std::unique_ptr<SimBackend<S>>(const SimSetup<S>&)>;
+
+// A backend over n = devices.size() shards (src/sim/sharded_sim.cpp): shard k, the
+// instances shard_range(setup.batch, n, k), stepped by make(its setup) on ShardPool
+// worker k (devices[k] current there when cuda; errors "device D: ..."); every call
+// runs on the shards at once. setup outlives it (the shards' setups copy its time
+// before each step). With cuda false the shards are host backends (how the CPU tests
+// check the routing against one backend over the whole batch).
+template <class S>
+std::unique_ptr<SimBackend<S>> make_sharded_sim_backend(const SimSetup<S>& setup, std::vector<int> devices, bool cuda,
+                                                        const MakeSimBackend<S>& make);
+
+// The shard of n over B instances (shard_range) that holds instance b (0 <= b < B).
+inline int shard_of(Index B, int n, Index b) {
+  const Index base = B / n, extra = B % n;  // the first `extra` shards hold base + 1
+  const Index split = extra * (base + 1);
+  return static_cast<int>(b < split ? b / (base + 1) : extra + (b - split) / base);
+}
+
+// The statuses of the shards of n over B instances (statuses[k] shard k's, its
+// instances numbered from 0) as one status over the whole batch (add_step_failures).
+BatchStatus merge_shard_statuses(const std::vector<BatchStatus>& statuses, Index B);
+
+// True when devices asks the cuda backend for more than one device or for one other
+// than the calling thread's current device (one that cannot be asked counts as
+// other): the simulator shards then.
+bool spans_devices(const std::vector<int>& devices);
 
 }  // namespace detail
 
@@ -178,9 +234,11 @@ class Simulator {
   Simulator& operator=(const Simulator&) = delete;
 
   // Advances every instance by dt under the joint torques tau (nv x B view in the
-  // backend's memory, any strides; an empty view, data == nullptr, means zero
-  // torques). Allocates nothing; on cuda, queues the work and returns.
+  // backend's memory, host memory when sharded across devices: torques_on_device();
+  // any strides; an empty view, data == nullptr, means zero torques). Allocates
+  // nothing (sharded: its staging, once); on cuda, queues the work and returns.
   void step(const BatchView<const S>& tau = {});
+  bool torques_on_device() const { return backend_->tau_on_device(); }
 
   // Puts the listed instances back in the scene's initial state (randomised ones
   // draw again, continuing the scene's seeded generator). Throws std::out_of_range
@@ -190,6 +248,21 @@ class Simulator {
 
   BatchView<S> q() { return backend_->q(); }    // (nq x B) joint positions, resident
   BatchView<S> qd() { return backend_->qd(); }  // (nv x B) joint velocities, resident
+
+  // The shards of a simulator across devices ("Devices" above): shards() of them,
+  // shard k holding the instances shard_range(k) on device shard_device(k); q(k)
+  // (nq x its count), qd(k), wrenches(k), contact_forces(k) and stream(k) as the
+  // accessors without k, in that device's memory (make it current before using
+  // them). Not sharded: one shard, the whole batch, shard_device -1. Throws
+  // std::out_of_range for k outside [0, shards()).
+  int shards() const { return backend_->shard_count(); }
+  ShardRange shard_range(int k) const { return scandyn::shard_range(batch(), shards(), checked_shard(k)); }
+  int shard_device(int k) const { return backend_->shard_device(checked_shard(k)); }
+  BatchView<S> q(int k);
+  BatchView<S> qd(int k);
+  Force<S>* wrenches(int k);
+  ContactReading<S>* contact_forces(int k);
+  void* stream(int k) const;
   // (B x nbodies) external wrenches, wrench[b * nbodies + i] on body i of instance b, in the
   // backend's memory, read by every step: with "external": {"per_step": true}
   // (initialised to the scene's constant wrenches); null otherwise.
@@ -240,6 +313,8 @@ class Simulator {
   SimSetup<S> setup_;
   InitialState initial_;  // the scene's (the scene itself is not kept: a rope's model is large)
   std::unique_ptr<detail::SimBackend<S>> backend_;
+  int checked_shard(int k) const;                        // k, or std::out_of_range
+  detail::SimBackend<S>* shard_backend(int k) const;      // shard k's, null when it holds no instances
   // the initial-state generator (std::mt19937_64 state, kept opaque here)
   struct Random;
   std::unique_ptr<Random> random_;
