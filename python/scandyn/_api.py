@@ -450,16 +450,60 @@ def _resolve_backend(backend):
     return backend
 
 
+def _devices_text(devices):
+    """devices= as BackendOptions::devices' text (parse_devices in scandyn/sharded.hpp):
+    None for the current device only (None, "current", an empty list), else "all" or
+    the ordinals joined by commas ("0,1"; the library names a bad entry). TypeError for
+    anything that is not a string or a list of ints."""
+    if devices is None:
+        return None
+    if isinstance(devices, str):
+        return None if devices in ("", "current") else devices
+    if isinstance(devices, (bool, int, np.integer)):
+        raise TypeError(f"devices must be 'all', 'current', a list of CUDA ordinals or None, got "
+                        f"{devices!r} (one device: devices=[{devices!r}] or device={devices!r})")
+    try:
+        items = list(devices)
+    except TypeError:
+        raise TypeError(f"devices must be 'all', 'current', a list of CUDA ordinals or None, got "
+                        f"{type(devices).__name__}") from None
+    for d in items:
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer)):
+            raise TypeError(f"devices must list CUDA ordinals (ints), got {d!r} in {devices!r}")
+    return ",".join(str(int(d)) for d in items) if items else None
+
+
+def _backend_for_devices(backend, devices_text, device):
+    """The backend of an engine made with devices=: "auto" becomes "cuda" (only the cuda
+    backend runs on devices; any other backend is refused by the library, naming the
+    devices). DeviceError for device= and devices= together."""
+    if devices_text is None:
+        return backend
+    if device is not None:
+        raise DeviceError(f"device={device!r} and devices={devices_text!r} together: device= makes an engine "
+                          "on one CUDA device (for host and CUDA arrays), devices= shards host batches across "
+                          "devices; pass one of them")
+    return "cuda" if backend == "auto" else backend
+
+
 class _EngineBase:
     """One engine of the library (scandyn/engine.hpp). On host arrays a call runs the
     engine's compute() and returns when done; on CUDA arrays (backend='cuda', the arrays
     on the engine's device) it queues compute_async() on the caller's stream (``stream=``,
     else torch's or CuPy's current stream) and returns at once: no copy, no
-    synchronisation."""
+    synchronisation.
+
+    ``devices`` (backend 'cuda'; 'auto' becomes 'cuda'): the CUDA devices a host batch
+    is sharded across ('all', a list of ordinals such as [0, 1], a device named twice
+    running two shards there; None or 'current': the current device only). Each device
+    gets its own engine for a contiguous share of the instances (max_batch is the whole
+    batch's), the shards run at once and write the results in place, in the caller's
+    layout; an error from a shard begins "device D: ". CUDA arrays run on their own
+    device only: an engine sharded over several devices refuses them (DeviceError)."""
 
     _ext_class = None
 
-    def __init__(self, model, backend, max_batch, dtype, device=None, **options):
+    def __init__(self, model, backend, max_batch, dtype, device=None, devices=None, **options):
         if not isinstance(model, Model):
             raise TypeError(f"model must be a scandyn.Model (scandyn.load_model), got {type(model).__name__}")
         self.model = model
@@ -467,8 +511,12 @@ class _EngineBase:
         max_batch = int(max_batch)
         if not 1 <= max_batch <= _MAX_INDEX:
             raise ShapeError(f"max_batch must be from 1 to {_MAX_INDEX} (the engines' instance index), got {max_batch}")
+        text = _devices_text(devices)
+        backend = _backend_for_devices(backend, text, device)
         if device is not None:
             options["device"] = int(device)
+        if text is not None:
+            options["devices"] = text
         self._e = self._ext_class(model._m, self._dtype, _resolve_backend(backend), max_batch, **options)
 
     backend = property(lambda self: self._e.backend, doc="'serial', 'openmp' or 'cuda'")
@@ -476,7 +524,11 @@ class _EngineBase:
     exact = property(lambda self: self._e.exact, doc="bit-identical to the serial reference")
     max_batch = property(lambda self: self._e.max_batch)
     nv = property(lambda self: self._e.nv)
-    device = property(lambda self: self._e.device, doc="the CUDA device of a cuda engine, -1 otherwise")
+    device = property(lambda self: self._e.device,
+                      doc="the CUDA device of a cuda engine (of all its shards), -1 otherwise or for an engine "
+                          "sharded over several devices")
+    devices = property(lambda self: list(self._e.devices),
+                       doc="the CUDA device of each shard (devices=), [device] for a cuda engine, [] on the CPU")
     dtype = property(lambda self: np.dtype(self._dtype))
 
     _names = ()  # the names of __call__'s arrays, for the messages
@@ -532,7 +584,9 @@ class _EngineBase:
         return where, handed, out, _writable(out, where)
 
     def __repr__(self):
-        dev = f", device={self.device}" if self.backend == "cuda" else ""
+        devs = self.devices
+        dev = ((f", devices={devs}" if len(devs) > 1 else f", device={self.device}")
+               if self.backend == "cuda" else "")
         return (
             f"scandyn.{type(self).__name__}(model={self.model.name!r}, backend={self.backend!r}, "
             f"strategy={self.strategy!r}, dtype={self._dtype}, max_batch={self.max_batch}{dev})"
@@ -542,14 +596,15 @@ class _EngineBase:
 class InverseDynamics(_EngineBase):
     """tau = ID(q, qd, qdd, fext): RNEA with gravity, for up to max_batch instances.
     ``strategy``: 'auto', 'recursion', 'scan-local', 'scan-world' (CPU). ``device``: the
-    CUDA device of a cuda engine (default: the current one)."""
+    CUDA device of a cuda engine (default: the current one); ``devices``: the devices a
+    host batch is sharded across (see _EngineBase)."""
 
     _ext_class = _ext.InverseDynamics
     _names = ("q", "qd", "qdd", "fext")
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
-                 device=None):
-        super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
+                 device=None, devices=None):
+        super().__init__(model, backend, max_batch, dtype, device, devices, strategy=strategy, threads=threads)
 
     def __call__(self, q, qd, qdd, fext=None, out=None, stream=None):
         where, (q, qd, qdd, fext), out, w = self._prepare((q, qd, qdd, fext), out, stream)
@@ -569,8 +624,8 @@ class BiasForces(_EngineBase):
     _names = ("q", "qd", "fext")
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, strategy="auto", threads=0,
-                 device=None):
-        super().__init__(model, backend, max_batch, dtype, device, strategy=strategy, threads=threads)
+                 device=None, devices=None):
+        super().__init__(model, backend, max_batch, dtype, device, devices, strategy=strategy, threads=threads)
 
     def __call__(self, q, qd, fext=None, out=None, stream=None):
         where, (q, qd, fext), out, w = self._prepare((q, qd, fext), out, stream)
@@ -589,8 +644,8 @@ class MassMatrix(_EngineBase):
     _ext_class = _ext.MassMatrix
     _names = ("q",)
 
-    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
-        super().__init__(model, backend, max_batch, dtype, device, threads=threads)
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None, devices=None):
+        super().__init__(model, backend, max_batch, dtype, device, devices, threads=threads)
 
     def __call__(self, q, out=None, stream=None):
         if out is None and self.backend == "cuda":
@@ -625,8 +680,8 @@ class ForwardDynamics(_EngineBase):
 
     def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, method="auto",
                  fallback_aba=False, threads=0, fd_check="auto", fd_check_tol=0.0, fallback_double=False,
-                 device=None):
-        super().__init__(model, backend, max_batch, dtype, device, method=method, fallback_aba=fallback_aba,
+                 device=None, devices=None):
+        super().__init__(model, backend, max_batch, dtype, device, devices, method=method, fallback_aba=fallback_aba,
                          threads=threads, fd_check=fd_check, fd_check_tol=float(fd_check_tol),
                          fallback_double=fallback_double)
         self.last_status = None
@@ -734,7 +789,7 @@ class ForwardDynamics(_EngineBase):
 # ---- the function API: engines cached per model ------------------------------------
 
 
-def _cached(cls, key_option, model, backend, first, **options):
+def _cached(cls, key_option, model, backend, first, devices=None, **options):
     if not isinstance(model, Model):
         raise TypeError(f"model must be a scandyn.Model (scandyn.load_model), got {type(model).__name__}")
     dtype = _dtype_name(first)
@@ -743,12 +798,24 @@ def _cached(cls, key_option, model, backend, first, **options):
     lead = _lead_of(first)
     batch = lead[0] if lead else 1
     device = _cuda_device(first, _kind(first), "q")
+    text = _devices_text(devices)
+    if text is not None and device is not None:
+        # CUDA arrays run on their own device: devices= may only name that one
+        if _ext.parse_devices(text) != [device]:
+            raise DeviceError(f"devices={devices!r} with arrays on CUDA device {device}: CUDA arrays run on "
+                              "their own device, not sharded (devices= shards host arrays: NumPy, CPU torch "
+                              "tensors); leave devices= out for CUDA arrays")
+        text = None
+    if text is not None:
+        backend = _backend_for_devices(backend, text, None)
     if device is not None and backend == "auto":
         backend = "cuda"  # "auto" follows the arrays
     backend = _resolve_backend(backend)
     if backend != "cuda":
         device = None
-    key = (cls.__name__, backend, dtype, key_option, device)
+    if text is not None:
+        options["devices"] = text
+    key = (cls.__name__, backend, dtype, key_option, device, text)
     engine = model._engines.get(key)
     if engine is None or engine.max_batch < batch:
         engine = None  # the old engine's device memory goes before the new one is made
@@ -760,34 +827,36 @@ def _cached(cls, key_option, model, backend, first, **options):
     return engine
 
 
-def inverse_dynamics(model, q, qd, qdd, fext=None, backend="auto", out=None, stream=None):
+def inverse_dynamics(model, q, qd, qdd, fext=None, backend="auto", out=None, stream=None, devices=None):
     """tau = ID(q, qd, qdd, fext), gravity included. q, qd, qdd: (B, nv) or (nv,);
     fext: optional (B, nv, 6) body wrenches [moment; force] in body frames. Returns tau
     (out when given). CUDA arrays: queued on ``stream`` (default: the array library's
-    current stream), no synchronisation."""
+    current stream), no synchronisation. ``devices`` ('all', [0, 1], ...): host arrays
+    sharded across those CUDA devices (backend 'auto' becomes 'cuda'); with CUDA arrays
+    only their own device may be named."""
     (q, qd, qdd, fext), _ = _inputs([("q", q), ("qd", qd), ("qdd", qdd), ("fext", fext)])
-    return _cached(InverseDynamics, None, model, backend, q)(q, qd, qdd, fext=fext, out=out, stream=stream)
+    return _cached(InverseDynamics, None, model, backend, q, devices)(q, qd, qdd, fext=fext, out=out, stream=stream)
 
 
-def bias_forces(model, q, qd, fext=None, backend="auto", out=None, stream=None):
-    """h = RNEA(q, qd, 0, fext): (B, nv) or (nv,)."""
+def bias_forces(model, q, qd, fext=None, backend="auto", out=None, stream=None, devices=None):
+    """h = RNEA(q, qd, 0, fext): (B, nv) or (nv,). ``devices``: as inverse_dynamics."""
     (q, qd, fext), _ = _inputs([("q", q), ("qd", qd), ("fext", fext)])
-    return _cached(BiasForces, None, model, backend, q)(q, qd, fext=fext, out=out, stream=stream)
+    return _cached(BiasForces, None, model, backend, q, devices)(q, qd, fext=fext, out=out, stream=stream)
 
 
-def mass_matrix(model, q, backend="auto", out=None, stream=None):
-    """M(q): (B, nv, nv), or (nv, nv) for q of shape (nv,)."""
+def mass_matrix(model, q, backend="auto", out=None, stream=None, devices=None):
+    """M(q): (B, nv, nv), or (nv, nv) for q of shape (nv,). ``devices``: as inverse_dynamics."""
     (q,), _ = _inputs([("q", q)])
-    return _cached(MassMatrix, None, model, backend, q)(q, out=out, stream=stream)
+    return _cached(MassMatrix, None, model, backend, q, devices)(q, out=out, stream=stream)
 
 
 def forward_dynamics(model, q, qd, tau, fext=None, method="auto", backend="auto", out=None, stream=None,
-                     check=None):
+                     check=None, devices=None):
     """qdd = FD(q, qd, tau, fext), gravity included: (B, nv) or (nv,). Raises
     ForwardDynamicsError (with .status) when an instance's pivot is not positive. On CUDA
     arrays that check waits for the stream (check=None: yes, as on the host); check=False
     only queues the work (failures are then not reported: use a ForwardDynamics engine
-    and its check() to read them later)."""
+    and its check() to read them later). ``devices``: as inverse_dynamics."""
     (q, qd, tau, fext), _ = _inputs([("q", q), ("qd", qd), ("tau", tau), ("fext", fext)])
-    engine = _cached(ForwardDynamics, method, model, backend, q, method=method)
+    engine = _cached(ForwardDynamics, method, model, backend, q, devices, method=method)
     return engine(q, qd, tau, fext=fext, out=out, stream=stream, check=check is None or bool(check))

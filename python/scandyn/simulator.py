@@ -32,6 +32,28 @@ def _is_torch(x):
     return type(x).__module__.startswith("torch")
 
 
+def _device_ordinal(device):
+    """The CUDA ordinal of a device= argument: -1 for None, "cuda" and "cpu" (the current
+    device; a CPU scene ignores it), N for N, "cuda:N" and torch.device("cuda", N)."""
+    if device is None:
+        return -1
+    if isinstance(device, bool):
+        raise TypeError(f"device must be None, an ordinal, 'cuda:N' or a torch.device, got {device!r}")
+    if isinstance(device, (int, np.integer)):
+        if device < 0:
+            raise DeviceError(f"device must be a CUDA ordinal >= 0, got {device}")
+        return int(device)
+    index = getattr(device, "index", None) if not isinstance(device, str) else None
+    if index is not None:  # a torch.device with an index
+        return int(index)
+    text = str(device)
+    if text in ("cuda", "cpu"):
+        return -1
+    if text.startswith("cuda:") and text[5:].isdigit():
+        return int(text[5:])
+    raise DeviceError(f"device must be None, an ordinal, 'cuda', 'cuda:N' or a torch.device, got {device!r}")
+
+
 class Simulator:
     """B instances of one scene (docs/scenes.md), stepped by the library's simulator.
 
@@ -52,9 +74,13 @@ class Simulator:
     alive; it stays valid for the simulator's whole life (the buffers never move).
     ``arrays``: "auto" (as above), "numpy", "torch" (also on the CPU) or "dlpack" (a
     nanobind array that torch / CuPy / JAX ``from_dlpack`` take): the kind of the views.
+    ``device`` (cuda): the GPU the simulator lives on: None (the current CUDA device:
+    torch.cuda.set_device's, e.g. LOCAL_RANK's under torchrun), an ordinal, "cuda:N" or a
+    torch.device; its steps run there whatever device is current when they are called.
     """
 
-    def __init__(self, scene, backend=None, arrays="auto"):
+    def __init__(self, scene, backend=None, arrays="auto", device=None):
+        ordinal = _device_ordinal(device)
         if isinstance(scene, dict):
             scene = dict(scene)
             if isinstance(scene.get("model"), str):
@@ -65,9 +91,9 @@ class Simulator:
                 from .errors import SceneError
 
                 raise SceneError(f"<dict>: cannot be written as JSON: {e}") from None
-            self._s = _ext.Simulator("", text, "<dict>", os.getcwd(), backend)
+            self._s = _ext.Simulator("", text, "<dict>", os.getcwd(), backend, ordinal)
         else:
-            self._s = _ext.Simulator(os.fspath(scene), None, "", "", backend)
+            self._s = _ext.Simulator(os.fspath(scene), None, "", "", backend, ordinal)
         if arrays == "auto":
             arrays = "numpy" if not self._s.on_device else ("torch" if _torch() is not None else "dlpack")
         if arrays not in ("numpy", "torch", "dlpack"):

@@ -2,11 +2,15 @@
 // hold it (module.cpp's four dynamics engines, kinematics.cpp's Kinematics), shared
 // by them:
 //   PyEngine<E>      the engine E<float> or E<double> with its model and max_batch;
-//   init_engine      makes it (on a CUDA device: the device given, else the current one);
-//   engine_device    the CUDA ordinal of a cuda engine, -1 for the CPU backends;
+//   init_engine      makes it (on a CUDA device: the device given, else the current one;
+//                    BackendOptions::devices: one engine per device, scandyn/sharded.hpp);
+//   engine_device    the CUDA ordinal of a cuda engine, -1 for the CPU backends and for
+//                    an engine sharded over several devices;
+//   engine_devices   the devices of its shards (a sharded engine), [device] (cuda), [] (CPU);
 //   queue_on_device  the device path: the CUDA engine's compute_async() on the caller's
 //                    stream for arrays on its device (DeviceError for arrays on another
-//                    device or an engine of a CPU backend), no copy, no synchronisation.
+//                    device, an engine of a CPU backend or one sharded over several
+//                    devices), no copy, no synchronisation.
 #pragma once
 
 #include <nanobind/nanobind.h>
@@ -14,13 +18,17 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <type_traits>
 #include <utility>
+#include <vector>
 
 #include "arrays.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/engine.hpp"
+#include "scandyn/sharded.hpp"
 #include "shared.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -66,29 +74,16 @@ struct PyEngine {
 
 // ---- CUDA: the device path ------------------------------------------------------
 
+// enter_device (a device current for a scope): shared.hpp
+
+// The sharded engine behind e (scandyn/sharded.hpp), or null.
+template <template <class> class E>
+const ShardedEngine* sharded_of(const PyEngine<E>& e) {
+  return dynamic_cast<const ShardedEngine*>(&e.engine());
+}
+
+
 #if SCANDYN_HAS_CUDA
-// Makes `device` current for a scope (engines are made on, and launch to, the
-// current device) and restores the caller's on exit; -1 keeps the current one.
-class DeviceScope {
- public:
-  explicit DeviceScope(int device) {
-    if (device < 0 || cudaGetDevice(&previous_) != cudaSuccess || previous_ == device) return;
-    if (const cudaError_t err = cudaSetDevice(device); err != cudaSuccess)
-      throw BackendError("backend 'cuda': cannot use CUDA device " + std::to_string(device) + ": " +
-                         cudaGetErrorString(err));
-    restore_ = true;
-  }
-  ~DeviceScope() {
-    if (restore_) cudaSetDevice(previous_);
-  }
-  DeviceScope(const DeviceScope&) = delete;
-  DeviceScope& operator=(const DeviceScope&) = delete;
-
- private:
-  int previous_ = -1;
-  bool restore_ = false;
-};
-
 template <class S>
 cuda::CudaInverseDynamics<S>* as_cuda(InverseDynamics<S>* e) { return dynamic_cast<cuda::CudaInverseDynamics<S>*>(e); }
 template <class S>
@@ -111,30 +106,59 @@ template <class S>
 int device_of(const cuda::CudaBiasForces<S>& e) { return e.inverse_dynamics().device(); }
 #endif
 
-// The engine's device: its CUDA ordinal, -1 for the CPU backends.
+// The engine's device: its CUDA ordinal (for an engine sharded over one device, that
+// one), -1 for the CPU backends and for an engine sharded over several devices.
 template <template <class> class E>
 int engine_device(const PyEngine<E>& e) {
+  if (const ShardedEngine* sh = sharded_of(e)) {
+    const int d = sh->shard_device(0);
+    for (int k = 1; k < sh->shard_count(); ++k)
+      if (sh->shard_device(k) != d) return -1;
+    return d;
+  }
 #if SCANDYN_HAS_CUDA
   if (e.is_float) {
     if (auto* c = as_cuda(e.ef.get())) return device_of(*c);
   } else if (auto* c = as_cuda(e.ed.get())) {
     return device_of(*c);
   }
-#else
-  (void)e;
 #endif
   return -1;
 }
 
+// The devices the engine computes on: one entry per shard of a sharded engine (a device
+// named twice: two shards there), [device] for a cuda engine, [] for the CPU backends.
+template <template <class> class E>
+std::vector<int> engine_devices(const PyEngine<E>& e) {
+  if (const ShardedEngine* sh = sharded_of(e)) {
+    std::vector<int> d;
+    for (int k = 0; k < sh->shard_count(); ++k) d.push_back(sh->shard_device(k));
+    return d;
+  }
+  const int d = engine_device(e);
+  return d >= 0 ? std::vector<int>{d} : std::vector<int>{};
+}
+
 // Queues `queue(cuda_engine, stream)` (its compute_async) for arrays on CUDA device
 // lead.device, on the caller's stream; checks that the engine is a CUDA engine of
-// that device; throws BackendError for a launch error. No synchronisation.
+// that device (an engine sharded over that one device: its shard); throws BackendError
+// for a launch error. No synchronisation.
 template <class S, template <class> class E, class Queue>
 void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Queue&& queue) {
 #if SCANDYN_HAS_CUDA
   E<S>* base = nullptr;
   if constexpr (std::is_same_v<S, float>) base = e.ef.get();
   else base = e.ed.get();
+  if (ShardedEngine* sh = dynamic_cast<ShardedEngine*>(static_cast<Engine*>(base))) {
+    const std::vector<int> devices = engine_devices(e);
+    if (sh->shard_count() != 1)
+      throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                        ", but this engine shards host batches over CUDA devices " + devices_string(devices) +
+                        " (devices=): CUDA arrays run on their own device, not sharded; make an engine with device=" +
+                        std::to_string(lead.device) + " (or devices=[" + std::to_string(lead.device) +
+                        "], or no devices=) for them");
+    base = dynamic_cast<E<S>*>(&sh->shard_engine(0));
+  }
   auto* c = as_cuda(base);
   if (!c)
     throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine runs on backend '" +
@@ -143,7 +167,8 @@ void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Qu
   if (device_of(*c) != lead.device)
     throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine was made on " +
                       where_str(true, device_of(*c)) + ": make one with device=" + std::to_string(lead.device));
-  DeviceScope scope(lead.device);
+  std::optional<cuda::DeviceScope> scope;
+  enter_device(scope, lead.device);
   const cudaError_t err = queue(*c, reinterpret_cast<cudaStream_t>(stream));
   if (err != cudaSuccess)
     throw BackendError(std::string("backend 'cuda': queuing the computation on the caller's stream failed: ") +
@@ -168,7 +193,8 @@ void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::s
   try {
     nb::gil_scoped_release release;
 #if SCANDYN_HAS_CUDA
-    DeviceScope scope(device);  // a CUDA engine lives on the device current at construction
+    std::optional<cuda::DeviceScope> scope;  // a CUDA engine lives on the device current at construction
+    enter_device(scope, device);
 #else
     (void)device;
 #endif
@@ -183,7 +209,7 @@ void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::s
 }
 
 // The read-only properties every engine class of the module has: strategy, backend,
-// exact, dtype, nv, device, max_batch (cls: an nb::class_<PyEngine<E>>).
+// exact, dtype, nv, device, devices, max_batch (cls: an nb::class_<PyEngine<E>>).
 template <class Class>
 void def_engine_properties(Class& cls) {
   using T = typename Class::Type;
@@ -193,6 +219,7 @@ void def_engine_properties(Class& cls) {
       .def_prop_ro("dtype", &T::dtype)
       .def_prop_ro("nv", &T::nv)
       .def_prop_ro("device", [](const T& e) { return engine_device(e); })
+      .def_prop_ro("devices", [](const T& e) { return engine_devices(e); })
       .def_ro("max_batch", &T::max_batch);
 }
 

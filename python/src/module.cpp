@@ -19,6 +19,9 @@
 //     instance's block row-major (ShapeError);
 //   - out: writable, entries that do not overlap one another or any input (ShapeError);
 //   - fext: (.., nv, 6) C-contiguous (the engines read Force structs), [moment; force].
+// The four dynamics engines take devices= (BackendOptions::devices, parse_devices' text):
+// a cuda engine that shards host batches across those devices (scandyn/sharded.hpp);
+// CUDA arrays run on their own device only (engines.hpp's queue_on_device).
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/optional.h>
@@ -42,6 +45,7 @@
 
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
+#include "scandyn/sharded.hpp"
 #include "arrays.hpp"
 #include "engines.hpp"
 #include "scandyn/model/load.hpp"
@@ -113,8 +117,11 @@ const Force<S>* fext_of(const std::optional<InArray>& f, Index nv, Lead& lead) {
   return static_cast<const Force<S>*>(a.data());
 }
 
+// devices: BackendOptions::devices as parse_devices reads it ("current", "all", "0,1"); the
+// Python layer passes a list of ordinals joined by commas.
 BackendOptions options_of(const std::string& backend, Index max_batch, const std::string& strategy,
-                          const std::string& method, bool fallback_aba, int threads) {
+                          const std::string& method, bool fallback_aba, int threads,
+                          const std::string& devices = "current") {
   BackendOptions o;
   o.backend = parse_backend(backend);
   o.strategy = parse_strategy(strategy);
@@ -123,6 +130,7 @@ BackendOptions options_of(const std::string& backend, Index max_batch, const std
   o.threads = threads;
   if (max_batch < 1) throw ShapeError("max_batch must be at least 1, got " + std::to_string(max_batch));
   o.max_batch = max_batch;
+  o.devices = parse_devices(devices);
   return o;
 }
 
@@ -493,6 +501,7 @@ NB_MODULE(_scandyn, m) {
   m.def("model_search_dirs", &model_search_dirs);
   m.def("backend_unusable", [](const std::string& b) { return backend_unusable(parse_backend(b)); }, "backend"_a);
   m.def("openmp_threads", &openmp_threads);
+  m.def("parse_devices", &parse_devices, "text"_a);  // scandyn/sharded.hpp: "all", "current", "0,1"
 
   // ---- status
   nb::class_<CallStatus>(m, "Status")
@@ -531,13 +540,14 @@ NB_MODULE(_scandyn, m) {
   nb::class_<PyId> id(m, "InverseDynamics");
   id.def("__init__",
          [](PyId* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-            Index max_batch, const std::string& strategy, int threads, int device) {
-           BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
+            Index max_batch, const std::string& strategy, int threads, int device, const std::string& devices) {
+           BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads, devices);
            init_engine(self, std::move(model), dtype, max_batch, device,
                        [&](const ModelTpl<float>& md) { return make_inverse_dynamics<float>(md, o); },
                        [&](const ModelTpl<double>& md) { return make_inverse_dynamics<double>(md, o); });
          },
-         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1)
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1,
+         "devices"_a = "current")
       .def("compute",
            [](PyId& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& out,
               const std::optional<InArray>& fext, std::uintptr_t stream) {
@@ -550,13 +560,14 @@ NB_MODULE(_scandyn, m) {
   nb::class_<PyBias> bias(m, "BiasForces");
   bias.def("__init__",
            [](PyBias* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-              Index max_batch, const std::string& strategy, int threads, int device) {
-             BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads);
+              Index max_batch, const std::string& strategy, int threads, int device, const std::string& devices) {
+             BackendOptions o = options_of(backend, max_batch, strategy, "auto", false, threads, devices);
              init_engine(self, std::move(model), dtype, max_batch, device,
                          [&](const ModelTpl<float>& md) { return make_bias_forces<float>(md, o); },
                          [&](const ModelTpl<double>& md) { return make_bias_forces<double>(md, o); });
            },
-           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1)
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "strategy"_a = "auto", "threads"_a = 0, "device"_a = -1,
+           "devices"_a = "current")
       .def("compute",
            [](PyBias& e, const InArray& q, const InArray& qd, const OutArray& out, const std::optional<InArray>& fext,
               std::uintptr_t stream) {
@@ -569,13 +580,14 @@ NB_MODULE(_scandyn, m) {
   nb::class_<PyMass> mass(m, "MassMatrix");
   mass.def("__init__",
            [](PyMass* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
-              Index max_batch, int threads, int device) {
-             BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads);
+              Index max_batch, int threads, int device, const std::string& devices) {
+             BackendOptions o = options_of(backend, max_batch, "auto", "auto", false, threads, devices);
              init_engine(self, std::move(model), dtype, max_batch, device,
                          [&](const ModelTpl<float>& md) { return make_mass_matrix<float>(md, o); },
                          [&](const ModelTpl<double>& md) { return make_mass_matrix<double>(md, o); });
            },
-           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
+           "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1,
+           "devices"_a = "current")
       .def("compute",
            [](PyMass& e, const InArray& q, const OutArray& out, std::uintptr_t stream) {
              if (e.is_float) mass_compute<float>(e, q, out, stream);
@@ -588,8 +600,8 @@ NB_MODULE(_scandyn, m) {
   fd.def("__init__",
          [](PyFd* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
             Index max_batch, const std::string& method, bool fallback_aba, int threads, const std::string& fd_check,
-            double fd_check_tol, bool fallback_double, int device) {
-           BackendOptions o = options_of(backend, max_batch, "auto", method, fallback_aba, threads);
+            double fd_check_tol, bool fallback_double, int device, const std::string& devices) {
+           BackendOptions o = options_of(backend, max_batch, "auto", method, fallback_aba, threads, devices);
            o.fd_check = parse_fd_check(fd_check);
            if (fd_check_tol > 0) o.fd_check_tol_float = o.fd_check_tol_double = fd_check_tol;  // 0: the default
            o.fallback_double = fallback_double;
@@ -599,7 +611,7 @@ NB_MODULE(_scandyn, m) {
          },
          "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "method"_a = "auto", "fallback_aba"_a = false,
          "threads"_a = 0, "fd_check"_a = "auto", "fd_check_tol"_a = 0.0, "fallback_double"_a = false,
-         "device"_a = -1)
+         "device"_a = -1, "devices"_a = "current")
       .def("compute",
            [](PyFd& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& out,
               const std::optional<InArray>& fext, const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {

@@ -1,17 +1,21 @@
 // python/src/shared.hpp: what the extension module's source files (module.cpp,
-// kinematics.cpp) share: the loaded model, the error types that module.cpp's
+// kinematics.cpp, simulator.cpp) share: the loaded model, the error types that module.cpp's
 // translator turns into scandyn.errors classes (ShapeError, DTypeError,
-// DeviceError), and the names used in their messages.
+// DeviceError), the names used in their messages, and enter_device (a CUDA device
+// current for a scope).
 #pragma once
 
 #include <nanobind/nanobind.h>
 
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <type_traits>
 
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/engine.hpp"
 #include "scandyn/model/model.hpp"
 
 namespace scandyn::py {
@@ -43,6 +47,16 @@ struct PyModel {
     }
   }
 };
+
+// Makes `device` current for a scope (cuda::DeviceScope: engines and simulators are made
+// on, and launch to, the current device; the caller's is restored on exit); -1 keeps the
+// current one. BackendError naming the device when it cannot be made current.
+inline void enter_device(std::optional<cuda::DeviceScope>& scope, int device) {
+  if (device < 0) return;
+  scope.emplace(device);
+  if (!scope->ok())
+    throw BackendError("backend 'cuda': cannot use CUDA device " + std::to_string(device) + ": " + scope->error());
+}
 
 // "float32" or "float64", the dtype name of S.
 template <class S>

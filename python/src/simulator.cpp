@@ -26,6 +26,12 @@
 // one-line message); after a step with check=True, a failed status
 // (SimulationError with sim::failure_message).
 //
+// Devices (cuda): the simulator is made on `device` (-1: the current CUDA device, e.g.
+// torch.cuda.set_device(LOCAL_RANK) under torchrun), and every call that queues work
+// (step, reset, synchronize, energy, status) makes the state's device current for its
+// duration (enter_device, shared.hpp), so a simulator on device 1 steps from a thread
+// whose current device is 0.
+//
 // Contacts (effects.contacts): contact_view() hands out the last step's readings
 // (Simulator::contact_forces(), (B x P) ContactReading in the backend's memory) as
 // zero-copy views of their fields, owned by the Python Simulator like q and qd.
@@ -48,6 +54,7 @@
 #include <vector>
 
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "shared.hpp"
@@ -101,6 +108,10 @@ struct PySimulator {
   Index nq() { return visit([](auto& s) { return s.nq(); }); }  // q's columns (> nv with quaternions)
   Index batch() { return visit([](auto& s) { return s.batch(); }); }
   bool on_device() { return visit([](auto& s) { return s.on_device(); }); }
+  // The state's device current for a scope (cuda; nothing on the CPU backends).
+  void enter(std::optional<cuda::DeviceScope>& scope) {
+    if (on_device()) enter_device(scope, device);
+  }
 
   ~PySimulator() {
 #if SCANDYN_HAS_CUDA
@@ -145,7 +156,8 @@ sim::Scene read_scene(const std::string& path, const std::optional<std::string>&
 }
 
 void init_simulator(PySimulator* self, const std::string& path, const std::optional<std::string>& text,
-                    const std::string& source, const std::string& base_dir, const std::optional<std::string>& backend) {
+                    const std::string& source, const std::string& base_dir, const std::optional<std::string>& backend,
+                    int device) {
   auto* p = new (self) PySimulator();
   try {
     sim::Scene scene;
@@ -168,6 +180,8 @@ void init_simulator(PySimulator* self, const std::string& path, const std::optio
     if (!p->backend_auto) p->backend_note.clear();
     p->scene_path = scene.path;
     p->backend = to_string(kind);
+    std::optional<cuda::DeviceScope> scope;  // cuda: made on `device` (-1: the current one)
+    if (kind == BackendKind::Cuda) enter_device(scope, device);
     {
       nb::gil_scoped_release release;
       if (scene.precision == Precision::Float)
@@ -305,6 +319,8 @@ void step_as(PySimulator& p, sim::Simulator<S>& s, const std::optional<nb::ndarr
   {
     nb::gil_scoped_release release;
     std::lock_guard<std::mutex> lock(p.mutex);
+    std::optional<cuda::DeviceScope> scope;
+    p.enter(scope);
     p.after_caller(stream);
     for (Index k = 0; k < count; ++k) s.step(t);
     p.before_caller(stream);
@@ -334,6 +350,8 @@ void step(PySimulator& p, const std::optional<nb::ndarray<nb::ro>>& tau, Index c
 void reset(PySimulator& p, const std::optional<std::vector<Index>>& instances, std::optional<std::uintptr_t> stream) {
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(p.mutex);
+  std::optional<cuda::DeviceScope> scope;
+  p.enter(scope);
   p.after_caller(stream);
   p.visit([&](auto& s) {
     if (instances)
@@ -349,6 +367,8 @@ template <class F>
 auto locked(PySimulator& p, F&& f) {
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(p.mutex);
+  std::optional<cuda::DeviceScope> scope;
+  p.enter(scope);
   return p.visit(std::forward<F>(f));
 }
 
@@ -362,7 +382,8 @@ std::tuple<Index, Index, Index, std::string> status(PySimulator& p) {
 
 void bind_simulator(nb::module_& m) {
   nb::class_<PySimulator>(m, "Simulator")
-      .def("__init__", &init_simulator, "path"_a, "text"_a.none(), "source"_a, "base_dir"_a, "backend"_a.none())
+      .def("__init__", &init_simulator, "path"_a, "text"_a.none(), "source"_a, "base_dir"_a, "backend"_a.none(),
+           "device"_a = -1)
       .def("step", &step, "tau"_a.none(), "count"_a = 1, "check"_a = true, "stream"_a.none() = nb::none())
       .def("reset", &reset, "instances"_a.none(), "stream"_a.none() = nb::none())
       .def("status", &status)

@@ -7,8 +7,8 @@ the Gymnasium side: spaces, seeding, the batched step, autoreset, arrays on the
 simulator's device.
 
 Arrays: on the CPU (device="cpu") NumPy in and out (torch CPU tensors with
-tensors="torch"); on the GPU (device="cuda") torch tensors on the simulator's device in
-and out; a step reads one bool per instance back to the host (whether the state is
+tensors="torch"); on the GPU (device="cuda": torch's current device; "cuda:N": device N)
+torch tensors on the simulator's device in and out; a step reads one bool per instance back to the host (whether the state is
 finite).
 Observations, rewards and actions have the env's dtype (float32 by default, the
 simulator's precision: float64 runs the scene in double); terminated / truncated are bool.
@@ -27,6 +27,21 @@ def _torch():
     import torch
 
     return torch
+
+
+def _resolve_device(device):
+    """The env's device as "cpu" or "cuda:N": "cuda" (or a torch.device without an index)
+    is torch's current CUDA device (torch.cuda.set_device's: LOCAL_RANK's GPU under
+    torchrun, one process per GPU), "cuda:N" / torch.device("cuda", N) is device N."""
+    text = str(device)
+    if text == "cuda":
+        try:
+            torch = _torch()
+        except ImportError:  # the simulator then takes the CUDA runtime's current device
+            return text
+        if torch.cuda.is_available():
+            return f"cuda:{torch.cuda.current_device()}"
+    return text
 
 
 class SimulatorVectorEnv(VectorEnv):
@@ -73,7 +88,7 @@ class SimulatorVectorEnv(VectorEnv):
 
         if device == "auto":
             device = "cuda" if not backend_unusable("cuda") else "cpu"
-        self.device = str(device)
+        self.device = _resolve_device(device)
         on_gpu = self.device.startswith("cuda")
         if backend is None:
             backend = "cuda" if on_gpu else ("openmp" if not backend_unusable("openmp") else "serial")
@@ -92,7 +107,10 @@ class SimulatorVectorEnv(VectorEnv):
             raise ValueError("device='cuda' keeps the tensors on the GPU: tensors='numpy' is not possible")
         self._torch = on_gpu or tensors == "torch"
         self.model = load_model(self.model_spec)
-        self.sim = Simulator(self.scene, arrays="torch" if self._torch else "numpy")
+        self.sim = Simulator(self.scene, arrays="torch" if self._torch else "numpy",
+                             device=self.device if on_gpu else None)
+        if on_gpu:
+            self.device = self.sim.device  # "cuda:N", the GPU holding the state
         self.nv = self.sim.nv
         if self._torch:
             torch = _torch()
