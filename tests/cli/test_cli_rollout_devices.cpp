@@ -20,10 +20,10 @@ using namespace scandyn;
 class RolloutDevices : public CliDirTest {};
 
 std::string scene(const std::string& backend, const std::string& devices = "") {
-  return R"({"model": "rope:4", "dt": 1e-3, "instances": 9, "backend": ")" + backend + "\", " +
+  return R"({"model": "rope:4", "dt": 1e-4, "instances": 9, "backend": ")" + backend + "\", " +
          (devices.empty() ? "" : "\"devices\": " + devices + ", ") +
-         R"("effects": {"gravity": true, "damping": 0.1,
-      "contacts": {"planes": [{"normal": [0, 0, 1], "offset": -0.3}], "all_links": {"radius": 0.01}, "stiffness": 1e4}},
+         R"("effects": {"gravity": true, "damping": 1e-6,
+      "contacts": {"planes": [{"normal": [0, 0, 1], "offset": -0.025}], "all_links": {"radius": 0.002}, "stiffness": 10}},
     "initial": {"q": 0.2, "random": {"seed": 5, "q": 0.5, "qd": 1}}})";
 }
 
@@ -65,7 +65,7 @@ TEST_F(RolloutDevices, TwoShardsOnOneDeviceWriteTheSameTrajectory) {
   write_text(path("s.json"), scene("cuda"));
   // (B, nv) torques, constant per instance
   std::vector<double> tau(9 * 4);
-  for (std::size_t k = 0; k < tau.size(); ++k) tau[k] = 0.01 * double(k % 7) - 0.03;
+  for (std::size_t k = 0; k < tau.size(); ++k) tau[k] = 1e-5 * (double(k % 7) - 3);
   write_text(path("tau.npy"), io::npy_header("<f8", {9, 4}) +
                                   std::string(reinterpret_cast<const char*>(tau.data()), tau.size() * sizeof(double)));
   const std::string common = "rollout --scene s.json --steps 40 --every 10 --contacts --tau tau.npy";
