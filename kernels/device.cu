@@ -62,5 +62,26 @@ Result<DeviceInfo> device_info(int device) {
   return {d, {}};
 }
 
+Result<int> current_device() {
+  int d = 0;
+  const cudaError_t err = cudaGetDevice(&d);
+  if (err != cudaSuccess) return {0, "no usable CUDA device: " + runtime_error_string(err)};
+  return {d, {}};
+}
+
+Result<int> set_current_device(int device) {
+  const Result<int> count = device_count();
+  if (!count) return {0, count.error};
+  if (device < 0 || device >= count.value) {
+    return {0, "no CUDA device " + std::to_string(device) + ": " + std::to_string(count.value) +
+                   " device(s) visible"};
+  }
+  const cudaError_t err = cudaSetDevice(device);
+  if (err != cudaSuccess) {
+    return {0, "cudaSetDevice(" + std::to_string(device) + "): " + runtime_error_string(err)};
+  }
+  return {device, {}};
+}
+
 }  // namespace cuda
 }  // namespace scandyn

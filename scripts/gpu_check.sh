@@ -17,6 +17,8 @@
 #       importable (plots where matplotlib is too) -> accuracy-h100.tar.gz (its
 #       accuracy-h100.md and accuracy-h100/ go to docs/) and accuracy-h100.md
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
+#   7. with two or more GPUs: scripts/bench_multi_gpu.sh (one GPU against all of them
+#      in one process)                                                -> multi_gpu.csv
 #   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 # A failed configure or build stops the run; later steps run even if an earlier
 # test step failed.
@@ -249,6 +251,17 @@ else
     set -e
     record "bench $name" "$rc"
   done
+fi
+
+# ---- 7. several GPUs in one process, when the machine has them ---------------------
+gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
+if [[ "${SCANDYN_SKIP_BENCH:-0}" != 1 && "${gpus:-0}" -ge 2 && -x "$build/scandyn" ]]; then
+  note "bench_multi_gpu.sh ($gpus GPUs) -> $out/multi_gpu.csv"
+  set +e
+  scripts/bench_multi_gpu.sh "$build/scandyn" "$out" all 2>&1 | tee "$out/multi_gpu.log"
+  rc=${PIPESTATUS[0]}
+  set -e
+  record "bench multi-gpu" "$rc"
 fi
 
 note "summary ($out/summary.txt)"

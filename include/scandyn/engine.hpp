@@ -83,6 +83,11 @@ struct BackendOptions {
                                  // aba (turns an Auto check on; with Off: BackendError)
                                  // (BatchStatus::fell_back counts the instances a retry fixed)
   CpuSimd simd = CpuSimd::Auto;  // serial and openmp: W instances per vector register (CpuSimd)
+  // cuda: the devices a batch is sharded across (scandyn/sharded.hpp: contiguous ranges of
+  // instances, one engine, stream and memory per device; max_batch stays the whole
+  // batch's); empty: the device current at construction only. parse_devices("all")
+  // lists every visible device. Other backends refuse a non-empty list.
+  std::vector<int> devices;
 };
 
 // True when forward dynamics by `method` (resolved) on `backend` for a model of nv DoF

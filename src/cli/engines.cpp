@@ -7,6 +7,7 @@
 
 #include "cli.hpp"
 #include "scandyn/io/csv.hpp"
+#include "scandyn/sharded.hpp"
 
 namespace scandyn::cli {
 
@@ -57,6 +58,11 @@ BackendOptions parse_backend_options(const Args& args, FdCheckMode default_check
       }
       at = end + 1;
     }
+  }
+  if (args.has("devices")) {
+    o.devices = parse_flag(args, "devices", "current", parse_devices);
+    if (!o.devices.empty() && o.backend != BackendKind::Cuda)
+      throw UsageError("--devices applies only to --backend cuda (backend '" + std::string(to_string(o.backend)) + "')");
   }
   o.fd_check = default_check;
   if (args.has("fd-check")) o.fd_check = parse_flag(args, "fd-check", "auto", parse_fd_check);

@@ -17,11 +17,13 @@
 #include "cli.hpp"
 #include "scandyn/cuda/constrained_dynamics.hpp"
 #include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/sharded.hpp"
 
 namespace scandyn::cli {
 namespace {
@@ -73,11 +75,102 @@ class CudaResidentBatch final : public ResidentBatch<S> {
   std::unique_ptr<cuda::DeviceBatch<S>> batch_;
 };
 
+// A sharded engine's device-resident batch (scandyn/sharded.hpp): shard k's instances
+// copied once to its device, each shard's compute_async() queued on its own device
+// and stream (one host thread queues all of them, so the devices run at once); read()
+// and status() put the shards' results back in the caller's instance order.
+template <class S>
+class ShardedResidentBatch final : public ResidentBatch<S> {
+ public:
+  // shards[k]: shard k's resident batch, made with device devices[k] current
+  ShardedResidentBatch(std::vector<std::unique_ptr<ResidentBatch<S>>> shards, std::vector<int> devices,
+                       std::vector<ShardRange> ranges, std::size_t out_width, Index count)
+      : shards_(std::move(shards)), devices_(std::move(devices)), ranges_(std::move(ranges)),
+        out_width_(out_width), count_(count) {}
+
+  void launch() override {
+    each([](ResidentBatch<S>& r) { r.launch(); });
+  }
+  void wait() override {
+    each([](ResidentBatch<S>& r) { r.wait(); });
+  }
+  void read(S* out) override {
+    for (std::size_t k = 0; k < shards_.size(); ++k)
+      on_device(k, [&] { shards_[k]->read(out + static_cast<std::size_t>(ranges_[k].begin) * out_width_); });
+  }
+  BatchStatus status() override {
+    std::vector<BatchStatus> statuses(shards_.size());
+    failed_.assign(static_cast<std::size_t>(count_), -1);
+    for (std::size_t k = 0; k < shards_.size(); ++k)
+      on_device(k, [&] {
+        statuses[k] = shards_[k]->status();
+        detail::keep_failed_dofs(statuses[k], ranges_[k], failed_.data());
+      });
+    return detail::merge_shard_statuses(statuses, count_, failed_.data());
+  }
+  std::string strategy() const override {
+    return shards_.front()->strategy() + "-x" + std::to_string(shards_.size());
+  }
+
+ private:
+  // f() with shard k's device current; errors name the device
+  template <class F>
+  void on_device(std::size_t k, F&& f) {
+    const std::string label = "device " + std::to_string(devices_[k]) + ": ";
+    cuda::DeviceScope scope(devices_[k]);
+    if (!scope.ok()) throw DataError(label + scope.error());
+    try {
+      f();
+    } catch (const DataError& e) {
+      throw DataError(label + e.what());
+    }
+  }
+  template <class F>
+  void each(F&& f) {
+    for (std::size_t k = 0; k < shards_.size(); ++k) on_device(k, [&] { f(*shards_[k]); });
+  }
+
+  std::vector<std::unique_ptr<ResidentBatch<S>>> shards_;
+  std::vector<int> devices_;
+  std::vector<ShardRange> ranges_;
+  std::size_t out_width_;
+  Index count_;
+  std::vector<int> failed_;  // (count) after status()
+};
+
 }  // namespace
 
 template <class S>
 std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, const BatchIn<S>& in) {
   using D = cuda::DeviceBatch<S>;
+  if (auto* sharded = dynamic_cast<ShardedEngine*>(&engine)) {
+    // one resident batch per shard, each of its instances' rows, made on its device
+    const int n = sharded->shard_count();
+    const auto rows = [&](const S* p, Index b) { return p ? p + static_cast<std::size_t>(b) * nv : nullptr; };
+    std::vector<std::unique_ptr<ResidentBatch<S>>> shards;
+    std::vector<int> devices;
+    std::vector<ShardRange> ranges;
+    for (int k = 0; k < n; ++k) {
+      const ShardRange r = shard_range(static_cast<Index>(in.count), n, k);
+      const int device = sharded->shard_device(k);
+      cuda::DeviceScope scope(device);
+      if (!scope.ok()) throw UsageError("device " + std::to_string(device) + ": " + scope.error(), false);
+      const BatchIn<S> part{static_cast<std::size_t>(r.count), rows(in.q, r.begin), rows(in.qd, r.begin),
+                            rows(in.qdd, r.begin), rows(in.tau, r.begin)};
+      std::unique_ptr<ResidentBatch<S>> shard;
+      try {
+        shard = make_resident_batch(algo, sharded->shard_engine(k), nv, part);
+      } catch (const UsageError& e) {
+        throw UsageError("device " + std::to_string(device) + ": " + e.what(), false);
+      }
+      if (!shard) return nullptr;  // an engine without a device-resident batch
+      shards.push_back(std::move(shard));
+      devices.push_back(device);
+      ranges.push_back(r);
+    }
+    return std::make_unique<ShardedResidentBatch<S>>(std::move(shards), std::move(devices), std::move(ranges),
+                                                     output_width(algo, nv), static_cast<Index>(in.count));
+  }
   const std::size_t width = output_width(algo, nv);
   if (algo == Algo::Fd) {
     auto& e = dynamic_cast<cuda::CudaForwardDynamics<S>&>(engine);

@@ -53,6 +53,7 @@ const char* const kEvalUsage =
     "                    [--fd auto|aba|jsi|hybrid|parallel] [--fallback aba|double]\n"
     "                    [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                    [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
+    "                    [--devices all|current|0,1,...]\n"
     "                    [--precision double|float] [--frames NAMES] [--reference world|local]\n"
     "\n"
     "  --states IN.csv   header row, one state per row; columns q_<i>, qd_<i>, qdd_<i>,\n"
@@ -96,6 +97,9 @@ const char* const kEvalUsage =
     "  --strategy S      inverse dynamics by recursion, scan-local or scan-world;\n"
     "                    default auto (chosen by shape, see docs/cli.md)\n"
     "  --threads N       OpenMP threads (default: all)\n"
+    "  --devices D       cuda: the GPUs the batch is split across, contiguous ranges\n"
+    "                    of rows, one engine per device, all at once: all, current\n"
+    "                    (default) or ordinals such as 0,1 (docs/scaling.md)\n"
     "  --simd M          serial/openmp recursions (id, bias, mass, aba) W instances\n"
     "                    per vector register: auto (default), on or off\n"
     "  --precision P     double (default) or float\n"
@@ -150,6 +154,7 @@ const char* const kBenchUsage =
     "                     [--fallback aba|double] [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                     [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"
+    "                     [--devices all|current|0,1,...]\n"
     "                     [--precision double|float] [--min-time SECONDS] [--csv FILE]\n"
     "\n"
     "Times the algorithm on B random states (fixed seed) and prints one CSV row:\n"
@@ -166,7 +171,9 @@ const char* const kBenchUsage =
     "  --fd-check MODE   as for eval, default auto; flagged instances are a warning\n"
     "                    (strategy column <method>+check where it runs)\n"
     "  --fd-check-tol X, --fallback double   as for eval\n"
-    "  --backend, --strategy, --threads   as for eval\n"
+    "  --backend, --strategy, --threads, --devices   as for eval; with several devices\n"
+    "                    the strategy column ends in -x<devices> (thread-x2: the resident\n"
+    "                    batch split across two devices, each shard's launch queued at once)\n"
     "  --min-time S      keep timing whole passes until S seconds passed (default 0.5)\n"
     "  --csv FILE        also append the row to FILE (created with the header)\n"
     "  --allow-nonphysical-inertia, --floating-base  as for eval\n"
@@ -197,13 +204,13 @@ const Command kCommands[] = {
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
       "allow-nonphysical-inertia", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed", "loops",
-      "actuated", "simd"},
+      "actuated", "simd", "devices"},
      &run_eval},
     {"bench",
      kBenchUsage,
      {"model", "algo", "fd", "fallback", "instances", "backend", "strategy", "threads", "precision", "min-time",
       "csv", "allow-nonphysical-inertia", "scene", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed",
-      "simd"},
+      "simd", "devices"},
      &run_bench},
     {"rollout", kRolloutUsage, {"scene", "steps", "out", "every", "backend", "devices", "tau", "contacts"}, &run_rollout},
 };

@@ -8,6 +8,8 @@
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/algorithm/loops.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/device.hpp"
+#include "scandyn/sharded.hpp"
 #include "../../cpu_fallback/cpu_engines.hpp"
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/device.hpp"
@@ -341,6 +343,43 @@ void require_built(BackendKind backend) {
     if (!why.empty()) throw BackendError(why);
   }
 }
+// The same, and a device list only on cuda.
+void require_built(const BackendOptions& o) {
+  require_built(o.backend);
+  if (!o.devices.empty() && o.backend != BackendKind::Cuda)
+    throw BackendError("devices " + devices_string(o.devices) + ": only the cuda backend runs on devices (backend '" +
+                       to_string(o.backend) + "')");
+}
+
+// True when o asks the cuda backend for a device other than the current one, or several.
+bool sharded(const BackendOptions& o) {
+  if (o.backend != BackendKind::Cuda || o.devices.empty()) return false;
+  if (o.devices.size() > 1) return true;
+  const cuda::Result<int> current = cuda::current_device();
+  return !current || current.value != o.devices.front();
+}
+
+// One engine per entry of o.devices, each made by make(options of one shard: no devices,
+// max_batch its share) with that device current; BackendError "device D: ..." for a
+// device that cannot be made current or an engine that cannot be made there.
+template <class E, class Make>
+std::vector<std::unique_ptr<E>> per_device(const BackendOptions& o, Make&& make) {
+  BackendOptions one = o;
+  one.devices.clear();
+  one.max_batch = shard_capacity(o.max_batch, static_cast<int>(o.devices.size()));
+  std::vector<std::unique_ptr<E>> engines;
+  for (const int d : o.devices) {
+    const std::string label = "device " + std::to_string(d) + ": ";
+    cuda::DeviceScope scope(d);
+    if (!scope.ok()) throw BackendError(label + scope.error());
+    try {
+      engines.push_back(make(one));
+    } catch (const BackendError& e) {
+      throw BackendError(label + e.what());
+    }
+  }
+  return engines;
+}
 
 // Throws BackendError for a model with multi-DoF joints (a floating base, spherical
 // joints) on what does not take them yet: the cuda backend, the scans over links,
@@ -376,40 +415,64 @@ template void require_one_dof_joints(const ModelTpl<double>&, const char*);
 
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_joint_support(model, o, "inverse dynamics");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaInverseDynamics<S>>(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedInverseDynamics<S>>(
+          per_device<InverseDynamics<S>>(o, [&](const BackendOptions& one) { return make_inverse_dynamics(model, one); }), o.devices, true,
+          model.nbodies());
+    return std::make_unique<cuda::CudaInverseDynamics<S>>(model, o);
+  }
 #endif
   return cpu::make_inverse_dynamics(model, o);
 }
 
 template <class S>
 std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_joint_support(model, o, "bias forces");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaBiasForces<S>>(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedBiasForces<S>>(
+          per_device<BiasForces<S>>(o, [&](const BackendOptions& one) { return make_bias_forces(model, one); }), o.devices, true,
+          model.nbodies());
+    return std::make_unique<cuda::CudaBiasForces<S>>(model, o);
+  }
 #endif
   return cpu::make_bias_forces(model, o);
 }
 
 template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_joint_support(model, o, "the mass matrix");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaMassMatrix<S>>(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedMassMatrix<S>>(
+          per_device<MassMatrix<S>>(o, [&](const BackendOptions& one) { return make_mass_matrix(model, one); }), o.devices, true,
+          model.nbodies());
+    return std::make_unique<cuda::CudaMassMatrix<S>>(model, o);
+  }
 #endif
   return cpu::make_mass_matrix(model, o);
 }
 
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_joint_support(model, o, "forward dynamics");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaForwardDynamics<S>>(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedForwardDynamics<S>>(
+          per_device<ForwardDynamics<S>>(o, [&](const BackendOptions& one) { return make_forward_dynamics(model, one); }),
+          o.devices, true, model.nbodies(), o.max_batch);
+    return std::make_unique<cuda::CudaForwardDynamics<S>>(model, o);
+  }
 #endif
   return cpu::make_forward_dynamics(model, o);
 }
@@ -434,26 +497,38 @@ void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index m
 
 template <class S>
 std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_one_dof_joints(model, "the inverse-dynamics derivatives");
   if (o.strategy != IdStrategy::Auto)
     throw BackendError(std::string("strategy '") + to_string(o.strategy) +
                        "' is not available for the inverse-dynamics derivatives (use auto)");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_id_derivatives(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedIdDerivatives<S>>(
+          per_device<IdDerivatives<S>>(o, [&](const BackendOptions& one) { return make_id_derivatives(model, one); }),
+          o.devices, true, model.nbodies());
+    return cuda::make_cuda_id_derivatives(model, o);
+  }
 #endif
   return cpu::make_id_derivatives(model, o);
 }
 
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_one_dof_joints(model, "the forward-dynamics derivatives");
   if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba)
     throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
                        "' is not available for the forward-dynamics derivatives (use auto or aba)");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return cuda::make_cuda_fd_derivatives(model, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedFdDerivatives<S>>(
+          per_device<FdDerivatives<S>>(o, [&](const BackendOptions& one) { return make_fd_derivatives(model, one); }),
+          o.devices, true, model.nbodies(), o.max_batch);
+    return cuda::make_cuda_fd_derivatives(model, o);
+  }
 #endif
   return cpu::make_fd_derivatives(model, o);
 }
@@ -488,11 +563,17 @@ void check_batch(const BatchView<const S>& q, const BatchView<S>& poses, const B
 template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& o,
                                                const KinematicsOptions& k) {
-  require_built(o.backend);
+  require_built(o);
   if (o.backend == BackendKind::Cuda) require_one_dof_joints(model, "kinematics on the cuda backend");
   check_kinematics_options(model, k);
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaKinematics<S>>(model, o, k);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedKinematics<S>>(
+          per_device<Kinematics<S>>(o, [&](const BackendOptions& one) { return make_kinematics(model, one, k); }),
+          o.devices, true, model.nbodies());
+    return std::make_unique<cuda::CudaKinematics<S>>(model, o, k);
+  }
 #endif
   return cpu::make_kinematics(model, o, k);
 }
@@ -510,13 +591,20 @@ template <class S>
 std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_one_dof_joints(model, "hybrid dynamics");
   if (prescribed.size() != static_cast<std::size_t>(model.nv()))
     throw BackendError("hybrid dynamics: the prescribed mask has " + std::to_string(prescribed.size()) +
                        " entries for a model of " + std::to_string(model.nv()) + " DoF");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedHybridDynamics<S>>(
+          per_device<HybridDynamics<S>>(
+              o, [&](const BackendOptions& one) { return make_hybrid_dynamics(model, prescribed, one); }),
+          o.devices, true, model.nbodies(), o.max_batch);
+    return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
+  }
 #endif
   return cpu::make_hybrid_dynamics(model, prescribed, o);
 }
@@ -553,7 +641,7 @@ template <class S>
 std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(const ModelTpl<S>& model,
                                                                                  const LoopSet& loops,
                                                                                  const BackendOptions& o) {
-  require_built(o.backend);
+  require_built(o);
   require_one_dof_joints(model, "closed loops");
   for (const LoopClosure& l : loops.loops)
     for (Index body : {l.body_a, l.body_b})
@@ -561,7 +649,14 @@ std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics
         throw BackendError("closed loops: a loop names body " + std::to_string(body) + " of a model of " +
                            std::to_string(model.nv()) + " bodies (the loops were made for another model)");
 #if SCANDYN_HAS_CUDA
-  if (o.backend == BackendKind::Cuda) return cuda::make_constrained_forward_dynamics(model, loops, o);
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedConstrainedForwardDynamics<S>>(
+          per_device<ConstrainedForwardDynamics<S>>(
+              o, [&](const BackendOptions& one) { return make_constrained_forward_dynamics(model, loops, one); }),
+          o.devices, true, model.nbodies(), o.max_batch);
+    return cuda::make_constrained_forward_dynamics(model, loops, o);
+  }
 #endif
   return cpu::make_constrained_forward_dynamics(model, loops, o);
 }

@@ -51,6 +51,13 @@ Result<int> device_count();
 // Properties of device `device`; errors for a failed device_count(), an ordinal
 // out of range, or a failed property query.
 Result<DeviceInfo> device_info(int device = 0);
+
+// The calling host thread's current device (cudaGetDevice).
+Result<int> current_device();
+
+// Makes `device` the calling host thread's current device (cudaSetDevice); errors for
+// an ordinal out of range ("no CUDA device 3: 2 device(s) visible") or a failed call.
+Result<int> set_current_device(int device);
 #else
 inline Result<int> device_count() {
   return {0, "no usable CUDA device: scandyn was built without CUDA (SCANDYN_CUDA=OFF)"};
@@ -58,7 +65,45 @@ inline Result<int> device_count() {
 inline Result<DeviceInfo> device_info(int = 0) {
   return {DeviceInfo{}, "no usable CUDA device: scandyn was built without CUDA (SCANDYN_CUDA=OFF)"};
 }
+inline Result<int> current_device() {
+  return {0, "no usable CUDA device: scandyn was built without CUDA (SCANDYN_CUDA=OFF)"};
+}
+inline Result<int> set_current_device(int) {
+  return {0, "no usable CUDA device: scandyn was built without CUDA (SCANDYN_CUDA=OFF)"};
+}
 #endif
+
+// Sets a device current for the lifetime of a scope and restores the one before
+// (engines bind to the device current at their construction). `ok()` false, with
+// `error` saying why, when the device could not be made current; nothing is
+// restored then.
+class DeviceScope {
+ public:
+  explicit DeviceScope(int device) {
+    const Result<int> before = current_device();
+    if (!before) {
+      error_ = before.error;
+      return;
+    }
+    const Result<int> set = set_current_device(device);
+    if (!set) {
+      error_ = set.error;
+      return;
+    }
+    previous_ = before.value;
+  }
+  ~DeviceScope() {
+    if (previous_ >= 0) (void)set_current_device(previous_);
+  }
+  DeviceScope(const DeviceScope&) = delete;
+  DeviceScope& operator=(const DeviceScope&) = delete;
+  bool ok() const { return error_.empty(); }
+  const std::string& error() const { return error_; }
+
+ private:
+  int previous_ = -1;
+  std::string error_;
+};
 
 // One line: "0: NVIDIA H100 (sm_90, 132 SMs, 79.1 GiB, driver 13.0, runtime 13.0)".
 inline std::string describe(const DeviceInfo& d) {
