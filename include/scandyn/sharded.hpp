@@ -90,6 +90,10 @@ HybridBatchIn<S> slice(const HybridBatchIn<S>& in, const ShardRange& r, Index nb
 std::vector<int> parse_devices(const std::string& text);
 // "current" for an empty list, else the ordinals joined by commas ("0,1").
 std::string devices_string(const std::vector<int>& devices);
+// True when a device list asks for more than the current device: several devices, or
+// one other than the calling thread's current one (what the cuda factories and the
+// simulator shard on).
+bool spans_devices(const std::vector<int>& devices);
 
 // One host thread per shard. With `cuda`, worker k makes devices[k] its current CUDA
 // device before its first job (a failure there fails each of its jobs with that message).

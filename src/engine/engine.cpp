@@ -352,12 +352,7 @@ void require_built(const BackendOptions& o) {
 }
 
 // True when o asks the cuda backend for a device other than the current one, or several.
-bool sharded(const BackendOptions& o) {
-  if (o.backend != BackendKind::Cuda || o.devices.empty()) return false;
-  if (o.devices.size() > 1) return true;
-  const cuda::Result<int> current = cuda::current_device();
-  return !current || current.value != o.devices.front();
-}
+bool sharded(const BackendOptions& o) { return o.backend == BackendKind::Cuda && spans_devices(o.devices); }
 
 // One engine per entry of o.devices, each made by make(options of one shard: no devices,
 // max_batch its share) with that device current; BackendError "device D: ..." for a

@@ -51,6 +51,12 @@ std::string devices_string(const std::vector<int>& devices) {
   return s;
 }
 
+bool spans_devices(const std::vector<int>& devices) {
+  if (devices.size() != 1) return devices.size() > 1;
+  const cuda::Result<int> current = cuda::current_device();
+  return !current || current.value != devices.front();
+}
+
 // ---- ShardPool ---------------------------------------------------------------------
 
 ShardPool::ShardPool(std::vector<int> devices, bool cuda)

@@ -26,12 +26,6 @@ BatchStatus merge_shard_statuses(const std::vector<BatchStatus>& statuses, Index
   return total;
 }
 
-bool spans_devices(const std::vector<int>& devices) {
-  if (devices.size() != 1) return devices.size() > 1;
-  const cuda::Result<int> current = cuda::current_device();
-  return !current || current.value != devices.front();
-}
-
 namespace {
 
 template <class S>

@@ -14,6 +14,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/io/limits.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/sharded.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -175,7 +176,7 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     setup_.prescribed_mask = scene.prescribed.mask(nv);
   }
   if (backend != BackendKind::Cuda) backend_ = cpu::make_simulator_step(setup_, backend);
-  else if (detail::spans_devices(scene.devices))
+  else if (spans_devices(scene.devices))
     backend_ = detail::make_sharded_sim_backend<S>(setup_, scene.devices, true, &detail::make_cuda_sim_backend<S>);
   else backend_ = detail::make_cuda_sim_backend(setup_);
   random_ = std::make_unique<Random>(initial_.seed);

@@ -211,11 +211,6 @@ inline int shard_of(Index B, int n, Index b) {
 // instances numbered from 0) as one status over the whole batch (add_step_failures).
 BatchStatus merge_shard_statuses(const std::vector<BatchStatus>& statuses, Index B);
 
-// True when devices asks the cuda backend for more than one device or for one other
-// than the calling thread's current device (one that cannot be asked counts as
-// other): the simulator shards then.
-bool spans_devices(const std::vector<int>& devices);
-
 }  // namespace detail
 
 template <class S>
