@@ -17,8 +17,9 @@ then takes the same Adam step, so theta stays identical everywhere. Prints the
 population's and the unperturbed policy's mean return per step, and instance-steps per
 second per rank and in total (simulator steps: env steps x frame_skip).
 
---measure: N environments (split across ranks) x T env steps with the policy in the
-loop, after a warm-up; the slowest rank's time sets the total rate. Rank 0 prints one
+--measure (rollout): N environments (split across ranks) x T env steps with the policy
+in the loop, after a warm-up; --measure id / fd: iiwa inverse or forward dynamics on
+each rank's share of N instances (device tensors, out=), T calls timed; the slowest rank's time sets the total rate. Rank 0 prints one
 JSON line (and appends it to --out): launcher, world size, devices, instance-steps/s
 per rank and in total, so that one process on one GPU and two processes on two GPUs
 can be compared.
@@ -154,7 +155,10 @@ def parse_args(description, argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--min-gain", type=float, default=None,
                     help="exit non-zero unless the unperturbed return per step gains at least this much")
-    ap.add_argument("--measure", action="store_true", help="time a fixed rollout instead of training")
+    ap.add_argument("--measure", nargs="?", const="rollout", default=None, choices=["rollout", "id", "fd"],
+                    help="time instead of training: a fixed env rollout with the policy in the loop (rollout, "
+                         "the default), or iiwa inverse / forward dynamics on this rank's device tensors (id, fd; "
+                         "--envs instances in all, --steps timed calls)")
     ap.add_argument("--warmup", type=int, default=5, help="--measure: env steps before the timing")
     ap.add_argument("--out", default=None, help="--measure: append the JSON line to this file (rank 0)")
     return ap.parse_args(argv)
@@ -370,9 +374,63 @@ def measure(comm, device, args):
     return 0 if all_finite else 1
 
 
+def measure_dynamics(comm, device, args):
+    """--measure id|fd: iiwa inverse or forward dynamics in float on this rank's share of
+    --envs instances, (B, nv) tensors on its device, results into a preallocated out=
+    (scandyn's engine, the caller's stream); --steps calls timed after --warmup."""
+    import torch
+
+    import scandyn as sd
+
+    _, n_local = shard_range(args.envs, comm.world, comm.rank)
+    if n_local < 1:
+        raise SystemExit(f"--envs {args.envs}: fewer instances than processes ({comm.world})")
+    model = sd.load_model("iiwa")
+    gen = torch.Generator(device=device)
+    gen.manual_seed(args.seed + comm.rank)
+    q, qd, x = (torch.rand(n_local, model.nv, device=device, generator=gen) * 2 - 1 for _ in range(3))
+    out = torch.empty_like(q)
+    backend = "cuda" if device.type == "cuda" else args.backend
+    if args.measure == "id":
+        engine = sd.InverseDynamics(model, backend=backend, max_batch=n_local, dtype=torch.float32)
+    else:
+        engine = sd.ForwardDynamics(model, backend=backend, max_batch=n_local, dtype=torch.float32)
+    for _ in range(args.warmup):
+        engine(q, qd, x, out=out)
+    synchronize(device)
+    comm.barrier()
+    start = time.perf_counter()
+    for _ in range(args.steps):
+        engine(q, qd, x, out=out)
+    synchronize(device)
+    elapsed_local = time.perf_counter() - start
+    finite = bool(torch.isfinite(out).all().item())
+    elapsed = comm.allreduce_max(elapsed_local)
+    all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
+    row = {
+        "example": "multi_gpu", "launcher": comm.name, "world": comm.world, "host": socket.gethostname(),
+        "device": device.type, "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else "",
+        "task": f"iiwa {args.measure}", "precision": "float", "instances": args.envs,
+        "instances_per_rank": [shard_range(args.envs, comm.world, r)[1] for r in range(comm.world)],
+        "calls": args.steps, "elapsed_s": elapsed, "seconds_per_call": elapsed / args.steps,
+        "evals_per_second": args.envs * args.steps / elapsed, "finite": all_finite,
+    }
+    print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} calls, "
+          f"{n_local * args.steps / elapsed_local:.4g} evaluations/s", flush=True)
+    if comm.rank == 0:
+        line = json.dumps(row)
+        print(line, flush=True)
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(line + "\n")
+    return 0 if all_finite else 1
+
+
 def run(comm, device, args):
     resolve_defaults(args, device)
     try:
+        if args.measure in ("id", "fd"):
+            return measure_dynamics(comm, device, args)
         return measure(comm, device, args) if args.measure else train(comm, device, args)
     finally:
         comm.close()

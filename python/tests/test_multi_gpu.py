@@ -313,6 +313,13 @@ def test_torchrun_example_one_process(tmp_path):
     r = _run([sys.executable, os.path.join(EXAMPLES, "multi_gpu_torchrun.py"), *TRAIN])
     assert r.returncode == 0, r.stderr
     assert "iter   2: population return per step" in r.stdout and "OK" in r.stdout
+    for algo in ("id", "fd"):
+        r = _run([sys.executable, os.path.join(EXAMPLES, "multi_gpu_torchrun.py"), "--device", "cpu", "--measure",
+                  algo, "--envs", "6", "--steps", "2", "--warmup", "1"])
+        assert r.returncode == 0, r.stderr
+        row = _row(r.stdout)
+        assert row["task"] == f"iiwa {algo}" and row["instances"] == 6 and row["instances_per_rank"] == [6]
+        assert row["finite"] and row["evals_per_second"] > 0
 
 
 def test_torchrun_example_two_processes_gloo():
