@@ -17,8 +17,9 @@
 #       importable (plots where matplotlib is too) -> accuracy-h100.tar.gz (its
 #       accuracy-h100.md and accuracy-h100/ go to docs/) and accuracy-h100.md
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
-#   7. with two or more GPUs: scripts/bench_multi_gpu.sh (one GPU against all of them
-#      in one process)                                                -> multi_gpu.csv
+#   7. with two or more GPUs: scripts/multi_gpu_check.sh (the sharded engines' and
+#      simulator's tests, one GPU against all of them in one process, the Python
+#      examples under torchrun and mpirun)                            -> multi_gpu/
 #   summary.txt lists each step's outcome; the exit status is non-zero if any failed.
 # A failed configure or build stops the run; later steps run even if an earlier
 # test step failed.
@@ -256,9 +257,9 @@ fi
 # ---- 7. several GPUs in one process, when the machine has them ---------------------
 gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
 if [[ "${SCANDYN_SKIP_BENCH:-0}" != 1 && "${gpus:-0}" -ge 2 && -x "$build/scandyn" ]]; then
-  note "bench_multi_gpu.sh ($gpus GPUs) -> $out/multi_gpu.csv"
+  note "multi_gpu_check.sh ($gpus GPUs) -> $out/multi_gpu/"
   set +e
-  scripts/bench_multi_gpu.sh "$build/scandyn" "$out" all 2>&1 | tee "$out/multi_gpu.log"
+  scripts/multi_gpu_check.sh "$build" "$out/multi_gpu" 2>&1 | tee "$out/multi_gpu.log"
   rc=${PIPESTATUS[0]}
   set -e
   record "bench multi-gpu" "$rc"

@@ -156,6 +156,19 @@ class ShardedEngine {
 
 namespace detail {
 
+// Destroys `engine` on shard k's worker (its device current there), after the pool's
+// last job; nothing is thrown (a destructor's).
+template <class E>
+void release_on_device(ShardPool& pool, int k, std::unique_ptr<E>& engine) {
+  try {
+    pool.run([&](int j) {
+      if (j == k) engine.reset();
+    });
+  } catch (...) {
+    engine.reset();  // the worker could not run it: release it here
+  }
+}
+
 // The engines of the shards and their pool: what every sharded engine holds.
 template <class E>
 class Shards : public ShardedEngine {
@@ -166,6 +179,12 @@ class Shards : public ShardedEngine {
       throw BackendError("sharded engine: " + std::to_string(engines_.size()) + " engines for " +
                          std::to_string(pool_.size()) + " devices");
   }
+  ~Shards() override {
+    // each engine released with its own device current (its stream and memory live there)
+    for (int k = 0; k < pool_.size(); ++k) release_on_device(pool_, k, engines_[static_cast<std::size_t>(k)]);
+  }
+  Shards(const Shards&) = delete;
+  Shards& operator=(const Shards&) = delete;
   int shard_count() const override { return pool_.size(); }
   int shard_device(int k) const override { return pool_.cuda() ? pool_.devices()[k] : -1; }
   Engine& shard_engine(int k) override { return *engines_[static_cast<std::size_t>(k)]; }
