@@ -169,12 +169,24 @@ void release_on_device(ShardPool& pool, int k, std::unique_ptr<E>& engine) {
   }
 }
 
-// The engines of the shards and their pool: what every sharded engine holds.
+// A shard's per-instance failed DoFs copied to its range of `failed_dof` (the sharded
+// engine's own, B entries; -1 where the shard's engine keeps none). Run by the shard's
+// worker, right after its compute.
+void keep_failed_dofs(const BatchStatus& status, const ShardRange& r, int* failed_dof);
+// Statuses of the shards of one call as one over the whole batch: instances renumbered,
+// failed_dof (B entries, filled by keep_failed_dofs) as its per-instance array.
+BatchStatus merge_shard_statuses(const std::vector<BatchStatus>& statuses, Index B, int* failed_dof);
+
+// The engine interface E over the engines of the shards and their pool: what every
+// sharded engine holds and says of itself (its strategy: the shards' with "-x<n>").
 template <class E>
-class Shards : public ShardedEngine {
+class Shards : public E, public ShardedEngine {
  public:
-  Shards(std::vector<std::unique_ptr<E>> engines, std::vector<int> devices, bool cuda, Index nbodies)
-      : engines_(std::move(engines)), pool_(std::move(devices), cuda), nbodies_(nbodies) {
+  // max_batch: the whole batch's, for the per-instance failures of calls that report them
+  Shards(std::vector<std::unique_ptr<E>> engines, std::vector<int> devices, bool cuda, Index nbodies,
+         Index max_batch = 0)
+      : engines_(std::move(engines)), pool_(std::move(devices), cuda), nbodies_(nbodies),
+        statuses_(engines_.size()), failed_dof_(static_cast<std::size_t>(max_batch > 0 ? max_batch : 0), -1) {
     if (engines_.empty() || static_cast<int>(engines_.size()) != pool_.size())
       throw BackendError("sharded engine: " + std::to_string(engines_.size()) + " engines for " +
                          std::to_string(pool_.size()) + " devices");
@@ -185,10 +197,17 @@ class Shards : public ShardedEngine {
   }
   Shards(const Shards&) = delete;
   Shards& operator=(const Shards&) = delete;
+
   int shard_count() const override { return pool_.size(); }
   int shard_device(int k) const override { return pool_.cuda() ? pool_.devices()[k] : -1; }
   Engine& shard_engine(int k) override { return *engines_[static_cast<std::size_t>(k)]; }
   E& shard(int k) { return *engines_[static_cast<std::size_t>(k)]; }
+
+  std::string strategy() const override {
+    return engines_.front()->strategy() + (pool_.size() > 1 ? "-x" + std::to_string(pool_.size()) : "");
+  }
+  BackendKind backend() const override { return engines_.front()->backend(); }
+  bool exact() const override { return engines_.front()->exact(); }
 
  protected:
   // f(engine, range) for every shard with instances, at once; B the batch's size
@@ -200,238 +219,139 @@ class Shards : public ShardedEngine {
       if (r.count > 0) f(*engines_[static_cast<std::size_t>(k)], r);
     });
   }
-  std::string sharded_strategy() const {
-    return engines_.front()->strategy() + (pool_.size() > 1 ? "-x" + std::to_string(pool_.size()) : "");
-  }
-  std::vector<std::unique_ptr<E>> engines_;
-  ShardPool pool_;
-  Index nbodies_ = 0;
-};
-
-// A shard's per-instance failed DoFs copied to its range of `failed_dof` (the sharded
-// engine's own, B entries; -1 where the shard's engine keeps none). Run by the shard's
-// worker, right after its compute.
-void keep_failed_dofs(const BatchStatus& status, const ShardRange& r, int* failed_dof);
-// Statuses of the shards of one call as one over the whole batch: instances renumbered,
-// failed_dof (B entries, filled by keep_failed_dofs) as its per-instance array.
-BatchStatus merge_shard_statuses(const std::vector<BatchStatus>& statuses, Index B, int* failed_dof);
-
-}  // namespace detail
-
-template <class S>
-class ShardedInverseDynamics final : public InverseDynamics<S>, public detail::Shards<InverseDynamics<S>> {
-  using Base = detail::Shards<InverseDynamics<S>>;
-
- public:
-  using Base::Base;
-  void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override {
-    this->each(tau.batch, [&](InverseDynamics<S>& e, const ShardRange& r) {
-      e.compute(slice(in, r, this->nbodies_), slice(tau, r));
-    });
-  }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-};
-
-template <class S>
-class ShardedBiasForces final : public BiasForces<S>, public detail::Shards<BiasForces<S>> {
-  using Base = detail::Shards<BiasForces<S>>;
-
- public:
-  using Base::Base;
-  void compute(const BiasBatchIn<S>& in, const BatchView<S>& h) override {
-    this->each(h.batch, [&](BiasForces<S>& e, const ShardRange& r) {
-      e.compute(slice(in, r, this->nbodies_), slice(h, r));
-    });
-  }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-};
-
-template <class S>
-class ShardedMassMatrix final : public MassMatrix<S>, public detail::Shards<MassMatrix<S>> {
-  using Base = detail::Shards<MassMatrix<S>>;
-
- public:
-  using Base::Base;
-  void compute(const BatchView<const S>& q, const BatchView<S>& M) override {
-    this->each(M.batch, [&](MassMatrix<S>& e, const ShardRange& r) { e.compute(slice(q, r), slice(M, r)); });
-  }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-};
-
-template <class S>
-class ShardedForwardDynamics final : public ForwardDynamics<S>, public detail::Shards<ForwardDynamics<S>> {
-  using Base = detail::Shards<ForwardDynamics<S>>;
-
- public:
-  ShardedForwardDynamics(std::vector<std::unique_ptr<ForwardDynamics<S>>> engines, std::vector<int> devices,
-                         bool cuda, Index nbodies, Index max_batch)
-      : Base(std::move(engines), std::move(devices), cuda, nbodies),
-        statuses_(static_cast<std::size_t>(this->pool_.size())),
-        failed_dof_(static_cast<std::size_t>(max_batch > 0 ? max_batch : 0), -1) {}
-  BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
-    const Index B = qdd.batch;
+  // The same for calls that return a BatchStatus: the shards' statuses as one, instances
+  // numbered as the caller's. what: the algorithm, for the max_batch error.
+  template <class F>
+  BatchStatus each_status(Index B, const char* what, F&& f) {
     if (B > static_cast<Index>(failed_dof_.size()))
-      throw BackendError("forward dynamics: batch of " + std::to_string(B) + " instances above max_batch " +
+      throw BackendError(std::string(what) + ": batch of " + std::to_string(B) + " instances above max_batch " +
                          std::to_string(failed_dof_.size()));
     for (BatchStatus& s : statuses_) s = BatchStatus{};
-    const int n = this->pool_.size();
-    this->pool_.run([&](int k) {
+    const int n = pool_.size();
+    pool_.run([&](int k) {
       const ShardRange r = shard_range(B, n, k);
       if (r.count == 0) return;
       BatchStatus& s = statuses_[static_cast<std::size_t>(k)];
-      s = this->shard(k).compute(slice(in, r, this->nbodies_), slice(qdd, r));
-      detail::keep_failed_dofs(s, r, failed_dof_.data());
+      s = f(*engines_[static_cast<std::size_t>(k)], r);
+      keep_failed_dofs(s, r, failed_dof_.data());
     });
-    return detail::merge_shard_statuses(statuses_, B, failed_dof_.data());
+    return merge_shard_statuses(statuses_, B, failed_dof_.data());
   }
-  FdMethod method() const override { return this->engines_.front()->method(); }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
+
+  std::vector<std::unique_ptr<E>> engines_;
+  ShardPool pool_;
+  Index nbodies_ = 0;
 
  private:
   std::vector<BatchStatus> statuses_;  // (n) the last call's, per shard
   std::vector<int> failed_dof_;        // (max_batch) the last call's failed DoF per instance
 };
 
-template <class S>
-class ShardedKinematics final : public Kinematics<S>, public detail::Shards<Kinematics<S>> {
-  using Base = detail::Shards<Kinematics<S>>;
+}  // namespace detail
 
+// The engines of scandyn/engine.hpp, sharded. Constructors: (engines, devices, cuda,
+// nbodies[, max_batch]) as detail::Shards; those whose calls report failures per
+// instance take the whole batch's max_batch.
+
+template <class S>
+class ShardedInverseDynamics final : public detail::Shards<InverseDynamics<S>> {
  public:
-  using Base::Base;
+  using detail::Shards<InverseDynamics<S>>::Shards;
+  void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override {
+    this->each(tau.batch, [&](InverseDynamics<S>& e, const ShardRange& r) {
+      e.compute(slice(in, r, this->nbodies_), slice(tau, r));
+    });
+  }
+};
+
+template <class S>
+class ShardedBiasForces final : public detail::Shards<BiasForces<S>> {
+ public:
+  using detail::Shards<BiasForces<S>>::Shards;
+  void compute(const BiasBatchIn<S>& in, const BatchView<S>& h) override {
+    this->each(h.batch, [&](BiasForces<S>& e, const ShardRange& r) {
+      e.compute(slice(in, r, this->nbodies_), slice(h, r));
+    });
+  }
+};
+
+template <class S>
+class ShardedMassMatrix final : public detail::Shards<MassMatrix<S>> {
+ public:
+  using detail::Shards<MassMatrix<S>>::Shards;
+  void compute(const BatchView<const S>& q, const BatchView<S>& M) override {
+    this->each(M.batch, [&](MassMatrix<S>& e, const ShardRange& r) { e.compute(slice(q, r), slice(M, r)); });
+  }
+};
+
+template <class S>
+class ShardedForwardDynamics final : public detail::Shards<ForwardDynamics<S>> {
+ public:
+  using detail::Shards<ForwardDynamics<S>>::Shards;
+  BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
+    return this->each_status(qdd.batch, "forward dynamics", [&](ForwardDynamics<S>& e, const ShardRange& r) {
+      return e.compute(slice(in, r, this->nbodies_), slice(qdd, r));
+    });
+  }
+  FdMethod method() const override { return this->engines_.front()->method(); }
+};
+
+template <class S>
+class ShardedKinematics final : public detail::Shards<Kinematics<S>> {
+ public:
+  using detail::Shards<Kinematics<S>>::Shards;
   void compute(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J) override {
     this->each(q.batch, [&](Kinematics<S>& e, const ShardRange& r) {
       e.compute(slice(q, r), slice(poses, r), slice(J, r));
     });
   }
   const KinematicsOptions& options() const override { return this->engines_.front()->options(); }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
 };
 
 template <class S>
-class ShardedIdDerivatives final : public IdDerivatives<S>, public detail::Shards<IdDerivatives<S>> {
-  using Base = detail::Shards<IdDerivatives<S>>;
-
+class ShardedIdDerivatives final : public detail::Shards<IdDerivatives<S>> {
  public:
-  using Base::Base;
+  using detail::Shards<IdDerivatives<S>>::Shards;
   void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) override {
     this->each(in.q.batch, [&](IdDerivatives<S>& e, const ShardRange& r) {
       e.compute(slice(in, r, this->nbodies_), {slice(out.dtau_dq, r), slice(out.dtau_dqd, r), slice(out.M, r)});
     });
   }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
 };
 
 template <class S>
-class ShardedFdDerivatives final : public FdDerivatives<S>, public detail::Shards<FdDerivatives<S>> {
-  using Base = detail::Shards<FdDerivatives<S>>;
-
+class ShardedFdDerivatives final : public detail::Shards<FdDerivatives<S>> {
  public:
-  ShardedFdDerivatives(std::vector<std::unique_ptr<FdDerivatives<S>>> engines, std::vector<int> devices, bool cuda,
-                       Index nbodies, Index max_batch)
-      : Base(std::move(engines), std::move(devices), cuda, nbodies),
-        statuses_(static_cast<std::size_t>(this->pool_.size())),
-        failed_dof_(static_cast<std::size_t>(max_batch > 0 ? max_batch : 0), -1) {}
+  using detail::Shards<FdDerivatives<S>>::Shards;
   BatchStatus compute(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out) override {
-    const Index B = in.q.batch;
-    if (B > static_cast<Index>(failed_dof_.size()))
-      throw BackendError("forward-dynamics derivatives: batch of " + std::to_string(B) +
-                         " instances above max_batch " + std::to_string(failed_dof_.size()));
-    for (BatchStatus& s : statuses_) s = BatchStatus{};
-    const int n = this->pool_.size();
-    this->pool_.run([&](int k) {
-      const ShardRange r = shard_range(B, n, k);
-      if (r.count == 0) return;
-      BatchStatus& s = statuses_[static_cast<std::size_t>(k)];
-      s = this->shard(k).compute(
-          slice(in, r, this->nbodies_),
-          {slice(out.dqdd_dq, r), slice(out.dqdd_dqd, r), slice(out.dqdd_dtau, r), slice(out.qdd, r)});
-      detail::keep_failed_dofs(s, r, failed_dof_.data());
+    return this->each_status(in.q.batch, "forward-dynamics derivatives", [&](FdDerivatives<S>& e, const ShardRange& r) {
+      return e.compute(slice(in, r, this->nbodies_),
+                       {slice(out.dqdd_dq, r), slice(out.dqdd_dqd, r), slice(out.dqdd_dtau, r), slice(out.qdd, r)});
     });
-    return detail::merge_shard_statuses(statuses_, B, failed_dof_.data());
   }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-
- private:
-  std::vector<BatchStatus> statuses_;
-  std::vector<int> failed_dof_;
 };
 
 template <class S>
-class ShardedHybridDynamics final : public HybridDynamics<S>, public detail::Shards<HybridDynamics<S>> {
-  using Base = detail::Shards<HybridDynamics<S>>;
-
+class ShardedHybridDynamics final : public detail::Shards<HybridDynamics<S>> {
  public:
-  ShardedHybridDynamics(std::vector<std::unique_ptr<HybridDynamics<S>>> engines, std::vector<int> devices, bool cuda,
-                        Index nbodies, Index max_batch)
-      : Base(std::move(engines), std::move(devices), cuda, nbodies),
-        statuses_(static_cast<std::size_t>(this->pool_.size())),
-        failed_dof_(static_cast<std::size_t>(max_batch > 0 ? max_batch : 0), -1) {}
+  using detail::Shards<HybridDynamics<S>>::Shards;
   BatchStatus compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau) override {
-    const Index B = qdd.batch;
-    if (B > static_cast<Index>(failed_dof_.size()))
-      throw BackendError("hybrid dynamics: batch of " + std::to_string(B) + " instances above max_batch " +
-                         std::to_string(failed_dof_.size()));
-    for (BatchStatus& s : statuses_) s = BatchStatus{};
-    const int n = this->pool_.size();
-    this->pool_.run([&](int k) {
-      const ShardRange r = shard_range(B, n, k);
-      if (r.count == 0) return;
-      BatchStatus& s = statuses_[static_cast<std::size_t>(k)];
-      s = this->shard(k).compute(slice(in, r, this->nbodies_), slice(qdd, r), slice(tau, r));
-      detail::keep_failed_dofs(s, r, failed_dof_.data());
+    return this->each_status(qdd.batch, "hybrid dynamics", [&](HybridDynamics<S>& e, const ShardRange& r) {
+      return e.compute(slice(in, r, this->nbodies_), slice(qdd, r), slice(tau, r));
     });
-    return detail::merge_shard_statuses(statuses_, B, failed_dof_.data());
   }
   const std::vector<unsigned char>& prescribed() const override { return this->engines_.front()->prescribed(); }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-
- private:
-  std::vector<BatchStatus> statuses_;
-  std::vector<int> failed_dof_;
 };
 
 template <class S>
-class ShardedConstrainedForwardDynamics final : public ConstrainedForwardDynamics<S>,
-                                                public detail::Shards<ConstrainedForwardDynamics<S>> {
-  using Base = detail::Shards<ConstrainedForwardDynamics<S>>;
-
+class ShardedConstrainedForwardDynamics final : public detail::Shards<ConstrainedForwardDynamics<S>> {
  public:
-  ShardedConstrainedForwardDynamics(std::vector<std::unique_ptr<ConstrainedForwardDynamics<S>>> engines,
-                                    std::vector<int> devices, bool cuda, Index nbodies, Index max_batch)
-      : Base(std::move(engines), std::move(devices), cuda, nbodies),
-        statuses_(static_cast<std::size_t>(this->pool_.size())),
-        failed_dof_(static_cast<std::size_t>(max_batch > 0 ? max_batch : 0), -1) {}
+  using detail::Shards<ConstrainedForwardDynamics<S>>::Shards;
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& lambda) override {
-    const Index B = qdd.batch;
-    if (B > static_cast<Index>(failed_dof_.size()))
-      throw BackendError("closed-loop forward dynamics: batch of " + std::to_string(B) +
-                         " instances above max_batch " + std::to_string(failed_dof_.size()));
-    for (BatchStatus& s : statuses_) s = BatchStatus{};
-    const int n = this->pool_.size();
-    this->pool_.run([&](int k) {
-      const ShardRange r = shard_range(B, n, k);
-      if (r.count == 0) return;
-      BatchStatus& s = statuses_[static_cast<std::size_t>(k)];
-      s = this->shard(k).compute(slice(in, r, this->nbodies_), slice(qdd, r), slice(lambda, r));
-      detail::keep_failed_dofs(s, r, failed_dof_.data());
-    });
-    return detail::merge_shard_statuses(statuses_, B, failed_dof_.data());
+    return this->each_status(qdd.batch, "closed-loop forward dynamics",
+                             [&](ConstrainedForwardDynamics<S>& e, const ShardRange& r) {
+                               return e.compute(slice(in, r, this->nbodies_), slice(qdd, r), slice(lambda, r));
+                             });
   }
   void residual(const BatchView<const S>& q, const BatchView<const S>& qd, const BatchView<S>& phi,
                 const BatchView<S>& velocity) override {
@@ -440,13 +360,6 @@ class ShardedConstrainedForwardDynamics final : public ConstrainedForwardDynamic
     });
   }
   Index rows() const override { return this->engines_.front()->rows(); }
-  std::string strategy() const override { return this->sharded_strategy(); }
-  BackendKind backend() const override { return this->engines_.front()->backend(); }
-  bool exact() const override { return this->engines_.front()->exact(); }
-
- private:
-  std::vector<BatchStatus> statuses_;
-  std::vector<int> failed_dof_;
 };
 
 }  // namespace scandyn
