@@ -416,7 +416,7 @@ void expect_sharded_cuda_equals_one(const Model& md, const std::vector<int>& dev
 }
 
 TEST(ShardedCuda, TwoShardsOnOneDeviceEqualOneEngine) {
-  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << "no usable CUDA device: " << why;
+  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << why;
   const Model iiwa = test::load_robot("iiwa.urdf");
   expect_sharded_cuda_equals_one<float>(iiwa, {0, 0});
   expect_sharded_cuda_equals_one<double>(iiwa, {0, 0, 0});
@@ -424,7 +424,7 @@ TEST(ShardedCuda, TwoShardsOnOneDeviceEqualOneEngine) {
 }
 
 TEST(ShardedCuda, EveryVisibleDeviceEqualsOneEngine) {
-  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << "no usable CUDA device: " << why;
+  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << why;
   const std::vector<int> all = parse_devices("all");
   if (all.size() < 2) GTEST_SKIP() << "one CUDA device visible (this test needs two)";
   const Model iiwa = test::load_robot("iiwa.urdf");
@@ -433,7 +433,7 @@ TEST(ShardedCuda, EveryVisibleDeviceEqualsOneEngine) {
 }
 
 TEST(ShardedCuda, AnAbsentDeviceIsNamed) {
-  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << "no usable CUDA device: " << why;
+  if (const std::string why = no_cuda_reason(); !why.empty()) GTEST_SKIP() << why;
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 10;
