@@ -54,8 +54,8 @@ awk -F, 'NR == 1 { next }
   { kind = ($2 ~ /-host$/) ? "host" : "resident"; key = $1 "," $5 "," $7 "," kind
     if ($11 == "0") one[key] = $9; else { many[key] = $9; devs[key] = $11; strat[key] = $2 } }
   END { print "algo,model,instances,row,devices,strategy,evals_per_second_one,evals_per_second_many,speedup"
-        for (k in many) if (k in one) printf "%s,%s,%s,%s,%.6g,%.6g,%.3f\n", k, devs[k], strat[k], one[k], many[k], many[k] / one[k] }' \
-  "$csv" | sort >"$out/multi_gpu_speedup.csv"
+        for (k in many) if (k in one) printf "%s,%s,%s,%.6g,%.6g,%.3f\n", k, devs[k], strat[k], one[k], many[k], many[k] / one[k] }' \
+  "$csv" | { IFS= read -r header; echo "$header"; sort; } >"$out/multi_gpu_speedup.csv"
 cat "$csv"
 echo
 column -s, -t "$out/multi_gpu_speedup.csv" 2>/dev/null || cat "$out/multi_gpu_speedup.csv"

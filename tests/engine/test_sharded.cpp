@@ -378,8 +378,21 @@ std::string no_cuda_reason() {
   return backend_unusable(BackendKind::Cuda);
 }
 
+// Sharded CUDA engines against one CUDA engine over the whole batch: bit-identical
+// (tol 0) for the thread-per-instance kernels, whose arithmetic per instance does not
+// depend on the batch; within tol for the scans across links (a rope beyond 64 DoF),
+// whose device-wide sums are split into tiles by the batch's size, so that a shard's
+// sums associate differently. The bound: each of the two is within the CUDA scan tests'
+// own bounds of the serial double recursion (1e-10 for id, 1e-9 for the chain FD,
+// relative to max(1, |x|)), so they are within twice the larger of each other.
 template <class S>
-void expect_sharded_cuda_equals_one(const Model& md, const std::vector<int>& devices) {
+void expect_sharded_cuda_equals_one(const Model& md, const std::vector<int>& devices, double tol = 0) {
+  const auto expect_same = [tol](const std::vector<S>& one, const std::vector<S>& many, const char* what) {
+    if (tol == 0)
+      EXPECT_EQ(one, many) << what;
+    else
+      EXPECT_LE(test::max_rel_err(many, one), tol) << what;
+  };
   const ModelTpl<S> m = md.cast<S>();
   const Index nv = m.nv(), B = 1001;
   std::mt19937_64 g(11);
@@ -400,19 +413,19 @@ void expect_sharded_cuda_equals_one(const Model& md, const std::vector<int>& dev
   EXPECT_EQ(dynamic_cast<ShardedEngine*>(idn.get())->shard_count(), static_cast<int>(devices.size()));
   id1->compute({Q, QD, X, nullptr}, BatchView<S>::aos(one.data(), nv, B));
   idn->compute({Q, QD, X, nullptr}, BatchView<S>::aos(many.data(), nv, B));
-  EXPECT_EQ(one, many) << "inverse dynamics";
+  expect_same(one, many, "inverse dynamics");
   auto fd1 = make_forward_dynamics<S>(m, o);
   auto fdn = make_forward_dynamics<S>(m, od);
   EXPECT_TRUE(fd1->compute({Q, QD, X, nullptr}, BatchView<S>::aos(one.data(), nv, B)).ok());
   EXPECT_TRUE(fdn->compute({Q, QD, X, nullptr}, BatchView<S>::aos(many.data(), nv, B)).ok());
-  EXPECT_EQ(one, many) << "forward dynamics";
+  expect_same(one, many, "forward dynamics");
   std::vector<S> M1(static_cast<std::size_t>(nv * nv) * B), Mn(M1.size());
   make_mass_matrix<S>(m, o)->compute(Q, BatchView<S>::aos(M1.data(), nv * nv, B));
   make_mass_matrix<S>(m, od)->compute(Q, BatchView<S>::aos(Mn.data(), nv * nv, B));
-  EXPECT_EQ(M1, Mn) << "mass matrix";
+  expect_same(M1, Mn, "mass matrix");
   make_bias_forces<S>(m, o)->compute({Q, QD, nullptr}, BatchView<S>::aos(one.data(), nv, B));
   make_bias_forces<S>(m, od)->compute({Q, QD, nullptr}, BatchView<S>::aos(many.data(), nv, B));
-  EXPECT_EQ(one, many) << "bias forces";
+  expect_same(one, many, "bias forces");
 }
 
 TEST(ShardedCuda, TwoShardsOnOneDeviceEqualOneEngine) {
@@ -420,7 +433,10 @@ TEST(ShardedCuda, TwoShardsOnOneDeviceEqualOneEngine) {
   const Model iiwa = test::load_robot("iiwa.urdf");
   expect_sharded_cuda_equals_one<float>(iiwa, {0, 0});
   expect_sharded_cuda_equals_one<double>(iiwa, {0, 0, 0});
-  expect_sharded_cuda_equals_one<double>(load_model("rope:100"), {0, 0});  // scans and the chain FD
+  expect_sharded_cuda_equals_one<double>(load_model("rope:60"), {0, 0});  // thread engines up to 64 DoF
+  // the scans across links and the parallel chain FD (rope:100 > 64 DoF): H200, 2026-11-28,
+  // not bit-identical with two shards on one device (rounding-level differences)
+  expect_sharded_cuda_equals_one<double>(load_model("rope:100"), {0, 0}, 2e-9);
 }
 
 TEST(ShardedCuda, EveryVisibleDeviceEqualsOneEngine) {
