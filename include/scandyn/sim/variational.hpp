@@ -46,7 +46,9 @@
 // cancel (float). The dense matrix is factored by LU with partial pivoting: O(nv^3)
 // per iteration (the cost of a long chain; tests and bench/variational_cost.cpp).
 //
-// Stopping: |dv|_inf <= variational_tolerance<S>() max(|v|_inf, |qd_k|_inf) (16
+// Stopping: the residual at its rounding floor (|r|_inf <= 64 eps max_j of the sum of
+// the magnitudes of r_j's terms; checked from the second iteration on, before its
+// solve); or |dv|_inf <= variational_tolerance<S>() max(|v|_inf, |qd_k|_inf) (16
 // epsilons of S relative to the step's speed); or, with |dv|_inf within sqrt(eps) of
 // that speed, when the next update predicted from the contraction (|dv|^2 /
 // |dv_previous|) is within the tolerance, or when the updates stop shrinking (|dv| >=
@@ -87,7 +89,7 @@ constexpr S variational_tolerance() {
 struct VariationalResult {
   Index failed_dof = -1;      // -1: converged; else the DoF of the largest correction (or failed pivot)
   Failure failure = Failure::None;
-  int iterations = 0;         // Newton iterations taken
+  int iterations = 0;         // Newton updates taken (an iteration that stops on the residual makes none)
   double first_update = 0;    // |dv|_inf of the first and the last iterations
   double last_update = 0;
   double previous_update = 0; // |dv|_inf of the iteration before the last
@@ -205,11 +207,20 @@ VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>&
     // F = tau + e(qm, v), its diagonal partials
     stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
     // -r = -(M v - dt/2 (1/2 D^T v - (g - J^T fext) + F) - p_k): Newton's right-hand side
+    // and its rounding floor: 64 eps of the sum of its terms' magnitudes
+    S residual = S(0), floor = S(0);
     for (Index j = 0; j < n; ++j) {
       S dtv = S(0);
       for (Index i = 0; i < n; ++i) dtv += D(i, j) * w.v[i];
       const S g = kPotential ? w.tau_g[j] : S(0);
       w.r[j] = -(w.tau_m[j] - half * (S(0.5) * dtv - g + w.f[j]) - w.p0[j]);
+      residual = std::max(residual, std::abs(w.r[j]));
+      floor = std::max(floor, std::abs(w.tau_m[j]) + std::abs(w.p0[j]) +
+                                  half * (std::abs(S(0.5) * dtv) + std::abs(g) + std::abs(w.f[j])));
+    }
+    if (it > 0 && residual <= S(64) * std::numeric_limits<S>::epsilon() * floor) {
+      converged = true;  // the residual is rounding: v is the solution to working precision
+      break;
     }
     // dr/dv = dt dr/dq1 = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4 de/dq + dt/2 de/dv)
     for (Index i = 0; i < n; ++i) {
