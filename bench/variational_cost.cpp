@@ -4,7 +4,7 @@
 //
 // Usage:
 //   variational_cost cost [min_seconds]
-//       CSV on stdout: model,nv,dt,integrator,step_us,newton_iterations,over_euler
+//       CSV on stdout: model,nv,dt,integrator,step_us,newton_iterations,over_euler,failed_steps
 //       (newton_iterations: mean per step over the timed states; rope:1000's
 //       variational row times a few steps only: a dense LU of 1000 x 1000 per
 //       Newton iteration)
@@ -47,7 +47,7 @@ sim::Scene scene_of(const std::string& model, const std::string& integrator, dou
 }
 
 int cost(double min_time) {
-  std::printf("model,nv,dt,integrator,step_us,newton_iterations,over_euler\n");
+  std::printf("model,nv,dt,integrator,step_us,newton_iterations,over_euler,failed_steps\n");
   struct Row {
     const char* model;
     double dt;
@@ -66,6 +66,7 @@ int cost(double min_time) {
         return std::size_t(1);
       });
       double iterations = 0;
+      int failed = 0;
       if (std::strcmp(integrator, "variational") == 0) {  // the Newton iterations of the first steps
         sim::VariationalWork<double> w(scene.model);
         std::vector<double> q = scene.initial.q, qd = scene.initial.qd, tau(scene.nv(), 0.0);
@@ -76,16 +77,19 @@ int cost(double min_time) {
           q = qq, qd = qdd;
         }
         const int n = slow ? 3 : 100;
-        for (int s = 0; s < n; ++s)
-          iterations += sim::variational_step<sim::kGravity>(scene.model, w, r.dt, scene.joints.data(), q.data(),
-                                                            qd.data(), tau.data(),
-                                                            static_cast<const Force<double>*>(nullptr))
-                            .iterations;
+        for (int s = 0; s < n; ++s) {
+          const sim::VariationalResult res = sim::variational_step<sim::kGravity>(
+              scene.model, w, r.dt, scene.joints.data(), q.data(), qd.data(), tau.data(),
+              static_cast<const Force<double>*>(nullptr));
+          iterations += res.iterations;
+          failed += res.failed_dof >= 0;
+        }
         iterations /= n;
       }
       if (std::strcmp(integrator, "euler") == 0) euler = t;
-      std::printf("%s,%lld,%g,%s,%.4g,%.3g,%.3g\n", r.model, static_cast<long long>(scene.nv()), r.dt, integrator,
-                  t * 1e6, iterations, t / euler);
+      const Index simulator_failed = one.status().failed;  // the timed steps' failures
+      std::printf("%s,%lld,%g,%s,%.4g,%.3g,%.3g,%lld\n", r.model, static_cast<long long>(scene.nv()), r.dt, integrator,
+                  t * 1e6, iterations, t / euler, static_cast<long long>(simulator_failed + failed));
       std::fflush(stdout);
     }
   }

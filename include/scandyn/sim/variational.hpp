@@ -147,13 +147,13 @@ bool lu_factor(Index n, S* A, Index* piv) {
   }
   return true;
 }
-// x = A^-1 x with lu_factor's factors.
+// x = A^-1 x with lu_factor's factors (whole rows were swapped, L's multipliers
+// included: the row exchanges apply to x first, then L y = P x, then U x = y).
 template <class S>
 void lu_solve(Index n, const S* A, const Index* piv, S* x) {
-  for (Index k = 0; k < n; ++k) {
-    std::swap(x[k], x[piv[k]]);
+  for (Index k = 0; k < n; ++k) std::swap(x[k], x[piv[k]]);
+  for (Index k = 0; k < n; ++k)
     for (Index i = k + 1; i < n; ++i) x[i] -= A[i * n + k] * x[k];
-  }
   for (Index k = n - 1; k >= 0; --k) {
     S s = x[k];
     for (Index j = k + 1; j < n; ++j) s -= A[k * n + j] * x[j];
