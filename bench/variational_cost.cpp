@@ -113,6 +113,7 @@ int energy(const std::string& model, double dt, long long steps, long long every
       const double e = sim.energy()[0];
       std::printf("%s,%s,%g,%lld,%.6g,%.4g,%.4g\n", model.c_str(), integrator.c_str(), dt, s, double(s) * dt,
                   std::abs(e - e0) / std::abs(e0), std::abs(e - e0) / std::abs(e0 - rest));
+      std::fflush(stdout);  // a long run's rows as they come
     }
     const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::fprintf(stderr, "%s %s: %lld steps in %.3g s; %s\n", model.c_str(), integrator.c_str(), steps, el,
