@@ -13,6 +13,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/integrators.hpp"
+#include "scandyn/sim/variational.hpp"
 
 namespace scandyn {
 namespace cpu {
@@ -102,6 +103,16 @@ class CpuInstanceStep final : public CpuSimState<S> {
     for (int t = 0; t < threads; ++t) work_.emplace_back(setup_, nv, static_cast<std::size_t>(setup.model.nq()));
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
+    what_.assign(failed_.size(), Failure::ArticulatedPivot);
+    if (setup.integrator == Integrator::Variational) {
+      // the Simulator refuses the rest first (simulator.cpp); a direct caller meets the same
+      if (setup.model.multi_dof() || (setup.effects & ~sim::kVariationalEffects) != 0 || !setup.prescribed.empty() ||
+          !setup.loops.empty())
+        throw BackendError("the variational integrator takes 1-DoF models without contacts, closed loops or "
+                           "prescribed motion");
+      step_ = variational_table()[setup.effects];
+      return;
+    }
     const int entry = static_cast<int>(setup.integrator) * sim::kEffectSets + static_cast<int>(setup.effects);
     step_ = setup.model.multi_dof()                              ? manifold_table()[entry]
             : setup.prescribed.empty() && setup.loops.empty() ? table()[entry]
@@ -127,6 +138,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
         const Index dof = step_(setup_, w, w.q.data(), w.qd.data(), w.tau.data(), this->instance_wrenches(b),
                                 readings_.empty() ? nullptr : readings_.data() + static_cast<std::size_t>(b) * setup_.contact_count());
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
+        what_[static_cast<std::size_t>(b)] = w.failure;
+        w.failure = Failure::ArticulatedPivot;
         nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
           ++local;
@@ -154,7 +167,11 @@ class CpuInstanceStep final : public CpuSimState<S> {
       }
     });
     if (failures > 0) {
-      sim::add_step_failures(status_, summarize_failures(failed_.data(), B, Failure::ArticulatedPivot));
+      BatchStatus st;  // each failed instance with its kind (a pivot; the variational step's own)
+      for (Index b = 0; b < B; ++b)
+        if (failed_[static_cast<std::size_t>(b)] >= 0)
+          st.record(b, failed_[static_cast<std::size_t>(b)], what_[static_cast<std::size_t>(b)]);
+      sim::add_step_failures(status_, st);
       sim::add_step_failures(status_, summarize_failures(nonfinite_.data(), B, Failure::NonFinite));
     }
   }
@@ -174,6 +191,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
           contacts(setup.contact_set()),
           driven(4 * n), loop_q(n), loop_qd(n), loop_tau(n), loop_qdd(n), loop_lambda(0) {
       if (setup.effects & sim::kContacts) X.resize(n), v.resize(n), fext.resize(n), armature.resize(n);
+      if (setup.integrator == Integrator::Variational)
+        variational = std::make_unique<sim::VariationalWork<S>>(setup.model);
     }
     Work(Work&& o) noexcept = default;
     DataTpl<S> data;
@@ -189,6 +208,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
     std::vector<S> driven;          // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
     std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
     std::vector<Force<double>> loop_fext;  // closed loops: the stage's external + contact wrenches, or empty
+    std::unique_ptr<sim::VariationalWork<S>> variational;  // the variational integrator's scratch, or null
+    Failure failure = Failure::ArticulatedPivot;  // what a failed step failed at (the variational step sets it)
   };
 
   using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
@@ -265,6 +286,32 @@ class CpuInstanceStep final : public CpuSimState<S> {
   }
   static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& table() {
     static const auto t = make_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
+    return t;
+  }
+
+  // One instance's variational step (scandyn/sim/variational.hpp) for effect set E;
+  // sets work.failure on a failure. Effect sets it does not take are refused at
+  // construction and never run.
+  template <unsigned E>
+  static Index variational_step_one(const SimSetup<S>& setup, Work& work, S* q, S* qd, const S* tau,
+                                    const Force<S>* fext, sim::ContactReading<S>*) {
+    if constexpr ((E & ~sim::kVariationalEffects) != 0) {
+      (void)setup, (void)q, (void)qd, (void)tau, (void)fext;
+      work.failure = Failure::NotConverged;
+      return 0;
+    } else {
+      const sim::VariationalResult r =
+          sim::variational_step<E>(setup.model, *work.variational, setup.dt, setup.coef.data(), q, qd, tau, fext);
+      if (r.failed_dof >= 0) work.failure = r.failure;
+      return r.failed_dof;
+    }
+  }
+  template <std::size_t... K>
+  static constexpr std::array<StepFn, sizeof...(K)> make_variational_table(std::index_sequence<K...>) {
+    return {&variational_step_one<unsigned(K)>...};
+  }
+  static const std::array<StepFn, sim::kEffectSets>& variational_table() {
+    static const auto t = make_variational_table(std::make_index_sequence<sim::kEffectSets>{});
     return t;
   }
 
@@ -374,6 +421,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
   std::vector<Work> work_;   // one per thread
   std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
   std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
+  std::vector<Failure> what_;   // (B) what this step's failure of the instance was
   StepFn step_ = nullptr;  // the effect set's and integrator's step (constrained_step_one with prescribed motion or loops)
 };
 
@@ -546,7 +594,8 @@ template <class S>
 bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, int threads) {
   // models with multi-DoF joints step per instance (step_instance_at; the engine
   // path integrates per DoF in R^n)
-  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit && !setup.model.multi_dof() &&
+  return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
+         setup.integrator != Integrator::Variational && !setup.model.multi_dof() &&
          (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
          static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          !setup.model.multi_dof() &&  // CpuEngineStep integrates per DoF (a free rope's FD is parallel too)

@@ -77,6 +77,9 @@ enum class Failure {
   ResidualTooLarge,  // forward dynamics' run-time check (BackendOptions::fd_check): the estimated
                      // error of qdd, from the residual ID(q, qd, qdd) - tau, is above the threshold
                      // (the DoF is that of the largest correction); qdd holds the flagged result
+  NotConverged,      // the variational integrator's Newton iteration did not converge (iteration cap,
+                     // a zero or non-finite pivot of its Jacobian's LU, a non-finite residual); the DoF
+                     // is that of the largest last correction; the instance kept its state
 };
 
 // The outcome of one batched call (or, for the simulator, of its steps since the
@@ -114,6 +117,7 @@ struct BatchStatus {
   //   "mass matrix pivot not positive, and by the aba fallback the articulated inertia pivot at DoF 6 is not positive"
   //   "the state at DoF 6 is not finite after the step"
   //   "forward dynamics check: estimated error of qdd 2.1e-01 above the threshold 1e-04 (largest at DoF 6)"
+  //   "the variational step's Newton iteration did not converge (largest correction at DoF 6)"
   std::string reason() const;
   // "" when ok(); else "instance 3: " + reason(), followed by
   // " (and 41 more instances)" when others failed too.

@@ -46,7 +46,35 @@ void rnea_second_derivatives(const ModelTpl<S>& model, SecondDerivativeData<S>& 
     }
 }
 
+template <class S>
+void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
+                       const S* qdd, const Force<S>* fext, const S* w, S* out) {
+  using D = Dual<S>;
+  const Index n = model.nv();
+  std::vector<Force<D>> wrenches;
+  if (fext)
+    for (Index i = 0; i < n; ++i) wrenches.push_back(fext[i].template cast<D>());
+  const Motion<D> a0 = base_acceleration(data.model.gravity);
+  for (Index k = 0; k < n; ++k) {
+    for (Index i = 0; i < n; ++i) {
+      data.q[i] = D(q[i], i == k ? S(1) : S(0));
+      data.qd[i] = D(qd[i]);
+      data.qdd[i] = D(qdd[i]);
+    }
+    rnea_derivatives_instance(data.model.bodies.data(), n, a0, data.q.data(), data.qd.data(), data.qdd.data(),
+                              fext ? wrenches.data() : nullptr, data.work.data(), MatrixRef<D>{data.a.data(), n, 1},
+                              MatrixRef<D>{data.b.data(), n, 1}, MatrixRef<D>{data.m.data(), n, 1}, nullptr);
+    for (Index j = 0; j < n; ++j) {  // sum_i w_i d/dq_k of dtau_i/dq_j
+      S s = S(0);
+      for (Index i = 0; i < n; ++i) s += w[i] * data.a[static_cast<std::size_t>(i) * n + j].d;
+      out[static_cast<std::size_t>(j) * n + k] = s;
+    }
+  }
+}
+
 #define SCANDYN_INSTANTIATE(S)                                                                                    \
+  template void rnea_weighted_dq2(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*,      \
+                                  const Force<S>*, const S*, S*);                                                  \
   template struct SecondDerivativeData<S>;                                                                        \
   template void rnea_second_derivatives(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*, \
                                         const Force<S>*, S*, S*, S*, S*);

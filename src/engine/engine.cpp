@@ -160,6 +160,9 @@ std::string BatchStatus::reason() const {
                     estimate, threshold, static_cast<long long>(first_dof));
       return b;
     }
+    case Failure::NotConverged:
+      return "the variational step's Newton iteration did not converge (largest correction at DoF " +
+             std::to_string(first_dof) + ")";
     case Failure::ArticulatedPivot:
     case Failure::None: break;
   }

@@ -41,6 +41,7 @@ const char* to_string(Integrator integrator) {
     case Integrator::Euler: return "euler";
     case Integrator::Rk4: return "rk4";
     case Integrator::Implicit: return "implicit";
+    case Integrator::Variational: return "variational";
   }
   return "?";
 }
@@ -49,6 +50,7 @@ bool parse_integrator(const std::string& name, Integrator& integrator) {
   if (name == "euler") integrator = Integrator::Euler;
   else if (name == "rk4") integrator = Integrator::Rk4;
   else if (name == "implicit") integrator = Integrator::Implicit;
+  else if (name == "variational") integrator = Integrator::Variational;
   else return false;
   return true;
 }
@@ -561,7 +563,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   // ---- integration and execution
   if (doc.contains("integrator")) {
     const std::string name = r.string("integrator", doc["integrator"]);
-    if (!parse_integrator(name, s.integrator)) r.expected("integrator", "\"euler\", \"rk4\" or \"implicit\"", doc["integrator"]);
+    if (!parse_integrator(name, s.integrator)) r.expected("integrator", "\"euler\", \"rk4\", \"implicit\" or \"variational\"", doc["integrator"]);
   }
   s.dt = r.positive("dt", doc["dt"]);
   if (doc.contains("precision")) {

@@ -24,6 +24,8 @@ std::string failure_message(const BatchStatus& st) {
   const std::string steps = std::to_string(st.failed) + " instance-step" + (st.failed > 1 ? "s" : "") +
                             ", first in instance " + std::to_string(st.first_instance) + ": " + st.reason();
   if (st.failure == Failure::NonFinite) return "the state became non-finite in " + steps;
+  if (st.failure == Failure::NotConverged)
+    return "the variational step failed in " + steps + "; those instances kept their state for those steps";
   return "forward dynamics failed in " + steps + "; those instances kept their state for those steps";
 }
 
@@ -126,6 +128,20 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
       throw BackendError("closed loops take models of 1-DoF joints only (joint '" + joint + "')");
     if (!scene.prescribed.empty())
       throw BackendError("prescribed joint motion takes models of 1-DoF joints only (joint '" + joint + "')");
+  }
+  if (scene.integrator == Integrator::Variational) {
+    // scandyn/sim/variational.hpp: per instance on the host, dense Newton, smooth forces
+    const std::string vi = "the variational integrator";
+    if (backend == BackendKind::Cuda)
+      throw BackendError("backend 'cuda': " + vi + " (Newton on the discrete Euler-Lagrange equations, a dense LU per "
+                         "iteration) runs on the serial and openmp backends only");
+    if (scene.model.multi_dof())
+      throw BackendError(vi + " takes models of 1-DoF joints only (joint '" +
+                         printable(first_multi_dof_joint(scene.model)) + "')");
+    if (scene.effects & kContacts)
+      throw BackendError(vi + " does not take the contacts effect (its force switches with the contact set)");
+    if (!scene.loops.empty()) throw BackendError(vi + " does not take closed loops");
+    if (!scene.prescribed.empty()) throw BackendError(vi + " does not take prescribed joint motion");
   }
   setup_.model = scene.model.template cast<S>();
   setup_.effects = scene.effects;

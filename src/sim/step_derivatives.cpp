@@ -9,6 +9,8 @@ namespace sim {
 template <class S>
 void require_differentiable_step(const SimSetup<S>& setup, const char* what) {
   const std::string name(what);
+  if (setup.integrator == Integrator::Variational)
+    throw BackendError(name + " do not cover the variational integrator (an implicit step solved by Newton)");
   if (setup.effects & kContacts)
     throw BackendError(name + " do not cover the contacts effect (its force switches with the contact set)");
   if (!setup.prescribed.empty()) throw BackendError(name + " do not cover prescribed joint motion");

@@ -118,7 +118,7 @@ TEST(SimScene, ErrorsNameTheFileAndTheKey) {
       {head + R"("effects": {"friction": 1}})", "test.json: effects.friction: unknown key"},
       {head + R"("effects": {"springs": {"stiffness": 1, "rest": 0, "x": 0}}})", "test.json: effects.springs.x: unknown key"},
       {head + R"("effects": {"springs": {"rest": 0}}})", "test.json: effects.springs.stiffness: missing"},
-      {head + R"("integrator": "verlet"})", R"(test.json: integrator: expected "euler", "rk4" or "implicit", got "verlet")"},
+      {head + R"("integrator": "verlet"})", R"(test.json: integrator: expected "euler", "rk4", "implicit" or "variational", got "verlet")"},
       {R"({"model": "chain:3", "dt": 0})", "test.json: dt: expected a positive number, got 0"},
       {R"({"model": "chain:3"})", "test.json: dt: missing"},
       {R"({"dt": 0.1})", "test.json: model: missing"},

@@ -53,10 +53,14 @@
 namespace scandyn {
 namespace sim {
 
-enum class Integrator : int { Euler = 0, Rk4 = 1, Implicit = 2 };
+// Variational (the midpoint discrete Lagrangian solved by Newton,
+// scandyn/sim/variational.hpp) runs on the serial and OpenMP backends only, per
+// instance, outside the step tables below: kIntegrators counts the three explicit /
+// semi-implicit integrators that every backend instantiates.
+enum class Integrator : int { Euler = 0, Rk4 = 1, Implicit = 2, Variational = 3 };
 inline constexpr int kIntegrators = 3;
 
-const char* to_string(Integrator integrator);  // "euler", "rk4", "implicit"
+const char* to_string(Integrator integrator);  // "euler", "rk4", "implicit", "variational"
 bool parse_integrator(const std::string& name, Integrator& integrator);
 
 // The effects that make an integrator differ from euler: implicit without damping
