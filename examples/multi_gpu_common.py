@@ -321,6 +321,24 @@ def train(comm, device, args):
 # ---- measuring --------------------------------------------------------------------------
 
 
+def row_header(comm, device):
+    """The fields every --measure row starts with: launcher, world size, host, device, GPU."""
+    import torch
+
+    return {"example": "multi_gpu", "launcher": comm.name, "world": comm.world, "host": socket.gethostname(),
+            "device": device.type, "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else ""}
+
+
+def emit_row(comm, row, out):
+    """Rank 0 prints the row as one JSON line and appends it to `out` (when given)."""
+    if comm.rank == 0:
+        line = json.dumps(row)
+        print(line, flush=True)
+        if out:
+            with open(out, "a") as f:
+                f.write(line + "\n")
+
+
 def measure(comm, device, args):
     import torch
 
@@ -353,9 +371,7 @@ def measure(comm, device, args):
     devices = [int(d) for d in comm.allreduce_sum(devices).tolist()]
     all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
     row = {
-        "example": "multi_gpu", "launcher": comm.name, "world": comm.world, "host": socket.gethostname(),
-        "device": device.type, "cuda_devices": devices if device.type == "cuda" else [],
-        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else "",
+        **row_header(comm, device), "cuda_devices": devices if device.type == "cuda" else [],
         "task": "IiwaReach", "envs": args.envs, "envs_per_rank": [shard_range(args.envs, comm.world, r)[1]
                                                                   for r in range(comm.world)],
         "env_steps": args.steps, "frame_skip": env.frame_skip, "backend": env.sim.backend,
@@ -365,12 +381,7 @@ def measure(comm, device, args):
     }
     print(f"rank {comm.rank} ({device}): {n_local} envs x {args.steps} steps, "
           f"{steps_local / elapsed_local:.4g} instance-steps/s", flush=True)
-    if comm.rank == 0:
-        line = json.dumps(row)
-        print(line, flush=True)
-        if args.out:
-            with open(args.out, "a") as f:
-                f.write(line + "\n")
+    emit_row(comm, row, args.out)
     return 0 if all_finite else 1
 
 
@@ -408,21 +419,14 @@ def measure_dynamics(comm, device, args):
     elapsed = comm.allreduce_max(elapsed_local)
     all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
     row = {
-        "example": "multi_gpu", "launcher": comm.name, "world": comm.world, "host": socket.gethostname(),
-        "device": device.type, "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else "",
-        "task": f"iiwa {args.measure}", "precision": "float", "instances": args.envs,
+        **row_header(comm, device), "task": f"iiwa {args.measure}", "precision": "float", "instances": args.envs,
         "instances_per_rank": [shard_range(args.envs, comm.world, r)[1] for r in range(comm.world)],
         "calls": args.steps, "elapsed_s": elapsed, "seconds_per_call": elapsed / args.steps,
         "evals_per_second": args.envs * args.steps / elapsed, "finite": all_finite,
     }
     print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} calls, "
           f"{n_local * args.steps / elapsed_local:.4g} evaluations/s", flush=True)
-    if comm.rank == 0:
-        line = json.dumps(row)
-        print(line, flush=True)
-        if args.out:
-            with open(args.out, "a") as f:
-                f.write(line + "\n")
+    emit_row(comm, row, args.out)
     return 0 if all_finite else 1
 
 
