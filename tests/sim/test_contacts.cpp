@@ -18,6 +18,7 @@
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -30,16 +31,10 @@ using sim::Simulator;
 
 constexpr double kG = 9.81;
 
-Scene scene_from(const std::string& json) { return sim::parse_scene(json, "test.json", SCANDYN_SOURCE_DIR "/models"); }
+// scenes whose files (meshes, models) are found from the shipped models
+Scene scene_from(const std::string& json) { return test::scene_from(json, SCANDYN_SOURCE_DIR "/models"); }
+std::string scene_error(const std::string& json) { return test::scene_error(json, SCANDYN_SOURCE_DIR "/models"); }
 
-std::string scene_error(const std::string& json) {
-  try {
-    scene_from(json);
-  } catch (const SceneError& e) {
-    return e.what();
-  }
-  return "";
-}
 
 // A point_mass scene: the ball (radius 0.1) on the plane with the given normal
 // through the origin; law and the rest of the scene's keys spliced in.

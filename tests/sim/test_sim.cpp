@@ -18,6 +18,7 @@
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 #include "../cpu_fallback/simulator_step.hpp"
 
@@ -29,17 +30,9 @@ using sim::Scene;
 using sim::SceneError;
 using sim::Simulator;
 
-Scene scene_from(const std::string& json) { return sim::parse_scene(json, "test.json"); }
+using test::scene_error;
+using test::scene_from;
 
-// The message of the SceneError parse_scene throws for json ("" when none).
-std::string scene_error(const std::string& json) {
-  try {
-    scene_from(json);
-  } catch (const SceneError& e) {
-    return e.what();
-  }
-  return "";
-}
 
 // ---- scene files -----------------------------------------------------------------
 

@@ -21,6 +21,7 @@
 #include "scandyn/sharded.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 #include "../cpu_fallback/simulator_step.hpp"
 
@@ -31,16 +32,9 @@ using sim::Scene;
 using sim::SceneError;
 using sim::Simulator;
 
-Scene scene_from(const std::string& json) { return sim::parse_scene(json, "test.json"); }
+using test::scene_error;
+using test::scene_from;
 
-std::string scene_error(const std::string& json) {
-  try {
-    scene_from(json);
-  } catch (const SceneError& e) {
-    return e.what();
-  }
-  return "";
-}
 
 // A rope of 4 links with every joint effect and contacts of every link with a
 // plane, B instances from a random initial state.

@@ -18,6 +18,7 @@
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -27,16 +28,9 @@ using sim::Scene;
 using sim::SceneError;
 using sim::Simulator;
 
-Scene scene_from(const std::string& json) { return sim::parse_scene(json, "test.json"); }
+using test::scene_error;
+using test::scene_from;
 
-std::string scene_error(const std::string& json) {
-  try {
-    scene_from(json);
-  } catch (const SceneError& e) {
-    return e.what();
-  }
-  return "";
-}
 
 // One instance's state in double (q: nq, qd: nv).
 struct State {

@@ -13,6 +13,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
@@ -20,7 +21,7 @@ using namespace scandyn::sim;
 
 namespace {
 
-Scene scene_from(const std::string& json) { return parse_scene(json, "test.json"); }
+using test::scene_from;
 
 }  // namespace
 
