@@ -45,20 +45,6 @@ inline std::vector<std::pair<std::string, Model>> engine_test_models() {
 // The scandyn executable built alongside the tests.
 inline std::string cli_path() { return SCANDYN_CLI_PATH; }
 
-// Three layouts of one (n x B) array: structure of arrays, instance rows, and a
-// strided one with gaps (every entry twice as far apart as in aos).
-enum class Layout { Soa, Aos, Strided };
-template <class T>
-BatchView<T> view(T* p, Index n, Index B, Layout l) {
-  if (l == Layout::Soa) return BatchView<T>::soa(p, n, B);
-  if (l == Layout::Aos) return BatchView<T>::aos(p, n, B);
-  return BatchView<T>{p, B, 2, 2 * n};
-}
-// The scalars an array of that layout occupies.
-inline std::size_t storage(Index n, Index B, Layout l) {
-  return static_cast<std::size_t>(n) * B * (l == Layout::Strided ? 2 : 1);
-}
-
 // Tolerance by precision: Tol<S>(for_double, for_float).
 template <class S>
 constexpr S Tol(double for_double, double for_float) {

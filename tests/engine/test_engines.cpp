@@ -30,10 +30,18 @@ std::vector<BackendKind> cpu_backends() {
 
 std::vector<std::pair<std::string, Model>> models() { return test::engine_test_models(); }
 
-// the three layouts of test_util.hpp
-using test::Layout;
-using test::storage;
-using test::view;
+// Three layouts of one (nv x B) array: structure of arrays, instance rows, and a
+// strided one with gaps (every entry twice as far apart as in aos).
+enum class Layout { Soa, Aos, Strided };
+template <class T>
+BatchView<T> view(T* p, Index n, Index B, Layout l) {
+  if (l == Layout::Soa) return BatchView<T>::soa(p, n, B);
+  if (l == Layout::Aos) return BatchView<T>::aos(p, n, B);
+  return BatchView<T>{p, B, 2, 2 * n};
+}
+std::size_t storage(Index n, Index B, Layout l) {
+  return static_cast<std::size_t>(n) * B * (l == Layout::Strided ? 2 : 1);
+}
 
 // Instance b's n entries of v.
 template <class T>

@@ -104,9 +104,14 @@ TEST(ShardedEngines, OtherBackendsRefuseDevices) {
 
 constexpr Index kB = 11;  // instances: not a multiple of the shard counts
 
-using test::Layout;
-using test::storage;
-using test::view;
+enum class Layout { Soa, Aos, Strided };
+template <class T>
+BatchView<T> view(T* p, Index n, Index B, Layout l) {
+  if (l == Layout::Soa) return BatchView<T>::soa(p, n, B);
+  if (l == Layout::Aos) return BatchView<T>::aos(p, n, B);
+  return BatchView<T>{p, B, 2, 2 * n};
+}
+std::size_t storage(Index n, Index B, Layout l) { return static_cast<std::size_t>(n) * B * (l == Layout::Strided ? 2 : 1); }
 
 // Random inputs of B instances in layout l: q (nq rows), qd, x (nv rows), wrenches.
 struct Inputs {
