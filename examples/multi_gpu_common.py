@@ -19,7 +19,10 @@ second per rank and in total (simulator steps: env steps x frame_skip).
 
 --measure (rollout): N environments (split across ranks) x T env steps with the policy
 in the loop, after a warm-up; --measure id / fd: iiwa inverse or forward dynamics on
-each rank's share of N instances (device tensors, out=), T calls timed; the slowest rank's time sets the total rate. Rank 0 prints one
+each rank's share of N instances (device tensors, out=), T calls timed; --measure step:
+the RL step of scenes/iiwa_rl.json (the simulator's fused ABA + Euler step with gravity
+and damping, what `scandyn bench --algo step` times) on each rank's share of N
+instances, T steps timed; the slowest rank's time sets the total rate. Rank 0 prints one
 JSON line (and appends it to --out): launcher, world size, devices, instance-steps/s
 per rank and in total, so that one process on one GPU and two processes on two GPUs
 can be compared.
@@ -155,10 +158,11 @@ def parse_args(description, argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--min-gain", type=float, default=None,
                     help="exit non-zero unless the unperturbed return per step gains at least this much")
-    ap.add_argument("--measure", nargs="?", const="rollout", default=None, choices=["rollout", "id", "fd"],
+    ap.add_argument("--measure", nargs="?", const="rollout", default=None, choices=["rollout", "id", "fd", "step"],
                     help="time instead of training: a fixed env rollout with the policy in the loop (rollout, "
-                         "the default), or iiwa inverse / forward dynamics on this rank's device tensors (id, fd; "
-                         "--envs instances in all, --steps timed calls)")
+                         "the default), iiwa inverse / forward dynamics on this rank's device tensors (id, fd; "
+                         "--envs instances in all, --steps timed calls), or the simulator's RL step of "
+                         "scenes/iiwa_rl.json (step; --envs instances in all, --steps timed steps)")
     ap.add_argument("--warmup", type=int, default=5, help="--measure: env steps before the timing")
     ap.add_argument("--out", default=None, help="--measure: append the JSON line to this file (rank 0)")
     return ap.parse_args(argv)
@@ -430,11 +434,71 @@ def measure_dynamics(comm, device, args):
     return 0 if all_finite else 1
 
 
+def measure_step(comm, device, args):
+    """--measure step: the RL step of scenes/iiwa_rl.json (float, fused ABA + Euler, gravity
+    and damping) on this rank's share of --envs instances, the simulator on this rank's
+    device, torques a (B, nv) tensor there; --steps steps timed after --warmup, queued
+    without a status check (check=False), then one check of every instance's status."""
+    import torch
+
+    import scandyn as sd
+
+    _, n_local = shard_range(args.envs, comm.world, comm.rank)
+    if n_local < 1:
+        raise SystemExit(f"--envs {args.envs}: fewer instances than processes ({comm.world})")
+    scene_path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scenes", "iiwa_rl.json")
+    with open(scene_path) as f:
+        scene = json.load(f)
+    scene["instances"] = n_local
+    scene["initial"]["random"]["seed"] = args.seed + comm.rank + 1
+    backend = "cuda" if device.type == "cuda" else args.backend
+    sim = sd.Simulator(scene, backend=backend, device=device if device.type == "cuda" else None,
+                       arrays="torch")
+    gen = torch.Generator(device=device)
+    gen.manual_seed(args.seed + comm.rank)
+    tau = (torch.rand(n_local, sim.nv, device=device, generator=gen) * 2 - 1).to(sim.qd.dtype)
+    def check_status():
+        failed, instance, dof, message = sim.status()
+        if failed:
+            raise SystemExit(f"rank {comm.rank}: {failed} failed instance-steps (first: instance {instance}, "
+                             f"DoF {dof}): {message}")
+
+    for _ in range(args.warmup):
+        sim.step(tau, check=False)
+    check_status()
+    sim.synchronize()
+    synchronize(device)
+    comm.barrier()
+    start = time.perf_counter()
+    for _ in range(args.steps):
+        sim.step(tau, check=False)
+    sim.synchronize()
+    synchronize(device)
+    elapsed_local = time.perf_counter() - start
+    check_status()  # names the first instance that failed in the timed steps
+    finite = bool(torch.isfinite(sim.q).all().item() and torch.isfinite(sim.qd).all().item())
+    elapsed = comm.allreduce_max(elapsed_local)
+    all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
+    row = {
+        **row_header(comm, device), "task": "iiwa step", "scene": "scenes/iiwa_rl.json", "precision": "float",
+        "backend": sim.backend, "instances": args.envs,
+        "instances_per_rank": [shard_range(args.envs, comm.world, r)[1] for r in range(comm.world)],
+        "steps": args.steps, "elapsed_s": elapsed, "seconds_per_step": elapsed / args.steps,
+        "instance_steps_per_s": args.envs * args.steps / elapsed, "finite": all_finite,
+    }
+    print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} steps, "
+          f"{n_local * args.steps / elapsed_local:.4g} instance-steps/s", flush=True)
+    emit_row(comm, row, args.out)
+    return 0 if all_finite else 1
+
+
 def run(comm, device, args):
     resolve_defaults(args, device)
     try:
         if args.measure in ("id", "fd"):
             return measure_dynamics(comm, device, args)
+        if args.measure == "step":
+            return measure_step(comm, device, args)
         return measure(comm, device, args) if args.measure else train(comm, device, args)
     finally:
         comm.close()

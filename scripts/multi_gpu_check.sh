@@ -10,12 +10,15 @@
 #   1. the GPUs and their links                                   -> env.txt
 #   2. pip install of the Python package (CUDA, no per-effect-set kernels) into
 #      /tmp/scandyn-site, in the background, niced, while 3 and 4 run -> pip.log
-#   3. the sharded engines' and simulator's tests on every device  -> tests.log
+#   3. the sharded engines' and simulator's tests on every device  -> tests.log, and
+#      their CUDA tests under compute-sanitizer memcheck            -> sanitizer.log
 #   4. scripts/bench_multi_gpu.sh: one GPU against all, one process -> multi_gpu.csv,
 #      multi_gpu_speedup.csv
-#   5. examples/multi_gpu_torchrun.py --measure id, fd and rollout with one process and
+#   5. examples/multi_gpu_torchrun.py --measure id, fd, step (the RL step) and rollout (the
+#      env with its policy) with one process and
 #      under torchrun --nproc-per-node <GPUs>, rollout under mpirun   -> python.jsonl
 #      (the JSON rows), python.log
+#   6. python/tests/test_multi_gpu.py on these GPUs (the installed package)  -> pytest.log
 # urdfdom comes from .deps/root (scripts/prepare_device.sh), gymnasium from .whl/.
 # NVLink multicast stays off in every process started here.
 set -uo pipefail
@@ -73,6 +76,18 @@ for t in test_sharded test_sim_devices; do
   echo "== $t exit $?" | tee -a "$out/tests.log"
 done
 
+# compute-sanitizer memcheck on the CUDA tests of both programs (the sharded engines'
+# and simulator's kernels and copies on every device)
+if command -v compute-sanitizer >/dev/null; then
+  note "compute-sanitizer memcheck -> $out/sanitizer.log"
+  for t in test_sharded test_sim_devices; do
+    echo "== $t" >>"$out/sanitizer.log"
+    compute-sanitizer --tool memcheck --error-exitcode 3 --leak-check full \
+      "$build/tests/$t" --gtest_filter='*Cuda*' >>"$out/sanitizer.log" 2>&1
+    echo "== $t memcheck exit $?" | tee -a "$out/sanitizer.log"
+  done
+fi
+
 # ---- 4 -------------------------------------------------------------------------------
 note "bench_multi_gpu.sh -> $out/multi_gpu.csv"
 scripts/bench_multi_gpu.sh "$build/scandyn" "$out" all
@@ -84,12 +99,12 @@ tail -n 3 "$out/pip.log"
 export PYTHONPATH=$site${PYTHONPATH:+:$PYTHONPATH}
 rows=$out/python.jsonl
 n=${SCANDYN_MGPU_INSTANCES:-20000000}
-envs=${SCANDYN_MGPU_ENVS:-4194304}
+envs=${SCANDYN_MGPU_ENVS:-20000000}
 ex=examples/multi_gpu_torchrun.py
 {
-  for what in id fd; do
-    python3 $ex --measure $what --envs "$n" --steps 20 --warmup 3 --out "$rows"
-    torchrun --standalone --nproc-per-node "$gpus" $ex --measure $what --envs "$n" --steps 20 --warmup 3 --out "$rows"
+  for what in id fd step; do
+    python3 $ex --measure $what --envs "$n" --steps 50 --warmup 3 --out "$rows"
+    torchrun --standalone --nproc-per-node "$gpus" $ex --measure $what --envs "$n" --steps 50 --warmup 3 --out "$rows"
   done
   python3 $ex --measure --envs "$envs" --steps 50 --out "$rows"
   torchrun --standalone --nproc-per-node "$gpus" $ex --measure --envs "$envs" --steps 50 --out "$rows"
@@ -99,3 +114,10 @@ ex=examples/multi_gpu_torchrun.py
 } >"$out/python.log" 2>&1
 note "python rows"
 cat "$rows"
+
+# ---- 6 -------------------------------------------------------------------------------
+note "pytest python/tests/test_multi_gpu.py -> $out/pytest.log"
+SCANDYN_CLI=$build/scandyn python3 -m pytest -q -rs -p no:cacheprovider python/tests/test_multi_gpu.py \
+  >"$out/pytest.log" 2>&1
+echo "pytest exit $?"
+tail -n 5 "$out/pytest.log"

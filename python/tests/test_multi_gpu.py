@@ -320,6 +320,12 @@ def test_torchrun_example_one_process(tmp_path):
         row = _row(r.stdout)
         assert row["task"] == f"iiwa {algo}" and row["instances"] == 6 and row["instances_per_rank"] == [6]
         assert row["finite"] and row["evals_per_second"] > 0
+    r = _run([sys.executable, os.path.join(EXAMPLES, "multi_gpu_torchrun.py"), "--device", "cpu", "--measure",
+              "step", "--envs", "6", "--steps", "2", "--warmup", "1"])
+    assert r.returncode == 0, r.stderr
+    row = _row(r.stdout)
+    assert row["task"] == "iiwa step" and row["instances"] == 6 and row["instances_per_rank"] == [6]
+    assert row["finite"] and row["instance_steps_per_s"] > 0 and row["backend"] == "serial"
 
 
 def test_torchrun_example_two_processes_gloo():
