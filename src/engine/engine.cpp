@@ -1,9 +1,9 @@
 // src/engine/engine.cpp: the engine API's factories (one dispatch on the backend for
-// every algorithm), its Auto choices, names, batch checks and BatchStatus.
+// every algorithm), its Auto choices and batch checks (the names and parsers of its
+// enums and backend_unusable: names.cpp; BatchStatus: batch_status.cpp).
 #include "scandyn/engine.hpp"
 
 #include <algorithm>
-#include <cstdio>
 
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/algorithm/loops.hpp"
@@ -22,185 +22,11 @@
 #include "scandyn/cuda/constrained_dynamics.hpp"
 #endif
 
-#ifdef _OPENMP
-#include <omp.h>
-#endif
-
 namespace scandyn {
-
-// ---- names ----------------------------------------------------------------------
-
-const char* to_string(BackendKind b) {
-  switch (b) {
-    case BackendKind::Serial: return "serial";
-    case BackendKind::OpenMP: return "openmp";
-    case BackendKind::Cuda: return "cuda";
-  }
-  return "?";
-}
-
-const char* to_string(Precision p) { return p == Precision::Double ? "double" : "float"; }
-
-const char* to_string(IdStrategy s) {
-  switch (s) {
-    case IdStrategy::Auto: return "auto";
-    case IdStrategy::Recursion: return "recursion";
-    case IdStrategy::ScanLocal: return "scan-local";
-    case IdStrategy::ScanWorld: return "scan-world";
-  }
-  return "?";
-}
-
-const char* to_string(FdMethod m) {
-  switch (m) {
-    case FdMethod::Auto: return "auto";
-    case FdMethod::Aba: return "aba";
-    case FdMethod::Jsi: return "jsi";
-    case FdMethod::Parallel: return "parallel";
-    case FdMethod::Hybrid: return "hybrid";
-  }
-  return "?";
-}
-
-const char* to_string(FdCheckMode m) {
-  switch (m) {
-    case FdCheckMode::Auto: return "auto";
-    case FdCheckMode::On: return "on";
-    case FdCheckMode::Off: return "off";
-  }
-  return "?";
-}
-
-const char* to_string(CpuSimd s) {
-  switch (s) {
-    case CpuSimd::Auto: return "auto";
-    case CpuSimd::Off: return "off";
-    case CpuSimd::On: return "on";
-  }
-  return "?";
-}
-
-namespace {
-
-// The value of E whose to_string is name; BackendError naming what and the choices.
-template <class E, std::size_t N>
-E parse_name(const std::string& name, const E (&values)[N], const char* what) {
-  std::string known;
-  for (std::size_t k = 0; k < N; ++k) {
-    if (name == to_string(values[k])) return values[k];
-    known += k == 0 ? "" : k + 1 == N ? " or " : ", ";
-    known += to_string(values[k]);
-  }
-  throw BackendError("unknown " + std::string(what) + " '" + name + "' (expected " + known + ")");
-}
-
-}  // namespace
-
-BackendKind parse_backend(const std::string& name) {
-  static constexpr BackendKind kAll[] = {BackendKind::Serial, BackendKind::OpenMP, BackendKind::Cuda};
-  return parse_name(name, kAll, "backend");
-}
-Precision parse_precision(const std::string& name) {
-  static constexpr Precision kAll[] = {Precision::Double, Precision::Float};
-  return parse_name(name, kAll, "precision");
-}
-IdStrategy parse_strategy(const std::string& name) {
-  static constexpr IdStrategy kAll[] = {IdStrategy::Auto, IdStrategy::Recursion, IdStrategy::ScanLocal,
-                                        IdStrategy::ScanWorld};
-  return parse_name(name, kAll, "strategy");
-}
-FdMethod parse_fd_method(const std::string& name) {
-  static constexpr FdMethod kAll[] = {FdMethod::Auto, FdMethod::Aba, FdMethod::Jsi, FdMethod::Hybrid,
-                                      FdMethod::Parallel};
-  return parse_name(name, kAll, "forward-dynamics method");
-}
-CpuSimd parse_cpu_simd(const std::string& name) {
-  static constexpr CpuSimd kAll[] = {CpuSimd::Auto, CpuSimd::Off, CpuSimd::On};
-  return parse_name(name, kAll, "simd mode");
-}
-
-FdCheckMode parse_fd_check(const std::string& name) {
-  static constexpr FdCheckMode kAll[] = {FdCheckMode::Auto, FdCheckMode::On, FdCheckMode::Off};
-  return parse_name(name, kAll, "forward-dynamics check");
-}
 
 bool fd_check_enabled(FdCheckMode mode, BackendKind backend, FdMethod method, Index nv) {
   if (mode != FdCheckMode::Auto) return mode == FdCheckMode::On;
   return backend != BackendKind::Cuda && method == FdMethod::Jsi && nv >= 200;
-}
-
-// ---- BatchStatus ----------------------------------------------------------------
-
-void BatchStatus::merge(const BatchStatus& other) {
-  if (other.first_instance >= 0 && (first_instance < 0 || other.first_instance < first_instance)) {
-    first_instance = other.first_instance;
-    first_dof = other.first_dof;
-    failure = other.failure;
-    estimate = other.estimate;
-    threshold = other.threshold;
-  }
-  failed += other.failed;
-  fell_back += other.fell_back;
-  retried += other.retried;
-}
-
-std::string BatchStatus::reason() const {
-  if (ok()) return "";
-  const std::string pivot = " pivot at DoF " + std::to_string(first_dof) + " is not positive";
-  switch (failure) {
-    case Failure::MassMatrixPivot: return "mass matrix" + pivot;
-    case Failure::BothPivots:
-      return "mass matrix pivot not positive, and by the aba fallback the articulated inertia" + pivot;
-    case Failure::NonFinite: return "the state at DoF " + std::to_string(first_dof) + " is not finite after the step";
-    case Failure::ResidualTooLarge: {
-      char b[256];
-      std::snprintf(b, sizeof b,
-                    "forward dynamics check: estimated error of qdd %.2g (M^-1 (ID(q, qd, qdd) - tau) relative to "
-                    "max(1, |qdd|)) above the threshold %.2g (largest at DoF %lld)",
-                    estimate, threshold, static_cast<long long>(first_dof));
-      return b;
-    }
-    case Failure::NotConverged:
-      return "the variational step's Newton iteration did not converge (largest correction at DoF " +
-             std::to_string(first_dof) + ")";
-    case Failure::ArticulatedPivot:
-    case Failure::None: break;
-  }
-  return "articulated inertia" + pivot;
-}
-
-std::string BatchStatus::message() const {
-  if (ok()) return "";
-  std::string s = "instance " + std::to_string(first_instance) + ": " + reason();
-  if (failed > 1) s += " (and " + std::to_string(failed - 1) + " more instance" + (failed > 2 ? "s" : "") + ")";
-  return s;
-}
-
-BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Index fell_back) {
-  BatchStatus st;
-  st.failed_dof = failed_dof;
-  st.fell_back = fell_back;
-  for (Index b = 0; b < B; ++b)
-    if (failed_dof[b] >= 0) st.record(b, failed_dof[b], what);
-  return st;
-}
-
-BatchStatus summarize_checked(const int* failed_dof, const double* estimate, Index B, Failure pivot,
-                              double threshold, Index fell_back, Index retried) {
-  BatchStatus st;
-  st.failed_dof = failed_dof;
-  st.fell_back = fell_back;
-  st.retried = retried;
-  for (Index b = 0; b < B; ++b) {
-    if (failed_dof[b] < 0) continue;
-    const bool check = !(estimate[b] <= threshold);
-    st.record(b, failed_dof[b], check ? Failure::ResidualTooLarge : pivot);
-    if (check && st.first_instance == b) {
-      st.estimate = estimate[b];
-      st.threshold = threshold;
-    }
-  }
-  return st;
 }
 
 // ---- batch checks ---------------------------------------------------------------
@@ -296,42 +122,6 @@ FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
   return FdMethod::Aba;
 }
 
-int openmp_threads() {
-#ifdef _OPENMP
-  return omp_get_max_threads();
-#else
-  return 1;
-#endif
-}
-
-int backend_threads(BackendKind backend, int threads) {
-  if (backend != BackendKind::OpenMP) return 1;
-  return threads > 0 ? threads : openmp_threads();
-}
-
-std::string backend_unusable(BackendKind backend) {
-  switch (backend) {
-    case BackendKind::Serial: return "";
-    case BackendKind::OpenMP:
-#if SCANDYN_HAS_OPENMP && defined(_OPENMP)
-      return "";
-#else
-      return "backend 'openmp' is not available in this build";
-#endif
-    case BackendKind::Cuda: {
-#if SCANDYN_HAS_CUDA
-      const cuda::Result<int> count = cuda::device_count();
-      if (!count) return count.error;
-      if (count.value == 0) return "no usable CUDA device: the CUDA runtime reports 0 devices";
-      return "";
-#else
-      return "backend 'cuda' is not available in this build";
-#endif
-    }
-  }
-  return "unknown backend";
-}
-
 // ---- factories ------------------------------------------------------------------
 
 namespace {
@@ -355,7 +145,7 @@ void require_built(const BackendOptions& o) {
 }
 
 // True when o asks the cuda backend for a device other than the current one, or several.
-bool sharded(const BackendOptions& o) { return o.backend == BackendKind::Cuda && spans_devices(o.devices); }
+[[maybe_unused]] bool sharded(const BackendOptions& o) { return o.backend == BackendKind::Cuda && spans_devices(o.devices); }
 
 // One engine per entry of o.devices, each made by make(options of one shard: no devices,
 // max_batch its share) with that device current; BackendError "device D: ..." for a
