@@ -420,16 +420,27 @@ def measure_dynamics(comm, device, args):
     synchronize(device)
     elapsed_local = time.perf_counter() - start
     finite = bool(torch.isfinite(out).all().item())
+    return emit_timed_row(comm, device, args, n_local, elapsed_local, finite, {"task": f"iiwa {args.measure}"},
+                          ("calls", "seconds_per_call", "evals_per_second"), ("calls", "evaluations/s"))
+
+
+def emit_timed_row(comm, device, args, n_local, elapsed_local, finite, fields, keys, words):
+    """The row of a --measure id / fd / step run: --steps timed repetitions on this rank's
+    n_local of --envs instances in elapsed_local seconds; the slowest rank's time sets the
+    rate. keys: the row's names of the count, the time per repetition and the rate;
+    words: how the rank's line names a repetition and the rate. Exit status 1 when a rank's
+    results are not finite."""
     elapsed = comm.allreduce_max(elapsed_local)
     all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
+    count, per, rate = keys
     row = {
-        **row_header(comm, device), "task": f"iiwa {args.measure}", "precision": "float", "instances": args.envs,
+        **row_header(comm, device), **fields, "precision": "float", "instances": args.envs,
         "instances_per_rank": [shard_range(args.envs, comm.world, r)[1] for r in range(comm.world)],
-        "calls": args.steps, "elapsed_s": elapsed, "seconds_per_call": elapsed / args.steps,
-        "evals_per_second": args.envs * args.steps / elapsed, "finite": all_finite,
+        count: args.steps, "elapsed_s": elapsed, per: elapsed / args.steps,
+        rate: args.envs * args.steps / elapsed, "finite": all_finite,
     }
-    print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} calls, "
-          f"{n_local * args.steps / elapsed_local:.4g} evaluations/s", flush=True)
+    print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} {words[0]}, "
+          f"{n_local * args.steps / elapsed_local:.4g} {words[1]}", flush=True)
     emit_row(comm, row, args.out)
     return 0 if all_finite else 1
 
@@ -477,19 +488,9 @@ def measure_step(comm, device, args):
     elapsed_local = time.perf_counter() - start
     check_status()  # names the first instance that failed in the timed steps
     finite = bool(torch.isfinite(sim.q).all().item() and torch.isfinite(sim.qd).all().item())
-    elapsed = comm.allreduce_max(elapsed_local)
-    all_finite = comm.allreduce_max(0.0 if finite else 1.0) == 0.0
-    row = {
-        **row_header(comm, device), "task": "iiwa step", "scene": "scenes/iiwa_rl.json", "precision": "float",
-        "backend": sim.backend, "instances": args.envs,
-        "instances_per_rank": [shard_range(args.envs, comm.world, r)[1] for r in range(comm.world)],
-        "steps": args.steps, "elapsed_s": elapsed, "seconds_per_step": elapsed / args.steps,
-        "instance_steps_per_s": args.envs * args.steps / elapsed, "finite": all_finite,
-    }
-    print(f"rank {comm.rank} ({device}): {n_local} instances x {args.steps} steps, "
-          f"{n_local * args.steps / elapsed_local:.4g} instance-steps/s", flush=True)
-    emit_row(comm, row, args.out)
-    return 0 if all_finite else 1
+    return emit_timed_row(comm, device, args, n_local, elapsed_local, finite,
+                          {"task": "iiwa step", "scene": "scenes/iiwa_rl.json", "backend": sim.backend},
+                          ("steps", "seconds_per_step", "instance_steps_per_s"), ("steps", "instance-steps/s"))
 
 
 def run(comm, device, args):

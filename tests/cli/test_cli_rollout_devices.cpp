@@ -61,7 +61,7 @@ TEST_F(RolloutDevices, ABackendOtherThanCudaDropsTheScenesDevices) {
 
 TEST_F(RolloutDevices, TwoShardsOnOneDeviceWriteTheSameTrajectory) {
   if (const std::string why = backend_unusable(BackendKind::Cuda); !why.empty())
-    GTEST_SKIP() << "no usable CUDA device: " << why;
+    GTEST_SKIP() << "backend cuda: " << why;
   write_text(path("s.json"), scene("cuda"));
   // (B, nv) torques, constant per instance
   std::vector<double> tau(9 * 4);

@@ -325,7 +325,7 @@ void expect_devices_identical(const std::string& integrator, const std::vector<i
 
 TEST(SimDevicesCuda, TwoShardsOnOneDeviceAreBitIdentical) {
   if (const std::string why = backend_unusable(BackendKind::Cuda); !why.empty())
-    GTEST_SKIP() << "no usable CUDA device: " << why;
+    GTEST_SKIP() << "backend cuda: " << why;
   const int d = cuda::current_device().value;
   for (const char* integrator : {"euler", "rk4"}) {
     expect_devices_identical<float>(integrator, {d, d});
@@ -336,7 +336,7 @@ TEST(SimDevicesCuda, TwoShardsOnOneDeviceAreBitIdentical) {
 
 TEST(SimDevicesCuda, EveryDeviceIsBitIdentical) {
   if (const std::string why = backend_unusable(BackendKind::Cuda); !why.empty())
-    GTEST_SKIP() << "no usable CUDA device: " << why;
+    GTEST_SKIP() << "backend cuda: " << why;
   const std::vector<int> all = parse_devices("all");
   if (all.size() < 2) GTEST_SKIP() << "one CUDA device visible (this test needs two)";
   expect_devices_identical<float>("euler", all);
@@ -345,7 +345,7 @@ TEST(SimDevicesCuda, EveryDeviceIsBitIdentical) {
 
 TEST(SimDevicesCuda, AMissingDeviceIsNamed) {
   if (const std::string why = backend_unusable(BackendKind::Cuda); !why.empty())
-    GTEST_SKIP() << "no usable CUDA device: " << why;
+    GTEST_SKIP() << "backend cuda: " << why;
   Scene scene = scene_from(rope_scene("euler", 10, "cuda"));
   scene.devices = {0, 999};
   try {

@@ -226,8 +226,9 @@ TEST(SimVariational, NewtonConvergesInFewIterations) {
           model, w, dt, coef.data(), q.data(), qd.data(), tau.data(), static_cast<const Force<double>*>(nullptr));
       ASSERT_EQ(r.failed_dof, -1) << speed;
       most = std::max(most, r.iterations);
-      if (speed == 1.0 && r.iterations >= 2)  // the second update far below the first
+      if (speed == 1.0 && r.iterations >= 2) {  // the second update far below the first
         EXPECT_LE(r.iterations == 2 ? r.last_update : r.previous_update, 1e-3 * r.first_update) << speed;
+      }
     }
     std::printf("speed x%g: at most %d Newton updates\n", speed, most);
     EXPECT_LE(most, speed > 1 ? 4 : 2) << speed;
