@@ -310,8 +310,8 @@ TEST(SimVariational, LuWithPivoting) {
   for (Index i = 0; i < n; ++i) EXPECT_NEAR(b[i], x[i], 1e-10) << i;
 }
 
-// Above kVariationalExactMaxDofs (rope:100: the quasi-Newton Jacobian, whose LU
-// exchanges rows): 300 steps converge, the energy error stays small.
+// Above kVariationalExactMaxDofs (rope:100: the O(nv) chord iteration): 300 steps
+// converge, the energy error stays small.
 TEST(SimVariational, LongChainQuasiNewton) {
   const EnergyRun vi =
       energy_run(scene_of("rope:100", "variational", 5e-5,
@@ -320,6 +320,89 @@ TEST(SimVariational, LongChainQuasiNewton) {
   std::printf("rope:100 dt 5e-5, 300 steps: worst %.3g\n", vi.worst);
   ASSERT_TRUE(vi.ok) << vi.failure;
   EXPECT_LE(vi.worst, 1e-2);
+}
+
+// Steps of a model beyond kVariationalExactMaxDofs by the chord iteration and by the
+// dense quasi-Newton Jacobian (forced: chord = false), each from the same state: the
+// same equations, so each step's results agree to the iterations' stopping error:
+// both converge linearly (neither has H) and stop once an update within sqrt(eps) of
+// the speed no longer halves (taken as the rounding floor), up to ~1e-8 short of the
+// solution (rope:100 with gravity, damping and springs, whose diagonal the chord's
+// preconditioner takes as armature; measured 6.4e-9 relative, bound 3e-8); the chord
+// iteration never falls back there. With
+// chord_max_iterations = 1 every step falls back to the dense solve and gives its
+// result exactly.
+TEST(SimVariational, ChordIterationSolvesWhatTheDenseJacobianSolves) {
+  const Scene scene = scene_of("rope:100", "variational", 1e-4,
+                               ", \"effects\": {\"gravity\": true, \"damping\": 0.02, \"springs\": {\"stiffness\": "
+                               "0.05, \"rest\": 0.0}}, \"initial\": {\"random\": {\"seed\": 4, \"q\": 0.3, \"qd\": 0.3}}");
+  const Model& model = scene.model;
+  const Index n = model.nv();
+  const std::vector<sim::JointCoefficients<double>> coef(scene.joints.begin(), scene.joints.end());
+  constexpr unsigned kEffects = sim::kGravity | sim::kDamping | sim::kSprings;
+  for (const int cap : {sim::kVariationalMaxIterations, 1}) {
+    sim::VariationalWork<double> chord(model), dense(model);
+    ASSERT_TRUE(chord.chord);
+    chord.chord_max_iterations = cap;
+    dense.chord = false;
+    std::vector<double> q(n), qd(n), tau(n, 0.0);
+    Simulator<double>(scene, BackendKind::Serial).read_state(q.data(), qd.data());  // the drawn start
+    int most = 0;
+    double worst = 0;
+    for (int k = 0; k < 40; ++k) {
+      std::vector<double> qb = q, qdb = qd;
+      const sim::VariationalResult a = sim::variational_step<kEffects>(
+          model, chord, 1e-4, coef.data(), q.data(), qd.data(), tau.data(), static_cast<const Force<double>*>(nullptr));
+      const sim::VariationalResult b = sim::variational_step<kEffects>(
+          model, dense, 1e-4, coef.data(), qb.data(), qdb.data(), tau.data(), static_cast<const Force<double>*>(nullptr));
+      ASSERT_EQ(a.failed_dof, -1) << "step " << k;
+      ASSERT_EQ(b.failed_dof, -1) << "step " << k;
+      EXPECT_EQ(a.dense_fallback, cap == 1) << "step " << k;
+      EXPECT_FALSE(b.dense_fallback);
+      most = std::max(most, a.iterations);
+      for (Index i = 0; i < n; ++i) {
+        worst = std::max(worst, std::abs(q[i] - qb[i]) / std::max(1.0, std::abs(qb[i])));
+        worst = std::max(worst, std::abs(qd[i] - qdb[i]) / std::max(1.0, std::abs(qdb[i])));
+      }
+    }
+    std::printf("rope:100, cap %d: at most %d updates, chord vs dense per step %.3g\n", cap, most, worst);
+    if (cap == 1) {
+      EXPECT_EQ(worst, 0.0);
+    } else {
+      EXPECT_LE(worst, 3e-8);
+      EXPECT_LE(most, 12);
+    }
+  }
+}
+
+// rope:1000 from rest at dt = 2e-5 with gravity: 20 steps by the chord iteration,
+// no fallback and no nv x nv scratch, energy within 1e-8 of the swinging energy.
+TEST(SimVariational, Rope1000ByTheChordIteration) {
+  const Scene scene = scene_of("rope:1000", "variational", 2e-5,
+                               ", \"effects\": {\"gravity\": true}, \"initial\": {\"random\": {\"seed\": 1, \"q\": 0.05}}");
+  const Model& model = scene.model;
+  sim::VariationalWork<double> w(model);
+  ASSERT_TRUE(w.chord);
+  const std::vector<sim::JointCoefficients<double>> coef(scene.joints.begin(), scene.joints.end());
+  std::vector<double> q(model.nv()), qd(model.nv()), tau(model.nv(), 0.0);
+  Simulator<double>(scene, BackendKind::Serial).read_state(q.data(), qd.data());  // the drawn start
+  const std::vector<double> zero(model.nv(), 0.0);
+  const double rest = sim::mechanical_energy(model, scene.effects, scene.joints.data(), zero.data(), zero.data());
+  const double e0 = sim::mechanical_energy(model, scene.effects, scene.joints.data(), q.data(), qd.data());
+  int most = 0;
+  for (int k = 0; k < 20; ++k) {
+    const sim::VariationalResult r = sim::variational_step<sim::kGravity>(
+        model, w, 2e-5, coef.data(), q.data(), qd.data(), tau.data(), static_cast<const Force<double>*>(nullptr));
+    ASSERT_EQ(r.failed_dof, -1) << "step " << k;
+    ASSERT_FALSE(r.dense_fallback) << "step " << k;
+    most = std::max(most, r.iterations);
+  }
+  EXPECT_TRUE(w.D.empty());  // no nv x nv scratch was made
+  const double e = sim::mechanical_energy(model, scene.effects, scene.joints.data(), q.data(), qd.data());
+  std::printf("rope:1000 dt 2e-5, 20 steps: at most %d updates, energy error %.3g\n", most,
+              std::abs(e - e0) / std::abs(e0 - rest));
+  EXPECT_LE(most, 12);
+  EXPECT_LE(std::abs(e - e0) / std::abs(e0 - rest), 1e-8);
 }
 
 // Serial and OpenMP step every instance by the same code: bit-identical.

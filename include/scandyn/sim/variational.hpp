@@ -37,14 +37,23 @@
 // H = d(D^T v)/dq at fixed v (= the q-Hessian of v^T M(q) v: second derivatives of
 // M, by nv dual passes of the first-order recursion, rnea_weighted_dq2 in
 // scandyn/algorithm/second_derivatives.hpp, O(nv^2 depth)). Models of more than
-// kVariationalExactMaxDofs DoFs drop the H term (quasi-Newton: linear convergence
-// with contraction of order dt^2 |qd|^2 |d2M| / lambda_min(M), negligible for
-// ropes at their stable dt; 0.3 on iiwa spinning at 35 rad/s at dt = 2e-3, which is
-// why the smaller models keep it).
+// kVariationalExactMaxDofs DoFs do not form the Jacobian at all: they iterate with
+// its dominant part P = M(qm) + diag(-dt^2/4 de/dq - dt/2 de/dv) (the chord method),
+// dv = P^-1 r by one ABA of the model without gravity at rest with the diagonal as
+// its armature, the residual's M v and D^T v from one reverse pass of inverse
+// dynamics (rnea_vjp with weight v: gq = D^T v, gqdd = M v) and g - J^T fext from one
+// RNEA: O(nv depth) per iteration, no nv x nv matrix. Linear convergence, contraction
+// of order |P^-1 (dt/2 (D - D^T) + dt^2/4 K - dt^2/8 H)|: dt |qd| and dt^2 g / l for
+// ropes moving slowly (rope:100 at dt = 5e-5 from rest: a few updates per step); the
+// gyroscopic term dt/2 (D - D^T) grows with the speeds against M's small eigenvalues
+// (rope:1000 at dt = 2e-5 contracts by ~0.3 at 1 rad/s and stalls by 3 rad/s). Where
+// it does not contract (from the third update on, one above half the one before
+// it), the step starts again from its first guess with the dense quasi-Newton
+// Jacobian (all terms but H, LU), up to kVariationalDenseMaxDofs DoFs.
 // The unknown is the mean velocity v (q1 = q0 + dt v), so Newton solves with dt J
 // (= M + dt/2 (D - D^T) + ...): v keeps its relative precision where q1 - q0 would
 // cancel (float). The dense matrix is factored by LU with partial pivoting: O(nv^3)
-// per iteration (the cost of a long chain; tests and bench/variational_cost.cpp).
+// per iteration (up to 64 DoFs, and the fallback above).
 //
 // Stopping: the residual at its rounding floor (|r|_inf <= 64 eps max_j of the sum of
 // the magnitudes of r_j's terms; checked from the second iteration on, before its
@@ -67,6 +76,7 @@
 #include <memory>
 
 #include "scandyn/algorithm/derivatives.hpp"
+#include "scandyn/algorithm/directional_derivatives.hpp"
 #include "scandyn/algorithm/second_derivatives.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 
@@ -78,8 +88,12 @@ namespace sim {
 inline constexpr unsigned kVariationalEffects = kGravity | kDamping | kSprings | kLimits | kExternal;
 inline constexpr int kVariationalMaxIterations = 50;
 // Models of up to this many DoFs get the exact Newton Jacobian (the dt^2/8 H term
-// by nv dual passes, rnea_weighted_dq2); larger ones drop it (quasi-Newton).
+// by nv dual passes, rnea_weighted_dq2); larger ones the O(nv) chord iteration.
 inline constexpr Index kVariationalExactMaxDofs = 64;
+// The chord iteration's fallback, the dense quasi-Newton Jacobian (nv x nv, LU),
+// up to this many DoFs (5 nv^2 numbers of scratch, O(nv^3) per update); beyond it a
+// step the chord iteration does not solve fails with Failure::NotConverged.
+inline constexpr Index kVariationalDenseMaxDofs = 2048;
 template <class S>
 constexpr S variational_tolerance() {
   return S(16) * std::numeric_limits<S>::epsilon();
@@ -93,29 +107,44 @@ struct VariationalResult {
   double first_update = 0;    // |dv|_inf of the first and the last iterations
   double last_update = 0;
   double previous_update = 0; // |dv|_inf of the iteration before the last
+  bool dense_fallback = false; // the chord iteration did not contract: solved by the dense quasi-Newton
 };
 
-// One thread's scratch (made once per model).
+// One thread's scratch (made once per model; the dense matrices of a chord model
+// only when its fallback first needs them).
 template <class S>
 struct VariationalWork {
   explicit VariationalWork(const ModelTpl<S>& model)
-      : at_rest(model), deriv(model), data(model, false), n(static_cast<std::size_t>(model.nv())) {
+      : at_rest(model), deriv(model), data(model, false), n(static_cast<std::size_t>(model.nv())),
+        chord(model.nv() > kVariationalExactMaxDofs) {
     at_rest.gravity = Vec3<S>{S(0), S(0), S(0)};
-    for (std::vector<S>* a : {&zero, &q1, &qm, &v, &p0, &tau_m, &tau_g, &f, &eq, &eqd, &r, &work})
+    jvp = std::make_unique<RneaJvpData<S>>(at_rest);
+    for (std::vector<S>* a : {&zero, &q1, &qm, &v, &p0, &tau_m, &tau_g, &f, &eq, &eqd, &r, &work, &dtv, &diag, &gqd, &v0})
       a->assign(n, S(0));
-    for (std::vector<S>* a : {&D, &K, &M, &J, &unused}) a->assign(n * n, S(0));
-    piv.assign(n, 0);
-    if (model.nv() <= kVariationalExactMaxDofs) {
+    if (!chord) {
+      allocate_dense();
       dual = std::make_unique<SecondDerivativeData<S>>(at_rest);
       H.assign(n * n, S(0));
     }
+  }
+  void allocate_dense() {
+    if (D.size() == n * n) return;
+    for (std::vector<S>* a : {&D, &K, &M, &J, &unused}) a->assign(n * n, S(0));
+    piv.assign(n, 0);
   }
   ModelTpl<S> at_rest;          // the model with zero gravity: ID(at_rest, q, 0, a) = M(q) a
   DerivativeDataTpl<S> deriv;   // rnea_derivatives' scratch
   DataTpl<S> data;              // rnea / aba scratch
   std::size_t n;
+  // true: the chord iteration (models of more than kVariationalExactMaxDofs DoFs), its
+  // dense fallback up to kVariationalDenseMaxDofs; false: Newton with the exact Jacobian
+  bool chord;
+  int chord_max_iterations = kVariationalMaxIterations;  // (tests lower it to reach the fallback)
+  std::unique_ptr<RneaJvpData<S>> jvp;  // rnea_vjp's scratch (the chord iteration's residual)
   std::vector<S> zero, q1, qm, v, p0, tau_m, tau_g, f, eq, eqd, r, work;  // (nv)
-  std::vector<S> D, K, M, J, unused;                                      // (nv x nv) row-major
+  // (nv) D^T v; the chord's armature; rnea_vjp's qd adjoint (unused); the first guess of v
+  std::vector<S> dtv, diag, gqd, v0;
+  std::vector<S> D, K, M, J, unused;                                      // (nv x nv) row-major, or empty
   std::vector<Index> piv;
   std::unique_ptr<SecondDerivativeData<S>> dual;  // the exact Jacobian's dual passes, or null
   std::vector<S> H;                               // (nv x nv) d(D^T v)/dq, or empty
@@ -160,42 +189,70 @@ void lu_solve(Index n, const S* A, const Index* piv, S* x) {
     x[k] = s / A[k * n + k];
   }
 }
-}  // namespace detail
 
-// One variational step of one instance of a model of 1-DoF joints: q, qd (nv each)
-// advanced by dt in place under tau (nv, held over the step); coef the joints'
-// coefficients (read for declared joint effects); fext nbodies body wrenches or null
-// (read only with kExternal). On a failure q and qd are left as they were.
-template <unsigned kEffects, class S>
-VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>& w, S dt,
-                                   const JointCoefficients<S>* coef, S* q, S* qd, const S* tau,
-                                   const Force<S>* fext) {
-  static_assert((kEffects & ~kVariationalEffects) == 0, "variational_step: contacts are not taken");
-  const Index n = model.nv();
-  const Force<S>* const fx = (kEffects & kExternal) ? fext : nullptr;
-  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
-  VariationalResult out;
-  const MatrixRef<S> D{w.D.data(), n, 1}, K{w.K.data(), n, 1}, M{w.M.data(), n, 1}, unused{w.unused.data(), n, 1};
-  // p_k = M(q_k) qd_k
-  rnea(w.at_rest, w.data, q, w.zero.data(), qd, w.p0.data());
-  // the first guess: q1 = q + dt (qd + dt/2 qdd), qdd = FD(q, qd, tau + e(q, qd))
-  stage_forces<kEffects>(n, coef, tau, q, qd, S(0), w.f.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
-  const Status guess = aba(model, w.data, q, qd, w.f.data(), w.work.data(), fx);
-  if (!guess.ok()) {
-    out.failed_dof = guess.failed_dof;
-    out.failure = Failure::ArticulatedPivot;
-    return out;
+// Newton's right-hand side -r(v) = -(M v - dt/2 (1/2 D^T v - (g - J^T fext) + F) - p_k)
+// into w.r, from w.tau_m (M v), w.dtv (D^T v), w.tau_g (g - J^T fext, read when
+// kPotential), w.f (F) and w.p0; returns |r|_inf and its rounding floor (64 eps of
+// the largest sum of a row's terms' magnitudes).
+template <bool kPotential, class S>
+std::pair<S, S> negative_residual(VariationalWork<S>& w, Index n, S half) {
+  S residual = S(0), floor = S(0);
+  for (Index j = 0; j < n; ++j) {
+    const S g = kPotential ? w.tau_g[j] : S(0);
+    w.r[j] = -(w.tau_m[j] - half * (S(0.5) * w.dtv[j] - g + w.f[j]) - w.p0[j]);
+    residual = std::max(residual, std::abs(w.r[j]));
+    floor = std::max(floor, std::abs(w.tau_m[j]) + std::abs(w.p0[j]) +
+                                half * (std::abs(S(0.5) * w.dtv[j]) + std::abs(g) + std::abs(w.f[j])));
   }
-  // the unknown is the step's mean velocity v = (q1 - q) / dt (q1 = q + dt v: v keeps
-  // its relative precision where q1 - q would cancel); first guess v = qd + dt/2 qdd
-  for (Index i = 0; i < n; ++i) w.v[i] = qd[i] + S(0.5) * dt * w.work[i];
-  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt, tol = variational_tolerance<S>();
-  const S root_eps = std::sqrt(std::numeric_limits<S>::epsilon());
-  S speed = S(0);  // the velocity scale of the convergence test
-  for (Index i = 0; i < n; ++i) speed = std::max(speed, std::abs(qd[i]));
-  bool converged = false;
-  Index worst = 0;
-  for (int it = 0; it < kVariationalMaxIterations && !converged; ++it) {
+  return {residual, S(64) * std::numeric_limits<S>::epsilon() * floor};
+}
+
+// What an update did: the iteration goes on, has converged, or has failed (a
+// non-finite update; for the chord iteration also one that grows).
+enum class Update { Continue, Converged, Failed };
+
+// v += dv (dv in w.r), recorded in out (iterations, updates) and worst (the DoF of
+// the largest correction); the stopping rule of the header: the update within the
+// tolerance, or, once within sqrt(eps) of the speed, the next one predicted from the
+// contraction within it or the updates no longer shrinking (the residual's rounding
+// floor: M's small pivots amplify it past 16 eps on robots). stall_fails: from the
+// third update on, one above half the one before it (and above sqrt(eps)) fails: the
+// chord iteration contracts too slowly there to be worth going on.
+template <class S>
+Update take_update(VariationalWork<S>& w, Index n, S speed, int it, bool stall_fails, VariationalResult& out,
+                   Index& worst) {
+  const S tol = variational_tolerance<S>(), root_eps = std::sqrt(std::numeric_limits<S>::epsilon());
+  S step = S(0), scale = speed;
+  for (Index i = 0; i < n; ++i) {
+    w.v[i] += w.r[i];
+    if (std::abs(w.r[i]) > step || !std::isfinite(w.r[i])) step = std::abs(w.r[i]), worst = i;
+    scale = std::max(scale, std::abs(w.v[i]));
+  }
+  const S previous = S(out.last_update);
+  out.iterations = it + 1;
+  out.previous_update = out.last_update;
+  out.last_update = double(step);
+  if (it == 0) out.first_update = double(step);
+  if (!std::isfinite(step)) return Update::Failed;
+  if (step <= tol * scale || step < std::numeric_limits<S>::min() ||
+      (it > 0 && step <= root_eps * scale && (step * step <= tol * scale * previous || step >= S(0.5) * previous)))
+    return Update::Converged;
+  if (stall_fails && it > 1 && step > S(0.5) * previous) return Update::Failed;
+  return Update::Continue;
+}
+
+// Newton on the dense Jacobian dr/dv = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4
+// de/dq + dt/2 de/dv) - dt^2/8 H (H where w.dual is made: up to
+// kVariationalExactMaxDofs DoFs), LU per update; v from w.v. True when converged.
+template <unsigned kEffects, class S>
+bool solve_dense(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
+                 const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
+  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
+  const Index n = model.nv();
+  w.allocate_dense();
+  const MatrixRef<S> D{w.D.data(), n, 1}, K{w.K.data(), n, 1}, M{w.M.data(), n, 1}, unused{w.unused.data(), n, 1};
+  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
+  for (int it = 0; it < kVariationalMaxIterations; ++it) {
     for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
     // M v, D = d(M v)/dq, M at qm
     rnea_derivatives(w.at_rest, w.deriv, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
@@ -206,22 +263,13 @@ VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>&
                        w.tau_g.data());
     // F = tau + e(qm, v), its diagonal partials
     stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
-    // -r = -(M v - dt/2 (1/2 D^T v - (g - J^T fext) + F) - p_k): Newton's right-hand side
-    // and its rounding floor: 64 eps of the sum of its terms' magnitudes
-    S residual = S(0), floor = S(0);
     for (Index j = 0; j < n; ++j) {
       S dtv = S(0);
       for (Index i = 0; i < n; ++i) dtv += D(i, j) * w.v[i];
-      const S g = kPotential ? w.tau_g[j] : S(0);
-      w.r[j] = -(w.tau_m[j] - half * (S(0.5) * dtv - g + w.f[j]) - w.p0[j]);
-      residual = std::max(residual, std::abs(w.r[j]));
-      floor = std::max(floor, std::abs(w.tau_m[j]) + std::abs(w.p0[j]) +
-                                  half * (std::abs(S(0.5) * dtv) + std::abs(g) + std::abs(w.f[j])));
+      w.dtv[j] = dtv;
     }
-    if (it > 0 && residual <= S(64) * std::numeric_limits<S>::epsilon() * floor) {
-      converged = true;  // the residual is rounding: v is the solution to working precision
-      break;
-    }
+    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
+    if (it > 0 && residual <= floor) return true;  // the residual is rounding: v is the solution to working precision
     // dr/dv = dt dr/dq1 = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4 de/dq + dt/2 de/dv)
     for (Index i = 0; i < n; ++i) {
       S* const row = w.J.data() + static_cast<std::size_t>(i) * w.n;
@@ -240,26 +288,93 @@ VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>&
     }
     bool finite = true;
     for (Index i = 0; i < n; ++i) finite = finite && std::isfinite(w.r[i]);
-    if (!finite || !detail::lu_factor(n, w.J.data(), w.piv.data())) break;
-    detail::lu_solve(n, w.J.data(), w.piv.data(), w.r.data());
-    S step = S(0), scale = speed;
+    if (!finite || !lu_factor(n, w.J.data(), w.piv.data())) return false;
+    lu_solve(n, w.J.data(), w.piv.data(), w.r.data());
+    const Update u = take_update(w, n, speed, it, false, out, worst);
+    if (u != Update::Continue) return u == Update::Converged;
+  }
+  return false;
+}
+
+// The chord iteration of models of more than kVariationalExactMaxDofs DoFs: dv =
+// P^-1 r, P = M(qm) + diag(-dt^2/4 de/dq - dt/2 de/dv) by one ABA at rest (the
+// diagonal as armature); M v and D^T v by rnea_vjp (weight v), g - J^T fext by one
+// RNEA: O(nv depth) per update. v from w.v. True when converged; false when it does
+// not contract (see take_update) within w.chord_max_iterations updates.
+template <unsigned kEffects, class S>
+bool solve_chord(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
+                 const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
+  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
+  const Index n = model.nv();
+  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
+  for (int it = 0; it < w.chord_max_iterations; ++it) {
+    for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
+    // gq = D^T v, gqdd = M v (ID(at_rest, qm, 0, v) = M v; weight v)
+    rnea_vjp(w.at_rest, *w.jvp, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
+             w.v.data(), w.dtv.data(), w.gqd.data(), w.tau_m.data());
+    if constexpr (kPotential) rnea(model, w.data, w.qm.data(), w.zero.data(), w.zero.data(), w.tau_g.data(), fx);
+    stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
+    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
+    if (it > 0 && residual <= floor) return true;
+    bool finite = true;
     for (Index i = 0; i < n; ++i) {
-      w.v[i] += w.r[i];
-      if (std::abs(w.r[i]) > step || !std::isfinite(w.r[i])) step = std::abs(w.r[i]), worst = i;
-      scale = std::max(scale, std::abs(w.v[i]));
+      finite = finite && std::isfinite(w.r[i]);
+      w.diag[i] = -(quarter * w.eq[i] + half * w.eqd[i]);
     }
-    const S previous = S(out.last_update);
-    out.iterations = it + 1;
-    out.previous_update = out.last_update;
-    out.last_update = double(step);
-    if (it == 0) out.first_update = double(step);
-    if (!std::isfinite(step)) break;
-    // converged: the update is within the tolerance; or, once it is within sqrt(eps),
-    // the next one predicted from the contraction (step / previous) is, or the
-    // updates stopped shrinking (the residual's rounding floor: M's small pivots
-    // amplify it past 16 eps on robots)
-    converged = step <= tol * scale || step < std::numeric_limits<S>::min() ||
-                (it > 0 && step <= root_eps * scale && (step * step <= tol * scale * previous || step >= S(0.5) * previous));
+    if (!finite) return false;
+    if (!aba(w.at_rest, w.data, w.qm.data(), w.zero.data(), w.r.data(), w.work.data(),
+             static_cast<const Force<S>*>(nullptr), w.diag.data())
+             .ok())
+      return false;
+    std::copy(w.work.begin(), w.work.end(), w.r.begin());
+    const Update u = take_update(w, n, speed, it, true, out, worst);
+    if (u != Update::Continue) return u == Update::Converged;
+  }
+  return false;
+}
+}  // namespace detail
+
+// One variational step of one instance of a model of 1-DoF joints: q, qd (nv each)
+// advanced by dt in place under tau (nv, held over the step); coef the joints'
+// coefficients (read for declared joint effects); fext nbodies body wrenches or null
+// (read only with kExternal). On a failure q and qd are left as they were.
+template <unsigned kEffects, class S>
+VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>& w, S dt,
+                                   const JointCoefficients<S>* coef, S* q, S* qd, const S* tau,
+                                   const Force<S>* fext) {
+  static_assert((kEffects & ~kVariationalEffects) == 0, "variational_step: contacts are not taken");
+  const Index n = model.nv();
+  const Force<S>* const fx = (kEffects & kExternal) ? fext : nullptr;
+  VariationalResult out;
+  // p_k = M(q_k) qd_k
+  rnea(w.at_rest, w.data, q, w.zero.data(), qd, w.p0.data());
+  // the first guess: q1 = q + dt (qd + dt/2 qdd), qdd = FD(q, qd, tau + e(q, qd))
+  stage_forces<kEffects>(n, coef, tau, q, qd, S(0), w.f.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
+  const Status guess = aba(model, w.data, q, qd, w.f.data(), w.work.data(), fx);
+  if (!guess.ok()) {
+    out.failed_dof = guess.failed_dof;
+    out.failure = Failure::ArticulatedPivot;
+    return out;
+  }
+  // the unknown is the step's mean velocity v = (q1 - q) / dt (q1 = q + dt v: v keeps
+  // its relative precision where q1 - q would cancel); first guess v = qd + dt/2 qdd
+  const S half = S(0.5) * dt;
+  for (Index i = 0; i < n; ++i) w.v[i] = qd[i] + half * w.work[i];
+  if (w.chord) std::copy(w.v.begin(), w.v.end(), w.v0.begin());
+  S speed = S(0);  // the velocity scale of the convergence test
+  for (Index i = 0; i < n; ++i) speed = std::max(speed, std::abs(qd[i]));
+  Index worst = 0;
+  bool converged;
+  if (!w.chord) {
+    converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+  } else {
+    converged = detail::solve_chord<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+    if (!converged && n <= kVariationalDenseMaxDofs) {  // again from the first guess, dense
+      std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
+      out = VariationalResult{};
+      out.dense_fallback = true;
+      converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+    }
   }
   if (!converged) {
     out.failed_dof = worst;
