@@ -48,8 +48,12 @@
 // gyroscopic term dt/2 (D - D^T) grows with the speeds against M's small eigenvalues
 // (rope:1000 at dt = 2e-5 contracts by ~0.3 at 1 rad/s and stalls by 3 rad/s). Where
 // it does not contract (from the third update on, one above half the one before
-// it), the step starts again from its first guess with the dense quasi-Newton
-// Jacobian (all terms but H, LU), up to kVariationalDenseMaxDofs DoFs.
+// it), the step starts again from its first guess by Newton-Krylov: each update
+// solves J dv = r by GMRES (at most 40 vectors, to 1e-6 of |r|), right-preconditioned
+// by P (one ABA per vector), J x (H included) by central differences of the
+// residual along x (two residuals: O(nv depth) per vector, accurate to ~eps^(2/3)).
+// Where that fails too, the dense quasi-Newton Jacobian (all terms but H, LU), up to
+// kVariationalDenseMaxDofs DoFs.
 // The unknown is the mean velocity v (q1 = q0 + dt v), so Newton solves with dt J
 // (= M + dt/2 (D - D^T) + ...): v keeps its relative precision where q1 - q0 would
 // cancel (float). The dense matrix is factored by LU with partial pivoting: O(nv^3)
@@ -107,7 +111,8 @@ struct VariationalResult {
   double first_update = 0;    // |dv|_inf of the first and the last iterations
   double last_update = 0;
   double previous_update = 0; // |dv|_inf of the iteration before the last
-  bool dense_fallback = false; // the chord iteration did not contract: solved by the dense quasi-Newton
+  bool krylov = false;         // the chord iteration did not contract: solved by Newton-Krylov
+  bool dense_fallback = false; // neither did Newton-Krylov: solved by the dense quasi-Newton
 };
 
 // One thread's scratch (made once per model; the dense matrices of a chord model
@@ -127,6 +132,14 @@ struct VariationalWork {
       H.assign(n * n, S(0));
     }
   }
+  void allocate_krylov() {
+    if (kv.size() == (kKrylovDim + 1) * n) return;
+    kv.assign((kKrylovDim + 1) * n, S(0));
+    kz.assign(kKrylovDim * n, S(0));
+    hess.assign((kKrylovDim + 1) * kKrylovDim, S(0));
+    for (std::vector<S>* a : {&k1, &k2, &k3, &k4, &k5, &k6, &k7}) a->assign(n, S(0));
+  }
+  static constexpr std::size_t kKrylovDim = 40;  // GMRES's basis (no restart)
   void allocate_dense() {
     if (D.size() == n * n) return;
     for (std::vector<S>* a : {&D, &K, &M, &J, &unused}) a->assign(n * n, S(0));
@@ -144,6 +157,10 @@ struct VariationalWork {
   std::vector<S> zero, q1, qm, v, p0, tau_m, tau_g, f, eq, eqd, r, work;  // (nv)
   // (nv) D^T v; the chord's armature; rnea_vjp's qd adjoint (unused); the first guess of v
   std::vector<S> dtv, diag, gqd, v0;
+  // Newton-Krylov: GMRES's basis V ((kKrylovDim + 1) x nv), its preconditioned
+  // vectors Z (kKrylovDim x nv), the Hessenberg matrix ((kKrylovDim + 1) x
+  // kKrylovDim, row-major) and seven (nv) rows of scratch; empty until a step needs them
+  std::vector<S> kv, kz, hess, k1, k2, k3, k4, k5, k6, k7;
   std::vector<S> D, K, M, J, unused;                                      // (nv x nv) row-major, or empty
   std::vector<Index> piv;
   std::unique_ptr<SecondDerivativeData<S>> dual;  // the exact Jacobian's dual passes, or null
@@ -332,6 +349,153 @@ bool solve_chord(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const Jo
   }
   return false;
 }
+// The residual r(u) = M(qm) u - dt/2 (1/2 D^T u - (g - J^T fext) + F(qm, u)) - p_k at
+// qm = q + dt/2 u, into out (w.k1..w.k5 its scratch: w's outer iterate untouched):
+// one rnea_vjp, one RNEA, the joint effects; O(nv depth).
+template <unsigned kEffects, class S>
+void residual_at(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef,
+                 const S* q, const S* tau, const Force<S>* fx, const S* u, S* out) {
+  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
+  const Index n = model.nv();
+  S* const qm = w.k1.data();
+  for (Index i = 0; i < n; ++i) qm[i] = q[i] + half * u[i];
+  rnea_vjp(w.at_rest, *w.jvp, qm, w.zero.data(), u, static_cast<const Force<S>*>(nullptr), u, w.k2.data(),
+           w.gqd.data(), w.k3.data());  // k2 = D^T u, k3 = M u
+  if constexpr (kPotential) rnea(model, w.data, qm, w.zero.data(), w.zero.data(), w.k4.data(), fx);
+  stage_forces<kEffects>(n, coef, tau, qm, u, S(0), w.k5.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
+  for (Index j = 0; j < n; ++j)
+    out[j] = w.k3[j] - half * (S(0.5) * w.k2[j] - (kPotential ? w.k4[j] : S(0)) + w.k5[j]) - w.p0[j];
+}
+
+// y = J x, J = dr/dv the exact Jacobian (H included), by central differences of
+// residual_at along x (step cbrt(eps) relative to v): two residuals, O(nv depth), no
+// matrix; accurate to ~eps^(2/3), what the inexact Newton of solve_krylov needs.
+template <unsigned kEffects, class S>
+void jacobian_product(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef,
+                      const S* q, const S* tau, const Force<S>* fx, const S* x, S* y) {
+  const Index n = model.nv();
+  S vmax = S(1), xmax = S(0);
+  for (Index i = 0; i < n; ++i) vmax = std::max(vmax, std::abs(w.v[i])), xmax = std::max(xmax, std::abs(x[i]));
+  if (!(xmax > S(0))) {
+    std::fill(y, y + n, S(0));
+    return;
+  }
+  const S h = std::cbrt(std::numeric_limits<S>::epsilon()) * vmax / xmax;
+  S* const u = w.k6.data();
+  for (Index i = 0; i < n; ++i) u[i] = w.v[i] + h * x[i];
+  residual_at<kEffects>(model, w, half, coef, q, tau, fx, u, y);
+  for (Index i = 0; i < n; ++i) u[i] = w.v[i] - h * x[i];
+  residual_at<kEffects>(model, w, half, coef, q, tau, fx, u, w.k7.data());
+  for (Index i = 0; i < n; ++i) y[i] = (y[i] - w.k7[i]) / (S(2) * h);
+}
+
+// dv = J^-1 r (r in w.r, dv written there) by GMRES with right preconditioning by P
+// (the chord's M + diag, one ABA at rest per vector), at most kKrylovDim vectors, to a
+// residual of 1e-6 |r| (the outer iteration takes it from there: rope:1000 at 2e-5 ran
+// 400 steps in 11.4 s with 1e-6, 14.5 s with 1e-4, and stalled by step 285 with 1e-2).
+// False on a failed ABA pivot or a breakdown before any progress.
+template <unsigned kEffects, class S>
+bool gmres(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef, const S* q,
+           const S* tau, const Force<S>* fx) {
+  const Index n = model.nv();
+  const std::size_t m = VariationalWork<S>::kKrylovDim, nn = w.n;
+  w.allocate_krylov();
+  auto V = [&](std::size_t k) { return w.kv.data() + k * nn; };
+  auto Z = [&](std::size_t k) { return w.kz.data() + k * nn; };
+  auto Hm = [&](std::size_t i, std::size_t j) -> S& { return w.hess[i * m + j]; };
+  S beta = S(0);
+  for (Index i = 0; i < n; ++i) beta += w.r[i] * w.r[i];
+  beta = std::sqrt(beta);
+  if (!(beta > S(0))) {
+    std::fill(w.r.begin(), w.r.end(), S(0));
+    return std::isfinite(beta);
+  }
+  for (Index i = 0; i < n; ++i) V(0)[i] = w.r[i] / beta;
+  std::vector<S> cs(m, S(0)), sn(m, S(0)), g(m + 1, S(0));
+  g[0] = beta;
+  const S target = S(1e-6) * beta;
+  std::size_t k = 0;
+  for (; k < m; ++k) {
+    if (!aba(w.at_rest, w.data, w.qm.data(), w.zero.data(), V(k), Z(k), static_cast<const Force<S>*>(nullptr),
+             w.diag.data())
+             .ok())
+      return false;
+    S* const u = V(k + 1);
+    jacobian_product<kEffects>(model, w, half, coef, q, tau, fx, Z(k), u);
+    for (std::size_t j = 0; j <= k; ++j) {  // modified Gram-Schmidt
+      S h = S(0);
+      for (Index i = 0; i < n; ++i) h += u[i] * V(j)[i];
+      Hm(j, k) = h;
+      for (Index i = 0; i < n; ++i) u[i] -= h * V(j)[i];
+    }
+    S norm = S(0);
+    for (Index i = 0; i < n; ++i) norm += u[i] * u[i];
+    norm = std::sqrt(norm);
+    Hm(k + 1, k) = norm;
+    if (!std::isfinite(norm)) return false;
+    if (norm > S(0))
+      for (Index i = 0; i < n; ++i) u[i] /= norm;
+    for (std::size_t j = 0; j < k; ++j) {  // the earlier rotations on the new column
+      const S a = Hm(j, k), b = Hm(j + 1, k);
+      Hm(j, k) = cs[j] * a + sn[j] * b;
+      Hm(j + 1, k) = -sn[j] * a + cs[j] * b;
+    }
+    const S a = Hm(k, k), b = Hm(k + 1, k), rr = std::hypot(a, b);
+    cs[k] = rr > S(0) ? a / rr : S(1);
+    sn[k] = rr > S(0) ? b / rr : S(0);
+    Hm(k, k) = rr;
+    Hm(k + 1, k) = S(0);
+    g[k + 1] = -sn[k] * g[k];
+    g[k] = cs[k] * g[k];
+    if (std::abs(g[k + 1]) <= target || norm == S(0)) {
+      ++k;
+      break;
+    }
+  }
+  if (k == 0) return false;
+  // y = R^-1 g (R: the rotated Hessenberg's upper triangle), dv = Z y
+  std::vector<S> y(k, S(0));
+  for (std::size_t i = k; i-- > 0;) {
+    S t = g[i];
+    for (std::size_t j = i + 1; j < k; ++j) t -= Hm(i, j) * y[j];
+    if (!(Hm(i, i) != S(0))) return false;
+    y[i] = t / Hm(i, i);
+  }
+  std::fill(w.r.begin(), w.r.end(), S(0));
+  for (std::size_t j = 0; j < k; ++j)
+    for (Index i = 0; i < n; ++i) w.r[i] += y[j] * Z(j)[i];
+  return true;
+}
+
+// Newton-Krylov on the exact Jacobian (its products by jacobian_product), each update
+// by gmres: O(nv depth) per Krylov vector, no matrix; where the chord iteration
+// stalls. v from w.v. True when converged.
+template <unsigned kEffects, class S>
+bool solve_krylov(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
+                  const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
+  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
+  const Index n = model.nv();
+  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
+  for (int it = 0; it < kVariationalMaxIterations; ++it) {
+    for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
+    rnea_vjp(w.at_rest, *w.jvp, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
+             w.v.data(), w.dtv.data(), w.gqd.data(), w.tau_m.data());
+    if constexpr (kPotential) rnea(model, w.data, w.qm.data(), w.zero.data(), w.zero.data(), w.tau_g.data(), fx);
+    stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
+    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
+    if (it > 0 && residual <= floor) return true;
+    bool finite = true;
+    for (Index i = 0; i < n; ++i) {
+      finite = finite && std::isfinite(w.r[i]);
+      w.diag[i] = -(quarter * w.eq[i] + half * w.eqd[i]);
+    }
+    if (!finite || !gmres<kEffects>(model, w, half, coef, q, tau, fx)) return false;
+    const Update u = take_update(w, n, speed, it, false, out, worst);
+    if (u != Update::Continue) return u == Update::Converged;
+  }
+  return false;
+}
+
 }  // namespace detail
 
 // One variational step of one instance of a model of 1-DoF joints: q, qd (nv each)
@@ -369,7 +533,13 @@ VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>&
     converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
   } else {
     converged = detail::solve_chord<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
-    if (!converged && n <= kVariationalDenseMaxDofs) {  // again from the first guess, dense
+    if (!converged) {  // again from the first guess, Newton-Krylov
+      std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
+      out = VariationalResult{};
+      out.krylov = true;
+      converged = detail::solve_krylov<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+    }
+    if (!converged && n <= kVariationalDenseMaxDofs) {  // again, dense
       std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
       out = VariationalResult{};
       out.dense_fallback = true;
