@@ -395,7 +395,9 @@ TEST(SimVariational, Rope1000ByChordAndNewtonKrylov) {
         model, w, 2e-5, coef.data(), q.data(), qd.data(), tau.data(), static_cast<const Force<double>*>(nullptr));
     ASSERT_EQ(r.failed_dof, -1) << "step " << k;
     ASSERT_FALSE(r.dense_fallback) << "step " << k;
-    if (k < 20) EXPECT_FALSE(r.krylov) << "step " << k;
+    if (k < 20) {
+      EXPECT_FALSE(r.krylov) << "step " << k;
+    }
     krylov += r.krylov;
     most = std::max(most, r.iterations);
   }

@@ -313,42 +313,6 @@ bool solve_dense(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const Jo
   return false;
 }
 
-// The chord iteration of models of more than kVariationalExactMaxDofs DoFs: dv =
-// P^-1 r, P = M(qm) + diag(-dt^2/4 de/dq - dt/2 de/dv) by one ABA at rest (the
-// diagonal as armature); M v and D^T v by rnea_vjp (weight v), g - J^T fext by one
-// RNEA: O(nv depth) per update. v from w.v. True when converged; false when it does
-// not contract (see take_update) within w.chord_max_iterations updates.
-template <unsigned kEffects, class S>
-bool solve_chord(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
-                 const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
-  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
-  const Index n = model.nv();
-  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
-  for (int it = 0; it < w.chord_max_iterations; ++it) {
-    for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
-    // gq = D^T v, gqdd = M v (ID(at_rest, qm, 0, v) = M v; weight v)
-    rnea_vjp(w.at_rest, *w.jvp, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
-             w.v.data(), w.dtv.data(), w.gqd.data(), w.tau_m.data());
-    if constexpr (kPotential) rnea(model, w.data, w.qm.data(), w.zero.data(), w.zero.data(), w.tau_g.data(), fx);
-    stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
-    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
-    if (it > 0 && residual <= floor) return true;
-    bool finite = true;
-    for (Index i = 0; i < n; ++i) {
-      finite = finite && std::isfinite(w.r[i]);
-      w.diag[i] = -(quarter * w.eq[i] + half * w.eqd[i]);
-    }
-    if (!finite) return false;
-    if (!aba(w.at_rest, w.data, w.qm.data(), w.zero.data(), w.r.data(), w.work.data(),
-             static_cast<const Force<S>*>(nullptr), w.diag.data())
-             .ok())
-      return false;
-    std::copy(w.work.begin(), w.work.end(), w.r.begin());
-    const Update u = take_update(w, n, speed, it, true, out, worst);
-    if (u != Update::Continue) return u == Update::Converged;
-  }
-  return false;
-}
 // The residual r(u) = M(qm) u - dt/2 (1/2 D^T u - (g - J^T fext) + F(qm, u)) - p_k at
 // qm = q + dt/2 u, into out (w.k1..w.k5 its scratch: w's outer iterate untouched):
 // one rnea_vjp, one RNEA, the joint effects; O(nv depth).
@@ -369,7 +333,7 @@ void residual_at(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const 
 
 // y = J x, J = dr/dv the exact Jacobian (H included), by central differences of
 // residual_at along x (step cbrt(eps) relative to v): two residuals, O(nv depth), no
-// matrix; accurate to ~eps^(2/3), what the inexact Newton of solve_krylov needs.
+// matrix; accurate to ~eps^(2/3), what the inexact Newton of solve_matrix_free needs.
 template <unsigned kEffects, class S>
 void jacobian_product(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef,
                       const S* q, const S* tau, const Force<S>* fx, const S* x, S* y) {
@@ -467,30 +431,47 @@ bool gmres(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointC
   return true;
 }
 
-// Newton-Krylov on the exact Jacobian (its products by jacobian_product), each update
-// by gmres: O(nv depth) per Krylov vector, no matrix; where the chord iteration
-// stalls. v from w.v. True when converged.
+// The iterations without a matrix, for models of more than kVariationalExactMaxDofs
+// DoFs, from v in w.v; each update's residual from one rnea_vjp (weight v: gq = D^T v,
+// gqdd = M v), one RNEA (g - J^T fext) and the joint effects, O(nv depth):
+// - krylov false, the chord iteration: dv = P^-1 r, P = M(qm) + diag(-dt^2/4 de/dq -
+//   dt/2 de/dv) by one ABA at rest (the diagonal as armature); false when it does not
+//   contract (take_update's stall) within w.chord_max_iterations updates;
+// - krylov true, Newton-Krylov: dv = J^-1 r by gmres (P as its preconditioner, J's
+//   products by jacobian_product).
+// True when converged.
 template <unsigned kEffects, class S>
-bool solve_krylov(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
-                  const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
+bool solve_matrix_free(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
+                       const S* q, const S* tau, const Force<S>* fx, S speed, bool krylov, VariationalResult& out,
+                       Index& worst) {
   constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
   const Index n = model.nv();
   const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
-  for (int it = 0; it < kVariationalMaxIterations; ++it) {
+  const int most = krylov ? kVariationalMaxIterations : w.chord_max_iterations;
+  for (int it = 0; it < most; ++it) {
     for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
     rnea_vjp(w.at_rest, *w.jvp, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
              w.v.data(), w.dtv.data(), w.gqd.data(), w.tau_m.data());
     if constexpr (kPotential) rnea(model, w.data, w.qm.data(), w.zero.data(), w.zero.data(), w.tau_g.data(), fx);
     stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
     const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
-    if (it > 0 && residual <= floor) return true;
+    if (it > 0 && residual <= floor) return true;  // the residual is rounding
     bool finite = true;
     for (Index i = 0; i < n; ++i) {
       finite = finite && std::isfinite(w.r[i]);
       w.diag[i] = -(quarter * w.eq[i] + half * w.eqd[i]);
     }
-    if (!finite || !gmres<kEffects>(model, w, half, coef, q, tau, fx)) return false;
-    const Update u = take_update(w, n, speed, it, false, out, worst);
+    if (!finite) return false;
+    if (krylov) {
+      if (!gmres<kEffects>(model, w, half, coef, q, tau, fx)) return false;
+    } else {
+      if (!aba(w.at_rest, w.data, w.qm.data(), w.zero.data(), w.r.data(), w.work.data(),
+               static_cast<const Force<S>*>(nullptr), w.diag.data())
+               .ok())
+        return false;
+      std::copy(w.work.begin(), w.work.end(), w.r.begin());
+    }
+    const Update u = take_update(w, n, speed, it, !krylov, out, worst);
     if (u != Update::Continue) return u == Update::Converged;
   }
   return false;
@@ -532,12 +513,12 @@ VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>&
   if (!w.chord) {
     converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
   } else {
-    converged = detail::solve_chord<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+    converged = detail::solve_matrix_free<kEffects>(model, w, dt, coef, q, tau, fx, speed, false, out, worst);
     if (!converged) {  // again from the first guess, Newton-Krylov
       std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
       out = VariationalResult{};
       out.krylov = true;
-      converged = detail::solve_krylov<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+      converged = detail::solve_matrix_free<kEffects>(model, w, dt, coef, q, tau, fx, speed, true, out, worst);
     }
     if (!converged && n <= kVariationalDenseMaxDofs) {  // again, dense
       std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
