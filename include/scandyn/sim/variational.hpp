@@ -138,6 +138,8 @@ struct VariationalWork {
     kz.assign(kKrylovDim * n, S(0));
     hess.assign((kKrylovDim + 1) * kKrylovDim, S(0));
     for (std::vector<S>* a : {&k1, &k2, &k3, &k4, &k5, &k6, &k7}) a->assign(n, S(0));
+    for (std::vector<S>* a : {&kcs, &ksn, &ky}) a->assign(kKrylovDim, S(0));
+    kg.assign(kKrylovDim + 1, S(0));
   }
   static constexpr std::size_t kKrylovDim = 40;  // GMRES's basis (no restart)
   void allocate_dense() {
@@ -159,8 +161,10 @@ struct VariationalWork {
   std::vector<S> dtv, diag, gqd, v0;
   // Newton-Krylov: GMRES's basis V ((kKrylovDim + 1) x nv), its preconditioned
   // vectors Z (kKrylovDim x nv), the Hessenberg matrix ((kKrylovDim + 1) x
-  // kKrylovDim, row-major) and seven (nv) rows of scratch; empty until a step needs them
-  std::vector<S> kv, kz, hess, k1, k2, k3, k4, k5, k6, k7;
+  // kKrylovDim, row-major), seven (nv) rows of scratch, the Givens rotations' cosines
+  // and sines, the rotated right-hand side and the solution in the basis
+  // (kKrylovDim each, kg one more); empty until a step needs them
+  std::vector<S> kv, kz, hess, k1, k2, k3, k4, k5, k6, k7, kcs, ksn, kg, ky;
   std::vector<S> D, K, M, J, unused;                                      // (nv x nv) row-major, or empty
   std::vector<Index> piv;
   std::unique_ptr<SecondDerivativeData<S>> dual;  // the exact Jacobian's dual passes, or null
@@ -207,16 +211,38 @@ void lu_solve(Index n, const S* A, const Index* piv, S* x) {
   }
 }
 
-// Newton's right-hand side -r(v) = -(M v - dt/2 (1/2 D^T v - (g - J^T fext) + F) - p_k)
-// into w.r, from w.tau_m (M v), w.dtv (D^T v), w.tau_g (g - J^T fext, read when
-// kPotential), w.f (F) and w.p0; returns |r|_inf and its rounding floor (64 eps of
-// the largest sum of a row's terms' magnitudes).
+// Entry j of the residual r(u) = M u - dt/2 (1/2 D^T u - (g - J^T fext) + F) - p_k
+// from its terms (half = dt/2).
+template <class S>
+S residual_entry(S Mu, S DTu, S g, S F, S p0, S half) {
+  return Mu - half * (S(0.5) * DTu - g + F) - p0;
+}
+
+// The terms of the residual at u, qm = q + dt/2 u (into qm): Mu = M(qm) u and DTu =
+// D(qm)^T u by one rnea_vjp (weight u), g = g(qm) - J^T fext by one RNEA (written only
+// with gravity or external wrenches), F = tau + e(qm, u) and, when eq and eqd are
+// given, e's diagonal partials: O(nv depth), no matrix.
+template <unsigned kEffects, class S>
+void residual_terms(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef,
+                    const S* q, const S* tau, const Force<S>* fx, const S* u, S* qm, S* Mu, S* DTu, S* g, S* F,
+                    S* eq, S* eqd) {
+  const Index n = model.nv();
+  for (Index i = 0; i < n; ++i) qm[i] = q[i] + half * u[i];
+  rnea_vjp(w.at_rest, *w.jvp, qm, w.zero.data(), u, static_cast<const Force<S>*>(nullptr), u, DTu, w.gqd.data(), Mu);
+  if constexpr ((kEffects & (kGravity | kExternal)) != 0)
+    rnea(model, w.data, qm, w.zero.data(), w.zero.data(), g, fx);
+  stage_forces<kEffects>(n, coef, tau, qm, u, S(0), F, eq, eqd);
+}
+
+// Newton's right-hand side -r(v) into w.r, from w.tau_m (M v), w.dtv (D^T v), w.tau_g
+// (g - J^T fext, read when kPotential), w.f (F) and w.p0; returns |r|_inf and its
+// rounding floor (64 eps of the largest sum of a row's terms' magnitudes).
 template <bool kPotential, class S>
 std::pair<S, S> negative_residual(VariationalWork<S>& w, Index n, S half) {
   S residual = S(0), floor = S(0);
   for (Index j = 0; j < n; ++j) {
     const S g = kPotential ? w.tau_g[j] : S(0);
-    w.r[j] = -(w.tau_m[j] - half * (S(0.5) * w.dtv[j] - g + w.f[j]) - w.p0[j]);
+    w.r[j] = -residual_entry(w.tau_m[j], w.dtv[j], g, w.f[j], w.p0[j], half);
     residual = std::max(residual, std::abs(w.r[j]));
     floor = std::max(floor, std::abs(w.tau_m[j]) + std::abs(w.p0[j]) +
                                 half * (std::abs(S(0.5) * w.dtv[j]) + std::abs(g) + std::abs(w.f[j])));
@@ -313,22 +339,16 @@ bool solve_dense(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const Jo
   return false;
 }
 
-// The residual r(u) = M(qm) u - dt/2 (1/2 D^T u - (g - J^T fext) + F(qm, u)) - p_k at
-// qm = q + dt/2 u, into out (w.k1..w.k5 its scratch: w's outer iterate untouched):
-// one rnea_vjp, one RNEA, the joint effects; O(nv depth).
+// The residual r(u) at qm = q + dt/2 u into out, its terms in w.k1..w.k5 (w's outer
+// iterate untouched); O(nv depth).
 template <unsigned kEffects, class S>
 void residual_at(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointCoefficients<S>* coef,
                  const S* q, const S* tau, const Force<S>* fx, const S* u, S* out) {
   constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
-  const Index n = model.nv();
-  S* const qm = w.k1.data();
-  for (Index i = 0; i < n; ++i) qm[i] = q[i] + half * u[i];
-  rnea_vjp(w.at_rest, *w.jvp, qm, w.zero.data(), u, static_cast<const Force<S>*>(nullptr), u, w.k2.data(),
-           w.gqd.data(), w.k3.data());  // k2 = D^T u, k3 = M u
-  if constexpr (kPotential) rnea(model, w.data, qm, w.zero.data(), w.zero.data(), w.k4.data(), fx);
-  stage_forces<kEffects>(n, coef, tau, qm, u, S(0), w.k5.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
-  for (Index j = 0; j < n; ++j)
-    out[j] = w.k3[j] - half * (S(0.5) * w.k2[j] - (kPotential ? w.k4[j] : S(0)) + w.k5[j]) - w.p0[j];
+  residual_terms<kEffects>(model, w, half, coef, q, tau, fx, u, w.k1.data(), w.k3.data(), w.k2.data(), w.k4.data(),
+                           w.k5.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
+  for (Index j = 0; j < model.nv(); ++j)
+    out[j] = residual_entry(w.k3[j], w.k2[j], kPotential ? w.k4[j] : S(0), w.k5[j], w.p0[j], half);
 }
 
 // y = J x, J = dr/dv the exact Jacobian (H included), by central differences of
@@ -375,7 +395,8 @@ bool gmres(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointC
     return std::isfinite(beta);
   }
   for (Index i = 0; i < n; ++i) V(0)[i] = w.r[i] / beta;
-  std::vector<S> cs(m, S(0)), sn(m, S(0)), g(m + 1, S(0));
+  std::vector<S>&cs = w.kcs, &sn = w.ksn, &g = w.kg, &y = w.ky;
+  std::fill(g.begin(), g.end(), S(0));
   g[0] = beta;
   const S target = S(1e-6) * beta;
   std::size_t k = 0;
@@ -418,7 +439,6 @@ bool gmres(const ModelTpl<S>& model, VariationalWork<S>& w, S half, const JointC
   }
   if (k == 0) return false;
   // y = R^-1 g (R: the rotated Hessenberg's upper triangle), dv = Z y
-  std::vector<S> y(k, S(0));
   for (std::size_t i = k; i-- > 0;) {
     S t = g[i];
     for (std::size_t j = i + 1; j < k; ++j) t -= Hm(i, j) * y[j];
@@ -449,11 +469,8 @@ bool solve_matrix_free(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, co
   const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
   const int most = krylov ? kVariationalMaxIterations : w.chord_max_iterations;
   for (int it = 0; it < most; ++it) {
-    for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
-    rnea_vjp(w.at_rest, *w.jvp, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
-             w.v.data(), w.dtv.data(), w.gqd.data(), w.tau_m.data());
-    if constexpr (kPotential) rnea(model, w.data, w.qm.data(), w.zero.data(), w.zero.data(), w.tau_g.data(), fx);
-    stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
+    residual_terms<kEffects>(model, w, half, coef, q, tau, fx, w.v.data(), w.qm.data(), w.tau_m.data(), w.dtv.data(),
+                             w.tau_g.data(), w.f.data(), w.eq.data(), w.eqd.data());
     const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
     if (it > 0 && residual <= floor) return true;  // the residual is rounding
     bool finite = true;
