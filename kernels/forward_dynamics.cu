@@ -52,18 +52,20 @@ struct FdKernelChoice {
 
 // One thread per instance b < B: the forward dynamics of instance b, by the
 // joint-space inertia (kAlgo == kJsiKernel) or the ABA with kAlgo branch slots.
-template <class S, int C, int kAlgo, class Bd>
+// kFloating (ABA only): the model has a floating base (aba_instance's kFloating).
+template <class S, int C, int kAlgo, class Bd, bool kFloating = false>
 __global__ void __launch_bounds__(kFdInstancesBlock, FdKernelChoice<S, C, kAlgo>::kMinBlocks)
     fd_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const FdBatchIn<S> batch_in,
                         const BatchView<S> qdd_out, int* const failed_dof_out) {
   using Choice = FdKernelChoice<S, C, kAlgo>;
+  static_assert(Choice::kAba || !kFloating, "fd_instances_kernel: the JSI kernels take a fixed base");
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model_nbodies(model) : nullptr;
   const DofColumn<const S> q = instance_column(batch_in.q, b), qd = instance_column(batch_in.qd, b),
                            tau = instance_column(batch_in.tau, b);
   if constexpr (Choice::kAba)
-    failed_dof_out[b] = aba_instance<S, C, false, Choice::kUnrolled, kThreadTrig<S>, kAlgo>(
+    failed_dof_out[b] = aba_instance<S, C, false, Choice::kUnrolled, kThreadTrig<S>, kAlgo, false, Bd, kFloating>(
         model, q, qd, tau, fext, instance_column(qdd_out, b));
   else
     failed_dof_out[b] =
@@ -85,13 +87,22 @@ cudaError_t launch_fd_instances(const ThreadModel<S, Bd>& model, const FdBatchIn
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
   auto launch = [&](const auto& params, auto algo) {
     constexpr int C = std::decay_t<decltype(params)>::capacity;
+    if constexpr (kAba && kFloatingKernels<S, Bd>) {
+      if (model.floating()) {
+        fd_instances_kernel<S, C, decltype(algo)::value, Bd, true>
+            <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
+        return;
+      }
+    }
     fd_instances_kernel<S, C, decltype(algo)::value, Bd>
         <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
   };
-  if constexpr (kAba)
+  if constexpr (kAba) {
     visit_aba_kernel(model, launch);
-  else
+  } else {
+    if (model.floating()) return cudaErrorNotSupported;  // (the engine refuses it first)
     std::visit([&](const auto& params) { launch(params, std::integral_constant<int, kJsiKernel>{}); }, model.params());
+  }
   return cudaGetLastError();
 }
 
@@ -117,7 +128,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, BackendOpt
 
 template <class S>
 CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch) {
+    : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   FdMethod algorithm = options.fd_method;
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
@@ -126,17 +137,24 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   algorithm_ = algorithm;
   aba_ = algorithm == FdMethod::Aba;
   const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;
-  if (aba_ && nv_ > kMaxThreadDofs)
+  // the thread kernels' bodies: past a floating base (which they hold apart)
+  const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
+  if (model.multi_dof() && !chain && algorithm != FdMethod::Aba)
+    throw BackendError(std::string("backend 'cuda': model '") + model.name +
+                       "' has multi-DoF joints (a floating base or spherical joints), which forward dynamics by " +
+                       to_string(algorithm) + " does not take on this backend (use aba, or parallel for a free rope)");
+  if (aba_ && thread_bodies > kMaxThreadDofs)
     throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
                        std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
                        " (use the joint-space inertia method, FdMethod::Jsi or Auto)");
-  // q, qd, tau, qdd (1 scalar per DoF each), fext (6) and a failed DoF for max_batch instances
+  // q, qd, tau, qdd (nq scalars each, detail::stage_inputs), fext (6 nq) and a failed DoF for
+  // max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(
       max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
-      10 * static_cast<std::size_t>(nv_) * sizeof(S) + sizeof(int));
+      10 * static_cast<std::size_t>(nq_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
   if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
-  else if (nv_ <= kMaxThreadDofs) thread_ = std::make_unique<ZThreadModel<S>>(model);
+  else if (thread_bodies <= kMaxThreadDofs) thread_ = std::make_unique<ZThreadModel<S>>(model);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
@@ -149,7 +167,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
     estimate_host_.assign(B, -1.0);
     before_.assign(B, -1);
     check_rows_.assign(4 * static_cast<std::size_t>(nv_), S(0));
-    if (thread_) {
+    if (thread_ && !model.multi_dof()) {  // (a floating base: checked on the host, settle_batch)
       device_check_ = std::make_unique<DeviceFdCheck<S>>(model);
       check(cudaMalloc(reinterpret_cast<void**>(&check_estimates_), B * sizeof(double)),
             "allocating the forward-dynamics check's estimates");
@@ -189,8 +207,8 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
     for (Index b = 0; b < B; ++b) failed[b] = -1;
     return status;
   }
-  // staging buffers: nv x max_batch scalars each, then the wrenches, then the failed DoFs
-  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  // staging buffers: nq x max_batch scalars each, then the wrenches, then the failed DoFs
+  const std::size_t cap = static_cast<std::size_t>(nq_) * max_batch_;
   const cudaStream_t stream = staging_->stream();
   S* const buffer = static_cast<S*>(staging_->data());
   S* const dqdd = buffer + 3 * cap;
@@ -198,8 +216,8 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
 
   // copy in, in whatever layout keeps the copies few
   const Staging sqdd = plan(qdd, nv, cap, true, "qdd");
-  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext, nv, cap,
-                                                            buffer, stream);
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext,
+                                                            {nq_, nv, nv}, nb_, cap, buffer, stream);
   // run
   const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
   if (chain_ && algorithm_ == FdMethod::Hybrid)

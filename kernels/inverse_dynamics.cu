@@ -92,6 +92,39 @@ ThreadModelParams<S, C, Bd> make_params(const ModelTpl<S>& model, Index& slots_o
   return p;
 }
 
+// The bodies past a floating base as a fixed-base model, the world standing in for
+// the base: what the kernels walk (ThreadModelParams::floating). Throws BackendError
+// for a multi-DoF joint past the base (a spherical joint), which the kernels do not take.
+template <class S>
+ModelTpl<S> bodies_past_floating_base(const ModelTpl<S>& model) {
+  ModelTpl<S> m;
+  m.name = model.name;
+  m.gravity = model.gravity;
+  for (Index i = 1; i < model.nbodies(); ++i) {
+    Body<S> b = model.bodies[i];
+    const std::string joint = i < Index(model.joint_names.size()) ? model.joint_names[i] : "of body " + std::to_string(i);
+    if (joint_nv(b.type) != 1)
+      throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" + joint +
+                         "'; the thread-per-instance kernels take a floating base and revolute or prismatic "
+                         "joints past it (use the serial or openmp backend)");
+    b.parent -= 1;  // the base (body 0) becomes -1
+    m.bodies.push_back(b);
+    m.joint_names.push_back(joint);
+  }
+  set_joint_offsets(m);
+  return m;
+}
+
+// The parameter block of a model with or without a floating base.
+template <int C, class Bd, class S>
+ThreadModelParams<S, C, Bd> make_model_params(const ModelTpl<S>& model, Index& slots_out) {
+  if (!model.floating_base()) return make_params<C, Bd>(model, slots_out);
+  ThreadModelParams<S, C, Bd> p = make_params<C, Bd>(bodies_past_floating_base(model), slots_out);
+  p.floating = 1;
+  p.base = model.bodies[0];
+  return p;
+}
+
 }  // namespace
 
 // The model travels as a kernel parameter: sm_70+ with CUDA >= 12.1 take 32764 bytes
@@ -102,31 +135,44 @@ static_assert(sizeof(ThreadModelParams<double, kMaxThreadDofs, ZJointBody<double
               "ThreadModelParams (z-axis) no longer fits in a kernel parameter block");
 
 template <class S, class Bd>
-ThreadModel<S, Bd>::ThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
-  if (nv_ > kMaxThreadDofs)
-    throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
-                       " DoF; the thread-per-instance kernels take at most " + std::to_string(kMaxThreadDofs) +
+ThreadModel<S, Bd>::ThreadModel(const ModelTpl<S>& model)
+    : nv_(model.nv()), nq_(model.nq()), floating_(model.floating_base()) {
+  if (model.multi_dof() && !floating_)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" +
+                       first_multi_dof_joint(model) +
+                       "'; the thread-per-instance kernels take a floating base and revolute or prismatic "
+                       "joints (use the serial or openmp backend)");
+  if (floating_ && !kFloatingKernels<S, Bd>)
+    throw BackendError("backend 'cuda': model '" + model.name +
+                       "' has a floating base, which the thread-per-instance kernels take in z-axis joint "
+                       "frames only (ZThreadModel)");
+  const Index bodies = floating_ ? model.nbodies() - 1 : nv_;  // the kernels' bodies (past the base)
+  if (bodies > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(bodies) +
+                       (floating_ ? " joints past its floating base" : " DoF") +
+                       "; the thread-per-instance kernels take at most " + std::to_string(kMaxThreadDofs) +
                        " (per-thread state is sized at compile time)");
-  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8, Bd>(model, branch_slots_);
-  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16, Bd>(model, branch_slots_);
-  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32, Bd>(model, branch_slots_);
-  else capacity_ = 64, params_ = make_params<64, Bd>(model, branch_slots_);
+  if (bodies <= 8) capacity_ = 8, params_ = make_model_params<8, Bd>(model, branch_slots_);
+  else if (bodies <= 16) capacity_ = 16, params_ = make_model_params<16, Bd>(model, branch_slots_);
+  else if (bodies <= 32) capacity_ = 32, params_ = make_model_params<32, Bd>(model, branch_slots_);
+  else capacity_ = 64, params_ = make_model_params<64, Bd>(model, branch_slots_);
 }
 
 // ---- kernel and launch ---------------------------------------------------------
 
 // One thread per instance b < B: the RNEA of instance b.
-template <class S, int C, class Bd>
+// kFloating: the model has a floating base (rnea_instance's kFloating).
+template <class S, int C, class Bd, bool kFloating>
 __global__ void __launch_bounds__(kIdInstancesBlock)
     id_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const IdBatchIn<S> batch_in,
                         const BatchView<S> tau_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model.nv : nullptr;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model_nbodies(model) : nullptr;
   // double keeps the forward pass's transforms for iiwa-sized models (H100: 4.1e9
   // against 3.4e9 evaluations/s recomputing them; float gains nothing from it)
   constexpr bool kKeepXup = sizeof(S) == 8 && C <= 8;
-  rnea_instance<S, C, kKeepXup, (C * sizeof(S) <= 64), kThreadTrig<S>>(
+  rnea_instance<S, C, kKeepXup, (C * sizeof(S) <= 64), kThreadTrig<S>, Bd, kFloating>(
       model, instance_column(batch_in.q, b), instance_column(batch_in.qd, b), instance_column(batch_in.qdd, b), fext,
       instance_column(tau_out, b));
 }
@@ -142,8 +188,11 @@ cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        id_instances_kernel<S, P::capacity, Bd>
-            <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+        if (floating_kernels(model))
+          id_instances_kernel<S, P::capacity, Bd, kFloatingKernels<S, Bd>>
+              <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+        else
+          id_instances_kernel<S, P::capacity, Bd, false><<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
       },
       model.params());
   return cudaGetLastError();
@@ -153,21 +202,24 @@ cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn
 
 template <class S>
 CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch) {
+    : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   if (options.strategy == IdStrategy::ScanWorld)
     throw BackendError("backend 'cuda': strategy 'scan-world' is not available on this backend "
                        "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
-  const IdStrategy strategy =
-      options.strategy == IdStrategy::Auto ? choose_id_strategy(BackendKind::Cuda, nv_, max_batch_, 1) : options.strategy;
+  // a spherical joint: the link scans (the thread kernels take a floating base only)
+  const bool threads_take = !model.multi_dof() || (model.floating_base() && model.extra_v == 5);
+  const IdStrategy strategy = options.strategy != IdStrategy::Auto ? options.strategy
+                              : threads_take ? choose_id_strategy(BackendKind::Cuda, nv_, max_batch_, 1)
+                                             : IdStrategy::ScanLocal;
   if (strategy == IdStrategy::Recursion && nv_ > kMaxThreadDofs)
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; strategy 'recursion' (a thread per instance) takes at most " +
                        std::to_string(kMaxThreadDofs) + " (use auto or scan-local)");
-  // q, qd, qdd, tau (1 scalar per DoF each) and fext (6) for max_batch instances
+  // q, qd, qdd, tau (nq scalars each, detail::stage_inputs) and fext (6 nq) for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double",
                                                      "q, qd, qdd, tau and fext",
-                                                     10 * static_cast<std::size_t>(nv_) * sizeof(S));
+                                                     10 * static_cast<std::size_t>(nq_) * sizeof(S));
   device_ = staging_->device();
   if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
   else thread_ = std::make_unique<ZThreadModel<S>>(model);
@@ -189,16 +241,16 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   const Index B = in.q.batch;
   const Index nv = nv_;
   if (B == 0 || nv == 0) return;
-  // staging buffers: nv x max_batch scalars each, then the wrenches
-  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  // staging buffers: nq x max_batch scalars each, then the wrenches
+  const std::size_t cap = static_cast<std::size_t>(nq_) * max_batch_;
   S* const buffer = static_cast<S*>(staging_->data());
   const cudaStream_t stream = staging_->stream();
   S* const dtau = buffer + 3 * cap;
 
   // copy in, in whatever layout keeps the copies few
   const Staging stau = plan(tau, nv, cap, true, "tau");
-  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext, nv, cap,
-                                                            buffer, stream);
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext,
+                                                            {nq_, nv, nv}, nb_, cap, buffer, stream);
   // run
   const IdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
   const BatchView<S> dtau_view = stau.device_view(dtau, B);

@@ -72,7 +72,8 @@ __device__ __noinline__ void store_mass_tile(const S* tile, const BatchView<S> M
 // One thread per instance b < B: M(q) of instance b, all nv^2 entries, written by
 // each thread (kStaged false: coalesced when instances are innermost, BatchView::soa)
 // or staged by warps (kStaged true: coalesced when each instance's entries are).
-template <class S, int C, bool kStaged, class Bd>
+// kFloating: the model has a floating base (crba_instance's kFloating).
+template <class S, int C, bool kStaged, class Bd, bool kFloating = false>
 __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::kMinBlocks)
     crba_instances_kernel(const __grid_constant__ ThreadModelParams<S, C, Bd> model, const BatchView<const S> q,
                           const BatchView<S> M_out) {
@@ -80,7 +81,8 @@ __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::k
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if constexpr (!kStaged) {
     if (b >= q.batch) return;
-    mass_matrix_instance<S, C, kUnrolled>(model, instance_column(q, b), instance_column(M_out, b));
+    mass_matrix_instance<S, C, kUnrolled, Trig::Library, Bd, kFloating>(model, instance_column(q, b),
+                                                                         instance_column(M_out, b));
   } else {
     static_assert(kMassInstancesBlock % kWarpSize == 0, "whole warps per block");
     __shared__ S tiles[kMassInstancesBlock / kWarpSize][kMassTileEntries * kMassTileRow];
@@ -92,13 +94,18 @@ __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::k
     // lanes past the batch compute the warp's last instance again (and store nothing),
     // so that every thread takes part in the tile's stores
     S M[C * (C + 1) / 2];
-    crba_instance<S, C, kUnrolled>(model, instance_column(q, b0 + (lane < lanes ? lane : lanes - 1)), M);
-    for_each_mass_entry<S, C, kUnrolled>(model, M, [&](Index e, S v) {
-      const int slot = static_cast<int>(e % kMassTileEntries);
-      tile[slot * kMassTileRow + lane] = v;
-      if (slot == kMassTileEntries - 1) store_mass_tile(tile, M_out, b0, lanes, e - slot, kMassTileEntries);
-    });
-    const Index entries = model.nv * model.nv;
+    FloatingMassRows<S, C, kFloating> base;
+    crba_instance<S, C, kUnrolled, Trig::Library, Bd, kFloating>(
+        model, instance_column(q, b0 + (lane < lanes ? lane : lanes - 1)), M, nullptr, &base);
+    for_each_mass_entry<S, C, kUnrolled>(
+        model, M,
+        [&](Index e, S v) {
+          const int slot = static_cast<int>(e % kMassTileEntries);
+          tile[slot * kMassTileRow + lane] = v;
+          if (slot == kMassTileEntries - 1) store_mass_tile(tile, M_out, b0, lanes, e - slot, kMassTileEntries);
+        },
+        &base);
+    const Index entries = model_nv(model) * model_nv(model);
     if (const int rest = static_cast<int>(entries % kMassTileEntries))
       store_mass_tile(tile, M_out, b0, lanes, entries - rest, rest);
   }
@@ -125,10 +132,17 @@ cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchVi
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        if (staged)
+        constexpr bool kF = kFloatingKernels<S, Bd>;
+        if (floating_kernels(model)) {
+          if (staged)
+            crba_instances_kernel<S, P::capacity, true, Bd, kF><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+          else
+            crba_instances_kernel<S, P::capacity, false, Bd, kF><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+        } else if (staged) {
           crba_instances_kernel<S, P::capacity, true, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
-        else
+        } else {
           crba_instances_kernel<S, P::capacity, false, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+        }
       },
       model.params());
   return cudaGetLastError();
@@ -138,17 +152,24 @@ cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchVi
 
 template <class S>
 CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch) {
+    : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for the mass matrix (use auto or recursion)");
+  // the thread kernels' bodies: past a floating base (which they hold apart)
+  const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
+  if (model.multi_dof() && thread_bodies > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has multi-DoF joints and " +
+                       std::to_string(thread_bodies) + " bodies; the mass matrix takes such models in the " +
+                       "thread-per-instance kernels, up to " + std::to_string(kMaxThreadDofs) +
+                       " bodies past a floating base (use the serial or openmp backend)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const std::size_t n = static_cast<std::size_t>(nv_);
-  // q (1 scalar per DoF) and M (nv per DoF) for max_batch instances
+  // q (nq scalars) and M (nv^2) for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q and M",
-                                                     (n + n * n) * sizeof(S));
+                                                     (static_cast<std::size_t>(nq_) + n * n) * sizeof(S));
   device_ = staging_->device();
-  if (nv_ > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
+  if (thread_bodies > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
   else thread_ = std::make_unique<ZThreadModel<S>>(model);
   bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0);
 }
@@ -174,9 +195,9 @@ void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>&
     throw BackendError("null data pointer in a batch of " + std::to_string(B) + " instances");
   const Index nv = nv_;
   if (B == 0 || nv == 0) return;
-  // staging buffer: q (nv x max_batch), then M (nv^2 x max_batch)
-  const std::size_t qcap = static_cast<std::size_t>(nv) * max_batch_;
-  const std::size_t mcap = static_cast<std::size_t>(nv) * qcap;
+  // staging buffer: q (nq x max_batch), then M (nv^2 x max_batch)
+  const std::size_t qcap = static_cast<std::size_t>(nq_) * max_batch_;
+  const std::size_t mcap = static_cast<std::size_t>(nv) * nv * max_batch_;
   const Index entries = nv * nv;  // M's entries per instance
   S* const dq = static_cast<S*>(staging_->data());
   S* const dM = dq + qcap;
@@ -184,8 +205,8 @@ void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>&
 
   // copy in, in whatever layout keeps the copies few
   const Staging sM = plan(M, entries, mcap, true, "M");
-  const Staging sq = plan(q, nv, qcap, false);
-  check(copy(sq, q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
+  const Staging sq = plan(q, nq_, qcap, false);
+  check(copy(sq, q, nq_, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
   // run
   check(compute_async(sq.device_view<const S>(dq, B), sM.device_view(dM, B), stream),
         blocks_ ? "launching the CRBA (a block per instance)" : "launching crba_instances_kernel");

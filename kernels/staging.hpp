@@ -219,10 +219,11 @@ cudaError_t copy(const Staging& s, const BatchView<T>& v, Index nv, S* buffer, c
   return cudaErrorInvalidValue;
 }
 
-// The staging buffer of an engine holds, for max_batch instances (cap = nv x
-// max_batch scalars each): three nv x B inputs in slots 0, 1, 2, the output in
-// slot 3, then the wrenches (B x nv). Copies the inputs (names for errors) and fext
-// in, on `stream`, and returns the device views of the inputs and the wrenches.
+// The staging buffer of an engine holds, for max_batch instances (cap = nq x
+// max_batch scalars each, nq >= nv the widest input): three inputs of widths[k] x B
+// entries (q: nq, the others nv) in slots 0, 1, 2, the output in slot 3, then the
+// wrenches (B x nbodies). Copies the inputs (names for errors) and fext in, on
+// `stream`, and returns the device views of the inputs and the wrenches.
 template <class S>
 struct StagedInputs {
   BatchView<const S> in[3];
@@ -230,23 +231,30 @@ struct StagedInputs {
 };
 template <class S>
 StagedInputs<S> stage_inputs(const BatchView<const S> (&in)[3], const char* const (&names)[3], const Force<S>* fext,
-                             Index nv, std::size_t cap, S* buffer, cudaStream_t stream) {
+                             const Index (&widths)[3], Index nbodies, std::size_t cap, S* buffer,
+                             cudaStream_t stream) {
   const Index B = in[0].batch;
   StagedInputs<S> out{};
   for (int k = 0; k < 3; ++k) {
     S* const slot = buffer + k * cap;
-    const Staging st = plan(in[k], nv, cap, false);
-    check(copy(st, in[k], nv, slot, cudaMemcpyHostToDevice, stream),
+    const Staging st = plan(in[k], widths[k], cap, false);
+    check(copy(st, in[k], widths[k], slot, cudaMemcpyHostToDevice, stream),
           (std::string("copying ") + names[k] + " to the device").c_str());
     out.in[k] = st.device_view<const S>(slot, B);
   }
   Force<S>* const dfext = reinterpret_cast<Force<S>*>(buffer + 4 * cap);
   if (fext)
-    check(cudaMemcpyAsync(dfext, fext, static_cast<std::size_t>(B) * nv * sizeof(Force<S>), cudaMemcpyHostToDevice,
-                          stream),
+    check(cudaMemcpyAsync(dfext, fext, static_cast<std::size_t>(B) * nbodies * sizeof(Force<S>),
+                          cudaMemcpyHostToDevice, stream),
           "copying fext to the device");
   out.fext = fext ? dfext : nullptr;
   return out;
+}
+// Models of 1-DoF joints: every input nv wide, nv bodies.
+template <class S>
+StagedInputs<S> stage_inputs(const BatchView<const S> (&in)[3], const char* const (&names)[3], const Force<S>* fext,
+                             Index nv, std::size_t cap, S* buffer, cudaStream_t stream) {
+  return stage_inputs<S>(in, names, fext, {nv, nv, nv}, nv, cap, buffer, stream);
 }
 
 }  // namespace detail

@@ -170,20 +170,18 @@ std::vector<std::unique_ptr<E>> per_device(const BackendOptions& o, Make&& make)
 }
 
 // Throws BackendError for a model with multi-DoF joints (a floating base, spherical
-// joints) on what does not take them yet: the cuda backend, the scans over links,
-// the parallel and hybrid forward dynamics. what: "inverse dynamics", ...
+// joints) on what does not take them: the hybrid chain forward dynamics. what:
+// "inverse dynamics", ... (The link scans take every joint type, the parallel chain
+// forward dynamics a free rope (ChainBodies::from names what it refuses), the cuda
+// thread kernels a floating base with 1-DoF joints past it (ThreadModel says what it
+// refuses).)
 template <class S>
 void require_joint_support(const ModelTpl<S>& model, const BackendOptions& o, const char* what) {
   if (!model.multi_dof()) return;
-  const auto refuse = [&](const std::string& how) {
+  if (o.fd_method == FdMethod::Hybrid)
     throw BackendError("model '" + model.name + "' has multi-DoF joints (a floating base or spherical joints): " +
-                       std::string(what) + " " + how + " does not take them yet; use the serial or openmp "
-                       "backend with the recursion (inverse dynamics) or aba / jsi (forward dynamics)");
-  };
-  if (o.backend == BackendKind::Cuda) refuse("on the cuda backend");
-  // the link scans (scan-local, scan-world) take every joint type; the parallel chain
-  // forward dynamics a free rope (ChainBodies::from names what it refuses)
-  if (o.fd_method == FdMethod::Hybrid) refuse(std::string("by the method ") + to_string(o.fd_method));
+                       std::string(what) + " by the method " + to_string(o.fd_method) +
+                       " does not take them; use aba, jsi or parallel (a free rope)");
 }
 
 

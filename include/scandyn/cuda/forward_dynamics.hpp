@@ -219,6 +219,8 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
 
  private:
   Index nv_ = 0;
+  Index nq_ = 0;  // entries of q (nv + 1 with a floating base)
+  Index nb_ = 0;  // bodies (entries of fext)
   bool aba_ = false;
   FdMethod algorithm_ = FdMethod::Jsi;
   std::unique_ptr<ZThreadModel<S>> thread_;

@@ -139,6 +139,8 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
 
  private:
   Index nv_ = 0;
+  Index nq_ = 0;  // entries of q (nv + 1 with a floating base)
+  Index nb_ = 0;  // bodies (entries of fext)
   std::unique_ptr<ZThreadModel<S>> thread_;
   std::unique_ptr<IdScanPlan<S>> scan_;
   Index max_batch_ = 0;

@@ -124,6 +124,8 @@ class CudaMassMatrix final : public MassMatrix<S> {
 
  private:
   Index nv_ = 0;
+  Index nq_ = 0;  // entries of q (nv + 1 with a floating base)
+  Index nb_ = 0;  // bodies (entries of fext)
   Index max_batch_ = 0;
   int device_ = 0;
   std::size_t bytes_ = 0;

@@ -195,8 +195,16 @@ struct HybridColumns {
 // AbaBodyState); the others are the ABA's, their tau copied to hd.tau_out. Returns
 // -1 or the failed DoF as above (nothing written). Without kHybrid, hd is not read.
 // Models of up to 64 DoF (one bit per DoF).
+//
+// kFloating: for models with a floating base (model.floating, which must be set; not
+// with kHybrid): the base is the root of the walk, with the reference general path's
+// steps at its free joint (aba_forward_step_at, aba_joint_terms_at: the 6 x 6
+// articulated inertia factored, aba_acceleration_step_at, gravity included): its
+// velocity starts pass 1, its children's articulated inertias and bias forces
+// gather into its own in pass 2 (backward_pass' to_base), and its acceleration
+// starts pass 3. The returned DoF counts the base's six (0..5 the base's).
 template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library,
-          int kSlots = C, bool kHybrid = false, class Bd = Body<S>>
+          int kSlots = C, bool kHybrid = false, class Bd = Body<S>, bool kFloating = false>
 __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                        DofColumn<const S> qd, DofColumn<const S> tau,
                                                        const Force<S>* fext, DofColumn<S> qdd,
@@ -204,6 +212,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
                                                        HybridColumns<S> hd = {}) {
   static_assert(kSlots >= 0 && kSlots <= C, "aba_instance: kSlots is 0 (chains), below C (registers) or C");
   static_assert(!kHybrid || C <= 64, "aba_instance: the hybrid's prescribed mask has 64 bits");
+  static_assert(!(kHybrid && kFloating), "aba_instance: the hybrid dynamics take a fixed base");
   using fd_detail::slot_get;
   using fd_detail::slot_update;
   constexpr bool kBranches = kSlots > 0;     // are there branch children at all
@@ -249,6 +258,27 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     }
   };
 
+  // the floating base (kFloating): its joint's positions and rates, its velocity and
+  // velocity-product term, its articulated inertia and bias force (pass 2 adds its
+  // children); then the columns past its entries
+  S qb[kFloating ? 7 : 1], qdb[kFloating ? 6 : 1];
+  Motion<S> v0 = Motion<S>::zero(), c0 = Motion<S>::zero();
+  fd_detail::AbaCarry<S> base_t{};
+  DofColumn<const S> tau0 = tau;
+  DofColumn<S> qdd0 = qdd;
+  const S* armature0 = armature;
+  if constexpr (kFloating) {
+    for (int k = 0; k < 7; ++k) qb[k] = q[k];
+    for (int k = 0; k < 6; ++k) qdb[k] = qd[k];
+    const AbaForward<S> o = aba_forward_step_at(model.base, joint_transform_at(model.base, qb), Motion<S>::zero(), qdb);
+    v0 = o.v, c0 = o.c;
+    base_t.IA = ABInertia<S>::from(model.base.I);
+    base_t.pA = fext ? o.pA - fext[0] : o.pA;
+    q = column_from(q, 7), qd = column_from(qd, 6), tau = column_from(tau, 6), qdd = column_from(qdd, 6);
+    if (armature) armature += 6;
+    if (fext) ++fext;
+  }
+
   // load q, qd: all of them in flight before the first use (unrolled)
   if constexpr (kUnrolled) {
 #pragma unroll
@@ -262,7 +292,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
 
   // pass 1: velocities, root to leaves
   forward_pass<kUnrolled>(
-      model, n, Motion<S>::zero(),
+      model, n, v0,
       [&](Index i) -> Motion<S> {
         if constexpr (kBranches) return slot_get<K, C>(sv, slot_of(model.body[i].parent));
         else return Motion<S>::zero();
@@ -351,12 +381,28 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
             slot_update<K, C>(spA, slot_of(par), [&](Force<S>& s) { s += up.pA; });
           }
         }
-      });
-  if (!pass2.complete) return pass2.at;
+      },
+      base_hook<kFloating>([&](Index, const AbaCarry<S>& up) { base_t += up; }));
+  if (!pass2.complete) return pass2.at + v_offset(model);
+
+  // the floating base: its joint terms (the 6 x 6 articulated inertia factored) and
+  // its acceleration, which starts pass 3
+  BodyKinematics<S> root{Motion<S>::zero(), model.a0};
+  if constexpr (kFloating) {
+    S taub[6], w[6], L[kMaxJointDofs * kMaxJointDofs], qddb[6];
+    Force<S> Y[6];
+    for (int k = 0; k < 6; ++k) taub[k] = tau0[k];
+    const int failed = aba_joint_terms_at(model.base, base_t.IA, base_t.pA, taub, Y, L, w, armature0);
+    if (failed >= 0) return failed;
+    Motion<S> a;
+    aba_acceleration_step_at(model.base, joint_transform_at(model.base, qb), model.a0, c0, Y, L, w, qddb, a);
+    for (int k = 0; k < 6; ++k) qdd0[k] = qddb[k];
+    root = {v0, a};
+  }
 
   // pass 3: accelerations, root to leaves
   forward_pass<kUnrolled>(
-      model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
+      model, n, root,
       [&](Index i) -> BodyKinematics<S> {
         if constexpr (kBranches) {
           const int s = slot_of(model.body[i].parent);

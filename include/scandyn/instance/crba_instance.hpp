@@ -13,6 +13,15 @@ namespace scandyn {
 namespace cuda {
 
 #if defined(__CUDACC__)
+// A floating base's rows of one instance's M (kFloating; one scalar each otherwise):
+// block[r * 6 + c] = M(r, c) and coupling[k * 6 + r] = M(r, 6 + k) = M(6 + k, r) for
+// the base's DoFs r, c < 6 and the kernels' body k (ThreadModelParams::floating).
+template <class S, int C, bool kFloating>
+struct FloatingMassRows {
+  S block[kFloating ? 36 : 1];
+  S coupling[kFloating ? 6 * C : 1];
+};
+
 namespace fd_detail {
 
 // Index of M(k, j), j <= k, in a packed lower triangle.
@@ -59,13 +68,27 @@ __host__ __device__ __forceinline__ JsiCarry<S>& operator+=(JsiCarry<S>& a, cons
 // fd_jsi_instance.
 // (The passes' functors read per-thread arrays written before they are read but after
 // the functors are created: nvcc's #549, as in rnea_instance.)
+//
+// kFloating (CRBA only, kBias false): the model has a floating base (model.floating):
+// q starts with the base's 7 entries, and the base's rows of M go to `base`
+// (FloatingMassRows): its children's composite inertias gather into its own
+// (backward_pass' to_base), and every column's force, once in the base's frame,
+// gives the column's base entries, as in the reference's general path (crba_at).
 #pragma nv_diagnostic push
 #pragma nv_diag_suppress 549
-template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig, class Bd = Body<S>>
+template <bool kBias, class S, int C, bool kKeepXup, bool kUnrolled, Trig kTrig, class Bd = Body<S>,
+          bool kFloating = false>
 __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
                                                     DofColumn<const S> qd, DofColumn<const S> tau,
                                                     const Force<S>* fext, const S* armature, S (&x)[C],
-                                                    S (&M)[C * (C + 1) / 2]) {
+                                                    S (&M)[C * (C + 1) / 2],
+                                                    FloatingMassRows<S, C, kFloating>* base = nullptr) {
+  static_assert(!(kBias && kFloating), "jsi_passes: the joint-space inertia forward dynamics take a fixed base");
+  Inertia<S> Ic0;  // (kFloating) the base's composite inertia
+  if constexpr (kFloating) {
+    Ic0 = model.base.I;
+    q = column_from(q, 7);
+  }
   constexpr int kRegs = kUnrolled ? C : 1;  // register copies of q, qd when unrolled
   constexpr bool kKeep = kBias && kKeepXup;
   constexpr int kXup = kKeep ? C : 1;
@@ -150,7 +173,22 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
         const Index p = model.body[i].parent;
         if constexpr (kBias) sf[p] += up.f;
         sI[p] += up.I;
-      });
+      },
+      base_hook<kFloating>([&](Index i, const JsiCarry<S>& up) {
+        // body i's subtree's columns have reached the base's frame: their base entries
+        Ic0 += up.I;
+        const auto put = [&](Index k) { joint_project_at(model.base, w[k], &base->coupling[k * 6]); };
+        put(i);
+        for_descendants<kUnrolled>(model, i, put);
+      }));
+  if constexpr (kFloating) {
+    // the base's own block: its composite inertia's columns
+    for (int c = 0; c < 6; ++c) {
+      S col[6];
+      joint_project_at(model.base, Ic0 * joint_column(model.base, c), col);
+      for (int r = 0; r < 6; ++r) base->block[r * 6 + c] = col[r];
+    }
+  }
 }
 #pragma nv_diagnostic pop
 
@@ -175,13 +213,18 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
 // M (C (C + 1) / 2 scalars), the column forces and the inputs can stay in
 // registers; otherwise per-thread (local) memory and walks up the parents. kTrig:
 // how joint angles become sin and cos (see joint_sincos).
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>>
+//
+// kFloating: the model has a floating base (model.floating): q starts with its 7
+// entries, M holds the kernels' bodies' DoFs (the model's 6..), the base's rows go to
+// *base (FloatingMassRows), and armature's entries are the kernels' bodies'.
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>,
+          bool kFloating = false>
 __host__ __device__ __forceinline__ void crba_instance(const ThreadModelParams<S, C, Bd>& model, DofColumn<const S> q,
-                                                      S (&M)[C * (C + 1) / 2], const S* armature = nullptr) {
+                                                      S (&M)[C * (C + 1) / 2], const S* armature = nullptr,
+                                                      FloatingMassRows<S, C, kFloating>* base = nullptr) {
   S unused[C];  // the bias forces' tau - h, which the CRBA alone does not compute (never touched)
-  fd_detail::jsi_passes<false, S, C, false, kUnrolled, kTrig>(model, q, DofColumn<const S>{nullptr, 0},
-                                                              DofColumn<const S>{nullptr, 0}, nullptr, armature,
-                                                              unused, M);
+  fd_detail::jsi_passes<false, S, C, false, kUnrolled, kTrig, Bd, kFloating>(
+      model, q, DofColumn<const S>{nullptr, 0}, DofColumn<const S>{nullptr, 0}, nullptr, armature, unused, M, base);
 }
 
 // Forward dynamics of one instance by the joint-space inertia:
@@ -272,20 +315,36 @@ __host__ __device__ __forceinline__ Index fd_jsi_instance(const ThreadModelParam
 // triangles; zero where neither body is an ancestor of the other). The order and
 // the indices are the same on every thread of a model (a warp may stage the
 // entries together: kernels/mass_matrix.cu). kUnrolled as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), class Put, class Bd = Body<S>>
+//
+// kFloating: the full matrix of a floating-base model (model_nv(model) square, the
+// base's rows first) from M and the base's rows (FloatingMassRows), still row by row.
+template <class S, int C, bool kUnrolled = (C <= 8), class Put, class Bd = Body<S>, bool kFloating = false>
 __host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelParams<S, C, Bd>& model,
-                                                            const S (&M)[C * (C + 1) / 2], Put&& put) {
+                                                            const S (&M)[C * (C + 1) / 2], Put&& put,
+                                                            const FloatingMassRows<S, C, kFloating>* base = nullptr) {
   using fd_detail::tri;
   const Index n = model.nv;
+  constexpr Index o = kFloating ? 6 : 0;  // the base's DoFs come first
+  const Index N = n + o;                    // the row length
+  if constexpr (kFloating) {
+    for (Index r = 0; r < 6; ++r) {
+      for (Index c = 0; c < 6; ++c) put(r * N + c, base->block[r * 6 + c]);
+#pragma unroll(kUnrolled ? C : 1)
+      for (Index k = 0; k < C; ++k)
+        if (k < n) put(r * N + 6 + k, base->coupling[k * 6 + r]);
+    }
+  }
 #pragma unroll(kUnrolled ? C : 1)
   for (Index i = 0; i < C; ++i) {
     if (i >= n) continue;
+    if constexpr (kFloating)
+      for (Index c = 0; c < 6; ++c) put((o + i) * N + c, base->coupling[i * 6 + c]);
 #pragma unroll(kUnrolled ? C : 1)
     for (Index j = 0; j < C; ++j) {
       if (j >= n) continue;
       const Index hi = i > j ? i : j, lo = i > j ? j : i;
       // a nonzero entry pairs a body with itself or one of its ancestors
-      put(i * n + j, hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0));
+      put((o + i) * N + o + j, hi == lo || fd_detail::is_ancestor(model, lo, hi) ? M[tri(hi, lo)] : S(0));
     }
   }
 }
@@ -296,12 +355,15 @@ __host__ __device__ __forceinline__ void for_each_mass_entry(const ThreadModelPa
 // scalars: registers when unrolled, else local memory), then nv^2 stores, row by
 // row (for_each_mass_entry). Also a host function (under nvcc): the tests check it
 // against scandyn::crba without a device. kUnrolled and kTrig as for crba_instance.
-template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>>
+// kFloating as for crba_instance: the full model_nv(model)^2 matrix.
+template <class S, int C, bool kUnrolled = (C <= 8), Trig kTrig = Trig::Library, class Bd = Body<S>,
+          bool kFloating = false>
 __host__ __device__ __forceinline__ void mass_matrix_instance(const ThreadModelParams<S, C, Bd>& model,
                                                               DofColumn<const S> q, DofColumn<S> M_out) {
   S M[C * (C + 1) / 2];  // M(k, j) at tri(k, j), j = k or an ancestor of k
-  crba_instance<S, C, kUnrolled, kTrig>(model, q, M);
-  for_each_mass_entry<S, C, kUnrolled>(model, M, [&](Index e, S v) { M_out[e] = v; });
+  FloatingMassRows<S, C, kFloating> base;
+  crba_instance<S, C, kUnrolled, kTrig, Bd, kFloating>(model, q, M, nullptr, &base);
+  for_each_mass_entry<S, C, kUnrolled>(model, M, [&](Index e, S v) { M_out[e] = v; }, &base);
 }
 #endif  // __CUDACC__
 

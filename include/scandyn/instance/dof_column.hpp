@@ -21,6 +21,12 @@ struct DofColumn {
   __host__ __device__ __forceinline__ T& operator[](Index i) const { return data[i * stride]; }
 };
 
+// The column from entry k on (a floating base's entries skipped: ThreadModelParams::floating).
+template <class T>
+__host__ __device__ __forceinline__ DofColumn<T> column_from(DofColumn<T> c, Index k) {
+  return {c.data + k * c.stride, c.stride};
+}
+
 // Instance b's entries of a batch view.
 template <class T>
 __host__ __device__ __forceinline__ DofColumn<T> instance_column(const BatchView<T>& v, long long b) {

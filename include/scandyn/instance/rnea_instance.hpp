@@ -34,7 +34,15 @@ namespace cuda {
 // joint_transform is evaluated again there (fewer registers, more arithmetic).
 // kTrig: how joint angles become sin and cos (Trig::Library, CUDA's sinf/cosf, by
 // default: at most 64 links, so their slight bias stays below 1e-6; see joint_sincos).
-template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library, class Bd = Body<S>>
+//
+// kFloating: for models with a floating base (model.floating, which must be set):
+// the base is the root of the walk, its velocity and acceleration the forward pass's
+// start (rnea_forward_step_at of the reference's general path, gravity included),
+// and the wrenches of its children gather into its own (backward_pass' to_base), of
+// which tau's first six entries are the projection (joint_project_at). Without it
+// model.floating must be 0.
+template <class S, int C, bool kKeepXup = false, bool kUnrolled = (C * sizeof(S) <= 64), Trig kTrig = Trig::Library,
+          class Bd = Body<S>, bool kFloating = false>
 __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S, C, Bd>& model,
                                                        DofColumn<const S> q, DofColumn<const S> qd,
                                                        DofColumn<const S> qdd, const Force<S>* fext,
@@ -48,6 +56,20 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
   Motion<S> sv[C], sa[C];                   // stack: v, a of kStacked bodies
   Force<S> sf[C];                           // stack: f of kStacked bodies plus their
                                             // children other than the next body
+  BodyKinematics<S> root{Motion<S>::zero(), model.a0};  // what the base hands its children
+  Force<S> f0;                              // (kFloating) the base's net force, then its wrench
+  DofColumn<S> tau0 = tau;                  // (kFloating) the base's entries of tau
+  if constexpr (kFloating) {
+    S qb[7], qdb[6], qddb[6];
+    for (int k = 0; k < 7; ++k) qb[k] = q[k];
+    for (int k = 0; k < 6; ++k) qdb[k] = qd[k], qddb[k] = qdd[k];
+    const RneaForward<S> o =
+        rnea_forward_step_at(model.base, joint_transform_at(model.base, qb), Motion<S>::zero(), model.a0, qdb, qddb);
+    root = {o.v, o.a};
+    f0 = fext ? o.f - fext[0] : o.f;
+    q = column_from(q, 7), qd = column_from(qd, 6), qdd = column_from(qdd, 6), tau = column_from(tau, 6);
+    if (fext) ++fext;
+  }
 
   // load: all of one instance's inputs in flight before the first use
   if constexpr (kUnrolled) {
@@ -62,7 +84,7 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
   }
   // forward: kinematics and body forces
   forward_pass<kUnrolled>(
-      model, n, BodyKinematics<S>{Motion<S>::zero(), model.a0},
+      model, n, root,
       [&](Index i) { return BodyKinematics<S>{sv[model.body[i].parent], sa[model.body[i].parent]}; },
       [&](Index i, int fl, const BodyKinematics<S>& p) {
         const auto& b = model.body[i];
@@ -92,7 +114,13 @@ __host__ __device__ __forceinline__ void rnea_instance(const ThreadModelParams<S
         else X = joint_transform<kTrig>(b, kUnrolled ? q_r[kUnrolled ? i : 0] : q[i]);
         return X.apply_transpose(fi);
       },
-      [&](Index i, int, const Force<S>& up) { sf[model.body[i].parent] += up; });
+      [&](Index i, int, const Force<S>& up) { sf[model.body[i].parent] += up; },
+      base_hook<kFloating>([&](Index, const Force<S>& up) { f0 += up; }));
+  if constexpr (kFloating) {
+    S out[6];
+    joint_project_at(model.base, f0, out);
+    for (int k = 0; k < 6; ++k) tau0[k] = out[k];
+  }
 }
 #pragma nv_diagnostic pop
 #endif  // __CUDACC__

@@ -61,8 +61,15 @@ struct ThreadModelParams {
   int flags[C];                    // (nv) ThreadBodyFlag bits of each body
   unsigned long long ancestors[C]; // (nv) bit j of ancestors[i]: body j is a proper ancestor
                                    // of body i (the sparsity of row i of M; forward dynamics)
-  Motion<S> a0;                    // base acceleration: gravity entered as -g
-  Index nv;                        // number of bodies (DoF), <= C
+  Motion<S> a0;                    // base acceleration: gravity entered as -g (world frame; with a
+                                   // floating base, the acceleration of the world the base moves in)
+  Index nv;                        // number of bodies in body[] (their DoF), <= C
+  int floating;                    // 1: the model's body 0 is a floating base (a free joint to the
+                                   // world), held apart in `base`: body[] are the model's bodies
+                                   // 1.. (parents shifted by one; the base's children are
+                                   // kParentIsBase) and every instance vector starts with the
+                                   // base's entries (q: 7, qd/qdd/tau: 6, fext: 1 wrench); 0: fixed
+  Body<S> base;                    // (floating) the base: its free joint and rigid inertia
   Mat3<S> frame_Q[z_axes ? C : 1]; // (nv, z-axis models) Q_i: body i's user-frame
                                    // coordinates -> its z-axis frame's (kTurned bodies)
 };
@@ -92,6 +99,28 @@ SCANDYN_HD Force<S> user_wrench(const ThreadModelParams<S, C, Bd>& model, Index 
   return f;
 }
 
+// ---- the floating base -------------------------------------------------------
+// With model.floating, an instance's vectors hold the base's entries first: the
+// kernels' body i (body i + 1 of the model) has its q at 7 + i, its qd, qdd, tau at
+// 6 + i and its wrench at 1 + i. These are the offsets (0 for a fixed base).
+template <class S, int C, class Bd>
+SCANDYN_HD Index q_offset(const ThreadModelParams<S, C, Bd>& model) {
+  return model.floating ? 7 : 0;
+}
+template <class S, int C, class Bd>
+SCANDYN_HD Index v_offset(const ThreadModelParams<S, C, Bd>& model) {
+  return model.floating ? 6 : 0;
+}
+// The model's DoF (the length of qd) and bodies (the length of fext).
+template <class S, int C, class Bd>
+SCANDYN_HD Index model_nv(const ThreadModelParams<S, C, Bd>& model) {
+  return model.nv + v_offset(model);
+}
+template <class S, int C, class Bd>
+SCANDYN_HD Index model_nbodies(const ThreadModelParams<S, C, Bd>& model) {
+  return model.nv + model.floating;
+}
+
 // One model prepared for the kernels: the parameter block of the smallest capacity
 // that holds it. Host memory only; built once, then copied into each launch. With
 // Bd = ZJointBody<S> (ZThreadModel) the bodies are z_axis_model's, their joints
@@ -102,11 +131,14 @@ class ThreadModel {
   using Params = std::variant<ThreadModelParams<S, 8, Bd>, ThreadModelParams<S, 16, Bd>,
                               ThreadModelParams<S, 32, Bd>, ThreadModelParams<S, 64, Bd>>;
 
-  // Throws BackendError when model.nv() > kMaxThreadDofs, or (z-axis) when a joint is
-  // neither revolute nor prismatic.
+  // Throws BackendError when the model has more than kMaxThreadDofs bodies beside a
+  // floating base, a multi-DoF joint other than a floating base (a spherical joint),
+  // or (z-axis) a joint that is neither revolute nor prismatic.
   explicit ThreadModel(const ModelTpl<S>& model);
 
-  Index nv() const { return nv_; }
+  Index nv() const { return nv_; }  // the model's DoF (a floating base's 6 included)
+  Index nq() const { return nq_; }  // the model's position entries (nv + 1 with a floating base)
+  bool floating() const { return floating_; }
   Index capacity() const { return capacity_; }  // 8, 16, 32 or 64
   const Params& params() const { return params_; }
   // Branch slots the model needs (see kSlotShift): 0 when every body's parent is the
@@ -115,10 +147,23 @@ class ThreadModel {
 
  private:
   Index nv_ = 0;
+  Index nq_ = 0;
+  bool floating_ = false;
   Index capacity_ = 0;
   Index branch_slots_ = 0;
   Params params_;
 };
+
+// Which kernels are compiled for floating-base models (kFloating): those of z-axis
+// models only, what the engines run (each kernel once more per capacity and
+// precision costs minutes of nvcc).
+template <class S, class Bd>
+inline constexpr bool kFloatingKernels = !std::is_same_v<Bd, Body<S>>;
+// Is `model` run by the kernels' floating-base instantiation (kFloating)?
+template <class S, class Bd>
+bool floating_kernels(const ThreadModel<S, Bd>& model) {
+  return kFloatingKernels<S, Bd> && model.floating();
+}
 
 // The thread-per-instance model with every joint axis on its frame's z axis: what the
 // inverse dynamics, mass matrix, forward dynamics and fused simulator step kernels

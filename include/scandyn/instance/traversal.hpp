@@ -118,10 +118,24 @@ struct PassEnd {
 // then runs after the hand-off, as in a hand-written loop, in registers that up no
 // longer holds (jsi_passes moves its columns on so; work ahead of the hand-off
 // costs registers).
-template <bool kUnrolled, class S, int C, class T, class Own, class Step, class Lift, class ToBranchParent, class Bd = Body<S>>
+//
+// to_base (optional): with a floating base (ThreadModelParams::floating), a body on
+// the base is lifted too and to_base(i, up) called once lift has returned (so after
+// any work lift does past its hand-off): the base's children in descending order,
+// as the reference adds them. Without it (NoBase), a body on the base hands nothing on.
+struct NoBase {};
+// f as backward_pass' to_base when kFloating, else NoBase (no lift for bodies on the base).
+template <bool kFloating, class F>
+__host__ __device__ __forceinline__ auto base_hook(F&& f) {
+  if constexpr (kFloating) return f;
+  else return NoBase{};
+}
+template <bool kUnrolled, class S, int C, class T, class Own, class Step, class Lift, class ToBranchParent,
+          class Bd = Body<S>, class ToBase = NoBase>
 __host__ __device__ __forceinline__ PassEnd backward_pass(const ThreadModelParams<S, C, Bd>& model, Index n, Own&& own,
                                                           Step&& step, Lift&& lift,
-                                                          ToBranchParent&& to_branch_parent) {
+                                                          ToBranchParent&& to_branch_parent,
+                                                          ToBase to_base = {}) {
   T carry{};  // body i + 1's contribution, when its parent is body i
 #pragma unroll(kUnrolled ? C : 1)
   for (Index i = C - 1; i >= 0; --i) {
@@ -130,7 +144,18 @@ __host__ __device__ __forceinline__ PassEnd backward_pass(const ThreadModelParam
     T t = own(i, fl);
     if (i + 1 < n && (model.flags[i + 1 < C ? i + 1 : i] & kParentIsPrev)) t += carry;
     if (!step(i, fl, t)) return PassEnd{false, i};
-    if (fl & kParentIsBase) continue;
+    if (fl & kParentIsBase) {
+      if constexpr (!std::is_same_v<ToBase, NoBase>) {
+        if constexpr (std::is_invocable_v<Lift&, Index, const T&>) {
+          to_base(i, lift(i, t));
+        } else {
+          T up{};
+          lift(i, t, [&](const T& u) { up = u; });
+          to_base(i, up);
+        }
+      }
+      continue;
+    }
     auto hand_off = [&](const T& up) {
       if (fl & kParentIsPrev) carry = up;
       else to_branch_parent(i, fl, up);

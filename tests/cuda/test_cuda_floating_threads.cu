@@ -1,0 +1,328 @@
+// The thread-per-instance kernels with a floating base (ThreadModelParams::floating:
+// rnea_instance, aba_instance, crba_instance / mass_matrix_instance with kFloating):
+//   - the device functions run on the host (no device needed) against the serial
+//     reference's general path (rnea, aba, crba through rnea_at, aba_at, crba_at);
+//   - the cuda engines (make_inverse_dynamics, make_bias_forces,
+//     make_forward_dynamics, make_mass_matrix) on a device against the serial engines,
+//     through compute() (q with nq columns staged) and compute_async on device buffers;
+//   - what the cuda backend refuses for multi-DoF models, by name.
+// Models: hyq and atlas on a floating base, random trees and a random chain on a free
+// root (1-DoF joints past it), a single free body.
+// Tolerances (relative to the largest entry of the reference):
+//   double: 1e-11 on the host (the same steps in the same order; only FMA contraction
+//           differs), 1e-9 on a device (its own contraction and math library);
+//   float:  against the serial float reference, 2e-4 for the robots and trees (the
+//           serial float path's own error against double is ~1e-5 on these states).
+#include <cuda_runtime.h>
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <variant>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "floating_models.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/inverse_dynamics.hpp"
+#include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/engine.hpp"
+#include "scandyn/model/load.hpp"
+#include "test_util.hpp"
+
+using namespace scandyn;
+
+namespace {
+
+Model floating_robot(const std::string& name) {
+  BuildOptions o;
+  o.require_physical_inertia = false;  // GRiD's atlas.urdf
+  o.floating_base = true;
+  return load_urdf(test::model_path(name + ".urdf"), o);
+}
+
+// A random tree on a free root with 1-DoF joints past it (what the thread kernels take).
+Model floating_tree(int n, unsigned seed) { return test::random_floating_model(n, seed, 0.0); }
+
+std::vector<std::pair<std::string, Model>> floating_models() {
+  std::vector<std::pair<std::string, Model>> v;
+  v.emplace_back("hyq floating", floating_robot("hyq"));
+  v.emplace_back("atlas floating", floating_robot("atlas"));
+  v.emplace_back("random floating tree 9", floating_tree(9, 3));
+  v.emplace_back("random floating tree 20", floating_tree(20, 11));
+  v.emplace_back("random free chain 12", test::random_free_chain(12, 5));
+  v.emplace_back("single free body", floating_tree(1, 7));
+  return v;
+}
+
+double max_abs(const std::vector<double>& v) {
+  double m = 0;
+  for (double x : v) m = std::max(m, std::abs(x));
+  return m;
+}
+
+// max |a - b| / max(1, max |b|); NaN anywhere counts as infinite.
+template <class T>
+double rel_err(const std::vector<T>& a, const std::vector<double>& b) {
+  double e = 0;
+  for (std::size_t i = 0; i < b.size(); ++i) {
+    const double d = std::abs(double(a[i]) - b[i]);
+    if (!(d == d)) return INFINITY;
+    e = std::max(e, d);
+  }
+  return e / std::max(1.0, max_abs(b));
+}
+
+// One state of a model: q (nq), qd, u (nv), fext (nbodies), random.
+struct State {
+  std::vector<double> q, qd, u;
+  std::vector<Force<double>> fext;
+};
+State random_state(const Model& m, unsigned seed) {
+  const test::SoaStates x = test::random_soa_states(m, 1, seed, true);
+  return {x.q, x.qd, x.u, x.fext};
+}
+
+template <class S>
+std::vector<S> cast(const std::vector<double>& v) {
+  return std::vector<S>(v.begin(), v.end());
+}
+template <class S>
+std::vector<Force<S>> cast(const std::vector<Force<double>>& v) {
+  std::vector<Force<S>> r;
+  for (const auto& f : v) r.push_back(f.template cast<S>());
+  return r;
+}
+
+// The serial reference in precision S of one state: tau (rnea), qdd (aba) and M (crba,
+// row-major), each as double.
+template <class S>
+struct Reference {
+  std::vector<double> tau, qdd, M;
+};
+template <class S>
+Reference<S> reference(const Model& md, const State& x, bool with_fext) {
+  const ModelTpl<S> m = md.template cast<S>();
+  DataTpl<S> d(m);
+  const Index nv = m.nv();
+  const auto q = cast<S>(x.q), qd = cast<S>(x.qd), u = cast<S>(x.u);
+  const auto f = cast<S>(x.fext);
+  const Force<S>* fp = with_fext ? f.data() : nullptr;
+  std::vector<S> tau(nv), qdd(nv), M(static_cast<std::size_t>(nv * nv));
+  rnea(m, d, q.data(), qd.data(), u.data(), tau.data(), fp);
+  EXPECT_TRUE(aba(m, d, q.data(), qd.data(), u.data(), qdd.data(), fp).ok());
+  crba(m, d, q.data(), M.data());
+  return {std::vector<double>(tau.begin(), tau.end()), std::vector<double>(qdd.begin(), qdd.end()),
+          std::vector<double>(M.begin(), M.end())};
+}
+
+// The device functions on the host (z-axis bodies, what the engines run), kFloating.
+template <class S>
+Reference<S> host_instances(const Model& md, const State& x, bool with_fext, bool unrolled_rnea) {
+  const ModelTpl<S> m = md.template cast<S>();
+  const cuda::ZThreadModel<S> tm(m);
+  EXPECT_TRUE(tm.floating());
+  const Index nv = m.nv();
+  const auto q = cast<S>(x.q), qd = cast<S>(x.qd), u = cast<S>(x.u);
+  const auto f = cast<S>(x.fext);
+  const Force<S>* fp = with_fext ? f.data() : nullptr;
+  std::vector<S> tau(nv, S(NAN)), qdd(nv, S(NAN)), M(static_cast<std::size_t>(nv * nv), S(NAN));
+  Index failed = -2;
+  std::visit(
+      [&](const auto& p) {
+        using P = std::decay_t<decltype(p)>;
+        constexpr int C = P::capacity;
+        using Bd = ZJointBody<S>;
+        if (unrolled_rnea)
+          cuda::rnea_instance<S, C, false, true, Trig::Library, Bd, true>(p, {q.data(), 1}, {qd.data(), 1},
+                                                                          {u.data(), 1}, fp, {tau.data(), 1});
+        else
+          cuda::rnea_instance<S, C, true, false, Trig::Library, Bd, true>(p, {q.data(), 1}, {qd.data(), 1},
+                                                                          {u.data(), 1}, fp, {tau.data(), 1});
+        // the ABA's kernel for this shape (chains: no slots), and any tree's
+        if (tm.branch_slots() == 0)
+          failed = cuda::aba_instance<S, C, false, false, Trig::Library, 0, false, Bd, true>(
+              p, {q.data(), 1}, {qd.data(), 1}, {u.data(), 1}, fp, {qdd.data(), 1});
+        else
+          failed = cuda::aba_instance<S, C, false, false, Trig::Library, C, false, Bd, true>(
+              p, {q.data(), 1}, {qd.data(), 1}, {u.data(), 1}, fp, {qdd.data(), 1});
+        cuda::mass_matrix_instance<S, C, false, Trig::Library, Bd, true>(p, {q.data(), 1}, {M.data(), 1});
+      },
+      tm.params());
+  EXPECT_EQ(failed, -1);
+  return {std::vector<double>(tau.begin(), tau.end()), std::vector<double>(qdd.begin(), qdd.end()),
+          std::vector<double>(M.begin(), M.end())};
+}
+
+}  // namespace
+
+TEST(CudaFloatingThreads, DeviceFunctionsOnTheHostDouble) {
+  for (const auto& [name, md] : floating_models()) {
+    SCOPED_TRACE(name);
+    for (unsigned seed : {1u, 2u, 3u}) {
+      const State x = random_state(md, seed);
+      for (bool fx : {false, true}) {
+        const Reference<double> ref = reference<double>(md, x, fx);
+        for (bool unrolled : {false, true}) {
+          const Reference<double> got = host_instances<double>(md, x, fx, unrolled);
+          EXPECT_LE(rel_err(got.tau, ref.tau), 1e-11) << "rnea_instance, fext " << fx << ", unrolled " << unrolled;
+          EXPECT_LE(rel_err(got.qdd, ref.qdd), 1e-11) << "aba_instance, fext " << fx;
+          EXPECT_LE(rel_err(got.M, ref.M), 1e-11) << "mass_matrix_instance";
+        }
+      }
+    }
+  }
+}
+
+TEST(CudaFloatingThreads, DeviceFunctionsOnTheHostFloat) {
+  for (const auto& [name, md] : floating_models()) {
+    SCOPED_TRACE(name);
+    const State x = random_state(md, 4);
+    const Reference<float> ref = reference<float>(md, x, true);
+    const Reference<float> got = host_instances<float>(md, x, true, false);
+    EXPECT_LE(rel_err(got.tau, ref.tau), 2e-4);
+    EXPECT_LE(rel_err(got.qdd, ref.qdd), 2e-4);
+    EXPECT_LE(rel_err(got.M, ref.M), 2e-4);
+  }
+}
+
+// The kernels hold the base apart: capacity from the bodies past it, offsets 7 / 6 / 1.
+TEST(CudaFloatingThreads, ThreadModelShape) {
+  const Model hyq = floating_robot("hyq");
+  const cuda::ZThreadModel<double> tm(hyq);
+  EXPECT_EQ(tm.nv(), 18);
+  EXPECT_EQ(tm.nq(), 19);
+  EXPECT_EQ(tm.capacity(), 16);
+  EXPECT_EQ(tm.branch_slots(), 0);  // four legs hanging from the base
+  std::visit(
+      [](const auto& p) {
+        EXPECT_EQ(p.nv, 12);
+        EXPECT_EQ(p.floating, 1);
+        EXPECT_EQ(cuda::q_offset(p), 7);
+        EXPECT_EQ(cuda::v_offset(p), 6);
+        EXPECT_EQ(cuda::model_nbodies(p), 13);
+      },
+      tm.params());
+  // a spherical joint past the base, and the user-frame kernels: refused by name
+  const Model ball = test::random_floating_model(8, 3, 1.0);
+  try {
+    cuda::ZThreadModel<double>{ball};
+    ADD_FAILURE() << "a spherical joint was taken";
+  } catch (const BackendError& e) {
+    EXPECT_NE(std::string(e.what()).find("spherical joint"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(cuda::ThreadModel<double>{hyq}, BackendError);
+}
+
+// ---- the engines on a device ------------------------------------------------------
+
+namespace {
+
+// B random states (SoA: entry (i, b) at i * B + b) through the cuda engines' compute()
+// and compute_async, against the serial engines, precision S.
+template <class S>
+void check_engines(const Model& md, Index B, double tol) {
+  const ModelTpl<S> m = md.template cast<S>();
+  const test::SoaStates x = test::random_soa_states(md, B, 17, true);
+  const Index nv = x.nv, nq = x.nq;
+  const auto q = cast<S>(x.q), qd = cast<S>(x.qd), u = cast<S>(x.u);
+  const auto f = cast<S>(x.fext);
+  using V = BatchView<const S>;
+  const V vq = V::soa(q.data(), nq, B), vqd = V::soa(qd.data(), nv, B), vu = V::soa(u.data(), nv, B);
+  BackendOptions serial, gpu;
+  serial.backend = BackendKind::Serial;
+  gpu.backend = BackendKind::Cuda;
+  serial.max_batch = gpu.max_batch = B;
+  const auto run = [&](const BackendOptions& o, std::vector<S>& tau, std::vector<S>& h, std::vector<S>& qdd,
+                       std::vector<S>& M) {
+    tau.assign(static_cast<std::size_t>(nv * B), S(NAN));
+    h = qdd = tau;
+    M.assign(static_cast<std::size_t>(nv * nv * B), S(NAN));
+    make_inverse_dynamics(m, o)->compute({vq, vqd, vu, f.data()}, BatchView<S>::soa(tau.data(), nv, B));
+    make_bias_forces(m, o)->compute({vq, vqd, f.data()}, BatchView<S>::soa(h.data(), nv, B));
+    const BatchStatus st = make_forward_dynamics(m, o)->compute({vq, vqd, vu, f.data()},
+                                                                 BatchView<S>::soa(qdd.data(), nv, B));
+    EXPECT_EQ(st.failed, 0);
+    // M row-major per instance: (B, nv, nv)
+    make_mass_matrix(m, o)->compute(vq, BatchView<S>::aos(M.data(), nv * nv, B));
+  };
+  std::vector<S> tau_s, h_s, qdd_s, M_s, tau_g, h_g, qdd_g, M_g;
+  run(serial, tau_s, h_s, qdd_s, M_s);
+  run(gpu, tau_g, h_g, qdd_g, M_g);
+  const auto as_double = [](const std::vector<S>& v) { return std::vector<double>(v.begin(), v.end()); };
+  EXPECT_LE(rel_err(tau_g, as_double(tau_s)), tol) << "inverse dynamics";
+  EXPECT_LE(rel_err(h_g, as_double(h_s)), tol) << "bias forces";
+  EXPECT_LE(rel_err(qdd_g, as_double(qdd_s)), tol) << "forward dynamics";
+  EXPECT_LE(rel_err(M_g, as_double(M_s)), tol) << "mass matrix";
+
+  // compute_async on device buffers: the thread kernels straight from device memory
+  test::DeviceArray<S> dq, dqd, du, dout;
+  test::DeviceArray<Force<S>> df;
+  const auto up = [](auto& d, const auto& h) {
+    EXPECT_EQ(d.alloc(h.size()), cudaSuccess);
+    EXPECT_EQ(cudaMemcpy(d.ptr, h.data(), h.size() * sizeof(h[0]), cudaMemcpyHostToDevice), cudaSuccess);
+    return d.ptr;
+  };
+  const V dvq = V::soa(up(dq, q), nq, B), dvqd = V::soa(up(dqd, qd), nv, B), dvu = V::soa(up(du, u), nv, B);
+  const Force<S>* dfp = up(df, f);
+  ASSERT_EQ(dout.alloc(static_cast<std::size_t>(nv * nv * B)), cudaSuccess);
+  std::vector<S> back(static_cast<std::size_t>(nv * B));
+  auto id = cuda::CudaInverseDynamics<S>(m, gpu);
+  ASSERT_EQ(id.compute_async({dvq, dvqd, dvu, dfp}, BatchView<S>::soa(dout.ptr, nv, B), nullptr), cudaSuccess);
+  ASSERT_EQ(cudaMemcpy(back.data(), dout.ptr, back.size() * sizeof(S), cudaMemcpyDeviceToHost), cudaSuccess);
+  EXPECT_LE(rel_err(back, as_double(tau_s)), tol) << "inverse dynamics, device buffers";
+  cuda::CudaForwardDynamics<S> fd(m, gpu);
+  test::DeviceArray<int> dfailed;
+  ASSERT_EQ(dfailed.alloc(static_cast<std::size_t>(B)), cudaSuccess);
+  ASSERT_EQ(fd.compute_async({dvq, dvqd, dvu, dfp}, BatchView<S>::soa(dout.ptr, nv, B), dfailed.ptr, nullptr),
+            cudaSuccess);
+  ASSERT_EQ(cudaMemcpy(back.data(), dout.ptr, back.size() * sizeof(S), cudaMemcpyDeviceToHost), cudaSuccess);
+  EXPECT_LE(rel_err(back, as_double(qdd_s)), tol) << "forward dynamics, device buffers";
+  cuda::CudaMassMatrix<S> mass(m, gpu);
+  std::vector<S> Mb(static_cast<std::size_t>(nv * nv * B));
+  ASSERT_EQ(mass.compute_async(dvq, BatchView<S>::soa(dout.ptr, nv * nv, B), nullptr), cudaSuccess);
+  ASSERT_EQ(cudaMemcpy(Mb.data(), dout.ptr, Mb.size() * sizeof(S), cudaMemcpyDeviceToHost), cudaSuccess);
+  std::vector<S> Mt(Mb.size());  // SoA (entry e of instance b at e * B + b) -> (B, nv, nv)
+  for (Index b = 0; b < B; ++b)
+    for (Index e = 0; e < nv * nv; ++e) Mt[static_cast<std::size_t>(b * nv * nv + e)] = Mb[static_cast<std::size_t>(e * B + b)];
+  EXPECT_LE(rel_err(Mt, as_double(M_s)), tol) << "mass matrix, device buffers (unstaged kernel)";
+}
+
+}  // namespace
+
+TEST(CudaFloatingThreads, EnginesAgainstSerial) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (const auto& [name, md] : floating_models()) {
+    SCOPED_TRACE(name);
+    check_engines<double>(md, 37, 1e-9);
+    check_engines<float>(md, 37, 2e-4);
+  }
+}
+
+// A spherical joint: inverse dynamics by the link scans (auto), the rest refused by name.
+TEST(CudaFloatingThreads, SphericalJointsOnCuda) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = test::random_floating_model(10, 5, 0.5);
+  ASSERT_TRUE(md.multi_dof() && md.extra_v > 5);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 8;
+  const test::SoaStates x = test::random_soa_states(md, 8, 3, true);
+  using V = BatchView<const double>;
+  std::vector<double> tau(x.qd.size(), NAN);
+  make_inverse_dynamics(md, o)->compute(
+      {V::soa(x.q.data(), x.nq, 8), V::soa(x.qd.data(), x.nv, 8), V::soa(x.u.data(), x.nv, 8), x.fext.data()},
+      BatchView<double>::soa(tau.data(), x.nv, 8));
+  EXPECT_LE(rel_err(tau, test::soa_reference(md, x, false)), 1e-9);
+  for (int which = 0; which < 2; ++which) {
+    try {
+      if (which == 0) make_forward_dynamics(md, o);
+      else make_mass_matrix(md, o);
+      ADD_FAILURE() << "a spherical joint was taken (" << which << ")";
+    } catch (const BackendError& e) {
+      EXPECT_NE(std::string(e.what()).find("spherical joint"), std::string::npos) << e.what();
+    }
+  }
+}
