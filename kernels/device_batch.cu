@@ -14,12 +14,12 @@ using detail::check;
 
 template <class S>
 DeviceBatch<S>::DeviceBatch(Index nv, Index B, const std::vector<const S*>& inputs, std::size_t out_width,
-                            bool failures, std::size_t other_bytes)
-    : nv_(nv), B_(B), width_(out_width) {
+                            bool failures, std::size_t other_bytes, Index nq)
+    : nv_(nv), B_(B), nq_(nq > 0 ? nq : nv), width_(out_width) {
   if (inputs.size() > 3) throw BackendError("DeviceBatch: more than three inputs");
   const std::size_t count = static_cast<std::size_t>(B);
-  const std::size_t n = static_cast<std::size_t>(nv) * count;  // values of one input
-  const std::size_t scalars = inputs.size() * n + width_ * count;
+  std::size_t scalars = width_ * count;
+  for (std::size_t k = 0; k < inputs.size(); ++k) scalars += static_cast<std::size_t>(width(int(k))) * count;
   bytes_ = scalars * sizeof(S) + (failures ? count * sizeof(int) : 0);
   buffer_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t) {
     return "backend 'cuda': the device-resident batch of " + std::to_string(count) + " instances needs " +
@@ -31,12 +31,14 @@ DeviceBatch<S>::DeviceBatch(Index nv, Index B, const std::vector<const S*>& inpu
     // inputs transposed to the engines' fast layout. Everything on the stream, which
     // does not synchronise with the legacy default stream, and waited for before soa
     // is refilled.
-    std::vector<S> soa(n);
+    std::vector<S> soa(static_cast<std::size_t>(nq_ > nv ? nq_ : nv) * count);
     S* dev = static_cast<S*>(buffer_);
     for (std::size_t k = 0; k < inputs.size(); ++k) {
       const S* rows = inputs[k];
+      const Index w = width(int(k));
+      const std::size_t n = static_cast<std::size_t>(w) * count;  // values of this input
       for (std::size_t b = 0; b < count; ++b)
-        for (Index i = 0; i < nv; ++i) soa[static_cast<std::size_t>(i) * count + b] = rows[b * nv + i];
+        for (Index i = 0; i < w; ++i) soa[static_cast<std::size_t>(i) * count + b] = rows[b * w + i];
       check(cudaMemcpyAsync(dev, soa.data(), n * sizeof(S), cudaMemcpyHostToDevice, stream_),
             "copying the batch to the device");
       check(cudaStreamSynchronize(stream_), "copying the batch to the device");

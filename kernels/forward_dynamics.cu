@@ -61,7 +61,7 @@ __global__ void __launch_bounds__(kFdInstancesBlock, FdKernelChoice<S, C, kAlgo>
   static_assert(Choice::kAba || !kFloating, "fd_instances_kernel: the JSI kernels take a fixed base");
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model_nbodies(model) : nullptr;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * (kFloating ? model_nbodies(model) : model.nv) : nullptr;
   const DofColumn<const S> q = instance_column(batch_in.q, b), qd = instance_column(batch_in.qd, b),
                            tau = instance_column(batch_in.tau, b);
   if constexpr (Choice::kAba)
@@ -139,6 +139,10 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;
   // the thread kernels' bodies: past a floating base (which they hold apart)
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
+  if (model.multi_dof() && !chain && !(model.floating_base() && model.extra_v == 5))
+    throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" +
+                       first_multi_dof_joint(model) + "'; forward dynamics on this backend takes a floating base "
+                       "with revolute and prismatic joints past it (use the serial or openmp backend)");
   if (model.multi_dof() && !chain && algorithm != FdMethod::Aba)
     throw BackendError(std::string("backend 'cuda': model '") + model.name +
                        "' has multi-DoF joints (a floating base or spherical joints), which forward dynamics by " +

@@ -168,7 +168,7 @@ __global__ void __launch_bounds__(kIdInstancesBlock)
                         const BatchView<S> tau_out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= batch_in.q.batch) return;
-  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * model_nbodies(model) : nullptr;
+  const Force<S>* fext = batch_in.fext ? batch_in.fext + b * (kFloating ? model_nbodies(model) : model.nv) : nullptr;
   // double keeps the forward pass's transforms for iiwa-sized models (H100: 4.1e9
   // against 3.4e9 evaluations/s recomputing them; float gains nothing from it)
   constexpr bool kKeepXup = sizeof(S) == 8 && C <= 8;

@@ -105,7 +105,8 @@ __global__ void __launch_bounds__(kMassInstancesBlock, MassKernelChoice<S, C>::k
           if (slot == kMassTileEntries - 1) store_mass_tile(tile, M_out, b0, lanes, e - slot, kMassTileEntries);
         },
         &base);
-    const Index entries = model_nv(model) * model_nv(model);
+    const Index n = kFloating ? model_nv(model) : model.nv;  // the matrix's order
+    const Index entries = n * n;
     if (const int rest = static_cast<int>(entries % kMassTileEntries))
       store_mass_tile(tile, M_out, b0, lanes, entries - rest, rest);
   }
@@ -156,6 +157,10 @@ CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for the mass matrix (use auto or recursion)");
+  if (model.multi_dof() && !(model.floating_base() && model.extra_v == 5))
+    throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" +
+                       first_multi_dof_joint(model) + "'; the mass matrix on this backend takes a floating base "
+                       "with revolute and prismatic joints past it (use the serial or openmp backend)");
   // the thread kernels' bodies: past a floating base (which they hold apart)
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
   if (model.multi_dof() && thread_bodies > kMaxThreadDofs)

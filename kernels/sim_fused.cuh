@@ -205,6 +205,60 @@ SCANDYN_SIM_UNROLL
   if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
 }
 
+// ---- a floating base ------------------------------------------------------------
+// The fused step of a model with a floating base and revolute / prismatic joints
+// past it (cuda::ThreadModelParams::floating): step_instance_at (integrators.hpp:
+// euler, implicit or rk4 on the configuration manifold, the base's quaternion
+// advanced through the exponential map, as on the CPU) over aba_instance's
+// floating-base kernel (kFloating, any tree: kSlots = C), one thread per instance.
+// Every joint effect, external wrenches and the contacts are compiled in (neutral
+// coefficients and zero wrenches where the scene has none; no contact points: no
+// contact pass). The contact pass runs on the model's bodies in the user's frames
+// (contact_pass_any with kMultiDof: the base's world pose from q), so its wrenches
+// join fext in the user's frames, which aba_instance turns (external_wrench).
+
+// The floating-base kernel's arguments beside FusedArgs (device memory).
+template <class S>
+struct FloatingArgs {
+  const Body<S>* bodies;             // (nbodies) the model's bodies: joint types, q / qd offsets, user frames
+  const JointCoefficients<S>* coef;  // (nv) joint coefficients (the base's neutral)
+  const S* armature;                 // (nv) implicit: dt d + dt^2 k, else null
+};
+
+// One thread's scratch for the floating-base contact pass (capacity C: C + 1 bodies, C + 6 DoFs).
+template <class S, int C>
+struct FloatingContactScratch {
+  Transform<S> X[C + 1];  // body <- world
+  Motion<S> v[C + 1];     // body twists
+  Force<S> f[C + 1];      // external + contact wrenches (user frames)
+  S armature[C + 6];      // implicit: the armature + the contacts' diagonal
+};
+
+// The forward dynamics of the floating-base fused step: the contact pass at (q, qd)
+// when the scene has contact points (its wrenches added to fext, null: none; its
+// diagonal to the implicit armature arm, null for explicit integrators), then
+// aba_instance with kFloating. readings as for fused_contact_forward_dynamics. Host
+// and device.
+template <class S, int C>
+__host__ __device__ __forceinline__ Index fused_floating_forward_dynamics(
+    const cuda::ThreadModelParams<S, C, ZJointBody<S>>& model, const FloatingArgs<S>& fa, S dt,
+    const ContactSet<S>& cs, const Force<S>* fext, FloatingContactScratch<S, C>& w, ContactReading<S>*& readings,
+    const S* q, const S* qd, const S* tau, const S* arm, S* qdd) {
+  if (cs.npoints > 0) {
+    const Index nb = model.nv + 1, nv = model.nv + 6;
+    for (Index i = 0; i < nb; ++i) w.f[i] = fext ? fext[i] : Force<S>::zero();
+    for (Index i = 0; i < nv; ++i) w.armature[i] = arm ? arm[i] : S(0);
+    contact_pass_any<true>(cs, fa.bodies, nb, q, qd, 1, arm ? dt : S(0), w.X, w.v, w.f, arm ? w.armature : nullptr,
+                           readings);
+    readings = nullptr;
+    fext = w.f;
+    if (arm) arm = w.armature;
+  }
+  return cuda::aba_instance<S, C, false, false, cuda::kThreadTrig<S>, C, false, ZJointBody<S>, true>(
+      model, cuda::DofColumn<const S>{q, 1}, cuda::DofColumn<const S>{qd, 1}, cuda::DofColumn<const S>{tau, 1}, fext,
+      cuda::DofColumn<S>{qdd, 1}, arm);
+}
+
 // The per-set chain kernels: float, capacity 8, with SCANDYN_SIM_EFFECT_SETS.
 template <class S, int C>
 constexpr bool kPerSetKernels = SCANDYN_SIM_EFFECT_SETS && std::is_same<S, float>::value && C == 8;
@@ -277,6 +331,78 @@ cudaError_t launch_fused_with(const Params& params, unsigned effects, const Fuse
   return err;
 }
 
+// One thread per instance b < B: a step of a floating-base model (the section
+// above). State: q (nq = C + 7 at most), qd, tau and the scratch (C + 6) per thread.
+template <class S, int C, Integrator I>
+__global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
+    sim_fused_floating_kernel(const __grid_constant__ SimParams<S, C> p, const FusedArgs<S> a,
+                              const FloatingArgs<S> fa) {
+  constexpr unsigned E = kJointEffects | kExternal;  // (contacts: fused_floating_forward_dynamics)
+  constexpr int V = C + 6, Q = C + 7;
+  constexpr bool kRk4 = I == Integrator::Rk4;
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= a.batch) return;
+  const Index n = p.model.nv, nv = n + 6, nq = n + 7, nb = n + 1;
+  const long long B = a.batch;
+  S q[Q], qd[V], tau[V];  // the instance's state and torques
+  S tw[V], qdd[V];        // StepScratchAt: tau + effects, FD's result
+  S qs[kRk4 ? Q : 1], qds[kRk4 ? V : 1], aq[kRk4 ? V : 1], aqd[kRk4 ? V : 1], theta[kRk4 ? V : 1];  // rk4 stages
+  for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
+  for (Index i = 0; i < nv; ++i) {
+    qd[i] = a.qd[i * B + b];
+    tau[i] = a.tau.data ? a.tau.at(i, b) : S(0);
+  }
+  const Force<S>* fext = a.wrenches + b * a.wrench_stride;
+  FloatingContactScratch<S, C> cw;
+  ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
+  auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
+    return fused_floating_forward_dynamics<S, C>(p.model, fa, p.dt, a.contacts, fext, cw, readings, qa, qda, t, arm, out);
+  };
+  const StepScratchAt<S> w{tw, qdd, qs, qds, aq, aqd, theta};
+  const Index failed =
+      step_instance_at<E, I>(fa.bodies, nb, nq, nv, p.dt, fa.coef, fa.armature, q, qd, tau, w, fd);
+  if (failed >= 0) {
+    record_step_failure(a.status, static_cast<Index>(b), failed);
+    return;
+  }
+  Index nonfinite = -1;  // as the CPU backends: the first i < nv with q_i or qd_i not finite, then q's last entries
+  for (Index i = 0; i < nv; ++i) {
+    a.q[i * B + b] = q[i];
+    a.qd[i * B + b] = qd[i];
+    if (nonfinite < 0 && !(isfinite(q[i]) && isfinite(qd[i]))) nonfinite = i;
+  }
+  for (Index i = nv; i < nq; ++i) {
+    a.q[i * B + b] = q[i];
+    if (nonfinite < 0 && !isfinite(q[i])) nonfinite = i;
+  }
+  if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
+}
+
+// Which capacities have the floating-base kernel: all, or with
+// SCANDYN_SIM_EFFECT_SETS=0 (builds without a GPU: scripts/test.sh) capacity 16
+// only (hyq: 12 joints past its base), which keeps nvcc's time there down.
+template <int C>
+constexpr bool kFloatingSimKernel = SCANDYN_SIM_EFFECT_SETS || C == 16;
+
+// The floating-base step of capacity C with integrator I (cudaErrorNotSupported for
+// a capacity this build leaves out, kFloatingSimKernel); defined as launch_fused.
+template <class S, Integrator I, int C>
+cudaError_t launch_fused_floating(const SimParams<S, C>& params, const FusedArgs<S>& args, const FloatingArgs<S>& fa,
+                                  cudaStream_t stream)
+#if defined(SCANDYN_SIM_FUSED_DEFINE)
+{
+  if constexpr (kFloatingSimKernel<C>) {
+    const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
+    sim_fused_floating_kernel<S, C, I><<<blocks, kSimBlock, 0, stream>>>(params, args, fa);
+    return cudaGetLastError();
+  } else {
+    return cudaErrorNotSupported;
+  }
+}
+#else
+    ;
+#endif
+
 // The fused step of capacity C with integrator I: defined and explicitly
 // instantiated in kernels/sim_fused_<S>_<integrator>.cu (which define
 // SCANDYN_SIM_FUSED_DEFINE); elsewhere a declaration only, so no other unit
@@ -291,11 +417,15 @@ cudaError_t launch_fused(const SimParams<S, C>& params, unsigned effects, const 
     ;
 #endif
 
-#define SCANDYN_SIM_FUSED_INSTANTIATE(S, I)                                                                      \
-  template cudaError_t launch_fused<S, I, 8>(const SimParams<S, 8>&, unsigned, const FusedArgs<S>&, cudaStream_t);   \
-  template cudaError_t launch_fused<S, I, 16>(const SimParams<S, 16>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
-  template cudaError_t launch_fused<S, I, 32>(const SimParams<S, 32>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
-  template cudaError_t launch_fused<S, I, 64>(const SimParams<S, 64>&, unsigned, const FusedArgs<S>&, cudaStream_t);
+#define SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, C)                                                                \
+  template cudaError_t launch_fused<S, I, C>(const SimParams<S, C>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
+  template cudaError_t launch_fused_floating<S, I, C>(const SimParams<S, C>&, const FusedArgs<S>&,                \
+                                                      const FloatingArgs<S>&, cudaStream_t);
+#define SCANDYN_SIM_FUSED_INSTANTIATE(S, I)   \
+  SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 8)    \
+  SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 16)   \
+  SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 32)   \
+  SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 64)
 
 }  // namespace detail
 }  // namespace sim

@@ -5,7 +5,10 @@
 //   models of up to 64 DoF  one fused kernel per step (kernels/sim_fused.cuh): one
 //                           thread per instance runs the whole step_instance
 //                           (effects, aba_instance, integration) in registers /
-//                           per-thread memory (strategy "fused-aba");
+//                           per-thread memory (strategy "fused-aba"); a floating
+//                           base with up to 64 revolute / prismatic joints past it:
+//                           sim_fused_floating_kernel (step_instance_at on the
+//                           configuration manifold; q has nq rows);
 //   beyond 64 DoF           per forward dynamics: an elementwise kernel adding the
 //                           joint effects' forces, CudaForwardDynamics::compute_async
 //                           (its Auto choice: the parallel chain forward dynamics for
@@ -112,17 +115,18 @@ __global__ void rk4_stage_kernel(const S* q, const S* qd, S* qs, S* qds, const S
   rk4_stage(s, dt, q[k], qd[k], qdd[k], qs[k], qds[k], aq[k], aqd[k]);
 }
 
-// reset: rows (count x nv, row r for instance idx[r]) into the SoA state
+// reset: rows (count x nq of q, count x nv of qd; row r for instance idx[r]) into
+// the SoA state (nq >= nv: q's extra entries by the threads of the first nq - nv)
 template <class S>
-__global__ void scatter_kernel(S* q, S* qd, const int* idx, const S* q_rows, const S* qd_rows, Index count, Index nv,
-                               Index B) {
+__global__ void scatter_kernel(S* q, S* qd, const int* idx, const S* q_rows, const S* qd_rows, Index count, Index nq,
+                               Index nv, Index B) {
   const long long k = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (k >= static_cast<long long>(count) * nv) return;
-  const long long r = k / nv;
-  const Index i = static_cast<Index>(k % nv);
+  if (k >= static_cast<long long>(count) * nq) return;
+  const long long r = k / nq;
+  const Index i = static_cast<Index>(k % nq);
   const long long at = static_cast<long long>(i) * B + idx[r];
   q[at] = q_rows[k];
-  qd[at] = qd_rows[k];
+  if (i < nv) qd[at] = qd_rows[r * nv + i];
 }
 
 // ---- the backend ------------------------------------------------------------------------
@@ -136,14 +140,21 @@ class CudaSimBackend final : public SimBackend<S> {
   explicit CudaSimBackend(const SimSetup<S>& setup) : setup_(setup) {
     const Index nv = setup.model.nv(), B = setup.batch;
     const std::size_t n = static_cast<std::size_t>(nv);
-    fused_ = nv <= cuda::kMaxThreadDofs;
+    const std::size_t nq = static_cast<std::size_t>(setup.model.nq());
+    const std::size_t nb = static_cast<std::size_t>(setup.model.nbodies());
+    floating_ = setup.model.floating_base();
+    fused_ = (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
+    if (floating_ && !fused_)
+      throw BackendError("backend 'cuda': the simulator's step takes a floating base with up to " +
+                         std::to_string(cuda::kMaxThreadDofs) + " joints past it (one thread per instance); this model "
+                         "has " + std::to_string(setup.model.nbodies() - 1) + ": use the serial or openmp backend");
     if (!fused_ && setup.integrator == Integrator::Implicit)
       throw BackendError("backend 'cuda': the implicit integrator runs on the GPU for models of up to " +
                          std::to_string(cuda::kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv) +
                          " (the dense forward dynamics beyond takes no armature yet): use euler or rk4, or the "
                          "serial or openmp backend");
     // q, qd; the per-step wrenches; the engine path's tau + effects, qdd, rk4 stages and three failure flags
-    const std::size_t per_instance = 2 * n * sizeof(S) + (setup.wrenches_per_step ? n * sizeof(Force<S>) : 0) +
+    const std::size_t per_instance = (nq + n) * sizeof(S) + (setup.wrenches_per_step ? nb * sizeof(Force<S>) : 0) +
                                      (fused_ ? 0 : 6 * n * sizeof(S) + 3 * sizeof(int));
     const char* what = fused_ ? "q, qd (and per-step wrenches)" : "q, qd, per-step wrenches, tau, qdd, rk4 stages, flags";
     state_ = std::make_unique<cuda::detail::StagingBuffer>(B, nv, sizeof(S) == 4 ? "float" : "double", what,
@@ -156,9 +167,10 @@ class CudaSimBackend final : public SimBackend<S> {
       p += bytes;
       return r;
     };
-    q_ = reinterpret_cast<S*>(take(cap * sizeof(S)));
+    q_ = reinterpret_cast<S*>(take(nq * static_cast<std::size_t>(B) * sizeof(S)));
     qd_ = reinterpret_cast<S*>(take(cap * sizeof(S)));
-    if (setup.wrenches_per_step) step_wrenches_ = reinterpret_cast<Force<S>*>(take(cap * sizeof(Force<S>)));
+    if (setup.wrenches_per_step)
+      step_wrenches_ = reinterpret_cast<Force<S>*>(take(nb * static_cast<std::size_t>(B) * sizeof(Force<S>)));
     if (!fused_) {
       S** arrays[] = {&tau_, &qdd_, &qs_, &qds_, &aq_, &aqd_};
       for (S** a : arrays) *a = reinterpret_cast<S*>(take(cap * sizeof(S)));
@@ -166,19 +178,31 @@ class CudaSimBackend final : public SimBackend<S> {
       bad_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
       nonfinite_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
     }
-    // small constants: status, the constant (or zero) wrenches, the coefficients
-    const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>);
+    // small constants: status, the constant (or zero) wrenches, the coefficients; with a
+    // floating base also the bodies and the implicit armature (FloatingArgs)
+    const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>) +
+                              (floating_ ? nb * sizeof(Body<S>) + n * sizeof(S) : 0);
     check(cudaMalloc(&small_, small), "allocating the simulator's constants");
     status_ = static_cast<StepStatus*>(small_);
     wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + sizeof(StepStatus));
     coef_ = reinterpret_cast<JointCoefficients<S>*>(reinterpret_cast<char*>(wrenches_) + n * sizeof(Force<S>));
+    if (floating_) {
+      auto* bodies = reinterpret_cast<Body<S>*>(reinterpret_cast<char*>(coef_) + n * sizeof(JointCoefficients<S>));
+      auto* armature = reinterpret_cast<S*>(reinterpret_cast<char*>(bodies) + nb * sizeof(Body<S>));
+      check(cudaMemcpy(bodies, setup.model.bodies.data(), nb * sizeof(Body<S>), cudaMemcpyHostToDevice),
+            "copying the bodies");
+      std::vector<S> arm(n, S(0));
+      for (std::size_t i = 0; i < n && i < setup.armature.size(); ++i) arm[i] = setup.armature[i];
+      check(cudaMemcpy(armature, arm.data(), n * sizeof(S), cudaMemcpyHostToDevice), "copying the armature");
+      floating_args_ = {bodies, coef_, setup.integrator == Integrator::Implicit ? armature : nullptr};
+    }
     std::vector<Force<S>> w = setup.wrenches;
     w.resize(n, Force<S>::zero());  // zeros for the all-effects kernels of scenes without wrenches
     check(cudaMemcpy(wrenches_, w.data(), n * sizeof(Force<S>), cudaMemcpyHostToDevice), "copying the wrenches");
     check(cudaMemcpy(coef_, setup.coef.data(), n * sizeof(JointCoefficients<S>), cudaMemcpyHostToDevice),
           "copying the joint coefficients");
     for (Index b = 0; b < B && step_wrenches_; ++b)
-      check(cudaMemcpy(step_wrenches_ + static_cast<std::size_t>(b) * n, w.data(), n * sizeof(Force<S>),
+      check(cudaMemcpy(step_wrenches_ + static_cast<std::size_t>(b) * nb, w.data(), nb * sizeof(Force<S>),
                        cudaMemcpyHostToDevice),
             "initialising the per-step wrenches");
     clear_status();
@@ -191,7 +215,8 @@ class CudaSimBackend final : public SimBackend<S> {
             using MP = std::decay_t<decltype(mp)>;
             SimParams<S, MP::capacity> sp{};
             sp.model = mp;
-            for (Index i = 0; i < nv; ++i) {
+            // (a floating base: the kernel reads them in full from FloatingArgs)
+            for (Index i = 0; i < mp.nv; ++i) {
               sp.coef[i] = setup.coef[i];
               sp.armature[i] = setup.armature.empty() ? S(0) : setup.armature[i];
             }
@@ -223,13 +248,25 @@ class CudaSimBackend final : public SimBackend<S> {
                          std::to_string(B));
     if (B == 0) return;
     const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
-    const long long stride = step_wrenches_ ? nv : 0;
+    const long long stride = step_wrenches_ ? setup_.model.nbodies() : 0;
     if (fused_) {
       const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
       cudaError_t err = cudaSuccess;
       std::visit(
           [&](const auto& sp) {
             using P = std::decay_t<decltype(sp)>;
+            if (floating_) {
+              switch (setup_.integrator) {
+                case Integrator::Euler: err = launch_fused_floating<S, Integrator::Euler, P::capacity>(sp, args, floating_args_, stream_); break;
+                case Integrator::Rk4: err = launch_fused_floating<S, Integrator::Rk4, P::capacity>(sp, args, floating_args_, stream_); break;
+                case Integrator::Implicit: err = launch_fused_floating<S, Integrator::Implicit, P::capacity>(sp, args, floating_args_, stream_); break;
+              }
+              if (err == cudaErrorNotSupported)
+                throw BackendError("backend 'cuda': this build compiles the floating-base simulator step for capacity 16 "
+                                   "only (SCANDYN_SIM_EFFECT_SETS=OFF); the model has " +
+                                   std::to_string(setup_.model.nbodies() - 1) + " joints past its base");
+              return;
+            }
             switch (setup_.integrator) {
               case Integrator::Euler: err = launch_fused<S, Integrator::Euler, P::capacity>(sp, setup_.effects, args, stream_); break;
               case Integrator::Rk4: err = launch_fused<S, Integrator::Rk4, P::capacity>(sp, setup_.effects, args, stream_); break;
@@ -297,7 +334,7 @@ class CudaSimBackend final : public SimBackend<S> {
     step(BatchView<const S>::soa(device_tau_, nv, B));
   }
 
-  BatchView<S> q() override { return BatchView<S>::soa(q_, setup_.model.nv(), setup_.batch); }
+  BatchView<S> q() override { return BatchView<S>::soa(q_, setup_.model.nq(), setup_.batch); }
   BatchView<S> qd() override { return BatchView<S>::soa(qd_, setup_.model.nv(), setup_.batch); }
   Force<S>* wrenches() override { return step_wrenches_; }
   ContactReading<S>* contact_forces() override { return readings_; }
@@ -310,8 +347,8 @@ class CudaSimBackend final : public SimBackend<S> {
 
   void write_instances(const Index* instances, Index count, const S* q_rows, const S* qd_rows) override {
     if (count == 0) return;
-    const std::size_t n = static_cast<std::size_t>(setup_.model.nv());
-    const std::size_t bytes = static_cast<std::size_t>(count) * (sizeof(int) + 2 * n * sizeof(S)) + sizeof(S);
+    const std::size_t n = static_cast<std::size_t>(setup_.model.nv()), nq = static_cast<std::size_t>(setup_.model.nq());
+    const std::size_t bytes = static_cast<std::size_t>(count) * (sizeof(int) + (nq + n) * sizeof(S)) + sizeof(S);
     if (bytes > rows_bytes_) {
       check(cudaStreamSynchronize(stream_), "resetting instances");
       if (rows_) cudaFree(rows_);
@@ -323,13 +360,13 @@ class CudaSimBackend final : public SimBackend<S> {
     // rows after the indices, aligned to S
     const std::size_t off = (static_cast<std::size_t>(count) * sizeof(int) + sizeof(S) - 1) / sizeof(S) * sizeof(S);
     S* qr = reinterpret_cast<S*>(static_cast<char*>(rows_) + off);
-    S* qdr = qr + static_cast<std::size_t>(count) * n;
+    S* qdr = qr + static_cast<std::size_t>(count) * nq;
     static_assert(sizeof(Index) == sizeof(int), "Index is int");
     check(cudaMemcpyAsync(idx, instances, count * sizeof(int), cudaMemcpyHostToDevice, stream_), "resetting instances");
-    check(cudaMemcpyAsync(qr, q_rows, count * n * sizeof(S), cudaMemcpyHostToDevice, stream_), "resetting instances");
+    check(cudaMemcpyAsync(qr, q_rows, count * nq * sizeof(S), cudaMemcpyHostToDevice, stream_), "resetting instances");
     check(cudaMemcpyAsync(qdr, qd_rows, count * n * sizeof(S), cudaMemcpyHostToDevice, stream_), "resetting instances");
-    scatter_kernel<S><<<element_blocks(static_cast<long long>(count) * n), kElementBlock, 0, stream_>>>(
-        q_, qd_, idx, qr, qdr, count, static_cast<Index>(n), setup_.batch);
+    scatter_kernel<S><<<element_blocks(static_cast<long long>(count) * nq), kElementBlock, 0, stream_>>>(
+        q_, qd_, idx, qr, qdr, count, static_cast<Index>(nq), static_cast<Index>(n), setup_.batch);
     check(cudaGetLastError(), "resetting instances");
     // the host rows are the caller's scratch, reused after we return
     check(cudaStreamSynchronize(stream_), "resetting instances");
@@ -337,7 +374,8 @@ class CudaSimBackend final : public SimBackend<S> {
 
   void read_state(S* q_host, S* qd_host) override {
     const std::size_t bytes = static_cast<std::size_t>(setup_.model.nv()) * setup_.batch * sizeof(S);
-    check(cudaMemcpyAsync(q_host, q_, bytes, cudaMemcpyDeviceToHost, stream_), "copying q to the host");
+    const std::size_t q_bytes = static_cast<std::size_t>(setup_.model.nq()) * setup_.batch * sizeof(S);
+    check(cudaMemcpyAsync(q_host, q_, q_bytes, cudaMemcpyDeviceToHost, stream_), "copying q to the host");
     check(cudaMemcpyAsync(qd_host, qd_, bytes, cudaMemcpyDeviceToHost, stream_), "copying qd to the host");
     check(cudaStreamSynchronize(stream_), "copying the state to the host");
   }
@@ -393,7 +431,8 @@ class CudaSimBackend final : public SimBackend<S> {
     auto* planes = reinterpret_cast<ContactPlane<S>*>(take(np * sizeof(ContactPlane<S>)));
     auto* spheres = reinterpret_cast<ContactSphere<S>*>(take(ns * sizeof(ContactSphere<S>)));
     readings_ = reinterpret_cast<ContactReading<S>*>(take(B * P * sizeof(ContactReading<S>)));
-    if (fused_) {  // the fused kernels' bodies are z-axis frames (ZThreadModel): the points in them
+    if (fused_ && !floating_) {  // the fused kernels' bodies are z-axis frames (ZThreadModel): the points in them
+                                 // (the floating-base kernel's contact pass runs in the user's frames)
       const ZAxisModel<S> zm = z_axis_model(setup_.model);
       std::vector<ContactPoint<S>> turned = setup_.contact_points;
       for (ContactPoint<S>& cp : turned) cp.position = zm.to_z_frame(cp.body, cp.position);
@@ -451,11 +490,13 @@ class CudaSimBackend final : public SimBackend<S> {
 
   const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
   bool fused_ = true;
+  bool floating_ = false;                 // a floating base (sim_fused_floating_kernel)
+  FloatingArgs<S> floating_args_{};       // its bodies, coefficients, armature (in small_)
   std::unique_ptr<cuda::detail::StagingBuffer> state_;  // the device, the stream, the state buffer
   cudaStream_t stream_ = nullptr;
-  S* q_ = nullptr;                        // (nv x B) device
+  S* q_ = nullptr;                        // (nq x B) device
   S* qd_ = nullptr;                       // (nv x B) device
-  Force<S>* step_wrenches_ = nullptr;     // (B x nv) per-step wrenches, or null
+  Force<S>* step_wrenches_ = nullptr;     // (B x nbodies) per-step wrenches, or null
   S *tau_ = nullptr, *qdd_ = nullptr, *qs_ = nullptr, *qds_ = nullptr, *aq_ = nullptr, *aqd_ = nullptr;  // engine path
   int* failed_ = nullptr;                 // (B) the engine's failed DoF per instance
   int* bad_ = nullptr;                    // (B) rk4: any stage failed

@@ -200,7 +200,7 @@ template <class S>
 std::unique_ptr<ResidentBatch<S>> AlgoEngine<S>::resident(const BatchIn<S>& in) {
 #if SCANDYN_HAS_CUDA
   if (engine().backend() == BackendKind::Cuda)
-    return make_resident_batch<S>(algo_, const_cast<Engine&>(engine()), nv_, in);
+    return make_resident_batch<S>(algo_, const_cast<Engine&>(engine()), nv_, nq_, in);
 #endif
   (void)in;
   return nullptr;

@@ -102,7 +102,8 @@ class AlgoEngine {
 // The CUDA engines' device-resident batch (engines_cuda.cpp); null for an engine
 // without compute_async (fd hybrid, and jsi with the aba fallback).
 template <class S>
-std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, const BatchIn<S>& in);
+std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, Index nq,
+                                                     const BatchIn<S>& in);
 #endif
 
 #if SCANDYN_HAS_CUDA

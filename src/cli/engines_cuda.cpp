@@ -33,13 +33,14 @@ class CudaResidentBatch final : public ResidentBatch<S> {
  public:
   // queue: the engine's compute_async() on the batch; failure: what a failed DoF means
   using Queue = std::function<cudaError_t(const cuda::DeviceBatch<S>&)>;
+  // nq: the row length of inputs[0] when it is q (0: nv)
   CudaResidentBatch(std::string strategy, std::string what, Index nv, const std::vector<const S*>& inputs,
                     std::size_t count, std::size_t out_width, std::size_t engine_bytes, Queue queue,
-                    Failure failure = Failure::None)
+                    Failure failure = Failure::None, Index nq = 0)
       : strategy_(std::move(strategy)), what_(std::move(what)), queue_(std::move(queue)), failure_(failure) {
     try {
       batch_ = std::make_unique<cuda::DeviceBatch<S>>(nv, static_cast<Index>(count), inputs, out_width,
-                                                      failure != Failure::None, engine_bytes);
+                                                      failure != Failure::None, engine_bytes, nq);
     } catch (const BackendError& e) {
       throw UsageError(e.what(), false);  // beyond device memory: before any timing
     }
@@ -141,12 +142,13 @@ class ShardedResidentBatch final : public ResidentBatch<S> {
 }  // namespace
 
 template <class S>
-std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, const BatchIn<S>& in) {
+std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine, Index nv, Index nq,
+                                                     const BatchIn<S>& in) {
   using D = cuda::DeviceBatch<S>;
   if (auto* sharded = dynamic_cast<ShardedEngine*>(&engine)) {
     // one resident batch per shard, each of its instances' rows, made on its device
     const int n = sharded->shard_count();
-    const auto rows = [&](const S* p, Index b) { return p ? p + static_cast<std::size_t>(b) * nv : nullptr; };
+    const auto rows = [&](const S* p, Index b, Index w) { return p ? p + static_cast<std::size_t>(b) * w : nullptr; };
     std::vector<std::unique_ptr<ResidentBatch<S>>> shards;
     std::vector<int> devices;
     std::vector<ShardRange> ranges;
@@ -155,11 +157,11 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
       const int device = sharded->shard_device(k);
       cuda::DeviceScope scope(device);
       if (!scope.ok()) throw UsageError("device " + std::to_string(device) + ": " + scope.error(), false);
-      const BatchIn<S> part{static_cast<std::size_t>(r.count), rows(in.q, r.begin), rows(in.qd, r.begin),
-                            rows(in.qdd, r.begin), rows(in.tau, r.begin)};
+      const BatchIn<S> part{static_cast<std::size_t>(r.count), rows(in.q, r.begin, nq), rows(in.qd, r.begin, nv),
+                            rows(in.qdd, r.begin, nv), rows(in.tau, r.begin, nv)};
       std::unique_ptr<ResidentBatch<S>> shard;
       try {
-        shard = make_resident_batch(algo, sharded->shard_engine(k), nv, part);
+        shard = make_resident_batch(algo, sharded->shard_engine(k), nv, nq, part);
       } catch (const UsageError& e) {
         throw UsageError("device " + std::to_string(device) + ": " + e.what(), false);
       }
@@ -185,7 +187,7 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
         [&e](const D& d) {
           return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.failed_dof(), d.stream());
         },
-        pivot_failure(e.method()));
+        pivot_failure(e.method()), nq);
   }
   if (algo == Algo::DId || algo == Algo::DFd) {
     // the output's three nv x nv blocks, instance innermost: block k from entry k nv^2
@@ -217,19 +219,21 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
     auto& e = dynamic_cast<cuda::CudaMassMatrix<S>&>(engine);
     return std::make_unique<CudaResidentBatch<S>>(
         e.strategy(), "the mass matrix", nv, std::vector<const S*>{in.q}, in.count, width, e.device_bytes(),
-        [&e](const D& d) { return e.compute_async(d.input(0), d.output(), d.stream()); });
+        [&e](const D& d) { return e.compute_async(d.input(0), d.output(), d.stream()); }, Failure::None, nq);
   }
   if (algo == Algo::Bias) {
     auto& e = dynamic_cast<cuda::CudaBiasForces<S>&>(engine);
     return std::make_unique<CudaResidentBatch<S>>(
         e.strategy(), "the bias forces", nv, std::vector<const S*>{in.q, in.qd}, in.count, width,
-        e.device_bytes(), [&e](const D& d) { return e.compute_async({d.input(0), d.input(1)}, d.output(), d.stream()); });
+        e.device_bytes(), [&e](const D& d) { return e.compute_async({d.input(0), d.input(1)}, d.output(), d.stream()); },
+        Failure::None, nq);
   }
   auto& e = dynamic_cast<cuda::CudaInverseDynamics<S>&>(engine);
   return std::make_unique<CudaResidentBatch<S>>(
       e.strategy(), "the inverse dynamics", nv, std::vector<const S*>{in.q, in.qd, in.qdd}, in.count, width,
       e.device_bytes(),
-      [&e](const D& d) { return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.stream()); });
+      [&e](const D& d) { return e.compute_async({d.input(0), d.input(1), d.input(2)}, d.output(), d.stream()); },
+      Failure::None, nq);
 }
 template <class S>
 std::unique_ptr<ResidentBatch<S>> make_resident_kinematics(Kinematics<S>& engine, Index nv, const S* q,
@@ -275,8 +279,8 @@ template std::unique_ptr<ResidentBatch<float>> make_resident_kinematics(Kinemati
 template std::unique_ptr<ResidentBatch<double>> make_resident_kinematics(Kinematics<double>&, Index, const double*,
                                                                          std::size_t, std::size_t, std::size_t);
 
-template std::unique_ptr<ResidentBatch<float>> make_resident_batch(Algo, Engine&, Index, const BatchIn<float>&);
-template std::unique_ptr<ResidentBatch<double>> make_resident_batch(Algo, Engine&, Index, const BatchIn<double>&);
+template std::unique_ptr<ResidentBatch<float>> make_resident_batch(Algo, Engine&, Index, Index, const BatchIn<float>&);
+template std::unique_ptr<ResidentBatch<double>> make_resident_batch(Algo, Engine&, Index, Index, const BatchIn<double>&);
 
 }  // namespace scandyn::cli
 

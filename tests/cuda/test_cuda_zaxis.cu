@@ -183,12 +183,18 @@ TEST(CudaZAxisHost, ModelIsTurnedWhereTheAxisIsNotZ) {
     EXPECT_EQ(pi.flags[i] & cuda::kTurned, 0);
     for (int k = 0; k < 9; ++k) EXPECT_EQ(pi.body[i].Xtree.E.m[k], iiwa.bodies[i].Xtree.E.m[k]);
   }
-  // multi-DoF joints are refused by name
+  // a floating base is held apart (its joint is not turned: the kernels' bodies are
+  // those past it); spherical joints are refused by name
+  const cuda::ZThreadModel<double> tf(test::load_floating("iiwa.urdf"));
+  EXPECT_TRUE(tf.floating());
+  EXPECT_EQ(tf.capacity(), 8);
+  const Model ball = load_model("ballrope:4");
   try {
-    cuda::ZThreadModel<double> bad(test::load_floating("iiwa.urdf"));
-    ADD_FAILURE() << "a free joint was accepted";
+    cuda::ZThreadModel<double> bad(ball);
+    ADD_FAILURE() << "a spherical joint was accepted";
   } catch (const BackendError& e) {
-    EXPECT_NE(std::string(e.what()).find("root_joint"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("spherical joint '" + first_multi_dof_joint(ball) + "'"), std::string::npos)
+        << e.what();
   }
 }
 

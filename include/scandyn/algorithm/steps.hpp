@@ -411,10 +411,7 @@ SCANDYN_HD Transform<S> joint_transform_at(const Body<S>& b, const S* q) {
 template <class S>
 SCANDYN_HD Motion<S> joint_column(const Body<S>& b, int k) {
   if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return joint_motion(b, S(1));
-  Motion<S> m = Motion<S>::zero();
-  if (k < 3) (k == 0 ? m.w.x : k == 1 ? m.w.y : m.w.z) = S(1);
-  else (k == 3 ? m.v.x : k == 4 ? m.v.y : m.v.z) = S(1);
-  return m;
+  return {Vec3<S>{S(k == 0), S(k == 1), S(k == 2)}, Vec3<S>{S(k == 3), S(k == 4), S(k == 5)}};
 }
 
 // S qd for the joint's rates qd (b.idx_v's entries).
@@ -434,6 +431,20 @@ SCANDYN_HD void joint_project_at(const Body<S>& b, const Force<S>& f, S* out) {
   }
   out[0] = f.n.x, out[1] = f.n.y, out[2] = f.n.z;
   if (b.type == JointType::Free) out[3] = f.f.x, out[4] = f.f.y, out[5] = f.f.z;
+}
+
+// Entry k of S^T f (k < joint_nv(b.type)): joint_project_at's out[k].
+template <class S>
+SCANDYN_HD S joint_project_entry(const Body<S>& b, const Force<S>& f, int k) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return joint_project(b, f);
+  switch (k) {
+    case 0: return f.n.x;
+    case 1: return f.n.y;
+    case 2: return f.n.z;
+    case 3: return f.f.x;
+    case 4: return f.f.y;
+    default: return f.f.z;
+  }
 }
 
 // RNEA forward step at any joint (qdd null: zero accelerations).
@@ -472,23 +483,27 @@ SCANDYN_HD AbaForward<S> aba_forward_step_at(const Body<S>& b, const Transform<S
 // U D^-1 u = Y w. L is written row k at L[k * kMaxJointDofs] (lower triangle).
 // Returns the first k whose pivot is not positive and finite, or -1. For nj = 1 this
 // is not the 1-DoF path's arithmetic (aba_joint_terms), which 1-DoF joints keep.
-template <class S>
+//
+// (D's entries and S^T pA are read one at a time, joint_project_entry, not from an
+// array that joint_project_at fills: in the floating-base ABA kernel for chains,
+// nvcc (CUDA 13, sm_90) read that array's linear entries wrongly, the pivot at DoF
+// 3 failing for every state.)
+// kNj: the joint's DoFs when known at compile time (6: the floating base in the
+// thread kernels, whose loops then run over constant indices), else 0.
+template <int kNj = 0, class S>
 SCANDYN_HD int aba_joint_terms_at(const Body<S>& b, const ABInertia<S>& IA, const Force<S>& pA,
                                   const S* tau, Force<S>* Y, S* L, S* w, const S* armature) {
-  const int nj = joint_nv(b.type);
-  S pAS[kMaxJointDofs];
-  joint_project_at(b, pA, pAS);
+  const int nj = kNj > 0 ? kNj : joint_nv(b.type);
   for (int k = 0; k < nj; ++k) Y[k] = IA * joint_column(b, k);  // U
   for (int k = 0; k < nj; ++k) {
-    S Uk[kMaxJointDofs];  // column k of D: S^T U_k
-    joint_project_at(b, Y[k], Uk);
+    const Force<S> Uk = Y[k];  // column k of D: S^T U_k
     // Cholesky row by row: L_kl for l < k from D_kl, then the pivot
     for (int l = 0; l < k; ++l) {
-      S x = Uk[l];
+      S x = joint_project_entry(b, Uk, l);
       for (int m = 0; m < l; ++m) x -= L[k * kMaxJointDofs + m] * L[l * kMaxJointDofs + m];
       L[k * kMaxJointDofs + l] = x / L[l * kMaxJointDofs + l];
     }
-    S d = Uk[k] + (armature ? armature[k] : S(0));
+    S d = joint_project_entry(b, Uk, k) + (armature ? armature[k] : S(0));
     for (int m = 0; m < k; ++m) d -= L[k * kMaxJointDofs + m] * L[k * kMaxJointDofs + m];
     if (!pivot_ok(d)) return k;
     L[k * kMaxJointDofs + k] = ScalarMath<S>::sqrt(d);
@@ -496,7 +511,7 @@ SCANDYN_HD int aba_joint_terms_at(const Body<S>& b, const ABInertia<S>& IA, cons
   // Y = U L^-T (forward substitution over columns), w = L^-1 (tau - S^T pA)
   for (int k = 0; k < nj; ++k) {
     Force<S> y = Y[k];
-    S x = tau[k] - pAS[k];
+    S x = tau[k] - joint_project_entry(b, pA, k);
     for (int l = 0; l < k; ++l) {
       const S Lkl = L[k * kMaxJointDofs + l];
       y = y - Lkl * Y[l];
@@ -525,12 +540,13 @@ SCANDYN_HD void aba_backward_to_parent_at(int nj, const Transform<S>& Xup, const
 
 // ABA pass 3 at a joint of nj DoFs: a' = Xup a_parent + c, qdd = L^-T (w - Y^T a'),
 // a = a' + S qdd.
-template <class S>
+// (kNj as for aba_joint_terms_at.)
+template <int kNj = 0, class S>
 SCANDYN_HD void aba_acceleration_step_at(const Body<S>& b, const Transform<S>& Xup,
                                          const Motion<S>& a_parent, const Motion<S>& c,
                                          const Force<S>* Y, const S* L, const S* w, S* qdd,
                                          Motion<S>& a) {
-  const int nj = joint_nv(b.type);
+  const int nj = kNj > 0 ? kNj : joint_nv(b.type);
   const Motion<S> ap = Xup.apply(a_parent) + c;
   for (int k = nj - 1; k >= 0; --k) {
     S x = w[k] - dot(ap, Y[k]);

@@ -26,14 +26,17 @@ class DeviceBatch {
   // layout, set to NaN until a call writes it (so an entry never written shows), and
   // with failures B ints set to -1, on a non-blocking stream of its own. Throws
   // BackendError naming the bytes needed (besides other_bytes already held on the
-  // device, named in the message) and the bytes free.
+  // device, named in the message) and the bytes free. nq: the first input's row
+  // length when it is q with a quaternion (nq > nv: a floating base or ball joints);
+  // 0: nv.
   DeviceBatch(Index nv, Index B, const std::vector<const S*>& inputs, std::size_t out_width, bool failures,
-              std::size_t other_bytes = 0);
+              std::size_t other_bytes = 0, Index nq = 0);
   ~DeviceBatch();
   DeviceBatch(const DeviceBatch&) = delete;
   DeviceBatch& operator=(const DeviceBatch&) = delete;
 
-  BatchView<const S> input(int k) const { return BatchView<const S>::soa(in_[k], nv_, B_); }  // (nv x B)
+  BatchView<const S> input(int k) const { return BatchView<const S>::soa(in_[k], width(k), B_); }  // (width x B)
+  Index width(int k) const { return k == 0 ? nq_ : nv_; }  // input k's row length
   BatchView<S> output() const { return BatchView<S>::soa(out_, static_cast<Index>(width_), B_); }  // (width x B)
   int* failed_dof() const { return failed_; }  // (B) device ints, or null without failures
   cudaStream_t stream() const { return stream_; }
@@ -49,9 +52,10 @@ class DeviceBatch {
  private:
   void release() noexcept;
   Index nv_, B_;
+  Index nq_;  // input 0's row length
   std::size_t width_;
   std::size_t bytes_ = 0;
-  void* buffer_ = nullptr;   // the inputs (nv x B each), the output (width x B), the failed DoFs (B ints)
+  void* buffer_ = nullptr;   // the inputs (width(k) x B each), the output (width x B), the failed DoFs (B ints)
   const S* in_[3] = {nullptr, nullptr, nullptr};
   S* out_ = nullptr;
   int* failed_ = nullptr;

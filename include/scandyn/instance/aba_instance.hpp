@@ -383,7 +383,7 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
         }
       },
       base_hook<kFloating>([&](Index, const AbaCarry<S>& up) { base_t += up; }));
-  if (!pass2.complete) return pass2.at + v_offset(model);
+  if (!pass2.complete) return pass2.at + (kFloating ? Index(6) : Index(0));  // (the base's DoFs first)
 
   // the floating base: its joint terms (the 6 x 6 articulated inertia factored) and
   // its acceleration, which starts pass 3
@@ -392,10 +392,10 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     S taub[6], w[6], L[kMaxJointDofs * kMaxJointDofs], qddb[6];
     Force<S> Y[6];
     for (int k = 0; k < 6; ++k) taub[k] = tau0[k];
-    const int failed = aba_joint_terms_at(model.base, base_t.IA, base_t.pA, taub, Y, L, w, armature0);
+    const int failed = aba_joint_terms_at<6>(model.base, base_t.IA, base_t.pA, taub, Y, L, w, armature0);
     if (failed >= 0) return failed;
     Motion<S> a;
-    aba_acceleration_step_at(model.base, joint_transform_at(model.base, qb), model.a0, c0, Y, L, w, qddb, a);
+    aba_acceleration_step_at<6>(model.base, joint_transform_at(model.base, qb), model.a0, c0, Y, L, w, qddb, a);
     for (int k = 0; k < 6; ++k) qdd0[k] = qddb[k];
     root = {v0, a};
   }

@@ -18,9 +18,11 @@ namespace cuda {
 // the base's DoFs r, c < 6 and the kernels' body k (ThreadModelParams::floating).
 template <class S, int C, bool kFloating>
 struct FloatingMassRows {
-  S block[kFloating ? 36 : 1];
-  S coupling[kFloating ? 6 * C : 1];
+  S block[36];
+  S coupling[6 * C];
 };
+template <class S, int C>
+struct FloatingMassRows<S, C, false> {};
 
 namespace fd_detail {
 
@@ -176,10 +178,12 @@ __host__ __device__ __forceinline__ void jsi_passes(const ThreadModelParams<S, C
       },
       base_hook<kFloating>([&](Index i, const JsiCarry<S>& up) {
         // body i's subtree's columns have reached the base's frame: their base entries
-        Ic0 += up.I;
-        const auto put = [&](Index k) { joint_project_at(model.base, w[k], &base->coupling[k * 6]); };
-        put(i);
-        for_descendants<kUnrolled>(model, i, put);
+        if constexpr (kFloating) {
+          Ic0 += up.I;
+          const auto put = [&](Index k) { joint_project_at(model.base, w[k], &base->coupling[k * 6]); };
+          put(i);
+          for_descendants<kUnrolled>(model, i, put);
+        }
       }));
   if constexpr (kFloating) {
     // the base's own block: its composite inertia's columns

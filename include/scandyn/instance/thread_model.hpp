@@ -64,14 +64,15 @@ struct ThreadModelParams {
   Motion<S> a0;                    // base acceleration: gravity entered as -g (world frame; with a
                                    // floating base, the acceleration of the world the base moves in)
   Index nv;                        // number of bodies in body[] (their DoF), <= C
+  Mat3<S> frame_Q[z_axes ? C : 1]; // (nv, z-axis models) Q_i: body i's user-frame
+                                   // coordinates -> its z-axis frame's (kTurned bodies)
+  // (last, so that the fields above keep their places in the fixed-base kernels)
   int floating;                    // 1: the model's body 0 is a floating base (a free joint to the
                                    // world), held apart in `base`: body[] are the model's bodies
                                    // 1.. (parents shifted by one; the base's children are
                                    // kParentIsBase) and every instance vector starts with the
                                    // base's entries (q: 7, qd/qdd/tau: 6, fext: 1 wrench); 0: fixed
   Body<S> base;                    // (floating) the base: its free joint and rigid inertia
-  Mat3<S> frame_Q[z_axes ? C : 1]; // (nv, z-axis models) Q_i: body i's user-frame
-                                   // coordinates -> its z-axis frame's (kTurned bodies)
 };
 
 // Body i's external wrench fext[i], given in body i's user frame, in the frame the

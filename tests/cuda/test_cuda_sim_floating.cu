@@ -1,0 +1,122 @@
+// The simulator's CUDA step with a floating base (sim_fused_floating_kernel:
+// step_instance_at on the configuration manifold over aba_instance's floating-base
+// kernel, the contact pass in the user's frames) against the serial simulator:
+// rollouts of hyq on a floating base standing on a ground plane (gravity, damping,
+// limits, contacts), a free random chain and a free rope tumbling in zero gravity
+// with an external wrench, every integrator, float and double; resets of quaternion
+// states. Tolerances relative to the largest |q|, |qd|: double 1e-9 (the same steps,
+// FMA contraction apart; contacts 1e-7 over 50 steps, their stiff law amplifying
+// rounding), float 1e-3 (2e-3 with contacts: the SFU's sin/cos and float rounding
+// over the steps).
+#include <cuda_runtime.h>
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "scandyn/model/load.hpp"
+#include "scandyn/sim/scene.hpp"
+#include "scandyn/sim/simulator.hpp"
+
+namespace scandyn {
+namespace {
+
+using sim::Scene;
+using sim::Simulator;
+
+Scene scene_from(const std::string& json) { return sim::parse_scene(json, "test.json"); }
+
+// hyq on a floating base over a ground plane, its feet as contact points (as scenes/hyq_floating.json)
+std::string hyq_scene(const std::string& integrator, int B) {
+  return R"({"model": "hyq.urdf", "base": "floating", "dt": 1e-3, "integrator": ")" + integrator +
+         R"(", "instances": )" + std::to_string(B) + R"(,
+    "effects": {"gravity": true, "damping": 1.0, "limits": {"stiffness": 2000, "damping": 20},
+      "contacts": {"planes": [{"normal": [0, 0, 1], "offset": 0.0}],
+        "points": [{"link": "lf_lowerleg", "position": [0.33, 0, 0], "radius": 0.02},
+                   {"link": "lh_lowerleg", "position": [0.33, 0, 0], "radius": 0.02},
+                   {"link": "rf_lowerleg", "position": [0.33, 0, 0], "radius": 0.02},
+                   {"link": "rh_lowerleg", "position": [0.33, 0, 0], "radius": 0.02}],
+        "stiffness": 200000.0, "damping": 2000.0, "friction": 0.8}},
+    "initial": {"q": [0, 0, 0.62, 0, 0, 0, 1, 0, 0.6, -1.2, 0, -0.6, 1.2, 0, 0.6, -1.2, 0, -0.6, 1.2],
+      "random": {"seed": 2, "q": [0, 0, 0, 0, 0, 0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1],
+                 "qd": [0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]}}})";
+}
+
+// a free chain in zero gravity, spinning, with a wrench on its base and joint damping and springs
+std::string free_scene(const std::string& model, const std::string& integrator, int B) {
+  const std::string base_link = load_model(model).link_names[0];
+  return R"({"model": ")" + model + R"(", "base": "floating", "dt": 1e-3, "integrator": ")" + integrator +
+         R"(", "instances": )" + std::to_string(B) + R"(,
+    "effects": {"damping": 0.02, "springs": {"stiffness": 0.3},
+      "external": {"wrenches": [{"link": ")" + base_link + R"(", "wrench": [0.02, 0, 0.01, 0, 0.1, 0]}]}},
+    "initial": {"random": {"seed": 5, "q": 0.3, "qd": 0.8}}})";
+}
+
+// max over entries of |x - ref| / max(1, max |ref|): q (nq rows) and qd (nv rows) of every instance
+template <class S>
+double state_error(Simulator<S>& s, Simulator<double>& ref) {
+  const std::size_t nq = static_cast<std::size_t>(s.nq()) * s.batch(), nv = static_cast<std::size_t>(s.nv()) * s.batch();
+  std::vector<S> q(nq), qd(nv);
+  std::vector<double> rq(nq), rqd(nv);
+  s.read_state(q.data(), qd.data());
+  ref.read_state(rq.data(), rqd.data());
+  double scale = 1, worst = 0;
+  for (double x : rq) scale = std::max(scale, std::abs(x));
+  for (double x : rqd) scale = std::max(scale, std::abs(x));
+  for (std::size_t k = 0; k < nq; ++k) worst = std::max(worst, std::abs(double(q[k]) - rq[k]));
+  for (std::size_t k = 0; k < nv; ++k) worst = std::max(worst, std::abs(double(qd[k]) - rqd[k]));
+  for (std::size_t k = 0; k < nq; ++k)
+    if (!std::isfinite(double(q[k]))) return INFINITY;
+  return worst / scale;
+}
+
+template <class S>
+double rollout_error(const Scene& scene, int steps) {
+  Simulator<S> gpu(scene, BackendKind::Cuda);
+  Simulator<double> cpu(scene, BackendKind::Serial);
+  EXPECT_EQ(gpu.strategy().find("fused-aba"), 0u) << gpu.strategy();
+  for (int s = 0; s < steps; ++s) gpu.step(), cpu.step();
+  EXPECT_TRUE(gpu.status().ok()) << sim::failure_message(gpu.status());
+  EXPECT_TRUE(cpu.status().ok()) << sim::failure_message(cpu.status());
+  return state_error(gpu, cpu);
+}
+
+class CudaSimFloating : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    const std::string why = test::no_device_reason();
+    if (!why.empty()) GTEST_SKIP() << "no usable CUDA device: " << why;
+  }
+};
+
+TEST_F(CudaSimFloating, RolloutsMatchSerial) {
+  for (const char* integrator : {"euler", "rk4", "implicit"}) {
+    SCOPED_TRACE(integrator);
+    const Scene hyq = scene_from(hyq_scene(integrator, 64));
+    EXPECT_LE(rollout_error<double>(hyq, 50), 1e-7) << "hyq";
+    EXPECT_LE(rollout_error<float>(hyq, 50), 2e-3) << "hyq";
+    for (const char* model : {"rope:10", "chain:6"}) {
+      const Scene free = scene_from(free_scene(model, integrator, 40));
+      EXPECT_LE(rollout_error<double>(free, 100), 1e-9) << model;
+      EXPECT_LE(rollout_error<float>(free, 100), 1e-3) << model;
+    }
+  }
+}
+
+// Resets write the scene's initial quaternion states on the device as on the host.
+TEST_F(CudaSimFloating, ResetsMatchSerial) {
+  const Scene scene = scene_from(free_scene("rope:10", "rk4", 16));
+  Simulator<double> gpu(scene, BackendKind::Cuda), cpu(scene, BackendKind::Serial);
+  for (int s = 0; s < 20; ++s) gpu.step(), cpu.step();
+  const std::vector<Index> which = {0, 3, 15};
+  gpu.reset(which);
+  cpu.reset(which);
+  for (int s = 0; s < 10; ++s) gpu.step(), cpu.step();
+  EXPECT_LE(state_error(gpu, cpu), 1e-9);
+}
+
+}  // namespace
+}  // namespace scandyn
