@@ -336,15 +336,18 @@ std::vector<Timing> time_kinematics(const Model& model, const ModelTpl<S>& model
 constexpr int kStepErrSteps = 10;
 constexpr Index kStepErrInstances = 1000;
 
-// q and qd of every instance after kStepErrSteps steps, instance-major (B x 2 nv).
+// q and qd of the first count instances, instance-major (count x (nq + nv)).
 template <class S>
 std::vector<double> state_rows(sim::Simulator<S>& s, Index count) {
-  const std::size_t n = static_cast<std::size_t>(s.nv()), B = static_cast<std::size_t>(s.batch());
-  std::vector<S> q(n * B), qd(n * B);
+  const std::size_t n = static_cast<std::size_t>(s.nv()), nq = static_cast<std::size_t>(s.nq());
+  const std::size_t B = static_cast<std::size_t>(s.batch()), w = nq + n;
+  std::vector<S> q(nq * B), qd(n * B);
   s.read_state(q.data(), qd.data());
-  std::vector<double> rows(static_cast<std::size_t>(count) * 2 * n);
-  for (std::size_t b = 0; b < static_cast<std::size_t>(count); ++b)
-    for (std::size_t i = 0; i < n; ++i) rows[b * 2 * n + i] = q[i * B + b], rows[b * 2 * n + n + i] = qd[i * B + b];
+  std::vector<double> rows(static_cast<std::size_t>(count) * w);
+  for (std::size_t b = 0; b < static_cast<std::size_t>(count); ++b) {
+    for (std::size_t i = 0; i < nq; ++i) rows[b * w + i] = q[i * B + b];
+    for (std::size_t i = 0; i < n; ++i) rows[b * w + nq + i] = qd[i * B + b];
+  }
   return rows;
 }
 
@@ -363,15 +366,15 @@ Timing time_steps(const sim::Scene& scene, BackendKind backend, double min_time)
   sim::Simulator<double> ref(ref_scene, BackendKind::Serial);
   for (int k = 0; k < kStepErrSteps; ++k) ref.step();
   const std::vector<double> r = state_rows(ref, count);
-  const std::size_t w = 2 * static_cast<std::size_t>(s.nv());
+  const std::size_t nq = static_cast<std::size_t>(s.nq()), w = nq + static_cast<std::size_t>(s.nv());
   if (!s.status().ok() || !ref.status().ok())
     throw DataError(scene.path + ": " + sim::failure_message(s.status().ok() ? ref.status() : s.status()));
   for (const auto* rows : {&x, &r}) {
     for (std::size_t k = 0; k < rows->size(); ++k) {
       if (std::isfinite((*rows)[k])) continue;
-      const std::size_t b = k / w, j = k % w, n = w / 2;
+      const std::size_t b = k / w, j = k % w;
       throw DataError(scene.path + ": step " + std::to_string(kStepErrSteps) + ": the state is not finite in instance " +
-                      std::to_string(b) + " (" + (j < n ? "q_" : "qd_") + std::to_string(j % n) + " = " +
+                      std::to_string(b) + " (" + (j < nq ? "q_" : "qd_") + std::to_string(j < nq ? j : j - nq) + " = " +
                       (std::isnan((*rows)[k]) ? "nan" : (*rows)[k] > 0 ? "inf" : "-inf") + ", " +
                       (rows == &x ? "the benchmarked simulator" : "the double serial reference") +
                       "; the simulation overflowed); nothing printed");

@@ -258,20 +258,28 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
     }
   };
 
-  // the floating base (kFloating): its joint's positions and rates, its velocity and
-  // velocity-product term, its articulated inertia and bias force (pass 2 adds its
-  // children); then the columns past its entries
-  S qb[kFloating ? 7 : 1], qdb[kFloating ? 6 : 1];
-  Motion<S> v0 = Motion<S>::zero(), c0 = Motion<S>::zero();
+  // the floating base (kFloating): its articulated inertia and bias force (pass 2
+  // adds its children); then the columns past its entries. Its positions and rates
+  // are read again in pass 3 rather than held through pass 2 (registers), and its
+  // velocity-product term is zero (the root's v x S qd with v = S qd), as pass 3 takes it.
   fd_detail::AbaCarry<S> base_t{};
-  DofColumn<const S> tau0 = tau;
-  DofColumn<S> qdd0 = qdd;
+  const DofColumn<const S> q0 = q, qd0 = qd, tau0 = tau;
+  const DofColumn<S> qdd0 = qdd;
   const S* armature0 = armature;
+  // the base's q and qd entries (pass 1 and pass 3)
+  auto base_q = [&](S (&qb)[7]) {
+    for (int k = 0; k < 7; ++k) qb[k] = q0[k];
+  };
+  auto base_velocity = [&]() -> Motion<S> {
+    return {Vec3<S>{qd0[0], qd0[1], qd0[2]}, Vec3<S>{qd0[3], qd0[4], qd0[5]}};
+  };
+  Motion<S> v0 = Motion<S>::zero();
   if constexpr (kFloating) {
-    for (int k = 0; k < 7; ++k) qb[k] = q[k];
+    S qb[7], qdb[6];
+    base_q(qb);
     for (int k = 0; k < 6; ++k) qdb[k] = qd[k];
     const AbaForward<S> o = aba_forward_step_at(model.base, joint_transform_at(model.base, qb), Motion<S>::zero(), qdb);
-    v0 = o.v, c0 = o.c;
+    v0 = o.v;
     base_t.IA = ABInertia<S>::from(model.base.I);
     base_t.pA = fext ? o.pA - fext[0] : o.pA;
     q = column_from(q, 7), qd = column_from(qd, 6), tau = column_from(tau, 6), qdd = column_from(qdd, 6);
@@ -389,15 +397,17 @@ __host__ __device__ __forceinline__ Index aba_instance(const ThreadModelParams<S
   // its acceleration, which starts pass 3
   BodyKinematics<S> root{Motion<S>::zero(), model.a0};
   if constexpr (kFloating) {
-    S taub[6], w[6], L[kMaxJointDofs * kMaxJointDofs], qddb[6];
+    S qb[7], taub[6], w[6], L[kMaxJointDofs * kMaxJointDofs], qddb[6];
     Force<S> Y[6];
     for (int k = 0; k < 6; ++k) taub[k] = tau0[k];
     const int failed = aba_joint_terms_at<6>(model.base, base_t.IA, base_t.pA, taub, Y, L, w, armature0);
     if (failed >= 0) return failed;
     Motion<S> a;
-    aba_acceleration_step_at<6>(model.base, joint_transform_at(model.base, qb), model.a0, c0, Y, L, w, qddb, a);
+    base_q(qb);
+    aba_acceleration_step_at<6>(model.base, joint_transform_at(model.base, qb), model.a0, Motion<S>::zero(), Y, L, w,
+                                qddb, a);
     for (int k = 0; k < 6; ++k) qdd0[k] = qddb[k];
-    root = {v0, a};
+    root = {base_velocity(), a};
   }
 
   // pass 3: accelerations, root to leaves
