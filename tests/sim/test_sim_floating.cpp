@@ -407,7 +407,8 @@ TEST(SimFloatingScene, FloatingBaseAndBallJoints) {
   EXPECT_EQ(h.joints[6].damping, 2.0);
   EXPECT_EQ(h.joints[6].stiffness, 30.0);
   EXPECT_EQ(h.joints[6].lower, h.model.q_lower[1]);  // the URDF's limit of body 1
-  for (const char* file : {"hyq_floating.json", "atlas_floating.json", "rope_free_1000.json", "ballrope_1000.json"}) {
+  for (const char* file : {"hyq_floating.json", "hyq_floating_rl.json", "atlas_floating.json", "rope_free_1000.json",
+                           "ballrope_1000.json"}) {
     const Scene sc = sim::load_scene(std::string(SCANDYN_SOURCE_DIR) + "/scenes/" + file);
     EXPECT_TRUE(sc.model.multi_dof()) << file;
     Scene small = sc;
