@@ -148,7 +148,7 @@ TEST_F(CliFloating, BenchRowsNameTheFloatingModel) {
   EXPECT_NE(r.out.find("fd,aba,serial,double,hyq-floating,18,8,"), std::string::npos) << r.out;
   // cuda: the floating-base thread kernels where a device is usable, else an error saying why
   const Result c = run("bench --model hyq --floating-base --algo fd --instances 8 --min-time 0 --backend cuda");
-  if (backend_unusable(BackendKind::Cuda).empty()) {
+  if (scandyn::backend_unusable(scandyn::BackendKind::Cuda).empty()) {
     ASSERT_EQ(c.code, 0) << c.err;
     EXPECT_NE(c.out.find("fd,aba_thread,cuda,double,hyq-floating,18,8,"), std::string::npos) << c.out;
   } else {
