@@ -87,7 +87,7 @@ cudaError_t launch_fd_instances(const ThreadModel<S, Bd>& model, const FdBatchIn
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdInstancesBlock - 1) / kFdInstancesBlock);
   auto launch = [&](const auto& params, auto algo) {
     constexpr int C = std::decay_t<decltype(params)>::capacity;
-    if constexpr (kAba && kFloatingKernels<S, Bd>) {
+    if constexpr (kAba && kFloatingKernels<S, Bd> && kFloatingCapacity<C>) {
       if (model.floating()) {
         fd_instances_kernel<S, C, decltype(algo)::value, Bd, true>
             <<<blocks, kFdInstancesBlock, 0, stream>>>(params, batch_in, qdd_out, failed_dof_out);
@@ -158,7 +158,8 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       10 * static_cast<std::size_t>(nq_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
   if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
-  else if (thread_bodies <= kMaxThreadDofs) thread_ = std::make_unique<ZThreadModel<S>>(model);
+  else if (thread_bodies <= kMaxThreadDofs)
+    thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));

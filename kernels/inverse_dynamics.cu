@@ -188,11 +188,13 @@ cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        if (floating_kernels(model))
-          id_instances_kernel<S, P::capacity, Bd, kFloatingKernels<S, Bd>>
-              <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
-        else
+        if (floating_kernels(model)) {
+          if constexpr (kFloatingCapacity<P::capacity>)
+            id_instances_kernel<S, P::capacity, Bd, kFloatingKernels<S, Bd>>
+                <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+        } else {
           id_instances_kernel<S, P::capacity, Bd, false><<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+        }
       },
       model.params());
   return cudaGetLastError();
@@ -222,7 +224,7 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
                                                      10 * static_cast<std::size_t>(nq_) * sizeof(S));
   device_ = staging_->device();
   if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
-  else thread_ = std::make_unique<ZThreadModel<S>>(model);
+  else thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   bytes_ = staging_->bytes() + (scan_ ? scan_->device_bytes() : 0);
 }
 

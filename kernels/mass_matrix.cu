@@ -133,8 +133,9 @@ cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchVi
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        constexpr bool kF = kFloatingKernels<S, Bd>;
+        constexpr bool kF = kFloatingKernels<S, Bd> && kFloatingCapacity<P::capacity>;
         if (floating_kernels(model)) {
+          if constexpr (!kF) return;  // (refused by ThreadModel in this build)
           if (staged)
             crba_instances_kernel<S, P::capacity, true, Bd, kF><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
           else
@@ -175,7 +176,7 @@ CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions
                                                      (static_cast<std::size_t>(nq_) + n * n) * sizeof(S));
   device_ = staging_->device();
   if (thread_bodies > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
-  else thread_ = std::make_unique<ZThreadModel<S>>(model);
+  else thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0);
 }
 

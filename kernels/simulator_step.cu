@@ -210,6 +210,7 @@ class CudaSimBackend final : public SimBackend<S> {
 
     if (fused_) {
       const cuda::ZThreadModel<S> tm(setup.model);
+      cuda::require_floating_capacity(tm, setup.model.name);
       std::visit(
           [&](const auto& mp) {
             using MP = std::decay_t<decltype(mp)>;

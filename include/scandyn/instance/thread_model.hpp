@@ -10,6 +10,7 @@
 // holds a model (8, 16, 32 or 64).
 #pragma once
 
+#include <string>
 #include <type_traits>
 #include <variant>
 #include "scandyn/build_config.hpp"
@@ -160,6 +161,26 @@ class ThreadModel {
 // precision costs minutes of nvcc).
 template <class S, class Bd>
 inline constexpr bool kFloatingKernels = !std::is_same_v<Bd, Body<S>>;
+// The capacities whose floating-base kernels a build compiles: all, or with
+// SCANDYN_SIM_EFFECT_SETS=0 (the reduced kernel set of builds without a GPU,
+// scripts/test.sh) capacity 16 only (hyq: 12 joints past its base); ThreadModel
+// refuses the others there, naming the option.
+#if !defined(SCANDYN_SIM_EFFECT_SETS)
+#define SCANDYN_SIM_EFFECT_SETS 1
+#endif
+template <int C>
+inline constexpr bool kFloatingCapacity = SCANDYN_SIM_EFFECT_SETS || C == 16;
+
+// Throws BackendError for a floating-base model of a capacity this build leaves out
+// (kFloatingCapacity); the engines call it on their thread model. name: the model's.
+template <class S, class Bd>
+void require_floating_capacity(const ThreadModel<S, Bd>& tm, const std::string& name) {
+  if (!tm.floating() || SCANDYN_SIM_EFFECT_SETS || tm.capacity() == 16) return;
+  throw BackendError("backend 'cuda': model '" + name + "' has " + std::to_string(tm.nv() - 6) +
+                     " joints past its floating base; this build compiles the floating-base kernels for 9 to 16 "
+                     "of them only (SCANDYN_SIM_EFFECT_SETS=OFF, the reduced kernel set of builds without a GPU)");
+}
+
 // Is `model` run by the kernels' floating-base instantiation (kFloating)?
 template <class S, class Bd>
 bool floating_kernels(const ThreadModel<S, Bd>& model) {
