@@ -378,20 +378,15 @@ __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
   if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
 }
 
-// Which capacities have the floating-base kernel: all, or with
-// SCANDYN_SIM_EFFECT_SETS=0 (builds without a GPU: scripts/test.sh) capacity 16
-// only (hyq: 12 joints past its base), which keeps nvcc's time there down.
-template <int C>
-constexpr bool kFloatingSimKernel = SCANDYN_SIM_EFFECT_SETS || C == 16;
-
 // The floating-base step of capacity C with integrator I (cudaErrorNotSupported for
-// a capacity this build leaves out, kFloatingSimKernel); defined as launch_fused.
+// a capacity this build leaves out, cuda::kFloatingCapacity, which the backend
+// refuses when it is made: cuda::require_floating_capacity); defined as launch_fused.
 template <class S, Integrator I, int C>
 cudaError_t launch_fused_floating(const SimParams<S, C>& params, const FusedArgs<S>& args, const FloatingArgs<S>& fa,
                                   cudaStream_t stream)
 #if defined(SCANDYN_SIM_FUSED_DEFINE)
 {
-  if constexpr (kFloatingSimKernel<C>) {
+  if constexpr (cuda::kFloatingCapacity<C>) {
     const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
     sim_fused_floating_kernel<S, C, I><<<blocks, kSimBlock, 0, stream>>>(params, args, fa);
     return cudaGetLastError();
