@@ -272,7 +272,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
   }
   template <std::size_t... K>
   static constexpr std::array<StepFn, sizeof...(K)> make_manifold_table(std::index_sequence<K...>) {
-    return {&step_one_at<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+    return {&step_one_at<sim::host_step_set(unsigned(K % sim::kEffectSets)), Integrator(K / sim::kEffectSets)>...};
   }
   static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& manifold_table() {
     static const auto t = make_manifold_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
@@ -282,7 +282,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
   // Every (integrator, effect set) instantiation, indexed integrator * 32 + effects.
   template <std::size_t... K>
   static constexpr std::array<StepFn, sizeof...(K)> make_table(std::index_sequence<K...>) {
-    return {&step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+    return {&step_one<sim::host_step_set(unsigned(K % sim::kEffectSets)), Integrator(K / sim::kEffectSets)>...};
   }
   static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& table() {
     static const auto t = make_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});
@@ -411,7 +411,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
 
   template <std::size_t... K>
   static constexpr std::array<StepFn, sizeof...(K)> make_constrained_table(std::index_sequence<K...>) {
-    return {&constrained_step_one<unsigned(K % sim::kEffectSets), Integrator(K / sim::kEffectSets)>...};
+    return {&constrained_step_one<sim::host_step_set(unsigned(K % sim::kEffectSets)), Integrator(K / sim::kEffectSets)>...};
   }
   static const std::array<StepFn, sim::kIntegrators * sim::kEffectSets>& constrained_table() {
     static const auto t = make_constrained_table(std::make_index_sequence<sim::kIntegrators * sim::kEffectSets>{});

@@ -22,8 +22,9 @@
 #
 # Without a GPU (nvidia-smi -L fails: CI) the CUDA code is compiled but never run,
 # so stage 2 compiles fewer variant instantiations of it: SCANDYN_SIM_EFFECT_SETS=OFF
-# and SCANDYN_BENCH_VARIANTS=OFF (CMakeLists.txt). Every kernel template, test and
-# benchmark still compiles; scripts/gpu_check.sh builds the full variety.
+# and SCANDYN_BENCH_VARIANTS=OFF (CMakeLists.txt), to PTX only (no ptxas). Every
+# kernel template, test and benchmark still compiles; scripts/gpu_check.sh builds
+# the full variety as sm_90 code.
 #
 # Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
@@ -119,9 +120,12 @@ show_skips() {
 # all-effects step kernels only (SCANDYN_SIM_EFFECT_SETS), not the 44 per-effect-set
 # ones, and of bench_cuda_fd's kernel variants only the engine's own
 # (SCANDYN_BENCH_VARIANTS; CMakeLists.txt): several minutes of nvcc on 2 cores.
+# There the kernels are also compiled to PTX only (CMAKE_CUDA_ARCHITECTURES=90-virtual:
+# nvcc's front end and code generation, without ptxas's SASS, ~40% of nvcc's time
+# on the heaviest files); scripts/gpu_check.sh builds sm_90 code and runs it.
 variants=()
 if ! nvidia-smi -L >/dev/null 2>&1; then
-  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF)
+  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual)
 fi
 # (SCANDYN_PYTHON=OFF here: the Python stage below turns it on once .venv is ready)
 if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF ${variants[@]+"${variants[@]}"}; then
@@ -200,10 +204,14 @@ if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
   # -O1 -g1 instead of RelWithDebInfo's -O2 -g (NDEBUG as there): line tables are
   # what the reports' stack traces need (file:line), and the stage compiles in
   # about half the CPU time (test_model.cpp: 80 s -> 28 s) while its tests run
-  # ~15% longer (test_sim's long rollouts, measured).
+  # ~15% longer (test_sim's long rollouts, measured). SCANDYN_HOST_EFFECT_SETS=OFF:
+  # the host simulator's steps with every joint effect compiled in (the same numbers;
+  # CMakeLists.txt), 4 effect sets instead of 64: cpu_fallback/simulator_step.cpp
+  # took 270 of the stage's 1190 compile-seconds with all 64.
   if build_stage asan "$asan_build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
        "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1 -DNDEBUG" \
-       -DSCANDYN_SANITIZE=address,undefined -DSCANDYN_BENCH=OFF -DSCANDYN_CUDA=OFF; then
+       -DSCANDYN_SANITIZE=address,undefined -DSCANDYN_BENCH=OFF -DSCANDYN_CUDA=OFF \
+       -DSCANDYN_HOST_EFFECT_SETS=OFF; then
     wait_report
     test_stage asan "$asan_build" -E "$asan_long" || failed+=(asan)
   else

@@ -52,6 +52,22 @@ inline constexpr unsigned kJointEffects = kDamping | kSprings | kLimits;
 // the contacts' bound of contacts.hpp).
 inline constexpr unsigned kImplicitEffects = kDamping | kSprings | kContacts;
 
+// The effect set whose step the host (serial, OpenMP) instantiates for a scene's
+// set e. By default e itself: 64 sets x 3 integrators per step table. Builds with
+// SCANDYN_HOST_EFFECT_SETS=0 (CMake option SCANDYN_HOST_EFFECT_SETS=OFF, what
+// scripts/test.sh uses for its sanitizer stage) compile every joint effect and the
+// external wrenches into each step, keeping only gravity and contacts apart: an
+// undeclared effect then runs with its neutral coefficients (d = k = kl = dl = 0,
+// limits -inf / +inf, no wrenches), which gives the same numbers as the absent
+// effect (test_sim's ZeroCoefficientsEqualAbsentEffects) at the cost of a few
+// per-DoF operations, and 4 sets instead of 64.
+#if !defined(SCANDYN_HOST_EFFECT_SETS)
+#define SCANDYN_HOST_EFFECT_SETS 1
+#endif
+constexpr unsigned host_step_set(unsigned e) {
+  return SCANDYN_HOST_EFFECT_SETS ? e : (e | kJointEffects | kExternal);
+}
+
 // "gravity+damping+springs+limits+external+contacts" order, "none" for the empty set.
 std::string effect_names(unsigned effects);
 
