@@ -230,15 +230,10 @@ class CpuInstanceStep final : public CpuSimState<S> {
       (void)setup, (void)work, (void)qa, (void)qda, (void)readings;
       return {f, armature};
     } else {
-      const Index n = setup.model.nbodies(), nv = setup.model.nv();
-      for (Index i = 0; i < n; ++i) work.fext[i] = f ? f[i] : Force<S>::zero();
-      if (armature)
-        for (Index i = 0; i < nv; ++i) work.armature[i] = armature[i];
-      sim::contact_pass_any<kMultiDof>(work.contacts, setup.model.bodies.data(), n, qa, qda, 1, armature ? setup.dt : S(0),
-                            work.X.data(), work.v.data(), work.fext.data(), armature ? work.armature.data() : nullptr,
-                            readings);
-      readings = nullptr;
-      return {work.fext.data(), armature ? work.armature.data() : nullptr};
+      sim::add_contact_wrenches<kMultiDof>(work.contacts, setup.model.bodies.data(), setup.model.nbodies(),
+                                           setup.model.nv(), setup.dt, qa, qda, f, armature, work.X.data(),
+                                           work.v.data(), work.fext.data(), work.armature.data(), readings);
+      return {f, armature};
     }
   }
 

@@ -137,17 +137,17 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   algorithm_ = algorithm;
   aba_ = algorithm == FdMethod::Aba;
   const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;
-  // the thread kernels' bodies: past a floating base (which they hold apart)
+  // the thread kernels' bodies: past a floating base (which they hold apart). The ABA
+  // of models they do not take (spherical joints; a floating base with more bodies
+  // past it) runs the general path.
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
-  if (model.multi_dof() && !chain && !(model.floating_base() && model.extra_v == 5))
-    throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" +
-                       first_multi_dof_joint(model) + "'; forward dynamics on this backend takes a floating base "
-                       "with revolute and prismatic joints past it (use the serial or openmp backend)");
+  const bool general =
+      aba_ && (!model.one_dof_past_base() || (model.multi_dof() && thread_bodies > kMaxThreadDofs));
   if (model.multi_dof() && !chain && algorithm != FdMethod::Aba)
     throw BackendError(std::string("backend 'cuda': model '") + model.name +
                        "' has multi-DoF joints (a floating base or spherical joints), which forward dynamics by " +
                        to_string(algorithm) + " does not take on this backend (use aba, or parallel for a free rope)");
-  if (aba_ && thread_bodies > kMaxThreadDofs)
+  if (aba_ && !general && thread_bodies > kMaxThreadDofs)
     throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
                        std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
                        " (use the joint-space inertia method, FdMethod::Jsi or Auto)");
@@ -158,10 +158,12 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       10 * static_cast<std::size_t>(nq_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
   if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
+  else if (general) general_ = std::make_unique<GeneralPlan<S>>(model, max_batch_);
   else if (thread_bodies <= kMaxThreadDofs)
     thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);
-  bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0);
+  bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0) +
+           (general_ ? general_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
   if (options.fallback_aba) set_fallback_aba(true);
   BackendOptions cuda_options = options;  // the Auto rule of the cuda backend, however the engine was made
@@ -191,6 +193,7 @@ cudaError_t CudaForwardDynamics<S>::compute_async(const FdBatchIn<S>& in, const 
                                                   cudaStream_t stream) {
   if (chain_) return algorithm_ == FdMethod::Hybrid ? cudaErrorNotSupported : chain_->launch(in, qdd, failed_dof, stream);
   if (dense_) return dense_->launch(in, qdd, failed_dof, stream);
+  if (general_) return general_->launch_aba(in, qdd, failed_dof, stream);
   const cudaError_t e = aba_ ? launch_aba_instances(*thread_, in, qdd, failed_dof, stream)
                              : launch_fd_jsi_instances(*thread_, in, qdd, failed_dof, stream);
   if (e != cudaSuccess || !device_check_) return e;

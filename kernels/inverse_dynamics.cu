@@ -210,7 +210,7 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
                        "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   // a spherical joint: the link scans (the thread kernels take a floating base only)
-  const bool threads_take = !model.multi_dof() || (model.floating_base() && model.extra_v == 5);
+  const bool threads_take = model.one_dof_past_base();
   const IdStrategy strategy = options.strategy != IdStrategy::Auto ? options.strategy
                               : threads_take ? choose_id_strategy(BackendKind::Cuda, nv_, max_batch_, 1)
                                              : IdStrategy::ScanLocal;

@@ -1,5 +1,6 @@
 // kernels/kinematics.cu: batched frame poses and frame Jacobians, one thread per
-// instance (models of up to kMaxThreadDofs DoF).
+// instance (1-DoF models of up to kMaxThreadDofs DoF; models with multi-DoF joints
+// through GeneralPlan, kernels/general_dynamics.cu).
 //
 // The layers of scandyn/cuda/kinematics.hpp: kinematics_instance
 // (scandyn/instance/kinematics_instance.hpp, the CPU engines' routine) ->
@@ -71,16 +72,18 @@ cudaError_t launch_kinematics_instances(const ThreadModel<S>& model, const Frame
 template <class S>
 CudaKinematics<S>::CudaKinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                   const KinematicsOptions& kinematics)
-    : nv_(model.nv()), max_batch_(options.max_batch), options_(kinematics) {
+    : nv_(model.nv()), nq_(model.nq()), max_batch_(options.max_batch), options_(kinematics) {
   check_kinematics_options(model, kinematics);
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for kinematics (use auto or recursion)");
-  thread_ = std::make_unique<ThreadModel<S>>(model);  // throws beyond kMaxThreadDofs
+  if (model.multi_dof()) general_ = std::make_unique<GeneralPlan<S>>(model, max_batch_);
+  else thread_ = std::make_unique<ThreadModel<S>>(model);  // throws beyond kMaxThreadDofs
   const std::size_t n = static_cast<std::size_t>(nv_), F = kinematics.frames.size();
   const std::size_t pw = static_cast<std::size_t>(pose_width(kinematics.pose));
   staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double",
-                                                     "q, poses and J", (n + F * (pw + 6 * n)) * sizeof(S));
+                                                     "q, poses and J",
+                                                     (static_cast<std::size_t>(nq_) + F * (pw + 6 * n)) * sizeof(S));
   if (F > 0) {
     std::vector<FramePlacement<S>> host;
     for (Index f : kinematics.frames) host.push_back(model.frames[static_cast<std::size_t>(f)]);
@@ -106,18 +109,19 @@ int CudaKinematics<S>::device() const {
 template <class S>
 cudaError_t CudaKinematics<S>::compute_async(const BatchView<const S>& q, const BatchView<S>& poses,
                                              const BatchView<S>& J, cudaStream_t stream) {
-  return launch_kinematics_instances(*thread_, frames_, static_cast<Index>(options_.frames.size()), options_.pose,
-                                     options_.reference, q, poses, J, stream);
+  const Index F = static_cast<Index>(options_.frames.size());
+  if (general_) return general_->launch_kinematics(frames_, F, options_.pose, options_.reference, q, poses, J, stream);
+  return launch_kinematics_instances(*thread_, frames_, F, options_.pose, options_.reference, q, poses, J, stream);
 }
 
 template <class S>
 void CudaKinematics<S>::compute(const BatchView<const S>& q, const BatchView<S>& poses, const BatchView<S>& J) {
   check_batch(q, poses, J, max_batch_);
-  const Index B = q.batch, nv = nv_, F = static_cast<Index>(options_.frames.size());
+  const Index B = q.batch, nv = nv_, nq = nq_, F = static_cast<Index>(options_.frames.size());
   if (B == 0 || F == 0 || (!poses.data && !J.data)) return;
-  // staging buffer: q (nv x max_batch), poses (F pw x max_batch), then J (F 6 nv x max_batch)
+  // staging buffer: q (nq x max_batch), poses (F pw x max_batch), then J (F 6 nv x max_batch)
   const Index pw = pose_width(options_.pose);
-  const std::size_t qcap = static_cast<std::size_t>(nv) * max_batch_;
+  const std::size_t qcap = static_cast<std::size_t>(nq) * max_batch_;
   const std::size_t pcap = static_cast<std::size_t>(F * pw) * max_batch_;
   const std::size_t jcap = static_cast<std::size_t>(F * 6 * nv) * max_batch_;
   S* const dq = static_cast<S*>(staging_->data());
@@ -125,16 +129,17 @@ void CudaKinematics<S>::compute(const BatchView<const S>& q, const BatchView<S>&
   S* const dJ = dp + pcap;
   const cudaStream_t stream = staging_->stream();
 
-  const Staging sq = plan(q, nv, qcap, false);
+  const Staging sq = plan(q, nq, qcap, false);
   BatchView<S> dposes{}, dJv{};
   Staging sp, sJ;
   if (poses.data) sp = plan(poses, F * pw, pcap, true, "poses"), dposes = sp.device_view(dp, B);
   if (J.data) sJ = plan(J, F * 6 * nv, jcap, true, "J"), dJv = sJ.device_view(dJ, B);
-  if (nv > 0) check(copy(sq, q, nv, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
-  check(compute_async(sq.device_view<const S>(dq, B), dposes, dJv, stream), "launching kinematics_instances_kernel");
+  if (nq > 0) check(copy(sq, q, nq, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
+  check(compute_async(sq.device_view<const S>(dq, B), dposes, dJv, stream),
+        general_ ? "launching kinematics_general_kernel" : "launching kinematics_instances_kernel");
   if (poses.data) check(copy(sp, poses, F * pw, dp, cudaMemcpyDeviceToHost, stream), "copying the poses to the host");
   if (J.data) check(copy(sJ, J, F * 6 * nv, dJ, cudaMemcpyDeviceToHost, stream), "copying J to the host");
-  check(cudaStreamSynchronize(stream), "running kinematics_instances_kernel");
+  check(cudaStreamSynchronize(stream), general_ ? "running kinematics_general_kernel" : "running kinematics_instances_kernel");
 }
 
 #define SCANDYN_INSTANTIATE(S)                                                                                    \

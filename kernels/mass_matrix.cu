@@ -158,26 +158,21 @@ CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for the mass matrix (use auto or recursion)");
-  if (model.multi_dof() && !(model.floating_base() && model.extra_v == 5))
-    throw BackendError("backend 'cuda': model '" + model.name + "' has the spherical joint '" +
-                       first_multi_dof_joint(model) + "'; the mass matrix on this backend takes a floating base "
-                       "with revolute and prismatic joints past it (use the serial or openmp backend)");
-  // the thread kernels' bodies: past a floating base (which they hold apart)
+  // the thread kernels' bodies: past a floating base (which they hold apart). Models
+  // they do not take (spherical joints; a floating base with more bodies past it)
+  // run the general path.
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
-  if (model.multi_dof() && thread_bodies > kMaxThreadDofs)
-    throw BackendError("backend 'cuda': model '" + model.name + "' has multi-DoF joints and " +
-                       std::to_string(thread_bodies) + " bodies; the mass matrix takes such models in the " +
-                       "thread-per-instance kernels, up to " + std::to_string(kMaxThreadDofs) +
-                       " bodies past a floating base (use the serial or openmp backend)");
+  const bool general = !model.one_dof_past_base() || (model.multi_dof() && thread_bodies > kMaxThreadDofs);
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const std::size_t n = static_cast<std::size_t>(nv_);
   // q (nq scalars) and M (nv^2) for max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q and M",
                                                      (static_cast<std::size_t>(nq_) + n * n) * sizeof(S));
   device_ = staging_->device();
-  if (thread_bodies > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
+  if (general) general_ = std::make_unique<GeneralPlan<S>>(model, max_batch_);
+  else if (thread_bodies > kMaxThreadDofs) blocks_ = std::make_unique<detail::CrbaBlocks<S>>(model, max_batch_);
   else thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
-  bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0);
+  bytes_ = staging_->bytes() + (blocks_ ? blocks_->device_bytes() : 0) + (general_ ? general_->device_bytes() : 0);
 }
 
 template <class S>
@@ -185,6 +180,7 @@ CudaMassMatrix<S>::~CudaMassMatrix() = default;
 
 template <class S>
 cudaError_t CudaMassMatrix<S>::compute_async(const BatchView<const S>& q, const BatchView<S>& M, cudaStream_t stream) {
+  if (general_) return general_->launch_crba(q, M, stream);
   return blocks_ ? blocks_->launch(q, M, stream) : launch_crba_instances(*thread_, q, M, stream);
 }
 
@@ -215,10 +211,10 @@ void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>&
   check(copy(sq, q, nq_, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
   // run
   check(compute_async(sq.device_view<const S>(dq, B), sM.device_view(dM, B), stream),
-        blocks_ ? "launching the CRBA (a block per instance)" : "launching crba_instances_kernel");
+        ("launching the CRBA (" + strategy() + ")").c_str());
   // copy out: M's entries only
   check(copy(sM, M, entries, dM, cudaMemcpyDeviceToHost, stream), "copying M to the host");
-  check(cudaStreamSynchronize(stream), blocks_ ? "running the CRBA (a block per instance)" : "running crba_instances_kernel");
+  check(cudaStreamSynchronize(stream), ("running the CRBA (" + strategy() + ")").c_str());
 }
 
 #define SCANDYN_INSTANTIATE(S)         \

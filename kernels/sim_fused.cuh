@@ -244,16 +244,9 @@ __host__ __device__ __forceinline__ Index fused_floating_forward_dynamics(
     const cuda::ThreadModelParams<S, C, ZJointBody<S>>& model, const FloatingArgs<S>& fa, S dt,
     const ContactSet<S>& cs, const Force<S>* fext, FloatingContactScratch<S, C>& w, ContactReading<S>*& readings,
     const S* q, const S* qd, const S* tau, const S* arm, S* qdd) {
-  if (cs.npoints > 0) {
-    const Index nb = model.nv + 1, nv = model.nv + 6;
-    for (Index i = 0; i < nb; ++i) w.f[i] = fext ? fext[i] : Force<S>::zero();
-    for (Index i = 0; i < nv; ++i) w.armature[i] = arm ? arm[i] : S(0);
-    contact_pass_any<true>(cs, fa.bodies, nb, q, qd, 1, arm ? dt : S(0), w.X, w.v, w.f, arm ? w.armature : nullptr,
-                           readings);
-    readings = nullptr;
-    fext = w.f;
-    if (arm) arm = w.armature;
-  }
+  if (cs.npoints > 0)
+    add_contact_wrenches<true>(cs, fa.bodies, model.nv + 1, model.nv + 6, dt, q, qd, fext, arm, w.X, w.v, w.f,
+                               w.armature, readings);
   return cuda::aba_instance<S, C, false, false, cuda::kThreadTrig<S>, C, false, ZJointBody<S>, true>(
       model, cuda::DofColumn<const S>{q, 1}, cuda::DofColumn<const S>{qd, 1}, cuda::DofColumn<const S>{tau, 1}, fext,
       cuda::DofColumn<S>{qdd, 1}, arm);
@@ -331,6 +324,26 @@ cudaError_t launch_fused_with(const Params& params, unsigned effects, const Fuse
   return err;
 }
 
+// Instance b's new state (q: nq entries, qd: nv) into the SoA state; a non-finite
+// entry recorded as the CPU backends do: the first i < nv with q_i or qd_i not
+// finite, then q's last entries.
+template <class S>
+__device__ __forceinline__ void store_state_at(const FusedArgs<S>& a, long long b, const S* q, const S* qd, Index nq,
+                                               Index nv) {
+  const long long B = a.batch;
+  Index nonfinite = -1;
+  for (Index i = 0; i < nv; ++i) {
+    a.q[i * B + b] = q[i];
+    a.qd[i * B + b] = qd[i];
+    if (nonfinite < 0 && !(isfinite(q[i]) && isfinite(qd[i]))) nonfinite = i;
+  }
+  for (Index i = nv; i < nq; ++i) {
+    a.q[i * B + b] = q[i];
+    if (nonfinite < 0 && !isfinite(q[i])) nonfinite = i;
+  }
+  if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
+}
+
 // One thread per instance b < B: a step of a floating-base model (the section
 // above). State: q (nq = C + 7 at most), qd, tau and the scratch (C + 6) per thread.
 template <class S, int C, Integrator I>
@@ -365,17 +378,74 @@ __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
     record_step_failure(a.status, static_cast<Index>(b), failed);
     return;
   }
-  Index nonfinite = -1;  // as the CPU backends: the first i < nv with q_i or qd_i not finite, then q's last entries
-  for (Index i = 0; i < nv; ++i) {
-    a.q[i * B + b] = q[i];
-    a.qd[i * B + b] = qd[i];
-    if (nonfinite < 0 && !(isfinite(q[i]) && isfinite(qd[i]))) nonfinite = i;
+  store_state_at(a, b, q, qd, nq, nv);
+}
+
+// ---- joints of any type -----------------------------------------------------------
+// The step of a model the thread kernels do not take (spherical joints; a floating
+// base with more than kMaxThreadDofs bodies past it): step_instance_at over the
+// general path's ABA (aba_general, scandyn/instance/general_instance.hpp), one thread
+// per instance, its state and scratch a slice of the GeneralPlan's buffer (thread t
+// takes instances t, t + slots, ...). Effects and contacts as the floating-base
+// kernel. Scratch scalars per slice (GeneralSimScalars): q, qd, tau, then
+// StepScratchAt's arrays and the contacts' armature; the slice's extra area holds
+// the contact pass's nb transforms, twists and wrenches.
+template <class S>
+struct GeneralSimScalars {
+  // 2 nq + 9 nv in all (q, qs; qd tau tw qdd qds aq aqd theta arm): beyond GeneralPlan's nq + 3 nv
+  static Index extra_scalars(Index nq, Index nv) { return nq + 6 * nv; }
+  static std::size_t extra_bytes(Index nb) {
+    return static_cast<std::size_t>(nb) * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
   }
-  for (Index i = nv; i < nq; ++i) {
-    a.q[i * B + b] = q[i];
-    if (nonfinite < 0 && !isfinite(q[i])) nonfinite = i;
+};
+
+template <class S, Integrator I>
+__global__ void __launch_bounds__(64)
+    sim_general_kernel(const cuda::GeneralArgs<S> g, const FusedArgs<S> a, const FloatingArgs<S> fa, S dt) {
+  constexpr unsigned E = kJointEffects | kExternal;  // (contacts: add_contact_wrenches)
+  const long long t = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (t >= g.slots) return;
+  const Index nb = g.nb, nv = g.nv, nq = g.nq;
+  const long long B = a.batch;
+  char* const slice = g.work + t * static_cast<long long>(g.layout.bytes);
+  const GeneralWork<S> gw = g.layout.work(slice);
+  S* const q = g.layout.scalar_area(slice);
+  S* const qs = q + nq;
+  S* const qd = qs + nq;
+  S* const tau = qd + nv;
+  S* const tw = tau + nv;
+  S* const qdd = tw + nv;
+  S* const qds = qdd + nv;
+  S* const aq = qds + nv;
+  S* const aqd = aq + nv;
+  S* const theta = aqd + nv;
+  S* const carm = theta + nv;
+  char* const extra = g.layout.extra_area(slice);
+  Transform<S>* const cX = reinterpret_cast<Transform<S>*>(extra);
+  Motion<S>* const cv = reinterpret_cast<Motion<S>*>(cX + nb);
+  Force<S>* const cf = reinterpret_cast<Force<S>*>(cv + nb);
+  const StepScratchAt<S> w{tw, qdd, qs, qds, aq, aqd, theta};
+  for (long long b = t; b < B; b += g.slots) {
+    for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
+    for (Index i = 0; i < nv; ++i) {
+      qd[i] = a.qd[i * B + b];
+      tau[i] = a.tau.data ? a.tau.at(i, static_cast<Index>(b)) : S(0);
+    }
+    const Force<S>* const fext = a.wrenches + b * a.wrench_stride;
+    ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
+    auto fd = [&](const S* qa, const S* qda, const S* tt, const S* arm, S* out) -> Index {
+      const Force<S>* f = fext;
+      if (a.contacts.npoints > 0)
+        add_contact_wrenches<true>(a.contacts, g.bodies, nb, nv, dt, qa, qda, f, arm, cX, cv, cf, carm, readings);
+      return aba_general(g.bodies, nb, g.a0, gw, qa, qda, tt, out, f, arm);
+    };
+    const Index failed = step_instance_at<E, I>(g.bodies, nb, nq, nv, dt, fa.coef, fa.armature, q, qd, tau, w, fd);
+    if (failed >= 0) {
+      record_step_failure(a.status, static_cast<Index>(b), failed);
+      continue;
+    }
+    store_state_at(a, b, q, qd, nq, nv);
   }
-  if (nonfinite >= 0) record_step_failure(a.status, static_cast<Index>(b), nonfinite | kNonFiniteDof);
 }
 
 // The floating-base step of capacity C with integrator I (cudaErrorNotSupported for

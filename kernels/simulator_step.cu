@@ -143,20 +143,20 @@ class CudaSimBackend final : public SimBackend<S> {
     const std::size_t nq = static_cast<std::size_t>(setup.model.nq());
     const std::size_t nb = static_cast<std::size_t>(setup.model.nbodies());
     floating_ = setup.model.floating_base();
-    fused_ = (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
-    if (floating_ && !fused_)
-      throw BackendError("backend 'cuda': the simulator's step takes a floating base with up to " +
-                         std::to_string(cuda::kMaxThreadDofs) + " joints past it (one thread per instance); this model "
-                         "has " + std::to_string(setup.model.nbodies() - 1) + ": use the serial or openmp backend");
-    if (!fused_ && setup.integrator == Integrator::Implicit)
+    // models with multi-DoF joints that the thread kernels do not take: the general step
+    general_ = !setup.model.one_dof_past_base() ||
+               (floating_ && setup.model.nbodies() - 1 > cuda::kMaxThreadDofs);
+    fused_ = !general_ && (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
+    engine_ = !fused_ && !general_;
+    if (engine_ && setup.integrator == Integrator::Implicit)
       throw BackendError("backend 'cuda': the implicit integrator runs on the GPU for models of up to " +
                          std::to_string(cuda::kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv) +
                          " (the dense forward dynamics beyond takes no armature yet): use euler or rk4, or the "
                          "serial or openmp backend");
     // q, qd; the per-step wrenches; the engine path's tau + effects, qdd, rk4 stages and three failure flags
     const std::size_t per_instance = (nq + n) * sizeof(S) + (setup.wrenches_per_step ? nb * sizeof(Force<S>) : 0) +
-                                     (fused_ ? 0 : 6 * n * sizeof(S) + 3 * sizeof(int));
-    const char* what = fused_ ? "q, qd (and per-step wrenches)" : "q, qd, per-step wrenches, tau, qdd, rk4 stages, flags";
+                                     (engine_ ? 6 * n * sizeof(S) + 3 * sizeof(int) : 0);
+    const char* what = engine_ ? "q, qd, per-step wrenches, tau, qdd, rk4 stages, flags" : "q, qd (and per-step wrenches)";
     state_ = std::make_unique<cuda::detail::StagingBuffer>(B, nv, sizeof(S) == 4 ? "float" : "double", what,
                                                             per_instance);
     stream_ = state_->stream();
@@ -171,7 +171,7 @@ class CudaSimBackend final : public SimBackend<S> {
     qd_ = reinterpret_cast<S*>(take(cap * sizeof(S)));
     if (setup.wrenches_per_step)
       step_wrenches_ = reinterpret_cast<Force<S>*>(take(nb * static_cast<std::size_t>(B) * sizeof(Force<S>)));
-    if (!fused_) {
+    if (engine_) {
       S** arrays[] = {&tau_, &qdd_, &qs_, &qds_, &aq_, &aqd_};
       for (S** a : arrays) *a = reinterpret_cast<S*>(take(cap * sizeof(S)));
       failed_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
@@ -179,14 +179,15 @@ class CudaSimBackend final : public SimBackend<S> {
       nonfinite_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
     }
     // small constants: status, the constant (or zero) wrenches, the coefficients; with a
-    // floating base also the bodies and the implicit armature (FloatingArgs)
+    // floating base or the general step also the bodies and the implicit armature (FloatingArgs)
+    const bool manifold = floating_ || general_;
     const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>) +
-                              (floating_ ? nb * sizeof(Body<S>) + n * sizeof(S) : 0);
+                              (manifold ? nb * sizeof(Body<S>) + n * sizeof(S) : 0);
     check(cudaMalloc(&small_, small), "allocating the simulator's constants");
     status_ = static_cast<StepStatus*>(small_);
     wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + sizeof(StepStatus));
     coef_ = reinterpret_cast<JointCoefficients<S>*>(reinterpret_cast<char*>(wrenches_) + n * sizeof(Force<S>));
-    if (floating_) {
+    if (manifold) {
       auto* bodies = reinterpret_cast<Body<S>*>(reinterpret_cast<char*>(coef_) + n * sizeof(JointCoefficients<S>));
       auto* armature = reinterpret_cast<S*>(reinterpret_cast<char*>(bodies) + nb * sizeof(Body<S>));
       check(cudaMemcpy(bodies, setup.model.bodies.data(), nb * sizeof(Body<S>), cudaMemcpyHostToDevice),
@@ -226,6 +227,9 @@ class CudaSimBackend final : public SimBackend<S> {
             params_ = sp;
           },
           tm.params());
+    } else if (general_) {
+      general_plan_ = std::make_unique<cuda::GeneralPlan<S>>(setup.model, B, GeneralSimScalars<S>::extra_bytes(setup.model.nbodies()),
+                                                             GeneralSimScalars<S>::extra_scalars(setup.model.nq(), nv));
     } else {
       BackendOptions o;
       o.backend = BackendKind::Cuda;
@@ -250,6 +254,19 @@ class CudaSimBackend final : public SimBackend<S> {
     if (B == 0) return;
     const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
     const long long stride = step_wrenches_ ? setup_.model.nbodies() : 0;
+    if (general_) {
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
+      const cuda::GeneralArgs<S>& g = general_plan_->args();
+      const unsigned blocks = static_cast<unsigned>((std::min<long long>(g.slots, B) + 63) / 64);
+      switch (setup_.integrator) {
+        case Integrator::Euler: sim_general_kernel<S, Integrator::Euler><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        case Integrator::Rk4: sim_general_kernel<S, Integrator::Rk4><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        case Integrator::Implicit: sim_general_kernel<S, Integrator::Implicit><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        default: break;
+      }
+      check(cudaGetLastError(), "launching the general simulator step");
+      return;
+    }
     if (fused_) {
       const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
       cudaError_t err = cudaSuccess;
@@ -387,7 +404,7 @@ class CudaSimBackend final : public SimBackend<S> {
     const Index dof = static_cast<Index>(s.first & 0xffffffffull);
     st.record(static_cast<Index>(s.first >> 32), dof & ~kNonFiniteDof,
               (dof & kNonFiniteDof)   ? Failure::NonFinite
-              : fused_                ? Failure::ArticulatedPivot
+              : !engine_              ? Failure::ArticulatedPivot
                                       : pivot_failure(fd_->method()));
     st.failed = static_cast<Index>(std::min<unsigned long long>(s.failed, std::numeric_limits<Index>::max()));
     return st;
@@ -399,7 +416,9 @@ class CudaSimBackend final : public SimBackend<S> {
   }
   void synchronize() override { check(cudaStreamSynchronize(stream_), "running the simulator's steps"); }
   bool on_device() const override { return true; }
-  std::string strategy() const override { return fused_ ? "fused-aba" : "engine-" + fd_->strategy(); }
+  std::string strategy() const override {
+    return general_ ? "general-aba" : fused_ ? "fused-aba" : "engine-" + fd_->strategy();
+  }
   void* stream() const override { return stream_; }
 
  private:
@@ -413,7 +432,7 @@ class CudaSimBackend final : public SimBackend<S> {
     auto up = [&](std::size_t x) { return (x + a - 1) / a * a; };
     std::size_t bytes = up(P * sizeof(ContactPoint<S>)) + up(np * sizeof(ContactPlane<S>)) +
                         up(ns * sizeof(ContactSphere<S>)) + up(B * P * sizeof(ContactReading<S>));
-    if (!fused_) bytes += up(n * sizeof(Body<S>)) + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
+    if (engine_) bytes += up(n * sizeof(Body<S>)) + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
     check(cudaMalloc(&contacts_raw_, bytes), "allocating the contacts");
     char* p = static_cast<char*>(contacts_raw_);
     auto take = [&](std::size_t b) {
@@ -442,7 +461,7 @@ class CudaSimBackend final : public SimBackend<S> {
     check(cudaMemset(readings_, 0, B * P * sizeof(ContactReading<S>)), "clearing the contact forces");
     contacts_ = setup_.contact_set();
     contacts_.points = points, contacts_.planes = planes, contacts_.spheres = spheres;
-    if (!fused_) {
+    if (engine_) {
       contact_bodies_ = reinterpret_cast<Body<S>*>(take(n * sizeof(Body<S>)));
       copy(contact_bodies_, setup_.model.bodies.data(), n * sizeof(Body<S>));
       contact_X_ = reinterpret_cast<Transform<S>*>(p);
@@ -488,7 +507,10 @@ class CudaSimBackend final : public SimBackend<S> {
   const SimSetup<S>& setup_;  // the Simulator's, which outlives its backend
   bool fused_ = true;
   bool floating_ = false;                 // a floating base (sim_fused_floating_kernel)
-  FloatingArgs<S> floating_args_{};       // its bodies, coefficients, armature (in small_)
+  bool general_ = false;                  // joints of any type (sim_general_kernel over general_plan_)
+  bool engine_ = false;                   // the engine path (neither fused nor general)
+  FloatingArgs<S> floating_args_{};       // floating / general: bodies, coefficients, armature (in small_)
+  std::unique_ptr<cuda::GeneralPlan<S>> general_plan_;  // the general step's bodies and per-thread scratch
   std::unique_ptr<cuda::detail::StagingBuffer> state_;  // the device, the stream, the state buffer
   cudaStream_t stream_ = nullptr;
   S* q_ = nullptr;                        // (nq x B) device

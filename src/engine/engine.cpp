@@ -350,7 +350,6 @@ template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& o,
                                                const KinematicsOptions& k) {
   require_built(o);
-  if (o.backend == BackendKind::Cuda) require_one_dof_joints(model, "kinematics on the cuda backend");
   check_kinematics_options(model, k);
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) {

@@ -121,10 +121,6 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
   if (scene.model.multi_dof()) {
     // the scene refuses these first; a Scene made in code meets the same refusals
     const std::string joint = printable(first_multi_dof_joint(scene.model));
-    // (cuda: a floating base with revolute / prismatic joints past it, the fused kernel)
-    if (backend == BackendKind::Cuda && !(scene.model.floating_base() && scene.model.extra_v == 5))
-      throw BackendError("backend 'cuda': the simulator's CUDA step takes a floating base with revolute and prismatic "
-                         "joints past it, not the spherical joint '" + joint + "'; the serial and openmp backends do");
     if (!scene.loops.empty())
       throw BackendError("closed loops take models of 1-DoF joints only (joint '" + joint + "')");
     if (!scene.prescribed.empty())

@@ -5,7 +5,8 @@
 //   - the cuda engines (make_inverse_dynamics, make_bias_forces,
 //     make_forward_dynamics, make_mass_matrix) on a device against the serial engines,
 //     through compute() (q with nq columns staged) and compute_async on device buffers;
-//   - what the cuda backend refuses for multi-DoF models, by name.
+//   - the general path (GeneralPlan) for the models they do not take: spherical
+//     joints, a floating base with more than 64 bodies past it.
 // Models: hyq and atlas on a floating base, random trees and a random chain on a free
 // root (1-DoF joints past it), a single free body.
 // Tolerances (relative to the largest entry of the reference):
@@ -26,6 +27,7 @@
 #include "floating_models.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/general_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
 #include "scandyn/engine.hpp"
@@ -301,28 +303,58 @@ TEST(CudaFloatingThreads, EnginesAgainstSerial) {
   }
 }
 
-// A spherical joint: inverse dynamics by the link scans (auto), the rest refused by name.
-TEST(CudaFloatingThreads, SphericalJointsOnCuda) {
+// Models the thread kernels do not take run the general path (GeneralPlan: aba_general,
+// crba_general per thread; inverse dynamics and bias forces by the link scans):
+// spherical joints on a floating or a fixed root, and a floating tree of 70 bodies
+// (beyond the kernels' 64). Against the serial engines as above; float 1e-3 for the
+// 70-body tree (its float conditioning: the serial float and device float paths
+// round differently over 70 bodies).
+TEST(CudaFloatingThreads, GeneralPathAgainstSerial) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  const Model md = test::random_floating_model(10, 5, 0.5);
-  ASSERT_TRUE(md.multi_dof() && md.extra_v > 5);
+  std::vector<std::pair<std::string, Model>> cases;
+  cases.emplace_back("random floating tree 10, spherical joints", test::random_floating_model(10, 5, 0.5));
+  cases.emplace_back("random floating tree 24, spherical joints", test::random_floating_model(24, 4, 0.3));
+  cases.emplace_back("ballrope:6", load_model("ballrope:6"));
+  cases.emplace_back("random floating tree 70", test::random_floating_model(70, 9, 0.0));
   BackendOptions o;
   o.backend = BackendKind::Cuda;
-  o.max_batch = 8;
-  const test::SoaStates x = test::random_soa_states(md, 8, 3, true);
-  using V = BatchView<const double>;
-  std::vector<double> tau(x.qd.size(), NAN);
-  make_inverse_dynamics(md, o)->compute(
-      {V::soa(x.q.data(), x.nq, 8), V::soa(x.qd.data(), x.nv, 8), V::soa(x.u.data(), x.nv, 8), x.fext.data()},
-      BatchView<double>::soa(tau.data(), x.nv, 8));
-  EXPECT_LE(rel_err(tau, test::soa_reference(md, x, false)), 1e-9);
-  for (int which = 0; which < 2; ++which) {
-    try {
-      if (which == 0) make_forward_dynamics(md, o);
-      else make_mass_matrix(md, o);
-      ADD_FAILURE() << "a spherical joint was taken (" << which << ")";
-    } catch (const BackendError& e) {
-      EXPECT_NE(std::string(e.what()).find("spherical joint"), std::string::npos) << e.what();
-    }
+  for (const auto& [name, md] : cases) {
+    SCOPED_TRACE(name);
+    EXPECT_EQ(make_forward_dynamics(md, o)->strategy().rfind("aba_general", 0), 0u);
+    EXPECT_EQ(make_mass_matrix(md, o)->strategy(), "crba_general");
+    check_engines<double>(md, 37, 1e-9);
+    check_engines<float>(md, 37, md.nbodies() > 64 ? 1e-3 : 2e-4);
   }
+}
+
+// A GeneralPlan with fewer slots than instances (a small budget): each thread takes
+// instances t, t + slots, ...; every instance's qdd equals the serial ABA's.
+TEST(CudaFloatingThreads, GeneralPlanThreadsTakeSeveralInstances) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = test::random_floating_model(30, 8, 0.3);
+  const Index B = 1000;
+  const test::SoaStates x = test::random_soa_states(md, B, 4, true);
+  const std::size_t slice = cuda::GeneralLayout<double>::make(md.nbodies(), md.nv(), md.nq() + 3 * md.nv(), 0).bytes;
+  const cuda::GeneralPlan<double> plan(md, B, 0, 0, 50 * slice);
+  ASSERT_EQ(plan.args().slots, 50);
+  test::DeviceArray<double> dq, dqd, du, dqdd;
+  test::DeviceArray<Force<double>> df;
+  test::DeviceArray<int> dfailed;
+  const auto up = [](auto& d, const auto& h) {
+    EXPECT_EQ(d.alloc(h.size()), cudaSuccess);
+    EXPECT_EQ(cudaMemcpy(d.ptr, h.data(), h.size() * sizeof(h[0]), cudaMemcpyHostToDevice), cudaSuccess);
+    return d.ptr;
+  };
+  using V = BatchView<const double>;
+  const FdBatchIn<double> in{V::soa(up(dq, x.q), x.nq, B), V::soa(up(dqd, x.qd), x.nv, B), V::soa(up(du, x.u), x.nv, B),
+                             up(df, x.fext)};
+  ASSERT_EQ(dqdd.alloc(x.qd.size()), cudaSuccess);
+  ASSERT_EQ(dfailed.alloc(static_cast<std::size_t>(B)), cudaSuccess);
+  ASSERT_EQ(plan.launch_aba(in, BatchView<double>::soa(dqdd.ptr, x.nv, B), dfailed.ptr, nullptr), cudaSuccess);
+  std::vector<double> qdd(x.qd.size());
+  std::vector<int> failed(static_cast<std::size_t>(B));
+  ASSERT_EQ(cudaMemcpy(qdd.data(), dqdd.ptr, qdd.size() * sizeof(double), cudaMemcpyDeviceToHost), cudaSuccess);
+  ASSERT_EQ(cudaMemcpy(failed.data(), dfailed.ptr, failed.size() * sizeof(int), cudaMemcpyDeviceToHost), cudaSuccess);
+  EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
+  EXPECT_LE(rel_err(qdd, test::soa_reference(md, x, true)), 1e-9);
 }

@@ -1,6 +1,8 @@
 // Frame poses and frame Jacobians on the GPU (kinematics_instance in
 // kinematics_instances_kernel, launch_kinematics_instances, CudaKinematics) against
-// the serial engine, which runs the same routine on the host.
+// the serial engine, which runs the same routine on the host; models with
+// multi-DoF joints through the general path (kinematics_general_kernel), which runs
+// the serial engine's kinematics_instance_at.
 //
 // Tolerances, per entry, |x - ref| <= tol * max(1, |ref|):
 //   host     the kernel's instantiation (double, the library's sin/cos) run on the host
@@ -22,6 +24,7 @@
 #include <vector>
 
 #include "cuda_test_util.hpp"
+#include "floating_models.hpp"
 #include "kinematics_cases.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/kinematics.hpp"
@@ -94,27 +97,65 @@ TEST(CudaKinematicsHost, ModelsBeyondTheThreadKernelsAreRefused) {
   EXPECT_THROW(make_kinematics(m, o, test::all_frames(m)), BackendError);
 }
 
+// The device's poses and Jacobians of every frame against the serial engine's, in
+// both references and both pose formats, for B instances of q (nq entries each).
+template <class S>
+void expect_device_as_serial(const ModelTpl<S>& m, const std::vector<S>& q, Index B, double tol,
+                             const std::string& label) {
+  for (FrameReference ref : {FrameReference::World, FrameReference::Local})
+    for (PoseFormat pf : {PoseFormat::Matrix, PoseFormat::PositionQuaternion}) {
+      const KinematicsOptions k = test::all_frames(m, pf, ref);
+      const auto ser = test::run_kinematics(m, BackendKind::Serial, k, q, B);
+      auto dev = test::run_kinematics(m, BackendKind::Cuda, k, q, B);
+      if (pf == PoseFormat::PositionQuaternion) test::align_quaternion_signs(dev.poses, ser.poses);
+      expect_near(dev.poses, ser.poses, tol, label + " poses");
+      expect_near(dev.J, ser.J, tol, label + " J");
+    }
+}
+
 template <class S>
 void device_matches_serial(double tol) {
   if (const std::string why = test::no_device_reason(); !why.empty()) GTEST_SKIP() << "no CUDA device: " << why;
   for (const auto& [label, md] : models()) {
     const ModelTpl<S> m = md.template cast<S>();
-    const Index nv = m.nv(), B = 1000;
-    const std::vector<S> q = test::cast_vector<S>(random_q(nv, B, 9));
-    for (FrameReference ref : {FrameReference::World, FrameReference::Local})
-      for (PoseFormat pf : {PoseFormat::Matrix, PoseFormat::PositionQuaternion}) {
-        const KinematicsOptions k = test::all_frames(m, pf, ref);
-        const auto ser = test::run_kinematics(m, BackendKind::Serial, k, q, B);
-        auto dev = test::run_kinematics(m, BackendKind::Cuda, k, q, B);
-        if (pf == PoseFormat::PositionQuaternion) test::align_quaternion_signs(dev.poses, ser.poses);
-        expect_near(dev.poses, ser.poses, tol, label + " poses");
-        expect_near(dev.J, ser.J, tol, label + " J");
-      }
+    const Index B = 1000;
+    expect_device_as_serial(m, test::cast_vector<S>(random_q(m.nv(), B, 9)), B, tol, label);
   }
 }
 
 TEST(CudaKinematics, DoubleMatchesSerial) { device_matches_serial<double>(1e-11); }
 TEST(CudaKinematics, FloatMatchesSerial) { device_matches_serial<float>(1e-4); }
+
+// Models with multi-DoF joints (a floating base, spherical joints) run the general
+// path (kinematics_instance_at per thread, GeneralPlan): hyq and atlas on a floating
+// base, a hanging ball-joint rope, random floating trees with spherical joints and
+// one of 70 bodies (beyond the 1-DoF kernels' 64). q with unit quaternions.
+template <class S>
+void multi_dof_matches_serial(double tol) {
+  if (const std::string why = test::no_device_reason(); !why.empty()) GTEST_SKIP() << "no CUDA device: " << why;
+  std::vector<std::pair<std::string, Model>> cases;
+  cases.emplace_back("hyq floating", test::load_floating("hyq.urdf"));
+  cases.emplace_back("atlas floating", test::load_floating("atlas.urdf"));
+  cases.emplace_back("ballrope:6", make_generated("ballrope:6"));
+  cases.emplace_back("random floating tree 12", test::random_floating_model(12, 3, 0.4));
+  cases.emplace_back("random floating tree 70", test::random_floating_model(70, 9, 0.2));
+  for (const auto& [label, md] : cases) {
+    const ModelTpl<S> m = md.template cast<S>();
+    const Index nq = m.nq(), B = 300;
+    std::mt19937_64 g(21);
+    std::vector<S> q;
+    for (Index b = 0; b < B; ++b)
+      for (double x : test::random_q(md, g, -2.5, 2.5)) q.push_back(S(x));
+    ASSERT_EQ(q.size(), static_cast<std::size_t>(nq * B));
+    BackendOptions o;
+    o.backend = BackendKind::Cuda;
+    EXPECT_EQ(make_kinematics(m, o, test::all_frames(m))->strategy(), "general") << label;
+    expect_device_as_serial(m, q, B, tol, label);
+  }
+}
+
+TEST(CudaKinematics, MultiDofDoubleMatchesSerial) { multi_dof_matches_serial<double>(1e-11); }
+TEST(CudaKinematics, MultiDofFloatMatchesSerial) { multi_dof_matches_serial<float>(1e-4); }
 
 // compute_async on device memory, structure-of-arrays (q[i * B + b], poses[e * B + b],
 // J[e * B + b]) on a stream of ours, equals compute() on host rows; poses alone too.

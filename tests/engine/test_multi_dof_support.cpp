@@ -140,15 +140,6 @@ TEST(MultiDofSupport, RefusedWithTheFeatureAndTheJoint) {
   simd.simd = CpuSimd::On;
   expect_throws_naming([&] { make_inverse_dynamics(m, simd); }, {"simd", "root_joint"});
   expect_throws_naming([&] { generator_loops("fourbar", m); }, {"closed loops", "root_joint"});
-  // kinematics on cuda: refused by the factory (before any device is looked for)
-  BackendOptions cuda;
-  cuda.backend = BackendKind::Cuda;
-  KinematicsOptions k;
-  k.frames = {0};
-  if (SCANDYN_HAS_CUDA)
-    expect_throws_naming([&] { make_kinematics(m, cuda, k); }, {"kinematics on the cuda backend", "root_joint"});
-  else
-    EXPECT_THROW(make_kinematics(m, cuda, k), BackendError);
   const Model ball = load_model("ballrope:3");
   expect_throws_naming([&] { make_fd_derivatives(ball, serial); }, {"forward-dynamics derivatives", "spherical"});
 }

@@ -81,6 +81,7 @@
 #include "scandyn/cuda/chain_fd.hpp"
 #include "scandyn/cuda/fd_check.hpp"
 #include "scandyn/cuda/fd_dense.hpp"
+#include "scandyn/cuda/general_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/instance/aba_instance.hpp"
 #include "scandyn/instance/crba_instance.hpp"
@@ -191,7 +192,9 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
 
   // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
   // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
-  // "aba_thread" (FdMethod::Aba: ABA, one thread per instance)
+  // "aba_thread" (FdMethod::Aba: ABA, one thread per instance), "aba_general"
+  // (FdMethod::Aba of joints of any type: spherical, a floating base beyond the thread
+  // kernels; GeneralPlan, one thread per instance)
   // "parallel" and "hybrid" (ChainFdPlan) likewise.
   // With set_fallback_aba: "jsi_thread+aba".
   // With the check on: "+check" appended.
@@ -199,7 +202,7 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
     const std::string check = check_ && check_->on() ? "+check" : "";
     if (chain_) return (algorithm_ == FdMethod::Hybrid ? "hybrid" : "parallel") + check;
     if (fallback_aba_) return "jsi_thread+aba" + check;
-    return (aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread") + check;
+    return (general_ ? "aba_general" : aba_ ? "aba_thread" : dense_ ? "jsi_dense" : "jsi_thread") + check;
   }
   // the check's estimates of the last compute() / compute_async() on the device
   // (thread engines with the check on; B doubles, device memory), else null
@@ -211,7 +214,7 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   const std::vector<ChainTimelineEvent>& timeline() const { return timeline_; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
-  const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense
+  const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for jsi_dense, aba_general
   Index nv() const { return nv_; }
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
@@ -226,6 +229,7 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   std::unique_ptr<ZThreadModel<S>> thread_;
   std::unique_ptr<DenseJsiPlan<S>> dense_;
   std::unique_ptr<ChainFdPlan<S>> chain_;
+  std::unique_ptr<GeneralPlan<S>> general_;
   bool record_timeline_ = false;
   std::vector<ChainTimelineEvent> timeline_;
   Index max_batch_ = 0;

@@ -16,7 +16,10 @@
 //     compute_async()  DEVICE pointers and your stream: one launch, no copy, no
 //                      synchronisation, no allocation; returns the cudaError_t.
 //
-// Models of up to kMaxThreadDofs DoF (strategy "thread"). Accuracy: the CPU engines'
+// Models of 1-DoF joints of up to kMaxThreadDofs DoF (strategy "thread"); models
+// with multi-DoF joints (a floating base, spherical joints) of any size run the
+// general path, kinematics_instance_at per thread over GeneralPlan (strategy
+// "general", scandyn/cuda/general_dynamics.hpp). Accuracy: the CPU engines'
 // formulas in the same order; on the device FMA contraction and sin/cos as the other
 // thread-per-instance kernels (kThreadTrig: the library's in double, the SFU's in
 // float) make the difference.
@@ -28,6 +31,7 @@
 
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
+#include "scandyn/cuda/general_dynamics.hpp"
 #include "scandyn/instance/thread_model.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -58,8 +62,8 @@ template <class S>
 class CudaKinematics final : public Kinematics<S> {
  public:
   // Prepares the model and the frames (device memory) and the staging buffer for
-  // options.max_batch instances: q, poses and J, (nv + F (16 + 6 nv)) * sizeof(S)
-  // bytes per instance. Throws BackendError beyond kMaxThreadDofs DoF, for a frame
+  // options.max_batch instances: q, poses and J, (nq + F (16 + 6 nv)) * sizeof(S)
+  // bytes per instance. Throws BackendError for a 1-DoF model beyond kMaxThreadDofs DoF, for a frame
   // index outside model.frames, without a usable device, or when the buffers do not
   // fit in device memory.
   CudaKinematics(const ModelTpl<S>& model, const BackendOptions& options, const KinematicsOptions& kinematics);
@@ -74,7 +78,7 @@ class CudaKinematics final : public Kinematics<S> {
                             cudaStream_t stream);
 
   const KinematicsOptions& options() const override { return options_; }
-  std::string strategy() const override { return "thread"; }
+  std::string strategy() const override { return general_ ? "general" : "thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
   Index max_batch() const { return max_batch_; }
   // The CUDA device the engine was made on (its frames and buffers live there).
@@ -82,11 +86,13 @@ class CudaKinematics final : public Kinematics<S> {
 
  private:
   Index nv_ = 0;
+  Index nq_ = 0;  // entries of q (nv + 1 per quaternion joint)
   Index max_batch_ = 0;
   KinematicsOptions options_;
-  std::unique_ptr<ThreadModel<S>> thread_;
+  std::unique_ptr<ThreadModel<S>> thread_;   // 1-DoF models
+  std::unique_ptr<GeneralPlan<S>> general_;  // models with multi-DoF joints
   FramePlacement<S>* frames_ = nullptr;  // (F) the selected frames, device memory
-  // compute()'s stream and its one allocation: q (nv x max_batch), poses, then J
+  // compute()'s stream and its one allocation: q (nq x max_batch), poses, then J
   std::unique_ptr<detail::StagingBuffer> staging_;
 };
 

@@ -49,6 +49,7 @@
 #include "scandyn/engine.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
+#include "scandyn/cuda/general_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/instance/crba_instance.hpp"
 
@@ -111,9 +112,13 @@ class CudaMassMatrix final : public MassMatrix<S> {
   //                scratch, so one stream at a time.
   cudaError_t compute_async(const BatchView<const S>& q, const BatchView<S>& M, cudaStream_t stream);
 
-  // "crba_thread" (one thread per instance, up to kMaxThreadDofs DoF) or
-  // "crba_block" (one thread block per instance, beyond)
-  std::string strategy() const override { return blocks_ ? "crba_block" : "crba_thread"; }
+  // "crba_thread" (one thread per instance, up to kMaxThreadDofs DoF),
+  // "crba_block" (one thread block per instance, beyond) or "crba_general" (joints
+  // of any type: spherical, a floating base beyond the thread kernels; one thread
+  // per instance, scandyn/cuda/general_dynamics.hpp)
+  std::string strategy() const override {
+    return general_ ? "crba_general" : blocks_ ? "crba_block" : "crba_thread";
+  }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
   const ZThreadModel<S>* thread_model() const { return thread_.get(); }  // null for crba_block
@@ -131,6 +136,7 @@ class CudaMassMatrix final : public MassMatrix<S> {
   std::size_t bytes_ = 0;
   std::unique_ptr<ZThreadModel<S>> thread_;              // crba_thread
   std::unique_ptr<detail::CrbaBlocks<S>> blocks_;       // crba_block
+  std::unique_ptr<GeneralPlan<S>> general_;             // crba_general
   // compute()'s stream and its one allocation: q (nv x max_batch), then M (nv^2 x max_batch)
   std::unique_ptr<detail::StagingBuffer> staging_;
 };

@@ -106,6 +106,9 @@ struct ModelTpl {
   bool multi_dof() const { return extra_v != 0; }
   // True when body 0 is a free joint (the floating base).
   bool floating_base() const { return !bodies.empty() && bodies[0].type == JointType::Free; }
+  // True when every joint has one DoF, or a floating base has 1-DoF joints past it
+  // (what the CUDA thread-per-instance kernels take; spherical joints do not).
+  bool one_dof_past_base() const { return extra_v == 0 || (floating_base() && extra_v == 5); }
   Index parent(Index i) const { return bodies[i].parent; }
 
   template <class T>

@@ -293,6 +293,25 @@ SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Bd* bodies, Inde
   }
 }
 
+// One forward dynamics' wrenches and implicit armature with the contacts in: the
+// contact pass at (q, qd) over copies of fext (nb wrenches, null: none) into f and
+// of arm (nv, null for explicit integrators) into arm_out, which gets the
+// contacts' diagonal (h = dt when arm is given); fext and arm then point at the
+// copies. X, v: nb scratch. readings written, then nulled (an rk4 step reports its
+// first stage's contacts). The caller skips it for a scene without contact points.
+template <bool kMultiDof, class S, class Bd>
+SCANDYN_HD void add_contact_wrenches(const ContactSet<S>& cs, const Bd* bodies, Index nb, Index nv, S dt, const S* q,
+                                     const S* qd, const Force<S>*& fext, const S*& arm, Transform<S>* X, Motion<S>* v,
+                                     Force<S>* f, S* arm_out, ContactReading<S>*& readings) {
+  for (Index i = 0; i < nb; ++i) f[i] = fext ? fext[i] : Force<S>::zero();
+  if (arm)
+    for (Index i = 0; i < nv; ++i) arm_out[i] = arm[i];
+  contact_pass_any<kMultiDof>(cs, bodies, nb, q, qd, 1, arm ? dt : S(0), X, v, f, arm ? arm_out : nullptr, readings);
+  readings = nullptr;
+  fext = f;
+  if (arm) arm = arm_out;
+}
+
 // The elastic energy of the contacts at the world positions of the points: sum
 // over touching pairs of 1/2 k d^2 (a diagnostic; the clamp and the damping make
 // the law dissipative, never a source).

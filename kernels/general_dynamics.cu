@@ -1,0 +1,204 @@
+// kernels/general_dynamics.cu: the general path on the GPU (scandyn/cuda/general_dynamics.hpp):
+// aba_general_kernel, crba_general_kernel and kinematics_general_kernel, one thread
+// per instance over the one-instance routines of scandyn/instance/general_instance.hpp
+// and kinematics_instance.hpp, and GeneralPlan (the device bodies and scratch).
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <string>
+
+#include "scandyn/cuda/general_dynamics.hpp"
+#include "scandyn/instance/kinematics_instance.hpp"
+#include "staging.hpp"
+
+namespace scandyn {
+namespace cuda {
+
+using detail::check;
+
+namespace {
+
+constexpr int kGeneralBlock = 64;
+
+std::size_t align16(std::size_t n) { return (n + 15) / 16 * 16; }
+
+unsigned general_blocks(long long threads) {
+  return static_cast<unsigned>((threads + kGeneralBlock - 1) / kGeneralBlock);
+}
+
+// The scalars of instance b's column i < n of v into out.
+template <class S>
+__device__ void gather(const BatchView<const S>& v, long long b, Index n, S* out) {
+  for (Index i = 0; i < n; ++i) out[i] = v.at(i, static_cast<Index>(b));
+}
+
+// Thread t's slice and the instances it takes: t, t + slots, ... < B.
+#define SCANDYN_GENERAL_INSTANCES(g, B)                                                   \
+  const long long t = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;    \
+  if (t >= (g).slots) return;                                                            \
+  char* const slice = (g).work + t * static_cast<long long>((g).layout.bytes);            \
+  const GeneralWork<S> w = (g).layout.work(slice);                                       \
+  S* const sc = (g).layout.scalar_area(slice);                                           \
+  for (long long b = t; b < (B); b += (g).slots)
+
+// Scratch scalars: q (nq), qd (nv), tau (nv), qdd (nv).
+template <class S>
+__global__ void __launch_bounds__(kGeneralBlock)
+    aba_general_kernel(const GeneralArgs<S> g, const FdBatchIn<S> in, const BatchView<S> qdd, int* failed_dof) {
+  SCANDYN_GENERAL_INSTANCES(g, in.q.batch) {
+    S* const q = sc;
+    S* const qd = q + g.nq;
+    S* const tau = qd + g.nv;
+    S* const out = tau + g.nv;
+    gather(in.q, b, g.nq, q);
+    gather(in.qd, b, g.nv, qd);
+    gather(in.tau, b, g.nv, tau);
+    const Force<S>* fext = in.fext ? in.fext + b * g.nb : nullptr;
+    const Index failed = aba_general(g.bodies, g.nb, g.a0, w, q, qd, tau, out, fext, static_cast<const S*>(nullptr));
+    if (failed < 0)
+      for (Index i = 0; i < g.nv; ++i) qdd.at(i, static_cast<Index>(b)) = out[i];
+    failed_dof[b] = static_cast<int>(failed);
+  }
+}
+
+// Entry (r, c) of instance b's M in an (nv nv x B) view.
+template <class S>
+struct MassEntries {
+  BatchView<S> M;
+  Index nv, b;
+  SCANDYN_HD S& operator()(Index r, Index c) const { return M.at(r * nv + c, b); }
+};
+
+// Scratch scalars: q (nq). M written in place: entry r nv + c of instance b.
+template <class S>
+__global__ void __launch_bounds__(kGeneralBlock)
+    crba_general_kernel(const GeneralArgs<S> g, const BatchView<const S> q_in, const BatchView<S> M) {
+  SCANDYN_GENERAL_INSTANCES(g, q_in.batch) {
+    S* const q = sc;
+    gather(q_in, b, g.nq, q);
+    const Index nv = g.nv, bi = static_cast<Index>(b);
+    crba_general(g.bodies, g.nb, nv, w, q, MassEntries<S>{M, nv, bi});
+  }
+}
+
+// Scratch scalars: q (nq); the body placements X0 in GeneralWork::Xup (nb).
+template <class S>
+__global__ void __launch_bounds__(kGeneralBlock)
+    kinematics_general_kernel(const GeneralArgs<S> g, const FramePlacement<S>* __restrict__ frames, Index F,
+                              PoseFormat format, FrameReference reference, const BatchView<const S> q_in,
+                              const BatchView<S> poses, const BatchView<S> J) {
+  SCANDYN_GENERAL_INSTANCES(g, q_in.batch) {
+    S* const q = sc;
+    gather(q_in, b, g.nq, q);
+    const Strided<S> pb{poses.data ? poses.data + b * poses.batch_stride : nullptr, poses.dof_stride};
+    const Strided<S> Jb{J.data ? J.data + b * J.batch_stride : nullptr, J.dof_stride};
+    kinematics_instance_at(g.bodies, g.nb, g.nv, frames, F, format, reference, q, w.Xup, pb, Jb);
+  }
+}
+
+#undef SCANDYN_GENERAL_INSTANCES
+
+template <class S>
+long long launch_threads(const GeneralArgs<S>& g, Index B) {
+  return std::min<long long>(g.slots, B);
+}
+
+}  // namespace
+
+template <class S>
+GeneralLayout<S> GeneralLayout<S>::make(Index nb, Index nv, Index scalars, std::size_t extra_bytes) {
+  GeneralLayout<S> l{};
+  std::size_t at = 0;
+  auto take = [&](std::size_t& field, std::size_t bytes) {
+    field = at;
+    at += align16(bytes);
+  };
+  const std::size_t B = static_cast<std::size_t>(nb), V = static_cast<std::size_t>(nv);
+  take(l.Xup, B * sizeof(Transform<S>));
+  take(l.v, B * sizeof(Motion<S>));
+  take(l.a, B * sizeof(Motion<S>));
+  take(l.c, B * sizeof(Motion<S>));
+  take(l.f, B * sizeof(Force<S>));
+  take(l.Ic, B * sizeof(Inertia<S>));
+  take(l.IA, B * sizeof(ABInertia<S>));
+  take(l.U, V * sizeof(Force<S>));
+  take(l.D, V * sizeof(S));
+  take(l.u, V * sizeof(S));
+  take(l.L, V * kMaxJointDofs * sizeof(S));
+  take(l.scalars, static_cast<std::size_t>(scalars) * sizeof(S));
+  take(l.extra, extra_bytes);
+  l.bytes = at;
+  return l;
+}
+
+template <class S>
+GeneralPlan<S>::GeneralPlan(const ModelTpl<S>& model, Index max_batch, std::size_t extra_bytes, Index extra_scalars,
+                            std::size_t budget_bytes) {
+  const Index nb = model.nbodies(), nv = model.nv(), nq = model.nq();
+  GeneralArgs<S>& g = args_;
+  g.nb = nb, g.nv = nv, g.nq = nq;
+  g.a0 = base_acceleration(model.gravity);
+  // q, qd, tau and the result (the largest need: aba's), and the caller's
+  g.layout = GeneralLayout<S>::make(nb, nv, nq + 3 * nv + extra_scalars, extra_bytes);
+  g.slots = std::max<long long>(1, std::min<long long>(std::max<Index>(max_batch, 1),
+                                                       static_cast<long long>(budget_bytes / g.layout.bytes)));
+  const std::size_t body_bytes = align16(static_cast<std::size_t>(nb) * sizeof(Body<S>));
+  bytes_ = body_bytes + static_cast<std::size_t>(g.slots) * g.layout.bytes;
+  memory_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t) {
+    return "backend 'cuda': the general path's scratch for model '" + model.name + "' (" + std::to_string(g.slots) +
+           " instances at a time, " + std::to_string(g.layout.bytes) + " bytes each) needs " + std::to_string(bytes_) +
+           " bytes of device memory; " + std::to_string(free_bytes) + " are free";
+  });
+  g.bodies = static_cast<const Body<S>*>(memory_);
+  g.work = static_cast<char*>(memory_) + body_bytes;
+  check(cudaMemcpy(memory_, model.bodies.data(), static_cast<std::size_t>(nb) * sizeof(Body<S>),
+                   cudaMemcpyHostToDevice),
+        "copying the bodies to the device");
+}
+
+template <class S>
+GeneralPlan<S>::~GeneralPlan() {
+  if (memory_) cudaFree(memory_);
+}
+
+template <class S>
+cudaError_t GeneralPlan<S>::launch_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof,
+                                       cudaStream_t stream) const {
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.tau.batch != B || qdd.batch != B || !failed_dof) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  aba_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(args_, in, qdd,
+                                                                                                 failed_dof);
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t GeneralPlan<S>::launch_crba(const BatchView<const S>& q, const BatchView<S>& M, cudaStream_t stream) const {
+  const Index B = q.batch;
+  if (B < 0 || M.batch != B) return cudaErrorInvalidValue;
+  if (B == 0) return cudaSuccess;
+  crba_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(args_, q, M);
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t GeneralPlan<S>::launch_kinematics(const FramePlacement<S>* frames, Index F, PoseFormat format,
+                                              FrameReference reference, const BatchView<const S>& q,
+                                              const BatchView<S>& poses, const BatchView<S>& J,
+                                              cudaStream_t stream) const {
+  const Index B = q.batch;
+  if (B < 0 || (poses.data && poses.batch != B) || (J.data && J.batch != B)) return cudaErrorInvalidValue;
+  if (B == 0 || F == 0 || (!poses.data && !J.data)) return cudaSuccess;
+  if (!frames) return cudaErrorInvalidValue;
+  kinematics_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(
+      args_, frames, F, format, reference, q, poses, J);
+  return cudaGetLastError();
+}
+
+template struct GeneralLayout<float>;
+template struct GeneralLayout<double>;
+template class GeneralPlan<float>;
+template class GeneralPlan<double>;
+
+}  // namespace cuda
+}  // namespace scandyn
