@@ -87,7 +87,8 @@ KinematicsResult<S> run_kinematics(const ModelTpl<S>& model, BackendKind backend
   KinematicsResult<S> r;
   r.poses.assign(static_cast<std::size_t>(B * F * pw), std::numeric_limits<S>::quiet_NaN());
   r.J.assign(static_cast<std::size_t>(B * F * 6 * nv), std::numeric_limits<S>::quiet_NaN());
-  e->compute(BatchView<const S>::aos(q.data(), model.nq(), B),  // q: nq entries per instance BatchView<S>::aos(r.poses.data(), F * pw, B),
+  // q: nq entries per instance
+  e->compute(BatchView<const S>::aos(q.data(), model.nq(), B), BatchView<S>::aos(r.poses.data(), F * pw, B),
              BatchView<S>::aos(r.J.data(), F * 6 * nv, B));
   return r;
 }

@@ -10,8 +10,9 @@
 // tau, result) a slice of one device buffer: `slots` slices, each thread taking
 // instances t, t + slots, ... so that the buffer stays within a budget (512 MiB)
 // whatever the batch. The 1-DoF thread kernels (fixed frames folded into the
-// z-axis, registers) are several times faster; this path is for what they do not
-// take. Every pointer given to a launch is a DEVICE pointer; nothing is allocated
+// z-axis, state in registers) are ~30x faster per DoF (docs/benchmarks.md: the
+// scratch here is per instance, a warp's loads uncoalesced); this path is for what
+// they do not take. Every pointer given to a launch is a DEVICE pointer; nothing is allocated
 // or synchronised per call; one plan serves one stream at a time.
 #pragma once
 
