@@ -205,9 +205,10 @@ if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
   # what the reports' stack traces need (file:line), and the stage compiles in
   # about half the CPU time (test_model.cpp: 80 s -> 28 s) while its tests run
   # ~15% longer (test_sim's long rollouts, measured). SCANDYN_HOST_EFFECT_SETS=OFF:
-  # the host simulator's steps with every joint effect compiled in (the same numbers;
-  # CMakeLists.txt), 4 effect sets instead of 64: cpu_fallback/simulator_step.cpp
-  # took 270 of the stage's 1190 compile-seconds with all 64.
+  # the host simulator's steps and step derivatives with every joint effect compiled
+  # in (the same numbers; CMakeLists.txt), 4 effect sets instead of 64:
+  # cpu_fallback/simulator_step.cpp and step_derivatives.cpp took 320 of the stage's
+  # 1190 compile-seconds with all of them.
   if build_stage asan "$asan_build" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
        "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1 -DNDEBUG" \
        -DSCANDYN_SANITIZE=address,undefined -DSCANDYN_BENCH=OFF -DSCANDYN_CUDA=OFF \
