@@ -126,6 +126,7 @@ class _Torch:
 
     raw_stream = None  # torch._C._cuda_getCurrentRawStream, or a slower equivalent
     to_dlpack = None
+    dtypes = None  # {"float32": torch.float32, "float64": torch.float64}
 
     @classmethod
     def load(cls):
@@ -135,6 +136,7 @@ class _Torch:
         raw = getattr(torch._C, "_cuda_getCurrentRawStream", None)
         cls.raw_stream = raw if raw is not None else (lambda d: torch.cuda.current_stream(d).cuda_stream)
         cls.to_dlpack = torch.utils.dlpack.to_dlpack
+        cls.dtypes = {"float32": torch.float32, "float64": torch.float64}
         return cls
 
 
@@ -350,9 +352,9 @@ def _entry_major_mass(q, nv, dtype):
     if type(q).__module__.startswith("torch"):
         if not q.is_cuda:
             return None
-        import torch
-
-        return torch.empty((nv, nv, b), dtype=getattr(torch, dtype), device=q.device).permute(2, 0, 1)
+        # one allocation with the view's strides, on q's device, in the engine's dtype
+        dtypes = _Torch.dtypes or _Torch.load().dtypes
+        return q.new_empty_strided((b, nv, nv), (1, nv * b, b), dtype=dtypes[dtype])
     if type(q).__module__.startswith("cupy"):
         import cupy
 
