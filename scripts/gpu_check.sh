@@ -8,7 +8,7 @@
 #   1. environment report (GPU, driver, nvcc, compilers)          -> env.txt
 #   2. configure: Release, CUDA on (sm_90 unless CMAKE_CUDA_ARCHITECTURES is set
 #      in the environment), -march=native, every kernel variant
-#      (SCANDYN_SIM_EFFECT_SETS and SCANDYN_BENCH_VARIANTS on, whatever an earlier
+#      (SCANDYN_SIM_EFFECT_SETS, SCANDYN_BENCH_VARIANTS and SCANDYN_HOST_EFFECT_SETS on, whatever an earlier
 #      configure of the build directory said), urdfdom from .deps/root -> configure.log
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
@@ -32,7 +32,7 @@
 # time), SCANDYN_SKIP_ACCURACY=1, SCANDYN_SKIP_BENCH=1, SCANDYN_BENCH_ONLY (a regex of bench program names),
 # SCANDYN_BENCH_ARGS (extra Google Benchmark flags, e.g.
 # --benchmark_min_time=0.05s), SCANDYN_BENCH_TIMEOUT (seconds per program, default 300),
-# SCANDYN_VARIANTS=OFF (configure without the fused-step effect sets and the bench
+# SCANDYN_VARIANTS=OFF (configure without the fused-step and host-step effect sets and the bench
 # variants: a faster build), SCANDYN_CTEST_REGEX (ctest -R: only these tests, for a
 # build of some targets), SCANDYN_ACCURACY_ARGS (extra accuracy_report flags, e.g.
 # "--backends cuda"), SCANDYN_FD_CHECK_COST=1 (bench/fd_check_engine_cost on serial,
@@ -115,6 +115,7 @@ set +e
 cmake -S "$repo" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
   -DSCANDYN_CUDA=ON -DCMAKE_CUDA_ARCHITECTURES="$arch" -DSCANDYN_NATIVE=ON \
   -DSCANDYN_SIM_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" -DSCANDYN_BENCH_VARIANTS="${SCANDYN_VARIANTS:-ON}" \
+  -DSCANDYN_HOST_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" \
   -DCMAKE_PREFIX_PATH="$deps/usr" -DSCANDYN_MODELS_DIR="$SCANDYN_MODELS_DIR" \
   2>&1 | tee "$out/configure.log"
 rc=${PIPESTATUS[0]}

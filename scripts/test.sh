@@ -22,9 +22,10 @@
 #
 # Without a GPU (nvidia-smi -L fails: CI) the CUDA code is compiled but never run,
 # so stage 2 compiles fewer variant instantiations of it: SCANDYN_SIM_EFFECT_SETS=OFF
-# and SCANDYN_BENCH_VARIANTS=OFF (CMakeLists.txt), to PTX only (no ptxas). Every
-# kernel template, test and benchmark still compiles; scripts/gpu_check.sh builds
-# the full variety as sm_90 code.
+# and SCANDYN_BENCH_VARIANTS=OFF (CMakeLists.txt), to PTX only (no ptxas), and the
+# host simulator's steps with every joint effect in (SCANDYN_HOST_EFFECT_SETS=OFF).
+# Every kernel template, test and benchmark still compiles; scripts/gpu_check.sh
+# builds the full variety as sm_90 code.
 #
 # Environment: SCANDYN_JOBS (build/test parallelism, default: nproc),
 # SCANDYN_BUILD_DIR / SCANDYN_ASAN_BUILD_DIR (default build, build-asan),
@@ -122,10 +123,17 @@ show_skips() {
 # (SCANDYN_BENCH_VARIANTS; CMakeLists.txt): several minutes of nvcc on 2 cores.
 # There the kernels are also compiled to PTX only (CMAKE_CUDA_ARCHITECTURES=90-virtual:
 # nvcc's front end and code generation, without ptxas's SASS, ~40% of nvcc's time
-# on the heaviest files); scripts/gpu_check.sh builds sm_90 code and runs it.
+# on the heaviest files); scripts/gpu_check.sh builds sm_90 code and runs it. And the
+# host simulator's steps are compiled with every joint effect in
+# (SCANDYN_HOST_EFFECT_SETS=OFF: the same numbers; cpu_fallback/simulator_step.cpp
+# alone is 110-140 s of the stage's compile time with all 64 sets), as in the
+# sanitizer stage; the per-set instantiations are built and tested where a GPU is
+# (gpu_check.sh: every option ON, every test), ZeroCoefficientsEqualAbsentEffects
+# checking there that they give the all-effects step's numbers.
 variants=()
 if ! nvidia-smi -L >/dev/null 2>&1; then
-  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual)
+  variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual
+            -DSCANDYN_HOST_EFFECT_SETS=OFF)
 fi
 # (SCANDYN_PYTHON=OFF here: the Python stage below turns it on once .venv is ready)
 if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF ${variants[@]+"${variants[@]}"}; then
