@@ -303,7 +303,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
   }
   template <std::size_t... K>
   static constexpr std::array<StepFn, sizeof...(K)> make_variational_table(std::index_sequence<K...>) {
-    return {&variational_step_one<unsigned(K)>...};
+    return {&variational_step_one<sim::host_joint_effect_set(unsigned(K))>...};
   }
   static const std::array<StepFn, sim::kEffectSets>& variational_table() {
     static const auto t = make_variational_table(std::make_index_sequence<sim::kEffectSets>{});
@@ -567,7 +567,7 @@ class CpuEngineStep final : public CpuSimState<S> {
   // every joint-effect set (effects & kJointEffects: 8 values of the bits 2, 4, 8)
   template <std::size_t... K>
   static constexpr std::array<ForcesFn, sizeof...(K)> make_forces_table(std::index_sequence<K...>) {
-    return {&forces<unsigned(K) & sim::kJointEffects>...};
+    return {&forces<sim::host_joint_effect_set(unsigned(K)) & sim::kJointEffects>...};
   }
   static const std::array<ForcesFn, sim::kJointEffects + 1>& forces_table() {
     static const auto t = make_forces_table(std::make_index_sequence<sim::kJointEffects + 1>{});

@@ -101,13 +101,13 @@ struct KernelSet {
 // Every (integrator, joint-effect set) instantiation, indexed integrator * 16 +
 // (effects & kJointEffects): gravity and external wrenches are the forward
 // dynamics' business (the model's gravity, the fext pointer), contacts are refused.
-// (SCANDYN_HOST_EFFECT_SETS=0: every joint effect compiled into each, host_step_set.)
+// (SCANDYN_HOST_EFFECT_SETS=0: every joint effect compiled into each, host_joint_effect_set.)
 template <class S, std::size_t... K>
 constexpr std::array<KernelSet<S>, sizeof...(K)> make_kernels(std::index_sequence<K...>) {
-  return {KernelSet<S>{&InstanceKernels<host_step_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::step,
-                       &InstanceKernels<host_step_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jacobian,
-                       &InstanceKernels<host_step_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jvp,
-                       &InstanceKernels<host_step_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::vjp}...};
+  return {KernelSet<S>{&InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::step,
+                       &InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jacobian,
+                       &InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jvp,
+                       &InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::vjp}...};
 }
 template <class S>
 const KernelSet<S>& kernels_of(const SimSetup<S>& setup) {

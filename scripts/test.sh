@@ -14,7 +14,7 @@
 #                   rollouts the release stage runs (asan_long below)
 #   4. build-fuzz/  the libFuzzer targets (URDF, scene, CSV; clang, ASan + UBSan; only
 #                   the sources they reach: scandyn_parsers in CMakeLists.txt),
-#                   each run for SCANDYN_FUZZ_SECONDS (default 20) by scripts/fuzz.sh;
+#                   each run for SCANDYN_FUZZ_SECONDS (default 10) by scripts/fuzz.sh;
 #                   any crash, leak, timeout or sanitizer report fails. Skipped with a
 #                   warning when clang++ is missing.
 # Both stages run even if the first one's tests fail; the exit status is non-zero
@@ -231,8 +231,8 @@ wait_report
 
 if [[ "${SCANDYN_SKIP_FUZZ:-0}" != 1 ]]; then
   if command -v clang++ >/dev/null 2>&1; then
-    stamp "fuzz: ${SCANDYN_FUZZ_SECONDS:-20} s per target (build-fuzz)"
-    scripts/fuzz.sh "${SCANDYN_FUZZ_SECONDS:-20}" || failed+=(fuzz)
+    stamp "fuzz: ${SCANDYN_FUZZ_SECONDS:-10} s per target (build-fuzz)"
+    scripts/fuzz.sh "${SCANDYN_FUZZ_SECONDS:-10}" || failed+=(fuzz)
   else
     echo "test.sh: warning: clang++ not found; the fuzz stage is skipped" >&2
   fi

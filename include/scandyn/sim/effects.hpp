@@ -67,6 +67,9 @@ inline constexpr unsigned kImplicitEffects = kDamping | kSprings | kContacts;
 constexpr unsigned host_step_set(unsigned e) {
   return SCANDYN_HOST_EFFECT_SETS ? e : (e | kJointEffects | kExternal);
 }
+// The same for the steps whose wrenches are not part of the set (the variational
+// step, the engine path's joint forces): every joint effect compiled in.
+constexpr unsigned host_joint_effect_set(unsigned e) { return SCANDYN_HOST_EFFECT_SETS ? e : (e | kJointEffects); }
 
 // "gravity+damping+springs+limits+external+contacts" order, "none" for the empty set.
 std::string effect_names(unsigned effects);
