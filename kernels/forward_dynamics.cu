@@ -141,8 +141,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   // of models they do not take (spherical joints; a floating base with more bodies
   // past it) runs the general path.
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
-  const bool general =
-      aba_ && (!model.one_dof_past_base() || (model.multi_dof() && thread_bodies > kMaxThreadDofs));
+  const bool general = aba_ && takes_general_path(model);
   if (model.multi_dof() && !chain && algorithm != FdMethod::Aba)
     throw BackendError(std::string("backend 'cuda': model '") + model.name +
                        "' has multi-DoF joints (a floating base or spherical joints), which forward dynamics by " +

@@ -36,7 +36,7 @@ __device__ void gather(const BatchView<const S>& v, long long b, Index n, S* out
 #define SCANDYN_GENERAL_INSTANCES(g, B)                                                   \
   const long long t = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;    \
   if (t >= (g).slots) return;                                                            \
-  char* const slice = (g).work + t * static_cast<long long>((g).layout.bytes);            \
+  char* const slice = (g).slice(t);                                                      \
   const GeneralWork<S> w = (g).layout.work(slice);                                       \
   S* const sc = (g).layout.scalar_area(slice);                                           \
   for (long long b = t; b < (B); b += (g).slots)

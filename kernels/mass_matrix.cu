@@ -162,7 +162,7 @@ CudaMassMatrix<S>::CudaMassMatrix(const ModelTpl<S>& model, const BackendOptions
   // they do not take (spherical joints; a floating base with more bodies past it)
   // run the general path.
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
-  const bool general = !model.one_dof_past_base() || (model.multi_dof() && thread_bodies > kMaxThreadDofs);
+  const bool general = takes_general_path(model);
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   const std::size_t n = static_cast<std::size_t>(nv_);
   // q (nq scalars) and M (nv^2) for max_batch instances
@@ -211,10 +211,12 @@ void CudaMassMatrix<S>::compute(const BatchView<const S>& q, const BatchView<S>&
   check(copy(sq, q, nq_, dq, cudaMemcpyHostToDevice, stream), "copying q to the device");
   // run
   check(compute_async(sq.device_view<const S>(dq, B), sM.device_view(dM, B), stream),
-        ("launching the CRBA (" + strategy() + ")").c_str());
+        general_ ? "launching crba_general_kernel"
+        : blocks_ ? "launching the CRBA (a block per instance)" : "launching crba_instances_kernel");
   // copy out: M's entries only
   check(copy(sM, M, entries, dM, cudaMemcpyDeviceToHost, stream), "copying M to the host");
-  check(cudaStreamSynchronize(stream), ("running the CRBA (" + strategy() + ")").c_str());
+  check(cudaStreamSynchronize(stream), general_ ? "running crba_general_kernel"
+                                       : blocks_ ? "running the CRBA (a block per instance)" : "running crba_instances_kernel");
 }
 
 #define SCANDYN_INSTANTIATE(S)         \

@@ -324,6 +324,19 @@ cudaError_t launch_fused_with(const Params& params, unsigned effects, const Fuse
   return err;
 }
 
+// Instance b's state (q: nq entries, qd: nv) and torques (tau: nv, zeros without
+// them) from the SoA state.
+template <class S>
+__device__ __forceinline__ void load_state_at(const FusedArgs<S>& a, long long b, S* q, S* qd, S* tau, Index nq,
+                                              Index nv) {
+  const long long B = a.batch;
+  for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
+  for (Index i = 0; i < nv; ++i) {
+    qd[i] = a.qd[i * B + b];
+    tau[i] = a.tau.data ? a.tau.at(i, static_cast<Index>(b)) : S(0);
+  }
+}
+
 // Instance b's new state (q: nq entries, qd: nv) into the SoA state; a non-finite
 // entry recorded as the CPU backends do: the first i < nv with q_i or qd_i not
 // finite, then q's last entries.
@@ -356,15 +369,10 @@ __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= a.batch) return;
   const Index n = p.model.nv, nv = n + 6, nq = n + 7, nb = n + 1;
-  const long long B = a.batch;
   S q[Q], qd[V], tau[V];  // the instance's state and torques
   S tw[V], qdd[V];        // StepScratchAt: tau + effects, FD's result
   S qs[kRk4 ? Q : 1], qds[kRk4 ? V : 1], aq[kRk4 ? V : 1], aqd[kRk4 ? V : 1], theta[kRk4 ? V : 1];  // rk4 stages
-  for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
-  for (Index i = 0; i < nv; ++i) {
-    qd[i] = a.qd[i * B + b];
-    tau[i] = a.tau.data ? a.tau.at(i, b) : S(0);
-  }
+  load_state_at(a, b, q, qd, tau, nq, nv);
   const Force<S>* fext = a.wrenches + b * a.wrench_stride;
   FloatingContactScratch<S, C> cw;
   ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
@@ -407,7 +415,7 @@ __global__ void __launch_bounds__(64)
   if (t >= g.slots) return;
   const Index nb = g.nb, nv = g.nv, nq = g.nq;
   const long long B = a.batch;
-  char* const slice = g.work + t * static_cast<long long>(g.layout.bytes);
+  char* const slice = g.slice(t);
   const GeneralWork<S> gw = g.layout.work(slice);
   S* const q = g.layout.scalar_area(slice);
   S* const qs = q + nq;
@@ -426,11 +434,7 @@ __global__ void __launch_bounds__(64)
   Force<S>* const cf = reinterpret_cast<Force<S>*>(cv + nb);
   const StepScratchAt<S> w{tw, qdd, qs, qds, aq, aqd, theta};
   for (long long b = t; b < B; b += g.slots) {
-    for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
-    for (Index i = 0; i < nv; ++i) {
-      qd[i] = a.qd[i * B + b];
-      tau[i] = a.tau.data ? a.tau.at(i, static_cast<Index>(b)) : S(0);
-    }
+    load_state_at(a, b, q, qd, tau, nq, nv);
     const Force<S>* const fext = a.wrenches + b * a.wrench_stride;
     ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
     auto fd = [&](const S* qa, const S* qda, const S* tt, const S* arm, S* out) -> Index {

@@ -144,8 +144,7 @@ class CudaSimBackend final : public SimBackend<S> {
     const std::size_t nb = static_cast<std::size_t>(setup.model.nbodies());
     floating_ = setup.model.floating_base();
     // models with multi-DoF joints that the thread kernels do not take: the general step
-    general_ = !setup.model.one_dof_past_base() ||
-               (floating_ && setup.model.nbodies() - 1 > cuda::kMaxThreadDofs);
+    general_ = cuda::takes_general_path(setup.model);
     fused_ = !general_ && (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
     engine_ = !fused_ && !general_;
     if (engine_ && setup.integrator == Integrator::Implicit)

@@ -28,6 +28,15 @@
 namespace scandyn {
 namespace cuda {
 
+// Does the model go to the general path? What the thread-per-instance kernels do not
+// take: spherical joints, or a floating base with more than kMaxThreadDofs bodies past
+// it. (The forward dynamics, mass matrix and simulator engines decide by it; kinematics,
+// whose thread kernel takes no multi-DoF joint, sends every multi_dof() model.)
+template <class S>
+bool takes_general_path(const ModelTpl<S>& model) {
+  return !model.one_dof_past_base() || (model.floating_base() && model.nbodies() - 1 > kMaxThreadDofs);
+}
+
 // Where one instance's scratch lies in its slice (byte offsets; every array aligned
 // to 16 bytes): GeneralWork's arrays, then `scalars` scalars (the instance's inputs
 // and outputs), then `extra` bytes for the caller.
@@ -57,6 +66,8 @@ struct GeneralArgs {
   GeneralLayout<S> layout;
   char* work;              // (slots x layout.bytes)
   long long slots;         // threads launched; thread t takes instances t, t + slots, ...
+
+  SCANDYN_HD char* slice(long long t) const { return work + t * static_cast<long long>(layout.bytes); }
 };
 
 template <class S>
