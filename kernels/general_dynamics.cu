@@ -18,13 +18,7 @@ using detail::check;
 
 namespace {
 
-constexpr int kGeneralBlock = 64;
-
 std::size_t align16(std::size_t n) { return (n + 15) / 16 * 16; }
-
-unsigned general_blocks(long long threads) {
-  return static_cast<unsigned>((threads + kGeneralBlock - 1) / kGeneralBlock);
-}
 
 // The scalars of instance b's column i < n of v into out.
 template <class S>
@@ -98,11 +92,6 @@ __global__ void __launch_bounds__(kGeneralBlock)
 
 #undef SCANDYN_GENERAL_INSTANCES
 
-template <class S>
-long long launch_threads(const GeneralArgs<S>& g, Index B) {
-  return std::min<long long>(g.slots, B);
-}
-
 }  // namespace
 
 template <class S>
@@ -167,7 +156,7 @@ cudaError_t GeneralPlan<S>::launch_aba(const FdBatchIn<S>& in, const BatchView<S
   const Index B = in.q.batch;
   if (B < 0 || in.qd.batch != B || in.tau.batch != B || qdd.batch != B || !failed_dof) return cudaErrorInvalidValue;
   if (B == 0) return cudaSuccess;
-  aba_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(args_, in, qdd,
+  aba_general_kernel<S><<<args_.blocks(B), kGeneralBlock, 0, stream>>>(args_, in, qdd,
                                                                                                  failed_dof);
   return cudaGetLastError();
 }
@@ -177,7 +166,7 @@ cudaError_t GeneralPlan<S>::launch_crba(const BatchView<const S>& q, const Batch
   const Index B = q.batch;
   if (B < 0 || M.batch != B) return cudaErrorInvalidValue;
   if (B == 0) return cudaSuccess;
-  crba_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(args_, q, M);
+  crba_general_kernel<S><<<args_.blocks(B), kGeneralBlock, 0, stream>>>(args_, q, M);
   return cudaGetLastError();
 }
 
@@ -190,7 +179,7 @@ cudaError_t GeneralPlan<S>::launch_kinematics(const FramePlacement<S>* frames, I
   if (B < 0 || (poses.data && poses.batch != B) || (J.data && J.batch != B)) return cudaErrorInvalidValue;
   if (B == 0 || F == 0 || (!poses.data && !J.data)) return cudaSuccess;
   if (!frames) return cudaErrorInvalidValue;
-  kinematics_general_kernel<S><<<general_blocks(launch_threads(args_, B)), kGeneralBlock, 0, stream>>>(
+  kinematics_general_kernel<S><<<args_.blocks(B), kGeneralBlock, 0, stream>>>(
       args_, frames, F, format, reference, q, poses, J);
   return cudaGetLastError();
 }

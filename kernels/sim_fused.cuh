@@ -408,7 +408,7 @@ struct GeneralSimScalars {
 };
 
 template <class S, Integrator I>
-__global__ void __launch_bounds__(64)
+__global__ void __launch_bounds__(cuda::kGeneralBlock)
     sim_general_kernel(const cuda::GeneralArgs<S> g, const FusedArgs<S> a, const FloatingArgs<S> fa, S dt) {
   constexpr unsigned E = kJointEffects | kExternal;  // (contacts: add_contact_wrenches)
   const long long t = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;

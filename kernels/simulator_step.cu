@@ -177,20 +177,28 @@ class CudaSimBackend final : public SimBackend<S> {
       bad_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
       nonfinite_ = reinterpret_cast<int*>(take(static_cast<std::size_t>(B) * sizeof(int)));
     }
+    // the general step's bodies and per-thread scratch (the plan's own device copy of the bodies)
+    if (general_)
+      general_plan_ = std::make_unique<cuda::GeneralPlan<S>>(setup.model, B, GeneralSimScalars<S>::extra_bytes(setup.model.nbodies()),
+                                                             GeneralSimScalars<S>::extra_scalars(setup.model.nq(), nv));
     // small constants: status, the constant (or zero) wrenches, the coefficients; with a
-    // floating base or the general step also the bodies and the implicit armature (FloatingArgs)
+    // floating base or the general step also the implicit armature and, for the fused
+    // floating kernel, the bodies (FloatingArgs)
     const bool manifold = floating_ || general_;
+    const bool own_bodies = manifold && !general_;
     const std::size_t small = sizeof(StepStatus) + n * sizeof(Force<S>) + n * sizeof(JointCoefficients<S>) +
-                              (manifold ? nb * sizeof(Body<S>) + n * sizeof(S) : 0);
+                              (manifold ? n * sizeof(S) : 0) + (own_bodies ? nb * sizeof(Body<S>) : 0);
     check(cudaMalloc(&small_, small), "allocating the simulator's constants");
     status_ = static_cast<StepStatus*>(small_);
     wrenches_ = reinterpret_cast<Force<S>*>(static_cast<char*>(small_) + sizeof(StepStatus));
     coef_ = reinterpret_cast<JointCoefficients<S>*>(reinterpret_cast<char*>(wrenches_) + n * sizeof(Force<S>));
     if (manifold) {
-      auto* bodies = reinterpret_cast<Body<S>*>(reinterpret_cast<char*>(coef_) + n * sizeof(JointCoefficients<S>));
-      auto* armature = reinterpret_cast<S*>(reinterpret_cast<char*>(bodies) + nb * sizeof(Body<S>));
-      check(cudaMemcpy(bodies, setup.model.bodies.data(), nb * sizeof(Body<S>), cudaMemcpyHostToDevice),
-            "copying the bodies");
+      char* const after = reinterpret_cast<char*>(coef_) + n * sizeof(JointCoefficients<S>);
+      const Body<S>* bodies = general_ ? general_plan_->args().bodies : reinterpret_cast<const Body<S>*>(after);
+      auto* armature = reinterpret_cast<S*>(after + (own_bodies ? nb * sizeof(Body<S>) : 0));
+      if (own_bodies)
+        check(cudaMemcpy(after, setup.model.bodies.data(), nb * sizeof(Body<S>), cudaMemcpyHostToDevice),
+              "copying the bodies");
       std::vector<S> arm(n, S(0));
       for (std::size_t i = 0; i < n && i < setup.armature.size(); ++i) arm[i] = setup.armature[i];
       check(cudaMemcpy(armature, arm.data(), n * sizeof(S), cudaMemcpyHostToDevice), "copying the armature");
@@ -226,10 +234,7 @@ class CudaSimBackend final : public SimBackend<S> {
             params_ = sp;
           },
           tm.params());
-    } else if (general_) {
-      general_plan_ = std::make_unique<cuda::GeneralPlan<S>>(setup.model, B, GeneralSimScalars<S>::extra_bytes(setup.model.nbodies()),
-                                                             GeneralSimScalars<S>::extra_scalars(setup.model.nq(), nv));
-    } else {
+    } else if (!general_) {
       BackendOptions o;
       o.backend = BackendKind::Cuda;
       o.max_batch = B;
@@ -256,11 +261,12 @@ class CudaSimBackend final : public SimBackend<S> {
     if (general_) {
       const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
       const cuda::GeneralArgs<S>& g = general_plan_->args();
-      const unsigned blocks = static_cast<unsigned>((std::min<long long>(g.slots, B) + 63) / 64);
+      const unsigned blocks = g.blocks(B);
+      constexpr int kBlock = cuda::kGeneralBlock;
       switch (setup_.integrator) {
-        case Integrator::Euler: sim_general_kernel<S, Integrator::Euler><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
-        case Integrator::Rk4: sim_general_kernel<S, Integrator::Rk4><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
-        case Integrator::Implicit: sim_general_kernel<S, Integrator::Implicit><<<blocks, 64, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        case Integrator::Euler: sim_general_kernel<S, Integrator::Euler><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        case Integrator::Rk4: sim_general_kernel<S, Integrator::Rk4><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+        case Integrator::Implicit: sim_general_kernel<S, Integrator::Implicit><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
         default: break;
       }
       check(cudaGetLastError(), "launching the general simulator step");

@@ -37,6 +37,9 @@ bool takes_general_path(const ModelTpl<S>& model) {
   return !model.one_dof_past_base() || (model.floating_base() && model.nbodies() - 1 > kMaxThreadDofs);
 }
 
+// Threads per block of the general kernels.
+inline constexpr int kGeneralBlock = 64;
+
 // Where one instance's scratch lies in its slice (byte offsets; every array aligned
 // to 16 bytes): GeneralWork's arrays, then `scalars` scalars (the instance's inputs
 // and outputs), then `extra` bytes for the caller.
@@ -68,6 +71,11 @@ struct GeneralArgs {
   long long slots;         // threads launched; thread t takes instances t, t + slots, ...
 
   SCANDYN_HD char* slice(long long t) const { return work + t * static_cast<long long>(layout.bytes); }
+  // the blocks of kGeneralBlock threads a launch for B instances takes: min(slots, B) threads
+  unsigned blocks(Index B) const {
+    const long long threads = slots < B ? slots : static_cast<long long>(B);
+    return static_cast<unsigned>((threads + kGeneralBlock - 1) / kGeneralBlock);
+  }
 };
 
 template <class S>
