@@ -55,8 +55,9 @@ inline constexpr unsigned kImplicitEffects = kDamping | kSprings | kContacts;
 // The effect set whose step the host (serial, OpenMP) instantiates for a scene's
 // set e. By default e itself: 64 sets x 3 integrators per step table. Builds with
 // SCANDYN_HOST_EFFECT_SETS=0 (CMake option SCANDYN_HOST_EFFECT_SETS=OFF, what
-// scripts/test.sh uses for its sanitizer stage) compile every joint effect and the
-// external wrenches into each step, keeping only gravity and contacts apart: an
+// scripts/test.sh builds on machines without a GPU and in its sanitizer stage)
+// compile every joint effect and the external wrenches into each step, keeping
+// only gravity and contacts apart: an
 // undeclared effect then runs with its neutral coefficients (d = k = kl = dl = 0,
 // limits -inf / +inf, no wrenches), which gives the same numbers as the absent
 // effect (test_sim's ZeroCoefficientsEqualAbsentEffects) at the cost of a few
