@@ -5,7 +5,8 @@
 // v0^2 / (2 mu g), sticking on a plane tilted below atan(mu) and accelerating at
 // g (sin - mu cos) above; a hinged rod whose tip rests on a plane at the depth its
 // moment balance gives; rope:200 draped over a sphere (float and double); serial
-// equals OpenMP.
+// equals OpenMP; the contact pass's two kinematics (a walk per point, or every
+// body into scratch) agree on random trees, fixed and floating.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -18,6 +19,7 @@
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "floating_models.hpp"
 #include "scene_util.hpp"
 #include "test_util.hpp"
 
@@ -459,6 +461,99 @@ TEST(SimContactsBackends, NoContactsNoReadings) {
 }
 
 // ---- with prescribed joints and closed loops ------------------------------------------
+
+// The contact pass's two ways to the points' poses and twists (ContactSet::walk_paths,
+// chosen by contact_walks_paths): a walk from each point's body to the root, and
+// every body's pose and twist into per-body scratch (contact_kinematics /
+// contact_kinematics_at). The same wrenches, implicit armature and readings, double,
+// within 1e-12 of the largest entry (the products associate differently): random
+// trees of revolute and prismatic joints with arbitrary axes, and random trees on a
+// free root with ball joints, 12 points on random bodies against a plane and a
+// sphere placed so that some touch and some do not, with friction and the implicit
+// look-ahead.
+template <bool kMultiDof>
+void path_walks_equal_per_body_pass(const Model& m, unsigned seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const Index nb = m.nbodies(), nv = m.nv();
+  const std::vector<double> q = test::random_q(m, rng, -1.5, 1.5);
+  const std::vector<double> qd = test::random_vector(rng, static_cast<int>(nv), -1, 1);
+  std::vector<sim::ContactPoint<double>> points;
+  for (int k = 0; k < 12; ++k)
+    points.push_back({static_cast<Index>(rng() % static_cast<unsigned>(nb)), Vec3<double>{0.2 * u(rng), 0.2 * u(rng), 0.2 * u(rng)}, 0.01});
+  // where the points are (the per-body kinematics), to place the obstacles among them
+  std::vector<Transform<double>> X(static_cast<std::size_t>(nb));
+  std::vector<Motion<double>> v(static_cast<std::size_t>(nb));
+  if constexpr (kMultiDof) sim::contact_kinematics_at(m.bodies.data(), nb, q.data(), qd.data(), X.data(), v.data());
+  else sim::contact_kinematics(m.bodies.data(), nb, q.data(), qd.data(), 1, X.data(), v.data());
+  std::vector<double> heights;
+  for (const auto& cp : points) heights.push_back((mul_transpose(X[cp.body].E, cp.position) + X[cp.body].r).z);
+  std::sort(heights.begin(), heights.end());
+  const auto& c0 = points[0];
+  const sim::ContactPlane<double> plane{{0, 0, 1}, heights[heights.size() / 2]};  // half the points below it
+  const sim::ContactSphere<double> sphere{mul_transpose(X[c0.body].E, c0.position) + X[c0.body].r + Vec3<double>{0.05, 0, 0}, 0.3};
+  sim::ContactSet<double> cs;
+  cs.points = points.data(), cs.npoints = static_cast<Index>(points.size());
+  cs.planes = &plane, cs.nplanes = 1, cs.spheres = &sphere, cs.nspheres = 1;
+  cs.law = {1e4, 50, 0.7, 1e-3};
+  cs.obstacles = sim::kPlanes | sim::kSpheres;
+  struct Out {
+    std::vector<Force<double>> f;
+    std::vector<double> arm;
+    std::vector<ContactReading<double>> r;
+  };
+  auto run = [&](bool walk) {
+    cs.walk_paths = walk;
+    Out o{std::vector<Force<double>>(static_cast<std::size_t>(nb), Force<double>::zero()),
+          std::vector<double>(static_cast<std::size_t>(nv), 0.0), std::vector<ContactReading<double>>(points.size())};
+    std::vector<Transform<double>> Xs(static_cast<std::size_t>(nb));
+    std::vector<Motion<double>> vs(static_cast<std::size_t>(nb));
+    sim::contact_pass<sim::kPlanes | sim::kSpheres, kMultiDof>(cs, m.bodies.data(), nb, q.data(), qd.data(), 1, 1e-3,
+                                                               Xs.data(), vs.data(), o.f.data(), o.arm.data(), o.r.data());
+    return o;
+  };
+  const Out a = run(false), b = run(true);
+  int touching = 0;
+  double scale = 0;
+  for (const auto& r : a.r)
+    touching += r.in_contact, scale = std::max({scale, std::abs(r.force.x), std::abs(r.force.y), std::abs(r.force.z)});
+  ASSERT_GT(touching, 0);
+  ASSERT_LT(touching, static_cast<int>(points.size()));
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    EXPECT_EQ(a.r[k].in_contact, b.r[k].in_contact) << "point " << k;
+    EXPECT_NEAR(a.r[k].depth, b.r[k].depth, 1e-12) << "point " << k;
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(a.r[k].force[c], b.r[k].force[c], 1e-12 * scale) << "point " << k;
+  }
+  double fscale = 0, ascale = 0;
+  for (const auto& f : a.f)
+    for (int c = 0; c < 6; ++c) fscale = std::max(fscale, std::abs(f[c]));
+  for (double x : a.arm) ascale = std::max(ascale, std::abs(x));
+  ASSERT_GT(ascale, 0);
+  for (Index i = 0; i < nb; ++i)
+    for (int c = 0; c < 6; ++c) EXPECT_NEAR(a.f[i][c], b.f[i][c], 1e-12 * fscale) << "body " << i << " entry " << c;
+  for (Index j = 0; j < nv; ++j) EXPECT_NEAR(a.arm[j], b.arm[j], 1e-12 * ascale) << "DoF " << j;
+}
+
+TEST(SimContactsPass, PathWalksEqualThePerBodyPassOnRandomTrees) {
+  for (unsigned seed : {1u, 2u, 3u}) {
+    SCOPED_TRACE(seed);
+    path_walks_equal_per_body_pass<false>(test::random_model(9, seed), seed);
+    path_walks_equal_per_body_pass<true>(test::random_floating_model(9, seed), seed);
+  }
+}
+
+// contact_walks_paths: a few points (a robot's feet) walk, all-link points on a chain do not.
+TEST(SimContactsPass, WalksForFewPointsOnly) {
+  const Model hyq = test::load_robot("hyq.urdf");
+  std::vector<sim::ContactPoint<double>> feet;
+  for (Index i = 0; i < hyq.nbodies(); ++i)
+    if (hyq.bodies[i].parent >= 0 && hyq.bodies[hyq.bodies[i].parent].parent >= 0) feet.push_back({i, {}, 0});
+  EXPECT_TRUE(sim::contact_walks_paths(hyq.bodies.data(), hyq.nbodies(), feet.data(), static_cast<Index>(feet.size())));
+  const Model rope = test::random_chain(50, 4);
+  std::vector<sim::ContactPoint<double>> all;
+  for (Index i = 0; i < rope.nbodies(); ++i) all.push_back({i, {}, 0});
+  EXPECT_FALSE(sim::contact_walks_paths(rope.bodies.data(), rope.nbodies(), all.data(), static_cast<Index>(all.size())));
+}
 
 // Prescribed x (the point mass's DoF 2 on a sine, peak speed 0.2 * 2 pi = 1.26 m/s)
 // while the ball rests on the plane: the hybrid step sees the contacts at the driven

@@ -109,6 +109,8 @@ struct ContactSet {
   Index nspheres = 0;
   ContactLaw<S> law{};
   unsigned obstacles = 0;                     // ContactObstacles bits of the non-empty lists
+  bool walk_paths = false;                    // contact_walks_paths: each point's pose by a walk
+                                              // to the root, no per-body scratch
 };
 
 // One point's contact after a step (the state the step started from; rk4: its
@@ -207,66 +209,136 @@ SCANDYN_HD void contact_kinematics_at(const Body<S>* bodies, Index nb, const S* 
   }
 }
 
-// The velocity of a world point p per unit rate of joint j (world frame): the
-// column J_j of the point's Jacobian.
-template <class S, class Bd>
-SCANDYN_HD Vec3<S> contact_jacobian_column(const Bd& b, const Transform<S>& X, const Vec3<S>& p) {
-  const Vec3<S> axis = mul_transpose(X.E, joint_axis(b));  // world frame
-  if (b.type == JointType::Prismatic) return axis;
-  return cross(axis, p - X.r);
+// Column k of a point's Jacobian for body b's joint (the point's velocity per unit
+// rate of the joint's DoF k) in any frame F: turn(e) takes a direction of body b's
+// frame to F, lever is the point minus b's origin (F). A 1-DoF joint (k = 0) moves
+// about or along its axis; a ball joint's and the free joint's k < 3 rotate about
+// the body's axes through its origin, the free joint's k >= 3 translate along them.
+template <class S, class Bd, class Turn>
+SCANDYN_HD Vec3<S> contact_column(const Bd& b, int k, Turn&& turn, const Vec3<S>& lever) {
+  if (b.type == JointType::Revolute) return cross(turn(joint_axis(b)), lever);
+  if (b.type == JointType::Prismatic) return turn(joint_axis(b));
+  const Vec3<S> axis = turn(Vec3<S>{S(k % 3 == 0), S(k % 3 == 1), S(k % 3 == 2)});
+  return k < 3 ? cross(axis, lever) : axis;
 }
 
-// Column k of the point's Jacobian for body b's joint of any type (world frame):
-// a ball joint's and the free joint's rotations about the body's axes through its
-// origin (k < 3), the free joint's translations along them (k >= 3).
+// The column of a world point p for a 1-DoF joint j (world frame), X = body j <- world.
+template <class S, class Bd>
+SCANDYN_HD Vec3<S> contact_jacobian_column(const Bd& b, const Transform<S>& X, const Vec3<S>& p) {
+  return contact_column(b, 0, [&](const Vec3<S>& e) { return mul_transpose(X.E, e); }, p - X.r);
+}
+
+// Column k of a world point p for body b's joint of any type (world frame).
 template <class S>
 SCANDYN_HD Vec3<S> contact_jacobian_column_at(const Body<S>& b, const Transform<S>& X, const Vec3<S>& p, int k) {
-  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return contact_jacobian_column(b, X, p);
-  const Vec3<S> e{S(k % 3 == 0), S(k % 3 == 1), S(k % 3 == 2)};
-  const Vec3<S> axis = mul_transpose(X.E, e);  // world frame
-  return k < 3 ? cross(axis, p - X.r) : axis;
+  return contact_column(b, k, [&](const Vec3<S>& e) { return mul_transpose(X.E, e); }, p - X.r);
+}
+
+// Body j's Xup and S_j qd_j in the contact pass: q[j * stride], qd[j * stride] for
+// 1-DoF bodies, or (kMultiDof) the entries at the body's idx_q / idx_v.
+template <bool kMultiDof, class S, class Bd>
+SCANDYN_HD Transform<S> contact_joint_transform(const Bd& b, Index j, const S* q, long long stride) {
+  if constexpr (kMultiDof) return joint_transform_at(b, q + b.idx_q);
+  else return joint_transform(b, q[j * stride]);
+}
+template <bool kMultiDof, class S, class Bd>
+SCANDYN_HD Motion<S> contact_joint_motion(const Bd& b, Index j, const S* qd, long long stride) {
+  if constexpr (kMultiDof) return joint_motion_at(b, qd + b.idx_v);
+  else return add_joint_motion(b, Motion<S>::zero(), qd[j * stride]);
+}
+
+// Body i's pose X (body i <- world) and twist v (its frame) by one walk from i to
+// the root, with no per-body scratch: X = Xup_i Xup_p(i) ... and v = sum over the
+// path of X_{i <- j} S_j qd_j (the same quantities as contact_kinematics, products
+// associated from the leaf).
+template <bool kMultiDof, class S, class Bd>
+SCANDYN_HD void contact_path_kinematics(const Bd* bodies, Index i, const S* q, const S* qd, long long stride,
+                                        Transform<S>& X, Motion<S>& v) {
+  X = contact_joint_transform<kMultiDof>(bodies[i], i, q, stride);
+  v = contact_joint_motion<kMultiDof>(bodies[i], i, qd, stride);
+  for (Index j = bodies[i].parent; j >= 0; j = bodies[j].parent) {
+    v += X.apply(contact_joint_motion<kMultiDof>(bodies[j], j, qd, stride));
+    X = X * contact_joint_transform<kMultiDof>(bodies[j], j, q, stride);
+  }
+}
+
+// Should the contact pass walk each point's path to the root (contact_path_kinematics)
+// rather than compute every body's pose and twist into per-body scratch? Yes when the
+// walks visit at most twice as many bodies as there are (a few points, as on a robot's
+// feet): the walks are arithmetic in registers, where the scratch is per-thread memory
+// on the GPU (its traffic made the floating hyq's step 2.3x slower with four feet).
+// All-link points on a chain (ropes) visit n^2 / 2 bodies: the per-body pass.
+template <class S, class Bd>
+bool contact_walks_paths(const Bd* bodies, Index nb, const ContactPoint<S>* points, Index npoints) {
+  long long visits = 0;
+  for (Index k = 0; k < npoints; ++k)
+    for (Index j = points[k].body; j >= 0 && visits <= 2LL * nb; j = bodies[j].parent) ++visits;
+  return visits <= 2LL * nb;
 }
 
 // The contact pass of one instance at (q, qd) (q[j * stride]): adds every point's
 // contact wrench to fext (n body wrenches, body frames); with armature (n, or
 // null) adds the implicit bound; readings (P, or null) get the points' forces.
-// X, v: n entries of scratch. h: the look-ahead (dt for implicit, else 0).
+// X, v: n entries of scratch, not touched when cs.walk_paths (each point's body by
+// contact_path_kinematics instead). h: the look-ahead (dt for implicit, else 0).
 // bodies: Body<S> (the user's frames) or ZJointBody<S> (z-axis frames,
 // scandyn/model/joint_frames.hpp); the points' positions and fext are in the same frames.
-// kMultiDof: a model with multi-DoF joints (contact_kinematics_at; Body<S> only; n
+// kMultiDof: a model with multi-DoF joints (joint_transform_at; Body<S> only; n
 // bodies, q with nq and qd and armature with nv entries, stride 1).
 template <unsigned kObstacles, bool kMultiDof = false, class S, class Bd>
 SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
                              long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
                              ContactReading<S>* readings) {
-  if constexpr (kMultiDof) {
-    (void)stride;
-    contact_kinematics_at(bodies, n, q, qd, X, v);
-  } else {
-    contact_kinematics(bodies, n, q, qd, stride, X, v);
+  if (!cs.walk_paths) {
+    if constexpr (kMultiDof) {
+      (void)stride;
+      contact_kinematics_at(bodies, n, q, qd, X, v);
+    } else {
+      contact_kinematics(bodies, n, q, qd, stride, X, v);
+    }
   }
   for (Index k = 0; k < cs.npoints; ++k) {
     const ContactPoint<S>& cp = cs.points[k];
     const Index i = cp.body;
-    const Transform<S>& Xi = X[i];
+    Transform<S> Xi;
+    Motion<S> vi;
+    if (cs.walk_paths) contact_path_kinematics<kMultiDof>(bodies, i, q, qd, stride, Xi, vi);
+    else Xi = X[i], vi = v[i];
     const Vec3<S> p = mul_transpose(Xi.E, cp.position) + Xi.r;
-    const Vec3<S> pv = mul_transpose(Xi.E, v[i].v + cross(v[i].w, cp.position));
+    const Vec3<S> pv = mul_transpose(Xi.E, vi.v + cross(vi.w, cp.position));
     // implicit: the diagonal of the pair's J^T W J on the joints of the point's path to the base
+    auto add = [&](Index j, const Vec3<S>& nrm, S wn, S wt, auto&& column) {
+      if constexpr (kMultiDof) {
+        for (int c = 0; c < joint_nv(bodies[j].type); ++c) {
+          const Vec3<S> col = column(c);
+          const S a = dot(nrm, col);
+          armature[bodies[j].idx_v + c] += wn * a * a + wt * (dot(col, col) - a * a);
+        }
+      } else {
+        const Vec3<S> col = column(0);
+        const S a = dot(nrm, col);
+        armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
+      }
+    };
     auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
       if (!armature) return;
-      for (Index j = i; j >= 0; j = bodies[j].parent) {
-        if constexpr (kMultiDof) {
-          for (int k = 0; k < joint_nv(bodies[j].type); ++k) {
-            const Vec3<S> col = contact_jacobian_column_at(bodies[j], X[j], p, k);
-            const S a = dot(nrm, col);
-            armature[bodies[j].idx_v + k] += wn * a * a + wt * (dot(col, col) - a * a);
-          }
-        } else {
-          const Vec3<S> col = contact_jacobian_column(bodies[j], X[j], p);
-          const S a = dot(nrm, col);
-          armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
+      if (cs.walk_paths) {
+        // in body i's frame: T = (i <- j) along the path, the point at cp.position
+        const Vec3<S> ni = Xi.E * nrm;
+        Transform<S> T = Transform<S>::identity();
+        for (Index j = i; j >= 0; j = bodies[j].parent) {
+          const Vec3<S> lever = cp.position + T.E * T.r;  // the point minus body j's origin
+          add(j, ni, wn, wt, [&](int c) {
+            return contact_column(bodies[j], c, [&](const Vec3<S>& e) { return T.E * e; }, lever);
+          });
+          T = T * contact_joint_transform<kMultiDof>(bodies[j], j, q, stride);
         }
+        return;
       }
+      for (Index j = i; j >= 0; j = bodies[j].parent)
+        add(j, nrm, wn, wt, [&](int c) {
+          return contact_column(bodies[j], c, [&](const Vec3<S>& e) { return mul_transpose(X[j].E, e); }, p - X[j].r);
+        });
     };
     const Vec3<S> f = contact_point_force<kObstacles>(cs, p, pv, cp.radius, h, readings ? readings + k : nullptr, touched);
     const Vec3<S> fb = Xi.E * f;

@@ -131,6 +131,7 @@ struct SimSetup {
     cs.spheres = contact_spheres.data(), cs.nspheres = static_cast<Index>(contact_spheres.size());
     cs.law = contact_law;
     cs.obstacles = (contact_planes.empty() ? 0u : unsigned(kPlanes)) | (contact_spheres.empty() ? 0u : unsigned(kSpheres));
+    cs.walk_paths = contact_walks_paths(model.bodies.data(), model.nbodies(), cs.points, cs.npoints);
     return cs;
   }
   // prescribed joint motion (scene key "prescribed"): the driven DoFs follow their
