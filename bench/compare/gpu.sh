@@ -51,35 +51,7 @@ device=${device:-gpu}
 
 # ---- 2. wheels ------------------------------------------------------------------------------------
 note "wheels from .whl/ -> /tmp/site"
-wheels=()
-compgen -G ".whl/*.whl" >/dev/null && wheels+=(.whl/*.whl)
-# wheels too large for one call, staged in parts by bench/compare/stage_wheels.sh (MuJoCo Warp)
-stage=${SCANDYN_WHEEL_STAGE:-/tmp/whl-stage}
-if [[ -f "$stage/MANIFEST" ]]; then
-  while read -r kind sum name n; do
-    [[ "$kind" == wheel ]] || continue
-    have=$(compgen -G "$stage/$name.part*" | wc -l)
-    if ((have != n)); then
-      echo "gpu.sh: $name: $have of $n parts staged (bench/compare/stage_wheels.sh); left out"
-      continue
-    fi
-    cat "$stage/$name".part* >"$stage/$name"
-    if [[ "$(sha256sum "$stage/$name" | cut -d' ' -f1)" == "$sum" ]]; then
-      wheels+=("$stage/$name")
-      echo "gpu.sh: $name joined from $n staged parts"
-    else
-      echo "gpu.sh: $name: joined parts do not match the MANIFEST's sha256; left out"
-      rm -f "$stage/$name"
-    fi
-  done <"$stage/MANIFEST"
-fi
-if ((${#wheels[@]})); then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${wheels[@]}" ||
-    echo "gpu.sh: warning: pip install of the wheels failed; peers whose import fails are recorded as not installed"
-  export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-else
-  echo "gpu.sh: no .whl/ (run bench/compare/fetch_wheels.sh on a networked machine); peers not installed are recorded as such"
-fi
+source bench/compare/install_wheels.sh
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 
 # ---- 1. environment -------------------------------------------------------------------------------
