@@ -35,7 +35,12 @@
 //     every effect and the contact pass compiled in (kContactKernelSet), over the
 //     any-tree ABA; its per-thread scratch (the bodies' poses, twists, wrenches)
 //     is C transforms, twists and wrenches in local memory.
-// 44 + 3 + 3 x 3 (float) + 4 x 3 (double) = 68 kernels, and 24 with contacts. With
+// 44 + 3 + 3 x 3 (float) + 4 x 3 (double) = 68 kernels, and 24 with contacts.
+// Floating bases (sim_fused_floating_kernel): per (precision, capacity, integrator)
+// one kernel without the contact pass and one with it (rk4 with contacts, and
+// points that do not walk their paths), plus sim_floating_contacts_kernel per
+// (precision, capacity): the contacts of euler and implicit steps, run before the
+// step kernel without the pass. With
 // SCANDYN_SIM_EFFECT_SETS=0 (CMake option SCANDYN_SIM_EFFECT_SETS=OFF, what
 // scripts/test.sh uses on machines without a GPU) only the all-effects any-tree
 // kernels: 24 + 24.
@@ -157,6 +162,9 @@ struct FusedArgs {
   StepStatus* status;        // the failures (record_step_failure)
   ContactSet<S> contacts;    // contacts (kContacts): points and obstacles in device memory
   ContactReading<S>* readings;  // (B x P) the step's contacts, or null without contacts
+  // The floating-base step's contacts from sim_floating_contacts_kernel (launch_fused_floating), or null:
+  S* contact_tau;            // (nv x B) the contacts' generalized forces, added to tau
+  S* contact_armature;       // (B x nv) implicit: the armature with the contacts' diagonal, instance b's at b * nv
 };
 
 template <class S, int C, unsigned E, Integrator I, int kSlots>
@@ -211,11 +219,12 @@ SCANDYN_SIM_UNROLL
 // euler, implicit or rk4 on the configuration manifold, the base's quaternion
 // advanced through the exponential map, as on the CPU) over aba_instance's
 // floating-base kernel (kFloating, any tree: kSlots = C), one thread per instance.
-// Every joint effect, external wrenches and the contacts are compiled in (neutral
-// coefficients and zero wrenches where the scene has none; no contact points: no
-// contact pass). The contact pass runs on the model's bodies in the user's frames
-// (contact_pass_any with kMultiDof: the base's world pose from q), so its wrenches
-// join fext in the user's frames, which aba_instance turns (external_wrench).
+// Every joint effect and external wrenches are compiled in (neutral coefficients
+// and zero wrenches where the scene has none); the contact pass in the kernels for
+// scenes with contact points (kContacts). It walks the kernel's own model
+// (FloatingThreadPath: z-axis frames past the base, the points turned into them at
+// setup) and turns its wrenches back to the user's frames, where they join fext,
+// which aba_instance turns again (external_wrench).
 
 // The floating-base kernel's arguments beside FusedArgs (device memory).
 template <class S>
@@ -230,23 +239,97 @@ template <class S, int C>
 struct FloatingContactScratch {
   Transform<S> X[C + 1];  // body <- world
   Motion<S> v[C + 1];     // body twists
-  Force<S> f[C + 1];      // external + contact wrenches (user frames)
+  Force<S> f[C + 1];      // external + contact wrenches (user frames; ContactSet::walk_paths off)
   S armature[C + 6];      // implicit: the armature + the contacts' diagonal
+  S tau[C + 6];           // the joint forces + the contacts' generalized forces (walk_paths on)
 };
+
+// The floating-base thread model as the contact pass walks it (the path interface
+// of ContactBodyPath, scandyn/sim/contacts.hpp), in the kernels' frames: path body 0
+// is the base (model.base, its free joint; its transform computed once per pass),
+// path body k >= 1 the kernels' body k - 1 (model.body: a z-axis frame, its sine and
+// cosine by kThreadTrig, as the ABA's), read from the kernel parameter. Path bodies
+// are numbered as the model's (a contact point's body), the DoFs as the step's (the
+// base's 6 first); q and qd with the base's entries first.
+template <class S, int C>
+struct FloatingThreadPath {
+  const cuda::ThreadModelParams<S, C, ZJointBody<S>>& model;
+  const S* q;
+  const S* qd;
+  Transform<S> X0;  // the base's Xup (base <- world)
+  __host__ __device__ FloatingThreadPath(const cuda::ThreadModelParams<S, C, ZJointBody<S>>& m, const S* q_,
+                                         const S* qd_)
+      : model(m), q(q_), qd(qd_), X0(joint_transform_at(m.base, q_)) {}
+  __host__ __device__ Index parent(Index j) const { return j == 0 ? Index(-1) : model.body[j - 1].parent + 1; }
+  __host__ __device__ Transform<S> xup(Index j) const {
+    return j == 0 ? X0 : joint_transform<cuda::kThreadTrig<S>>(model.body[j - 1], q[6 + j]);
+  }
+  __host__ __device__ Motion<S> motion(Index j) const {
+    if (j == 0) return joint_motion_at(model.base, qd);
+    return joint_motion(model.body[j - 1], qd[5 + j]);
+  }
+  template <class Turn, class F>
+  __host__ __device__ void for_each_column(Index j, Turn&& turn, const Vec3<S>& lever, F&& f) const {
+    if (j == 0) {
+      for (int c = 0; c < 6; ++c) f(Index(c), contact_column(model.base, c, turn, lever));
+    } else {
+      f(Index(5 + j), contact_column(model.body[j - 1], 0, turn, lever));
+    }
+  }
+};
+
+// The contacts of one floating-base forward dynamics, a function of its own
+// (__noinline__: inlined, its code made nvcc stop inlining the step's whole forward
+// dynamics into the kernel, a call with 768 bytes of spills around the ABA; called,
+// it keeps its registers to itself). The contact pass on FloatingThreadPath (the
+// points in the kernels' frames). With cs.walk_paths (a few points: feet) the
+// contacts become generalized forces added to tau (nv) into w.tau, and fext is left
+// as it is: no per-body wrench array in the thread's memory, whose traffic made the
+// step 2.5x slower than without contacts; otherwise body wrenches, turned to the
+// user's frames and added to fext (nb, null: none) into w.f. arm (nv, null for
+// explicit integrators) plus the contacts' diagonal into w.armature (h = dt when arm
+// is given). tau, fext, arm then point at what the ABA reads. readings as
+// add_contact_wrenches.
+template <class S, int C>
+__host__ __device__ __noinline__ void floating_contacts(const cuda::ThreadModelParams<S, C, ZJointBody<S>>& model,
+                                                        const ContactSet<S>& cs, S dt, const S* q, const S* qd,
+                                                        const S*& tau, const Force<S>*& fext, const S*& arm,
+                                                        FloatingContactScratch<S, C>& w, ContactReading<S>*& readings) {
+  const Index nb = model.nv + 1, nv = model.nv + 6;
+  if (arm)
+    for (Index i = 0; i < nv; ++i) w.armature[i] = arm[i];
+  const FloatingThreadPath<S, C> path(model, q, qd);
+  const S h = arm ? dt : S(0);
+  S* const armature = arm ? w.armature : nullptr;
+  if (cs.walk_paths) {
+    for (Index i = 0; i < nv; ++i) w.tau[i] = tau[i];
+    contact_pass_on_any(path, cs, nb, h, w.X, w.v, static_cast<Force<S>*>(nullptr), armature, readings, w.tau);
+    tau = w.tau;
+  } else {
+    for (Index i = 0; i < nb; ++i) w.f[i] = Force<S>::zero();
+    contact_pass_on_any(path, cs, nb, h, w.X, w.v, w.f, armature, readings);
+    for (Index i = 0; i < nb; ++i) {
+      if (i > 0) w.f[i] = cuda::user_wrench(model, i - 1, w.f[i]);
+      if (fext) w.f[i] += fext[i];
+    }
+    fext = w.f;
+  }
+  readings = nullptr;
+  if (arm) arm = w.armature;
+}
 
 // The forward dynamics of the floating-base fused step: the contact pass at (q, qd)
 // when the scene has contact points (its wrenches added to fext, null: none; its
 // diagonal to the implicit armature arm, null for explicit integrators), then
 // aba_instance with kFloating. readings as for fused_contact_forward_dynamics. Host
 // and device.
-template <class S, int C>
+template <class S, int C, bool kContacts = true>
 __host__ __device__ __forceinline__ Index fused_floating_forward_dynamics(
     const cuda::ThreadModelParams<S, C, ZJointBody<S>>& model, const FloatingArgs<S>& fa, S dt,
     const ContactSet<S>& cs, const Force<S>* fext, FloatingContactScratch<S, C>& w, ContactReading<S>*& readings,
     const S* q, const S* qd, const S* tau, const S* arm, S* qdd) {
-  if (cs.npoints > 0)
-    add_contact_wrenches<true>(cs, fa.bodies, model.nv + 1, model.nv + 6, dt, q, qd, fext, arm, w.X, w.v, w.f,
-                               w.armature, readings);
+  if (kContacts && cs.npoints > 0)
+    floating_contacts(model, cs, dt, q, qd, tau, fext, arm, w, readings);
   return cuda::aba_instance<S, C, false, false, cuda::kThreadTrig<S>, C, false, ZJointBody<S>, true>(
       model, cuda::DofColumn<const S>{q, 1}, cuda::DofColumn<const S>{qd, 1}, cuda::DofColumn<const S>{tau, 1}, fext,
       cuda::DofColumn<S>{qdd, 1}, arm);
@@ -359,7 +442,9 @@ __device__ __forceinline__ void store_state_at(const FusedArgs<S>& a, long long 
 
 // One thread per instance b < B: a step of a floating-base model (the section
 // above). State: q (nq = C + 7 at most), qd, tau and the scratch (C + 6) per thread.
-template <class S, int C, Integrator I>
+// kContacts: the contact pass compiled in (scenes with contact points); without it
+// the kernel has no contact code at all, which keeps its registers for the ABA.
+template <class S, int C, Integrator I, bool kContacts>
 __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
     sim_fused_floating_kernel(const __grid_constant__ SimParams<S, C> p, const FusedArgs<S> a,
                               const FloatingArgs<S> fa) {
@@ -373,20 +458,61 @@ __global__ void __launch_bounds__(kSimBlock, sizeof(S) == 4 ? 4 : 1)
   S tw[V], qdd[V];        // StepScratchAt: tau + effects, FD's result
   S qs[kRk4 ? Q : 1], qds[kRk4 ? V : 1], aq[kRk4 ? V : 1], aqd[kRk4 ? V : 1], theta[kRk4 ? V : 1];  // rk4 stages
   load_state_at(a, b, q, qd, tau, nq, nv);
+  const S* armature = fa.armature;
+  if (!kContacts && a.contact_tau) {  // the contacts, computed by sim_floating_contacts_kernel
+    for (Index i = 0; i < nv; ++i) tau[i] += a.contact_tau[i * a.batch + b];
+    if (a.contact_armature) armature = a.contact_armature + b * nv;
+  }
   const Force<S>* fext = a.wrenches + b * a.wrench_stride;
   FloatingContactScratch<S, C> cw;
   ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
   auto fd = [&](const S* qa, const S* qda, const S* t, const S* arm, S* out) -> Index {
-    return fused_floating_forward_dynamics<S, C>(p.model, fa, p.dt, a.contacts, fext, cw, readings, qa, qda, t, arm, out);
+    return fused_floating_forward_dynamics<S, C, kContacts>(p.model, fa, p.dt, a.contacts, fext, cw, readings, qa, qda,
+                                                            t, arm, out);
   };
   const StepScratchAt<S> w{tw, qdd, qs, qds, aq, aqd, theta};
   const Index failed =
-      step_instance_at<E, I>(fa.bodies, nb, nq, nv, p.dt, fa.coef, fa.armature, q, qd, tau, w, fd);
+      step_instance_at<E, I>(fa.bodies, nb, nq, nv, p.dt, fa.coef, armature, q, qd, tau, w, fd);
   if (failed >= 0) {
     record_step_failure(a.status, static_cast<Index>(b), failed);
     return;
   }
   store_state_at(a, b, q, qd, nq, nv);
+}
+
+// The contacts of a floating-base step with one forward dynamics per step (euler,
+// implicit) when the points walk their paths (ContactSet::walk_paths: a robot's
+// feet), in a kernel of their own before the step (one thread per instance b): the
+// contact pass at the state the step starts from, on FloatingThreadPath, as
+// generalized forces into a.contact_tau (nv x B), and for implicit (h = dt) the
+// scene's armature plus the contacts' diagonal into a.contact_armature (B x nv);
+// the readings. The step kernel without the contact pass (kContacts false) then
+// adds them. Split so, each kernel keeps its registers: the pass inside the step
+// kernel cost it 1.5x the step (H200, floating hyq on four feet), mostly through the
+// ABA's register allocation, not the pass's arithmetic.
+template <class S, int C>
+__global__ void __launch_bounds__(kSimBlock)
+    sim_floating_contacts_kernel(const __grid_constant__ SimParams<S, C> p, const FusedArgs<S> a,
+                                 const FloatingArgs<S> fa, S h) {
+  constexpr int V = C + 6, Q = C + 7;
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= a.batch) return;
+  const Index n = p.model.nv, nv = n + 6, nq = n + 7, nb = n + 1;
+  const long long B = a.batch;
+  S q[Q], qd[V], force[V], arm[V];
+  for (Index i = 0; i < nq; ++i) q[i] = a.q[i * B + b];
+  for (Index i = 0; i < nv; ++i) {
+    qd[i] = a.qd[i * B + b];
+    force[i] = S(0);
+    arm[i] = fa.armature ? fa.armature[i] : S(0);
+  }
+  ContactReading<S>* readings = a.readings ? a.readings + b * a.contacts.npoints : nullptr;
+  contact_pass_on_any(FloatingThreadPath<S, C>(p.model, q, qd), a.contacts, nb, h, static_cast<Transform<S>*>(nullptr),
+                      static_cast<Motion<S>*>(nullptr), static_cast<Force<S>*>(nullptr),
+                      a.contact_armature ? arm : nullptr, readings, force);
+  for (Index i = 0; i < nv; ++i) a.contact_tau[i * B + b] = force[i];
+  if (a.contact_armature)
+    for (Index i = 0; i < nv; ++i) a.contact_armature[b * nv + i] = arm[i];
 }
 
 // ---- joints of any type -----------------------------------------------------------
@@ -462,7 +588,23 @@ cudaError_t launch_fused_floating(const SimParams<S, C>& params, const FusedArgs
 {
   if constexpr (cuda::kFloatingCapacity<C>) {
     const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
-    sim_fused_floating_kernel<S, C, I><<<blocks, kSimBlock, 0, stream>>>(params, args, fa);
+    if (args.contacts.npoints > 0 && args.contact_tau && I != Integrator::Rk4 && args.contacts.walk_paths) {
+      // the contacts in a kernel of their own, then the step without the pass
+      sim_floating_contacts_kernel<S, C><<<blocks, kSimBlock, 0, stream>>>(
+          params, args, fa, I == Integrator::Implicit ? params.dt : S(0));
+      FusedArgs<S> step = args;
+      step.readings = nullptr;
+      if (I != Integrator::Implicit) step.contact_armature = nullptr;
+      sim_fused_floating_kernel<S, C, I, false><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
+    } else if (args.contacts.npoints > 0) {
+      FusedArgs<S> step = args;
+      step.contact_tau = step.contact_armature = nullptr;
+      sim_fused_floating_kernel<S, C, I, true><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
+    } else {
+      FusedArgs<S> step = args;
+      step.contact_tau = step.contact_armature = nullptr;
+      sim_fused_floating_kernel<S, C, I, false><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
+    }
     return cudaGetLastError();
   } else {
     return cudaErrorNotSupported;

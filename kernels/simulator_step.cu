@@ -8,7 +8,11 @@
 //                           per-thread memory (strategy "fused-aba"); a floating
 //                           base with up to 64 revolute / prismatic joints past it:
 //                           sim_fused_floating_kernel (step_instance_at on the
-//                           configuration manifold; q has nq rows);
+//                           configuration manifold; q has nq rows); with contact
+//                           points that walk their paths (a robot's feet) and one
+//                           forward dynamics per step (euler, implicit), the contacts
+//                           first in sim_floating_contacts_kernel (generalized forces
+//                           and the implicit diagonal into contact_tau_ / contact_arm_);
 //   beyond 64 DoF           per forward dynamics: an elementwise kernel adding the
 //                           joint effects' forces, CudaForwardDynamics::compute_async
 //                           (its Auto choice: the parallel chain forward dynamics for
@@ -259,7 +263,7 @@ class CudaSimBackend final : public SimBackend<S> {
     const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
     const long long stride = step_wrenches_ ? setup_.model.nbodies() : 0;
     if (general_) {
-      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_, nullptr, nullptr};
       const cuda::GeneralArgs<S>& g = general_plan_->args();
       const unsigned blocks = g.blocks(B);
       constexpr int kBlock = cuda::kGeneralBlock;
@@ -273,7 +277,7 @@ class CudaSimBackend final : public SimBackend<S> {
       return;
     }
     if (fused_) {
-      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_};
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_, contact_tau_, contact_arm_};
       cudaError_t err = cudaSuccess;
       std::visit(
           [&](const auto& sp) {
@@ -437,6 +441,8 @@ class CudaSimBackend final : public SimBackend<S> {
     auto up = [&](std::size_t x) { return (x + a - 1) / a * a; };
     std::size_t bytes = up(P * sizeof(ContactPoint<S>)) + up(np * sizeof(ContactPlane<S>)) +
                         up(ns * sizeof(ContactSphere<S>)) + up(B * P * sizeof(ContactReading<S>));
+    const bool split = fused_ && floating_;  // launch_fused_floating's contacts kernel: its two outputs
+    if (split) bytes += 2 * up(B * n * sizeof(S));
     if (engine_) bytes += up(n * sizeof(Body<S>)) + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
     check(cudaMalloc(&contacts_raw_, bytes), "allocating the contacts");
     char* p = static_cast<char*>(contacts_raw_);
@@ -452,8 +458,12 @@ class CudaSimBackend final : public SimBackend<S> {
     auto* planes = reinterpret_cast<ContactPlane<S>*>(take(np * sizeof(ContactPlane<S>)));
     auto* spheres = reinterpret_cast<ContactSphere<S>*>(take(ns * sizeof(ContactSphere<S>)));
     readings_ = reinterpret_cast<ContactReading<S>*>(take(B * P * sizeof(ContactReading<S>)));
-    if (fused_ && !floating_) {  // the fused kernels' bodies are z-axis frames (ZThreadModel): the points in them
-                                 // (the floating-base kernel's contact pass runs in the user's frames)
+    if (split) {
+      contact_tau_ = reinterpret_cast<S*>(take(B * n * sizeof(S)));
+      contact_arm_ = reinterpret_cast<S*>(take(B * n * sizeof(S)));
+    }
+    if (fused_) {  // the fused kernels' bodies (and a floating base's bodies past it) are z-axis frames
+                   // (ZThreadModel): the points in them
       const ZAxisModel<S> zm = z_axis_model(setup_.model);
       std::vector<ContactPoint<S>> turned = setup_.contact_points;
       for (ContactPoint<S>& cp : turned) cp.position = zm.to_z_frame(cp.body, cp.position);
@@ -545,6 +555,8 @@ class CudaSimBackend final : public SimBackend<S> {
   Transform<S>* contact_X_ = nullptr;      // (B x nv) engine path: poses
   Motion<S>* contact_v_ = nullptr;         // (B x nv) engine path: twists
   Force<S>* contact_fext_ = nullptr;       // (B x nv) engine path: external + contact wrenches
+  S* contact_tau_ = nullptr;               // (nv x B) floating fused step: the contacts' generalized forces
+  S* contact_arm_ = nullptr;               // (B x nv) floating fused step, implicit: armature + contacts' diagonal
 };
 
 }  // namespace

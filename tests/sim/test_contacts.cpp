@@ -532,6 +532,24 @@ void path_walks_equal_per_body_pass(const Model& m, unsigned seed) {
   for (Index i = 0; i < nb; ++i)
     for (int c = 0; c < 6; ++c) EXPECT_NEAR(a.f[i][c], b.f[i][c], 1e-12 * fscale) << "body " << i << " entry " << c;
   for (Index j = 0; j < nv; ++j) EXPECT_NEAR(a.arm[j], b.arm[j], 1e-12 * ascale) << "DoF " << j;
+  // the walks' generalized forces (qforce) are J^T of the body wrenches: bias_forces
+  // without and with the wrenches differ by exactly that
+  cs.walk_paths = true;
+  std::vector<double> Q(static_cast<std::size_t>(nv), 0.0), arm(static_cast<std::size_t>(nv), 0.0);
+  std::vector<ContactReading<double>> r(points.size());
+  sim::contact_pass<sim::kPlanes | sim::kSpheres, kMultiDof>(cs, m.bodies.data(), nb, q.data(), qd.data(), 1, 1e-3,
+                                                             static_cast<Transform<double>*>(nullptr),
+                                                             static_cast<Motion<double>*>(nullptr),
+                                                             static_cast<Force<double>*>(nullptr), arm.data(), r.data(),
+                                                             Q.data());
+  Data data(m);
+  std::vector<double> h0(static_cast<std::size_t>(nv)), hf(static_cast<std::size_t>(nv));
+  bias_forces(m, data, q.data(), qd.data(), h0.data());
+  bias_forces(m, data, q.data(), qd.data(), hf.data(), a.f.data());
+  double qscale = 0;
+  for (Index j = 0; j < nv; ++j) qscale = std::max(qscale, std::abs(h0[j] - hf[j]));
+  ASSERT_GT(qscale, 0);
+  for (Index j = 0; j < nv; ++j) EXPECT_NEAR(Q[j], h0[j] - hf[j], 1e-12 * qscale) << "DoF " << j;
 }
 
 TEST(SimContactsPass, PathWalksEqualThePerBodyPassOnRandomTrees) {

@@ -180,35 +180,6 @@ SCANDYN_HD Vec3<S> contact_point_force(const ContactSet<S>& cs, const Vec3<S>& p
   return f;
 }
 
-// The world pose and twist of every body (the contact pass's kinematics):
-// X[i] body i <- world, v[i] body i's twist in its frame. q and qd at q[j * stride].
-template <class S, class Bd>
-SCANDYN_HD void contact_kinematics(const Bd* bodies, Index n, const S* q, const S* qd, long long stride,
-                                   Transform<S>* X, Motion<S>* v) {
-  for (Index i = 0; i < n; ++i) {
-    const Bd& b = bodies[i];
-    const Transform<S> Xup = joint_transform(b, q[i * stride]);
-    X[i] = b.parent < 0 ? Xup : Xup * X[b.parent];
-    v[i] = add_joint_motion(b, b.parent < 0 ? Motion<S>::zero() : Xup.apply(v[b.parent]), qd[i * stride]);
-  }
-}
-
-// contact_kinematics for a model with multi-DoF joints (a floating base, ball
-// joints): q (nq) and qd (nv) contiguous, bodies[0..nb) with idx_q / idx_v set.
-// The floating base's joint places body 0 in the world from q's first 7 entries
-// (position, quaternion), so X is body <- world for every body.
-template <class S>
-SCANDYN_HD void contact_kinematics_at(const Body<S>* bodies, Index nb, const S* q, const S* qd, Transform<S>* X,
-                                      Motion<S>* v) {
-  for (Index i = 0; i < nb; ++i) {
-    const Body<S>& b = bodies[i];
-    const Transform<S> Xup = joint_transform_at(b, q + b.idx_q);
-    X[i] = b.parent < 0 ? Xup : Xup * X[b.parent];
-    const Motion<S> vJ = joint_motion_at(b, qd + b.idx_v);
-    v[i] = b.parent < 0 ? vJ : Xup.apply(v[b.parent]) + vJ;
-  }
-}
-
 // Column k of a point's Jacobian for body b's joint (the point's velocity per unit
 // rate of the joint's DoF k) in any frame F: turn(e) takes a direction of body b's
 // frame to F, lever is the point minus b's origin (F). A 1-DoF joint (k = 0) moves
@@ -220,6 +191,68 @@ SCANDYN_HD Vec3<S> contact_column(const Bd& b, int k, Turn&& turn, const Vec3<S>
   if (b.type == JointType::Prismatic) return turn(joint_axis(b));
   const Vec3<S> axis = turn(Vec3<S>{S(k % 3 == 0), S(k % 3 == 1), S(k % 3 == 2)});
   return k < 3 ? cross(axis, lever) : axis;
+}
+
+// The model as the contact pass walks it, at one instance's (q, qd): a "path" gives
+// body j's parent (-1 at the root; parents before children), its Xup (parent ->
+// body j), its joint's motion S_j qd_j, and its joint's DoFs with their Jacobian
+// columns (for_each_column(j, turn, lever, f): f(DoF, column) for each, as
+// contact_column). ContactBodyPath: an array of bodies, q[j * stride] and
+// qd[j * stride] for 1-DoF joints, or (kMultiDof; Body<S> only, stride 1) the
+// entries at each body's idx_q / idx_v. The floating-base thread kernels walk their
+// own model the same way (kernels/sim_fused.cuh).
+template <bool kMultiDof, class S, class Bd>
+struct ContactBodyPath {
+  const Bd* bodies;
+  const S* q;
+  const S* qd;
+  long long stride;
+  SCANDYN_HD Index parent(Index j) const { return bodies[j].parent; }
+  SCANDYN_HD Transform<S> xup(Index j) const {
+    if constexpr (kMultiDof) return joint_transform_at(bodies[j], q + bodies[j].idx_q);
+    else return joint_transform(bodies[j], q[j * stride]);
+  }
+  SCANDYN_HD Motion<S> motion(Index j) const {
+    if constexpr (kMultiDof) return joint_motion_at(bodies[j], qd + bodies[j].idx_v);
+    else return add_joint_motion(bodies[j], Motion<S>::zero(), qd[j * stride]);
+  }
+  template <class Turn, class F>
+  SCANDYN_HD void for_each_column(Index j, Turn&& turn, const Vec3<S>& lever, F&& f) const {
+    if constexpr (kMultiDof) {
+      for (int c = 0; c < joint_nv(bodies[j].type); ++c) f(bodies[j].idx_v + c, contact_column(bodies[j], c, turn, lever));
+    } else {
+      f(j, contact_column(bodies[j], 0, turn, lever));
+    }
+  }
+};
+
+// The world pose and twist of bodies 0..n-1 of a path (the contact pass's per-body
+// kinematics): X[i] body i <- world, v[i] body i's twist in its frame.
+template <class S, class Path>
+SCANDYN_HD void contact_path_poses(const Path& path, Index n, Transform<S>* X, Motion<S>* v) {
+  for (Index i = 0; i < n; ++i) {
+    const Index p = path.parent(i);
+    const Transform<S> Xup = path.xup(i);
+    X[i] = p < 0 ? Xup : Xup * X[p];
+    v[i] = p < 0 ? path.motion(i) : Xup.apply(v[p]) + path.motion(i);
+  }
+}
+
+// contact_path_poses over bodies with q and qd at q[j * stride].
+template <class S, class Bd>
+SCANDYN_HD void contact_kinematics(const Bd* bodies, Index n, const S* q, const S* qd, long long stride,
+                                   Transform<S>* X, Motion<S>* v) {
+  contact_path_poses(ContactBodyPath<false, S, Bd>{bodies, q, qd, stride}, n, X, v);
+}
+
+// contact_kinematics for a model with multi-DoF joints (a floating base, ball
+// joints): q (nq) and qd (nv) contiguous, bodies[0..nb) with idx_q / idx_v set.
+// The floating base's joint places body 0 in the world from q's first 7 entries
+// (position, quaternion), so X is body <- world for every body.
+template <class S>
+SCANDYN_HD void contact_kinematics_at(const Body<S>* bodies, Index nb, const S* q, const S* qd, Transform<S>* X,
+                                      Motion<S>* v) {
+  contact_path_poses(ContactBodyPath<true, S, Body<S>>{bodies, q, qd, 1}, nb, X, v);
 }
 
 // The column of a world point p for a 1-DoF joint j (world frame), X = body j <- world.
@@ -234,31 +267,17 @@ SCANDYN_HD Vec3<S> contact_jacobian_column_at(const Body<S>& b, const Transform<
   return contact_column(b, k, [&](const Vec3<S>& e) { return mul_transpose(X.E, e); }, p - X.r);
 }
 
-// Body j's Xup and S_j qd_j in the contact pass: q[j * stride], qd[j * stride] for
-// 1-DoF bodies, or (kMultiDof) the entries at the body's idx_q / idx_v.
-template <bool kMultiDof, class S, class Bd>
-SCANDYN_HD Transform<S> contact_joint_transform(const Bd& b, Index j, const S* q, long long stride) {
-  if constexpr (kMultiDof) return joint_transform_at(b, q + b.idx_q);
-  else return joint_transform(b, q[j * stride]);
-}
-template <bool kMultiDof, class S, class Bd>
-SCANDYN_HD Motion<S> contact_joint_motion(const Bd& b, Index j, const S* qd, long long stride) {
-  if constexpr (kMultiDof) return joint_motion_at(b, qd + b.idx_v);
-  else return add_joint_motion(b, Motion<S>::zero(), qd[j * stride]);
-}
-
 // Body i's pose X (body i <- world) and twist v (its frame) by one walk from i to
 // the root, with no per-body scratch: X = Xup_i Xup_p(i) ... and v = sum over the
-// path of X_{i <- j} S_j qd_j (the same quantities as contact_kinematics, products
+// path of X_{i <- j} S_j qd_j (the same quantities as contact_path_poses, products
 // associated from the leaf).
-template <bool kMultiDof, class S, class Bd>
-SCANDYN_HD void contact_path_kinematics(const Bd* bodies, Index i, const S* q, const S* qd, long long stride,
-                                        Transform<S>& X, Motion<S>& v) {
-  X = contact_joint_transform<kMultiDof>(bodies[i], i, q, stride);
-  v = contact_joint_motion<kMultiDof>(bodies[i], i, qd, stride);
-  for (Index j = bodies[i].parent; j >= 0; j = bodies[j].parent) {
-    v += X.apply(contact_joint_motion<kMultiDof>(bodies[j], j, qd, stride));
-    X = X * contact_joint_transform<kMultiDof>(bodies[j], j, q, stride);
+template <class S, class Path>
+SCANDYN_HD void contact_path_kinematics(const Path& path, Index i, Transform<S>& X, Motion<S>& v) {
+  X = path.xup(i);
+  v = path.motion(i);
+  for (Index j = path.parent(i); j >= 0; j = path.parent(j)) {
+    v += X.apply(path.motion(j));
+    X = X * path.xup(j);
   }
 }
 
@@ -266,8 +285,7 @@ SCANDYN_HD void contact_path_kinematics(const Bd* bodies, Index i, const S* q, c
 // rather than compute every body's pose and twist into per-body scratch? Yes when the
 // walks visit at most twice as many bodies as there are (a few points, as on a robot's
 // feet): the walks are arithmetic in registers, where the scratch is per-thread memory
-// on the GPU (its traffic made the floating hyq's step 2.3x slower with four feet).
-// All-link points on a chain (ropes) visit n^2 / 2 bodies: the per-body pass.
+// on the GPU. All-link points on a chain (ropes) visit n^2 / 2 bodies: the per-body pass.
 template <class S, class Bd>
 bool contact_walks_paths(const Bd* bodies, Index nb, const ContactPoint<S>* points, Index npoints) {
   long long visits = 0;
@@ -276,93 +294,104 @@ bool contact_walks_paths(const Bd* bodies, Index nb, const ContactPoint<S>* poin
   return visits <= 2LL * nb;
 }
 
-// The contact pass of one instance at (q, qd) (q[j * stride]): adds every point's
-// contact wrench to fext (n body wrenches, body frames); with armature (n, or
+// The contact pass of one instance over a path (see ContactBodyPath) of n bodies:
+// adds every point's contact wrench to fext (n body wrenches, the path's body
+// frames, in which the points' positions are); with armature (the path's DoFs, or
 // null) adds the implicit bound; readings (P, or null) get the points' forces.
 // X, v: n entries of scratch, not touched when cs.walk_paths (each point's body by
 // contact_path_kinematics instead). h: the look-ahead (dt for implicit, else 0).
-// bodies: Body<S> (the user's frames) or ZJointBody<S> (z-axis frames,
-// scandyn/model/joint_frames.hpp); the points' positions and fext are in the same frames.
-// kMultiDof: a model with multi-DoF joints (joint_transform_at; Body<S> only; n
-// bodies, q with nq and qd and armature with nv entries, stride 1).
-template <unsigned kObstacles, bool kMultiDof = false, class S, class Bd>
-SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
-                             long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
-                             ContactReading<S>* readings) {
-  if (!cs.walk_paths) {
-    if constexpr (kMultiDof) {
-      (void)stride;
-      contact_kinematics_at(bodies, n, q, qd, X, v);
-    } else {
-      contact_kinematics(bodies, n, q, qd, stride, X, v);
+// qforce (the path's DoFs, or null): with cs.walk_paths, the contacts go there as
+// generalized forces instead, sum over points of J(p)^T f (the columns of the
+// point's walk; the same joint-space dynamics as the body wrenches), and fext is
+// not touched (it may be null): no per-body array at all.
+template <unsigned kObstacles, class S, class Path>
+SCANDYN_HD void contact_pass_on(const Path& path, const ContactSet<S>& cs, Index n, S h, Transform<S>* X,
+                                Motion<S>* v, Force<S>* fext, S* armature, ContactReading<S>* readings,
+                                S* qforce = nullptr) {
+  if (!cs.walk_paths) contact_path_poses(path, n, X, v);
+  // f(col, dof) for every joint column on the path from body i to the root, in body
+  // i's frame (Xi: body i <- world), the point at c (body i's frame)
+  auto walk_columns = [&](Index i, const Vec3<S>& c, auto&& f) {
+    Transform<S> T = Transform<S>::identity();  // (i <- j)
+    for (Index j = i; j >= 0; j = path.parent(j)) {
+      path.for_each_column(j, [&](const Vec3<S>& e) { return T.E * e; }, c + T.E * T.r, f);  // lever: c minus j's origin
+      if (path.parent(j) >= 0) T = T * path.xup(j);
     }
-  }
+  };
   for (Index k = 0; k < cs.npoints; ++k) {
     const ContactPoint<S>& cp = cs.points[k];
     const Index i = cp.body;
     Transform<S> Xi;
     Motion<S> vi;
-    if (cs.walk_paths) contact_path_kinematics<kMultiDof>(bodies, i, q, qd, stride, Xi, vi);
+    if (cs.walk_paths) contact_path_kinematics(path, i, Xi, vi);
     else Xi = X[i], vi = v[i];
     const Vec3<S> p = mul_transpose(Xi.E, cp.position) + Xi.r;
     const Vec3<S> pv = mul_transpose(Xi.E, vi.v + cross(vi.w, cp.position));
     // implicit: the diagonal of the pair's J^T W J on the joints of the point's path to the base
-    auto add = [&](Index j, const Vec3<S>& nrm, S wn, S wt, auto&& column) {
-      if constexpr (kMultiDof) {
-        for (int c = 0; c < joint_nv(bodies[j].type); ++c) {
-          const Vec3<S> col = column(c);
-          const S a = dot(nrm, col);
-          armature[bodies[j].idx_v + c] += wn * a * a + wt * (dot(col, col) - a * a);
-        }
-      } else {
-        const Vec3<S> col = column(0);
-        const S a = dot(nrm, col);
-        armature[j] += wn * a * a + wt * (dot(col, col) - a * a);
-      }
-    };
     auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
       if (!armature) return;
+      auto add = [&](const Vec3<S>& nj) {
+        return [&, nj](Index dof, const Vec3<S>& col) {
+          const S a = dot(nj, col);
+          armature[dof] += wn * a * a + wt * (dot(col, col) - a * a);
+        };
+      };
       if (cs.walk_paths) {
-        // in body i's frame: T = (i <- j) along the path, the point at cp.position
-        const Vec3<S> ni = Xi.E * nrm;
-        Transform<S> T = Transform<S>::identity();
-        for (Index j = i; j >= 0; j = bodies[j].parent) {
-          const Vec3<S> lever = cp.position + T.E * T.r;  // the point minus body j's origin
-          add(j, ni, wn, wt, [&](int c) {
-            return contact_column(bodies[j], c, [&](const Vec3<S>& e) { return T.E * e; }, lever);
-          });
-          T = T * contact_joint_transform<kMultiDof>(bodies[j], j, q, stride);
-        }
+        walk_columns(i, cp.position, add(Xi.E * nrm));
         return;
       }
-      for (Index j = i; j >= 0; j = bodies[j].parent)
-        add(j, nrm, wn, wt, [&](int c) {
-          return contact_column(bodies[j], c, [&](const Vec3<S>& e) { return mul_transpose(X[j].E, e); }, p - X[j].r);
-        });
+      for (Index j = i; j >= 0; j = path.parent(j))
+        path.for_each_column(j, [&](const Vec3<S>& e) { return mul_transpose(X[j].E, e); }, p - X[j].r, add(nrm));
     };
     const Vec3<S> f = contact_point_force<kObstacles>(cs, p, pv, cp.radius, h, readings ? readings + k : nullptr, touched);
     const Vec3<S> fb = Xi.E * f;
+    if (qforce && cs.walk_paths) {
+      if (fb.x != S(0) || fb.y != S(0) || fb.z != S(0))
+        walk_columns(i, cp.position, [&](Index dof, const Vec3<S>& col) { qforce[dof] += dot(col, fb); });
+      continue;
+    }
     fext[i].n += cross(cp.position, fb);
     fext[i].f += fb;
   }
 }
 
-// contact_pass with the specialisation of cs.obstacles chosen at run time (one
+// contact_pass_on over bodies (Body<S>, the user's frames, or ZJointBody<S>, z-axis
+// frames, scandyn/model/joint_frames.hpp; the points' positions and fext in the same
+// frames), q and qd at q[j * stride]; kMultiDof: a model with multi-DoF joints
+// (Body<S> only; n bodies, q with nq and qd and armature with nv entries, stride 1).
+template <unsigned kObstacles, bool kMultiDof = false, class S, class Bd>
+SCANDYN_HD void contact_pass(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
+                             long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
+                             ContactReading<S>* readings, S* qforce = nullptr) {
+  contact_pass_on<kObstacles>(ContactBodyPath<kMultiDof, S, Bd>{bodies, q, qd, stride}, cs, n, h, X, v, fext, armature,
+                              readings, qforce);
+}
+
+// contact_pass_on with the specialisation of cs.obstacles chosen at run time (one
 // switch per pass: planes only, spheres only, both).
-template <bool kMultiDof = false, class S, class Bd>
-SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
-                                 long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
-                                 ContactReading<S>* readings) {
+template <class S, class Path>
+SCANDYN_HD void contact_pass_on_any(const Path& path, const ContactSet<S>& cs, Index n, S h, Transform<S>* X,
+                                    Motion<S>* v, Force<S>* fext, S* armature, ContactReading<S>* readings,
+                                    S* qforce = nullptr) {
   switch (cs.obstacles) {
-    case kPlanes: contact_pass<kPlanes, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
-    case kSpheres: contact_pass<kSpheres, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings); break;
+    case kPlanes: contact_pass_on<kPlanes>(path, cs, n, h, X, v, fext, armature, readings, qforce); break;
+    case kSpheres: contact_pass_on<kSpheres>(path, cs, n, h, X, v, fext, armature, readings, qforce); break;
     case kPlanes | kSpheres:
-      contact_pass<kPlanes | kSpheres, kMultiDof>(cs, bodies, n, q, qd, stride, h, X, v, fext, armature, readings);
+      contact_pass_on<kPlanes | kSpheres>(path, cs, n, h, X, v, fext, armature, readings, qforce);
       break;
     default:  // no obstacles: the points touch nothing
       for (Index k = 0; readings && k < cs.npoints; ++k) readings[k] = {Vec3<S>::zero(), S(0), 0};
       break;
   }
+}
+
+// contact_pass (over bodies) with the obstacles chosen at run time.
+template <bool kMultiDof = false, class S, class Bd>
+SCANDYN_HD void contact_pass_any(const ContactSet<S>& cs, const Bd* bodies, Index n, const S* q, const S* qd,
+                                 long long stride, S h, Transform<S>* X, Motion<S>* v, Force<S>* fext, S* armature,
+                                 ContactReading<S>* readings) {
+  contact_pass_on_any(ContactBodyPath<kMultiDof, S, Bd>{bodies, q, qd, stride}, cs, n, h, X, v, fext, armature,
+                      readings);
 }
 
 // One forward dynamics' wrenches and implicit armature with the contacts in: the
