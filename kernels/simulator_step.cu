@@ -21,7 +21,10 @@
 //                           only: neither takes an armature yet. With contacts, a
 //                           kernel of one thread per instance runs the contact
 //                           pass (contacts.hpp) into (B x nv) wrenches before each
-//                           forward dynamics.
+//                           forward dynamics; for a chain (ropes) one block per
+//                           instance, its bodies in runs scanned in parallel
+//                           (chain_contacts_kernel).
+#include <cub/block/block_scan.cuh>
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -60,6 +63,65 @@ __global__ void forces_kernel(const JointCoefficients<S>* coef, const S* qs, con
   const Index i = static_cast<Index>(k / B), b = static_cast<Index>(k % B);
   const S t = tau.data ? tau.at(i, b) : S(0);
   tau_out[k] = effect_forces<E>(t, coef[i], qs[k], qds[k], S(0));
+}
+
+// A run of a chain's bodies as the map it applies to the pose and twist of the body
+// before it: (X, v) -> (T X, T v + w), T the product of the run's Xup, w the run's
+// joint motions carried to its last body. Composed by ComposeChainRuns (associative,
+// not commutative: a then b); the identity is (I, 0).
+template <class S>
+struct ChainRun {
+  Transform<S> T;
+  Motion<S> w;
+};
+template <class S>
+struct ComposeChainRuns {
+  __device__ ChainRun<S> operator()(const ChainRun<S>& a, const ChainRun<S>& b) const {
+    return {b.T * a.T, b.T.apply(a.w) + b.w};
+  }
+};
+inline constexpr int kChainContactThreads = 256;
+
+// The engine path's contact pass for a chain (every body's parent the one before it:
+// ropes), one block per instance b, the bodies in runs of ceil(nv / threads), one
+// per thread: each thread composes its run (ChainRun), a block scan gives every run
+// the pose and twist of the body before it, and each thread walks its run again,
+// adding the contact wrenches of the points on its bodies (point_start: (nv + 1)
+// offsets into point_index, the points of body i by index) to the external wrenches
+// (base + b * base_stride, or zeros) into fext (B x nv); readings (B x P) or null. The
+// same quantities as contacts_kernel, the poses associated by runs: one long chain's
+// contacts no longer walk it in one thread.
+template <class S>
+__global__ void __launch_bounds__(kChainContactThreads)
+    chain_contacts_kernel(const Body<S>* bodies, Index nv, const ContactSet<S> cs, const Index* point_start,
+                          const Index* point_index, const S* qs, const S* qds, Index B, const Force<S>* base,
+                          long long base_stride, Force<S>* fext, ContactReading<S>* readings) {
+  using Scan = cub::BlockScan<ChainRun<S>, kChainContactThreads, cub::BLOCK_SCAN_WARP_SCANS>;
+  __shared__ typename Scan::TempStorage temp;
+  const long long b = blockIdx.x;
+  const Index per = (nv + kChainContactThreads - 1) / kChainContactThreads;
+  const Index lo = min(nv, Index(threadIdx.x) * per), hi = min(nv, lo + per);
+  const ContactBodyPath<false, S, Body<S>> path{bodies, qs + b, qds + b, B};
+  ChainRun<S> run{Transform<S>::identity(), Motion<S>::zero()};
+  for (Index i = lo; i < hi; ++i) {
+    const Transform<S> Xup = path.xup(i);
+    run = {Xup * run.T, Xup.apply(run.w) + path.motion(i)};
+  }
+  ChainRun<S> before;
+  Scan(temp).ExclusiveScan(run, before, ChainRun<S>{Transform<S>::identity(), Motion<S>::zero()}, ComposeChainRuns<S>{});
+  Transform<S> X = before.T;  // body lo - 1 <- world
+  Motion<S> v = before.w;
+  for (Index i = lo; i < hi; ++i) {
+    const Transform<S> Xup = path.xup(i);
+    X = Xup * X;
+    v = Xup.apply(v) + path.motion(i);
+    Force<S> f = base ? base[b * base_stride + i] : Force<S>::zero();
+    for (Index k = point_start[i]; k < point_start[i + 1]; ++k) {
+      const Index pk = point_index[k];
+      add_contact_point_wrench(cs, cs.points[pk], X, v, readings ? readings + b * cs.npoints + pk : nullptr, f);
+    }
+    fext[b * nv + i] = f;
+  }
 }
 
 // The engine path's contact pass, one thread per instance b: fext (B x nv) = the
@@ -314,9 +376,14 @@ class CudaSimBackend final : public SimBackend<S> {
     auto forces = [&] {
       launch_forces(qs_view.data, qds_view.data, tau);
       if (contacts) {
-        contacts_kernel<S><<<element_blocks(B), kElementBlock, 0, stream_>>>(
-            contact_bodies_, nv, contacts_, qs_view.data, qds_view.data, B,
-            (setup_.effects & kExternal) ? wrenches : nullptr, stride, contact_X_, contact_v_, contact_fext_, readings);
+        if (chain_points_)
+          chain_contacts_kernel<S><<<static_cast<unsigned>(B), kChainContactThreads, 0, stream_>>>(
+              contact_bodies_, nv, contacts_, chain_points_, chain_points_ + nv + 1, qs_view.data, qds_view.data, B,
+              (setup_.effects & kExternal) ? wrenches : nullptr, stride, contact_fext_, readings);
+        else
+          contacts_kernel<S><<<element_blocks(B), kElementBlock, 0, stream_>>>(
+              contact_bodies_, nv, contacts_, qs_view.data, qds_view.data, B,
+              (setup_.effects & kExternal) ? wrenches : nullptr, stride, contact_X_, contact_v_, contact_fext_, readings);
         readings = nullptr;
       }
       check(fd_->compute_async(in, BatchView<S>::soa(qdd_, nv, B), failed_, stream_), "running the forward dynamics");
@@ -443,6 +510,10 @@ class CudaSimBackend final : public SimBackend<S> {
                         up(ns * sizeof(ContactSphere<S>)) + up(B * P * sizeof(ContactReading<S>));
     const bool split = fused_ && floating_;  // launch_fused_floating's contacts kernel: its two outputs
     if (split) bytes += 2 * up(B * n * sizeof(S));
+    // the engine path on a chain (chain_contacts_kernel): the points by body
+    bool chain = engine_ && !setup_.model.multi_dof();
+    for (std::size_t i = 0; chain && i < n; ++i) chain = setup_.model.bodies[i].parent == static_cast<Index>(i) - 1;
+    if (chain) bytes += up((n + 1 + P) * sizeof(Index));
     if (engine_) bytes += up(n * sizeof(Body<S>)) + B * n * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
     check(cudaMalloc(&contacts_raw_, bytes), "allocating the contacts");
     char* p = static_cast<char*>(contacts_raw_);
@@ -458,6 +529,17 @@ class CudaSimBackend final : public SimBackend<S> {
     auto* planes = reinterpret_cast<ContactPlane<S>*>(take(np * sizeof(ContactPlane<S>)));
     auto* spheres = reinterpret_cast<ContactSphere<S>*>(take(ns * sizeof(ContactSphere<S>)));
     readings_ = reinterpret_cast<ContactReading<S>*>(take(B * P * sizeof(ContactReading<S>)));
+    if (chain) {  // point_start (n + 1), then point_index (P): a counting sort of the points by body
+      chain_points_ = reinterpret_cast<Index*>(take((n + 1 + P) * sizeof(Index)));
+      std::vector<Index> start(n + 1, 0), index(P);
+      for (const ContactPoint<S>& cp : setup_.contact_points) ++start[static_cast<std::size_t>(cp.body) + 1];
+      for (std::size_t i = 0; i < n; ++i) start[i + 1] += start[i];
+      std::vector<Index> next(start.begin(), start.end() - 1);
+      for (std::size_t k = 0; k < P; ++k)
+        index[static_cast<std::size_t>(next[static_cast<std::size_t>(setup_.contact_points[k].body)]++)] = static_cast<Index>(k);
+      copy(chain_points_, start.data(), (n + 1) * sizeof(Index));
+      copy(chain_points_ + n + 1, index.data(), P * sizeof(Index));
+    }
     if (split) {
       contact_tau_ = reinterpret_cast<S*>(take(B * n * sizeof(S)));
       contact_arm_ = reinterpret_cast<S*>(take(B * n * sizeof(S)));
@@ -555,6 +637,7 @@ class CudaSimBackend final : public SimBackend<S> {
   Transform<S>* contact_X_ = nullptr;      // (B x nv) engine path: poses
   Motion<S>* contact_v_ = nullptr;         // (B x nv) engine path: twists
   Force<S>* contact_fext_ = nullptr;       // (B x nv) engine path: external + contact wrenches
+  Index* chain_points_ = nullptr;          // engine path on a chain: (nv + 1) offsets, then (P) point indices by body
   S* contact_tau_ = nullptr;               // (nv x B) floating fused step: the contacts' generalized forces
   S* contact_arm_ = nullptr;               // (B x nv) floating fused step, implicit: armature + contacts' diagonal
 };

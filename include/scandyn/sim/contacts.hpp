@@ -226,6 +226,43 @@ struct ContactBodyPath {
   }
 };
 
+// One point's centre p and its velocity pv (world frame) from its body's pose Xi
+// (body <- world) and twist vi (body frame).
+template <class S>
+SCANDYN_HD void contact_point_motion(const ContactPoint<S>& cp, const Transform<S>& Xi, const Motion<S>& vi, Vec3<S>& p,
+                                     Vec3<S>& pv) {
+  p = mul_transpose(Xi.E, cp.position) + Xi.r;
+  pv = mul_transpose(Xi.E, vi.v + cross(vi.w, cp.position));
+}
+
+// The wrench of a force fb (body frame) on the point cp, added to its body's wrench f.
+template <class S>
+SCANDYN_HD void add_point_wrench(const ContactPoint<S>& cp, const Vec3<S>& fb, Force<S>& f) {
+  f.n += cross(cp.position, fb);
+  f.f += fb;
+}
+
+// The contact wrench of point cp at its body's pose and twist (explicit: no
+// look-ahead, no implicit diagonal) with the obstacles chosen at run time, added to
+// f (the body's wrench, its frame); reading (or null) gets the point's contact.
+template <class S>
+SCANDYN_HD void add_contact_point_wrench(const ContactSet<S>& cs, const ContactPoint<S>& cp, const Transform<S>& Xi,
+                                         const Motion<S>& vi, ContactReading<S>* reading, Force<S>& f) {
+  Vec3<S> p, pv;
+  contact_point_motion(cp, Xi, vi, p, pv);
+  auto none = [](const Vec3<S>&, S, S) {};
+  Vec3<S> fw = Vec3<S>::zero();
+  switch (cs.obstacles) {
+    case kPlanes: fw = contact_point_force<kPlanes>(cs, p, pv, cp.radius, S(0), reading, none); break;
+    case kSpheres: fw = contact_point_force<kSpheres>(cs, p, pv, cp.radius, S(0), reading, none); break;
+    case kPlanes | kSpheres: fw = contact_point_force<kPlanes | kSpheres>(cs, p, pv, cp.radius, S(0), reading, none); break;
+    default:
+      if (reading) *reading = {Vec3<S>::zero(), S(0), 0};
+      return;
+  }
+  add_point_wrench(cp, Xi.E * fw, f);
+}
+
 // The world pose and twist of bodies 0..n-1 of a path (the contact pass's per-body
 // kinematics): X[i] body i <- world, v[i] body i's twist in its frame.
 template <class S, class Path>
@@ -325,8 +362,8 @@ SCANDYN_HD void contact_pass_on(const Path& path, const ContactSet<S>& cs, Index
     Motion<S> vi;
     if (cs.walk_paths) contact_path_kinematics(path, i, Xi, vi);
     else Xi = X[i], vi = v[i];
-    const Vec3<S> p = mul_transpose(Xi.E, cp.position) + Xi.r;
-    const Vec3<S> pv = mul_transpose(Xi.E, vi.v + cross(vi.w, cp.position));
+    Vec3<S> p, pv;
+    contact_point_motion(cp, Xi, vi, p, pv);
     // implicit: the diagonal of the pair's J^T W J on the joints of the point's path to the base
     auto touched = [&](const Vec3<S>& nrm, S wn, S wt) {
       if (!armature) return;
@@ -350,8 +387,7 @@ SCANDYN_HD void contact_pass_on(const Path& path, const ContactSet<S>& cs, Index
         walk_columns(i, cp.position, [&](Index dof, const Vec3<S>& col) { qforce[dof] += dot(col, fb); });
       continue;
     }
-    fext[i].n += cross(cp.position, fb);
-    fext[i].f += fb;
+    add_point_wrench(cp, fb, fext[i]);
   }
 }
 
