@@ -296,11 +296,22 @@ void check_engines(const Model& md, Index B, double tol) {
 
 TEST(CudaFloatingThreads, EnginesAgainstSerial) {
   SKIP_WITHOUT_CUDA_DEVICE();
+  std::string left_out;  // models whose floating-base kernels the library's build leaves out (its engines say so)
   for (const auto& [name, md] : floating_models()) {
     SCOPED_TRACE(name);
+    try {
+      BackendOptions o;
+      o.backend = BackendKind::Cuda;
+      (void)make_forward_dynamics(md, o);
+    } catch (const BackendError& e) {
+      if (std::string(e.what()).find("compiles the floating-base kernels for") == std::string::npos) throw;
+      left_out += std::string(left_out.empty() ? "" : "; ") + e.what();
+      continue;
+    }
     check_engines<double>(md, 37, 1e-9);
     check_engines<float>(md, 37, 2e-4);
   }
+  if (!left_out.empty()) GTEST_SKIP() << "the other models passed; left out by this build: " << left_out;
 }
 
 // Models the thread kernels do not take run the general path (GeneralPlan: aba_general,
