@@ -220,11 +220,13 @@ SCANDYN_SIM_UNROLL
 // advanced through the exponential map, as on the CPU) over aba_instance's
 // floating-base kernel (kFloating, any tree: kSlots = C), one thread per instance.
 // Every joint effect and external wrenches are compiled in (neutral coefficients
-// and zero wrenches where the scene has none); the contact pass in the kernels for
-// scenes with contact points (kContacts). It walks the kernel's own model
-// (FloatingThreadPath: z-axis frames past the base, the points turned into them at
-// setup) and turns its wrenches back to the user's frames, where they join fext,
-// which aba_instance turns again (external_wrench).
+// and zero wrenches where the scene has none); the contact pass runs on the
+// kernel's own model (FloatingThreadPath: z-axis frames past the base, the points
+// turned into them at setup), for euler and implicit steps of points that walk their
+// paths in sim_floating_contacts_kernel before the step (generalized forces and the
+// implicit diagonal per instance), otherwise in the step kernel (kContacts:
+// floating_contacts, generalized forces, or wrenches turned back to the user's
+// frames where they join fext, which aba_instance turns again: external_wrench).
 
 // The floating-base kernel's arguments beside FusedArgs (device memory).
 template <class S>
