@@ -590,23 +590,21 @@ cudaError_t launch_fused_floating(const SimParams<S, C>& params, const FusedArgs
 {
   if constexpr (cuda::kFloatingCapacity<C>) {
     const unsigned blocks = static_cast<unsigned>((static_cast<long long>(args.batch) + kSimBlock - 1) / kSimBlock);
-    if (args.contacts.npoints > 0 && args.contact_tau && I != Integrator::Rk4 && args.contacts.walk_paths) {
-      // the contacts in a kernel of their own, then the step without the pass
+    // the contacts of euler and implicit steps whose points walk their paths in a kernel
+    // of their own, then the step without the pass; otherwise the pass in the step kernel
+    const bool contacts = args.contacts.npoints > 0;
+    const bool split = contacts && args.contact_tau && I != Integrator::Rk4 && args.contacts.walk_paths;
+    FusedArgs<S> step = args;
+    if (split) {
       sim_floating_contacts_kernel<S, C><<<blocks, kSimBlock, 0, stream>>>(
           params, args, fa, I == Integrator::Implicit ? params.dt : S(0));
-      FusedArgs<S> step = args;
       step.readings = nullptr;
       if (I != Integrator::Implicit) step.contact_armature = nullptr;
-      sim_fused_floating_kernel<S, C, I, false><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
-    } else if (args.contacts.npoints > 0) {
-      FusedArgs<S> step = args;
-      step.contact_tau = step.contact_armature = nullptr;
-      sim_fused_floating_kernel<S, C, I, true><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
     } else {
-      FusedArgs<S> step = args;
       step.contact_tau = step.contact_armature = nullptr;
-      sim_fused_floating_kernel<S, C, I, false><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
     }
+    if (contacts && !split) sim_fused_floating_kernel<S, C, I, true><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
+    else sim_fused_floating_kernel<S, C, I, false><<<blocks, kSimBlock, 0, stream>>>(params, step, fa);
     return cudaGetLastError();
   } else {
     return cudaErrorNotSupported;

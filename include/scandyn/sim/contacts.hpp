@@ -57,6 +57,8 @@
 // docs/scenes.md for where it is not.)
 #pragma once
 
+#include <type_traits>
+
 #include "scandyn/algorithm/steps.hpp"
 #include "scandyn/config.hpp"
 #include "scandyn/spatial.hpp"
@@ -226,6 +228,19 @@ struct ContactBodyPath {
   }
 };
 
+// f(std::integral_constant<unsigned, K>{}) with K the obstacles cs declares (planes
+// only, spheres only, both: the contact loop's specialisations, one switch); false,
+// without calling f, when it declares none.
+template <class S, class F>
+SCANDYN_HD bool with_obstacles(const ContactSet<S>& cs, F&& f) {
+  switch (cs.obstacles) {
+    case kPlanes: f(std::integral_constant<unsigned, kPlanes>{}); return true;
+    case kSpheres: f(std::integral_constant<unsigned, kSpheres>{}); return true;
+    case kPlanes | kSpheres: f(std::integral_constant<unsigned, kPlanes | kSpheres>{}); return true;
+    default: return false;
+  }
+}
+
 // One point's centre p and its velocity pv (world frame) from its body's pose Xi
 // (body <- world) and twist vi (body frame).
 template <class S>
@@ -252,13 +267,11 @@ SCANDYN_HD void add_contact_point_wrench(const ContactSet<S>& cs, const ContactP
   contact_point_motion(cp, Xi, vi, p, pv);
   auto none = [](const Vec3<S>&, S, S) {};
   Vec3<S> fw = Vec3<S>::zero();
-  switch (cs.obstacles) {
-    case kPlanes: fw = contact_point_force<kPlanes>(cs, p, pv, cp.radius, S(0), reading, none); break;
-    case kSpheres: fw = contact_point_force<kSpheres>(cs, p, pv, cp.radius, S(0), reading, none); break;
-    case kPlanes | kSpheres: fw = contact_point_force<kPlanes | kSpheres>(cs, p, pv, cp.radius, S(0), reading, none); break;
-    default:
-      if (reading) *reading = {Vec3<S>::zero(), S(0), 0};
-      return;
+  if (!with_obstacles(cs, [&](auto k) {
+        fw = contact_point_force<decltype(k)::value>(cs, p, pv, cp.radius, S(0), reading, none);
+      })) {
+    if (reading) *reading = {Vec3<S>::zero(), S(0), 0};  // no obstacles: the point touches nothing
+    return;
   }
   add_point_wrench(cp, Xi.E * fw, f);
 }
@@ -409,16 +422,10 @@ template <class S, class Path>
 SCANDYN_HD void contact_pass_on_any(const Path& path, const ContactSet<S>& cs, Index n, S h, Transform<S>* X,
                                     Motion<S>* v, Force<S>* fext, S* armature, ContactReading<S>* readings,
                                     S* qforce = nullptr) {
-  switch (cs.obstacles) {
-    case kPlanes: contact_pass_on<kPlanes>(path, cs, n, h, X, v, fext, armature, readings, qforce); break;
-    case kSpheres: contact_pass_on<kSpheres>(path, cs, n, h, X, v, fext, armature, readings, qforce); break;
-    case kPlanes | kSpheres:
-      contact_pass_on<kPlanes | kSpheres>(path, cs, n, h, X, v, fext, armature, readings, qforce);
-      break;
-    default:  // no obstacles: the points touch nothing
-      for (Index k = 0; readings && k < cs.npoints; ++k) readings[k] = {Vec3<S>::zero(), S(0), 0};
-      break;
-  }
+  if (!with_obstacles(cs, [&](auto k) {
+        contact_pass_on<decltype(k)::value>(path, cs, n, h, X, v, fext, armature, readings, qforce);
+      }))  // no obstacles: the points touch nothing
+    for (Index k = 0; readings && k < cs.npoints; ++k) readings[k] = {Vec3<S>::zero(), S(0), 0};
 }
 
 // contact_pass (over bodies) with the obstacles chosen at run time.
