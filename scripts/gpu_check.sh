@@ -13,9 +13,9 @@
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
 #   5. compute-sanitizer --tool memcheck on every test_cuda_* binary -> sanitizer/<name>.log
-#   5b. scripts/accuracy_report --full --name accuracy-h100, when numpy is
-#       importable (plots where matplotlib is too) -> accuracy-h100.tar.gz (its
-#       accuracy-h100.md and accuracy-h100/ go to docs/) and accuracy-h100.md
+#   5b. scripts/accuracy_report --full --name accuracy-gpu, when numpy is
+#       importable (plots where matplotlib is too) -> accuracy-gpu.tar.gz (its
+#       accuracy-gpu.md and accuracy-gpu/ go to docs/) and accuracy-gpu.md
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
 #   7. with two or more GPUs: scripts/multi_gpu_check.sh (the sharded engines' and
 #      simulator's tests, one GPU against all of them in one process, the Python
@@ -194,26 +194,32 @@ fi
 
 # ---- 5b. accuracy report (full mode), when numpy is importable -----------------
 # (matplotlib draws its plots where it is importable; without it the report has its
-# tables and CSVs only.) The report's files go back as one archive (the device tool
-# returns few files): accuracy-h100.tar.gz, unpacked into docs/ it gives
-# docs/accuracy-h100.md and docs/accuracy-h100/; accuracy-h100.md also lies beside it.
+# tables and CSVs only.) It is written into $build/accuracy, kept there: the full mode
+# takes ~25 minutes on an H200 machine, so where one command may run 10 minutes at
+# most, run this step again with SCANDYN_ACCURACY_ARGS=--resume (and
+# SCANDYN_SKIP_TESTS=1 SCANDYN_SKIP_BENCH=1) on the same build directory until it
+# finishes; the rows measured so far also go back as accuracy-partial.jsonl. The
+# finished report goes back as one archive (the device tool returns few files):
+# accuracy-gpu.tar.gz, unpacked into docs/ it gives docs/accuracy-gpu.md and
+# docs/accuracy-gpu/; accuracy-gpu.md also lies beside it.
 py=.venv/bin/python
 [[ -x "$py" ]] || py=python3
 if [[ "${SCANDYN_SKIP_ACCURACY:-0}" == 1 ]]; then
   note "accuracy report skipped (SCANDYN_SKIP_ACCURACY=1)"
 elif "$py" -c 'import numpy' 2>/dev/null; then
-  note "accuracy report (full) -> $out/accuracy-h100.tar.gz (accuracy-h100.md, accuracy-h100/: unpack into docs/)"
+  acc=$build/accuracy
+  note "accuracy report (full) in $acc -> $out/accuracy-gpu.tar.gz (accuracy-gpu.md, accuracy-gpu/: unpack into docs/)"
   set +e
   read -r -a accuracy_args <<<"${SCANDYN_ACCURACY_ARGS:-}"
-  "$py" scripts/accuracy_report --full --name accuracy-h100 --out-dir "$out/accuracy" --scandyn "$build/scandyn" \
+  "$py" scripts/accuracy_report --full --name accuracy-gpu --out-dir "$acc" --scandyn "$build/scandyn" \
     --stability-test "$build/tests/test_stability" ${accuracy_args[@]+"${accuracy_args[@]}"} \
     --machine "$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), host $(nproc) cores" \
     2>&1 | tee "$out/accuracy.log"
   rc=${PIPESTATUS[0]}
-  if [[ -d "$out/accuracy" ]]; then
-    tar -czf "$out/accuracy-h100.tar.gz" -C "$out/accuracy" . &&
-      cp "$out/accuracy/accuracy-h100.md" "$out/" 2>/dev/null
-    rm -rf "$out/accuracy"
+  if [[ -f "$acc/accuracy-gpu/sweep.partial.jsonl" ]]; then  # not finished: resume it
+    cp "$acc/accuracy-gpu/sweep.partial.jsonl" "$out/accuracy-partial.jsonl"
+  elif [[ -f "$acc/accuracy-gpu.md" ]]; then
+    tar -czf "$out/accuracy-gpu.tar.gz" -C "$acc" accuracy-gpu.md accuracy-gpu && cp "$acc/accuracy-gpu.md" "$out/"
   fi
   set -e
   record "accuracy report (full)" "$rc"
