@@ -20,7 +20,7 @@ class CpuConstrainedForwardDynamics final : public ConstrainedForwardDynamics<S>
  public:
   CpuConstrainedForwardDynamics(const ModelTpl<S>& model, const LoopSet& loops, const BackendOptions& o)
       : model_(model), loops_(loop_rows_of<S>(loops)), m_(loops.rows()), kind_(o.backend),
-        threads_(engine_threads(o)), max_batch_(o.max_batch) {
+        threads_(instance_threads(engine_threads(o), o.max_batch)), max_batch_(o.max_batch) {
     const Index n = model.nv();
     failed_.assign(static_cast<std::size_t>(std::max<Index>(max_batch_, 1)), -1);
     for (int t = 0; t < threads_; ++t) {

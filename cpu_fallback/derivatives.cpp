@@ -18,7 +18,11 @@ template <class S, class Interface>
 class CpuDerivativeEngine : public Interface {
  public:
   CpuDerivativeEngine(const ModelTpl<S>& model, const BackendOptions& o, const char* strategy)
-      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch), strategy_(strategy),
+      : model_(model),
+        kind_(o.backend),
+        threads_(instance_threads(engine_threads(o), o.max_batch)),
+        max_batch_(o.max_batch),
+        strategy_(strategy),
         rows_(threads_, 4, static_cast<std::size_t>(model.nv())) {
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model);
   }

@@ -41,10 +41,11 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
       return;
     }
     // the nv x nv workspace only for jsi (a 10^5-link rope would need 80 GB)
-    for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
-    rows_ = RowScratch<S>(threads_, 4, static_cast<std::size_t>(model.nq()));
+    const int workers = instance_threads(threads_, max_batch_);
+    for (int t = 0; t < workers; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
+    rows_ = RowScratch<S>(workers, 4, static_cast<std::size_t>(model.nq()));
     // the SIMD groups when nothing is checked per instance (the check runs instance by instance)
-    if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_);
+    if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_, max_batch_);
   }
 
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
@@ -131,7 +132,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
   FdMethod method_ = FdMethod::Aba;
   bool fallback_ = false;                            // jsi: a failed instance again by aba
   std::vector<int> failed_;                          // (max_batch) failed DoF per instance, -1: none
-  std::vector<DataTpl<S>> data_;                     // (threads) workspaces (jsi: with the nv x nv one)
+  std::vector<DataTpl<S>> data_;                     // (instance_threads) workspaces (jsi: with the nv x nv one)
   RowScratch<S> rows_;                               // per thread: q, qd, tau, qdd rows of one instance
   std::vector<SimdBatch<S>> simd_;                   // (threads, or none) aba's SIMD workspaces
   std::unique_ptr<ChainForwardDynamics<S>> chain_;  // parallel

@@ -19,7 +19,10 @@ template <class S>
 class CpuHybridDynamics final : public HybridDynamics<S> {
  public:
   CpuHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed, const BackendOptions& o)
-      : model_(model), prescribed_(prescribed), kind_(o.backend), threads_(engine_threads(o)),
+      : model_(model),
+        prescribed_(prescribed),
+        kind_(o.backend),
+        threads_(instance_threads(engine_threads(o), o.max_batch)),
         max_batch_(o.max_batch) {
     failed_.assign(static_cast<std::size_t>(std::max<Index>(max_batch_, 1)), -1);
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, false);

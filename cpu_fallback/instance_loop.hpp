@@ -25,11 +25,21 @@ namespace cpu {
 // openmp_threads()) on openmp. Throws BackendError for openmp in a build without it.
 int engine_threads(const BackendOptions& options);
 
+// Threads that can get instances of an engine made for up to max_batch of them:
+// for_instance_blocks runs at most min(threads, B) threads and B <= max_batch, so an
+// engine keeps its per-instance workspaces (one per thread) for this many threads. A
+// one-instance engine on 16 threads keeps one, not 16 copies of a 10^6-link model's.
+inline int instance_threads(int threads, Index max_batch) {
+  return static_cast<int>(std::max<Index>(1, std::min<Index>(threads, max_batch)));
+}
+
 // body(t, begin, end) for contiguous blocks [begin, end) covering [0, B), on
-// `threads` threads (static schedule: thread t gets block t).
+// min(threads, B) threads (static schedule: thread t gets block t; t <
+// instance_threads(threads, B)).
 template <class F>
 void for_instance_blocks(int threads, Index B, F&& body) {
-  if (threads <= 1 || B <= 1) {
+  threads = instance_threads(threads, B);
+  if (threads <= 1) {
     body(0, Index(0), B);
     return;
   }

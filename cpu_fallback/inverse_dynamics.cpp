@@ -36,15 +36,16 @@ class CpuRnea : public Interface {
                 : kBias                        ? IdStrategy::Recursion
                                                : choose_id_strategy(kind_, model.nv(), max_batch_, threads_);
     const Index nv = model.nv();
+    const int workers = instance_threads(threads_, max_batch_);
     if (strategy_ == IdStrategy::Recursion) {
-      for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
-      simd_ = make_simd_batches(model_, o.simd, threads_);
+      for (int t = 0; t < workers; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
+      simd_ = make_simd_batches(model_, o.simd, threads_, max_batch_);
     } else {
       // one scan workspace using all threads across links, instances in turn
       scan_.emplace_back(model_, threads_);
       zero_.assign(static_cast<std::size_t>(nv), S(0));
     }
-    rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? threads_ : 1, 4, static_cast<std::size_t>(model.nq()));
+    rows_ = RowScratch<S>(strategy_ == IdStrategy::Recursion ? workers : 1, 4, static_cast<std::size_t>(model.nq()));
   }
 
   std::string strategy() const override {
@@ -93,8 +94,8 @@ class CpuRnea : public Interface {
   IdStrategy strategy_;
   int threads_;
   Index max_batch_;
-  std::vector<DataTpl<S>> data_;        // (threads) recursion workspaces
-  std::vector<SimdBatch<S>> simd_;      // (threads, or none) the recursion's SIMD workspaces
+  std::vector<DataTpl<S>> data_;        // (instance_threads) recursion workspaces
+  std::vector<SimdBatch<S>> simd_;      // (instance_threads, or none) the recursion's SIMD workspaces
   std::vector<ScanWorkspace<S>> scan_;  // (1) scan workspace
   std::vector<S> zero_;                 // (nv) the bias forces' qdd for the scans
   RowScratch<S> rows_;                  // per thread: q, qd, qdd, out rows of one instance

@@ -15,7 +15,11 @@ template <class S>
 class CpuKinematics final : public Kinematics<S> {
  public:
   CpuKinematics(const ModelTpl<S>& model, const BackendOptions& o, const KinematicsOptions& k)
-      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch), options_(k) {
+      : model_(model),
+        kind_(o.backend),
+        threads_(instance_threads(engine_threads(o), o.max_batch)),
+        max_batch_(o.max_batch),
+        options_(k) {
     check_kinematics_options(model, k);
     for (Index f : k.frames) frames_.push_back(model.frames[static_cast<std::size_t>(f)]);
     X0_.resize(static_cast<std::size_t>(threads_) * static_cast<std::size_t>(model.nbodies()));

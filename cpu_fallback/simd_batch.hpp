@@ -18,6 +18,7 @@
 
 #include <vector>
 
+#include "instance_loop.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/batch.hpp"
 #include "scandyn/engine.hpp"
@@ -81,14 +82,17 @@ class SimdBatch {
 template <class S>
 bool use_simd(const ModelTpl<S>& model, CpuSimd simd);
 
-// One thread's SIMD workspaces: empty when the engine does not take the SIMD path.
+// The SIMD workspaces of an engine made for up to max_batch instances on `threads`
+// threads: one per thread that can get instances (instance_threads), or none when the
+// engine does not take the SIMD path or when no call can fill a group (max_batch < W:
+// a group is W instances of one thread's block, and a block never exceeds the batch).
 // mass_matrix: workspaces for crba() (nv x nv per thread; the others hold nv).
 template <class S>
-std::vector<SimdBatch<S>> make_simd_batches(const ModelTpl<S>& model, CpuSimd simd, int threads,
+std::vector<SimdBatch<S>> make_simd_batches(const ModelTpl<S>& model, CpuSimd simd, int threads, Index max_batch,
                                             bool mass_matrix = false) {
   std::vector<SimdBatch<S>> v;
-  if (use_simd(model, simd))
-    for (int t = 0; t < threads; ++t) v.emplace_back(model, mass_matrix);
+  if (use_simd(model, simd) && max_batch >= SimdBatch<S>::W)
+    for (int t = 0, n = instance_threads(threads, max_batch); t < n; ++t) v.emplace_back(model, mass_matrix);
   return v;
 }
 

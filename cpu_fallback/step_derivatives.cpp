@@ -151,7 +151,10 @@ template <class S>
 class CpuStepDerivatives final : public StepDerivatives<S> {
  public:
   CpuStepDerivatives(const SimSetup<S>& setup, const BackendOptions& o)
-      : setup_(setup), kind_(o.backend), threads_(cpu::engine_threads(o)), max_batch_(o.max_batch),
+      : setup_(setup),
+        kind_(o.backend),
+        threads_(cpu::instance_threads(cpu::engine_threads(o), o.max_batch)),
+        max_batch_(o.max_batch),
         kernels_(kernels_of(setup_)), failed_(static_cast<std::size_t>(std::max<Index>(o.max_batch, 1)), -1) {
     for (int t = 0; t < threads_; ++t) work_.emplace_back(setup_);
   }

@@ -13,7 +13,7 @@ template <class S>
 FdBatchCheck<S>::FdBatchCheck(const ModelTpl<S>& model, const BackendOptions& o, FdMethod method, int threads)
     // no more workspaces than instances (a 10^6-link rope's is ~1 GB)
     : model_(model),
-      threads_(static_cast<int>(std::max<Index>(1, std::min<Index>(threads, std::max<Index>(o.max_batch, 1))))),
+      threads_(cpu::instance_threads(threads, o.max_batch)),
       threshold_(fd_check_tol<S>(o)) {
   // the double fallback asks for the check: Auto turns it on
   on_ = o.fallback_double && o.fd_check == FdCheckMode::Auto

@@ -730,9 +730,13 @@ TEST_F(Cli, BenchPrintsOneRow) {
     const std::string scalar = std::string(algo) == "fd" ? "aba" : std::string(algo) == "mass" ? "crba" : "recursion";
     EXPECT_EQ(base_strategy(row[1]), scalar);
     EXPECT_EQ(row[9], "0") << algo;
-    // --simd off: the scalar recursion; on: W instances per register (W >= 2 in every build)
-    EXPECT_EQ(bench_row(run(base + " --algo " + algo + " --simd off"))[1], scalar);
-    EXPECT_EQ(bench_row(run(base + " --algo " + algo + " --simd on"))[1].rfind(scalar + "-simd", 0), 0u);
+    // --simd off: the scalar recursion; on: W instances per register (2 <= W <= 16 in every
+    // build) for a batch that fills a group (37); none for fewer instances than W (1)
+    const std::string batch = "bench --model chain:5 --instances 37 --min-time 0.01 --algo " + std::string(algo);
+    EXPECT_EQ(bench_row(run(batch + " --simd off"))[1], scalar);
+    EXPECT_EQ(bench_row(run(batch + " --simd on"))[1].rfind(scalar + "-simd", 0), 0u);
+    const std::string one = "bench --model chain:5 --instances 1 --min-time 0.01 --algo " + std::string(algo);
+    EXPECT_EQ(bench_row(run(one + " --simd on"))[1], scalar);
   }
 }
 

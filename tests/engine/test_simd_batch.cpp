@@ -14,6 +14,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <string>
 
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/engine.hpp"
@@ -89,7 +90,14 @@ void expect_simd_equals_scalar(const Model& md, BackendKind backend, int threads
   };
 
   auto id_on = make_inverse_dynamics<S>(m, on), id_off = make_inverse_dynamics<S>(m, off);
-  EXPECT_NE(id_on->strategy().find("simd"), std::string::npos) << id_on->strategy();
+  // the SIMD workspaces only where a call can fill a group of W instances (W: the
+  // library's pack width, read from the strategy of an engine for a large batch)
+  BackendOptions wide = on;
+  wide.max_batch = 64;
+  const std::string ws = make_inverse_dynamics<S>(m, wide)->strategy();
+  ASSERT_NE(ws.find("-simd"), std::string::npos) << ws;
+  const Index W = std::stoi(ws.substr(ws.find("-simd") + 5));
+  EXPECT_EQ(id_on->strategy().find("simd") != std::string::npos, B >= W) << id_on->strategy() << " W " << W;
   EXPECT_EQ(id_off->strategy().find("simd"), std::string::npos);
   id_on->compute({Q, QD, X, fext.data()}, A);
   id_off->compute({Q, QD, X, fext.data()}, Bv);
@@ -203,4 +211,43 @@ TEST(SimdBatch, LongChainEnginesReserveLinearWorkspaces) {
   o.fd_method = FdMethod::Aba;
   o.fd_check = FdCheckMode::Off;
   EXPECT_NO_THROW(make_forward_dynamics<double>(m, o));
+}
+
+// A one-instance engine keeps one workspace, whatever its threads: a 10^5-link rope's
+// inverse and forward dynamics on 64 OpenMP threads with max_batch 1 (a workspace per
+// thread, SIMD ones included, would be 64 x ~0.4 GB: the accuracy report's 10^6-link
+// rows were killed for it on a 16-core machine), with the result of the reference.
+TEST(SimdBatch, OneInstanceEnginesKeepOneWorkspace) {
+  if (!backend_unusable(BackendKind::OpenMP).empty()) GTEST_SKIP() << backend_unusable(BackendKind::OpenMP);
+  const Model m = make_generated("rope:100000");
+  const Index nv = m.nv();
+  std::mt19937 g(6);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  std::vector<double> q(nv), qd(nv), qdd(nv), tau(nv), ref(nv), back(nv);
+  for (auto* v : {&q, &qd, &qdd})
+    for (double& x : *v) x = u(g);
+  BackendOptions o;
+  o.backend = BackendKind::OpenMP;
+  o.threads = 64;
+  o.max_batch = 1;
+  o.simd = CpuSimd::On;
+  o.strategy = IdStrategy::Recursion;
+  o.fd_method = FdMethod::Aba;
+  o.fd_check = FdCheckMode::Off;
+  using V = BatchView<const double>;
+  const auto id = make_inverse_dynamics<double>(m, o);
+  EXPECT_EQ(id->strategy(), "recursion");  // no SIMD group can be filled by one instance
+  id->compute({V::soa(q.data(), nv, 1), V::soa(qd.data(), nv, 1), V::soa(qdd.data(), nv, 1)},
+              BatchView<double>::soa(tau.data(), nv, 1));
+  Data data(m, false);
+  rnea(m, data, q.data(), qd.data(), qdd.data(), ref.data());
+  EXPECT_LT(test::max_rel_err(tau, ref), 1e-12);
+  // forward dynamics of those torques, against the reference ABA (not against qdd: M of
+  // a 10^5-link chain is too ill-conditioned for the round trip)
+  const BatchStatus s = make_forward_dynamics<double>(m, o)->compute(
+      {V::soa(q.data(), nv, 1), V::soa(qd.data(), nv, 1), V::soa(tau.data(), nv, 1)},
+      BatchView<double>::soa(back.data(), nv, 1));
+  EXPECT_TRUE(s.ok());
+  ASSERT_TRUE(aba(m, data, q.data(), qd.data(), tau.data(), ref.data()).ok());
+  EXPECT_LT(test::max_rel_err(back, ref), 1e-12);
 }
