@@ -103,8 +103,12 @@ void check_solve(double tol) {
       const double sq = std::max(1.0, qref.cwiseAbs().maxCoeff());
       const double sl = m > 0 ? std::max(1.0, lref.cwiseAbs().maxCoeff()) : 1.0;
       EXPECT_LE((xq - qref).cwiseAbs().maxCoeff(), tol * sq) << "nv " << nv << " m " << m;
-      if (m > 0) EXPECT_LE((xl - lref).cwiseAbs().maxCoeff(), tol * sl) << "nv " << nv << " m " << m;
-      if (m >= 3) EXPECT_LE(st.rank, m - 2);
+      if (m > 0) {
+        EXPECT_LE((xl - lref).cwiseAbs().maxCoeff(), tol * sl) << "nv " << nv << " m " << m;
+      }
+      if (m >= 3) {
+        EXPECT_LE(st.rank, m - 2);
+      }
     }
   }
 }

@@ -86,7 +86,9 @@ TEST(Loops, JacobianAndBiasAgainstDifferences) {
       double jqd = 0, dj = 0;
       for (Index j = 0; j < n; ++j) jqd += J[r * n + j] * qd[j], dj += (Jp[r * n + j] - Jm[r * n + j]) * qd[j];
       const bool weld_angular = L.spec == "fivebar+weld" && r < 3;  // phi's small-angle form: first order only
-      if (!weld_angular) EXPECT_NEAR(jqd, (pp[r] - pm[r]) / (2 * e), 1e-7) << "row " << r;
+      if (!weld_angular) {
+        EXPECT_NEAR(jqd, (pp[r] - pm[r]) / (2 * e), 1e-7) << "row " << r;
+      }
       EXPECT_NEAR(gamma[r], dj / (2 * e), 1e-6) << "row " << r;  // gamma = Jdot qd
     }
   }

@@ -104,7 +104,9 @@ Index expect_flags_right(const ModelTpl<S>& m, const Truth& ref, const BackendOp
     false_pos += flag && err < thr / 4;
     missed += !flag && err > 4 * thr;
   }
-  if (!st.ok()) EXPECT_EQ(st.failure, Failure::ResidualTooLarge) << what;
+  if (!st.ok()) {
+    EXPECT_EQ(st.failure, Failure::ResidualTooLarge) << what;
+  }
   EXPECT_EQ(st.failed, flagged) << what;
   EXPECT_EQ(false_pos, 0) << what << ": flagged with errors under the threshold";
   EXPECT_EQ(missed, 0) << what << ": errors above the threshold not flagged";
