@@ -44,8 +44,8 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     const int workers = instance_threads(threads_, max_batch_);
     for (int t = 0; t < workers; ++t) data_.emplace_back(model_, method_ == FdMethod::Jsi);
     rows_ = RowScratch<S>(workers, 4, static_cast<std::size_t>(model.nq()));
-    // the SIMD groups when nothing is checked per instance (the check runs instance by instance)
-    if (method_ == FdMethod::Aba && !check_->on()) simd_ = make_simd_batches(model_, o.simd, threads_, max_batch_);
+    // aba in SIMD groups (the check, when on, then runs on each result of a group)
+    if (method_ == FdMethod::Aba) simd_ = make_simd_batches(model_, o.simd, threads_, max_batch_);
   }
 
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
@@ -62,6 +62,16 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
     Index fell_back = 0, retried = 0;
     for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
       Index fell = 0, retry = 0;
+      // the check of instance b's computed qdd (out: its nv entries, contiguous), which
+      // may compute it again (the fallbacks); the result written to qdd, flagged or not
+      const auto settle = [&](Index b, const S* q, const S* qd, const S* tau, const Force<S>* fext, S* out,
+                              bool by_aba) {
+        const auto o = check_->settle(t, q, qd, tau, fext, out, by_aba);
+        failed_[static_cast<std::size_t>(b)] = o.failed_dof;
+        estimate_[static_cast<std::size_t>(b)] = o.estimate;
+        retry += o.retried;
+        scatter(out, qdd, b, nv);
+      };
       const auto one = [&](Index b) {
         const S* q = gather(in.q, b, nq, rows_.row(t, 0));
         const S* qd = gather(in.qd, b, nv, rows_.row(t, 1));
@@ -79,23 +89,26 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(st.failed_dof);
         if (check_->on()) {
           estimate_[static_cast<std::size_t>(b)] = -1;
-          if (st.ok()) {
-            const auto o = check_->settle(t, q, qd, tau, fext, out, by_aba);
-            failed_[static_cast<std::size_t>(b)] = o.failed_dof;
-            estimate_[static_cast<std::size_t>(b)] = o.estimate;
-            retry += o.retried;
-            scatter(out, qdd, b, nv);  // also a result the check flagged
-            return;
-          }
+          if (st.ok()) return settle(b, q, qd, tau, fext, out, by_aba);
         }
         if (st.ok()) scatter(out, qdd, b, nv);
       };
-      // a group with a failed pivot in some lane is computed again by `one`, instance by instance
+      // a group with a failed pivot in some lane is computed again by `one`, instance by instance;
+      // with the check on, each result of a group is then checked (and settled) as `one`'s are
       for_simd_groups(
           simd_.empty() ? nullptr : &simd_[t], begin, end,
           [&](Index b) {
             if (!simd_[t].aba(in.q, in.qd, in.tau, in.fext, qdd, b)) return false;
             std::fill(failed_.begin() + b, failed_.begin() + b + SimdBatch<S>::W, -1);
+            if (check_->on())
+              for (Index k = b; k < b + SimdBatch<S>::W; ++k) {
+                S* out = output_row(qdd, k, rows_.row(t, 3));
+                if (qdd.dof_stride != 1)
+                  for (Index i = 0; i < nv; ++i) out[i] = qdd.at(i, k);
+                settle(k, gather(in.q, k, nq, rows_.row(t, 0)), gather(in.qd, k, nv, rows_.row(t, 1)),
+                       gather(in.tau, k, nv, rows_.row(t, 2)),
+                       in.fext ? in.fext + static_cast<std::size_t>(k) * nb : nullptr, out, /*by_aba=*/true);
+              }
             return true;
           },
           one);
