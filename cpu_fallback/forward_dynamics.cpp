@@ -101,14 +101,11 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
             if (!simd_[t].aba(in.q, in.qd, in.tau, in.fext, qdd, b)) return false;
             std::fill(failed_.begin() + b, failed_.begin() + b + SimdBatch<S>::W, -1);
             if (check_->on())
-              for (Index k = b; k < b + SimdBatch<S>::W; ++k) {
-                S* out = output_row(qdd, k, rows_.row(t, 3));
-                if (qdd.dof_stride != 1)
-                  for (Index i = 0; i < nv; ++i) out[i] = qdd.at(i, k);
+              for (Index k = b; k < b + SimdBatch<S>::W; ++k)
                 settle(k, gather(in.q, k, nq, rows_.row(t, 0)), gather(in.qd, k, nv, rows_.row(t, 1)),
                        gather(in.tau, k, nv, rows_.row(t, 2)),
-                       in.fext ? in.fext + static_cast<std::size_t>(k) * nb : nullptr, out, /*by_aba=*/true);
-              }
+                       in.fext ? in.fext + static_cast<std::size_t>(k) * nb : nullptr,
+                       result_row(qdd, k, nv, rows_.row(t, 3)), /*by_aba=*/true);
             return true;
           },
           one);
@@ -147,7 +144,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
   std::vector<int> failed_;                          // (max_batch) failed DoF per instance, -1: none
   std::vector<DataTpl<S>> data_;                     // (instance_threads) workspaces (jsi: with the nv x nv one)
   RowScratch<S> rows_;                               // per thread: q, qd, tau, qdd rows of one instance
-  std::vector<SimdBatch<S>> simd_;                   // (threads, or none) aba's SIMD workspaces
+  std::vector<SimdBatch<S>> simd_;                   // (instance_threads, or none) aba's SIMD workspaces
   std::unique_ptr<ChainForwardDynamics<S>> chain_;  // parallel
   std::unique_ptr<FdBatchCheck<S>> check_;           // the run-time check (on() or not)
   std::vector<double> estimate_;                     // (max_batch) the check's estimates, -1: unchecked

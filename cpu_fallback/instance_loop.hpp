@@ -88,6 +88,15 @@ template <class S>
 S* output_row(const BatchView<S>& v, Index b, S* row) {
   return v.dof_stride == 1 ? v.data + b * v.batch_stride : row;
 }
+// Instance b's n entries of v, already written, as a contiguous row to read and
+// rewrite: v's memory when contiguous, else copied into row (scatter() writes it back).
+template <class S>
+S* result_row(const BatchView<S>& v, Index b, Index n, S* row) {
+  S* r = output_row(v, b, row);
+  if (v.dof_stride != 1)
+    for (Index i = 0; i < n; ++i) r[i] = v.at(i, b);
+  return r;
+}
 template <class S>
 void scatter(const S* row, const BatchView<S>& v, Index b, Index n) {
   if (v.dof_stride == 1) return;

@@ -15,12 +15,14 @@ template <class S>
 class CpuMassMatrix final : public MassMatrix<S> {
  public:
   CpuMassMatrix(const ModelTpl<S>& model, const BackendOptions& o)
-      : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch) {
+      : model_(model),
+        kind_(o.backend),
+        threads_(instance_threads(engine_threads(o), o.max_batch)),
+        max_batch_(o.max_batch) {
     const std::size_t nv = static_cast<std::size_t>(model.nv());
-    const int workers = instance_threads(threads_, max_batch_);
-    for (int t = 0; t < workers; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
-    q_rows_ = RowScratch<S>(workers, 1, static_cast<std::size_t>(model.nq()));
-    M_rows_ = RowScratch<S>(workers, 1, nv * nv);
+    for (int t = 0; t < threads_; ++t) data_.emplace_back(model_, /*mass_matrix=*/false);
+    q_rows_ = RowScratch<S>(threads_, 1, static_cast<std::size_t>(model.nq()));
+    M_rows_ = RowScratch<S>(threads_, 1, nv * nv);
     simd_ = make_simd_batches(model_, o.simd, threads_, max_batch_, /*mass_matrix=*/true);
   }
 
@@ -53,7 +55,7 @@ class CpuMassMatrix final : public MassMatrix<S> {
   BackendKind kind_;
   int threads_;
   Index max_batch_;
-  std::vector<DataTpl<S>> data_;  // (instance_threads) workspaces
+  std::vector<DataTpl<S>> data_;  // (threads) workspaces
   std::vector<SimdBatch<S>> simd_;  // (threads, or none) SIMD workspaces
   RowScratch<S> q_rows_, M_rows_; // per thread: one instance's q (nv) and M (nv x nv)
 };
