@@ -11,6 +11,8 @@
 #include <cstdio>
 #include <fstream>
 #include <string>
+
+#include <unistd.h>
 #include <vector>
 
 #include "scandyn/algorithm/configuration.hpp"
@@ -51,7 +53,7 @@ State state_of(Simulator<S>& sim, Index b = 0) {
 // A URDF of one free link (the floating base alone): mass m, principal inertia
 // (ixx, iyy, izz) about its origin, the centre of mass there. Written once per name.
 std::string one_body_urdf(const std::string& name, double m, double ixx, double iyy, double izz) {
-  const std::string path = ::testing::TempDir() + "/scandyn_" + name + ".urdf";
+  const std::string path = ::testing::TempDir() + "/scandyn_" + name + "_" + std::to_string(::getpid()) + ".urdf";  // per process: ctest -j runs tests that write the same name at once
   std::ofstream f(path);
   f << "<robot name=\"" << name << "\"><link name=\"" << name << "\"><inertial><origin xyz=\"0 0 0\"/>"
     << "<mass value=\"" << m << "\"/><inertia ixx=\"" << ixx << "\" ixy=\"0\" ixz=\"0\" iyy=\"" << iyy
