@@ -25,6 +25,10 @@ template <class S>
 std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+// second_derivatives.cpp
+template <class S>
+std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>& model,
+                                                                   const BackendOptions& options);
 template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                                const KinematicsOptions& kinematics);

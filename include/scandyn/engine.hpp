@@ -375,6 +375,39 @@ void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index m
 template <class S>
 void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index max_batch);
 
+// ---- second-order derivatives of inverse dynamics (scandyn/algorithm/second_derivatives.hpp)
+//
+// Output layout: nv x nv x nv tensors per instance, each a BatchView of nv^3
+// entries, entry e = (i * nv + j) * nv + k holding d^2 tau_i / dx_j dy_k:
+// BatchView::aos(p, nv * nv * nv, B) is the serial rnea_second_derivatives' dense
+// tensor per instance; BatchView::soa(p, nv * nv * nv, B) puts the instance
+// innermost (CUDA's fast layout); any strides work. Every entry is written.
+
+template <class S>
+struct IdSecondDerivativesOut {
+  BatchView<S> d2tau_dq2;    // (nv^3 x B) d^2 tau_i / dq_j dq_k (symmetric in j, k)
+  BatchView<S> d2tau_dqd2;   // (nv^3 x B) d^2 tau_i / dqd_j dqd_k (symmetric in j, k)
+  BatchView<S> d2tau_dqdqd;  // (nv^3 x B) d^2 tau_i / dq_j dqd_k
+  BatchView<S> dM_dq;        // optional (nv^3 x B) d M_ij / dq_k; data null: not written
+};
+
+template <class S>
+class IdSecondDerivatives : public Engine {
+ public:
+  // The second derivatives of tau = ID(q, qd, qdd, fext) (gravity included) for every
+  // instance: 2 nv dual passes of the first-order recursion per instance.
+  virtual void compute(const IdBatchIn<S>& in, const IdSecondDerivativesOut<S>& out) = 0;
+};
+
+// Serial and OpenMP: any model of 1-DoF joints; CUDA: a thread per instance, models of
+// up to cuda::kMaxThreadDofs DoF (BackendError beyond). Multi-DoF joints (floating
+// base, spherical) are refused; options.strategy must be Auto (one algorithm).
+template <class S>
+std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>& model,
+                                                                   const BackendOptions& options);
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdSecondDerivativesOut<S>& out, Index max_batch);
+
 // ---- closed kinematic loops (scandyn/algorithm/loops.hpp, loop_solver.hpp) ---------
 
 struct LoopSet;

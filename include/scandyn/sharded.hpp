@@ -320,6 +320,18 @@ class ShardedIdDerivatives final : public detail::Shards<IdDerivatives<S>> {
 };
 
 template <class S>
+class ShardedIdSecondDerivatives final : public detail::Shards<IdSecondDerivatives<S>> {
+ public:
+  using detail::Shards<IdSecondDerivatives<S>>::Shards;
+  void compute(const IdBatchIn<S>& in, const IdSecondDerivativesOut<S>& out) override {
+    this->each(in.q.batch, [&](IdSecondDerivatives<S>& e, const ShardRange& r) {
+      e.compute(slice(in, r, this->nbodies_), {slice(out.d2tau_dq2, r), slice(out.d2tau_dqd2, r),
+                                               slice(out.d2tau_dqdqd, r), slice(out.dM_dq, r)});
+    });
+  }
+};
+
+template <class S>
 class ShardedFdDerivatives final : public detail::Shards<FdDerivatives<S>> {
  public:
   using detail::Shards<FdDerivatives<S>>::Shards;

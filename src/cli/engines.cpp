@@ -103,13 +103,14 @@ std::string describe_fallbacks(std::size_t fell_back, std::size_t total, const c
 
 namespace {
 
-// The three nv x nv blocks of did / dfd in an instance-major output row of 3 nv^2
-// values: block k of instance b at out[b * 3 nv^2 + k nv^2], row-major.
+// The three blocks of did / dfd (nv x nv each) or of d2id (nv^3 each) in an
+// instance-major output row of 3 n values (n = nv^2, nv^3): block k of instance b at
+// out[b * 3 n + k n], row-major.
 template <class S>
-std::array<BatchView<S>, 3> derivative_blocks(S* out, Index nv, Index B) {
-  const std::ptrdiff_t nn = static_cast<std::ptrdiff_t>(nv) * nv;
+std::array<BatchView<S>, 3> derivative_blocks(S* out, Algo algo, Index nv, Index B) {
+  const std::ptrdiff_t n = static_cast<std::ptrdiff_t>(output_width(algo, nv) / 3);
   std::array<BatchView<S>, 3> v;
-  for (int k = 0; k < 3; ++k) v[k] = BatchView<S>{out + k * nn, B, 1, 3 * nn};
+  for (int k = 0; k < 3; ++k) v[k] = BatchView<S>{out + k * n, B, 1, 3 * n};
   return v;
 }
 
@@ -126,6 +127,7 @@ AlgoEngine<S>::AlgoEngine(Algo algo, const ModelTpl<S>& model, const BackendOpti
       case Algo::Fd: fd_ = make_forward_dynamics(model, o); break;
       case Algo::DId: did_ = make_id_derivatives(model, o); break;
       case Algo::DFd: dfd_ = make_fd_derivatives(model, o); break;
+      case Algo::D2Id: d2id_ = make_id_second_derivatives(model, o); break;
     }
   } catch (const BackendError& e) {
     // no device, a model beyond a kernel's limit, a method the model cannot take, no memory
@@ -144,6 +146,7 @@ const Engine& AlgoEngine<S>::engine() const {
   if (mass_) return *mass_;
   if (did_) return *did_;
   if (dfd_) return *dfd_;
+  if (d2id_) return *d2id_;
   return *fd_;
 }
 
@@ -167,15 +170,21 @@ BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
         return fd_->compute(FdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                             BatchView<S>::aos(out, nv, B));
       case Algo::DId: {
-        const auto block = derivative_blocks(out, nv, B);
+        const auto block = derivative_blocks(out, algo_, nv, B);
         did_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
                       IdDerivativesOut<S>{block[0], block[1], block[2]});
         return {};
       }
       case Algo::DFd: {
-        const auto block = derivative_blocks(out, nv, B);
+        const auto block = derivative_blocks(out, algo_, nv, B);
         return dfd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                              FdDerivativesOut<S>{block[0], block[1], block[2], {}});
+      }
+      case Algo::D2Id: {
+        const auto block = derivative_blocks(out, algo_, nv, B);
+        d2id_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+                       IdSecondDerivativesOut<S>{block[0], block[1], block[2], {}});
+        return {};
       }
     }
   } catch (const BackendError& e) {

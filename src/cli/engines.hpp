@@ -28,7 +28,7 @@ using io::parse_algo;
 
 // A batch of count instances, instance-major: entry i of instance b is at [b * nv + i].
 // Inputs an algorithm does not read may be null: id reads q, qd, qdd; fd reads
-// q, qd, tau; mass reads q; bias reads q, qd; did as id, dfd as fd.
+// q, qd, tau; mass reads q; bias reads q, qd; did and d2id as id, dfd as fd.
 template <class S>
 struct BatchIn {
   std::size_t count = 0;
@@ -95,6 +95,7 @@ class AlgoEngine {
   std::unique_ptr<ForwardDynamics<S>> fd_;
   std::unique_ptr<IdDerivatives<S>> did_;
   std::unique_ptr<FdDerivatives<S>> dfd_;
+  std::unique_ptr<IdSecondDerivatives<S>> d2id_;
   const Engine& engine() const;
 };
 

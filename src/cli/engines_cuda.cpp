@@ -17,6 +17,7 @@
 #include "cli.hpp"
 #include "scandyn/cuda/constrained_dynamics.hpp"
 #include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/cuda/second_derivatives.hpp"
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/device_batch.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
@@ -189,13 +190,22 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
         },
         pivot_failure(e.method()), nq);
   }
-  if (algo == Algo::DId || algo == Algo::DFd) {
-    // the output's three nv x nv blocks, instance innermost: block k from entry k nv^2
-    const auto block = [nv](const D& d, int k) {
+  if (algo == Algo::DId || algo == Algo::DFd || algo == Algo::D2Id) {
+    // the output's three blocks (nv x nv, or nv^3 for d2id), instance innermost: block k
+    // from entry k width / 3
+    const auto block = [n = static_cast<std::ptrdiff_t>(width / 3)](const D& d, int k) {
       const BatchView<S> o = d.output();
-      return BatchView<S>{o.data + static_cast<std::ptrdiff_t>(k) * nv * nv * o.dof_stride, o.batch, o.dof_stride,
-                          o.batch_stride};
+      return BatchView<S>{o.data + k * n * o.dof_stride, o.batch, o.dof_stride, o.batch_stride};
     };
+    if (algo == Algo::D2Id) {
+      auto& e = dynamic_cast<cuda::CudaIdSecondDerivatives<S>&>(engine);
+      return std::make_unique<CudaResidentBatch<S>>(
+          e.strategy(), "the second-order inverse-dynamics derivatives", nv,
+          std::vector<const S*>{in.q, in.qd, in.qdd}, in.count, width, std::size_t(0), [&e, block](const D& d) {
+            return e.compute_async({d.input(0), d.input(1), d.input(2)},
+                                   {block(d, 0), block(d, 1), block(d, 2), {}}, d.stream());
+          });
+    }
     if (algo == Algo::DFd) {
       auto& e = dynamic_cast<cuda::CudaFdDerivatives<S>&>(engine);
       return std::make_unique<CudaResidentBatch<S>>(

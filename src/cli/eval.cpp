@@ -19,9 +19,9 @@
 namespace scandyn::cli {
 namespace {
 
-constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd};
+constexpr Algo kAllAlgos[] = {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd, Algo::D2Id};
 
-// --algo id,fd,...: the requested set in output order (id, fd, mass, bias, did, dfd);
+// --algo id,fd,...: the requested set in output order (id, fd, mass, bias, did, dfd, d2id);
 // fk and jac (kinematics, columns after the dynamics') set the flags.
 std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) {
   bool wanted[std::size(kAllAlgos)] = {};
@@ -35,7 +35,7 @@ std::vector<Algo> parse_algo_list(const std::string& list, bool& fk, bool& jac) 
       (item == "fk" ? fk : jac) = true;
     } else if (!parse_algo(item, a)) {
       throw UsageError("unknown --algo value '" + item +
-                       "' (expected a comma-separated list of id, fd, mass, bias, did, dfd, fk, jac)");
+                       "' (expected a comma-separated list of id, fd, mass, bias, did, dfd, d2id, fk, jac)");
     } else {
       wanted[static_cast<int>(a)] = true;
     }

@@ -61,9 +61,12 @@ const char* const kEvalUsage =
     "  --out OUT.csv     tau_id_<i>, qdd_fd_<i>, M_<i>_<j>, h_<i> of the selected algorithms,\n"
     "                    one row per input row, 17 significant digits\n"
     "  --algo LIST       comma-separated subset of id (needs q, qd, qdd), fd (q, qd, tau),\n"
-    "                    mass (q), bias (q, qd), fk (q: frame poses, columns\n"
-    "                    fk_<frame>_px..pz, _qx.._qw) and jac (q: frame Jacobians, 6 x nv,\n"
-    "                    rows [angular; linear], columns J_<frame>_<row>_<dof>); default:\n"
+    "                    mass (q), bias (q, qd), did / dfd (first-order derivatives, as\n"
+    "                    id / fd), d2id (second-order derivatives of id: columns\n"
+    "                    d2tau_dq2_<i>_<j>_<k>, d2tau_dqd2_.., d2tau_dqdqd_..), fk\n"
+    "                    (q: frame poses, columns fk_<frame>_px..pz, _qx.._qw) and jac\n"
+    "                    (q: frame Jacobians, 6 x nv, rows [angular; linear], columns\n"
+    "                    J_<frame>_<row>_<dof>); default:\n"
     "                    each of id, fd, bias whose columns are all present\n"
     "  --frames NAMES    fk and jac: comma-separated frame (URDF link) names, fixed links\n"
     "                    included; default: every frame, as `scandyn info` lists them\n"
@@ -150,7 +153,7 @@ const char* const kRolloutUsage =
     "(and, other than cuda, drops the scene's devices).\n";
 
 const char* const kBenchUsage =
-    "usage: scandyn bench --model M --algo id|fd|mass|bias|did|dfd|fk|jac|hybrid --instances B [--fd METHOD]\n"
+    "usage: scandyn bench --model M --algo id|fd|mass|bias|did|dfd|d2id|fk|jac|hybrid --instances B [--fd METHOD]\n"
     "                     [--fallback aba|double] [--fd-check on|off|auto] [--fd-check-tol X]\n"
     "                     [--frames NAMES] [--reference world|local]\n"
     "                     [--backend serial|openmp|cuda] [--strategy S] [--threads N]\n"

@@ -18,6 +18,7 @@
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
 #include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/cuda/second_derivatives.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/constrained_dynamics.hpp"
 #endif
@@ -319,8 +320,41 @@ std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, 
   return cpu::make_fd_derivatives(model, o);
 }
 
+template <class S>
+void check_batch(const IdBatchIn<S>& in, const IdSecondDerivativesOut<S>& out, Index max_batch) {
+  check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"d2tau_dq2", info(out.d2tau_dq2)},
+               {"d2tau_dqd2", info(out.d2tau_dqd2)}, {"d2tau_dqdqd", info(out.d2tau_dqdqd)}},
+              max_batch);
+  if (out.dM_dq.data && out.dM_dq.batch != in.q.batch)
+    throw BackendError("batch sizes disagree: q " + std::to_string(in.q.batch) + ", dM_dq " +
+                       std::to_string(out.dM_dq.batch));
+}
+
+template <class S>
+std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
+  require_built(o);
+  require_one_dof_joints(model, "the second-order inverse-dynamics derivatives");
+  if (o.strategy != IdStrategy::Auto)
+    throw BackendError(std::string("strategy '") + to_string(o.strategy) +
+                       "' is not available for the second-order inverse-dynamics derivatives (use auto)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) {
+    if (sharded(o))
+      return std::make_unique<ShardedIdSecondDerivatives<S>>(
+          per_device<IdSecondDerivatives<S>>(
+              o, [&](const BackendOptions& one) { return make_id_second_derivatives(model, one); }),
+          o.devices, true, model.nbodies());
+    return cuda::make_cuda_id_second_derivatives(model, o);
+  }
+#endif
+  return cpu::make_id_second_derivatives(model, o);
+}
+
 #define SCANDYN_INSTANTIATE_DERIVATIVES(S)                                                                     \
   template void check_batch(const IdBatchIn<S>&, const IdDerivativesOut<S>&, Index);                          \
+  template void check_batch(const IdBatchIn<S>&, const IdSecondDerivativesOut<S>&, Index);                    \
+  template std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>&,              \
+                                                                              const BackendOptions&);          \
   template void check_batch(const FdBatchIn<S>&, const FdDerivativesOut<S>&, Index);                          \
   template std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>&, const BackendOptions&);   \
   template std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);

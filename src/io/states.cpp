@@ -17,12 +17,13 @@ const char* algo_name(Algo algo) {
     case Algo::Bias: return "bias";
     case Algo::DId: return "did";
     case Algo::DFd: return "dfd";
+    case Algo::D2Id: return "d2id";
   }
   return "?";
 }
 
 bool parse_algo(const std::string& name, Algo& algo) {
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd}) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd, Algo::D2Id}) {
     if (name == algo_name(a)) {
       algo = a;
       return true;
@@ -33,7 +34,7 @@ bool parse_algo(const std::string& name, Algo& algo) {
 
 std::string algo_list(AlgoSet algos, const char* sep) {
   std::string out;
-  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd}) {
+  for (Algo a : {Algo::Id, Algo::Fd, Algo::Mass, Algo::Bias, Algo::DId, Algo::DFd, Algo::D2Id}) {
     if (!(algos & algo_bit(a))) continue;
     if (!out.empty()) out += sep;
     out += algo_name(a);
@@ -43,6 +44,7 @@ std::string algo_list(AlgoSet algos, const char* sep) {
 
 std::size_t output_width(Algo algo, Index nv) {
   const std::size_t n = static_cast<std::size_t>(nv);
+  if (algo == Algo::D2Id) return 3 * n * n * n;
   if (algo == Algo::DId || algo == Algo::DFd) return 3 * n * n;
   return algo == Algo::Mass ? n * n : n;
 }
@@ -56,6 +58,14 @@ std::vector<std::string> output_columns(Algo algo, Index nv) {
   };
   if (algo == Algo::Mass) {
     matrix("M_");
+    return names;
+  }
+  if (algo == Algo::D2Id) {
+    for (const char* p : {"d2tau_dq2_", "d2tau_dqd2_", "d2tau_dqdqd_"})
+      for (Index i = 0; i < nv; ++i)
+        for (Index j = 0; j < nv; ++j)
+          for (Index k = 0; k < nv; ++k)
+            names.push_back(p + std::to_string(i) + "_" + std::to_string(j) + "_" + std::to_string(k));
     return names;
   }
   if (algo == Algo::DId || algo == Algo::DFd) {
@@ -86,7 +96,8 @@ std::vector<Family> algo_inputs(Algo algo) {
     case Algo::Fd: return {Family::Q, Family::Qd, Family::Tau};
     case Algo::Mass: return {Family::Q};
     case Algo::Bias: return {Family::Q, Family::Qd};
-    case Algo::DId: return {Family::Q, Family::Qd, Family::Qdd};
+    case Algo::DId:
+    case Algo::D2Id: return {Family::Q, Family::Qd, Family::Qdd};
     case Algo::DFd: return {Family::Q, Family::Qd, Family::Tau};
   }
   return {};

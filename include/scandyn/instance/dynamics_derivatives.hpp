@@ -146,11 +146,14 @@ SCANDYN_HD void derivative_forward_step(const Body<S>& b, S q, S qd, S qdd, cons
 // else null) = ID(q, qd, qdd, fext). body: the nv bodies in DoF order; a0: the base
 // acceleration (-g); fext: nv body wrenches in body frames, or null; V: anything
 // indexable by DoF (a pointer, a DofColumn); T: likewise, or decltype(nullptr);
-// work: nv DerivativeBody entries of scratch.
-template <class S, class V, class T>
+// work: nv DerivativeBody entries of scratch; Mat: MatrixRef<S>, or any type whose
+// (i, j) can be assigned an S (the blocks are only written: the second derivatives'
+// dual passes keep just the derivative parts, DualPartRef in
+// scandyn/instance/second_derivatives_instance.hpp).
+template <class S, class V, class T, class Mat>
 SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
-                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dtau_dq,
-                                          MatrixRef<S> dtau_dqd, MatrixRef<S> M, T tau) {
+                                          const Force<S>* fext, DerivativeBody<S>* work, Mat dtau_dq, Mat dtau_dqd,
+                                          Mat M, T tau) {
   // forward: world-frame kinematics, body forces, inertias and B
   for (Index i = 0; i < nv; ++i) {
     const Index p = body[i].parent;

@@ -12,24 +12,26 @@
 
 namespace scandyn::io {
 
-// DId, DFd: the first-order derivatives of inverse and forward dynamics.
-enum class Algo { Id, Fd, Mass, Bias, DId, DFd };
-const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias", "did", "dfd"
+// DId, DFd: the first-order derivatives of inverse and forward dynamics; D2Id: the
+// second-order derivatives of inverse dynamics.
+enum class Algo { Id, Fd, Mass, Bias, DId, DFd, D2Id };
+const char* algo_name(Algo algo);  // "id", "fd", "mass", "bias", "did", "dfd", "d2id"
 bool parse_algo(const std::string& name, Algo& algo);  // false if unknown
 
 // A set of algorithms: bit (1 << algo) for each member.
 using AlgoSet = unsigned;
 constexpr AlgoSet algo_bit(Algo algo) { return 1u << static_cast<unsigned>(algo); }
-// The members' names joined by sep, in the order id, fd, mass, bias.
+// The members' names joined by sep, in the order id, fd, mass, bias, did, dfd, d2id.
 std::string algo_list(AlgoSet algos, const char* sep);
 
 // Values per instance that algo writes: nv, nv * nv for Mass, 3 * nv * nv for DId
-// and DFd.
+// and DFd, 3 * nv^3 for D2Id.
 std::size_t output_width(Algo algo, Index nv);
 // Output column names: tau_id_<i>, qdd_fd_<i>, M_<i>_<j> (row-major) or h_<i>;
 // did: dtau_dq_<i>_<j>, dtau_dqd_<i>_<j>, dtau_dqdd_<i>_<j> (= M); dfd:
 // dqdd_dq_<i>_<j>, dqdd_dqd_<i>_<j>, dqdd_dtau_<i>_<j> (= M^-1); each block
-// row-major, (i, j) = d output_i / d input_j.
+// row-major, (i, j) = d output_i / d input_j; d2id: d2tau_dq2_<i>_<j>_<k>,
+// d2tau_dqd2_<i>_<j>_<k>, d2tau_dqdqd_<i>_<j>_<k> (d^2 tau_i / dx_j dy_k, k fastest).
 std::vector<std::string> output_columns(Algo algo, Index nv);
 
 // The four input families of a states file, by column-name prefix.
@@ -38,7 +40,7 @@ constexpr int kFamilies = 4;
 
 const char* family_prefix(Family f);  // "q_", "qd_", "qdd_", "tau_"
 // The families algo reads: id q, qd, qdd; fd q, qd, tau; mass q; bias q, qd; did as
-// id, dfd as fd.
+// id, dfd as fd, d2id as id.
 std::vector<Family> algo_inputs(Algo algo);
 
 // Where each state entry sits in a CSV row.
