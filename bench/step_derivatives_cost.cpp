@@ -10,16 +10,34 @@
 //               forward checkpoints and recomputation included
 //   rollout_jvp per step of the forward-mode product along one direction
 // Usage: step_derivatives_cost [min_seconds]   (CSV on stdout)
+//
+// step_derivatives_cost cuda [min_seconds] [B ...] (builds with CUDA): the CUDA
+// rollout adjoint (scandyn/cuda/rollout_derivatives.hpp) on device memory, iiwa
+// (gravity, damping 0.01, dt 1e-3) euler and rk4, T = 100 steps, float and double,
+// B instances (default 10^4 and 10^5). Columns: model, integrator, precision,
+// instances, steps, checkpoint_interval, rollout_ns (the rollout alone) and vjp_ns
+// (the whole adjoint: forward checkpoints, recomputation, reverse) in nanoseconds
+// per instance-step, vjp_over_rollout, store_bytes_per_instance (the checkpoint
+// store), gpu (the device's name). Each time: one call to warm up, then calls until
+// min_seconds (default 0.3), the mean.
+#include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <random>
 #include <string>
 #include <vector>
 
 #include "plain_bench_util.hpp"
+#include "scandyn/build_config.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+
+#include "scandyn/cuda/rollout_derivatives.hpp"
+#endif
 
 using namespace scandyn;
 
@@ -36,7 +54,112 @@ sim::Scene scene_of(const std::string& model, const std::string& integrator, dou
 
 }  // namespace
 
+#if SCANDYN_HAS_CUDA
+namespace {
+
+void cuda_check(cudaError_t e, const char* what) {
+  if (e != cudaSuccess) {
+    std::fprintf(stderr, "step_derivatives_cost cuda: %s: %s\n", what, cudaGetErrorString(e));
+    std::exit(1);
+  }
+}
+
+// Seconds per call of f (launches on `stream`): one call to warm up, then calls
+// until min_time, the mean.
+template <class F>
+double device_seconds(double min_time, cudaStream_t stream, F&& f) {
+  using Clock = std::chrono::steady_clock;
+  f();
+  cuda_check(cudaStreamSynchronize(stream), "the warm-up call");
+  int calls = 0;
+  const auto t0 = Clock::now();
+  double el = 0;
+  do {
+    f();
+    cuda_check(cudaStreamSynchronize(stream), "a timed call");
+    ++calls;
+    el = std::chrono::duration<double>(Clock::now() - t0).count();
+  } while (el < min_time);
+  return el / calls;
+}
+
+template <class S>
+void cuda_rollout_rows(const char* integrator, Index B, double min_time, const char* gpu) {
+  const Index T = 100;
+  const sim::Scene scene = scene_of("iiwa.urdf", integrator, 1e-3, 1);
+  const Index n = scene.nv();
+  sim::Simulator<S> one(scene, BackendKind::Serial);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  cuda::CudaRolloutDerivatives<S> engine(one.setup(), o);
+  // device arrays, (T, nv, B) with the instance innermost: tau, gq, gqd, gtau; the
+  // states q0, qd0, gq0, gqd0; the rollout's q, qd
+  const std::size_t state = static_cast<std::size_t>(n) * B, seq = state * T;
+  std::vector<S> host(state + seq);
+  std::mt19937_64 rng(1);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  for (S& x : host) x = S(u(rng));
+  S* d = nullptr;
+  cuda_check(cudaMalloc(reinterpret_cast<void**>(&d), (4 * state + 6 * seq) * sizeof(S)), "allocating the arrays");
+  S *q0 = d, *qd0 = q0 + state, *gq0 = qd0 + state, *gqd0 = gq0 + state, *tau = gqd0 + state, *gq = tau + seq,
+    *gqd = gq + seq, *gtau = gqd + seq, *q = gtau + seq, *qd = q + seq;
+  for (S* x : {q0, qd0}) cuda_check(cudaMemcpy(x, host.data(), state * sizeof(S), cudaMemcpyHostToDevice), "copying");
+  for (S* x : {tau, gq, gqd})
+    cuda_check(cudaMemcpy(x, host.data() + state, seq * sizeof(S), cudaMemcpyHostToDevice), "copying");
+  using CV = BatchView<const S>;
+  auto cseq = [&](S* x) { return sim::StepSequence<const S>{CV::soa(x, n, B), static_cast<std::ptrdiff_t>(state), T}; };
+  auto oseq = [&](S* x) {
+    return sim::StepSequence<S>{BatchView<S>::soa(x, n, B), static_cast<std::ptrdiff_t>(state), T};
+  };
+  const cudaStream_t stream = engine.stream();
+  const double rollout = device_seconds(min_time, stream, [&] {
+    cuda_check(engine.rollout_async(CV::soa(q0, n, B), CV::soa(qd0, n, B), cseq(tau), oseq(q), oseq(qd), nullptr,
+                                    stream),
+               "rollout_async");
+  });
+  const double vjp = device_seconds(min_time, stream, [&] {
+    cuda_check(engine.vjp_async(CV::soa(q0, n, B), CV::soa(qd0, n, B), cseq(tau), cseq(gq), cseq(gqd),
+                                BatchView<S>::soa(gq0, n, B), BatchView<S>::soa(gqd0, n, B), oseq(gtau), nullptr,
+                                stream),
+               "vjp_async");
+  });
+  cuda_check(cudaFree(d), "freeing the arrays");
+  const double per = 1e9 / (double(B) * T);
+  std::printf("iiwa.urdf,%s,%s,%d,%d,%d,%.3f,%.3f,%.2f,%zu,%s\n", integrator, sizeof(S) == 4 ? "float" : "double",
+              int(B), int(T), int(engine.checkpoint_interval(T)), rollout * per, vjp * per, vjp / rollout,
+              engine.store_bytes(T, B) / static_cast<std::size_t>(B), gpu);
+  std::fflush(stdout);
+}
+
+int cuda_main(int argc, char** argv) {
+  const double min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
+  std::vector<Index> batches;
+  for (int k = 3; k < argc; ++k) batches.push_back(static_cast<Index>(std::atol(argv[k])));
+  if (batches.empty()) batches = {10000, 100000};
+  cudaDeviceProp prop{};
+  cuda_check(cudaGetDeviceProperties(&prop, 0), "cudaGetDeviceProperties");
+  std::printf("model,integrator,precision,instances,steps,checkpoint_interval,rollout_ns_per_instance_step,"
+              "vjp_ns_per_instance_step,vjp_over_rollout,store_bytes_per_instance,gpu\n");
+  for (const char* integrator : {"euler", "rk4"})
+    for (Index B : batches) {
+      cuda_rollout_rows<float>(integrator, B, min_time, prop.name);
+      cuda_rollout_rows<double>(integrator, B, min_time, prop.name);
+    }
+  return 0;
+}
+
+}  // namespace
+#endif
+
 int main(int argc, char** argv) {
+  if (argc > 1 && std::strcmp(argv[1], "cuda") == 0) {
+#if SCANDYN_HAS_CUDA
+    return cuda_main(argc, argv);
+#else
+    std::fprintf(stderr, "step_derivatives_cost cuda: this build has no CUDA backend\n");
+    return 2;
+#endif
+  }
   const double min_time = argc > 1 ? std::atof(argv[1]) : 0.3;
   std::printf("model,integrator,nv,step_us,jacobian_us,central_us,jacobian_over_step,central_over_jacobian,"
               "rollout_vjp_us_per_step,rollout_jvp_us_per_step\n");

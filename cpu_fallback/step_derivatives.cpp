@@ -12,6 +12,7 @@
 
 #include "instance_loop.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/rollout_derivatives.hpp"
 #include "scandyn/cuda/step_derivatives.hpp"
 #include "scandyn/algorithm/derivatives.hpp"
 #include "scandyn/algorithm/directional_derivatives.hpp"
@@ -32,7 +33,8 @@ struct StepWork {
   DerivativeDataTpl<S> deriv;       // the ABA's and the dense derivatives' scratch
   AbaJvpData<S> directional;        // aba_jvp / aba_vjp's scratch
   std::vector<S> scratch;           // the step functions' scratch
-  std::vector<S> rows;              // (8 nv) q, qd, tau, dq, dqd, dtau, gq, gqd of one instance
+  std::vector<S> rows;              // (8 nv) one instance's rows: the Jacobian's q, qd, tau; the
+                                    // rollout instance functions' (step_derivatives.hpp)
   std::vector<S> store;             // rollout vjp: checkpoints and one segment of states
   S* row(int k) { return rows.data() + static_cast<std::size_t>(k) * rows.size() / 8; }
 };
@@ -121,14 +123,6 @@ template <class S>
 const Force<S>* instance_wrenches(const SimSetup<S>& setup, const Force<S>* fext, Index b) {
   if (!(setup.effects & kExternal)) return nullptr;
   return fext ? fext + static_cast<std::size_t>(b) * setup.model.nv() : setup.wrenches.data();
-}
-
-// The first of n entries that is not finite, or -1.
-template <class S>
-Index first_nonfinite(const S* a, Index n) {
-  for (Index i = 0; i < n; ++i)
-    if (!std::isfinite(a[i])) return i;
-  return -1;
 }
 
 // The status of a batch whose instance b failed at failed[b] >= 0 for reason what[b].
@@ -231,63 +225,53 @@ std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& set
 template <class S>
 struct RolloutDerivatives<S>::Impl {
   Impl(const SimSetup<S>& s, const BackendOptions& o, Index interval)
-      : setup(s), threads(cpu::engine_threads(o)), interval(interval), kernels(kernels_of(setup)) {
+      : setup(s), threads(o.backend == BackendKind::Cuda ? 0 : cpu::engine_threads(o)), interval(interval),
+        kernels(kernels_of(setup)) {
+    if (o.backend == BackendKind::Cuda) {
+#if SCANDYN_HAS_CUDA
+      cuda = std::make_unique<cuda::CudaRolloutDerivatives<S>>(setup, o, interval);
+#else
+      throw BackendError("backend 'cuda' is not available in this build");
+#endif
+    }
     for (int t = 0; t < threads; ++t) work.emplace_back(setup);
   }
   SimSetup<S> setup;
-  int threads;
+  int threads;     // CPU threads over instances (0 on cuda)
   Index interval;  // 0: sqrt(T)
   KernelSet<S> kernels;
   std::vector<StepWork<S>> work;  // (threads)
+#if SCANDYN_HAS_CUDA
+  std::unique_ptr<cuda::CudaRolloutDerivatives<S>> cuda;  // backend cuda: every call runs there
+#else
+  std::unique_ptr<RolloutDerivatives<S>> cuda;  // (never set: no cuda in this build)
+#endif
   std::vector<int> failed;        // (B)
   std::vector<Failure> what;      // (B)
 
-  // body(w, b, what) per instance returns -1 or the failed DoF (what: why, a pivot by
-  // default); the status of the failures
+  // body(w, b) per instance returns a failure code of the rollout instance functions
+  // (-1, a failed pivot's DoF, or -2 - i for a result not finite at DoF i); the
+  // status of the failures
   template <class F>
   BatchStatus instances(Index B, F&& body) {
     failed.assign(static_cast<std::size_t>(std::max<Index>(B, 1)), -1);
     what.assign(failed.size(), Failure::ArticulatedPivot);
     cpu::for_instance_blocks(threads, B, [&](int t, Index begin, Index end) {
-      for (Index b = begin; b < end; ++b)
-        failed[static_cast<std::size_t>(b)] =
-            static_cast<int>(body(work[static_cast<std::size_t>(t)], b, what[static_cast<std::size_t>(b)]));
+      for (Index b = begin; b < end; ++b) {
+        const Index code = body(work[static_cast<std::size_t>(t)], b);
+        if (rollout_failure_nonfinite(code)) what[static_cast<std::size_t>(b)] = Failure::NonFinite;
+        failed[static_cast<std::size_t>(b)] = static_cast<int>(rollout_failure_dof(code));
+      }
     });
     return status_of(failed, what, B);
   }
 };
 
-namespace {
-template <class S>
-void check_sequence(const char* name, const StepSequence<S>& s, Index T, Index B) {
-  if (!s.first.data) return;
-  if (s.steps != T || s.first.batch != B)
-    throw BackendError(std::string("the rollout derivatives: ") + name + " has " + std::to_string(s.steps) +
-                       " steps of " + std::to_string(s.first.batch) + " instances, expected " + std::to_string(T) +
-                       " of " + std::to_string(B));
-}
-template <class S>
-void check_state(const char* name, const BatchView<S>& v, Index B) {
-  if (!v.data || v.batch != B)
-    throw BackendError(std::string("the rollout derivatives: ") + name + " must hold " + std::to_string(B) +
-                       " instances");
-}
-template <class S, class T>
-void load(const BatchView<T>& v, Index b, Index n, S* row) {
-  for (Index i = 0; i < n; ++i) row[i] = v.data ? S(v.at(i, b)) : S(0);
-}
-template <class S>
-void store(const S* row, const BatchView<S>& v, Index b, Index n) {
-  for (Index i = 0; i < n; ++i) v.at(i, b) = row[i];
-}
-}  // namespace
 
 template <class S>
 RolloutDerivatives<S>::RolloutDerivatives(const SimSetup<S>& setup, const BackendOptions& options,
                                           Index checkpoint_interval) {
   require_differentiable_step(setup, "the rollout derivatives");
-  if (options.backend == BackendKind::Cuda)
-    throw BackendError("backend 'cuda': the rollout derivatives run on the serial and openmp backends");
   if (checkpoint_interval < 0)
     throw BackendError("the rollout derivatives: checkpoint interval " + std::to_string(checkpoint_interval) +
                        " is negative");
@@ -304,8 +288,7 @@ const SimSetup<S>& RolloutDerivatives<S>::setup() const {
 
 template <class S>
 Index RolloutDerivatives<S>::checkpoint_interval(Index T) const {
-  if (impl_->interval > 0) return std::min(impl_->interval, std::max<Index>(T, 1));
-  return std::max<Index>(1, static_cast<Index>(std::ceil(std::sqrt(static_cast<double>(std::max<Index>(T, 1))))));
+  return rollout_checkpoint_interval(impl_->interval, T);
 }
 
 template <class S>
@@ -313,26 +296,17 @@ BatchStatus RolloutDerivatives<S>::rollout(const BatchView<const S>& q0, const B
                                            const StepSequence<const S>& tau, const StepSequence<S>& q,
                                            const StepSequence<S>& qd) {
   const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
-  check_state("qd0", qd0, B);
-  check_sequence("tau", tau, T, B);
-  check_sequence("q", q, T, B);
-  check_sequence("qd", qd, T, B);
+  require_rollout_state("qd0", qd0, B);
+  require_rollout_sequence("tau", tau, T, B);
+  require_rollout_sequence("q", q, T, B);
+  require_rollout_sequence("qd", qd, T, B);
+  if (impl_->cuda) return impl_->cuda->rollout(q0, qd0, tau, q, qd);
   const SimSetup<S>& setup = impl_->setup;
-  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
-    S *x = w.row(0), *xd = w.row(1), *u = w.row(2);
-    load(q0, b, n, x), load(qd0, b, n, xd);
-    for (Index t = 0; t < T; ++t) {
-      load(tau.at(t), b, n, u);
-      const Index failed = impl_->kernels.step(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u);
-      if (failed >= 0) return failed;
-      if (const Index bad = std::max(first_nonfinite(x, n), first_nonfinite(xd, n)); bad >= 0) {
-        why = Failure::NonFinite;
-        return bad;
-      }
-      if (q.first.data) store(x, q.at(t), b, n);
-      if (qd.first.data) store(xd, qd.at(t), b, n);
-    }
-    return -1;
+  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
+    const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
+    return rollout_instance(n, b, q0, qd0, tau, q, qd, w.rows.data(), [&](S* x, S* xd, const S* u) -> Index {
+      return impl_->kernels.step(setup, w, fext, x, xd, u);
+    });
   });
 }
 
@@ -342,30 +316,21 @@ BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const Batch
                                        const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
                                        const StepSequence<S>& dq, const StepSequence<S>& dqd) {
   const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
-  check_state("qd0", qd0, B);
-  check_state("dq0", dq0, B);
-  check_state("dqd0", dqd0, B);
-  check_sequence("tau", tau, T, B);
-  check_sequence("dtau", dtau, T, B);
-  check_sequence("dq", dq, T, B);
-  check_sequence("dqd", dqd, T, B);
+  require_rollout_state("qd0", qd0, B);
+  require_rollout_state("dq0", dq0, B);
+  require_rollout_state("dqd0", dqd0, B);
+  require_rollout_sequence("tau", tau, T, B);
+  require_rollout_sequence("dtau", dtau, T, B);
+  require_rollout_sequence("dq", dq, T, B);
+  require_rollout_sequence("dqd", dqd, T, B);
+  if (impl_->cuda) return impl_->cuda->jvp(q0, qd0, tau, dq0, dqd0, dtau, dq, dqd);
   const SimSetup<S>& setup = impl_->setup;
-  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
-    S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *dx = w.row(3), *dxd = w.row(4), *du = w.row(5);
-    load(q0, b, n, x), load(qd0, b, n, xd), load(dq0, b, n, dx), load(dqd0, b, n, dxd);
-    for (Index t = 0; t < T; ++t) {
-      load(tau.at(t), b, n, u);
-      load(dtau.first.data ? dtau.at(t) : BatchView<const S>{}, b, n, du);
-      const Index failed = impl_->kernels.jvp(setup, w, instance_wrenches<S>(setup, nullptr, b), x, xd, u, dx, dxd, du);
-      if (failed >= 0) return failed;
-      if (const Index bad = std::max(first_nonfinite(dx, n), first_nonfinite(dxd, n)); bad >= 0) {
-        why = Failure::NonFinite;
-        return bad;
-      }
-      if (dq.first.data) store(dx, dq.at(t), b, n);
-      if (dqd.first.data) store(dxd, dqd.at(t), b, n);
-    }
-    return -1;
+  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
+    const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
+    return rollout_jvp_instance(n, b, q0, qd0, tau, dq0, dqd0, dtau, dq, dqd, w.rows.data(),
+                                [&](S* x, S* xd, const S* u, S* dx, S* dxd, const S* du) -> Index {
+                                  return impl_->kernels.jvp(setup, w, fext, x, xd, u, dx, dxd, du);
+                                });
   });
 }
 
@@ -375,72 +340,26 @@ BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const Batch
                                        const StepSequence<const S>& gqd, const BatchView<S>& gq0,
                                        const BatchView<S>& gqd0, const StepSequence<S>& gtau) {
   const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
-  check_state("qd0", qd0, B);
-  check_state("gq0", gq0, B);
-  check_state("gqd0", gqd0, B);
-  check_sequence("tau", tau, T, B);
-  check_sequence("gq", gq, T, B);
-  check_sequence("gqd", gqd, T, B);
-  check_sequence("gtau", gtau, T, B);
+  require_rollout_state("qd0", qd0, B);
+  require_rollout_state("gq0", gq0, B);
+  require_rollout_state("gqd0", gqd0, B);
+  require_rollout_sequence("tau", tau, T, B);
+  require_rollout_sequence("gq", gq, T, B);
+  require_rollout_sequence("gqd", gqd, T, B);
+  require_rollout_sequence("gtau", gtau, T, B);
+  if (impl_->cuda) return impl_->cuda->vjp(q0, qd0, tau, gq, gqd, gq0, gqd0, gtau);
   const SimSetup<S>& setup = impl_->setup;
-  const Index K = checkpoint_interval(T), segments = (T + K - 1) / K;
+  const Index K = checkpoint_interval(T);
   const std::size_t state = 2 * static_cast<std::size_t>(n);
-  for (StepWork<S>& w : impl_->work) w.store.resize(static_cast<std::size_t>(segments + K) * state);
-  return impl_->instances(B, [&](StepWork<S>& w, Index b, Failure& why) -> Index {
-    S *x = w.row(0), *xd = w.row(1), *u = w.row(2), *lq = w.row(3), *lqd = w.row(4), *gu = w.row(5), *g = w.row(6);
-    S* const checkpoints = w.store.data();                      // (segments x 2 nv) x_{kK}
-    S* const segment = checkpoints + static_cast<std::size_t>(segments) * state;  // (K x 2 nv) x_t of one segment
+  for (StepWork<S>& w : impl_->work) w.store.resize(static_cast<std::size_t>(rollout_store_slots(T, K)) * state);
+  return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
     const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
-    // forward: the checkpoints
-    load(q0, b, n, x), load(qd0, b, n, xd);
-    for (Index t = 0; t < T; ++t) {
-      if (t % K == 0) {
-        std::copy(x, x + n, checkpoints + static_cast<std::size_t>(t / K) * state);
-        std::copy(xd, xd + n, checkpoints + static_cast<std::size_t>(t / K) * state + n);
-      }
-      if (t + 1 == T) break;  // the last state is not needed
-      load(tau.at(t), b, n, u);
-      const Index failed = impl_->kernels.step(setup, w, fext, x, xd, u);
-      if (failed >= 0) return failed;
-    }
-    // reverse: segment by segment, the segment's states again from its checkpoint
-    std::fill(lq, lq + n, S(0));
-    std::fill(lqd, lqd + n, S(0));
-    for (Index k = segments - 1; k >= 0; --k) {
-      const Index t0 = k * K, t1 = std::min(T, t0 + K);
-      std::copy(checkpoints + static_cast<std::size_t>(k) * state, checkpoints + static_cast<std::size_t>(k + 1) * state,
-                segment);
-      for (Index t = t0; t + 1 < t1; ++t) {
-        S* const s = segment + static_cast<std::size_t>(t - t0) * state;
-        std::copy(s, s + state, s + state);
-        load(tau.at(t), b, n, u);
-        const Index failed = impl_->kernels.step(setup, w, fext, s + state, s + state + n, u);
-        if (failed >= 0) return failed;
-      }
-      for (Index t = t1 - 1; t >= t0; --t) {
-        // the loss's gradient at x_{t+1}, then the step's adjoint at x_t
-        if (gq.first.data) {
-          load(gq.at(t), b, n, g);
-          for (Index i = 0; i < n; ++i) lq[i] += g[i];
-        }
-        if (gqd.first.data) {
-          load(gqd.at(t), b, n, g);
-          for (Index i = 0; i < n; ++i) lqd[i] += g[i];
-        }
-        const S* const s = segment + static_cast<std::size_t>(t - t0) * state;
-        load(tau.at(t), b, n, u);
-        const Index failed = impl_->kernels.vjp(setup, w, fext, s, s + n, u, lq, lqd, gu);
-        if (failed >= 0) return failed;
-        if (const Index bad = std::max(first_nonfinite(lq, n), first_nonfinite(gu, n)); bad >= 0) {
-          why = Failure::NonFinite;
-          return bad;
-        }
-        if (gtau.first.data) store(gu, gtau.at(t), b, n);
-      }
-    }
-    store(lq, gq0, b, n);
-    store(lqd, gqd0, b, n);
-    return -1;
+    return rollout_vjp_instance(
+        n, b, K, q0, qd0, tau, gq, gqd, gq0, gqd0, gtau, w.rows.data(), StateStore<S>{w.store.data(), n, 1},
+        [&](S* x, S* xd, const S* u) -> Index { return impl_->kernels.step(setup, w, fext, x, xd, u); },
+        [&](const S* x, const S* xd, const S* u, S* lq, S* lqd, S* gu) -> Index {
+          return impl_->kernels.vjp(setup, w, fext, x, xd, u, lq, lqd, gu);
+        });
   });
 }
 

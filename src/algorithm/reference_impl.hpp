@@ -6,6 +6,7 @@
 #pragma once
 
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/instance/rnea_passes.hpp"
 
 #include <cmath>
 #include <stdexcept>
@@ -50,25 +51,8 @@ void rnea(const ModelTpl<S>& model, DataTpl<S>& data, const S* q, const S* qd, c
           S* tau, const Force<S>* fext) {
   if constexpr (!kIsPack<S>)  // packs: 1-DoF models only (cpu::simd_supported)
     if (model.multi_dof()) return rnea_at(model, data, q, qd, qdd, tau, fext);
-  const Index n = model.nv();
-  const Motion<S> a0 = base_acceleration(model.gravity);
-  // forward: kinematics and body forces
-  for (Index i = 0; i < n; ++i) {
-    const Body<S>& b = model.bodies[i];
-    const Index p = b.parent;
-    data.Xup[i] = joint_transform(b, q[i]);
-    const RneaForward<S> o = rnea_forward_step(b, data.Xup[i], p < 0 ? Motion<S>::zero() : data.v[p],
-                                               p < 0 ? a0 : data.a[p], qd[i], qdd ? qdd[i] : S(0));
-    data.v[i] = o.v;
-    data.a[i] = o.a;
-    data.f[i] = fext ? o.f - fext[i] : o.f;
-  }
-  // backward: joint torques, forces accumulated into parents
-  for (Index i = n - 1; i >= 0; --i) {
-    const Body<S>& b = model.bodies[i];
-    tau[i] = joint_project(b, data.f[i]);
-    if (b.parent >= 0) data.f[b.parent] += data.Xup[i].apply_transpose(data.f[i]);
-  }
+  rnea_passes(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q, qd, qdd, fext,
+              RneaBodies<S>{data.Xup.data(), data.v.data(), data.a.data(), data.f.data()}, tau);
 }
 
 template <class S>

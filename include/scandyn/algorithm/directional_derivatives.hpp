@@ -13,43 +13,18 @@
 //   dF_p += Xup^T (dF_i + dq_i S_i x* F_i),   dtau_i = S_i . dF_i
 // The forward part is the tangent of the scan elements (v, a) -> (Xup v + S qd, ...):
 // the pair (value, tangent) composes as the element does.
+//
+// The functions below are the serial entry points (a model and host scratch); the
+// recursions themselves are the __host__ __device__ functions of
+// scandyn/instance/directional_instance.hpp, which the CUDA rollout kernels run too.
 #pragma once
 
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/instance/directional_instance.hpp"
 
 namespace scandyn {
-
-// Tangents of one body's RNEA quantities (body frame).
-template <class S>
-struct RneaTangent {
-  Motion<S> v, a;  // dv, da
-  Force<S> f;      // df, then (backward) the subtree's dF
-};
-
-// The tangent of rnea_forward_step: body i's (dv, da, df) from its parent's (dv_p,
-// da_p) and the parent's values (v_p, a_p); o: the body's rnea_forward_step values.
-template <class S>
-SCANDYN_HD RneaTangent<S> rnea_tangent_forward_step(const Body<S>& b, const Transform<S>& Xup,
-                                                    const Motion<S>& v_parent, const Motion<S>& a_parent,
-                                                    const Motion<S>& dv_parent, const Motion<S>& da_parent,
-                                                    const RneaForward<S>& o, S qd, S dq, S dqd, S dqdd) {
-  const Motion<S> s = joint_motion(b, S(1));
-  RneaTangent<S> t;
-  t.v = add_joint_motion(b, Xup.apply(dv_parent) - dq * cross(s, Xup.apply(v_parent)), dqd);
-  t.a = add_joint_motion(b, Xup.apply(da_parent) - dq * cross(s, Xup.apply(a_parent)), dqdd) +
-        cross_joint_motion(b, t.v, qd) + cross_joint_motion(b, o.v, dqd);
-  t.f = b.I * t.a + cross(t.v, b.I * o.v) + cross(o.v, b.I * t.v);
-  return t;
-}
-
-// Adjoints of one body's RNEA quantities (body frame), rnea_vjp's.
-template <class S>
-struct RneaAdjoint {
-  Motion<S> F;     // adjoint of the subtree force (pairs with forces)
-  Force<S> a, v;   // adjoints of the acceleration and velocity (pair with motions)
-};
 
 // Scratch for rnea_jvp and rnea_vjp (no allocation in a call).
 template <class S>

@@ -32,6 +32,7 @@
 // base, spherical joints); the rollouts also refuse the cuda backend.
 #pragma once
 
+#include <cmath>
 #include <memory>
 #include <string>
 #include <vector>
@@ -221,7 +222,7 @@ inline std::size_t step_directional_scratch(Index n) { return 32 * static_cast<s
 // qdd = FD(q, qd, tau) (the step's forward dynamics) and its tangent dqdd (aba_jvp).
 // Returns -1 or the failed DoF.
 template <unsigned kEffects, Integrator kIntegrator, class S, class FdJvp>
-Index step_jvp_instance(Index n, S dt, const JointCoefficients<S>* coef, const S* armature, S* q, S* qd,
+SCANDYN_HD Index step_jvp_instance(Index n, S dt, const JointCoefficients<S>* coef, const S* armature, S* q, S* qd,
                         const S* tau, S* dq, S* dqd, const S* dtau, S* scratch, FdJvp&& fd_jvp) {
   const std::size_t m = static_cast<std::size_t>(n);
   S* const r = scratch;
@@ -270,7 +271,7 @@ Index step_jvp_instance(Index n, S dt, const JointCoefficients<S>* coef, const S
 // fd_vjp(q, qd, tau, armature, w, gq, gqd, gtau) -> Index writes the adjoint of
 // qdd = FD(q, qd, tau) for the weight w on qdd (aba_vjp). Returns -1 or the failed DoF.
 template <unsigned kEffects, Integrator kIntegrator, class S, class Fd, class FdVjp>
-Index step_vjp_instance(Index n, S dt, const JointCoefficients<S>* coef, const S* armature, const S* q,
+SCANDYN_HD Index step_vjp_instance(Index n, S dt, const JointCoefficients<S>* coef, const S* armature, const S* q,
                         const S* qd, const S* tau, S* gq, S* gqd, S* gtau, S* scratch, Fd&& fd, FdVjp&& fd_vjp) {
   const std::size_t m = static_cast<std::size_t>(n);
   S* const r = scratch;
@@ -383,12 +384,198 @@ struct StepSequence {
   BatchView<T> first;
   std::ptrdiff_t time_stride = 0;
   Index steps = 0;  // T
-  BatchView<T> at(Index t) const {
+  SCANDYN_HD BatchView<T> at(Index t) const {
     BatchView<T> v = first;
     v.data = first.data + t * time_stride;
     return v;
   }
 };
+
+// ---- rollouts of one instance ----------------------------------------------------------
+// The instance loops of RolloutDerivatives: the serial / OpenMP engine (per-thread
+// rows and store) and the CUDA kernels (per-thread local rows, a global store with
+// the instance innermost; scandyn/cuda/rollout_derivatives.hpp) run these functions.
+// Each returns -1, the DoF whose pivot failed (>= 0; the instance's outputs then
+// partly written), or -2 - i when entry i of a result is not finite
+// (rollout_failure_dof, Failure::NonFinite). rows: 8 n scalars of the caller's
+// contiguous per-thread memory (the current state, the torques, tangents and
+// adjoints of one step).
+
+// n entries of instance b of v into row (converted; zeros where v is null), and back.
+template <class S, class T>
+SCANDYN_HD void load_instance_row(const BatchView<T>& v, Index b, Index n, S* row) {
+  for (Index i = 0; i < n; ++i) row[i] = v.data ? S(v.at(i, b)) : S(0);
+}
+template <class S>
+SCANDYN_HD void store_instance_row(const S* row, const BatchView<S>& v, Index b, Index n) {
+  for (Index i = 0; i < n; ++i) v.at(i, b) = row[i];
+}
+
+// -1, or -2 - i for the lowest DoF i at which one of the rows (n entries each) is not finite.
+template <class S, int kRows>
+SCANDYN_HD Index rollout_nonfinite(const S* const (&rows)[kRows], Index n) {
+  for (Index i = 0; i < n; ++i)
+    for (int r = 0; r < kRows; ++r)
+      if (!ScalarMath<S>::isfinite(rows[r][i])) return -2 - i;
+  return -1;
+}
+// The DoF of a failure code of the functions below, and whether it is a result that is not finite.
+inline Index rollout_failure_dof(Index code) { return code <= -2 ? -2 - code : code; }
+inline bool rollout_failure_nonfinite(Index code) { return code <= -2; }
+
+// The states a rollout's adjoint keeps per instance: 2 rows (q, qd) of n entries per
+// state slot, row r's entry i at data[r * row_stride + i * dof_stride]. Slots 0 ..
+// S-1: the checkpoints x_{kK} (S = ceil(T / K)); slots S .. S+K-1: one segment's
+// states recomputed. The CPU: a thread's contiguous buffer (row_stride n, dof_stride
+// 1); CUDA: a global buffer with the instance innermost (row_stride n B, dof_stride B,
+// data offset by b).
+template <class S>
+struct StateStore {
+  S* data;
+  std::ptrdiff_t row_stride, dof_stride;
+  SCANDYN_HD S& at(std::ptrdiff_t row, Index i) const { return data[row * row_stride + i * dof_stride]; }
+  SCANDYN_HD void put(std::ptrdiff_t slot, const S* q, const S* qd, Index n) const {
+    for (Index i = 0; i < n; ++i) at(2 * slot, i) = q[i], at(2 * slot + 1, i) = qd[i];
+  }
+  SCANDYN_HD void get(std::ptrdiff_t slot, S* q, S* qd, Index n) const {
+    for (Index i = 0; i < n; ++i) q[i] = at(2 * slot, i), qd[i] = at(2 * slot + 1, i);
+  }
+};
+
+// Number of state slots of a rollout adjoint's store for T steps and checkpoint
+// interval K: ceil(T / K) checkpoints and K segment states.
+inline Index rollout_store_slots(Index T, Index K) { return (T + K - 1) / K + K; }
+
+// The checkpoint interval K of a rollout adjoint over T steps for the interval asked
+// for (0: ceil(sqrt(T)), which minimises the store; otherwise at most T).
+inline Index rollout_checkpoint_interval(Index interval, Index T) {
+  const Index t = T > 1 ? T : 1;
+  if (interval > 0) return interval < t ? interval : t;
+  Index k = static_cast<Index>(std::ceil(std::sqrt(static_cast<double>(t))));
+  return k > 1 ? k : 1;
+}
+
+// Throw BackendError naming the view of a rollout call (T steps of B instances) whose
+// shape does not fit: a state view (nv x B, required) or a step sequence (T steps of
+// nv x B; null: not given, accepted).
+template <class S>
+void require_rollout_state(const char* name, const BatchView<S>& v, Index B) {
+  if (!v.data || v.batch != B)
+    throw BackendError(std::string("the rollout derivatives: ") + name + " must hold " + std::to_string(B) +
+                       " instances");
+}
+template <class S>
+void require_rollout_sequence(const char* name, const StepSequence<S>& s, Index T, Index B) {
+  if (!s.first.data) return;
+  if (s.steps != T || s.first.batch != B)
+    throw BackendError(std::string("the rollout derivatives: ") + name + " has " + std::to_string(s.steps) +
+                       " steps of " + std::to_string(s.first.batch) + " instances, expected " + std::to_string(T) +
+                       " of " + std::to_string(B));
+}
+
+// Instance b's rollout from (q0, qd0) under tau (T = tau.steps): q.at(t), qd.at(t) =
+// x_{t+1} (null sequences: not written). step(x, xd, u) -> Index advances (x, xd)
+// in place (the simulator's step).
+template <class S, class Step>
+SCANDYN_HD Index rollout_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                  const StepSequence<const S>& tau, const StepSequence<S>& q,
+                                  const StepSequence<S>& qd, S* rows, Step&& step) {
+  S *x = rows, *xd = rows + n, *u = rows + 2 * n;
+  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+  for (Index t = 0; t < tau.steps; ++t) {
+    load_instance_row(tau.at(t), b, n, u);
+    const Index failed = step(x, xd, static_cast<const S*>(u));
+    if (failed >= 0) return failed;
+    if (const Index bad = rollout_nonfinite<S, 2>({x, xd}, n); bad != -1) return bad;
+    if (q.first.data) store_instance_row(static_cast<const S*>(x), q.at(t), b, n);
+    if (qd.first.data) store_instance_row(static_cast<const S*>(xd), qd.at(t), b, n);
+  }
+  return -1;
+}
+
+// Instance b's trajectory tangents along (dq0, dqd0, dtau) (null dtau: zero):
+// dq.at(t), dqd.at(t) = dx_{t+1}. jvp(x, xd, u, dx, dxd, du) -> Index advances the
+// state and its tangent in place (step_jvp_instance).
+template <class S, class Jvp>
+SCANDYN_HD Index rollout_jvp_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                      const StepSequence<const S>& tau, const BatchView<const S>& dq0,
+                                      const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
+                                      const StepSequence<S>& dq, const StepSequence<S>& dqd, S* rows, Jvp&& jvp) {
+  S *x = rows, *xd = rows + n, *u = rows + 2 * n, *dx = rows + 3 * n, *dxd = rows + 4 * n, *du = rows + 5 * n;
+  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+  load_instance_row(dq0, b, n, dx), load_instance_row(dqd0, b, n, dxd);
+  for (Index t = 0; t < tau.steps; ++t) {
+    load_instance_row(tau.at(t), b, n, u);
+    load_instance_row(dtau.first.data ? dtau.at(t) : BatchView<const S>{}, b, n, du);
+    const Index failed = jvp(x, xd, static_cast<const S*>(u), dx, dxd, static_cast<const S*>(du));
+    if (failed >= 0) return failed;
+    if (const Index bad = rollout_nonfinite<S, 2>({dx, dxd}, n); bad != -1) return bad;
+    if (dq.first.data) store_instance_row(static_cast<const S*>(dx), dq.at(t), b, n);
+    if (dqd.first.data) store_instance_row(static_cast<const S*>(dxd), dqd.at(t), b, n);
+  }
+  return -1;
+}
+
+// Instance b's adjoint of the loss sum_t l_t(x_{t+1}) with gradients gq.at(t),
+// gqd.at(t) (null: zero), checkpointed every K steps: forward, x_t stored for t a
+// multiple of K (x_T is not needed); then segment by segment from the last, the
+// segment's states again from its checkpoint (slots S.. of the store), and the
+// steps' adjoints from its last step to its first: gtau.at(t) (null: not written),
+// finally gq0, gqd0. step(x, xd, u) -> Index as rollout_instance's; vjp(x, xd, u,
+// lq, lqd, gu) -> Index turns the adjoints (lq, lqd) of x_{t+1} into those of x_t
+// and writes gu (step_vjp_instance). store: rollout_store_slots(T, K) slots.
+template <class S, class Step, class Vjp>
+SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView<const S>& q0,
+                                      const BatchView<const S>& qd0, const StepSequence<const S>& tau,
+                                      const StepSequence<const S>& gq, const StepSequence<const S>& gqd,
+                                      const BatchView<S>& gq0, const BatchView<S>& gqd0, const StepSequence<S>& gtau,
+                                      S* rows, const StateStore<S>& store, Step&& step, Vjp&& vjp) {
+  const Index T = tau.steps, segments = (T + K - 1) / K;
+  S *x = rows, *xd = rows + n, *u = rows + 2 * n, *lq = rows + 3 * n, *lqd = rows + 4 * n, *gu = rows + 5 * n,
+    *g = rows + 6 * n;
+  // forward: the checkpoints
+  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+  for (Index t = 0; t < T; ++t) {
+    if (t % K == 0) store.put(t / K, x, xd, n);
+    if (t + 1 == T) break;  // the last state is not needed
+    load_instance_row(tau.at(t), b, n, u);
+    const Index failed = step(x, xd, static_cast<const S*>(u));
+    if (failed >= 0) return failed;
+  }
+  // reverse: segment by segment, the segment's states again from its checkpoint
+  for (Index i = 0; i < n; ++i) lq[i] = S(0), lqd[i] = S(0);
+  for (Index k = segments - 1; k >= 0; --k) {
+    const Index t0 = k * K, t1 = T < t0 + K ? T : t0 + K;
+    store.get(k, x, xd, n);
+    store.put(segments, x, xd, n);
+    for (Index t = t0; t + 1 < t1; ++t) {
+      load_instance_row(tau.at(t), b, n, u);
+      const Index failed = step(x, xd, static_cast<const S*>(u));
+      if (failed >= 0) return failed;
+      store.put(segments + (t + 1 - t0), x, xd, n);
+    }
+    for (Index t = t1 - 1; t >= t0; --t) {
+      // the loss's gradient at x_{t+1}, then the step's adjoint at x_t
+      if (gq.first.data) {
+        load_instance_row(gq.at(t), b, n, g);
+        for (Index i = 0; i < n; ++i) lq[i] += g[i];
+      }
+      if (gqd.first.data) {
+        load_instance_row(gqd.at(t), b, n, g);
+        for (Index i = 0; i < n; ++i) lqd[i] += g[i];
+      }
+      store.get(segments + (t - t0), x, xd, n);
+      load_instance_row(tau.at(t), b, n, u);
+      const Index failed = vjp(static_cast<const S*>(x), static_cast<const S*>(xd), static_cast<const S*>(u), lq, lqd, gu);
+      if (failed >= 0) return failed;
+      if (const Index bad = rollout_nonfinite<S, 3>({lq, lqd, gu}, n); bad != -1) return bad;
+      if (gtau.first.data) store_instance_row(static_cast<const S*>(gu), gtau.at(t), b, n);
+    }
+  }
+  store_instance_row(static_cast<const S*>(lq), gq0, b, n);
+  store_instance_row(static_cast<const S*>(lqd), gqd0, b, n);
+  return -1;
+}
 
 // Rollouts of the simulator's step and their derivatives: x_{t+1} = step(x_t, tau_t),
 // t = 0..T-1, from x_0 = (q0, qd0), for every instance (threads over instances).
