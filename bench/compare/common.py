@@ -28,7 +28,7 @@ import numpy as np
 
 COLUMNS = ['algo', 'strategy', 'backend', 'precision', 'model', 'links', 'instances', 'seconds_per_call',
            'evals_per_second', 'max_rel_err', 'library', 'version', 'check_max_err', 'note']
-ALGOS = ('id', 'bias', 'mass', 'fd')
+ALGOS = ('id', 'bias', 'mass', 'fd', 'dfd')
 CHECK_STATES = 16
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
@@ -137,7 +137,8 @@ def write_states(path, S):
 
 
 def read_outputs(path, nv):
-    """scandyn's OUT.csv columns -> {'id': (n, nv), 'fd': (n, nv), 'mass': (n, nv, nv), 'bias': (n, nv)}."""
+    """scandyn's OUT.csv columns -> {'id': (n, nv), 'fd': (n, nv), 'mass': (n, nv, nv), 'bias': (n, nv),
+    'dfd': (n, nv, 2 nv): [dqdd/dq | dqdd/dqd] per state, the layout GRiD's forward_dynamics_gradient returns}."""
     with open(path) as fh:
         header = fh.readline().strip().split(',')
         data = np.array([np.array(line.split(','), dtype=np.float64) for line in fh if line.strip()]).reshape(-1, len(header))
@@ -150,6 +151,10 @@ def read_outputs(path, nv):
             cols = range(nv) if a == 'mass' else [0]  # M's second index; the vectors have one
             x = data[:, [col[name.format(i, j)] for i in range(nv) for j in cols]]
             out[a] = x.reshape(len(data), nv, nv) if a == 'mass' else x
+    if 'dqdd_dq_0_0' in col:
+        blocks = [data[:, [col['%s_%d_%d' % (b, i, j)] for i in range(nv) for j in range(nv)]].reshape(len(data), nv, nv)
+                  for b in ('dqdd_dq', 'dqdd_dqd')]
+        out['dfd'] = np.concatenate(blocks, axis=2)
     return out
 
 

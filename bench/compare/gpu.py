@@ -42,8 +42,10 @@ def left(args):
 
 
 def algos_for(nv):
-    # the nv x nv mass matrix beyond 1000 DoF is 8 MB+ per instance and state: not compared
-    return ['id', 'bias', 'fd'] + (['mass'] if nv <= 1000 else [])
+    # the nv x nv mass matrix beyond 1000 DoF is 8 MB+ per instance and state: not compared;
+    # dfd (dqdd/dq, dqdd/dqd: scandyn's fd derivatives, GRiD's forward_dynamics_gradient) on
+    # the robots only (scandyn's CUDA engine: one thread per instance up to 64 DoF)
+    return ['id', 'bias', 'fd'] + (['mass'] if nv <= 1000 else []) + (['dfd'] if nv <= 64 else [])
 
 
 def batches_for(args, name, lib=None):
@@ -64,7 +66,7 @@ def worker(args):
     S = common.random_states(nv)
     ref = np.load(args.ref)
     ref = {k: ref[k] for k in ref.files}
-    algos = [a for a in algos_for(nv) if a in args.algos.split(',')]
+    algos = [a for a in algos_for(nv) if a in args.algos.split(',') and (a != 'dfd' or args.library == 'grid')]
 
     def emit(**kw):
         print('ROW ' + json.dumps(kw), flush=True)
@@ -74,7 +76,7 @@ def worker(args):
     if lib == 'grid':
         import grid_peer
         # the build's batch limit covers the timed batches and the check's CHECK_STATES states
-        R = grid_peer.GridRunner(cache_dir=args.grid_cache,
+        R = grid_peer.GridRunner(cache_dir=args.grid_cache, algos=algos,
                                  max_batch=max(batches_for(args, args.model) + [common.CHECK_STATES]),
                                  cuda_arch=int(os.environ['GRID_CUDA_ARCH']) if os.environ.get('GRID_CUDA_ARCH') else None)
         t = time.time()

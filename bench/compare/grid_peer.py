@@ -10,6 +10,8 @@ tier is marked alpha), and only the algorithms compared:
 - bias robot.inverse_dynamics(q, qd)        (qdd = None: the bias forces h)
 - mass robot.crba(q)                        (dense nv x nv)
 - fd   robot.forward_dynamics(q, qd, tau)   (GRiD's forward dynamics, M^-1 (tau - h))
+- dfd  robot.forward_dynamics_gradient(q, qd, tau)   ((B, nv, 2 nv): [dqdd/dq | dqdd/dqd],
+       built only when asked for: its code generation and compilation take longer)
 gravity = -9.81 along z (GRiD's argument). One call covers at most max_batch_size instances
 (a compile-time constant): gpu.py builds with the largest batch it times and, where GRiD
 refuses a size, records it.
@@ -25,12 +27,13 @@ import numpy as np
 import common
 
 ALGO_LIST = ['inverse_dynamics', 'crba', 'forward_dynamics']
+GRADIENTS = {'dfd': 'forward_dynamics_gradient'}  # GRiD's algorithm of each derivative compared
 
 
 class GridRunner:
     library = 'grid'
 
-    def __init__(self, device='cuda', cache_dir=None, max_batch=1 << 20, cuda_arch=None):
+    def __init__(self, device='cuda', cache_dir=None, max_batch=1 << 20, cuda_arch=None, algos=()):
         import grid_rbd
         from importlib import metadata
         try:
@@ -39,6 +42,7 @@ class GridRunner:
             torch = None
         self.grid, self.torch = grid_rbd, torch
         self.cache_dir, self.max_batch, self.cuda_arch = cache_dir, max_batch, cuda_arch
+        self.algorithm_list = ALGO_LIST + [GRADIENTS[a] for a in algos if a in GRADIENTS]
         self.version = 'grid-rbd %s (%s)' % (metadata.version('grid-rbd'),
                                              'torch %s' % torch.__version__ if torch else 'no torch')
         self.robot = None
@@ -49,7 +53,7 @@ class GridRunner:
         """Generates and compiles (or takes from the cache) the robot; -> perm (scandyn DoF k is GRiD's perm[k])."""
         backend = backend or ('torch' if self.torch else 'numpy')
         opts = dict(backend=backend, floating_base=False, max_batch_size=self.max_batch, dtype='float32',
-                    algorithm_list=ALGO_LIST, enable_mujoco_kernels=False)
+                    algorithm_list=self.algorithm_list, enable_mujoco_kernels=False)
         if self.cache_dir:
             opts['cache_dir'] = self.cache_dir
         if self.cuda_arch:
@@ -95,6 +99,7 @@ class GridRunner:
             'bias': lambda: r.inverse_dynamics(S['q'], S['qd']),
             'mass': lambda: r.crba(S['q']),
             'fd': lambda: r.forward_dynamics(S['q'], S['qd'], S['tau']),
+            'dfd': lambda: r.forward_dynamics_gradient(S['q'], S['qd'], S['tau']),
         }[algo]
         self.call()
         self.sync()
@@ -128,7 +133,14 @@ def check(runner, model, scandyn_names, ref, S, algos):
     for a in algos:
         runner.prepare(a, S['q'].shape[0], Sg)
         out = runner.result()
-        out = out[:, perm][:, :, perm] if a == 'mass' else out[:, perm]
+        if a == 'mass':
+            out = out[:, perm][:, :, perm]
+        elif a == 'dfd':  # [dqdd/dq | dqdd/dqd]: rows and each block's columns in scandyn's order
+            nv = len(perm)
+            out = out.reshape(len(out), nv, 2 * nv)[:, perm]
+            out = np.concatenate([out[:, :, perm], out[:, :, nv + perm]], axis=2)
+        else:
+            out = out[:, perm]
         errs[a] = common.rel_err(out, ref[a])
     return errs
 

@@ -8,10 +8,11 @@ above the C++ time).
 
 Per (algo, B): the C++ row (`scandyn bench ... --backend cuda --precision float`, its
 device-resident row: strategy without `-host`) and, in this process, the engine of the
-same algorithm (sd.InverseDynamics, ... backend='cuda', float32) called with out= on
-device-resident torch tensors (column out_layout: which out=; for the mass matrix also
-the entry-major view that is its default result on CUDA arrays, and out=None), timed by the same procedure as bench (a warm-up call, then
-rounds of calls until --min-time, one torch.cuda.synchronize per round). Two Python
+same algorithm (sd.InverseDynamics, ... backend='cuda', float32) on device-resident
+torch tensors (column out_layout: a row-major out=, the default call out=None (a new
+result per call), and for the mass matrix also out= the entry-major view that is its
+default result on CUDA arrays), timed by the same procedure as bench (a warm-up call,
+then rounds of calls until --min-time, one torch.cuda.synchronize per round). Two Python
 columns: seconds_per_call (back-to-back calls; on the GPU, what the loop sustains) and
 host_seconds_per_call (the time a call takes to return, the GPU work queued, not waited
 for: the Python layer's own cost). overhead_us = (python - C++) seconds_per_call in us.
@@ -85,14 +86,15 @@ def main():
             S = {k: torch.rand(b, m.nv, generator=g, device=dev) * 2 - 1 for k in ('q', 'qd', 'qdd', 'tau')}
             e = getattr(sd, ENGINES[algo])(m, backend='cuda', max_batch=b, dtype=np.float32)
             ins = [S[k] for k in INPUTS[algo]]
-            # out= a preallocated row-major array; for the mass matrix also out= the
-            # entry-major view its default result has (the C++ row's layout) and the
-            # default call itself (out=None: a new entry-major result per call)
-            outs = [('row-major out=', torch.empty((b, m.nv) + ((m.nv,) if algo == 'mass' else ()), device=dev))]
+            # out= a preallocated row-major array and the default call (out=None: a new
+            # result per call, entry-major for the mass matrix); for the mass matrix also
+            # out= the entry-major view its default result has (the C++ row's layout)
+            outs = [('row-major out=', torch.empty((b, m.nv) + ((m.nv,) if algo == 'mass' else ()), device=dev)),
+                    ('default (out=None)', None)]
             if algo == 'mass':
-                outs = [('entry-major out=', torch.empty((m.nv, m.nv, b), device=dev).permute(2, 0, 1)),
-                        ('default (out=None)', None)] + outs
+                outs = [('entry-major out=', torch.empty((m.nv, m.nv, b), device=dev).permute(2, 0, 1))] + outs
             for layout, out in outs:
+
                 def call():
                     e(*ins, out=out)
                 py = timed(call, torch.cuda.synchronize, args.min_time)

@@ -40,7 +40,7 @@ def main():
 
     import torch.utils.dlpack as dl
     rows = [
-        ("q.new_empty_strided(size, stride, dtype=)  [the default today]",
+        ("q.new_empty_strided(size, stride, dtype=)  [the default]",
          lambda: q.new_empty_strided(size, stride, dtype=dt)),
         ("q.new_empty_strided(size, stride)", lambda: q.new_empty_strided(size, stride)),
         ("torch.empty_strided(size, stride, dtype=, device=)",
@@ -55,6 +55,7 @@ def main():
         ("torch.utils.dlpack.to_dlpack(q)", lambda: dl.to_dlpack(q)),
         ("q.__dlpack__()", lambda: q.__dlpack__()),
         ("torch._C._from_dlpack(to_dlpack(q))", lambda: torch._C._from_dlpack(dl.to_dlpack(q))),
+        ("torch._C._cuda_isCurrentStreamCapturing()", lambda: torch._C._cuda_isCurrentStreamCapturing()),
     ]
     print(f"# {torch.cuda.get_device_name(0)}, torch {torch.__version__}; microseconds per call")
     for name, f in rows:

@@ -62,7 +62,8 @@ def test_strided_inputs(iiwa, dtype):
     # a broadcast (stride 0) row: every instance reads the same memory
     b = np.broadcast_to(q[3], q.shape)
     assert b.strides[0] == 0 and not b.flags.writeable
-    r = sd.inverse_dynamics(iiwa, b, np.broadcast_to(qd[3], q.shape), np.broadcast_to(qdd[3], q.shape))
+    r = sd.inverse_dynamics(iiwa, b, np.broadcast_to(qd[3], q.shape), np.broadcast_to(qdd[3], q.shape),
+                            backend="serial")
     np.testing.assert_array_equal(r, np.broadcast_to(ref[3], q.shape))
     # read-only inputs
     q_ro = q.copy()
