@@ -24,6 +24,10 @@
 //                           forward dynamics; for a chain (ropes) one block per
 //                           instance, its bodies in runs scanned in parallel
 //                           (chain_contacts_kernel).
+//   "integrator": "variational", models of up to 64 DoF: one thread per instance
+//                           runs the host step's Newton (variational_dense_step,
+//                           kernels/sim_variational.cuh; strategy "variational");
+//                           beyond: refused (BackendError naming the limit).
 #include <cub/block/block_scan.cuh>
 #include <cuda_runtime.h>
 
@@ -37,6 +41,7 @@
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "sim_fused.cuh"
+#include "sim_variational.cuh"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -209,10 +214,18 @@ class CudaSimBackend final : public SimBackend<S> {
     const std::size_t nq = static_cast<std::size_t>(setup.model.nq());
     const std::size_t nb = static_cast<std::size_t>(setup.model.nbodies());
     floating_ = setup.model.floating_base();
+    // the variational integrator: its own kernel (sim_variational.cuh); the Simulator
+    // refuses the rest first, a direct caller meets the same refusal
+    variational_ = setup.integrator == Integrator::Variational;
+    if (variational_ && (setup.model.multi_dof() || (setup.effects & ~kVariationalEffects) != 0 ||
+                         !setup.prescribed.empty() || !setup.loops.empty()))
+      throw BackendError("backend 'cuda': the variational integrator takes 1-DoF models without contacts, closed "
+                         "loops or prescribed motion");
+    if (variational_) VariationalSimPlan<S>::require_capacity(setup);
     // models with multi-DoF joints that the thread kernels do not take: the general step
-    general_ = cuda::takes_general_path(setup.model);
-    fused_ = !general_ && (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
-    engine_ = !fused_ && !general_;
+    general_ = !variational_ && cuda::takes_general_path(setup.model);
+    fused_ = !variational_ && !general_ && (floating_ ? setup.model.nbodies() - 1 : nv) <= cuda::kMaxThreadDofs;
+    engine_ = !variational_ && !fused_ && !general_;
     if (engine_ && setup.integrator == Integrator::Implicit)
       throw BackendError("backend 'cuda': the implicit integrator runs on the GPU for models of up to " +
                          std::to_string(cuda::kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv) +
@@ -282,7 +295,9 @@ class CudaSimBackend final : public SimBackend<S> {
     clear_status();
     if (setup.effects & kContacts) setup_contacts();
 
-    if (fused_) {
+    if (variational_) {
+      variational_plan_ = std::make_unique<VariationalSimPlan<S>>(setup);
+    } else if (fused_) {
       const cuda::ZThreadModel<S> tm(setup.model);
       cuda::require_floating_capacity(tm, setup.model.name);
       std::visit(
@@ -324,6 +339,11 @@ class CudaSimBackend final : public SimBackend<S> {
     if (B == 0) return;
     const Force<S>* wrenches = step_wrenches_ ? step_wrenches_ : wrenches_;
     const long long stride = step_wrenches_ ? setup_.model.nbodies() : 0;
+    if (variational_) {
+      const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, nullptr, nullptr, nullptr};
+      check(variational_plan_->launch(args, stream_), "launching the variational step");
+      return;
+    }
     if (general_) {
       const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_, nullptr, nullptr};
       const cuda::GeneralArgs<S>& g = general_plan_->args();
@@ -478,10 +498,11 @@ class CudaSimBackend final : public SimBackend<S> {
     if (s.failed == 0) return st;
     // the forward dynamics the failures came from names the pivot
     const Index dof = static_cast<Index>(s.first & 0xffffffffull);
-    st.record(static_cast<Index>(s.first >> 32), dof & ~kNonFiniteDof,
-              (dof & kNonFiniteDof)   ? Failure::NonFinite
-              : !engine_              ? Failure::ArticulatedPivot
-                                      : pivot_failure(fd_->method()));
+    st.record(static_cast<Index>(s.first >> 32), dof & ~(kNonFiniteDof | kNotConvergedDof),
+              (dof & kNonFiniteDof)      ? Failure::NonFinite
+              : (dof & kNotConvergedDof) ? Failure::NotConverged
+              : !engine_                 ? Failure::ArticulatedPivot
+                                         : pivot_failure(fd_->method()));
     st.failed = static_cast<Index>(std::min<unsigned long long>(s.failed, std::numeric_limits<Index>::max()));
     return st;
   }
@@ -493,7 +514,7 @@ class CudaSimBackend final : public SimBackend<S> {
   void synchronize() override { check(cudaStreamSynchronize(stream_), "running the simulator's steps"); }
   bool on_device() const override { return true; }
   std::string strategy() const override {
-    return general_ ? "general-aba" : fused_ ? "fused-aba" : "engine-" + fd_->strategy();
+    return variational_ ? "variational" : general_ ? "general-aba" : fused_ ? "fused-aba" : "engine-" + fd_->strategy();
   }
   void* stream() const override { return stream_; }
 
@@ -606,6 +627,8 @@ class CudaSimBackend final : public SimBackend<S> {
   bool floating_ = false;                 // a floating base (sim_fused_floating_kernel)
   bool general_ = false;                  // joints of any type (sim_general_kernel over general_plan_)
   bool engine_ = false;                   // the engine path (neither fused nor general)
+  bool variational_ = false;              // the variational integrator (variational_plan_)
+  std::unique_ptr<VariationalSimPlan<S>> variational_plan_;  // its kernel's model, coefficients, matrices
   FloatingArgs<S> floating_args_{};       // floating / general: bodies, coefficients, armature (in small_)
   std::unique_ptr<cuda::GeneralPlan<S>> general_plan_;  // the general step's bodies and per-thread scratch
   std::unique_ptr<cuda::detail::StagingBuffer> state_;  // the device, the stream, the state buffer

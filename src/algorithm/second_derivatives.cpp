@@ -27,17 +27,9 @@ template <class S>
 void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                        const S* qdd, const Force<S>* fext, const S* w, S* out) {
   const Index n = model.nv();
-  const Force<Dual<S>>* const f = dual_wrenches(fext, n, data.wrenches.data());
-  const Motion<Dual<S>> a0 = base_acceleration(model.gravity).template cast<Dual<S>>();
-  const MatrixRef<S> block{data.block.data(), n, 1}, none{nullptr, n, 0};
-  for (Index k = 0; k < n; ++k) {
-    seeded_derivative_pass(data.bodies.data(), n, a0, q, qd, qdd, f, data.work.data(), 0, k, block, none, none);
-    for (Index j = 0; j < n; ++j) {  // sum_i w_i d/dq_k of dtau_i/dq_j
-      S s = S(0);
-      for (Index i = 0; i < n; ++i) s += w[i] * block(i, j);
-      out[static_cast<std::size_t>(j) * n + k] = s;
-    }
-  }
+  rnea_weighted_dq2_instance(data.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd,
+                             dual_wrenches(fext, n, data.wrenches.data()), w, data.work.data(),
+                             MatrixRef<S>{data.block.data(), n, 1}, MatrixRef<S>{out, n, 1});
 }
 
 #define SCANDYN_INSTANTIATE(S)                                                                                    \

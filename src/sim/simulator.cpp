@@ -15,6 +15,7 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/sharded.hpp"
+#include "scandyn/sim/variational_instance.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -127,11 +128,10 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
       throw BackendError("prescribed joint motion takes models of 1-DoF joints only (joint '" + joint + "')");
   }
   if (scene.integrator == Integrator::Variational) {
-    // scandyn/sim/variational.hpp: per instance on the host, dense Newton, smooth forces
+    // scandyn/sim/variational.hpp: per instance, dense Newton (cuda: up to 64 DoFs), smooth forces
     const std::string vi = "the variational integrator";
-    if (backend == BackendKind::Cuda)
-      throw BackendError("backend 'cuda': " + vi + " (Newton on the discrete Euler-Lagrange equations, a dense LU per "
-                         "iteration) runs on the serial and openmp backends only");
+    if (backend == BackendKind::Cuda && nv > kVariationalCudaMaxDofs)
+      throw BackendError(variational_cuda_refusal(scene.model.name, nv));
     if (scene.model.multi_dof())
       throw BackendError(vi + " takes models of 1-DoF joints only (joint '" +
                          printable(first_multi_dof_joint(scene.model)) + "')");

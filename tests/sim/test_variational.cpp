@@ -58,9 +58,11 @@ TEST(SimVariational, SceneValueAndRefusals) {
   EXPECT_EQ(i, Integrator::Variational);
   EXPECT_STREQ(sim::to_string(Integrator::Variational), "variational");
   EXPECT_EQ(scene_of("rope:2", "variational", 1e-3, kPendulum).integrator, Integrator::Variational);
-  // the CUDA backend, multi-DoF joints, contacts: refused by name
-  EXPECT_NE(message_of(scene_of("rope:2", "variational", 1e-3, kPendulum), BackendKind::Cuda).find("variational"),
-            std::string::npos);
+  // the CUDA backend beyond its 64 DoFs (the limit named), multi-DoF joints, contacts: refused by name
+  const std::string cuda =
+      message_of(scene_of("rope:65", "variational", 1e-3, ", \"effects\": {\"gravity\": true}"), BackendKind::Cuda);
+  EXPECT_NE(cuda.find("variational"), std::string::npos) << cuda;
+  EXPECT_NE(cuda.find("up to 64 DoF"), std::string::npos) << cuda;
   EXPECT_NE(message_of(scene_of("ballrope:2", "variational", 1e-3), BackendKind::Serial).find("1-DoF joints"),
             std::string::npos);
   const Scene contacts = scene_of("rope:2", "variational", 1e-3,

@@ -43,8 +43,10 @@ void rnea_second_derivatives(const ModelTpl<S>& model, SecondDerivativeData<S>& 
 // The contraction of d2tau_dq2 with a weight w on tau, without the nv^3 tensor:
 // out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, row-major, symmetric), the
 // q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w. The same nv dual passes of
-// the first-order recursion seeded along q's e_k (O(nv^2 depth) work). The
-// variational integrator's exact Newton Jacobian (scandyn/sim/variational.hpp).
+// the first-order recursion seeded along q's e_k (O(nv^2 depth) work), by
+// rnea_weighted_dq2_instance (instance/second_derivatives_instance.hpp), which the
+// variational integrator's exact Newton Jacobian runs on every backend
+// (scandyn/sim/variational_instance.hpp).
 template <class S>
 void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                        const S* qdd, const Force<S>* fext, const S* w, S* out);

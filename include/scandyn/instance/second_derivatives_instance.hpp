@@ -174,4 +174,27 @@ SCANDYN_HD void rnea_second_derivatives_instance(const Body<Dual<S>>* body, Inde
     seeded_derivative_pass(body, nv, a0d, q, qd, qdd, f, work, 1, k, d2tau_dqdqd.slice(k), d2tau_dqd2.slice(k), none);
 }
 
+// The contraction of d2tau_dq2 with a weight w on tau, without the nv^3 tensor:
+// out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, symmetric), the q-Hessian of
+// w^T ID(q, qd, qdd, fext) for fixed w: nv dual passes seeded along q's e_k
+// (seeded_derivative_pass), each contracted with w. body: the nv bodies in dual
+// numbers; a0: the base acceleration (-g); fext: the body wrenches in dual numbers
+// (dual_wrenches) or null; work: nv entries of scratch; block: an nv x nv matrix of
+// scratch (one pass's d/dq_k of dtau/dq).
+template <class S, class V>
+SCANDYN_HD void rnea_weighted_dq2_instance(const Body<Dual<S>>* body, Index nv, const Motion<S>& a0, V q, V qd,
+                                           V qdd, const Force<Dual<S>>* fext, const S* w,
+                                           DerivativeBody<Dual<S>>* work, MatrixRef<S> block, MatrixRef<S> out) {
+  const Motion<Dual<S>> a0d = a0.template cast<Dual<S>>();
+  const MatrixRef<S> none{nullptr, nv, 0};
+  for (Index k = 0; k < nv; ++k) {
+    seeded_derivative_pass(body, nv, a0d, q, qd, qdd, fext, work, 0, k, block, none, none);
+    for (Index j = 0; j < nv; ++j) {  // sum_i w_i d/dq_k of dtau_i/dq_j
+      S s = S(0);
+      for (Index i = 0; i < nv; ++i) s += w[i] * block(i, j);
+      out(j, k) = s;
+    }
+  }
+}
+
 }  // namespace scandyn

@@ -54,9 +54,10 @@ namespace scandyn {
 namespace sim {
 
 // Variational (the midpoint discrete Lagrangian solved by Newton,
-// scandyn/sim/variational.hpp) runs on the serial and OpenMP backends only, per
-// instance, outside the step tables below: kIntegrators counts the three explicit /
-// semi-implicit integrators that every backend instantiates.
+// scandyn/sim/variational.hpp) runs per instance outside the step tables below (the
+// serial and OpenMP backends; CUDA up to 64 DoFs, kernels/sim_variational.cu):
+// kIntegrators counts the three explicit / semi-implicit integrators that every
+// backend instantiates.
 enum class Integrator : int { Euler = 0, Rk4 = 1, Implicit = 2, Variational = 3 };
 inline constexpr int kIntegrators = 3;
 

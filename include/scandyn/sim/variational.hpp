@@ -1,6 +1,8 @@
 // scandyn/sim/variational.hpp: the variational integrator of the simulator
-// (Integrator::Variational, "variational"), host only (the serial and OpenMP
-// backends; the CUDA backend refuses it).
+// (Integrator::Variational, "variational"): the host step (the serial and OpenMP
+// backends) over the per-instance routines of scandyn/sim/variational_instance.hpp,
+// which the CUDA backend runs too (up to kVariationalExactMaxDofs DoFs; the chord
+// and Newton-Krylov iterations of longer chains below are host only).
 //
 // Discrete mechanics (Marsden & West, Acta Numerica 2001), the midpoint discrete
 // Lagrangian of L(q, qd) = 1/2 qd^T M(q) qd - V(q):
@@ -83,37 +85,10 @@
 #include "scandyn/algorithm/directional_derivatives.hpp"
 #include "scandyn/algorithm/second_derivatives.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
+#include "scandyn/sim/variational_instance.hpp"
 
 namespace scandyn {
 namespace sim {
-
-// The effects the variational integrator takes (contacts are refused: their force
-// switches with the contact set).
-inline constexpr unsigned kVariationalEffects = kGravity | kDamping | kSprings | kLimits | kExternal;
-inline constexpr int kVariationalMaxIterations = 50;
-// Models of up to this many DoFs get the exact Newton Jacobian (the dt^2/8 H term
-// by nv dual passes, rnea_weighted_dq2); larger ones the O(nv) chord iteration.
-inline constexpr Index kVariationalExactMaxDofs = 64;
-// The chord iteration's fallback, the dense quasi-Newton Jacobian (nv x nv, LU),
-// up to this many DoFs (5 nv^2 numbers of scratch, O(nv^3) per update); beyond it a
-// step the chord iteration does not solve fails with Failure::NotConverged.
-inline constexpr Index kVariationalDenseMaxDofs = 2048;
-template <class S>
-constexpr S variational_tolerance() {
-  return S(16) * std::numeric_limits<S>::epsilon();
-}
-
-// One step's outcome.
-struct VariationalResult {
-  Index failed_dof = -1;      // -1: converged; else the DoF of the largest correction (or failed pivot)
-  Failure failure = Failure::None;
-  int iterations = 0;         // Newton updates taken (an iteration that stops on the residual makes none)
-  double first_update = 0;    // |dv|_inf of the first and the last iterations
-  double last_update = 0;
-  double previous_update = 0; // |dv|_inf of the iteration before the last
-  bool krylov = false;         // the chord iteration did not contract: solved by Newton-Krylov
-  bool dense_fallback = false; // neither did Newton-Krylov: solved by the dense quasi-Newton
-};
 
 // One thread's scratch (made once per model; the dense matrices of a chord model
 // only when its fallback first needs them).
@@ -121,16 +96,17 @@ template <class S>
 struct VariationalWork {
   explicit VariationalWork(const ModelTpl<S>& model)
       : at_rest(model), deriv(model), data(model, false), n(static_cast<std::size_t>(model.nv())),
-        chord(model.nv() > kVariationalExactMaxDofs) {
+        chord(model.nv() > kVariationalExactMaxDofs), a0(base_acceleration(model.gravity)) {
     at_rest.gravity = Vec3<S>{S(0), S(0), S(0)};
     jvp = std::make_unique<RneaJvpData<S>>(at_rest);
     for (std::vector<S>* a : {&zero, &q1, &qm, &v, &p0, &tau_m, &tau_g, &f, &eq, &eqd, &r, &work, &dtv, &diag, &gqd, &v0})
       a->assign(n, S(0));
     if (!chord) {
-      allocate_dense();
       dual = std::make_unique<SecondDerivativeData<S>>(at_rest);
       H.assign(n * n, S(0));
+      allocate_dense();
     }
+    point_scratch();
   }
   void allocate_krylov() {
     if (kv.size() == (kKrylovDim + 1) * n) return;
@@ -146,6 +122,12 @@ struct VariationalWork {
     if (D.size() == n * n) return;
     for (std::vector<S>* a : {&D, &K, &M, &J, &unused}) a->assign(n * n, S(0));
     piv.assign(n, 0);
+    point_scratch();
+  }
+  // The model as variational_instance.hpp's routines read it (H only where dual is made).
+  VariationalModel<S> instance_model() const {
+    return {at_rest.bodies.data(), at_rest.nv(), a0, base_acceleration(at_rest.gravity),
+            dual ? dual->bodies.data() : nullptr};
   }
   ModelTpl<S> at_rest;          // the model with zero gravity: ID(at_rest, q, 0, a) = M(q) a
   DerivativeDataTpl<S> deriv;   // rnea_derivatives' scratch
@@ -169,54 +151,24 @@ struct VariationalWork {
   std::vector<Index> piv;
   std::unique_ptr<SecondDerivativeData<S>> dual;  // the exact Jacobian's dual passes, or null
   std::vector<S> H;                               // (nv x nv) d(D^T v)/dq, or empty
+  Motion<S> a0;                                   // the model's base acceleration, -g
+  VariationalScratch<S> scratch{};                // views of the vectors above (point_scratch)
+
+ private:
+  // scratch's pointers at the vectors (again whenever the dense matrices are made)
+  void point_scratch() {
+    const Index nv = static_cast<Index>(n);
+    auto mat = [&](std::vector<S>& m) { return MatrixRef<S>{m.empty() ? nullptr : m.data(), nv, 1}; };
+    scratch = {zero.data(), q1.data(), qm.data(), v.data(), p0.data(), tau_m.data(), tau_g.data(), f.data(),
+               eq.data(), eqd.data(), r.data(), work.data(), dtv.data(), mat(D), mat(K), mat(M), mat(J), mat(unused),
+               mat(H), piv.empty() ? nullptr : piv.data(), deriv.work.data(), dual ? dual->work.data() : nullptr,
+               GeneralWork<S>{data.Xup.data(), data.v.data(), data.a.data(), data.c.data(), data.f.data(),
+                              data.Ic.data(), data.IA.data(), data.U.data(), data.D.data(), data.u.data(),
+                              data.L.empty() ? nullptr : data.L.data()}};
+  }
 };
 
 namespace detail {
-// In place LU with partial pivoting of the n x n row-major A; false on a zero or
-// non-finite pivot (piv[k]: the row swapped with k).
-template <class S>
-bool lu_factor(Index n, S* A, Index* piv) {
-  for (Index k = 0; k < n; ++k) {
-    Index p = k;
-    S best = std::abs(A[k * n + k]);
-    for (Index i = k + 1; i < n; ++i)
-      if (std::abs(A[i * n + k]) > best) best = std::abs(A[i * n + k]), p = i;
-    piv[k] = p;
-    if (!(best > S(0)) || !std::isfinite(best)) return false;
-    if (p != k)
-      for (Index j = 0; j < n; ++j) std::swap(A[k * n + j], A[p * n + j]);
-    const S inv = S(1) / A[k * n + k];
-    for (Index i = k + 1; i < n; ++i) {
-      S* const row = A + i * n;
-      const S l = row[k] * inv;
-      row[k] = l;
-      if (l == S(0)) continue;
-      const S* const pivot_row = A + k * n;
-      for (Index j = k + 1; j < n; ++j) row[j] -= l * pivot_row[j];
-    }
-  }
-  return true;
-}
-// x = A^-1 x with lu_factor's factors (whole rows were swapped, L's multipliers
-// included: the row exchanges apply to x first, then L y = P x, then U x = y).
-template <class S>
-void lu_solve(Index n, const S* A, const Index* piv, S* x) {
-  for (Index k = 0; k < n; ++k) std::swap(x[k], x[piv[k]]);
-  for (Index k = 0; k < n; ++k)
-    for (Index i = k + 1; i < n; ++i) x[i] -= A[i * n + k] * x[k];
-  for (Index k = n - 1; k >= 0; --k) {
-    S s = x[k];
-    for (Index j = k + 1; j < n; ++j) s -= A[k * n + j] * x[j];
-    x[k] = s / A[k * n + k];
-  }
-}
-
-// Entry j of the residual r(u) = M u - dt/2 (1/2 D^T u - (g - J^T fext) + F) - p_k
-// from its terms (half = dt/2).
-template <class S>
-S residual_entry(S Mu, S DTu, S g, S F, S p0, S half) {
-  return Mu - half * (S(0.5) * DTu - g + F) - p0;
-}
 
 // The terms of the residual at u, qm = q + dt/2 u (into qm): Mu = M(qm) u and DTu =
 // D(qm)^T u by one rnea_vjp (weight u), g = g(qm) - J^T fext by one RNEA (written only
@@ -232,111 +184,6 @@ void residual_terms(const ModelTpl<S>& model, VariationalWork<S>& w, S half, con
   if constexpr ((kEffects & (kGravity | kExternal)) != 0)
     rnea(model, w.data, qm, w.zero.data(), w.zero.data(), g, fx);
   stage_forces<kEffects>(n, coef, tau, qm, u, S(0), F, eq, eqd);
-}
-
-// Newton's right-hand side -r(v) into w.r, from w.tau_m (M v), w.dtv (D^T v), w.tau_g
-// (g - J^T fext, read when kPotential), w.f (F) and w.p0; returns |r|_inf and its
-// rounding floor (64 eps of the largest sum of a row's terms' magnitudes).
-template <bool kPotential, class S>
-std::pair<S, S> negative_residual(VariationalWork<S>& w, Index n, S half) {
-  S residual = S(0), floor = S(0);
-  for (Index j = 0; j < n; ++j) {
-    const S g = kPotential ? w.tau_g[j] : S(0);
-    w.r[j] = -residual_entry(w.tau_m[j], w.dtv[j], g, w.f[j], w.p0[j], half);
-    residual = std::max(residual, std::abs(w.r[j]));
-    floor = std::max(floor, std::abs(w.tau_m[j]) + std::abs(w.p0[j]) +
-                                half * (std::abs(S(0.5) * w.dtv[j]) + std::abs(g) + std::abs(w.f[j])));
-  }
-  return {residual, S(64) * std::numeric_limits<S>::epsilon() * floor};
-}
-
-// What an update did: the iteration goes on, has converged, or has failed (a
-// non-finite update; for the chord iteration also one that grows).
-enum class Update { Continue, Converged, Failed };
-
-// v += dv (dv in w.r), recorded in out (iterations, updates) and worst (the DoF of
-// the largest correction); the stopping rule of the header: the update within the
-// tolerance, or, once within sqrt(eps) of the speed, the next one predicted from the
-// contraction within it or the updates no longer shrinking (the residual's rounding
-// floor: M's small pivots amplify it past 16 eps on robots). stall_fails: from the
-// third update on, one above half the one before it (and above sqrt(eps)) fails: the
-// chord iteration contracts too slowly there to be worth going on.
-template <class S>
-Update take_update(VariationalWork<S>& w, Index n, S speed, int it, bool stall_fails, VariationalResult& out,
-                   Index& worst) {
-  const S tol = variational_tolerance<S>(), root_eps = std::sqrt(std::numeric_limits<S>::epsilon());
-  S step = S(0), scale = speed;
-  for (Index i = 0; i < n; ++i) {
-    w.v[i] += w.r[i];
-    if (std::abs(w.r[i]) > step || !std::isfinite(w.r[i])) step = std::abs(w.r[i]), worst = i;
-    scale = std::max(scale, std::abs(w.v[i]));
-  }
-  const S previous = S(out.last_update);
-  out.iterations = it + 1;
-  out.previous_update = out.last_update;
-  out.last_update = double(step);
-  if (it == 0) out.first_update = double(step);
-  if (!std::isfinite(step)) return Update::Failed;
-  if (step <= tol * scale || step < std::numeric_limits<S>::min() ||
-      (it > 0 && step <= root_eps * scale && (step * step <= tol * scale * previous || step >= S(0.5) * previous)))
-    return Update::Converged;
-  if (stall_fails && it > 1 && step > S(0.5) * previous) return Update::Failed;
-  return Update::Continue;
-}
-
-// Newton on the dense Jacobian dr/dv = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4
-// de/dq + dt/2 de/dv) - dt^2/8 H (H where w.dual is made: up to
-// kVariationalExactMaxDofs DoFs), LU per update; v from w.v. True when converged.
-template <unsigned kEffects, class S>
-bool solve_dense(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, const JointCoefficients<S>* coef,
-                 const S* q, const S* tau, const Force<S>* fx, S speed, VariationalResult& out, Index& worst) {
-  constexpr bool kPotential = (kEffects & (kGravity | kExternal)) != 0;
-  const Index n = model.nv();
-  w.allocate_dense();
-  const MatrixRef<S> D{w.D.data(), n, 1}, K{w.K.data(), n, 1}, M{w.M.data(), n, 1}, unused{w.unused.data(), n, 1};
-  const S half = S(0.5) * dt, quarter = S(0.25) * dt * dt;
-  for (int it = 0; it < kVariationalMaxIterations; ++it) {
-    for (Index i = 0; i < n; ++i) w.qm[i] = q[i] + half * w.v[i];
-    // M v, D = d(M v)/dq, M at qm
-    rnea_derivatives(w.at_rest, w.deriv, w.qm.data(), w.zero.data(), w.v.data(), static_cast<const Force<S>*>(nullptr),
-                     D, unused, M, w.tau_m.data());
-    // g - J^T fext and K = its q-derivative at qm
-    if constexpr (kPotential)
-      rnea_derivatives(model, w.deriv, w.qm.data(), w.zero.data(), w.zero.data(), fx, K, unused, unused,
-                       w.tau_g.data());
-    // F = tau + e(qm, v), its diagonal partials
-    stage_forces<kEffects>(n, coef, tau, w.qm.data(), w.v.data(), S(0), w.f.data(), w.eq.data(), w.eqd.data());
-    for (Index j = 0; j < n; ++j) {
-      S dtv = S(0);
-      for (Index i = 0; i < n; ++i) dtv += D(i, j) * w.v[i];
-      w.dtv[j] = dtv;
-    }
-    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
-    if (it > 0 && residual <= floor) return true;  // the residual is rounding: v is the solution to working precision
-    // dr/dv = dt dr/dq1 = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4 de/dq + dt/2 de/dv)
-    for (Index i = 0; i < n; ++i) {
-      S* const row = w.J.data() + static_cast<std::size_t>(i) * w.n;
-      for (Index j = 0; j < n; ++j) {
-        const S k = kPotential ? K(i, j) : S(0);
-        row[j] = M(i, j) + half * (D(i, j) - D(j, i)) + quarter * k;
-      }
-      row[i] -= quarter * w.eq[i] + half * w.eqd[i];
-    }
-    // the exact Jacobian's last term: - dt^2/8 H, H = d(D^T v)/dq at qm (v fixed)
-    if (w.dual) {
-      rnea_weighted_dq2(w.at_rest, *w.dual, w.qm.data(), w.zero.data(), w.v.data(),
-                        static_cast<const Force<S>*>(nullptr), w.v.data(), w.H.data());
-      const S eighth = S(0.125) * dt * dt;
-      for (std::size_t e = 0; e < w.n * w.n; ++e) w.J[e] -= eighth * w.H[e];
-    }
-    bool finite = true;
-    for (Index i = 0; i < n; ++i) finite = finite && std::isfinite(w.r[i]);
-    if (!finite || !lu_factor(n, w.J.data(), w.piv.data())) return false;
-    lu_solve(n, w.J.data(), w.piv.data(), w.r.data());
-    const Update u = take_update(w, n, speed, it, false, out, worst);
-    if (u != Update::Continue) return u == Update::Converged;
-  }
-  return false;
 }
 
 // The residual r(u) at qm = q + dt/2 u into out, its terms in w.k1..w.k5 (w's outer
@@ -471,8 +318,8 @@ bool solve_matrix_free(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, co
   for (int it = 0; it < most; ++it) {
     residual_terms<kEffects>(model, w, half, coef, q, tau, fx, w.v.data(), w.qm.data(), w.tau_m.data(), w.dtv.data(),
                              w.tau_g.data(), w.f.data(), w.eq.data(), w.eqd.data());
-    const auto [residual, floor] = negative_residual<kPotential>(w, n, half);
-    if (it > 0 && residual <= floor) return true;  // the residual is rounding
+    const ResidualNorm<S> norm = negative_residual<kPotential>(w.scratch, n, half);
+    if (it > 0 && norm.residual <= norm.floor) return true;  // the residual is rounding
     bool finite = true;
     for (Index i = 0; i < n; ++i) {
       finite = finite && std::isfinite(w.r[i]);
@@ -488,7 +335,7 @@ bool solve_matrix_free(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, co
         return false;
       std::copy(w.work.begin(), w.work.end(), w.r.begin());
     }
-    const Update u = take_update(w, n, speed, it, !krylov, out, worst);
+    const Update u = take_update(w.scratch, n, speed, it, !krylov, out, worst);
     if (u != Update::Continue) return u == Update::Converged;
   }
   return false;
@@ -499,71 +346,39 @@ bool solve_matrix_free(const ModelTpl<S>& model, VariationalWork<S>& w, S dt, co
 // One variational step of one instance of a model of 1-DoF joints: q, qd (nv each)
 // advanced by dt in place under tau (nv, held over the step); coef the joints'
 // coefficients (read for declared joint effects); fext nbodies body wrenches or null
-// (read only with kExternal). On a failure q and qd are left as they were.
+// (read only with kExternal). On a failure q and qd are left as they were. The
+// step of variational_instance.hpp: its dense Newton up to kVariationalExactMaxDofs
+// DoFs, beyond them the chord iteration, Newton-Krylov, then the dense quasi-Newton.
 template <unsigned kEffects, class S>
 VariationalResult variational_step(const ModelTpl<S>& model, VariationalWork<S>& w, S dt,
                                    const JointCoefficients<S>* coef, S* q, S* qd, const S* tau,
                                    const Force<S>* fext) {
-  static_assert((kEffects & ~kVariationalEffects) == 0, "variational_step: contacts are not taken");
   const Index n = model.nv();
   const Force<S>* const fx = (kEffects & kExternal) ? fext : nullptr;
-  VariationalResult out;
-  // p_k = M(q_k) qd_k
-  rnea(w.at_rest, w.data, q, w.zero.data(), qd, w.p0.data());
-  // the first guess: q1 = q + dt (qd + dt/2 qdd), qdd = FD(q, qd, tau + e(q, qd))
-  stage_forces<kEffects>(n, coef, tau, q, qd, S(0), w.f.data(), static_cast<S*>(nullptr), static_cast<S*>(nullptr));
-  const Status guess = aba(model, w.data, q, qd, w.f.data(), w.work.data(), fx);
-  if (!guess.ok()) {
-    out.failed_dof = guess.failed_dof;
-    out.failure = Failure::ArticulatedPivot;
-    return out;
-  }
-  // the unknown is the step's mean velocity v = (q1 - q) / dt (q1 = q + dt v: v keeps
-  // its relative precision where q1 - q would cancel); first guess v = qd + dt/2 qdd
-  const S half = S(0.5) * dt;
-  for (Index i = 0; i < n; ++i) w.v[i] = qd[i] + half * w.work[i];
-  if (w.chord) std::copy(w.v.begin(), w.v.end(), w.v0.begin());
-  S speed = S(0);  // the velocity scale of the convergence test
-  for (Index i = 0; i < n; ++i) speed = std::max(speed, std::abs(qd[i]));
-  Index worst = 0;
-  bool converged;
   if (!w.chord) {
-    converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
-  } else {
-    converged = detail::solve_matrix_free<kEffects>(model, w, dt, coef, q, tau, fx, speed, false, out, worst);
+    w.allocate_dense();  // (made at construction, unless a caller turned the chord off: then no H)
+    return variational_dense_step<kEffects>(w.instance_model(), w.scratch, dt, coef, q, qd, tau, fx);
+  }
+  auto chord = [&](const VariationalModel<S>& m, const VariationalScratch<S>&, S, const JointCoefficients<S>*,
+                   const S*, const S*, const Force<S>*, S speed, VariationalResult& out, Index& worst) {
+    std::copy(w.v.begin(), w.v.end(), w.v0.begin());  // the first guess
+    bool converged = detail::solve_matrix_free<kEffects>(model, w, dt, coef, q, tau, fx, speed, false, out, worst);
     if (!converged) {  // again from the first guess, Newton-Krylov
       std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
       out = VariationalResult{};
       out.krylov = true;
       converged = detail::solve_matrix_free<kEffects>(model, w, dt, coef, q, tau, fx, speed, true, out, worst);
     }
-    if (!converged && n <= kVariationalDenseMaxDofs) {  // again, dense
+    if (!converged && n <= kVariationalDenseMaxDofs) {  // again, dense (no H)
       std::copy(w.v0.begin(), w.v0.end(), w.v.begin());
       out = VariationalResult{};
       out.dense_fallback = true;
-      converged = detail::solve_dense<kEffects>(model, w, dt, coef, q, tau, fx, speed, out, worst);
+      w.allocate_dense();
+      converged = detail::solve_dense<kEffects>(m, w.scratch, dt, coef, q, tau, fx, speed, out, worst);
     }
-  }
-  if (!converged) {
-    out.failed_dof = worst;
-    out.failure = Failure::NotConverged;
-    return out;
-  }
-  // q1 = q + dt v, p_{k+1} = 2 M(qm) v - p_k at the converged v, qd_{k+1} = M(q1)^-1 p_{k+1}
-  for (Index i = 0; i < n; ++i) {
-    w.qm[i] = q[i] + half * w.v[i];
-    w.q1[i] = q[i] + dt * w.v[i];
-  }
-  rnea(w.at_rest, w.data, w.qm.data(), w.zero.data(), w.v.data(), w.tau_m.data());
-  for (Index i = 0; i < n; ++i) w.f[i] = S(2) * w.tau_m[i] - w.p0[i];
-  const Status velocity = aba(w.at_rest, w.data, w.q1.data(), w.zero.data(), w.f.data(), w.work.data());
-  if (!velocity.ok()) {
-    out.failed_dof = velocity.failed_dof;
-    out.failure = Failure::ArticulatedPivot;
-    return out;
-  }
-  for (Index i = 0; i < n; ++i) q[i] = w.q1[i], qd[i] = w.work[i];
-  return out;
+    return converged;
+  };
+  return variational_step_instance<kEffects>(w.instance_model(), w.scratch, dt, coef, q, qd, tau, fx, chord);
 }
 
 }  // namespace sim
