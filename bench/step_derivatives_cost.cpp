@@ -140,8 +140,8 @@ int cuda_main(int argc, char** argv) {
   cuda_check(cudaGetDeviceProperties(&prop, 0), "cudaGetDeviceProperties");
   std::printf("model,integrator,precision,instances,steps,checkpoint_interval,rollout_ns_per_instance_step,"
               "vjp_ns_per_instance_step,vjp_over_rollout,store_bytes_per_instance,gpu\n");
-  for (const char* integrator : {"euler", "rk4"})
-    for (Index B : batches) {
+  for (Index B : batches)
+    for (const char* integrator : {"euler", "rk4"}) {
       cuda_rollout_rows<float>(integrator, B, min_time, prop.name);
       cuda_rollout_rows<double>(integrator, B, min_time, prop.name);
     }

@@ -339,7 +339,7 @@ template <class S>
 void CudaRolloutDerivatives<S>::grow(Buffer& buf, std::size_t bytes, const char* what) {
   if (bytes <= buf.bytes) return;
   if (buf.ptr) {
-    check(cudaStreamSynchronize(stream_), "finishing the calls that use the buffer");
+    check(cudaDeviceSynchronize(), "finishing the calls that use the buffer");  // (any stream's)
     check(cudaFree(buf.ptr), "freeing a buffer");
     buf = Buffer{};
   }
