@@ -9,7 +9,13 @@
 // analysis done once; nnz_L and flops are CHOLMOD's symbolic counts.
 //
 // Usage: bench_factor_graph [--reps 30] [--inner 200] [--cloth K:N ...] [--models DIR]
-//                           [--patterns FILE] [--small]
+//                           [--patterns FILE] [--small] [--gpu]
+// --gpu: only the cloth grids (default 10:10, 30:30, 50:50, 100:100), one forward
+// dynamics with loops each, solved by CHOLMOD on the host and by cuSOLVER's sparse
+// Cholesky on the GPU (GpuSparseCholesky) under the same elimination order
+// (CHOLMOD's nested dissection), with the symbolic analysis, the numeric
+// factorisation and the solve (3 refinement steps) timed separately; CSV columns
+// as below plus solver, analysis_us, device_mb and qdd_vs_cholmod.
 // Instruction counts (the machine may be loaded; counts are not):
 //   valgrind --tool=callgrind --collect-atstart=no --callgrind-out-file=/tmp/fg_cg.%p
 //     build-cpu/bench_factor_graph --small --reps 1 --inner 50 > /dev/null
@@ -28,6 +34,8 @@
 
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/factor_graph/dynamics_graph.hpp"
+#include "scandyn/factor_graph/gpu_sparse_cholesky.hpp"
+#include "scandyn/factor_graph/normal_equations.hpp"
 #include "scandyn/factor_graph/sparse_cholesky.hpp"
 #include "scandyn/model/load.hpp"
 
@@ -43,6 +51,8 @@ using namespace scandyn;
 using namespace scandyn::factor_graph;
 
 namespace {
+
+using LoopClosure = factor_graph::LoopClosure;  // the graph's loops, not the loop files' (scandyn::LoopClosure)
 
 int g_reps = 30, g_inner = 200;
 std::FILE* g_patterns = nullptr;  // --patterns FILE: the factor L of selected systems
@@ -80,6 +90,15 @@ double max_diff(const std::vector<double>& a, const std::vector<double>& b) {
   return m;
 }
 
+// max |b - A x| of the graph's system
+double residual_norm(const DynamicsGraph& g, const std::vector<double>& x) {
+  std::vector<double> r(g.b().size());
+  residual(g.At(), g.b(), x.data(), r.data());
+  double m = 0;
+  for (double v : r) m = std::max(m, std::abs(v));
+  return m;
+}
+
 // top_body: the body whose unknown is eliminated last (the top separator of a
 // nested dissection), -1 for a loop multiplier or a row without elimination.
 void row(const std::string& model, const char* problem, const std::string& method, double us,
@@ -113,14 +132,8 @@ void graph_rows(const std::string& name, const char* problem, DynamicsGraph& g, 
       std::vector<double> out(static_cast<std::size_t>(nv));
       g.extract(x.data(), want_tau ? nullptr : out.data(), want_tau ? out.data() : nullptr, nullptr);
       err = max_diff(out, *ref);
-    } else {  // residual of A x = b
-      std::vector<double> r(g.b());
-      const SparseMatrix& At = g.At();
-      for (Index e = 0; e < At.cols; ++e)
-        for (Index t = At.col_ptr[e]; t < At.col_ptr[e + 1]; ++t) r[e] -= At.val[t] * x[At.row_idx[t]];
-      double m = 0;
-      for (double v : r) m = std::max(m, std::abs(v));
-      err = m;
+    } else {
+      err = residual_norm(g, x);
     }
     const std::string label = name + "," + problem + "," + o.label;
     const double total = time_us(label + ",total", [&] {
@@ -202,6 +215,74 @@ void loop_tables(const std::string& name, const Model& model, const std::vector<
   row(name, "fd-tree-only", "aba", time_us(name + ",fd-tree-only,aba,total", [&] { aba(model, data, q.data(), qd.data(), tau.data(), out.data()); }, inner), 0, 0, nullptr, 0);
 }
 
+#if SCANDYN_HAS_FACTOR_GRAPH_GPU
+// The GPU's sparse Cholesky next to CHOLMOD on one loop system (forward dynamics at
+// q = 0, qd = 0, tau_i = 1e-5 sin(1 + i)), both under CHOLMOD's nested-dissection
+// order: the symbolic analysis once (timed once), then per repetition assemble,
+// factorise and solve (kLoopRefine refinement steps) timed separately; minima over
+// the repetitions, time_us = the minimum of their sums.
+void gpu_rows(const std::string& name, const Model& model, const std::vector<LoopClosure>& loops, int reps) {
+  const Index nv = model.nv();
+  const std::vector<double> q(static_cast<std::size_t>(nv), 0.0), qd(q);
+  std::vector<double> tau(static_cast<std::size_t>(nv));
+  for (Index i = 0; i < nv; ++i) tau[i] = 1e-5 * std::sin(1.0 + i);
+  DynamicsGraph g(model, loops, {});
+  g.assemble(q.data(), qd.data(), nullptr, tau.data());
+  using clock = std::chrono::steady_clock;
+  auto us = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double, std::micro>(b - a).count(); };
+  struct Times { double total = 1e300, assemble = 1e300, factor = 1e300, solve = 1e300; };
+  // reps x {assemble, factorize, solve} of one solver
+  auto measure = [&](auto& solver, std::vector<double>& x) {
+    Times t;
+    for (int r = 0; r < reps; ++r) {
+      const auto t0 = clock::now();
+      g.assemble(q.data(), qd.data(), nullptr, tau.data());
+      const auto t1 = clock::now();
+      solver.factorize(g.At());
+      const auto t2 = clock::now();
+      solver.solve(g.At(), g.b(), x, kLoopRefine);
+      const auto t3 = clock::now();
+      t.assemble = std::min(t.assemble, us(t0, t1));
+      t.factor = std::min(t.factor, us(t1, t2));
+      t.solve = std::min(t.solve, us(t2, t3));
+      t.total = std::min(t.total, us(t0, t3));
+    }
+    return t;
+  };
+  auto qdd_of = [&](const std::vector<double>& x) {
+    std::vector<double> qdd(static_cast<std::size_t>(nv));
+    g.extract(x.data(), qdd.data(), nullptr, nullptr);
+    return qdd;
+  };
+  auto print = [&](const char* solver, const Times& t, double analysis, const EliminationStats& s, double device_mb,
+                   double err, double vs, Index last) {
+    std::printf("%s,fd-loops,fg-cholmod-nd,%s,%.3f,%.3f,%.3f,%.3f,%.0f,%.0f,%.0f,%d,%d,%.3g,%.3f,%.3g\n", name.c_str(),
+                solver, t.total, analysis, t.factor, t.solve, s.nnz_A, s.nnz_L, s.flops, s.etree_height,
+                last < 14 * nv ? last / 14 : -1, err, device_mb, vs);
+    std::fflush(stdout);
+  };
+  const auto a0 = clock::now();
+  SparseCholesky chol(g.At(), Ordering::NESDIS, {}, kLoopBeta);
+  const double chol_analysis = us(a0, clock::now());
+  std::vector<double> x_chol, x_gpu;
+  const Times tc = measure(chol, x_chol);
+  const std::vector<double> qdd_chol = qdd_of(x_chol);
+  const Index last = chol.elimination_order().back();
+  print("cholmod", tc, chol_analysis, chol.stats(), 0.0, residual_norm(g, x_chol), 0.0, last);
+  const auto a1 = clock::now();
+  GpuSparseCholesky gpu(g.At(), chol.elimination_order(), kLoopBeta);
+  const double gpu_analysis = us(a1, clock::now());
+  const Times tg = measure(gpu, x_gpu);
+  const std::vector<double> qdd_gpu = qdd_of(x_gpu);
+  double scale = 0;
+  for (double v : qdd_chol) scale = std::max(scale, std::abs(v));
+  const double device_mb = static_cast<double>(gpu.stats().internal_bytes + gpu.stats().workspace_bytes +
+                                               (sizeof(double) + sizeof(int)) * gpu.stats().nnz_B) / 1e6;
+  print("cusolver-sp", tg, gpu_analysis, chol.stats(), device_mb, residual_norm(g, x_gpu),
+        max_diff(qdd_gpu, qdd_chol) / std::max(scale, 1e-300), last);
+}
+#endif
+
 // Chains: nested dissection against block cyclic reduction (the parallel chain
 // FD's scan, scandyn/algorithm/chain_fd.hpp). Symbolic counts only.
 void chain_orderings(long long n) {
@@ -232,13 +313,14 @@ void chain_orderings(long long n) {
 int main(int argc, char** argv) {
   std::vector<std::string> cloths = {"10:10", "30:30", "50:50"};
   std::string models_dir = SCANDYN_DEFAULT_MODELS_DIR;
-  bool custom_cloth = false, small_only = false;
+  bool custom_cloth = false, small_only = false, gpu = false;
   for (int k = 1; k < argc; ++k) {
     const std::string a = argv[k];
     if (a == "--reps" && k + 1 < argc) g_reps = std::atoi(argv[++k]);
     else if (a == "--inner" && k + 1 < argc) g_inner = std::atoi(argv[++k]);
     else if (a == "--models" && k + 1 < argc) models_dir = argv[++k];
     else if (a == "--small") small_only = true;  // robots and five-bar only (callgrind)
+    else if (a == "--gpu") gpu = true;
     else if (a == "--patterns" && k + 1 < argc) {
       g_patterns = std::fopen(argv[++k], "w");
       if (!g_patterns) { std::fprintf(stderr, "bench_factor_graph: cannot write '%s'\n", argv[k]); return 1; }
@@ -247,6 +329,32 @@ int main(int argc, char** argv) {
     else if (a == "--cloth" && k + 1 < argc) { if (!custom_cloth) cloths.clear(); custom_cloth = true; cloths.push_back(argv[++k]); }
     else { std::fprintf(stderr, "bench_factor_graph: unknown argument '%s'\n", a.c_str()); return 2; }
   }
+  if (gpu) {
+#if SCANDYN_HAS_FACTOR_GRAPH_GPU
+    if (!custom_cloth) cloths = {"10:10", "30:30", "50:50", "100:100"};
+    std::printf("model,problem,method,solver,time_us,analysis_us,factor_us,solve_us,nnz_A,nnz_L,flops,etree_height,"
+                "top_body,max_err,device_mb,qdd_vs_cholmod\n");
+    try {
+      {  // CUDA context and cuSOLVER's libraries loaded before the first timed analysis
+        const Model m = make_generated("cloth:2:2");
+        DynamicsGraph g(m, graph_loops(generator_loops("cloth:2:2", m)), {});
+        GpuSparseCholesky warm(g.At(), {}, kLoopBeta);
+      }
+      for (const std::string& kn : cloths) {
+        const Model m = make_generated("cloth:" + kn);
+        const int reps = m.nv() >= 10000 ? 1 : m.nv() >= 900 ? std::min(g_reps, 3) : g_reps;
+        gpu_rows("cloth:" + kn, m, graph_loops(generator_loops("cloth:" + kn, m)), reps);
+      }
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "bench_factor_graph: %s\n", e.what());
+      return 1;
+    }
+    return 0;
+#else
+    std::fprintf(stderr, "bench_factor_graph: --gpu needs a build with CUDA and cuSOLVER (SCANDYN_CUDA=ON)\n");
+    return 2;
+#endif
+  }
   std::printf("model,problem,method,time_us,factor_us,solve_us,nnz_A,nnz_L,flops,etree_height,top_body,max_err\n");
   tree_tables(models_dir + "/puma560.urdf");
   tree_tables(models_dir + "/iiwa.urdf");
@@ -254,25 +362,17 @@ int main(int argc, char** argv) {
     for (long long n : {15LL, 63LL, 255LL, 1023LL, 4095LL}) chain_orderings(n);
   {  // five-bar
     const Model m = five_bar();
-    LoopClosure L; L.body_a = 1; L.point_a = {1, 0, 0}; L.body_b = 3; L.point_b = {1, 0, 0};
+    factor_graph::LoopClosure L; L.body_a = 1; L.point_a = {1, 0, 0}; L.body_b = 3; L.point_b = {1, 0, 0};
     const double pi = 3.14159265358979323846;
     loop_tables("five-bar", m, {L}, {pi / 2, -pi / 6, pi / 2, pi / 6}, 1.0, g_inner);
   }
   if (small_only) cloths.clear();
   for (const std::string& kn : cloths) {  // cloth grid: curtain:K:N + point loops between neighbouring ropes
-    const Model m = make_generated("curtain:" + kn);
-    const long long K = std::atoll(kn.c_str()), N = std::atoll(kn.c_str() + kn.find(':') + 1);
-    std::vector<LoopClosure> loops;
-    for (long long k = 0; k + 1 < K; ++k)
-      for (long long j = 0; j < N; ++j) {
-        LoopClosure L;
-        L.body_a = static_cast<Index>(k * N + j); L.point_a = {0.01, 0, -0.01};
-        L.body_b = static_cast<Index>((k + 1) * N + j); L.point_b = {-0.01, 0, -0.01};
-        loops.push_back(L);
-      }
+    const Model m = make_generated("cloth:" + kn);
+    const std::vector<factor_graph::LoopClosure> loops = graph_loops(generator_loops("cloth:" + kn, m));
     const int reps = g_reps;
-    if (K * N >= 900) g_reps = std::min(g_reps, 3);  // seconds per solve: a few repetitions
-    loop_tables("cloth:" + kn, m, loops, std::vector<double>(m.nv(), 0.0), 1e-5, std::max(1, g_inner / static_cast<int>(K * N)));
+    if (m.nv() >= 900) g_reps = std::min(g_reps, 3);  // seconds per solve: a few repetitions
+    loop_tables("cloth:" + kn, m, loops, std::vector<double>(m.nv(), 0.0), 1e-5, std::max(1, g_inner / m.nv()));
     g_reps = reps;
   }
   if (g_patterns) std::fclose(g_patterns);

@@ -1,8 +1,9 @@
 # The factor-graph view of the dynamics (src/factor_graph/, docs/factor-graph.md):
 # library scandyn_factor_graph (the assembly of the graph's sparse system, always;
 # the CHOLMOD solver with AMD / COLAMD / METIS / nested-dissection orderings when
-# SuiteSparse is found: Debian `libsuitesparse-dev libmetis-dev`), its test and the
-# Tables I / II program bench_factor_graph.
+# SuiteSparse is found: Debian `libsuitesparse-dev libmetis-dev`; the GPU's sparse
+# Cholesky on cuSOLVER when the CUDA backend is built with cuSOLVER), its test and
+# the Tables I / II program bench_factor_graph.
 option(SCANDYN_FACTOR_GRAPH_CHOLMOD "Build the factor-graph sparse solvers on SuiteSparse CHOLMOD if found" ON)
 set(SCANDYN_HAS_CHOLMOD OFF)
 if(SCANDYN_FACTOR_GRAPH_CHOLMOD)
@@ -25,12 +26,22 @@ if(SCANDYN_HAS_CHOLMOD)
 else()
   set(SCANDYN_HAS_CHOLMOD_01 0)
 endif()
+# The GPU's sparse Cholesky (src/factor_graph/gpu_sparse_cholesky.cpp: cuSOLVER's
+# csrchol, host code): with the CUDA backend and cuSOLVER, with or without CHOLMOD.
+set(SCANDYN_HAS_FACTOR_GRAPH_GPU_01 0)
+if(SCANDYN_CUDA AND SCANDYN_HAS_CUSOLVER AND TARGET CUDA::cusparse)
+  set(SCANDYN_HAS_FACTOR_GRAPH_GPU_01 1)
+  message(STATUS "scandyn: factor-graph GPU solver on cuSOLVER's sparse Cholesky")
+endif()
 configure_file(${PROJECT_SOURCE_DIR}/include/scandyn/factor_graph/factor_graph_config.hpp.in
                ${PROJECT_BINARY_DIR}/include/scandyn/factor_graph/factor_graph_config.hpp)
 
 file(GLOB _scandyn_fg_sources CONFIGURE_DEPENDS ${PROJECT_SOURCE_DIR}/src/factor_graph/*.cpp)
 add_library(scandyn_factor_graph STATIC ${_scandyn_fg_sources})
 target_link_libraries(scandyn_factor_graph PUBLIC scandyn)
+if(SCANDYN_HAS_FACTOR_GRAPH_GPU_01)
+  target_link_libraries(scandyn_factor_graph PUBLIC CUDA::cusolver CUDA::cusparse)
+endif()
 if(SCANDYN_HAS_CHOLMOD)
   target_include_directories(scandyn_factor_graph PRIVATE ${CHOLMOD_INCLUDE_DIR})
   target_link_libraries(scandyn_factor_graph PRIVATE ${CHOLMOD_LIBRARY} ${SUITESPARSECONFIG_LIBRARY})

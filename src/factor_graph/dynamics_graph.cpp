@@ -19,6 +19,21 @@ Motion<double> unit_motion(int k) {
 
 }  // namespace
 
+std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops) {
+  std::vector<LoopClosure> out;
+  out.reserve(loops.loops.size());
+  for (const scandyn::LoopClosure& l : loops.loops) {
+    LoopClosure g;
+    g.type = l.type == LoopType::Weld ? LoopClosure::Type::Weld : LoopClosure::Type::Point;
+    g.body_a = l.body_a;
+    g.point_a = l.point_a;
+    g.body_b = l.body_b;
+    g.point_b = l.point_b;
+    out.push_back(g);
+  }
+  return out;
+}
+
 DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
                              std::vector<char> known_qdd)
     : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)) {

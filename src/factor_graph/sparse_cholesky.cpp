@@ -5,6 +5,8 @@
 #if SCANDYN_HAS_CHOLMOD
 #include <cholmod.h>
 
+#include "scandyn/factor_graph/normal_equations.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
@@ -30,13 +32,11 @@ struct SparseCholesky::Impl {
   double beta[2] = {0, 0};
   cholmod_dense* rhs = nullptr;   // unknowns x 1
   cholmod_dense* x = nullptr;     // unknowns x 1 (solve2 output)
-  cholmod_dense* r = nullptr;     // equations x 1 (residual)
   cholmod_dense* Y = nullptr;     // solve2 workspaces
   cholmod_dense* E = nullptr;
   std::vector<Index> perm;        // elimination order after analysis
-  std::vector<double> d;          // (unknowns) column scaling of A: 1 / |column k of A|
-  std::vector<double> scaled;     // (nnz) values of D At (At's rows scaled), the matrix factored
-  cholmod_sparse DAt;             // view of At's pattern with the scaled values
+  NormalEquations ne;             // the column scaling D, D At's values, the refined solve
+  cholmod_sparse DAt;             // view of At's pattern with the scaled values (ne.scaled())
 
   void view(const SparseMatrix& M) {
     At.nrow = static_cast<std::size_t>(M.rows);
@@ -58,7 +58,6 @@ struct SparseCholesky::Impl {
     cholmod_free_factor(&L, &c);
     cholmod_free_dense(&rhs, &c);
     cholmod_free_dense(&x, &c);
-    cholmod_free_dense(&r, &c);
     cholmod_free_dense(&Y, &c);
     cholmod_free_dense(&E, &c);
     cholmod_finish(&c);
@@ -108,7 +107,6 @@ SparseCholesky::SparseCholesky(const SparseMatrix& At, Ordering ordering, const 
   }
   stats_.etree_height = height;
   m.rhs = cholmod_zeros(static_cast<std::size_t>(n), 1, CHOLMOD_REAL, &m.c);
-  m.r = cholmod_zeros(static_cast<std::size_t>(At.cols), 1, CHOLMOD_REAL, &m.c);
 }
 
 SparseCholesky::~SparseCholesky() = default;
@@ -166,16 +164,10 @@ std::vector<Index> SparseCholesky::etree() const {
 void SparseCholesky::factorize(const SparseMatrix& At) {
   Impl& m = *impl_;
   m.view(At);
-  // Equilibrate: unknown k's column of A scaled to unit 2-norm (the system mixes
-  // unit kinematic entries with inertias of any size; beta then acts relative to
-  // them), factor (D A^T A D + beta I).
-  m.d.assign(static_cast<std::size_t>(At.rows), 0.0);
-  for (std::size_t t = 0; t < At.val.size(); ++t) m.d[At.row_idx[t]] += At.val[t] * At.val[t];
-  for (double& v : m.d) v = v > 0 ? 1.0 / std::sqrt(v) : 1.0;
-  m.scaled.resize(At.val.size());
-  for (std::size_t t = 0; t < At.val.size(); ++t) m.scaled[t] = m.d[At.row_idx[t]] * At.val[t];
+  // factor D A^T A D + beta I (D: unit column norms of A, NormalEquations)
+  m.ne.equilibrate(At);
   m.DAt = m.At;
-  m.DAt.x = m.scaled.data();
+  m.DAt.x = const_cast<double*>(m.ne.scaled().data());
   cholmod_factorize_p(&m.DAt, m.beta, nullptr, 0, m.L, &m.c);
   if (m.c.status == CHOLMOD_NOT_POSDEF || m.L->minor < m.L->n)
     throw std::runtime_error("SparseCholesky: A^T A + beta I is not positive definite (column " +
@@ -188,25 +180,14 @@ void SparseCholesky::solve(const SparseMatrix& At, const std::vector<double>& b,
                            int refine) {
   Impl& m = *impl_;
   m.view(At);
-  const std::size_t n = static_cast<std::size_t>(At.rows), neq = static_cast<std::size_t>(At.cols);
-  double one[2] = {1, 0}, zero[2] = {0, 0}, minus[2] = {-1, 0};
-  cholmod_dense bd;  // view of b
-  bd.nrow = neq; bd.ncol = 1; bd.nzmax = neq; bd.d = neq;
-  bd.x = const_cast<double*>(b.data()); bd.z = nullptr; bd.xtype = CHOLMOD_REAL; bd.dtype = CHOLMOD_DOUBLE;
-  cholmod_sdmult(&m.DAt, 0, one, zero, &bd, m.rhs, &m.c);  // rhs = D A^T b
-  cholmod_solve2(CHOLMOD_A, m.L, m.rhs, nullptr, &m.x, nullptr, &m.Y, &m.E, &m.c);
-  x.assign(static_cast<double*>(m.x->x), static_cast<double*>(m.x->x) + n);
-  for (std::size_t k = 0; k < n; ++k) x[k] *= m.d[k];  // x = D y
-  for (int it = 0; it < refine; ++it) {
-    std::copy(b.begin(), b.end(), static_cast<double*>(m.r->x));
-    cholmod_dense xd = bd;
-    xd.nrow = n; xd.nzmax = n; xd.d = n; xd.x = x.data();
-    cholmod_sdmult(&m.At, 1, minus, one, &xd, m.r, &m.c);    // r = b - A x
-    cholmod_sdmult(&m.DAt, 0, one, zero, m.r, m.rhs, &m.c);  // rhs = D A^T r
+  const std::size_t n = static_cast<std::size_t>(At.rows);
+  m.ne.solve(At, b, x, refine, [&](const double* rhs, double* y) {
+    std::copy(rhs, rhs + n, static_cast<double*>(m.rhs->x));
     cholmod_solve2(CHOLMOD_A, m.L, m.rhs, nullptr, &m.x, nullptr, &m.Y, &m.E, &m.c);
-    const double* dy = static_cast<const double*>(m.x->x);
-    for (std::size_t k = 0; k < n; ++k) x[k] += m.d[k] * dy[k];
-  }
+    if (!m.x || m.c.status < 0) throw std::runtime_error("SparseCholesky: CHOLMOD solve failed");
+    const double* xs = static_cast<const double*>(m.x->x);
+    std::copy(xs, xs + n, y);
+  });
 }
 
 }  // namespace scandyn::factor_graph

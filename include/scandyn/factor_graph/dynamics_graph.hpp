@@ -24,6 +24,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/loops.hpp"
 #include "scandyn/model/model.hpp"
 
 namespace scandyn::factor_graph {
@@ -41,6 +42,10 @@ struct LoopClosure {
   Vec3<double> point_b{0, 0, 0};
   int dim() const { return type == Type::Point ? 3 : 6; }
 };
+
+// The graph's loop closures of a loop set (a loop file's, or generator_loops' for
+// fivebar, fourbar, cloth:K:N): the same bodies, points and types, in file order.
+std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops);
 
 // A sparse matrix in compressed sparse column form (0-based).
 struct SparseMatrix {

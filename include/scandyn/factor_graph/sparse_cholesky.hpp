@@ -2,7 +2,9 @@
 // by SuiteSparse CHOLMOD on the equilibrated normal equations
 // (D A^T A D + beta I) y = D A^T b, x = D y (D: unit column norms of A), the
 // multifrontal / supernodal Cholesky that factor-graph solvers eliminate with, under
-// a chosen elimination ordering, plus iterative refinement on A x = b.
+// a chosen elimination ordering, plus iterative refinement on A x = b (the scaling,
+// the products with A and the refinement: scandyn/factor_graph/normal_equations.hpp,
+// shared with the GPU's solver, scandyn/factor_graph/gpu_sparse_cholesky.hpp).
 //
 // Built only when CMake finds CHOLMOD (SCANDYN_HAS_CHOLMOD in
 // scandyn/factor_graph/factor_graph_config.hpp); without it this header declares
