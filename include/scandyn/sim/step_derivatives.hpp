@@ -26,10 +26,11 @@
 // rk4, implicit), the effects gravity, damping, springs, limits (the derivative of
 // the branch the state is on: exact away from the limit itself, where the penalty
 // force has a kink) and external wrenches (constant in their body frames over the
-// step, not differentiated). Backends: serial, openmp and (the Jacobian) cuda.
-// Refused by name (BackendError from the factories): contacts, prescribed joint
-// motion, closed loops, multi-DoF joints (a floating
-// base, spherical joints); the rollouts also refuse the cuda backend.
+// step, not differentiated). Backends: serial, openmp and cuda (the Jacobian:
+// scandyn/cuda/step_derivatives.hpp; the rollouts: scandyn/cuda/rollout_derivatives.hpp,
+// models of up to 64 DoF). Refused by name (BackendError from the factories and
+// constructors): contacts, prescribed joint motion, closed loops, multi-DoF joints (a
+// floating base, spherical joints).
 #pragma once
 
 #include <cmath>
@@ -578,7 +579,9 @@ SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView
 }
 
 // Rollouts of the simulator's step and their derivatives: x_{t+1} = step(x_t, tau_t),
-// t = 0..T-1, from x_0 = (q0, qd0), for every instance (threads over instances).
+// t = 0..T-1, from x_0 = (q0, qd0), for every instance (threads over instances; on
+// backend cuda every call runs cuda::CudaRolloutDerivatives, a thread per instance,
+// host views copied in and out).
 // The loss is the caller's: L = sum over t = 1..T of l_t(q_t, qd_t); vjp takes its
 // gradients dL/dq_t, dL/dqd_t and returns dL/dq0, dL/dqd0 and dL/dtau_t by the
 // reverse (adjoint) recursion of step_vjp_instance, O(nv) per step.
