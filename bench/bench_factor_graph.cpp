@@ -9,7 +9,14 @@
 // analysis done once; nnz_L and flops are CHOLMOD's symbolic counts.
 //
 // Usage: bench_factor_graph [--reps 30] [--inner 200] [--cloth K:N ...] [--models DIR]
-//                           [--patterns FILE] [--small] [--gpu]
+//                           [--patterns FILE] [--small] [--gpu] [--accuracy [--states S]]
+// --accuracy: the loop systems' forward dynamics against the dense reference
+// constrained_forward_dynamics (docs/loops.md) at S (default 3) random closed states
+// of fivebar, fourbar and the cloth grids (default 4:4, 10:10, 30:30): q in
+// [-0.2, 0.2] and qd in [-1, 1] projected onto the loops, tau in [-1, 1] N m
+// (1e-3 for the cloths' 10 g links); CHOLMOD's nested dissection, kLoopBeta,
+// kLoopRefine. CSV: model,links,loop_rows,states,fg_us,dense_us,max_qdd_rel_err
+// (max over the states of max |qdd - qdd_ref| / max |qdd_ref|),max_residual (SI).
 // --gpu: only the cloth grids (default 10:10, 30:30, 50:50, 100:100), one forward
 // dynamics with loops each, solved by CHOLMOD on the host and by cuSOLVER's sparse
 // Cholesky on the GPU (GpuSparseCholesky) under the same elimination order
@@ -56,11 +63,7 @@ using LoopClosure = factor_graph::LoopClosure;  // the graph's loops, not the lo
 
 int g_reps = 30, g_inner = 200;
 std::FILE* g_patterns = nullptr;  // --patterns FILE: the factor L of selected systems
-// Loop systems: the proximal term added to A^T A (redundant loop equations make A
-// singular: the planar five-bar's out-of-plane row, the cloth's over-constrained
-// grid) and the refinement steps that remove its bias from consistent equations.
-constexpr double kLoopBeta = 1e-12;
-constexpr int kLoopRefine = 3;
+// Loop systems: kLoopBeta, kLoopRefine (scandyn/factor_graph/normal_equations.hpp).
 
 // Under valgrind --tool=callgrind --collect-atstart=no, each measurement instead
 // runs f `inner` times with collection on and dumps the counts with the label
@@ -90,12 +93,13 @@ double max_diff(const std::vector<double>& a, const std::vector<double>& b) {
   return m;
 }
 
-// max |b - A x| of the graph's system
+// max |b - A x| of the graph's system, each equation in SI (the system is stored in
+// the model's units: DynamicsGraph::equation_unit)
 double residual_norm(const DynamicsGraph& g, const std::vector<double>& x) {
   std::vector<double> r(g.b().size());
   residual(g.At(), g.b(), x.data(), r.data());
   double m = 0;
-  for (double v : r) m = std::max(m, std::abs(v));
+  for (std::size_t e = 0; e < r.size(); ++e) m = std::max(m, std::abs(r[e]) * g.equation_unit()[e]);
   return m;
 }
 
@@ -283,6 +287,47 @@ void gpu_rows(const std::string& name, const Model& model, const std::vector<Loo
 }
 #endif
 
+// The factor graph's loop forward dynamics against the dense reference at `states`
+// random closed states (see --accuracy above); times: the minimum over the states of
+// one call each (factor graph: assemble + factorise + solve, analysis done once).
+void accuracy_rows(const std::string& spec, int states) {
+  const Model model = make_generated(spec);
+  const LoopSet loops = generator_loops(spec, model);
+  const Index nv = model.nv(), m = loops.rows();
+  const double tau_scale = spec.rfind("cloth", 0) == 0 ? 1e-3 : 1.0;
+  DynamicsGraph g(model, graph_loops(loops), {});
+  SparseCholesky chol(g.At(), Ordering::NESDIS, {}, kLoopBeta);
+  std::mt19937_64 rng(21);
+  std::uniform_real_distribution<double> u(-1, 1);
+  using clock = std::chrono::steady_clock;
+  auto us = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double, std::micro>(b - a).count(); };
+  double fg_us = 1e300, dense_us = 1e300, worst = 0, worst_res = 0;
+  std::vector<double> q(nv), qd(nv), tau(nv), qdd(nv), qdd_ref(nv), lambda_ref(m), x;
+  for (int s = 0; s < states; ++s) {
+    for (double r = 1; r > 1e-12;) {  // a closed state (redraw when the projection fails)
+      for (Index i = 0; i < nv; ++i) { q[i] = 0.2 * u(rng); qd[i] = u(rng); }
+      r = project_to_loops(model, loops, q.data(), qd.data());
+    }
+    for (Index i = 0; i < nv; ++i) tau[i] = tau_scale * u(rng);
+    const auto t0 = clock::now();
+    constrained_forward_dynamics(model, loops, q.data(), qd.data(), tau.data(), qdd_ref.data(), lambda_ref.data());
+    const auto t1 = clock::now();
+    g.assemble(q.data(), qd.data(), nullptr, tau.data());
+    chol.factorize(g.At());
+    chol.solve(g.At(), g.b(), x, kLoopRefine);
+    const auto t2 = clock::now();
+    g.extract(x.data(), qdd.data(), nullptr, nullptr);
+    dense_us = std::min(dense_us, us(t0, t1));
+    fg_us = std::min(fg_us, us(t1, t2));
+    double scale = 0;
+    for (double v : qdd_ref) scale = std::max(scale, std::abs(v));
+    worst = std::max(worst, max_diff(qdd, qdd_ref) / scale);
+    worst_res = std::max(worst_res, residual_norm(g, x));
+  }
+  std::printf("%s,%d,%d,%d,%.1f,%.1f,%.3g,%.3g\n", spec.c_str(), nv, m, states, fg_us, dense_us, worst, worst_res);
+  std::fflush(stdout);
+}
+
 // Chains: nested dissection against block cyclic reduction (the parallel chain
 // FD's scan, scandyn/algorithm/chain_fd.hpp). Symbolic counts only.
 void chain_orderings(long long n) {
@@ -313,7 +358,8 @@ void chain_orderings(long long n) {
 int main(int argc, char** argv) {
   std::vector<std::string> cloths = {"10:10", "30:30", "50:50"};
   std::string models_dir = SCANDYN_DEFAULT_MODELS_DIR;
-  bool custom_cloth = false, small_only = false, gpu = false;
+  bool custom_cloth = false, small_only = false, gpu = false, accuracy = false;
+  int states = 3;
   for (int k = 1; k < argc; ++k) {
     const std::string a = argv[k];
     if (a == "--reps" && k + 1 < argc) g_reps = std::atoi(argv[++k]);
@@ -321,6 +367,8 @@ int main(int argc, char** argv) {
     else if (a == "--models" && k + 1 < argc) models_dir = argv[++k];
     else if (a == "--small") small_only = true;  // robots and five-bar only (callgrind)
     else if (a == "--gpu") gpu = true;
+    else if (a == "--accuracy") accuracy = true;
+    else if (a == "--states" && k + 1 < argc) states = std::atoi(argv[++k]);
     else if (a == "--patterns" && k + 1 < argc) {
       g_patterns = std::fopen(argv[++k], "w");
       if (!g_patterns) { std::fprintf(stderr, "bench_factor_graph: cannot write '%s'\n", argv[k]); return 1; }
@@ -328,6 +376,13 @@ int main(int argc, char** argv) {
     }
     else if (a == "--cloth" && k + 1 < argc) { if (!custom_cloth) cloths.clear(); custom_cloth = true; cloths.push_back(argv[++k]); }
     else { std::fprintf(stderr, "bench_factor_graph: unknown argument '%s'\n", a.c_str()); return 2; }
+  }
+  if (accuracy) {
+    if (!custom_cloth) cloths = {"4:4", "10:10", "30:30"};
+    std::printf("model,links,loop_rows,states,fg_us,dense_us,max_qdd_rel_err,max_residual\n");
+    for (const std::string& spec : {std::string("fivebar"), std::string("fourbar")}) accuracy_rows(spec, states);
+    for (const std::string& kn : cloths) accuracy_rows("cloth:" + kn, states);
+    return 0;
   }
   if (gpu) {
 #if SCANDYN_HAS_FACTOR_GRAPH_GPU

@@ -3,6 +3,7 @@
 #include "scandyn/factor_graph/dynamics_graph.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <stdexcept>
 
 #include "scandyn/algorithm/steps.hpp"
@@ -18,6 +19,25 @@ Motion<double> unit_motion(int k) {
 }
 
 }  // namespace
+
+ModelUnits model_units(const Model& model) {
+  double log_m = 0, log_l = 0;
+  int count = 0;
+  for (const Body<double>& b : model.bodies) {
+    if (!(b.I.m > 0)) continue;
+    const double gyration2 = (b.I.I.xx + b.I.I.yy + b.I.I.zz) / (2 * b.I.m);
+    if (!(gyration2 > 0)) continue;
+    log_m += std::log2(b.I.m);
+    log_l += 0.5 * std::log2(gyration2);
+    ++count;
+  }
+  ModelUnits u;
+  if (count > 0) {
+    u.mass = std::exp2(std::round(log_m / count));
+    u.length = std::exp2(std::round(log_l / count));
+  }
+  return u;
+}
 
 std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops) {
   std::vector<LoopClosure> out;
@@ -62,6 +82,36 @@ DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
   }
   At_.rows = At_.cols = off;
   b_.assign(static_cast<std::size_t>(off), 0.0);
+  // Units of the unknowns and of the equations (time unit 1 s): angular
+  // acceleration 1, linear acceleration L, moment M L^2, force M L; a joint's qdd and
+  // tau by its type; equation 14 i + 12 (S^T f - tau) and the prior are in tau's
+  // unit (a given qdd's prior in qdd's); loop rows: linear accelerations (point) and
+  // angular ones (weld); multipliers: forces and moments.
+  units_ = model_units(model);
+  const double L = units_.length, M = units_.mass;
+  unknown_unit_.assign(static_cast<std::size_t>(off), 1.0);
+  equation_unit_.assign(static_cast<std::size_t>(off), 1.0);
+  for (Index i = 0; i < nv; ++i) {
+    const bool prismatic = model.bodies[i].type == JointType::Prismatic;
+    for (int k = 0; k < 3; ++k) {
+      unknown_unit_[var_a(i) + 3 + k] = equation_unit_[14 * i + 3 + k] = L;
+      unknown_unit_[var_f(i) + k] = equation_unit_[14 * i + 6 + k] = M * L * L;
+      unknown_unit_[var_f(i) + 3 + k] = equation_unit_[14 * i + 9 + k] = M * L;
+    }
+    unknown_unit_[var_qdd(i)] = prismatic ? L : 1.0;
+    unknown_unit_[var_tau(i)] = equation_unit_[14 * i + 12] = prismatic ? M * L : M * L * L;
+    equation_unit_[14 * i + 13] = known_qdd_[static_cast<std::size_t>(i)] ? unknown_unit_[var_qdd(i)]
+                                                                          : unknown_unit_[var_tau(i)];
+  }
+  for (std::size_t k = 0; k < loops_.size(); ++k) {
+    const Index e0 = lambda_offset_[k];
+    const int lin = loops_[k].type == LoopClosure::Type::Weld ? 3 : 0;
+    for (int r = 0; r < lin; ++r) unknown_unit_[e0 + r] = M * L * L;  // moment; angular acceleration rows: 1
+    for (int r = 0; r < 3; ++r) {
+      unknown_unit_[e0 + lin + r] = M * L;
+      equation_unit_[e0 + lin + r] = L;
+    }
+  }
   // Pattern pass at q = qd = 0 with unit inputs: the structure does not depend on
   // the values (every block is written whole, zeros included).
   std::vector<double> zero(static_cast<std::size_t>(nv), 0.0);
@@ -103,6 +153,13 @@ void DynamicsGraph::assemble(const double* q, const double* qd, const double* qd
   write(false, q, qd, qdd_in, tau_in);
   std::fill(At_.val.begin(), At_.val.end(), 0.0);
   for (std::size_t k = 0; k < trip_val_.size(); ++k) At_.val[static_cast<std::size_t>(slot_[k])] += trip_val_[k];
+  // to the model's units: A = W A_SI S, b = W b_SI (powers of two: exact)
+  for (Index e = 0; e < At_.cols; ++e) {
+    const double w = 1.0 / equation_unit_[static_cast<std::size_t>(e)];
+    b_[static_cast<std::size_t>(e)] *= w;
+    for (Index t = At_.col_ptr[e]; t < At_.col_ptr[e + 1]; ++t)
+      At_.val[static_cast<std::size_t>(t)] *= w * unknown_unit_[static_cast<std::size_t>(At_.row_idx[t])];
+  }
 }
 
 // One pass over the factors in a fixed order. pattern: record (equation, unknown)
@@ -268,11 +325,11 @@ std::vector<Index> DynamicsGraph::cyclic_reduction_order() const {
 void DynamicsGraph::extract(const double* x, double* qdd, double* tau, double* lambda) const {
   const Index nv = model_.nv();
   for (Index i = 0; i < nv; ++i) {
-    if (qdd) qdd[i] = x[var_qdd(i)];
-    if (tau) tau[i] = x[var_tau(i)];
+    if (qdd) qdd[i] = x[var_qdd(i)] * unknown_unit_[static_cast<std::size_t>(var_qdd(i))];
+    if (tau) tau[i] = x[var_tau(i)] * unknown_unit_[static_cast<std::size_t>(var_tau(i))];
   }
   if (lambda)
-    for (Index k = 14 * nv; k < At_.rows; ++k) lambda[k - 14 * nv] = x[k];
+    for (Index k = 14 * nv; k < At_.rows; ++k) lambda[k - 14 * nv] = x[k] * unknown_unit_[static_cast<std::size_t>(k)];
 }
 
 }  // namespace scandyn::factor_graph

@@ -12,6 +12,8 @@
 
 #include <Eigen/Dense>
 
+#include "loop_cases.hpp"
+#include "scandyn/algorithm/loops.hpp"
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/factor_graph/dynamics_graph.hpp"
 #include "scandyn/factor_graph/normal_equations.hpp"
@@ -393,6 +395,62 @@ TEST(FactorGraph, LoopForwardDynamicsSatisfiesConstraintsAndEquationsOfMotion) {
                              tau_scale + Eigen::Map<Eigen::VectorXd>(h.data(), nv).cwiseAbs().maxCoeff();
     EXPECT_LE(eom.cwiseAbs().maxCoeff(), 1e-6 * eom_scale) << factor_graph::ordering_name(o);
     EXPECT_GT((J * a).cwiseAbs().maxCoeff(), 1e-3 * Jdqd.cwiseAbs().maxCoeff());  // the drift is not trivially zero
+  }
+}
+
+// The generators' loop systems (fivebar, fourbar: 1 kg-scale links; cloth:4:4,
+// cloth:10:10: 10 g links of 1 cm, redundant point loops) at 3 random closed states
+// each (tests/loop_cases.hpp), solved as bench_factor_graph solves them (CHOLMOD's
+// nested dissection, beta = kLoopBeta, kLoopRefine refinement steps), against the
+// dense reference constrained_forward_dynamics (Eigen, rank-revealing):
+// max |qdd - qdd_ref| <= 1e-8 max |qdd_ref|, and the joint-space equations of motion
+// M qdd + h - tau - J^T lambda (M from crba, h from bias_forces, J from
+// loop_kinematics; lambda the factor graph's) to 1e-8 of their terms' scale
+// (max_i sum_j |M_ij qdd_j| + |h_i| + |tau_i| + sum_r |J_ri lambda_r|), double.
+TEST(FactorGraph, LoopForwardDynamicsEqualsTheDenseReference) {
+  std::mt19937_64 rng(26);
+  for (const test::LoopCase& c : test::loop_cases({"fivebar", "fourbar", "cloth:4:4", "cloth:10:10"})) {
+    const Index nv = c.model.nv(), m = c.loops.rows();
+    const double tau_scale = c.spec.rfind("cloth", 0) == 0 ? 1e-3 : 1.0;  // 10 g links, 1 cm long
+    DynamicsGraph g(c.model, factor_graph::graph_loops(c.loops), {});
+    SparseCholesky chol(g.At(), Ordering::NESDIS, {}, factor_graph::kLoopBeta);
+    Data data(c.model);
+    for (int trial = 0; trial < 3; ++trial) {
+      SCOPED_TRACE(c.spec + " state " + std::to_string(trial));
+      std::vector<double> q, qd;
+      ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+      const auto tau = test::random_vector(rng, nv, -tau_scale, tau_scale);
+      std::vector<double> qdd_ref(static_cast<std::size_t>(nv)), lambda_ref(static_cast<std::size_t>(m));
+      constrained_forward_dynamics(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd_ref.data(),
+                                   lambda_ref.data());
+      g.assemble(q.data(), qd.data(), nullptr, tau.data());
+      chol.factorize(g.At());
+      std::vector<double> x, qdd(static_cast<std::size_t>(nv)), lambda(static_cast<std::size_t>(m));
+      chol.solve(g.At(), g.b(), x, factor_graph::kLoopRefine);
+      g.extract(x.data(), qdd.data(), nullptr, lambda.data());
+      EXPECT_LE(max_diff(qdd, qdd_ref), 1e-8 * max_abs(qdd_ref)) << "qdd against constrained_forward_dynamics";
+      // M qdd + h - tau - J^T lambda
+      std::vector<double> M(static_cast<std::size_t>(nv * nv)), h(static_cast<std::size_t>(nv)),
+          J(static_cast<std::size_t>(m * nv));
+      crba(c.model, data, q.data(), M.data());
+      bias_forces(c.model, data, q.data(), qd.data(), h.data());
+      loop_kinematics(c.model, c.loops, q.data(), qd.data(), nullptr, J.data(), nullptr);
+      double worst = 0, scale = 0;
+      for (Index i = 0; i < nv; ++i) {
+        double e = h[i] - tau[i], terms = std::abs(h[i]) + std::abs(tau[i]);
+        for (Index j = 0; j < nv; ++j) {
+          e += M[i * nv + j] * qdd[j];
+          terms += std::abs(M[i * nv + j] * qdd[j]);
+        }
+        for (Index r = 0; r < m; ++r) {
+          e -= J[r * nv + i] * lambda[r];
+          terms += std::abs(J[r * nv + i] * lambda[r]);
+        }
+        worst = std::max(worst, std::abs(e));
+        scale = std::max(scale, terms);
+      }
+      EXPECT_LE(worst, 1e-8 * scale) << "M qdd + h - tau - J^T lambda";
+    }
   }
 }
 #else

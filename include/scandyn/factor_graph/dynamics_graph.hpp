@@ -19,6 +19,14 @@
 // so the system is square: 14 nv + sum_k dim_k unknowns and as many equations. Its
 // solution is RNEA's (all qdd given), ABA's (all tau given) or the hybrid dynamics'
 // (a mix), whatever the elimination ordering.
+//
+// Units. The system is stored non-dimensionalised in the model's units of mass M
+// and length L (the time unit 1 s; ModelUnits): every unknown is measured in its
+// unit (angular acceleration 1, linear acceleration L, moment M L^2, force M L,
+// ...) and every equation is divided by its unit, A = W A_SI S, b = W b_SI, x_SI =
+// S x. In SI a 10 g, 1 cm link's inertial entries are 1e-7 of the kinematic ones
+// and the sparse solvers' proximal term swamps them; in the model's units they are
+// O(1). M and L are powers of two, so the scaling is exact; extract() returns SI.
 #pragma once
 
 #include <string>
@@ -47,6 +55,16 @@ struct LoopClosure {
 // fivebar, fourbar, cloth:K:N): the same bodies, points and types, in file order.
 std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops);
 
+// The model's units: M the geometric mean of the bodies' masses, L the geometric
+// mean of their radii of gyration about the joint origin (sqrt(trace(Ibar) / 2m)),
+// over the bodies with mass, each rounded to the nearest power of two; 1 for a
+// model without mass.
+struct ModelUnits {
+  double mass = 1.0;    // kg
+  double length = 1.0;  // m
+};
+ModelUnits model_units(const Model& model);
+
 // A sparse matrix in compressed sparse column form (0-based).
 struct SparseMatrix {
   Index rows = 0, cols = 0;
@@ -72,6 +90,14 @@ class DynamicsGraph {
   const std::vector<double>& b() const { return b_; }
   Index unknowns() const { return At_.rows; }
 
+  // The units the system is stored in (see "Units" above): unknown_unit (unknowns):
+  // the SI size of one unit of each unknown (S); equation_unit (equations): the SI
+  // size of one unit of each equation (W^-1), so that (b - A x)_e equation_unit[e]
+  // is equation e's residual in SI.
+  const ModelUnits& units() const { return units_; }
+  const std::vector<double>& unknown_unit() const { return unknown_unit_; }
+  const std::vector<double>& equation_unit() const { return equation_unit_; }
+
   Index var_a(Index i) const { return 14 * i; }
   Index var_f(Index i) const { return 14 * i + 6; }
   Index var_qdd(Index i) const { return 14 * i + 12; }
@@ -90,8 +116,8 @@ class DynamicsGraph {
   // std::invalid_argument otherwise.
   std::vector<Index> cyclic_reduction_order() const;
 
-  // Splits a solution x into qdd, tau (nv each) and lambda (sum of loop dims); any
-  // pointer may be null.
+  // Splits a solution x (in the model's units) into qdd, tau (nv each) and lambda
+  // (sum of loop dims), in SI; any pointer may be null.
   void extract(const double* x, double* qdd, double* tau, double* lambda) const;
 
   const Model& model() const { return model_; }
@@ -102,6 +128,8 @@ class DynamicsGraph {
   std::vector<LoopClosure> loops_;
   std::vector<char> known_qdd_;
   std::vector<Index> lambda_offset_;
+  ModelUnits units_;
+  std::vector<double> unknown_unit_, equation_unit_;
   SparseMatrix At_;
   std::vector<double> b_;
   std::vector<Index> slot_;       // triplet k -> position in At_.val

@@ -21,6 +21,13 @@
 
 namespace scandyn::factor_graph {
 
+// Loop systems: the proximal term beta of the equilibrated normal equations
+// (redundant loop equations make A singular: the planar five-bar's out-of-plane
+// row, a cloth grid's over-constrained rows) and the refinement steps on A x = b
+// that remove its bias from the consistent equations (bench_factor_graph, the tests).
+inline constexpr double kLoopBeta = 1e-12;
+inline constexpr int kLoopRefine = 3;
+
 // The equilibration of one set of values of A and the refined solve through a
 // solver's factor. At: the graph's transposed system (unknowns x equations, CSC).
 class NormalEquations {
