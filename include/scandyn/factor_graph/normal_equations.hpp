@@ -25,7 +25,12 @@ namespace scandyn::factor_graph {
 // (redundant loop equations make A singular: the planar five-bar's out-of-plane
 // row, a cloth grid's over-constrained rows) and the refinement steps on A x = b
 // that remove its bias from the consistent equations (bench_factor_graph, the tests).
-inline constexpr double kLoopBeta = 1e-12;
+// Each step multiplies the error along a singular value sigma of the scaled A by
+// beta / (sigma^2 + beta); beta is 1e-14 of the unit diagonal, the rounding level
+// of the factorisation's pivots times a few hundred (cloth:30:30's smallest sigma^2
+// is ~1e-11: 1e-12 left 3e-8 of qdd after 3 steps, 1e-14 leaves 2e-13; the
+// factorisation stays definite up to cloth:100:100, docs/factor-graph.md).
+inline constexpr double kLoopBeta = 1e-14;
 inline constexpr int kLoopRefine = 3;
 
 // The equilibration of one set of values of A and the refined solve through a
