@@ -205,13 +205,16 @@ TEST_F(CudaVariational, FailedStepIsFlaggedAndKeepsTheState) {
 }
 
 // A small batch of a few steps in both precisions (the device script's run under
-// compute-sanitizer): 70 instances (a partial second block), 3 steps.
+// compute-sanitizer): 70 instances (a partial second block), 3 steps. Float within
+// 1e-3 as over 200 steps: the float LU of dt J (cond ~1e4 on iiwa) leaves the device's
+// and the host's roundings ~1e-4 apart from the first steps (measured 1.4e-4 on an
+// H200 after 3 steps).
 TEST_F(CudaVariational, SmallBatchFewSteps) {
   for (const char* model : {"iiwa", "chain:2"}) {
     const Scene scene =
         scene_from(scene_json(model, std::string(model) == "iiwa" ? kIiwaEffects : kPendulumEffects, 1e-3, 70));
     EXPECT_LE(rollout_error<double>(scene, 3), 1e-12) << model;
-    EXPECT_LE(rollout_error<float>(scene, 3), 1e-4) << model;
+    EXPECT_LE(rollout_error<float>(scene, 3), 1e-3) << model;
   }
 }
 
