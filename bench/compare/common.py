@@ -28,7 +28,8 @@ import numpy as np
 
 COLUMNS = ['algo', 'strategy', 'backend', 'precision', 'model', 'links', 'instances', 'seconds_per_call',
            'evals_per_second', 'max_rel_err', 'library', 'version', 'check_max_err', 'note']
-ALGOS = ('id', 'bias', 'mass', 'fd', 'dfd')
+ALGOS = ('id', 'bias', 'mass', 'fd')  # compared by every harness
+BENCH_ALGOS = ALGOS + ('dfd',)  # rows parse_bench_rows reads (dfd: gpu.py --algos dfd)
 CHECK_STATES = 16
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
@@ -214,7 +215,7 @@ def parse_bench_rows(text):
     out = []
     for line in text.splitlines():
         parts = line.strip().split(',')
-        if len(parts) == 10 and parts[0] in ALGOS:
+        if len(parts) == 10 and parts[0] in BENCH_ALGOS:
             out.append(dict(zip(keys, parts)))
     return out
 
