@@ -424,14 +424,7 @@ cudaError_t CudaRolloutDerivatives<S>::vjp_async(const BatchView<const S>& q0, c
 
 template <class S>
 BatchStatus CudaRolloutDerivatives<S>::status_of(Index B) {
-  BatchStatus status;
-  for (Index b = 0; b < B; ++b) {
-    int& f = failed_host_[static_cast<std::size_t>(b)];
-    if (f >= 0) status.record(b, f, Failure::ArticulatedPivot);
-    if (f <= -2) f = -2 - f, status.record(b, f, Failure::NonFinite);
-  }
-  status.failed_dof = failed_host_.data();
-  return status;
+  return summarize_step_failures(failed_host_.data(), B);
 }
 
 // The host calls: the caller gathers every array into host_ (inputs first: `inputs`

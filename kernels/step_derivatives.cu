@@ -205,14 +205,7 @@ BatchStatus CudaStepDerivatives<S>::compute(const FdBatchIn<S>& in, const sim::S
                         stream),
         "copying the failed DoFs to the host");
   check(cudaStreamSynchronize(stream), "running step_jacobian_kernel");
-  BatchStatus status;
-  for (Index b = 0; b < B; ++b) {
-    int& f = failed_host_[static_cast<std::size_t>(b)];
-    if (f >= 0) status.record(b, f, Failure::ArticulatedPivot);
-    if (f <= -2) f = -2 - f, status.record(b, f, Failure::NonFinite);
-  }
-  status.failed_dof = failed_host_.data();
-  return status;
+  return summarize_step_failures(failed_host_.data(), B);
 }
 
 template <class S>

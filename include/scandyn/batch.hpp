@@ -129,6 +129,13 @@ struct BatchStatus {
 // the status keeps failed_dof as its per-instance array.
 BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Index fell_back = 0);
 
+// The status of a batch of derivative steps (the CUDA step Jacobian and rollouts):
+// failed_dof[b] = -1 (ok), >= 0 (the ABA's pivot failed at that DoF:
+// Failure::ArticulatedPivot) or -2 - i (row i of a result is not finite:
+// Failure::NonFinite); the codes -2 - i are rewritten to i in place, so that the
+// status's per-instance array names the row.
+BatchStatus summarize_step_failures(int* failed_dof, Index B);
+
 // The same with forward dynamics' run-time check: an instance b that failed with
 // estimate[b] not at most threshold (above it, or NaN) failed the check
 // (Failure::ResidualTooLarge), any other failed one failed a pivot (`pivot`).

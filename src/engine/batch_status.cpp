@@ -62,6 +62,17 @@ BatchStatus summarize_failures(const int* failed_dof, Index B, Failure what, Ind
   return st;
 }
 
+BatchStatus summarize_step_failures(int* failed_dof, Index B) {
+  BatchStatus st;
+  st.failed_dof = failed_dof;
+  for (Index b = 0; b < B; ++b) {
+    int& f = failed_dof[b];
+    if (f >= 0) st.record(b, f, Failure::ArticulatedPivot);
+    if (f <= -2) f = -2 - f, st.record(b, f, Failure::NonFinite);
+  }
+  return st;
+}
+
 BatchStatus summarize_checked(const int* failed_dof, const double* estimate, Index B, Failure pivot,
                               double threshold, Index fell_back, Index retried) {
   BatchStatus st;
