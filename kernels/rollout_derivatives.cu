@@ -182,19 +182,21 @@ cudaError_t launch_for(const Variant& params, Integrator integrator, const void*
   std::visit(
       [&](const auto& sp) {
         constexpr int C = std::decay_t<decltype(sp)>::capacity;
-        const auto* r = static_cast<const ThreadModelParams<S, C, Body<S>>*>(rest);
-        switch (integrator) {
-          case Integrator::Euler:
-            Launch<S, C, Integrator::Euler>::run(blocks, stream, sp, r, args...);
-            break;
-          case Integrator::Rk4:
-            Launch<S, C, Integrator::Rk4>::run(blocks, stream, sp, r, args...);
-            break;
-          case Integrator::Implicit:
-            Launch<S, C, Integrator::Implicit>::run(blocks, stream, sp, r, args...);
-            break;
-          default:
-            break;  // refused at construction (require_differentiable_step)
+        if constexpr (kCompiledCapacity<C>) {  // (others: refused at construction)
+          const auto* r = static_cast<const ThreadModelParams<S, C, Body<S>>*>(rest);
+          switch (integrator) {
+            case Integrator::Euler:
+              Launch<S, C, Integrator::Euler>::run(blocks, stream, sp, r, args...);
+              break;
+            case Integrator::Rk4:
+              Launch<S, C, Integrator::Rk4>::run(blocks, stream, sp, r, args...);
+              break;
+            case Integrator::Implicit:
+              Launch<S, C, Integrator::Implicit>::run(blocks, stream, sp, r, args...);
+              break;
+            default:
+              break;  // refused at construction (require_differentiable_step)
+          }
         }
       },
       params);
@@ -296,6 +298,7 @@ CudaRolloutDerivatives<S>::CudaRolloutDerivatives(const sim::SimSetup<S>& setup,
     ModelTpl<S> at_rest = setup.model;
     at_rest.gravity = Vec3<S>::zero();
     const ThreadModel<S> tm(setup.model), tm_rest(at_rest);
+    require_compiled_capacity(tm.capacity(), "the rollout derivatives", setup.model.name);
     params_ = std::make_unique<Params>();
     std::visit(
         [&](const auto& mp) {

@@ -9,6 +9,7 @@
 
 #include "scandyn/cuda/second_derivatives.hpp"
 #include "scandyn/instance/dof_column.hpp"
+#include "scandyn/instance/thread_model.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -52,6 +53,7 @@ DualThreadModel<S>::DualThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) 
   else if (nv_ <= 16) capacity_ = 16, params_ = make_dual_params<16>(model);
   else if (nv_ <= 32) capacity_ = 32, params_ = make_dual_params<32>(model);
   else capacity_ = 64, params_ = make_dual_params<64>(model);
+  require_compiled_capacity(capacity_, "the second-order derivatives", model.name);
 }
 
 // ---- the kernel and its launch --------------------------------------------------------
@@ -88,7 +90,8 @@ cudaError_t launch_id_second_derivatives(const DualThreadModel<S>& model, const 
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        id_second_derivatives_kernel<S, P::capacity><<<blocks, kSecondDerivativesBlock, 0, stream>>>(params, in, out);
+        if constexpr (kCompiledCapacity<P::capacity>)  // (others: refused by DualThreadModel)
+          id_second_derivatives_kernel<S, P::capacity><<<blocks, kSecondDerivativesBlock, 0, stream>>>(params, in, out);
       },
       model.params());
   return cudaGetLastError();

@@ -59,8 +59,12 @@ __global__ void __launch_bounds__(kVariationalBlock)
 template <class S, int C>
 cudaError_t launch_variational(const VariationalArgs<S>& v, const FusedArgs<S>& a, cudaStream_t stream) {
   const unsigned blocks = static_cast<unsigned>((a.batch + kVariationalBlock - 1) / kVariationalBlock);
-  sim_variational_kernel<S, C><<<blocks, kVariationalBlock, 0, stream>>>(v, a);
-  return cudaGetLastError();
+  if constexpr (cuda::kCompiledCapacity<C>) {
+    sim_variational_kernel<S, C><<<blocks, kVariationalBlock, 0, stream>>>(v, a);
+    return cudaGetLastError();
+  } else {
+    return cudaErrorNotSupported;  // (refused at construction, require_compiled_capacity)
+  }
 }
 
 }  // namespace
@@ -79,6 +83,7 @@ VariationalSimPlan<S>::VariationalSimPlan(const SimSetup<S>& setup) {
   require_capacity(setup);
   const Index n = setup.model.nv();
   capacity_ = n <= 8 ? 8 : n <= 16 ? 16 : n <= 32 ? 32 : 64;
+  cuda::require_compiled_capacity(capacity_, "the variational step", setup.model.name);
   const std::size_t nn = static_cast<std::size_t>(n);
   const std::size_t body_bytes = nn * sizeof(Body<S>), dual_bytes = nn * sizeof(Body<Dual<S>>);
   const std::size_t coef_bytes = nn * sizeof(JointCoefficients<S>);

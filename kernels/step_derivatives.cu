@@ -98,6 +98,7 @@ CudaStepDerivatives<S>::CudaStepDerivatives(const sim::SimSetup<S>& setup, const
       "q, qd, tau, fext, the new state, six nv x nv derivatives and the step's scratch",
       ((kInputSlots + 2 + 6 * n) * n + scratch_per_instance_) * sizeof(S) + sizeof(int));
   const ThreadModel<S> tm(setup.model);
+  require_compiled_capacity(tm.capacity(), "the step derivatives", setup.model.name);
   params_ = std::make_unique<Params>();
   std::visit(
       [&](const auto& mp) {
@@ -140,19 +141,21 @@ cudaError_t CudaStepDerivatives<S>::compute_async(const FdBatchIn<S>& in, const 
       [&](const auto& sp) {
         using SP = std::decay_t<decltype(sp)>;
         constexpr int C = SP::capacity;
-        switch (setup_.integrator) {
-          case Integrator::Euler:
-            step_jacobian_kernel<S, C, Integrator::Euler><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-            break;
-          case Integrator::Rk4:
-            step_jacobian_kernel<S, C, Integrator::Rk4><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-            break;
-          case Integrator::Implicit:
-            step_jacobian_kernel<S, C, Integrator::Implicit><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-            break;
+        if constexpr (kCompiledCapacity<C>) {  // (others: refused at construction)
+          switch (setup_.integrator) {
+            case Integrator::Euler:
+              step_jacobian_kernel<S, C, Integrator::Euler><<<blocks, kStepJacobianBlock, 0, stream>>>(
+                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+              break;
+            case Integrator::Rk4:
+              step_jacobian_kernel<S, C, Integrator::Rk4><<<blocks, kStepJacobianBlock, 0, stream>>>(
+                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+              break;
+            case Integrator::Implicit:
+              step_jacobian_kernel<S, C, Integrator::Implicit><<<blocks, kStepJacobianBlock, 0, stream>>>(
+                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+              break;
+          }
         }
       },
       params_->v);

@@ -8,7 +8,7 @@
 #   1. environment report (GPU, driver, nvcc, compilers)          -> env.txt
 #   2. configure: Release, CUDA on (sm_90 unless CMAKE_CUDA_ARCHITECTURES is set
 #      in the environment), -march=native, every kernel variant
-#      (SCANDYN_SIM_EFFECT_SETS, SCANDYN_BENCH_VARIANTS and SCANDYN_HOST_EFFECT_SETS on, whatever an earlier
+#      (SCANDYN_SIM_EFFECT_SETS, SCANDYN_BENCH_VARIANTS, SCANDYN_HOST_EFFECT_SETS and SCANDYN_CUDA_ALL_CAPACITIES on, whatever an earlier
 #      configure of the build directory said), urdfdom from .deps/root -> configure.log
 #   3. build                                                        -> build.log
 #   4. ctest (every test; CUDA tests must not be skipped here)      -> ctest.log, ctest.xml
@@ -115,7 +115,7 @@ set +e
 cmake -S "$repo" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
   -DSCANDYN_CUDA=ON -DCMAKE_CUDA_ARCHITECTURES="$arch" -DSCANDYN_NATIVE=ON \
   -DSCANDYN_SIM_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" -DSCANDYN_BENCH_VARIANTS="${SCANDYN_VARIANTS:-ON}" \
-  -DSCANDYN_HOST_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" \
+  -DSCANDYN_HOST_EFFECT_SETS="${SCANDYN_VARIANTS:-ON}" -DSCANDYN_CUDA_ALL_CAPACITIES=ON \
   -DCMAKE_PREFIX_PATH="$deps/usr" -DSCANDYN_MODELS_DIR="$SCANDYN_MODELS_DIR" \
   2>&1 | tee "$out/configure.log"
 rc=${PIPESTATUS[0]}

@@ -129,11 +129,14 @@ show_skips() {
 # alone is 110-140 s of the stage's compile time with all 64 sets), as in the
 # sanitizer stage; the per-set instantiations are built and tested where a GPU is
 # (gpu_check.sh: every option ON, every test), ZeroCoefficientsEqualAbsentEffects
-# checking there that they give the all-effects step's numbers.
+# checking there that they give the all-effects step's numbers. The derivative,
+# step-Jacobian, rollout and variational kernels are compiled for capacity 8 only
+# (SCANDYN_CUDA_ALL_CAPACITIES=OFF: kernels/rollout_derivatives.cu alone ~2 min of
+# nvcc with all four capacities).
 variants=()
 if ! nvidia-smi -L >/dev/null 2>&1; then
   variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual
-            -DSCANDYN_HOST_EFFECT_SETS=OFF)
+            -DSCANDYN_HOST_EFFECT_SETS=OFF -DSCANDYN_CUDA_ALL_CAPACITIES=OFF)
 fi
 # (SCANDYN_PYTHON=OFF here: the Python stage below turns it on once .venv is ready)
 if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF ${variants[@]+"${variants[@]}"}; then

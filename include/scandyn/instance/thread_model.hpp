@@ -181,6 +181,26 @@ void require_floating_capacity(const ThreadModel<S, Bd>& tm, const std::string& 
                      "of them only (SCANDYN_SIM_EFFECT_SETS=OFF, the reduced kernel set of builds without a GPU)");
 }
 
+// The capacities whose derivative, step-Jacobian, rollout and variational kernels
+// a build compiles (the slowest kernels to compile: one per capacity, integrator and
+// precision): all, or with SCANDYN_CUDA_ALL_CAPACITIES 0 (scandyn/build_config.hpp; CMake option
+// SCANDYN_CUDA_ALL_CAPACITIES=OFF, what scripts/test.sh configures on machines
+// without a GPU, where CUDA code is compiled but never run) capacity 8 only (models
+// of up to 8 DoF); require_compiled_capacity refuses the others there, naming the
+// option.
+template <int C>
+inline constexpr bool kCompiledCapacity = SCANDYN_CUDA_ALL_CAPACITIES || C == 8;
+
+// Throws BackendError when `capacity` (8, 16, 32 or 64) is one this build leaves out
+// (kCompiledCapacity). what: the computation ("the rollout derivatives"); name: the model's.
+inline void require_compiled_capacity(Index capacity, const std::string& what, const std::string& name) {
+  if (SCANDYN_CUDA_ALL_CAPACITIES || capacity == 8) return;
+  throw BackendError("backend 'cuda': model '" + name + "' needs the capacity-" + std::to_string(capacity) +
+                     " kernels of " + what +
+                     "; this build compiles them for up to 8 DoF only (SCANDYN_CUDA_ALL_CAPACITIES=OFF, the reduced "
+                     "kernel set of builds without a GPU)");
+}
+
 // Is `model` run by the kernels' floating-base instantiation (kFloating)?
 template <class S, class Bd>
 bool floating_kernels(const ThreadModel<S, Bd>& model) {
