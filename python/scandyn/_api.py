@@ -136,7 +136,7 @@ class _Torch:
         raw = getattr(torch._C, "_cuda_getCurrentRawStream", None)
         cls.raw_stream = raw if raw is not None else (lambda d: torch.cuda.current_stream(d).cuda_stream)
         cls.to_dlpack = torch.utils.dlpack.to_dlpack
-        cls.dtypes = {"float32": torch.float32, "float64": torch.float64}
+        cls.dtypes = {"float32": torch.float32, "float64": torch.float64, "int32": torch.int32}
         return cls
 
 
@@ -339,9 +339,15 @@ def _lead_of(q, name="q"):
 
 
 def _entry_major_mass(q, nv, dtype):
-    """The default result of a mass matrix on CUDA arrays: a (B, nv, nv) view of
-    entry-major memory (M[b, i, j] at (i * nv + j) * B + b), the layout the kernel
-    stores coalesced, so a call costs what the C++ engine's device row costs.
+    """The default result of a mass matrix on CUDA arrays (see _entry_major)."""
+    return _entry_major(q, nv, nv, dtype)
+
+
+def _entry_major(q, rows, cols, dtype):
+    """The default (B, rows, cols) result of a per-instance matrix on CUDA arrays (the
+    mass matrix, the derivatives): a view of entry-major memory (M[b, i, j] at
+    (i * cols + j) * B + b), the layout the kernels store coalesced, so a call costs
+    what the C++ engine's device row costs.
     Indexing, matmul, torch.linalg and CuPy read it as any strided array;
     .contiguous() / cupy.ascontiguousarray copy it row-major, and an out= array
     of any layout (row-major included) is written as given. None (a row-major
@@ -354,12 +360,12 @@ def _entry_major_mass(q, nv, dtype):
             return None
         # one allocation with the view's strides, on q's device, in the engine's dtype
         dtypes = _Torch.dtypes or _Torch.load().dtypes
-        return q.new_empty_strided((b, nv, nv), (1, nv * b, b), dtype=dtypes[dtype])
+        return q.new_empty_strided((b, rows, cols), (1, cols * b, b), dtype=dtypes[dtype])
     if type(q).__module__.startswith("cupy"):
         import cupy
 
         with q.device:
-            return cupy.empty((nv, nv, b), dtype=dtype).transpose(2, 0, 1)
+            return cupy.empty((rows, cols, b), dtype=dtype).transpose(2, 0, 1)
     return None
 
 
@@ -427,6 +433,17 @@ def _finish(where):
     path, JAX only)."""
     if where.kind == "jax" and where.cuda is not None:
         _ext.synchronize_stream(where.stream)
+
+
+def _host_int32(x):
+    """A device array of failed DoFs (torch, CuPy, JAX) read back as a C-contiguous
+    NumPy int32 array (the caller has waited for the stream)."""
+    kind = _kind(x)
+    if kind == "torch":
+        x = x.cpu().numpy()
+    elif kind == "cupy":
+        x = x.get()
+    return np.ascontiguousarray(np.asarray(x), dtype=np.int32)
 
 
 def _call(fn, *args, **kw):
@@ -786,14 +803,7 @@ class ForwardDynamics(_EngineBase):
         failed, stream = self._pending
         self._pending = None
         _ext.synchronize_stream(stream)
-        kind = _kind(failed)
-        if kind == "torch":
-            host = failed.cpu().numpy()
-        elif kind == "cupy":
-            host = failed.get()
-        else:
-            host = np.asarray(failed)
-        status = _ext.status_of_failed_dofs(np.ascontiguousarray(host, dtype=np.int32), self.method)
+        status = _ext.status_of_failed_dofs(_host_int32(failed), self.method)
         self.last_status = status
         if not status.ok:
             raise ForwardDynamicsError(f"{self._what} failed: {status.message}", status)

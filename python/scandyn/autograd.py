@@ -13,10 +13,14 @@ jax.custom_vjp wrappers whose backward passes run scandyn's derivatives.
 
 The derivatives (Carpentier & Mansard 2018; the step's and the rollout's adjoint) are
 the library's (scandyn/engine.hpp: make_id_derivatives, make_fd_derivatives;
-scandyn/sim/step_derivatives.hpp), on host memory (CPU tensors and NumPy arrays,
-float32 or float64; serial or openmp). The wrappers compute the values in forward and
-the derivatives at the saved inputs in backward (first order: no double backward).
-jax_* are the same through jax.custom_vjp and jax.pure_callback (CPU). docs/derivatives.md.
+scandyn/sim/step_derivatives.hpp), float32 or float64, on the arrays' device: host
+memory (NumPy, CPU tensors; serial or openmp) or a CUDA device (torch CUDA tensors,
+CuPy, JAX on a GPU: the CUDA engines on the caller's stream, no copy; the same DLPack
+hand-over as scandyn's other engines, _api.py). Results are arrays of the inputs' kind
+on their device. The torch wrappers compute the values in forward and the derivatives
+at the saved inputs in backward (first order: no double backward), on the tensors'
+device. jax_* are the same through jax.custom_vjp and jax.pure_callback (host memory).
+docs/derivatives.md.
 """
 
 import json
@@ -26,61 +30,134 @@ import numpy as np
 
 from . import _scandyn as _ext
 from . import _api
-from ._api import resolve_model_spec
-from .errors import DeviceError, DTypeError
-
-
-def _host(x, dtype=None):
-    """A C-contiguous NumPy array of x (a CPU tensor is detached and shared, not copied)."""
-    if hasattr(x, "detach"):
-        x = x.detach()
-        if x.device.type != "cpu":
-            raise DeviceError("scandyn.autograd takes host arrays (CPU tensors)")
-        x = x.numpy()
-    a = np.ascontiguousarray(x, dtype=dtype)
-    if a.dtype not in (np.float32, np.float64):
-        raise DTypeError(f"arrays must be float32 or float64, got {a.dtype}")
-    return a
+from ._api import (ForwardDynamics, _EngineBase, _cached, _empty, _entry_major, _finish, _handover, _host_int32,
+                   _inputs, _reraise, _where, _writable, resolve_model_spec)
+from .errors import BackendError, DeviceError, DTypeError
 
 
 def _backend(backend):
     return _api._resolve_backend(backend)
 
 
-def _matrices(mats, q):
-    """The (B, nv, nv) results shaped like q's leading dimensions."""
-    lead = np.shape(q)[:-1]
-    return tuple(m.reshape(lead + m.shape[-2:]) for m in mats)
+def _matrices(engine, where, q, lead, count):
+    """count (lead + (nv, nv)) results of an engine's call: entry-major views on a CUDA
+    device (torch, CuPy: the kernels' coalesced layout, as the mass matrix's), else new
+    row-major arrays of the inputs' kind."""
+    nv, dtype = engine._nv, engine._dtype
+    out = []
+    for _ in range(count):
+        m = _entry_major(q, nv, nv, dtype) if where.cuda is not None else None
+        out.append(m if m is not None else _empty(where, tuple(lead) + (nv, nv), dtype))
+    return out
 
 
-# ---- the derivatives on NumPy arrays ----------------------------------------------
+# ---- the derivative engines ---------------------------------------------------------
 
 
-def id_derivatives(model, q, qd, qdd, backend="auto"):
+class IdDerivatives(_EngineBase):
+    """(dtau/dq, dtau/dqd, M) of tau = ID(q, qd, qdd) (gravity included) for up to
+    max_batch instances: the library's make_id_derivatives. Host arrays run the
+    engine's compute(); CUDA arrays (backend 'cuda', the engine's device) its
+    compute_async() on the caller's stream (``stream=``, else torch's or CuPy's current
+    one), no copy, no synchronisation (JAX: waited for). Results are arrays of the
+    inputs' kind on their device, (B, nv, nv) each ((nv, nv) for one state); on a
+    CUDA device torch and CuPy results are entry-major views (as MassMatrix's)."""
+
+    _ext_class = _ext.IdDerivatives
+    _names = ("q", "qd", "qdd")
+
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
+        super().__init__(model, backend, max_batch, dtype, device, None, threads=threads)
+
+    def __call__(self, q, qd, qdd, stream=None):
+        where, (hq, hqd, hqdd), _, _ = self._prepare((q, qd, qdd), None, stream)  # (its (B, nv) out unused)
+        lead = tuple(where.like.shape[:-1])
+        mats = _matrices(self, where, where.like, lead, 3)
+        try:
+            self._e.compute(hq, hqd, hqdd, *(_writable(m, where) for m in mats), where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        _finish(where)
+        return tuple(mats)
+
+
+class FdDerivatives(ForwardDynamics):
+    """qdd and (dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) of qdd = FD(q, qd, tau) by the ABA:
+    the library's make_fd_derivatives, on host or CUDA arrays as IdDerivatives. An
+    instance whose pivot is not positive raises ForwardDynamicsError; on CUDA arrays
+    the failed DoFs go to ``failed_dof`` and are read by ``check()`` (or ``check=True``),
+    as ForwardDynamics'."""
+
+    _ext_class = _ext.FdDerivatives
+    _names = ("q", "qd", "tau")
+    _what = "the forward-dynamics derivatives"
+
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
+        _EngineBase.__init__(self, model, backend, max_batch, dtype, device, None, threads=threads)
+        self.last_status = None
+        self.failed_dof = None
+        self._pending = None
+        self._failed_buffers = {}
+
+    def __call__(self, q, qd, tau, stream=None, failed_dof=None, check=False):
+        where, (hq, hqd, htau), qdd, wqdd = _EngineBase._prepare(self, (q, qd, tau), None, stream)
+        mats = _matrices(self, where, where.like, tuple(where.like.shape[:-1]), 3)
+        failed, fd = self._failed_of(where, failed_dof)
+        try:
+            status = self._e.compute(hq, hqd, htau, wqdd, *(_writable(m, where) for m in mats), fd,
+                                     where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check)
+        return (qdd,) + tuple(mats)
+
+
+# ---- the derivatives as functions ---------------------------------------------------
+
+
+def id_derivatives(model, q, qd, qdd, backend="auto", stream=None):
     """(dtau/dq, dtau/dqd, M) of tau = ID(q, qd, qdd), gravity included: (B, nv, nv)
-    each for (B, nv) inputs ((nv, nv) for (nv,)); entry [..., i, j] = d tau_i / d x_j."""
-    q = _host(q)
-    qd, qdd = _host(qd, q.dtype), _host(qdd, q.dtype)
-    return _matrices(_ext.id_derivatives(model._m, q, qd, qdd, _backend(backend)), q)
+    each for (B, nv) inputs ((nv, nv) for (nv,)); entry [..., i, j] = d tau_i / d x_j.
+    Arrays of the inputs' kind on their device: host arrays (NumPy, CPU torch) on the
+    host backends, CUDA arrays (torch, CuPy, JAX on a GPU; backend 'auto' follows them)
+    on their device, queued on ``stream`` (default: the array library's current one).
+    The engine is cached per model (IdDerivatives)."""
+    (q, qd, qdd), _ = _inputs([("q", q), ("qd", qd), ("qdd", qdd)])
+    return _cached(IdDerivatives, None, model, backend, q)(q, qd, qdd, stream=stream)
 
 
-def fd_derivatives(model, q, qd, tau, backend="auto"):
-    """(qdd, dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) of qdd = FD(q, qd, tau) by the ABA."""
-    q = _host(q)
-    qd, tau = _host(qd, q.dtype), _host(tau, q.dtype)
-    qdd, *mats = _ext.fd_derivatives(model._m, q, qd, tau, _backend(backend))
-    return (qdd.reshape(q.shape),) + _matrices(mats, q)
+def fd_derivatives(model, q, qd, tau, backend="auto", stream=None, check=None):
+    """(qdd, dqdd/dq, dqdd/dqd, dqdd/dtau = M^-1) of qdd = FD(q, qd, tau) by the ABA,
+    on host or CUDA arrays as id_derivatives. ForwardDynamicsError for an instance whose
+    pivot fails; on CUDA arrays that check waits for the stream (check=None: yes);
+    check=False only queues the work (failures unreported: use FdDerivatives.check())."""
+    (q, qd, tau), _ = _inputs([("q", q), ("qd", qd), ("tau", tau)])
+    engine = _cached(FdDerivatives, None, model, backend, q)
+    return engine(q, qd, tau, stream=stream, check=check is None or bool(check))
+
+
+_SEQUENCES = ("tau", "gq", "gqd", "dtau")  # (T, B, nv) arguments of the rollout calls
 
 
 class StepDerivatives:
     """The derivatives of one scene's simulator step and of its rollouts (the scene's
     model, effects, integrator and dt; its instances and initial state are not used).
     ``scene``: a scene file's path or a dict of its keys (as scandyn.Simulator). dtype:
-    float64 (default) or float32. Covered: euler, rk4, implicit; gravity, damping,
-    springs, limits, external wrenches (constant); contacts, prescribed motion, loops
-    and multi-DoF joints raise BackendError naming them."""
+    float64 (default) or float32: every array of a call has it. Covered: euler, rk4,
+    implicit; gravity, damping, springs, limits, external wrenches (constant); contacts,
+    prescribed motion, loops and multi-DoF joints raise BackendError naming them.
 
-    def __init__(self, scene, backend="auto", dtype=np.float64):
+    Where the calls run: host arrays on ``backend`` ('auto': openmp or serial; 'cuda':
+    the CUDA engines' host calls, copies in and out); CUDA arrays (torch, CuPy, JAX on a
+    GPU) on their own device (backend 'auto' or 'cuda'; the device's engines are made on
+    first use), queued on ``stream`` (default: the array library's current stream), no
+    copy. Results are arrays of the inputs' kind on their device. A CUDA call's failed
+    instances are found by waiting for the stream and reading their (B,) failed DoFs:
+    ``check`` (default True; per call check=) does that and raises BackendError as a
+    host call does; check=False only queues the work (a failed instance's results are
+    then not meaningful and nothing reports it)."""
+
+    def __init__(self, scene, backend="auto", dtype=np.float64, check=True):
         if isinstance(scene, dict):
             scene = dict(scene)
             if isinstance(scene.get("model"), str):
@@ -95,49 +172,139 @@ class StepDerivatives:
         cls = {np.dtype(np.float64): _ext.StepDerivatives64, np.dtype(np.float32): _ext.StepDerivatives32}.get(self.dtype)
         if cls is None:
             raise DTypeError(f"dtype must be float32 or float64, got {self.dtype}")
-        self._s = cls(text, source, base, _backend(backend))
+        self._cls, self._scene, self._backend_asked = cls, (text, source, base), backend
+        self.check = bool(check)
+        self.last_status = None
+        # the host calls' object, made now (a scene the derivatives do not cover is refused here)
+        self._s = cls(text, source, base, "cuda" if backend == "cuda" else _backend(backend))
+        self._by_device = {self._s.device: self._s} if self._s.backend == "cuda" else {}
 
     nv = property(lambda self: self._s.nv)
     dt = property(lambda self: self._s.dt)
+    backend = property(lambda self: self._s.backend, doc="the backend of host calls")
 
-    def _in(self, *xs):
-        return [_host(x, self.dtype) for x in xs]
+    def _ext_for(self, where):
+        if where.cuda is None:
+            return self._s
+        s = self._by_device.get(where.cuda)
+        if s is None:
+            if self._backend_asked not in ("auto", "cuda"):
+                raise DeviceError(f"the arrays are on CUDA device {where.cuda}, but these step derivatives were made "
+                                  f"with backend={self._backend_asked!r}: make them with backend='cuda' or 'auto'")
+            s = self._cls(*self._scene, "cuda", where.cuda)
+            self._by_device[where.cuda] = s
+        return s
 
-    def jacobian(self, q, qd, tau):
+    def _begin(self, named, stream):
+        """(where, the arrays with a batch dimension, their hand-over, ext object, single):
+        one state ((nv,) states, (T, nv) sequences) runs as a batch of one."""
+        arrays, _ = _inputs(named, self.dtype.name)
+        single = len(getattr(arrays[0], "shape", ())) == 1
+        if single:
+            arrays = [a[:, None] if n in _SEQUENCES else a[None] for (n, _), a in zip(named, arrays)]
+        where = _where(arrays[0], stream)
+        handed = [_handover(a, n, where) for (n, _), a in zip(named, arrays)]
+        return where, arrays, handed, self._ext_for(where), single
+
+    def _new(self, where, *shapes):
+        outs = [_empty(where, s, self.dtype.name) for s in shapes]
+        return outs, [_writable(o, where) for o in outs]
+
+    def _failed(self, where, batch):
+        """A CUDA call's (B,) int32 failed-DoF array on the device and its hand-over."""
+        if where.cuda is None:
+            return None, None
+        f = _empty(where, (batch,), "int32")
+        return f, _writable(f, where)
+
+    def _settle(self, status, where, failed, check, what):
+        if status.queued:
+            check = self.check if check is None else bool(check)
+            if check or where.kind == "jax":
+                _ext.synchronize_stream(where.stream)  # JAX is handed its results once they are done
+            if not check:
+                return
+            status = _ext.status_of_step_failures(_host_int32(failed))
+        self.last_status = status
+        if not status.ok:
+            raise BackendError(f"the {what} failed: {status.message}")
+
+    @staticmethod
+    def _unbatch(single, outs, sequences):
+        if not single:
+            return tuple(outs)
+        return tuple(o[:, 0] if seq else o[0] for o, seq in zip(outs, sequences))
+
+    def jacobian(self, q, qd, tau, stream=None, check=None):
         """(q', qd', J): the step from (q, qd) under tau, and J = d(q', qd') / d(q, qd,
-        tau), (B, 2 nv, 3 nv) (rows q', qd'; columns q, qd, tau)."""
-        q, qd, tau = self._in(q, qd, tau)
-        qn, qdn, J = self._s.jacobian(q, qd, tau)
-        lead = q.shape[:-1]
-        return qn.reshape(q.shape), qdn.reshape(q.shape), J.reshape(lead + J.shape[-2:])
+        tau), (B, 2 nv, 3 nv) (rows q', qd'; columns q, qd, tau). On a CUDA device J is
+        an entry-major view (torch, CuPy; as the mass matrix's)."""
+        where, arrays, h, s, single = self._begin([("q", q), ("qd", qd), ("tau", tau)], stream)
+        n, B, dt = self.nv, arrays[0].shape[0], self.dtype.name
+        (qn, qdn), (wqn, wqdn) = self._new(where, (B, n), (B, n))
+        blocks = wblocks = None
+        transpose = False
+        if where.cuda is None:
+            J = _empty(where, (B, 2 * n, 3 * n), dt)
+        else:
+            J = _entry_major(arrays[0], 2 * n, 3 * n, dt)
+            if J is None:  # no strides (JAX): the same memory as a (2 nv, 3 nv, B) array, transposed after
+                J, transpose = _empty(where, (2 * n, 3 * n, B), dt), True
+            blocks = _empty(where, (6 * n * n * B,), dt)
+            wblocks = _writable(blocks, where)
+        failed, wf = self._failed(where, B)
+        try:
+            status = s.jacobian(*h, wqn, wqdn, _writable(J, where), wblocks, wf, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check, "step derivatives")
+        del blocks  # the stream-ordered allocators keep it until the copies ran
+        if transpose:
+            J = J.transpose((2, 0, 1))
+        return self._unbatch(single, (qn, qdn, J), (False, False, False))
 
-    def rollout(self, q0, qd0, tau):
+    def rollout(self, q0, qd0, tau, stream=None, check=None):
         """(q, qd), each (T, B, nv): the states after each of the T steps of tau (T, B, nv)
         from (q0, qd0) (B, nv) ((nv,) and (T, nv) give (T, nv))."""
-        q0, qd0, tau = self._in(q0, qd0, tau)
-        if q0.ndim == 1:
-            q, qd = self._s.rollout(q0[None], qd0[None], np.ascontiguousarray(tau[:, None]))
-            return q[:, 0], qd[:, 0]
-        return self._s.rollout(q0, qd0, tau)
+        where, arrays, h, s, single = self._begin([("q0", q0), ("qd0", qd0), ("tau", tau)], stream)
+        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
+        outs, w = self._new(where, (T, B, n), (T, B, n))
+        failed, wf = self._failed(where, B)
+        try:
+            status = s.rollout(*h, *w, wf, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check, "rollout")
+        return self._unbatch(single, outs, (True, True))
 
-    def rollout_vjp(self, q0, qd0, tau, gq, gqd):
+    def rollout_vjp(self, q0, qd0, tau, gq, gqd, stream=None, check=None):
         """(gq0, gqd0, gtau): the gradient of a loss L with dL/dq_t = gq, dL/dqd_t = gqd
         (T, B, nv), by the adjoint recursion (checkpointed: O(sqrt(T)) states kept)."""
-        q0, qd0, tau, gq, gqd = self._in(q0, qd0, tau, gq, gqd)
-        if q0.ndim == 1:
-            g0, gd0, gt = self._s.vjp(q0[None], qd0[None], np.ascontiguousarray(tau[:, None]),
-                                      np.ascontiguousarray(gq[:, None]), np.ascontiguousarray(gqd[:, None]))
-            return g0[0], gd0[0], gt[:, 0]
-        return self._s.vjp(q0, qd0, tau, gq, gqd)
+        where, arrays, h, s, single = self._begin(
+            [("q0", q0), ("qd0", qd0), ("tau", tau), ("gq", gq), ("gqd", gqd)], stream)
+        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
+        outs, w = self._new(where, (B, n), (B, n), (T, B, n))
+        failed, wf = self._failed(where, B)
+        try:
+            status = s.vjp(*h, *w, wf, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check, "rollout derivatives")
+        return self._unbatch(single, outs, (False, False, True))
 
-    def rollout_jvp(self, q0, qd0, tau, dq0, dqd0, dtau):
+    def rollout_jvp(self, q0, qd0, tau, dq0, dqd0, dtau, stream=None, check=None):
         """(dq, dqd), each (T, B, nv): the trajectory's tangent along (dq0, dqd0, dtau)."""
-        q0, qd0, tau, dq0, dqd0, dtau = self._in(q0, qd0, tau, dq0, dqd0, dtau)
-        if q0.ndim == 1:
-            dq, dqd = self._s.jvp(q0[None], qd0[None], np.ascontiguousarray(tau[:, None]), dq0[None], dqd0[None],
-                                  np.ascontiguousarray(dtau[:, None]))
-            return dq[:, 0], dqd[:, 0]
-        return self._s.jvp(q0, qd0, tau, dq0, dqd0, dtau)
+        where, arrays, h, s, single = self._begin(
+            [("q0", q0), ("qd0", qd0), ("tau", tau), ("dq0", dq0), ("dqd0", dqd0), ("dtau", dtau)], stream)
+        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
+        outs, w = self._new(where, (T, B, n), (T, B, n))
+        failed, wf = self._failed(where, B)
+        try:
+            status = s.jvp(*h, *w, wf, where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, failed, check, "rollout derivatives")
+        return self._unbatch(single, outs, (True, True))
 
 
 # ---- torch.autograd.Function --------------------------------------------------------
@@ -150,29 +317,26 @@ def _torch_functions():
         return _TORCH
     import torch
 
-    def tensor(a, like):
-        return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=like.dtype, device=like.device)
-
     def vec_mat(g, m):  # g^T m over the leading dimensions: (..., n) x (..., n, k) -> (..., k)
         return torch.einsum("...i,...ij->...j", g, m)
 
     def dynamics_function(values, derivatives):
         """A Function (model, backend, q, qd, x) -> y = values(...) whose backward
-        contracts g with derivatives(model, q, qd, x, backend) = (dy/dq, dy/dqd, dy/dx)."""
+        contracts g with derivatives(model, q, qd, x, backend) = (dy/dq, dy/dqd, dy/dx),
+        both on the tensors' device (CUDA: torch's current stream)."""
 
         class DynamicsFunction(torch.autograd.Function):
             @staticmethod
             def forward(ctx, model, backend, q, qd, x):
                 ctx.model, ctx.backend = model, backend
                 ctx.save_for_backward(q, qd, x)
-                qh = _host(q)
-                return tensor(values(model, qh, _host(qd, qh.dtype), _host(x, qh.dtype), backend=_backend(backend)), q)
+                return values(model, q, qd, x, backend=backend)
 
             @staticmethod
             def backward(ctx, g):
                 q, qd, x = ctx.saved_tensors
                 mats = derivatives(ctx.model, q, qd, x, ctx.backend)
-                return (None, None) + tuple(vec_mat(g, tensor(m, q)) if need else None
+                return (None, None) + tuple(vec_mat(g, m) if need else None
                                             for m, need in zip(mats, ctx.needs_input_grad[2:]))
 
         return DynamicsFunction
@@ -184,9 +348,9 @@ def _torch_functions():
         @staticmethod
         def forward(ctx, step, q, qd, tau):
             qn, qdn, J = step.jacobian(q, qd, tau)
-            ctx.save_for_backward(tensor(J, q))
+            ctx.save_for_backward(J)
             ctx.nv = step.nv
-            return tensor(qn, q), tensor(qdn, q)
+            return qn, qdn
 
         @staticmethod
         def backward(ctx, gq, gqd):
@@ -200,14 +364,12 @@ def _torch_functions():
         def forward(ctx, step, q0, qd0, tau):
             ctx.step = step
             ctx.save_for_backward(q0, qd0, tau)
-            q, qd = step.rollout(q0, qd0, tau)
-            return tensor(q, q0), tensor(qd, q0)
+            return step.rollout(q0, qd0, tau)
 
         @staticmethod
         def backward(ctx, gq, gqd):
             q0, qd0, tau = ctx.saved_tensors
-            g0, gd0, gt = ctx.step.rollout_vjp(q0, qd0, tau, gq, gqd)
-            return None, tensor(g0, q0), tensor(gd0, q0), tensor(gt, q0)
+            return (None,) + ctx.step.rollout_vjp(q0, qd0, tau, gq, gqd)
 
     _TORCH.update(id=InverseDynamicsFunction, fd=ForwardDynamicsFunction, step=StepFunction,
                   rollout=RolloutFunction)
@@ -215,12 +377,14 @@ def _torch_functions():
 
 
 def torch_inverse_dynamics(model, q, qd, qdd, backend="auto"):
-    """tau = ID(q, qd, qdd) on CPU tensors, differentiable (backward: id_derivatives)."""
+    """tau = ID(q, qd, qdd) on CPU or CUDA tensors, differentiable (backward: id_derivatives,
+    on the tensors' device)."""
     return _torch_functions()["id"].apply(model, backend, q, qd, qdd)
 
 
 def torch_forward_dynamics(model, q, qd, tau, backend="auto"):
-    """qdd = FD(q, qd, tau) on CPU tensors, differentiable (backward: fd_derivatives)."""
+    """qdd = FD(q, qd, tau) on CPU or CUDA tensors, differentiable (backward: fd_derivatives,
+    on the tensors' device)."""
     return _torch_functions()["fd"].apply(model, backend, q, qd, tau)
 
 
@@ -232,7 +396,8 @@ def torch_step(step, q, qd, tau):
 
 def torch_rollout(step, q0, qd0, tau):
     """(q, qd), each (T, B, nv) (or (T, nv)): T simulator steps under tau (T, B, nv),
-    differentiable (backward: the rollout's adjoint, StepDerivatives.rollout_vjp)."""
+    differentiable (backward: the rollout's adjoint, StepDerivatives.rollout_vjp; CUDA
+    tensors: the CUDA adjoint on their device, torch's current stream)."""
     return _torch_functions()["rollout"].apply(step, q0, qd0, tau)
 
 
@@ -305,6 +470,6 @@ def jax_rollout(step, q0, qd0, tau):
 
 
 __all__ = [
-    "StepDerivatives", "fd_derivatives", "id_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
+    "FdDerivatives", "IdDerivatives", "StepDerivatives", "fd_derivatives", "id_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
     "jax_rollout", "torch_forward_dynamics", "torch_inverse_dynamics", "torch_rollout", "torch_step",
 ]

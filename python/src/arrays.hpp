@@ -147,6 +147,37 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
   return v;
 }
 
+// The BatchView of a (B, nv, nv) or (nv, nv) out array (one nv x nv matrix per
+// instance, as the mass matrix and the derivative engines write them): entry (i, j)
+// of instance b at data[(i * nv + j) * s + b * sb], so each instance's block must be
+// row-major with rows nv * s apart (a C-contiguous array, a slice of one along the
+// batch, or the entry-major (1, nv B, B) view of the CUDA results). Checks device,
+// dtype and shape against `lead` (set by the call's first array).
+template <class S>
+BatchView<S> matrix_view_of(const OutArray& out, Index nv, const char* name, Lead& lead) {
+  check_device(out, name, lead);
+  if (!has_dtype<S>(out))
+    throw DTypeError(std::string(name) + " has dtype " + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
+  const size_t nd = out.ndim();
+  const size_t want = lead.single ? 2 : 3;
+  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
+      (!lead.single && Index(out.shape(0)) != lead.batch))
+    throw ShapeError(std::string(name) + " has shape " + shape_str(out) + ", expected " +
+                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + std::to_string(nv) +
+                     ", " + std::to_string(nv) + ")");
+  const std::ptrdiff_t s = out.stride(nd - 1);
+  if (nv > 1 && out.stride(nd - 2) != s * nv)
+    throw ShapeError(std::string(name) +
+                     ": each instance's (nv, nv) block must be row-major (strides (nv * s, s) for its last two "
+                     "dimensions), as a C-contiguous array or a slice along the batch dimension of one");
+  BatchView<S> M;
+  M.data = static_cast<S*>(out.data());
+  M.batch = lead.batch;
+  M.dof_stride = s;
+  M.batch_stride = lead.single ? 0 : out.stride(0);
+  return M;
+}
+
 // Out arrays: distinct elements must not share memory (a broadcast view would have
 // threads race on one entry).
 // (No allocation: called on every call, after the shape checks, with at most 4 dimensions:

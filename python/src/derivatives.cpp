@@ -1,240 +1,513 @@
-// python/src/derivatives.cpp: the analytical derivatives from Python, host arrays
-// (NumPy, C-contiguous, float32 or float64): the derivative engines of inverse and
-// forward dynamics (make_id_derivatives, make_fd_derivatives; scandyn/engine.hpp)
-// and the derivatives of the simulator's step and rollouts
+// python/src/derivatives.cpp: the analytical derivatives from Python: the derivative
+// engines of inverse and forward dynamics (make_id_derivatives, make_fd_derivatives;
+// scandyn/engine.hpp) and the derivatives of the simulator's step and rollouts
 // (scandyn/sim/step_derivatives.hpp). Registered by module.cpp (bind_derivatives);
 // the torch.autograd.Function and jax.custom_vjp wrappers over them are
-// python/scandyn/autograd.py. Results are new NumPy arrays.
+// python/scandyn/autograd.py, which allocates every result (an array of the inputs'
+// kind on their device) and passes it here as out.
+//
+// Arrays are read as module.cpp's engines read them (arrays.hpp: host memory or one
+// CUDA device, one dtype, their own strides, no copy). Host arrays run the engine's
+// compute() (or RolloutDerivatives' calls); CUDA arrays the CUDA engine's async call on
+// the caller's stream (engines.hpp's queue_on_device for the two engines;
+// cuda::CudaStepDerivatives::compute_async and cuda::CudaRolloutDerivatives'
+// *_async for the step and the rollouts), no synchronisation: the failed DoFs of a
+// CUDA call go to the caller's (B,) int32 device array (status_of_step_failures
+// decodes them once read back).
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/shared_ptr.h>
 #include <nanobind/stl/string.h>
-#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/vector.h>
 
+#include <cstdint>
 #include <memory>
+#include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "arrays.hpp"
+#include "engines.hpp"
+#include "scandyn/batch.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 #include "shared.hpp"
 
+#if SCANDYN_HAS_CUDA
+#include "scandyn/cuda/rollout_derivatives.hpp"
+#include "scandyn/cuda/step_derivatives.hpp"
+#endif
+
 namespace nb = nanobind;
+using namespace nb::literals;
 
 namespace scandyn::py {
 namespace {
 
+using PyIdDerivatives = PyEngine<IdDerivatives>;
+using PyFdDerivatives = PyEngine<FdDerivatives>;
+
+// Every out array writable entry by entry and sharing no memory with the inputs.
+void check_outs(std::initializer_list<std::pair<const OutArray*, const char*>> outs,
+                std::initializer_list<std::pair<Extent, const char*>> inputs) {
+  for (const auto& [o, name] : outs) {
+    check_no_self_overlap(*o, name);
+    check_out_alone(*o, inputs, name);
+    for (const auto& [p, other] : outs)
+      if (p != o && overlaps(extent_of(*o), extent_of(*p)))
+        throw ShapeError(std::string(name) + " shares memory with " + other + ": pass separate arrays");
+  }
+}
+
+// ---- the derivatives of inverse and forward dynamics --------------------------------
+
+// (dtau_dq, dtau_dqd, M) of (q, qd, qdd): (B, nv, nv) or (nv, nv) each
 template <class S>
-using In = nb::ndarray<const S, nb::c_contig, nb::device::cpu>;
+void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd,
+                            const OutArray& dq, const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
+  const Index nv = e.nv();
+  Lead lead;
+  IdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  const IdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dtau_dq", lead),
+                                matrix_view_of<S>(dqd, nv, "dtau_dqd", lead), matrix_view_of<S>(M, nv, "M", lead)};
+  check_max_batch(lead, e.max_batch);
+  check_outs({{&dq, "dtau_dq"}, {&dqd, "dtau_dqd"}, {&M, "M"}},
+             {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, s); });
+  if constexpr (std::is_same_v<S, float>) e.ef->compute(in, out);
+  else e.ed->compute(in, out);
+}
 
-// A new NumPy array of the given shape owning v's memory.
+// qdd (B, nv) and (dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1) of (q, qd, tau)
 template <class S>
-nb::object new_array(std::vector<S>&& v, const std::vector<size_t>& shape) {
-  auto* owner = new std::vector<S>(std::move(v));
-  nb::capsule del(owner, [](void* p) noexcept { delete static_cast<std::vector<S>*>(p); });
-  return nb::cast(nb::ndarray<nb::numpy, S>(owner->data(), shape.size(), shape.data(), del));
+CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const InArray& qd, const InArray& tau,
+                                  const OutArray& qdd, const OutArray& dq, const OutArray& dqd, const OutArray& dtau,
+                                  const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+  const Index nv = e.nv();
+  Lead lead;
+  FdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  const FdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dqdd_dq", lead),
+                                matrix_view_of<S>(dqd, nv, "dqdd_dqd", lead),
+                                matrix_view_of<S>(dtau, nv, "dqdd_dtau", lead), view_of<S>(qdd, nv, "qdd", lead, false)};
+  check_max_batch(lead, e.max_batch);
+  check_outs({{&qdd, "qdd"}, {&dq, "dqdd_dq"}, {&dqd, "dqdd_dqd"}, {&dtau, "dqdd_dtau"}},
+             {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+  int* failed = nullptr;
+  if (lead.cuda)
+    failed = failed_dof_of(failed_dof, lead, "the forward-dynamics derivatives",
+                           {{extent_of(qdd), "qdd"}, {extent_of(dq), "dqdd_dq"}, {extent_of(dqd), "dqdd_dqd"},
+                            {extent_of(dtau), "dqdd_dtau"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda) {
+    queue_on_device<S>(e, lead, stream,
+                       [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, failed, s); });
+    CallStatus r;
+    r.queued = true;
+    return r;
+  }
+  BatchStatus st;
+  if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, out);
+  else st = e.ed->compute(in, out);
+  return call_status(st, lead.batch);
 }
 
-// (B, n) of an array of shape (B, n) or (n,) named `name`, with n = nv.
-template <class A>
-Index batch_of(const A& a, Index nv, const char* name) {
-  if ((a.ndim() == 1 || a.ndim() == 2) && static_cast<Index>(a.shape(a.ndim() - 1)) == nv)
-    return a.ndim() == 1 ? 1 : static_cast<Index>(a.shape(0));
-  throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected (B, " + std::to_string(nv) +
-                   ") or (" + std::to_string(nv) + ",)");
-}
-template <class A>
-void same_batch(const A& a, Index nv, Index B, const char* name) {
-  if (batch_of(a, nv, name) != B)
-    throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected " + std::to_string(B) +
-                     " instances like q");
-}
-
-BackendOptions options_of(const std::string& backend, Index B) {
+BackendOptions engine_options(const std::string& backend, Index max_batch, int threads) {
   BackendOptions o;
   o.backend = parse_backend(backend);
-  o.max_batch = std::max<Index>(B, 1);
+  if (max_batch < 1) throw ShapeError("max_batch must be at least 1, got " + std::to_string(max_batch));
+  o.max_batch = max_batch;
+  o.threads = threads;
   return o;
 }
 
-// (dtau_dq, dtau_dqd, M), each (B, nv, nv)
-template <class S>
-nb::tuple id_derivatives(PyModel& pm, In<S> q, In<S> qd, In<S> qdd, const std::string& backend) {
-  const ModelTpl<S>& model = pm.get<S>();
-  const Index nv = model.nv(), B = batch_of(q, nv, "q");
-  same_batch(qd, nv, B, "qd"), same_batch(qdd, nv, B, "qdd");
-  const std::size_t count = static_cast<std::size_t>(B) * nv * nv;
-  std::vector<S> a(count), b(count), c(count);
-  using V = BatchView<const S>;
-  make_id_derivatives(model, options_of(backend, B))
-      ->compute({V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(qdd.data(), nv, B)},
-                {BatchView<S>::aos(a.data(), nv * nv, B), BatchView<S>::aos(b.data(), nv * nv, B),
-                 BatchView<S>::aos(c.data(), nv * nv, B)});
-  const size_t Bs = static_cast<size_t>(B), n = static_cast<size_t>(nv);
-  return nb::make_tuple(new_array(std::move(a), {Bs, n, n}), new_array(std::move(b), {Bs, n, n}),
-                        new_array(std::move(c), {Bs, n, n}));
+template <class Class>
+void def_derivative_engine(Class& cls) {
+  def_engine_properties(cls);
+  cls.def_prop_ro("method", [](const typename Class::Type&) { return std::string("aba"); });
 }
 
-// (qdd (B, nv), dqdd_dq, dqdd_dqd, dqdd_dtau (B, nv, nv))
-template <class S>
-nb::tuple fd_derivatives(PyModel& pm, In<S> q, In<S> qd, In<S> tau, const std::string& backend) {
-  const ModelTpl<S>& model = pm.get<S>();
-  const Index nv = model.nv(), B = batch_of(q, nv, "q");
-  same_batch(qd, nv, B, "qd"), same_batch(tau, nv, B, "tau");
-  const std::size_t count = static_cast<std::size_t>(B) * nv * nv;
-  std::vector<S> a(count), b(count), c(count), qdd(static_cast<std::size_t>(B) * nv);
-  using V = BatchView<const S>;
-  const BatchStatus st = make_fd_derivatives(model, options_of(backend, B))
-                             ->compute({V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(tau.data(), nv, B)},
-                                       {BatchView<S>::aos(a.data(), nv * nv, B), BatchView<S>::aos(b.data(), nv * nv, B),
-                                        BatchView<S>::aos(c.data(), nv * nv, B), BatchView<S>::aos(qdd.data(), nv, B)});
-  if (!st.ok()) throw BackendError("the forward-dynamics derivatives failed: " + st.message());
-  const size_t Bs = static_cast<size_t>(B), n = static_cast<size_t>(nv);
-  return nb::make_tuple(new_array(std::move(qdd), {Bs, n}), new_array(std::move(a), {Bs, n, n}),
-                        new_array(std::move(b), {Bs, n, n}), new_array(std::move(c), {Bs, n, n}));
+// ---- the step and rollout derivatives -----------------------------------------------
+
+// The (T, B, nv) sequence `a` as a StepSequence (any strides), B = lead.batch.
+template <class T, class A>
+sim::StepSequence<T> sequence_of(const A& a, Index nv, const char* name, Lead& lead, Index T_expected = -1) {
+  using S = std::remove_const_t<T>;
+  check_device(a, name, lead);
+  if (!has_dtype<S>(a))
+    throw DTypeError(std::string(name) + " has dtype " + dtype_name(a.dtype()) + ", expected " + scalar_name<S>() +
+                     " (every array of a call shares one dtype, the StepDerivatives' dtype)");
+  if (a.ndim() != 3 || Index(a.shape(1)) != lead.batch || Index(a.shape(2)) != nv ||
+      (T_expected >= 0 && Index(a.shape(0)) != T_expected))
+    throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected (" +
+                     (T_expected >= 0 ? std::to_string(T_expected) : std::string("T")) + ", " +
+                     std::to_string(lead.batch) + ", " + std::to_string(nv) + ")");
+  sim::StepSequence<T> s;
+  s.first.data = static_cast<T*>(const_cast<void*>(static_cast<const void*>(a.data())));
+  s.first.batch = lead.batch;
+  s.first.dof_stride = a.stride(2);
+  s.first.batch_stride = a.stride(1);
+  s.time_stride = a.stride(0);
+  s.steps = Index(a.shape(0));
+  return s;
 }
 
-// The step and rollout derivatives of one scene (JSON text), in precision S.
+// The step and rollout derivatives of one scene (JSON text), in precision S, on one
+// backend (cuda: on one device, made current for every call).
 template <class S>
 class PyStepDerivatives {
  public:
   PyStepDerivatives(const std::string& scene_json, const std::string& source, const std::string& base_dir,
-                    const std::string& backend) {
+                    const std::string& backend, int device) {
     sim::Scene scene = sim::parse_scene(scene_json, source, base_dir);
     scene.instances = 1;  // the setup only: one instance's state
     sim_ = std::make_unique<sim::Simulator<S>>(scene, BackendKind::Serial);
-    options_ = options_of(backend, 1);
+    options_.backend = parse_backend(backend);
+    options_.max_batch = 1;
+#if SCANDYN_HAS_CUDA
+    if (options_.backend == BackendKind::Cuda) {
+      std::optional<cuda::DeviceScope> scope;
+      enter_device(scope, device);
+      int current = 0;
+      if (cudaGetDevice(&current) == cudaSuccess) device_ = current;
+      // every call, host or device arrays, runs the CUDA rollouts (as sim::RolloutDerivatives on cuda)
+      cuda_rollout_ = std::make_unique<cuda::CudaRolloutDerivatives<S>>(sim_->setup(), options_);
+      return;
+    }
+#endif
+    (void)device;
     rollout_ = std::make_unique<sim::RolloutDerivatives<S>>(sim_->setup(), options_);
   }
   Index nv() const { return sim_->nv(); }
   double dt() const { return double(sim_->setup().dt); }
+  int device() const { return device_; }
+  std::string backend() const { return to_string(options_.backend); }
 
-  // (q', qd', J) with J (B, 2 nv, 3 nv): rows (q', qd'), columns (q, qd, tau)
-  nb::tuple jacobian(In<S> q, In<S> qd, In<S> tau) {
-    const Index nv = this->nv(), B = batch_of(q, nv, "q");
-    same_batch(qd, nv, B, "qd"), same_batch(tau, nv, B, "tau");
-    if (!engine_ || engine_max_ < B) {
-      BackendOptions o = options_;
-      o.max_batch = std::max<Index>(B, 1);
-      engine_ = sim::make_step_derivatives(sim_->setup(), o);
-      engine_max_ = o.max_batch;
+  // (q', qd') (B, nv) and J = d(q', qd') / d(q, qd, tau), rows (q', qd'), columns (q, qd,
+  // tau). J: (B, 2 nv, 3 nv) of any strides on the host; on a CUDA device entry-major,
+  // J[b, r, c] at (r * 3 nv + c) * B + b (the (B, 2 nv, 3 nv) view of strides (1, 3 nv B,
+  // B), or that memory as a (2 nv, 3 nv, B) C-contiguous array), with `blocks` (6 nv^2 B
+  // entries of device memory) for the kernel's six blocks before they are copied into J.
+  CallStatus jacobian(const InArray& q, const InArray& qd, const InArray& tau, const OutArray& q_next,
+                      const OutArray& qd_next, const OutArray& J, const std::optional<OutArray>& blocks,
+                      const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+    const Index n = nv();
+    Lead lead;
+    FdBatchIn<S> in;
+    in.q = view_of<const S>(q, n, "q", lead, true);
+    in.qd = view_of<const S>(qd, n, "qd", lead, false);
+    in.tau = view_of<const S>(tau, n, "tau", lead, false);
+    const BatchView<S> qn = view_of<S>(q_next, n, "q_next", lead, false);
+    const BatchView<S> qdn = view_of<S>(qd_next, n, "qd_next", lead, false);
+    const Index B = lead.batch;
+    check_device(J, "J", lead);
+    if (!has_dtype<S>(J)) throw DTypeError("J has dtype " + dtype_name(J.dtype()) + ", expected " + scalar_name<S>());
+    // J's strides in entries along (instance, row, column)
+    std::ptrdiff_t sb = 0, sr = 0, sc = 0;
+    if (J.ndim() == 3 && Index(J.shape(0)) == B && Index(J.shape(1)) == 2 * n && Index(J.shape(2)) == 3 * n)
+      sb = J.stride(0), sr = J.stride(1), sc = J.stride(2);
+    else if (lead.cuda && J.ndim() == 3 && Index(J.shape(0)) == 2 * n && Index(J.shape(1)) == 3 * n &&
+             Index(J.shape(2)) == B)
+      sr = J.stride(0), sc = J.stride(1), sb = J.stride(2);
+    else
+      throw ShapeError("J has shape " + shape_str(J) + ", expected (" + std::to_string(B) + ", " +
+                       std::to_string(2 * n) + ", " + std::to_string(3 * n) + ")");
+    check_outs({{&q_next, "q_next"}, {&qd_next, "qd_next"}, {&J, "J"}},
+               {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+    const std::size_t nn = std::size_t(n) * n, Bs = std::size_t(B);
+    S* const Jd = static_cast<S*>(J.data());
+    if (lead.cuda) {
+#if SCANDYN_HAS_CUDA
+      if (options_.backend != BackendKind::Cuda) throw DeviceError(not_cuda(lead));
+      if (device_ != lead.device) throw DeviceError(other_device(lead));
+      if (!(sc == B && sr == 3 * n * B && (B == 1 || sb == 1)))
+        throw ShapeError("J on a CUDA device must be entry-major (J[b, r, c] at (r * 3 nv + c) * B + b: strides (1, " +
+                         std::to_string(3 * n * B) + ", " + std::to_string(B) + ")), as scandyn.autograd makes it");
+      if (!blocks) throw ShapeError("blocks: the step Jacobian on CUDA arrays needs 6 nv^2 B entries of scratch");
+      Lead l = lead;
+      check_device(*blocks, "blocks", l);
+      if (!has_dtype<S>(*blocks) || blocks->ndim() != 1 || blocks->shape(0) != 6 * nn * Bs ||
+          (blocks->shape(0) > 1 && blocks->stride(0) != 1))
+        throw ShapeError("blocks has shape " + shape_str(*blocks) + ", expected a contiguous (" +
+                         std::to_string(6 * nn * Bs) + ",) array of the call's dtype");
+      check_outs({{&*blocks, "blocks"}, {&J, "J"}}, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}});
+      int* failed = failed_dof_of(failed_dof, lead, "the step Jacobian", {{extent_of(J), "J"}, {extent_of(*blocks), "blocks"}});
+      S* const scratch = static_cast<S*>(blocks->data());
+      auto bv = [&](int k) { return BatchView<S>{scratch + k * nn * Bs, B, static_cast<std::ptrdiff_t>(B), 1}; };
+      nb::gil_scoped_release release;
+      std::lock_guard<std::mutex> lock(mutex_);
+      std::optional<cuda::DeviceScope> scope;
+      enter_device(scope, lead.device);
+      auto* c = dynamic_cast<cuda::CudaStepDerivatives<S>*>(&step_engine(B));
+      if (!c) throw DeviceError(not_cuda(lead));
+      const cudaStream_t s = reinterpret_cast<cudaStream_t>(stream);
+      cudaError_t err = c->compute_async(in, {bv(0), bv(1), bv(2), bv(3), bv(4), bv(5), qn, qdn}, failed, s);
+      // block (r, c), entry-major (entry (i, j) of instance b at (i n + j) B + b): its row i
+      // is n B consecutive entries, as row r n + i of J from column c n on
+      const std::size_t width = std::size_t(n) * Bs * sizeof(S);
+      for (int k = 0; k < 6 && err == cudaSuccess; ++k)
+        err = cudaMemcpy2DAsync(Jd + (std::size_t(k / 3) * n * 3 * n + std::size_t(k % 3) * n) * Bs, 3 * width,
+                                scratch + k * nn * Bs, width, width, std::size_t(n), cudaMemcpyDeviceToDevice, s);
+      check_launch(err);
+      CallStatus r;
+      r.queued = true;
+      return r;
+#else
+      (void)blocks, (void)failed_dof, (void)stream;
+      throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                        ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+#endif
     }
-    const std::size_t n = static_cast<std::size_t>(nv), Bs = static_cast<std::size_t>(B);
-    std::vector<S> qn(Bs * n), qdn(Bs * n), J(Bs * 6 * n * n);
-    // block (r, c) of instance b at J + b * 6 n^2 + r * 3 n^2 + c * n, rows of 3 n: a strided view
-    auto block = [&](int r, int c) {
-      return BatchView<S>{J.data() + r * 3 * n * n + c * n, B, 1, static_cast<std::ptrdiff_t>(6 * n * n)};
-    };
-    // entry (i, j) of a block at i * nv + j of the view's nv * nv entries: dof_stride 1
-    // does not fit rows of 3 nv, so the blocks are written contiguously and spread below
-    std::vector<S> blocks(6 * Bs * n * n);
-    auto bv = [&](int k) { return BatchView<S>::aos(blocks.data() + k * Bs * n * n, nv * nv, B); };
-    using V = BatchView<const S>;
-    const BatchStatus st = engine_->compute({V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(tau.data(), nv, B)},
-                                            {bv(0), bv(1), bv(2), bv(3), bv(4), bv(5), BatchView<S>::aos(qn.data(), nv, B),
-                                             BatchView<S>::aos(qdn.data(), nv, B)});
-    if (!st.ok()) throw BackendError("the step derivatives failed: " + st.message());
-    for (int k = 0; k < 6; ++k) {
-      const BatchView<S> dst = block(k / 3, k % 3);
-      for (std::size_t b = 0; b < Bs; ++b)
-        for (std::size_t i = 0; i < n; ++i)
-          for (std::size_t j = 0; j < n; ++j)
-            dst.data[b * dst.batch_stride + i * 3 * n + j] = blocks[k * Bs * n * n + b * n * n + i * n + j];
+    BatchStatus st;
+    {
+      nb::gil_scoped_release release;
+      std::lock_guard<std::mutex> lock(mutex_);
+      std::optional<cuda::DeviceScope> scope;
+      if (device_ >= 0) enter_device(scope, device_);
+      std::vector<S> scratch(6 * Bs * nn);
+      auto bv = [&](int k) { return BatchView<S>::aos(scratch.data() + k * Bs * nn, n * n, B); };
+      st = step_engine(B).compute(in, {bv(0), bv(1), bv(2), bv(3), bv(4), bv(5), qn, qdn});
+      for (int k = 0; k < 6; ++k)
+        for (std::size_t b = 0; b < Bs; ++b)
+          for (std::size_t i = 0; i < std::size_t(n); ++i)
+            for (std::size_t j = 0; j < std::size_t(n); ++j)
+              Jd[std::ptrdiff_t(b) * sb + std::ptrdiff_t((k / 3) * n + i) * sr +
+                 std::ptrdiff_t((k % 3) * n + j) * sc] = scratch[k * Bs * nn + b * nn + i * n + j];
     }
-    return nb::make_tuple(new_array(std::move(qn), {Bs, n}), new_array(std::move(qdn), {Bs, n}),
-                          new_array(std::move(J), {Bs, 2 * n, 3 * n}));
+    return call_status(st, B);
   }
 
-  // (q, qd), each (T, B, nv): the states after each step
-  nb::tuple rollout(In<S> q0, In<S> qd0, In<S> tau) {
-    const Index nv = this->nv(), B = batch_of(q0, nv, "q0");
-    same_batch(qd0, nv, B, "qd0");
-    const Index T = steps_of(tau, B, "tau");
-    const std::size_t count = static_cast<std::size_t>(T) * B * nv;
-    std::vector<S> q(count), qd(count);
-    check(rollout_->rollout(view(q0, B), view(qd0, B), seq(tau.data(), B, T), seq(q.data(), B, T), seq(qd.data(), B, T)));
-    return nb::make_tuple(new_array(std::move(q), shape3(T, B)), new_array(std::move(qd), shape3(T, B)));
+  // q, qd (T, B, nv): the states after each step of tau (T, B, nv) from (q0, qd0) (B, nv)
+  CallStatus rollout(const InArray& q0, const InArray& qd0, const InArray& tau, const OutArray& q, const OutArray& qd,
+                     const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+    const Index n = nv();
+    Lead lead;
+    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
+    const auto u = sequence_of<const S>(tau, n, "tau", lead);
+    const Index T = u.steps;
+    const auto x = sequence_of<S>(q, n, "q", lead, T), xd = sequence_of<S>(qd, n, "qd", lead, T);
+    check_outs({{&q, "q"}, {&qd, "qd"}}, {{extent_of(q0), "q0"}, {extent_of(qd0), "qd0"}, {extent_of(tau), "tau"}});
+    return run(lead, failed_dof, stream, {{extent_of(q), "q"}, {extent_of(qd), "qd"}},
+               [&](auto& r) { return r.rollout(x0, xd0, u, x, xd); },
+               [&](auto& r, int* f, cudaStream_t s) { return r.rollout_async(x0, xd0, u, x, xd, f, s); });
   }
 
   // (gq0, gqd0 (B, nv), gtau (T, B, nv)) for the loss gradients gq, gqd (T, B, nv)
-  nb::tuple vjp(In<S> q0, In<S> qd0, In<S> tau, In<S> gq, In<S> gqd) {
-    const Index nv = this->nv(), B = batch_of(q0, nv, "q0");
-    same_batch(qd0, nv, B, "qd0");
-    const Index T = steps_of(tau, B, "tau");
-    if (steps_of(gq, B, "gq") != T || steps_of(gqd, B, "gqd") != T)
-      throw ShapeError("gq and gqd must have tau's " + std::to_string(T) + " steps");
-    std::vector<S> g0(static_cast<std::size_t>(B) * nv), gd0(g0.size()), gt(static_cast<std::size_t>(T) * B * nv);
-    check(rollout_->vjp(view(q0, B), view(qd0, B), seq(tau.data(), B, T), seq(gq.data(), B, T), seq(gqd.data(), B, T),
-                        BatchView<S>::aos(g0.data(), nv, B), BatchView<S>::aos(gd0.data(), nv, B), seq(gt.data(), B, T)));
-    const size_t Bs = static_cast<size_t>(B), n = static_cast<size_t>(nv);
-    return nb::make_tuple(new_array(std::move(g0), {Bs, n}), new_array(std::move(gd0), {Bs, n}),
-                          new_array(std::move(gt), shape3(T, B)));
+  CallStatus vjp(const InArray& q0, const InArray& qd0, const InArray& tau, const InArray& gq, const InArray& gqd,
+                 const OutArray& gq0, const OutArray& gqd0, const OutArray& gtau,
+                 const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
+    const Index n = nv();
+    Lead lead;
+    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
+    const auto u = sequence_of<const S>(tau, n, "tau", lead);
+    const Index T = u.steps;
+    const auto g = sequence_of<const S>(gq, n, "gq", lead, T), gd = sequence_of<const S>(gqd, n, "gqd", lead, T);
+    const auto o0 = view_of<S>(gq0, n, "gq0", lead, false), od0 = view_of<S>(gqd0, n, "gqd0", lead, false);
+    const auto ou = sequence_of<S>(gtau, n, "gtau", lead, T);
+    check_outs({{&gq0, "gq0"}, {&gqd0, "gqd0"}, {&gtau, "gtau"}},
+               {{extent_of(q0), "q0"}, {extent_of(qd0), "qd0"}, {extent_of(tau), "tau"}, {extent_of(gq), "gq"},
+                {extent_of(gqd), "gqd"}});
+    return run(lead, failed_dof, stream, {{extent_of(gq0), "gq0"}, {extent_of(gqd0), "gqd0"}, {extent_of(gtau), "gtau"}},
+               [&](auto& r) { return r.vjp(x0, xd0, u, g, gd, o0, od0, ou); },
+               [&](auto& r, int* f, cudaStream_t s) { return r.vjp_async(x0, xd0, u, g, gd, o0, od0, ou, f, s); });
   }
 
-  // (dq, dqd), each (T, B, nv): the trajectory's tangent along (dq0, dqd0, dtau)
-  nb::tuple jvp(In<S> q0, In<S> qd0, In<S> tau, In<S> dq0, In<S> dqd0, In<S> dtau) {
-    const Index nv = this->nv(), B = batch_of(q0, nv, "q0");
-    same_batch(qd0, nv, B, "qd0"), same_batch(dq0, nv, B, "dq0"), same_batch(dqd0, nv, B, "dqd0");
-    const Index T = steps_of(tau, B, "tau");
-    if (steps_of(dtau, B, "dtau") != T) throw ShapeError("dtau must have tau's " + std::to_string(T) + " steps");
-    const std::size_t count = static_cast<std::size_t>(T) * B * nv;
-    std::vector<S> dq(count), dqd(count);
-    check(rollout_->jvp(view(q0, B), view(qd0, B), seq(tau.data(), B, T), view(dq0, B), view(dqd0, B),
-                        seq(dtau.data(), B, T), seq(dq.data(), B, T), seq(dqd.data(), B, T)));
-    return nb::make_tuple(new_array(std::move(dq), shape3(T, B)), new_array(std::move(dqd), shape3(T, B)));
+  // (dq, dqd) (T, B, nv): the trajectory's tangent along (dq0, dqd0, dtau)
+  CallStatus jvp(const InArray& q0, const InArray& qd0, const InArray& tau, const InArray& dq0, const InArray& dqd0,
+                 const InArray& dtau, const OutArray& dq, const OutArray& dqd, const std::optional<OutArray>& failed_dof,
+                 std::uintptr_t stream) {
+    const Index n = nv();
+    Lead lead;
+    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
+    const auto u = sequence_of<const S>(tau, n, "tau", lead);
+    const Index T = u.steps;
+    const auto v0 = view_of<const S>(dq0, n, "dq0", lead, false), vd0 = view_of<const S>(dqd0, n, "dqd0", lead, false);
+    const auto du = sequence_of<const S>(dtau, n, "dtau", lead, T);
+    const auto o = sequence_of<S>(dq, n, "dq", lead, T), od = sequence_of<S>(dqd, n, "dqd", lead, T);
+    check_outs({{&dq, "dq"}, {&dqd, "dqd"}},
+               {{extent_of(q0), "q0"}, {extent_of(qd0), "qd0"}, {extent_of(tau), "tau"}, {extent_of(dq0), "dq0"},
+                {extent_of(dqd0), "dqd0"}, {extent_of(dtau), "dtau"}});
+    return run(lead, failed_dof, stream, {{extent_of(dq), "dq"}, {extent_of(dqd), "dqd"}},
+               [&](auto& r) { return r.jvp(x0, xd0, u, v0, vd0, du, o, od); },
+               [&](auto& r, int* f, cudaStream_t s) { return r.jvp_async(x0, xd0, u, v0, vd0, du, o, od, f, s); });
   }
 
  private:
-  // T of a (T, B, nv) array
-  Index steps_of(const In<S>& a, Index B, const char* name) const {
-    if (a.ndim() != 3 || static_cast<Index>(a.shape(1)) != B || static_cast<Index>(a.shape(2)) != nv())
-      throw ShapeError(std::string(name) + " has shape " + shape_str(a) + ", expected (T, " + std::to_string(B) +
-                       ", " + std::to_string(nv()) + ")");
-    return static_cast<Index>(a.shape(0));
+  std::string not_cuda(const Lead& lead) const {
+    return "the arrays are on " + where_str(true, lead.device) + ", but these step derivatives run on backend '" +
+           backend() + "': make them with backend='cuda' or 'auto'";
   }
-  BatchView<const S> view(const In<S>& a, Index B) const { return BatchView<const S>::aos(a.data(), nv(), B); }
-  template <class P>
-  sim::StepSequence<P> seq(P* p, Index B, Index T) const {
-    return {BatchView<P>::aos(p, nv(), B), static_cast<std::ptrdiff_t>(B) * nv(), T};
+  std::string other_device(const Lead& lead) const {
+    return "the arrays are on " + where_str(true, lead.device) + ", but these step derivatives were made on " +
+           where_str(true, device_) + " (scandyn.autograd.StepDerivatives makes one per device)";
   }
-  std::vector<size_t> shape3(Index T, Index B) const {
-    return {static_cast<size_t>(T), static_cast<size_t>(B), static_cast<size_t>(nv())};
+  static void check_launch(int err) {
+#if SCANDYN_HAS_CUDA
+    if (err != cudaSuccess)
+      throw BackendError(std::string("backend 'cuda': queuing the step derivatives on the caller's stream failed: ") +
+                         cudaGetErrorName(cudaError_t(err)) + ": " + cudaGetErrorString(cudaError_t(err)));
+#else
+    (void)err;
+#endif
   }
-  static void check(const BatchStatus& st) {
-    if (!st.ok()) throw BackendError("the rollout derivatives failed: " + st.message());
+
+  // A rollout call: host arrays through host(r) (RolloutDerivatives, or the CUDA
+  // rollouts' host calls on backend cuda), CUDA arrays through device(r, failed, stream).
+  template <class Host, class Device>
+  CallStatus run(const Lead& lead, const std::optional<OutArray>& failed_dof, std::uintptr_t stream,
+                 std::initializer_list<std::pair<Extent, const char*>> outputs, Host&& host, Device&& device) {
+    if (lead.cuda) {
+#if SCANDYN_HAS_CUDA
+      if (!cuda_rollout_) throw DeviceError(not_cuda(lead));
+      if (device_ != lead.device) throw DeviceError(other_device(lead));
+      int* failed = failed_dof_of(failed_dof, lead, "the rollout derivatives", outputs);
+      nb::gil_scoped_release release;
+      std::lock_guard<std::mutex> lock(mutex_);
+      std::optional<cuda::DeviceScope> scope;
+      enter_device(scope, lead.device);
+      check_launch(device(*cuda_rollout_, failed, reinterpret_cast<cudaStream_t>(stream)));
+      CallStatus r;
+      r.queued = true;
+      return r;
+#else
+      (void)failed_dof, (void)stream, (void)outputs, (void)device;
+      throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                        ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+#endif
+    }
+    BatchStatus st;
+    {
+      nb::gil_scoped_release release;
+      std::lock_guard<std::mutex> lock(mutex_);
+#if SCANDYN_HAS_CUDA
+      if (cuda_rollout_) {
+        std::optional<cuda::DeviceScope> scope;
+        enter_device(scope, device_);
+        st = host(*cuda_rollout_);
+      } else {
+        st = host(*rollout_);
+      }
+#else
+      st = host(*rollout_);
+#endif
+    }
+    return call_status(st, lead.batch);
   }
+
+  // The step-Jacobian engine for B instances (made again, larger, when B grows); the
+  // caller holds mutex_ and has made the device current.
+  sim::StepDerivatives<S>& step_engine(Index B) {
+    if (!engine_ || engine_max_ < B) {
+      BackendOptions o = options_;
+      o.max_batch = std::max<Index>(B, 1);
+      engine_.reset();  // the old engine's memory goes first
+      engine_ = sim::make_step_derivatives(sim_->setup(), o);
+      engine_max_ = o.max_batch;
+    }
+    return *engine_;
+  }
+
   std::unique_ptr<sim::Simulator<S>> sim_;  // holds the setup
   BackendOptions options_;
-  std::unique_ptr<sim::RolloutDerivatives<S>> rollout_;
+  int device_ = -1;  // cuda: the device the objects were made on
+  std::mutex mutex_;
+  std::unique_ptr<sim::RolloutDerivatives<S>> rollout_;  // serial, openmp
+#if SCANDYN_HAS_CUDA
+  std::unique_ptr<cuda::CudaRolloutDerivatives<S>> cuda_rollout_;  // cuda
+#endif
   std::unique_ptr<sim::StepDerivatives<S>> engine_;
   Index engine_max_ = 0;
 };
 
 template <class S>
 void bind_step(nb::module_& m, const char* name) {
-  nb::class_<PyStepDerivatives<S>>(m, name)
-      .def(nb::init<const std::string&, const std::string&, const std::string&, const std::string&>(),
-           nb::arg("scene_json"), nb::arg("source"), nb::arg("base_dir"), nb::arg("backend"))
-      .def_prop_ro("nv", &PyStepDerivatives<S>::nv)
-      .def_prop_ro("dt", &PyStepDerivatives<S>::dt)
-      .def("jacobian", &PyStepDerivatives<S>::jacobian)
-      .def("rollout", &PyStepDerivatives<S>::rollout)
-      .def("vjp", &PyStepDerivatives<S>::vjp)
-      .def("jvp", &PyStepDerivatives<S>::jvp);
+  using P = PyStepDerivatives<S>;
+  nb::class_<P>(m, name)
+      .def(nb::init<const std::string&, const std::string&, const std::string&, const std::string&, int>(),
+           "scene_json"_a, "source"_a, "base_dir"_a, "backend"_a, "device"_a = -1)
+      .def_prop_ro("nv", &P::nv)
+      .def_prop_ro("dt", &P::dt)
+      .def_prop_ro("device", &P::device)
+      .def_prop_ro("backend", &P::backend)
+      .def("jacobian", &P::jacobian, "q"_a, "qd"_a, "tau"_a, "q_next"_a, "qd_next"_a, "J"_a, "blocks"_a = nb::none(),
+           "failed_dof"_a = nb::none(), "stream"_a = 0)
+      .def("rollout", &P::rollout, "q0"_a, "qd0"_a, "tau"_a, "q"_a, "qd"_a, "failed_dof"_a = nb::none(),
+           "stream"_a = 0)
+      .def("vjp", &P::vjp, "q0"_a, "qd0"_a, "tau"_a, "gq"_a, "gqd"_a, "gq0"_a, "gqd0"_a, "gtau"_a,
+           "failed_dof"_a = nb::none(), "stream"_a = 0)
+      .def("jvp", &P::jvp, "q0"_a, "qd0"_a, "tau"_a, "dq0"_a, "dqd0"_a, "dtau"_a, "dq"_a, "dqd"_a,
+           "failed_dof"_a = nb::none(), "stream"_a = 0);
 }
 
 }  // namespace
 
 void bind_derivatives(nb::module_& m) {
-  m.def("id_derivatives", &id_derivatives<double>, nb::arg("model"), nb::arg("q"), nb::arg("qd"), nb::arg("qdd"),
-        nb::arg("backend"));
-  m.def("id_derivatives", &id_derivatives<float>, nb::arg("model"), nb::arg("q"), nb::arg("qd"), nb::arg("qdd"),
-        nb::arg("backend"));
-  m.def("fd_derivatives", &fd_derivatives<double>, nb::arg("model"), nb::arg("q"), nb::arg("qd"), nb::arg("tau"),
-        nb::arg("backend"));
-  m.def("fd_derivatives", &fd_derivatives<float>, nb::arg("model"), nb::arg("q"), nb::arg("qd"), nb::arg("tau"),
-        nb::arg("backend"));
+  nb::class_<PyIdDerivatives> id(m, "IdDerivatives");
+  id.def("__init__",
+         [](PyIdDerivatives* self, std::shared_ptr<PyModel> model, const std::string& dtype,
+            const std::string& backend, Index max_batch, int threads, int device) {
+           const BackendOptions o = engine_options(backend, max_batch, threads);
+           init_engine(self, std::move(model), dtype, max_batch, device,
+                       [&](const ModelTpl<float>& md) { return make_id_derivatives<float>(md, o); },
+                       [&](const ModelTpl<double>& md) { return make_id_derivatives<double>(md, o); });
+         },
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
+      .def("compute",
+           [](PyIdDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& dq,
+              const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
+             if (e.is_float) id_derivatives_compute<float>(e, q, qd, qdd, dq, dqd, M, stream);
+             else id_derivatives_compute<double>(e, q, qd, qdd, dq, dqd, M, stream);
+           },
+           "q"_a, "qd"_a, "qdd"_a, "dtau_dq"_a, "dtau_dqd"_a, "M"_a, "stream"_a = 0);
+  def_derivative_engine(id);
+
+  nb::class_<PyFdDerivatives> fd(m, "FdDerivatives");
+  fd.def("__init__",
+         [](PyFdDerivatives* self, std::shared_ptr<PyModel> model, const std::string& dtype,
+            const std::string& backend, Index max_batch, int threads, int device) {
+           const BackendOptions o = engine_options(backend, max_batch, threads);
+           init_engine(self, std::move(model), dtype, max_batch, device,
+                       [&](const ModelTpl<float>& md) { return make_fd_derivatives<float>(md, o); },
+                       [&](const ModelTpl<double>& md) { return make_fd_derivatives<double>(md, o); });
+         },
+         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
+      .def("compute",
+           [](PyFdDerivatives& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& qdd,
+              const OutArray& dq, const OutArray& dqd, const OutArray& dtau, const std::optional<OutArray>& failed_dof,
+              std::uintptr_t stream) {
+             return e.is_float ? fd_derivatives_compute<float>(e, q, qd, tau, qdd, dq, dqd, dtau, failed_dof, stream)
+                               : fd_derivatives_compute<double>(e, q, qd, tau, qdd, dq, dqd, dtau, failed_dof, stream);
+           },
+           "q"_a, "qd"_a, "tau"_a, "qdd"_a, "dqdd_dq"_a, "dqdd_dqd"_a, "dqdd_dtau"_a, "failed_dof"_a = nb::none(),
+           "stream"_a = 0);
+  def_derivative_engine(fd);
+
+  // The status of a CUDA step or rollout call from its failed DoFs read back (B ints: -1,
+  // a pivot's DoF, or -2 - i for a result not finite at DoF i): summarize_step_failures.
+  m.def("status_of_step_failures",
+        [](const nb::ndarray<const int, nb::ndim<1>, nb::c_contig, nb::device::cpu>& failed) {
+          const Index B = Index(failed.shape(0));
+          std::vector<int> codes(failed.data(), failed.data() + B);
+          return call_status(summarize_step_failures(codes.data(), B), B);
+        },
+        "failed_dof"_a);
+
   bind_step<double>(m, "StepDerivatives64");
   bind_step<float>(m, "StepDerivatives32");
 }

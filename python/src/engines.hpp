@@ -10,7 +10,10 @@
 //   queue_on_device  the device path: the CUDA engine's compute_async() on the caller's
 //                    stream for arrays on its device (DeviceError for arrays on another
 //                    device, an engine of a CPU backend or one sharded over several
-//                    devices), no copy, no synchronisation.
+//                    devices), no copy, no synchronisation;
+//   CallStatus       what a call that can fail reports (module.cpp binds it as
+//                    scandyn.Status), call_status, failed_dof_of (the caller's failed-DoF
+//                    array of a CUDA call).
 #pragma once
 
 #include <nanobind/nanobind.h>
@@ -37,6 +40,7 @@
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/constrained_dynamics.hpp"
+#include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
@@ -61,6 +65,7 @@ struct PyEngine {
   std::unique_ptr<E<float>> ef;
   std::unique_ptr<E<double>> ed;
   std::mutex mutex;
+  int made_on = -1;  // the device current when a CUDA engine was made (init_engine), else -1
 
   Engine& engine() const { return is_float ? static_cast<Engine&>(*ef) : static_cast<Engine&>(*ed); }
   std::string strategy() const { return engine().strategy(); }
@@ -100,10 +105,26 @@ template <class S>
 cuda::CudaConstrainedForwardDynamics<S>* as_cuda(ConstrainedForwardDynamics<S>* e) {
   return dynamic_cast<cuda::CudaConstrainedForwardDynamics<S>*>(e);
 }
+template <class S>
+cuda::CudaIdDerivatives<S>* as_cuda(IdDerivatives<S>* e) { return dynamic_cast<cuda::CudaIdDerivatives<S>*>(e); }
+template <class S>
+cuda::CudaFdDerivatives<S>* as_cuda(FdDerivatives<S>* e) { return dynamic_cast<cuda::CudaFdDerivatives<S>*>(e); }
+// The CUDA ordinal an engine reports (device()), or -1 for one that does not say (the
+// derivative engines): PyEngine::made_on then names it.
 template <class E>
-int device_of(const E& e) { return e.device(); }
+auto device_of_impl(const E& e, int) -> decltype(int(e.device())) { return e.device(); }
+template <class E>
+int device_of_impl(const E&, long) { return -1; }
+template <class E>
+int device_of(const E& e) { return device_of_impl(e, 0); }
 template <class S>
 int device_of(const cuda::CudaBiasForces<S>& e) { return e.inverse_dynamics().device(); }
+// The device of the CUDA engine c of e.
+template <template <class> class E, class C>
+int cuda_device_of(const PyEngine<E>& e, const C& c) {
+  const int d = device_of(c);
+  return d >= 0 ? d : e.made_on;
+}
 #endif
 
 // The engine's device: its CUDA ordinal (for an engine sharded over one device, that
@@ -118,9 +139,9 @@ int engine_device(const PyEngine<E>& e) {
   }
 #if SCANDYN_HAS_CUDA
   if (e.is_float) {
-    if (auto* c = as_cuda(e.ef.get())) return device_of(*c);
+    if (auto* c = as_cuda(e.ef.get())) return cuda_device_of(e, *c);
   } else if (auto* c = as_cuda(e.ed.get())) {
-    return device_of(*c);
+    return cuda_device_of(e, *c);
   }
 #endif
   return -1;
@@ -164,9 +185,9 @@ void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Qu
     throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine runs on backend '" +
                       e.backend() + "': make it with backend='cuda' (the function API's backend='auto' follows "
                       "the arrays)");
-  if (device_of(*c) != lead.device)
+  if (cuda_device_of(e, *c) != lead.device)
     throw DeviceError("the arrays are on " + where_str(true, lead.device) + ", but this engine was made on " +
-                      where_str(true, device_of(*c)) + ": make one with device=" + std::to_string(lead.device));
+                      where_str(true, cuda_device_of(e, *c)) + ": make one with device=" + std::to_string(lead.device));
   std::optional<cuda::DeviceScope> scope;
   enter_device(scope, lead.device);
   const cudaError_t err = queue(*c, reinterpret_cast<cudaStream_t>(stream));
@@ -178,6 +199,49 @@ void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Qu
   throw DeviceError("the arrays are on " + where_str(true, lead.device) +
                     ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
 #endif
+}
+
+// ---- what a call reports ------------------------------------------------------
+
+// What a forward-dynamics call reports: BatchStatus with its per-instance failed DoFs copied.
+struct CallStatus {
+  Index failed = 0, first_instance = -1, first_dof = -1, fell_back = 0;
+  Index retried = 0;  // flagged by the run-time check, fixed by a fallback
+  std::string reason, message;
+  std::vector<int> failed_dof;  // per instance: -1 or the DoF that failed (empty when ok)
+  bool queued = false;          // CUDA arrays: the call was queued; the failed DoFs are in the
+                                // caller's device array once the stream reaches them
+};
+
+inline CallStatus call_status(const BatchStatus& st, Index batch) {
+  CallStatus r;
+  r.failed = st.failed;
+  r.first_instance = st.first_instance;
+  r.first_dof = st.first_dof;
+  r.fell_back = st.fell_back;
+  r.retried = st.retried;
+  if (!st.ok()) {
+    r.reason = st.reason();
+    r.message = st.message();
+    if (st.failed_dof) r.failed_dof.assign(st.failed_dof, st.failed_dof + batch);
+  }
+  return r;
+}
+
+// The failed-DoF array of a CUDA call: the caller's (B,) int32 array on the arrays' device.
+inline int* failed_dof_of(const std::optional<OutArray>& failed_dof, const Lead& lead, const char* what,
+                   std::initializer_list<std::pair<Extent, const char*>> outputs) {
+  if (!failed_dof)
+    throw ShapeError(std::string("failed_dof: ") + what + " on CUDA arrays needs a (B,) int32 array on the same device");
+  const OutArray& f = *failed_dof;
+  Lead l = lead;
+  check_device(f, "failed_dof", l);
+  if (f.dtype() != nb::dtype<int32_t>() || f.ndim() != 1 || Index(f.shape(0)) != lead.batch ||
+      (lead.batch > 1 && f.stride(0) != 1))
+    throw ShapeError("failed_dof has shape " + shape_str(f) + " and dtype " + dtype_name(f.dtype()) +
+                     ", expected a contiguous (" + std::to_string(lead.batch) + ",) int32 array");
+  check_out_alone(f, outputs, "failed_dof");
+  return static_cast<int*>(f.data());
 }
 
 template <template <class> class E, class MakeF, class MakeD>
@@ -202,6 +266,10 @@ void init_engine(PyEngine<E>* self, std::shared_ptr<PyModel> model, const std::s
       e->ef = make_f(e->model->template get<float>());
     else
       e->ed = make_d(e->model->template get<double>());
+#if SCANDYN_HAS_CUDA
+    int current = -1;
+    if (e->engine().backend() == BackendKind::Cuda && cudaGetDevice(&current) == cudaSuccess) e->made_on = current;
+#endif
   } catch (...) {
     e->~PyEngine<E>();
     throw;

@@ -195,26 +195,7 @@ void mass_compute(PyMass& e, const InArray& q, const OutArray& out, std::uintptr
   const Index nv = e.nv();
   Lead lead;
   BatchView<const S> qv = view_of<const S>(q, e.nq(), "q", lead, true, e.nq() == e.nv() ? "nv" : "nq");
-  check_device(out, "out", lead);
-  if (!has_dtype<S>(out))
-    throw DTypeError(std::string("out has dtype ") + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
-  const size_t nd = out.ndim();
-  const size_t want = lead.single ? 2 : 3;
-  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
-      (!lead.single && Index(out.shape(0)) != lead.batch))
-    throw ShapeError("out has shape " + shape_str(out) + ", expected " +
-                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + std::to_string(nv) +
-                     ", " + std::to_string(nv) + ")");
-  // entry (i, j) of instance b at data[(i * nv + j) * s + b * sb]: rows of nv entries s apart
-  const std::ptrdiff_t s = out.stride(nd - 1);
-  if (nv > 1 && out.stride(nd - 2) != s * nv)
-    throw ShapeError("out: each instance's (nv, nv) block must be row-major (strides (nv * s, s) for its last two "
-                     "dimensions), as a C-contiguous array or a slice along the batch dimension of one");
-  BatchView<S> M;
-  M.data = static_cast<S*>(out.data());
-  M.batch = lead.batch;
-  M.dof_stride = s;
-  M.batch_stride = lead.single ? 0 : out.stride(0);
+  BatchView<S> M = matrix_view_of<S>(out, nv, "out", lead);
   check_max_batch(lead, e.max_batch);
   check_no_self_overlap(out, "out");
   check_out_alone(out, {{extent_of(q), "q"}});
@@ -226,30 +207,7 @@ void mass_compute(PyMass& e, const InArray& q, const OutArray& out, std::uintptr
   else e.ed->compute(qv, M);
 }
 
-// What a forward-dynamics call reports: BatchStatus with its per-instance failed DoFs copied.
-struct CallStatus {
-  Index failed = 0, first_instance = -1, first_dof = -1, fell_back = 0;
-  Index retried = 0;  // flagged by the run-time check, fixed by a fallback
-  std::string reason, message;
-  std::vector<int> failed_dof;  // per instance: -1 or the DoF that failed (empty when ok)
-  bool queued = false;          // CUDA arrays: the call was queued; the failed DoFs are in the
-                                // caller's device array once the stream reaches them
-};
-
-CallStatus call_status(const BatchStatus& st, Index batch) {
-  CallStatus r;
-  r.failed = st.failed;
-  r.first_instance = st.first_instance;
-  r.first_dof = st.first_dof;
-  r.fell_back = st.fell_back;
-  r.retried = st.retried;
-  if (!st.ok()) {
-    r.reason = st.reason();
-    r.message = st.message();
-    if (st.failed_dof) r.failed_dof.assign(st.failed_dof, st.failed_dof + batch);
-  }
-  return r;
-}
+// CallStatus, call_status, failed_dof_of: engines.hpp (shared with derivatives.cpp)
 
 // The status of a CUDA call from its failed DoFs read back by the caller (B ints:
 // -1 or the DoF whose pivot failed), for the method `method` ran.
@@ -257,22 +215,6 @@ CallStatus status_of_failed_dofs(const nb::ndarray<const int, nb::ndim<1>, nb::c
                                  const std::string& method) {
   const Index B = Index(failed.shape(0));
   return call_status(summarize_failures(failed.data(), B, pivot_failure(parse_fd_method(method))), B);
-}
-
-// The failed-DoF array of a CUDA call: the caller's (B,) int32 array on the arrays' device.
-int* failed_dof_of(const std::optional<OutArray>& failed_dof, const Lead& lead, const char* what,
-                   std::initializer_list<std::pair<Extent, const char*>> outputs) {
-  if (!failed_dof)
-    throw ShapeError(std::string("failed_dof: ") + what + " on CUDA arrays needs a (B,) int32 array on the same device");
-  const OutArray& f = *failed_dof;
-  Lead l = lead;
-  check_device(f, "failed_dof", l);
-  if (f.dtype() != nb::dtype<int32_t>() || f.ndim() != 1 || Index(f.shape(0)) != lead.batch ||
-      (lead.batch > 1 && f.stride(0) != 1))
-    throw ShapeError("failed_dof has shape " + shape_str(f) + " and dtype " + dtype_name(f.dtype()) +
-                     ", expected a contiguous (" + std::to_string(lead.batch) + ",) int32 array");
-  check_out_alone(f, outputs, "failed_dof");
-  return static_cast<int*>(f.data());
 }
 
 template <class S>
