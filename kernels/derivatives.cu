@@ -4,6 +4,7 @@
 // after aba_instance for the forward dynamics' qdd.
 #include <cuda_runtime.h>
 
+#include <cstdlib>
 #include <string>
 #include <type_traits>
 
@@ -38,8 +39,55 @@ __global__ void __launch_bounds__(kDerivativesBlock)
                             instance_matrix(out.M, b, nv), nullptr);
 }
 
-// One thread per instance b < B: qdd by the ABA, then dqdd/dq, dqdd/dqd, M^-1.
-template <class S, int C>
+// How the forward-dynamics derivatives are launched (launch_fd_derivatives). The
+// default, kTwoKernels, for models of up to kPackedLtlCapacity DoF:
+//   fd_aba_kernel:            qdd by the ABA (aba_instance), kept in out.qdd or, when
+//                             the caller wants no qdd, in row 0 of the dqdd/dtau block;
+//   fd_derivatives_at_kernel: the inverse-dynamics derivatives at that qdd into the
+//                             output blocks, then the factor M = L^T L and the solves
+//                             with L in registers (packed_fd_solve).
+// The ABA of a capacity-8 model takes ~220 registers per thread (it keeps the bodies
+// in registers), the derivatives and the packed solve ~100; in one kernel the ABA's
+// count caps the whole recursion at 12.5% occupancy. The others are kept to compare
+// against (the environment variable SCANDYN_DFD_KERNEL=fused|tree|split, read once
+// per process; bench only):
+//   kFused: one kernel, fd_derivatives_kernel with the packed solve (ABA,
+//           derivatives, solve);
+//   kTree:  one kernel, the factor and solves by the tree walks of tree_ltl_factor /
+//           tree_ltl_negated_solve / tree_ltl_inverse over the output blocks in
+//           global memory (what every capacity above kPackedLtlCapacity runs);
+//   kSplit: three kernels: fd_aba_kernel, fd_derivatives_at_kernel without the solve
+//           (the blocks keep dtau/dq, dtau/dqd, M), fd_solve_kernel (packed_fd_solve
+//           alone).
+namespace {
+
+enum class FdKernel { kTwoKernels, kFused, kTree, kSplit };
+
+FdKernel fd_kernel_choice() {
+  static const FdKernel choice = [] {
+    const char* e = std::getenv("SCANDYN_DFD_KERNEL");
+    const std::string v = e ? e : "";
+    if (v == "fused") return FdKernel::kFused;
+    if (v == "tree") return FdKernel::kTree;
+    if (v == "split") return FdKernel::kSplit;
+    return FdKernel::kTwoKernels;
+  }();
+  return choice;
+}
+
+}  // namespace
+
+// Where fd_aba_kernel leaves qdd of instance b for fd_derivatives_at_kernel: out.qdd,
+// or row 0 of instance b's dqdd/dtau block (nv of its nv x nv entries).
+template <class S>
+__device__ __forceinline__ DofColumn<S> qdd_scratch(const FdDerivativesOut<S>& out, long long b) {
+  return out.qdd.data ? instance_column(out.qdd, b) : instance_column(out.dqdd_dtau, b);
+}
+
+// One thread per instance b < B: qdd by the ABA, then dqdd/dq, dqdd/dqd, M^-1 by
+// fd_derivatives_instance<P> (P: C for the packed factor in registers, 0 for the tree
+// walks).
+template <class S, int C, int P>
 __global__ void __launch_bounds__(kDerivativesBlock)
     fd_derivatives_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
                           const FdDerivativesOut<S> out, int* failed_dof) {
@@ -53,10 +101,63 @@ __global__ void __launch_bounds__(kDerivativesBlock)
   Index failed = aba_instance<S, C>(model, q, qd, instance_column(in.tau, b), fext, qdd);
   if (failed < 0) {
     DerivativeBody<S> work[C];  // per-thread local memory
-    failed = fd_derivatives_instance(model.body, nv, model.a0, q, qd, DofColumn<const S>{qdd.data, qdd.stride}, fext,
-                                     work, instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
-                                     instance_matrix(out.dqdd_dtau, b, nv));
+    failed = fd_derivatives_instance<P>(model.body, nv, model.a0, q, qd, DofColumn<const S>{qdd.data, qdd.stride},
+                                        fext, work, instance_matrix(out.dqdd_dq, b, nv),
+                                        instance_matrix(out.dqdd_dqd, b, nv), instance_matrix(out.dqdd_dtau, b, nv));
   }
+  if (failed_dof) failed_dof[b] = failed;
+}
+
+// One thread per instance b < B: qdd by the ABA into qdd_scratch.
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    fd_aba_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
+                  const FdDerivativesOut<S> out, int* failed_dof) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Force<S>* fext = in.fext ? in.fext + b * model.nv : nullptr;
+  const Index failed = aba_instance<S, C>(model, instance_column(in.q, b), instance_column(in.qd, b),
+                                          instance_column(in.tau, b), fext, qdd_scratch(out, b));
+  if (failed_dof) failed_dof[b] = failed;
+}
+
+// One thread per instance b < B whose ABA succeeded (failed_dof[b] < 0, or no
+// failed_dof): the inverse-dynamics derivatives at fd_aba_kernel's qdd into the
+// blocks and (kSolve) packed_fd_solve on them: dqdd/dq, dqdd/dqd, M^-1. Without
+// kSolve the blocks keep dtau/dq, dtau/dqd and M for fd_solve_kernel.
+template <class S, int C, bool kSolve>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    fd_derivatives_at_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
+                             const FdDerivativesOut<S> out, int* failed_dof) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  if (failed_dof && failed_dof[b] >= 0) return;
+  const Index nv = model.nv;
+  S qdd[C];  // copied out first: the scratch may be the dqdd/dtau block
+  const DofColumn<S> scratch = qdd_scratch(out, b);
+  for (Index i = 0; i < nv; ++i) qdd[i] = scratch[i];
+  const Force<S>* fext = in.fext ? in.fext + b * nv : nullptr;
+  DerivativeBody<S> work[C];  // per-thread local memory
+  const MatrixRef<S> dq = instance_matrix(out.dqdd_dq, b, nv), dqd = instance_matrix(out.dqdd_dqd, b, nv),
+                     dtau = instance_matrix(out.dqdd_dtau, b, nv);
+  rnea_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+                            DofColumn<const S>{qdd, 1}, fext, work, dq, dqd, dtau, nullptr);
+  if constexpr (kSolve) {
+    const Index failed = packed_fd_solve<C>(dq, dqd, dtau, static_cast<const S*>(nullptr));
+    if (failed_dof) failed_dof[b] = failed;
+  }
+}
+
+// kSplit's last kernel, one thread per instance b < B whose ABA succeeded: the blocks'
+// dtau/dq, dtau/dqd and M become dqdd/dq, dqdd/dqd and M^-1 (packed_fd_solve).
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    fd_solve_kernel(Index nv, const FdDerivativesOut<S> out, int* failed_dof) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= out.dqdd_dq.batch) return;
+  if (failed_dof && failed_dof[b] >= 0) return;
+  const Index failed = packed_fd_solve<C>(instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
+                                          instance_matrix(out.dqdd_dtau, b, nv), static_cast<const S*>(nullptr));
   if (failed_dof) failed_dof[b] = failed;
 }
 
@@ -97,11 +198,34 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
   if (B == 0 || model.nv() == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
     return cudaErrorInvalidValue;
+  const FdKernel choice = fd_kernel_choice();
+  const unsigned grid = blocks_for(B);
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        fd_derivatives_kernel<S, P::capacity>
-            <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+        constexpr int C = P::capacity;
+        if constexpr (C <= kPackedLtlCapacity) {
+          switch (choice) {
+            case FdKernel::kTwoKernels:
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              fd_derivatives_at_kernel<S, C, true><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kFused:
+              fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kTree:
+              fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kSplit:
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              fd_derivatives_at_kernel<S, C, false>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
+              break;
+          }
+        } else {
+          fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+        }
       },
       model.params());
   return cudaGetLastError();

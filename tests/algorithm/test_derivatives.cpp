@@ -177,6 +177,79 @@ TEST(AbaDerivatives, MatchCentralDifferencesAndIdentities) {
   }
 }
 
+// fd_derivatives_instance<8> (the packed factor and column solves with L in
+// registers, what the CUDA kernels run up to 8 DoF) against the default tree walks
+// over the output blocks, on the same qdd: models of up to 8 DoF (chains, trees whose
+// numbering is not a preorder, chains from the base, prismatic joints), with and
+// without external wrenches and armature; double 1e-13 relative to each block's
+// largest entry (or 1), float 1e-4; M^-1 exactly symmetric; a pivot that fails is
+// the same DoF on both.
+template <class S>
+void packed_against_tree(const std::string& name, const Model& model_d, bool with_fext, bool with_armature) {
+  SCOPED_TRACE(name + (with_fext ? " with fext" : "") + (with_armature ? " with armature" : "") +
+               (sizeof(S) == 4 ? " float" : " double"));
+  const ModelTpl<S> model = model_d.cast<S>();
+  const Index n = model.nv();
+  const State s = random_state(n, 41 + n, with_fext);
+  const auto cast = [](const std::vector<double>& v) { return std::vector<S>(v.begin(), v.end()); };
+  const std::vector<S> q = cast(s.q), qd = cast(s.qd), tau = cast(s.tau);
+  std::vector<Force<S>> fext;
+  for (const auto& f : s.fext) fext.push_back(f.template cast<S>());
+  std::vector<S> armature(n);
+  for (Index i = 0; i < n; ++i) armature[i] = S(0.01) * S(i + 1);
+  const S* arm = with_armature ? armature.data() : nullptr;
+  DerivativeDataTpl<S> dd(model);
+  std::vector<S> qdd(n);
+  ASSERT_TRUE(aba(model, dd.aba, q.data(), qd.data(), tau.data(), qdd.data(), with_fext ? fext.data() : nullptr, arm)
+                  .ok());
+  const Motion<S> a0 = base_acceleration(model.gravity);
+  std::vector<S> tree[3], packed[3];
+  for (auto* set : {tree, packed})
+    for (int k = 0; k < 3; ++k) set[k].assign(static_cast<std::size_t>(n * n), S(NAN));
+  const auto run = [&](std::vector<S>* out, bool use_packed) {
+    const auto m = [&](int k) { return MatrixRef<S>{out[k].data(), n, 1}; };
+    const Force<S>* f = with_fext ? fext.data() : nullptr;
+    return use_packed ? fd_derivatives_instance<8>(model.bodies.data(), n, a0, q.data(), qd.data(),
+                                                   static_cast<const S*>(qdd.data()), f, dd.work.data(), m(0), m(1),
+                                                   m(2), arm)
+                      : fd_derivatives_instance(model.bodies.data(), n, a0, q.data(), qd.data(),
+                                                static_cast<const S*>(qdd.data()), f, dd.work.data(), m(0), m(1),
+                                                m(2), arm);
+  };
+  ASSERT_EQ(run(tree, false), -1);
+  ASSERT_EQ(run(packed, true), -1);
+  const double tol = sizeof(S) == 4 ? 1e-4 : 1e-13;
+  for (int k = 0; k < 3; ++k) {
+    SCOPED_TRACE("block " + std::to_string(k));
+    EXPECT_LT(test::max_rel_err(packed[k], tree[k]), tol);
+  }
+  for (Index i = 0; i < n; ++i)
+    for (Index j = 0; j < n; ++j) EXPECT_EQ(packed[2][i * n + j], packed[2][j * n + i]);
+  // a pivot that is not positive: the same DoF reported
+  if (with_armature && n > 2) {
+    std::vector<S> bad(armature);
+    bad[n / 2] = S(-1e6);
+    arm = bad.data();
+    EXPECT_EQ(run(packed, true), run(tree, false));
+    EXPECT_GE(run(packed, true), 0);
+  }
+}
+
+TEST(AbaDerivatives, PackedSolveMatchesTheTreeWalks) {
+  std::vector<std::pair<std::string, Model>> models;
+  models.emplace_back("iiwa.urdf", test::load_robot("iiwa.urdf"));
+  for (const char* spec : {"chain:1", "chain:2", "chain:8"}) models.emplace_back(spec, load_model(spec));
+  for (unsigned seed : {1u, 2u, 3u}) models.emplace_back("random_model(8)", test::random_model(8, seed));
+  models.emplace_back("random_model(5)", test::random_model(5, 4));
+  models.emplace_back("random_chains_from_base(7)", test::random_chains_from_base(7, 5, {3, 5}));
+  for (auto& [name, model] : models)
+    for (bool with_fext : {false, true})
+      for (bool with_armature : {false, true}) {
+        packed_against_tree<double>(name, model, with_fext, with_armature);
+        packed_against_tree<float>(name, model, with_fext, with_armature);
+      }
+}
+
 // The directional derivative of inverse dynamics against the dense matrices: dtau =
 // dtau/dq dq + dtau/dqd dqd + M dqdd, and the adjoint (w^T dtau/dq, w^T dtau/dqd, M
 // w), 1e-11 relative to max(1, max |result|), up to rope:1000.

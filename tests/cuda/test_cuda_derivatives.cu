@@ -1,9 +1,12 @@
 // The CUDA derivative engines (scandyn/cuda/derivatives.hpp) against the serial
 // engines: every model shape of the thread-per-instance kernels (chains at the
 // capacities 8..64 and past them, trees, chains from the base, random trees with
-// prismatic joints), the robots, with external wrenches, double and float, host
-// views in aos and soa layouts, and compute_async on device pointers. Device tests
-// skip with the reason when no device is usable; the argument checks run everywhere.
+// prismatic joints, branched trees of up to 8 DoF), the robots, with external
+// wrenches, double and float, host views in aos and soa layouts, and compute_async on
+// device pointers. Device tests skip with the reason when no device is usable; the
+// argument checks run everywhere. The forward-dynamics launch can be switched with
+// SCANDYN_DFD_KERNEL=fused|tree|split (kernels/derivatives.cu); run the test under
+// each to cover every variant.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -43,6 +46,11 @@ double block_err(const Blocks<S>& a, const Blocks<S>& b, Index nv, Index B) {
 std::vector<std::pair<std::string, Model>> models() {
   auto m = test::thread_shape_models();
   for (const char* f : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) m.emplace_back(f, test::load_robot(f));
+  // branched trees at capacity 8 (the forward dynamics' packed factor in registers,
+  // packed_fd_solve: dense loops over the tree's exact zeros)
+  m.emplace_back("random_model(8)", test::random_model(8, 6));
+  m.emplace_back("random_model(6)", test::random_model(6, 7));
+  m.emplace_back("random_chains_from_base(7)", test::random_chains_from_base(7, 8, {2, 5}));
   return m;
 }
 

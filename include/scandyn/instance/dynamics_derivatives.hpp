@@ -160,8 +160,13 @@ SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const M
     derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
                             p < 0 ? nullptr : work + p, a0, work[i]);
   }
-  for (Index i = 0; i < nv; ++i)
-    for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
+  // the zeros of DoF on different branches; an unbranched chain (body i's parent
+  // i - 1) has none: the backward pass writes every entry of its blocks
+  bool chain = true;
+  for (Index i = 0; i < nv; ++i) chain = chain && body[i].parent == i - 1;
+  if (!chain)
+    for (Index i = 0; i < nv; ++i)
+      for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
   // backward: composite sums, then row j's entries against its ancestors (and the
   // transposed entries)
   for (Index j = nv - 1; j >= 0; --j) {
@@ -275,6 +280,136 @@ SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch di
     for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
 }
 
+// ---- the same for a model of at most C DoF, C known at compile time ---------------
+// (fd_derivatives_instance<C> for 0 < C <= kPackedLtlCapacity: the CUDA kernels')
+// L is held in a packed lower triangle of C (C + 1) / 2 scalars that the loops below,
+// unrolled over the capacity, index with constants only, so that a GPU thread keeps
+// L (and the column being solved) in registers instead of walking the tree over the
+// output blocks in global memory. The loops are dense over i, j < n: the tree's
+// zeros of M stay exact zeros of L (row k's update touches only pairs of ancestors
+// of k, Featherstone 6.5), and every non-zero entry sees the same operations in the
+// same order as in tree_ltl_factor / tree_ltl_negated_solve. Rows and columns past
+// n are skipped by tests on n, which is the same for every thread of a launch.
+
+// Largest capacity of the packed path: 8 gives 36 + 8 scalars of L and 1 / L_ii
+// (registers); 16 would be 136 + 16, more than a thread's registers next to the rest.
+inline constexpr int kPackedLtlCapacity = 8;
+
+// Loop unrolling of the packed path: nvcc's pragma (GCC's on the host, whose
+// optimiser then keeps the small arrays in registers too).
+#if defined(__CUDACC__)
+#define SCANDYN_PACKED_UNROLL _Pragma("unroll")
+#define SCANDYN_PACKED_NO_UNROLL _Pragma("unroll 1")
+#elif defined(__GNUC__) && !defined(__clang__)
+#define SCANDYN_PACKED_UNROLL _Pragma("GCC unroll 16")
+#define SCANDYN_PACKED_NO_UNROLL
+#else
+#define SCANDYN_PACKED_UNROLL
+#define SCANDYN_PACKED_NO_UNROLL
+#endif
+
+template <class S, int C>
+struct PackedLtl {
+  static constexpr SCANDYN_HD int at(int i, int j) { return i * (i + 1) / 2 + j; }  // L_ij, j <= i
+  S L[C * (C + 1) / 2];
+  S inv_diag[C];  // 1 / L_ii
+};
+
+// f.L = L of M + diag(armature) = L^T L, M's lower triangle read from A (A is not
+// written; armature: n entries, or null). Returns -1, or the DoF whose pivot was not
+// positive and finite.
+template <class S, int C>
+SCANDYN_HD Index packed_ltl_factor(MatrixRef<S> A, const S* armature, PackedLtl<S, C>& f) {
+  using P = PackedLtl<S, C>;
+  const Index n = A.n;
+SCANDYN_PACKED_UNROLL
+  for (int i = 0; i < C; ++i) {
+    if (i < n) {
+SCANDYN_PACKED_UNROLL
+      for (int j = 0; j <= i; ++j) f.L[P::at(i, j)] = A(i, j);
+      if (armature) f.L[P::at(i, i)] += armature[i];
+    }
+  }
+SCANDYN_PACKED_UNROLL
+  for (int k = C - 1; k >= 0; --k) {
+    if (k >= n) continue;
+    const S d = f.L[P::at(k, k)];
+    if (!pivot_ok(d)) return k;
+    const S Lkk = ScalarMath<S>::sqrt(d);
+    f.L[P::at(k, k)] = Lkk;
+    const S inv = S(1) / Lkk;
+    f.inv_diag[k] = inv;
+SCANDYN_PACKED_UNROLL
+    for (int i = k - 1; i >= 0; --i) f.L[P::at(k, i)] *= inv;
+SCANDYN_PACKED_UNROLL
+    for (int i = k - 1; i >= 0; --i) {
+      const S Lki = f.L[P::at(k, i)];
+SCANDYN_PACKED_UNROLL
+      for (int j = i; j >= 0; --j) f.L[P::at(i, j)] -= Lki * f.L[P::at(k, j)];
+    }
+  }
+  return -1;
+}
+
+// x (entries 0..n-1) becomes -(L^T L)^-1 x: L^T y = -x right-looking from the last
+// row, then L z = y from the first (tree_ltl_negated_solve's order on one column).
+template <class S, int C>
+SCANDYN_HD void packed_ltl_negated_solve(const PackedLtl<S, C>& f, Index n, S (&x)[C]) {
+  using P = PackedLtl<S, C>;
+SCANDYN_PACKED_UNROLL
+  for (int i = C - 1; i >= 0; --i) {
+    if (i >= n) continue;
+    x[i] *= -f.inv_diag[i];
+SCANDYN_PACKED_UNROLL
+    for (int j = i - 1; j >= 0; --j) x[j] += f.L[P::at(i, j)] * x[i];
+  }
+SCANDYN_PACKED_UNROLL
+  for (int i = 0; i < C; ++i) {
+    if (i >= n) break;
+SCANDYN_PACKED_UNROLL
+    for (int j = i - 1; j >= 0; --j) x[i] -= f.L[P::at(i, j)] * x[j];
+    x[i] *= f.inv_diag[i];
+  }
+}
+
+// The forward-dynamics solve of fd_derivatives_instance<C> on the inverse-dynamics
+// derivatives in the three blocks (dtau/dq, dtau/dqd, M in, dqdd/dq, dqdd/dqd, M^-1
+// out): L in registers, then column by column (each column read once and written
+// once) dqdd/dq = -M^-1 dtau/dq, dqdd/dqd = -M^-1 dtau/dqd, and M^-1 from the
+// columns of -(L^T L)^-1 (-e_c), its entries (i, c), i >= c, mirrored to (c, i) (M^-1
+// stays exactly symmetric). Returns as tree_ltl_factor.
+template <int C, class S>
+SCANDYN_HD Index packed_fd_solve(MatrixRef<S> dq, MatrixRef<S> dqd, MatrixRef<S> dtau, const S* armature) {
+  static_assert(C > 0 && C <= kPackedLtlCapacity, "the packed factor is for capacities up to kPackedLtlCapacity");
+  const Index n = dtau.n;
+  PackedLtl<S, C> f{};  // (entries past n stay 0)
+  const Index failed = packed_ltl_factor(dtau, armature, f);
+  if (failed >= 0) return failed;
+  S x[C] = {};
+SCANDYN_PACKED_NO_UNROLL
+  for (Index c = 0; c < 2 * n; ++c) {
+    const MatrixRef<S> X = c < n ? dq : dqd;
+    const Index col = c < n ? c : c - n;
+SCANDYN_PACKED_UNROLL
+    for (int i = 0; i < C; ++i)
+      if (i < n) x[i] = X(i, col);
+    packed_ltl_negated_solve(f, n, x);
+SCANDYN_PACKED_UNROLL
+    for (int i = 0; i < C; ++i)
+      if (i < n) X(i, col) = x[i];
+  }
+SCANDYN_PACKED_NO_UNROLL
+  for (Index c = 0; c < n; ++c) {
+SCANDYN_PACKED_UNROLL
+    for (int i = 0; i < C; ++i) x[i] = i == c ? S(-1) : S(0);
+    packed_ltl_negated_solve(f, n, x);
+SCANDYN_PACKED_UNROLL
+    for (int i = 0; i < C; ++i)
+      if (i >= c && i < n) dtau(i, c) = dtau(c, i) = x[i];
+  }
+  return -1;
+}
+
 // Forward-dynamics derivatives of one instance at qdd = FD(q, qd, tau, fext) (the
 // caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
 // every entry written). Returns -1, or the DoF whose pivot of M = L^T L was not
@@ -283,24 +418,33 @@ SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch di
 // added to M's diagonal, as the ABA's armature argument (the simulator's implicit
 // integrator): then qdd solves (M + diag(armature)) qdd = tau - h, and the
 // derivatives are those of that solve, dqdd/dtau = (M + diag(armature))^-1.
-template <class S, class V>
+// C: 0 (the default: the tree walks of tree_ltl_factor, tree_ltl_negated_solve and
+// tree_ltl_inverse over the output blocks, any nv), or a compile-time capacity
+// nv <= C; for C <= kPackedLtlCapacity the factor and solves run on L in registers
+// (packed_fd_solve; the same results up to the rounding of M^-1, which it gets
+// from solves rather than from L^-1).
+template <int C = 0, class S, class V>
 SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
                                          const Force<S>* fext, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
                                          MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau,
                                          const S* armature = nullptr) {
   rnea_derivatives_instance(body, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau, nullptr);
-  if (armature)
-    for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
-  const Index failed = tree_ltl_factor(body, dqdd_dtau);
-  if (failed >= 0) return failed;
-  tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
-  struct Field {  // one scalar field of the work array
-    DerivativeBody<S>* w;
-    S DerivativeBody<S>::*f;
-    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
-  };
-  tree_ltl_inverse(body, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
-  return -1;
+  if constexpr (C > 0 && C <= kPackedLtlCapacity) {
+    return packed_fd_solve<C>(dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
+  } else {
+    if (armature)
+      for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
+    const Index failed = tree_ltl_factor(body, dqdd_dtau);
+    if (failed >= 0) return failed;
+    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
+    struct Field {  // one scalar field of the work array
+      DerivativeBody<S>* w;
+      S DerivativeBody<S>::*f;
+      SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+    };
+    tree_ltl_inverse(body, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+    return -1;
+  }
 }
 
 }  // namespace scandyn
