@@ -139,17 +139,14 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;
   // the thread kernels' bodies: past a floating base (which they hold apart). The ABA
   // of models they do not take (spherical joints; a floating base with more bodies
-  // past it) runs the general path.
+  // past it; 1-DoF joints beyond kMaxThreadDofs) runs the general path, one thread per
+  // instance, O(nv) each.
   const Index thread_bodies = model.floating_base() ? nb_ - 1 : nv_;
-  const bool general = aba_ && takes_general_path(model);
+  const bool general = aba_ && (takes_general_path(model) || thread_bodies > kMaxThreadDofs);
   if (model.multi_dof() && !chain && algorithm != FdMethod::Aba)
     throw BackendError(std::string("backend 'cuda': model '") + model.name +
                        "' has multi-DoF joints (a floating base or spherical joints), which forward dynamics by " +
                        to_string(algorithm) + " does not take on this backend (use aba, or parallel for a free rope)");
-  if (aba_ && !general && thread_bodies > kMaxThreadDofs)
-    throw BackendError("backend 'cuda': forward dynamics by the ABA runs one thread per instance, for models of up to " +
-                       std::to_string(kMaxThreadDofs) + " DoF; this model has " + std::to_string(nv_) +
-                       " (use the joint-space inertia method, FdMethod::Jsi or Auto)");
   // q, qd, tau, qdd (nq scalars each, detail::stage_inputs), fext (6 nq) and a failed DoF for
   // max_batch instances
   staging_ = std::make_unique<detail::StagingBuffer>(

@@ -521,21 +521,24 @@ __global__ void __launch_bounds__(kSimBlock)
 // The step of a model the thread kernels do not take (spherical joints; a floating
 // base with more than kMaxThreadDofs bodies past it): step_instance_at over the
 // general path's ABA (aba_general, scandyn/instance/general_instance.hpp), one thread
-// per instance, its state and scratch a slice of the GeneralPlan's buffer (thread t
+// per instance, its state and scratch in the GeneralPlan's buffer (thread t
 // takes instances t, t + slots, ...). Effects and contacts as the floating-base
-// kernel. Scratch scalars per slice (GeneralSimScalars): q, qd, tau, then
-// StepScratchAt's arrays and the contacts' armature; the slice's extra area holds
-// the contact pass's nb transforms, twists and wrenches.
+// kernel. The GeneralPlan's scratch arrays (GeneralWorkOf) are interleaved across
+// the threads (kScalars: every scalar, else by the plan's strides); the step's own
+// state and scratch scalars lie contiguous per thread in the plan's extra area
+// (GeneralSimScalars: q, qs, then qd, tau and StepScratchAt's arrays and the contacts'
+// armature, then the contact pass's nb transforms, twists and wrenches), as
+// step_instance_at takes plain pointers.
 template <class S>
 struct GeneralSimScalars {
-  // 2 nq + 9 nv in all (q, qs; qd tau tw qdd qds aq aqd theta arm): beyond GeneralPlan's nq + 3 nv
-  static Index extra_scalars(Index nq, Index nv) { return nq + 6 * nv; }
-  static std::size_t extra_bytes(Index nb) {
-    return static_cast<std::size_t>(nb) * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
+  // 2 nq + 9 nv scalars (q, qs; qd tau tw qdd qds aq aqd theta arm) and the contact arrays
+  static std::size_t extra_bytes(Index nb, Index nq, Index nv) {
+    return static_cast<std::size_t>(2 * nq + 9 * nv) * sizeof(S) +
+           static_cast<std::size_t>(nb) * (sizeof(Transform<S>) + sizeof(Motion<S>) + sizeof(Force<S>));
   }
 };
 
-template <class S, Integrator I>
+template <class S, Integrator I, bool kScalars>
 __global__ void __launch_bounds__(cuda::kGeneralBlock)
     sim_general_kernel(const cuda::GeneralArgs<S> g, const FusedArgs<S> a, const FloatingArgs<S> fa, S dt) {
   constexpr unsigned E = kJointEffects | kExternal;  // (contacts: add_contact_wrenches)
@@ -543,9 +546,12 @@ __global__ void __launch_bounds__(cuda::kGeneralBlock)
   if (t >= g.slots) return;
   const Index nb = g.nb, nv = g.nv, nq = g.nq;
   const long long B = a.batch;
-  char* const slice = g.slice(t);
-  const GeneralWork<S> gw = g.layout.work(slice);
-  S* const q = g.layout.scalar_area(slice);
+  const auto gw = [&] {
+    if constexpr (kScalars) return g.work_scalars(t);
+    else return g.work_strided(t);
+  }();
+  char* const extra = g.extra_area(t);
+  S* const q = reinterpret_cast<S*>(extra);
   S* const qs = q + nq;
   S* const qd = qs + nq;
   S* const tau = qd + nv;
@@ -556,8 +562,7 @@ __global__ void __launch_bounds__(cuda::kGeneralBlock)
   S* const aqd = aq + nv;
   S* const theta = aqd + nv;
   S* const carm = theta + nv;
-  char* const extra = g.layout.extra_area(slice);
-  Transform<S>* const cX = reinterpret_cast<Transform<S>*>(extra);
+  Transform<S>* const cX = reinterpret_cast<Transform<S>*>(carm + nv);
   Motion<S>* const cv = reinterpret_cast<Motion<S>*>(cX + nb);
   Force<S>* const cf = reinterpret_cast<Force<S>*>(cv + nb);
   const StepScratchAt<S> w{tw, qdd, qs, qds, aq, aqd, theta};

@@ -258,8 +258,8 @@ class CudaSimBackend final : public SimBackend<S> {
     }
     // the general step's bodies and per-thread scratch (the plan's own device copy of the bodies)
     if (general_)
-      general_plan_ = std::make_unique<cuda::GeneralPlan<S>>(setup.model, B, GeneralSimScalars<S>::extra_bytes(setup.model.nbodies()),
-                                                             GeneralSimScalars<S>::extra_scalars(setup.model.nq(), nv));
+      general_plan_ = std::make_unique<cuda::GeneralPlan<S>>(
+          setup.model, B, GeneralSimScalars<S>::extra_bytes(setup.model.nbodies(), setup.model.nq(), nv));
     // small constants: status, the constant (or zero) wrenches, the coefficients; with a
     // floating base or the general step also the implicit armature and, for the fused
     // floating kernel, the bodies (FloatingArgs)
@@ -349,12 +349,17 @@ class CudaSimBackend final : public SimBackend<S> {
       const cuda::GeneralArgs<S>& g = general_plan_->args();
       const unsigned blocks = g.blocks(B);
       constexpr int kBlock = cuda::kGeneralBlock;
-      switch (setup_.integrator) {
-        case Integrator::Euler: sim_general_kernel<S, Integrator::Euler><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
-        case Integrator::Rk4: sim_general_kernel<S, Integrator::Rk4><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
-        case Integrator::Implicit: sim_general_kernel<S, Integrator::Implicit><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
-        default: break;
-      }
+      const auto launch = [&](auto scalars) {
+        constexpr bool kScalars = decltype(scalars)::value;
+        switch (setup_.integrator) {
+          case Integrator::Euler: sim_general_kernel<S, Integrator::Euler, kScalars><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+          case Integrator::Rk4: sim_general_kernel<S, Integrator::Rk4, kScalars><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+          case Integrator::Implicit: sim_general_kernel<S, Integrator::Implicit, kScalars><<<blocks, kBlock, 0, stream_>>>(g, args, floating_args_, setup_.dt); break;
+          default: break;
+        }
+      };
+      if (g.interleave == cuda::GeneralInterleave::Scalars) launch(std::true_type{});
+      else launch(std::false_type{});
       check(cudaGetLastError(), "launching the general simulator step");
       return;
     }

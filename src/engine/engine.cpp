@@ -104,6 +104,17 @@ bool is_chain_from_base(const ModelTpl<S>& model) {
   return model.nv() > 0 && first_branching_body(model) < 0 && first_unsupported_chain_joint(model) < 0;
 }
 
+// Auto on cuda beyond the thread kernels (nv > cuda::kMaxThreadDofs): up to how many
+// DoFs the ABA of the general path (strategy "aba_general": one thread per instance,
+// O(nv) each, its scratch interleaved across threads since issue 22) is chosen
+// instead of the parallel chain forward dynamics (unbranched chains from the base,
+// a free rope included) or jsi_dense (CRBA + cuSOLVER's dense batched Cholesky:
+// trees). 0: never. The switch points go here once measured on the H200 (fd of
+// rope:100 and tree:1000:SEED at 10^4 instances, every --fd method); Auto does not see
+// the batch size, so a point holds for the batches measured.
+constexpr Index kCudaGeneralAbaMaxChainDofs = 0;
+constexpr Index kCudaGeneralAbaMaxTreeDofs = 0;
+
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
   // multi-DoF joints: aba, or a free rope's parallel chain forward dynamics
@@ -116,9 +127,10 @@ FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
       // measured on the H100 (bench_cuda_fd, 10^7 instances, ms, float / double):
       // iiwa ABA 3.3 / 7.5 against JSI 4.5 / 8.9, hyq 6.0 / 13.8 against 7.5 / 14.8,
       // atlas 22.8 / 52.9 against 47.8 / 94.8
-      return model.nv() <= cuda::kMaxThreadDofs ? FdMethod::Aba
-             : is_chain_from_base(model)       ? FdMethod::Parallel
-                                               : FdMethod::Jsi;
+      if (model.nv() <= cuda::kMaxThreadDofs) return FdMethod::Aba;
+      if (is_chain_from_base(model))
+        return model.nv() <= kCudaGeneralAbaMaxChainDofs ? FdMethod::Aba : FdMethod::Parallel;
+      return model.nv() <= kCudaGeneralAbaMaxTreeDofs ? FdMethod::Aba : FdMethod::Jsi;
   }
   return FdMethod::Aba;
 }

@@ -19,6 +19,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <string>
 #include <variant>
 #include <vector>
@@ -336,6 +337,53 @@ TEST(CudaFloatingThreads, GeneralPathAgainstSerial) {
     check_engines<double>(md, 37, 1e-9);
     check_engines<float>(md, 37, md.nbodies() > 64 ? 1e-3 : 2e-4);
   }
+}
+
+// FdMethod::Aba on models of 1-DoF joints beyond the thread kernels' kMaxThreadDofs
+// runs the general path too (aba_general; issue 22): a fixed-base chain and tree of
+// 100 DoFs against the serial engines, in every scratch layout (GeneralInterleave).
+TEST(CudaFloatingThreads, GeneralAbaBeyondTheThreadKernels) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  for (const char* spec : {"rope:100", "tree:100:4"}) {
+    SCOPED_TRACE(spec);
+    const Model md = load_model(spec);
+    const Index B = 67, nv = md.nv();
+    const test::SoaStates x = test::random_soa_states(md, B, 5, true);
+    using V = BatchView<const double>;
+    const FdBatchIn<double> in{V::soa(x.q.data(), nv, B), V::soa(x.qd.data(), nv, B), V::soa(x.u.data(), nv, B),
+                               x.fext.data()};
+    BackendOptions o;
+    o.backend = BackendKind::Serial;
+    o.max_batch = B;
+    std::vector<double> ref(static_cast<std::size_t>(nv * B));
+    ASSERT_EQ(make_forward_dynamics(md, o)->compute(in, BatchView<double>::soa(ref.data(), nv, B)).failed, 0);
+    o.backend = BackendKind::Cuda;
+    o.fd_method = FdMethod::Aba;
+    for (const char* layout : {"instance", "structs", "scalars"}) {
+      SCOPED_TRACE(layout);
+      setenv("SCANDYN_GENERAL_INTERLEAVE", layout, 1);
+      const auto e = make_forward_dynamics(md, o);
+      EXPECT_EQ(e->strategy().rfind("aba_general", 0), 0u);
+      std::vector<double> qdd(ref.size(), NAN);
+      EXPECT_EQ(e->compute(in, BatchView<double>::soa(qdd.data(), nv, B)).failed, 0);
+      EXPECT_LE(rel_err(qdd, ref), 1e-9);
+    }
+    unsetenv("SCANDYN_GENERAL_INTERLEAVE");
+  }
+}
+
+// The three scratch layouts give the general path the same results: ballrope:6's fd
+// and mass matrix against the serial engines in each.
+TEST(CudaFloatingThreads, GeneralPathEveryInterleave) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model md = load_model("ballrope:6");
+  for (const char* layout : {"instance", "structs", "scalars"}) {
+    SCOPED_TRACE(layout);
+    setenv("SCANDYN_GENERAL_INTERLEAVE", layout, 1);
+    check_engines<double>(md, 37, 1e-9);
+    check_engines<float>(md, 37, 2e-4);
+  }
+  unsetenv("SCANDYN_GENERAL_INTERLEAVE");
 }
 
 // A GeneralPlan with fewer slots than instances (a small budget): each thread takes

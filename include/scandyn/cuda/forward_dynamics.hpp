@@ -99,8 +99,9 @@ inline constexpr int kFdInstancesBlock = 128;
 //   Auto      choose_fd_method: Aba up to kMaxThreadDofs DoF; beyond, Parallel for
 //             unbranched chains from the base, else Jsi;
 //   Jsi       joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond;
-//   Aba       articulated-body algorithm, one thread per instance ("aba_thread"), up to
-//             kMaxThreadDofs DoF (beyond: BackendError);
+//   Aba       articulated-body algorithm, one thread per instance: "aba_thread" up to
+//             kMaxThreadDofs DoF, "aba_general" (GeneralPlan, O(nv) per instance)
+//             beyond and for multi-DoF joints;
 //   Parallel  unbranched chains from the base, any length: the articulated-body algorithm
 //             as scans over links, every pass on the device (ChainFdPlan::launch);
 //   Hybrid    the same shapes: articulated inertias on the host, the other passes as
@@ -139,8 +140,8 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   // Recursion. Throws BackendError when there is no usable device, or the buffers
   // do not fit in device memory (the message gives the bytes needed and the bytes
   // free). algorithm: FdMethod::Aba selects the articulated-body algorithm
-  // (strategy "aba_thread"), for models of up to kMaxThreadDofs DoF (beyond: a
-  // BackendError); Auto and Jsi the joint-space inertia. The staging and the
+  // (strategy "aba_thread" up to kMaxThreadDofs DoF, "aba_general" beyond); Auto
+  // and Jsi the joint-space inertia. The staging and the
   // compute() / compute_async() contracts are the same for both.
   // options.fallback_aba: set_fallback_aba(true).
   CudaForwardDynamics(const ModelTpl<S>& model, const BackendOptions& options);
@@ -193,8 +194,8 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   // "jsi_thread" (one thread per instance, up to kMaxThreadDofs DoF), "jsi_dense"
   // (CRBA per block, cuSOLVER's batched Cholesky: DenseJsiPlan, beyond) or
   // "aba_thread" (FdMethod::Aba: ABA, one thread per instance), "aba_general"
-  // (FdMethod::Aba of joints of any type: spherical, a floating base beyond the thread
-  // kernels; GeneralPlan, one thread per instance)
+  // (FdMethod::Aba of joints of any type: spherical, a floating base or 1-DoF joints
+  // beyond the thread kernels; GeneralPlan, one thread per instance)
   // "parallel" and "hybrid" (ChainFdPlan) likewise.
   // With set_fallback_aba: "jsi_thread+aba".
   // With the check on: "+check" appended.

@@ -6,14 +6,18 @@
 // Each thread runs the serial reference's general path itself
 // (scandyn/instance/general_instance.hpp: aba_general, crba_general;
 // scandyn/instance/kinematics_instance.hpp: kinematics_instance_at) over a device
-// copy of the model's bodies, its scratch (GeneralWork and the instance's q, qd,
-// tau, result) a slice of one device buffer: `slots` slices, each thread taking
-// instances t, t + slots, ... so that the buffer stays within a budget (512 MiB)
-// whatever the batch. The 1-DoF thread kernels (fixed frames folded into the
-// z-axis, state in registers) are ~30x faster per DoF (docs/benchmarks.md: the
-// scratch here is per instance, a warp's loads uncoalesced); this path is for what
-// they do not take. Every pointer given to a launch is a DEVICE pointer; nothing is allocated
-// or synchronised per call; one plan serves one stream at a time.
+// copy of the model's bodies, its scratch (GeneralWorkOf's arrays and the
+// instance's q, qd, tau, result) in one device buffer shared by `slots` threads,
+// each thread taking instances t, t + slots, ... so that the buffer stays within a
+// budget (512 MiB) whatever the batch. The scratch is interleaved across the
+// threads (GeneralInterleave, scandyn/instance/interleaved.hpp): element i of
+// thread t's array next to element i of thread t + 1's, so that a warp's loads and
+// stores coalesce. The 1-DoF thread kernels (fixed frames folded into the z-axis,
+// state in registers) were ~30x faster per DoF when this scratch was per instance
+// (docs/benchmarks.md); this path is for what they do not take, and for ABA
+// beyond their 64 DoFs (FdMethod::Aba on a model of 1-DoF joints past
+// kMaxThreadDofs). Every pointer given to a launch is a DEVICE pointer; nothing is
+// allocated or synchronised per call; one plan serves one stream at a time.
 #pragma once
 
 #include <cstddef>
@@ -40,24 +44,37 @@ bool takes_general_path(const ModelTpl<S>& model) {
 // Threads per block of the general kernels.
 inline constexpr int kGeneralBlock = 64;
 
-// Where one instance's scratch lies in its slice (byte offsets; every array aligned
-// to 16 bytes): GeneralWork's arrays, then `scalars` scalars (the instance's inputs
-// and outputs), then `extra` bytes for the caller.
+// How a plan lays its threads' scratch out (scandyn/instance/interleaved.hpp):
+//   Instance: each thread's arrays contiguous (element i of thread t at
+//             base + t n + i; a warp's loads 32 slices apart: the layout before issue 22)
+//   Structs:  whole elements interleaved (element i of thread t at base + i slots + t)
+//   Scalars:  every scalar interleaved (scalar k of element i of thread t at
+//             base + (i N + k) slots + t, N the element's scalars)
+// The q, qd, tau and result scalars follow the same rule (Structs and Scalars:
+// interleaved). kGeneralInterleave is the default; the environment variable
+// SCANDYN_GENERAL_INTERLEAVE (instance, structs, scalars) overrides it when a plan is
+// made, for A/B measurements (the results are the same: one routine, its arithmetic
+// unchanged).
+enum class GeneralInterleave { Instance, Structs, Scalars };
+inline constexpr GeneralInterleave kGeneralInterleave = GeneralInterleave::Scalars;
+const char* interleave_name(GeneralInterleave i);
+// kGeneralInterleave, or SCANDYN_GENERAL_INTERLEAVE's value (BackendError for another).
+GeneralInterleave general_interleave_from_env();
+
+// Where the scratch's arrays lie in the plan's buffer: byte offsets of each area
+// (GeneralWorkOf's arrays, then `scalars` scalars per thread: the instance's inputs
+// and outputs, then `extra` bytes per thread for the caller, contiguous per thread),
+// every area aligned to 16 bytes. make() fills bytes, the bytes of one thread's share
+// (each area's share rounded up to 16 bytes: slots * bytes bounds the buffer);
+// place() the offsets for a number of slots.
 template <class S>
 struct GeneralLayout {
-  std::size_t Xup, v, a, c, f, Ic, IA, U, D, u, L, scalars, extra, bytes;
+  std::size_t Xup, v, a, c, f, Ic, IA, U, D, u, L, scalars, extra, bytes, end;
+  Index nb, nv, nscalars;
+  std::size_t extra_bytes;  // per thread, a multiple of 16
 
   static GeneralLayout make(Index nb, Index nv, Index scalars, std::size_t extra_bytes);
-  SCANDYN_HD GeneralWork<S> work(char* slice) const {
-    return {reinterpret_cast<Transform<S>*>(slice + Xup), reinterpret_cast<Motion<S>*>(slice + v),
-            reinterpret_cast<Motion<S>*>(slice + a),      reinterpret_cast<Motion<S>*>(slice + c),
-            reinterpret_cast<Force<S>*>(slice + f),       reinterpret_cast<Inertia<S>*>(slice + Ic),
-            reinterpret_cast<ABInertia<S>*>(slice + IA),  reinterpret_cast<Force<S>*>(slice + U),
-            reinterpret_cast<S*>(slice + D),              reinterpret_cast<S*>(slice + u),
-            reinterpret_cast<S*>(slice + L)};
-  }
-  SCANDYN_HD S* scalar_area(char* slice) const { return reinterpret_cast<S*>(slice + scalars); }
-  SCANDYN_HD char* extra_area(char* slice) const { return slice + extra; }
+  void place(long long slots);
 };
 
 // What a general kernel reads of the model and its scratch (a kernel parameter).
@@ -67,10 +84,41 @@ struct GeneralArgs {
   Index nb, nv, nq;
   Motion<S> a0;            // base_acceleration(gravity)
   GeneralLayout<S> layout;
-  char* work;              // (slots x layout.bytes)
+  char* work;              // the scratch (layout.end bytes)
   long long slots;         // threads launched; thread t takes instances t, t + slots, ...
+  GeneralInterleave interleave;
 
-  SCANDYN_HD char* slice(long long t) const { return work + t * static_cast<long long>(layout.bytes); }
+  // Thread t's array of n elements T at byte offset off: contiguous (Instance) or
+  // interleaved a whole T at a time.
+  template <class T>
+  SCANDYN_HD StridedArray<T> strided(std::size_t off, Index n, long long t) const {
+    T* const base = reinterpret_cast<T*>(work + off);
+    if (interleave == GeneralInterleave::Instance) return {base + t * n, 1};
+    return {base + t, slots};
+  }
+  // Thread t's GeneralWorkOf: of StridedArrays (Instance, Structs) ...
+  SCANDYN_HD GeneralWorkOf<S, StridedArray> work_strided(long long t) const {
+    const GeneralLayout<S>& l = layout;
+    const Index nb_ = nb, nv_ = nv;
+    return {strided<Transform<S>>(l.Xup, nb_, t), strided<Motion<S>>(l.v, nb_, t),   strided<Motion<S>>(l.a, nb_, t),
+            strided<Motion<S>>(l.c, nb_, t),      strided<Force<S>>(l.f, nb_, t),    strided<Inertia<S>>(l.Ic, nb_, t),
+            strided<ABInertia<S>>(l.IA, nb_, t),  strided<Force<S>>(l.U, nv_, t),    strided<S>(l.D, nv_, t),
+            strided<S>(l.u, nv_, t),              strided<S>(l.L, kMaxJointDofs * nv_, t)};
+  }
+  // ... or with every scalar interleaved (Scalars).
+  SCANDYN_HD GeneralWorkOf<S, ScalarInterleavedArray> work_scalars(long long t) const {
+    const GeneralLayout<S>& l = layout;
+    auto at = [&](std::size_t off) { return reinterpret_cast<S*>(work + off) + t; };
+    return {{at(l.Xup), slots}, {at(l.v), slots}, {at(l.a), slots},  {at(l.c), slots},
+            {at(l.f), slots},   {at(l.Ic), slots}, {at(l.IA), slots}, {at(l.U), slots},
+            {at(l.D), slots},   {at(l.u), slots},  {at(l.L), slots}};
+  }
+  // Thread t's scalars (layout.nscalars of them).
+  SCANDYN_HD StridedArray<S> scalar_area(long long t) const { return strided<S>(layout.scalars, layout.nscalars, t); }
+  // Thread t's extra bytes (contiguous).
+  SCANDYN_HD char* extra_area(long long t) const {
+    return work + layout.extra + t * static_cast<long long>(layout.extra_bytes);
+  }
   // the blocks of kGeneralBlock threads a launch for B instances takes: min(slots, B) threads
   unsigned blocks(Index B) const {
     const long long threads = slots < B ? slots : static_cast<long long>(B);
@@ -88,8 +136,10 @@ class GeneralPlan {
   // min(max_batch, budget_bytes / slice) slices (at least one); extra_bytes per
   // slice for the caller (GeneralArgs::layout.extra_area), extra_scalars more
   // scalars. Throws BackendError when the device memory does not suffice.
+  // The scratch's layout: interleave (kGeneralInterleave unless
+  // SCANDYN_GENERAL_INTERLEAVE says otherwise: general_interleave_from_env()).
   GeneralPlan(const ModelTpl<S>& model, Index max_batch, std::size_t extra_bytes = 0, Index extra_scalars = 0,
-              std::size_t budget_bytes = kBudgetBytes);
+              std::size_t budget_bytes = kBudgetBytes, GeneralInterleave interleave = general_interleave_from_env());
   ~GeneralPlan();
   GeneralPlan(const GeneralPlan&) = delete;
   GeneralPlan& operator=(const GeneralPlan&) = delete;

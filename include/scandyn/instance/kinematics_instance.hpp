@@ -13,6 +13,7 @@
 #include <cstddef>
 
 #include "scandyn/algorithm/steps.hpp"
+#include "scandyn/instance/interleaved.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/spatial/quaternion.hpp"
 
@@ -39,10 +40,11 @@ SCANDYN_HD void body_placements(const Body<S>* body, Index nv, const Q& q, Trans
   }
 }
 
-// f_X_0: the frame's placement, world coordinates -> frame coordinates.
-template <class S>
-SCANDYN_HD Transform<S> frame_placement(const FramePlacement<S>& f, const Transform<S>* X0) {
-  return f.body < 0 ? f.X : f.X * X0[f.body];
+// f_X_0: the frame's placement, world coordinates -> frame coordinates. X0: a plain
+// pointer or an array of interleaved.hpp (the general kernels' scratch).
+template <class S, class XA>
+SCANDYN_HD Transform<S> frame_placement(const FramePlacement<S>& f, const XA& X0) {
+  return f.body < 0 ? f.X : f.X * Transform<S>(X0[f.body]);
 }
 
 // The pose of a frame with placement fX0 = (E, r): R = E^T, p = r, written in
@@ -116,23 +118,26 @@ SCANDYN_HD void kinematics_instance(const Body<S>* body, Index nv, const FramePl
 // bodies, body i's joint at q[idx_q..] (a quaternion for spherical and free joints)
 // and at columns idx_v.. of the Jacobian (joint_nv of them; a free joint's six are
 // the base twist [w; v] in the base frame, so its columns are the base frame's axes).
-// The serial and OpenMP engines; the CUDA engine takes 1-DoF joints.
+// The serial and OpenMP engines, and the CUDA engine's general strategy
+// (kernels/general_dynamics.cu: q and X0 there arrays of interleaved.hpp).
 
 // X0[i] = i_X_0 for every body at positions q (nq entries).
-template <class S>
-SCANDYN_HD void body_placements_at(const Body<S>* body, Index nb, const S* q, Transform<S>* X0) {
+template <class S, class Q, class XA>
+SCANDYN_HD void body_placements_at(const Body<S>* body, Index nb, const Q& q, const XA& X0) {
   for (Index i = 0; i < nb; ++i) {
-    const Transform<S> Xup = joint_transform_at(body[i], q + body[i].idx_q);
+    S qj[7];  // a free joint's 7 entries at most (unused for a plain pointer)
+    load_run(q, body[i].idx_q, joint_nq(body[i].type), qj);
+    const Transform<S> Xup = joint_transform_at(body[i], joint_run(q, body[i].idx_q, qj));
     const Index p = body[i].parent;
-    X0[i] = p < 0 ? Xup : Xup * X0[p];
+    X0[i] = p < 0 ? Xup : Xup * Transform<S>(X0[p]);
   }
 }
 
 // The frame's 6 x nv Jacobian into out[r * nv + j]: the columns of every joint on the
 // path from the frame's body to the base, zeros elsewhere (each entry written once).
-template <class S, class Out>
+template <class S, class XA, class Out>
 SCANDYN_HD void write_frame_jacobian_at(const Body<S>* body, Index nb, Index nv, const FramePlacement<S>& f,
-                                        const Transform<S>* X0, const Transform<S>& fX0, FrameReference reference,
+                                        const XA& X0, const Transform<S>& fX0, FrameReference reference,
                                         const Out& out) {
   Index next = f.body;  // the next ancestor (or the body itself) below i, -1 past the base
   for (Index i = nb - 1; i >= 0; --i) {
@@ -143,7 +148,7 @@ SCANDYN_HD void write_frame_jacobian_at(const Body<S>* body, Index nb, Index nv,
     for (int k = 0; k < nj; ++k) {
       Motion<S> c = Motion<S>::zero();
       if (on_path) {
-        const Motion<S> s0 = X0[i].apply_inverse(joint_column(b, k));
+        const Motion<S> s0 = Transform<S>(X0[i]).apply_inverse(joint_column(b, k));
         c = reference == FrameReference::Local ? fX0.apply(s0) : Motion<S>{s0.w, s0.v + cross(s0.w, fX0.r)};
       }
       for (int r = 0; r < 6; ++r) out[r * nv + b.idx_v + k] = c[r];
@@ -152,10 +157,10 @@ SCANDYN_HD void write_frame_jacobian_at(const Body<S>* body, Index nb, Index nv,
 }
 
 // kinematics_instance for a model with multi-DoF joints: nb scratch transforms X0.
-template <class S>
+template <class S, class Q, class XA>
 SCANDYN_HD void kinematics_instance_at(const Body<S>* body, Index nb, Index nv, const FramePlacement<S>* frames,
-                                       Index F, PoseFormat format, FrameReference reference, const S* q,
-                                       Transform<S>* X0, Strided<S> poses, Strided<S> J) {
+                                       Index F, PoseFormat format, FrameReference reference, const Q& q,
+                                       const XA& X0, Strided<S> poses, Strided<S> J) {
   body_placements_at(body, nb, q, X0);
   const Index pw = pose_width(format);
   for (Index k = 0; k < F; ++k) {
