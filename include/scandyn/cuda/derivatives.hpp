@@ -6,9 +6,12 @@
 //   rnea_derivatives_instance(), fd_derivatives_instance()
 //                               __host__ __device__ (scandyn/instance/dynamics_derivatives.hpp):
 //                               one instance, the serial reference's functions;
-//   id_derivatives_kernel, fd_derivatives_kernel
+//   id_derivatives_kernel, fd_aba_kernel + fd_derivatives_at_kernel
 //                               one thread per instance (kernels/derivatives.cu); the
-//                               forward-dynamics kernel runs aba_instance for qdd first;
+//                               forward dynamics runs aba_instance for qdd first (up to
+//                               8 DoF in a kernel of its own, then the derivatives and
+//                               the factor of M with L in registers, packed_fd_solve;
+//                               beyond, one fd_derivatives_kernel);
 //   launch_id_derivatives(), launch_fd_derivatives()
 //                               host wrappers: device pointers, a stream, the launch's
 //                               cudaError_t, never synchronise;
@@ -17,8 +20,9 @@
 // views and a stream. Output layout: scandyn/engine.hpp (three nv * nv views; soa,
 // the instance innermost, is the fast layout on the device).
 //
-// Per thread: nv DerivativeBody entries (70 scalars each) in per-thread local memory,
-// plus the ABA's state for the forward dynamics.
+// Per thread: nv DerivativeBody entries (72 scalars each) in per-thread local memory,
+// plus the ABA's state for the forward dynamics (and, up to 8 DoF, L: 36 scalars in
+// registers).
 #pragma once
 
 #include <memory>

@@ -35,7 +35,8 @@
 //   dqdd/dq = -M^-1 dtau/dq,  dqdd/dqd = -M^-1 dtau/dqd,  dqdd/dtau = M^-1
 // (C&M section IV): fd_derivatives_instance evaluates the inverse-dynamics
 // derivatives at the caller's qdd (from the ABA), factors M = L^T L in place with
-// the tree's sparsity and solves, all in the output blocks.
+// the tree's sparsity and solves, all in the output blocks (or, given a compile-time
+// capacity of up to 8 DoF, with L in registers: packed_fd_solve).
 #pragma once
 
 #include <cstddef>
