@@ -49,8 +49,10 @@ __global__ void __launch_bounds__(kDerivativesBlock)
 // The ABA of a capacity-8 model takes ~220 registers per thread (it keeps the bodies
 // in registers), the derivatives and the packed solve ~100; in one kernel the ABA's
 // count caps the whole recursion at 12.5% occupancy. The others are kept to compare
-// against (the environment variable SCANDYN_DFD_KERNEL=fused|tree|split, read once
-// per process; bench only):
+// against (the environment variable SCANDYN_DFD_KERNEL=unbounded|fused|tree|split,
+// read once per process; bench only):
+//   kUnbounded: kTwoKernels without at_min_blocks (float: 114 registers, 8 blocks of
+//           64 per SM instead of 10);
 //   kFused: one kernel, fd_derivatives_kernel with the packed solve (ABA,
 //           derivatives, solve);
 //   kTree:  one kernel, the factor and solves by the tree walks of tree_ltl_factor /
@@ -61,12 +63,13 @@ __global__ void __launch_bounds__(kDerivativesBlock)
 //           alone).
 namespace {
 
-enum class FdKernel { kTwoKernels, kFused, kTree, kSplit };
+enum class FdKernel { kTwoKernels, kUnbounded, kFused, kTree, kSplit };
 
 FdKernel fd_kernel_choice() {
   static const FdKernel choice = [] {
     const char* e = std::getenv("SCANDYN_DFD_KERNEL");
     const std::string v = e ? e : "";
+    if (v == "unbounded") return FdKernel::kUnbounded;
     if (v == "fused") return FdKernel::kFused;
     if (v == "tree") return FdKernel::kTree;
     if (v == "split") return FdKernel::kSplit;
@@ -121,12 +124,21 @@ __global__ void __launch_bounds__(kDerivativesBlock)
   if (failed_dof) failed_dof[b] = failed;
 }
 
+// fd_derivatives_at_kernel's blocks per SM in kTwoKernels (kMinBlocks): float 10 (at most 102
+// registers: 96 at capacity 8, no spills, 640 threads per SM instead of 512 at its
+// natural 114); double 1 (held to 102 it spills ~1 KB per thread).
+template <class S>
+constexpr int at_min_blocks() {
+  return sizeof(S) == 4 ? 10 : 1;
+}
+
 // One thread per instance b < B whose ABA succeeded (failed_dof[b] < 0, or no
 // failed_dof): the inverse-dynamics derivatives at fd_aba_kernel's qdd into the
 // blocks and (kSolve) packed_fd_solve on them: dqdd/dq, dqdd/dqd, M^-1. Without
-// kSolve the blocks keep dtau/dq, dtau/dqd and M for fd_solve_kernel.
-template <class S, int C, bool kSolve>
-__global__ void __launch_bounds__(kDerivativesBlock)
+// kSolve the blocks keep dtau/dq, dtau/dqd and M for fd_solve_kernel. kMinBlocks:
+// __launch_bounds__' blocks per SM (1: registers as the compiler likes).
+template <class S, int C, bool kSolve, int kMinBlocks = 1>
+__global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
     fd_derivatives_at_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
                              const FdDerivativesOut<S> out, int* failed_dof) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -208,7 +220,13 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
           switch (choice) {
             case FdKernel::kTwoKernels:
               fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              fd_derivatives_at_kernel<S, C, true><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kUnbounded:
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              fd_derivatives_at_kernel<S, C, true, 1>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
             case FdKernel::kFused:
               fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
