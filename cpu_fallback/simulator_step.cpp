@@ -208,6 +208,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
     std::vector<S> driven;          // (4 n) prescribed motion: the stage's q, qd, qdd in and tau out
     std::vector<double> loop_q, loop_qd, loop_tau, loop_qdd, loop_lambda;  // closed loops: a stage in double
     std::vector<Force<double>> loop_fext;  // closed loops: the stage's external + contact wrenches, or empty
+    std::unique_ptr<sim::LoopSolver> loop_sparse;  // closed loops, sparse path: made at the first step, kept
     std::unique_ptr<sim::VariationalWork<S>> variational;  // the variational integrator's scratch, or null
     Failure failure = Failure::ArticulatedPivot;  // what a failed step failed at (the variational step sets it)
   };
@@ -334,7 +335,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
 
   // One instance's step with closed loops: step_instance over the constrained forward
   // dynamics (double), then the state projected onto the loops (positions by
-  // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes).
+  // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes): dense, or
+  // through the setup's sparse loop solver (scandyn/sim/sparse_loops.hpp).
   template <unsigned E, Integrator I>
   static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext,
                              sim::ContactReading<S>* readings) {
@@ -342,6 +344,8 @@ class CpuInstanceStep final : public CpuSimState<S> {
     const Index n = model.nv();
     std::vector<Force<double>>& f = w.loop_fext;
     w.loop_lambda.resize(static_cast<std::size_t>(setup.loops.rows()));
+    // the sparse path: this thread's solver, its symbolic analysis done once
+    if (setup.loop_solver && !w.loop_sparse) w.loop_sparse = setup.loop_solver(model, setup.loops);
     auto fd = [&](const S* qa, const S* qda, const S* t, const S*, S* qdd) -> Index {
       // the external and contact wrenches at the stage (no armature: loops refuse implicit)
       const Force<S>* const fs = with_contacts<E>(setup, w, qa, qda, fext, nullptr, readings).first;
@@ -350,8 +354,12 @@ class CpuInstanceStep final : public CpuSimState<S> {
         for (Index i = 0; i < n; ++i) f.push_back(fs[i].template cast<double>());
       for (Index i = 0; i < n; ++i) w.loop_q[i] = qa[i], w.loop_qd[i] = qda[i], w.loop_tau[i] = t[i];
       try {
-        constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
-                                     w.loop_qdd.data(), w.loop_lambda.data(), f.empty() ? nullptr : f.data());
+        if (w.loop_sparse)  // no wrenches here: the simulator gives the sparse path none
+          w.loop_sparse->forward_dynamics(w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(), w.loop_qdd.data(),
+                                          w.loop_lambda.data());
+        else
+          constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
+                                       w.loop_qdd.data(), w.loop_lambda.data(), f.empty() ? nullptr : f.data());
       } catch (const LoopError&) {
         return 0;  // the mass matrix is not positive definite
       }
@@ -362,7 +370,15 @@ class CpuInstanceStep final : public CpuSimState<S> {
         sim::step_instance<E, I>(n, setup.dt, setup.coef.data(), static_cast<const S*>(nullptr), q, qd, tau, w.scratch, fd);
     if (failed >= 0) return failed;
     for (Index i = 0; i < n; ++i) w.loop_q[i] = q[i], w.loop_qd[i] = qd[i];
-    project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+    if (w.loop_sparse) {
+      try {
+        w.loop_sparse->project(w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+      } catch (const LoopError&) {
+        return 0;
+      }
+    } else {
+      project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+    }
     for (Index i = 0; i < n; ++i) q[i] = S(w.loop_q[i]), qd[i] = S(w.loop_qd[i]);
     return -1;
   }

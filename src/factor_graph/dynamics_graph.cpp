@@ -55,8 +55,9 @@ std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops) {
 }
 
 DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
-                             std::vector<char> known_qdd)
-    : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)) {
+                             std::vector<char> known_qdd, std::vector<double> armature,
+                             const ModelUnits* units)
+    : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)), armature_(std::move(armature)) {
   if (model.multi_dof())
     throw std::invalid_argument("factor graph: model '" + model.name + "' has the multi-DoF joint '" +
                                 first_multi_dof_joint(model) + "'; the factor graph takes revolute and prismatic "
@@ -65,6 +66,9 @@ DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
   if (known_qdd_.empty()) known_qdd_.assign(static_cast<std::size_t>(nv), 0);
   if (static_cast<Index>(known_qdd_.size()) != nv)
     throw std::invalid_argument("factor graph: known_qdd has " + std::to_string(known_qdd_.size()) +
+                                " entries, the model has " + std::to_string(nv) + " DoFs");
+  if (!armature_.empty() && static_cast<Index>(armature_.size()) != nv)
+    throw std::invalid_argument("factor graph: armature has " + std::to_string(armature_.size()) +
                                 " entries, the model has " + std::to_string(nv) + " DoFs");
   Index off = 14 * nv;
   for (std::size_t k = 0; k < loops_.size(); ++k) {
@@ -87,7 +91,7 @@ DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
   // tau by its type; equation 14 i + 12 (S^T f - tau) and the prior are in tau's
   // unit (a given qdd's prior in qdd's); loop rows: linear accelerations (point) and
   // angular ones (weld); multipliers: forces and moments.
-  units_ = model_units(model);
+  units_ = units ? *units : model_units(model);
   const double L = units_.length, M = units_.mass;
   unknown_unit_.assign(static_cast<std::size_t>(off), 1.0);
   equation_unit_.assign(static_cast<std::size_t>(off), 1.0);
@@ -223,8 +227,9 @@ void DynamicsGraph::write(bool pattern, const double* q, const double* qd, const
         const Motion<double> colk = Xup[i].apply(unit_motion(k));
         for (int r = 0; r < 6; ++r) put(14 * p + 6 + k, var_f(i) + r, -colk[r]);
       }
-    // joint force: S^T f_i - tau_i = 0
+    // joint force: S^T f_i + armature_i qdd_i - tau_i = 0
     for (int r = 0; r < 6; ++r) put(14 * i + 12, var_f(i) + r, S[r]);
+    if (!armature_.empty()) put(14 * i + 12, var_qdd(i), armature_[static_cast<std::size_t>(i)]);
     put(14 * i + 12, var_tau(i), -1.0);
     // prior: qdd_i or tau_i given
     if (known_qdd_[static_cast<std::size_t>(i)]) {

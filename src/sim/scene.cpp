@@ -405,7 +405,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "devices", "threads", "instances", "initial", "prescribed", "loops", "base"});
+                           "backend", "devices", "threads", "instances", "initial", "prescribed", "loops", "loop_solver", "base"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -561,6 +561,11 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   }
 
   // ---- integration and execution
+  if (doc.contains("loop_solver")) {  // closed loops: dense, sparse or auto (docs/loops.md)
+    s.loop_solver = r.string("loop_solver", doc["loop_solver"]);
+    if (s.loop_solver != "auto" && s.loop_solver != "dense" && s.loop_solver != "sparse")
+      r.expected("loop_solver", "\"auto\", \"dense\" or \"sparse\"", doc["loop_solver"]);
+  }
   if (doc.contains("integrator")) {
     const std::string name = r.string("integrator", doc["integrator"]);
     if (!parse_integrator(name, s.integrator)) r.expected("integrator", "\"euler\", \"rk4\", \"implicit\" or \"variational\"", doc["integrator"]);

@@ -180,6 +180,20 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     if (!scene.prescribed.empty()) throw BackendError("a scene cannot have both closed loops and prescribed joints");
     setup_.loops = scene.loops;
     setup_.loop_model = scene.model;
+    // the loops' solver: dense, or the registered sparse one (scandyn/sim/sparse_loops.hpp)
+    const bool wrenches = (setup_.effects & (kContacts | kExternal)) != 0;
+    if (scene.loop_solver == "sparse") {
+      if (!sparse_loop_solver())
+        throw BackendError("\"loop_solver\": \"sparse\": this program has no sparse loop solver (it is the "
+                           "factor graph's, CHOLMOD: link scandyn_factor_graph and call "
+                           "factor_graph::register_sparse_loop_solver())");
+      if (wrenches)
+        throw BackendError("\"loop_solver\": \"sparse\" takes no contacts or external wrenches (the dense "
+                           "solver does)");
+      setup_.loop_solver = sparse_loop_solver();
+    } else if (scene.loop_solver == "auto" && nv >= kSparseLoopDofs && !wrenches) {
+      setup_.loop_solver = sparse_loop_solver();  // null when none is registered: dense
+    }
   }
   if (!scene.prescribed.empty()) {
     if (backend == BackendKind::Cuda)
@@ -254,6 +268,7 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
                               std::to_string(B) + ")");
   if (setup_.model.multi_dof()) return reset_manifold(instances);
   // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer
+  std::unique_ptr<LoopSolver> reset_loops;  // closed loops on the sparse path
   const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
     const Index count = static_cast<Index>(std::min<std::size_t>(chunk, instances.size() - start));
@@ -271,7 +286,12 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
       if (!setup_.loops.empty()) {
         std::vector<double> lq(q_rows_.begin() + k * n, q_rows_.begin() + (k + 1) * n);
         std::vector<double> lqd(qd_rows_.begin() + k * n, qd_rows_.begin() + (k + 1) * n);
-        project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data());
+        if (setup_.loop_solver) {  // one sparse solver for the reset's instances
+          if (!reset_loops) reset_loops = setup_.loop_solver(setup_.loop_model, setup_.loops);
+          reset_loops->project(lq.data(), lqd.data(), 1e-13, 50);
+        } else {
+          project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data());
+        }
         for (Index i = 0; i < n; ++i) q_rows_[k * n + i] = S(lq[i]), qd_rows_[k * n + i] = S(lqd[i]);
       }
       // driven DoFs start on their trajectories, at the current time

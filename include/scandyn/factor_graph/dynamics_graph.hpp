@@ -13,7 +13,8 @@
 // Factors (one block row each):
 //   acceleration  a_i - Xup_i a_parent - S_i qdd_i                       = v_i x S_i qd_i
 //   force balance f_i - sum_c Xup_c^T f_c - I_i a_i + sum_k +-G_ik lambda_k = v_i x* I_i v_i
-//   joint force   S_i^T f_i - tau_i                                      = 0
+//   joint force   S_i^T f_i + armature_i qdd_i - tau_i                   = 0
+//                 (armature: Featherstone's rotor inertia, zero unless given)
 //   prior         qdd_i = given (inverse dynamics, prescribed DoF) or tau_i = given
 //   loop k        sum_sides +-G_sk^T a_s                                  = -(velocity products)
 // so the system is square: 14 nv + sum_k dim_k unknowns and as many equations. Its
@@ -76,9 +77,14 @@ struct SparseMatrix {
 class DynamicsGraph {
  public:
   // known_qdd (nv): nonzero where the DoF's acceleration is given (its tau is then an
-  // unknown); empty means none (forward dynamics). Throws std::invalid_argument on a
-  // loop naming a body outside [-1, nv) or joining a body to itself.
-  DynamicsGraph(const Model& model, std::vector<LoopClosure> loops, std::vector<char> known_qdd);
+  // unknown); empty means none (forward dynamics). armature (nv; kg m^2 or kg by the
+  // joint's type): a joint-space inertia added to M's diagonal (the joint force
+  // factor's qdd_i entry); empty: none, and no such entry in the pattern. units:
+  // the units to store the system in (powers of two), null: model_units(model).
+  // Throws std::invalid_argument on a loop naming a body outside [-1, nv) or joining
+  // a body to itself, or on known_qdd / armature of the wrong size.
+  DynamicsGraph(const Model& model, std::vector<LoopClosure> loops, std::vector<char> known_qdd,
+                std::vector<double> armature = {}, const ModelUnits* units = nullptr);
 
   // Writes the values of A and b for one state. qdd_in and tau_in (nv) are read
   // only at the given entries (either may be null when it has none).
@@ -127,6 +133,7 @@ class DynamicsGraph {
   const Model& model_;
   std::vector<LoopClosure> loops_;
   std::vector<char> known_qdd_;
+  std::vector<double> armature_;  // (nv) or empty
   std::vector<Index> lambda_offset_;
   ModelUnits units_;
   std::vector<double> unknown_unit_, equation_unit_;

@@ -88,6 +88,7 @@
 #include "scandyn/engine.hpp"
 #include "scandyn/sharded.hpp"
 #include "scandyn/sim/scene.hpp"
+#include "scandyn/sim/sparse_loops.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -145,6 +146,10 @@ struct SimSetup {
   // every step (project_to_loops); serial and openmp, euler and rk4
   LoopSet loops;
   Model loop_model;                         // the model in double for the loop solves
+  // the sparse loop solver's factory (scandyn/sim/sparse_loops.hpp) when the scene's
+  // "loop_solver" chose it, else null (the dense solves above); each thread's
+  // workspace makes one solver and keeps it, with its symbolic analysis, across steps
+  LoopSolverFactory loop_solver = nullptr;
 };
 
 namespace detail {

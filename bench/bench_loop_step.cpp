@@ -1,0 +1,138 @@
+// bench/bench_loop_step.cpp: seconds per simulator step of a cloth grid with its loop
+// closures (issue 21, "Measured"), on the sparse loop path (the factor graph's
+// system and CHOLMOD, scandyn/factor_graph/sparse_constrained_dynamics.hpp) and,
+// with --dense, the dense one (constrained_forward_dynamics, project_to_loops).
+//
+//   bench_loop_step [--cloth K:N]... [--steps S] [--dense] [--gpu] [--dt DT] [--analyse-only]
+//
+// One CSV row per grid and solver on stdout: the scene is the cloth with gravity,
+// rk4, dt, initial q = 0.1, qd = 0.5 (closed: the ropes move alike), serial backend.
+//   first_step_s  the simulator's first step (the sparse solver's symbolic analyses
+//                 included: each thread's workspace makes its solver then)
+//   step_s        the mean of the following steps
+// and, sparse, from a solver of its own running one rk4 step's solves (4 forward
+// dynamics, one projection) at the initial state: the symbolic analyses' time, the
+// numeric factorisations' (per factorisation), the solves', and each system's
+// unknowns, nnz(L) and flops (CHOLMOD's nested dissection).
+// --analyse-only: the symbolic analyses and their statistics alone (no steps).
+// --gpu: the sparse path's factorisations and solves by cuSOLVER on the GPU
+// (GpuSparseCholesky under CHOLMOD's order; the serial simulator backend steps, the
+// CUDA one refuses loops); its analysis column includes cuSOLVER's.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "scandyn/algorithm/loop_solver.hpp"
+#include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
+#include "scandyn/model/load.hpp"
+#include "scandyn/sim/simulator.hpp"
+
+using namespace scandyn;
+
+namespace {
+double now() {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+// loop_violation's max over |phi| and |J qd| without its dense J: J qd is the loop
+// rows' classical acceleration with the bodies' velocities as accelerations.
+double sparse_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd) {
+  const Index n = model.nv(), m = loops.rows();
+  const std::vector<LoopRow<double>> rows = loop_rows_of<double>(loops);
+  std::vector<Transform<double>> X0(n);
+  std::vector<Motion<double>> v(n), a(n), zero(n, Motion<double>::zero());
+  std::vector<double> phi(m), jqd(m);
+  loop_body_motion(model.bodies.data(), n, q, qd, X0.data(), v.data(), a.data());
+  loop_rows(model.bodies.data(), n, rows.data(), static_cast<Index>(rows.size()), X0.data(), zero.data(), v.data(),
+            phi.data(), static_cast<double*>(nullptr), jqd.data());
+  double worst = 0;
+  for (Index k = 0; k < m; ++k) worst = std::max({worst, std::fabs(phi[k]), std::fabs(jqd[k])});
+  return worst;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> grids;
+  int steps = 3;
+  bool dense = false, analyse_only = false, gpu = false;
+  double dt = 1e-4;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--cloth" && i + 1 < argc) grids.push_back(argv[++i]);
+    else if (a == "--steps" && i + 1 < argc) steps = std::atoi(argv[++i]);
+    else if (a == "--dt" && i + 1 < argc) dt = std::atof(argv[++i]);
+    else if (a == "--dense") dense = true;
+    else if (a == "--gpu") gpu = true;
+    else if (a == "--analyse-only") analyse_only = true;
+    else {
+      std::fprintf(stderr, "usage: bench_loop_step [--cloth K:N]... [--steps S] [--dt DT] [--dense] [--gpu] [--analyse-only]\n");
+      return 2;
+    }
+  }
+  if (grids.empty()) grids = {"10:10", "30:30"};
+  factor_graph::register_sparse_loop_solver(gpu);
+  std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,analysis_fd_s,analysis_proj_s,"
+              "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj\n");
+  std::fflush(stdout);
+  for (const std::string& g : grids) {
+    const std::string spec = "cloth:" + g;
+    for (int pass = 0; pass < (dense ? 2 : 1); ++pass) {
+      const bool sparse = pass == 0;
+      const std::string json = R"({"model": ")" + spec + R"(", "effects": {"gravity": true}, "integrator": "rk4", "dt": )" +
+                               std::to_string(dt) + R"(, "loop_solver": ")" + (sparse ? "sparse" : "dense") +
+                               R"(", "initial": {"q": 0.1, "qd": 0.5}})";
+      const sim::Scene scene = sim::parse_scene(json, "bench.json");
+      const Index n = scene.model.nv(), m = scene.loops.rows();
+      // the sparse solver's analyses and one rk4 step's solves, on a solver of its own
+      double an_fd = 0, an_proj = 0, fac = 0, sol = 0, per_step = 0;
+      factor_graph::EliminationStats sfd, sproj;
+      Index unknowns = 0;
+      if (sparse) {
+        factor_graph::SparseConstrainedDynamics sc(scene.model, scene.loops, factor_graph::Ordering::NESDIS, gpu);
+        sfd = sc.forward_dynamics_stats();
+        an_fd = sc.timing().analysis;
+        sproj = sc.projection_stats();
+        an_proj = sc.timing().analysis - an_fd;
+        unknowns = sc.forward_dynamics_unknowns();
+        if (!analyse_only) {
+          std::vector<double> q(n, 0.1), qd(n, 0.5), tau(n, 0.0), qdd(n), lambda(m);
+          sc.project(q.data(), qd.data(), 1e-13, 50);
+          sc.reset_timing();
+          for (int s = 0; s < 4; ++s) sc.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), lambda.data());
+          for (Index i = 0; i < n; ++i) q[i] += 1e-6 * qd[i];  // off the loops a little: one Gauss-Newton step
+          sc.project(q.data(), qd.data(), 1e-12, 10);
+          const auto& t = sc.timing();
+          per_step = double(t.factorizations);
+          fac = t.factorize / double(t.factorizations);
+          sol = t.solve / double(t.solves);
+        }
+      }
+      double first = 0, mean = 0, closure = 0;
+      if (!analyse_only) {
+        sim::Simulator<double> s(scene, BackendKind::Serial);
+        double t0 = now();
+        s.step();
+        first = now() - t0;
+        t0 = now();
+        for (int k = 1; k < steps; ++k) s.step();
+        mean = steps > 1 ? (now() - t0) / (steps - 1) : 0;
+        std::vector<double> q(n), qd(n);
+        s.read_state(q.data(), qd.data());
+        if (!s.status().ok()) std::fprintf(stderr, "%s: %s\n", spec.c_str(), sim::failure_message(s.status()).c_str());
+        // max |phi| and |J qd| (sparse: without the dense J of loop_violation)
+        closure = sparse_violation(scene.model, scene.loops, q.data(), qd.data());
+      }
+      std::printf("%s,%lld,%lld,%s,%d,%.4g,%.4g,%.3g,%.4g,%.4g,%.4g,%.4g,%.0f,%lld,%.6g,%.6g,%.6g,%.6g\n", spec.c_str(),
+                  (long long)n, (long long)m, sparse ? (gpu ? "sparse-cusolver-nesdis" : "sparse-cholmod-nesdis") : "dense", analyse_only ? 0 : steps,
+                  first, mean, closure, an_fd, an_proj, fac, sol, per_step, (long long)unknowns, sfd.nnz_L, sfd.flops,
+                  sproj.nnz_L, sproj.flops);
+      std::fflush(stdout);
+    }
+  }
+  return 0;
+}
