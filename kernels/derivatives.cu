@@ -4,6 +4,7 @@
 // after aba_instance for the forward dynamics' qdd.
 #include <cuda_runtime.h>
 
+#include <atomic>
 #include <cstdlib>
 #include <string>
 #include <type_traits>
@@ -76,6 +77,32 @@ FdKernel fd_kernel_choice() {
     return FdKernel::kTwoKernels;
   }();
   return choice;
+}
+
+// The derivative kernels keep their DerivativeBody arrays in local memory, cached in
+// L1, and use no shared memory: ask for the largest L1 (carveout 0% shared memory),
+// once per kernel and device. SCANDYN_DFD_CARVEOUT=default leaves the driver's choice
+// (bench A/B).
+bool carveout_wanted() {
+  static const bool wanted = [] {
+    const char* e = std::getenv("SCANDYN_DFD_CARVEOUT");
+    return !(e && std::string(e) == "default");
+  }();
+  return wanted;
+}
+
+template <auto Kernel>
+void prefer_l1() {
+  static std::atomic<unsigned long long> devices{0};  // bit d: set on device d
+  if (!carveout_wanted()) return;
+  int d = 0;
+  if (cudaGetDevice(&d) != cudaSuccess || d < 0 || d >= 64) return;
+  const unsigned long long bit = 1ull << d;
+  if (devices.load(std::memory_order_relaxed) & bit) return;
+  if (cudaFuncSetAttribute(reinterpret_cast<const void*>(Kernel), cudaFuncAttributePreferredSharedMemoryCarveout,
+                           int(cudaSharedmemCarveoutMaxL1)) != cudaSuccess)
+    (void)cudaGetLastError();  // a hint: its error is not the launch's
+  devices.fetch_or(bit, std::memory_order_relaxed);
 }
 
 }  // namespace
@@ -219,29 +246,39 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
         if constexpr (C <= kPackedLtlCapacity) {
           switch (choice) {
             case FdKernel::kTwoKernels:
+              prefer_l1<fd_aba_kernel<S, C>>();
               fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>>();
               fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>
                   <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
             case FdKernel::kUnbounded:
+              prefer_l1<fd_aba_kernel<S, C>>();
               fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1>>();
               fd_derivatives_at_kernel<S, C, true, 1>
                   <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
             case FdKernel::kFused:
+              prefer_l1<fd_derivatives_kernel<S, C, C>>();
               fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
             case FdKernel::kTree:
+              prefer_l1<fd_derivatives_kernel<S, C, 0>>();
               fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
             case FdKernel::kSplit:
+              prefer_l1<fd_aba_kernel<S, C>>();
               fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, false>>();
               fd_derivatives_at_kernel<S, C, false>
                   <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_solve_kernel<S, C>>();
               fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
               break;
           }
         } else {
+          prefer_l1<fd_derivatives_kernel<S, C, 0>>();
           fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
         }
       },
