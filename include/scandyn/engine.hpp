@@ -265,7 +265,9 @@ IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int th
 
 // Forward dynamics: on serial aba; on openmp the parallel chain forward dynamics for
 // unbranched chains from the base of at least 4096 links, else aba; on cuda aba up to
-// 64 DoF, parallel for longer chains from the base, jsi (dense) for larger trees.
+// 64 DoF (the thread kernels), aba by the general path for chains of up to 128 DoF and
+// for larger trees, parallel for longer chains from the base (src/engine/engine.cpp
+// says what was measured).
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model);
 

@@ -106,14 +106,18 @@ bool is_chain_from_base(const ModelTpl<S>& model) {
 
 // Auto on cuda beyond the thread kernels (nv > cuda::kMaxThreadDofs): up to how many
 // DoFs the ABA of the general path (strategy "aba_general": one thread per instance,
-// O(nv) each, its scratch interleaved across threads since issue 22) is chosen
-// instead of the parallel chain forward dynamics (unbranched chains from the base,
-// a free rope included) or jsi_dense (CRBA + cuSOLVER's dense batched Cholesky:
-// trees). 0: never. The switch points go here once measured on the H200 (fd of
-// rope:100 and tree:1000:SEED at 10^4 instances, every --fd method); Auto does not see
-// the batch size, so a point holds for the batches measured.
-constexpr Index kCudaGeneralAbaMaxChainDofs = 0;
-constexpr Index kCudaGeneralAbaMaxTreeDofs = 0;
+// O(nv) each, its scratch interleaved across threads) is chosen instead of the
+// parallel chain forward dynamics (unbranched chains from the base, a free rope
+// included) or jsi_dense (CRBA + cuSOLVER's dense batched Cholesky: trees).
+// Measured on the H200 (float, 10^4 instances, device-resident, 2026-11-29;
+// docs/benchmarks.md, "The general path"): rope:100 aba_general 0.77 ms against
+// parallel 2.75 ms and jsi_dense 5.4 ms; tree:1000:1 aba_general 47 ms against
+// jsi_dense 393 ms (whose B nv^2 matrices also outgrow memory first). Chains: up to
+// 128 DoF (the parallel forward dynamics' O(log n) depth wins on long chains);
+// trees: always. Auto does not see the batch size: the points hold for the batches
+// measured.
+constexpr Index kCudaGeneralAbaMaxChainDofs = 128;
+constexpr Index kCudaGeneralAbaMaxTreeDofs = std::numeric_limits<Index>::max();
 
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {

@@ -1088,20 +1088,24 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
   EXPECT_EQ(rec.code, 2);
   EXPECT_NE(rec.err.find("scandyn: backend 'cuda': model 'rope:65' has 65 DoF"), std::string::npos) << rec.err;
   EXPECT_NE(rec.err.find("at most 64"), std::string::npos) << rec.err;
-  // fd beyond 64 DoF: CRBA + cuSOLVER's batched Cholesky, the serial JSI's numbers
+  // fd beyond 64 DoF (auto: the general path's ABA, aba_general), the serial ABA's numbers
   write_text(path("rope.csv"), States(65, 2, 33).csv({"q", "qd", "qdd", "tau"}));
   ASSERT_EQ(run("eval --model rope:65 --states rope.csv --out fd_serial.csv --algo fd").code, 0);
   const Result fd = run("eval --model rope:65 --states rope.csv --out fd_cuda.csv --backend cuda --algo fd");
   ASSERT_EQ(fd.code, 0) << fd.err;
-  // JSI against the serial ABA on a 65-link rope: the mass matrix's conditioning
+  // double against the serial ABA on a 65-link rope (also what --fd jsi's tolerance would be)
   expect_tables_near(parse_csv(read_text(path("fd_cuda.csv"))), parse_csv(read_text(path("fd_serial.csv"))), 1e-6);
   const Result bench_fd = run("bench --model rope:65 --algo fd --fd jsi --instances 3 --backend cuda");
   EXPECT_EQ(bench_fd.code, 0) << bench_fd.err;
   EXPECT_NE(bench_fd.out.find("fd,jsi_dense-host,cuda"), std::string::npos) << bench_fd.out;
-  // auto: a chain beyond 64 links goes to the link scans
+  // auto: a chain of 65-128 links goes to the general path's ABA, a longer one to the
+  // link scans (choose_fd_method)
   const Result bench_auto = run("bench --model rope:65 --algo fd --instances 3 --backend cuda");
   EXPECT_EQ(bench_auto.code, 0) << bench_auto.err;
-  EXPECT_NE(bench_auto.out.find("fd,parallel-host,cuda"), std::string::npos) << bench_auto.out;
+  EXPECT_NE(bench_auto.out.find("fd,aba_general-host,cuda"), std::string::npos) << bench_auto.out;
+  const Result bench_long = run("bench --model rope:129 --algo fd --instances 3 --backend cuda");
+  EXPECT_EQ(bench_long.code, 0) << bench_long.err;
+  EXPECT_NE(bench_long.out.find("fd,parallel-host,cuda"), std::string::npos) << bench_long.out;
   for (const char* method : {"parallel", "hybrid"}) {
     const Result r = run(std::string("eval --model rope:65 --states rope.csv --out fd_") + method +
                          ".csv --backend cuda --algo fd --fd " + method);
@@ -1110,8 +1114,8 @@ TEST_F(Cli, EvalCudaDefaultsAndLimits) {
                        parse_csv(read_text(path("fd_serial.csv"))), 1e-9);
   }
   const Result aba65 = run("bench --model rope:65 --algo fd --fd aba --instances 3 --backend cuda");
-  EXPECT_EQ(aba65.code, 2);
-  EXPECT_NE(aba65.err.find("--fd aba: "), std::string::npos) << aba65.err;
+  EXPECT_EQ(aba65.code, 0) << aba65.err;
+  EXPECT_NE(aba65.out.find("fd,aba_general-host,cuda"), std::string::npos) << aba65.out;
   const Result scan = run("eval --model chain:3 --states states.csv --out out.csv --backend cuda --algo id "
                           "--strategy scan-world");
   EXPECT_EQ(scan.code, 2);

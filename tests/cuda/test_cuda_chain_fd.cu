@@ -110,15 +110,18 @@ TEST(CudaChainFd, RopesToOneHundredThousandLinks) {
   }
 }
 
+// (choose_fd_method: the thread kernels up to 64 DoF, the general path's ABA for chains
+// of up to 128 DoF and for larger trees, the parallel forward dynamics beyond)
 TEST(CudaChainFd, AutoPicksParallelForLongChainsOnly) {
   SKIP_WITHOUT_CUDA_DEVICE();
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 2;
-  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:100").cast<float>(), o).strategy(), "parallel");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:200").cast<float>(), o).strategy(), "parallel");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:100").cast<float>(), o).strategy(), "aba_general");
   EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("rope:20").cast<float>(), o).strategy(), "aba_thread");
-  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("curtain:10:10").cast<float>(), o).strategy(), "parallel");
-  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("tree:80:3").cast<float>(), o).strategy(), "jsi_dense");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("curtain:10:20").cast<float>(), o).strategy(), "parallel");
+  EXPECT_EQ(cuda::CudaForwardDynamics<float>(make_generated("tree:80:3").cast<float>(), o).strategy(), "aba_general");
   EXPECT_THROW(cuda::CudaForwardDynamics<float>(test::random_model(80, 1).cast<float>(), o, FdMethod::Parallel),
                BackendError);
 }

@@ -255,7 +255,9 @@ TEST(Engines, AutoChoicesFollowBackendAndShape) {
   EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, load_model("rope:4095")), FdMethod::Aba);
   EXPECT_EQ(choose_fd_method(BackendKind::Cuda, iiwa), FdMethod::Aba);
   EXPECT_EQ(choose_fd_method(BackendKind::Cuda, rope), FdMethod::Parallel);
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, tree), FdMethod::Jsi);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:129")), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:128")), FdMethod::Aba);  // aba_general
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, tree), FdMethod::Aba);                    // aba_general
   EXPECT_TRUE(is_chain_from_base(rope));
   EXPECT_FALSE(is_chain_from_base(tree));
   EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 7, 1000000, 16), IdStrategy::Recursion);

@@ -96,8 +96,9 @@ namespace cuda {
 inline constexpr int kFdInstancesBlock = 128;
 
 // Which method CudaForwardDynamics runs (BackendOptions::fd_method):
-//   Auto      choose_fd_method: Aba up to kMaxThreadDofs DoF; beyond, Parallel for
-//             unbranched chains from the base, else Jsi;
+//   Auto      choose_fd_method: Aba up to kMaxThreadDofs DoF; beyond, Aba
+//             ("aba_general") for chains of up to 128 DoF and for trees, Parallel for
+//             longer unbranched chains from the base;
 //   Jsi       joint-space inertia: jsi_thread up to kMaxThreadDofs DoF, jsi_dense beyond;
 //   Aba       articulated-body algorithm, one thread per instance: "aba_thread" up to
 //             kMaxThreadDofs DoF, "aba_general" (GeneralPlan, O(nv) per instance)
