@@ -134,6 +134,23 @@ BackendOptions engine_options(const std::string& backend, Index max_batch, int t
   return o;
 }
 
+// The engine's __init__(model, dtype, backend, max_batch, threads=0, device=-1):
+// make(model of the dtype's precision, options) builds the library engine.
+template <class Class, class Make>
+void def_derivative_init(Class& cls, Make make) {
+  using E = typename Class::Type;
+  cls.def(
+      "__init__",
+      [make](E* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+             Index max_batch, int threads, int device) {
+        const BackendOptions o = engine_options(backend, max_batch, threads);
+        init_engine(self, std::move(model), dtype, max_batch, device,
+                    [&](const ModelTpl<float>& md) { return make(md, o); },
+                    [&](const ModelTpl<double>& md) { return make(md, o); });
+      },
+      "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1);
+}
+
 template <class Class>
 void def_derivative_engine(Class& cls) {
   def_engine_properties(cls);
@@ -459,16 +476,8 @@ void bind_step(nb::module_& m, const char* name) {
 
 void bind_derivatives(nb::module_& m) {
   nb::class_<PyIdDerivatives> id(m, "IdDerivatives");
-  id.def("__init__",
-         [](PyIdDerivatives* self, std::shared_ptr<PyModel> model, const std::string& dtype,
-            const std::string& backend, Index max_batch, int threads, int device) {
-           const BackendOptions o = engine_options(backend, max_batch, threads);
-           init_engine(self, std::move(model), dtype, max_batch, device,
-                       [&](const ModelTpl<float>& md) { return make_id_derivatives<float>(md, o); },
-                       [&](const ModelTpl<double>& md) { return make_id_derivatives<double>(md, o); });
-         },
-         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
-      .def("compute",
+  def_derivative_init(id, [](const auto& md, const BackendOptions& o) { return make_id_derivatives(md, o); });
+  id.def("compute",
            [](PyIdDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& dq,
               const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
              if (e.is_float) id_derivatives_compute<float>(e, q, qd, qdd, dq, dqd, M, stream);
@@ -478,16 +487,8 @@ void bind_derivatives(nb::module_& m) {
   def_derivative_engine(id);
 
   nb::class_<PyFdDerivatives> fd(m, "FdDerivatives");
-  fd.def("__init__",
-         [](PyFdDerivatives* self, std::shared_ptr<PyModel> model, const std::string& dtype,
-            const std::string& backend, Index max_batch, int threads, int device) {
-           const BackendOptions o = engine_options(backend, max_batch, threads);
-           init_engine(self, std::move(model), dtype, max_batch, device,
-                       [&](const ModelTpl<float>& md) { return make_fd_derivatives<float>(md, o); },
-                       [&](const ModelTpl<double>& md) { return make_fd_derivatives<double>(md, o); });
-         },
-         "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1)
-      .def("compute",
+  def_derivative_init(fd, [](const auto& md, const BackendOptions& o) { return make_fd_derivatives(md, o); });
+  fd.def("compute",
            [](PyFdDerivatives& e, const InArray& q, const InArray& qd, const InArray& tau, const OutArray& qdd,
               const OutArray& dq, const OutArray& dqd, const OutArray& dtau, const std::optional<OutArray>& failed_dof,
               std::uintptr_t stream) {
