@@ -266,45 +266,35 @@ class StepDerivatives:
     def rollout(self, q0, qd0, tau, stream=None, check=None):
         """(q, qd), each (T, B, nv): the states after each of the T steps of tau (T, B, nv)
         from (q0, qd0) (B, nv) ((nv,) and (T, nv) give (T, nv))."""
-        where, arrays, h, s, single = self._begin([("q0", q0), ("qd0", qd0), ("tau", tau)], stream)
-        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
-        outs, w = self._new(where, (T, B, n), (T, B, n))
-        failed, wf = self._failed(where, B)
-        try:
-            status = s.rollout(*h, *w, wf, where.stream or 0)
-        except TypeError as e:
-            _reraise(e)
-        self._settle(status, where, failed, check, "rollout")
-        return self._unbatch(single, outs, (True, True))
+        return self._rollout_call("rollout", [("q0", q0), ("qd0", qd0), ("tau", tau)], (True, True),
+                                  "rollout", stream, check)
 
     def rollout_vjp(self, q0, qd0, tau, gq, gqd, stream=None, check=None):
         """(gq0, gqd0, gtau): the gradient of a loss L with dL/dq_t = gq, dL/dqd_t = gqd
         (T, B, nv), by the adjoint recursion (checkpointed: O(sqrt(T)) states kept)."""
-        where, arrays, h, s, single = self._begin(
-            [("q0", q0), ("qd0", qd0), ("tau", tau), ("gq", gq), ("gqd", gqd)], stream)
-        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
-        outs, w = self._new(where, (B, n), (B, n), (T, B, n))
-        failed, wf = self._failed(where, B)
-        try:
-            status = s.vjp(*h, *w, wf, where.stream or 0)
-        except TypeError as e:
-            _reraise(e)
-        self._settle(status, where, failed, check, "rollout derivatives")
-        return self._unbatch(single, outs, (False, False, True))
+        return self._rollout_call("vjp", [("q0", q0), ("qd0", qd0), ("tau", tau), ("gq", gq), ("gqd", gqd)],
+                                  (False, False, True), "rollout derivatives", stream, check)
 
     def rollout_jvp(self, q0, qd0, tau, dq0, dqd0, dtau, stream=None, check=None):
         """(dq, dqd), each (T, B, nv): the trajectory's tangent along (dq0, dqd0, dtau)."""
-        where, arrays, h, s, single = self._begin(
-            [("q0", q0), ("qd0", qd0), ("tau", tau), ("dq0", dq0), ("dqd0", dqd0), ("dtau", dtau)], stream)
+        return self._rollout_call(
+            "jvp", [("q0", q0), ("qd0", qd0), ("tau", tau), ("dq0", dq0), ("dqd0", dqd0), ("dtau", dtau)],
+            (True, True), "rollout derivatives", stream, check)
+
+    def _rollout_call(self, method, named, per_step, what, stream, check):
+        """One of the extension's rollout calls (method: "rollout", "vjp", "jvp") on the
+        named arrays (q0, qd0, tau first); per_step: for each result, True for (T, B, nv),
+        False for (B, nv)."""
+        where, arrays, h, s, single = self._begin(named, stream)
         T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
-        outs, w = self._new(where, (T, B, n), (T, B, n))
+        outs, w = self._new(where, *[(T, B, n) if p else (B, n) for p in per_step])
         failed, wf = self._failed(where, B)
         try:
-            status = s.jvp(*h, *w, wf, where.stream or 0)
+            status = getattr(s, method)(*h, *w, wf, where.stream or 0)
         except TypeError as e:
             _reraise(e)
-        self._settle(status, where, failed, check, "rollout derivatives")
-        return self._unbatch(single, outs, (True, True))
+        self._settle(status, where, failed, check, what)
+        return self._unbatch(single, outs, per_step)
 
 
 # ---- torch.autograd.Function --------------------------------------------------------
