@@ -40,6 +40,170 @@ __global__ void __launch_bounds__(kDerivativesBlock)
                             instance_matrix(out.M, b, nv), nullptr);
 }
 
+// ---- the lean chain recursion (SCANDYN_DFD_KERNEL=lean, SCANDYN_DID_KERNEL=lean) ----
+// rnea_derivatives_instance for an unbranched chain (body i's parent i - 1) of at most
+// C DoF, with 24 scalars of per-thread scratch per body instead of DerivativeBody's 72,
+// and loops unrolled over the compile-time capacity (constant indices only). The same
+// formulas, evaluated in three passes:
+//   1. forward: X_i, v_i, a_i (world frame) running in registers, stored in slot i;
+//   2. backward: from slot j (and slot j - 1's v, a) body j's J, dV, dA, its own Ic,
+//      F, B added to the running composites (registers), then psi_j = Ic_j S_j,
+//      rho_j = Bc_j^T S_j, Phi_j and Psi_j replace slot j's contents;
+//   3. forward again: X_i, v_i, a_i recomputed running (the same operations as pass
+//      1), J_i, dV_i, dA_i, and for every j >= i the entries (j, i) and (i, j) from
+//      slot j, each output entry written once.
+// The composites are summed in the serial order (own body first, then the child's
+// composite), every entry is the same dot products as rnea_derivatives_instance's.
+template <class S>
+struct LeanKinematics {
+  Transform<S> X;
+  Motion<S> v, a;
+};
+template <class S>
+struct LeanCoupling {
+  Force<S> psi, rho, Phi, Psi;
+};
+template <class S>
+union LeanSlot {
+  LeanKinematics<S> k;
+  LeanCoupling<S> c;
+  __device__ LeanSlot() {}
+};
+
+// Body i's world-frame kinematics from its parent's (i == 0: the base, at rest with
+// acceleration a0), as derivative_forward_step.
+template <class S>
+__device__ __forceinline__ void lean_kinematics(const Body<S>& b, S q, S qd, S qdd, bool root,
+                                                const LeanKinematics<S>& parent, const Motion<S>& a0,
+                                                LeanKinematics<S>& o, Motion<S>& J) {
+  const Transform<S> Xup = joint_transform(b, q);
+  o.X = root ? Xup : Xup * parent.X;
+  const Motion<S> vp = root ? Motion<S>::zero() : parent.v;
+  const Motion<S> ap = root ? a0 : parent.a;
+  J = o.X.apply_inverse(joint_motion(b, S(1)));
+  o.v = vp + qd * J;
+  o.a = ap + qdd * J + qd * cross(o.v, J);
+}
+
+// kRegs: loops unrolled over C, so that the slots (24 C scalars) may be promoted to
+// registers (float, C = 8: 255 registers, a few spills); otherwise loops over nv and
+// the slots in local memory (768 B per thread in float at C = 8 against
+// DerivativeBody's 2304).
+template <class S, int C, bool kRegs, class V, class Mat>
+__device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body, Index nv, const Motion<S>& a0, V q,
+                                                            V qd, V qdd, const Force<S>* fext, Mat dtau_dq,
+                                                            Mat dtau_dqd, Mat M) {
+  LeanSlot<S> slot[C];
+  {  // 1. forward
+    LeanKinematics<S> k;
+#pragma unroll
+    for (int i = 0; i < (kRegs ? C : nv); ++i) {
+      if (i < nv) {
+        Motion<S> J;
+        LeanKinematics<S> o;
+        lean_kinematics(body[i], S(q[i]), S(qd[i]), S(qdd[i]), i == 0, k, a0, o, J);
+        k = o;
+        slot[i].k = o;
+      }
+    }
+  }
+  {  // 2. backward
+    Force<S> Fc;
+    Inertia<S> Ic;
+    VelocityDerivative<S> Bc;
+#pragma unroll
+    for (int j = (kRegs ? C : nv) - 1; j >= 0; --j) {
+      if (j < nv) {
+        const LeanKinematics<S> w = slot[j].k;
+        const Motion<S> vp = j == 0 ? Motion<S>::zero() : slot[j > 0 ? j - 1 : 0].k.v;
+        const Motion<S> ap = j == 0 ? a0 : slot[j > 0 ? j - 1 : 0].k.a;
+        const Body<S>& b = body[j];
+        const Motion<S> J = w.X.apply_inverse(joint_motion(b, S(1)));
+        const Motion<S> dV = cross(vp, J);
+        const Motion<S> dA = cross(ap, J) + cross(vp, dV);
+        const Inertia<S> Io = b.I.transform_transpose(w.X);
+        Force<S> Fo = Io * w.a + cross(w.v, Io * w.v);
+        if (fext) Fo -= w.X.apply_transpose(fext[j]);
+        const VelocityDerivative<S> Bo = VelocityDerivative<S>::of(Io, w.v);
+        if (j == nv - 1) {
+          Fc = Fo;
+          Ic = Io;
+          Bc = Bo;
+        } else {  // the serial order: work[p] (own) += work[j] (the child's composite)
+          Force<S> F2 = Fo;
+          F2 += Fc;
+          Inertia<S> I2 = Io;
+          I2 += Ic;
+          VelocityDerivative<S> B2 = Bo;
+          B2 += Bc;
+          Fc = F2;
+          Ic = I2;
+          Bc = B2;
+        }
+        LeanCoupling<S> c;
+        c.psi = Ic * J;
+        c.rho = Bc.apply_transpose(J);
+        c.Phi = cross(J, Fc) + Ic * dA + Bc.apply(dV);
+        c.Psi = Ic * (S(2) * dV) + Bc.apply(J);
+        slot[j].c = c;
+      }
+    }
+  }
+  {  // 3. forward again: the entries
+    LeanKinematics<S> k;
+#pragma unroll
+    for (int i = 0; i < (kRegs ? C : nv); ++i) {
+      if (i < nv) {
+        const Motion<S> vp = i == 0 ? Motion<S>::zero() : k.v;
+        const Motion<S> ap = i == 0 ? a0 : k.a;
+        Motion<S> J;
+        LeanKinematics<S> o;
+        lean_kinematics(body[i], S(q[i]), S(qd[i]), S(qdd[i]), i == 0, k, a0, o, J);
+        k = o;
+        const Motion<S> dV = cross(vp, J);
+        const Motion<S> dA = cross(ap, J) + cross(vp, dV);
+#pragma unroll
+        for (int j = i; j < (kRegs ? C : nv); ++j) {
+          if (j < nv) {
+            const LeanCoupling<S> c = slot[j].c;
+            dtau_dq(j, i) = dot(dA, c.psi) + dot(dV, c.rho);
+            dtau_dqd(j, i) = S(2) * dot(dV, c.psi) + dot(J, c.rho);
+            const S Mji = dot(J, c.psi);
+            M(j, i) = Mji;
+            if (i != j) {
+              dtau_dq(i, j) = dot(J, c.Phi);
+              dtau_dqd(i, j) = dot(J, c.Psi);
+              M(i, j) = Mji;
+            }
+          }
+        }
+      }
+    }
+  }
+}
+
+// Whether a model's bodies form an unbranched chain (the lean kernels' models).
+template <class Params>
+bool is_chain(const Params& p) {
+  for (Index i = 0; i < p.nv; ++i)
+    if (p.body[i].parent != i - 1) return false;
+  return true;
+}
+
+// id_derivatives_kernel by the lean chain recursion (chains of up to kPackedLtlCapacity DoF).
+template <class S, int C, bool kRegs, int kMinBlocks = 1>
+__global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
+    id_derivatives_lean_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const IdBatchIn<S> in,
+                               const IdDerivativesOut<S> out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Index nv = model.nv;
+  lean_chain_rnea_derivatives<S, C, kRegs>(model.body, nv, model.a0, instance_column(in.q, b),
+                                           instance_column(in.qd, b), instance_column(in.qdd, b), in.fext ? in.fext + b * nv : nullptr,
+                                    instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
+                                    instance_matrix(out.M, b, nv));
+}
+
 // How the forward-dynamics derivatives are launched (launch_fd_derivatives). The
 // default, kTwoKernels, for models of up to kPackedLtlCapacity DoF:
 //   fd_aba_kernel:            qdd by the ABA (aba_instance), kept in out.qdd or, when
@@ -62,9 +226,14 @@ __global__ void __launch_bounds__(kDerivativesBlock)
 //   kSplit: three kernels: fd_aba_kernel, fd_derivatives_at_kernel without the solve
 //           (the blocks keep dtau/dq, dtau/dqd, M), fd_solve_kernel (packed_fd_solve
 //           alone).
+//   kLean (=lean), kLeanUnbounded (=lean-unbounded), kLeanRegs (=lean-regs): as
+//           kTwoKernels / kUnbounded, with the inverse-dynamics derivatives by
+//           lean_chain_rnea_derivatives (24 scalars of scratch per body; lean-regs:
+//           unrolled, the scratch in registers); chains only, other trees of up to
+//           kPackedLtlCapacity DoF run kTwoKernels.
 namespace {
 
-enum class FdKernel { kTwoKernels, kUnbounded, kFused, kTree, kSplit };
+enum class FdKernel { kTwoKernels, kUnbounded, kFused, kTree, kSplit, kLean, kLeanUnbounded, kLeanRegs };
 
 FdKernel fd_kernel_choice() {
   static const FdKernel choice = [] {
@@ -74,7 +243,24 @@ FdKernel fd_kernel_choice() {
     if (v == "fused") return FdKernel::kFused;
     if (v == "tree") return FdKernel::kTree;
     if (v == "split") return FdKernel::kSplit;
+    if (v == "lean") return FdKernel::kLean;
+    if (v == "lean-unbounded") return FdKernel::kLeanUnbounded;
+    if (v == "lean-regs") return FdKernel::kLeanRegs;
     return FdKernel::kTwoKernels;
+  }();
+  return choice;
+}
+
+// SCANDYN_DID_KERNEL=lean|lean-unbounded|lean-regs: launch_id_derivatives runs
+// id_derivatives_lean_kernel for chains of up to kPackedLtlCapacity DoF (lean: slots
+// in local memory, float held to 10 blocks of 64 per SM as the dfd's; lean-unbounded:
+// the same without the bound; lean-regs: unrolled, slots in registers; read once per
+// process; bench A/B). 0: the default kernel.
+int did_lean_choice() {
+  static const int choice = [] {
+    const char* e = std::getenv("SCANDYN_DID_KERNEL");
+    const std::string v = e ? e : "";
+    return v == "lean" ? 1 : v == "lean-unbounded" ? 3 : v == "lean-regs" ? 2 : 0;
   }();
   return choice;
 }
@@ -163,8 +349,10 @@ constexpr int at_min_blocks() {
 // failed_dof): the inverse-dynamics derivatives at fd_aba_kernel's qdd into the
 // blocks and (kSolve) packed_fd_solve on them: dqdd/dq, dqdd/dqd, M^-1. Without
 // kSolve the blocks keep dtau/dq, dtau/dqd and M for fd_solve_kernel. kMinBlocks:
-// __launch_bounds__' blocks per SM (1: registers as the compiler likes).
-template <class S, int C, bool kSolve, int kMinBlocks = 1>
+// __launch_bounds__' blocks per SM (1: registers as the compiler likes). kLean: the
+// inverse-dynamics derivatives by lean_chain_rnea_derivatives (chains only; kLeanRegs:
+// its unrolled form).
+template <class S, int C, bool kSolve, int kMinBlocks = 1, bool kLean = false, bool kLeanRegs = false>
 __global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
     fd_derivatives_at_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
                              const FdDerivativesOut<S> out, int* failed_dof) {
@@ -176,11 +364,16 @@ __global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
   const DofColumn<S> scratch = qdd_scratch(out, b);
   for (Index i = 0; i < nv; ++i) qdd[i] = scratch[i];
   const Force<S>* fext = in.fext ? in.fext + b * nv : nullptr;
-  DerivativeBody<S> work[C];  // per-thread local memory
   const MatrixRef<S> dq = instance_matrix(out.dqdd_dq, b, nv), dqd = instance_matrix(out.dqdd_dqd, b, nv),
                      dtau = instance_matrix(out.dqdd_dtau, b, nv);
-  rnea_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
-                            DofColumn<const S>{qdd, 1}, fext, work, dq, dqd, dtau, nullptr);
+  if constexpr (kLean) {
+    lean_chain_rnea_derivatives<S, C, kLeanRegs>(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+                                      DofColumn<const S>{qdd, 1}, fext, dq, dqd, dtau);
+  } else {
+    DerivativeBody<S> work[C];  // per-thread local memory
+    rnea_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+                              DofColumn<const S>{qdd, 1}, fext, work, dq, dqd, dtau, nullptr);
+  }
   if constexpr (kSolve) {
     const Index failed = packed_fd_solve<C>(dq, dqd, dtau, static_cast<const S*>(nullptr));
     if (failed_dof) failed_dof[b] = failed;
@@ -221,7 +414,21 @@ cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S
   std::visit(
       [&](const auto& params) {
         using P = std::decay_t<decltype(params)>;
-        id_derivatives_kernel<S, P::capacity><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+        constexpr int C = P::capacity;
+        if constexpr (C <= kPackedLtlCapacity) {
+          const int lean = did_lean_choice();
+          if (lean != 0 && is_chain(params)) {
+            if (lean == 2)
+              id_derivatives_lean_kernel<S, C, true><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+            else if (lean == 3)
+              id_derivatives_lean_kernel<S, C, false><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+            else
+              id_derivatives_lean_kernel<S, C, false, at_min_blocks<S>()>
+                  <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+            return;
+          }
+        }
+        id_derivatives_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
       },
       model.params());
   return cudaGetLastError();
@@ -244,7 +451,13 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
         using P = std::decay_t<decltype(params)>;
         constexpr int C = P::capacity;
         if constexpr (C <= kPackedLtlCapacity) {
-          switch (choice) {
+          // the lean variants run on chains; other trees take the default
+          const FdKernel pick =
+              (choice == FdKernel::kLean || choice == FdKernel::kLeanUnbounded || choice == FdKernel::kLeanRegs) &&
+                      !is_chain(params)
+                  ? FdKernel::kTwoKernels
+                  : choice;
+          switch (pick) {
             case FdKernel::kTwoKernels:
               prefer_l1<fd_aba_kernel<S, C>>();
               fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
@@ -275,6 +488,27 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
                   <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               prefer_l1<fd_solve_kernel<S, C>>();
               fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
+              break;
+            case FdKernel::kLean:
+              prefer_l1<fd_aba_kernel<S, C>>();
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>>();
+              fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kLeanUnbounded:
+              prefer_l1<fd_aba_kernel<S, C>>();
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true>>();
+              fd_derivatives_at_kernel<S, C, true, 1, true>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              break;
+            case FdKernel::kLeanRegs:
+              prefer_l1<fd_aba_kernel<S, C>>();
+              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true, true>>();
+              fd_derivatives_at_kernel<S, C, true, 1, true, true>
+                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
               break;
           }
         } else {
