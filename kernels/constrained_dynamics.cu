@@ -107,25 +107,29 @@ __global__ void __launch_bounds__(kLoopBlock)
 // launch(params, MC) for the model's capacity (8 or 16) and the rows' (6 or 12).
 template <class S, class Launch>
 void visit_loop_kernel(const ThreadModel<S>& model, Index m, Launch&& launch) {
-  std::visit(
-      [&](const auto& params) {
-        constexpr int C = std::decay_t<decltype(params)>::capacity;
-        if constexpr (C <= kLoopMaxDofs) {
-          if (m <= 6) launch(params, std::integral_constant<int, 6>{});
-          else launch(params, std::integral_constant<int, static_cast<int>(kLoopMaxRows)>{});
-        }
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    if constexpr (C <= kLoopMaxDofs) {
+      if (m <= 6)
+        launch(params, std::integral_constant<int, 6>{});
+      else
+        launch(params, std::integral_constant<int, static_cast<int>(kLoopMaxRows)>{});
+    }
+  });
 }
 
-unsigned blocks_for(Index B) { return static_cast<unsigned>((static_cast<long long>(B) + kLoopBlock - 1) / kLoopBlock); }
+unsigned blocks_for(Index B) {
+  return static_cast<unsigned>((static_cast<long long>(B) + kLoopBlock - 1) / kLoopBlock);
+}
 
 }  // namespace
 
 template <class S>
 CudaConstrainedForwardDynamics<S>::CudaConstrainedForwardDynamics(const ModelTpl<S>& model, const LoopSet& loops,
                                                                   const BackendOptions& options)
-    : nv_(model.nv()), m_(loops.rows()), nloops_(static_cast<Index>(loops.loops.size())),
+    : nv_(model.nv()),
+      m_(loops.rows()),
+      nloops_(static_cast<Index>(loops.loops.size())),
       max_batch_(options.max_batch) {
   if (nv_ > kLoopMaxDofs || m_ > kLoopMaxRows)
     throw BackendError("backend 'cuda': closed-loop forward dynamics runs one thread per instance for models of up to " +

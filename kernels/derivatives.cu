@@ -411,26 +411,24 @@ cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S
   if (B == 0 || model.nv() == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
     return cudaErrorInvalidValue;
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        constexpr int C = P::capacity;
-        if constexpr (C <= kPackedLtlCapacity) {
-          const int lean = did_lean_choice();
-          if (lean != 0 && is_chain(params)) {
-            if (lean == 2)
-              id_derivatives_lean_kernel<S, C, true><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-            else if (lean == 3)
-              id_derivatives_lean_kernel<S, C, false><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-            else
-              id_derivatives_lean_kernel<S, C, false, at_min_blocks<S>()>
-                  <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-            return;
-          }
-        }
-        id_derivatives_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    constexpr int C = P::capacity;
+    if constexpr (C <= kPackedLtlCapacity) {
+      const int lean = did_lean_choice();
+      if (lean != 0 && is_chain(params)) {
+        if (lean == 2)
+          id_derivatives_lean_kernel<S, C, true><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+        else if (lean == 3)
+          id_derivatives_lean_kernel<S, C, false><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+        else
+          id_derivatives_lean_kernel<S, C, false, at_min_blocks<S>()>
+              <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+        return;
+      }
+    }
+    id_derivatives_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+  });
   return cudaGetLastError();
 }
 
@@ -446,77 +444,73 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
     return cudaErrorInvalidValue;
   const FdKernel choice = fd_kernel_choice();
   const unsigned grid = blocks_for(B);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        constexpr int C = P::capacity;
-        if constexpr (C <= kPackedLtlCapacity) {
-          // the lean variants run on chains; other trees take the default
-          const FdKernel pick =
-              (choice == FdKernel::kLean || choice == FdKernel::kLeanUnbounded || choice == FdKernel::kLeanRegs) &&
-                      !is_chain(params)
-                  ? FdKernel::kTwoKernels
-                  : choice;
-          switch (pick) {
-            case FdKernel::kTwoKernels:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>>();
-              fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kUnbounded:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1>>();
-              fd_derivatives_at_kernel<S, C, true, 1>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kFused:
-              prefer_l1<fd_derivatives_kernel<S, C, C>>();
-              fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kTree:
-              prefer_l1<fd_derivatives_kernel<S, C, 0>>();
-              fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kSplit:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, false>>();
-              fd_derivatives_at_kernel<S, C, false>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_solve_kernel<S, C>>();
-              fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
-              break;
-            case FdKernel::kLean:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>>();
-              fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kLeanUnbounded:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true>>();
-              fd_derivatives_at_kernel<S, C, true, 1, true>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-            case FdKernel::kLeanRegs:
-              prefer_l1<fd_aba_kernel<S, C>>();
-              fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true, true>>();
-              fd_derivatives_at_kernel<S, C, true, 1, true, true>
-                  <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-              break;
-          }
-        } else {
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    constexpr int C = P::capacity;
+    if constexpr (C <= kPackedLtlCapacity) {
+      // the lean variants run on chains; other trees take the default
+      const FdKernel pick =
+          (choice == FdKernel::kLean || choice == FdKernel::kLeanUnbounded || choice == FdKernel::kLeanRegs) &&
+                  !is_chain(params)
+              ? FdKernel::kTwoKernels
+              : choice;
+      switch (pick) {
+        case FdKernel::kTwoKernels:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>>();
+          fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>
+              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+        case FdKernel::kUnbounded:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1>>();
+          fd_derivatives_at_kernel<S, C, true, 1><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+        case FdKernel::kFused:
+          prefer_l1<fd_derivatives_kernel<S, C, C>>();
+          fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+        case FdKernel::kTree:
           prefer_l1<fd_derivatives_kernel<S, C, 0>>();
           fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-        }
-      },
-      model.params());
+          break;
+        case FdKernel::kSplit:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, false>>();
+          fd_derivatives_at_kernel<S, C, false><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_solve_kernel<S, C>>();
+          fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
+          break;
+        case FdKernel::kLean:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>>();
+          fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>
+              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+        case FdKernel::kLeanUnbounded:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true>>();
+          fd_derivatives_at_kernel<S, C, true, 1, true>
+              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+        case FdKernel::kLeanRegs:
+          prefer_l1<fd_aba_kernel<S, C>>();
+          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true, true>>();
+          fd_derivatives_at_kernel<S, C, true, 1, true, true>
+              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+          break;
+      }
+    } else {
+      prefer_l1<fd_derivatives_kernel<S, C, 0>>();
+      fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+    }
+  });
   return cudaGetLastError();
 }
 

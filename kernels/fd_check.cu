@@ -113,13 +113,11 @@ cudaError_t DeviceFdCheck<S>::launch(const FdBatchIn<S>& in, const BatchView<con
   if (!failed_dof || !estimate_out || !in.q.data || !in.qd.data || !in.tau.data || !qdd.data)
     return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kFdCheckBlock - 1) / kFdCheckBlock);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        fd_check_kernel<S, P::capacity><<<blocks, kFdCheckBlock, 0, stream>>>(
-            params, static_cast<const P*>(free_params_), in, qdd, threshold, failed_dof, estimate_out);
-      },
-      model_->params());
+  visit_compiled_capacity(model_->params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    fd_check_kernel<S, P::capacity><<<blocks, kFdCheckBlock, 0, stream>>>(params, static_cast<const P*>(free_params_),
+                                                                          in, qdd, threshold, failed_dof, estimate_out);
+  });
   return cudaGetLastError();
 }
 

@@ -101,7 +101,8 @@ cudaError_t launch_fd_instances(const ThreadModel<S, Bd>& model, const FdBatchIn
     visit_aba_kernel(model, launch);
   } else {
     if (model.floating()) return cudaErrorNotSupported;  // (the engine refuses it first)
-    std::visit([&](const auto& params) { launch(params, std::integral_constant<int, kJsiKernel>{}); }, model.params());
+    visit_compiled_capacity(model.params(),
+                            [&](const auto& params) { launch(params, std::integral_constant<int, kJsiKernel>{}); });
   }
   return cudaGetLastError();
 }

@@ -185,18 +185,17 @@ cudaError_t launch_id_instances(const ThreadModel<S, Bd>& model, const IdBatchIn
   if (B == 0 || model.nv() == 0) return cudaSuccess;
   if (!batch_in.q.data || !batch_in.qd.data || !batch_in.qdd.data || !tau_out.data) return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kIdInstancesBlock - 1) / kIdInstancesBlock);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        if (floating_kernels(model)) {
-          if constexpr (kFloatingCapacity<P::capacity>)
-            id_instances_kernel<S, P::capacity, Bd, kFloatingKernels<S, Bd>>
-                <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
-        } else {
-          id_instances_kernel<S, P::capacity, Bd, false><<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
-        }
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    if (floating_kernels(model)) {
+      if constexpr (kFloatingCapacity<P::capacity>)
+        id_instances_kernel<S, P::capacity, Bd, kFloatingKernels<S, Bd>>
+            <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+    } else {
+      id_instances_kernel<S, P::capacity, Bd, false>
+          <<<blocks, kIdInstancesBlock, 0, stream>>>(params, batch_in, tau_out);
+    }
+  });
   return cudaGetLastError();
 }
 
@@ -206,8 +205,9 @@ template <class S>
 CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   if (options.strategy == IdStrategy::ScanWorld)
-    throw BackendError("backend 'cuda': strategy 'scan-world' is not available on this backend "
-                       "(use auto, recursion or scan-local)");
+    throw BackendError(
+        "backend 'cuda': strategy 'scan-world' is not available on this backend "
+        "(use auto, recursion or scan-local)");
   if (max_batch_ < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch_) + " is negative");
   // a spherical joint: the link scans (the thread kernels take a floating base only)
   const bool threads_take = model.one_dof_past_base();

@@ -57,13 +57,11 @@ cudaError_t launch_kinematics_instances(const ThreadModel<S>& model, const Frame
   if (!frames) return cudaErrorInvalidValue;
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kKinematicsInstancesBlock - 1) /
                                                 kKinematicsInstancesBlock);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        kinematics_instances_kernel<S, P::capacity>
-            <<<blocks, kKinematicsInstancesBlock, 0, stream>>>(params, frames, F, format, reference, q, poses, J);
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    kinematics_instances_kernel<S, P::capacity>
+        <<<blocks, kKinematicsInstancesBlock, 0, stream>>>(params, frames, F, format, reference, q, poses, J);
+  });
   return cudaGetLastError();
 }
 

@@ -130,23 +130,23 @@ cudaError_t launch_crba_instances(const ThreadModel<S, Bd>& model, const BatchVi
   const unsigned blocks =
       static_cast<unsigned>((static_cast<long long>(B) + kMassInstancesBlock - 1) / kMassInstancesBlock);
   const bool staged = stage_mass_entries(M_out);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        constexpr bool kF = kFloatingKernels<S, Bd> && kFloatingCapacity<P::capacity>;
-        if (floating_kernels(model)) {
-          if constexpr (!kF) return;  // (refused by ThreadModel in this build)
-          if (staged)
-            crba_instances_kernel<S, P::capacity, true, Bd, kF><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
-          else
-            crba_instances_kernel<S, P::capacity, false, Bd, kF><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
-        } else if (staged) {
-          crba_instances_kernel<S, P::capacity, true, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
-        } else {
-          crba_instances_kernel<S, P::capacity, false, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
-        }
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    constexpr bool kF = kFloatingKernels<S, Bd> && kFloatingCapacity<P::capacity>;
+    if (floating_kernels(model)) {
+      if constexpr (!kF) return;  // (refused by ThreadModel in this build)
+      if (staged)
+        crba_instances_kernel<S, P::capacity, true, Bd, kF>
+            <<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+      else
+        crba_instances_kernel<S, P::capacity, false, Bd, kF>
+            <<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+    } else if (staged) {
+      crba_instances_kernel<S, P::capacity, true, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+    } else {
+      crba_instances_kernel<S, P::capacity, false, Bd><<<blocks, kMassInstancesBlock, 0, stream>>>(params, q, M_out);
+    }
+  });
   return cudaGetLastError();
 }
 

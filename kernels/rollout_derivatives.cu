@@ -179,27 +179,23 @@ template <class S, template <class, int, Integrator> class Launch, class Variant
 cudaError_t launch_for(const Variant& params, Integrator integrator, const void* rest, Index B, cudaStream_t stream,
                        A&&... args) {
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kRolloutBlock - 1) / kRolloutBlock);
-  std::visit(
-      [&](const auto& sp) {
-        constexpr int C = std::decay_t<decltype(sp)>::capacity;
-        if constexpr (kCompiledCapacity<C>) {  // (others: refused at construction)
-          const auto* r = static_cast<const ThreadModelParams<S, C, Body<S>>*>(rest);
-          switch (integrator) {
-            case Integrator::Euler:
-              Launch<S, C, Integrator::Euler>::run(blocks, stream, sp, r, args...);
-              break;
-            case Integrator::Rk4:
-              Launch<S, C, Integrator::Rk4>::run(blocks, stream, sp, r, args...);
-              break;
-            case Integrator::Implicit:
-              Launch<S, C, Integrator::Implicit>::run(blocks, stream, sp, r, args...);
-              break;
-            default:
-              break;  // refused at construction (require_differentiable_step)
-          }
-        }
-      },
-      params);
+  visit_compiled_capacity(params, [&](const auto& sp) {
+    constexpr int C = std::decay_t<decltype(sp)>::capacity;
+    const auto* r = static_cast<const ThreadModelParams<S, C, Body<S>>*>(rest);
+    switch (integrator) {
+      case Integrator::Euler:
+        Launch<S, C, Integrator::Euler>::run(blocks, stream, sp, r, args...);
+        break;
+      case Integrator::Rk4:
+        Launch<S, C, Integrator::Rk4>::run(blocks, stream, sp, r, args...);
+        break;
+      case Integrator::Implicit:
+        Launch<S, C, Integrator::Implicit>::run(blocks, stream, sp, r, args...);
+        break;
+      default:
+        break;  // refused at construction (require_differentiable_step)
+    }
+  });
   return cudaGetLastError();
 }
 

@@ -87,13 +87,10 @@ cudaError_t launch_id_second_derivatives(const DualThreadModel<S>& model, const 
     return cudaErrorInvalidValue;
   const unsigned blocks =
       static_cast<unsigned>((static_cast<long long>(B) + kSecondDerivativesBlock - 1) / kSecondDerivativesBlock);
-  std::visit(
-      [&](const auto& params) {
-        using P = std::decay_t<decltype(params)>;
-        if constexpr (kCompiledCapacity<P::capacity>)  // (others: refused by DualThreadModel)
-          id_second_derivatives_kernel<S, P::capacity><<<blocks, kSecondDerivativesBlock, 0, stream>>>(params, in, out);
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    using P = std::decay_t<decltype(params)>;
+    id_second_derivatives_kernel<S, P::capacity><<<blocks, kSecondDerivativesBlock, 0, stream>>>(params, in, out);
+  });
   return cudaGetLastError();
 }
 

@@ -637,11 +637,17 @@ cudaError_t launch_fused(const SimParams<S, C>& params, unsigned effects, const 
   template cudaError_t launch_fused<S, I, C>(const SimParams<S, C>&, unsigned, const FusedArgs<S>&, cudaStream_t); \
   template cudaError_t launch_fused_floating<S, I, C>(const SimParams<S, C>&, const FusedArgs<S>&,                \
                                                       const FloatingArgs<S>&, cudaStream_t);
+// (every capacity, or with SCANDYN_CUDA_ALL_CAPACITIES 0 capacity 8 only:
+// cuda::kCompiledCapacity; the launches go through visit_compiled_capacity)
+#if SCANDYN_CUDA_ALL_CAPACITIES
 #define SCANDYN_SIM_FUSED_INSTANTIATE(S, I)   \
   SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 8)    \
   SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 16)   \
   SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 32)   \
   SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 64)
+#else
+#define SCANDYN_SIM_FUSED_INSTANTIATE(S, I) SCANDYN_SIM_FUSED_INSTANTIATE_C(S, I, 8)
+#endif
 
 }  // namespace detail
 }  // namespace sim

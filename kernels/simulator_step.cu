@@ -366,24 +366,34 @@ class CudaSimBackend final : public SimBackend<S> {
     if (fused_) {
       const FusedArgs<S> args{q_, qd_, tau, wrenches, stride, B, status_, contacts_, readings_, contact_tau_, contact_arm_};
       cudaError_t err = cudaSuccess;
-      std::visit(
-          [&](const auto& sp) {
-            using P = std::decay_t<decltype(sp)>;
-            if (floating_) {
-              switch (setup_.integrator) {
-                case Integrator::Euler: err = launch_fused_floating<S, Integrator::Euler, P::capacity>(sp, args, floating_args_, stream_); break;
-                case Integrator::Rk4: err = launch_fused_floating<S, Integrator::Rk4, P::capacity>(sp, args, floating_args_, stream_); break;
-                case Integrator::Implicit: err = launch_fused_floating<S, Integrator::Implicit, P::capacity>(sp, args, floating_args_, stream_); break;
-              }
-              return;
-            }
-            switch (setup_.integrator) {
-              case Integrator::Euler: err = launch_fused<S, Integrator::Euler, P::capacity>(sp, setup_.effects, args, stream_); break;
-              case Integrator::Rk4: err = launch_fused<S, Integrator::Rk4, P::capacity>(sp, setup_.effects, args, stream_); break;
-              case Integrator::Implicit: err = launch_fused<S, Integrator::Implicit, P::capacity>(sp, setup_.effects, args, stream_); break;
-            }
-          },
-          params_);
+      cuda::visit_compiled_capacity(params_, [&](const auto& sp) {
+        using P = std::decay_t<decltype(sp)>;
+        if (floating_) {
+          switch (setup_.integrator) {
+            case Integrator::Euler:
+              err = launch_fused_floating<S, Integrator::Euler, P::capacity>(sp, args, floating_args_, stream_);
+              break;
+            case Integrator::Rk4:
+              err = launch_fused_floating<S, Integrator::Rk4, P::capacity>(sp, args, floating_args_, stream_);
+              break;
+            case Integrator::Implicit:
+              err = launch_fused_floating<S, Integrator::Implicit, P::capacity>(sp, args, floating_args_, stream_);
+              break;
+          }
+          return;
+        }
+        switch (setup_.integrator) {
+          case Integrator::Euler:
+            err = launch_fused<S, Integrator::Euler, P::capacity>(sp, setup_.effects, args, stream_);
+            break;
+          case Integrator::Rk4:
+            err = launch_fused<S, Integrator::Rk4, P::capacity>(sp, setup_.effects, args, stream_);
+            break;
+          case Integrator::Implicit:
+            err = launch_fused<S, Integrator::Implicit, P::capacity>(sp, setup_.effects, args, stream_);
+            break;
+        }
+      });
       check(err, "launching the fused simulator step");
       return;
     }
@@ -391,11 +401,13 @@ class CudaSimBackend final : public SimBackend<S> {
     const long long count = static_cast<long long>(nv) * B;
     const unsigned blocks = element_blocks(count);
     const BatchView<const S> qs_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qs_ : q_, nv, B);
-    const BatchView<const S> qds_view = BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qds_ : qd_, nv, B);
+    const BatchView<const S> qds_view =
+        BatchView<const S>::soa(setup_.integrator == Integrator::Rk4 ? qds_ : qd_, nv, B);
     const bool contacts = (setup_.effects & kContacts) != 0;
     const FdBatchIn<S> in{qs_view, qds_view, BatchView<const S>::soa(tau_, nv, B),
-                          contacts ? contact_fext_
-                          : (setup_.effects & kExternal) ? wrenches_for_engine(wrenches) : nullptr};
+                          contacts                       ? contact_fext_
+                          : (setup_.effects & kExternal) ? wrenches_for_engine(wrenches)
+                                                         : nullptr};
     check(cudaMemsetAsync(nonfinite_, 0, static_cast<std::size_t>(B) * sizeof(int), stream_), "cudaMemsetAsync");
     ContactReading<S>* readings = readings_;  // rk4: the first stage's
     auto forces = [&] {

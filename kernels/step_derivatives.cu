@@ -137,28 +137,24 @@ cudaError_t CudaStepDerivatives<S>::compute_async(const FdBatchIn<S>& in, const 
   const Force<S>* const wrenches = (setup_.effects & sim::kExternal) ? wrenches_ : nullptr;
   const FdBatchIn<S> args{in.q, in.qd, in.tau, (setup_.effects & sim::kExternal) ? in.fext : nullptr};
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + kStepJacobianBlock - 1) / kStepJacobianBlock);
-  std::visit(
-      [&](const auto& sp) {
-        using SP = std::decay_t<decltype(sp)>;
-        constexpr int C = SP::capacity;
-        if constexpr (kCompiledCapacity<C>) {  // (others: refused at construction)
-          switch (setup_.integrator) {
-            case Integrator::Euler:
-              step_jacobian_kernel<S, C, Integrator::Euler><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-              break;
-            case Integrator::Rk4:
-              step_jacobian_kernel<S, C, Integrator::Rk4><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-              break;
-            case Integrator::Implicit:
-              step_jacobian_kernel<S, C, Integrator::Implicit><<<blocks, kStepJacobianBlock, 0, stream>>>(
-                  sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
-              break;
-          }
-        }
-      },
-      params_->v);
+  visit_compiled_capacity(params_->v, [&](const auto& sp) {
+    using SP = std::decay_t<decltype(sp)>;
+    constexpr int C = SP::capacity;
+    switch (setup_.integrator) {
+      case Integrator::Euler:
+        step_jacobian_kernel<S, C, Integrator::Euler><<<blocks, kStepJacobianBlock, 0, stream>>>(
+            sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+        break;
+      case Integrator::Rk4:
+        step_jacobian_kernel<S, C, Integrator::Rk4><<<blocks, kStepJacobianBlock, 0, stream>>>(
+            sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+        break;
+      case Integrator::Implicit:
+        step_jacobian_kernel<S, C, Integrator::Implicit><<<blocks, kStepJacobianBlock, 0, stream>>>(
+            sp, args, wrenches, out, scratch, scratch_per_instance_, failed_dof);
+        break;
+    }
+  });
   return cudaGetLastError();
 }
 

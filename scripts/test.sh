@@ -129,10 +129,10 @@ show_skips() {
 # alone is 110-140 s of the stage's compile time with all 64 sets), as in the
 # sanitizer stage; the per-set instantiations are built and tested where a GPU is
 # (gpu_check.sh: every option ON, every test), ZeroCoefficientsEqualAbsentEffects
-# checking there that they give the all-effects step's numbers. The derivative,
-# step-Jacobian, rollout and variational kernels are compiled for capacity 8 only
-# (SCANDYN_CUDA_ALL_CAPACITIES=OFF: kernels/rollout_derivatives.cu alone ~2 min of
-# nvcc with all four capacities).
+# checking there that they give the all-effects step's numbers. The
+# thread-per-instance kernels are compiled for capacity 8 only
+# (SCANDYN_CUDA_ALL_CAPACITIES=OFF: one kernel per capacity of four; nvcc user
+# seconds of e.g. kernels/rollout_derivatives.cu 82 -> 25, forward_dynamics.cu 26 -> 13).
 variants=()
 if ! nvidia-smi -L >/dev/null 2>&1; then
   variants=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_BENCH_VARIANTS=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual

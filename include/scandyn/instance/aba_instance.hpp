@@ -51,19 +51,20 @@ AbaKernel choose_aba_kernel(const ThreadModel<S, Bd>& model) {
 template <class S, class Bd, class F>
 void visit_aba_kernel(const ThreadModel<S, Bd>& model, F&& launch) {
   const AbaKernel kernel = choose_aba_kernel(model);
-  std::visit(
-      [&](const auto& params) {
-        constexpr int C = std::decay_t<decltype(params)>::capacity;
-        using std::integral_constant;
-        if (kernel == AbaKernel::Chains) launch(params, integral_constant<int, 0>{});
-        else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
-          if (kernel == AbaKernel::Branches) launch(params, integral_constant<int, int(kAbaRegisterSlots)>{});
-          else launch(params, integral_constant<int, C>{});
-        } else {
-          launch(params, integral_constant<int, C>{});
-        }
-      },
-      model.params());
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    using std::integral_constant;
+    if (kernel == AbaKernel::Chains)
+      launch(params, integral_constant<int, 0>{});
+    else if constexpr (sizeof(S) == 4) {  // (Branches is float's only)
+      if (kernel == AbaKernel::Branches)
+        launch(params, integral_constant<int, int(kAbaRegisterSlots)>{});
+      else
+        launch(params, integral_constant<int, C>{});
+    } else {
+      launch(params, integral_constant<int, C>{});
+    }
+  });
 }
 
 #if defined(__CUDACC__)

@@ -163,42 +163,67 @@ template <class S, class Bd>
 inline constexpr bool kFloatingKernels = !std::is_same_v<Bd, Body<S>>;
 // The capacities whose floating-base kernels a build compiles: all, or with
 // SCANDYN_SIM_EFFECT_SETS=0 (the reduced kernel set of builds without a GPU,
-// scripts/test.sh) capacity 16 only (hyq: 12 joints past its base); ThreadModel
-// refuses the others there, naming the option.
+// scripts/test.sh) one: kReducedFloatingCapacity, 16 (hyq: 12 joints past its base),
+// or 8 where SCANDYN_CUDA_ALL_CAPACITIES is OFF too (below); ThreadModel's engines
+// refuse the others there, naming the option.
 #if !defined(SCANDYN_SIM_EFFECT_SETS)
 #define SCANDYN_SIM_EFFECT_SETS 1
 #endif
+inline constexpr int kReducedFloatingCapacity = SCANDYN_CUDA_ALL_CAPACITIES ? 16 : 8;
 template <int C>
-inline constexpr bool kFloatingCapacity = SCANDYN_SIM_EFFECT_SETS || C == 16;
+inline constexpr bool kFloatingCapacity = SCANDYN_SIM_EFFECT_SETS || C == kReducedFloatingCapacity;
 
 // Throws BackendError for a floating-base model of a capacity this build leaves out
 // (kFloatingCapacity); the engines call it on their thread model. name: the model's.
 template <class S, class Bd>
 void require_floating_capacity(const ThreadModel<S, Bd>& tm, const std::string& name) {
-  if (!tm.floating() || SCANDYN_SIM_EFFECT_SETS || tm.capacity() == 16) return;
+  if (!tm.floating() || SCANDYN_SIM_EFFECT_SETS || tm.capacity() == kReducedFloatingCapacity) return;
   throw BackendError("backend 'cuda': model '" + name + "' has " + std::to_string(tm.nv() - 6) +
-                     " joints past its floating base; this build compiles the floating-base kernels for 9 to 16 "
-                     "of them only (SCANDYN_SIM_EFFECT_SETS=OFF, the reduced kernel set of builds without a GPU)");
+                     " joints past its floating base; this build compiles the floating-base kernels for " +
+                     (kReducedFloatingCapacity == 16 ? "9 to 16" : "up to 7") +
+                     " of them only (SCANDYN_SIM_EFFECT_SETS=OFF, the reduced kernel set of builds without a GPU)");
 }
 
-// The capacities whose derivative, step-Jacobian, rollout and variational kernels
-// a build compiles (the slowest kernels to compile: one per capacity, integrator and
-// precision): all, or with SCANDYN_CUDA_ALL_CAPACITIES 0 (scandyn/build_config.hpp; CMake option
-// SCANDYN_CUDA_ALL_CAPACITIES=OFF, what scripts/test.sh configures on machines
-// without a GPU, where CUDA code is compiled but never run) capacity 8 only (models
-// of up to 8 DoF); require_compiled_capacity refuses the others there, naming the
-// option.
+// The capacities whose kernels a build compiles (one kernel per capacity, precision
+// and variant: what makes nvcc slow): all, or with SCANDYN_CUDA_ALL_CAPACITIES 0
+// (scandyn/build_config.hpp; CMake option SCANDYN_CUDA_ALL_CAPACITIES=OFF, what
+// scripts/test.sh configures on machines without a GPU, where CUDA code is compiled
+// but never run) capacity 8 only: models of up to 8 bodies (7 joints past a floating
+// base). The launches go through visit_compiled_capacity, which refuses the others.
 template <int C>
 inline constexpr bool kCompiledCapacity = SCANDYN_CUDA_ALL_CAPACITIES || C == 8;
 
-// Throws BackendError when `capacity` (8, 16, 32 or 64) is one this build leaves out
-// (kCompiledCapacity). what: the computation ("the rollout derivatives"); name: the model's.
+// The refusal of a capacity this build leaves out: BackendError naming the option.
+// what: the computation ("the rollout derivatives"); name: the model's, or empty.
+[[noreturn]] inline void throw_capacity_not_compiled(Index capacity, const std::string& what,
+                                                     const std::string& name) {
+  throw BackendError("backend 'cuda': " + (name.empty() ? std::string("the model") : "model '" + name + "'") +
+                     " needs the capacity-" + std::to_string(capacity) + " kernels of " + what +
+                     "; this build compiles the thread-per-instance kernels for up to 8 bodies only "
+                     "(SCANDYN_CUDA_ALL_CAPACITIES=OFF, the reduced kernel set of builds without a GPU)");
+}
+
+// Throws that BackendError when `capacity` (8, 16, 32 or 64) is one this build leaves
+// out (kCompiledCapacity); the engines call it at construction, where the model's
+// name is known.
 inline void require_compiled_capacity(Index capacity, const std::string& what, const std::string& name) {
   if (SCANDYN_CUDA_ALL_CAPACITIES || capacity == 8) return;
-  throw BackendError("backend 'cuda': model '" + name + "' needs the capacity-" + std::to_string(capacity) +
-                     " kernels of " + what +
-                     "; this build compiles them for up to 8 DoF only (SCANDYN_CUDA_ALL_CAPACITIES=OFF, the reduced "
-                     "kernel set of builds without a GPU)");
+  throw_capacity_not_compiled(capacity, what, name);
+}
+
+// std::visit(f, params) over a per-capacity variant (ThreadModel::Params and the
+// like: alternatives with a static `capacity`), f instantiated for the capacities
+// this build compiles only; a model of another capacity throws (host code, before
+// any launch).
+template <class V, class F>
+void visit_compiled_capacity(const V& params, F&& f) {
+  std::visit(
+      [&](const auto& p) {
+        constexpr int C = std::decay_t<decltype(p)>::capacity;
+        if constexpr (kCompiledCapacity<C>) f(p);
+        else throw_capacity_not_compiled(C, "this computation", "");
+      },
+      params);
 }
 
 // Is `model` run by the kernels' floating-base instantiation (kFloating)?
