@@ -166,13 +166,8 @@ double SparseConstrainedDynamics::project(double* q, double* qd, double tol, int
     for (double p : phi_) worst = std::max(worst, std::fabs(p));
     return worst;
   };
-  double last = HUGE_VAL;
   for (int it = 0; it < iterations; ++it) {
-    // converged, or the last step no longer halved |phi|: the solve's accuracy limit
-    // (J's weakest directions on large grids), where more steps only cost
-    const double now = residual();
-    if (now <= tol || now > 0.5 * last) break;
-    last = now;
+    if (residual() <= tol) break;
     for (Index k = 0; k < m; ++k) r_[k] = -phi_[k];
     solve_projection(q, r_.data(), dx_.data(), true);  // Gauss-Newton: dq = -J^+ phi
     for (Index i = 0; i < n; ++i) q[i] += dx_[i];

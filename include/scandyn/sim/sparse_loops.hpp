@@ -31,8 +31,7 @@ class LoopSolver {
                                 double* lambda) = 0;
   // project_to_loops's contract: Gauss-Newton with minimum-norm steps on phi(q) = 0
   // until max |phi| <= tol or `iterations` steps, then qd's minimum-norm change with
-  // J qd = 0. Returns the final max |phi|. A solver may stop early when a step no
-  // longer halves max |phi| (its accuracy limit); the return value says where.
+  // J qd = 0. Returns the final max |phi|.
   virtual double project(double* q, double* qd, double tol, int iterations) = 0;
 };
 
