@@ -1,6 +1,7 @@
 // Shared helpers for the test programs: model paths, random states, tolerances.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <limits>
@@ -49,6 +50,20 @@ inline std::string cli_path() { return SCANDYN_CLI_PATH; }
 template <class S>
 constexpr S Tol(double for_double, double for_float) {
   return std::is_same<S, float>::value ? S(for_float) : S(for_double);
+}
+
+// max_i |x_i|
+inline double max_abs(const std::vector<double>& x) {
+  double m = 0;
+  for (double v : x) m = std::max(m, std::abs(v));
+  return m;
+}
+
+// max_i |x_i - y_i| over x's entries (y at least as long)
+inline double max_diff(const std::vector<double>& x, const std::vector<double>& y) {
+  double m = 0;
+  for (std::size_t k = 0; k < x.size(); ++k) m = std::max(m, std::abs(x[k] - y[k]));
+  return m;
 }
 
 // Uniform random vector in [lo, hi].

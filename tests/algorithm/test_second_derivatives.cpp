@@ -17,6 +17,8 @@
 namespace scandyn {
 namespace {
 
+using test::max_abs;
+
 struct First {
   std::vector<double> dq, dqd, M;
 };
@@ -28,12 +30,6 @@ First first_order(const Model& model, DerivativeDataTpl<double>& dd, const std::
   rnea_derivatives(model, dd, q.data(), qd.data(), qdd.data(), fext, MatrixRef<double>{f.dq.data(), n, 1},
                    MatrixRef<double>{f.dqd.data(), n, 1}, MatrixRef<double>{f.M.data(), n, 1});
   return f;
-}
-
-double max_abs(const std::vector<double>& v) {
-  double m = 0;
-  for (double x : v) m = std::max(m, std::abs(x));
-  return m;
 }
 
 TEST(SecondDerivatives, CentralDifferencesOfTheFirstOrderDerivativesAndSymmetry) {

@@ -39,6 +39,8 @@ using namespace scandyn;
 
 namespace {
 
+using test::max_abs;
+
 Model floating_robot(const std::string& name) {
   BuildOptions o;
   o.require_physical_inertia = false;  // GRiD's atlas.urdf
@@ -58,12 +60,6 @@ std::vector<std::pair<std::string, Model>> floating_models() {
   v.emplace_back("random free chain 12", test::random_free_chain(12, 5));
   v.emplace_back("single free body", floating_tree(1, 7));
   return v;
-}
-
-double max_abs(const std::vector<double>& v) {
-  double m = 0;
-  for (double x : v) m = std::max(m, std::abs(x));
-  return m;
 }
 
 // max |a - b| / max(1, max |b|); NaN anywhere counts as infinite.

@@ -42,23 +42,14 @@ using factor_graph::SparseCholesky;
 
 namespace {
 
+using test::max_abs;
+using test::max_diff;
+
 #define SKIP_WITHOUT_DEVICE()                                      \
   do {                                                             \
     const std::string why = scandyn::test::no_device_reason();     \
     if (!why.empty()) GTEST_SKIP() << "no CUDA device: " << why;   \
   } while (0)
-
-double max_abs(const std::vector<double>& x) {
-  double m = 0;
-  for (double v : x) m = std::max(m, std::abs(v));
-  return m;
-}
-
-double max_diff(const std::vector<double>& x, const std::vector<double>& y) {
-  double m = 0;
-  for (std::size_t k = 0; k < x.size(); ++k) m = std::max(m, std::abs(x[k] - y[k]));
-  return m;
-}
 
 // The graph's solution by CHOLMOD under `ordering` (Given: the tree order) and by
 // the GPU under CHOLMOD's elimination order.

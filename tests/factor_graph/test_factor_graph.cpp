@@ -23,20 +23,11 @@
 namespace scandyn {
 namespace {
 
+using test::max_abs;
+using test::max_diff;
+
 using factor_graph::DynamicsGraph;
 using factor_graph::LoopClosure;
-
-double max_abs(const std::vector<double>& x) {
-  double m = 0;
-  for (double v : x) m = std::max(m, std::abs(v));
-  return m;
-}
-
-double max_diff(const std::vector<double>& x, const std::vector<double>& y) {
-  double m = 0;
-  for (std::size_t k = 0; k < x.size(); ++k) m = std::max(m, std::abs(x[k] - y[k]));
-  return m;
-}
 
 std::vector<Model> test_models() {
   std::vector<Model> models;

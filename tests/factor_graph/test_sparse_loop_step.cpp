@@ -20,19 +20,11 @@
 namespace scandyn {
 namespace {
 
+using test::max_abs;
+using test::max_diff;
+
 #if SCANDYN_HAS_CHOLMOD
 using factor_graph::SparseConstrainedDynamics;
-
-double max_abs(const std::vector<double>& a) {
-  double m = 0;
-  for (double x : a) m = std::max(m, std::fabs(x));
-  return m;
-}
-double max_diff(const std::vector<double>& a, const std::vector<double>& b) {
-  double m = 0;
-  for (std::size_t i = 0; i < a.size(); ++i) m = std::max(m, std::fabs(a[i] - b[i]));
-  return m;
-}
 
 const std::vector<std::string> kCases = {"fivebar", "fivebar+weld", "fourbar", "cloth:4:4", "cloth:8:8"};
 
