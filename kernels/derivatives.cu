@@ -2,10 +2,27 @@
 // dynamics, one thread per instance (scandyn/cuda/derivatives.hpp): the per-instance
 // functions of scandyn/instance/dynamics_derivatives.hpp (the serial reference's),
 // after aba_instance for the forward dynamics' qdd.
+//
+// What runs (launch_id_derivatives, launch_fd_derivatives):
+//   inverse dynamics: unbranched chains of up to kPackedLtlCapacity (8) DoF
+//     id_derivatives_lean_kernel (the lean chain recursion); every other model
+//     id_derivatives_kernel (rnea_derivatives_instance);
+//   forward dynamics: chains of up to 8 DoF fd_aba_kernel, then
+//     fd_derivatives_at_kernel<kLean> (the lean recursion, then packed_fd_solve with L
+//     in registers); other trees of up to 8 DoF the same two kernels with
+//     rnea_derivatives_instance (the packed path); beyond 8 DoF fd_derivatives_kernel
+//     (ABA, derivatives, the factor and solves by the tree walks in the output blocks).
+// Two environment switches, read at every launch, keep the replaced kernels for A/B
+// (bench, tests): SCANDYN_DFD_KERNEL=packed (the packed path on chains too) or tree
+// (fd_derivatives_kernel at every capacity), SCANDYN_DID_KERNEL=recursion
+// (id_derivatives_kernel on chains too). Measured on an H200 (iiwa, float, 10^6
+// instances, device-resident): dfd lean 3.93e8/s, packed 3.37e8, tree 1.62e8; did lean
+// 9.94e8/s, recursion 6.86e8.
 #include <cuda_runtime.h>
 
 #include <atomic>
 #include <cstdlib>
+#include <cstring>
 #include <string>
 #include <type_traits>
 
@@ -40,11 +57,11 @@ __global__ void __launch_bounds__(kDerivativesBlock)
                             instance_matrix(out.M, b, nv), nullptr);
 }
 
-// ---- the lean chain recursion (SCANDYN_DFD_KERNEL=lean, SCANDYN_DID_KERNEL=lean) ----
+// ---- the lean chain recursion (the default on chains of up to 8 DoF) ----------------
 // rnea_derivatives_instance for an unbranched chain (body i's parent i - 1) of at most
-// C DoF, with 24 scalars of per-thread scratch per body instead of DerivativeBody's 72,
-// and loops unrolled over the compile-time capacity (constant indices only). The same
-// formulas, evaluated in three passes:
+// C DoF, with 24 scalars of per-thread scratch per body instead of DerivativeBody's 72
+// (the slots in local memory: 768 B per thread in float at C = 8 against
+// DerivativeBody's 2304). The same formulas, evaluated in three passes:
 //   1. forward: X_i, v_i, a_i (world frame) running in registers, stored in slot i;
 //   2. backward: from slot j (and slot j - 1's v, a) body j's J, dV, dA, its own Ic,
 //      F, B added to the running composites (registers), then psi_j = Ic_j S_j,
@@ -85,11 +102,7 @@ __device__ __forceinline__ void lean_kinematics(const Body<S>& b, S q, S qd, S q
   o.a = ap + qdd * J + qd * cross(o.v, J);
 }
 
-// kRegs: loops unrolled over C, so that the slots (24 C scalars) may be promoted to
-// registers (float, C = 8: 255 registers, a few spills); otherwise loops over nv and
-// the slots in local memory (768 B per thread in float at C = 8 against
-// DerivativeBody's 2304).
-template <class S, int C, bool kRegs, class V, class Mat>
+template <class S, int C, class V, class Mat>
 __device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body, Index nv, const Motion<S>& a0, V q,
                                                             V qd, V qdd, const Force<S>* fext, Mat dtau_dq,
                                                             Mat dtau_dqd, Mat M) {
@@ -97,7 +110,7 @@ __device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body,
   {  // 1. forward
     LeanKinematics<S> k;
 #pragma unroll
-    for (int i = 0; i < (kRegs ? C : nv); ++i) {
+    for (int i = 0; i < nv; ++i) {
       if (i < nv) {
         Motion<S> J;
         LeanKinematics<S> o;
@@ -112,7 +125,7 @@ __device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body,
     Inertia<S> Ic;
     VelocityDerivative<S> Bc;
 #pragma unroll
-    for (int j = (kRegs ? C : nv) - 1; j >= 0; --j) {
+    for (int j = nv - 1; j >= 0; --j) {
       if (j < nv) {
         const LeanKinematics<S> w = slot[j].k;
         const Motion<S> vp = j == 0 ? Motion<S>::zero() : slot[j > 0 ? j - 1 : 0].k.v;
@@ -152,7 +165,7 @@ __device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body,
   {  // 3. forward again: the entries
     LeanKinematics<S> k;
 #pragma unroll
-    for (int i = 0; i < (kRegs ? C : nv); ++i) {
+    for (int i = 0; i < nv; ++i) {
       if (i < nv) {
         const Motion<S> vp = i == 0 ? Motion<S>::zero() : k.v;
         const Motion<S> ap = i == 0 ? a0 : k.a;
@@ -163,7 +176,7 @@ __device__ __forceinline__ void lean_chain_rnea_derivatives(const Body<S>* body,
         const Motion<S> dV = cross(vp, J);
         const Motion<S> dA = cross(ap, J) + cross(vp, dV);
 #pragma unroll
-        for (int j = i; j < (kRegs ? C : nv); ++j) {
+        for (int j = i; j < nv; ++j) {
           if (j < nv) {
             const LeanCoupling<S> c = slot[j].c;
             dtau_dq(j, i) = dot(dA, c.psi) + dot(dV, c.rho);
@@ -190,79 +203,36 @@ bool is_chain(const Params& p) {
   return true;
 }
 
+// Blocks per SM of the lean kernels and fd_derivatives_at_kernel (__launch_bounds__'
+// minimum): float 10 (fd_derivatives_at_kernel: at most 102 registers, 96 at capacity
+// 8, no spills, 640 threads per SM instead of 512 at its natural 114); double 1
+// (held to 102 it spills ~1 KB per thread).
+template <class S>
+constexpr int at_min_blocks() {
+  return sizeof(S) == 4 ? 10 : 1;
+}
+
 // id_derivatives_kernel by the lean chain recursion (chains of up to kPackedLtlCapacity DoF).
-template <class S, int C, bool kRegs, int kMinBlocks = 1>
-__global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock, at_min_blocks<S>())
     id_derivatives_lean_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const IdBatchIn<S> in,
                                const IdDerivativesOut<S> out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= in.q.batch) return;
   const Index nv = model.nv;
-  lean_chain_rnea_derivatives<S, C, kRegs>(model.body, nv, model.a0, instance_column(in.q, b),
-                                           instance_column(in.qd, b), instance_column(in.qdd, b), in.fext ? in.fext + b * nv : nullptr,
+  lean_chain_rnea_derivatives<S, C>(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+                                    instance_column(in.qdd, b), in.fext ? in.fext + b * nv : nullptr,
                                     instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
                                     instance_matrix(out.M, b, nv));
 }
 
-// How the forward-dynamics derivatives are launched (launch_fd_derivatives). The
-// default, kTwoKernels, for models of up to kPackedLtlCapacity DoF:
-//   fd_aba_kernel:            qdd by the ABA (aba_instance), kept in out.qdd or, when
-//                             the caller wants no qdd, in row 0 of the dqdd/dtau block;
-//   fd_derivatives_at_kernel: the inverse-dynamics derivatives at that qdd into the
-//                             output blocks, then the factor M = L^T L and the solves
-//                             with L in registers (packed_fd_solve).
-// The ABA of a capacity-8 model takes ~220 registers per thread (it keeps the bodies
-// in registers), the derivatives and the packed solve ~100; in one kernel the ABA's
-// count caps the whole recursion at 12.5% occupancy. The others are kept to compare
-// against (the environment variable SCANDYN_DFD_KERNEL=unbounded|fused|tree|split,
-// read once per process; bench only):
-//   kUnbounded: kTwoKernels without at_min_blocks (float: 114 registers, 8 blocks of
-//           64 per SM instead of 10);
-//   kFused: one kernel, fd_derivatives_kernel with the packed solve (ABA,
-//           derivatives, solve);
-//   kTree:  one kernel, the factor and solves by the tree walks of tree_ltl_factor /
-//           tree_ltl_negated_solve / tree_ltl_inverse over the output blocks in
-//           global memory (what every capacity above kPackedLtlCapacity runs);
-//   kSplit: three kernels: fd_aba_kernel, fd_derivatives_at_kernel without the solve
-//           (the blocks keep dtau/dq, dtau/dqd, M), fd_solve_kernel (packed_fd_solve
-//           alone).
-//   kLean (=lean), kLeanUnbounded (=lean-unbounded), kLeanRegs (=lean-regs): as
-//           kTwoKernels / kUnbounded, with the inverse-dynamics derivatives by
-//           lean_chain_rnea_derivatives (24 scalars of scratch per body; lean-regs:
-//           unrolled, the scratch in registers); chains only, other trees of up to
-//           kPackedLtlCapacity DoF run kTwoKernels.
 namespace {
 
-enum class FdKernel { kTwoKernels, kUnbounded, kFused, kTree, kSplit, kLean, kLeanUnbounded, kLeanRegs };
-
-FdKernel fd_kernel_choice() {
-  static const FdKernel choice = [] {
-    const char* e = std::getenv("SCANDYN_DFD_KERNEL");
-    const std::string v = e ? e : "";
-    if (v == "unbounded") return FdKernel::kUnbounded;
-    if (v == "fused") return FdKernel::kFused;
-    if (v == "tree") return FdKernel::kTree;
-    if (v == "split") return FdKernel::kSplit;
-    if (v == "lean") return FdKernel::kLean;
-    if (v == "lean-unbounded") return FdKernel::kLeanUnbounded;
-    if (v == "lean-regs") return FdKernel::kLeanRegs;
-    return FdKernel::kTwoKernels;
-  }();
-  return choice;
-}
-
-// SCANDYN_DID_KERNEL=lean|lean-unbounded|lean-regs: launch_id_derivatives runs
-// id_derivatives_lean_kernel for chains of up to kPackedLtlCapacity DoF (lean: slots
-// in local memory, float held to 10 blocks of 64 per SM as the dfd's; lean-unbounded:
-// the same without the bound; lean-regs: unrolled, slots in registers; read once per
-// process; bench A/B). 0: the default kernel.
-int did_lean_choice() {
-  static const int choice = [] {
-    const char* e = std::getenv("SCANDYN_DID_KERNEL");
-    const std::string v = e ? e : "";
-    return v == "lean" ? 1 : v == "lean-unbounded" ? 3 : v == "lean-regs" ? 2 : 0;
-  }();
-  return choice;
+// Whether the environment variable name is set to value (read at every launch, so
+// that a test may switch it; bench A/B).
+bool env_is(const char* name, const char* value) {
+  const char* e = std::getenv(name);
+  return e && std::strcmp(e, value) == 0;
 }
 
 // The derivative kernels keep their DerivativeBody arrays in local memory, cached in
@@ -301,9 +271,9 @@ __device__ __forceinline__ DofColumn<S> qdd_scratch(const FdDerivativesOut<S>& o
 }
 
 // One thread per instance b < B: qdd by the ABA, then dqdd/dq, dqdd/dqd, M^-1 by
-// fd_derivatives_instance<P> (P: C for the packed factor in registers, 0 for the tree
-// walks).
-template <class S, int C, int P>
+// fd_derivatives_instance<0> (the factor and solves by the tree walks over the output
+// blocks: every capacity above kPackedLtlCapacity, and SCANDYN_DFD_KERNEL=tree).
+template <class S, int C>
 __global__ void __launch_bounds__(kDerivativesBlock)
     fd_derivatives_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
                           const FdDerivativesOut<S> out, int* failed_dof) {
@@ -317,14 +287,18 @@ __global__ void __launch_bounds__(kDerivativesBlock)
   Index failed = aba_instance<S, C>(model, q, qd, instance_column(in.tau, b), fext, qdd);
   if (failed < 0) {
     DerivativeBody<S> work[C];  // per-thread local memory
-    failed = fd_derivatives_instance<P>(model.body, nv, model.a0, q, qd, DofColumn<const S>{qdd.data, qdd.stride},
+    failed = fd_derivatives_instance<0>(model.body, nv, model.a0, q, qd, DofColumn<const S>{qdd.data, qdd.stride},
                                         fext, work, instance_matrix(out.dqdd_dq, b, nv),
                                         instance_matrix(out.dqdd_dqd, b, nv), instance_matrix(out.dqdd_dtau, b, nv));
   }
   if (failed_dof) failed_dof[b] = failed;
 }
 
-// One thread per instance b < B: qdd by the ABA into qdd_scratch.
+// One thread per instance b < B: qdd by the ABA into qdd_scratch. The first of the
+// two kernels up to kPackedLtlCapacity DoF: the ABA of a capacity-8 model takes ~220
+// registers per thread (it keeps the bodies in registers), the derivatives and the
+// packed solve ~100; in one kernel the ABA's count would cap the whole recursion at
+// 12.5% occupancy.
 template <class S, int C>
 __global__ void __launch_bounds__(kDerivativesBlock)
     fd_aba_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
@@ -337,23 +311,13 @@ __global__ void __launch_bounds__(kDerivativesBlock)
   if (failed_dof) failed_dof[b] = failed;
 }
 
-// fd_derivatives_at_kernel's blocks per SM in kTwoKernels (kMinBlocks): float 10 (at most 102
-// registers: 96 at capacity 8, no spills, 640 threads per SM instead of 512 at its
-// natural 114); double 1 (held to 102 it spills ~1 KB per thread).
-template <class S>
-constexpr int at_min_blocks() {
-  return sizeof(S) == 4 ? 10 : 1;
-}
-
 // One thread per instance b < B whose ABA succeeded (failed_dof[b] < 0, or no
 // failed_dof): the inverse-dynamics derivatives at fd_aba_kernel's qdd into the
-// blocks and (kSolve) packed_fd_solve on them: dqdd/dq, dqdd/dqd, M^-1. Without
-// kSolve the blocks keep dtau/dq, dtau/dqd and M for fd_solve_kernel. kMinBlocks:
-// __launch_bounds__' blocks per SM (1: registers as the compiler likes). kLean: the
-// inverse-dynamics derivatives by lean_chain_rnea_derivatives (chains only; kLeanRegs:
-// its unrolled form).
-template <class S, int C, bool kSolve, int kMinBlocks = 1, bool kLean = false, bool kLeanRegs = false>
-__global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
+// blocks, then packed_fd_solve on them: dqdd/dq, dqdd/dqd, M^-1. kLean: the
+// inverse-dynamics derivatives by lean_chain_rnea_derivatives (chains only); else by
+// rnea_derivatives_instance.
+template <class S, int C, bool kLean>
+__global__ void __launch_bounds__(kDerivativesBlock, at_min_blocks<S>())
     fd_derivatives_at_kernel(const __grid_constant__ ThreadModelParams<S, C> model, const FdBatchIn<S> in,
                              const FdDerivativesOut<S> out, int* failed_dof) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -367,29 +331,14 @@ __global__ void __launch_bounds__(kDerivativesBlock, kMinBlocks)
   const MatrixRef<S> dq = instance_matrix(out.dqdd_dq, b, nv), dqd = instance_matrix(out.dqdd_dqd, b, nv),
                      dtau = instance_matrix(out.dqdd_dtau, b, nv);
   if constexpr (kLean) {
-    lean_chain_rnea_derivatives<S, C, kLeanRegs>(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
+    lean_chain_rnea_derivatives<S, C>(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
                                       DofColumn<const S>{qdd, 1}, fext, dq, dqd, dtau);
   } else {
     DerivativeBody<S> work[C];  // per-thread local memory
     rnea_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
                               DofColumn<const S>{qdd, 1}, fext, work, dq, dqd, dtau, nullptr);
   }
-  if constexpr (kSolve) {
-    const Index failed = packed_fd_solve<C>(dq, dqd, dtau, static_cast<const S*>(nullptr));
-    if (failed_dof) failed_dof[b] = failed;
-  }
-}
-
-// kSplit's last kernel, one thread per instance b < B whose ABA succeeded: the blocks'
-// dtau/dq, dtau/dqd and M become dqdd/dq, dqdd/dqd and M^-1 (packed_fd_solve).
-template <class S, int C>
-__global__ void __launch_bounds__(kDerivativesBlock)
-    fd_solve_kernel(Index nv, const FdDerivativesOut<S> out, int* failed_dof) {
-  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (b >= out.dqdd_dq.batch) return;
-  if (failed_dof && failed_dof[b] >= 0) return;
-  const Index failed = packed_fd_solve<C>(instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
-                                          instance_matrix(out.dqdd_dtau, b, nv), static_cast<const S*>(nullptr));
+  const Index failed = packed_fd_solve<C>(dq, dqd, dtau, static_cast<const S*>(nullptr));
   if (failed_dof) failed_dof[b] = failed;
 }
 
@@ -411,19 +360,13 @@ cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S
   if (B == 0 || model.nv() == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
     return cudaErrorInvalidValue;
+  const bool recursion = env_is("SCANDYN_DID_KERNEL", "recursion");
   visit_compiled_capacity(model.params(), [&](const auto& params) {
     using P = std::decay_t<decltype(params)>;
     constexpr int C = P::capacity;
     if constexpr (C <= kPackedLtlCapacity) {
-      const int lean = did_lean_choice();
-      if (lean != 0 && is_chain(params)) {
-        if (lean == 2)
-          id_derivatives_lean_kernel<S, C, true><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-        else if (lean == 3)
-          id_derivatives_lean_kernel<S, C, false><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
-        else
-          id_derivatives_lean_kernel<S, C, false, at_min_blocks<S>()>
-              <<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+      if (!recursion && is_chain(params)) {
+        id_derivatives_lean_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
         return;
       }
     }
@@ -442,74 +385,27 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
   if (B == 0 || model.nv() == 0) return cudaSuccess;
   if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
     return cudaErrorInvalidValue;
-  const FdKernel choice = fd_kernel_choice();
+  const bool tree = env_is("SCANDYN_DFD_KERNEL", "tree"), packed = env_is("SCANDYN_DFD_KERNEL", "packed");
   const unsigned grid = blocks_for(B);
   visit_compiled_capacity(model.params(), [&](const auto& params) {
     using P = std::decay_t<decltype(params)>;
     constexpr int C = P::capacity;
     if constexpr (C <= kPackedLtlCapacity) {
-      // the lean variants run on chains; other trees take the default
-      const FdKernel pick =
-          (choice == FdKernel::kLean || choice == FdKernel::kLeanUnbounded || choice == FdKernel::kLeanRegs) &&
-                  !is_chain(params)
-              ? FdKernel::kTwoKernels
-              : choice;
-      switch (pick) {
-        case FdKernel::kTwoKernels:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>>();
-          fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>()>
-              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kUnbounded:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1>>();
-          fd_derivatives_at_kernel<S, C, true, 1><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kFused:
-          prefer_l1<fd_derivatives_kernel<S, C, C>>();
-          fd_derivatives_kernel<S, C, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kTree:
-          prefer_l1<fd_derivatives_kernel<S, C, 0>>();
-          fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kSplit:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+      if (!tree) {
+        prefer_l1<fd_aba_kernel<S, C>>();
+        fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+        if (!packed && is_chain(params)) {
+          prefer_l1<fd_derivatives_at_kernel<S, C, true>>();
+          fd_derivatives_at_kernel<S, C, true><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
+        } else {
           prefer_l1<fd_derivatives_at_kernel<S, C, false>>();
           fd_derivatives_at_kernel<S, C, false><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_solve_kernel<S, C>>();
-          fd_solve_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params.nv, out, failed_dof);
-          break;
-        case FdKernel::kLean:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>>();
-          fd_derivatives_at_kernel<S, C, true, at_min_blocks<S>(), true>
-              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kLeanUnbounded:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true>>();
-          fd_derivatives_at_kernel<S, C, true, 1, true>
-              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
-        case FdKernel::kLeanRegs:
-          prefer_l1<fd_aba_kernel<S, C>>();
-          fd_aba_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          prefer_l1<fd_derivatives_at_kernel<S, C, true, 1, true, true>>();
-          fd_derivatives_at_kernel<S, C, true, 1, true, true>
-              <<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
-          break;
+        }
+        return;
       }
-    } else {
-      prefer_l1<fd_derivatives_kernel<S, C, 0>>();
-      fd_derivatives_kernel<S, C, 0><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
     }
+    prefer_l1<fd_derivatives_kernel<S, C>>();
+    fd_derivatives_kernel<S, C><<<grid, kDerivativesBlock, 0, stream>>>(params, in, out, failed_dof);
   });
   return cudaGetLastError();
 }

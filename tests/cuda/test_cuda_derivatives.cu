@@ -4,13 +4,16 @@
 // prismatic joints, branched trees of up to 8 DoF), the robots, with external
 // wrenches, double and float, host views in aos and soa layouts, and compute_async on
 // device pointers. Device tests skip with the reason when no device is usable; the
-// argument checks run everywhere. The forward-dynamics launch can be switched with
-// SCANDYN_DFD_KERNEL=fused|tree|split (kernels/derivatives.cu); run the test under
-// each to cover every variant.
+// argument checks run everywhere. Each comparison runs under the default kernels and
+// the A/B switches of kernels/derivatives.cu (read at every launch):
+// SCANDYN_DFD_KERNEL=packed|tree and SCANDYN_DID_KERNEL=recursion.
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
+#include <optional>
 #include <random>
+#include <string>
 #include <vector>
 
 #include "cuda_test_util.hpp"
@@ -41,6 +44,43 @@ double block_err(const Blocks<S>& a, const Blocks<S>& b, Index nv, Index B) {
       worst = std::max(worst, err / scale);
     }
   return worst;
+}
+
+// Sets an environment variable (null: unsets it) for its lifetime, then restores it.
+class ScopedEnv {
+ public:
+  ScopedEnv(const char* name, const char* value) : name_(name) {
+    if (const char* old = std::getenv(name)) old_ = old;
+    if (value)
+      setenv(name, value, 1);
+    else
+      unsetenv(name);
+  }
+  ~ScopedEnv() {
+    if (old_)
+      setenv(name_, old_->c_str(), 1);
+    else
+      unsetenv(name_);
+  }
+  ScopedEnv(const ScopedEnv&) = delete;
+  ScopedEnv& operator=(const ScopedEnv&) = delete;
+
+ private:
+  const char* name_;
+  std::optional<std::string> old_;
+};
+
+// The kernel choices under test: the defaults (lean chains), then the switches
+// (SCANDYN_DFD_KERNEL, SCANDYN_DID_KERNEL; null: unset).
+struct KernelChoice {
+  const char* dfd;
+  const char* did;
+};
+constexpr KernelChoice kKernelChoices[] = {{nullptr, nullptr}, {"packed", "recursion"}, {"tree", nullptr}};
+
+std::string choice_name(const KernelChoice& c) {
+  return std::string(" [SCANDYN_DFD_KERNEL=") + (c.dfd ? c.dfd : "") + " SCANDYN_DID_KERNEL=" + (c.did ? c.did : "") +
+         "]";
 }
 
 std::vector<std::pair<std::string, Model>> models() {
@@ -95,14 +135,20 @@ void compare_with_serial(const std::string& name, const Model& model_d, bool soa
 
 TEST(CudaDerivatives, MatchSerialDouble) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  for (auto& [name, model] : models())
-    for (bool soa : {false, true}) compare_with_serial<double>(name, model, soa);
+  for (const KernelChoice& c : kKernelChoices) {
+    const ScopedEnv dfd("SCANDYN_DFD_KERNEL", c.dfd), did("SCANDYN_DID_KERNEL", c.did);
+    for (auto& [name, model] : models())
+      for (bool soa : {false, true}) compare_with_serial<double>(name + choice_name(c), model, soa);
+  }
 }
 
 TEST(CudaDerivatives, MatchSerialFloat) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  for (auto& [name, model] : models())
-    if (model.nv() <= 16) compare_with_serial<float>(name, model, true);
+  for (const KernelChoice& c : kKernelChoices) {
+    const ScopedEnv dfd("SCANDYN_DFD_KERNEL", c.dfd), did("SCANDYN_DID_KERNEL", c.did);
+    for (auto& [name, model] : models())
+      if (model.nv() <= 16) compare_with_serial<float>(name + choice_name(c), model, true);
+  }
 }
 
 TEST(CudaDerivatives, DevicePointersOnAStream) {

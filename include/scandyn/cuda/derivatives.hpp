@@ -6,12 +6,22 @@
 //   rnea_derivatives_instance(), fd_derivatives_instance()
 //                               __host__ __device__ (scandyn/instance/dynamics_derivatives.hpp):
 //                               one instance, the serial reference's functions;
-//   id_derivatives_kernel, fd_aba_kernel + fd_derivatives_at_kernel
-//                               one thread per instance (kernels/derivatives.cu); the
-//                               forward dynamics runs aba_instance for qdd first (up to
-//                               8 DoF in a kernel of its own, then the derivatives and
-//                               the factor of M with L in registers, packed_fd_solve;
-//                               beyond, one fd_derivatives_kernel);
+//   id_derivatives_lean_kernel / id_derivatives_kernel, fd_aba_kernel +
+//   fd_derivatives_at_kernel / fd_derivatives_kernel
+//                               one thread per instance (kernels/derivatives.cu). By
+//                               default: inverse dynamics on unbranched chains of up to
+//                               8 DoF (kPackedLtlCapacity) by the lean chain recursion
+//                               (24 scalars of scratch per body), other models by
+//                               rnea_derivatives_instance; forward dynamics runs
+//                               aba_instance for qdd first, up to 8 DoF in a kernel of
+//                               its own, then the derivatives (chains: the lean
+//                               recursion) and the factor of M with L in registers,
+//                               packed_fd_solve; beyond 8 DoF one fd_derivatives_kernel
+//                               (the factor by the tree walks). For A/B, read at every
+//                               launch: SCANDYN_DFD_KERNEL=packed (chains too take
+//                               rnea_derivatives_instance) or tree (fd_derivatives_kernel
+//                               at every capacity), SCANDYN_DID_KERNEL=recursion
+//                               (id_derivatives_kernel on chains too);
 //   launch_id_derivatives(), launch_fd_derivatives()
 //                               host wrappers: device pointers, a stream, the launch's
 //                               cudaError_t, never synchronise;
@@ -20,9 +30,9 @@
 // views and a stream. Output layout: scandyn/engine.hpp (three nv * nv views; soa,
 // the instance innermost, is the fast layout on the device).
 //
-// Per thread: nv DerivativeBody entries (72 scalars each) in per-thread local memory,
-// plus the ABA's state for the forward dynamics (and, up to 8 DoF, L: 36 scalars in
-// registers).
+// Per thread: nv DerivativeBody entries (72 scalars each; the lean chain recursion: 24)
+// in per-thread local memory, plus the ABA's state for the forward dynamics (and, up
+// to 8 DoF, L: 36 scalars in registers).
 #pragma once
 
 #include <memory>
