@@ -115,9 +115,7 @@ CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const In
   if (lead.cuda) {
     queue_on_device<S>(e, lead, stream,
                        [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, failed, s); });
-    CallStatus r;
-    r.queued = true;
-    return r;
+    return queued_status();
   }
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, out);
@@ -279,13 +277,10 @@ class PyStepDerivatives {
         err = cudaMemcpy2DAsync(Jd + (std::size_t(k / 3) * n * 3 * n + std::size_t(k % 3) * n) * Bs, 3 * width,
                                 scratch + k * nn * Bs, width, width, std::size_t(n), cudaMemcpyDeviceToDevice, s);
       check_launch(err);
-      CallStatus r;
-      r.queued = true;
-      return r;
+      return queued_status();
 #else
       (void)blocks, (void)failed_dof, (void)stream;
-      throw DeviceError("the arrays are on " + where_str(true, lead.device) +
-                        ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+      throw_no_cuda_backend(lead.device);
 #endif
     }
     BatchStatus st;
@@ -399,13 +394,10 @@ class PyStepDerivatives {
       std::optional<cuda::DeviceScope> scope;
       enter_device(scope, lead.device);
       check_launch(device(*cuda_rollout_, failed, reinterpret_cast<cudaStream_t>(stream)));
-      CallStatus r;
-      r.queued = true;
-      return r;
+      return queued_status();
 #else
       (void)failed_dof, (void)stream, (void)outputs, (void)device;
-      throw DeviceError("the arrays are on " + where_str(true, lead.device) +
-                        ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+      throw_no_cuda_backend(lead.device);
 #endif
     }
     BatchStatus st;

@@ -160,6 +160,12 @@ std::vector<int> engine_devices(const PyEngine<E>& e) {
   return d >= 0 ? std::vector<int>{d} : std::vector<int>{};
 }
 
+// The DeviceError of CUDA arrays (on `device`) handed to a build without the CUDA backend.
+[[noreturn]] inline void throw_no_cuda_backend(int device) {
+  throw DeviceError("the arrays are on " + where_str(true, device) +
+                    ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+}
+
 // Queues `queue(cuda_engine, stream)` (its compute_async) for arrays on CUDA device
 // lead.device, on the caller's stream; checks that the engine is a CUDA engine of
 // that device (an engine sharded over that one device: its shard); throws BackendError
@@ -196,8 +202,7 @@ void queue_on_device(PyEngine<E>& e, const Lead& lead, std::uintptr_t stream, Qu
                        cudaGetErrorName(err) + ": " + cudaGetErrorString(err));
 #else
   (void)e, (void)stream, (void)queue;
-  throw DeviceError("the arrays are on " + where_str(true, lead.device) +
-                    ", but this build of scandyn has no CUDA backend (pip install . where nvcc is found)");
+  throw_no_cuda_backend(lead.device);
 #endif
 }
 
@@ -212,6 +217,14 @@ struct CallStatus {
   bool queued = false;          // CUDA arrays: the call was queued; the failed DoFs are in the
                                 // caller's device array once the stream reaches them
 };
+
+// What a call queued on the caller's stream reports (its failures land in the caller's
+// device array).
+inline CallStatus queued_status() {
+  CallStatus r;
+  r.queued = true;
+  return r;
+}
 
 inline CallStatus call_status(const BatchStatus& st, Index batch) {
   CallStatus r;

@@ -240,9 +240,7 @@ CallStatus fd_compute(PyFd& e, const InArray& q, const InArray& qd, const InArra
   if (lead.cuda) {
     queue_on_device<S>(e, lead, stream,
                        [&](auto& c, cudaStream_t s) { return c.compute_async(in, qdd, failed, s); });
-    CallStatus r;
-    r.queued = true;
-    return r;
+    return queued_status();
   }
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qdd);
@@ -286,9 +284,7 @@ CallStatus hybrid_compute(PyHybrid& e, const InArray& q, const InArray& qd, cons
   if (lead.cuda) {
     queue_on_device<S>(e, lead, stream,
                        [&](auto& c, cudaStream_t s) { return c.compute_async(in, qo, to, failed, s); });
-    CallStatus r;
-    r.queued = true;
-    return r;
+    return queued_status();
   }
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qo, to);
@@ -339,9 +335,7 @@ CallStatus constrained_compute(PyConstrained& e, const InArray& q, const InArray
   if (lead.cuda) {
     queue_on_device<S>(e, lead, stream,
                        [&](auto& c, cudaStream_t s) { return c.compute_async(in, qo, lo, failed, s); });
-    CallStatus r;
-    r.queued = true;
-    return r;
+    return queued_status();
   }
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, qo, lo);
