@@ -13,7 +13,14 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 build=${SCANDYN_DEMO_BUILD_DIR:-build-demo}
 [[ "${SCANDYN_SKIP_SETUP:-0}" == 1 ]] || scripts/setup.sh
-cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DSCANDYN_TESTS=OFF -DSCANDYN_BENCH=OFF >/dev/null
+# Without a GPU the demo runs the CPU backends only: the CUDA code (compiled when nvcc
+# is found) is built in its reduced kernel set, as scripts/test.sh does (README)
+cuda=()
+if ! nvidia-smi -L >/dev/null 2>&1; then
+  cuda=(-DSCANDYN_SIM_EFFECT_SETS=OFF -DSCANDYN_CUDA_ALL_CAPACITIES=OFF -DCMAKE_CUDA_ARCHITECTURES=90-virtual)
+fi
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DSCANDYN_TESTS=OFF -DSCANDYN_BENCH=OFF \
+  ${cuda[@]+"${cuda[@]}"} >/dev/null
 cmake --build "$build" --target scandyn_cli
 scandyn=$build/scandyn
 
