@@ -102,40 +102,41 @@ Index SparseConstrainedDynamics::forward_dynamics_unknowns() const { return fd_ 
 void SparseConstrainedDynamics::forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd,
                                                  double* lambda) {
   System& s = fd();
-  auto t0 = std::chrono::steady_clock::now();
+  const auto t0 = std::chrono::steady_clock::now();
   s.graph.assemble(q, qd, nullptr, tau);
   timing_.assemble += seconds_since(t0);
-  t0 = std::chrono::steady_clock::now();
+  factorize_timed(s, "sparse constrained forward dynamics");
+  solve_timed(s, s.graph.b());
+  s.graph.extract(x_.data(), qdd, nullptr, lambda);
+}
+
+void SparseConstrainedDynamics::factorize_timed(System& s, const char* what) {
+  const auto t0 = std::chrono::steady_clock::now();
   try {
     s.factorize();
   } catch (const std::runtime_error& e) {
-    throw LoopError(std::string("sparse constrained forward dynamics: ") + e.what());
+    throw LoopError(std::string(what) + ": " + e.what());
   }
   timing_.factorize += seconds_since(t0);
   ++timing_.factorizations;
-  t0 = std::chrono::steady_clock::now();
-  s.solve(s.graph.b(), x_);
+}
+
+void SparseConstrainedDynamics::solve_timed(System& s, const std::vector<double>& b) {
+  const auto t0 = std::chrono::steady_clock::now();
+  s.solve(b, x_);
   timing_.solve += seconds_since(t0);
   ++timing_.solves;
-  s.graph.extract(x_.data(), qdd, nullptr, lambda);
 }
 
 void SparseConstrainedDynamics::solve_projection(const double* q, const double* r, double* x, bool factor) {
   System& s = projection();
   DynamicsGraph& g = s.graph;
   if (factor) {
-    auto t0 = std::chrono::steady_clock::now();
+    const auto t0 = std::chrono::steady_clock::now();
     std::fill(dx_.begin(), dx_.end(), 0.0);
     g.assemble(q, dx_.data(), nullptr, dx_.data());  // qd = 0, tau = 0: A at q
     timing_.assemble += seconds_since(t0);
-    t0 = std::chrono::steady_clock::now();
-    try {
-      s.factorize();
-    } catch (const std::runtime_error& e) {
-      throw LoopError(std::string("sparse loop projection: ") + e.what());
-    }
-    timing_.factorize += seconds_since(t0);
-    ++timing_.factorizations;
+    factorize_timed(s, "sparse loop projection");
   }
   // b: zero but the loop rows (no gravity, qd = 0, tau = 0), r in the model's units
   b_.assign(g.b().size(), 0.0);
@@ -146,10 +147,7 @@ void SparseConstrainedDynamics::solve_projection(const double* q, const double* 
     for (Index t = 0; t < loops_.loops[k].rows(); ++t, ++row)
       b_[static_cast<std::size_t>(e0 + t)] = r[row] / unit[static_cast<std::size_t>(e0 + t)];
   }
-  const auto t0 = std::chrono::steady_clock::now();
-  s.solve(b_, x_);
-  timing_.solve += seconds_since(t0);
-  ++timing_.solves;
+  solve_timed(s, b_);
   g.extract(x_.data(), x, nullptr, nullptr);
 }
 

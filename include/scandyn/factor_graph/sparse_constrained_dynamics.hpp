@@ -71,6 +71,10 @@ class SparseConstrainedDynamics final : public sim::LoopSolver {
   // x (nv) = J(q)^+ r (r: m loop rows); factor: assemble and factorise at q first
   // (else the last factorisation, which must be at q)
   void solve_projection(const double* q, const double* r, double* x, bool factor);
+  // s's numeric factorisation (a failure: LoopError beginning with `what`) and its
+  // solve of b into x_, each timed into timing_
+  void factorize_timed(System& s, const char* what);
+  void solve_timed(System& s, const std::vector<double>& b);
 
   Model model_, kinematic_model_;
   LoopSet loops_;
