@@ -5,7 +5,6 @@
 #include "scandyn/sim/simulator.hpp"
 
 #include <algorithm>
-#include <cstdio>
 #include <limits>
 #include <random>
 #include <stdexcept>
@@ -21,19 +20,6 @@
 namespace scandyn {
 namespace sim {
 
-namespace {
-
-// How far (max |phi|, m) a reset's projection may leave an instance off its loops
-// before the reset refuses the start (converged projections end near 1e-13).
-constexpr double kLoopResetTolerance = 1e-6;
-
-std::string off_str(double x) {
-  char buf[32];
-  std::snprintf(buf, sizeof buf, "%.3g", x);
-  return buf;
-}
-
-}  // namespace
 
 std::string failure_message(const BatchStatus& st) {
   if (st.ok()) return "";
@@ -309,12 +295,15 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
           off = project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data());
         }
         // Gauss-Newton from far off the loops may not converge (cloth:30:30 from q = 0.1
-        // ends 1.9e-2 off): refuse such a start rather than step from it (nothing is
-        // written: the instances are written after this loop)
-        if (!(off <= kLoopResetTolerance))
+        // ends 1.9e-2 off): refuse such a start (kLoopStateTolerance, as eval --loops
+        // refuses such a state) rather than step from it; this chunk's instances are
+        // written after this loop, so none of them is
+        if (!(off <= kLoopStateTolerance))
           throw SceneError("initial state of instance " + std::to_string(instances[start + k]) + ": " +
-                           off_str(off) + " off its loops after projecting it onto them (Gauss-Newton from "
-                           "the scene's initial q did not converge; start closer to a closed configuration)");
+                           std::to_string(off) + " m off its loops after projecting it onto them (tolerance " +
+                           std::to_string(kLoopStateTolerance) +
+                           "; Gauss-Newton from the scene's initial q did not converge: start closer to a closed "
+                           "configuration)");
         for (Index i = 0; i < n; ++i) q_rows_[k * n + i] = S(lq[i]), qd_rows_[k * n + i] = S(lqd[i]);
       }
       // driven DoFs start on their trajectories, at the current time
