@@ -190,8 +190,9 @@ void require_floating_capacity(const ThreadModel<S, Bd>& tm, const std::string& 
 // scripts/test.sh configures on machines without a GPU, where CUDA code is compiled
 // but never run) capacity 8 only: models of up to 8 bodies (7 joints past a floating
 // base). The launches go through visit_compiled_capacity, which refuses the others.
+constexpr bool compiled_capacity(Index capacity) { return SCANDYN_CUDA_ALL_CAPACITIES || capacity == 8; }
 template <int C>
-inline constexpr bool kCompiledCapacity = SCANDYN_CUDA_ALL_CAPACITIES || C == 8;
+inline constexpr bool kCompiledCapacity = compiled_capacity(C);
 
 // The refusal of a capacity this build leaves out: BackendError naming the option.
 // what: the computation ("the rollout derivatives"); name: the model's, or empty.
@@ -207,8 +208,7 @@ inline constexpr bool kCompiledCapacity = SCANDYN_CUDA_ALL_CAPACITIES || C == 8;
 // out (kCompiledCapacity); the engines call it at construction, where the model's
 // name is known.
 inline void require_compiled_capacity(Index capacity, const std::string& what, const std::string& name) {
-  if (SCANDYN_CUDA_ALL_CAPACITIES || capacity == 8) return;
-  throw_capacity_not_compiled(capacity, what, name);
+  if (!compiled_capacity(capacity)) throw_capacity_not_compiled(capacity, what, name);
 }
 
 // std::visit(f, params) over a per-capacity variant (ThreadModel::Params and the
