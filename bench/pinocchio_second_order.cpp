@@ -20,8 +20,8 @@
 // JointModelPrismaticUnaligned (axis normalised); a link's inertia is
 // Inertia(mass, com, R I R^T) appended to the joint it moves with (fixed links at
 // their placement). Pinocchio's URDF parser itself (libpinocchio_parsers) is not
-// used: it links the wheel's urdfdom 6, whose symbols clash with the system urdfdom 3
-// scandyn links. scripts/check_pinocchio.py checks scandyn's models against
+// used: it links the wheel's urdfdom 6, which would put a second urdfdom, defining
+// the same symbols as the system's urdfdom 3 that scandyn links, into the process. scripts/check_pinocchio.py checks scandyn's models against
 // Pinocchio's parser (first order, ctest pinocchio_crosscheck); here tau = RNEA is
 // compared too (column tau_err on stderr), so a model mismatch shows.
 //
@@ -45,7 +45,7 @@
 // along the third" for Tensor3 and "v vary along the columns and q along the pages"
 // in the remarks; the numbers agree with the first reading (the mixed partial
 // d/dv_c (dtau_a/dq_b)), and this program also prints the error of the transposed
-// reading (b <-> c) on stderr, which is O(1).) Pinocchio accumulates into its
+// reading (b <-> c) on stderr, which is 0.09-1.) Pinocchio accumulates into its
 // tensors, so they are zeroed before each call (its 5-argument overload does that,
 // and that overload is what is timed). Pinocchio has no external forces in this
 // function; none are passed to scandyn either. Gravity: both (0, 0, -9.81).
