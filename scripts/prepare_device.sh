@@ -2,7 +2,8 @@
 # scripts/prepare_device.sh: stages, on this (networked) machine, what the GPU
 # machine lacks, so that scripts/gpu_check.sh can run there offline.
 #
-#   .deps/debs/   the .deb files of urdfdom and its dependencies (apt-get download)
+#   .deps/debs/   the .deb files of urdfdom and its dependencies, and of SuiteSparse's
+#                 CHOLMOD and METIS (apt-get download)
 #   .deps/root/   the same packages unpacked (dpkg -x); gpu_check.sh points
 #                 CMAKE_PREFIX_PATH at .deps/root/usr and LD_LIBRARY_PATH at its libs
 #   .whl/         Python wheels the GPU machine's python3 lacks (pure Python):
@@ -56,6 +57,14 @@ fi
 for must in liburdfdom-dev liburdfdom-headers-dev libconsole-bridge-dev libtinyxml-dev nlohmann-json3-dev; do
   printf '%s\n' "${packages[@]}" | grep -qx "$must" || die "expected $must among: ${packages[*]}"
 done
+# SuiteSparse (CHOLMOD, its orderings, METIS) for the factor-graph solvers and the
+# simulator's sparse loop path (cmake/factor_graph.cmake): named one by one, since
+# libsuitesparse-dev's closure pulls every BLAS alternative. liblapack3 / libblas3
+# are the reference builds; their libraries sit in lapack/ and blas/ subfolders
+# (Debian's alternatives link them at install; copied up below).
+packages+=(libsuitesparse-dev libcholmod3 libamd2 libcamd2 libccolamd2 libcolamd2 libsuitesparseconfig5
+           libmetis5 libmetis-dev libblas3 liblapack3 libgfortran5 libquadmath0)
+mapfile -t packages < <(printf '%s\n' "${packages[@]}" | sort -u)
 note "packages: ${packages[*]}"
 
 # ---- download (kept between runs) --------------------------------------------
@@ -95,7 +104,12 @@ done
 # travel by a transport that drops links.
 while IFS= read -r -d '' link; do
   target=$(readlink -f "$link")
-  [[ -f "$target" ]] || die "dangling link $link"
+  if [[ ! -f "$target" ]]; then
+    # links into packages that are not staged (libsuitesparse-dev links every
+    # SuiteSparse library; documentation links); what is needed is checked below
+    rm "$link"
+    continue
+  fi
   cp --remove-destination "$target" "$link"
 done < <(find "$root" -type l -print0)
 
@@ -119,6 +133,14 @@ done
   die "urdfdom/tinyxml headers missing after unpacking"
 [[ -n "$(find "$root/usr/share" -name 'urdfdom_headers-config.cmake')" ]] ||
   die "urdfdom_headers CMake config missing after unpacking"
+for alt in blas/libblas.so.3 lapack/liblapack.so.3; do
+  [[ -f "$multiarch/$alt" ]] || die "missing $multiarch/$alt after unpacking"
+  cp "$multiarch/$alt" "$multiarch/${alt#*/}"
+done
+rm -rf "$multiarch/blas" "$multiarch/lapack"
+find "$root" -name '*.a' -delete  # static libraries (SuiteSparse's): the builds link the shared ones
+[[ -e "$root/usr/include/suitesparse/cholmod.h" && -e "$multiarch/libcholmod.so" ]] ||
+  die "CHOLMOD headers or library missing after unpacking"
 note "unpacked into .deps/root (libraries in ${multiarch#"$repo"/})"
 
 # ---- Python wheels ---------------------------------------------------------------
