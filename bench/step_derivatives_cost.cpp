@@ -20,6 +20,21 @@
 // per instance-step, vjp_over_rollout, store_bytes_per_instance (the checkpoint
 // store), gpu (the device's name). Each time: one call to warm up, then calls until
 // min_seconds (default 0.3), the mean.
+//
+// step_derivatives_cost cuda-jacobian [min_seconds] [B ...] (builds with CUDA): the
+// CUDA step Jacobian (cuda::CudaStepDerivatives, scandyn/cuda/step_derivatives.hpp,
+// compute_async on device views: the six nv x nv blocks d(q', qd')/d(q, qd, tau) of
+// every instance, soa with the instance innermost, the new state not written) on
+// device memory, iiwa (gravity, damping 0.01, dt 1e-3) euler, rk4 and implicit,
+// float and double, B instances (default 10^4 and 10^5). Columns: model, integrator,
+// precision, instances, nv, jacobian_ns_per_instance (one compute_async over the
+// batch, per instance), step_ns_per_instance_step (the plain step of the same scene
+// on the same device: a device-resident rollout of 10 steps,
+// cuda::CudaRolloutDerivatives::rollout_async, per instance and step),
+// jacobian_over_step, output_bytes_per_instance (6 nv^2 scalars written),
+// failed (instances the engine's failed_dof marks after the timed calls: 0 expected),
+// gpu (the device's name). Each time: one call to warm up, then calls until
+// min_seconds (default 0.3), the mean.
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -37,6 +52,7 @@
 #include <cuda_runtime_api.h>
 
 #include "scandyn/cuda/rollout_derivatives.hpp"
+#include "scandyn/cuda/step_derivatives.hpp"
 #endif
 
 using namespace scandyn;
@@ -148,10 +164,99 @@ int cuda_main(int argc, char** argv) {
   return 0;
 }
 
+// One row of `cuda-jacobian`: the step Jacobian of B iiwa instances on device views,
+// next to the device-resident plain step (a rollout of 10 steps).
+template <class S>
+void cuda_jacobian_rows(const char* integrator, Index B, double min_time, const char* gpu) {
+  const sim::Scene scene = scene_of("iiwa.urdf", integrator, 1e-3, 1);
+  const Index n = scene.nv();
+  sim::Simulator<S> one(scene, BackendKind::Serial);
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  cuda::CudaStepDerivatives<S> engine(one.setup(), o);
+  const Index T = 10;  // steps of the plain-step rollout
+  cuda::CudaRolloutDerivatives<S> roll(one.setup(), o);
+  // device arrays: q, qd, tau (nv x B), the six blocks (nv^2 x B each), and for the
+  // rollout tau, q, qd (T, nv, B); the instance innermost everywhere
+  const std::size_t state = static_cast<std::size_t>(n) * B, block = state * n, seq = state * T;
+  std::vector<S> host(state);
+  std::mt19937_64 rng(1);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  S* d = nullptr;
+  cuda_check(cudaMalloc(reinterpret_cast<void**>(&d), (3 * state + 6 * block + 3 * seq) * sizeof(S)),
+             "allocating the arrays");
+  S *q = d, *qd = q + state, *tau = qd + state, *blocks = tau + state, *rtau = blocks + 6 * block, *rq = rtau + seq,
+    *rqd = rq + seq;
+  for (S* x : {q, qd, tau}) {
+    for (S& v : host) v = S(u(rng));
+    cuda_check(cudaMemcpy(x, host.data(), state * sizeof(S), cudaMemcpyHostToDevice), "copying the inputs");
+  }
+  for (Index t = 0; t < T; ++t)
+    cuda_check(cudaMemcpy(rtau + t * state, tau, state * sizeof(S), cudaMemcpyDeviceToDevice), "copying tau");
+  int* failed = nullptr;
+  cuda_check(cudaMalloc(reinterpret_cast<void**>(&failed), static_cast<std::size_t>(B) * sizeof(int)),
+             "allocating failed_dof");
+  cudaStream_t stream = nullptr;
+  cuda_check(cudaStreamCreate(&stream), "cudaStreamCreate");
+  using CV = BatchView<const S>;
+  auto bv = [&](int k) { return BatchView<S>::soa(blocks + k * block, n * n, B); };
+  const FdBatchIn<S> in{CV::soa(q, n, B), CV::soa(qd, n, B), CV::soa(tau, n, B)};
+  const sim::StepDerivativesOut<S> out{bv(0), bv(1), bv(2), bv(3), bv(4), bv(5), {}, {}};
+  const double jac = device_seconds(min_time, stream, [&] {
+    cuda_check(engine.compute_async(in, out, failed, stream), "compute_async");
+  });
+  std::vector<int> fh(static_cast<std::size_t>(B));
+  cuda_check(cudaMemcpy(fh.data(), failed, fh.size() * sizeof(int), cudaMemcpyDeviceToHost), "copying failed_dof");
+  long long nfailed = 0;
+  for (int f : fh) nfailed += f != -1;
+  const double step = device_seconds(min_time, stream, [&] {
+    cuda_check(roll.rollout_async(CV::soa(q, n, B), CV::soa(qd, n, B),
+                                  sim::StepSequence<const S>{CV::soa(rtau, n, B), static_cast<std::ptrdiff_t>(state), T},
+                                  sim::StepSequence<S>{BatchView<S>::soa(rq, n, B), static_cast<std::ptrdiff_t>(state), T},
+                                  sim::StepSequence<S>{BatchView<S>::soa(rqd, n, B), static_cast<std::ptrdiff_t>(state), T},
+                                  nullptr, stream),
+               "rollout_async");
+  });
+  cuda_check(cudaStreamDestroy(stream), "cudaStreamDestroy");
+  cuda_check(cudaFree(failed), "freeing failed_dof");
+  cuda_check(cudaFree(d), "freeing the arrays");
+  const double jac_ns = jac * 1e9 / double(B), step_ns = step * 1e9 / (double(B) * T);
+  std::printf("iiwa.urdf,%s,%s,%d,%d,%.3f,%.3f,%.2f,%zu,%lld,%s\n", integrator, sizeof(S) == 4 ? "float" : "double",
+              int(B), int(n), jac_ns, step_ns, jac_ns / step_ns, 6 * static_cast<std::size_t>(n) * n * sizeof(S),
+              nfailed, gpu);
+  std::fflush(stdout);
+}
+
+int cuda_jacobian_main(int argc, char** argv) {
+  const double min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
+  std::vector<Index> batches;
+  for (int k = 3; k < argc; ++k) batches.push_back(static_cast<Index>(std::atol(argv[k])));
+  if (batches.empty()) batches = {10000, 100000};
+  cudaDeviceProp prop{};
+  cuda_check(cudaGetDeviceProperties(&prop, 0), "cudaGetDeviceProperties");
+  std::printf("model,integrator,precision,instances,nv,jacobian_ns_per_instance,step_ns_per_instance_step,"
+              "jacobian_over_step,output_bytes_per_instance,failed,gpu\n");
+  for (Index B : batches)
+    for (const char* integrator : {"euler", "rk4", "implicit"}) {
+      cuda_jacobian_rows<float>(integrator, B, min_time, prop.name);
+      cuda_jacobian_rows<double>(integrator, B, min_time, prop.name);
+    }
+  return 0;
+}
+
 }  // namespace
 #endif
 
 int main(int argc, char** argv) {
+  if (argc > 1 && std::strcmp(argv[1], "cuda-jacobian") == 0) {
+#if SCANDYN_HAS_CUDA
+    return cuda_jacobian_main(argc, argv);
+#else
+    std::fprintf(stderr, "step_derivatives_cost cuda-jacobian: this build has no CUDA backend\n");
+    return 2;
+#endif
+  }
   if (argc > 1 && std::strcmp(argv[1], "cuda") == 0) {
 #if SCANDYN_HAS_CUDA
     return cuda_main(argc, argv);
