@@ -9,6 +9,7 @@
 #include <string>
 
 #include "scandyn/cuda/chain_fd.hpp"
+#include "chain_scan.cuh"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -17,17 +18,6 @@ namespace cuda {
 using detail::check;
 
 namespace {
-
-constexpr int kBlock = 128;
-
-unsigned blocks(Index threads) { return static_cast<unsigned>((threads + kBlock - 1) / kBlock); }
-
-// Links s..e of chunk c.
-struct ChunkRange {
-  Index chunk, count;
-  __host__ __device__ Index first(Index c) const { return c * chunk; }
-  __host__ __device__ Index last(Index c) const { return min(count, (c + 1) * chunk) - 1; }
-};
 
 template <class S, bool kB>
 __global__ void velocity_aggregate_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, Affine6<S>* agg) {
@@ -69,57 +59,19 @@ __global__ void acceleration_walk_kernel(const ChainFdData<S, kB> d, ChunkRange 
   if (c < chunks) acceleration_walk(d, r.first(c), r.last(c), carry[c]);
 }
 
-// ---- scans of aggregates in levels --------------------------------------------
-
-template <class E>
-__global__ void fold_kernel(const E* lower, Index size, E* upper, Index m, Index fan_in, bool forward) {
-  const Index j = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (j < m) upper[j] = fold_range(lower, j * fan_in, min(size, (j + 1) * fan_in), forward);
-}
-
-template <class E>
-__global__ void top_kernel(const E* agg, typename E::Value* carry, Index size, bool forward) {
-  if (blockIdx.x == 0 && threadIdx.x == 0) carry_range(agg, carry, 0, size, forward, E::start());
-}
-
-template <class E>
-__global__ void carry_kernel(const E* lower, typename E::Value* lower_carry, Index size,
-                             const typename E::Value* upper_carry, Index m, Index fan_in, bool forward) {
-  const Index j = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (j < m) carry_range(lower, lower_carry, j * fan_in, min(size, (j + 1) * fan_in), forward, upper_carry[j]);
-}
-
-// The carries of level 0 from its aggregates agg[0] (sizes: this call's levels).
-template <class E>
-cudaError_t scan_levels(const std::vector<Index>& size, E* const* agg, typename E::Value* const* carry, Index fan_in,
-                        bool forward, cudaStream_t stream) {
-  const Index levels = static_cast<Index>(size.size());
-  for (Index k = 0; k + 1 < levels; ++k)
-    fold_kernel<<<blocks(size[k + 1]), kBlock, 0, stream>>>(agg[k], size[k], agg[k + 1], size[k + 1], fan_in, forward);
-  top_kernel<<<1, 1, 0, stream>>>(agg[levels - 1], carry[levels - 1], size[levels - 1], forward);
-  for (Index k = levels - 2; k >= 0; --k)
-    carry_kernel<<<blocks(size[k + 1]), kBlock, 0, stream>>>(agg[k], carry[k], size[k], carry[k + 1], size[k + 1],
-                                                               fan_in, forward);
-  return cudaGetLastError();
-}
-
-std::vector<Index> level_sizes(Index links, Index chunk, Index fan_in) {
-  return ChainChunking(links, chunk, fan_in).level_size;
-}
-
-constexpr std::size_t kAlign = 256;
-std::size_t aligned(std::size_t x) { return (x + kAlign - 1) / kAlign * kAlign; }
-
 }  // namespace
 
 template <class S>
-ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk, Index fan_in)
+ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk, Index fan_in, bool directional)
     : n_(model.nbodies()),
       max_batch_(std::max<Index>(max_batch, 1)),
       chunk_(chunk > 0 ? chunk : kDefaultChunk),
       fan_in_(fan_in > 1 ? fan_in : kDefaultFanIn) {
   host_ = ChainBodies<S>::from(model, max_batch_);
   floating_ = model.floating_base();
+  if (directional && floating_)
+    throw BackendError("backend 'cuda': the parallel chain JVP / VJP of forward dynamics takes chains of 1-DoF joints "
+                       "from a fixed base; body 0 (joint '" + model.joint_names[0] + "') is a floating base (a free rope)");
   a0_ = base_acceleration(model.gravity);
   const std::vector<InverseInertia<DualScalar>>& Phi = host_.Phi;
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
@@ -141,10 +93,17 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   const std::size_t nbase = floating_ ? static_cast<std::size_t>(max_batch_) : 0;
   const std::size_t o_IAb = take(nbase * sizeof(ABInertia<S>)), o_ab = take(nbase * sizeof(Motion<S>)),
                     o_qddb = take(nbase * sizeof(Vec6<S>));
-  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
+  // the directional scratch
+  const std::size_t nd = directional ? links : 0;
+  const std::size_t o_a = take(nd * sizeof(Motion<S>)), o_F = take(nd * sizeof(Force<S>)),
+                    o_dv = take(nd * sizeof(Motion<S>)), o_df = take(nd * sizeof(Force<S>)), o_x = take(nd * sizeof(S)),
+                    o_IA = take(nd * sizeof(ABInertia<S>));
+  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc, o_aff2, o_aff2c;
   for (Index size : level_size_) {
     o_aff.push_back(take(size * sizeof(Affine6<S>)));
     o_affc.push_back(take(size * sizeof(Vec6<S>)));
+    o_aff2.push_back(take((directional ? size : 0) * sizeof(Affine6<S>)));
+    o_aff2c.push_back(take((directional ? size : 0) * sizeof(Vec6<S>)));
     o_dual.push_back(take(size * sizeof(DualRiccati<DualScalar>)));
     o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
   }
@@ -174,7 +133,17 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     a_base_ = reinterpret_cast<Motion<S>*>(base + o_ab);
     qdd_base_ = reinterpret_cast<Vec6<S>*>(base + o_qddb);
   }
+  if (directional) {
+    a_ = reinterpret_cast<Motion<S>*>(base + o_a);
+    F_ = reinterpret_cast<Force<S>*>(base + o_F);
+    dv_ = reinterpret_cast<Motion<S>*>(base + o_dv);
+    df_ = reinterpret_cast<Force<S>*>(base + o_df);
+    x_ = reinterpret_cast<S*>(base + o_x);
+    IA_ = reinterpret_cast<ABInertia<S>*>(base + o_IA);
+  }
   for (std::size_t k = 0; k < level_size_.size(); ++k) {
+    aff2_.push_back(directional ? reinterpret_cast<Affine6<S>*>(base + o_aff2[k]) : nullptr);
+    aff2_carry_.push_back(directional ? reinterpret_cast<Vec6<S>*>(base + o_aff2c[k]) : nullptr);
     aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
     aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
     dual_.push_back(reinterpret_cast<DualRiccati<DualScalar>*>(base + o_dual[k]));
@@ -214,6 +183,7 @@ ChainFdData<S, kB> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<
   d.w = w_;
   d.D = D_;
   d.u = u_;
+  d.a = a_;  // null unless directional
   d.failed = failed;
   if (floating_) d.bind_base(IA_base_, a_base_, qdd_base_);
   return d;
@@ -361,6 +331,15 @@ cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, cons
 
 template class ChainFdPlan<float>;
 template class ChainFdPlan<double>;
+// used by launch_jvp / launch_vjp (kernels/chain_directional.cu)
+template cudaError_t ChainFdPlan<float>::passes<false>(const ChainFdData<float, false>&, cudaStream_t);
+template cudaError_t ChainFdPlan<double>::passes<false>(const ChainFdData<double, false>&, cudaStream_t);
+template cudaError_t ChainFdPlan<float>::finish<false>(const ChainFdData<float, false>&, cudaStream_t);
+template cudaError_t ChainFdPlan<double>::finish<false>(const ChainFdData<double, false>&, cudaStream_t);
+template ChainFdData<float, false> ChainFdPlan<float>::data<false>(const FdBatchIn<float>&, const BatchView<float>&,
+                                                                   int*) const;
+template ChainFdData<double, false> ChainFdPlan<double>::data<false>(const FdBatchIn<double>&,
+                                                                     const BatchView<double>&, int*) const;
 
 }  // namespace cuda
 }  // namespace scandyn

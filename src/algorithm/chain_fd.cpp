@@ -2,6 +2,8 @@
 // OpenMP over chunks, the same walks and scans as the CUDA driver.
 #include "scandyn/algorithm/chain_fd.hpp"
 
+#include "chain_scan_host.hpp"
+
 #include <stdexcept>
 
 #include <algorithm>
@@ -67,33 +69,6 @@ ChainBodies<S> ChainBodies<S>::from(const ModelTpl<S>& model, Index max_batch) {
   return o;
 }
 
-namespace {
-
-// The aggregates above level 0 and the carries of every level, for one pass whose
-// level-0 aggregates are in agg[0]; `in` enters the whole sequence.
-template <class E>
-void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
-                 std::vector<std::vector<typename E::Value>>& carry, bool forward, int threads) {
-  const Index levels = static_cast<Index>(ck.level_size.size());
-  for (Index k = 0; k + 1 < levels; ++k) {
-    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
-    const E* lower = agg[k].data();
-    E* upper = agg[k + 1].data();
-#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
-    for (Index j = 0; j < m; ++j) upper[j] = fold_range(lower, j * f, std::min(size, (j + 1) * f), forward);
-  }
-  carry_range(agg[levels - 1].data(), carry[levels - 1].data(), 0, ck.level_size[levels - 1], forward, E::start());
-  for (Index k = levels - 2; k >= 0; --k) {
-    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
-    const E* lower = agg[k].data();
-    auto* lc = carry[k].data();
-    const auto* uc = carry[k + 1].data();
-#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
-    for (Index j = 0; j < m; ++j) carry_range(lower, lc, j * f, std::min(size, (j + 1) * f), forward, uc[j]);
-  }
-}
-
-}  // namespace
 
 template <class S>
 ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index max_batch, int threads, Index chunk)
@@ -117,12 +92,8 @@ ChainForwardDynamics<S>::ChainForwardDynamics(const ModelTpl<S>& model, Index ma
     qdd_base_.resize(static_cast<std::size_t>(max_batch_));
   }
   const ChainChunking ck(links, chunk_, 16);
-  for (Index size : ck.level_size) {
-    aff_.emplace_back(static_cast<std::size_t>(size));
-    aff_carry_.emplace_back(static_cast<std::size_t>(size));
-    dual_.emplace_back(static_cast<std::size_t>(size));
-    dual_carry_.emplace_back(static_cast<std::size_t>(size));
-  }
+  aff_.resize(ck);
+  dual_.resize(ck);
 }
 
 template <class S>
@@ -147,31 +118,7 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
     d.failed = failed_.data();
     if (floating_) d.bind_base(IA_base_.data(), a_base_.data(), qdd_base_.data());
 
-    const ChainChunking ck(d.count(), chunk_, 16);
-    const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
-    const int T = threads_;
-    auto first = [&](Index c) { return c * L; };
-    auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
-
-    // pass 0: velocities (and pass 1's aggregates)
-#pragma omp parallel for num_threads(T) schedule(static)
-    for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate(d, first(c), last(c));
-    scan_levels(ck, aff_, aff_carry_, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-    for (Index c = 0; c < chunks; ++c) dual_[0][c] = velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
-    // pass 1: articulated inertias (and pass 2's aggregates)
-    scan_levels(ck, dual_, dual_carry_, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-    for (Index c = 0; c < chunks; ++c)
-      aff_[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual_carry_[0][c]));
-    // pass 2: bias forces (and pass 3's aggregates)
-    scan_levels(ck, aff_, aff_carry_, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-    for (Index c = 0; c < chunks; ++c) aff_[0][c] = bias_walk(d, first(c), last(c), aff_carry_[0][c]);
-    // pass 3: accelerations
-    scan_levels(ck, aff_, aff_carry_, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-    for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+    chain_host::fd_passes(d, ChainChunking(d.count(), chunk_, 16), aff_, dual_, threads_);
   };
   if (floating_) {
     ChainFdData<S, true> d;

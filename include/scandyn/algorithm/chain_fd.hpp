@@ -290,6 +290,9 @@ struct ChainFdData {
   S* D = nullptr;                           // (B n) S^T IA S (pass 1)
   Force<S>* w = nullptr;                    // (B n) Ia c (pass 1)
   S* u = nullptr;                           // (B n) tau - S^T pA (pass 2)
+  Motion<S>* a = nullptr;                   // optional (B n): body accelerations, gravity included (pass 3)
+  ABInertia<S>* IA_out = nullptr;           // optional (B n): articulated inertias IA, children's included (pass 1)
+  Force<S>* pA_out = nullptr;               // optional (B n): articulated bias forces pA, children's included (pass 2)
   int* failed = nullptr;                    // (B) -1, or the first DoF whose pivot D failed
   // a floating base (link 0 a free joint), per instance:
   ABInertia<S>* IA_base = nullptr;          // (B) the base's articulated inertia IA_0 (pass 1)
@@ -345,16 +348,19 @@ struct ChainFdData {
     }
     return joint_motion(body_of(g), qd_of(g));
   }
-  // bias force v x* I v - fext of link g (pass 0's velocities complete)
+  // bias force v x* I v - fext of link g (pass 0's velocities complete; v null:
+  // the chain at rest, v = 0)
   SCANDYN_HD Force<S> pA(Index g) const {
     const Body<S>& b = body_of(g);
-    const Force<S> p = cross(v[g], b.I * v[g]);
+    const Force<S> p = v ? cross(v[g], b.I * v[g]) : Force<S>::zero();
     return fext ? p - fext[g] : p;
   }
-  // v x S qd (0 at a floating base, whose velocity is its S qd)
+  // v x S qd (0 at a floating base, whose velocity is its S qd, and at rest)
   SCANDYN_HD Motion<S> c(Index g) const {
-    return is_base(g) ? Motion<S>::zero() : cross_joint_motion(body_of(g), v[g], qd_of(g));
+    return is_base(g) || !v ? Motion<S>::zero() : cross_joint_motion(body_of(g), v[g], qd_of(g));
   }
+  // Ia c of link g (pass 1; w null: the chain at rest, c = 0)
+  SCANDYN_HD Force<S> w_of(Index g) const { return w ? w[g] : Force<S>::zero(); }
 };
 
 // Records that the articulated pivot of link g's joint DoF k failed: failed[instance]
@@ -424,6 +430,32 @@ SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S, kB>& d, In
   return agg;
 }
 
+// Pass 2's element of a link (not a floating base) with U, 1 / D, its bias force pA,
+// w = Ia c and its tau: z_g as a map of z_{g+1} (child: link g + 1, whose transform
+// is Xnext, is its child; otherwise constant),
+//   z_g = N (pA + Xnext^T z_{g+1}) + w + U tau / D,  N = 1 - U S^T / D.
+// The chain at rest (M^-1 x, scandyn/algorithm/chain_directional.hpp) has pA = w = 0.
+template <class S>
+SCANDYN_HD Affine6<S> bias_element(const Body<S>& b, bool child, const Transform<S>& Xnext, const Force<S>& U, S Dinv,
+                                   const Force<S>& pA, const Force<S>& w, S tau) {
+  Affine6<S> el = Affine6<S>::make_constant(Vec6<S>::zero());
+  if (child) {
+    const Mat6<S> XT = transpose(to_mat6(Xnext));
+    el.constant = false;
+    el.M = XT;
+    const Vec6<S> Uv = to_vec6(U);
+    for (int c = 0; c < 6; ++c) {
+      Vec6<S> col;
+      for (int r = 0; r < 6; ++r) col.m[r] = XT(r, c);
+      const S st = joint_project(b, to_force(col)) * Dinv;
+      for (int r = 0; r < 6; ++r) el.M(r, c) -= Uv.m[r] * st;
+    }
+  }
+  const S sp = joint_project(b, pA);
+  el.b = to_vec6(pA - (sp * Dinv) * U + w + (tau * Dinv) * U);
+  return el;
+}
+
 // Pass 1's walk from Ia_in, the projected articulated inertia of link e + 1 (its
 // frame; ignored when link e has no child): the ABA articulated-inertia recursion
 // over e..s with the step functions; stores U, D, w = Ia c and records a failed
@@ -444,6 +476,7 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S, kB>& d, Index s, Index e
       agg = Affine6<S>::compose(Affine6<S>::make_constant(Vec6<S>::zero()), agg);
       continue;  // the link before it (another instance's last) does not read Ia_next, Xnext, z_next
     }
+    if (d.IA_out) d.IA_out[g] = IA;
     const Force<S> pA = d.pA(g);
     Force<S> U;
     S D, u_unused;
@@ -458,23 +491,7 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S, kB>& d, Index s, Index e
     d.U[g] = U;
     d.D[g] = D;
     d.w[g] = w;
-    // z_g = N (pA + Xnext^T z_{g+1}) + w + U tau / D,  N = 1 - U S^T / D
-    Affine6<S> el = Affine6<S>::make_constant(Vec6<S>::zero());
-    if (child) {
-      const Mat6<S> XT = transpose(to_mat6(Xnext));
-      el.constant = false;
-      el.M = XT;
-      const Vec6<S> Uv = to_vec6(U);
-      for (int c = 0; c < 6; ++c) {
-        Vec6<S> col;
-        for (int r = 0; r < 6; ++r) col.m[r] = XT(r, c);
-        const S st = joint_project(b, to_force(col)) * Dinv;
-        for (int r = 0; r < 6; ++r) el.M(r, c) -= Uv.m[r] * st;
-      }
-    }
-    const S sp = joint_project(b, pA);
-    el.b = to_vec6(pA - (sp * Dinv) * U + w + (d.tau_of(g) * Dinv) * U);
-    agg = Affine6<S>::compose(el, agg);
+    agg = Affine6<S>::compose(bias_element(b, child, Xnext, U, Dinv, pA, w, d.tau_of(g)), agg);
     Ia_next = Ia;
     Xnext = d.Xup(g);
   }
@@ -523,11 +540,12 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S, kB>& d, Index s, Index e, c
       agg = Affine6<S>::compose(agg, Affine6<S>::make_constant(to_vec6(base_acceleration_walk(d, g, pA))));
       continue;  // the link before it (another instance's last) reads neither Xnext nor z_next
     }
+    if (d.pA_out) d.pA_out[g] = pA;
     const S D = d.D[g], Dinv = S(1) / D;
     const Force<S> U = d.U[g];
     const S u = d.tau_of(g) - joint_project(b, pA);
     d.u[g] = u;
-    z_next = pA + d.w[g] + (u * Dinv) * U;
+    z_next = pA + d.w_of(g) + (u * Dinv) * U;
     // a_g = N^T (Xup a_{g-1} + c) + S u / D,  N^T = 1 - S U^T / D
     const Transform<S> X = d.Xup(g);
     const Vec6<S> Uv = to_vec6(U);
@@ -576,6 +594,7 @@ SCANDYN_HD void acceleration_walk(const ChainFdData<S, kB>& d, Index s, Index e,
     const S qdd = aba_acceleration_step(b, d.Xup(g), d.has_parent(g) ? a_parent : d.a0, d.c(g), d.U[g], d.D[g],
                                         d.u[g], a);
     if (d.failed[g / d.n] < 0) d.qdd.at(d.v_row(g % d.n), g / d.n) = qdd;  // a failed instance's qdd stays unwritten
+    if (d.a) d.a[g] = a;
     a_parent = a;
   }
 }
@@ -637,6 +656,22 @@ struct ChainChunking {
   ChainChunking() = default;
   ChainChunking(Index links, Index chunk, Index fan_in);
   Index chunks() const { return level_size.empty() ? 0 : level_size[0]; }
+};
+
+// Per-level aggregates and carries of one scan over a ChainChunking's levels (the
+// host drivers' scratch).
+template <class E>
+struct ChainLevels {
+  std::vector<std::vector<E>> agg;                    // (levels) x (level size)
+  std::vector<std::vector<typename E::Value>> carry;  // the same
+  void resize(const ChainChunking& ck) {
+    agg.clear();
+    carry.clear();
+    for (Index size : ck.level_size) {
+      agg.emplace_back(static_cast<std::size_t>(size));
+      carry.emplace_back(static_cast<std::size_t>(size));
+    }
+  }
 };
 
 // The chain forward dynamics' requirement on a model: unbranched chains hanging
@@ -727,10 +762,8 @@ class ChainForwardDynamics {
   std::vector<S> D_, u_;
   std::vector<int> failed_;
   // per level: aggregates and carries of the three Affine6 passes and the dual pass
-  std::vector<std::vector<Affine6<S>>> aff_;
-  std::vector<std::vector<Vec6<S>>> aff_carry_;
-  std::vector<std::vector<DualRiccati<DualScalar>>> dual_;
-  std::vector<std::vector<Mat5<DualScalar>>> dual_carry_;
+  ChainLevels<Affine6<S>> aff_;
+  ChainLevels<DualRiccati<DualScalar>> dual_;
 };
 
 }  // namespace scandyn

@@ -23,6 +23,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/chain_directional.hpp"
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/build_config.hpp"
 
@@ -50,7 +51,9 @@ class ChainFdPlan {
   // aggregates per thread above (0: kDefaultFanIn). Throws BackendError for a
   // model that is not unbranched chains from the base (naming the body), a batch whose links do
   // not fit in 2^30, device memory that does not suffice, or a CUDA error.
-  ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0, Index fan_in = 0);
+  // directional: also the scratch of launch_jvp / launch_vjp (per link: a, F, dv, df,
+  // x, IA; a second set of Affine6 levels); a floating base is then a BackendError.
+  ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0, Index fan_in = 0, bool directional = false);
   ~ChainFdPlan();
   ChainFdPlan(const ChainFdPlan&) = delete;
   ChainFdPlan& operator=(const ChainFdPlan&) = delete;
@@ -74,6 +77,24 @@ class ChainFdPlan {
   cudaError_t launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in, const BatchView<S>& qdd,
                             int* failed, cudaStream_t stream, std::vector<ChainTimelineEvent>* timeline = nullptr);
 
+  // The JVP and VJP of forward dynamics (scandyn/algorithm/chain_directional.hpp:
+  // the FD's passes 0-3, then 5 (JVP) or 6 (VJP) Affine6 scans; pass 1 is not rerun
+  // for M^-1). A plan constructed with directional = true, fixed base; device views
+  // (n x B, any strides), `stream`, no synchronisation; failed as launch(), every
+  // output of a failed instance unwritten. Returns cudaErrorInvalidValue for
+  // B > max_batch or a batch mismatch, cudaErrorNotSupported without the
+  // directional scratch, else the first launch error.
+  // Kernels beyond launch(): JVP 6 walks and 6 scans, VJP 4 walks and 4 scans.
+  //   launch_jvp: qdd = FD(in), dqdd = (dqdd/dq) dq + (dqdd/dqd) dqd + M^-1 dtau
+  //   launch_vjp: qdd = FD(in), gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = M^-1 w
+  cudaError_t launch_jvp(const FdBatchIn<S>& in, const BatchView<const S>& dq, const BatchView<const S>& dqd,
+                         const BatchView<const S>& dtau, const BatchView<S>& qdd, const BatchView<S>& dqdd, int* failed,
+                         cudaStream_t stream);
+  cudaError_t launch_vjp(const FdBatchIn<S>& in, const BatchView<const S>& w, const BatchView<S>& qdd,
+                         const BatchView<S>& gq, const BatchView<S>& gqd, const BatchView<S>& gtau, int* failed,
+                         cudaStream_t stream);
+  bool directional() const { return F_ != nullptr; }
+
   Index links() const { return n_; }  // bodies per instance (nv, or nv - 5 for a free rope)
   Index max_batch() const { return max_batch_; }
   Index chunk() const { return chunk_; }
@@ -90,6 +111,7 @@ class ChainFdPlan {
   cudaError_t velocities(const ChainFdData<S, kB>& d, bool dual, cudaStream_t stream);
   template <bool kB>
   cudaError_t finish(const ChainFdData<S, kB>& d, cudaStream_t stream);  // passes 2 and 3
+  ChainDirectionalData<S> directional_data(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) const;
 
   Index n_ = 0, max_batch_ = 0, chunk_ = 0, fan_in_ = 0;  // n_: links (bodies) per instance
   bool floating_ = false;                   // link 0 is a floating base (a free rope)
@@ -105,6 +127,15 @@ class ChainFdPlan {
   Force<S>* w_ = nullptr;
   S* D_ = nullptr;
   S* u_ = nullptr;
+  // directional scratch (null unless constructed with directional): (n max_batch) each
+  Motion<S>* a_ = nullptr;                  // body accelerations (pass 3)
+  Force<S>* F_ = nullptr;                   // subtree forces
+  Motion<S>* dv_ = nullptr;                 // JVP dv / VJP Fbar
+  Force<S>* df_ = nullptr;                  // JVP df / VJP RA
+  S* x_ = nullptr;                          // JVP dtau - r / VJP u, gq's first term
+  ABInertia<S>* IA_ = nullptr;              // VJP: pass 1's articulated inertias IA
+  std::vector<Affine6<S>*> aff2_;           // per level: the second Affine6 scan (F)
+  std::vector<Vec6<S>*> aff2_carry_;
   std::vector<Index> level_size_;           // for max_batch; a call uses its own sizes
   std::vector<Affine6<S>*> aff_;            // per level
   std::vector<Vec6<S>*> aff_carry_;

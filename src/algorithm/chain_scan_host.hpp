@@ -1,0 +1,79 @@
+// The host (OpenMP) scans of the chain drivers (src/algorithm/chain_fd.cpp,
+// src/algorithm/chain_directional.cpp): a pass's chunk aggregates scanned in levels
+// (scandyn/algorithm/chain_fd.hpp: fold_range, carry_range), and the chain forward
+// dynamics' four passes over a ChainFdData. Private to the library's sources.
+#pragma once
+
+#include <algorithm>
+#include <vector>
+
+#include "scandyn/algorithm/chain_fd.hpp"
+
+namespace scandyn {
+namespace chain_host {
+
+// The aggregates above level 0 and the carries of every level, for one pass whose
+// level-0 aggregates are in agg[0]; E::start() enters the whole sequence.
+template <class E>
+void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
+                 std::vector<std::vector<typename E::Value>>& carry, bool forward, int threads) {
+  const Index levels = static_cast<Index>(ck.level_size.size());
+  for (Index k = 0; k + 1 < levels; ++k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    E* upper = agg[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) upper[j] = fold_range(lower, j * f, std::min(size, (j + 1) * f), forward);
+  }
+  carry_range(agg[levels - 1].data(), carry[levels - 1].data(), 0, ck.level_size[levels - 1], forward, E::start());
+  for (Index k = levels - 2; k >= 0; --k) {
+    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
+    const E* lower = agg[k].data();
+    auto* lc = carry[k].data();
+    const auto* uc = carry[k + 1].data();
+#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
+    for (Index j = 0; j < m; ++j) carry_range(lower, lc, j * f, std::min(size, (j + 1) * f), forward, uc[j]);
+  }
+}
+
+// Passes 2 and 3 from pass 2's level-0 aggregates in aff.agg[0] (pass 1's walks
+// done): also M^-1 x of the chain at rest (scandyn/algorithm/chain_directional.hpp).
+template <class S, bool kB>
+void finish_passes(const ChainFdData<S, kB>& d, const ChainChunking& ck, ChainLevels<Affine6<S>>& aff, int T) {
+  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+  auto first = [&](Index c) { return c * L; };
+  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+  scan_levels(ck, aff.agg, aff.carry, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff.agg[0][c] = bias_walk(d, first(c), last(c), aff.carry[0][c]);
+  scan_levels(ck, aff.agg, aff.carry, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff.carry[0][c]);
+}
+
+// qdd = FD(d) by the four passes (velocities, articulated inertias, bias forces,
+// accelerations) over chunks of ck.chunk links, T threads; aff and dual hold the
+// scans' levels (sized for at least ck). d.failed must hold -1 for every instance.
+template <class S, bool kB>
+void fd_passes(const ChainFdData<S, kB>& d, const ChainChunking& ck, ChainLevels<Affine6<S>>& aff,
+               ChainLevels<DualRiccati<DualScalar>>& dual, int T) {
+  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+  auto first = [&](Index c) { return c * L; };
+  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+  // pass 0: velocities (and pass 1's aggregates)
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff.agg[0][c] = velocity_aggregate(d, first(c), last(c));
+  scan_levels(ck, aff.agg, aff.carry, true, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) dual.agg[0][c] = velocity_walk(d, first(c), last(c), aff.carry[0][c]);
+  // pass 1: articulated inertias (and pass 2's aggregates)
+  scan_levels(ck, dual.agg, dual.carry, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c)
+    aff.agg[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual.carry[0][c]));
+  // passes 2 and 3: bias forces (and pass 3's aggregates), accelerations
+  finish_passes(d, ck, aff, T);
+}
+
+}  // namespace chain_host
+}  // namespace scandyn
