@@ -11,67 +11,14 @@
 #include <vector>
 
 #include "scandyn/algorithm/chain_directional.hpp"
-#include "scandyn/algorithm/directional_derivatives.hpp"
+#include "chain_directional_cases.hpp"
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
+using namespace scandyn::test::chain_dir;
 
 namespace {
-
-// B instances (SoA, n x B) of random states and directions, and the serial double
-// aba_jvp / aba_vjp of each.
-struct Case {
-  Index n = 0, B = 0;
-  std::vector<double> q, qd, tau, dq, dqd, dtau, w;
-  std::vector<Force<double>> fext;  // (B x n) or empty
-  std::vector<double> qdd, dqdd, gq, gqd, gtau;  // the serial references
-};
-
-Case make_case(const Model& model, Index B, unsigned seed, bool with_fext, double q_scale = 1) {
-  std::mt19937_64 rng(seed);
-  const Index n = model.nv();
-  Case c;
-  c.n = n;
-  c.B = B;
-  const int nb = static_cast<int>(n * B);
-  c.q = test::random_vector(rng, nb, -3 * q_scale, 3 * q_scale);
-  c.qd = test::random_vector(rng, nb, -1, 1);
-  c.tau = test::random_vector(rng, nb, -2, 2);
-  c.dq = test::random_vector(rng, nb, -1, 1);
-  c.dqd = test::random_vector(rng, nb, -1, 1);
-  c.dtau = test::random_vector(rng, nb, -1, 1);
-  c.w = test::random_vector(rng, nb, -1, 1);
-  if (with_fext) c.fext = test::random_wrenches<double>(rng, nb, 1.0);
-  for (auto* v : {&c.qdd, &c.dqdd, &c.gq, &c.gqd, &c.gtau}) v->assign(c.q.size(), NAN);
-  AbaJvpData<double> jd(model);
-  std::vector<double> x[7], out[5];
-  for (auto& o : out) o.resize(n);
-  for (Index b = 0; b < B; ++b) {
-    const std::vector<double>* in[7] = {&c.q, &c.qd, &c.tau, &c.dq, &c.dqd, &c.dtau, &c.w};
-    for (int k = 0; k < 7; ++k) {
-      x[k].resize(n);
-      for (Index i = 0; i < n; ++i) x[k][i] = (*in[k])[i * B + b];
-    }
-    const Force<double>* f = with_fext ? c.fext.data() + b * n : nullptr;
-    EXPECT_TRUE(aba_jvp(model, jd, x[0].data(), x[1].data(), x[2].data(), f, x[3].data(), x[4].data(), x[5].data(),
-                        out[1].data(), out[0].data())
-                    .ok());
-    EXPECT_TRUE(aba_vjp(model, jd, x[0].data(), x[1].data(), x[2].data(), f, x[6].data(), out[2].data(),
-                        out[3].data(), out[4].data(), out[0].data())
-                    .ok());
-    std::vector<double>* ref[5] = {&c.qdd, &c.dqdd, &c.gq, &c.gqd, &c.gtau};
-    for (int k = 0; k < 5; ++k)
-      for (Index i = 0; i < n; ++i) (*ref[k])[i * B + b] = out[k][i];
-  }
-  return c;
-}
-
-// The driver's results in precision S, SoA.
-template <class S>
-struct Result {
-  std::vector<S> qdd_j, dqdd, qdd_v, gq, gqd, gtau;
-};
 
 template <class S>
 Result<S> run(const Model& model, const Case& c, int threads, Index chunk = 0) {
@@ -99,82 +46,20 @@ Result<S> run(const Model& model, const Case& c, int threads, Index chunk = 0) {
   return r;
 }
 
-struct Errors {
-  double qdd, dqdd, gq, gqd, gtau;
-  double operator[](int k) const { return k == 0 ? qdd : k == 1 ? dqdd : k == 2 ? gq : k == 3 ? gqd : gtau; }
-};
-const char* const kField[5] = {"qdd", "dqdd", "gq", "gqd", "gtau"};
-
-template <class S>
-Errors errors(const Result<S>& r, const Case& c) {
-  return {std::fmax(test::max_rel_err(r.qdd_j, c.qdd), test::max_rel_err(r.qdd_v, c.qdd)),
-          test::max_rel_err(r.dqdd, c.dqdd), test::max_rel_err(r.gq, c.gq), test::max_rel_err(r.gqd, c.gqd),
-          test::max_rel_err(r.gtau, c.gtau)};
-}
-
-std::string str(const Errors& e) {
-  char buf[160];
-  std::snprintf(buf, sizeof buf, "qdd %.2e dqdd %.2e gq %.2e gqd %.2e gtau %.2e", e.qdd, e.dqdd, e.gq, e.gqd, e.gtau);
-  return buf;
-}
-
-// The serial aba_jvp / aba_vjp in float on the same inputs against the double
-// references: the error float itself makes, whatever the algorithm.
-Errors serial_float_errors(const Model& model, const Case& c) {
-  const Model mf = model;
-  const ModelTpl<float> m = model.cast<float>();
-  const Index n = c.n, B = c.B;
-  AbaJvpData<float> jd(m);
-  Result<float> r;
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(c.q.size(), NAN);
-  std::vector<float> x[7], out[5];
-  for (auto& o : out) o.resize(n);
-  for (Index b = 0; b < B; ++b) {
-    const std::vector<double>* in[7] = {&c.q, &c.qd, &c.tau, &c.dq, &c.dqd, &c.dtau, &c.w};
-    for (int k = 0; k < 7; ++k) {
-      x[k].resize(n);
-      for (Index i = 0; i < n; ++i) x[k][i] = static_cast<float>((*in[k])[i * B + b]);
-    }
-    std::vector<Force<float>> f;
-    for (Index i = 0; i < n && !c.fext.empty(); ++i) f.push_back(c.fext[b * n + i].cast<float>());
-    const Force<float>* fp = f.empty() ? nullptr : f.data();
-    (void)aba_jvp(m, jd, x[0].data(), x[1].data(), x[2].data(), fp, x[3].data(), x[4].data(), x[5].data(),
-                  out[1].data(), out[0].data());
-    (void)aba_vjp(m, jd, x[0].data(), x[1].data(), x[2].data(), fp, x[6].data(), out[2].data(), out[3].data(),
-                  out[4].data(), out[0].data());
-    std::vector<float>* res[5] = {&r.qdd_j, &r.dqdd, &r.gq, &r.gqd, &r.gtau};
-    for (int k = 0; k < 5; ++k)
-      for (Index i = 0; i < n; ++i) (*res[k])[i * B + b] = out[k][i];
-  }
-  r.qdd_v = r.qdd_j;
-  (void)mf;
-  return errors(r, c);
-}
-
 // Every output against the serial double aba_jvp / aba_vjp, relative to
-// max(1, max |reference|) (scandyn::rel_err), per output. The tolerance follows the
-// conditioning of the case, measured independently: es, the error of the serial
-// float aba_jvp / aba_vjp on the same inputs, says how much this case amplifies a
-// rounding error (dqdd = M^-1 (dtau - r) on a rope of 1000 links: es ~ 0.5 at random
-// configurations, ~10 near rest, where cond(M) grows like n^4). Double: 1e-9, or 10x
-// the serial double's own error so estimated (es x 2^-29, the ratio of the two
-// precisions' epsilons), whichever is larger; float (the inputs rounded to float):
-// 1e-5, or 10x es. Threads 1 and 2.
+// max(1, max |reference|) (scandyn::rel_err), per output, to the tolerance the case's
+// conditioning gives (chain_directional_cases.hpp: tolerance): double on 1 and 2
+// threads, float.
 void check_model(const std::string& spec, Index B, double q_scale = 1) {
   const Model model = load_model(spec);
   for (bool with_fext : {false, true}) {
     SCOPED_TRACE(spec + (with_fext ? " with fext" : "") + ", q in +-" + std::to_string(3 * q_scale));
     const Case c = make_case(model, B, 3 + static_cast<unsigned>(model.nv()) + with_fext, with_fext, q_scale);
     const Errors es = serial_float_errors(model, c);
-    for (int threads : {1, 2}) {
-      const Errors ed = errors(run<double>(model, c, threads), c);
-      for (int k = 0; k < 5; ++k)
-        EXPECT_LT(ed[k], std::fmax(1e-9, 10 * es[k] * std::ldexp(1.0, -29)))
-            << kField[k] << ", double, threads " << threads << ": " << str(ed) << "; serial float " << str(es);
-    }
+    for (int threads : {1, 2})
+      expect_within(errors(run<double>(model, c, threads), c), es, false, "double, threads " + std::to_string(threads));
     const Errors ef = errors(run<float>(model, c, 2), c);
-    for (int k = 0; k < 5; ++k)
-      EXPECT_LT(ef[k], std::fmax(1e-5, 10 * es[k])) << kField[k] << ", float: " << str(ef) << "; serial float " << str(es);
+    expect_within(ef, es, true, "float");
     ::testing::Test::RecordProperty(spec + (with_fext ? "_fext" : ""),
                                     "float " + str(ef) + "; serial float " + str(es));
   }
