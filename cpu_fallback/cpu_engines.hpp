@@ -25,6 +25,10 @@ template <class S>
 std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
+// fd_directional.cpp (chain: the chunked scans of ChainFdDirectional, else aba_jvp per instance)
+template <class S>
+std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
+                                                                             const BackendOptions& options, bool chain);
 // second_derivatives.cpp
 template <class S>
 std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>& model,

@@ -372,6 +372,34 @@ std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, 
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& options);
 
+// ---- directional derivatives of forward dynamics (JVP, VJP; O(nv) per instance:
+// scandyn/algorithm/directional_derivatives.hpp, scandyn/algorithm/chain_directional.hpp)
+
+template <class S>
+class FdDirectionalDerivatives : public Engine {
+ public:
+  // qdd = FD(in) and dqdd = (dqdd/dq) dq + (dqdd/dqd) dqd + M^-1 dtau (nv x B each, B =
+  // in.q.batch). An instance whose articulated pivot is not positive and finite is
+  // reported in the status, its outputs not meaningful.
+  virtual BatchStatus jvp(const FdBatchIn<S>& in, const BatchView<const S>& dq, const BatchView<const S>& dqd,
+                          const BatchView<const S>& dtau, const BatchView<S>& qdd, const BatchView<S>& dqdd) = 0;
+  // qdd = FD(in) and, for a weight w on qdd, gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w,
+  // gtau = M^-1 w (nv x B each).
+  virtual BatchStatus vjp(const FdBatchIn<S>& in, const BatchView<const S>& w, const BatchView<S>& qdd,
+                          const BatchView<S>& gq, const BatchView<S>& gqd, const BatchView<S>& gtau) = 0;
+};
+
+// Models of 1-DoF joints, host memory. options.fd_method: Aba (aba_jvp / aba_vjp per
+// instance, threads over instances: "aba_jvp"), Parallel (unbranched chains from a
+// fixed base: the chunked scans of ChainFdDirectional on the engine's threads:
+// "parallel"; BackendError for other models), Auto (Parallel for such chains of 4096
+// links or more, else Aba). Serial and OpenMP only: on cuda a BackendError (the
+// device's chain JVP / VJP is cuda::ChainFdPlan's launch_jvp / launch_vjp on device
+// memory, scandyn/cuda/chain_fd.hpp).
+template <class S>
+std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
+                                                                             const BackendOptions& options);
+
 template <class S>
 void check_batch(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index max_batch);
 template <class S>

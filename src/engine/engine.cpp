@@ -337,6 +337,26 @@ std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, 
 }
 
 template <class S>
+std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
+                                                                             const BackendOptions& o) {
+  require_built(o);
+  require_one_dof_joints(model, "the directional derivatives of forward dynamics");
+  if (o.backend == BackendKind::Cuda)
+    throw BackendError("the directional derivatives of forward dynamics are offered on serial and openmp; on cuda "
+                       "use cuda::ChainFdPlan (directional = true): launch_jvp / launch_vjp on device memory");
+  const bool chain = first_branching_body(model) < 0 && !model.floating_base();
+  if (o.fd_method == FdMethod::Parallel && !chain)
+    throw BackendError("forward-dynamics method 'parallel' of the directional derivatives needs unbranched chains "
+                       "hanging from a fixed base (body " + std::to_string(first_branching_body(model)) +
+                       " branches off; use aba)");
+  if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba && o.fd_method != FdMethod::Parallel)
+    throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
+                       "' is not available for the directional derivatives (use auto, aba or parallel)");
+  const bool scans = o.fd_method == FdMethod::Parallel || (o.fd_method == FdMethod::Auto && chain && model.nv() >= 4096);
+  return cpu::make_fd_directional_derivatives(model, o, scans);
+}
+
+template <class S>
 void check_batch(const IdBatchIn<S>& in, const IdSecondDerivativesOut<S>& out, Index max_batch) {
   check_views({{"q", info(in.q)}, {"qd", info(in.qd)}, {"qdd", info(in.qdd)}, {"d2tau_dq2", info(out.d2tau_dq2)},
                {"d2tau_dqd2", info(out.d2tau_dqd2)}, {"d2tau_dqdqd", info(out.d2tau_dqdqd)}},
@@ -373,7 +393,9 @@ std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTp
                                                                               const BackendOptions&);          \
   template void check_batch(const FdBatchIn<S>&, const FdDerivativesOut<S>&, Index);                          \
   template std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>&, const BackendOptions&);   \
-  template std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);
+  template std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);     \
+  template std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>&,    \
+                                                                                        const BackendOptions&);
 SCANDYN_INSTANTIATE_DERIVATIVES(float)
 SCANDYN_INSTANTIATE_DERIVATIVES(double)
 #undef SCANDYN_INSTANTIATE_DERIVATIVES

@@ -160,3 +160,75 @@ TEST(ChainDirectional, FailedInstanceIsReported) {
 }
 
 }  // namespace
+
+namespace {
+
+// The engine (make_fd_directional_derivatives) on serial and openmp, aba_jvp per
+// instance and the scans, against the serial references (SoA views).
+template <class S>
+Result<S> run_engine(const Model& model, const Case& c, BackendKind kind, FdMethod method, std::string* strategy) {
+  const Index n = c.n, B = c.B;
+  BackendOptions o;
+  o.backend = kind;
+  o.max_batch = B;
+  o.fd_method = method;
+  const ModelTpl<S> m = model.cast<S>();
+  auto eng = make_fd_directional_derivatives(m, o);
+  *strategy = eng->strategy();
+  const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau),
+             dq = test::cast_vector<S>(c.dq), dqd = test::cast_vector<S>(c.dqd), dtau = test::cast_vector<S>(c.dtau),
+             w = test::cast_vector<S>(c.w);
+  std::vector<Force<S>> fext;
+  for (const auto& f : c.fext) fext.push_back(f.template cast<S>());
+  using V = BatchView<const S>;
+  using O = BatchView<S>;
+  const FdBatchIn<S> in{V::soa(q.data(), n, B), V::soa(qd.data(), n, B), V::soa(tau.data(), n, B),
+                        fext.empty() ? nullptr : fext.data()};
+  Result<S> r;
+  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(q.size(), S(NAN));
+  EXPECT_TRUE(eng->jvp(in, V::soa(dq.data(), n, B), V::soa(dqd.data(), n, B), V::soa(dtau.data(), n, B),
+                       O::soa(r.qdd_j.data(), n, B), O::soa(r.dqdd.data(), n, B))
+                  .ok());
+  EXPECT_TRUE(eng->vjp(in, V::soa(w.data(), n, B), O::soa(r.qdd_v.data(), n, B), O::soa(r.gq.data(), n, B),
+                       O::soa(r.gqd.data(), n, B), O::soa(r.gtau.data(), n, B))
+                  .ok());
+  return r;
+}
+
+TEST(ChainDirectional, Engine) {
+  const Model curtain = load_model("curtain:3:50");
+  const Case c = make_case(curtain, 3, 31, true);
+  const Errors es = serial_float_errors(curtain, c);
+  std::vector<BackendKind> kinds{BackendKind::Serial};
+  if (backend_unusable(BackendKind::OpenMP).empty()) kinds.push_back(BackendKind::OpenMP);
+  for (BackendKind kind : kinds) {
+    for (FdMethod method : {FdMethod::Auto, FdMethod::Aba, FdMethod::Parallel}) {
+      std::string strategy;
+      const Errors e = errors(run_engine<double>(curtain, c, kind, method, &strategy), c);
+      // Auto picks the scans from 4096 links: aba_jvp on a curtain of 150
+      EXPECT_EQ(strategy, method == FdMethod::Parallel ? "parallel" : "aba_jvp");
+      if (strategy == "aba_jvp")
+        for (int k = 0; k < 5; ++k) EXPECT_EQ(e[k], 0.0) << kField[k];  // the serial functions themselves
+      expect_within(e, es, false, std::string(to_string(method)) + " on " + to_string(kind));
+      expect_within(errors(run_engine<float>(curtain, c, kind, method, &strategy), c), es, true,
+                    std::string("float, ") + to_string(method));
+    }
+  }
+  // a branching model: aba_jvp, and no scans
+  const Model tree = test::random_model(12, 3);
+  const Case t = make_case(tree, 2, 4, false);
+  std::string strategy;
+  const Errors e = errors(run_engine<double>(tree, t, BackendKind::Serial, FdMethod::Auto, &strategy), t);
+  EXPECT_EQ(strategy, "aba_jvp");
+  for (int k = 0; k < 5; ++k) EXPECT_EQ(e[k], 0.0) << kField[k];
+  BackendOptions o;
+  o.fd_method = FdMethod::Parallel;
+  EXPECT_THROW(make_fd_directional_derivatives(tree, o), BackendError);
+  o.fd_method = FdMethod::Jsi;
+  EXPECT_THROW(make_fd_directional_derivatives(curtain, o), BackendError);
+  o.fd_method = FdMethod::Auto;
+  o.backend = BackendKind::Cuda;
+  EXPECT_THROW(make_fd_directional_derivatives(curtain, o), BackendError);
+}
+
+}  // namespace
