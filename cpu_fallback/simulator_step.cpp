@@ -104,6 +104,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
     failed_.assign(static_cast<std::size_t>(std::max<Index>(setup.batch, 1)), -1);
     nonfinite_ = failed_;
     what_.assign(failed_.size(), Failure::ArticulatedPivot);
+    estimate_.assign(failed_.size(), 0.0);
     if (setup.integrator == Integrator::Variational) {
       // the Simulator refuses the rest first (simulator.cpp); a direct caller meets the same
       if (setup.model.multi_dof() || (setup.effects & ~sim::kVariationalEffects) != 0 || !setup.prescribed.empty() ||
@@ -139,6 +140,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
                                 readings_.empty() ? nullptr : readings_.data() + static_cast<std::size_t>(b) * setup_.contact_count());
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(dof);
         what_[static_cast<std::size_t>(b)] = w.failure;
+        estimate_[static_cast<std::size_t>(b)] = w.failure_estimate;
         w.failure = Failure::ArticulatedPivot;
         nonfinite_[static_cast<std::size_t>(b)] = -1;
         if (dof >= 0) {  // the instance keeps its state for this step
@@ -171,6 +173,10 @@ class CpuInstanceStep final : public CpuSimState<S> {
       for (Index b = 0; b < B; ++b)
         if (failed_[static_cast<std::size_t>(b)] >= 0)
           st.record(b, failed_[static_cast<std::size_t>(b)], what_[static_cast<std::size_t>(b)]);
+      if (st.failure == Failure::LoopNotClosed) {  // the first one's violation and the tolerance
+        st.estimate = estimate_[static_cast<std::size_t>(st.first_instance)];
+        st.threshold = kLoopStateTolerance;
+      }
       sim::add_step_failures(status_, st);
       sim::add_step_failures(status_, summarize_failures(nonfinite_.data(), B, Failure::NonFinite));
     }
@@ -211,6 +217,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
     std::unique_ptr<sim::LoopSolver> loop_sparse;  // closed loops, sparse path: made at the first step, kept
     std::unique_ptr<sim::VariationalWork<S>> variational;  // the variational integrator's scratch, or null
     Failure failure = Failure::ArticulatedPivot;  // what a failed step failed at (the variational step sets it)
+    double failure_estimate = 0;  // LoopNotClosed: the state's loop violation after the projection
   };
 
   using StepFn = Index (*)(const SimSetup<S>&, Work&, S*, S*, const S*, const Force<S>*, sim::ContactReading<S>*);
@@ -370,14 +377,29 @@ class CpuInstanceStep final : public CpuSimState<S> {
         sim::step_instance<E, I>(n, setup.dt, setup.coef.data(), static_cast<const S*>(nullptr), q, qd, tau, w.scratch, fd);
     if (failed >= 0) return failed;
     for (Index i = 0; i < n; ++i) w.loop_q[i] = q[i], w.loop_qd[i] = qd[i];
-    if (w.loop_sparse) {
-      try {
-        w.loop_sparse->project(w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
-      } catch (const LoopError&) {
-        return 0;
+    LoopProjectionInfo info;
+    try {
+      if (w.loop_sparse) w.loop_sparse->project(w.loop_q.data(), w.loop_qd.data(), 1e-12, 10, &info);
+      else project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10, &info);
+    } catch (const LoopError&) {  // the projection's factorisation failed
+      w.failure = Failure::LoopNotClosed;
+      w.failure_estimate = INFINITY;  // (the status says so rather than naming a loop)
+      return 0;
+    }
+    // a projection that leaves the state off its loops (max |phi|, |J qd| above
+    // kLoopStateTolerance, the tolerance a reset or `eval --loops` refuses a state
+    // by; or not finite) fails the step: the instance keeps its state, the status
+    // names it and its worst loop
+    const double off = info.violation();
+    if (!(off <= kLoopStateTolerance)) {
+      w.failure = Failure::LoopNotClosed;
+      w.failure_estimate = off;
+      Index loop = 0;
+      for (Index row = 0; loop < static_cast<Index>(setup.loops.loops.size()); ++loop) {
+        row += setup.loops.loops[loop].rows();
+        if (info.worst_row < row) break;
       }
-    } else {
-      project_to_loops(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), 1e-12, 10);
+      return loop;
     }
     for (Index i = 0; i < n; ++i) q[i] = S(w.loop_q[i]), qd[i] = S(w.loop_qd[i]);
     return -1;
@@ -433,6 +455,7 @@ class CpuInstanceStep final : public CpuSimState<S> {
   std::vector<int> failed_;     // (B) this step's failed DoF per instance, -1: none
   std::vector<int> nonfinite_;  // (B) the first DoF whose new state is not finite, -1: none
   std::vector<Failure> what_;   // (B) what this step's failure of the instance was
+  std::vector<double> estimate_;  // (B) LoopNotClosed: the instance's loop violation after the projection
   StepFn step_ = nullptr;  // the effect set's and integrator's step (constrained_step_one with prescribed motion or loops)
 };
 

@@ -80,6 +80,10 @@ enum class Failure {
   NotConverged,      // the variational integrator's Newton iteration did not converge (iteration cap,
                      // a zero or non-finite pivot of its Jacobian's LU, a non-finite residual); the DoF
                      // is that of the largest last correction; the instance kept its state
+  LoopNotClosed,     // a simulator step with closed loops whose projection onto them left the state
+                     // more than the tolerance off them (max |phi|, |J qd|: BatchStatus::estimate,
+                     // threshold; infinite: its factorisation failed), or failed; first_dof
+                     // holds the worst loop's index; the instance kept its state
 };
 
 // The outcome of one batched call (or, for the simulator, of its steps since the
@@ -93,8 +97,9 @@ struct BatchStatus {
                                // (FdOptions::fallback_aba); not counted in `failed`
   Index retried = 0;           // instances the run-time check flagged whose retry (fallback_aba,
                                // fallback_double) passed it; not counted in `failed`
-  double estimate = 0;         // ResidualTooLarge: first_instance's estimated error of qdd
-  double threshold = 0;        // ResidualTooLarge: the threshold it exceeded
+  double estimate = 0;         // ResidualTooLarge: first_instance's estimated error of qdd;
+                               // LoopNotClosed: its loop violation after the projection
+  double threshold = 0;        // ResidualTooLarge, LoopNotClosed: the threshold it exceeded
   const int* failed_dof = nullptr;  // (B) per instance: -1, or the DoF that failed; host memory
                                     // owned by the engine, valid until its next call; null when
                                     // the engine does not keep them (the simulator)
@@ -118,6 +123,8 @@ struct BatchStatus {
   //   "the state at DoF 6 is not finite after the step"
   //   "forward dynamics check: estimated error of qdd 2.1e-01 above the threshold 1e-04 (largest at DoF 6)"
   //   "the variational step's Newton iteration did not converge (largest correction at DoF 6)"
+  //   "the projection onto the closed loops left loop 4 violated by 2.3e-03 (max |phi| m, |J qd| m/s;
+  //    tolerance 1e-06)"
   std::string reason() const;
   // "" when ok(); else "instance 3: " + reason(), followed by
   // " (and 41 more instances)" when others failed too.

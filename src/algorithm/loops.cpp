@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "scandyn/algorithm/loop_projection.hpp"
 #include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/algorithm/reference.hpp"
 
@@ -148,20 +149,48 @@ LoopSolveInfo constrained_inverse_dynamics(const Model& model, const LoopSet& lo
   return info;
 }
 
-double project_to_loops(const Model& model, const LoopSet& loops, double* q, double* qd, double tol, int iterations) {
+double project_to_loops(const Model& model, const LoopSet& loops, double* q, double* qd, double tol, int iterations,
+                        LoopProjectionInfo* info) {
   const Index n = model.nv(), m = loops.rows();
-  if (m == 0) return 0;
-  MatX J(m, n);
-  VecX phi(m);
-  Eigen::Map<VecX> qv(q, n), qdv(qd, n);
-  for (int it = 0; it < iterations; ++it) {
-    loop_kinematics(model, loops, q, nullptr, phi.data(), J.data(), nullptr);
-    if (phi.cwiseAbs().maxCoeff() <= tol) break;
-    qv -= rank_revealing(J).solve(phi);
-  }
-  loop_kinematics(model, loops, q, nullptr, phi.data(), J.data(), nullptr);
-  qdv -= rank_revealing(J).solve(VecX(J * qdv));
-  return phi.cwiseAbs().maxCoeff();
+  // Levenberg-Marquardt of loop_projection.hpp over the dense J: Gauss-Newton's
+  // minimum-norm steps by its complete orthogonal decomposition, damped ones by its
+  // SVD (computed at the first damped step of a linearisation), x = V diag(s / (s^2 +
+  // mu)) U^T r over the singular values above the rank threshold
+  struct Dense {
+    const Model& model;
+    const LoopSet& loops;
+    MatX J;
+    Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod;
+    Eigen::BDCSVD<Eigen::MatrixXd> svd;
+    bool have_svd = false;
+    bool residual(const double* x, double* phi) {
+      loop_kinematics(model, loops, x, nullptr, phi, nullptr, nullptr);
+      for (Index k = 0; k < J.rows(); ++k)
+        if (!std::isfinite(phi[k])) return false;
+      return true;
+    }
+    void factorize(const double* x) {
+      loop_kinematics(model, loops, x, nullptr, nullptr, J.data(), nullptr);
+      cod = rank_revealing(J);
+      have_svd = false;
+    }
+    void solve(const double* r, double mu, double* x) {
+      const Eigen::Map<const VecX> rv(r, J.rows());
+      if (mu == 0) {
+        Eigen::Map<VecX>(x, J.cols()) = cod.solve(rv);
+        return;
+      }
+      if (!have_svd) svd.compute(J, Eigen::ComputeThinU | Eigen::ComputeThinV), have_svd = true;
+      const VecX& sv = svd.singularValues();
+      VecX c = svd.matrixU().transpose() * rv;
+      for (Index k = 0; k < sv.size(); ++k)
+        c[k] = sv[k] > kLoopRankTolerance * sv[0] ? c[k] * sv[k] / (sv[k] * sv[k] + mu) : 0.0;
+      Eigen::Map<VecX>(x, J.cols()) = svd.matrixV() * c;
+    }
+    void apply(const double* v, double* out) { Eigen::Map<VecX>(out, J.rows()) = J * Eigen::Map<const VecX>(v, J.cols()); }
+    double damping_scale() const { return J.rowwise().squaredNorm().maxCoeff(); }
+  } ops{model, loops, MatX(m, n), {}, {}, false};
+  return project_onto_loops(ops, n, m, q, qd, tol, iterations, info);
 }
 
 }  // namespace scandyn

@@ -1,6 +1,7 @@
 // src/engine/batch_status.cpp: BatchStatus (scandyn/engine.hpp), what one batched call
 // reports about its failed instances: merging shards' and stages' reports, the
 // one-line messages, and the summaries of per-instance failed-DoF arrays.
+#include <cmath>
 #include <cstdio>
 #include <string>
 
@@ -40,6 +41,15 @@ std::string BatchStatus::reason() const {
     case Failure::NotConverged:
       return "the variational step's Newton iteration did not converge (largest correction at DoF " +
              std::to_string(first_dof) + ")";
+    case Failure::LoopNotClosed: {
+      if (std::isinf(estimate)) return "the projection onto the closed loops failed (its factorisation)";
+      char b[256];
+      std::snprintf(b, sizeof b,
+                    "the projection onto the closed loops left loop %lld violated by %.2g (max |phi| m, |J qd| m/s; "
+                    "tolerance %.2g)",
+                    static_cast<long long>(first_dof), estimate, threshold);
+      return b;
+    }
     case Failure::ArticulatedPivot:
     case Failure::None: break;
   }

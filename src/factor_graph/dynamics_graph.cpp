@@ -56,8 +56,9 @@ std::vector<LoopClosure> graph_loops(const scandyn::LoopSet& loops) {
 
 DynamicsGraph::DynamicsGraph(const Model& model, std::vector<LoopClosure> loops,
                              std::vector<char> known_qdd, std::vector<double> armature,
-                             const ModelUnits* units)
-    : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)), armature_(std::move(armature)) {
+                             const ModelUnits* units, bool loop_compliance)
+    : model_(model), loops_(std::move(loops)), known_qdd_(std::move(known_qdd)), armature_(std::move(armature)),
+      has_compliance_(loop_compliance) {
   if (model.multi_dof())
     throw std::invalid_argument("factor graph: model '" + model.name + "' has the multi-DoF joint '" +
                                 first_multi_dof_joint(model) + "'; the factor graph takes revolute and prismatic "
@@ -278,6 +279,10 @@ void DynamicsGraph::write(bool pattern, const double* q, const double* qd, const
       const Vec3<double> wv = mul_transpose(E, cross(v[j].w, vp));  // world axes
       for (int r = 0; r < 3; ++r) b_[static_cast<std::size_t>(e0 + lin + r)] -= s * wv[r];
     }
+    // the compliance w lambda (w in the model's units: its SI value here, scaled by assemble)
+    if (has_compliance_)
+      for (Index e = e0; e < e0 + L.dim(); ++e)
+        put(e, e, compliance_ * equation_unit_[static_cast<std::size_t>(e)] / unknown_unit_[static_cast<std::size_t>(e)]);
   }
 }
 

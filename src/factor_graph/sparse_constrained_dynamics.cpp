@@ -8,6 +8,7 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "scandyn/algorithm/loop_projection.hpp"
 #include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/factor_graph/gpu_sparse_cholesky.hpp"
 #include "scandyn/factor_graph/normal_equations.hpp"
@@ -29,8 +30,8 @@ struct SparseConstrainedDynamics::System {
   std::unique_ptr<GpuSparseCholesky> gpu;
 #endif
   System(const Model& model, const LoopSet& loops, std::vector<double> armature, const ModelUnits& units,
-         Ordering ordering, bool on_gpu)
-      : graph(model, graph_loops(loops), {}, std::move(armature), &units), chol(graph.At(), ordering, {}, kLoopBeta) {
+         Ordering ordering, bool on_gpu, bool compliance = false)
+      : graph(model, graph_loops(loops), {}, std::move(armature), &units, compliance), chol(graph.At(), ordering, {}, kLoopBeta) {
 #if SCANDYN_HAS_FACTOR_GRAPH_GPU
     if (on_gpu) gpu = std::make_unique<GpuSparseCholesky>(graph.At(), chol.elimination_order(), kLoopBeta);
 #else
@@ -61,6 +62,7 @@ SparseConstrainedDynamics::SparseConstrainedDynamics(const Model& model, const L
   kinematic_model_.gravity = Vec3<double>::zero();
   const Index n = model_.nv(), m = loops_.rows();
   X0_.resize(static_cast<std::size_t>(n));
+  X0_lin_.resize(static_cast<std::size_t>(n));
   v_.resize(static_cast<std::size_t>(n));
   a_.resize(static_cast<std::size_t>(n));
   zero_.assign(static_cast<std::size_t>(n), Motion<double>::zero());
@@ -89,7 +91,8 @@ SparseConstrainedDynamics::System& SparseConstrainedDynamics::projection() {
     const ModelUnits u = model_units(model_);
     projection_ = std::make_unique<System>(
         kinematic_model_, loops_,
-        std::vector<double>(static_cast<std::size_t>(model_.nv()), u.mass * u.length * u.length), u, ordering_, gpu_);
+        std::vector<double>(static_cast<std::size_t>(model_.nv()), u.mass * u.length * u.length), u, ordering_, gpu_,
+        true);  // with the loop rows' compliance: the damped steps
     timing_.analysis += seconds_since(t0);
   }
   return *projection_;
@@ -151,36 +154,49 @@ void SparseConstrainedDynamics::solve_projection(const double* q, const double* 
   g.extract(x_.data(), x, nullptr, nullptr);
 }
 
-double SparseConstrainedDynamics::project(double* q, double* qd, double tol, int iterations) {
+void SparseConstrainedDynamics::min_norm_step(const double* q, const double* r, double mu, double* x, bool factor) {
+  if (mu != factored_mu_) factor = true;
+  if (factor) projection().graph.set_loop_compliance(mu), factored_mu_ = mu;
+  solve_projection(q, r, x, factor);
+}
+
+double SparseConstrainedDynamics::project(double* q, double* qd, double tol, int iterations,
+                                          LoopProjectionInfo* info) {
   const Index n = model_.nv(), m = loops_.rows();
-  if (m == 0) return 0;
   const Index nl = static_cast<Index>(rows_.size());
-  auto residual = [&] {  // phi at q
-    loop_body_motion(model_.bodies.data(), n, q, static_cast<const double*>(nullptr), X0_.data(), v_.data(),
-                     a_.data());
-    loop_rows(model_.bodies.data(), n, rows_.data(), nl, X0_.data(), v_.data(), a_.data(), phi_.data(),
-              static_cast<double*>(nullptr), static_cast<double*>(nullptr));
-    double worst = 0;
-    for (double p : phi_) worst = std::max(worst, std::fabs(p));
-    return worst;
-  };
-  for (int it = 0; it < iterations; ++it) {
-    if (residual() <= tol) break;
-    for (Index k = 0; k < m; ++k) r_[k] = -phi_[k];
-    solve_projection(q, r_.data(), dx_.data(), true);  // Gauss-Newton: dq = -J^+ phi
-    for (Index i = 0; i < n; ++i) q[i] += dx_[i];
-  }
-  const double worst = residual();
-  // J qd: the loop rows' classical acceleration term with the bodies' velocities as
-  // accelerations and no velocity (point_acceleration(X, 0, v, p) = v.v + v.w x p)
-  loop_body_motion(model_.bodies.data(), n, q, qd, X0_.data(), v_.data(), a_.data());
-  loop_rows(model_.bodies.data(), n, rows_.data(), nl, X0_.data(), zero_.data(), v_.data(),
-            static_cast<double*>(nullptr), static_cast<double*>(nullptr), r_.data());
-  for (Index k = 0; k < m; ++k) r_[k] = -r_[k];
-  std::vector<double> dqd(static_cast<std::size_t>(n));
-  solve_projection(q, r_.data(), dqd.data(), true);  // dqd = -J^+ J qd, J at the final q
-  for (Index i = 0; i < n; ++i) qd[i] += dqd[i];
-  return worst;
+  // Levenberg-Marquardt of loop_projection.hpp: phi from the loop rows' routines, the
+  // minimum-norm solves through the projection system, J v and J^T r by the loops'
+  // paths at the factorised q (X0_lin_)
+  struct Sparse {
+    SparseConstrainedDynamics& s;
+    Index n, nl;
+    std::vector<double> q_lin;
+    bool pending = false;
+    bool residual(const double* x, double* phi) {
+      loop_body_motion(s.model_.bodies.data(), n, x, static_cast<const double*>(nullptr), s.X0_.data(), s.v_.data(),
+                       s.a_.data());
+      loop_rows(s.model_.bodies.data(), n, s.rows_.data(), nl, s.X0_.data(), s.v_.data(), s.a_.data(), phi,
+                static_cast<double*>(nullptr), static_cast<double*>(nullptr));
+      for (Index k = 0; k < s.loops_.rows(); ++k)
+        if (!std::isfinite(phi[k])) return false;
+      return true;
+    }
+    void factorize(const double* x) {
+      q_lin.assign(x, x + n);
+      loop_body_motion(s.model_.bodies.data(), n, x, static_cast<const double*>(nullptr), s.X0_lin_.data(),
+                       s.v_.data(), s.a_.data());
+      pending = true;  // assembled and factorised at x by the next solve
+    }
+    void solve(const double* r, double mu, double* x) {
+      s.min_norm_step(q_lin.data(), r, mu, x, pending);
+      pending = false;
+    }
+    void apply(const double* v, double* out) {
+      loop_jacobian_apply(s.model_.bodies.data(), s.rows_.data(), nl, s.X0_lin_.data(), v, out);
+    }
+    double damping_scale() const { return 1.0; }  // J J^T in the model's units: O(1)
+  } ops{*this, n, nl, {}, true};
+  return project_onto_loops(ops, n, m, q, qd, tol, iterations, info);
 }
 
 std::unique_ptr<sim::LoopSolver> make_sparse_loop_solver(const Model& model, const LoopSet& loops) {

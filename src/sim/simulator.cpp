@@ -26,6 +26,9 @@ std::string failure_message(const BatchStatus& st) {
   const std::string steps = std::to_string(st.failed) + " instance-step" + (st.failed > 1 ? "s" : "") +
                             ", first in instance " + std::to_string(st.first_instance) + ": " + st.reason();
   if (st.failure == Failure::NonFinite) return "the state became non-finite in " + steps;
+  if (st.failure == Failure::LoopNotClosed)
+    return "the step's projection onto the closed loops failed in " + steps +
+           "; those instances kept their state for those steps";
   if (st.failure == Failure::NotConverged)
     return "the variational step failed in " + steps + "; those instances kept their state for those steps";
   return "forward dynamics failed in " + steps + "; those instances kept their state for those steps";
@@ -268,9 +271,16 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
       throw std::out_of_range("Simulator::reset: instance " + std::to_string(b) + " is outside [0, " +
                               std::to_string(B) + ")");
   if (setup_.model.multi_dof()) return reset_manifold(instances);
-  // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer
+  // with closed loops every instance's row is drawn and projected first, and written
+  // only when all of them closed: a refused start leaves every instance's state (and
+  // the generator) as it was
+  const bool loops = !setup_.loops.empty();
+  const Random saved = loops ? *random_ : Random(0);
   std::unique_ptr<LoopSolver> reset_loops;  // closed loops on the sparse path
-  const Index chunk = std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
+  // in chunks, so a reset of 10^7 instances needs no 10^7-row buffer (with loops: one
+  // chunk)
+  const Index chunk = loops ? std::max<Index>(1, static_cast<Index>(instances.size()))
+                            : std::max<Index>(1, std::min<Index>(B, (1 << 20) / std::max<Index>(1, n)));
   for (std::size_t start = 0; start < instances.size(); start += static_cast<std::size_t>(chunk)) {
     const Index count = static_cast<Index>(std::min<std::size_t>(chunk, instances.size() - start));
     q_rows_.resize(static_cast<std::size_t>(count) * n);
@@ -283,27 +293,46 @@ void Simulator<S>::reset(const std::vector<Index>& instances) {
       for (Index i = 0; i < n; ++i)
         qd_rows_[k * n + i] = S(initial_.random ? initial_.qd[i] + random_->uniform(-initial_.qd_spread[i], initial_.qd_spread[i])
                                                : initial_.qd[i]);
-      // with closed loops, the state is projected onto them
-      if (!setup_.loops.empty()) {
+      // with closed loops, the state is projected onto them: Levenberg-Marquardt around
+      // Gauss-Newton (scandyn/algorithm/loop_projection.hpp) to max |phi| <= 1e-13, at
+      // most kResetLinearisations factorisations
+      if (loops) {
         std::vector<double> lq(q_rows_.begin() + k * n, q_rows_.begin() + (k + 1) * n);
         std::vector<double> lqd(qd_rows_.begin() + k * n, qd_rows_.begin() + (k + 1) * n);
-        double off = 0;  // max |phi| after the projection
-        if (setup_.loop_solver) {  // one sparse solver for the reset's instances
-          if (!reset_loops) reset_loops = setup_.loop_solver(setup_.loop_model, setup_.loops);
-          off = reset_loops->project(lq.data(), lqd.data(), 1e-13, 50);
-        } else {
-          off = project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data());
+        LoopProjectionInfo info;
+        try {
+          if (setup_.loop_solver) {  // one sparse solver for the reset's instances
+            if (!reset_loops) reset_loops = setup_.loop_solver(setup_.loop_model, setup_.loops);
+            reset_loops->project(lq.data(), lqd.data(), 1e-13, kResetLinearisations, &info);
+          } else {
+            project_to_loops(setup_.loop_model, setup_.loops, lq.data(), lqd.data(), 1e-13, kResetLinearisations,
+                             &info);
+          }
+        } catch (const LoopError& e) {
+          *random_ = saved;
+          throw SceneError("initial state of instance " + std::to_string(instances[start + k]) +
+                           ": its projection onto the loops failed (" + e.what() + "); no instance was reset");
         }
-        // Gauss-Newton from far off the loops may not converge (cloth:30:30 from q = 0.1
-        // ends 1.9e-2 off): refuse such a start (kLoopStateTolerance, as eval --loops
-        // refuses such a state) rather than step from it; this chunk's instances are
-        // written after this loop, so none of them is
-        if (!(off <= kLoopStateTolerance))
+        // a start the projection cannot close (an infeasible loop set, a local minimum
+        // of |phi|^2, the iteration bound) is refused (kLoopStateTolerance, as eval
+        // --loops refuses such a state) rather than stepped from
+        const double off = info.violation();
+        if (!(off <= kLoopStateTolerance)) {
+          *random_ = saved;
+          Index loop = 0;
+          for (Index row = 0; loop + 1 < static_cast<Index>(setup_.loops.loops.size()); ++loop) {
+            row += setup_.loops.loops[loop].rows();
+            if (info.worst_row < row) break;
+          }
+          const LoopClosure& l = setup_.loops.loops[static_cast<std::size_t>(std::max<Index>(0, loop))];
           throw SceneError("initial state of instance " + std::to_string(instances[start + k]) + ": " +
-                           std::to_string(off) + " m off its loops after projecting it onto them (tolerance " +
-                           std::to_string(kLoopStateTolerance) +
-                           "; Gauss-Newton from the scene's initial q did not converge: start closer to a closed "
-                           "configuration)");
+                           std::to_string(off) + " m off its loops (worst: loop " + std::to_string(loop) + ", " +
+                           l.link_a + " - " + l.link_b + ") after projecting it onto them (tolerance " +
+                           std::to_string(kLoopStateTolerance) + "; " + std::to_string(info.linearisations) +
+                           " linearisations of the Levenberg-Marquardt projection from the scene's initial q: an "
+                           "infeasible loop set, or a start that only reaches a local minimum of |phi|: start "
+                           "closer to a closed configuration); no instance was reset");
+        }
         for (Index i = 0; i < n; ++i) q_rows_[k * n + i] = S(lq[i]), qd_rows_[k * n + i] = S(lqd[i]);
       }
       // driven DoFs start on their trajectories, at the current time

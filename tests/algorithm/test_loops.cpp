@@ -224,3 +224,43 @@ TEST(Loops, LoopFileErrors) {
   const std::vector<double> q(4, 0.0), qd(4, 0.0);
   EXPECT_LE(loop_violation(m, base, q.data(), qd.data()), 1e-15);
 }
+
+// project_to_loops from far off the loops (Levenberg-Marquardt,
+// scandyn/algorithm/loop_projection.hpp) ends where a globally convergent method may:
+// closed (max |phi| <= 1e-12 and J qd = 0), or at a stationary point of |phi|^2 (a
+// local minimum of a tangled cloth: |J^T phi| <= 1e-6 |J| |phi| from the dense J at
+// the end, an independent check), or at the bound on linearisations; never NaN.
+// Starts: cloth:4:4 and cloth:6:6 with q drawn in +-2 rad, fivebar in +-3 rad.
+TEST(Loops, FarProjectionEndsClosedOrStationary) {
+  std::mt19937_64 rng(11);
+  for (const char* spec : {"fivebar", "cloth:4:4", "cloth:6:6"}) {
+    const Model model = load_model(spec);
+    const LoopSet loops = generator_loops(spec, model);
+    const Index n = model.nv(), m = loops.rows();
+    const double amp = std::string(spec) == "fivebar" ? 3.0 : 2.0;
+    int closed = 0;
+    for (int t = 0; t < 10; ++t) {
+      SCOPED_TRACE(std::string(spec) + " start " + std::to_string(t));
+      std::uniform_real_distribution<double> u(-amp, amp);
+      std::vector<double> q(n), qd(n);
+      for (Index i = 0; i < n; ++i) q[i] = u(rng), qd[i] = u(rng);
+      LoopProjectionInfo info;
+      const double r = project_to_loops(model, loops, q.data(), qd.data(), 1e-13, 100, &info);
+      ASSERT_TRUE(std::isfinite(r) && std::isfinite(info.jqd));
+      MatX J(m, n);
+      Eigen::VectorXd phi(m);
+      loop_kinematics(model, loops, q.data(), nullptr, phi.data(), J.data(), nullptr);
+      EXPECT_EQ(phi.cwiseAbs().maxCoeff(), r);
+      EXPECT_LE((J * Eigen::Map<Eigen::VectorXd>(qd.data(), n)).cwiseAbs().maxCoeff(), 1e-12 * (1 + amp));
+      if (r <= 1e-12) {
+        ++closed;
+        continue;
+      }
+      const double g = (J.transpose() * phi).norm();
+      EXPECT_TRUE(g <= 1e-6 * J.norm() * phi.norm() || info.linearisations == 100)
+          << "max |phi| " << r << ", |J^T phi| " << g << " after " << info.linearisations << " linearisations";
+    }
+    EXPECT_GE(closed, 5) << spec;
+  }
+}
+

@@ -26,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include "scandyn/algorithm/loop_projection.hpp"
 #include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/algorithm/point_kinematics.hpp"
 #include "scandyn/model/model.hpp"
@@ -120,10 +121,13 @@ LoopSolveInfo constrained_inverse_dynamics(const Model& model, const LoopSet& lo
                                            const double* qdd, const unsigned char* actuated, double* tau,
                                            double* lambda, const Force<double>* fext = nullptr);
 
-// Moves (q, qd) onto the loops: Gauss-Newton on phi(q) = 0 (minimum-norm steps) until
-// max |phi| <= tol or `iterations` steps, then qd to its minimum-norm change with J
-// qd = 0. Returns the final max |phi|.
+// Moves (q, qd) onto the loops: min |phi(q)|^2 by Levenberg-Marquardt around Gauss-Newton
+// (minimum-norm steps; scandyn/algorithm/loop_projection.hpp: from close to the loops
+// it is plain Gauss-Newton, from far off globally convergent) until max |phi| <= tol
+// or `iterations` linearisations (or a stationary point of |phi|^2), then qd to its
+// minimum-norm change with J qd = 0. Returns the final max |phi|; info (may be null):
+// also max |J qd| after, the worst row, the linearisations and trials it took.
 double project_to_loops(const Model& model, const LoopSet& loops, double* q, double* qd, double tol = 1e-13,
-                        int iterations = 50);
+                        int iterations = 50, LoopProjectionInfo* info = nullptr);
 
 }  // namespace scandyn

@@ -83,8 +83,14 @@ class DynamicsGraph {
   // the units to store the system in (powers of two), null: model_units(model).
   // Throws std::invalid_argument on a loop naming a body outside [-1, nv) or joining
   // a body to itself, or on known_qdd / armature of the wrong size.
+  // loop_compliance: the loop rows get an entry on their own multipliers,
+  // J qdd + w lambda = rhs (w: set_loop_compliance, 0 until set; in the model's
+  // units), in the pattern from construction on (the simulator's damped projection
+  // steps, scandyn/factor_graph/sparse_constrained_dynamics.hpp).
   DynamicsGraph(const Model& model, std::vector<LoopClosure> loops, std::vector<char> known_qdd,
-                std::vector<double> armature = {}, const ModelUnits* units = nullptr);
+                std::vector<double> armature = {}, const ModelUnits* units = nullptr, bool loop_compliance = false);
+  // w >= 0 for the next assemble() (a graph made with loop_compliance; ignored otherwise).
+  void set_loop_compliance(double w) { compliance_ = w; }
 
   // Writes the values of A and b for one state. qdd_in and tau_in (nv) are read
   // only at the given entries (either may be null when it has none).
@@ -134,6 +140,8 @@ class DynamicsGraph {
   std::vector<LoopClosure> loops_;
   std::vector<char> known_qdd_;
   std::vector<double> armature_;  // (nv) or empty
+  bool has_compliance_ = false;   // the loop rows' entries on their multipliers are in the pattern
+  double compliance_ = 0;         // their value, in the model's units
   std::vector<Index> lambda_offset_;
   ModelUnits units_;
   std::vector<double> unknown_unit_, equation_unit_;

@@ -17,6 +17,13 @@
 //                     solution is qdd = J^T mu with J qdd = r, the minimum-norm
 //                     solution J^+ r of project_to_loops's steps (r = -phi for a
 //                     Gauss-Newton step, r = -J qd for the velocity projection).
+//                     The position steps are Levenberg-Marquardt's
+//                     (scandyn/algorithm/loop_projection.hpp; Gauss-Newton from close
+//                     to the loops): a damped step J^T (J J^T + mu I)^-1 r is the same
+//                     system with the compliance mu on the loop rows' multipliers
+//                     (J qdd + mu lambda = r; DynamicsGraph's loop_compliance), one
+//                     more factorisation per damping tried; J v by walking the loops'
+//                     paths.
 //                     It is stored in the model's units (those of the forward
 //                     dynamics, c = M L^2): in SI a cloth's 1 cm lengths leave J's
 //                     weakly constrained directions (singular values ~1e-6) below
@@ -50,7 +57,15 @@ class SparseConstrainedDynamics final : public sim::LoopSolver {
   ~SparseConstrainedDynamics() override;
 
   void forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd, double* lambda) override;
-  double project(double* q, double* qd, double tol, int iterations) override;
+  double project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info = nullptr) override;
+
+  // x (nv) = J^T (J J^T + mu I)^-1 r at q (r: m loop rows), J and I in the projection
+  // system's units (the model's: J's rows divided by their unit, L for a point's and
+  // a weld's linear rows, 1 for a weld's angular ones; for point loops the dense
+  // damping mu L^2); mu = 0: J^+ r. factor: assemble and factorise at q (also done
+  // when mu differs from the last factorisation's), else the last factorisation, which
+  // must be at q. The projection's (Levenberg-Marquardt's) step.
+  void min_norm_step(const double* q, const double* r, double mu, double* x, bool factor = true);
 
   // Accumulated wall time (s) and counts since construction or reset_timing().
   struct Timing {
@@ -83,7 +98,8 @@ class SparseConstrainedDynamics final : public sim::LoopSolver {
   bool gpu_ = false;
   std::unique_ptr<System> fd_, projection_;
   Timing timing_;
-  std::vector<Transform<double>> X0_;
+  double factored_mu_ = 0;  // the projection system's compliance at its last factorisation
+  std::vector<Transform<double>> X0_, X0_lin_;  // at the last evaluated q, at the projection's factorised q
   std::vector<Motion<double>> v_, a_, zero_;
   std::vector<double> phi_, r_, dx_, b_, x_;
 };

@@ -76,7 +76,10 @@
 // A step that leaves an instance's state (q or qd) not finite (a diverging
 // explicit step, an effect coefficient too large for the precision) is recorded
 // the same way, with Failure::NonFinite and the first such DoF; that state is kept
-// as computed (the caller decides: the rollout stops there).
+// as computed (the caller decides: the rollout stops there). With closed loops, a
+// step whose projection onto the loops leaves the state more than kLoopStateTolerance
+// off them (max |phi|, |J qd|) is recorded with Failure::LoopNotClosed (first_dof: the
+// worst loop; estimate: the violation) and the instance keeps its state for the step.
 #pragma once
 
 #include <memory>
@@ -103,6 +106,15 @@ std::string failure_message(const BatchStatus& st);
 // Adds one step's failures (a batch's BatchStatus) to a simulator's status: the
 // count saturates at the largest Index, the lowest failing instance is kept.
 void add_step_failures(BatchStatus& status, const BatchStatus& step);
+
+// A reset with closed loops projects each start onto them by Levenberg-Marquardt around
+// Gauss-Newton (scandyn/algorithm/loop_projection.hpp) with at most this many
+// linearisations (factorisations of J, dense or sparse), and refuses (SceneError
+// naming the instance and its worst loop) a start left more than kLoopStateTolerance
+// off its loops; every step projects with at most 10 (tolerance 1e-12), and a step
+// left more than kLoopStateTolerance off is a failure of that instance
+// (Failure::LoopNotClosed: it keeps its state).
+inline constexpr int kResetLinearisations = 100;
 
 // What the simulator's steps read, prepared once from the scene in precision S.
 template <class S>
@@ -243,7 +255,9 @@ class Simulator {
 
   // Puts the listed instances back in the scene's initial state (randomised ones
   // draw again, continuing the scene's seeded generator). Throws std::out_of_range
-  // for an index outside [0, B).
+  // for an index outside [0, B). With closed loops, each start is projected onto
+  // them (kResetLinearisations); a start that cannot be closed is a SceneError naming
+  // the instance, and then no instance is written and the generator is as before.
   void reset(const std::vector<Index>& instances);
   void reset_all();
 

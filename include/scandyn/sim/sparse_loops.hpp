@@ -29,10 +29,13 @@ class LoopSolver {
   // may be null. Throws LoopError when the factorisation fails.
   virtual void forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd,
                                 double* lambda) = 0;
-  // project_to_loops's contract: Gauss-Newton with minimum-norm steps on phi(q) = 0
-  // until max |phi| <= tol or `iterations` steps, then qd's minimum-norm change with
-  // J qd = 0. Returns the final max |phi|.
-  virtual double project(double* q, double* qd, double tol, int iterations) = 0;
+  // project_to_loops's contract: Levenberg-Marquardt around Gauss-Newton (minimum-norm
+  // steps) of scandyn/algorithm/loop_projection.hpp on phi(q) = 0 until max |phi| <=
+  // tol or `iterations` linearisations, then qd's minimum-norm change with J qd = 0.
+  // Returns the final max |phi|; info (may be null): max |J qd| after, the worst row,
+  // the linearisations (factorisations) and trials. Throws LoopError when a
+  // factorisation fails.
+  virtual double project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info = nullptr) = 0;
 };
 
 using LoopSolverFactory = std::unique_ptr<LoopSolver> (*)(const Model& model, const LoopSet& loops);
