@@ -7,7 +7,7 @@ namespace scandyn {
 template <class S>
 SecondDerivativeData<S>::SecondDerivativeData(const ModelTpl<S>& m)
     : work(static_cast<std::size_t>(m.nv())), wrenches(static_cast<std::size_t>(m.nv())),
-      block(static_cast<std::size_t>(m.nv()) * m.nv()) {
+      block(static_cast<std::size_t>(m.nv()) * m.nv()), plain(static_cast<std::size_t>(m.nv())) {
   bodies.reserve(m.bodies.size());
   for (const Body<S>& b : m.bodies) bodies.push_back(b.template cast<Dual<S>>());
 }
@@ -16,6 +16,21 @@ template <class S>
 void rnea_second_derivatives(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                              const S* qdd, const Force<S>* fext, S* d2tau_dq2, S* d2tau_dqd2, S* d2tau_dqdqd,
                              S* dM_dq) {
+  if (model.multi_dof()) {
+    rnea_second_derivatives_dual(model, data, q, qd, qdd, fext, d2tau_dq2, d2tau_dqd2, d2tau_dqdqd, dM_dq);
+    return;
+  }
+  const Index n = model.nv();
+  rnea_second_derivatives_analytic_instance(model.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd,
+                                            fext, data.plain.data(), TensorRef<S>{d2tau_dq2, n, 1},
+                                            TensorRef<S>{d2tau_dqd2, n, 1}, TensorRef<S>{d2tau_dqdqd, n, 1},
+                                            TensorRef<S>{dM_dq, n, 1});
+}
+
+template <class S>
+void rnea_second_derivatives_dual(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
+                                  const S* qdd, const Force<S>* fext, S* d2tau_dq2, S* d2tau_dqd2, S* d2tau_dqdqd,
+                                  S* dM_dq) {
   const Index n = model.nv();
   rnea_second_derivatives_instance(data.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd, fext,
                                    data.work.data(), data.wrenches.data(), TensorRef<S>{d2tau_dq2, n, 1},
@@ -37,7 +52,9 @@ void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, 
                                   const Force<S>*, const S*, S*);                                                  \
   template struct SecondDerivativeData<S>;                                                                        \
   template void rnea_second_derivatives(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*, \
-                                        const Force<S>*, S*, S*, S*, S*);
+                                        const Force<S>*, S*, S*, S*, S*);                                          \
+  template void rnea_second_derivatives_dual(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*,     \
+                                             const S*, const Force<S>*, S*, S*, S*, S*);
 SCANDYN_INSTANTIATE(float)
 SCANDYN_INSTANTIATE(double)
 #undef SCANDYN_INSTANTIATE

@@ -1,11 +1,17 @@
 // scandyn/algorithm/second_derivatives.hpp: the second-order derivatives of inverse
 // dynamics (the nv x nv x nv tensors Pinocchio 3 computes), serial, for robots.
 //
-// The recursion and its scratch: scandyn/instance/second_derivatives_instance.hpp
-// (rnea_second_derivatives_instance, 2 nv dual passes of the first-order recursion
-// rnea_derivatives_instance, each writing the eps parts of its blocks), which these
-// functions run on the host; the engines (make_id_second_derivatives,
-// scandyn/engine.hpp) run it per instance on every backend.
+// The recursions and their scratch: rnea_second_derivatives runs the analytical
+// second-order recursion (Singh, Russell & Wensing, RA-L 2022: one forward and one
+// backward pass over (body, ancestor, ancestor) triples;
+// rnea_second_derivatives_analytic_instance,
+// scandyn/instance/second_derivatives_analytic.hpp), as the engines
+// (make_id_second_derivatives, scandyn/engine.hpp) do per instance on every backend.
+// rnea_second_derivatives_dual runs the earlier forward-mode version
+// (rnea_second_derivatives_instance, scandyn/instance/second_derivatives_instance.hpp:
+// 2 nv dual passes of the first-order recursion rnea_derivatives_instance, each
+// writing the eps parts of its blocks), kept as the independent reference of the
+// tests and benchmarks; rnea_weighted_dq2 runs dual passes too.
 //
 // Tensors: nv x nv x nv, entry (i, j, k) at data[(i * nv + j) * nv + k]:
 //   d2tau_dq2(i, j, k)    = d^2 tau_i / dq_j dq_k    (symmetric in j, k)
@@ -18,6 +24,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/derivatives.hpp"
+#include "scandyn/instance/second_derivatives_analytic.hpp"
 #include "scandyn/instance/second_derivatives_instance.hpp"
 
 namespace scandyn {
@@ -31,14 +38,25 @@ struct SecondDerivativeData {
   std::vector<DerivativeBody<Dual<S>>> work;  // (nv) one pass's world-frame body quantities
   std::vector<Force<Dual<S>>> wrenches;       // (nv) the body wrenches in dual numbers
   std::vector<S> block;  // (nv x nv, row-major) rnea_weighted_dq2: d/dq_k of dtau/dq in one pass
+  std::vector<DerivativeBody<S>> plain;       // (nv) the analytical recursion's world-frame body quantities
 };
 
 // The second derivatives of tau = ID(q, qd, qdd, fext) (tensors as above, every entry
-// written; dM_dq optional, null: not written), gravity included.
+// written; dM_dq optional, null: not written), gravity included: the analytical
+// recursion (rnea_second_derivatives_analytic_instance) for models of 1-DoF joints,
+// the dual passes (rnea_second_derivatives_dual) otherwise.
 template <class S>
 void rnea_second_derivatives(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                              const S* qdd, const Force<S>* fext, S* d2tau_dq2, S* d2tau_dqd2, S* d2tau_dqdqd,
                              S* dM_dq = nullptr);
+
+// The same tensors by 2 nv forward-mode dual passes of the first-order recursion
+// (rnea_second_derivatives_instance): the reference the analytical recursion is
+// tested against (O(nv^2 depth) work, 3-24x slower).
+template <class S>
+void rnea_second_derivatives_dual(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
+                                  const S* qdd, const Force<S>* fext, S* d2tau_dq2, S* d2tau_dqd2, S* d2tau_dqdqd,
+                                  S* dM_dq = nullptr);
 
 // The contraction of d2tau_dq2 with a weight w on tau, without the nv^3 tensor:
 // out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, row-major, symmetric), the

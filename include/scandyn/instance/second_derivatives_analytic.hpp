@@ -1,0 +1,234 @@
+// scandyn/instance/second_derivatives_analytic.hpp: the second-order derivatives of
+// inverse dynamics of one instance by the analytical second-order recursion,
+// __host__ __device__: what rnea_second_derivatives (scandyn/algorithm/
+// second_derivatives.hpp), the CPU engines (cpu_fallback/second_derivatives.cpp) and
+// the CUDA kernel (kernels/second_derivatives.cu) run for models of 1-DoF joints
+// (revolute, prismatic) on a fixed base. The dual-number passes of
+// scandyn/instance/second_derivatives_instance.hpp stay as the independent reference.
+//
+// The algorithm is the second-order IDSVA recursion of S. Singh, R. P. Russell and
+// P. M. Wensing, "Efficient Analytical Derivatives of Rigid-Body Dynamics Using
+// Spatial Vector Algebra", IEEE Robotics and Automation Letters 7(2), 2022 (the one
+// Pinocchio 3's computeRNEASecondOrderDerivatives implements): one forward pass of
+// world-frame kinematics, then one backward pass that, for every body c (leaves to
+// root, once its subtree's composite quantities are complete) and every pair of
+// ancestors a <= b <= c on its path to the root, writes all entries of the four
+// tensors whose three indices are {a, b, c}; triples not on one root-to-leaf path are
+// 0. Work O(sum over bodies of depth^2) triples of 6-vector dot products.
+//
+// Derivation, in this file's notation (scandyn's first-order world-frame recursion,
+// scandyn/instance/dynamics_derivatives.hpp, differentiated once more; all vectors in
+// the world frame, x: motion cross product, x*: force cross product, "y <= x": y an
+// ancestor of x or x itself, lambda: the parent). For body m: S_m, v_m, a_m,
+// dV_m = v_lambda(m) x S_m, dA_m = a_lambda(m) x S_m + v_lambda(m) x dV_m; for the
+// subtree of m: Ic_m (composite inertia), Bc_m (sum of C&M's B, B(I, u) w =
+// u x* (I w) - I (u x w) + w x* (I u)), F_m (composite body force). Moving joint z
+// (z <= m) turns everything of the subtree of m rigidly, plus non-rigid parts:
+//   d S_m/dq_z  = S_z x S_m
+//   d dV_m/dq_z = S_z x dV_m + dV_z x S_m                      (z < m; 0 for z = m)
+//   d dA_m/dq_z = S_z x dA_m + dA_z x S_m + 2 dV_z x dV_m      (z < m; 0 for z = m)
+//   d dV_m/dqd_z = S_z x S_m,  d dA_m/dqd_z = 2 (dV_z x S_m + S_z x dV_m)    (z < m)
+//   d Ic_m/dq_z = S_z x* Ic_m - Ic_m S_z x                    (z <= m; z > m: that of Ic_z)
+//   d Bc_m/dq_z = S_z x* Bc_m - Bc_m S_z x + B(Ic_m, dV_z)     (z <= m; z > m: that of Bc_z)
+//   d Bc_m/dqd_z = B(Ic_m, S_z)                                (z <= m; z > m: B(Ic_z, S_z))
+//   d F_m/dq_z  = S_z x* F_m + Ic_m dA_z + Bc_m dV_z            (z <= m; z > m: Phi_z)
+//   d F_m/dqd_z = 2 Ic_m dV_z + Bc_m S_z                        (z <= m; z > m: Psi_z)
+// with Phi_z = S_z x* F_z + Ic_z dA_z + Bc_z dV_z and Psi_z = 2 Ic_z dV_z + Bc_z S_z.
+// Applied to the first-order entries (dtau_x/dq_y = S_x . (Ic_x dA_y + Bc_x dV_y) for
+// y <= x, S_x . Phi_y for x < y; likewise dtau/dqd with 2 Ic dV + Bc S and Psi; M_xy =
+// S_x . Ic_x S_y for y <= x), the rigid parts cancel in the scalar products wherever
+// z is an ancestor of every body involved, and for a <= b <= c everything left is a
+// product of the per-body vectors S_a, dV_a, dA_a with 6-vectors of the pair (b, c)
+// (composites of c only), e.g.
+//   d2tau_c/dq_b dq_a = dA_a . (S_b x* Ic_c S_c) + dV_a . P2(b, c)
+//   d2tau_a/dq_c dq_b = S_a . K(b, c)
+//   d2tau_b/dq_a dq_c = dA_a . Q1(b, c) + dV_a . Q2(b, c)
+// (the full list in rnea_second_derivatives_analytic_instance below, each with the
+// case it comes from). The formulas are this file's own derivation in scandyn's
+// conventions ([angular; linear], Featherstone's x and x*); they are checked entry by
+// entry against the dual-number passes and, in bench/pinocchio_second_order, against
+// Pinocchio.
+//
+// Tensors: as in scandyn/instance/second_derivatives_instance.hpp (TensorRef):
+//   d2tau_dq2(i, j, k) = d^2 tau_i / dq_j dq_k, d2tau_dqd2(i, j, k) = d^2 tau_i /
+//   dqd_j dqd_k, d2tau_dqdqd(i, j, k) = d^2 tau_i / dq_j dqd_k, dM_dq(i, j, k) =
+//   d M_ij / dq_k; every entry written (dM_dq only when its data is not null).
+//
+// Scratch per instance: nv DerivativeBody<S> (72 scalars each), the first-order
+// recursion's (no dual numbers, no model copy).
+#pragma once
+
+#include <cstddef>
+
+#include "scandyn/instance/dynamics_derivatives.hpp"
+#include "scandyn/instance/second_derivatives_instance.hpp"
+
+namespace scandyn {
+
+namespace detail {
+
+// Every entry of an nv x nv x nv tensor set to 0 (data null: nothing).
+template <class S>
+SCANDYN_HD void zero_tensor(TensorRef<S> t) {
+  if (!t.data) return;
+  const std::ptrdiff_t n3 = static_cast<std::ptrdiff_t>(t.n) * t.n * t.n;
+  if (t.stride == 1) {
+    for (std::ptrdiff_t e = 0; e < n3; ++e) t.data[e] = S(0);
+  } else {
+    for (std::ptrdiff_t e = 0; e < n3; ++e) t.data[e * t.stride] = S(0);
+  }
+}
+
+}  // namespace detail
+
+// The second derivatives of tau = ID(q, qd, qdd, fext) of one instance, gravity
+// included, by the analytical second-order recursion (see the top of this file):
+// the three tensors, every entry written, and dM_dq when its data is not null.
+// body: the nv bodies in DoF order (1-DoF joints, fixed base: parent < index, as the
+// model builder makes them); a0: the base acceleration (-g); q, qd, qdd: indexable by
+// DoF (a pointer, a DofColumn); fext: nv body wrenches in body frames, or null; work:
+// nv DerivativeBody entries of scratch.
+template <class S, class V>
+SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q,
+                                                          V qd, V qdd, const Force<S>* fext, DerivativeBody<S>* work,
+                                                          TensorRef<S> d2tau_dq2, TensorRef<S> d2tau_dqd2,
+                                                          TensorRef<S> d2tau_dqdqd, TensorRef<S> dM_dq) {
+  // forward: world-frame S, v, a, dV, dA, body inertias, forces and B (the first-order
+  // recursion's step)
+  for (Index i = 0; i < nv; ++i) {
+    const Index p = body[i].parent;
+    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
+                            p < 0 ? nullptr : work + p, a0, work[i]);
+  }
+  // entries of DoF on different branches are 0; an unbranched chain has none (every
+  // triple lies on the one path and the backward pass writes every entry)
+  bool chain = true;
+  for (Index i = 0; i < nv; ++i) chain = chain && body[i].parent == i - 1;
+  if (!chain) {
+    detail::zero_tensor(d2tau_dq2);
+    detail::zero_tensor(d2tau_dqd2);
+    detail::zero_tensor(d2tau_dqdqd);
+    detail::zero_tensor(dM_dq);
+  }
+  auto& T = d2tau_dq2;    // T(x, y, z) = d2 tau_x / dq_y dq_z
+  auto& U = d2tau_dqd2;   // U(x, y, z) = d2 tau_x / dqd_y dqd_z
+  auto& W = d2tau_dqdqd;  // W(x, y, z) = d2 tau_x / dq_y dqd_z
+  const bool with_dM = dM_dq.data != nullptr;
+  // backward: body c (the deepest index of the triples it closes), then its
+  // ancestors b <= c and their ancestors a <= b
+  for (Index c = nv - 1; c >= 0; --c) {
+    const DerivativeBody<S>& wc = work[c];
+    const Inertia<S>& Ic = wc.Ic;              // composite inertia of c's subtree
+    const VelocityDerivative<S>& Bc = wc.Bc;   // composite B of c's subtree
+    const Motion<S>& Sc = wc.J;
+    const Motion<S>& dVc = wc.dV;
+    const Force<S> f1 = Ic * Sc;                     // Ic_c S_c
+    const Force<S> g1 = Bc.apply_transpose(Sc);      // Bc_c^T S_c
+    const Force<S> hc = Ic * dVc;                    // Ic_c dV_c
+    const Force<S> Phi = cross(Sc, wc.F) + Ic * wc.dA + Bc.apply(dVc);  // d F/dq_c of an ancestor's F
+    const Force<S> Psi = S(2) * hc + Bc.apply(Sc);                      // d F/dqd_c of an ancestor's F
+    const VelocityDerivative<S> Bs = VelocityDerivative<S>::of(Ic, Sc);   // B(Ic_c, S_c)
+    const VelocityDerivative<S> Bv = VelocityDerivative<S>::of(Ic, dVc);  // B(Ic_c, dV_c)
+    for (Index b = c; b >= 0; b = body[b].parent) {
+      const DerivativeBody<S>& wb = work[b];
+      const Motion<S>& Sb = wb.J;
+      const Motion<S>& dVb = wb.dV;
+      const Motion<S>& dAb = wb.dA;
+      const bool bc = b == c;
+      const Force<S> hb = Ic * dVb;          // Ic_c dV_b
+      const Force<S> ISb = Ic * Sb;          // Ic_c S_b
+      const Motion<S> ScSb = cross(Sc, Sb);  // S_c x S_b
+      // the pair's 6-vectors (forces, paired with S_a, dV_a, dA_a):
+      // P1 = S_b x* Ic_c S_c
+      const Force<S> P1 = cross(Sb, f1);
+      // P2: d2tau_c/dq_b dq_a = dA_a . P1 + dV_a . P2 (the dA_b, dV_b and Bc_c
+      // derivatives along q_a; also d2tau_c/dq_b dqd_a = 2 dV_a . P1 + S_a . P2)
+      const Force<S> P2 = cross(dVb, f1) + cross(Sb, g1) - cross(Sc, hb) + Ic * cross(Sc, dVb);
+      // Q1 = (S_c x* Ic_c - Ic_c S_c x)^T S_b: d Ic/dq_c seen from S_b
+      const Force<S> Q1 = cross(Sc, ISb) - Ic * ScSb;
+      // Q2 = (S_c x* Bc_c - Bc_c S_c x + B(Ic_c, dV_c))^T S_b: d Bc/dq_c seen from S_b
+      const Force<S> Q2 = cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb);
+      // R1 = B(Ic_c, S_b)^T S_c (= P1 - Q1)
+      const Force<S> R1 = P1 - Q1;
+      // R2 = 2 Ic_c (S_b x S_c) + B(Ic_c, S_b) S_c = d Psi_c / dqd_b
+      const Force<S> R2 = P1 + cross(Sc, ISb) - Ic * ScSb;
+      // R3 = B(Ic_c, S_c)^T S_b
+      const Force<S> R3 = Bs.apply_transpose(Sb);
+      // K = d Phi_c / dq_b (c's force seen by an ancestor, moved by joint b)
+      const Force<S> K = cross(Sb, Phi) + cross(Sc, Ic * dAb + Bc.apply(dVb)) +
+                         Ic * (cross(dAb, Sc) + cross(dVb, dVc)) + Bc.apply(cross(dVb, Sc)) + cross(dVb, hc) +
+                         cross(dVc, hb);
+      // K2 = d Phi_c / dqd_b
+      const Force<S> K2 = cross(Sc, S(2) * hb + Bc.apply(Sb)) + Ic * (S(2) * cross(dVb, Sc) + cross(Sb, dVc)) -
+                          Bc.apply(ScSb) + cross(Sb, hc) + cross(dVc, ISb);
+      // K3 = S_b x* Psi_c + B(Ic_c, S_c) dV_b = d Phi_b / dqd_c (c in b's subtree)
+      const Force<S> K3 = cross(Sb, Psi) + Bs.apply(dVb);
+      for (Index a = b; a >= 0; a = body[a].parent) {
+        const DerivativeBody<S>& wa = work[a];
+        const Motion<S>& Sa = wa.J;
+        const Motion<S>& dVa = wa.dV;
+        const Motion<S>& dAa = wa.dA;
+        const bool ab = a == b;
+        const S dVaP1 = dot(dVa, P1);
+        const S SaP2 = dot(Sa, P2);
+        // tau_c (the deepest): all of its derivatives along the ancestors a <= b
+        const S t_cba = dot(dAa, P1) + dot(dVa, P2);
+        T(c, b, a) = t_cba;
+        T(c, a, b) = t_cba;
+        const S u_cba = dot(Sa, R1);
+        U(c, b, a) = u_cba;
+        U(c, a, b) = u_cba;
+        W(c, b, a) = S(2) * dVaP1 + SaP2;
+        if (!ab) W(c, a, b) = dot(dVa, R1);  // S_c . B(Ic_c, S_b) dV_a
+        // tau_a (the shallowest, a < c): d Phi_c and d Psi_c along joint b
+        if (!(ab && bc)) {
+          const S t_acb = dot(Sa, K);
+          T(a, c, b) = t_acb;
+          T(a, b, c) = t_acb;
+          const S u_acb = dot(Sa, R2);
+          U(a, c, b) = u_acb;
+          U(a, b, c) = u_acb;
+        }
+        if (!ab) W(a, c, b) = dot(Sa, K2);
+        // tau_b (the middle one, b < c): Ic_b and Bc_b moved by joint c
+        if (!bc) {
+          if (!ab) {
+            const S t_bac = dot(dAa, Q1) + dot(dVa, Q2);
+            T(b, a, c) = t_bac;
+            T(b, c, a) = t_bac;
+            const S u_bac = dot(Sa, R3);
+            U(b, a, c) = u_bac;
+            U(b, c, a) = u_bac;
+            W(a, b, c) = dot(Sa, K3);
+          }
+          W(b, a, c) = dot(dVa, R3);
+          W(b, c, a) = S(2) * dot(dVa, Q1) + dot(Sa, Q2);
+        }
+        if (with_dM) {
+          // d M_bc / dq_a = 0 (a is an ancestor of both: rigid); d M_ac / dq_b =
+          // S_c . Ic_c (S_a x S_b); d M_ab / dq_c = S_a . Q1
+          dM_dq(c, b, a) = S(0);
+          dM_dq(b, c, a) = S(0);
+          if (!ab) {
+            const S d = dot(Sa, P1);
+            dM_dq(a, c, b) = d;
+            dM_dq(c, a, b) = d;
+          }
+          if (!bc) {
+            const S d = dot(Sa, Q1);
+            dM_dq(a, b, c) = d;
+            dM_dq(b, a, c) = d;
+          }
+        }
+      }
+    }
+    const Index p = body[c].parent;
+    if (p >= 0) {
+      work[p].F += wc.F;
+      work[p].Ic += wc.Ic;
+      work[p].Bc += wc.Bc;
+    }
+  }
+}
+
+}  // namespace scandyn
