@@ -11,7 +11,12 @@
 //                 included: each thread's workspace makes its solver then)
 //   step_s        the mean of the following steps
 //   closure       after the last step: max(|phi|, |J qd|) (max_phi, max_jqd apart;
-//                 m and m/s)
+//                 m and m/s); failed_steps: the simulator's failed instance-steps
+//                 (Failure::LoopNotClosed: a projection left the state off its loops)
+//   reset_*       the reset's projection of q = 0.1, qd = 0.5 onto the loops
+//                 (Levenberg-Marquardt, sim::kResetLinearisations, tolerance 1e-13) on
+//                 a solver of its own: seconds, linearisations, trials, factorisations
+//                 (sparse), max |phi| after; the simulator starts from its result
 // and, sparse, from a solver of its own running one rk4 step's solves (4 forward
 // dynamics, one projection) at the initial state: the symbolic analyses' time, the
 // numeric factorisations' (per factorisation), the solves', and each system's
@@ -82,17 +87,51 @@ int main(int argc, char** argv) {
   if (grids.empty()) grids = {"10:10", "30:30"};
   factor_graph::register_sparse_loop_solver(gpu);
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,analysis_fd_s,analysis_proj_s,"
-              "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj\n");
+              "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj,reset_s,"
+              "reset_linearisations,reset_trials,reset_factorizations,reset_max_phi,failed_steps\n");
   std::fflush(stdout);
   for (const std::string& g : grids) {
     const std::string spec = "cloth:" + g;
     for (int pass = 0; pass < (dense ? 2 : 1); ++pass) {
       const bool sparse = pass == 0;
-      const std::string json = R"({"model": ")" + spec + R"(", "effects": {"gravity": true}, "integrator": "rk4", "dt": )" +
+      const std::string head = R"({"model": ")" + spec + R"(", "effects": {"gravity": true}, "integrator": "rk4", "dt": )" +
                                std::to_string(dt) + R"(, "loop_solver": ")" + (sparse ? "sparse" : "dense") +
-                               R"(", "initial": {"q": 0.1, "qd": 0.5}})";
-      const sim::Scene scene = sim::parse_scene(json, "bench.json");
-      const Index n = scene.model.nv(), m = scene.loops.rows();
+                               R"(", "initial": )";
+      const sim::Scene raw = sim::parse_scene(head + R"({"q": 0.1, "qd": 0.5}})", "bench.json");
+      const Index n = raw.model.nv(), m = raw.loops.rows();
+      // the reset's projection of q = 0.1, qd = 0.5 onto the loops (the simulator's:
+      // Levenberg-Marquardt, kResetLinearisations, tolerance 1e-13) on a solver of its
+      // own, timed; the simulator then starts from its result (its own reset finds it
+      // closed: no position step)
+      std::vector<double> q0(n, 0.1), qd0(n, 0.5);
+      LoopProjectionInfo reset;
+      double reset_s = 0;
+      long reset_factorizations = 0;
+      if (!analyse_only) {
+        const double t0 = now();
+        if (sparse) {
+          factor_graph::SparseConstrainedDynamics rs(raw.model, raw.loops, factor_graph::Ordering::NESDIS, gpu);
+          rs.project(q0.data(), qd0.data(), 1e-13, sim::kResetLinearisations, &reset);
+          reset_factorizations = rs.timing().factorizations;
+        } else {
+          project_to_loops(raw.model, raw.loops, q0.data(), qd0.data(), 1e-13, sim::kResetLinearisations, &reset);
+        }
+        reset_s = now() - t0;
+        std::fprintf(stderr, "%s %s: reset projection %.1f s, %d linearisations, %d trials, max |phi| %.3g, max |J qd| %.3g\n",
+                     spec.c_str(), sparse ? "sparse" : "dense", reset_s, reset.linearisations, reset.trials, reset.phi,
+                     reset.jqd);
+      }
+      auto array = [](const std::vector<double>& x) {
+        std::string a = "[";
+        char buf[40];
+        for (std::size_t i = 0; i < x.size(); ++i) {
+          std::snprintf(buf, sizeof buf, "%.17g", x[i]);
+          a += (i ? ", " : "") + std::string(buf);
+        }
+        return a + "]";
+      };
+      const sim::Scene scene =
+          analyse_only ? raw : sim::parse_scene(head + R"({"q": )" + array(q0) + R"(, "qd": )" + array(qd0) + "}}", "bench.json");
       // the sparse solver's analyses and one rk4 step's solves, on a solver of its own
       double an_fd = 0, an_proj = 0, fac = 0, sol = 0, per_step = 0;
       factor_graph::EliminationStats sfd, sproj;
@@ -105,8 +144,7 @@ int main(int argc, char** argv) {
         an_proj = sc.timing().analysis - an_fd;
         unknowns = sc.forward_dynamics_unknowns();
         if (!analyse_only) {
-          std::vector<double> q(n, 0.1), qd(n, 0.5), tau(n, 0.0), qdd(n), lambda(m);
-          sc.project(q.data(), qd.data(), 1e-13, 50);
+          std::vector<double> q = q0, qd = qd0, tau(n, 0.0), qdd(n), lambda(m);
           sc.reset_timing();
           for (int s = 0; s < 4; ++s) sc.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), lambda.data());
           for (Index i = 0; i < n; ++i) q[i] += 1e-6 * qd[i];  // off the loops a little: one Gauss-Newton step
@@ -118,6 +156,7 @@ int main(int argc, char** argv) {
         }
       }
       double first = 0, mean = 0, closure = 0, closure_phi = 0, closure_jqd = 0;
+      long long failed_steps = 0;
       if (!analyse_only) {
         sim::Simulator<double> s(scene, BackendKind::Serial);
         double t0 = now();
@@ -128,14 +167,16 @@ int main(int argc, char** argv) {
         mean = steps > 1 ? (now() - t0) / (steps - 1) : 0;
         std::vector<double> q(n), qd(n);
         s.read_state(q.data(), qd.data());
+        failed_steps = static_cast<long long>(s.status().failed);
         if (!s.status().ok()) std::fprintf(stderr, "%s: %s\n", spec.c_str(), sim::failure_message(s.status()).c_str());
         // max |phi| and |J qd| (sparse: without the dense J of loop_violation)
         closure = sparse_violation(scene.model, scene.loops, q.data(), qd.data(), &closure_phi, &closure_jqd);
       }
-      std::printf("%s,%lld,%lld,%s,%d,%.4g,%.4g,%.3g,%.3g,%.3g,%.4g,%.4g,%.4g,%.4g,%.0f,%lld,%.6g,%.6g,%.6g,%.6g\n", spec.c_str(),
+      std::printf("%s,%lld,%lld,%s,%d,%.4g,%.4g,%.3g,%.3g,%.3g,%.4g,%.4g,%.4g,%.4g,%.0f,%lld,%.6g,%.6g,%.6g,%.6g,%.4g,%d,%d,%ld,%.3g,%lld\n", spec.c_str(),
                   (long long)n, (long long)m, sparse ? (gpu ? "sparse-cusolver-nesdis" : "sparse-cholmod-nesdis") : "dense", analyse_only ? 0 : steps,
                   first, mean, closure, closure_phi, closure_jqd, an_fd, an_proj, fac, sol, per_step, (long long)unknowns, sfd.nnz_L, sfd.flops,
-                  sproj.nnz_L, sproj.flops);
+                  sproj.nnz_L, sproj.flops, reset_s, reset.linearisations, reset.trials, reset_factorizations, reset.phi,
+                  failed_steps);
       std::fflush(stdout);
     }
   }
