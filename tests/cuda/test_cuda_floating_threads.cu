@@ -336,11 +336,15 @@ TEST(CudaFloatingThreads, GeneralPathAgainstSerial) {
 }
 
 // FdMethod::Aba on models of 1-DoF joints beyond the thread kernels' kMaxThreadDofs
-// runs the general path too (aba_general; issue 22): a fixed-base chain and tree of
-// 100 DoFs against the serial engines, in every scratch layout (GeneralInterleave).
+// runs the general path too (aba_general; issue 22): a fixed-base chain and trees of
+// 100 and 300 DoFs against the serial engines, in every scratch layout
+// (GeneralInterleave) and both ways of running an instance (GeneralAba: a thread, or
+// a warp over the tree's levels).
 TEST(CudaFloatingThreads, GeneralAbaBeyondTheThreadKernels) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  for (const char* spec : {"rope:100", "tree:100:4"}) {
+  EXPECT_EQ(cuda::general_aba_for(load_model("rope:100")), cuda::GeneralAba::Thread);
+  EXPECT_EQ(cuda::general_aba_for(load_model("tree:300:7")), cuda::GeneralAba::Levels);
+  for (const char* spec : {"rope:100", "tree:100:4", "tree:300:7"}) {
     SCOPED_TRACE(spec);
     const Model md = load_model(spec);
     const Index B = 67, nv = md.nv();
@@ -355,17 +359,84 @@ TEST(CudaFloatingThreads, GeneralAbaBeyondTheThreadKernels) {
     ASSERT_EQ(make_forward_dynamics(md, o)->compute(in, BatchView<double>::soa(ref.data(), nv, B)).failed, 0);
     o.backend = BackendKind::Cuda;
     o.fd_method = FdMethod::Aba;
-    for (const char* layout : {"instance", "structs", "scalars"}) {
-      SCOPED_TRACE(layout);
-      setenv("SCANDYN_GENERAL_INTERLEAVE", layout, 1);
-      const auto e = make_forward_dynamics(md, o);
-      EXPECT_EQ(e->strategy().rfind("aba_general", 0), 0u);
-      std::vector<double> qdd(ref.size(), NAN);
-      EXPECT_EQ(e->compute(in, BatchView<double>::soa(qdd.data(), nv, B)).failed, 0);
-      EXPECT_LE(rel_err(qdd, ref), 1e-9);
-    }
+    for (const char* aba : {"thread", "levels"})
+      for (const char* layout : {"instance", "structs", "scalars"}) {
+        SCOPED_TRACE(std::string(aba) + " " + layout);
+        setenv("SCANDYN_GENERAL_ABA", aba, 1);
+        setenv("SCANDYN_GENERAL_INTERLEAVE", layout, 1);
+        const auto e = make_forward_dynamics(md, o);
+        EXPECT_EQ(e->strategy().rfind("aba_general", 0), 0u);
+        std::vector<double> qdd(ref.size(), NAN);
+        EXPECT_EQ(e->compute(in, BatchView<double>::soa(qdd.data(), nv, B)).failed, 0);
+        EXPECT_LE(rel_err(qdd, ref), 1e-9);
+      }
     unsetenv("SCANDYN_GENERAL_INTERLEAVE");
+    unsetenv("SCANDYN_GENERAL_ABA");
   }
+}
+
+namespace {
+// qdd and the failed DoFs of B instances x by plan.launch_aba.
+void general_plan_aba(const cuda::GeneralPlan<double>& plan, const test::SoaStates& x, Index B,
+                      std::vector<double>& qdd, std::vector<int>& failed) {
+  test::DeviceArray<double> dq, dqd, du, dqdd;
+  test::DeviceArray<Force<double>> df;
+  test::DeviceArray<int> dfailed;
+  const auto up = [](auto& d, const auto& h) {
+    EXPECT_EQ(d.alloc(h.size()), cudaSuccess);
+    EXPECT_EQ(cudaMemcpy(d.ptr, h.data(), h.size() * sizeof(h[0]), cudaMemcpyHostToDevice), cudaSuccess);
+    return d.ptr;
+  };
+  using V = BatchView<const double>;
+  const FdBatchIn<double> in{V::soa(up(dq, x.q), x.nq, B), V::soa(up(dqd, x.qd), x.nv, B), V::soa(up(du, x.u), x.nv, B),
+                             up(df, x.fext)};
+  ASSERT_EQ(dqdd.alloc(x.qd.size()), cudaSuccess);
+  ASSERT_EQ(cudaMemset(dqdd.ptr, 0, x.qd.size() * sizeof(double)), cudaSuccess);
+  ASSERT_EQ(dfailed.alloc(static_cast<std::size_t>(B)), cudaSuccess);
+  ASSERT_EQ(plan.launch_aba(in, BatchView<double>::soa(dqdd.ptr, x.nv, B), dfailed.ptr, nullptr), cudaSuccess);
+  qdd.assign(x.qd.size(), 0);
+  failed.assign(static_cast<std::size_t>(B), 0);
+  ASSERT_EQ(cudaMemcpy(qdd.data(), dqdd.ptr, qdd.size() * sizeof(double), cudaMemcpyDeviceToHost), cudaSuccess);
+  ASSERT_EQ(cudaMemcpy(failed.data(), dfailed.ptr, failed.size() * sizeof(int), cudaMemcpyDeviceToHost), cudaSuccess);
+}
+}  // namespace
+
+// GeneralAba::Levels on a floating base with spherical joints (multi-DoF joints in
+// the levels), with fewer warp slots than instances; and a failed pivot: a massless
+// leaf makes the serial ABA stop at that leaf's DoF, and the level kernel reports the
+// same DoF (the highest that fails) and leaves that instance's qdd unwritten.
+TEST(CudaFloatingThreads, GeneralAbaLevels) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  Model md = test::random_floating_model(40, 11, 0.3);
+  const Index B = 300;
+  const test::SoaStates x = test::random_soa_states(md, B, 6, true);
+  const std::size_t slice = cuda::GeneralLayout<double>::make(md.nbodies(), md.nv(), md.nq() + 3 * md.nv(), 0).bytes;
+  std::vector<double> qdd;
+  std::vector<int> failed;
+  {
+    const cuda::GeneralPlan<double> plan(md, B, 0, 0, 70 * slice, cuda::GeneralInterleave::Scalars,
+                                         cuda::GeneralAba::Levels);
+    ASSERT_EQ(plan.args().slots, 70);
+    ASSERT_EQ(plan.args().interleave, cuda::GeneralInterleave::Instance);
+    general_plan_aba(plan, x, B, qdd, failed);
+    EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
+    EXPECT_LE(rel_err(qdd, test::soa_reference(md, x, true)), 1e-9);
+  }
+  // a massless 1-DoF leaf: its pivot D = S^T I S = 0
+  Index leaf = -1;
+  for (Index i = md.nbodies() - 1; i > 0 && leaf < 0; --i) {
+    bool has_child = false;
+    for (const auto& b : md.bodies) has_child = has_child || b.parent == i;
+    if (!has_child && joint_nv(md.bodies[static_cast<std::size_t>(i)].type) == 1) leaf = i;
+  }
+  ASSERT_GE(leaf, 0);
+  md.bodies[static_cast<std::size_t>(leaf)].I = Inertia<double>::zero();
+  const cuda::GeneralPlan<double> plan(md, B, 0, 0, 0, cuda::GeneralInterleave::Scalars, cuda::GeneralAba::Levels);
+  general_plan_aba(plan, x, B, qdd, failed);
+  const Index dof = md.bodies[static_cast<std::size_t>(leaf)].idx_v;
+  EXPECT_EQ(std::count(failed.begin(), failed.end(), static_cast<int>(dof)), B);
+  EXPECT_EQ(*std::max_element(qdd.begin(), qdd.end()), 0.0);
+  EXPECT_EQ(*std::min_element(qdd.begin(), qdd.end()), 0.0);
 }
 
 // The three scratch layouts give the general path the same results: ballrope:6's fd

@@ -61,6 +61,35 @@ const char* interleave_name(GeneralInterleave i);
 // kGeneralInterleave, or SCANDYN_GENERAL_INTERLEAVE's value (BackendError for another).
 GeneralInterleave general_interleave_from_env();
 
+// How a plan's launch_aba runs an instance:
+//   Thread  one thread per instance (aba_general), the scratch laid out as the
+//           plan's GeneralInterleave says;
+//   Levels  one warp per instance: the lanes take a tree level's bodies, level
+//           after level (the per-body steps of aba_general, general_instance.hpp,
+//           in the serial order: the same result bit for bit), the scratch of an
+//           instance contiguous (GeneralInterleave::Instance). For trees whose
+//           levels are wide: one thread per instance walks every body with its
+//           dependent loads in a row, and a batch of 10^4 fills a few percent of
+//           the GPU's thread slots.
+// general_aba_for(model) picks Levels when the tree's mean level width (bodies /
+// levels) is at least kLevelsMinWidth; SCANDYN_GENERAL_ABA (thread, levels)
+// overrides it when a plan is made, for A/B measurements.
+enum class GeneralAba { Thread, Levels };
+inline constexpr double kLevelsMinWidth = 4.0;
+const char* general_aba_name(GeneralAba a);
+template <class S>
+GeneralAba general_aba_for(const ModelTpl<S>& model);
+
+// A tree's level schedule (device arrays; Levels plans).
+struct LevelSchedule {
+  const int* order = nullptr;        // (nb) bodies by depth (roots first), increasing index within a level
+  const int* level_begin = nullptr;  // (levels + 1) offsets of each level in order
+  const int* child_begin = nullptr;  // (nb + 1) CSR offsets of each body's children in child
+  const int* child = nullptr;        // children of each body in decreasing index (the order in
+                                     // which the serial ABA adds their shares to the parent)
+  Index levels = 0;
+};
+
 // Where the scratch's arrays lie in the plan's buffer: byte offsets of each area
 // (GeneralWorkOf's arrays, then `scalars` scalars per thread: the instance's inputs
 // and outputs, then `extra` bytes per thread for the caller, contiguous per thread),
@@ -129,17 +158,25 @@ struct GeneralArgs {
 template <class S>
 class GeneralPlan {
  public:
-  // The most device memory a plan's scratch takes by default (fewer slots beyond).
-  static constexpr std::size_t kBudgetBytes = std::size_t(512) << 20;
+  // The device memory a plan's scratch takes at most by default (fewer slots
+  // beyond): an eighth of the free device memory, within [kMinBudgetBytes,
+  // kMaxBudgetBytes]. A tree of 1000 bodies takes ~330 KB of scratch per instance in
+  // float, so 512 MiB held 1600 instances at a time.
+  static constexpr std::size_t kMinBudgetBytes = std::size_t(512) << 20;
+  static constexpr std::size_t kMaxBudgetBytes = std::size_t(4) << 30;
 
   // Copies the bodies to the device and allocates the scratch of
-  // min(max_batch, budget_bytes / slice) slices (at least one); extra_bytes per
-  // slice for the caller (GeneralArgs::layout.extra_area), extra_scalars more
-  // scalars. Throws BackendError when the device memory does not suffice.
-  // The scratch's layout: interleave (kGeneralInterleave unless
-  // SCANDYN_GENERAL_INTERLEAVE says otherwise: general_interleave_from_env()).
+  // min(max_batch, budget_bytes / slice) slices (at least one; budget_bytes 0: the
+  // default above); extra_bytes per slice for the caller
+  // (GeneralArgs::layout.extra_area), extra_scalars more scalars. Throws
+  // BackendError when the device memory does not suffice. The scratch's layout:
+  // interleave (kGeneralInterleave unless SCANDYN_GENERAL_INTERLEAVE says otherwise:
+  // general_interleave_from_env()); aba Levels lays it out per instance
+  // (GeneralInterleave::Instance) whatever interleave says, and a slice is then a
+  // warp's.
   GeneralPlan(const ModelTpl<S>& model, Index max_batch, std::size_t extra_bytes = 0, Index extra_scalars = 0,
-              std::size_t budget_bytes = kBudgetBytes, GeneralInterleave interleave = general_interleave_from_env());
+              std::size_t budget_bytes = 0, GeneralInterleave interleave = general_interleave_from_env(),
+              GeneralAba aba = GeneralAba::Thread);
   ~GeneralPlan();
   GeneralPlan(const GeneralPlan&) = delete;
   GeneralPlan& operator=(const GeneralPlan&) = delete;
@@ -157,9 +194,12 @@ class GeneralPlan {
 
   const GeneralArgs<S>& args() const { return args_; }
   std::size_t device_bytes() const { return bytes_; }
+  GeneralAba aba() const { return aba_; }
 
  private:
   GeneralArgs<S> args_{};
+  GeneralAba aba_ = GeneralAba::Thread;
+  LevelSchedule levels_{};  // Levels: the schedule (in memory_)
   void* memory_ = nullptr;
   std::size_t bytes_ = 0;
 };
