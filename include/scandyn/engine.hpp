@@ -393,9 +393,9 @@ class FdDirectionalDerivatives : public Engine {
 // instance, threads over instances: "aba_jvp"), Parallel (unbranched chains from a
 // fixed base: the chunked scans of ChainFdDirectional on the engine's threads:
 // "parallel"; BackendError for other models), Auto (Parallel for such chains of 4096
-// links or more, else Aba). Serial and OpenMP only: on cuda a BackendError (the
-// device's chain JVP / VJP is cuda::ChainFdPlan's launch_jvp / launch_vjp on device
-// memory, scandyn/cuda/chain_fd.hpp).
+// links or more, else Aba). On cuda (one device) the scans only, for such chains:
+// Auto or Parallel, a directional cuda::ChainFdPlan behind the host views (on device
+// memory call its launch_jvp / launch_vjp, scandyn/cuda/chain_fd.hpp).
 template <class S>
 std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
                                                                              const BackendOptions& options);

@@ -13,6 +13,7 @@
 #include "../../cpu_fallback/cpu_engines.hpp"
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/device.hpp"
+#include "scandyn/cuda/chain_fd.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -341,17 +342,25 @@ std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(con
                                                                              const BackendOptions& o) {
   require_built(o);
   require_one_dof_joints(model, "the directional derivatives of forward dynamics");
-  if (o.backend == BackendKind::Cuda)
-    throw BackendError("the directional derivatives of forward dynamics are offered on serial and openmp; on cuda "
-                       "use cuda::ChainFdPlan (directional = true): launch_jvp / launch_vjp on device memory");
-  const bool chain = first_branching_body(model) < 0 && !model.floating_base();
-  if (o.fd_method == FdMethod::Parallel && !chain)
-    throw BackendError("forward-dynamics method 'parallel' of the directional derivatives needs unbranched chains "
-                       "hanging from a fixed base (body " + std::to_string(first_branching_body(model)) +
-                       " branches off; use aba)");
   if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba && o.fd_method != FdMethod::Parallel)
     throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
                        "' is not available for the directional derivatives (use auto, aba or parallel)");
+#if SCANDYN_HAS_CUDA
+  if (o.backend == BackendKind::Cuda) {
+    if (o.fd_method == FdMethod::Aba)
+      throw BackendError("forward-dynamics method 'aba' of the directional derivatives is offered on serial and "
+                         "openmp; cuda runs the chain scans (parallel)");
+    if (sharded(o)) throw BackendError("the directional derivatives of forward dynamics run on one device");
+    return cuda::make_cuda_fd_directional_derivatives(model, o);
+  }
+#endif
+  const bool chain = first_branching_body(model) < 0 && !model.floating_base();
+  if (o.fd_method == FdMethod::Parallel && !chain)
+    throw BackendError("forward-dynamics method 'parallel' of the directional derivatives needs unbranched chains "
+                       "hanging from a fixed base (" +
+                       (model.floating_base() ? std::string("body 0 is a floating base")
+                                              : "body " + std::to_string(first_branching_body(model)) + " branches off") +
+                       "; use aba)");
   const bool scans = o.fd_method == FdMethod::Parallel || (o.fd_method == FdMethod::Auto && chain && model.nv() >= 4096);
   return cpu::make_fd_directional_derivatives(model, o, scans);
 }

@@ -207,8 +207,9 @@ TEST(ChainDirectional, Engine) {
       const Errors e = errors(run_engine<double>(curtain, c, kind, method, &strategy), c);
       // Auto picks the scans from 4096 links: aba_jvp on a curtain of 150
       EXPECT_EQ(strategy, method == FdMethod::Parallel ? "parallel" : "aba_jvp");
-      if (strategy == "aba_jvp")
+      if (strategy == "aba_jvp") {
         for (int k = 0; k < 5; ++k) EXPECT_EQ(e[k], 0.0) << kField[k];  // the serial functions themselves
+      }
       expect_within(e, es, false, std::string(to_string(method)) + " on " + to_string(kind));
       expect_within(errors(run_engine<float>(curtain, c, kind, method, &strategy), c), es, true,
                     std::string("float, ") + to_string(method));
@@ -226,9 +227,13 @@ TEST(ChainDirectional, Engine) {
   EXPECT_THROW(make_fd_directional_derivatives(tree, o), BackendError);
   o.fd_method = FdMethod::Jsi;
   EXPECT_THROW(make_fd_directional_derivatives(curtain, o), BackendError);
+  EXPECT_THROW(make_fd_directional_derivatives(test::load_floating("rope:20"), o), BackendError);
+  o.fd_method = FdMethod::Parallel;
+  EXPECT_THROW(make_fd_directional_derivatives(test::load_floating("rope:20"), o), BackendError);
+  // cuda: the scans only (a branching model: refused, with or without a device)
   o.fd_method = FdMethod::Auto;
   o.backend = BackendKind::Cuda;
-  EXPECT_THROW(make_fd_directional_derivatives(curtain, o), BackendError);
+  EXPECT_THROW(make_fd_directional_derivatives(tree, o), BackendError);
 }
 
 }  // namespace

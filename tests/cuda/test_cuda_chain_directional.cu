@@ -167,3 +167,46 @@ TEST(CudaChainDirectional, RefusalsAndMisuse) {
 }
 
 }  // namespace
+
+namespace {
+
+// The engine API on cuda (make_fd_directional_derivatives: a directional plan behind
+// host views), strided host views, against the serial references.
+TEST(CudaChainDirectional, Engine) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model model = load_model("curtain:3:50");
+  const Case c = make_case(model, 3, 41, true);
+  const Errors es = serial_float_errors(model, c);
+  const Index n = c.n, B = c.B;
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  auto eng = make_fd_directional_derivatives(model, o);
+  EXPECT_EQ(eng->strategy(), "parallel");
+  using V = BatchView<const double>;
+  using O = BatchView<double>;
+  const FdBatchIn<double> in{V::soa(c.q.data(), n, B), V::soa(c.qd.data(), n, B), V::soa(c.tau.data(), n, B),
+                             c.fext.data()};
+  Result<double> r;
+  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(c.q.size(), NAN);
+  // outputs instance-major (aos) while the inputs are SoA
+  std::vector<double> a(c.q.size()), g[3] = {a, a, a};
+  EXPECT_TRUE(eng->jvp(in, V::soa(c.dq.data(), n, B), V::soa(c.dqd.data(), n, B), V::soa(c.dtau.data(), n, B),
+                       O::soa(r.qdd_j.data(), n, B), O::aos(a.data(), n, B))
+                  .ok());
+  EXPECT_TRUE(eng->vjp(in, V::soa(c.w.data(), n, B), O::soa(r.qdd_v.data(), n, B), O::aos(g[0].data(), n, B),
+                       O::aos(g[1].data(), n, B), O::aos(g[2].data(), n, B))
+                  .ok());
+  for (Index i = 0; i < n; ++i)
+    for (Index b = 0; b < B; ++b) {
+      r.dqdd[i * B + b] = a[b * n + i];
+      r.gq[i * B + b] = g[0][b * n + i];
+      r.gqd[i * B + b] = g[1][b * n + i];
+      r.gtau[i * B + b] = g[2][b * n + i];
+    }
+  expect_within(errors(r, c), es, false, "cuda engine");
+  o.fd_method = FdMethod::Aba;
+  EXPECT_THROW(make_fd_directional_derivatives(model, o), BackendError);
+}
+
+}  // namespace

@@ -149,6 +149,15 @@ class ChainFdPlan {
   std::vector<cudaEvent_t> events_;         // hybrid timeline and group ordering
 };
 
+// The engine API's directional derivatives of forward dynamics on cuda
+// (make_fd_directional_derivatives, scandyn/engine.hpp): a directional ChainFdPlan
+// behind host views (copied in, launched on the engine's stream, copied out; the
+// call waits for them). Unbranched chains from a fixed base only (BackendError
+// otherwise, naming the body); strategy "parallel".
+template <class S>
+std::unique_ptr<FdDirectionalDerivatives<S>> make_cuda_fd_directional_derivatives(const ModelTpl<S>& model,
+                                                                                  const BackendOptions& options);
+
 }  // namespace cuda
 }  // namespace scandyn
 
