@@ -1,8 +1,10 @@
 // cpu_fallback/second_derivatives.cpp: the serial and OpenMP second-order
-// derivatives of inverse dynamics: rnea_second_derivatives_instance
-// (scandyn/instance/second_derivatives_instance.hpp, what the serial
-// rnea_second_derivatives runs) per instance on the output views' tensors, threads
-// over instances.
+// derivatives of inverse dynamics: per instance on the output views' tensors, threads
+// over instances, what the serial rnea_second_derivatives runs: the analytical
+// second-order recursion rnea_second_derivatives_analytic_instance
+// (scandyn/instance/second_derivatives_analytic.hpp) for models of 1-DoF joints, the
+// dual passes rnea_second_derivatives_instance
+// (scandyn/instance/second_derivatives_instance.hpp) otherwise.
 #include <vector>
 
 #include "cpu_engines.hpp"
@@ -34,6 +36,15 @@ class CpuIdSecondDerivatives final : public IdSecondDerivatives<S> {
     const Motion<S> a0 = base_acceleration(model_.gravity);
     for_instance_blocks(threads_, in.q.batch, [&](int t, Index begin, Index end) {
       SecondDerivativeData<S>& d = data_[static_cast<std::size_t>(t)];
+      if (analytic_) {
+        for (Index b = begin; b < end; ++b)
+          rnea_second_derivatives_analytic_instance(
+              model_.bodies.data(), nv, a0, gather(in.q, b, nv, rows_.row(t, 0)), gather(in.qd, b, nv, rows_.row(t, 1)),
+              gather(in.qdd, b, nv, rows_.row(t, 2)), in.fext ? in.fext + b * nv : nullptr, d.plain.data(),
+              instance_tensor(out.d2tau_dq2, b, nv), instance_tensor(out.d2tau_dqd2, b, nv),
+              instance_tensor(out.d2tau_dqdqd, b, nv), instance_tensor(out.dM_dq, b, nv));
+        return;
+      }
       for (Index b = begin; b < end; ++b)
         rnea_second_derivatives_instance(d.bodies.data(), nv, a0, gather(in.q, b, nv, rows_.row(t, 0)),
                                          gather(in.qd, b, nv, rows_.row(t, 1)), gather(in.qdd, b, nv, rows_.row(t, 2)),
@@ -45,10 +56,11 @@ class CpuIdSecondDerivatives final : public IdSecondDerivatives<S> {
 
  private:
   const ModelTpl<S>& model_;
+  bool analytic_ = !model_.multi_dof();  // 1-DoF joints: the analytical recursion
   BackendKind kind_;
   int threads_;
   Index max_batch_;
-  std::vector<SecondDerivativeData<S>> data_;  // (threads) the dual model and one instance's scratch
+  std::vector<SecondDerivativeData<S>> data_;  // (threads) one instance's scratch (and the dual model)
   RowScratch<S> rows_;                         // per thread: q, qd, qdd (nv each) of one instance
 };
 

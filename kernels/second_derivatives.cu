@@ -1,7 +1,7 @@
 // kernels/second_derivatives.cu: the batched second-order derivatives of inverse
 // dynamics, one thread per instance (scandyn/cuda/second_derivatives.hpp): the
-// per-instance function of scandyn/instance/second_derivatives_instance.hpp (the
-// serial reference's) over the model in dual numbers.
+// analytical second-order recursion of scandyn/instance/second_derivatives_analytic.hpp
+// (the serial rnea_second_derivatives' function).
 #include <cuda_runtime.h>
 
 #include <string>
@@ -20,7 +20,7 @@ using detail::copy;
 using detail::plan;
 using detail::Staging;
 
-static_assert(sizeof(DualModelParams<double, 64>) + sizeof(IdBatchIn<double>) +
+static_assert(sizeof(SecondOrderModelParams<double, 64>) + sizeof(IdBatchIn<double>) +
                       sizeof(IdSecondDerivativesOut<double>) <=
                   32764,
               "the kernel's parameters must fit the 32764 bytes CUDA allows");
@@ -30,9 +30,9 @@ static_assert(sizeof(DualModelParams<double, 64>) + sizeof(IdBatchIn<double>) +
 namespace {
 
 template <int C, class S>
-DualModelParams<S, C> make_dual_params(const ModelTpl<S>& model) {
-  DualModelParams<S, C> p{};
-  for (Index i = 0; i < model.nv(); ++i) p.body[i] = model.bodies[static_cast<std::size_t>(i)].template cast<Dual<S>>();
+SecondOrderModelParams<S, C> make_params(const ModelTpl<S>& model) {
+  SecondOrderModelParams<S, C> p{};
+  for (Index i = 0; i < model.nv(); ++i) p.body[i] = model.bodies[static_cast<std::size_t>(i)];
   p.a0 = base_acceleration(model.gravity);
   p.nv = model.nv();
   return p;
@@ -41,7 +41,7 @@ DualModelParams<S, C> make_dual_params(const ModelTpl<S>& model) {
 }  // namespace
 
 template <class S>
-DualThreadModel<S>::DualThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
+SecondOrderThreadModel<S>::SecondOrderThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) {
   if (model.multi_dof())
     throw BackendError("backend 'cuda': model '" + model.name +
                        "' has a multi-DoF joint; the second-order derivatives take revolute and prismatic joints only");
@@ -49,10 +49,10 @@ DualThreadModel<S>::DualThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) 
     throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
                        " DoF; the second-order derivatives run a thread per instance, which takes at most " +
                        std::to_string(kMaxThreadDofs));
-  if (nv_ <= 8) capacity_ = 8, params_ = make_dual_params<8>(model);
-  else if (nv_ <= 16) capacity_ = 16, params_ = make_dual_params<16>(model);
-  else if (nv_ <= 32) capacity_ = 32, params_ = make_dual_params<32>(model);
-  else capacity_ = 64, params_ = make_dual_params<64>(model);
+  if (nv_ <= 8) capacity_ = 8, params_ = make_params<8>(model);
+  else if (nv_ <= 16) capacity_ = 16, params_ = make_params<16>(model);
+  else if (nv_ <= 32) capacity_ = 32, params_ = make_params<32>(model);
+  else capacity_ = 64, params_ = make_params<64>(model);
   require_compiled_capacity(capacity_, "the second-order derivatives", model.name);
 }
 
@@ -61,21 +61,21 @@ DualThreadModel<S>::DualThreadModel(const ModelTpl<S>& model) : nv_(model.nv()) 
 // One thread per instance b < B: the three tensors (and dM/dq) of instance b.
 template <class S, int C>
 __global__ void __launch_bounds__(kSecondDerivativesBlock)
-    id_second_derivatives_kernel(const __grid_constant__ DualModelParams<S, C> model, const IdBatchIn<S> in,
+    id_second_derivatives_kernel(const __grid_constant__ SecondOrderModelParams<S, C> model, const IdBatchIn<S> in,
                                  const IdSecondDerivativesOut<S> out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= in.q.batch) return;
   const Index nv = model.nv;
-  DerivativeBody<Dual<S>> work[C];  // per-thread local memory: 144 C scalars
-  Force<Dual<S>> wrenches[C];       // per-thread local memory: 12 C scalars
-  rnea_second_derivatives_instance(model.body, nv, model.a0, instance_column(in.q, b), instance_column(in.qd, b),
-                                   instance_column(in.qdd, b), in.fext ? in.fext + b * nv : nullptr, work, wrenches,
-                                   instance_tensor(out.d2tau_dq2, b, nv), instance_tensor(out.d2tau_dqd2, b, nv),
-                                   instance_tensor(out.d2tau_dqdqd, b, nv), instance_tensor(out.dM_dq, b, nv));
+  DerivativeBody<S> work[C];  // per-thread local memory: 72 C scalars
+  rnea_second_derivatives_analytic_instance(model.body, nv, model.a0, instance_column(in.q, b),
+                                            instance_column(in.qd, b), instance_column(in.qdd, b),
+                                            in.fext ? in.fext + b * nv : nullptr, work,
+                                            instance_tensor(out.d2tau_dq2, b, nv), instance_tensor(out.d2tau_dqd2, b, nv),
+                                            instance_tensor(out.d2tau_dqdqd, b, nv), instance_tensor(out.dM_dq, b, nv));
 }
 
 template <class S>
-cudaError_t launch_id_second_derivatives(const DualThreadModel<S>& model, const IdBatchIn<S>& in,
+cudaError_t launch_id_second_derivatives(const SecondOrderThreadModel<S>& model, const IdBatchIn<S>& in,
                                          const IdSecondDerivativesOut<S>& out, cudaStream_t stream) {
   const Index B = in.q.batch;
   if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.d2tau_dq2.batch != B || out.d2tau_dqd2.batch != B ||
@@ -111,7 +111,7 @@ constexpr int kTensors = 4;
 template <class S>
 CudaIdSecondDerivatives<S>::CudaIdSecondDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), max_batch_(options.max_batch) {
-  model_ = std::make_unique<DualThreadModel<S>>(model);
+  model_ = std::make_unique<SecondOrderThreadModel<S>>(model);
   const std::size_t n = static_cast<std::size_t>(nv_);
   staging_ = std::make_unique<detail::StagingBuffer>(max_batch_, nv_, sizeof(S) == 4 ? "float" : "double",
                                                      "q, qd, qdd, fext and four nv^3 tensors",
@@ -165,9 +165,9 @@ std::unique_ptr<IdSecondDerivatives<S>> make_cuda_id_second_derivatives(const Mo
 }
 
 #define SCANDYN_INSTANTIATE(S)                                                                                       \
-  template class DualThreadModel<S>;                                                                                \
+  template class SecondOrderThreadModel<S>;                                                                                \
   template class CudaIdSecondDerivatives<S>;                                                                        \
-  template cudaError_t launch_id_second_derivatives(const DualThreadModel<S>&, const IdBatchIn<S>&,                 \
+  template cudaError_t launch_id_second_derivatives(const SecondOrderThreadModel<S>&, const IdBatchIn<S>&,                 \
                                                     const IdSecondDerivativesOut<S>&, cudaStream_t);                \
   template std::unique_ptr<IdSecondDerivatives<S>> make_cuda_id_second_derivatives(const ModelTpl<S>&,              \
                                                                                    const BackendOptions&);

@@ -3,11 +3,11 @@
 // joints, up to kMaxThreadDofs DoF).
 //
 // Layers, as for the other CUDA engines:
-//   rnea_second_derivatives_instance()
+//   rnea_second_derivatives_analytic_instance()
 //                               __host__ __device__ (scandyn/instance/
-//                               second_derivatives_instance.hpp): one instance, the
-//                               serial reference's function (2 nv dual passes of the
-//                               first-order recursion);
+//                               second_derivatives_analytic.hpp): one instance, the
+//                               serial function's analytical second-order recursion
+//                               (Singh, Russell & Wensing, RA-L 2022);
 //   id_second_derivatives_kernel
 //                               one thread per instance (kernels/second_derivatives.cu);
 //   launch_id_second_derivatives()
@@ -18,11 +18,12 @@
 // Output layout: scandyn/engine.hpp (IdSecondDerivativesOut: nv^3 entries per
 // instance and tensor; soa, the instance innermost, is the fast layout on the device).
 //
-// Memory: the model in dual numbers is the kernel's parameter (DualModelParams: made
-// once on the host, read from the constant bank by every thread). Per thread, in
-// local memory: C DerivativeBody<Dual<S>> (144 scalars each) and C Force<Dual<S>>
-// (12 each), C the capacity (8, 16, 32 or 64, the smallest >= nv): 156 C scalars,
-// e.g. 10 KB in double for iiwa and 20 KB for hyq (C = 8, 16), 80 KB at C = 64.
+// Memory: the model is the kernel's parameter (SecondOrderModelParams: made once on
+// the host, read from the constant bank by every thread). Per thread, in local
+// memory: C DerivativeBody<S> (72 scalars each), C the capacity (8, 16, 32 or 64, the
+// smallest >= nv): 72 C scalars, e.g. 4.6 KB in double for iiwa and 9.2 KB for hyq
+// (C = 8, 16), 36.9 KB at C = 64 (the dual-number passes this kernel ran before took
+// 156 C scalars in pairs, 80 KB at C = 64).
 #pragma once
 
 #include <memory>
@@ -35,7 +36,7 @@
 #if SCANDYN_HAS_CUDA
 #include <cuda_runtime_api.h>
 
-#include "scandyn/instance/second_derivatives_instance.hpp"
+#include "scandyn/instance/second_derivatives_analytic.hpp"
 
 namespace scandyn {
 namespace cuda {
@@ -48,13 +49,11 @@ class StagingBuffer;  // kernels/staging.hpp
 inline constexpr int kSecondDerivativesBlock = 64;
 
 // The model as id_second_derivatives_kernel reads it, for capacity C (nv <= C): the
-// kernel parameter (__grid_constant__: it stays in the constant bank; in double at C =
-// 64 it is 26.7 KB of the 32 KB a kernel's parameters may take).
+// kernel parameter (__grid_constant__: it stays in the constant bank).
 template <class S, int C>
-struct DualModelParams {
+struct SecondOrderModelParams {
   static constexpr int capacity = C;
-  Body<Dual<S>> body[C];  // (nv) the bodies in DoF order in dual numbers, every derivative
-                          // part 0 (Body::cast); entries past nv unused
+  Body<S> body[C];        // (nv) the bodies in DoF order; entries past nv unused
   Motion<S> a0;           // base acceleration: gravity entered as -g (world frame)
   Index nv;               // number of bodies in body[] (their DoF), <= C
 };
@@ -62,13 +61,13 @@ struct DualModelParams {
 // One model prepared for the kernel: the parameter block of the smallest capacity
 // that holds it. Host memory only; built once, then copied into each launch.
 template <class S>
-class DualThreadModel {
+class SecondOrderThreadModel {
  public:
-  using Params = std::variant<DualModelParams<S, 8>, DualModelParams<S, 16>, DualModelParams<S, 32>,
-                              DualModelParams<S, 64>>;
+  using Params = std::variant<SecondOrderModelParams<S, 8>, SecondOrderModelParams<S, 16>, SecondOrderModelParams<S, 32>,
+                              SecondOrderModelParams<S, 64>>;
   // Throws BackendError for a model of more than kMaxThreadDofs DoF or with a
   // multi-DoF joint.
-  explicit DualThreadModel(const ModelTpl<S>& model);
+  explicit SecondOrderThreadModel(const ModelTpl<S>& model);
   Index nv() const { return nv_; }
   Index capacity() const { return capacity_; }  // 8, 16, 32 or 64
   const Params& params() const { return params_; }
@@ -83,7 +82,7 @@ class DualThreadModel {
 // strides (out.dM_dq.data null: not written). cudaErrorInvalidValue for batch sizes
 // that disagree or a null pointer with B > 0; else the launch's error.
 template <class S>
-cudaError_t launch_id_second_derivatives(const DualThreadModel<S>& model, const IdBatchIn<S>& in,
+cudaError_t launch_id_second_derivatives(const SecondOrderThreadModel<S>& model, const IdBatchIn<S>& in,
                                          const IdSecondDerivativesOut<S>& out, cudaStream_t stream);
 
 template <class S>
@@ -101,7 +100,7 @@ class CudaIdSecondDerivatives final : public IdSecondDerivatives<S> {
 
  private:
   Index nv_ = 0, max_batch_ = 0;
-  std::unique_ptr<DualThreadModel<S>> model_;
+  std::unique_ptr<SecondOrderThreadModel<S>> model_;
   std::unique_ptr<detail::StagingBuffer> staging_;
 };
 
