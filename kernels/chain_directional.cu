@@ -24,18 +24,16 @@ namespace {
 
 // ---- JVP ----
 template <class S>
-__global__ void jvp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, Affine6<S>* F_agg,
-                                 Affine6<S>* dv_agg) {
+__global__ void jvp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, Affine6<S>* dv_agg) {
   SCANDYN_CHUNK_INDEX;
-  F_agg[c] = subtree_force_aggregate(d.fd, s, e);
+  subtree_force_local(d, s, e);
   dv_agg[c] = jvp_velocity_aggregate(d, s, e);
 }
 
 template <class S>
-__global__ void jvp_velocity_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, const Vec6<S>* F_carry,
+__global__ void jvp_velocity_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks,
                                     const Vec6<S>* dv_carry, Affine6<S>* da_agg) {
   SCANDYN_CHUNK_INDEX;
-  subtree_force_walk(d, s, e, F_carry[c]);
   da_agg[c] = jvp_velocity_walk(d, s, e, dv_carry[c]);
 }
 
@@ -54,19 +52,18 @@ __global__ void jvp_force_kernel(const ChainDirectionalData<S> d, ChunkRange r, 
 }
 
 // ---- VJP ----
+// F locally, the rest solve's pass-2 aggregates (u = M^-1 w).
 template <class S>
-__global__ void vjp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, Affine6<S>* F_agg,
-                                 Affine6<S>* z_agg) {
+__global__ void vjp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, Affine6<S>* z_agg) {
   SCANDYN_CHUNK_INDEX;
-  vjp_first_aggregates(d, s, e, F_agg[c], z_agg[c]);
+  subtree_force_local(d, s, e);
+  z_agg[c] = vjp_rest_bias_aggregate(d, s, e);
 }
 
-// F's walk and the rest solve's pass 2 (u = M^-1 w).
 template <class S>
-__global__ void vjp_bias_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, const Vec6<S>* F_carry,
-                                const Vec6<S>* z_carry, Affine6<S>* agg) {
+__global__ void vjp_bias_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, const Vec6<S>* z_carry,
+                                Affine6<S>* agg) {
   SCANDYN_CHUNK_INDEX;
-  subtree_force_walk(d, s, e, F_carry[c]);
   agg[c] = bias_walk(d.rest, s, e, z_carry[c]);
 }
 
@@ -126,16 +123,17 @@ cudaError_t ChainFdPlan<S>::launch_jvp(const FdBatchIn<S>& in, const BatchView<c
   d.dtau = dtau;
   d.rest.tau = BatchView<const S>::aos(x_, n_, B);
   d.rest.qdd = dqdd;
-  if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a; qdd
+  d.fd.IA_out = IA_;  // pass 1's IA
+  d.fd.pA_out = F_;   // pass 2's pA, then F
+  if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a, IA, pA; qdd
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
   const unsigned nb = blocks(chunks);
-  // F (backward) and dv (forward)
-  jvp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff2_[0], aff_[0]);
-  if ((err = scan_levels(size, aff2_.data(), aff2_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
+  // F (locally) and dv (forward)
+  jvp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
-  jvp_velocity_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff2_carry_[0], aff_carry_[0], aff_[0]);
+  jvp_velocity_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
   // da (forward), df
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
   jvp_acceleration_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
@@ -167,16 +165,16 @@ cudaError_t ChainFdPlan<S>::launch_vjp(const FdBatchIn<S>& in, const BatchView<c
   d.rest.a = dv_;                              // Fbar
   d.rest.pA_out = df_;                         // pA of the rest problem
   d.fd.IA_out = IA_;                           // pass 1's IA
-  if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a; qdd
+  d.fd.pA_out = F_;                            // pass 2's pA, then F
+  if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a, IA, pA; qdd
   const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
   const unsigned nb = blocks(chunks);
-  // F and the rest solve's pass 2 (both backward)
-  vjp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff2_[0], aff_[0]);
-  if ((err = scan_levels(size, aff2_.data(), aff2_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
+  // F (locally) and the rest solve's pass 2 (backward)
+  vjp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  vjp_bias_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff2_carry_[0], aff_carry_[0], aff_[0]);
+  vjp_bias_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
   // the rest solve's pass 3 (u = M^-1 w in x, Fbar in dv); RA, gtau, RV's aggregates
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
   vjp_solve_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);

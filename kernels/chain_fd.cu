@@ -98,12 +98,10 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
   const std::size_t o_a = take(nd * sizeof(Motion<S>)), o_F = take(nd * sizeof(Force<S>)),
                     o_dv = take(nd * sizeof(Motion<S>)), o_df = take(nd * sizeof(Force<S>)), o_x = take(nd * sizeof(S)),
                     o_IA = take(nd * sizeof(ABInertia<S>));
-  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc, o_aff2, o_aff2c;
+  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
   for (Index size : level_size_) {
     o_aff.push_back(take(size * sizeof(Affine6<S>)));
     o_affc.push_back(take(size * sizeof(Vec6<S>)));
-    o_aff2.push_back(take((directional ? size : 0) * sizeof(Affine6<S>)));
-    o_aff2c.push_back(take((directional ? size : 0) * sizeof(Vec6<S>)));
     o_dual.push_back(take(size * sizeof(DualRiccati<DualScalar>)));
     o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
   }
@@ -142,8 +140,6 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     IA_ = reinterpret_cast<ABInertia<S>*>(base + o_IA);
   }
   for (std::size_t k = 0; k < level_size_.size(); ++k) {
-    aff2_.push_back(directional ? reinterpret_cast<Affine6<S>*>(base + o_aff2[k]) : nullptr);
-    aff2_carry_.push_back(directional ? reinterpret_cast<Vec6<S>*>(base + o_aff2c[k]) : nullptr);
     aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
     aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
     dual_.push_back(reinterpret_cast<DualRiccati<DualScalar>*>(base + o_dual[k]));

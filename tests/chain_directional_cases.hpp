@@ -125,12 +125,13 @@ inline Errors serial_float_errors(const Model& model, const Case& c) {
 // The tolerance of every output, from the case's conditioning: es, the serial float's
 // error on the same inputs, says how much the case amplifies a rounding error
 // (dqdd = M^-1 (dtau - r) on a rope of 1000 links: es ~ 0.5 at random
-// configurations, ~10 near rest, where cond(M) grows like n^4). Double: 1e-9, or 10x
+// configurations, ~5 near rest, where cond(M) grows like n^4). Double: 1e-9, or 30x
 // the serial double's own error so estimated (es x 2^-29, the ratio of the two
 // precisions' epsilons), whichever is larger; float (the inputs rounded to float):
-// 1e-5, or 10x es.
+// 1e-5, or 30x es. (Measured on the host: at most 3.5x in double, 8.6x in float, on
+// rope:1000 near rest; the device's fused multiply-adds round differently.)
 inline double tolerance(double es, bool is_float) {
-  return is_float ? std::fmax(1e-5, 10 * es) : std::fmax(1e-9, 10 * es * std::ldexp(1.0, -29));
+  return is_float ? std::fmax(1e-5, 30 * es) : std::fmax(1e-9, 30 * es * std::ldexp(1.0, -29));
 }
 
 inline void expect_within(const Errors& e, const Errors& es, bool is_float, const std::string& what) {

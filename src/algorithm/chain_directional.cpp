@@ -29,7 +29,6 @@ ChainFdDirectional<S>::ChainFdDirectional(const ModelTpl<S>& model, Index max_ba
   failed_.resize(static_cast<std::size_t>(max_batch_));
   const ChainChunking ck(links, chunk_, 16);
   aff_.resize(ck);
-  aff2_.resize(ck);
   dual_.resize(ck);
 }
 
@@ -97,6 +96,8 @@ Index ChainFdDirectional<S>::jvp(const FdBatchIn<S>& in, const BatchView<const S
   d.dtau = dtau;
   d.rest.tau = BatchView<const S>::aos(x_.data(), n_, B);
   d.rest.qdd = dqdd;
+  d.fd.IA_out = IA_.data();  // pass 1's IA
+  d.fd.pA_out = F_.data();   // pass 2's pA, then F
   const ChainChunking ck(d.count(), chunk_, 16);
   const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
   const int T = threads_;
@@ -104,20 +105,16 @@ Index ChainFdDirectional<S>::jvp(const FdBatchIn<S>& in, const BatchView<const S
   auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
   using chain_host::scan_levels;
 
-  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a; qdd
-  // F (backward) and dv (forward)
+  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a, IA, pA; qdd
+  // F (locally) and dv (forward)
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) {
-    aff2_.agg[0][c] = subtree_force_aggregate(d.fd, first(c), last(c));
+    subtree_force_local(d, first(c), last(c));
     aff_.agg[0][c] = jvp_velocity_aggregate(d, first(c), last(c));
   }
-  scan_levels(ck, aff2_.agg, aff2_.carry, false, T);
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) {
-    subtree_force_walk(d, first(c), last(c), aff2_.carry[0][c]);
-    aff_.agg[0][c] = jvp_velocity_walk(d, first(c), last(c), aff_.carry[0][c]);
-  }
+  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = jvp_velocity_walk(d, first(c), last(c), aff_.carry[0][c]);
   // da (forward), df
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
@@ -148,6 +145,7 @@ Index ChainFdDirectional<S>::vjp(const FdBatchIn<S>& in, const BatchView<const S
   d.rest.a = dv_.data();                               // Fbar
   d.rest.pA_out = df_.data();                          // pA of the rest problem
   d.fd.IA_out = IA_.data();                            // pass 1's IA
+  d.fd.pA_out = F_.data();                             // pass 2's pA, then F
   const ChainChunking ck(d.count(), chunk_, 16);
   const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
   const int T = threads_;
@@ -155,17 +153,16 @@ Index ChainFdDirectional<S>::vjp(const FdBatchIn<S>& in, const BatchView<const S
   auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
   using chain_host::scan_levels;
 
-  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a; qdd
-  // F and the rest solve's pass 2 (both backward)
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) vjp_first_aggregates(d, first(c), last(c), aff2_.agg[0][c], aff_.agg[0][c]);
-  scan_levels(ck, aff2_.agg, aff2_.carry, false, T);
-  scan_levels(ck, aff_.agg, aff_.carry, false, T);
+  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a, IA, pA; qdd
+  // F (locally) and the rest solve's pass 2 (backward)
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) {
-    subtree_force_walk(d, first(c), last(c), aff2_.carry[0][c]);
-    aff_.agg[0][c] = bias_walk(d.rest, first(c), last(c), aff_.carry[0][c]);
+    subtree_force_local(d, first(c), last(c));
+    aff_.agg[0][c] = vjp_rest_bias_aggregate(d, first(c), last(c));
   }
+  scan_levels(ck, aff_.agg, aff_.carry, false, T);
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = bias_walk(d.rest, first(c), last(c), aff_.carry[0][c]);
   // the rest solve's pass 3 (u = M^-1 w in x, Fbar in dv); RA, gtau, RV's aggregates
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)

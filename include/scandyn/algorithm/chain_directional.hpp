@@ -8,9 +8,12 @@
 // X_i = Xup of link i (parent p = i - 1), s = S_i the joint's motion subspace (6x1),
 // F_i the subtree force at qdd = FD, and x / x* the motion / force cross products.
 //
-// At qdd = FD(q, qd, tau, fext), with the chain FD's passes 0-3 done (v, U, D and the
-// body accelerations a stored):
-//   F   backward  F_i = I a_i + v_i x* I v_i - fext_i + X_{i+1}^T F_{i+1}    (M = X_{i+1}^T)
+// At qdd = FD(q, qd, tau, fext), with the chain FD's passes 0-3 done (v, U, D, the
+// body accelerations a, pass 1's articulated inertias IA and pass 2's articulated bias
+// forces pA stored):
+//   F   locally   F_i = IA_i a_i + pA_i, the subtree force (the RNEA's
+//                 F_i = I a_i + v_i x* I v_i - fext_i + X_{i+1}^T F_{i+1}) by the ABA's
+//                 identity f = IA a + pA: no scan
 // JVP (dq, dqd, dtau) -> dqdd = M^-1 (dtau - r), r = (dtau/dq) dq + (dtau/dqd) dqd:
 //   dv  forward   dv_i = X_i dv_p + s dqd_i - dq_i s x (X_i v_p)             (M = X_i)
 //   da  forward   da_i = X_i da_p - dq_i s x (X_i a_p) + dv_i x s qd_i + v_i x s dqd_i
@@ -22,7 +25,8 @@
 // VJP (w) -> gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = u = M^-1 w (rnea_vjp_instance's
 // recursions at the weight u, signs flipped):
 //   M^-1          u as above (tau = w), its pass 2 keeping the articulated bias forces
-//                 pA_i, its pass 3 the accelerations: these are Fbar_i = X_i Fbar_p + s u_i
+//                 pA_i of the problem at rest, its pass 3 the accelerations: these are
+//                 Fbar_i = X_i Fbar_p + s u_i
 //   locally       RA_i = IA_i Fbar_i + pA_i (the subtree force of the problem at rest,
 //                 by the ABA's identity f = IA a + pA, IA from pass 1: no scan of
 //                 ra_i = I Fbar_i, whose partial sums cancel badly in float), and
@@ -33,9 +37,9 @@
 // Every pass is an Affine6 scan: a chunk's aggregate built by the previous pass's walk
 // where its elements need that walk's values, the levels scanned, and the walk from
 // the chunk's carry running the serial step functions. Cost beyond one FD (whose
-// passes store a, and for the VJP IA): the JVP 6 Affine6 scans (F, dv, da, dF, the
-// rest solve's two), the VJP 4 (F, the rest solve's two, RV); neither reruns the
-// Riccati scan of pass 1, the expensive one.
+// passes store a, IA and pA): the JVP 5 Affine6 scans (dv, da, dF, the rest solve's
+// two), the VJP 3 (the rest solve's two, RV); neither reruns the Riccati scan of
+// pass 1, the expensive one.
 //
 // Chains as the chain FD's (unbranched chains from the base, several instances, link
 // g = b n + i); a floating base is refused (BackendError).
@@ -58,7 +62,7 @@ struct ChainDirectionalData {
   ChainFdData<S> rest;               // the chain at rest (see above)
   BatchView<const S> dq, dqd, dtau;  // (n x B) JVP directions
   BatchView<S> gq, gqd, gtau;        // (n x B) VJP outputs
-  Force<S>* F = nullptr;             // (B n) subtree forces F_i
+  Force<S>* F = nullptr;             // (B n) pass 2's pA_i (fd.pA_out), then the subtree forces F_i
   Motion<S>* dv = nullptr;           // (B n) JVP: dv_i; VJP: Fbar_i
   Force<S>* df = nullptr;            // (B n) JVP: df_i; VJP: the rest pass 2's pA_i, then RA_i
   S* x = nullptr;                    // (B n) JVP: dtau - r; VJP: u = M^-1 w, then gq's first term
@@ -99,12 +103,6 @@ SCANDYN_HD Transform<S> next_transform(const ChainFdData<S>& d, Index g) {
   return d.has_child(g) ? d.Xup(g + 1) : Transform<S>::identity();
 }
 
-// The body force f_g = I a + v x* I v - fext (the RNEA's, at qdd = FD).
-template <class S>
-SCANDYN_HD Force<S> chain_body_force(const ChainFdData<S>& d, Index g) {
-  return body_force(d.body_of(g), d.v[g], d.a[g], d.fext ? d.fext + g : nullptr);
-}
-
 // The rest solve's pass-2 element of link g with right-hand side tau (pass 1's U, D).
 template <class S>
 SCANDYN_HD Affine6<S> rest_bias_element(const ChainFdData<S>& d, Index g, const Transform<S>& Xnext, S tau) {
@@ -114,24 +112,13 @@ SCANDYN_HD Affine6<S> rest_bias_element(const ChainFdData<S>& d, Index g, const 
 
 // ---- the subtree forces F (both) ------------------------------------------------
 
-// F's aggregate of links s..e: F_s as a map of F_{e+1}.
+// F_i = IA_i a_i + pA_i for links s..e: the force across joint i at qdd = FD (the
+// RNEA's subtree force I a + v x* I v - fext summed over the subtree) by the ABA's
+// own identity, from pass 1's IA (fd.IA_out), pass 3's a and pass 2's articulated
+// bias force pA, which fd.pA_out = F holds: local, no scan.
 template <class S>
-SCANDYN_HD Affine6<S> subtree_force_aggregate(const ChainFdData<S>& d, Index s, Index e) {
-  Affine6<S> agg = affine_identity<S>();
-  for (Index g = s; g <= e; ++g)
-    agg = Affine6<S>::compose(agg, force_element(d, g, next_transform(d, g), to_vec6(chain_body_force(d, g))));
-  return agg;
-}
-
-// F's walk from F_{e+1}: stores F.
-template <class S>
-SCANDYN_HD void subtree_force_walk(const ChainDirectionalData<S>& d, Index s, Index e, const Vec6<S>& F_in) {
-  Force<S> F = to_force(F_in);
-  for (Index g = e; g >= s; --g) {
-    const Force<S> f = chain_body_force(d.fd, g);
-    F = d.fd.has_child(g) ? f + d.fd.Xup(g + 1).apply_transpose(F) : f;
-    d.F[g] = F;
-  }
+SCANDYN_HD void subtree_force_local(const ChainDirectionalData<S>& d, Index s, Index e) {
+  for (Index g = s; g <= e; ++g) d.F[g] = d.fd.IA_out[g] * d.fd.a[g] + d.F[g];
 }
 
 // ---- JVP ------------------------------------------------------------------------
@@ -221,19 +208,14 @@ SCANDYN_HD Affine6<S> jvp_force_walk(const ChainDirectionalData<S>& d, Index s, 
 
 // ---- VJP ------------------------------------------------------------------------
 
-// The aggregates of links s..e of F (Fagg) and of the rest solve's pass 2 for u = M^-1 w
-// (zagg): both backward, maps of the values of link e + 1.
+// The rest solve's pass-2 aggregate of links s..e for u = M^-1 w: z_s as a map of
+// z_{e+1}.
 template <class S>
-SCANDYN_HD void vjp_first_aggregates(const ChainDirectionalData<S>& d, Index s, Index e, Affine6<S>& Fagg,
-                                     Affine6<S>& zagg) {
-  const ChainFdData<S>& c = d.fd;
-  Fagg = affine_identity<S>();
-  zagg = affine_identity<S>();
-  for (Index g = s; g <= e; ++g) {
-    const Transform<S> Xn = next_transform(c, g);
-    Fagg = Affine6<S>::compose(Fagg, force_element(c, g, Xn, to_vec6(chain_body_force(c, g))));
-    zagg = Affine6<S>::compose(zagg, rest_bias_element(c, g, Xn, d.rest.tau_of(g)));
-  }
+SCANDYN_HD Affine6<S> vjp_rest_bias_aggregate(const ChainDirectionalData<S>& d, Index s, Index e) {
+  Affine6<S> agg = affine_identity<S>();
+  for (Index g = s; g <= e; ++g)
+    agg = Affine6<S>::compose(agg, rest_bias_element(d.fd, g, next_transform(d.fd, g), d.rest.tau_of(g)));
+  return agg;
 }
 
 // After the rest solve's walk of pass 3 over links s..e (u = M^-1 w in x, the rest
@@ -322,10 +304,10 @@ class ChainFdDirectional {
   ChainBodies<S> bodies_;
   std::vector<Motion<S>> v_, a_, dv_;
   std::vector<Force<S>> U_, w_, F_, df_;
-  std::vector<ABInertia<S>> IA_;  // (links) pass 1's IA (VJP)
+  std::vector<ABInertia<S>> IA_;  // (links) pass 1's IA
   std::vector<S> D_, u_, x_;
   std::vector<int> failed_;
-  ChainLevels<Affine6<S>> aff_, aff2_;
+  ChainLevels<Affine6<S>> aff_;
   ChainLevels<DualRiccati<DualScalar>> dual_;
 };
 

@@ -52,7 +52,7 @@ class ChainFdPlan {
   // model that is not unbranched chains from the base (naming the body), a batch whose links do
   // not fit in 2^30, device memory that does not suffice, or a CUDA error.
   // directional: also the scratch of launch_jvp / launch_vjp (per link: a, F, dv, df,
-  // x, IA; a second set of Affine6 levels); a floating base is then a BackendError.
+  // x, IA); a floating base is then a BackendError.
   ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chunk = 0, Index fan_in = 0, bool directional = false);
   ~ChainFdPlan();
   ChainFdPlan(const ChainFdPlan&) = delete;
@@ -84,7 +84,7 @@ class ChainFdPlan {
   // output of a failed instance unwritten. Returns cudaErrorInvalidValue for
   // B > max_batch or a batch mismatch, cudaErrorNotSupported without the
   // directional scratch, else the first launch error.
-  // Kernels beyond launch(): JVP 6 walks and 6 scans, VJP 4 walks and 4 scans.
+  // Kernels beyond launch(): JVP 5 walks and 5 scans, VJP 4 walks and 3 scans.
   //   launch_jvp: qdd = FD(in), dqdd = (dqdd/dq) dq + (dqdd/dqd) dqd + M^-1 dtau
   //   launch_vjp: qdd = FD(in), gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = M^-1 w
   cudaError_t launch_jvp(const FdBatchIn<S>& in, const BatchView<const S>& dq, const BatchView<const S>& dqd,
@@ -134,8 +134,6 @@ class ChainFdPlan {
   Force<S>* df_ = nullptr;                  // JVP df / VJP RA
   S* x_ = nullptr;                          // JVP dtau - r / VJP u, gq's first term
   ABInertia<S>* IA_ = nullptr;              // VJP: pass 1's articulated inertias IA
-  std::vector<Affine6<S>*> aff2_;           // per level: the second Affine6 scan (F)
-  std::vector<Vec6<S>*> aff2_carry_;
   std::vector<Index> level_size_;           // for max_batch; a call uses its own sizes
   std::vector<Affine6<S>*> aff_;            // per level
   std::vector<Vec6<S>*> aff_carry_;
