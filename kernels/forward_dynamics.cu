@@ -155,9 +155,9 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       10 * static_cast<std::size_t>(nq_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
   if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
-  else if (general)  // wide trees: a warp per instance over the levels (general_aba_for)
+  else if (general)  // a thread per instance (or a warp over the levels: general_aba_from_env)
     general_ = std::make_unique<GeneralPlan<S>>(model, max_batch_, 0, 0, 0, general_interleave_from_env(),
-                                                general_aba_for(model));
+                                                general_aba_from_env());
   else if (thread_bodies <= kMaxThreadDofs)
     thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   else dense_ = std::make_unique<DenseJsiPlan<S>>(model, max_batch_);

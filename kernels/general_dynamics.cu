@@ -209,21 +209,14 @@ std::vector<int> body_depths(const ModelTpl<S>& model) {
 }
 }  // namespace
 
-template <class S>
-GeneralAba general_aba_for(const ModelTpl<S>& model) {
-  if (const char* v = std::getenv("SCANDYN_GENERAL_ABA"); v && *v) {
-    for (GeneralAba a : {GeneralAba::Thread, GeneralAba::Levels})
-      if (std::string(v) == general_aba_name(a)) return a;
-    throw BackendError(std::string("SCANDYN_GENERAL_ABA='") + v +
-                       "': expected thread or levels (how the general path's ABA runs an instance)");
-  }
-  const std::vector<int> depth = body_depths(model);
-  const int levels = depth.empty() ? 0 : *std::max_element(depth.begin(), depth.end()) + 1;
-  return levels > 0 && static_cast<double>(model.nbodies()) / levels >= kLevelsMinWidth ? GeneralAba::Levels
-                                                                                          : GeneralAba::Thread;
+GeneralAba general_aba_from_env() {
+  const char* v = std::getenv("SCANDYN_GENERAL_ABA");
+  if (!v || !*v) return GeneralAba::Thread;
+  for (GeneralAba a : {GeneralAba::Thread, GeneralAba::Levels})
+    if (std::string(v) == general_aba_name(a)) return a;
+  throw BackendError(std::string("SCANDYN_GENERAL_ABA='") + v +
+                     "': expected thread or levels (how the general path's ABA runs an instance)");
 }
-template GeneralAba general_aba_for(const ModelTpl<float>&);
-template GeneralAba general_aba_for(const ModelTpl<double>&);
 
 namespace {
 // The bytes of every area's share per thread, in GeneralLayout's order.

@@ -63,22 +63,21 @@ GeneralInterleave general_interleave_from_env();
 
 // How a plan's launch_aba runs an instance:
 //   Thread  one thread per instance (aba_general), the scratch laid out as the
-//           plan's GeneralInterleave says;
+//           plan's GeneralInterleave says: the default;
 //   Levels  one warp per instance: the lanes take a tree level's bodies, level
 //           after level (the per-body steps of aba_general, general_instance.hpp,
-//           in the serial order: the same result bit for bit), the scratch of an
-//           instance contiguous (GeneralInterleave::Instance). For trees whose
-//           levels are wide: one thread per instance walks every body with its
-//           dependent loads in a row, and a batch of 10^4 fills a few percent of
-//           the GPU's thread slots.
-// general_aba_for(model) picks Levels when the tree's mean level width (bodies /
-// levels) is at least kLevelsMinWidth; SCANDYN_GENERAL_ABA (thread, levels)
-// overrides it when a plan is made, for A/B measurements.
+//           in the serial order: the same result), the scratch of an instance
+//           contiguous (GeneralInterleave::Instance).
+// Measured on the H200 (bench/results/general-path-levels-h200.csv, fd, float):
+// Levels takes 1.2-2.3x Thread's time on tree:1000:1 and tree:300:7 at 10^4 and
+// 10^5 instances, float and double (a warp's lanes load different bodies' structs,
+// 32 separate segments, where Thread's interleaved scratch coalesces), so Thread is
+// the default; SCANDYN_GENERAL_ABA=levels selects Levels when a plan is made (A/B
+// measurements, batches too small to fill the GPU with threads).
 enum class GeneralAba { Thread, Levels };
-inline constexpr double kLevelsMinWidth = 4.0;
 const char* general_aba_name(GeneralAba a);
-template <class S>
-GeneralAba general_aba_for(const ModelTpl<S>& model);
+// Thread, or SCANDYN_GENERAL_ABA's value (thread, levels; BackendError for another).
+GeneralAba general_aba_from_env();
 
 // A tree's level schedule (device arrays; Levels plans).
 struct LevelSchedule {
