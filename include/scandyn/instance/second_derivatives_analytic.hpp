@@ -127,8 +127,8 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
     const Force<S> hc = Ic * dVc;                    // Ic_c dV_c
     const Force<S> Phi = cross(Sc, wc.F) + Ic * wc.dA + Bc.apply(dVc);  // d F/dq_c of an ancestor's F
     const Force<S> Psi = S(2) * hc + Bc.apply(Sc);                      // d F/dqd_c of an ancestor's F
-    const VelocityDerivative<S> Bs = VelocityDerivative<S>::of(Ic, Sc);   // B(Ic_c, S_c)
-    const VelocityDerivative<S> Bv = VelocityDerivative<S>::of(Ic, dVc);  // B(Ic_c, dV_c)
+    // B(Ic_c, dV_c), for the pairs b < c only
+    const VelocityDerivative<S> Bv = body[c].parent < 0 ? VelocityDerivative<S>{} : VelocityDerivative<S>::of(Ic, dVc);
     for (Index b = c; b >= 0; b = body[b].parent) {
       const DerivativeBody<S>& wb = work[b];
       const Motion<S>& Sb = wb.J;
@@ -137,87 +137,92 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
       const bool bc = b == c;
       const Force<S> hb = Ic * dVb;          // Ic_c dV_b
       const Force<S> ISb = Ic * Sb;          // Ic_c S_b
-      const Motion<S> ScSb = cross(Sc, Sb);  // S_c x S_b
-      // the pair's 6-vectors (forces, paired with S_a, dV_a, dA_a):
+      const Motion<S> ScSb = cross(Sc, Sb);  // S_c x S_b (0 for b = c)
+      const Force<S> IScdVb = Ic * cross(Sc, dVb);  // Ic_c (S_c x dV_b)
+      const Force<S> Y = cross(dVb, f1);               // dV_b x* Ic_c S_c
+      const Force<S> Z = cross(Sc, hb) - IScdVb;       // S_c x* Ic_c dV_b - Ic_c (S_c x dV_b)
+      // the pair's 6-vectors (forces, paired with S_a, dV_a, dA_a below):
       // P1 = S_b x* Ic_c S_c
       const Force<S> P1 = cross(Sb, f1);
       // P2: d2tau_c/dq_b dq_a = dA_a . P1 + dV_a . P2 (the dA_b, dV_b and Bc_c
-      // derivatives along q_a; also d2tau_c/dq_b dqd_a = 2 dV_a . P1 + S_a . P2)
-      const Force<S> P2 = cross(dVb, f1) + cross(Sb, g1) - cross(Sc, hb) + Ic * cross(Sc, dVb);
-      // Q1 = (S_c x* Ic_c - Ic_c S_c x)^T S_b: d Ic/dq_c seen from S_b
+      // derivatives along q_a); also d2tau_c/dq_b dqd_a = 2 dV_a . P1 + S_a . P2
+      const Force<S> P2 = Y + cross(Sb, g1) - Z;
+      // Q1 = (S_c x* Ic_c - Ic_c S_c x)^T S_b: d Ic_c/dq_c seen from S_b. With P1 it
+      // gives B(Ic_c, S_b)^T S_c = P1 - Q1 and 2 Ic_c (S_b x S_c) + B(Ic_c, S_b) S_c =
+      // d Psi_c/dqd_b = P1 + Q1
       const Force<S> Q1 = cross(Sc, ISb) - Ic * ScSb;
-      // Q2 = (S_c x* Bc_c - Bc_c S_c x + B(Ic_c, dV_c))^T S_b: d Bc/dq_c seen from S_b
-      const Force<S> Q2 = cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb);
-      // R1 = B(Ic_c, S_b)^T S_c (= P1 - Q1)
-      const Force<S> R1 = P1 - Q1;
-      // R2 = 2 Ic_c (S_b x S_c) + B(Ic_c, S_b) S_c = d Psi_c / dqd_b
-      const Force<S> R2 = P1 + cross(Sc, ISb) - Ic * ScSb;
-      // R3 = B(Ic_c, S_c)^T S_b
-      const Force<S> R3 = Bs.apply_transpose(Sb);
-      // K = d Phi_c / dq_b (c's force seen by an ancestor, moved by joint b)
+      // K = d Phi_c / dq_b (c's force as an ancestor sees it, moved by joint b)
       const Force<S> K = cross(Sb, Phi) + cross(Sc, Ic * dAb + Bc.apply(dVb)) +
                          Ic * (cross(dAb, Sc) + cross(dVb, dVc)) + Bc.apply(cross(dVb, Sc)) + cross(dVb, hc) +
                          cross(dVc, hb);
       // K2 = d Phi_c / dqd_b
-      const Force<S> K2 = cross(Sc, S(2) * hb + Bc.apply(Sb)) + Ic * (S(2) * cross(dVb, Sc) + cross(Sb, dVc)) -
+      const Force<S> K2 = cross(Sc, S(2) * hb + Bc.apply(Sb)) + Ic * cross(Sb, dVc) - S(2) * IScdVb -
                           Bc.apply(ScSb) + cross(Sb, hc) + cross(dVc, ISb);
-      // K3 = S_b x* Psi_c + B(Ic_c, S_c) dV_b = d Phi_b / dqd_c (c in b's subtree)
-      const Force<S> K3 = cross(Sb, Psi) + Bs.apply(dVb);
+      // for b < c only:
+      // Q2 = (S_c x* Bc_c - Bc_c S_c x + B(Ic_c, dV_c))^T S_b: d Bc_c/dq_c seen from S_b
+      // K3 = S_b x* Psi_c + B(Ic_c, S_c) dV_b = d Phi_b / dqd_c (c in b's subtree), with
+      //   B(Ic_c, S_c) dV_b = S_c x* Ic_c dV_b - Ic_c (S_c x dV_b) + dV_b x* Ic_c S_c = Z + Y
+      // (and d Bc_c/dqd_c seen from S_b, B(Ic_c, S_c)^T S_b = -(P1 - Q1): s . B(I, u) m =
+      // -u . B(I, s) m, B's antisymmetry in its velocity and the motion it is paired with)
+      Force<S> Q2 = Force<S>::zero(), K3 = Force<S>::zero();
+      if (!bc) {
+        Q2 = cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb);
+        K3 = cross(Sb, Psi) + Z + Y;
+      }
       for (Index a = b; a >= 0; a = body[a].parent) {
         const DerivativeBody<S>& wa = work[a];
-        const Motion<S>& Sa = wa.J;
-        const Motion<S>& dVa = wa.dV;
-        const Motion<S>& dAa = wa.dA;
+        const Motion<S> Sa = wa.J, dVa = wa.dV, dAa = wa.dA;  // copies: the stores below may not alias them
         const bool ab = a == b;
-        const S dVaP1 = dot(dVa, P1);
+        const S SaP1 = dot(Sa, P1), SaQ1 = dot(Sa, Q1);
+        const S dVaP1 = dot(dVa, P1), dVaQ1 = dot(dVa, Q1);
         const S SaP2 = dot(Sa, P2);
-        // tau_c (the deepest): all of its derivatives along the ancestors a <= b
+        // tau_c (the deepest): its derivatives along the ancestors a <= b
         const S t_cba = dot(dAa, P1) + dot(dVa, P2);
         T(c, b, a) = t_cba;
         T(c, a, b) = t_cba;
-        const S u_cba = dot(Sa, R1);
+        const S u_cba = SaP1 - SaQ1;  // S_c . B(Ic_c, S_b) S_a
         U(c, b, a) = u_cba;
         U(c, a, b) = u_cba;
         W(c, b, a) = S(2) * dVaP1 + SaP2;
-        if (!ab) W(c, a, b) = dot(dVa, R1);  // S_c . B(Ic_c, S_b) dV_a
+        const S w_cab = dVaP1 - dVaQ1;  // S_c . B(Ic_c, S_b) dV_a
+        if (!ab) W(c, a, b) = w_cab;
         // tau_a (the shallowest, a < c): d Phi_c and d Psi_c along joint b
         if (!(ab && bc)) {
           const S t_acb = dot(Sa, K);
           T(a, c, b) = t_acb;
           T(a, b, c) = t_acb;
-          const S u_acb = dot(Sa, R2);
+          const S u_acb = SaP1 + SaQ1;
           U(a, c, b) = u_acb;
           U(a, b, c) = u_acb;
         }
         if (!ab) W(a, c, b) = dot(Sa, K2);
         // tau_b (the middle one, b < c): Ic_b and Bc_b moved by joint c
         if (!bc) {
+          const S SaQ2 = dot(Sa, Q2);
           if (!ab) {
             const S t_bac = dot(dAa, Q1) + dot(dVa, Q2);
             T(b, a, c) = t_bac;
             T(b, c, a) = t_bac;
-            const S u_bac = dot(Sa, R3);
+            const S u_bac = -u_cba;  // S_b . B(Ic_c, S_c) S_a
             U(b, a, c) = u_bac;
             U(b, c, a) = u_bac;
             W(a, b, c) = dot(Sa, K3);
           }
-          W(b, a, c) = dot(dVa, R3);
-          W(b, c, a) = S(2) * dot(dVa, Q1) + dot(Sa, Q2);
+          W(b, a, c) = -w_cab;  // S_b . B(Ic_c, S_c) dV_a
+          W(b, c, a) = S(2) * dVaQ1 + SaQ2;
         }
         if (with_dM) {
           // d M_bc / dq_a = 0 (a is an ancestor of both: rigid); d M_ac / dq_b =
-          // S_c . Ic_c (S_a x S_b); d M_ab / dq_c = S_a . Q1
+          // S_c . Ic_c (S_a x S_b) = S_a . P1; d M_ab / dq_c = S_a . Q1
           dM_dq(c, b, a) = S(0);
           dM_dq(b, c, a) = S(0);
           if (!ab) {
-            const S d = dot(Sa, P1);
-            dM_dq(a, c, b) = d;
-            dM_dq(c, a, b) = d;
+            dM_dq(a, c, b) = SaP1;
+            dM_dq(c, a, b) = SaP1;
           }
           if (!bc) {
-            const S d = dot(Sa, Q1);
-            dM_dq(a, b, c) = d;
-            dM_dq(b, a, c) = d;
+            dM_dq(a, b, c) = SaQ1;
+            dM_dq(b, a, c) = SaQ1;
           }
         }
       }
