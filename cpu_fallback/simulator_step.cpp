@@ -342,8 +342,11 @@ class CpuInstanceStep final : public CpuSimState<S> {
 
   // One instance's step with closed loops: step_instance over the constrained forward
   // dynamics (double), then the state projected onto the loops (positions by
-  // Gauss-Newton to 1e-12, velocities to J qd = 0, minimum-norm changes): dense, or
-  // through the setup's sparse loop solver (scandyn/sim/sparse_loops.hpp).
+  // Levenberg-Marquardt around Gauss-Newton to 1e-12, at most 10 linearisations:
+  // Gauss-Newton from a step's drift; velocities to J qd = 0, minimum-norm changes):
+  // dense, or through the setup's sparse loop solver (scandyn/sim/sparse_loops.hpp).
+  // A projection that leaves the state more than kLoopStateTolerance off its loops
+  // fails the step (Failure::LoopNotClosed).
   template <unsigned E, Integrator I>
   static Index loop_step_one(const SimSetup<S>& setup, Work& w, S* q, S* qd, const S* tau, const Force<S>* fext,
                              sim::ContactReading<S>* readings) {

@@ -24,8 +24,9 @@
 //   velocities  qd's minimum-norm change with J qd = 0 at the final q.
 //
 // Stops when max |phi| <= tol, after `linearisations` linearisations, when the
-// predicted decrease vanishes (a stationary point), or when mu exceeds 1e16 times
-// the scale (no step decreases |phi|^2: rounding).
+// predicted decrease vanishes (a stationary point), or when a rejected step is
+// below 1e-14 (1 + max |q|) or mu exceeds 1e16 times the scale (no step decreases
+// |phi|^2: rounding).
 #pragma once
 
 #include <algorithm>
@@ -168,7 +169,11 @@ double project_onto_loops(Ops& ops, Index n, Index m, double* q, double* qd, dou
       }
       mu = mu == 0 ? 1e-3 * scale : mu * nu;
       nu *= 2;
-      if (!(mu <= 1e16 * scale) || out.trials >= max_trials) {
+      // a rejected step below q's rounding: damping more cannot help (|phi| is at
+      // its rounding floor)
+      double step = 0, size = 0;
+      for (Index i = 0; i < n; ++i) step = std::max(step, std::fabs(p[i])), size = std::max(size, std::fabs(q[i]));
+      if (!(mu <= 1e16 * scale) || out.trials >= max_trials || step <= 1e-14 * (1 + size)) {
         stop = true;
         break;
       }
