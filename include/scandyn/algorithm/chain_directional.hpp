@@ -97,7 +97,7 @@ SCANDYN_HD Affine6<S> force_element(const ChainFdData<S>& d, Index g, const Tran
   return d.has_child(g) ? Affine6<S>{transpose(to_mat6(Xnext)), b, false} : Affine6<S>::make_constant(b);
 }
 
-// Link g's transform and the next link's (identity past the last).
+// The next link's transform X_{g+1} (the identity past a chain's last link, unused there).
 template <class S>
 SCANDYN_HD Transform<S> next_transform(const ChainFdData<S>& d, Index g) {
   return d.has_child(g) ? d.Xup(g + 1) : Transform<S>::identity();
