@@ -98,8 +98,10 @@ __global__ void __launch_bounds__(kLevelsBlock)
     __syncwarp();
     // pass 1, root to leaves
     for (Index l = 0; l < ls.levels; ++l) {
-      for (int k = ls.level_begin[l] + lane; k < ls.level_begin[l + 1]; k += 32)
-        aba_general_forward(g.bodies, ls.order[k], w, q, qd, fext);
+      for (int k = ls.level_begin[l] + lane; k < ls.level_begin[l + 1]; k += 32) {
+        const Index i = ls.order[k], p = g.bodies[i].parent;
+        aba_general_forward(g.bodies, i, p < 0 ? Motion<S>::zero() : Motion<S>(w.v[p]), w, q, qd, fext);
+      }
       __syncwarp();
     }
     // pass 2, leaves to root: each body gathers its children's shares, then its joint terms
@@ -107,15 +109,17 @@ __global__ void __launch_bounds__(kLevelsBlock)
     for (Index l = ls.levels - 1; l >= 0; --l) {
       for (int k = ls.level_begin[l] + lane; k < ls.level_begin[l + 1]; k += 32) {
         const Index i = ls.order[k];
+        ABInertia<S> IA = w.IA[i];
+        Force<S> pA = w.f[i];
         if (ls.child_begin[i] < ls.child_begin[i + 1]) {
-          ABInertia<S> IA = w.IA[i];
-          Force<S> pA = w.f[i];
-          for (int c = ls.child_begin[i]; c < ls.child_begin[i + 1]; ++c)
-            aba_general_to_parent(g.bodies, ls.child[c], w, IA, pA);
-          w.IA[i] = IA;
+          for (int c = ls.child_begin[i]; c < ls.child_begin[i + 1]; ++c) {
+            const Index ci = ls.child[c];
+            aba_general_to_parent(g.bodies, ci, ABInertia<S>(w.IA[ci]), Force<S>(w.f[ci]), w, IA, pA);
+          }
+          w.IA[i] = IA;  // final: the parent's lane reads it at the next level
           w.f[i] = pA;
         }
-        const Index f = aba_general_joint(g.bodies, i, w, tau, static_cast<const S*>(nullptr));
+        const Index f = aba_general_joint(g.bodies, i, IA, pA, w, tau, static_cast<const S*>(nullptr));
         if (f > failed) failed = static_cast<int>(f);
       }
       __syncwarp();
@@ -126,8 +130,10 @@ __global__ void __launch_bounds__(kLevelsBlock)
     if (failed < 0) {
       // pass 3, root to leaves
       for (Index l = 0; l < ls.levels; ++l) {
-        for (int k = ls.level_begin[l] + lane; k < ls.level_begin[l + 1]; k += 32)
-          aba_general_acceleration(g.bodies, ls.order[k], g.a0, w, out);
+        for (int k = ls.level_begin[l] + lane; k < ls.level_begin[l + 1]; k += 32) {
+          const Index i = ls.order[k], p = g.bodies[i].parent;
+          aba_general_acceleration(g.bodies, i, p < 0 ? g.a0 : Motion<S>(w.a[p]), w, out);
+        }
         __syncwarp();
       }
       for (Index i = lane; i < g.nv; i += 32) qdd.at(i, bi) = out[i];

@@ -135,39 +135,41 @@ SCANDYN_HD void crba_general(const Body<S>* body, Index nb, Index nv, const W& w
   }
 }
 
-// The ABA of the general path, one body at a time: the serial aba_general below runs
-// these steps in DoF order; the CUDA level kernel (kernels/general_dynamics.cu,
+// The ABA of the general path, one body at a time: the serial-order aba_general
+// below runs these steps in DoF order; the CUDA level kernel (kernels/general_dynamics.cu,
 // aba_levels_kernel) runs a tree level's bodies on the lanes of a warp, level after
-// level, with the same arithmetic in the same order (bit for bit the serial result).
+// level, with the same arithmetic in the same order. Each step takes the values it
+// depends on as arguments (the parent's velocity or acceleration, the body's own
+// articulated inertia and bias force), so that a caller can hand them over in
+// registers along a chain instead of through the scratch.
 
-// Pass 1, body i (its parent's velocity in w.v): Xup, v, c, pA = v x* I v - fext, IA = I.
+// Pass 1, body i: Xup, v, c, pA = v x* I v - fext and IA = I into the scratch; v_parent:
+// its parent's velocity (zero at the base). Returns v.
 template <class S, class W, class Q, class QD>
-SCANDYN_HD void aba_general_forward(const Body<S>* body, Index i, const W& w, const Q& q, const QD& qd,
-                                    const Force<S>* fext) {
+SCANDYN_HD Motion<S> aba_general_forward(const Body<S>* body, Index i, const Motion<S>& v_parent, const W& w,
+                                         const Q& q, const QD& qd, const Force<S>* fext) {
   const Body<S>& b = body[i];
-  const Index p = b.parent;
   S qj[7], qdj[kMaxJointDofs];  // the joint's q and qd entries (unused for plain pointers)
   load_run(q, b.idx_q, joint_nq(b.type), qj);
   load_run(qd, b.idx_v, joint_nv(b.type), qdj);
   const Transform<S> X = joint_transform_at(b, joint_run(q, b.idx_q, qj));
-  const AbaForward<S> o =
-      aba_forward_step_at(b, X, p < 0 ? Motion<S>::zero() : Motion<S>(w.v[p]), joint_run(qd, b.idx_v, qdj));
+  const AbaForward<S> o = aba_forward_step_at(b, X, v_parent, joint_run(qd, b.idx_v, qdj));
   w.Xup[i] = X;
   w.v[i] = o.v;
   w.c[i] = o.c;
   w.f[i] = fext ? o.pA - fext[i] : o.pA;
   w.IA[i] = ABInertia<S>::from(b.I);
+  return o.v;
 }
 
-// Pass 2, the joint terms of body i from its final IA and pA (w.IA[i], w.f[i]):
-// U, D, u of a 1-DoF joint, Y, L, w of a multi-DoF one, into the scratch. Returns
-// the first DoF whose pivot is not positive and finite, -1 when none.
+// Pass 2, the joint terms of body i from its final articulated inertia IA and bias
+// force pA: U, D, u of a 1-DoF joint, Y, L, w of a multi-DoF one, into the scratch.
+// Returns the first DoF whose pivot is not positive and finite, -1 when none.
 template <class S, class W, class Tau>
-SCANDYN_HD Index aba_general_joint(const Body<S>* body, Index i, const W& w, const Tau& tau, const S* armature) {
+SCANDYN_HD Index aba_general_joint(const Body<S>* body, Index i, const ABInertia<S>& IA, const Force<S>& pA,
+                                   const W& w, const Tau& tau, const S* armature) {
   const Body<S>& b = body[i];
   const Index iv = b.idx_v;
-  const ABInertia<S> IA = w.IA[i];
-  const Force<S> pA = w.f[i];
   if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
     Force<S> U;
     S D, u;
@@ -192,14 +194,13 @@ SCANDYN_HD Index aba_general_joint(const Body<S>* body, Index i, const W& w, con
   return k >= 0 ? iv + k : Index(-1);
 }
 
-// Pass 2, body i's articulated inertia and bias force handed to its parent p
-// (i's joint terms in the scratch): IAp += Xup^T Ia Xup, pAp += Xup^T pa.
+// Pass 2, body i's share handed to its parent (IA, pA: body i's; its joint terms in
+// the scratch): IAp += Xup^T Ia Xup, pAp += Xup^T pa.
 template <class S, class W>
-SCANDYN_HD void aba_general_to_parent(const Body<S>* body, Index i, const W& w, ABInertia<S>& IAp, Force<S>& pAp) {
+SCANDYN_HD void aba_general_to_parent(const Body<S>* body, Index i, const ABInertia<S>& IA, const Force<S>& pA,
+                                      const W& w, ABInertia<S>& IAp, Force<S>& pAp) {
   const Body<S>& b = body[i];
   const Index iv = b.idx_v;
-  const ABInertia<S> IA = w.IA[i];
-  const Force<S> pA = w.f[i];
   if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
     aba_backward_to_parent(Transform<S>(w.Xup[i]), IA, pA, Motion<S>(w.c[i]), Force<S>(w.U[iv]), S(w.D[iv]),
                            S(w.u[iv]), IAp, pAp);
@@ -214,19 +215,18 @@ SCANDYN_HD void aba_general_to_parent(const Body<S>* body, Index i, const W& w, 
                             joint_run(w.u, iv, wj), IAp, pAp);
 }
 
-// Pass 3, body i (its parent's acceleration in w.a, a0 at the base): qdd of its
-// joint and its acceleration.
+// Pass 3, body i: qdd of its joint and its acceleration a (into the scratch, and
+// returned); a_parent: its parent's acceleration (a0 at the base).
 template <class S, class W, class Qdd>
-SCANDYN_HD void aba_general_acceleration(const Body<S>* body, Index i, const Motion<S>& a0, const W& w,
-                                         const Qdd& qdd) {
+SCANDYN_HD Motion<S> aba_general_acceleration(const Body<S>* body, Index i, const Motion<S>& a_parent, const W& w,
+                                              const Qdd& qdd) {
   const Body<S>& b = body[i];
   const Index iv = b.idx_v;
   const Transform<S> X = w.Xup[i];
-  const Motion<S> ap = b.parent < 0 ? a0 : Motion<S>(w.a[b.parent]);
   const Motion<S> c = w.c[i];
   Motion<S> a;
   if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
-    qdd[iv] = aba_acceleration_step(b, X, ap, c, Force<S>(w.U[iv]), S(w.D[iv]), S(w.u[iv]), a);
+    qdd[iv] = aba_acceleration_step(b, X, a_parent, c, Force<S>(w.U[iv]), S(w.D[iv]), S(w.u[iv]), a);
   } else {
     const int nj = joint_nv(b.type);
     S Lj[kMaxJointDofs * kMaxJointDofs], wj[kMaxJointDofs], qddj[kMaxJointDofs];
@@ -235,36 +235,58 @@ SCANDYN_HD void aba_general_acceleration(const Body<S>* body, Index i, const Mot
     load_joint_factor(w.L, iv, nj, Lj);
     load_run(w.u, iv, nj, wj);
     auto* const out = joint_run(qdd, iv, qddj);
-    aba_acceleration_step_at(b, X, ap, c, joint_run(w.U, iv, Yj), joint_run(w.L, iv * kMaxJointDofs, Lj),
+    aba_acceleration_step_at(b, X, a_parent, c, joint_run(w.U, iv, Yj), joint_run(w.L, iv * kMaxJointDofs, Lj),
                              joint_run(w.u, iv, wj), out, a);
     store_run(qdd, iv, nj, out);
   }
   w.a[i] = a;
+  return a;
 }
 
 // qdd = FD(q, qd, tau, fext) by the ABA (armature: nv joint-space inertias added to
 // M's diagonal, or null). q (nq entries), qd, tau, qdd (nv): plain pointers or
 // StridedArrays. Returns the first DoF whose pivot is not positive and finite (qdd
-// untouched), -1 when none.
+// untouched), -1 when none. Along a chain (body i's parent is i - 1, as in most of a
+// tree in DoF order) the parent's velocity and acceleration and the body's own
+// articulated inertia and bias force are handed from one step to the next in
+// registers, not through the scratch (a GPU thread's dependent round trip through
+// memory per body); a branch reads them from the scratch, where they are also kept.
 template <class S, class W, class Q, class QD, class Tau, class Qdd>
 SCANDYN_HD Index aba_general(const Body<S>* body, Index nb, const Motion<S>& a0, const W& w, const Q& q,
                              const QD& qd, const Tau& tau, const Qdd& qdd, const Force<S>* fext, const S* armature) {
   // pass 1, root to leaves: Xup, v, c, pA, IA = I
-  for (Index i = 0; i < nb; ++i) aba_general_forward(body, i, w, q, qd, fext);
+  Motion<S> v = Motion<S>::zero();  // body i - 1's
+  for (Index i = 0; i < nb; ++i) {
+    const Index p = body[i].parent;
+    v = aba_general_forward(body, i, p < 0 ? Motion<S>::zero() : p == i - 1 ? v : Motion<S>(w.v[p]), w, q, qd, fext);
+  }
   // pass 2, leaves to root: the joint terms, IA and pA handed to the parent
+  ABInertia<S> IA;
+  Force<S> pA;
+  bool carried = false;  // IA, pA hold body i's (its parent was i + 1's)
   for (Index i = nb - 1; i >= 0; --i) {
-    const Index failed = aba_general_joint(body, i, w, tau, armature);
+    if (!carried) IA = w.IA[i], pA = w.f[i];
+    const Index failed = aba_general_joint(body, i, IA, pA, w, tau, armature);
     if (failed >= 0) return failed;
     const Index p = body[i].parent;
+    carried = p >= 0 && p == i - 1;
     if (p < 0) continue;
     ABInertia<S> IAp = w.IA[p];
     Force<S> pAp = w.f[p];
-    aba_general_to_parent(body, i, w, IAp, pAp);
-    w.IA[p] = IAp;
-    w.f[p] = pAp;
+    aba_general_to_parent(body, i, IA, pA, w, IAp, pAp);
+    if (carried) {
+      IA = IAp, pA = pAp;
+    } else {
+      w.IA[p] = IAp;
+      w.f[p] = pAp;
+    }
   }
   // pass 3, root to leaves: the accelerations
-  for (Index i = 0; i < nb; ++i) aba_general_acceleration(body, i, a0, w, qdd);
+  Motion<S> a = a0;  // body i - 1's
+  for (Index i = 0; i < nb; ++i) {
+    const Index p = body[i].parent;
+    a = aba_general_acceleration(body, i, p < 0 ? a0 : p == i - 1 ? a : Motion<S>(w.a[p]), w, qdd);
+  }
   return -1;
 }
 
