@@ -374,6 +374,7 @@ TEST(CudaFloatingThreads, GeneralAbaBeyondTheThreadKernels) {
   }
 }
 
+
 namespace {
 // qdd and the failed DoFs of B instances x by plan.launch_aba.
 void general_plan_aba(const cuda::GeneralPlan<double>& plan, const test::SoaStates& x, Index B,
@@ -462,24 +463,9 @@ TEST(CudaFloatingThreads, GeneralPlanThreadsTakeSeveralInstances) {
   const std::size_t slice = cuda::GeneralLayout<double>::make(md.nbodies(), md.nv(), md.nq() + 3 * md.nv(), 0).bytes;
   const cuda::GeneralPlan<double> plan(md, B, 0, 0, 50 * slice);
   ASSERT_EQ(plan.args().slots, 50);
-  test::DeviceArray<double> dq, dqd, du, dqdd;
-  test::DeviceArray<Force<double>> df;
-  test::DeviceArray<int> dfailed;
-  const auto up = [](auto& d, const auto& h) {
-    EXPECT_EQ(d.alloc(h.size()), cudaSuccess);
-    EXPECT_EQ(cudaMemcpy(d.ptr, h.data(), h.size() * sizeof(h[0]), cudaMemcpyHostToDevice), cudaSuccess);
-    return d.ptr;
-  };
-  using V = BatchView<const double>;
-  const FdBatchIn<double> in{V::soa(up(dq, x.q), x.nq, B), V::soa(up(dqd, x.qd), x.nv, B), V::soa(up(du, x.u), x.nv, B),
-                             up(df, x.fext)};
-  ASSERT_EQ(dqdd.alloc(x.qd.size()), cudaSuccess);
-  ASSERT_EQ(dfailed.alloc(static_cast<std::size_t>(B)), cudaSuccess);
-  ASSERT_EQ(plan.launch_aba(in, BatchView<double>::soa(dqdd.ptr, x.nv, B), dfailed.ptr, nullptr), cudaSuccess);
-  std::vector<double> qdd(x.qd.size());
-  std::vector<int> failed(static_cast<std::size_t>(B));
-  ASSERT_EQ(cudaMemcpy(qdd.data(), dqdd.ptr, qdd.size() * sizeof(double), cudaMemcpyDeviceToHost), cudaSuccess);
-  ASSERT_EQ(cudaMemcpy(failed.data(), dfailed.ptr, failed.size() * sizeof(int), cudaMemcpyDeviceToHost), cudaSuccess);
+  std::vector<double> qdd;
+  std::vector<int> failed;
+  general_plan_aba(plan, x, B, qdd, failed);
   EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
   EXPECT_LE(rel_err(qdd, test::soa_reference(md, x, true)), 1e-9);
 }
