@@ -6,36 +6,9 @@
 #include <algorithm>
 #include <string>
 
+#include "chain_scan_host.hpp"
+
 namespace scandyn {
-
-namespace {
-
-// The aggregates above level 0 and the carries of every level, for one pass whose
-// level-0 aggregates are in agg[0] (chain_fd.cpp's level scan, for the hybrid's
-// element types).
-template <class E>
-void hybrid_scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
-                        std::vector<std::vector<typename E::Value>>& carry, bool forward, int threads) {
-  const Index levels = static_cast<Index>(ck.level_size.size());
-  for (Index k = 0; k + 1 < levels; ++k) {
-    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
-    const E* lower = agg[k].data();
-    E* upper = agg[k + 1].data();
-#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
-    for (Index j = 0; j < m; ++j) upper[j] = fold_range(lower, j * f, std::min(size, (j + 1) * f), forward);
-  }
-  carry_range(agg[levels - 1].data(), carry[levels - 1].data(), 0, ck.level_size[levels - 1], forward, E::start());
-  for (Index k = levels - 2; k >= 0; --k) {
-    const Index m = ck.level_size[k + 1], size = ck.level_size[k], f = ck.fan_in;
-    const E* lower = agg[k].data();
-    auto* lc = carry[k].data();
-    const auto* uc = carry[k + 1].data();
-#pragma omp parallel for num_threads(threads) schedule(static) if (m > 1)
-    for (Index j = 0; j < m; ++j) carry_range(lower, lc, j * f, std::min(size, (j + 1) * f), forward, uc[j]);
-  }
-}
-
-}  // namespace
 
 template <class S>
 ChainHybridDynamics<S>::ChainHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed,
@@ -103,20 +76,20 @@ Index ChainHybridDynamics<S>::compute(const HybridBatchIn<S>& in, const BatchVie
   // pass 0: velocities (and pass 1's aggregates)
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate<S>(d, first(c), last(c));
-  hybrid_scan_levels(ck, aff_, aff_carry_, true, T);
+  chain_host::scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) dual_[0][c] = hybrid_velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
   // pass 1: articulated inertias, prescribed joints rigid (and pass 2's aggregates)
-  hybrid_scan_levels(ck, dual_, dual_carry_, false, T);
+  chain_host::scan_levels(ck, dual_, dual_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c)
     aff_[0][c] = hybrid_inertia_walk(d, first(c), last(c), hybrid_inertia_carry(d, last(c), dual_carry_[0][c]));
   // pass 2: bias forces, prescribed accelerations included (and pass 3's aggregates)
-  hybrid_scan_levels(ck, aff_, aff_carry_, false, T);
+  chain_host::scan_levels(ck, aff_, aff_carry_, false, T);
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) aff_[0][c] = hybrid_bias_walk(d, first(c), last(c), aff_carry_[0][c]);
   // pass 3: accelerations and the prescribed joints' forces
-  hybrid_scan_levels(ck, aff_, aff_carry_, true, T);
+  chain_host::scan_levels(ck, aff_, aff_carry_, true, T);
 #pragma omp parallel for num_threads(T) schedule(static)
   for (Index c = 0; c < chunks; ++c) hybrid_acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
 

@@ -1,5 +1,6 @@
 // The host (OpenMP) scans of the chain drivers (src/algorithm/chain_fd.cpp,
-// src/algorithm/chain_directional.cpp): a pass's chunk aggregates scanned in levels
+// src/algorithm/chain_directional.cpp, src/algorithm/chain_hybrid.cpp, whose element
+// types are the hybrid's own): a pass's chunk aggregates scanned in levels
 // (scandyn/algorithm/chain_fd.hpp: fold_range, carry_range), and the chain forward
 // dynamics' four passes over a ChainFdData. Private to the library's sources.
 #pragma once
