@@ -23,7 +23,7 @@
 // memory: C DerivativeBody<S> (72 scalars each), C the capacity (8, 16, 32 or 64, the
 // smallest >= nv): 72 C scalars, e.g. 4.6 KB in double for iiwa and 9.2 KB for hyq
 // (C = 8, 16), 36.9 KB at C = 64 (the dual-number passes this kernel ran before took
-// 156 C scalars in pairs, 80 KB at C = 64).
+// 156 C scalars, 80 KB at C = 64).
 #pragma once
 
 #include <memory>
