@@ -456,6 +456,33 @@ SCANDYN_HD Affine6<S> bias_element(const Body<S>& b, bool child, const Transform
   return el;
 }
 
+// Pass 1's step of link g with a free 1-DoF joint, from its articulated inertia IA
+// (children's included) and articulated bias force pA: U = IA S, D = S^T U (a failed
+// pivot recorded, D = NaN), the projected inertia Ia = IA - U U^T / D (6x6, into
+// Ia_out) and w = Ia c; stores U, D, w; returns pass 2's element of the link
+// (bias_element with its tau). Shared by inertia_walk and the hybrid's walk
+// (scandyn/algorithm/chain_hybrid.hpp).
+template <class S, bool kB>
+SCANDYN_HD Affine6<S> free_joint_step(const ChainFdData<S, kB>& d, Index g, const Body<S>& b, bool child,
+                                      const Transform<S>& Xnext, const ABInertia<S>& IA, const Force<S>& pA,
+                                      ABInertia<S>& Ia_out) {
+  Force<S> U;
+  S D, u_unused;
+  aba_joint_terms(b, IA, pA, S(0), U, D, u_unused);
+  if (!pivot_ok(D)) {
+    record_failure(d, g);
+    D = S(NAN);
+  }
+  const S Dinv = S(1) / D;
+  const ABInertia<S> Ia = IA.minus_outer(U, Dinv);
+  const Force<S> w = Ia * d.c(g);
+  d.U[g] = U;
+  d.D[g] = D;
+  d.w[g] = w;
+  Ia_out = Ia;
+  return bias_element(b, child, Xnext, U, Dinv, pA, w, d.tau_of(g));
+}
+
 // Pass 1's walk from Ia_in, the projected articulated inertia of link e + 1 (its
 // frame; ignored when link e has no child): the ABA articulated-inertia recursion
 // over e..s with the step functions; stores U, D, w = Ia c and records a failed
@@ -477,22 +504,7 @@ SCANDYN_HD Affine6<S> inertia_walk(const ChainFdData<S, kB>& d, Index s, Index e
       continue;  // the link before it (another instance's last) does not read Ia_next, Xnext, z_next
     }
     if (d.IA_out) d.IA_out[g] = IA;
-    const Force<S> pA = d.pA(g);
-    Force<S> U;
-    S D, u_unused;
-    aba_joint_terms(b, IA, pA, S(0), U, D, u_unused);
-    if (!pivot_ok(D)) {
-      record_failure(d, g);
-      D = S(NAN);
-    }
-    const S Dinv = S(1) / D;
-    const ABInertia<S> Ia = IA.minus_outer(U, Dinv);
-    const Force<S> w = Ia * d.c(g);
-    d.U[g] = U;
-    d.D[g] = D;
-    d.w[g] = w;
-    agg = Affine6<S>::compose(bias_element(b, child, Xnext, U, Dinv, pA, w, d.tau_of(g)), agg);
-    Ia_next = Ia;
+    agg = Affine6<S>::compose(free_joint_step(d, g, b, child, Xnext, IA, d.pA(g), Ia_next), agg);
     Xnext = d.Xup(g);
   }
   return agg;

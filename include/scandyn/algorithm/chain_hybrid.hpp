@@ -139,34 +139,9 @@ Affine6<S> hybrid_inertia_walk(const ChainHybridData<S>& d, Index s, Index e, co
       el.b = to_vec6(pA + w + d.qdd_given(g) * U);
       Ia_next = IA;
     } else {
-      Force<S> U;
-      S D, u_unused;
-      aba_joint_terms(b, IA, pA, S(0), U, D, u_unused);
-      if (!pivot_ok(D)) {
-        record_failure(d, g);
-        D = S(NAN);
-      }
-      const S Dinv = S(1) / D;
-      const ABInertia<S> Ia = IA.minus_outer(U, Dinv);
-      const Force<S> w = Ia * d.c(g);
-      d.U[g] = U;
-      d.D[g] = D;
-      d.w[g] = w;
+      // U = IA S, D = S^T U, Ia = IA - U U^T / D, w = Ia c;
       // z_g = N (pA + Xnext^T z_{g+1}) + w + U tau / D,  N = 1 - U S^T / D
-      if (child) {
-        const Mat6<S> XT = transpose(to_mat6(Xnext));
-        el = {XT, Vec6<S>::zero(), false};
-        const Vec6<S> Uv = to_vec6(U);
-        for (int c = 0; c < 6; ++c) {
-          Vec6<S> col;
-          for (int r = 0; r < 6; ++r) col.m[r] = XT(r, c);
-          const S st = joint_project(b, to_force(col)) * Dinv;
-          for (int r = 0; r < 6; ++r) el.M(r, c) -= Uv.m[r] * st;
-        }
-      }
-      const S sp = joint_project(b, pA);
-      el.b = to_vec6(pA - (sp * Dinv) * U + w + (d.tau_of(g) * Dinv) * U);
-      Ia_next = Ia;
+      el = free_joint_step(d, g, b, child, Xnext, IA, pA, Ia_next);
     }
     agg = Affine6<S>::compose(el, agg);
     Xnext = d.Xup(g);
