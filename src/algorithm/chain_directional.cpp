@@ -39,17 +39,8 @@ ChainDirectionalData<S> ChainFdDirectional<S>::bind(const FdBatchIn<S>& in, cons
   ChainFdData<S>& f = d.fd;
   f.n = n_;
   f.bind(in, qdd);
-  f.body = bodies_.body.data();
-  f.Phi = bodies_.Phi.data();
-  f.body_class = bodies_.body_class.data();
-  f.a0 = a0_;
-  f.v = v_.data();
-  f.U = U_.data();
-  f.D = D_.data();
-  f.w = w_.data();
-  f.u = u_.data();
+  chain_host::bind_chain(f, bodies_, a0_, v_, U_, D_, w_, u_, failed_);
   f.a = a_.data();
-  f.failed = failed_.data();
   std::fill(failed_.begin(), failed_.begin() + f.batch, -1);
   // the chain at rest: v, w, fext, a null, no gravity; tau and qdd set by the caller
   ChainFdData<S>& r = d.rest;

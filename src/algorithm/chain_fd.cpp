@@ -106,16 +106,7 @@ Index ChainForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchView<S
   auto passes = [&](auto& d) {
     d.n = n_;
     d.bind(in, qdd);
-    d.body = bodies_.body.data();
-    d.Phi = bodies_.Phi.data();
-    d.body_class = bodies_.body_class.data();
-    d.a0 = a0_;
-    d.v = v_.data();
-    d.U = U_.data();
-    d.D = D_.data();
-    d.w = w_.data();
-    d.u = u_.data();
-    d.failed = failed_.data();
+    chain_host::bind_chain(d, bodies_, a0_, v_, U_, D_, w_, u_, failed_);
     if (floating_) d.bind_base(IA_base_.data(), a_base_.data(), qdd_base_.data());
 
     chain_host::fd_passes(d, ChainChunking(d.count(), chunk_, 16), aff_, dual_, threads_);

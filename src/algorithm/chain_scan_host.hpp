@@ -1,8 +1,8 @@
 // The host (OpenMP) scans of the chain drivers (src/algorithm/chain_fd.cpp,
 // src/algorithm/chain_directional.cpp, src/algorithm/chain_hybrid.cpp, whose element
 // types are the hybrid's own): a pass's chunk aggregates scanned in levels
-// (scandyn/algorithm/chain_fd.hpp: fold_range, carry_range), and the chain forward
-// dynamics' four passes over a ChainFdData. Private to the library's sources.
+// (scandyn/algorithm/chain_fd.hpp: fold_range, carry_range), the binding of a
+// driver's scratch, and the chain forward dynamics' four passes over a ChainFdData. Private to the library's sources.
 #pragma once
 
 #include <algorithm>
@@ -12,6 +12,25 @@
 
 namespace scandyn {
 namespace chain_host {
+
+// Points d (a ChainFdData, or the hybrid's ChainHybridData) at the chain's constants
+// (bodies, the base acceleration a0) and at a driver's per-link scratch (n B each):
+// pass 0's v, pass 1's U, D, w, pass 2's u; failed (B instances).
+template <class Data, class S>
+void bind_chain(Data& d, const ChainBodies<S>& bodies, const Motion<S>& a0, std::vector<Motion<S>>& v,
+                std::vector<Force<S>>& U, std::vector<S>& D, std::vector<Force<S>>& w, std::vector<S>& u,
+                std::vector<int>& failed) {
+  d.body = bodies.body.data();
+  d.Phi = bodies.Phi.data();
+  d.body_class = bodies.body_class.data();
+  d.a0 = a0;
+  d.v = v.data();
+  d.U = U.data();
+  d.D = D.data();
+  d.w = w.data();
+  d.u = u.data();
+  d.failed = failed.data();
+}
 
 // The aggregates above level 0 and the carries of every level, for one pass whose
 // level-0 aggregates are in agg[0]; E::start() enters the whole sequence.
