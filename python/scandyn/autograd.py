@@ -30,8 +30,8 @@ import numpy as np
 
 from . import _scandyn as _ext
 from . import _api
-from ._api import (ForwardDynamics, _EngineBase, _cached, _empty, _entry_major, _finish, _handover, _host_int32,
-                   _inputs, _reraise, _where, _writable, resolve_model_spec)
+from ._api import (ForwardDynamics, _EngineBase, _cached, _cuda_device, _empty, _entry_major, _finish, _handover,
+                   _host_int32, _inputs, _kind, _lead_of, _reraise, _where, _writable, resolve_model_spec)
 from .errors import BackendError, DeviceError, DTypeError
 
 
@@ -112,6 +112,83 @@ class FdDerivatives(ForwardDynamics):
         return (qdd,) + tuple(mats)
 
 
+class FdDirectional(ForwardDynamics):
+    """The directional derivatives of qdd = FD(q, qd, tau) (gravity included), O(nv) per
+    instance, for models whose dense (nv, nv) derivatives do not fit (ropes of 10^5
+    links): the library's make_fd_directional_derivatives.
+
+    - ``jvp(q, qd, tau, dq, dqd, dtau) -> (qdd, dqdd)``, dqdd = dqdd/dq dq + dqdd/dqd dqd
+      + M^-1 dtau;
+    - ``vjp(q, qd, tau, w) -> (qdd, gq, gqd, gtau)``, gq = (dqdd/dq)^T w, gqd =
+      (dqdd/dqd)^T w, gtau = M^-1 w.
+
+    Every array (B, nv) (B <= max_batch instances) or (nv,) for one state, results the
+    same shape, of the inputs' kind (NumPy, or CPU torch tensors), in the engine's dtype.
+    Host arrays only, on every backend: 'serial', 'openmp' ('auto'), or 'cuda' (one
+    device; the engine copies the host arrays to its device and back). CUDA arrays raise
+    DeviceError. Models of 1-DoF joints. ``method``: 'parallel' (the chunked scans, for
+    unbranched chains from a fixed base; the only one on cuda), 'aba' (aba_jvp / aba_vjp
+    per instance, threads over instances; serial and openmp), 'auto' (parallel for such
+    chains of 4096 links or more on the host, always on cuda; else aba); ``strategy``
+    says which ran ('parallel' or 'aba_jvp'). An instance whose articulated pivot is not
+    positive and finite raises ForwardDynamicsError (``status`` names it; its results
+    are not meaningful); ``last_status`` is the last call's scandyn.Status."""
+
+    _ext_class = _ext.FdDirectionalDerivatives
+    _what = "the directional derivatives of forward dynamics"
+
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, method="auto", device=None):
+        _EngineBase.__init__(self, model, backend, max_batch, dtype, device, None, threads=threads, method=method)
+        self.last_status = None
+        self.failed_dof = None
+        self._pending = None
+        self._failed_buffers = {}
+
+    method = property(lambda self: self._e.strategy, doc="'parallel' (the chain scans) or 'aba_jvp'")
+
+    def _run(self, name, named, count):
+        """The extension's call `name` on the named arrays (q, qd, tau first) with count
+        new (B, nv) results; returns them."""
+        arrays, _ = _inputs(named, self._dtype)
+        where = _where(arrays[0])
+        if where.cuda is not None:
+            raise DeviceError(_on_cuda_message(where.cuda))
+        handed = [_handover(a, n, where) for (n, _), a in zip(named, arrays)]
+        outs = [_empty(where, _lead_of(arrays[0]) + (self._nv,), self._dtype) for _ in range(count)]
+        try:
+            status = getattr(self._e, name)(*handed, *(_writable(o, where) for o in outs))
+        except TypeError as e:
+            _reraise(e)
+        self._settle(status, where, None, True)
+        return tuple(outs)
+
+    def jvp(self, q, qd, tau, dq, dqd, dtau):
+        """(qdd, dqdd), (B, nv) each ((nv,) for one state): qdd = FD(q, qd, tau) and
+        dqdd = dqdd/dq dq + dqdd/dqd dqd + M^-1 dtau."""
+        return self._run("jvp", [("q", q), ("qd", qd), ("tau", tau), ("dq", dq), ("dqd", dqd), ("dtau", dtau)], 2)
+
+    def vjp(self, q, qd, tau, w):
+        """(qdd, gq, gqd, gtau), (B, nv) each ((nv,) for one state): qdd = FD(q, qd, tau)
+        and, for the weight w on qdd, gq = (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau =
+        M^-1 w (M symmetric)."""
+        return self._run("vjp", [("q", q), ("qd", qd), ("tau", tau), ("w", w)], 4)
+
+
+def _on_cuda_message(device):
+    return (f"the arrays are on CUDA device {device}, but the directional derivatives of forward dynamics take "
+            "host arrays (NumPy, CPU tensors) on every backend (backend 'cuda' copies them to its device and back)")
+
+
+def _directional(model, named, backend, method):
+    """The cached FdDirectional engine for a call on the named arrays (q first)."""
+    arrays, _ = _inputs(named)
+    q = arrays[0]
+    device = _cuda_device(q, _kind(q), "q")
+    if device is not None:
+        raise DeviceError(_on_cuda_message(device))
+    return _cached(FdDirectional, method, model, backend, q, method=method), arrays
+
+
 # ---- the derivatives as functions ---------------------------------------------------
 
 
@@ -134,6 +211,25 @@ def fd_derivatives(model, q, qd, tau, backend="auto", stream=None, check=None):
     (q, qd, tau), _ = _inputs([("q", q), ("qd", qd), ("tau", tau)])
     engine = _cached(FdDerivatives, None, model, backend, q)
     return engine(q, qd, tau, stream=stream, check=check is None or bool(check))
+
+
+def fd_jvp(model, q, qd, tau, dq, dqd, dtau, backend="auto", method="auto"):
+    """(qdd, dqdd) of qdd = FD(q, qd, tau): dqdd = dqdd/dq dq + dqdd/dqd dqd + M^-1 dtau,
+    O(nv) per instance (no nv x nv matrix). Every array (B, nv) or (nv,), results the
+    same shape; host arrays (NumPy, CPU torch) only, float32 or float64 (q's dtype).
+    ``backend``, ``method``: as FdDirectional (whose engine is cached per model).
+    ForwardDynamicsError for an instance whose pivot fails."""
+    engine, a = _directional(model, [("q", q), ("qd", qd), ("tau", tau), ("dq", dq), ("dqd", dqd), ("dtau", dtau)],
+                             backend, method)
+    return engine.jvp(*a)
+
+
+def fd_vjp(model, q, qd, tau, w, backend="auto", method="auto"):
+    """(qdd, gq, gqd, gtau) of qdd = FD(q, qd, tau) for the weight w on qdd: gq =
+    (dqdd/dq)^T w, gqd = (dqdd/dqd)^T w, gtau = M^-1 w, O(nv) per instance. Shapes,
+    arrays and errors as fd_jvp."""
+    engine, a = _directional(model, [("q", q), ("qd", qd), ("tau", tau), ("w", w)], backend, method)
+    return engine.vjp(*a)
 
 
 _SEQUENCES = ("tau", "gq", "gqd", "dtau")  # (T, B, nv) arguments of the rollout calls
@@ -460,6 +556,7 @@ def jax_rollout(step, q0, qd0, tau):
 
 
 __all__ = [
-    "FdDerivatives", "IdDerivatives", "StepDerivatives", "fd_derivatives", "id_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
+    "FdDerivatives", "FdDirectional", "IdDerivatives", "StepDerivatives", "fd_derivatives", "fd_jvp", "fd_vjp",
+    "id_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
     "jax_rollout", "torch_forward_dynamics", "torch_inverse_dynamics", "torch_rollout", "torch_step",
 ]

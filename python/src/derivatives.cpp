@@ -1,6 +1,7 @@
 // python/src/derivatives.cpp: the analytical derivatives from Python: the derivative
 // engines of inverse and forward dynamics (make_id_derivatives, make_fd_derivatives;
-// scandyn/engine.hpp) and the derivatives of the simulator's step and rollouts
+// scandyn/engine.hpp), the directional derivatives of forward dynamics (JVP, VJP:
+// make_fd_directional_derivatives; host arrays only) and the derivatives of the simulator's step and rollouts
 // (scandyn/sim/step_derivatives.hpp). Registered by module.cpp (bind_derivatives);
 // the torch.autograd.Function and jax.custom_vjp wrappers over them are
 // python/scandyn/autograd.py, which allocates every result (an array of the inputs'
@@ -50,6 +51,7 @@ namespace {
 
 using PyIdDerivatives = PyEngine<IdDerivatives>;
 using PyFdDerivatives = PyEngine<FdDerivatives>;
+using PyFdDirectional = PyEngine<FdDirectionalDerivatives>;
 
 // Every out array writable entry by entry and sharing no memory with the inputs.
 void check_outs(std::initializer_list<std::pair<const OutArray*, const char*>> outs,
@@ -120,6 +122,51 @@ CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const In
   BatchStatus st;
   if constexpr (std::is_same_v<S, float>) st = e.ef->compute(in, out);
   else st = e.ed->compute(in, out);
+  return call_status(st, lead.batch);
+}
+
+// ---- the directional derivatives of forward dynamics (JVP, VJP) --------------------
+//
+// Host arrays only, on every backend (the cuda engine stages host views through its own
+// device buffers; on device memory the library's ChainFdPlan::launch_jvp / launch_vjp
+// are the way, not bound here). `x`: the directions (dq, dqd, dtau) or the weight w;
+// `y`: qdd and the outputs (dqdd, or gq, gqd, gtau); (B, nv) or (nv,) each.
+template <class S, class Call>
+CallStatus fd_directional_call(PyFdDirectional& e, const InArray& q, const InArray& qd, const InArray& tau,
+                               std::initializer_list<std::pair<const InArray*, const char*>> x,
+                               std::initializer_list<std::pair<const OutArray*, const char*>> y, Call&& call) {
+  const Index nv = e.nv();
+  Lead lead;
+  FdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  std::vector<BatchView<const S>> xv;
+  std::vector<BatchView<S>> yv;
+  for (const auto& [a, name] : x) xv.push_back(view_of<const S>(*a, nv, name, lead, false));
+  for (const auto& [a, name] : y) yv.push_back(view_of<S>(*a, nv, name, lead, false));
+  if (lead.cuda)
+    throw DeviceError("the arrays are on " + where_str(true, lead.device) +
+                      ", but the directional derivatives of forward dynamics take host arrays (NumPy, CPU "
+                      "tensors) on every backend (backend 'cuda' copies them to its device and back)");
+  check_max_batch(lead, e.max_batch);
+  for (const auto& [o, name] : y) {
+    check_no_self_overlap(*o, name);
+    check_out_alone(*o, {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(tau), "tau"}}, name);
+    for (const auto& [a, other] : x) check_out_alone(*o, {{extent_of(*a), other}}, name);
+    for (const auto& [p, other] : y)
+      if (p != o && overlaps(extent_of(*o), extent_of(*p)))
+        throw ShapeError(std::string(name) + " shares memory with " + other + ": pass separate arrays");
+  }
+  BatchStatus st;
+  {
+    nb::gil_scoped_release release;
+    std::lock_guard<std::mutex> lock(e.mutex);
+    std::optional<cuda::DeviceScope> scope;  // a cuda engine: its device current while it runs
+    if (e.made_on >= 0) enter_device(scope, e.made_on);
+    if constexpr (std::is_same_v<S, float>) st = call(*e.ef, in, xv, yv);
+    else st = call(*e.ed, in, xv, yv);
+  }
   return call_status(st, lead.batch);
 }
 
@@ -490,6 +537,50 @@ void bind_derivatives(nb::module_& m) {
            "q"_a, "qd"_a, "tau"_a, "qdd"_a, "dqdd_dq"_a, "dqdd_dqd"_a, "dqdd_dtau"_a, "failed_dof"_a = nb::none(),
            "stream"_a = 0);
   def_derivative_engine(fd);
+
+  // The directional derivatives of forward dynamics (make_fd_directional_derivatives):
+  // __init__(model, dtype, backend, max_batch, threads=0, device=-1, method="auto").
+  nb::class_<PyFdDirectional> fdd(m, "FdDirectionalDerivatives");
+  fdd.def(
+      "__init__",
+      [](PyFdDirectional* self, std::shared_ptr<PyModel> model, const std::string& dtype, const std::string& backend,
+         Index max_batch, int threads, int device, const std::string& method) {
+        BackendOptions o = engine_options(backend, max_batch, threads);
+        o.fd_method = parse_fd_method(method);
+        init_engine(self, std::move(model), dtype, max_batch, device,
+                    [&](const ModelTpl<float>& md) { return make_fd_directional_derivatives(md, o); },
+                    [&](const ModelTpl<double>& md) { return make_fd_directional_derivatives(md, o); });
+      },
+      "model"_a, "dtype"_a, "backend"_a, "max_batch"_a, "threads"_a = 0, "device"_a = -1, "method"_a = "auto");
+  fdd.def(
+      "jvp",
+      [](PyFdDirectional& e, const InArray& q, const InArray& qd, const InArray& tau, const InArray& dq,
+         const InArray& dqd, const InArray& dtau, const OutArray& qdd, const OutArray& dqdd) {
+        auto run = [&](auto tag) {
+          using S = decltype(tag);
+          return fd_directional_call<S>(e, q, qd, tau, {{&dq, "dq"}, {&dqd, "dqd"}, {&dtau, "dtau"}},
+                                        {{&qdd, "qdd"}, {&dqdd, "dqdd"}}, [](auto& eng, const auto& in, auto& x, auto& y) {
+                                          return eng.jvp(in, x[0], x[1], x[2], y[0], y[1]);
+                                        });
+        };
+        return e.is_float ? run(float()) : run(double());
+      },
+      "q"_a, "qd"_a, "tau"_a, "dq"_a, "dqd"_a, "dtau"_a, "qdd"_a, "dqdd"_a);
+  fdd.def(
+      "vjp",
+      [](PyFdDirectional& e, const InArray& q, const InArray& qd, const InArray& tau, const InArray& w,
+         const OutArray& qdd, const OutArray& gq, const OutArray& gqd, const OutArray& gtau) {
+        auto run = [&](auto tag) {
+          using S = decltype(tag);
+          return fd_directional_call<S>(e, q, qd, tau, {{&w, "w"}}, {{&qdd, "qdd"}, {&gq, "gq"}, {&gqd, "gqd"},
+                                        {&gtau, "gtau"}}, [](auto& eng, const auto& in, auto& x, auto& y) {
+                                          return eng.vjp(in, x[0], y[0], y[1], y[2], y[3]);
+                                        });
+        };
+        return e.is_float ? run(float()) : run(double());
+      },
+      "q"_a, "qd"_a, "tau"_a, "w"_a, "qdd"_a, "gq"_a, "gqd"_a, "gtau"_a);
+  def_engine_properties(fdd);
 
   // The status of a CUDA step or rollout call from its failed DoFs read back (B ints: -1,
   // a pivot's DoF, or -2 - i for a result not finite at DoF i): summarize_step_failures.

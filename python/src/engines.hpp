@@ -109,6 +109,10 @@ template <class S>
 cuda::CudaIdDerivatives<S>* as_cuda(IdDerivatives<S>* e) { return dynamic_cast<cuda::CudaIdDerivatives<S>*>(e); }
 template <class S>
 cuda::CudaFdDerivatives<S>* as_cuda(FdDerivatives<S>* e) { return dynamic_cast<cuda::CudaFdDerivatives<S>*>(e); }
+// The directional derivatives' CUDA engine is internal to kernels/chain_directional.cu
+// (host views only): the engine itself when it runs on cuda (its device: made_on).
+template <class S>
+Engine* as_cuda(FdDirectionalDerivatives<S>* e) { return e && e->backend() == BackendKind::Cuda ? e : nullptr; }
 // The CUDA ordinal an engine reports (device()), or -1 for one that does not say (the
 // derivative engines): PyEngine::made_on then names it.
 template <class E>
