@@ -110,9 +110,12 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
     detail::zero_tensor(d2tau_dqdqd);
     detail::zero_tensor(dM_dq);
   }
-  auto& T = d2tau_dq2;    // T(x, y, z) = d2 tau_x / dq_y dq_z
-  auto& U = d2tau_dqd2;   // U(x, y, z) = d2 tau_x / dqd_y dqd_z
-  auto& W = d2tau_dqdqd;  // W(x, y, z) = d2 tau_x / dq_y dqd_z
+  const TensorRef<S>& T = d2tau_dq2;    // T(x, y, z) = d2 tau_x / dq_y dq_z
+  const TensorRef<S>& U = d2tau_dqd2;   // U(x, y, z) = d2 tau_x / dqd_y dqd_z
+  const TensorRef<S>& W = d2tau_dqdqd;  // W(x, y, z) = d2 tau_x / dq_y dqd_z
+  const std::ptrdiff_t nn = nv, n2 = static_cast<std::ptrdiff_t>(nv) * nv;
+  // entry e = (x n + y) n + z of a tensor
+  auto put = [](const TensorRef<S>& t, std::ptrdiff_t e, S value) { t.data[e * t.stride] = value; };
   const bool with_dM = dM_dq.data != nullptr;
   // backward: body c (the deepest index of the triples it closes), then its
   // ancestors b <= c and their ancestors a <= b
@@ -169,60 +172,65 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
         Q2 = cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb);
         K3 = cross(Sb, Psi) + Z + Y;
       }
+      // entry (x, y, z) is at x n^2 + y n + z: the six orders of (a, b, c) as an offset
+      // of the pair plus a, a n or a n^2
+      const std::ptrdiff_t o_cba = c * n2 + b * nn, o_cab = c * n2 + b, o_acb = c * nn + b, o_abc = b * nn + c,
+                           o_bac = b * n2 + c, o_bca = b * n2 + c * nn;
       for (Index a = b; a >= 0; a = body[a].parent) {
         const DerivativeBody<S>& wa = work[a];
         const Motion<S> Sa = wa.J, dVa = wa.dV, dAa = wa.dA;  // copies: the stores below may not alias them
         const bool ab = a == b;
+        const std::ptrdiff_t a1 = a, an = a * nn, an2 = a * n2;
         const S SaP1 = dot(Sa, P1), SaQ1 = dot(Sa, Q1);
         const S dVaP1 = dot(dVa, P1), dVaQ1 = dot(dVa, Q1);
         const S SaP2 = dot(Sa, P2);
         // tau_c (the deepest): its derivatives along the ancestors a <= b
         const S t_cba = dot(dAa, P1) + dot(dVa, P2);
-        T(c, b, a) = t_cba;
-        T(c, a, b) = t_cba;
+        put(T, o_cba + a1, t_cba);  // T(c, b, a)
+        put(T, o_cab + an, t_cba);  // T(c, a, b)
         const S u_cba = SaP1 - SaQ1;  // S_c . B(Ic_c, S_b) S_a
-        U(c, b, a) = u_cba;
-        U(c, a, b) = u_cba;
-        W(c, b, a) = S(2) * dVaP1 + SaP2;
-        const S w_cab = dVaP1 - dVaQ1;  // S_c . B(Ic_c, S_b) dV_a
-        if (!ab) W(c, a, b) = w_cab;
+        put(U, o_cba + a1, u_cba);
+        put(U, o_cab + an, u_cba);
+        put(W, o_cba + a1, S(2) * dVaP1 + SaP2);  // W(c, b, a)
+        const S w_cab = dVaP1 - dVaQ1;              // S_c . B(Ic_c, S_b) dV_a
+        if (!ab) put(W, o_cab + an, w_cab);         // W(c, a, b)
         // tau_a (the shallowest, a < c): d Phi_c and d Psi_c along joint b
         if (!(ab && bc)) {
           const S t_acb = dot(Sa, K);
-          T(a, c, b) = t_acb;
-          T(a, b, c) = t_acb;
+          put(T, o_acb + an2, t_acb);  // T(a, c, b)
+          put(T, o_abc + an2, t_acb);  // T(a, b, c)
           const S u_acb = SaP1 + SaQ1;
-          U(a, c, b) = u_acb;
-          U(a, b, c) = u_acb;
+          put(U, o_acb + an2, u_acb);
+          put(U, o_abc + an2, u_acb);
         }
-        if (!ab) W(a, c, b) = dot(Sa, K2);
+        if (!ab) put(W, o_acb + an2, dot(Sa, K2));  // W(a, c, b)
         // tau_b (the middle one, b < c): Ic_b and Bc_b moved by joint c
         if (!bc) {
           const S SaQ2 = dot(Sa, Q2);
           if (!ab) {
             const S t_bac = dot(dAa, Q1) + dot(dVa, Q2);
-            T(b, a, c) = t_bac;
-            T(b, c, a) = t_bac;
-            const S u_bac = -u_cba;  // S_b . B(Ic_c, S_c) S_a
-            U(b, a, c) = u_bac;
-            U(b, c, a) = u_bac;
-            W(a, b, c) = dot(Sa, K3);
+            put(T, o_bac + an, t_bac);  // T(b, a, c)
+            put(T, o_bca + a1, t_bac);  // T(b, c, a)
+            const S u_bac = -u_cba;     // S_b . B(Ic_c, S_c) S_a
+            put(U, o_bac + an, u_bac);
+            put(U, o_bca + a1, u_bac);
+            put(W, o_abc + an2, dot(Sa, K3));  // W(a, b, c)
           }
-          W(b, a, c) = -w_cab;  // S_b . B(Ic_c, S_c) dV_a
-          W(b, c, a) = S(2) * dVaQ1 + SaQ2;
+          put(W, o_bac + an, -w_cab);                 // W(b, a, c) = S_b . B(Ic_c, S_c) dV_a
+          put(W, o_bca + a1, S(2) * dVaQ1 + SaQ2);    // W(b, c, a)
         }
         if (with_dM) {
           // d M_bc / dq_a = 0 (a is an ancestor of both: rigid); d M_ac / dq_b =
           // S_c . Ic_c (S_a x S_b) = S_a . P1; d M_ab / dq_c = S_a . Q1
-          dM_dq(c, b, a) = S(0);
-          dM_dq(b, c, a) = S(0);
+          put(dM_dq, o_cba + a1, S(0));
+          put(dM_dq, o_bca + a1, S(0));
           if (!ab) {
-            dM_dq(a, c, b) = SaP1;
-            dM_dq(c, a, b) = SaP1;
+            put(dM_dq, o_acb + an2, SaP1);
+            put(dM_dq, o_cab + an, SaP1);
           }
           if (!bc) {
-            dM_dq(a, b, c) = SaQ1;
-            dM_dq(b, a, c) = SaQ1;
+            put(dM_dq, o_abc + an2, SaQ1);
+            put(dM_dq, o_bac + an, SaQ1);
           }
         }
       }
