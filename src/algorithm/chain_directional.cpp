@@ -50,6 +50,8 @@ ChainDirectionalData<S> ChainFdDirectional<S>::bind(const FdBatchIn<S>& in, cons
   r.fext = nullptr;
   r.a = nullptr;
   r.a0 = Motion<S>::zero();
+  f.IA_out = IA_.data();  // pass 1's IA (fd only)
+  f.pA_out = F_.data();   // pass 2's pA, then F (fd only)
   d.F = F_.data();
   d.dv = dv_.data();
   d.df = df_.data();
@@ -65,7 +67,24 @@ Index ChainFdDirectional<S>::finish(Index B, int* failed) const {
   return bad;
 }
 
+using chain_host::for_chunks;
+using chain_host::scan_levels;
+
 namespace {
+
+// The FD's passes 0-3 over d.fd (v, U, D, a, IA, pA; qdd), then on every chunk (links
+// s..e) the subtree forces F locally and first(d, s, e), the chunk's level-0
+// aggregate of the first derivative pass, into aff.agg[0] (not yet scanned).
+template <class S, class First>
+void fd_then_forces(const ChainDirectionalData<S>& d, const ChainChunking& ck, ChainLevels<Affine6<S>>& aff,
+                    ChainLevels<DualRiccati<DualScalar>>& dual, int T, First first) {
+  chain_host::fd_passes(d.fd, ck, aff, dual, T);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) {
+    subtree_force_local(d, s, e);
+    aff.agg[0][c] = first(d, s, e);
+  });
+}
+
 void require_rows(Index rows, Index n, Index B, Index batch, const char* what) {
   (void)rows;
   if (batch != B) throw BackendError(std::string("chain JVP / VJP: ") + what + " has " + std::to_string(batch) +
@@ -87,33 +106,21 @@ Index ChainFdDirectional<S>::jvp(const FdBatchIn<S>& in, const BatchView<const S
   d.dtau = dtau;
   d.rest.tau = BatchView<const S>::aos(x_.data(), n_, B);
   d.rest.qdd = dqdd;
-  d.fd.IA_out = IA_.data();  // pass 1's IA
-  d.fd.pA_out = F_.data();   // pass 2's pA, then F
   const ChainChunking ck(d.count(), chunk_, 16);
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
   const int T = threads_;
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
-  using chain_host::scan_levels;
-
-  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a, IA, pA; qdd
-  // F (locally) and dv (forward)
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) {
-    subtree_force_local(d, first(c), last(c));
-    aff_.agg[0][c] = jvp_velocity_aggregate(d, first(c), last(c));
-  }
+  auto& agg = aff_.agg[0];
+  auto& carry = aff_.carry[0];
+  // the FD; F (locally) and dv (forward)
+  fd_then_forces(d, ck, aff_, dual_, T,
+                 [](const auto& x, Index s, Index e) { return jvp_velocity_aggregate(x, s, e); });
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = jvp_velocity_walk(d, first(c), last(c), aff_.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { agg[c] = jvp_velocity_walk(d, s, e, carry[c]); });
   // da (forward), df
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = jvp_acceleration_walk(d, first(c), last(c), aff_.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { agg[c] = jvp_acceleration_walk(d, s, e, carry[c]); });
   // dF (backward), dtau - r
   scan_levels(ck, aff_.agg, aff_.carry, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = jvp_force_walk(d, first(c), last(c), aff_.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { agg[c] = jvp_force_walk(d, s, e, carry[c]); });
   // dqdd = M^-1 (dtau - r): passes 2 and 3 at rest
   chain_host::finish_passes(d.rest, ck, aff_, T);
   return finish(B, failed);
@@ -135,36 +142,24 @@ Index ChainFdDirectional<S>::vjp(const FdBatchIn<S>& in, const BatchView<const S
   d.rest.qdd = BatchView<S>::aos(x_.data(), n_, B);  // u
   d.rest.a = dv_.data();                               // Fbar
   d.rest.pA_out = df_.data();                          // pA of the rest problem
-  d.fd.IA_out = IA_.data();                            // pass 1's IA
-  d.fd.pA_out = F_.data();                             // pass 2's pA, then F
   const ChainChunking ck(d.count(), chunk_, 16);
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
   const int T = threads_;
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
-  using chain_host::scan_levels;
-
-  chain_host::fd_passes(d.fd, ck, aff_, dual_, T);  // v, U, D, a, IA, pA; qdd
-  // F (locally) and the rest solve's pass 2 (backward)
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) {
-    subtree_force_local(d, first(c), last(c));
-    aff_.agg[0][c] = vjp_rest_bias_aggregate(d, first(c), last(c));
-  }
+  auto& agg = aff_.agg[0];
+  auto& carry = aff_.carry[0];
+  // the FD; F (locally) and the rest solve's pass 2 (backward)
+  fd_then_forces(d, ck, aff_, dual_, T,
+                 [](const auto& x, Index s, Index e) { return vjp_rest_bias_aggregate(x, s, e); });
   scan_levels(ck, aff_.agg, aff_.carry, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_.agg[0][c] = bias_walk(d.rest, first(c), last(c), aff_.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { agg[c] = bias_walk(d.rest, s, e, carry[c]); });
   // the rest solve's pass 3 (u = M^-1 w in x, Fbar in dv); RA, gtau, RV's aggregates
   scan_levels(ck, aff_.agg, aff_.carry, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) {
-    acceleration_walk(d.rest, first(c), last(c), aff_.carry[0][c]);
-    aff_.agg[0][c] = vjp_adjoint_walk(d, first(c), last(c), aff_.carry[0][c]);
-  }
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) {
+    acceleration_walk(d.rest, s, e, carry[c]);
+    agg[c] = vjp_adjoint_walk(d, s, e, carry[c]);
+  });
   // RV (backward); gq, gqd
   scan_levels(ck, aff_.agg, aff_.carry, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) vjp_rv_walk(d, first(c), last(c), aff_.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { vjp_rv_walk(d, s, e, carry[c]); });
   return finish(B, failed);
 }
 

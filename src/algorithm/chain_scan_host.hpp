@@ -32,6 +32,15 @@ void bind_chain(Data& d, const ChainBodies<S>& bodies, const Motion<S>& a0, std:
   d.failed = failed.data();
 }
 
+// f(c, s, e) for every chunk c of ck's level 0 over count links (links s..e: ck.chunk
+// each, the last chunk's up to count - 1), on T threads, static schedule.
+template <class F>
+void for_chunks(const ChainChunking& ck, Index count, int T, F&& f) {
+  const Index chunks = ck.chunks(), L = ck.chunk;
+#pragma omp parallel for num_threads(T) schedule(static)
+  for (Index c = 0; c < chunks; ++c) f(c, c * L, std::min(count, (c + 1) * L) - 1);
+}
+
 // The aggregates above level 0 and the carries of every level, for one pass whose
 // level-0 aggregates are in agg[0]; E::start() enters the whole sequence.
 template <class E>
