@@ -59,30 +59,28 @@ Index ChainHybridDynamics<S>::compute(const HybridBatchIn<S>& in, const BatchVie
   std::fill(failed_.begin(), failed_.begin() + B, -1);
 
   const ChainChunking ck(d.count(), chunk_, 16);
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
+  const Index count = d.count();
   const int T = threads_;
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+  using chain_host::for_chunks;
+  using chain_host::scan_levels;
 
   // pass 0: velocities (and pass 1's aggregates)
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = velocity_aggregate<S>(d, first(c), last(c));
-  chain_host::scan_levels(ck, aff_, aff_carry_, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) dual_[0][c] = hybrid_velocity_walk(d, first(c), last(c), aff_carry_[0][c]);
+  for_chunks(ck, count, T, [&](Index c, Index s, Index e) { aff_[0][c] = velocity_aggregate<S>(d, s, e); });
+  scan_levels(ck, aff_, aff_carry_, true, T);
+  for_chunks(ck, count, T,
+             [&](Index c, Index s, Index e) { dual_[0][c] = hybrid_velocity_walk(d, s, e, aff_carry_[0][c]); });
   // pass 1: articulated inertias, prescribed joints rigid (and pass 2's aggregates)
-  chain_host::scan_levels(ck, dual_, dual_carry_, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c)
-    aff_[0][c] = hybrid_inertia_walk(d, first(c), last(c), hybrid_inertia_carry(d, last(c), dual_carry_[0][c]));
+  scan_levels(ck, dual_, dual_carry_, false, T);
+  for_chunks(ck, count, T, [&](Index c, Index s, Index e) {
+    aff_[0][c] = hybrid_inertia_walk(d, s, e, hybrid_inertia_carry(d, e, dual_carry_[0][c]));
+  });
   // pass 2: bias forces, prescribed accelerations included (and pass 3's aggregates)
-  chain_host::scan_levels(ck, aff_, aff_carry_, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff_[0][c] = hybrid_bias_walk(d, first(c), last(c), aff_carry_[0][c]);
+  scan_levels(ck, aff_, aff_carry_, false, T);
+  for_chunks(ck, count, T,
+             [&](Index c, Index s, Index e) { aff_[0][c] = hybrid_bias_walk(d, s, e, aff_carry_[0][c]); });
   // pass 3: accelerations and the prescribed joints' forces
-  chain_host::scan_levels(ck, aff_, aff_carry_, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) hybrid_acceleration_walk(d, first(c), last(c), aff_carry_[0][c]);
+  scan_levels(ck, aff_, aff_carry_, true, T);
+  for_chunks(ck, count, T, [&](Index c, Index s, Index e) { hybrid_acceleration_walk(d, s, e, aff_carry_[0][c]); });
 
   Index bad = 0;
   for (Index b = 0; b < B; ++b) bad += failed_[b] >= 0;

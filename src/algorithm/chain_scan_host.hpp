@@ -69,15 +69,12 @@ void scan_levels(const ChainChunking& ck, std::vector<std::vector<E>>& agg,
 // done): also M^-1 x of the chain at rest (scandyn/algorithm/chain_directional.hpp).
 template <class S, bool kB>
 void finish_passes(const ChainFdData<S, kB>& d, const ChainChunking& ck, ChainLevels<Affine6<S>>& aff, int T) {
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
+  auto& agg = aff.agg[0];
+  auto& carry = aff.carry[0];
   scan_levels(ck, aff.agg, aff.carry, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff.agg[0][c] = bias_walk(d, first(c), last(c), aff.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { agg[c] = bias_walk(d, s, e, carry[c]); });
   scan_levels(ck, aff.agg, aff.carry, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) acceleration_walk(d, first(c), last(c), aff.carry[0][c]);
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { acceleration_walk(d, s, e, carry[c]); });
 }
 
 // qdd = FD(d) by the four passes (velocities, articulated inertias, bias forces,
@@ -86,20 +83,16 @@ void finish_passes(const ChainFdData<S, kB>& d, const ChainChunking& ck, ChainLe
 template <class S, bool kB>
 void fd_passes(const ChainFdData<S, kB>& d, const ChainChunking& ck, ChainLevels<Affine6<S>>& aff,
                ChainLevels<DualRiccati<DualScalar>>& dual, int T) {
-  const Index chunks = ck.chunks(), L = ck.chunk, count = d.count();
-  auto first = [&](Index c) { return c * L; };
-  auto last = [&](Index c) { return std::min(count, (c + 1) * L) - 1; };
   // pass 0: velocities (and pass 1's aggregates)
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) aff.agg[0][c] = velocity_aggregate(d, first(c), last(c));
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) { aff.agg[0][c] = velocity_aggregate(d, s, e); });
   scan_levels(ck, aff.agg, aff.carry, true, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c) dual.agg[0][c] = velocity_walk(d, first(c), last(c), aff.carry[0][c]);
+  for_chunks(ck, d.count(), T,
+             [&](Index c, Index s, Index e) { dual.agg[0][c] = velocity_walk(d, s, e, aff.carry[0][c]); });
   // pass 1: articulated inertias (and pass 2's aggregates)
   scan_levels(ck, dual.agg, dual.carry, false, T);
-#pragma omp parallel for num_threads(T) schedule(static)
-  for (Index c = 0; c < chunks; ++c)
-    aff.agg[0][c] = inertia_walk(d, first(c), last(c), chunk_inertia_carry(d, last(c), dual.carry[0][c]));
+  for_chunks(ck, d.count(), T, [&](Index c, Index s, Index e) {
+    aff.agg[0][c] = inertia_walk(d, s, e, chunk_inertia_carry(d, e, dual.carry[0][c]));
+  });
   // passes 2 and 3: bias forces (and pass 3's aggregates), accelerations
   finish_passes(d, ck, aff, T);
 }
