@@ -53,6 +53,15 @@ void add_cuda_rows(std::vector<std::vector<std::string>>& rows) {
   }
 }
 
+// The closed-loop solvers this command has (scene key "loop_solver"; docs/loops.md).
+const char* loop_solvers() {
+#if SCANDYN_CLI_SPARSE_LOOPS
+  return "dense, sparse (CHOLMOD)";
+#else
+  return "dense (no sparse loop solver: built without SuiteSparse CHOLMOD)";
+#endif
+}
+
 }  // namespace
 
 int run_info(const Args& args) {
@@ -71,6 +80,7 @@ int run_info(const Args& args) {
       {"gravity", format_vec3(model.gravity)},
   };
   add_cuda_rows(summary);
+  summary.push_back({"loops", loop_solvers()});
   print_table(summary);
   std::puts("");
   // one row per body; with multi-DoF joints also where each joint's entries start

@@ -14,6 +14,9 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
+#if SCANDYN_CLI_SPARSE_LOOPS  // CMakeLists.txt: linked with scandyn_factor_graph (CHOLMOD)
+#include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
+#endif
 
 namespace {
 
@@ -279,6 +282,11 @@ int dispatch(int argc, char** argv) {
 }  // namespace
 
 int main(int argc, char** argv) {
+#if SCANDYN_CLI_SPARSE_LOOPS
+  // scenes with closed loops may step through the factor graph's sparse solver
+  // (CHOLMOD; "loop_solver": "sparse", or "auto" from 200 DoF on: docs/loops.md)
+  scandyn::factor_graph::register_sparse_loop_solver();
+#endif
   try {
     return dispatch(argc, argv);
   } catch (const UsageError& e) {
