@@ -84,6 +84,33 @@ __global__ void vjp_rv_kernel(const ChainDirectionalData<S> d, ChunkRange r, Ind
 
 #undef SCANDYN_CHUNK_INDEX
 
+// One call's chunked passes over count links: the level sizes, level 0's chunk range
+// r, its chunks (one thread each) in nb blocks of kBlock, and scan(forward), the
+// Affine6 level scan of level 0's aggregates agg[0] into the carries carry[0].
+template <class S>
+struct AffineScans {
+  std::vector<Index> size;
+  ChunkRange r;
+  Index chunks;
+  unsigned nb;
+  Affine6<S>* const* agg;
+  Vec6<S>* const* carry;
+  Index fan_in;
+  cudaStream_t stream;
+
+  AffineScans(Index count, Index chunk, Index fan_in_, Affine6<S>* const* agg_, Vec6<S>* const* carry_,
+              cudaStream_t stream_)
+      : size(level_sizes(count, chunk, fan_in_)),
+        r{chunk, count},
+        chunks(size[0]),
+        nb(blocks(chunks)),
+        agg(agg_),
+        carry(carry_),
+        fan_in(fan_in_),
+        stream(stream_) {}
+  cudaError_t scan(bool forward) const { return scan_levels(size, agg, carry, fan_in, forward, stream); }
+};
+
 }  // namespace
 
 template <class S>
@@ -98,6 +125,8 @@ ChainDirectionalData<S> ChainFdPlan<S>::directional_data(const FdBatchIn<S>& in,
   d.rest.fext = nullptr;
   d.rest.a = nullptr;
   d.rest.a0 = Motion<S>::zero();
+  d.fd.IA_out = IA_;  // pass 1's IA (fd only)
+  d.fd.pA_out = F_;   // pass 2's pA, then F (fd only)
   d.F = F_;
   d.dv = dv_;
   d.df = df_;
@@ -123,23 +152,18 @@ cudaError_t ChainFdPlan<S>::launch_jvp(const FdBatchIn<S>& in, const BatchView<c
   d.dtau = dtau;
   d.rest.tau = BatchView<const S>::aos(x_, n_, B);
   d.rest.qdd = dqdd;
-  d.fd.IA_out = IA_;  // pass 1's IA
-  d.fd.pA_out = F_;   // pass 2's pA, then F
   if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a, IA, pA; qdd
-  const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
-  const ChunkRange r{chunk_, d.count()};
-  const Index chunks = size[0];
-  const unsigned nb = blocks(chunks);
+  const AffineScans<S> k(d.count(), chunk_, fan_in_, aff_.data(), aff_carry_.data(), stream);
   // F (locally) and dv (forward)
-  jvp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
-  jvp_velocity_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  jvp_first_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_[0]);
+  if ((err = k.scan(true)) != cudaSuccess) return err;
+  jvp_velocity_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // da (forward), df
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
-  jvp_acceleration_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  if ((err = k.scan(true)) != cudaSuccess) return err;
+  jvp_acceleration_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // dF (backward), dtau - r
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  jvp_force_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  if ((err = k.scan(false)) != cudaSuccess) return err;
+  jvp_force_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   if ((err = cudaGetLastError()) != cudaSuccess) return err;
   // dqdd = M^-1 (dtau - r): passes 2 and 3 at rest
   return finish(d.rest, stream);
@@ -164,23 +188,18 @@ cudaError_t ChainFdPlan<S>::launch_vjp(const FdBatchIn<S>& in, const BatchView<c
   d.rest.qdd = BatchView<S>::aos(x_, n_, B);  // u
   d.rest.a = dv_;                              // Fbar
   d.rest.pA_out = df_;                         // pA of the rest problem
-  d.fd.IA_out = IA_;                           // pass 1's IA
-  d.fd.pA_out = F_;                            // pass 2's pA, then F
   if ((err = passes(d.fd, stream)) != cudaSuccess) return err;  // v, U, D, a, IA, pA; qdd
-  const std::vector<Index> size = level_sizes(d.count(), chunk_, fan_in_);
-  const ChunkRange r{chunk_, d.count()};
-  const Index chunks = size[0];
-  const unsigned nb = blocks(chunks);
+  const AffineScans<S> k(d.count(), chunk_, fan_in_, aff_.data(), aff_carry_.data(), stream);
   // F (locally) and the rest solve's pass 2 (backward)
-  vjp_first_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  vjp_bias_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  vjp_first_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_[0]);
+  if ((err = k.scan(false)) != cudaSuccess) return err;
+  vjp_bias_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // the rest solve's pass 3 (u = M^-1 w in x, Fbar in dv); RA, gtau, RV's aggregates
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
-  vjp_solve_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  if ((err = k.scan(true)) != cudaSuccess) return err;
+  vjp_solve_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // RV (backward); gq, gqd
-  if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  vjp_rv_kernel<<<nb, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0]);
+  if ((err = k.scan(false)) != cudaSuccess) return err;
+  vjp_rv_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0]);
   return cudaGetLastError();
 }
 
