@@ -44,17 +44,15 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
     if (chain_) {
       chain_->jvp(in, dq, dqd, dtau, qdd, dqdd, failed_.data());
     } else {
-      for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
-        for (Index b = begin; b < end; ++b) {
-          S* o_qdd = output_row(qdd, b, rows_.row(t, 6));
-          S* o_dqdd = output_row(dqdd, b, rows_.row(t, 7));
-          const Status st = aba_jvp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
-                                    in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr,
-                                    in_row(dq, b, t, 3), in_row(dqd, b, t, 4), in_row(dtau, b, t, 5), o_dqdd, o_qdd);
-          scatter(o_qdd, qdd, b, nv);
-          scatter(o_dqdd, dqdd, b, nv);
-          failed_[static_cast<std::size_t>(b)] = st.failed_dof;
-        }
+      each_instance(B, [&](int t, Index b) {
+        S* o_qdd = output_row(qdd, b, rows_.row(t, 6));
+        S* o_dqdd = output_row(dqdd, b, rows_.row(t, 7));
+        const Status st = aba_jvp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
+                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr, in_row(dq, b, t, 3),
+                                  in_row(dqd, b, t, 4), in_row(dtau, b, t, 5), o_dqdd, o_qdd);
+        scatter(o_qdd, qdd, b, nv);
+        scatter(o_dqdd, dqdd, b, nv);
+        return st;
       });
     }
     return summarize_failures(failed_.data(), B, Failure::ArticulatedPivot);
@@ -67,27 +65,33 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
     if (chain_) {
       chain_->vjp(in, w, qdd, gq, gqd, gtau, failed_.data());
     } else {
-      for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
-        for (Index b = begin; b < end; ++b) {
-          S* o_qdd = output_row(qdd, b, rows_.row(t, 6));
-          S* o_gq = output_row(gq, b, rows_.row(t, 7));
-          S* o_gqd = output_row(gqd, b, rows_.row(t, 8));
-          S* o_gtau = output_row(gtau, b, rows_.row(t, 9));
-          const Status st = aba_vjp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
-                                    in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr,
-                                    in_row(w, b, t, 3), o_gq, o_gqd, o_gtau, o_qdd);
-          scatter(o_qdd, qdd, b, nv);
-          scatter(o_gq, gq, b, nv);
-          scatter(o_gqd, gqd, b, nv);
-          scatter(o_gtau, gtau, b, nv);
-          failed_[static_cast<std::size_t>(b)] = st.failed_dof;
-        }
+      each_instance(B, [&](int t, Index b) {
+        S* o_qdd = output_row(qdd, b, rows_.row(t, 6));
+        S* o_gq = output_row(gq, b, rows_.row(t, 7));
+        S* o_gqd = output_row(gqd, b, rows_.row(t, 8));
+        S* o_gtau = output_row(gtau, b, rows_.row(t, 9));
+        const Status st = aba_vjp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
+                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr, in_row(w, b, t, 3),
+                                  o_gq, o_gqd, o_gtau, o_qdd);
+        scatter(o_qdd, qdd, b, nv);
+        scatter(o_gq, gq, b, nv);
+        scatter(o_gqd, gqd, b, nv);
+        scatter(o_gtau, gtau, b, nv);
+        return st;
       });
     }
     return summarize_failures(failed_.data(), B, Failure::ArticulatedPivot);
   }
 
  private:
+  // the serial path: f(t, b), instance b on thread t (its rows_ and data_), returns
+  // aba_jvp's or aba_vjp's Status, whose failed DoF goes to failed_[b]
+  template <class F>
+  void each_instance(Index B, F&& f) {
+    for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
+      for (Index b = begin; b < end; ++b) failed_[static_cast<std::size_t>(b)] = f(t, b).failed_dof;
+    });
+  }
   const S* in_row(const BatchView<const S>& v, Index b, int t, int k) {
     return gather(v, b, model_.nv(), rows_.row(t, k));
   }
