@@ -74,6 +74,9 @@ from .errors import (  # noqa: E402
 __version__ = _scandyn.__version__
 has_cuda = _scandyn.has_cuda  # the CUDA backend is compiled in (a GPU may still be missing)
 has_openmp = _scandyn.has_openmp
+# the simulator's sparse loop solver (scene "loop_solver": "sparse"; docs/loops.md): the
+# factor graph's CHOLMOD solver, in a CMake build with SuiteSparse (not in a wheel)
+has_sparse_loops = _scandyn.has_sparse_loops
 
 
 def backend_unusable(backend):
@@ -94,7 +97,7 @@ def __getattr__(name):
 __all__ = [
     "BackendError", "BiasForces", "DTypeError", "DeviceError", "Error", "ForwardDynamics",
     "ForwardDynamicsError", "InverseDynamics", "Kinematics", "MassMatrix", "Model", "ModelError", "ShapeError",
-    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "inverse_dynamics",
+    "Status", "backend_unusable", "bias_forces", "forward_dynamics", "frame_jacobians", "frame_placements", "has_cuda", "has_openmp", "has_sparse_loops", "inverse_dynamics",
     "load_model", "mass_matrix", "models",
     "SceneError", "SimulationError", "Simulator",
     "HybridDynamics", "hybrid_dynamics",

@@ -51,6 +51,9 @@
 #include "scandyn/model/load.hpp"
 #include "scandyn/algorithm/loops.hpp"
 #include "shared.hpp"
+#if SCANDYN_PY_SPARSE_LOOPS  // python/CMakeLists.txt: linked with scandyn_factor_graph (CHOLMOD)
+#include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
+#endif
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -380,6 +383,12 @@ NB_MODULE(_scandyn, m) {
   m.attr("__version__") = SCANDYN_VERSION;
   m.attr("has_cuda") = bool(SCANDYN_HAS_CUDA);
   m.attr("has_openmp") = bool(SCANDYN_HAS_OPENMP);
+  // the simulator's sparse loop path (scene "loop_solver": "sparse"; docs/loops.md):
+  // the factor graph's CHOLMOD solver, registered at import when the module has it
+  m.attr("has_sparse_loops") = bool(SCANDYN_PY_SPARSE_LOOPS);
+#if SCANDYN_PY_SPARSE_LOOPS
+  factor_graph::register_sparse_loop_solver();
+#endif
 
   nb::register_exception_translator([](const std::exception_ptr& p, void*) {
     try {
