@@ -27,6 +27,16 @@ struct Case {
   std::vector<double> qdd, dqdd, gq, gqd, gtau;  // the serial references
 };
 
+// Instance b's inputs q, qd, tau, dq, dqd, dtau, w of c (n each), in precision T, into x.
+template <class T>
+void instance_inputs(const Case& c, Index b, std::vector<T> (&x)[7]) {
+  const std::vector<double>* in[7] = {&c.q, &c.qd, &c.tau, &c.dq, &c.dqd, &c.dtau, &c.w};
+  for (int k = 0; k < 7; ++k) {
+    x[k].resize(c.n);
+    for (Index i = 0; i < c.n; ++i) x[k][i] = static_cast<T>((*in[k])[i * c.B + b]);
+  }
+}
+
 inline Case make_case(const Model& model, Index B, unsigned seed, bool with_fext, double q_scale = 1) {
   std::mt19937_64 rng(seed);
   const Index n = model.nv();
@@ -47,11 +57,7 @@ inline Case make_case(const Model& model, Index B, unsigned seed, bool with_fext
   std::vector<double> x[7], out[5];
   for (auto& o : out) o.resize(n);
   for (Index b = 0; b < B; ++b) {
-    const std::vector<double>* in[7] = {&c.q, &c.qd, &c.tau, &c.dq, &c.dqd, &c.dtau, &c.w};
-    for (int k = 0; k < 7; ++k) {
-      x[k].resize(n);
-      for (Index i = 0; i < n; ++i) x[k][i] = (*in[k])[i * B + b];
-    }
+    instance_inputs(c, b, x);
     const Force<double>* f = with_fext ? c.fext.data() + b * n : nullptr;
     EXPECT_TRUE(aba_jvp(model, jd, x[0].data(), x[1].data(), x[2].data(), f, x[3].data(), x[4].data(), x[5].data(),
                         out[1].data(), out[0].data())
@@ -66,10 +72,34 @@ inline Case make_case(const Model& model, Index B, unsigned seed, bool with_fext
   return c;
 }
 
+// The case's inputs in precision S (SoA, n x B; fext B x n, or empty).
+template <class S>
+struct Inputs {
+  std::vector<S> q, qd, tau, dq, dqd, dtau, w;
+  std::vector<Force<S>> fext;
+  explicit Inputs(const Case& c)
+      : q(test::cast_vector<S>(c.q)),
+        qd(test::cast_vector<S>(c.qd)),
+        tau(test::cast_vector<S>(c.tau)),
+        dq(test::cast_vector<S>(c.dq)),
+        dqd(test::cast_vector<S>(c.dqd)),
+        dtau(test::cast_vector<S>(c.dtau)),
+        w(test::cast_vector<S>(c.w)) {
+    for (const auto& f : c.fext) fext.push_back(f.template cast<S>());
+  }
+};
+
 // The driver's results in precision S, SoA.
 template <class S>
 struct Result {
   std::vector<S> qdd_j, dqdd, qdd_v, gq, gqd, gtau;
+
+  // every output `size` NaNs (n B: unwritten entries show)
+  static Result nan(std::size_t size) {
+    Result r;
+    for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(size, S(NAN));
+    return r;
+  }
 };
 
 struct Errors {
@@ -97,16 +127,11 @@ inline Errors serial_float_errors(const Model& model, const Case& c) {
   const ModelTpl<float> m = model.cast<float>();
   const Index n = c.n, B = c.B;
   AbaJvpData<float> jd(m);
-  Result<float> r;
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(c.q.size(), NAN);
+  Result<float> r = Result<float>::nan(c.q.size());
   std::vector<float> x[7], out[5];
   for (auto& o : out) o.resize(n);
   for (Index b = 0; b < B; ++b) {
-    const std::vector<double>* in[7] = {&c.q, &c.qd, &c.tau, &c.dq, &c.dqd, &c.dtau, &c.w};
-    for (int k = 0; k < 7; ++k) {
-      x[k].resize(n);
-      for (Index i = 0; i < n; ++i) x[k][i] = static_cast<float>((*in[k])[i * B + b]);
-    }
+    instance_inputs(c, b, x);
     std::vector<Force<float>> f;
     for (Index i = 0; i < n && !c.fext.empty(); ++i) f.push_back(c.fext[b * n + i].cast<float>());
     const Force<float>* fp = f.empty() ? nullptr : f.data();
@@ -138,6 +163,36 @@ inline void expect_within(const Errors& e, const Errors& es, bool is_float, cons
   for (int k = 0; k < 5; ++k)
     EXPECT_LT(e[k], tolerance(es[k], is_float))
         << kField[k] << ", " << what << ": " << str(e) << "; serial float " << str(es);
+}
+
+// check_model's cases: for fext off and on, f(c, es, with_fext) on the case of `model`
+// (B instances, q in +-3 q_scale, the seed from nv) with es its serial float errors,
+// under a trace naming spec.
+template <class F>
+void for_each_case(const Model& model, const std::string& spec, Index B, double q_scale, F&& f) {
+  for (bool with_fext : {false, true}) {
+    SCOPED_TRACE(spec + (with_fext ? " with fext" : "") + ", q in +-" + std::to_string(3 * q_scale));
+    const Case c = make_case(model, B, 3 + static_cast<unsigned>(model.nv()) + with_fext, with_fext, q_scale);
+    const Errors es = serial_float_errors(model, c);
+    f(c, es, with_fext);
+  }
+}
+
+// The adjoint identity's two sides, lhs = <w, dqdd(v)> and rhs = <(gq, gqd, gtau)(w),
+// (dq, dqd, dtau)> of r, and scale, the sum of the products' magnitudes.
+struct AdjointSums {
+  double lhs = 0, rhs = 0, scale = 0;
+};
+
+inline AdjointSums adjoint_sums(const Case& c, const Result<double>& r) {
+  AdjointSums a;
+  for (std::size_t k = 0; k < c.q.size(); ++k) {
+    a.lhs += c.w[k] * r.dqdd[k];
+    a.scale += std::fabs(c.w[k] * r.dqdd[k]);
+    const double t[3] = {r.gq[k] * c.dq[k], r.gqd[k] * c.dqd[k], r.gtau[k] * c.dtau[k]};
+    for (double x : t) a.rhs += x, a.scale += std::fabs(x);
+  }
+  return a;
 }
 
 }  // namespace scandyn::test::chain_dir

@@ -20,29 +20,41 @@ using namespace scandyn::test::chain_dir;
 
 namespace {
 
+// Host SoA views (n x B) of a case's inputs x and of the results r, as the drivers'
+// jvp (in, dq, dqd, dtau -> qdd_j, dqdd) and vjp (in, w -> qdd_v, gq, gqd, gtau) take them.
+template <class S>
+struct Views {
+  FdBatchIn<S> in;
+  BatchView<const S> dq, dqd, dtau, w;
+  BatchView<S> qdd_j, dqdd, qdd_v, gq, gqd, gtau;
+
+  Views(const Inputs<S>& x, Result<S>& r, Index n, Index B) {
+    auto v = [&](const std::vector<S>& a) { return BatchView<const S>::soa(a.data(), n, B); };
+    auto o = [&](std::vector<S>& a) { return BatchView<S>::soa(a.data(), n, B); };
+    in = {v(x.q), v(x.qd), v(x.tau), x.fext.empty() ? nullptr : x.fext.data()};
+    dq = v(x.dq);
+    dqd = v(x.dqd);
+    dtau = v(x.dtau);
+    w = v(x.w);
+    qdd_j = o(r.qdd_j);
+    dqdd = o(r.dqdd);
+    qdd_v = o(r.qdd_v);
+    gq = o(r.gq);
+    gqd = o(r.gqd);
+    gtau = o(r.gtau);
+  }
+};
+
 template <class S>
 Result<S> run(const Model& model, const Case& c, int threads, Index chunk = 0) {
-  const Index n = c.n, B = c.B;
-  ChainFdDirectional<S> eng(model.cast<S>(), B, threads, chunk);
-  const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau),
-             dq = test::cast_vector<S>(c.dq), dqd = test::cast_vector<S>(c.dqd), dtau = test::cast_vector<S>(c.dtau),
-             w = test::cast_vector<S>(c.w);
-  std::vector<Force<S>> fext;
-  for (const auto& f : c.fext) fext.push_back(f.template cast<S>());
-  using V = BatchView<const S>;
-  using O = BatchView<S>;
-  const FdBatchIn<S> in{V::soa(q.data(), n, B), V::soa(qd.data(), n, B), V::soa(tau.data(), n, B),
-                        fext.empty() ? nullptr : fext.data()};
-  Result<S> r;
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(q.size(), S(NAN));
-  std::vector<int> failed(static_cast<std::size_t>(B), 7);
-  EXPECT_EQ(eng.jvp(in, V::soa(dq.data(), n, B), V::soa(dqd.data(), n, B), V::soa(dtau.data(), n, B),
-                    O::soa(r.qdd_j.data(), n, B), O::soa(r.dqdd.data(), n, B), failed.data()),
-            0);
+  ChainFdDirectional<S> eng(model.cast<S>(), c.B, threads, chunk);
+  const Inputs<S> x(c);
+  Result<S> r = Result<S>::nan(c.q.size());
+  const Views<S> v(x, r, c.n, c.B);
+  std::vector<int> failed(static_cast<std::size_t>(c.B), 7);
+  EXPECT_EQ(eng.jvp(v.in, v.dq, v.dqd, v.dtau, v.qdd_j, v.dqdd, failed.data()), 0);
   for (int f : failed) EXPECT_EQ(f, -1);
-  EXPECT_EQ(eng.vjp(in, V::soa(w.data(), n, B), O::soa(r.qdd_v.data(), n, B), O::soa(r.gq.data(), n, B),
-                    O::soa(r.gqd.data(), n, B), O::soa(r.gtau.data(), n, B)),
-            0);
+  EXPECT_EQ(eng.vjp(v.in, v.w, v.qdd_v, v.gq, v.gqd, v.gtau), 0);
   return r;
 }
 
@@ -52,10 +64,7 @@ Result<S> run(const Model& model, const Case& c, int threads, Index chunk = 0) {
 // threads, float.
 void check_model(const std::string& spec, Index B, double q_scale = 1) {
   const Model model = load_model(spec);
-  for (bool with_fext : {false, true}) {
-    SCOPED_TRACE(spec + (with_fext ? " with fext" : "") + ", q in +-" + std::to_string(3 * q_scale));
-    const Case c = make_case(model, B, 3 + static_cast<unsigned>(model.nv()) + with_fext, with_fext, q_scale);
-    const Errors es = serial_float_errors(model, c);
+  for_each_case(model, spec, B, q_scale, [&](const Case& c, const Errors& es, bool with_fext) {
     Errors ed{};
     for (int threads : {1, 2}) {
       ed = errors(run<double>(model, c, threads), c);
@@ -65,7 +74,7 @@ void check_model(const std::string& spec, Index B, double q_scale = 1) {
     expect_within(ef, es, true, "float");
     ::testing::Test::RecordProperty(spec + (with_fext ? "_fext" : "") + (q_scale != 1 ? "_near_rest" : ""),
                                     "double " + str(ed) + "; float " + str(ef) + "; serial float " + str(es));
-  }
+  });
 }
 
 TEST(ChainDirectional, MatchesSerialOnShortRope) { check_model("rope:10", 3); }
@@ -103,15 +112,8 @@ TEST(ChainDirectional, AdjointIdentity) {
   for (const char* spec : {"rope:10", "rope:1000", "curtain:3:50"}) {
     const Model model = load_model(spec);
     const Case c = make_case(model, 2, 11, true);
-    const Result<double> r = run<double>(model, c, 2);
-    double lhs = 0, rhs = 0, scale = 0;
-    for (std::size_t k = 0; k < c.q.size(); ++k) {
-      lhs += c.w[k] * r.dqdd[k];
-      scale += std::fabs(c.w[k] * r.dqdd[k]);
-      const double t[3] = {r.gq[k] * c.dq[k], r.gqd[k] * c.dqd[k], r.gtau[k] * c.dtau[k]};
-      for (double x : t) rhs += x, scale += std::fabs(x);
-    }
-    EXPECT_LE(std::fabs(lhs - rhs), 1e-10 * scale) << spec << ": " << lhs << " vs " << rhs;
+    const AdjointSums a = adjoint_sums(c, run<double>(model, c, 2));
+    EXPECT_LE(std::fabs(a.lhs - a.rhs), 1e-10 * a.scale) << spec << ": " << a.lhs << " vs " << a.rhs;
   }
 }
 
@@ -170,31 +172,18 @@ namespace {
 // instance and the scans, against the serial references (SoA views).
 template <class S>
 Result<S> run_engine(const Model& model, const Case& c, BackendKind kind, FdMethod method, std::string* strategy) {
-  const Index n = c.n, B = c.B;
   BackendOptions o;
   o.backend = kind;
-  o.max_batch = B;
+  o.max_batch = c.B;
   o.fd_method = method;
   const ModelTpl<S> m = model.cast<S>();
   auto eng = make_fd_directional_derivatives(m, o);
   *strategy = eng->strategy();
-  const auto q = test::cast_vector<S>(c.q), qd = test::cast_vector<S>(c.qd), tau = test::cast_vector<S>(c.tau),
-             dq = test::cast_vector<S>(c.dq), dqd = test::cast_vector<S>(c.dqd), dtau = test::cast_vector<S>(c.dtau),
-             w = test::cast_vector<S>(c.w);
-  std::vector<Force<S>> fext;
-  for (const auto& f : c.fext) fext.push_back(f.template cast<S>());
-  using V = BatchView<const S>;
-  using O = BatchView<S>;
-  const FdBatchIn<S> in{V::soa(q.data(), n, B), V::soa(qd.data(), n, B), V::soa(tau.data(), n, B),
-                        fext.empty() ? nullptr : fext.data()};
-  Result<S> r;
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(q.size(), S(NAN));
-  EXPECT_TRUE(eng->jvp(in, V::soa(dq.data(), n, B), V::soa(dqd.data(), n, B), V::soa(dtau.data(), n, B),
-                       O::soa(r.qdd_j.data(), n, B), O::soa(r.dqdd.data(), n, B))
-                  .ok());
-  EXPECT_TRUE(eng->vjp(in, V::soa(w.data(), n, B), O::soa(r.qdd_v.data(), n, B), O::soa(r.gq.data(), n, B),
-                       O::soa(r.gqd.data(), n, B), O::soa(r.gtau.data(), n, B))
-                  .ok());
+  const Inputs<S> x(c);
+  Result<S> r = Result<S>::nan(c.q.size());
+  const Views<S> v(x, r, c.n, c.B);
+  EXPECT_TRUE(eng->jvp(v.in, v.dq, v.dqd, v.dtau, v.qdd_j, v.dqdd).ok());
+  EXPECT_TRUE(eng->vjp(v.in, v.w, v.qdd_v, v.gq, v.gqd, v.gtau).ok());
   return r;
 }
 

@@ -40,25 +40,24 @@ void run_device(const Model& model, const Case& c, Result<S>& r, Index chunk = 0
   const Index n = c.n, B = c.B;
   cuda::ChainFdPlan<S> plan(model.cast<S>(), B, chunk, 0, /*directional=*/true);
   ASSERT_TRUE(plan.directional());
-  std::vector<Force<S>> fext;
-  for (const auto& f : c.fext) fext.push_back(f.template cast<S>());
+  const Inputs<S> x(c);
   test::DeviceArray<S> q, qd, tau, dq, dqd, dtau, w, qdd_j, dqdd, qdd_v, gq, gqd, gtau;
   test::DeviceArray<Force<S>> f;
   test::DeviceArray<int> failed;
-  upload(q, test::cast_vector<S>(c.q));
-  upload(qd, test::cast_vector<S>(c.qd));
-  upload(tau, test::cast_vector<S>(c.tau));
-  upload(dq, test::cast_vector<S>(c.dq));
-  upload(dqd, test::cast_vector<S>(c.dqd));
-  upload(dtau, test::cast_vector<S>(c.dtau));
-  upload(w, test::cast_vector<S>(c.w));
-  upload(f, fext);
+  upload(q, x.q);
+  upload(qd, x.qd);
+  upload(tau, x.tau);
+  upload(dq, x.dq);
+  upload(dqd, x.dqd);
+  upload(dtau, x.dtau);
+  upload(w, x.w);
+  upload(f, x.fext);
   for (auto* o : {&qdd_j, &dqdd, &qdd_v, &gq, &gqd, &gtau}) CUDA_OK(o->alloc(c.q.size()));
   CUDA_OK(failed.alloc(static_cast<std::size_t>(B)));
   using V = BatchView<const S>;
   using O = BatchView<S>;
   const FdBatchIn<S> in{V::soa(q.ptr, n, B), V::soa(qd.ptr, n, B), V::soa(tau.ptr, n, B),
-                        fext.empty() ? nullptr : f.ptr};
+                        x.fext.empty() ? nullptr : f.ptr};
   CUDA_OK(plan.launch_jvp(in, V::soa(dq.ptr, n, B), V::soa(dqd.ptr, n, B), V::soa(dtau.ptr, n, B),
                           O::soa(qdd_j.ptr, n, B), O::soa(dqdd.ptr, n, B), failed.ptr, nullptr));
   CUDA_OK(cudaDeviceSynchronize());
@@ -70,7 +69,7 @@ void run_device(const Model& model, const Case& c, Result<S>& r, Index chunk = 0
   CUDA_OK(cudaDeviceSynchronize());
   download(fl, failed);
   for (int x : fl) EXPECT_EQ(x, -1);
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(c.q.size(), S(NAN));
+  r = Result<S>::nan(c.q.size());
   download(r.qdd_j, qdd_j);
   download(r.dqdd, dqdd);
   download(r.qdd_v, qdd_v);
@@ -81,10 +80,7 @@ void run_device(const Model& model, const Case& c, Result<S>& r, Index chunk = 0
 
 void check_model(const std::string& spec, Index B, double q_scale = 1) {
   const Model model = load_model(spec);
-  for (bool with_fext : {false, true}) {
-    SCOPED_TRACE(spec + (with_fext ? " with fext" : "") + ", q in +-" + std::to_string(3 * q_scale));
-    const Case c = make_case(model, B, 3 + static_cast<unsigned>(model.nv()) + with_fext, with_fext, q_scale);
-    const Errors es = serial_float_errors(model, c);
+  for_each_case(model, spec, B, q_scale, [&](const Case& c, const Errors& es, bool with_fext) {
     Result<double> rd;
     Result<float> rf;
     run_device(model, c, rd);
@@ -93,7 +89,7 @@ void check_model(const std::string& spec, Index B, double q_scale = 1) {
     expect_within(errors(rf, c), es, true, "cuda float");
     ::testing::Test::RecordProperty(spec + (with_fext ? "_fext" : ""),
                                     "double " + str(errors(rd, c)) + "; float " + str(errors(rf, c)));
-  }
+  });
 }
 
 TEST(CudaChainDirectional, MatchesSerialOnShortRope) {
@@ -142,14 +138,8 @@ TEST(CudaChainDirectional, AdjointIdentity) {
   const Case c = make_case(model, 2, 11, true);
   Result<double> r;
   run_device(model, c, r);
-  double lhs = 0, rhs = 0, scale = 0;
-  for (std::size_t k = 0; k < c.q.size(); ++k) {
-    lhs += c.w[k] * r.dqdd[k];
-    scale += std::fabs(c.w[k] * r.dqdd[k]);
-    const double t[3] = {r.gq[k] * c.dq[k], r.gqd[k] * c.dqd[k], r.gtau[k] * c.dtau[k]};
-    for (double x : t) rhs += x, scale += std::fabs(x);
-  }
-  EXPECT_LE(std::fabs(lhs - rhs), 1e-10 * scale) << lhs << " vs " << rhs;
+  const AdjointSums a = adjoint_sums(c, r);
+  EXPECT_LE(std::fabs(a.lhs - a.rhs), 1e-10 * a.scale) << a.lhs << " vs " << a.rhs;
 }
 
 TEST(CudaChainDirectional, RefusalsAndMisuse) {
@@ -187,8 +177,7 @@ TEST(CudaChainDirectional, Engine) {
   using O = BatchView<double>;
   const FdBatchIn<double> in{V::soa(c.q.data(), n, B), V::soa(c.qd.data(), n, B), V::soa(c.tau.data(), n, B),
                              c.fext.data()};
-  Result<double> r;
-  for (auto* v : {&r.qdd_j, &r.dqdd, &r.qdd_v, &r.gq, &r.gqd, &r.gtau}) v->assign(c.q.size(), NAN);
+  Result<double> r = Result<double>::nan(c.q.size());
   // outputs instance-major (aos) while the inputs are SoA
   std::vector<double> a(c.q.size()), g[3] = {a, a, a};
   EXPECT_TRUE(eng->jvp(in, V::soa(c.dq.data(), n, B), V::soa(c.dqd.data(), n, B), V::soa(c.dtau.data(), n, B),
