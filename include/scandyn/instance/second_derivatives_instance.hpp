@@ -1,8 +1,11 @@
 // scandyn/instance/second_derivatives_instance.hpp: the second-order derivatives of
-// inverse dynamics of one instance, __host__ __device__: the serial reference
-// (rnea_second_derivatives, scandyn/algorithm/second_derivatives.hpp), the CPU
-// engines (cpu_fallback/second_derivatives.cpp) and the CUDA kernel
-// (kernels/second_derivatives.cu) all run these functions.
+// inverse dynamics of one instance by dual-number passes, __host__ __device__: the
+// reference of the analytical recursion (rnea_second_derivatives_analytic_instance,
+// scandyn/instance/second_derivatives_analytic.hpp, what rnea_second_derivatives and
+// the engines run for models of 1-DoF joints) through rnea_second_derivatives_dual
+// (scandyn/algorithm/second_derivatives.hpp), the CPU engines' path for other models,
+// and the variational integrator's weighted contraction (rnea_weighted_dq2_instance).
+// Also the tensor types (TensorRef) both share.
 //
 // Forward mode over the analytical first-order derivatives: the recursions of
 // rnea_derivatives_instance (Carpentier & Mansard 2018;
