@@ -90,12 +90,7 @@ void chain_rows(const char* spec, double min_time) {
 }
 
 #if SCANDYN_HAS_CUDA
-void cuda_check(cudaError_t e, const char* what) {
-  if (e != cudaSuccess) {
-    std::fprintf(stderr, "directional_derivatives_cost cuda: %s: %s\n", what, cudaGetErrorString(e));
-    std::exit(1);
-  }
-}
+void cuda_check(cudaError_t e, const char* what) { bench::exit_on_cuda_error("directional_derivatives_cost", e, what); }
 
 // Seconds per call of f (launches on `stream`): one warm-up call, then batches of
 // 1, 2, 4, ... back-to-back calls between two events until a batch takes min_time.

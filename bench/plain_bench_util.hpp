@@ -1,12 +1,19 @@
 // bench/plain_bench_util.hpp: what the plain timing programs (no Google Benchmark:
-// fd_residual_cost, fd_residual_study, fd_check_engine_cost) share.
+// fd_residual_cost, fd_residual_study, fd_check_engine_cost, step_derivatives_cost,
+// directional_derivatives_cost, ...) share.
 #pragma once
 
 #include <algorithm>
 #include <chrono>
 #include <cstddef>
+#include <cstdio>
 #include <cstdlib>
 #include <string>
+
+#include "scandyn/build_config.hpp"
+#if SCANDYN_HAS_CUDA
+#include <cuda_runtime_api.h>
+#endif
 
 namespace scandyn::bench {
 
@@ -34,5 +41,16 @@ double best_seconds_per_call(double min_time, F&& batch) {
   }
   return best;
 }
+
+#if SCANDYN_HAS_CUDA
+// The plain programs' `cuda` modes: unless e is cudaSuccess, prints
+// "<program> cuda: <what>: <CUDA's message>" and exits with status 1.
+inline void exit_on_cuda_error(const char* program, cudaError_t e, const char* what) {
+  if (e != cudaSuccess) {
+    std::fprintf(stderr, "%s cuda: %s: %s\n", program, what, cudaGetErrorString(e));
+    std::exit(1);
+  }
+}
+#endif
 
 }  // namespace scandyn::bench

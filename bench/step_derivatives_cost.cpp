@@ -73,11 +73,23 @@ sim::Scene scene_of(const std::string& model, const std::string& integrator, dou
 #if SCANDYN_HAS_CUDA
 namespace {
 
-void cuda_check(cudaError_t e, const char* what) {
-  if (e != cudaSuccess) {
-    std::fprintf(stderr, "step_derivatives_cost cuda: %s: %s\n", what, cudaGetErrorString(e));
-    std::exit(1);
-  }
+void cuda_check(cudaError_t e, const char* what) { bench::exit_on_cuda_error("step_derivatives_cost", e, what); }
+
+// The cuda modes' command line, step_derivatives_cost <mode> [min_seconds] [B ...]:
+// min_time (default 0.3 s), the batches (default 10^4 and 10^5), and device 0.
+struct CudaModeArgs {
+  double min_time = 0.3;
+  std::vector<Index> batches;
+  cudaDeviceProp prop{};
+};
+
+CudaModeArgs cuda_mode_args(int argc, char** argv) {
+  CudaModeArgs a;
+  a.min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
+  for (int k = 3; k < argc; ++k) a.batches.push_back(static_cast<Index>(std::atol(argv[k])));
+  if (a.batches.empty()) a.batches = {10000, 100000};
+  cuda_check(cudaGetDeviceProperties(&a.prop, 0), "cudaGetDeviceProperties");
+  return a;
 }
 
 // Seconds per call of f (launches on `stream`): one call to warm up, then calls
@@ -148,18 +160,13 @@ void cuda_rollout_rows(const char* integrator, Index B, double min_time, const c
 }
 
 int cuda_main(int argc, char** argv) {
-  const double min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
-  std::vector<Index> batches;
-  for (int k = 3; k < argc; ++k) batches.push_back(static_cast<Index>(std::atol(argv[k])));
-  if (batches.empty()) batches = {10000, 100000};
-  cudaDeviceProp prop{};
-  cuda_check(cudaGetDeviceProperties(&prop, 0), "cudaGetDeviceProperties");
+  const CudaModeArgs a = cuda_mode_args(argc, argv);
   std::printf("model,integrator,precision,instances,steps,checkpoint_interval,rollout_ns_per_instance_step,"
               "vjp_ns_per_instance_step,vjp_over_rollout,store_bytes_per_instance,gpu\n");
-  for (Index B : batches)
+  for (Index B : a.batches)
     for (const char* integrator : {"euler", "rk4"}) {
-      cuda_rollout_rows<float>(integrator, B, min_time, prop.name);
-      cuda_rollout_rows<double>(integrator, B, min_time, prop.name);
+      cuda_rollout_rows<float>(integrator, B, a.min_time, a.prop.name);
+      cuda_rollout_rows<double>(integrator, B, a.min_time, a.prop.name);
     }
   return 0;
 }
@@ -229,18 +236,13 @@ void cuda_jacobian_rows(const char* integrator, Index B, double min_time, const 
 }
 
 int cuda_jacobian_main(int argc, char** argv) {
-  const double min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
-  std::vector<Index> batches;
-  for (int k = 3; k < argc; ++k) batches.push_back(static_cast<Index>(std::atol(argv[k])));
-  if (batches.empty()) batches = {10000, 100000};
-  cudaDeviceProp prop{};
-  cuda_check(cudaGetDeviceProperties(&prop, 0), "cudaGetDeviceProperties");
+  const CudaModeArgs a = cuda_mode_args(argc, argv);
   std::printf("model,integrator,precision,instances,nv,jacobian_ns_per_instance,step_ns_per_instance_step,"
               "jacobian_over_step,output_bytes_per_instance,failed,gpu\n");
-  for (Index B : batches)
+  for (Index B : a.batches)
     for (const char* integrator : {"euler", "rk4", "implicit"}) {
-      cuda_jacobian_rows<float>(integrator, B, min_time, prop.name);
-      cuda_jacobian_rows<double>(integrator, B, min_time, prop.name);
+      cuda_jacobian_rows<float>(integrator, B, a.min_time, a.prop.name);
+      cuda_jacobian_rows<double>(integrator, B, a.min_time, a.prop.name);
     }
   return 0;
 }
