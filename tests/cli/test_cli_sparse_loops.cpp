@@ -100,8 +100,8 @@ TEST_F(CliSparseLoops, ClothRolloutSparseEqualsDense) {
   const std::string steps = " --steps " + std::to_string(kSteps) + " --every " + std::to_string(kSteps);
   const auto sparse = run("rollout --scene sparse.json --out sparse.csv" + steps);
   if (!SCANDYN_CLI_SPARSE_LOOPS) {
-    // the simulator's error, nothing written
-    EXPECT_NE(sparse.code, 0);
+    // the simulator's error as a usage error (exit 2, docs/cli.md), nothing written
+    EXPECT_EQ(sparse.code, 2);
     EXPECT_NE(sparse.err.find("no sparse loop solver"), std::string::npos) << sparse.err;
     EXPECT_FALSE(std::filesystem::exists(path("sparse.csv")));
     GTEST_SKIP() << "scandyn was built without SuiteSparse CHOLMOD: no sparse loop solver (the error checked)";
