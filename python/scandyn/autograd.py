@@ -25,13 +25,14 @@ docs/derivatives.md.
 
 import json
 import os
+from collections import namedtuple
 
 import numpy as np
 
 from . import _scandyn as _ext
 from . import _api
-from ._api import (ForwardDynamics, _EngineBase, _cached, _cuda_device, _empty, _entry_major, _finish, _handover,
-                   _host_int32, _inputs, _kind, _lead_of, _reraise, _where, _writable, resolve_model_spec)
+from ._api import (_Torch, ForwardDynamics, _EngineBase, _cached, _cuda_device, _empty, _entry_major, _finish,
+                   _handover, _host_int32, _inputs, _kind, _lead_of, _reraise, _where, _writable, resolve_model_spec)
 from .errors import BackendError, DeviceError, DTypeError
 
 
@@ -48,6 +49,28 @@ def _matrices(engine, where, q, lead, count):
     for _ in range(count):
         m = _entry_major(q, nv, nv, dtype) if where.cuda is not None else None
         out.append(m if m is not None else _empty(where, tuple(lead) + (nv, nv), dtype))
+    return out
+
+
+def _tensors(engine, where, q, lead, count):
+    """count (lead + (nv, nv, nv)) results of an engine's call, as _matrices: on a CUDA
+    device entry-major views (T[b, i, j, k] at ((i * nv + j) * nv + k) * B + b; torch,
+    CuPy with a batch dimension), else new row-major arrays of the inputs' kind."""
+    nv, dtype = engine._nv, engine._dtype
+    out = []
+    for _ in range(count):
+        t = None
+        if where.cuda is not None and getattr(q, "ndim", 0) == 2:
+            b = q.shape[0]
+            if type(q).__module__.startswith("torch"):
+                dtypes = _Torch.dtypes or _Torch.load().dtypes
+                t = q.new_empty_strided((b, nv, nv, nv), (1, nv * nv * b, nv * b, b), dtype=dtypes[dtype])
+            elif type(q).__module__.startswith("cupy"):
+                import cupy
+
+                with q.device:
+                    t = cupy.empty((nv, nv, nv, b), dtype=dtype).transpose(3, 0, 1, 2)
+        out.append(t if t is not None else _empty(where, tuple(lead) + (nv, nv, nv), dtype))
     return out
 
 
@@ -79,6 +102,54 @@ class IdDerivatives(_EngineBase):
             _reraise(e)
         _finish(where)
         return tuple(mats)
+
+
+IdSecondDerivativesResult = namedtuple("IdSecondDerivativesResult",
+                                       ["d2tau_dq2", "d2tau_dqd2", "d2tau_dqdqd", "dM_dq"])
+IdSecondDerivativesResult.__doc__ = (
+    "The second derivatives of tau = ID(q, qd, qdd): four (B, nv, nv, nv) arrays ((nv, nv, nv) for one "
+    "state), entry [..., i, j, k]: d2tau_dq2 = d^2 tau_i / dq_j dq_k, d2tau_dqd2 = d^2 tau_i / dqd_j dqd_k, "
+    "d2tau_dqdqd = d^2 tau_i / dq_j dqd_k, dM_dq = d M_ij / dq_k.")
+
+
+class IdSecondDerivatives(_EngineBase):
+    """The second derivatives of tau = ID(q, qd, qdd) (gravity included) for up to
+    max_batch instances: the library's make_id_second_derivatives (the analytical
+    second-order recursion; models of 1-DoF joints, revolute or prismatic: floating
+    bases and spherical joints raise BackendError; on 'cuda' up to 64 DoF).
+
+    A call ``engine(q, qd, qdd)`` on (B, nv) arrays ((nv,) for one state) returns an
+    IdSecondDerivativesResult (a named tuple) of four (B, nv, nv, nv) arrays ((nv, nv,
+    nv) for one state), entry [b, i, j, k]:
+
+    - ``d2tau_dq2``   = d^2 tau_i / dq_j dq_k   (symmetric in j, k)
+    - ``d2tau_dqd2``  = d^2 tau_i / dqd_j dqd_k (symmetric in j, k; tau is quadratic in qd: a function of q only)
+    - ``d2tau_dqdqd`` = d^2 tau_i / dq_j dqd_k
+    - ``dM_dq``       = d M_ij / dq_k (= d^2 tau_i / dqdd_j dq_k)
+
+    so each instance's tensor is the library's, entry (i, j, k) at (i * nv + j) * nv + k
+    of a row-major block. Host arrays run the engine's compute() (serial, openmp, or
+    cuda: copies in and out); CUDA arrays (backend 'cuda', the engine's device) its
+    compute_async() on the caller's stream as IdDerivatives' (torch and CuPy results:
+    entry-major views, T[b, i, j, k] at ((i * nv + j) * nv + k) * B + b). Results are
+    arrays of the inputs' kind on their device, in the engine's dtype."""
+
+    _ext_class = _ext.IdSecondDerivatives
+    _names = ("q", "qd", "qdd")
+
+    def __init__(self, model, backend="auto", max_batch=1, dtype=np.float64, threads=0, device=None):
+        super().__init__(model, backend, max_batch, dtype, device, None, threads=threads)
+
+    def __call__(self, q, qd, qdd, stream=None):
+        where, (hq, hqd, hqdd), _, _ = self._prepare((q, qd, qdd), None, stream)  # (its (B, nv) out unused)
+        lead = tuple(where.like.shape[:-1])
+        tensors = _tensors(self, where, where.like, lead, 4)
+        try:
+            self._e.compute(hq, hqd, hqdd, *(_writable(t, where) for t in tensors), where.stream or 0)
+        except TypeError as e:
+            _reraise(e)
+        _finish(where)
+        return IdSecondDerivativesResult(*tensors)
 
 
 class FdDerivatives(ForwardDynamics):
@@ -201,6 +272,17 @@ def id_derivatives(model, q, qd, qdd, backend="auto", stream=None):
     The engine is cached per model (IdDerivatives)."""
     (q, qd, qdd), _ = _inputs([("q", q), ("qd", qd), ("qdd", qdd)])
     return _cached(IdDerivatives, None, model, backend, q)(q, qd, qdd, stream=stream)
+
+
+def id_second_derivatives(model, q, qd, qdd, backend="auto", stream=None):
+    """The second derivatives of tau = ID(q, qd, qdd), gravity included: an
+    IdSecondDerivativesResult (d2tau_dq2, d2tau_dqd2, d2tau_dqdqd, dM_dq), (B, nv, nv,
+    nv) each for (B, nv) inputs ((nv, nv, nv) for (nv,)); entry [..., i, j, k] =
+    d^2 tau_i / dx_j dy_k (x, y: q, q; qd, qd; q, qd), and dM_dq[..., i, j, k] = d M_ij
+    / dq_k. Host or CUDA arrays as id_derivatives; models of 1-DoF joints. The engine is
+    cached per model (IdSecondDerivatives)."""
+    (q, qd, qdd), _ = _inputs([("q", q), ("qd", qd), ("qdd", qdd)])
+    return _cached(IdSecondDerivatives, None, model, backend, q)(q, qd, qdd, stream=stream)
 
 
 def fd_derivatives(model, q, qd, tau, backend="auto", stream=None, check=None):
@@ -556,7 +638,7 @@ def jax_rollout(step, q0, qd0, tau):
 
 
 __all__ = [
-    "FdDerivatives", "FdDirectional", "IdDerivatives", "StepDerivatives", "fd_derivatives", "fd_jvp", "fd_vjp",
-    "id_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
+    "FdDerivatives", "FdDirectional", "IdDerivatives", "IdSecondDerivatives", "IdSecondDerivativesResult",
+    "StepDerivatives", "fd_derivatives", "fd_jvp", "fd_vjp", "id_derivatives", "id_second_derivatives", "jax_forward_dynamics", "jax_inverse_dynamics",
     "jax_rollout", "torch_forward_dynamics", "torch_inverse_dynamics", "torch_rollout", "torch_step",
 ]

@@ -1,6 +1,7 @@
 // python/src/derivatives.cpp: the analytical derivatives from Python: the derivative
 // engines of inverse and forward dynamics (make_id_derivatives, make_fd_derivatives;
-// scandyn/engine.hpp), the directional derivatives of forward dynamics (JVP, VJP:
+// scandyn/engine.hpp), the second-order derivatives of inverse dynamics
+// (make_id_second_derivatives: four (B, nv, nv, nv) tensors), the directional derivatives of forward dynamics (JVP, VJP:
 // make_fd_directional_derivatives; host arrays only) and the derivatives of the simulator's step and rollouts
 // (scandyn/sim/step_derivatives.hpp). Registered by module.cpp (bind_derivatives);
 // the torch.autograd.Function and jax.custom_vjp wrappers over them are
@@ -40,17 +41,32 @@
 
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/rollout_derivatives.hpp"
+#include "scandyn/cuda/second_derivatives.hpp"
 #include "scandyn/cuda/step_derivatives.hpp"
 #endif
 
 namespace nb = nanobind;
 using namespace nb::literals;
 
+#if SCANDYN_HAS_CUDA
+namespace scandyn {
+// The second-order engine's CUDA engine, for engines.hpp's queue_on_device and
+// engine_device (the overloads there cover the other engines; this one is found by
+// argument-dependent lookup at their instantiation, so it lives in IdSecondDerivatives'
+// namespace).
+template <class S>
+cuda::CudaIdSecondDerivatives<S>* as_cuda(IdSecondDerivatives<S>* e) {
+  return dynamic_cast<cuda::CudaIdSecondDerivatives<S>*>(e);
+}
+}  // namespace scandyn
+#endif
+
 namespace scandyn::py {
 namespace {
 
 using PyIdDerivatives = PyEngine<IdDerivatives>;
 using PyFdDerivatives = PyEngine<FdDerivatives>;
+using PyIdSecondDerivatives = PyEngine<IdSecondDerivatives>;
 using PyFdDirectional = PyEngine<FdDirectionalDerivatives>;
 
 // Every out array writable entry by entry and sharing no memory with the inputs.
@@ -81,6 +97,63 @@ void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray&
                                 matrix_view_of<S>(dqd, nv, "dtau_dqd", lead), matrix_view_of<S>(M, nv, "M", lead)};
   check_max_batch(lead, e.max_batch);
   check_outs({{&dq, "dtau_dq"}, {&dqd, "dtau_dqd"}, {&M, "M"}},
+             {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  nb::gil_scoped_release release;
+  std::lock_guard<std::mutex> lock(e.mutex);
+  if (lead.cuda)
+    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, s); });
+  if constexpr (std::is_same_v<S, float>) e.ef->compute(in, out);
+  else e.ed->compute(in, out);
+}
+
+// The BatchView of a (B, nv, nv, nv) or (nv, nv, nv) out array (one nv^3 tensor per
+// instance, entry (i, j, k) at data[((i * nv + j) * nv + k) * s + b * sb]): each
+// instance's block row-major with strides (nv^2 s, nv s, s) (a C-contiguous array, a
+// slice of one along the batch, or the entry-major (1, nv^2 B, nv B, B) view of the
+// CUDA results), as matrix_view_of's (nv, nv) blocks.
+template <class S>
+BatchView<S> tensor_view_of(const OutArray& out, Index nv, const char* name, Lead& lead) {
+  check_device(out, name, lead);
+  if (!has_dtype<S>(out))
+    throw DTypeError(std::string(name) + " has dtype " + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
+  const size_t nd = out.ndim();
+  const size_t want = lead.single ? 3 : 4;
+  const std::string n = std::to_string(nv);
+  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
+      Index(out.shape(nd - 3)) != nv || (!lead.single && Index(out.shape(0)) != lead.batch))
+    throw ShapeError(std::string(name) + " has shape " + shape_str(out) + ", expected " +
+                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + n + ", " + n +
+                     ", " + n + ")");
+  const std::ptrdiff_t s = out.stride(nd - 1);
+  if (nv > 1 && (out.stride(nd - 2) != s * nv || out.stride(nd - 3) != s * nv * nv))
+    throw ShapeError(std::string(name) +
+                     ": each instance's (nv, nv, nv) block must be row-major (strides (nv^2 s, nv s, s) for its last "
+                     "three dimensions), as a C-contiguous array or a slice along the batch dimension of one");
+  BatchView<S> T;
+  T.data = static_cast<S*>(out.data());
+  T.batch = lead.batch;
+  T.dof_stride = s;
+  T.batch_stride = lead.single ? 0 : out.stride(0);
+  return T;
+}
+
+// (d2tau_dq2, d2tau_dqd2, d2tau_dqdqd, dM_dq) of (q, qd, qdd): (B, nv, nv, nv) or
+// (nv, nv, nv) each
+template <class S>
+void id_second_derivatives_compute(PyIdSecondDerivatives& e, const InArray& q, const InArray& qd,
+                                   const InArray& qdd, const OutArray& dq2, const OutArray& dqd2,
+                                   const OutArray& dqdqd, const OutArray& dM, std::uintptr_t stream) {
+  const Index nv = e.nv();
+  Lead lead;
+  IdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  const IdSecondDerivativesOut<S> out{
+      tensor_view_of<S>(dq2, nv, "d2tau_dq2", lead), tensor_view_of<S>(dqd2, nv, "d2tau_dqd2", lead),
+      tensor_view_of<S>(dqdqd, nv, "d2tau_dqdqd", lead), tensor_view_of<S>(dM, nv, "dM_dq", lead)};
+  check_max_batch(lead, e.max_batch);
+  check_outs({{&dq2, "d2tau_dq2"}, {&dqd2, "d2tau_dqd2"}, {&dqdqd, "d2tau_dqdqd"}, {&dM, "dM_dq"}},
              {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
@@ -524,6 +597,17 @@ void bind_derivatives(nb::module_& m) {
            },
            "q"_a, "qd"_a, "qdd"_a, "dtau_dq"_a, "dtau_dqd"_a, "M"_a, "stream"_a = 0);
   def_derivative_engine(id);
+
+  nb::class_<PyIdSecondDerivatives> id2(m, "IdSecondDerivatives");
+  def_derivative_init(id2, [](const auto& md, const BackendOptions& o) { return make_id_second_derivatives(md, o); });
+  id2.def("compute",
+          [](PyIdSecondDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd, const OutArray& dq2,
+             const OutArray& dqd2, const OutArray& dqdqd, const OutArray& dM, std::uintptr_t stream) {
+            if (e.is_float) id_second_derivatives_compute<float>(e, q, qd, qdd, dq2, dqd2, dqdqd, dM, stream);
+            else id_second_derivatives_compute<double>(e, q, qd, qdd, dq2, dqd2, dqdqd, dM, stream);
+          },
+          "q"_a, "qd"_a, "qdd"_a, "d2tau_dq2"_a, "d2tau_dqd2"_a, "d2tau_dqdqd"_a, "dM_dq"_a, "stream"_a = 0);
+  def_engine_properties(id2);
 
   nb::class_<PyFdDerivatives> fd(m, "FdDerivatives");
   def_derivative_init(fd, [](const auto& md, const BackendOptions& o) { return make_fd_derivatives(md, o); });
