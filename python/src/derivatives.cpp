@@ -48,19 +48,6 @@
 namespace nb = nanobind;
 using namespace nb::literals;
 
-#if SCANDYN_HAS_CUDA
-namespace scandyn {
-// The second-order engine's CUDA engine, for engines.hpp's queue_on_device and
-// engine_device (the overloads there cover the other engines; this one is found by
-// argument-dependent lookup at their instantiation, so it lives in IdSecondDerivatives'
-// namespace).
-template <class S>
-cuda::CudaIdSecondDerivatives<S>* as_cuda(IdSecondDerivatives<S>* e) {
-  return dynamic_cast<cuda::CudaIdSecondDerivatives<S>*>(e);
-}
-}  // namespace scandyn
-#endif
-
 namespace scandyn::py {
 namespace {
 

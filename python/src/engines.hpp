@@ -44,6 +44,7 @@
 #include "scandyn/cuda/inverse_dynamics.hpp"
 #include "scandyn/cuda/kinematics.hpp"
 #include "scandyn/cuda/mass_matrix.hpp"
+#include "scandyn/cuda/second_derivatives.hpp"
 #endif
 
 namespace scandyn::py {
@@ -109,6 +110,10 @@ template <class S>
 cuda::CudaIdDerivatives<S>* as_cuda(IdDerivatives<S>* e) { return dynamic_cast<cuda::CudaIdDerivatives<S>*>(e); }
 template <class S>
 cuda::CudaFdDerivatives<S>* as_cuda(FdDerivatives<S>* e) { return dynamic_cast<cuda::CudaFdDerivatives<S>*>(e); }
+template <class S>
+cuda::CudaIdSecondDerivatives<S>* as_cuda(IdSecondDerivatives<S>* e) {
+  return dynamic_cast<cuda::CudaIdSecondDerivatives<S>*>(e);
+}
 // The directional derivatives' CUDA engine is internal to kernels/chain_directional.cu
 // (host views only): the engine itself when it runs on cuda (its device: made_on).
 template <class S>
