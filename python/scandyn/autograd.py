@@ -77,6 +77,20 @@ def _tensors(engine, where, q, lead, count):
 # ---- the derivative engines ---------------------------------------------------------
 
 
+def _id_call(engine, inputs, stream, count, results):
+    """An inverse-dynamics derivative engine's call on (q, qd, qdd): count results made
+    by results (_matrices or _tensors), written by the engine's compute(); returns them."""
+    where, host, _, _ = engine._prepare(inputs, None, stream)  # (its (B, nv) out unused)
+    lead = tuple(where.like.shape[:-1])
+    outs = results(engine, where, where.like, lead, count)
+    try:
+        engine._e.compute(*host, *(_writable(o, where) for o in outs), where.stream or 0)
+    except TypeError as e:
+        _reraise(e)
+    _finish(where)
+    return outs
+
+
 class IdDerivatives(_EngineBase):
     """(dtau/dq, dtau/dqd, M) of tau = ID(q, qd, qdd) (gravity included) for up to
     max_batch instances: the library's make_id_derivatives. Host arrays run the
@@ -93,15 +107,7 @@ class IdDerivatives(_EngineBase):
         super().__init__(model, backend, max_batch, dtype, device, None, threads=threads)
 
     def __call__(self, q, qd, qdd, stream=None):
-        where, (hq, hqd, hqdd), _, _ = self._prepare((q, qd, qdd), None, stream)  # (its (B, nv) out unused)
-        lead = tuple(where.like.shape[:-1])
-        mats = _matrices(self, where, where.like, lead, 3)
-        try:
-            self._e.compute(hq, hqd, hqdd, *(_writable(m, where) for m in mats), where.stream or 0)
-        except TypeError as e:
-            _reraise(e)
-        _finish(where)
-        return tuple(mats)
+        return tuple(_id_call(self, (q, qd, qdd), stream, 3, _matrices))
 
 
 IdSecondDerivativesResult = namedtuple("IdSecondDerivativesResult",
@@ -141,15 +147,7 @@ class IdSecondDerivatives(_EngineBase):
         super().__init__(model, backend, max_batch, dtype, device, None, threads=threads)
 
     def __call__(self, q, qd, qdd, stream=None):
-        where, (hq, hqd, hqdd), _, _ = self._prepare((q, qd, qdd), None, stream)  # (its (B, nv) out unused)
-        lead = tuple(where.like.shape[:-1])
-        tensors = _tensors(self, where, where.like, lead, 4)
-        try:
-            self._e.compute(hq, hqd, hqdd, *(_writable(t, where) for t in tensors), where.stream or 0)
-        except TypeError as e:
-            _reraise(e)
-        _finish(where)
-        return IdSecondDerivativesResult(*tensors)
+        return IdSecondDerivativesResult(*_id_call(self, (q, qd, qdd), stream, 4, _tensors))
 
 
 class FdDerivatives(ForwardDynamics):

@@ -70,27 +70,43 @@ void check_outs(std::initializer_list<std::pair<const OutArray*, const char*>> o
 
 // ---- the derivatives of inverse and forward dynamics --------------------------------
 
-// (dtau_dq, dtau_dqd, M) of (q, qd, qdd): (B, nv, nv) or (nv, nv) each
+// The inputs (q, qd, qdd) of an inverse-dynamics derivative engine's call, (B, nv) or
+// (nv,) each; lead: their batch and device.
 template <class S>
-void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd,
-                            const OutArray& dq, const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
-  const Index nv = e.nv();
-  Lead lead;
+IdBatchIn<S> id_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
   IdBatchIn<S> in;
   in.q = view_of<const S>(q, nv, "q", lead, true);
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
-  const IdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dtau_dq", lead),
-                                matrix_view_of<S>(dqd, nv, "dtau_dqd", lead), matrix_view_of<S>(M, nv, "M", lead)};
-  check_max_batch(lead, e.max_batch);
-  check_outs({{&dq, "dtau_dq"}, {&dqd, "dtau_dqd"}, {&M, "M"}},
-             {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  return in;
+}
+
+// Runs an inverse-dynamics derivative engine (first or second order) on (in, out) once
+// its arguments are checked: the GIL released, the engine's mutex held; CUDA arrays
+// queued on the caller's stream (queue_on_device), host arrays by compute().
+template <class S, class PyE, class Out>
+void id_engine_run(PyE& e, const Lead& lead, std::uintptr_t stream, const IdBatchIn<S>& in, const Out& out) {
   nb::gil_scoped_release release;
   std::lock_guard<std::mutex> lock(e.mutex);
   if (lead.cuda)
     return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, s); });
   if constexpr (std::is_same_v<S, float>) e.ef->compute(in, out);
   else e.ed->compute(in, out);
+}
+
+// (dtau_dq, dtau_dqd, M) of (q, qd, qdd): (B, nv, nv) or (nv, nv) each
+template <class S>
+void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray& qd, const InArray& qdd,
+                            const OutArray& dq, const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
+  const Index nv = e.nv();
+  Lead lead;
+  const IdBatchIn<S> in = id_inputs<S>(nv, q, qd, qdd, lead);
+  const IdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dtau_dq", lead),
+                                matrix_view_of<S>(dqd, nv, "dtau_dqd", lead), matrix_view_of<S>(M, nv, "M", lead)};
+  check_max_batch(lead, e.max_batch);
+  check_outs({{&dq, "dtau_dq"}, {&dqd, "dtau_dqd"}, {&M, "M"}},
+             {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
+  id_engine_run<S>(e, lead, stream, in, out);
 }
 
 // The BatchView of a (B, nv, nv, nv) or (nv, nv, nv) out array (one nv^3 tensor per
@@ -132,22 +148,14 @@ void id_second_derivatives_compute(PyIdSecondDerivatives& e, const InArray& q, c
                                    const OutArray& dqdqd, const OutArray& dM, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
-  IdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
-  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
-  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  const IdBatchIn<S> in = id_inputs<S>(nv, q, qd, qdd, lead);
   const IdSecondDerivativesOut<S> out{
       tensor_view_of<S>(dq2, nv, "d2tau_dq2", lead), tensor_view_of<S>(dqd2, nv, "d2tau_dqd2", lead),
       tensor_view_of<S>(dqdqd, nv, "d2tau_dqdqd", lead), tensor_view_of<S>(dM, nv, "dM_dq", lead)};
   check_max_batch(lead, e.max_batch);
   check_outs({{&dq2, "d2tau_dq2"}, {&dqd2, "d2tau_dqd2"}, {&dqdqd, "d2tau_dqdqd"}, {&dM, "dM_dq"}},
              {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
-  nb::gil_scoped_release release;
-  std::lock_guard<std::mutex> lock(e.mutex);
-  if (lead.cuda)
-    return queue_on_device<S>(e, lead, stream, [&](auto& c, cudaStream_t s) { return c.compute_async(in, out, s); });
-  if constexpr (std::is_same_v<S, float>) e.ef->compute(in, out);
-  else e.ed->compute(in, out);
+  id_engine_run<S>(e, lead, stream, in, out);
 }
 
 // qdd (B, nv) and (dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1) of (q, qd, tau)
