@@ -141,6 +141,17 @@ fi
 # (SCANDYN_PYTHON=OFF here: the Python stage below turns it on once .venv is ready)
 if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF ${variants[@]+"${variants[@]}"}; then
   wait_python
+  # The .venv made in the background brings Pinocchio's C++ headers (the pin wheel's
+  # cmeel.prefix); when it came after the configure, configure again so that
+  # bench/pinocchio_second_order and its ctest (second derivatives against Pinocchio)
+  # are built rather than skipped (~45 s of compilation here).
+  if compgen -G ".venv/lib/python3*/site-packages/cmeel.prefix/include/pinocchio" >/dev/null &&
+     [[ ! -x "$build/bench/pinocchio_second_order" ]]; then
+    stamp "release: configure again for bench/pinocchio_second_order (.venv has Pinocchio's headers now)"
+    if cmake -S . -B "$build" >/dev/null && cmake --build "$build" --target help | grep -q 'pinocchio_second_order'; then
+      cmake --build "$build" --parallel "$jobs" --target pinocchio_second_order || failed+=(release)
+    fi
+  fi
   test_stage release "$build" || failed+=(release)
   release_built=1
 else
