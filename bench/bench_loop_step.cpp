@@ -36,6 +36,7 @@
 
 #include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
 
@@ -121,15 +122,7 @@ int main(int argc, char** argv) {
                      spec.c_str(), sparse ? "sparse" : "dense", reset_s, reset.linearisations, reset.trials, reset.phi,
                      reset.jqd);
       }
-      auto array = [](const std::vector<double>& x) {
-        std::string a = "[";
-        char buf[40];
-        for (std::size_t i = 0; i < x.size(); ++i) {
-          std::snprintf(buf, sizeof buf, "%.17g", x[i]);
-          a += (i ? ", " : "") + std::string(buf);
-        }
-        return a + "]";
-      };
+      auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
       const sim::Scene scene =
           analyse_only ? raw : sim::parse_scene(head + R"({"q": )" + array(q0) + R"(, "qd": )" + array(qd0) + "}}", "bench.json");
       // the sparse solver's analyses and one rk4 step's solves, on a solver of its own

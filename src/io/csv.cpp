@@ -69,6 +69,15 @@ void append_number(std::string& out, double value) {
   out.append(buf, res.ptr);
 }
 
+std::string number_array(const double* values, std::size_t n) {
+  std::string a = "[";
+  for (std::size_t i = 0; i < n; ++i) {
+    if (i) a += ", ";
+    append_number(a, values[i]);
+  }
+  return a + "]";
+}
+
 // ---- reader -------------------------------------------------------------------
 
 CsvReader::CsvReader(std::string path) : path_(std::move(path)), text_(read_file(path_)) { read_header(); }

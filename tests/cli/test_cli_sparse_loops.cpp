@@ -16,6 +16,7 @@
 
 #include "cli_test_util.hpp"
 #include "scandyn/algorithm/loops.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/model/load.hpp"
 
 #ifndef SCANDYN_CLI_SPARSE_LOOPS  // tests/CMakeLists.txt: 1 when the command has the sparse solver
@@ -34,15 +35,7 @@ class CliSparseLoops : public CliDirTest {};
 constexpr const char* kModel = "cloth:6:6";
 constexpr int kSteps = 40;
 
-std::string json_array(const std::vector<double>& x) {
-  std::string a = "[";
-  char buf[40];
-  for (std::size_t i = 0; i < x.size(); ++i) {
-    std::snprintf(buf, sizeof buf, "%.17g", x[i]);
-    a += (i ? ", " : "") + std::string(buf);
-  }
-  return a + "]";
-}
+std::string json_array(const std::vector<double>& x) { return io::number_array(x.data(), x.size()); }
 
 // The scene: the cloth under gravity from a closed state (projected here by the
 // library's dense projection, so both solvers start from the same point), rk4.

@@ -14,6 +14,7 @@
 
 #include "loop_cases.hpp"
 #include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "test_util.hpp"
@@ -83,15 +84,7 @@ void rollout(const std::string& model, const std::string& solver, const char* in
   const LoopSet loops = generator_loops(model, mdl);
   std::vector<double> q0(mdl.nv(), 0.1), qd0(mdl.nv(), 0.5);
   project_to_loops(mdl, loops, q0.data(), qd0.data());
-  auto array = [](const std::vector<double>& x) {
-    std::string a = "[";
-    char buf[40];
-    for (std::size_t i = 0; i < x.size(); ++i) {
-      std::snprintf(buf, sizeof buf, "%.17g", x[i]);
-      a += (i ? ", " : "") + std::string(buf);
-    }
-    return a + "]";
-  };
+  auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
   const sim::Scene scene = sim::parse_scene(std::string(R"({"model": ")") + model +
                                                 R"(", "effects": {"gravity": true}, "integrator": ")" +
                                                 integrator + R"(", "loop_solver": ")" + solver + R"(", "dt": )" +

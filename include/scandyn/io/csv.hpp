@@ -77,6 +77,10 @@ bool parse_number(std::string_view text, double& value);
 // read back the identical double.
 void append_number(std::string& out, double value);
 
+// "[v0, v1, ...]": n values each as append_number formats them (a JSON array of
+// numbers, e.g. a scene's initial state).
+std::string number_array(const double* values, std::size_t n);
+
 // A CSV file of numbers written atomically: header, then rows.
 class CsvWriter {
  public:
