@@ -274,7 +274,7 @@ double run_model(const std::string& label, const RawTree& tree, const Options& o
   // perm[pinocchio DoF] = scandyn DoF, by joint name
   std::vector<Index> perm(n, -1);
   std::vector<bool> taken(n, false);
-  for (pinocchio::JointIndex j = 1; j < pm.njoints; ++j) {
+  for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(pm.njoints); ++j) {
     const auto it = std::find(sm.joint_names.begin(), sm.joint_names.end(), pm.names[j]);
     if (it == sm.joint_names.end()) throw std::runtime_error(label + ": no scandyn joint " + pm.names[j]);
     const Index b = Index(it - sm.joint_names.begin());
@@ -294,7 +294,7 @@ double run_model(const std::string& label, const RawTree& tree, const Options& o
   auto at = [n](const std::vector<double>& T, Index i, Index j, Index k) { return T[(std::size_t(i) * n + j) * n + k]; };
   auto set_state = [&] {
     for (Index i = 0; i < n; ++i) q[i] = u(rng), qd[i] = u(rng), qdd[i] = u(rng);
-    for (pinocchio::JointIndex j = 1; j < pm.njoints; ++j) {
+    for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(pm.njoints); ++j) {
       const Index b = perm[pm.idx_vs[j]];
       if (pm.nqs[j] == 2) {
         pq[pm.idx_qs[j]] = std::cos(q[b]);
