@@ -142,6 +142,25 @@ SCANDYN_HD void derivative_forward_step(const Body<S>& b, S q, S qd, S qdd, cons
   o.Bc = VelocityDerivative<S>::of(o.Ic, o.v);
 }
 
+// The derivative recursions' forward pass (first and second order): body i's
+// world-frame kinematics, body force, inertia and B into work[i], bodies in DoF order.
+// Returns whether the model is one unbranched chain (body i's parent i - 1): then
+// every pair (and triple) of DoF lies on the one path and the backward passes write
+// every entry; otherwise the entries of DoF on different branches are zeros the
+// caller writes.
+template <class S, class V>
+SCANDYN_HD bool derivative_forward_pass(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
+                                        const Force<S>* fext, DerivativeBody<S>* work) {
+  bool chain = true;
+  for (Index i = 0; i < nv; ++i) {
+    const Index p = body[i].parent;
+    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
+                            p < 0 ? nullptr : work + p, a0, work[i]);
+    chain = chain && p == i - 1;
+  }
+  return chain;
+}
+
 // Inverse-dynamics derivatives of one instance: dtau_dq, dtau_dqd and M (nv x nv
 // each; every entry written) at (q, qd, qdd, fext), gravity included; tau (optional,
 // else null) = ID(q, qd, qdd, fext). body: the nv bodies in DoF order; a0: the base
@@ -155,17 +174,9 @@ template <class S, class V, class T, class Mat>
 SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd, V qdd,
                                           const Force<S>* fext, DerivativeBody<S>* work, Mat dtau_dq, Mat dtau_dqd,
                                           Mat M, T tau) {
-  // forward: world-frame kinematics, body forces, inertias and B
-  for (Index i = 0; i < nv; ++i) {
-    const Index p = body[i].parent;
-    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
-                            p < 0 ? nullptr : work + p, a0, work[i]);
-  }
-  // the zeros of DoF on different branches; an unbranched chain (body i's parent
-  // i - 1) has none: the backward pass writes every entry of its blocks
-  bool chain = true;
-  for (Index i = 0; i < nv; ++i) chain = chain && body[i].parent == i - 1;
-  if (!chain)
+  // forward: world-frame kinematics, body forces, inertias and B; then the zeros of
+  // DoF on different branches (none on an unbranched chain)
+  if (!derivative_forward_pass(body, nv, a0, q, qd, qdd, fext, work))
     for (Index i = 0; i < nv; ++i)
       for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
   // backward: composite sums, then row j's entries against its ancestors (and the

@@ -94,17 +94,9 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
                                                           TensorRef<S> d2tau_dq2, TensorRef<S> d2tau_dqd2,
                                                           TensorRef<S> d2tau_dqdqd, TensorRef<S> dM_dq) {
   // forward: world-frame S, v, a, dV, dA, body inertias, forces and B (the first-order
-  // recursion's step)
-  for (Index i = 0; i < nv; ++i) {
-    const Index p = body[i].parent;
-    derivative_forward_step(body[i], S(q[i]), S(qd[i]), S(qdd[i]), fext ? fext + i : nullptr,
-                            p < 0 ? nullptr : work + p, a0, work[i]);
-  }
-  // entries of DoF on different branches are 0; an unbranched chain has none (every
-  // triple lies on the one path and the backward pass writes every entry)
-  bool chain = true;
-  for (Index i = 0; i < nv; ++i) chain = chain && body[i].parent == i - 1;
-  if (!chain) {
+  // recursion's pass); then the zero entries of DoF on different branches (none on an
+  // unbranched chain: every triple lies on the one path)
+  if (!derivative_forward_pass(body, nv, a0, q, qd, qdd, fext, work)) {
     detail::zero_tensor(d2tau_dq2);
     detail::zero_tensor(d2tau_dqd2);
     detail::zero_tensor(d2tau_dqdqd);
