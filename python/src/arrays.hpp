@@ -147,35 +147,72 @@ BatchView<T> view_of(const A& a, Index nv, const char* name, Lead& lead, bool fi
   return v;
 }
 
-// The BatchView of a (B, nv, nv) or (nv, nv) out array (one nv x nv matrix per
-// instance, as the mass matrix and the derivative engines write them): entry (i, j)
-// of instance b at data[(i * nv + j) * s + b * sb], so each instance's block must be
-// row-major with rows nv * s apart (a C-contiguous array, a slice of one along the
-// batch, or the entry-major (1, nv B, B) view of the CUDA results). Checks device,
-// dtype and shape against `lead` (set by the call's first array).
+// The BatchView of a (B, nv, ..., nv) or (nv, ..., nv) out array of `rank` trailing
+// nv dimensions (rank 2: one nv x nv matrix per instance, as the mass matrix and the
+// derivative engines write them; rank 3: one nv^3 tensor, the second derivatives'):
+// entry (i, j[, k]) of instance b at data[(i * nv + j)[* nv + k] * s + b * sb], so each
+// instance's block must be row-major (a C-contiguous array, a slice of one along the
+// batch, or the entry-major view of the CUDA results: (1, nv B, B), (1, nv^2 B, nv B,
+// B)). Checks device, dtype and shape against `lead` (set by the call's first array).
 template <class S>
-BatchView<S> matrix_view_of(const OutArray& out, Index nv, const char* name, Lead& lead) {
+BatchView<S> block_view_of(const OutArray& out, Index nv, int rank, const char* name, Lead& lead) {
   check_device(out, name, lead);
   if (!has_dtype<S>(out))
     throw DTypeError(std::string(name) + " has dtype " + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
   const size_t nd = out.ndim();
-  const size_t want = lead.single ? 2 : 3;
-  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
-      (!lead.single && Index(out.shape(0)) != lead.batch))
-    throw ShapeError(std::string(name) + " has shape " + shape_str(out) + ", expected " +
-                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + std::to_string(nv) +
-                     ", " + std::to_string(nv) + ")");
+  const size_t want = (lead.single ? 0 : 1) + static_cast<size_t>(rank);
+  bool shape_ok = nd == want && (lead.single || Index(out.shape(0)) == lead.batch);
+  for (int k = 1; shape_ok && k <= rank; ++k) shape_ok = Index(out.shape(nd - k)) == nv;
+  if (!shape_ok) {
+    std::string expected = lead.single ? "(" : "(" + std::to_string(lead.batch) + ", ";
+    for (int k = 0; k < rank; ++k) expected += std::to_string(nv) + (k + 1 < rank ? ", " : ")");
+    throw ShapeError(std::string(name) + " has shape " + shape_str(out) + ", expected " + expected);
+  }
   const std::ptrdiff_t s = out.stride(nd - 1);
-  if (nv > 1 && out.stride(nd - 2) != s * nv)
+  bool row_major = true;  // stride(nd - k) = s nv^(k - 1)
+  std::ptrdiff_t step = s;
+  for (int k = 2; k <= rank; ++k) row_major = row_major && out.stride(nd - k) == (step *= nv);
+  if (nv > 1 && !row_major)
     throw ShapeError(std::string(name) +
-                     ": each instance's (nv, nv) block must be row-major (strides (nv * s, s) for its last two "
-                     "dimensions), as a C-contiguous array or a slice along the batch dimension of one");
+                     (rank == 2 ? ": each instance's (nv, nv) block must be row-major (strides (nv * s, s) for its "
+                                  "last two dimensions)"
+                                : ": each instance's (nv, nv, nv) block must be row-major (strides (nv^2 s, nv s, "
+                                  "s) for its last three dimensions)") +
+                     ", as a C-contiguous array or a slice along the batch dimension of one");
   BatchView<S> M;
   M.data = static_cast<S*>(out.data());
   M.batch = lead.batch;
   M.dof_stride = s;
   M.batch_stride = lead.single ? 0 : out.stride(0);
   return M;
+}
+
+// A (B, nv, nv) or (nv, nv) out array: block_view_of of rank 2.
+template <class S>
+BatchView<S> matrix_view_of(const OutArray& out, Index nv, const char* name, Lead& lead) {
+  return block_view_of<S>(out, nv, 2, name, lead);
+}
+
+// The inputs (q, qd, qdd) of an inverse-dynamics engine's call on a model with nq = nv
+// (the derivative engines), (B, nv) or (nv,) each; lead: their batch and device.
+template <class S>
+IdBatchIn<S> id_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
+  IdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
+  return in;
+}
+
+// The inputs (q, qd, tau) of a forward-dynamics engine's call on a model with nq = nv
+// (its derivative, directional and loop engines, the step's), as id_inputs.
+template <class S>
+FdBatchIn<S> fd_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& tau, Lead& lead) {
+  FdBatchIn<S> in;
+  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
+  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  return in;
 }
 
 // Out arrays: distinct elements must not share memory (a broadcast view would have

@@ -70,17 +70,6 @@ void check_outs(std::initializer_list<std::pair<const OutArray*, const char*>> o
 
 // ---- the derivatives of inverse and forward dynamics --------------------------------
 
-// The inputs (q, qd, qdd) of an inverse-dynamics derivative engine's call, (B, nv) or
-// (nv,) each; lead: their batch and device.
-template <class S>
-IdBatchIn<S> id_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
-  IdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
-  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
-  in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
-  return in;
-}
-
 // Runs an inverse-dynamics derivative engine (first or second order) on (in, out) once
 // its arguments are checked: the GIL released, the engine's mutex held; CUDA arrays
 // queued on the caller's stream (queue_on_device), host arrays by compute().
@@ -109,37 +98,6 @@ void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray&
   id_engine_run<S>(e, lead, stream, in, out);
 }
 
-// The BatchView of a (B, nv, nv, nv) or (nv, nv, nv) out array (one nv^3 tensor per
-// instance, entry (i, j, k) at data[((i * nv + j) * nv + k) * s + b * sb]): each
-// instance's block row-major with strides (nv^2 s, nv s, s) (a C-contiguous array, a
-// slice of one along the batch, or the entry-major (1, nv^2 B, nv B, B) view of the
-// CUDA results), as matrix_view_of's (nv, nv) blocks.
-template <class S>
-BatchView<S> tensor_view_of(const OutArray& out, Index nv, const char* name, Lead& lead) {
-  check_device(out, name, lead);
-  if (!has_dtype<S>(out))
-    throw DTypeError(std::string(name) + " has dtype " + dtype_name(out.dtype()) + ", expected " + scalar_name<S>());
-  const size_t nd = out.ndim();
-  const size_t want = lead.single ? 3 : 4;
-  const std::string n = std::to_string(nv);
-  if (nd != want || Index(out.shape(nd - 1)) != nv || Index(out.shape(nd - 2)) != nv ||
-      Index(out.shape(nd - 3)) != nv || (!lead.single && Index(out.shape(0)) != lead.batch))
-    throw ShapeError(std::string(name) + " has shape " + shape_str(out) + ", expected " +
-                     (lead.single ? std::string("(") : "(" + std::to_string(lead.batch) + ", ") + n + ", " + n +
-                     ", " + n + ")");
-  const std::ptrdiff_t s = out.stride(nd - 1);
-  if (nv > 1 && (out.stride(nd - 2) != s * nv || out.stride(nd - 3) != s * nv * nv))
-    throw ShapeError(std::string(name) +
-                     ": each instance's (nv, nv, nv) block must be row-major (strides (nv^2 s, nv s, s) for its last "
-                     "three dimensions), as a C-contiguous array or a slice along the batch dimension of one");
-  BatchView<S> T;
-  T.data = static_cast<S*>(out.data());
-  T.batch = lead.batch;
-  T.dof_stride = s;
-  T.batch_stride = lead.single ? 0 : out.stride(0);
-  return T;
-}
-
 // (d2tau_dq2, d2tau_dqd2, d2tau_dqdqd, dM_dq) of (q, qd, qdd): (B, nv, nv, nv) or
 // (nv, nv, nv) each
 template <class S>
@@ -150,8 +108,8 @@ void id_second_derivatives_compute(PyIdSecondDerivatives& e, const InArray& q, c
   Lead lead;
   const IdBatchIn<S> in = id_inputs<S>(nv, q, qd, qdd, lead);
   const IdSecondDerivativesOut<S> out{
-      tensor_view_of<S>(dq2, nv, "d2tau_dq2", lead), tensor_view_of<S>(dqd2, nv, "d2tau_dqd2", lead),
-      tensor_view_of<S>(dqdqd, nv, "d2tau_dqdqd", lead), tensor_view_of<S>(dM, nv, "dM_dq", lead)};
+      block_view_of<S>(dq2, nv, 3, "d2tau_dq2", lead), block_view_of<S>(dqd2, nv, 3, "d2tau_dqd2", lead),
+      block_view_of<S>(dqdqd, nv, 3, "d2tau_dqdqd", lead), block_view_of<S>(dM, nv, 3, "dM_dq", lead)};
   check_max_batch(lead, e.max_batch);
   check_outs({{&dq2, "d2tau_dq2"}, {&dqd2, "d2tau_dqd2"}, {&dqdqd, "d2tau_dqdqd"}, {&dM, "dM_dq"}},
              {{extent_of(q), "q"}, {extent_of(qd), "qd"}, {extent_of(qdd), "qdd"}});
@@ -165,10 +123,7 @@ CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const In
                                   const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
-  FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
-  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
-  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  const FdBatchIn<S> in = fd_inputs<S>(nv, q, qd, tau, lead);
   const FdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dqdd_dq", lead),
                                 matrix_view_of<S>(dqd, nv, "dqdd_dqd", lead),
                                 matrix_view_of<S>(dtau, nv, "dqdd_dtau", lead), view_of<S>(qdd, nv, "qdd", lead, false)};
@@ -205,10 +160,7 @@ CallStatus fd_directional_call(PyFdDirectional& e, const InArray& q, const InArr
                                std::initializer_list<std::pair<const OutArray*, const char*>> y, Call&& call) {
   const Index nv = e.nv();
   Lead lead;
-  FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
-  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
-  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  const FdBatchIn<S> in = fd_inputs<S>(nv, q, qd, tau, lead);
   std::vector<BatchView<const S>> xv;
   std::vector<BatchView<S>> yv;
   for (const auto& [a, name] : x) xv.push_back(view_of<const S>(*a, nv, name, lead, false));
@@ -336,10 +288,7 @@ class PyStepDerivatives {
                       const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
     const Index n = nv();
     Lead lead;
-    FdBatchIn<S> in;
-    in.q = view_of<const S>(q, n, "q", lead, true);
-    in.qd = view_of<const S>(qd, n, "qd", lead, false);
-    in.tau = view_of<const S>(tau, n, "tau", lead, false);
+    const FdBatchIn<S> in = fd_inputs<S>(n, q, qd, tau, lead);
     const BatchView<S> qn = view_of<S>(q_next, n, "q_next", lead, false);
     const BatchView<S> qdn = view_of<S>(qd_next, n, "qd_next", lead, false);
     const Index B = lead.batch;

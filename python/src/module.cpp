@@ -314,10 +314,7 @@ CallStatus constrained_compute(PyConstrained& e, const InArray& q, const InArray
                                const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
   const Index nv = e.nv(), m = rows_of(e);
   Lead lead;
-  FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
-  in.qd = view_of<const S>(qd, nv, "qd", lead, false);
-  in.tau = view_of<const S>(tau, nv, "tau", lead, false);
+  FdBatchIn<S> in = fd_inputs<S>(nv, q, qd, tau, lead);
   BatchView<S> qo = view_of<S>(qdd_out, nv, "qdd_out", lead, false);
   BatchView<S> lo = view_of<S>(lambda_out, m, "lambda_out", lead, false, "m");
   in.fext = fext_of<S>(fext, e.nbodies(), lead);
