@@ -56,6 +56,19 @@ def states(model, batch, dtype, seed=0):
     return q, qd, qdd, tau
 
 
+def uniform_states(nv, B, seed=0):
+    """Three (B, nv) float64 arrays uniform in [-1, 1]: (q, qd, qdd) or (q, qd, tau)."""
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(-1, 1, (B, nv)) for _ in range(3)]
+
+
+def assert_close(got, want, rel):
+    """max |got - want| <= rel max(1, max |want|); got: a NumPy array or a torch tensor (any device)."""
+    got = got.detach().cpu().numpy() if hasattr(got, "detach") else np.asarray(got)
+    err = np.max(np.abs(got - want))
+    assert err <= rel * max(1.0, np.max(np.abs(want))), err
+
+
 def run_cli(cli, model_spec, cols, algo, tmp_path, backend="serial", precision="double", extra=()):
     """Runs `scandyn eval` on the columns {name: (B, nv) array}; returns {column: (B,) float64}."""
     names = []

@@ -11,14 +11,10 @@ import pytest
 
 import scandyn as sd
 import scandyn.autograd as ad
+from conftest import uniform_states
 
 IIWA_SCENE = {"model": "iiwa", "dt": 2e-3, "integrator": "rk4",
               "effects": {"gravity": True, "damping": 0.5, "springs": {"stiffness": 2.0}}}
-
-
-def _states(nv, B, seed=0):
-    rng = np.random.default_rng(seed)
-    return [rng.uniform(-1, 1, (B, nv)) for _ in range(3)]
 
 
 def _central(f, x, h=1e-6):
@@ -39,7 +35,7 @@ def _close(a, b, rel=1e-6):
 @pytest.mark.parametrize("name", ["iiwa", "hyq"])
 def test_id_and_fd_derivatives_are_the_central_differences(name):
     m = sd.load_model(name)
-    q, qd, x = _states(m.nv, 3)
+    q, qd, x = uniform_states(m.nv, 3)
     dq, dqd, M = ad.id_derivatives(m, q, qd, x)
     _close(dq, _central(lambda v: sd.inverse_dynamics(m, v, qd, x), q))
     _close(dqd, _central(lambda v: sd.inverse_dynamics(m, q, v, x), qd))
@@ -56,7 +52,7 @@ def test_id_and_fd_derivatives_are_the_central_differences(name):
 def test_step_jacobian_is_the_central_differences_of_the_simulators_step():
     step = ad.StepDerivatives(IIWA_SCENE)
     n = step.nv
-    q, qd, tau = _states(n, 2, 3)
+    q, qd, tau = uniform_states(n, 2, 3)
     qn, qdn, J = step.jacobian(q, qd, tau)
     # the simulator's own step
     sim = sd.Simulator(dict(IIWA_SCENE, instances=2, backend="serial"))
@@ -127,7 +123,7 @@ def torch():
 
 def test_torch_gradcheck_inverse_and_forward_dynamics(torch):
     m = sd.load_model("iiwa")
-    q, qd, x = (torch.tensor(a, requires_grad=True) for a in _states(m.nv, 2, 5))
+    q, qd, x = (torch.tensor(a, requires_grad=True) for a in uniform_states(m.nv, 2, 5))
     assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_inverse_dynamics(m, a, b, c), (q, qd, x))
     assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_forward_dynamics(m, a, b, c), (q, qd, x))
     # one state, and loss.backward() through both
@@ -161,7 +157,7 @@ def test_jax_custom_vjp_matches_the_derivatives():
     import jax.numpy as jnp
 
     m = sd.load_model("iiwa")
-    q, qd, x = _states(m.nv, 2, 7)
+    q, qd, x = uniform_states(m.nv, 2, 7)
     g = np.ones((2, m.nv))
     _, vjp = jax.vjp(lambda a, b, c: ad.jax_inverse_dynamics(m, a, b, c), jnp.asarray(q), jnp.asarray(qd), jnp.asarray(x))
     dq, dqd, M = ad.id_derivatives(m, q, qd, x)

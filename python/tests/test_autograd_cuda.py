@@ -15,6 +15,7 @@ import pytest
 
 import scandyn as sd
 import scandyn.autograd as ad
+from conftest import uniform_states, assert_close
 
 cuda_reason = sd.backend_unusable("cuda")
 pytestmark = pytest.mark.skipif(bool(cuda_reason), reason=f"backend cuda: {cuda_reason}")
@@ -31,17 +32,6 @@ def torch():
     return torch
 
 
-def _states(nv, B, seed=0):
-    rng = np.random.default_rng(seed)
-    return [rng.uniform(-1, 1, (B, nv)) for _ in range(3)]
-
-
-def _close(got, want, rel):
-    got = got.detach().cpu().numpy() if hasattr(got, "detach") else np.asarray(got)
-    err = np.max(np.abs(got - want))
-    assert err <= rel * max(1.0, np.max(np.abs(want))), err
-
-
 def _cuda(torch, a, dtype=np.float64):
     return torch.from_numpy(np.ascontiguousarray(a, dtype=dtype)).cuda()
 
@@ -50,7 +40,7 @@ def _cuda(torch, a, dtype=np.float64):
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_id_and_fd_derivatives_on_cuda_tensors_equal_the_host_path(torch, name, dtype):
     m = sd.load_model(name)
-    q, qd, x = _states(m.nv, 33, 1)
+    q, qd, x = uniform_states(m.nv, 33, 1)
     host_id = ad.id_derivatives(m, q, qd, x)
     host_fd = ad.fd_derivatives(m, q, qd, x)
     got_id = ad.id_derivatives(m, *(_cuda(torch, a, dtype) for a in (q, qd, x)))
@@ -59,19 +49,19 @@ def test_id_and_fd_derivatives_on_cuda_tensors_equal_the_host_path(torch, name, 
     for got, want in zip(got_id, host_id):
         assert isinstance(got, torch.Tensor) and got.is_cuda and got.shape == (33, m.nv, m.nv)
         assert got.dtype == (torch.float64 if double else torch.float32)
-        _close(got, want, 1e-9 if double else 2e-3)
+        assert_close(got, want, 1e-9 if double else 2e-3)
     for got, want in zip(got_fd, host_fd):
         assert got.is_cuda and got.shape == want.shape
-        _close(got, want, 1e-9 if double else 1e-2)
+        assert_close(got, want, 1e-9 if double else 1e-2)
     # one state: (nv, nv) on the device
     one = ad.id_derivatives(m, *(_cuda(torch, a[0], dtype) for a in (q, qd, x)))
     assert one[0].shape == (m.nv, m.nv) and one[0].is_cuda
-    _close(one[2], host_id[2][0], 1e-9 if double else 2e-3)
+    assert_close(one[2], host_id[2][0], 1e-9 if double else 2e-3)
 
 
 def test_torch_gradcheck_dynamics_on_cuda(torch):
     m = sd.load_model("iiwa")
-    q, qd, x = (_cuda(torch, a).requires_grad_(True) for a in _states(m.nv, 3, 5))
+    q, qd, x = (_cuda(torch, a).requires_grad_(True) for a in uniform_states(m.nv, 3, 5))
     assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_inverse_dynamics(m, a, b, c), (q, qd, x))
     assert torch.autograd.gradcheck(lambda a, b, c: ad.torch_forward_dynamics(m, a, b, c), (q, qd, x))
     # backward runs on the device: the gradients are CUDA tensors equal to the host path's
@@ -80,7 +70,7 @@ def test_torch_gradcheck_dynamics_on_cuda(torch):
     ad.torch_forward_dynamics(m, qh, qdh, xh).square().sum().backward()
     assert q.grad.is_cuda
     for a, b in ((q, qh), (qd, qdh), (x, xh)):
-        _close(a.grad, b.grad.numpy(), 1e-9)
+        assert_close(a.grad, b.grad.numpy(), 1e-9)
 
 
 def test_step_derivatives_on_cuda_tensors_equal_the_host_path(torch):
@@ -96,24 +86,24 @@ def test_step_derivatives_on_cuda_tensors_equal_the_host_path(torch):
     d = lambda a: _cuda(torch, a)  # noqa: E731
     for got, want in zip(gpu.jacobian(d(q0), d(qd0), d(tau[0])), host.jacobian(q0, qd0, tau[0])):
         assert got.is_cuda and got.shape == want.shape
-        _close(got, want, 1e-9)
+        assert_close(got, want, 1e-9)
     for got, want in zip(gpu.rollout(d(q0), d(qd0), d(tau)), host.rollout(q0, qd0, tau)):
         assert got.is_cuda and got.shape == (T, B, n)
-        _close(got, want, 1e-9)
+        assert_close(got, want, 1e-9)
     for got, want in zip(gpu.rollout_vjp(d(q0), d(qd0), d(tau), d(gq), d(gqd)), host.rollout_vjp(q0, qd0, tau, gq, gqd)):
         assert got.is_cuda and got.shape == want.shape
-        _close(got, want, 1e-9)
+        assert_close(got, want, 1e-9)
     for got, want in zip(gpu.rollout_jvp(d(q0), d(qd0), d(tau), d(v0), d(vd0), d(vt)),
                          host.rollout_jvp(q0, qd0, tau, v0, vd0, vt)):
-        _close(got, want, 1e-9)
+        assert_close(got, want, 1e-9)
     # one state ((nv,), (T, nv)) and float32 on the device
     q1, qd1 = gpu.rollout(d(q0[0]), d(qd0[0]), d(tau[:, 0]))
     assert q1.shape == (T, n)
-    _close(q1, host.rollout(q0, qd0, tau)[0][:, 0], 1e-9)
+    assert_close(q1, host.rollout(q0, qd0, tau)[0][:, 0], 1e-9)
     f32 = ad.StepDerivatives(SCENE, backend="cuda", dtype=np.float32)
     f = lambda a: _cuda(torch, a, np.float32)  # noqa: E731
-    _close(f32.jacobian(f(q0), f(qd0), f(tau[0]))[2], host.jacobian(q0, qd0, tau[0])[2], 1e-2)
-    _close(f32.rollout_vjp(f(q0), f(qd0), f(tau), f(gq), f(gqd))[2], host.rollout_vjp(q0, qd0, tau, gq, gqd)[2], 1e-2)
+    assert_close(f32.jacobian(f(q0), f(qd0), f(tau[0]))[2], host.jacobian(q0, qd0, tau[0])[2], 1e-2)
+    assert_close(f32.rollout_vjp(f(q0), f(qd0), f(tau), f(gq), f(gqd))[2], host.rollout_vjp(q0, qd0, tau, gq, gqd)[2], 1e-2)
     # a host backend refuses CUDA arrays by name
     with pytest.raises(sd.DeviceError, match="backend='cuda'"):
         ad.StepDerivatives(SCENE, backend="serial").rollout(d(q0), d(qd0), d(tau))
@@ -137,12 +127,12 @@ def test_torch_gradcheck_step_and_rollout_on_cuda(torch):
     (qs.square().sum() + qds.sum()).backward()
     assert taus.grad.is_cuda
     for a, b in ((q, qh), (qd, qdh), (taus, th)):
-        _close(a.grad, b.grad.numpy(), 1e-9)
+        assert_close(a.grad, b.grad.numpy(), 1e-9)
 
 
 def test_a_non_default_torch_stream_carries_the_work(torch):
     m = sd.load_model("iiwa")
-    q, qd, x = _states(m.nv, 64, 7)
+    q, qd, x = uniform_states(m.nv, 64, 7)
     want = ad.id_derivatives(m, q, qd, x)
     step = ad.StepDerivatives(SCENE)
     rng = np.random.default_rng(8)
@@ -163,8 +153,8 @@ def test_a_non_default_torch_stream_carries_the_work(torch):
         qs.sum().backward()  # the adjoint on the side stream (check=True waits for it)
     side.synchronize()
     for g, w in zip(got, want):
-        _close(g, w, 1e-9)
-    _close(t.grad, host_grad[2], 1e-9)
+        assert_close(g, w, 1e-9)
+    assert_close(t.grad, host_grad[2], 1e-9)
 
 
 def test_cupy_arrays_run_on_their_device():
@@ -175,14 +165,14 @@ def test_cupy_arrays_run_on_their_device():
     except cupy.cuda.runtime.CUDARuntimeError as e:
         pytest.skip(f"CuPy has no CUDA device: {e}")
     m = sd.load_model("iiwa")
-    q, qd, x = _states(m.nv, 9, 2)
+    q, qd, x = uniform_states(m.nv, 9, 2)
     got = ad.fd_derivatives(m, *(cupy.asarray(a) for a in (q, qd, x)))
     assert all(isinstance(g, cupy.ndarray) for g in got)
     for g, w in zip(got, ad.fd_derivatives(m, q, qd, x)):
-        _close(cupy.asnumpy(g), w, 1e-9)
+        assert_close(cupy.asnumpy(g), w, 1e-9)
     step = ad.StepDerivatives(SCENE)
     J = step.jacobian(*(cupy.asarray(a) for a in (q, qd, x)))[2]
-    _close(cupy.asnumpy(J), step.jacobian(q, qd, x)[2], 1e-9)
+    assert_close(cupy.asnumpy(J), step.jacobian(q, qd, x)[2], 1e-9)
 
 
 def test_jax_gpu_arrays_run_on_their_device():
@@ -192,13 +182,13 @@ def test_jax_gpu_arrays_run_on_their_device():
     except RuntimeError as e:
         pytest.skip(f"jax has no GPU: {e}")
     m = sd.load_model("iiwa")
-    q, qd, x = _states(m.nv, 5, 4)
+    q, qd, x = uniform_states(m.nv, 5, 4)
     put = lambda a: jax.device_put(a.astype(np.float32), gpu)  # noqa: E731  (float32: x64 left as it is)
     got = ad.id_derivatives(m, put(q), put(qd), put(x))
     assert all(next(iter(g.devices())).platform == "gpu" for g in got)
     for g, w in zip(got, ad.id_derivatives(m, q, qd, x)):
-        _close(np.asarray(g), w, 2e-3)
+        assert_close(np.asarray(g), w, 2e-3)
     step = ad.StepDerivatives(SCENE, dtype=np.float32)
     J = step.jacobian(put(q), put(qd), put(x))[2]
     assert J.shape == (5, 2 * m.nv, 3 * m.nv)
-    _close(np.asarray(J), ad.StepDerivatives(SCENE).jacobian(q, qd, x)[2], 1e-2)
+    assert_close(np.asarray(J), ad.StepDerivatives(SCENE).jacobian(q, qd, x)[2], 1e-2)

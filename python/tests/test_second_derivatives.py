@@ -16,21 +16,11 @@ import pytest
 
 import scandyn as sd
 import scandyn.autograd as ad
+from conftest import uniform_states, assert_close
 
 H = 1e-6  # the central differences' step
 REL = 1e-6  # their tolerance, relative to max(1, max |reference|)
 MODELS = ["iiwa", "tree:12:2"]
-
-
-def _states(nv, B, seed=0):
-    rng = np.random.default_rng(seed)
-    return [rng.uniform(-1, 1, (B, nv)) for _ in range(3)]
-
-
-def _close(got, want, rel):
-    got = got.detach().cpu().numpy() if hasattr(got, "detach") else np.asarray(got)
-    err = np.max(np.abs(got - want))
-    assert err <= rel * max(1.0, np.max(np.abs(want))), err
 
 
 def _central(f, x, h=H):
@@ -53,7 +43,7 @@ def test_the_tree_model_has_prismatic_joints_and_branches():
 @pytest.mark.parametrize("name", MODELS)
 def test_second_derivatives_are_central_differences_of_the_first(name):
     m = sd.load_model(name)
-    q, qd, qdd = _states(m.nv, 3, 1)
+    q, qd, qdd = uniform_states(m.nv, 3, 1)
     r = ad.id_second_derivatives(m, q, qd, qdd, backend="serial")
     assert isinstance(r, ad.IdSecondDerivativesResult)
     for t in r:
@@ -66,13 +56,13 @@ def test_second_derivatives_are_central_differences_of_the_first(name):
         return ad.id_derivatives(m, a, b, qdd, backend="serial")[1]
 
     # entry (i, j, k): d/dx_k of the first-order entry (i, j)
-    _close(r.d2tau_dq2, _central(lambda v: dtau_dq(v, qd), q), REL)
-    _close(r.d2tau_dqd2, _central(lambda v: dtau_dqd(q, v), qd), REL)
+    assert_close(r.d2tau_dq2, _central(lambda v: dtau_dq(v, qd), q), REL)
+    assert_close(r.d2tau_dqd2, _central(lambda v: dtau_dqd(q, v), qd), REL)
     # d^2 tau_i / dq_j dqd_k both ways: d/dqd_k (dtau_i/dq_j) and d/dq_j (dtau_i/dqd_k)
-    _close(r.d2tau_dqdqd, _central(lambda v: dtau_dq(q, v), qd), REL)
-    _close(r.d2tau_dqdqd, _central(lambda v: dtau_dqd(v, qd), q).transpose(0, 1, 3, 2), REL)
+    assert_close(r.d2tau_dqdqd, _central(lambda v: dtau_dq(q, v), qd), REL)
+    assert_close(r.d2tau_dqdqd, _central(lambda v: dtau_dqd(v, qd), q).transpose(0, 1, 3, 2), REL)
     # dM_dq[i, j, k] = d M_ij / dq_k
-    _close(r.dM_dq, _central(lambda v: sd.mass_matrix(m, v, backend="serial"), q), REL)
+    assert_close(r.dM_dq, _central(lambda v: sd.mass_matrix(m, v, backend="serial"), q), REL)
     # not all zero (a test of something)
     for t in r:
         assert np.max(np.abs(t)) > 1e-3
@@ -81,17 +71,17 @@ def test_second_derivatives_are_central_differences_of_the_first(name):
 @pytest.mark.parametrize("name", MODELS)
 def test_second_derivatives_are_symmetric_in_the_last_two_indices(name):
     m = sd.load_model(name)
-    r = ad.id_second_derivatives(m, *_states(m.nv, 4, 2))
+    r = ad.id_second_derivatives(m, *uniform_states(m.nv, 4, 2))
     for t in (r.d2tau_dq2, r.d2tau_dqd2):
-        _close(t, t.transpose(0, 1, 3, 2), 1e-12)
+        assert_close(t, t.transpose(0, 1, 3, 2), 1e-12)
     # M is symmetric, so is its derivative in (i, j)
-    _close(r.dM_dq, r.dM_dq.transpose(0, 2, 1, 3), 1e-12)
+    assert_close(r.dM_dq, r.dM_dq.transpose(0, 2, 1, 3), 1e-12)
 
 
 @pytest.mark.parametrize("name", MODELS)
 def test_serial_equals_openmp_and_a_batch_equals_its_instances(name):
     m = sd.load_model(name)
-    q, qd, qdd = _states(m.nv, 5, 3)
+    q, qd, qdd = uniform_states(m.nv, 5, 3)
     serial = ad.IdSecondDerivatives(m, backend="serial", max_batch=5)
     openmp = ad.IdSecondDerivatives(m, backend="openmp", max_batch=5, threads=2)
     assert serial.backend == "serial" and openmp.backend == "openmp"
@@ -111,12 +101,12 @@ def test_serial_equals_openmp_and_a_batch_equals_its_instances(name):
 @pytest.mark.parametrize("name", MODELS)
 def test_float32_is_float64_within_its_rounding(name):
     m = sd.load_model(name)
-    q, qd, qdd = _states(m.nv, 3, 4)
+    q, qd, qdd = uniform_states(m.nv, 3, 4)
     want = ad.id_second_derivatives(m, q, qd, qdd)
     got = ad.id_second_derivatives(m, *(a.astype(np.float32) for a in (q, qd, qdd)))
     for g, w in zip(got, want):
         assert g.dtype == np.float32
-        _close(g, w, 2e-4)
+        assert_close(g, w, 2e-4)
     e = ad.IdSecondDerivatives(m, dtype=np.float32)
     assert e.dtype == np.float32 and e.nv == m.nv
 
@@ -124,7 +114,7 @@ def test_float32_is_float64_within_its_rounding(name):
 def test_bad_shapes_and_arguments_raise_naming_them():
     m = sd.load_model("iiwa")
     n = m.nv
-    q, qd, qdd = _states(n, 2)
+    q, qd, qdd = uniform_states(n, 2)
     e = ad.IdSecondDerivatives(m, max_batch=2)
     with pytest.raises(sd.ShapeError, match="q has shape"):
         e(q[:, :-1], qd[:, :-1], qdd[:, :-1])
@@ -133,7 +123,7 @@ def test_bad_shapes_and_arguments_raise_naming_them():
     with pytest.raises(sd.ShapeError, match="qdd has shape"):
         e(q, qd, np.zeros((2, n + 1)))
     with pytest.raises(sd.ShapeError, match="max_batch"):
-        e(*_states(n, 3))
+        e(*uniform_states(n, 3))
     with pytest.raises(sd.DTypeError):
         e(q, qd.astype(np.float32), qdd)
     # the extension's outputs: shape, layout and aliasing, named
@@ -159,17 +149,17 @@ def test_cuda_equals_the_host_path(dtype):
     """backend cuda on host arrays, and on torch CUDA tensors (the caller's stream,
     entry-major results): against serial, 1e-9 (double) / 2e-4 (float32) relative."""
     m = sd.load_model("tree:12:2")
-    q, qd, qdd = _states(m.nv, 33, 5)
+    q, qd, qdd = uniform_states(m.nv, 33, 5)
     want = ad.id_second_derivatives(m, q, qd, qdd, backend="serial")
     rel = 1e-9 if dtype == np.float64 else 2e-4
     host = ad.IdSecondDerivatives(m, backend="cuda", max_batch=33, dtype=dtype)(
         *(a.astype(dtype) for a in (q, qd, qdd)))
     for g, w in zip(host, want):
-        _close(g, w, rel)
+        assert_close(g, w, rel)
     torch = pytest.importorskip("torch", reason="torch is not installed")
     if not torch.cuda.is_available():
         pytest.skip("torch has no CUDA device here")
     got = ad.id_second_derivatives(m, *(torch.from_numpy(a.astype(dtype)).cuda() for a in (q, qd, qdd)))
     for g, w in zip(got, want):
         assert isinstance(g, torch.Tensor) and g.is_cuda and g.shape == (33, m.nv, m.nv, m.nv)
-        _close(g, w, rel)
+        assert_close(g, w, rel)
