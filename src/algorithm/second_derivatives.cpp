@@ -41,6 +41,18 @@ void rnea_second_derivatives_dual(const ModelTpl<S>& model, SecondDerivativeData
 template <class S>
 void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                        const S* qdd, const Force<S>* fext, const S* w, S* out) {
+  if (model.multi_dof()) {
+    rnea_weighted_dq2_dual(model, data, q, qd, qdd, fext, w, out);
+    return;
+  }
+  const Index n = model.nv();
+  rnea_weighted_dq2_analytic_instance(model.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd, fext, w,
+                                      data.plain.data(), MatrixRef<S>{out, n, 1});
+}
+
+template <class S>
+void rnea_weighted_dq2_dual(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
+                            const S* qdd, const Force<S>* fext, const S* w, S* out) {
   const Index n = model.nv();
   rnea_weighted_dq2_instance(data.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd,
                              dual_wrenches(fext, n, data.wrenches.data()), w, data.work.data(),
@@ -50,6 +62,8 @@ void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, 
 #define SCANDYN_INSTANTIATE(S)                                                                                    \
   template void rnea_weighted_dq2(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*,      \
                                   const Force<S>*, const S*, S*);                                                  \
+  template void rnea_weighted_dq2_dual(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*, \
+                                       const Force<S>*, const S*, S*);                                             \
   template struct SecondDerivativeData<S>;                                                                        \
   template void rnea_second_derivatives(const ModelTpl<S>&, SecondDerivativeData<S>&, const S*, const S*, const S*, \
                                         const Force<S>*, S*, S*, S*, S*);                                          \

@@ -5,7 +5,8 @@
 // their two variables, and the mixed partials both ways (1e-9 relative); and the
 // analytical second-order recursion (what rnea_second_derivatives runs) against the
 // dual-number passes (rnea_second_derivatives_dual), entry by entry (1e-11 relative
-// in double, 2e-5 in float against the double reference).
+// in double, 2e-5 in float against the double reference); the weighted contraction
+// rnea_weighted_dq2 against its dual passes (rnea_weighted_dq2_dual, 1e-12).
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -196,6 +197,83 @@ TEST(SecondDerivatives, AnalyticRecursionMatchesTheDualPasses) {
         std::printf("%s%s float %s: max |float - dual double| / max |dual| = %.2e\n", name.c_str(),
                     with_wrenches ? " +fext" : "", kNames[t], err / max_abs(D[t]));
       }
+    }
+  }
+}
+
+// The weighted contraction out(j, k) = sum_i w_i d2tau_i/dq_j dq_k: rnea_weighted_dq2
+// (the analytical recursion's weighted variant) against the dual passes
+// (rnea_weighted_dq2_dual), every entry (NaN-filled first), 1e-12 relative to the
+// reference's largest entry in double; exactly symmetric; and against the analytical
+// d2tau_dq2 tensor contracted with w (1e-12). Two cases per model: the variational
+// integrator's (the model without gravity at (q, 0, v), w = v, no wrenches) and every
+// term (gravity, qd, qdd, a random w, with and without external wrenches). Float
+// within 2e-5 of the double reference.
+TEST(SecondDerivatives, WeightedContractionMatchesTheDualPasses) {
+  std::vector<std::pair<std::string, Model>> models;
+  models.emplace_back("iiwa", test::load_robot("iiwa.urdf"));
+  models.emplace_back("hyq", test::load_robot("hyq.urdf"));
+  models.emplace_back("atlas", test::load_robot("atlas.urdf"));
+  models.emplace_back("random_model(12)", test::random_model(12, 9));
+  models.emplace_back("random_model(20)", test::random_model(20, 31));
+  models.emplace_back("random_model(40)", test::random_model(40, 4));
+  models.emplace_back("random_chain(10)", test::random_chain(10, 7));
+  models.emplace_back("random_chains_from_base(14)", test::random_chains_from_base(14, 5, {0, 4, 9}));
+  for (const auto& [name, full] : models) {
+    int prismatic = 0;
+    for (const auto& b : full.bodies) prismatic += b.type == JointType::Prismatic;
+    for (int terms = 0; terms < 3; ++terms) {  // 0: the variational integrator's; 1: every term; 2: and wrenches
+      SCOPED_TRACE(name + " (" + std::to_string(prismatic) + " prismatic), " +
+                   (terms == 0 ? "at rest without gravity, w = qdd" : terms == 1 ? "every term" : "every term + fext"));
+      Model model = full;
+      if (terms == 0) model.gravity = Vec3<double>{0, 0, 0};
+      const Index n = model.nv();
+      const std::size_t nn = static_cast<std::size_t>(n) * n, nnn = nn * n;
+      std::mt19937_64 rng(313 + n + terms);
+      const std::vector<double> q = test::random_vector(rng, n, -2, 2), qdd = test::random_vector(rng, n, -3, 3);
+      const std::vector<double> qd = terms == 0 ? std::vector<double>(n, 0.0) : test::random_vector(rng, n, -2, 2);
+      const std::vector<double> w = terms == 0 ? qdd : test::random_vector(rng, n, -1, 1);
+      const std::vector<Force<double>> wrenches = test::random_wrenches<double>(rng, n, 2.0);
+      const Force<double>* fext = terms == 2 ? wrenches.data() : nullptr;
+      SecondDerivativeData<double> sd(model);
+      std::vector<double> A(nn, std::nan("")), D(nn, std::nan("")), T(nnn), none(nnn);
+      rnea_weighted_dq2(model, sd, q.data(), qd.data(), qdd.data(), fext, w.data(), A.data());
+      rnea_weighted_dq2_dual(model, sd, q.data(), qd.data(), qdd.data(), fext, w.data(), D.data());
+      rnea_second_derivatives(model, sd, q.data(), qd.data(), qdd.data(), fext, T.data(), none.data(), none.data());
+      std::vector<double> C(nn, 0.0);  // the tensor contracted
+      for (Index i = 0; i < n; ++i)
+        for (std::size_t e = 0; e < nn; ++e) C[e] += w[i] * T[i * nn + e];
+      double err = 0, err_tensor = 0;
+      std::size_t unwritten = 0;
+      for (std::size_t e = 0; e < nn; ++e) {
+        unwritten += !std::isfinite(A[e]);
+        err = std::max(err, std::abs(A[e] - D[e]));
+        err_tensor = std::max(err_tensor, std::abs(A[e] - C[e]));
+      }
+      EXPECT_EQ(unwritten, 0u);
+      EXPECT_GT(max_abs(D), 1e-2);
+      EXPECT_LE(err, 1e-12 * max_abs(D)) << "max |analytic - dual| " << err;
+      EXPECT_LE(err_tensor, 1e-12 * max_abs(D)) << "max |analytic - contracted tensor| " << err_tensor;
+      std::printf("%s terms %d: weighted dq2 max |analytic - dual| / max |dual| = %.2e, vs the contracted tensor %.2e\n",
+                  name.c_str(), terms, err / max_abs(D), err_tensor / max_abs(D));
+      for (Index j = 0; j < n; ++j)
+        for (Index k = 0; k < j; ++k) ASSERT_EQ(A[j * n + k], A[k * n + j]) << j << " " << k;
+      // float against the double reference
+      const ModelTpl<float> mf = model.cast<float>();
+      SecondDerivativeData<float> sf(mf);
+      std::vector<float> qf(q.begin(), q.end()), qdf(qd.begin(), qd.end()), qddf(qdd.begin(), qdd.end()),
+          wf(w.begin(), w.end()), F(nn, std::nanf(""));
+      std::vector<Force<float>> ff;
+      for (const auto& x : wrenches) ff.push_back(x.cast<float>());
+      rnea_weighted_dq2(mf, sf, qf.data(), qdf.data(), qddf.data(), fext ? ff.data() : nullptr, wf.data(), F.data());
+      double ferr = 0;
+      std::size_t funwritten = 0;
+      for (std::size_t e = 0; e < nn; ++e) {
+        funwritten += !std::isfinite(F[e]);
+        ferr = std::max(ferr, std::abs(double(F[e]) - D[e]));
+      }
+      EXPECT_EQ(funwritten, 0u) << "float";
+      EXPECT_LE(ferr, 2e-5 * max_abs(D)) << "float: max |float - dual double| " << ferr;
     }
   }
 }

@@ -11,7 +11,10 @@
 // (rnea_second_derivatives_instance, scandyn/instance/second_derivatives_instance.hpp:
 // 2 nv dual passes of the first-order recursion rnea_derivatives_instance, each
 // writing the eps parts of its blocks), kept as the independent reference of the
-// tests and benchmarks; rnea_weighted_dq2 runs dual passes too.
+// tests and benchmarks. rnea_weighted_dq2 (the weighted contraction of d2tau/dq2)
+// runs the analytical recursion's weighted variant
+// (rnea_weighted_dq2_analytic_instance), rnea_weighted_dq2_dual its dual-pass
+// reference (rnea_weighted_dq2_instance).
 //
 // Tensors: nv x nv x nv, entry (i, j, k) at data[(i * nv + j) * nv + k]:
 //   d2tau_dq2(i, j, k)    = d^2 tau_i / dq_j dq_k    (symmetric in j, k)
@@ -37,7 +40,7 @@ struct SecondDerivativeData {
   std::vector<Body<Dual<S>>> bodies;          // (nv) the model's bodies, every derivative part 0
   std::vector<DerivativeBody<Dual<S>>> work;  // (nv) one pass's world-frame body quantities
   std::vector<Force<Dual<S>>> wrenches;       // (nv) the body wrenches in dual numbers
-  std::vector<S> block;  // (nv x nv, row-major) rnea_weighted_dq2: d/dq_k of dtau/dq in one pass
+  std::vector<S> block;  // (nv x nv, row-major) rnea_weighted_dq2_dual: d/dq_k of dtau/dq in one pass
   std::vector<DerivativeBody<S>> plain;       // (nv) the analytical recursion's world-frame body quantities
 };
 
@@ -59,14 +62,23 @@ void rnea_second_derivatives_dual(const ModelTpl<S>& model, SecondDerivativeData
                                   S* dM_dq = nullptr);
 
 // The contraction of d2tau_dq2 with a weight w on tau, without the nv^3 tensor:
-// out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, row-major, symmetric), the
-// q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w. The same nv dual passes of
-// the first-order recursion seeded along q's e_k (O(nv^2 depth) work), by
-// rnea_weighted_dq2_instance (instance/second_derivatives_instance.hpp), which the
-// variational integrator's exact Newton Jacobian runs on every backend
-// (scandyn/sim/variational_instance.hpp).
+// out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, row-major, symmetric, every
+// entry written), the q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w, gravity
+// included. Models of 1-DoF joints: the analytical recursion's weighted variant
+// (rnea_weighted_dq2_analytic_instance, instance/second_derivatives_analytic.hpp:
+// O(sum of depth^2) triples, the nv^3 entries never formed), which the variational
+// integrator's exact Newton Jacobian runs on every backend
+// (scandyn/sim/variational_instance.hpp); other models: rnea_weighted_dq2_dual.
 template <class S>
 void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
                        const S* qdd, const Force<S>* fext, const S* w, S* out);
+
+// The same contraction by nv dual passes of the first-order recursion seeded along
+// q's e_k, each contracted with w (rnea_weighted_dq2_instance,
+// instance/second_derivatives_instance.hpp; O(nv^2 depth) work): the reference the
+// analytical variant is tested against.
+template <class S>
+void rnea_weighted_dq2_dual(const ModelTpl<S>& model, SecondDerivativeData<S>& data, const S* q, const S* qd,
+                            const S* qdd, const Force<S>* fext, const S* w, S* out);
 
 }  // namespace scandyn

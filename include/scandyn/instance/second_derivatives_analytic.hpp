@@ -236,4 +236,94 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
   }
 }
 
+// The contraction of d2tau_dq2 with a weight w on tau, by the same recursion without
+// the nv^3 tensor: out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, symmetric,
+// every entry written), the q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w (the
+// variational integrator's H, scandyn/sim/variational_instance.hpp). Arguments as
+// rnea_second_derivatives_analytic_instance's, plus w (nv); work: nv DerivativeBody
+// entries of scratch (the first-order recursion's; nothing else).
+//
+// Of the triple (a, b, c), a <= b <= c, only the d2tau_dq2 entries are formed, each
+// weighted by the w of its first index and added to out's entry of its other two:
+//   w_c (dA_a . P1 + dV_a . P2)   -> out(b, a)   (T(c, b, a) = T(c, a, b))
+//   w_a (S_a . K)                 -> out(c, b)   (T(a, c, b) = T(a, b, c); not for a = b = c)
+//   w_b (dA_a . Q1 + dV_a . Q2)   -> out(c, a)   (T(b, a, c) = T(b, c, a); a < b < c only)
+// with the pair's P1, P2, Q1, Q2, K of the full recursion (w_c folded into P1, P2 and
+// w_b into Q1, Q2 once per pair, the w_a S_a . K summed over a before one store). Each
+// tensor entry with indices {a, b, c} is counted once: out is accumulated in its
+// lower triangle (row >= column: the deeper DoF first, ancestors having smaller
+// indices), where the two entries of a pair of distinct indices land on one entry and
+// coinciding indices on the diagonal, then mirrored. Work: per pair (b, c) the five
+// force 6-vectors (not K2, K3, Psi, nor the other tensors' products), per triple 3 to
+// 5 dot products; no tensor, no dual numbers.
+template <class S, class V>
+SCANDYN_HD void rnea_weighted_dq2_analytic_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd,
+                                                    V qdd, const Force<S>* fext, const S* w, DerivativeBody<S>* work,
+                                                    MatrixRef<S> out) {
+  // forward: world-frame S, v, a, dV, dA, body inertias, forces and B
+  derivative_forward_pass(body, nv, a0, q, qd, qdd, fext, work);
+  for (Index i = 0; i < nv; ++i)
+    for (Index j = 0; j <= i; ++j) out(i, j) = S(0);
+  // backward: body c, its ancestors b <= c, theirs a <= b
+  for (Index c = nv - 1; c >= 0; --c) {
+    const DerivativeBody<S>& wc = work[c];
+    const Inertia<S>& Ic = wc.Ic;             // composite inertia of c's subtree
+    const VelocityDerivative<S>& Bc = wc.Bc;  // composite B of c's subtree
+    const Motion<S>& Sc = wc.J;
+    const Motion<S>& dVc = wc.dV;
+    const S w_c = w[c];
+    const Force<S> f1 = Ic * Sc;                 // Ic_c S_c
+    const Force<S> g1 = Bc.apply_transpose(Sc);  // Bc_c^T S_c
+    const Force<S> hc = Ic * dVc;                // Ic_c dV_c
+    const Force<S> Phi = cross(Sc, wc.F) + Ic * wc.dA + Bc.apply(dVc);  // d F/dq_c of an ancestor's F
+    // B(Ic_c, dV_c), for the pairs b < c only
+    const VelocityDerivative<S> Bv = body[c].parent < 0 ? VelocityDerivative<S>{} : VelocityDerivative<S>::of(Ic, dVc);
+    for (Index b = c; b >= 0; b = body[b].parent) {
+      const DerivativeBody<S>& wb = work[b];
+      const Motion<S>& Sb = wb.J;
+      const Motion<S>& dVb = wb.dV;
+      const Motion<S>& dAb = wb.dA;
+      const bool bc = b == c;
+      const Force<S> hb = Ic * dVb;                    // Ic_c dV_b
+      const Force<S> Y = cross(dVb, f1);               // dV_b x* Ic_c S_c
+      const Force<S> Z = cross(Sc, hb) - Ic * cross(Sc, dVb);  // S_c x* Ic_c dV_b - Ic_c (S_c x dV_b)
+      // w_c P1, P1 = S_b x* Ic_c S_c; w_c P2 (d2tau_c/dq_b dq_a = dA_a . P1 + dV_a . P2)
+      const Force<S> P1 = w_c * cross(Sb, f1);
+      const Force<S> P2 = w_c * (Y + cross(Sb, g1) - Z);
+      // K = d Phi_c / dq_b (d2tau_a/dq_c dq_b = S_a . K)
+      const Force<S> K = cross(Sb, Phi) + cross(Sc, Ic * dAb + Bc.apply(dVb)) +
+                         Ic * (cross(dAb, Sc) + cross(dVb, dVc)) + Bc.apply(cross(dVb, Sc)) + cross(dVb, hc) +
+                         cross(dVc, hb);
+      // for b < c: w_b Q1, Q1 = (S_c x* Ic_c - Ic_c S_c x)^T S_b; w_b Q2, Q2 = (S_c x* Bc_c -
+      // Bc_c S_c x + B(Ic_c, dV_c))^T S_b (d2tau_b/dq_a dq_c = dA_a . Q1 + dV_a . Q2)
+      Force<S> Q1 = Force<S>::zero(), Q2 = Force<S>::zero();
+      if (!bc) {
+        const S w_b = w[b];
+        const Motion<S> ScSb = cross(Sc, Sb);
+        Q1 = w_b * (cross(Sc, Ic * Sb) - Ic * ScSb);
+        Q2 = w_b * (cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb));
+      }
+      S sum_K = S(0);  // sum over a of w_a S_a . K
+      for (Index a = b; a >= 0; a = body[a].parent) {
+        const DerivativeBody<S>& wa = work[a];
+        const Motion<S> Sa = wa.J, dVa = wa.dV, dAa = wa.dA;  // copies: the stores below may not alias them
+        const bool ab = a == b;
+        out(b, a) += dot(dAa, P1) + dot(dVa, P2);
+        if (!(ab && bc)) sum_K += w[a] * dot(Sa, K);
+        if (!ab && !bc) out(c, a) += dot(dAa, Q1) + dot(dVa, Q2);
+      }
+      out(c, b) += sum_K;
+    }
+    const Index p = body[c].parent;
+    if (p >= 0) {
+      work[p].F += wc.F;
+      work[p].Ic += wc.Ic;
+      work[p].Bc += wc.Bc;
+    }
+  }
+  // the upper triangle
+  for (Index i = 0; i < nv; ++i)
+    for (Index j = 0; j < i; ++j) out(j, i) = out(i, j);
+}
+
 }  // namespace scandyn
