@@ -85,11 +85,11 @@ VariationalSimPlan<S>::VariationalSimPlan(const SimSetup<S>& setup) {
   capacity_ = n <= 8 ? 8 : n <= 16 ? 16 : n <= 32 ? 32 : 64;
   cuda::require_compiled_capacity(capacity_, "the variational step", setup.model.name);
   const std::size_t nn = static_cast<std::size_t>(n);
-  const std::size_t body_bytes = nn * sizeof(Body<S>), dual_bytes = nn * sizeof(Body<Dual<S>>);
+  const std::size_t body_bytes = nn * sizeof(Body<S>);
   const std::size_t coef_bytes = nn * sizeof(JointCoefficients<S>);
   const std::size_t matrix_bytes = 6 * nn * nn * static_cast<std::size_t>(setup.batch) * sizeof(S);
   auto up = [](std::size_t x) { return (x + 255) / 256 * 256; };
-  const std::size_t bytes = up(body_bytes) + up(dual_bytes) + up(coef_bytes) + matrix_bytes;
+  const std::size_t bytes = up(body_bytes) + up(coef_bytes) + matrix_bytes;
   raw_ = cuda::detail::device_malloc(bytes, [&](std::size_t free_bytes, std::size_t) {
     return "backend 'cuda': the variational step of " + std::to_string(setup.batch) + " instances of a " +
            std::to_string(n) + "-DoF model needs " + std::to_string(bytes) +
@@ -98,17 +98,13 @@ VariationalSimPlan<S>::VariationalSimPlan(const SimSetup<S>& setup) {
   });
   char* p = static_cast<char*>(raw_);
   auto* bodies = reinterpret_cast<Body<S>*>(p);
-  auto* dual = reinterpret_cast<Body<Dual<S>>*>(p + up(body_bytes));
-  auto* coef = reinterpret_cast<JointCoefficients<S>*>(p + up(body_bytes) + up(dual_bytes));
-  S* matrices = reinterpret_cast<S*>(p + up(body_bytes) + up(dual_bytes) + up(coef_bytes));
-  std::vector<Body<Dual<S>>> dual_host;
-  for (const Body<S>& body : setup.model.bodies) dual_host.push_back(body.template cast<Dual<S>>());
+  auto* coef = reinterpret_cast<JointCoefficients<S>*>(p + up(body_bytes));
+  S* matrices = reinterpret_cast<S*>(p + up(body_bytes) + up(coef_bytes));
   check(cudaMemcpy(bodies, setup.model.bodies.data(), body_bytes, cudaMemcpyHostToDevice), "copying the bodies");
-  check(cudaMemcpy(dual, dual_host.data(), dual_bytes, cudaMemcpyHostToDevice), "copying the dual bodies");
   check(cudaMemcpy(coef, setup.coef.data(), coef_bytes, cudaMemcpyHostToDevice), "copying the joint coefficients");
   const Motion<S> a0 = base_acceleration(setup.model.gravity);
   const Motion<S> a0_rest = base_acceleration(Vec3<S>{S(0), S(0), S(0)});
-  args_ = {VariationalModel<S>{bodies, n, a0, a0_rest, dual}, coef, matrices, setup.dt,
+  args_ = {VariationalModel<S>{bodies, n, a0, a0_rest, true}, coef, matrices, setup.dt,
            (setup.effects & kExternal) != 0};
 }
 

@@ -32,7 +32,7 @@ inline constexpr Index kNotConvergedDof = Index(1) << 29;
 // The variational kernel's constants (device pointers).
 template <class S>
 struct VariationalArgs {
-  VariationalModel<S> model;         // bodies and dual bodies in device memory, a0 (-g, or zero), a0_rest
+  VariationalModel<S> model;         // bodies in device memory, a0 (-g, or zero), a0_rest, H on
   const JointCoefficients<S>* coef;  // (nv) joint coefficients (neutral for undeclared effects)
   S* matrices;                       // (6 nv^2 x B) the Newton matrices, instance-innermost
   S dt;
@@ -45,8 +45,7 @@ template <class S, int C>
 struct VariationalThreadScratch {
   S zero[C], q1[C], qm[C], v[C], p0[C], tau_m[C], tau_g[C], f[C], eq[C], eqd[C], r[C], work[C], dtv[C];  // (nv)
   Index piv[C];                          // (nv) LU's row exchanges
-  DerivativeBody<S> deriv[C];            // (nv) the first-order passes' bodies
-  DerivativeBody<Dual<S>> dual_deriv[C]; // (nv) the dual passes' bodies
+  DerivativeBody<S> deriv[C];            // (nv) the first- and second-order passes' bodies
   // (nv) rnea_general / aba_general: transforms, velocities, accelerations, velocity
   // products, forces, articulated inertias, U = IA S, D = S^T U, u
   Transform<S> Xup[C];
@@ -64,12 +63,12 @@ struct VariationalThreadScratch {
     S* const m = matrices + b;
     auto mat = [&](int k) { return MatrixRef<S>{m + k * one, n, static_cast<std::ptrdiff_t>(B)}; };
     return {zero, q1, qm, v, p0, tau_m, tau_g, f, eq, eqd, r, work, dtv, mat(0), mat(1), mat(2), mat(3), mat(4), mat(5),
-            piv, deriv, dual_deriv, GeneralWork<S>{Xup, vb, ab, cb, fb, nullptr, IA, U, D, u, nullptr}};
+            piv, deriv, GeneralWork<S>{Xup, vb, ab, cb, fb, nullptr, IA, U, D, u, nullptr}};
   }
 };
 
-// One simulator's variational step on the device: the model's bodies (and in dual
-// numbers), the coefficients, the matrices' buffer.
+// One simulator's variational step on the device: the model's bodies, the
+// coefficients, the matrices' buffer.
 template <class S>
 class VariationalSimPlan {
  public:
@@ -87,7 +86,7 @@ class VariationalSimPlan {
  private:
   VariationalArgs<S> args_{};
   Index capacity_ = 0;    // the kernel's C: 8, 16, 32 or 64
-  void* raw_ = nullptr;   // bodies, dual bodies, coefficients, matrices
+  void* raw_ = nullptr;   // bodies, coefficients, matrices
 };
 
 }  // namespace detail

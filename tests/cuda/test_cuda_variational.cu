@@ -77,10 +77,8 @@ TEST(CudaVariationalHost, KernelCompositionMatchesTheSerialSimulator) {
     const sim::SimSetup<double>& setup = ref.setup();
     const Index n = setup.model.nv();
     const long long B = setup.batch;
-    std::vector<Body<Dual<double>>> dual;
-    for (const Body<double>& b : setup.model.bodies) dual.push_back(b.cast<Dual<double>>());
     const sim::VariationalModel<double> vm{setup.model.bodies.data(), n, base_acceleration(setup.model.gravity),
-                                           base_acceleration(Vec3<double>{0, 0, 0}), dual.data()};
+                                           base_acceleration(Vec3<double>{0, 0, 0}), true};
     std::vector<double> matrices(static_cast<std::size_t>(6 * n * n * B), std::nan(""));
     std::vector<double> q(static_cast<std::size_t>(n * B)), qd(q.size());
     ref.read_state(q.data(), qd.data());  // (nv x B)

@@ -37,8 +37,10 @@
 // exact Jacobian in the unknown v (q1 = q0 + dt v, qm = q0 + dt/2 v)
 //   dr/dv = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4 de/dq + dt/2 de/dv) - dt^2/8 H,
 // H = d(D^T v)/dq at fixed v (= the q-Hessian of v^T M(q) v: second derivatives of
-// M, by nv dual passes of the first-order recursion, rnea_weighted_dq2 in
-// scandyn/algorithm/second_derivatives.hpp, O(nv^2 depth)). Models of more than
+// M, by the analytical second-order recursion's weighted contraction sum_i v_i
+// d^2 tau_i / dq dq of the model at rest at (qm, 0, v), rnea_weighted_dq2_analytic_instance
+// in scandyn/instance/second_derivatives_analytic.hpp, O(sum of depth^2) and no nv^3
+// tensor). Models of more than
 // kVariationalExactMaxDofs DoFs do not form the Jacobian at all: they iterate with
 // its dominant part P = M(qm) + diag(-dt^2/4 de/dq - dt/2 de/dv) (the chord method),
 // dv = P^-1 r by one ABA of the model without gravity at rest with the diagonal as
@@ -83,7 +85,6 @@
 
 #include "scandyn/algorithm/derivatives.hpp"
 #include "scandyn/algorithm/directional_derivatives.hpp"
-#include "scandyn/algorithm/second_derivatives.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 #include "scandyn/sim/variational_instance.hpp"
 
@@ -102,7 +103,7 @@ struct VariationalWork {
     for (std::vector<S>* a : {&zero, &q1, &qm, &v, &p0, &tau_m, &tau_g, &f, &eq, &eqd, &r, &work, &dtv, &diag, &gqd, &v0})
       a->assign(n, S(0));
     if (!chord) {
-      dual = std::make_unique<SecondDerivativeData<S>>(at_rest);
+      hessian = true;
       H.assign(n * n, S(0));
       allocate_dense();
     }
@@ -124,10 +125,9 @@ struct VariationalWork {
     piv.assign(n, 0);
     point_scratch();
   }
-  // The model as variational_instance.hpp's routines read it (H only where dual is made).
+  // The model as variational_instance.hpp's routines read it (H where hessian is set).
   VariationalModel<S> instance_model() const {
-    return {at_rest.bodies.data(), at_rest.nv(), a0, base_acceleration(at_rest.gravity),
-            dual ? dual->bodies.data() : nullptr};
+    return {at_rest.bodies.data(), at_rest.nv(), a0, base_acceleration(at_rest.gravity), hessian};
   }
   ModelTpl<S> at_rest;          // the model with zero gravity: ID(at_rest, q, 0, a) = M(q) a
   DerivativeDataTpl<S> deriv;   // rnea_derivatives' scratch
@@ -149,8 +149,8 @@ struct VariationalWork {
   std::vector<S> kv, kz, hess, k1, k2, k3, k4, k5, k6, k7, kcs, ksn, kg, ky;
   std::vector<S> D, K, M, J, unused;                                      // (nv x nv) row-major, or empty
   std::vector<Index> piv;
-  std::unique_ptr<SecondDerivativeData<S>> dual;  // the exact Jacobian's dual passes, or null
-  std::vector<S> H;                               // (nv x nv) d(D^T v)/dq, or empty
+  bool hessian = false;  // the exact Jacobian's H term (models of up to kVariationalExactMaxDofs DoFs)
+  std::vector<S> H;      // (nv x nv) d(D^T v)/dq, or empty
   Motion<S> a0;                                   // the model's base acceleration, -g
   VariationalScratch<S> scratch{};                // views of the vectors above (point_scratch)
 
@@ -161,7 +161,7 @@ struct VariationalWork {
     auto mat = [&](std::vector<S>& m) { return MatrixRef<S>{m.empty() ? nullptr : m.data(), nv, 1}; };
     scratch = {zero.data(), q1.data(), qm.data(), v.data(), p0.data(), tau_m.data(), tau_g.data(), f.data(),
                eq.data(), eqd.data(), r.data(), work.data(), dtv.data(), mat(D), mat(K), mat(M), mat(J), mat(unused),
-               mat(H), piv.empty() ? nullptr : piv.data(), deriv.work.data(), dual ? dual->work.data() : nullptr,
+               mat(H), piv.empty() ? nullptr : piv.data(), deriv.work.data(),
                GeneralWork<S>{data.Xup.data(), data.v.data(), data.a.data(), data.c.data(), data.f.data(),
                               data.Ic.data(), data.IA.data(), data.U.data(), data.D.data(), data.u.data(),
                               data.L.empty() ? nullptr : data.L.data()}};

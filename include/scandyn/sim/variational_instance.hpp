@@ -8,8 +8,9 @@
 // The step: p_k = M(q_k) qd_k (rnea_general at rest), the first guess of the mean
 // velocity v from one ABA (aba_general), Newton on r(v) = 0 with the dense Jacobian
 // dr/dv = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4 de/dq + dt/2 de/dv) - dt^2/8 H
-// (rnea_derivatives_instance for D, M and K; H by the nv dual passes of
-// rnea_weighted_dq2_instance; LU with partial pivoting), then q_{k+1} = q_k + dt v
+// (rnea_derivatives_instance for D, M and K; H by the analytical second-order
+// recursion's weighted contraction, rnea_weighted_dq2_analytic_instance; LU with
+// partial pivoting), then q_{k+1} = q_k + dt v
 // and qd_{k+1} = M(q_{k+1})^-1 (2 M(qm) v - p_k) (rnea_general, aba_general at rest).
 // The chord and Newton-Krylov iterations of long chains (variational.hpp) are host
 // code that plugs into the same step (variational_step_instance's solve) and reuses
@@ -22,7 +23,7 @@
 
 #include "scandyn/batch.hpp"
 #include "scandyn/instance/general_instance.hpp"
-#include "scandyn/instance/second_derivatives_instance.hpp"
+#include "scandyn/instance/second_derivatives_analytic.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 
 namespace scandyn {
@@ -33,8 +34,8 @@ namespace sim {
 inline constexpr unsigned kVariationalEffects = kGravity | kDamping | kSprings | kLimits | kExternal;
 inline constexpr int kVariationalMaxIterations = 50;
 // Models of up to this many DoFs get the exact Newton Jacobian (the dt^2/8 H term
-// by nv dual passes, rnea_weighted_dq2_instance); larger ones the O(nv) chord
-// iteration (host only).
+// by rnea_weighted_dq2_analytic_instance, O(sum of depth^2)); larger ones the
+// O(nv depth) chord iteration (host only).
 inline constexpr Index kVariationalExactMaxDofs = 64;
 // The chord iteration's fallback, the dense quasi-Newton Jacobian (nv x nv, LU),
 // up to this many DoFs (5 nv^2 numbers of scratch, O(nv^3) per update); beyond it a
@@ -75,8 +76,8 @@ struct VariationalModel {
   Index nv;
   Motion<S> a0;               // base_acceleration(gravity): -g, the model's (zero without gravity)
   Motion<S> a0_rest;          // base_acceleration(0): the model at rest, ID(q, 0, a) = M(q) a
-  const Body<Dual<S>>* dual;  // (nv) the bodies in dual numbers for H, or null: no H (the
-                              // chord's dense quasi-Newton fallback)
+  bool hessian;               // the exact Jacobian's H term; false: no H (the chord's dense
+                              // quasi-Newton fallback)
 };
 
 // One instance's scratch, the caller's memory (host vectors; a CUDA thread's local
@@ -97,11 +98,10 @@ struct VariationalScratch {
   S* work;   // (nv) the ABA's results
   S* dtv;    // (nv) D^T v
   MatrixRef<S> D, K, M, J;  // (nv x nv) d(M v)/dq, d(g - J^T fext)/dq, M, the Jacobian (LU in place)
-  MatrixRef<S> unused;      // (nv x nv) the derivatives' blocks not read; the dual passes' block
-  MatrixRef<S> H;           // (nv x nv) d(D^T v)/dq at fixed v (read only where model.dual is set)
+  MatrixRef<S> unused;      // (nv x nv) the derivatives' blocks not read
+  MatrixRef<S> H;           // (nv x nv) d(D^T v)/dq at fixed v (read only where model.hessian is set)
   Index* piv;               // (nv) LU's row exchanges
-  DerivativeBody<S>* deriv;            // (nv) rnea_derivatives_instance's bodies
-  DerivativeBody<Dual<S>>* dual_deriv; // (nv) the dual passes' bodies (where model.dual is set)
+  DerivativeBody<S>* deriv;            // (nv) rnea_derivatives_instance's and H's bodies
   GeneralWork<S> general;              // rnea_general / aba_general: Xup v a c f IA (nv), U D u (nv)
 };
 
@@ -233,7 +233,7 @@ SCANDYN_HD Update take_update(const VariationalScratch<S>& w, Index n, S speed, 
 }
 
 // Newton on the dense Jacobian dr/dv = M + dt/2 (D - D^T) + dt^2/4 K - diag(dt^2/4
-// de/dq + dt/2 de/dv) - dt^2/8 H (H where model.dual is set), LU per update; v from
+// de/dq + dt/2 de/dv) - dt^2/8 H (H where model.hessian is set), LU per update; v from
 // w.v. True when converged.
 template <unsigned kEffects, class S>
 SCANDYN_HD bool solve_dense(const VariationalModel<S>& model, const VariationalScratch<S>& w, S dt,
@@ -270,12 +270,14 @@ SCANDYN_HD bool solve_dense(const VariationalModel<S>& model, const VariationalS
       }
       J(i, i) -= quarter * w.eq[i] + half * w.eqd[i];
     }
-    // the exact Jacobian's last term: - dt^2/8 H, H = d(D^T v)/dq at qm (v fixed)
-    if (model.dual) {
-      rnea_weighted_dq2_instance(model.dual, n, model.a0_rest, static_cast<const S*>(w.qm),
-                                 static_cast<const S*>(w.zero), static_cast<const S*>(w.v),
-                                 static_cast<const Force<Dual<S>>*>(nullptr), static_cast<const S*>(w.v), w.dual_deriv,
-                                 unused, w.H);
+    // the exact Jacobian's last term: - dt^2/8 H, H = d(D^T v)/dq at qm (v fixed) =
+    // sum_i v_i d^2 tau_i / dq dq of the model at rest at (qm, 0, v) (ID = M(q) v);
+    // its forward pass overwrites w.deriv, whose D, M and K are in J already
+    if (model.hessian) {
+      rnea_weighted_dq2_analytic_instance(model.body, n, model.a0_rest, static_cast<const S*>(w.qm),
+                                          static_cast<const S*>(w.zero), static_cast<const S*>(w.v),
+                                          static_cast<const Force<S>*>(nullptr), static_cast<const S*>(w.v), w.deriv,
+                                          w.H);
       const S eighth = S(0.125) * dt * dt;
       for (Index i = 0; i < n; ++i)
         for (Index j = 0; j < n; ++j) J(i, j) -= eighth * w.H(i, j);
@@ -358,7 +360,7 @@ SCANDYN_HD VariationalResult variational_step_instance(const VariationalModel<S>
   return out;
 }
 
-// The step with the exact Newton Jacobian (model.dual set, nv <= kVariationalExactMaxDofs).
+// The step with the exact Newton Jacobian (model.hessian set, nv <= kVariationalExactMaxDofs).
 template <unsigned kEffects, class S>
 SCANDYN_HD VariationalResult variational_dense_step(const VariationalModel<S>& model, const VariationalScratch<S>& w,
                                                     S dt, const JointCoefficients<S>* coef, S* q, S* qd,
