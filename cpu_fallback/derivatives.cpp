@@ -23,7 +23,7 @@ class CpuDerivativeEngine : public Interface {
         threads_(instance_threads(engine_threads(o), o.max_batch)),
         max_batch_(o.max_batch),
         strategy_(strategy),
-        rows_(threads_, 4, static_cast<std::size_t>(model.nv())) {
+        rows_(threads_, 4, static_cast<std::size_t>(model.nq())) {
     for (int t = 0; t < threads_; ++t) data_.emplace_back(model);
   }
   std::string strategy() const override { return strategy_; }
@@ -31,9 +31,14 @@ class CpuDerivativeEngine : public Interface {
   bool exact() const override { return true; }
 
  protected:
-  // instance b's entries of v as a contiguous array (row k of thread t's rows)
+  // instance b's entries of v as a contiguous array (row k of thread t's rows; row 0:
+  // q, nq entries, the others nv)
   const S* input(const BatchView<const S>& v, Index b, int t, int k) {
-    return gather(v, b, model_.nv(), rows_.row(t, k));
+    return gather(v, b, k == 0 ? model_.nq() : model_.nv(), rows_.row(t, k));
+  }
+  // instance b's body wrenches (nbodies each), or null
+  const Force<S>* wrenches(const Force<S>* fext, Index b) const {
+    return fext ? fext + b * model_.nbodies() : nullptr;
   }
   const ModelTpl<S>& model_;
   BackendKind kind_;
@@ -41,7 +46,7 @@ class CpuDerivativeEngine : public Interface {
   Index max_batch_;
   const char* strategy_;
   std::vector<DerivativeDataTpl<S>> data_;  // (threads) workspaces
-  RowScratch<S> rows_;                      // per thread: q, qd, qdd or tau (nv each), qdd out (nv)
+  RowScratch<S> rows_;                      // per thread: q (nq), qd, qdd or tau, qdd out (nv each)
 };
 
 template <class S>
@@ -57,7 +62,7 @@ class CpuIdDerivatives final : public CpuDerivativeEngine<S, IdDerivatives<S>> {
     for_instance_blocks(this->threads_, in.q.batch, [&](int t, Index begin, Index end) {
       for (Index b = begin; b < end; ++b)
         rnea_derivatives(this->model_, this->data_[t], this->input(in.q, b, t, 0), this->input(in.qd, b, t, 1),
-                         this->input(in.qdd, b, t, 2), in.fext ? in.fext + b * nv : nullptr,
+                         this->input(in.qdd, b, t, 2), this->wrenches(in.fext, b),
                          instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
                          instance_matrix(out.M, b, nv));
     });
@@ -81,7 +86,7 @@ class CpuFdDerivatives final : public CpuDerivativeEngine<S, FdDerivatives<S>> {
         S* qdd = out.qdd.data ? output_row(out.qdd, b, row) : row;
         const Status st = aba_derivatives(this->model_, this->data_[t], this->input(in.q, b, t, 0),
                                           this->input(in.qd, b, t, 1), this->input(in.tau, b, t, 2),
-                                          in.fext ? in.fext + b * nv : nullptr, qdd,
+                                          this->wrenches(in.fext, b), qdd,
                                           instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
                                           instance_matrix(out.dqdd_dtau, b, nv));
         if (out.qdd.data) scatter(qdd, out.qdd, b, nv);

@@ -10,6 +10,15 @@ void rnea_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, cons
                       const S* qdd, const Force<S>* fext, MatrixRef<S> dtau_dq, MatrixRef<S> dtau_dqd,
                       MatrixRef<S> M, S* tau) {
   const Motion<S> a0 = base_acceleration(model.gravity);
+  if (model.multi_dof()) {
+    if (tau)
+      rnea_derivatives_general_instance(model.bodies.data(), model.nbodies(), model.nv(), a0, q, qd, qdd, fext,
+                                        data.work.data(), dtau_dq, dtau_dqd, M, tau);
+    else
+      rnea_derivatives_general_instance(model.bodies.data(), model.nbodies(), model.nv(), a0, q, qd, qdd, fext,
+                                        data.work.data(), dtau_dq, dtau_dqd, M, nullptr);
+    return;
+  }
   if (tau)
     rnea_derivatives_instance(model.bodies.data(), model.nv(), a0, q, qd, qdd, fext, data.work.data(), dtau_dq,
                               dtau_dqd, M, tau);
@@ -24,6 +33,11 @@ Status aba_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, con
                        MatrixRef<S> dqdd_dtau, const S* armature) {
   const Status st = aba(model, data.aba, q, qd, tau, qdd, fext, armature);
   if (!st.ok()) return st;
+  if (model.multi_dof())
+    return Status{fd_derivatives_general_instance(model.bodies.data(), model.nbodies(), model.nv(),
+                                                  base_acceleration(model.gravity), q, qd, static_cast<const S*>(qdd),
+                                                  fext, data.dof_parent.data(), data.work.data(), dqdd_dq, dqdd_dqd,
+                                                  dqdd_dtau, armature)};
   const Index failed = fd_derivatives_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q,
                                                qd, static_cast<const S*>(qdd), fext, data.work.data(), dqdd_dq,
                                                dqdd_dqd, dqdd_dtau, armature);

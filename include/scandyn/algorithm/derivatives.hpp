@@ -6,8 +6,12 @@
 // Matrices are nv x nv, given as MatrixRef (entry (i, j) at data[(i * nv + j) *
 // stride]; stride 1: row-major); every entry is written. Row i is the DoF
 // differentiated, column j the variable: dtau_dq(i, j) = d tau_i / d q_j. Inputs
-// as for rnea / aba (scandyn/algorithm/reference.hpp): nv entries each, fext nv
-// body wrenches in body frames or null, gravity the model's.
+// as for rnea / aba (scandyn/algorithm/reference.hpp): q nq entries, qd, qdd, tau nv,
+// fext nbodies body wrenches in body frames or null, gravity the model's. Models
+// with multi-DoF joints (a floating base, spherical joints) take the general
+// recursion (rnea_derivatives_general_instance): the q columns are then derivatives
+// along the local increments q (+) d = q exp(d) of each joint (nv columns, the
+// tangent space; scandyn/instance/dynamics_derivatives.hpp).
 #pragma once
 
 #include <vector>
@@ -21,9 +25,15 @@ namespace scandyn {
 template <class S>
 struct DerivativeDataTpl {
   explicit DerivativeDataTpl(const ModelTpl<S>& model)
-      : aba(model, /*mass_matrix=*/false), work(static_cast<std::size_t>(model.nv())) {}
+      : aba(model, /*mass_matrix=*/false),
+        work(static_cast<std::size_t>(model.nv())),
+        dof_parent(static_cast<std::size_t>(model.nv())) {
+    dof_parents(model.bodies.data(), model.nbodies(), dof_parent.data());
+  }
   DataTpl<S> aba;                        // the ABA's scratch (aba_derivatives' qdd)
-  std::vector<DerivativeBody<S>> work;   // (nv) world-frame body quantities
+  std::vector<DerivativeBody<S>> work;   // (nv) world-frame body quantities (multi-DoF
+                                         // joints: rnea_derivatives_general_instance's layout)
+  std::vector<Index> dof_parent;         // (nv) the tree of DoFs (dof_parents)
 };
 
 // dtau/dq, dtau/dqd and dtau/dqdd = M at (q, qd, qdd, fext); tau (optional) =

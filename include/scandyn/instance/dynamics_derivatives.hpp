@@ -209,25 +209,194 @@ SCANDYN_HD void rnea_derivatives_instance(const Body<S>* body, Index nv, const M
   }
 }
 
+// ---- multi-DoF joints (a floating base, spherical joints) ----------------------
+// The same recursions for a model with joints of 1, 3 and 6 DoFs (ModelTpl::
+// multi_dof()). Body i's joint has nj = joint_nv columns S_ik (k < nj; world frame:
+// S_ik = X_i^-1 joint_column(b, k), constant in body i's frame), at DoFs idx_v + k;
+// q holds nq entries (b.idx_q's run per joint). The increment of a multi-DoF joint is
+// local, q (+) d = q exp(d) in the child (base) frame as Pinocchio's: to first order
+// that is what scandyn's integrators do (joint_integrate: quat exp(w h / 2) on the
+// right; a free joint's p += R v h), and it moves body i and its subtree rigidly by
+// the world twist S_ik d_k. Hence, for every pair of columns l, k of one joint (not
+// only l before k, as for 1-DoF joints in DoF order):
+//   dS_ik/dq_il = S_il x S_ik            (S_ik is fixed in body i's frame)
+// and for every column l of joint j, with p = lambda(j), v_j = v_p + S_j qd_j,
+// a_j = a_p + S_j qdd_j + v_j x (S_j qd_j), and m in the subtree of j (j included):
+//   dv_m/dq_jl  = S_jl x (v_m - v_p)                     = S_jl x v_m + dV_jl,
+//                 dV_jl = v_p x S_jl
+//   da_m/dq_jl  = S_jl x (a_m - a_p) + dV_jl x (v_m - v_p) = S_jl x a_m + dA_jl + dV_jl x v_m,
+//                 dA_jl = a_p x S_jl + v_p x dV_jl
+// (the second by the Jacobi identity on d(v_n x S_n) = (S_jl x v_n + dV_jl) x S_n +
+// v_n x (S_jl x S_n) over the columns n on the path, the joint's own included): the
+// per-column dV and dA of the 1-DoF recursion. The velocity derivative picks up the
+// joint's own columns differently:
+//   da_m/dqd_jl = S_jl x v_m + dAv_jl,   dAv_jl = v_p x S_jl + v_j x S_jl
+//               = 2 dV_jl + (S_j qd_j) x S_jl
+// (d(v_j x S_j qd_j)/dqd_jl = S_jl x (S_j qd_j) + v_j x S_jl, plus S_jl x (v_m - v_j)
+// from the columns below j); for a 1-DoF joint S_j qd_j x S_j = 0 and dAv = 2 dV. With
+// the body forces' derivatives df_m/dq_jl = S_jl x* f_m + I_m dA_jl + B_m dV_jl and
+// df_m/dqd_jl = I_m dAv_jl + B_m S_jl (B as above), summed over subtrees:
+//   joint j an ancestor of joint i, or j = i (every column pair of the joint):
+//     dtau_ik/dq_jl  = S_ik . (Ic_i dA_jl + Bc_i dV_jl)     (S_ik turns with S_jl: the
+//                                                           S_jl x* F_i terms cancel)
+//     dtau_ik/dqd_jl = S_ik . (Ic_i dAv_jl + Bc_i S_jl)
+//   joint i a proper ancestor of joint j (S_ik does not move):
+//     dtau_ik/dq_jl  = S_ik . Phi_jl,  Phi_jl = S_jl x* F_j + Ic_j dA_jl + Bc_j dV_jl
+//     dtau_ik/dqd_jl = S_ik . Psi_jl,  Psi_jl = Ic_j dAv_jl + Bc_j S_jl
+//   M_ik,jl = S_ik . Ic_i S_jl (i in the subtree of j).
+// At the root's free joint p is the world at rest: dV = 0, dA = a0 x S (gravity turns
+// with the base).
+//
+// Work layout: nv DerivativeBody entries indexed by DoF. Body i's quantities (X, v,
+// a, F, Ic, Bc) live in entry idx_v (its first DoF), column k's (J, dV, dA) in entry
+// idx_v + k; d and t stay per DoF (the forward-dynamics solve's scratch). A 1-DoF body
+// uses one entry as in rnea_derivatives_instance.
+
+// The forward pass of the general recursion: body quantities and per-column J, dV,
+// dA (layout above). q: nq entries; qd, qdd: nv; fext: nb body wrenches or null.
+// Returns whether the bodies form one unbranched chain (then so do the DoFs).
+template <class S>
+SCANDYN_HD bool derivative_forward_pass_general(const Body<S>* body, Index nb, const Motion<S>& a0, const S* q,
+                                                const S* qd, const S* qdd, const Force<S>* fext,
+                                                DerivativeBody<S>* work) {
+  bool chain = true;
+  for (Index i = 0; i < nb; ++i) {
+    const Body<S>& b = body[i];
+    const Index p = b.parent, iv = b.idx_v;
+    const DerivativeBody<S>* parent = p < 0 ? nullptr : work + body[p].idx_v;
+    chain = chain && p == i - 1;
+    DerivativeBody<S>& o = work[iv];
+    if (b.type == JointType::Revolute || b.type == JointType::Prismatic) {
+      derivative_forward_step(b, q[b.idx_q], qd[iv], qdd[iv], fext ? fext + i : nullptr, parent, a0, o);
+      continue;
+    }
+    const Transform<S> Xup = joint_transform_at(b, q + b.idx_q);
+    o.X = parent ? Xup * parent->X : Xup;
+    const Motion<S> vp = parent ? parent->v : Motion<S>::zero();
+    const Motion<S> ap = parent ? parent->a : a0;
+    const Motion<S> vJ = o.X.apply_inverse(joint_motion_at(b, qd + iv));  // S_j qd_j
+    o.v = vp + vJ;
+    o.a = ap + o.X.apply_inverse(joint_motion_at(b, qdd + iv)) + cross(o.v, vJ);
+    const int nj = joint_nv(b.type);
+    for (int k = 0; k < nj; ++k) {
+      DerivativeBody<S>& c = work[iv + k];
+      c.J = o.X.apply_inverse(joint_column(b, k));
+      c.dV = cross(vp, c.J);
+      c.dA = cross(ap, c.J) + cross(vp, c.dV);
+    }
+    o.Ic = b.I.transform_transpose(o.X);
+    o.F = o.Ic * o.a + cross(o.v, o.Ic * o.v);
+    if (fext) o.F -= o.X.apply_transpose(fext[i]);
+    o.Bc = VelocityDerivative<S>::of(o.Ic, o.v);
+  }
+  return chain;
+}
+
+// dAv of column c (DoF) of body b, whose body quantities are in `body_entry`: 2 dV for
+// a 1-DoF joint, dV + v_j x S_jl for a multi-DoF one.
+template <class S>
+SCANDYN_HD Motion<S> column_dAv(const Body<S>& b, const DerivativeBody<S>& body_entry, const DerivativeBody<S>& c) {
+  if (b.type == JointType::Revolute || b.type == JointType::Prismatic) return S(2) * c.dV;
+  return c.dV + cross(body_entry.v, c.J);
+}
+
+// rnea_derivatives_instance for a model with multi-DoF joints: nb bodies, nv DoFs,
+// q of nq entries (plain arrays), fext nb body wrenches in body frames or null, work
+// nv entries (layout above); the three nv x nv blocks (every entry written) and tau
+// (nv, or null) as rnea_derivatives_instance's. Also exact for 1-DoF joints (the
+// same formulas), but those models take rnea_derivatives_instance.
+template <class S, class T, class Mat>
+SCANDYN_HD void rnea_derivatives_general_instance(const Body<S>* body, Index nb, Index nv, const Motion<S>& a0,
+                                                  const S* q, const S* qd, const S* qdd, const Force<S>* fext,
+                                                  DerivativeBody<S>* work, Mat dtau_dq, Mat dtau_dqd, Mat M, T tau) {
+  if (!derivative_forward_pass_general(body, nb, a0, q, qd, qdd, fext, work))
+    for (Index i = 0; i < nv; ++i)
+      for (Index j = 0; j < nv; ++j) dtau_dq(i, j) = dtau_dqd(i, j) = M(i, j) = S(0);
+  for (Index j = nb - 1; j >= 0; --j) {
+    const Body<S>& bj = body[j];
+    const Index jv = bj.idx_v;
+    const DerivativeBody<S>& w = work[jv];
+    for (int l = 0; l < joint_nv(bj.type); ++l) {  // column c = jv + l: row c, and column c above
+      const Index c = jv + l;
+      const DerivativeBody<S>& col = work[c];
+      if constexpr (!std::is_same<T, decltype(nullptr)>::value) tau[c] = dot(col.J, w.F);
+      const Force<S> psi = w.Ic * col.J;               // Ic_j S_jl
+      const Force<S> rho = w.Bc.apply_transpose(col.J);  // Bc_j^T S_jl
+      const Force<S> Phi = cross(col.J, w.F) + w.Ic * col.dA + w.Bc.apply(col.dV);
+      const Force<S> Psi = w.Ic * column_dAv(bj, w, col) + w.Bc.apply(col.J);
+      for (Index i = j; i >= 0; i = body[i].parent) {
+        const Body<S>& bi = body[i];
+        const DerivativeBody<S>& wi = work[bi.idx_v];
+        for (int k = 0; k < joint_nv(bi.type); ++k) {
+          const Index r = bi.idx_v + k;
+          const DerivativeBody<S>& a = work[r];
+          dtau_dq(c, r) = dot(a.dA, psi) + dot(a.dV, rho);
+          dtau_dqd(c, r) = dot(column_dAv(bi, wi, a), psi) + dot(a.J, rho);
+          const S Mcr = dot(a.J, psi);
+          M(c, r) = Mcr;
+          if (i != j) {
+            dtau_dq(r, c) = dot(a.J, Phi);
+            dtau_dqd(r, c) = dot(a.J, Psi);
+            M(r, c) = Mcr;
+          }
+        }
+      }
+    }
+    const Index p = bj.parent;
+    if (p >= 0) {
+      DerivativeBody<S>& wp = work[body[p].idx_v];
+      wp.F += w.F;
+      wp.Ic += w.Ic;
+      wp.Bc += w.Bc;
+    }
+  }
+}
+
 // ---- M = L^T L with the tree's sparsity (Featherstone (2008) 6.5) ---------------
 // L is lower triangular with L_ij != 0 only for j an ancestor of i or i itself (the
 // branch-induced sparsity of M: no fill-in), as the serial ltl_factor / ltl_solve
-// (src/algorithm/reference_impl.hpp), here on a MatrixRef and the bodies' parents.
+// (src/algorithm/reference_impl.hpp), here on a MatrixRef and the tree of DoFs given
+// by Tree: anything whose (i) is the parent DoF of DoF i (-1 at the root).
+// BodyTree: a model of 1-DoF joints, DoF i = body i. DofTree: a model with multi-DoF
+// joints, whose DoFs form a tree too: a joint's DoFs are a chain (DoF idx_v + k's
+// parent is idx_v + k - 1) hanging from the last DoF of the parent body's joint
+// (dof_parents), so M's sparsity, L's and L^-1's are again those of ancestors.
+template <class S>
+struct BodyTree {
+  const Body<S>* body;
+  SCANDYN_HD Index operator()(Index i) const { return body[i].parent; }
+};
+struct DofTree {
+  const Index* parent;  // (nv) parent DoF of each DoF, -1 at the root
+  SCANDYN_HD Index operator()(Index i) const { return parent[i]; }
+};
+
+// parent[c] for the nv DoFs c of a model of nb bodies (any joint types): the DoF
+// before c in its joint, or the last DoF of the parent body's joint, or -1.
+template <class S>
+SCANDYN_HD void dof_parents(const Body<S>* body, Index nb, Index* parent) {
+  for (Index i = 0; i < nb; ++i) {
+    const Body<S>& b = body[i];
+    const Index p = b.parent;
+    parent[b.idx_v] = p < 0 ? Index(-1) : body[p].idx_v + joint_nv(body[p].type) - 1;
+    for (int k = 1; k < joint_nv(b.type); ++k) parent[b.idx_v + k] = b.idx_v + k - 1;
+  }
+}
 
 // In place: A's lower triangle (M) becomes L, M = L^T L. Returns -1, or the DoF whose
 // pivot was not positive and finite. The strict upper triangle is not touched.
-template <class S>
-SCANDYN_HD Index tree_ltl_factor(const Body<S>* body, MatrixRef<S> A) {
+template <class S, class Tree>
+SCANDYN_HD Index tree_ltl_factor(Tree parent, MatrixRef<S> A) {
   for (Index k = A.n - 1; k >= 0; --k) {
     const S d = A(k, k);
     if (!pivot_ok(d)) return k;
     const S Lkk = ScalarMath<S>::sqrt(d);
     A(k, k) = Lkk;
     const S inv = S(1) / Lkk;
-    for (Index i = body[k].parent; i >= 0; i = body[i].parent) A(k, i) *= inv;
-    for (Index i = body[k].parent; i >= 0; i = body[i].parent) {
+    for (Index i = parent(k); i >= 0; i = parent(i)) A(k, i) *= inv;
+    for (Index i = parent(k); i >= 0; i = parent(i)) {
       const S Lki = A(k, i);
-      for (Index j = i; j >= 0; j = body[j].parent) A(i, j) -= Lki * A(k, j);
+      for (Index j = i; j >= 0; j = parent(j)) A(i, j) -= Lki * A(k, j);
     }
   }
   return -1;
@@ -236,8 +405,8 @@ SCANDYN_HD Index tree_ltl_factor(const Body<S>* body, MatrixRef<S> A) {
 // X and Y become -(L^T L)^-1 X and -(L^T L)^-1 Y (L from tree_ltl_factor), by row
 // operations on all their columns at once: one walk up the tree per row, and
 // contiguous (vectorisable) rows when the matrices are row-major.
-template <class S>
-SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
+template <class S, class Tree>
+SCANDYN_HD void tree_ltl_negated_solve(Tree parent, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
   const Index n = L.n;
   // row r of both: row r = a * row r + b * row s
   auto rows = [&](Index r, S a, Index s, S b) {
@@ -248,10 +417,10 @@ SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, Matr
   };
   for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x (row i holds x_i + sum of L_ki y_k when reached)
     rows(i, S(-1) / L(i, i), i, S(0));
-    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(j, S(1), i, L(i, j));
+    for (Index j = parent(i); j >= 0; j = parent(j)) rows(j, S(1), i, L(i, j));
   }
   for (Index i = 0; i < n; ++i) {  // L z = y
-    for (Index j = body[i].parent; j >= 0; j = body[j].parent) rows(i, S(1), j, -L(i, j));
+    for (Index j = parent(i); j >= 0; j = parent(j)) rows(i, S(1), j, -L(i, j));
     rows(i, S(1) / L(i, i), i, S(0));
   }
 }
@@ -261,15 +430,15 @@ SCANDYN_HD void tree_ltl_negated_solve(const Body<S>* body, MatrixRef<S> L, Matr
 // replaces L column by column; the diagonal of L^-1 waits in diag (n scalars) while
 // the upper triangle receives M^-1, which is dense where M is not. row: n scalars of
 // scratch.
-template <class S, class Scratch>
-SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch diag, Scratch row) {
+template <class S, class Tree, class Scratch>
+SCANDYN_HD void tree_ltl_inverse(Tree parent, MatrixRef<S> A, Scratch diag, Scratch row) {
   const Index n = A.n;
   for (Index k = 0; k < n; ++k) {  // column k of L^-1 (columns > k still hold L)
     A(k, k) = S(1) / A(k, k);
     for (Index i = k + 1; i < n; ++i) {
       S s = S(0);
-      Index m = body[i].parent;
-      for (; m > k; m = body[m].parent) s += A(i, m) * A(m, k);
+      Index m = parent(i);
+      for (; m > k; m = parent(m)) s += A(i, m) * A(m, k);
       if (m != k) continue;  // k is not an ancestor of i: the entry stays 0
       s += A(i, k) * A(k, k);
       A(i, k) = -s / A(i, i);
@@ -280,13 +449,13 @@ SCANDYN_HD void tree_ltl_inverse(const Body<S>* body, MatrixRef<S> A, Scratch di
   // j of L^-1 scattered into `row`, then each i <= j walks its own ancestors
   auto linv = [&](Index r, Index k) { return r == k ? S(diag[r]) : A(r, k); };
   for (Index j = 0; j < n; ++j) {
-    for (Index k = j; k >= 0; k = body[k].parent) row[k] = linv(j, k);
+    for (Index k = j; k >= 0; k = parent(k)) row[k] = linv(j, k);
     for (Index i = 0; i <= j; ++i) {
       S s = S(0);
-      for (Index k = i; k >= 0; k = body[k].parent) s += linv(i, k) * row[k];
+      for (Index k = i; k >= 0; k = parent(k)) s += linv(i, k) * row[k];
       A(i, j) = s;
     }
-    for (Index k = j; k >= 0; k = body[k].parent) row[k] = S(0);
+    for (Index k = j; k >= 0; k = parent(k)) row[k] = S(0);
   }
   for (Index i = 0; i < n; ++i)
     for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
@@ -422,6 +591,27 @@ SCANDYN_PACKED_UNROLL
   return -1;
 }
 
+// The forward-dynamics solve by the tree walks on the inverse-dynamics derivatives
+// in the three blocks (dtau/dq, dtau/dqd, M + diag(armature) in; dqdd/dq, dqdd/dqd,
+// M^-1 out), over the tree of DoFs `parent` (BodyTree or DofTree); work: nv entries
+// whose d and t fields are scratch. Returns -1, or the DoF whose pivot failed.
+template <class S, class Tree>
+SCANDYN_HD Index tree_fd_solve(Tree parent, Index nv, DerivativeBody<S>* work, MatrixRef<S> dqdd_dq,
+                               MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau, const S* armature) {
+  if (armature)
+    for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
+  const Index failed = tree_ltl_factor(parent, dqdd_dtau);
+  if (failed >= 0) return failed;
+  tree_ltl_negated_solve(parent, dqdd_dtau, dqdd_dq, dqdd_dqd);
+  struct Field {  // one scalar field of the work array
+    DerivativeBody<S>* w;
+    S DerivativeBody<S>::*f;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+  };
+  tree_ltl_inverse(parent, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+  return -1;
+}
+
 // Forward-dynamics derivatives of one instance at qdd = FD(q, qd, tau, fext) (the
 // caller's, e.g. from the ABA): dqdd_dq, dqdd_dqd, dqdd_dtau = M^-1 (nv x nv each,
 // every entry written). Returns -1, or the DoF whose pivot of M = L^T L was not
@@ -444,19 +634,24 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
   if constexpr (C > 0 && C <= kPackedLtlCapacity) {
     return packed_fd_solve<C>(dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
   } else {
-    if (armature)
-      for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
-    const Index failed = tree_ltl_factor(body, dqdd_dtau);
-    if (failed >= 0) return failed;
-    tree_ltl_negated_solve(body, dqdd_dtau, dqdd_dq, dqdd_dqd);
-    struct Field {  // one scalar field of the work array
-      DerivativeBody<S>* w;
-      S DerivativeBody<S>::*f;
-      SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
-    };
-    tree_ltl_inverse(body, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
-    return -1;
+    return tree_fd_solve(BodyTree<S>{body}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
   }
+}
+
+// fd_derivatives_instance for a model with multi-DoF joints (arguments as
+// rnea_derivatives_general_instance; qdd: the caller's FD(q, qd, tau, fext), nv
+// entries; dof_parent: the nv DoF parents, dof_parents): M = L^T L factored with the
+// tree sparsity at the DoF level (a multi-DoF joint's DoFs form a chain), by the tree
+// walks over the output blocks. Returns as fd_derivatives_instance.
+template <class S>
+SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, Index nv, const Motion<S>& a0,
+                                                 const S* q, const S* qd, const S* qdd, const Force<S>* fext,
+                                                 const Index* dof_parent, DerivativeBody<S>* work,
+                                                 MatrixRef<S> dqdd_dq, MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau,
+                                                 const S* armature = nullptr) {
+  rnea_derivatives_general_instance(body, nb, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau,
+                                    nullptr);
+  return tree_fd_solve(DofTree{dof_parent}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
 }
 
 }  // namespace scandyn
