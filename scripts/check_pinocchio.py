@@ -7,9 +7,11 @@ shuffled joint names), runs `scandyn eval --algo id,fd,mass,bias,did,dfd` on
 random states and compares every column with Pinocchio's rnea, aba, crba,
 nonLinearEffects, computeRNEADerivatives and computeABADerivatives (derivatives
 with respect to the tangent of q: one column per DoF, continuous joints
-included). With a floating base (--base floating or both) id, fd, mass and bias
+included). With a floating base (--base floating or both) the same algorithms
 on `--floating-base` models against Pinocchio's JointModelFreeFlyer (its velocity
-block [v; w] reordered to scandyn's [w; v], its wrench [f; n] to [n; f]), and on
+block [v; w] reordered to scandyn's [w; v], its wrench [f; n] to [n; f], rows and
+columns of the derivatives alike; both take q derivatives along the joint's local
+increment q (+) d, nv columns), and on
 ropes of ball joints (ballrope:N, fixed and free) and free rope:N against models
 built here in Python from the generators' geometry (docs/models.md) with
 JointModelSpherical. On fixed-base models then `scandyn eval --algo fk,jac` (every
@@ -156,18 +158,16 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
                        ['qdd_%d' % i for i in range(nv)] + ['tau_%d' % i for i in range(nv)])
             for k in range(states):
                 w.writerow(['%.17g' % x for x in np.concatenate([Q[k], QD[k], QDD[k], TAU[k]])])
-        multi = floating or spec is not None  # multi-DoF joints: no derivatives (did, dfd take 1-DoF joints)
-        algos = 'id,fd,mass,bias' + ('' if multi else ',did,dfd')
+        algos = 'id,fd,mass,bias,did,dfd'
         subprocess.run([scandyn, 'eval', '--model', spec or urdf_path, '--states', inp, '--out', out,
                         '--algo', algos, '--precision', precision]
                        + (['--allow-nonphysical-inertia'] if lenient else [])
                        + (['--floating-base'] if floating else []), check=True)
         with open(out) as fh:
             rows = list(csv.DictReader(fh))
-    worst = {'id': 0.0, 'fd': 0.0, 'mass': 0.0, 'bias': 0.0}
-    if not multi:
-        worst.update({'did': 0.0, 'dfd': 0.0})
+    worst = {'id': 0.0, 'fd': 0.0, 'mass': 0.0, 'bias': 0.0, 'did': 0.0, 'dfd': 0.0}
     inv = np.argsort(perm)  # ours = pin[inv]
+    ours = np.ix_(inv, inv)  # a Pinocchio nv x nv matrix in scandyn's DoF order (rows and columns)
     for k, row in enumerate(rows):
         q = pin_q(model, Q[k])
         v, a, t = QD[k][perm], QDD[k][perm], TAU[k][perm]
@@ -176,11 +176,15 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         M = pin.crba(model, data, q)
         M = (np.triu(M) + np.triu(M, 1).T)[np.ix_(inv, inv)]
         h = pin.nonLinearEffects(model, data, q, v)[inv]
-        if not multi:  # perm is the identity
-            dtau_dq, dtau_dqd, dtau_dqdd = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, v, a))
-            dtau_dqdd = np.triu(dtau_dqdd) + np.triu(dtau_dqdd, 1).T
-            dqdd_dq, dqdd_dqd, dqdd_dtau = (np.array(x) for x in pin.computeABADerivatives(model, data, q, v, t))
-            dqdd_dtau = np.triu(dqdd_dtau) + np.triu(dqdd_dtau, 1).T
+        # the derivatives: Pinocchio's q columns are along its local increments q (+) d
+        # (a free joint's d = [v; w] in the base frame, a spherical joint's w in the
+        # child frame), scandyn's too ([w; v] for the free joint: the permutation)
+        dtau_dq, dtau_dqd, dtau_dqdd = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, v, a))
+        dtau_dqdd = np.triu(dtau_dqdd) + np.triu(dtau_dqdd, 1).T
+        dtau_dq, dtau_dqd, dtau_dqdd = dtau_dq[ours], dtau_dqd[ours], dtau_dqdd[ours]
+        dqdd_dq, dqdd_dqd, dqdd_dtau = (np.array(x) for x in pin.computeABADerivatives(model, data, q, v, t))
+        dqdd_dtau = np.triu(dqdd_dtau) + np.triu(dqdd_dtau, 1).T
+        dqdd_dq, dqdd_dqd, dqdd_dtau = dqdd_dq[ours], dqdd_dqd[ours], dqdd_dtau[ours]
 
         def err(name, ref, cols):
             got = np.array([float(row[c]) for c in cols])
@@ -203,11 +207,22 @@ def check(scandyn, urdf_path, label, states, tol, precision='double', lenient=Fa
         def matrix(prefix):
             return ['%s_%d_%d' % (prefix, i, j) for i in range(nv) for j in range(nv)]
 
-        if not multi:
-            err('did', np.concatenate([dtau_dq.ravel(), dtau_dqd.ravel(), dtau_dqdd.ravel()]),
-                matrix('dtau_dq') + matrix('dtau_dqd') + matrix('dtau_dqdd'))
-            err('dfd', np.concatenate([dqdd_dq.ravel(), dqdd_dqd.ravel(), dqdd_dtau.ravel()]),
-                matrix('dqdd_dq') + matrix('dqdd_dqd') + matrix('dqdd_dtau'))
+        err('did', np.concatenate([dtau_dq.ravel(), dtau_dqd.ravel(), dtau_dqdd.ravel()]),
+            matrix('dtau_dq') + matrix('dtau_dqd') + matrix('dtau_dqdd'))
+        # dfd: the difference from Pinocchio's, or (ill-conditioned M, as for fd: ball-joint
+        # ropes) the normwise backward error of the three solves M X = R, with M and R =
+        # -dtau/dq, -dtau/dqd, 1 from Pinocchio at scandyn's qdd
+        ref = np.concatenate([dqdd_dq.ravel(), dqdd_dqd.ravel(), dqdd_dtau.ravel()])
+        cols = matrix('dqdd_dq') + matrix('dqdd_dqd') + matrix('dqdd_dtau')
+        got = np.array([float(row[c]) for c in cols])
+        direct = np.max(np.abs(got - ref)) / max(1.0, np.max(np.abs(ref)))
+        qdd_ours = np.array([float(row['qdd_fd_%d' % i]) for i in range(nv)])
+        rq, rqd, _ = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, v, qdd_ours[perm]))
+        backward = 0.0
+        for X, R in zip(got.reshape(3, nv, nv), (-rq[ours], -rqd[ours], np.eye(nv))):
+            backward = max(backward, np.max(np.abs(M @ X - R)) /
+                           (np.max(np.abs(M).sum(1)) * np.max(np.abs(X)) + np.max(np.abs(R))))
+        worst['dfd'] = max(worst['dfd'], min(direct, backward))
     if spec is None:  # kinematics: the URDF models, fixed and floating (the frames are the URDF's links)
         worst.update(check_kinematics(scandyn, urdf_path, model, Q, precision, lenient, floating))
     ok = all(v <= tol for v in worst.values())

@@ -171,18 +171,18 @@ BatchStatus AlgoEngine<S>::run(const BatchIn<S>& in, S* out) {
                             BatchView<S>::aos(out, nv, B));
       case Algo::DId: {
         const auto block = derivative_blocks(out, algo_, nv, B);
-        did_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+        did_->compute(IdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
                       IdDerivativesOut<S>{block[0], block[1], block[2]});
         return {};
       }
       case Algo::DFd: {
         const auto block = derivative_blocks(out, algo_, nv, B);
-        return dfd_->compute(FdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
+        return dfd_->compute(FdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.tau, nv, B)},
                              FdDerivativesOut<S>{block[0], block[1], block[2], {}});
       }
       case Algo::D2Id: {
         const auto block = derivative_blocks(out, algo_, nv, B);
-        d2id_->compute(IdBatchIn<S>{V::aos(in.q, nv, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
+        d2id_->compute(IdBatchIn<S>{V::aos(in.q, nq, B), V::aos(in.qd, nv, B), V::aos(in.qdd, nv, B)},
                        IdSecondDerivativesOut<S>{block[0], block[1], block[2], {}});
         return {};
       }
