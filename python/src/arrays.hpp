@@ -193,26 +193,36 @@ BatchView<S> matrix_view_of(const OutArray& out, Index nv, const char* name, Lea
   return block_view_of<S>(out, nv, 2, name, lead);
 }
 
-// The inputs (q, qd, qdd) of an inverse-dynamics engine's call on a model with nq = nv
-// (the derivative engines), (B, nv) or (nv,) each; lead: their batch and device.
+// The inputs (q, qd, qdd) of an inverse-dynamics engine's call: q (B, nq) or (nq,), qd
+// and qdd (B, nv) or (nv,); lead: their batch and device. (The first-order derivative
+// engines take quaternion models, nq > nv.)
 template <class S>
-IdBatchIn<S> id_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
+IdBatchIn<S> id_inputs(Index nq, Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
   IdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, nq, "q", lead, true, nq == nv ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.qdd = view_of<const S>(qdd, nv, "qdd", lead, false);
   return in;
 }
-
-// The inputs (q, qd, tau) of a forward-dynamics engine's call on a model with nq = nv
-// (its derivative, directional and loop engines, the step's), as id_inputs.
+// ... on a model with nq = nv (the second-order derivative engine)
 template <class S>
-FdBatchIn<S> fd_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& tau, Lead& lead) {
+IdBatchIn<S> id_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& qdd, Lead& lead) {
+  return id_inputs<S>(nv, nv, q, qd, qdd, lead);
+}
+
+// The inputs (q, qd, tau) of a forward-dynamics engine's call, as id_inputs.
+template <class S>
+FdBatchIn<S> fd_inputs(Index nq, Index nv, const InArray& q, const InArray& qd, const InArray& tau, Lead& lead) {
   FdBatchIn<S> in;
-  in.q = view_of<const S>(q, nv, "q", lead, true);
+  in.q = view_of<const S>(q, nq, "q", lead, true, nq == nv ? "nv" : "nq");
   in.qd = view_of<const S>(qd, nv, "qd", lead, false);
   in.tau = view_of<const S>(tau, nv, "tau", lead, false);
   return in;
+}
+// ... on a model with nq = nv (the directional, loop and step engines)
+template <class S>
+FdBatchIn<S> fd_inputs(Index nv, const InArray& q, const InArray& qd, const InArray& tau, Lead& lead) {
+  return fd_inputs<S>(nv, nv, q, qd, tau, lead);
 }
 
 // Out arrays: distinct elements must not share memory (a broadcast view would have

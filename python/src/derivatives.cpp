@@ -89,7 +89,7 @@ void id_derivatives_compute(PyIdDerivatives& e, const InArray& q, const InArray&
                             const OutArray& dq, const OutArray& dqd, const OutArray& M, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
-  const IdBatchIn<S> in = id_inputs<S>(nv, q, qd, qdd, lead);
+  const IdBatchIn<S> in = id_inputs<S>(e.nq(), nv, q, qd, qdd, lead);
   const IdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dtau_dq", lead),
                                 matrix_view_of<S>(dqd, nv, "dtau_dqd", lead), matrix_view_of<S>(M, nv, "M", lead)};
   check_max_batch(lead, e.max_batch);
@@ -123,7 +123,7 @@ CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const In
                                   const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
   const Index nv = e.nv();
   Lead lead;
-  const FdBatchIn<S> in = fd_inputs<S>(nv, q, qd, tau, lead);
+  const FdBatchIn<S> in = fd_inputs<S>(e.nq(), nv, q, qd, tau, lead);
   const FdDerivativesOut<S> out{matrix_view_of<S>(dq, nv, "dqdd_dq", lead),
                                 matrix_view_of<S>(dqd, nv, "dqdd_dqd", lead),
                                 matrix_view_of<S>(dtau, nv, "dqdd_dtau", lead), view_of<S>(qdd, nv, "qdd", lead, false)};

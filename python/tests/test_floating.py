@@ -112,3 +112,55 @@ def test_simulator_state_has_nq_positions():
     np.testing.assert_allclose(s.q[:, 2] - z0, -0.5 * 9.81 * 0.1 ** 2, rtol=1e-9)
     with pytest.raises(sd.ShapeError, match=r"\(4, %d\)" % s.nv):
         s.step(np.zeros((4, s.nq)))
+
+
+def test_floating_first_order_derivatives():
+    """id_derivatives / fd_derivatives take a floating base and ball joints: q (B, nq),
+    (B, nv, nv) results; M against mass_matrix, dqdd/dtau M = 1, dqdd/dq = -M^-1 dtau/dq
+    at qdd = FD (1e-9), serial == openmp, and (when installed) Pinocchio's
+    computeRNEADerivatives / computeABADerivatives on the free flyer (1e-9 relative)."""
+    import scandyn.autograd as ad
+
+    # (spec, floating base, where q's quaternions start)
+    for spec, floating, starts in (("hyq", True, [3]), ("ballrope:3", False, [0, 4, 8]),
+                                   ("ballrope:3", True, [3, 7, 11])):
+        m = sd.load_model(spec, floating_base=floating)
+        rng = np.random.default_rng(5)
+        q = rng.uniform(-1, 1, (3, m.nq))
+        for s in starts:
+            q[:, s:s + 4] /= np.linalg.norm(q[:, s:s + 4], axis=1, keepdims=True)
+        qd, x = rng.uniform(-1, 1, (3, m.nv)), rng.uniform(-1, 1, (3, m.nv))
+        dq, dqd, M = ad.id_derivatives(m, q, qd, x)
+        assert dq.shape == (3, m.nv, m.nv)
+        np.testing.assert_allclose(M, sd.mass_matrix(m, q), rtol=0, atol=1e-12 * max(1, np.abs(M).max()))
+        qdd, fq, fqd, ft = ad.fd_derivatives(m, q, qd, x)
+        eye = np.broadcast_to(np.eye(m.nv), M.shape)
+        np.testing.assert_allclose(ft @ M, eye, rtol=0, atol=1e-9)
+        tq, tqd, _ = ad.id_derivatives(m, q, qd, qdd)
+        np.testing.assert_allclose(fq, -ft @ tq, rtol=0, atol=1e-9 * max(1, np.abs(fq).max()))
+        np.testing.assert_allclose(fqd, -ft @ tqd, rtol=0, atol=1e-9 * max(1, np.abs(fqd).max()))
+        serial = ad.IdDerivatives(m, backend="serial", max_batch=3)(q, qd, x)
+        openmp = ad.IdDerivatives(m, backend="openmp", max_batch=3, threads=2)(q, qd, x)
+        for a, b in zip(serial, openmp):
+            np.testing.assert_array_equal(a, b)
+        with pytest.raises(sd.ShapeError, match="nq = %d" % m.nq):
+            ad.id_derivatives(m, q[:, :m.nv], qd, x)
+    pin = pytest.importorskip("pinocchio")
+    import scandyn.models
+
+    m = sd.load_model("hyq", floating_base=True)
+    pm = pin.buildModelFromUrdf(scandyn.models.path("hyq"), pin.JointModelFreeFlyer())
+    pd = pm.createData()
+    rng = np.random.default_rng(6)
+    q, qd, tau = random_state(m, 3, rng)
+    qdd, fq, fqd, ft = ad.fd_derivatives(m, q, qd, tau)
+    dq, dqd, M = ad.id_derivatives(m, q, qd, qdd)
+    perm = np.r_[3, 4, 5, 0, 1, 2, 6:18]  # pin vector = ours[perm], its own inverse
+    ours = np.ix_(perm, perm)
+    for k in range(3):
+        for got, ref in zip((dq[k], dqd[k]), pin.computeRNEADerivatives(pm, pd, q[k], qd[k][perm], qdd[k][perm])):
+            ref = np.array(ref)[ours]
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * max(1, np.abs(ref).max()))
+        for got, ref in zip((fq[k], fqd[k]), pin.computeABADerivatives(pm, pd, q[k], qd[k][perm], tau[k][perm])):
+            ref = np.array(ref)[ours]
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * max(1, np.abs(ref).max()))
