@@ -42,6 +42,8 @@ asan_build=${SCANDYN_ASAN_BUILD_DIR:-build-asan}
 stamp() { printf '\n==== [%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
 start=$SECONDS
 failed=()
+# what failed, one line each, repeated at the end (CI shows the log's tail)
+failed_tests=()
 
 if [[ "${SCANDYN_SKIP_SETUP:-0}" != 1 ]]; then
   stamp "setup"
@@ -105,6 +107,14 @@ test_stage() {
   local rc=0
   ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" "$@" || rc=1
   show_skips "$dir"
+  if ((rc)); then
+    local log=$dir/Testing/Temporary/LastTestsFailed.log
+    if [[ -s "$log" ]]; then
+      while IFS= read -r line; do failed_tests+=("$name: ${line#*:}"); done <"$log"
+    else
+      failed_tests+=("$name: ctest failed without a list of failed tests")
+    fi
+  fi
   return "$rc"
 }
 
@@ -149,13 +159,15 @@ if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF 
      [[ ! -x "$build/bench/pinocchio_second_order" ]]; then
     stamp "release: configure again for bench/pinocchio_second_order (.venv has Pinocchio's headers now)"
     if cmake -S . -B "$build" >/dev/null && cmake --build "$build" --target help | grep -q 'pinocchio_second_order'; then
-      cmake --build "$build" --parallel "$jobs" --target pinocchio_second_order || failed+=(release)
+      cmake --build "$build" --parallel "$jobs" --target pinocchio_second_order ||
+        { failed+=(release); failed_tests+=("release: building bench/pinocchio_second_order failed"); }
     fi
   fi
   test_stage release "$build" || failed+=(release)
   release_built=1
 else
   failed+=(release)
+  failed_tests+=("release: configure or build failed")
   release_built=0
 fi
 wait_python
@@ -184,7 +196,7 @@ python_stage() {
 if [[ "${SCANDYN_SKIP_PYTHON:-0}" == 1 ]]; then
   echo "test.sh: warning: SCANDYN_SKIP_PYTHON=1: the Python package's tests are skipped" >&2
 elif [[ "$release_built" == 1 ]]; then
-  python_stage || failed+=(python)
+  python_stage || { failed+=(python); failed_tests+=("python: module build or pytest failed (pytest's short test summary above)"); }
 else
   failed+=(python)
 fi
@@ -239,6 +251,7 @@ if [[ "${SCANDYN_SKIP_ASAN:-0}" != 1 ]]; then
     test_stage asan "$asan_build" -E "$asan_long" || failed+=(asan)
   else
     failed+=(asan)
+    failed_tests+=("asan: configure or build failed")
   fi
 fi
 wait_report
@@ -254,6 +267,10 @@ fi
 
 elapsed=$((SECONDS - start))
 if ((${#failed[@]})); then
+  if ((${#failed_tests[@]})); then
+    echo "what failed (stage: test or step; the stage's output above has the details):"
+    printf '  %s\n' "${failed_tests[@]}"
+  fi
   stamp "FAILED: ${failed[*]} ($((elapsed / 60))m$((elapsed % 60))s)"
   exit 1
 fi

@@ -17,6 +17,7 @@
 #include <random>
 #include <string>
 #include <vector>
+#include <unistd.h>
 
 #include "scandyn/model/load.hpp"
 #include "test_util.hpp"
@@ -675,7 +676,8 @@ TEST(Validation, FilesAndSpecs) {
   expect_error([] { load_model("/nonexistent/robot.urdf"); }, {"/nonexistent/robot.urdf: cannot open file: No such file or directory"});
   const std::string dir = ::testing::TempDir();
   expect_error([&] { load_model(dir); }, {dir + ": not a regular file (a directory)"});
-  const std::string path = dir + "/scandyn_test_model_empty.urdf";
+  // per process: two build trees' tests may run at once on one machine
+  const std::string path = dir + "/scandyn_test_model_empty_" + std::to_string(::getpid()) + ".urdf";
   { std::ofstream f(path); }
   expect_error([&] { load_urdf(path); }, {path + ": ", "empty"});
   {
