@@ -46,6 +46,7 @@ struct VariationalThreadScratch {
   S zero[C], q1[C], qm[C], v[C], p0[C], tau_m[C], tau_g[C], f[C], eq[C], eqd[C], r[C], work[C], dtv[C];  // (nv)
   Index piv[C];                          // (nv) LU's row exchanges
   DerivativeBody<S> deriv[C];            // (nv) the first- and second-order passes' bodies
+  WeightedDq2Body<S> hsums[C];           // (nv) H's per-body sums
   // (nv) rnea_general / aba_general: transforms, velocities, accelerations, velocity
   // products, forces, articulated inertias, U = IA S, D = S^T U, u
   Transform<S> Xup[C];
@@ -63,7 +64,7 @@ struct VariationalThreadScratch {
     S* const m = matrices + b;
     auto mat = [&](int k) { return MatrixRef<S>{m + k * one, n, static_cast<std::ptrdiff_t>(B)}; };
     return {zero, q1, qm, v, p0, tau_m, tau_g, f, eq, eqd, r, work, dtv, mat(0), mat(1), mat(2), mat(3), mat(4), mat(5),
-            piv, deriv, GeneralWork<S>{Xup, vb, ab, cb, fb, nullptr, IA, U, D, u, nullptr}};
+            piv, deriv, hsums, GeneralWork<S>{Xup, vb, ab, cb, fb, nullptr, IA, U, D, u, nullptr}};
   }
 };
 

@@ -7,7 +7,8 @@ namespace scandyn {
 template <class S>
 SecondDerivativeData<S>::SecondDerivativeData(const ModelTpl<S>& m)
     : work(static_cast<std::size_t>(m.nv())), wrenches(static_cast<std::size_t>(m.nv())),
-      block(static_cast<std::size_t>(m.nv()) * m.nv()), plain(static_cast<std::size_t>(m.nv())) {
+      block(static_cast<std::size_t>(m.nv()) * m.nv()), plain(static_cast<std::size_t>(m.nv())),
+      sums(static_cast<std::size_t>(m.nv())) {
   bodies.reserve(m.bodies.size());
   for (const Body<S>& b : m.bodies) bodies.push_back(b.template cast<Dual<S>>());
 }
@@ -47,7 +48,7 @@ void rnea_weighted_dq2(const ModelTpl<S>& model, SecondDerivativeData<S>& data, 
   }
   const Index n = model.nv();
   rnea_weighted_dq2_analytic_instance(model.bodies.data(), n, base_acceleration(model.gravity), q, qd, qdd, fext, w,
-                                      data.plain.data(), MatrixRef<S>{out, n, 1});
+                                      data.plain.data(), data.sums.data(), MatrixRef<S>{out, n, 1});
 }
 
 template <class S>

@@ -42,6 +42,7 @@ struct SecondDerivativeData {
   std::vector<Force<Dual<S>>> wrenches;       // (nv) the body wrenches in dual numbers
   std::vector<S> block;  // (nv x nv, row-major) rnea_weighted_dq2_dual: d/dq_k of dtau/dq in one pass
   std::vector<DerivativeBody<S>> plain;       // (nv) the analytical recursion's world-frame body quantities
+  std::vector<WeightedDq2Body<S>> sums;       // (nv) rnea_weighted_dq2: the weighted recursion's per-body sums
 };
 
 // The second derivatives of tau = ID(q, qd, qdd, fext) (tensors as above, every entry
@@ -66,7 +67,7 @@ void rnea_second_derivatives_dual(const ModelTpl<S>& model, SecondDerivativeData
 // entry written), the q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w, gravity
 // included. Models of 1-DoF joints: the analytical recursion's weighted variant
 // (rnea_weighted_dq2_analytic_instance, instance/second_derivatives_analytic.hpp:
-// O(sum of depth^2) triples, the nv^3 entries never formed), which the variational
+// O(sum of depth) pairs, as the first-order recursion; no nv^3 entry formed), which the variational
 // integrator's exact Newton Jacobian runs on every backend
 // (scandyn/sim/variational_instance.hpp); other models: rnea_weighted_dq2_dual.
 template <class S>

@@ -3,8 +3,11 @@
 // __host__ __device__: what rnea_second_derivatives (scandyn/algorithm/
 // second_derivatives.hpp), the CPU engines (cpu_fallback/second_derivatives.cpp) and
 // the CUDA kernel (kernels/second_derivatives.cu) run for models of 1-DoF joints
-// (revolute, prismatic) on a fixed base. The dual-number passes of
-// scandyn/instance/second_derivatives_instance.hpp stay as the independent reference.
+// (revolute, prismatic) on a fixed base; and its weighted contraction
+// (rnea_weighted_dq2_analytic_instance, at the end: sum_i w_i d2tau_i/dq dq in
+// O(nv depth), the variational integrator's Newton Jacobian term). The dual-number
+// passes of scandyn/instance/second_derivatives_instance.hpp stay as the independent
+// reference of both.
 //
 // The algorithm is the second-order IDSVA recursion of S. Singh, R. P. Russell and
 // P. M. Wensing, "Efficient Analytical Derivatives of Rigid-Body Dynamics Using
@@ -236,89 +239,125 @@ SCANDYN_HD void rnea_second_derivatives_analytic_instance(const Body<S>* body, I
   }
 }
 
+// The weighted recursion's per-body sums (rnea_weighted_dq2_analytic_instance's
+// scratch, 28 scalars per body).
+template <class S>
+struct WeightedDq2Body {
+  Motion<S> Pi;   // sum over the path root..i of w_y S_y
+  Force<S> s1;    // sum over i's subtree of w_c Ic_c S_c
+  Force<S> s2;    // sum over i's subtree of w_c Bc_c^T S_c
+  Inertia<S> N;   // sum over i's subtree of w_c (S_c x* Ic_c - Ic_c S_c x) (inertia_rate)
+};
+
+// S x* I - I S x as an inertia (m, h, Ibar): the rate of the inertia I of a body
+// moving with the twist S = (w, u) (mass rate 0, h' = w x h + m u, Ibar' = [w]x Ibar -
+// Ibar [w]x - (u h^T + h u^T) + 2 (u . h) 1), what Ic_c turns by per unit q_c; a
+// symmetric operator on motions, summed over subtrees like an inertia.
+template <class S>
+SCANDYN_HD Inertia<S> inertia_rate(const Motion<S>& s, const Inertia<S>& I) {
+  const Mat3<S> WI = skew(s.w) * I.I.full();
+  Sym3<S> Ib{S(2) * WI.m[0], S(2) * WI.m[4], S(2) * WI.m[8], WI.m[1] + WI.m[3], WI.m[2] + WI.m[6], WI.m[5] + WI.m[7]};
+  Ib = Ib - sym_outer2(s.v, I.h);
+  const S uh = S(2) * dot(s.v, I.h);
+  Ib.xx += uh;
+  Ib.yy += uh;
+  Ib.zz += uh;
+  return {S(0), cross(s.w, I.h) + I.m * s.v, Ib};
+}
+
 // The contraction of d2tau_dq2 with a weight w on tau, by the same recursion without
 // the nv^3 tensor: out(j, k) = sum_i w_i d^2 tau_i / dq_j dq_k (nv x nv, symmetric,
 // every entry written), the q-Hessian of w^T ID(q, qd, qdd, fext) for fixed w (the
 // variational integrator's H, scandyn/sim/variational_instance.hpp). Arguments as
 // rnea_second_derivatives_analytic_instance's, plus w (nv); work: nv DerivativeBody
-// entries of scratch (the first-order recursion's; nothing else).
+// entries of scratch (the first-order recursion's), sums: nv WeightedDq2Body.
 //
-// Of the triple (a, b, c), a <= b <= c, only the d2tau_dq2 entries are formed, each
-// weighted by the w of its first index and added to out's entry of its other two:
-//   w_c (dA_a . P1 + dV_a . P2)   -> out(b, a)   (T(c, b, a) = T(c, a, b))
-//   w_a (S_a . K)                 -> out(c, b)   (T(a, c, b) = T(a, b, c); not for a = b = c)
-//   w_b (dA_a . Q1 + dV_a . Q2)   -> out(c, a)   (T(b, a, c) = T(b, c, a); a < b < c only)
-// with the pair's P1, P2, Q1, Q2, K of the full recursion (w_c folded into P1, P2 and
-// w_b into Q1, Q2 once per pair, the w_a S_a . K summed over a before one store). Each
-// tensor entry with indices {a, b, c} is counted once: out is accumulated in its
-// lower triangle (row >= column: the deeper DoF first, ancestors having smaller
-// indices), where the two entries of a pair of distinct indices land on one entry and
-// coinciding indices on the diagonal, then mirrored. Work: per pair (b, c) the five
-// force 6-vectors (not K2, K3, Psi, nor the other tensors' products), per triple 3 to
-// 5 dot products; no tensor, no dual numbers.
+// Of the triple (a, b, c), a <= b <= c, only the d2tau_dq2 entries count, each
+// weighted by the w of its first index and added to out's entry of its other two
+// (out's lower triangle: row >= column, the deeper DoF first):
+//   w_c (dA_a . P1(b, c) + dV_a . P2(b, c))  -> out(b, a)   (T(c, b, a) = T(c, a, b))
+//   w_a (S_a . K(b, c))                       -> out(c, b)   (T(a, c, b); not for a = b = c)
+//   w_b (dA_a . Q1(b, c) + dV_a . Q2(b, c))  -> out(c, a)   (T(b, a, c); a < b < c only)
+// with the pair vectors of rnea_second_derivatives_analytic_instance. Each sum over
+// the third index collapses into per-body sums, since P1, P2 are linear in c's
+// composites and Q1, Q2 in S_b:
+//   sum_c w_c P1(b, c) = S_b x* s1_b,
+//   sum_c w_c P2(b, c) = dV_b x* s1_b + S_b x* s2_b - N_b dV_b   (c over b's subtree),
+//   sum_{a<b<c} w_b Q1(b, c) = N'_c d,  sum w_b Q2(b, c) = R_c d,  d = Pi_lambda(c) - Pi_a,
+//   sum_{a<=b} w_a S_a . K(b, c) = Pi_b . K(b, c)   (Pi_lambda(c) for b = c),
+// where s1, s2, N (WeightedDq2Body) are subtree sums of w_c Ic_c S_c, w_c Bc_c^T S_c and
+// w_c N'_c, N'_c = S_c x* Ic_c - Ic_c S_c x (inertia_rate), R_c m = S_c x* Bc_c^T m -
+// Bc_c^T (S_c x m) + B(Ic_c, dV_c)^T m, and Pi_y the path sums of w S. So entry (x, y),
+// y an ancestor of x or x, is complete at x's turn of the backward pass:
+//   out(x, y) = dA_y . (S_x x* s1_x) + dV_y . (dV_x x* s1_x + S_x x* s2_x - N_x dV_x)
+//             + Pi'_y . K(y, x) + [y < x] (dA_y . N'_x d + dV_y . R_x d),  d = Pi_lambda(x) - Pi_y.
+// Work: O(sum over bodies of depth) pairs (the first-order recursion's count), no
+// triples, no tensor, no dual numbers.
 template <class S, class V>
 SCANDYN_HD void rnea_weighted_dq2_analytic_instance(const Body<S>* body, Index nv, const Motion<S>& a0, V q, V qd,
                                                     V qdd, const Force<S>* fext, const S* w, DerivativeBody<S>* work,
-                                                    MatrixRef<S> out) {
-  // forward: world-frame S, v, a, dV, dA, body inertias, forces and B
-  derivative_forward_pass(body, nv, a0, q, qd, qdd, fext, work);
-  for (Index i = 0; i < nv; ++i)
-    for (Index j = 0; j <= i; ++j) out(i, j) = S(0);
-  // backward: body c, its ancestors b <= c, theirs a <= b
-  for (Index c = nv - 1; c >= 0; --c) {
-    const DerivativeBody<S>& wc = work[c];
-    const Inertia<S>& Ic = wc.Ic;             // composite inertia of c's subtree
-    const VelocityDerivative<S>& Bc = wc.Bc;  // composite B of c's subtree
-    const Motion<S>& Sc = wc.J;
-    const Motion<S>& dVc = wc.dV;
-    const S w_c = w[c];
-    const Force<S> f1 = Ic * Sc;                 // Ic_c S_c
-    const Force<S> g1 = Bc.apply_transpose(Sc);  // Bc_c^T S_c
-    const Force<S> hc = Ic * dVc;                // Ic_c dV_c
-    const Force<S> Phi = cross(Sc, wc.F) + Ic * wc.dA + Bc.apply(dVc);  // d F/dq_c of an ancestor's F
-    // B(Ic_c, dV_c), for the pairs b < c only
-    const VelocityDerivative<S> Bv = body[c].parent < 0 ? VelocityDerivative<S>{} : VelocityDerivative<S>::of(Ic, dVc);
-    for (Index b = c; b >= 0; b = body[b].parent) {
-      const DerivativeBody<S>& wb = work[b];
-      const Motion<S>& Sb = wb.J;
-      const Motion<S>& dVb = wb.dV;
-      const Motion<S>& dAb = wb.dA;
-      const bool bc = b == c;
-      const Force<S> hb = Ic * dVb;                    // Ic_c dV_b
-      const Force<S> Y = cross(dVb, f1);               // dV_b x* Ic_c S_c
-      const Force<S> Z = cross(Sc, hb) - Ic * cross(Sc, dVb);  // S_c x* Ic_c dV_b - Ic_c (S_c x dV_b)
-      // w_c P1, P1 = S_b x* Ic_c S_c; w_c P2 (d2tau_c/dq_b dq_a = dA_a . P1 + dV_a . P2)
-      const Force<S> P1 = w_c * cross(Sb, f1);
-      const Force<S> P2 = w_c * (Y + cross(Sb, g1) - Z);
-      // K = d Phi_c / dq_b (d2tau_a/dq_c dq_b = S_a . K)
-      const Force<S> K = cross(Sb, Phi) + cross(Sc, Ic * dAb + Bc.apply(dVb)) +
-                         Ic * (cross(dAb, Sc) + cross(dVb, dVc)) + Bc.apply(cross(dVb, Sc)) + cross(dVb, hc) +
-                         cross(dVc, hb);
-      // for b < c: w_b Q1, Q1 = (S_c x* Ic_c - Ic_c S_c x)^T S_b; w_b Q2, Q2 = (S_c x* Bc_c -
-      // Bc_c S_c x + B(Ic_c, dV_c))^T S_b (d2tau_b/dq_a dq_c = dA_a . Q1 + dV_a . Q2)
-      Force<S> Q1 = Force<S>::zero(), Q2 = Force<S>::zero();
-      if (!bc) {
-        const S w_b = w[b];
-        const Motion<S> ScSb = cross(Sc, Sb);
-        Q1 = w_b * (cross(Sc, Ic * Sb) - Ic * ScSb);
-        Q2 = w_b * (cross(Sc, Bc.apply_transpose(Sb)) - Bc.apply_transpose(ScSb) + Bv.apply_transpose(Sb));
+                                                    WeightedDq2Body<S>* sums, MatrixRef<S> out) {
+  // forward: world-frame S, v, a, dV, dA, body inertias, forces and B; the path sums Pi
+  const bool chain = derivative_forward_pass(body, nv, a0, q, qd, qdd, fext, work);
+  for (Index i = 0; i < nv; ++i) {
+    const Index p = body[i].parent;
+    sums[i].Pi = (p < 0 ? Motion<S>::zero() : sums[p].Pi) + w[i] * work[i].J;
+    sums[i].s1 = sums[i].s2 = Force<S>::zero();
+    sums[i].N = Inertia<S>::zero();
+  }
+  if (!chain)  // the entries of DoF on different branches
+    for (Index i = 0; i < nv; ++i)
+      for (Index j = 0; j <= i; ++j) out(i, j) = S(0);
+  // backward: body x (its subtree's composites and sums complete), then its ancestors y <= x
+  for (Index x = nv - 1; x >= 0; --x) {
+    const DerivativeBody<S>& wx = work[x];
+    WeightedDq2Body<S>& e = sums[x];
+    const Inertia<S>& Ic = wx.Ic;             // composite inertia of x's subtree
+    const VelocityDerivative<S>& Bc = wx.Bc;  // composite B of x's subtree
+    const Motion<S>& Sx = wx.J;
+    const Motion<S>& dVx = wx.dV;
+    const Index px = body[x].parent;
+    const S w_x = w[x];
+    const Force<S> f1 = Ic * Sx;  // Ic_x S_x
+    const Force<S> hc = Ic * dVx; // Ic_x dV_x
+    e.s1 += w_x * f1;
+    e.s2 += w_x * Bc.apply_transpose(Sx);
+    e.N += inertia_rate(w_x * Sx, Ic);  // (linear in the twist)
+    // the sums over x's subtree of w_c P1(x, c) and w_c P2(x, c)
+    const Force<S> X1 = cross(Sx, e.s1);
+    const Force<S> X2 = cross(dVx, e.s1) + cross(Sx, e.s2) - e.N * dVx;
+    const Force<S> Phi = cross(Sx, wx.F) + Ic * wx.dA + Bc.apply(dVx);  // d F/dq_x of an ancestor's F
+    const VelocityDerivative<S> Bv = px < 0 ? VelocityDerivative<S>{} : VelocityDerivative<S>::of(Ic, dVx);
+    const Motion<S> Pl = px < 0 ? Motion<S>::zero() : sums[px].Pi;  // Pi_lambda(x)
+    for (Index y = x; y >= 0; y = body[y].parent) {
+      const DerivativeBody<S>& wy = work[y];
+      const Motion<S> Sy = wy.J, dVy = wy.dV, dAy = wy.dA;  // copies: the store below may not alias them
+      const Force<S> hb = Ic * dVy;  // Ic_x dV_y
+      // K = d Phi_x / dq_y
+      const Force<S> K = cross(Sy, Phi) + cross(Sx, Ic * dAy + Bc.apply(dVy)) +
+                         Ic * (cross(dAy, Sx) + cross(dVy, dVx)) + Bc.apply(cross(dVy, Sx)) + cross(dVy, hc) +
+                         cross(dVx, hb);
+      S value = dot(dAy, X1) + dot(dVy, X2);
+      if (y == x) {
+        value += dot(Pl, K);
+      } else {
+        const Motion<S> Piy = sums[y].Pi;
+        value += dot(Piy, K);
+        const Motion<S> d = Pl - Piy;  // sum of w_b S_b over y < b < x
+        const Motion<S> Sxd = cross(Sx, d);
+        const Force<S> Nd = cross(Sx, Ic * d) - Ic * Sxd;
+        const Force<S> Rd = cross(Sx, Bc.apply_transpose(d)) - Bc.apply_transpose(Sxd) + Bv.apply_transpose(d);
+        value += dot(dAy, Nd) + dot(dVy, Rd);
       }
-      S sum_K = S(0);  // sum over a of w_a S_a . K
-      for (Index a = b; a >= 0; a = body[a].parent) {
-        const DerivativeBody<S>& wa = work[a];
-        const Motion<S> Sa = wa.J, dVa = wa.dV, dAa = wa.dA;  // copies: the stores below may not alias them
-        const bool ab = a == b;
-        out(b, a) += dot(dAa, P1) + dot(dVa, P2);
-        if (!(ab && bc)) sum_K += w[a] * dot(Sa, K);
-        if (!ab && !bc) out(c, a) += dot(dAa, Q1) + dot(dVa, Q2);
-      }
-      out(c, b) += sum_K;
+      out(x, y) = value;
     }
-    const Index p = body[c].parent;
-    if (p >= 0) {
-      work[p].F += wc.F;
-      work[p].Ic += wc.Ic;
-      work[p].Bc += wc.Bc;
+    if (px >= 0) {
+      work[px].F += wx.F;
+      work[px].Ic += wx.Ic;
+      work[px].Bc += wx.Bc;
+      sums[px].s1 += e.s1;
+      sums[px].s2 += e.s2;
+      sums[px].N += e.N;
     }
   }
   // the upper triangle

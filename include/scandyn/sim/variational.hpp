@@ -39,7 +39,7 @@
 // H = d(D^T v)/dq at fixed v (= the q-Hessian of v^T M(q) v: second derivatives of
 // M, by the analytical second-order recursion's weighted contraction sum_i v_i
 // d^2 tau_i / dq dq of the model at rest at (qm, 0, v), rnea_weighted_dq2_analytic_instance
-// in scandyn/instance/second_derivatives_analytic.hpp, O(sum of depth^2) and no nv^3
+// in scandyn/instance/second_derivatives_analytic.hpp, O(nv depth) and no nv^3
 // tensor). Models of more than
 // kVariationalExactMaxDofs DoFs do not form the Jacobian at all: they iterate with
 // its dominant part P = M(qm) + diag(-dt^2/4 de/dq - dt/2 de/dv) (the chord method),
@@ -105,6 +105,7 @@ struct VariationalWork {
     if (!chord) {
       hessian = true;
       H.assign(n * n, S(0));
+      hsums.resize(n);
       allocate_dense();
     }
     point_scratch();
@@ -151,6 +152,7 @@ struct VariationalWork {
   std::vector<Index> piv;
   bool hessian = false;  // the exact Jacobian's H term (models of up to kVariationalExactMaxDofs DoFs)
   std::vector<S> H;      // (nv x nv) d(D^T v)/dq, or empty
+  std::vector<WeightedDq2Body<S>> hsums;  // (nv) H's per-body sums, or empty
   Motion<S> a0;                                   // the model's base acceleration, -g
   VariationalScratch<S> scratch{};                // views of the vectors above (point_scratch)
 
@@ -161,7 +163,7 @@ struct VariationalWork {
     auto mat = [&](std::vector<S>& m) { return MatrixRef<S>{m.empty() ? nullptr : m.data(), nv, 1}; };
     scratch = {zero.data(), q1.data(), qm.data(), v.data(), p0.data(), tau_m.data(), tau_g.data(), f.data(),
                eq.data(), eqd.data(), r.data(), work.data(), dtv.data(), mat(D), mat(K), mat(M), mat(J), mat(unused),
-               mat(H), piv.empty() ? nullptr : piv.data(), deriv.work.data(),
+               mat(H), piv.empty() ? nullptr : piv.data(), deriv.work.data(), hsums.empty() ? nullptr : hsums.data(),
                GeneralWork<S>{data.Xup.data(), data.v.data(), data.a.data(), data.c.data(), data.f.data(),
                               data.Ic.data(), data.IA.data(), data.U.data(), data.D.data(), data.u.data(),
                               data.L.empty() ? nullptr : data.L.data()}};

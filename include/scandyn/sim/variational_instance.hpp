@@ -34,7 +34,7 @@ namespace sim {
 inline constexpr unsigned kVariationalEffects = kGravity | kDamping | kSprings | kLimits | kExternal;
 inline constexpr int kVariationalMaxIterations = 50;
 // Models of up to this many DoFs get the exact Newton Jacobian (the dt^2/8 H term
-// by rnea_weighted_dq2_analytic_instance, O(sum of depth^2)); larger ones the
+// by rnea_weighted_dq2_analytic_instance, O(nv depth)); larger ones the
 // O(nv depth) chord iteration (host only).
 inline constexpr Index kVariationalExactMaxDofs = 64;
 // The chord iteration's fallback, the dense quasi-Newton Jacobian (nv x nv, LU),
@@ -102,6 +102,7 @@ struct VariationalScratch {
   MatrixRef<S> H;           // (nv x nv) d(D^T v)/dq at fixed v (read only where model.hessian is set)
   Index* piv;               // (nv) LU's row exchanges
   DerivativeBody<S>* deriv;            // (nv) rnea_derivatives_instance's and H's bodies
+  WeightedDq2Body<S>* hsums;           // (nv) H's per-body sums (where model.hessian is set)
   GeneralWork<S> general;              // rnea_general / aba_general: Xup v a c f IA (nv), U D u (nv)
 };
 
@@ -277,7 +278,7 @@ SCANDYN_HD bool solve_dense(const VariationalModel<S>& model, const VariationalS
       rnea_weighted_dq2_analytic_instance(model.body, n, model.a0_rest, static_cast<const S*>(w.qm),
                                           static_cast<const S*>(w.zero), static_cast<const S*>(w.v),
                                           static_cast<const Force<S>*>(nullptr), static_cast<const S*>(w.v), w.deriv,
-                                          w.H);
+                                          w.hsums, w.H);
       const S eighth = S(0.125) * dt * dt;
       for (Index i = 0; i < n; ++i)
         for (Index j = 0; j < n; ++j) J(i, j) -= eighth * w.H(i, j);
