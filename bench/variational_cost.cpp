@@ -3,10 +3,12 @@
 // and the long-run energy error. CPU, one instance, double, serial (one thread).
 //
 // Usage:
-//   variational_cost cost [min_seconds]
+//   variational_cost cost [min_seconds] [MODEL DT]...
 //       CSV on stdout: model,nv,dt,integrator,step_us,newton_iterations,over_euler,failed_steps
 //       (newton_iterations: mean updates per step over the first 100 steps: Newton
-//       up to 64 DoFs, the chord iteration beyond, scandyn/sim/variational.hpp)
+//       up to 64 DoFs, the chord iteration beyond, scandyn/sim/variational.hpp);
+//       the rows: the MODEL DT pairs given, by default rope:2 1e-3, iiwa.urdf 1e-3,
+//       rope:1000 1e-5
 //   variational_cost energy MODEL DT STEPS EVERY [integrators...]
 //       CSV on stdout: model,integrator,dt,step,t,rel_err,swing_err with
 //       rel_err = |E - E0| / |E0| and swing_err = |E - E0| / (E0 - E_rest), every
@@ -45,13 +47,15 @@ sim::Scene scene_of(const std::string& model, const std::string& integrator, dou
                           "bench.json", bench::models_dir());
 }
 
-int cost(double min_time) {
+struct Row {
+  const char* model;
+  double dt;
+};
+
+int cost(double min_time, std::vector<Row> rows) {
+  if (rows.empty()) rows = {Row{"rope:2", 1e-3}, Row{"iiwa.urdf", 1e-3}, Row{"rope:1000", 1e-5}};
   std::printf("model,nv,dt,integrator,step_us,newton_iterations,over_euler,failed_steps\n");
-  struct Row {
-    const char* model;
-    double dt;
-  };
-  for (const Row& r : {Row{"rope:2", 1e-3}, Row{"iiwa.urdf", 1e-3}, Row{"rope:1000", 1e-5}}) {
+  for (const Row& r : rows) {
     double euler = 0;
     for (const char* integrator : {"euler", "rk4", "variational"}) {
       const sim::Scene scene = scene_of(r.model, integrator, r.dt);
@@ -125,11 +129,18 @@ int energy(const std::string& model, double dt, long long steps, long long every
 
 int main(int argc, char** argv) {
   const std::string mode = argc > 1 ? argv[1] : "cost";
-  if (mode == "cost") return cost(argc > 2 ? std::atof(argv[2]) : 0.3);
+  if (mode == "cost" && argc % 2 == 1) {
+    std::vector<Row> rows;
+    for (int k = 3; k + 1 < argc; k += 2) rows.push_back(Row{argv[k], std::atof(argv[k + 1])});
+    return cost(argc > 2 ? std::atof(argv[2]) : 0.3, rows);
+  }
+  if (mode == "cost" && argc == 2) return cost(0.3, {});
   if (mode == "energy" && argc >= 6) {
     std::vector<std::string> integrators(argv + 6, argv + argc);
     return energy(argv[2], std::atof(argv[3]), std::atoll(argv[4]), std::atoll(argv[5]), integrators);
   }
-  std::fprintf(stderr, "usage: variational_cost cost [min_seconds] | energy MODEL DT STEPS EVERY [integrators...]\n");
+  std::fprintf(stderr,
+               "usage: variational_cost cost [min_seconds] [MODEL DT]... | energy MODEL DT STEPS EVERY "
+               "[integrators...]\n");
   return 2;
 }
