@@ -486,29 +486,97 @@ def _torch_functions():
     def vec_mat(g, m):  # g^T m over the leading dimensions: (..., n) x (..., n, k) -> (..., k)
         return torch.einsum("...i,...ij->...j", g, m)
 
+    def zeros_for(t, ref):  # a tangent torch passes as None: zeros
+        return torch.zeros_like(ref) if t is None else t
+
+    def opaque(fn):
+        """A Function whose forward is fn(*args) (scandyn's engines on plain tensors) and
+        which is not differentiated further: what backward and jvp call, so that the
+        torch.func transforms (jvp, grad, vjp) hand scandyn plain tensors, not their
+        wrappers (docs: extending torch.func)."""
+
+        class Opaque(torch.autograd.Function):
+            @staticmethod
+            def forward(*args):
+                return fn(*args)
+
+            @staticmethod
+            def setup_context(ctx, inputs, output):
+                pass
+
+        return Opaque.apply
+
+    fd_vjp_op = opaque(lambda model, backend, q, qd, tau, w: fd_vjp(model, q, qd, tau, w.contiguous(),
+                                                                     backend=backend)[1:])
+    fd_jvp_op = opaque(lambda model, backend, q, qd, tau, dq, dqd, dtau: fd_jvp(
+        model, q, qd, tau, dq.contiguous(), dqd.contiguous(), dtau.contiguous(), backend=backend)[1])
+
+    def dense_jvp(derivatives, model, backend, q, qd, x, dq, dqd, dx):
+        return sum(torch.einsum("...ij,...j->...i", m, t) for m, t in zip(derivatives(model, q, qd, x, backend),
+                                                                         (dq, dqd, dx)))
+
     def dynamics_function(values, derivatives):
         """A Function (model, backend, q, qd, x) -> y = values(...) whose backward
         contracts g with derivatives(model, q, qd, x, backend) = (dy/dq, dy/dqd, dy/dx),
         both on the tensors' device (CUDA: torch's current stream)."""
 
+        jvp_op = opaque(lambda *a: dense_jvp(derivatives, *a))
+        vjp_op = opaque(lambda model, backend, q, qd, x, g: tuple(vec_mat(g, m) for m in derivatives(model, q, qd, x,
+                                                                                                       backend)))
+
         class DynamicsFunction(torch.autograd.Function):
             @staticmethod
-            def forward(ctx, model, backend, q, qd, x):
-                ctx.model, ctx.backend = model, backend
-                ctx.save_for_backward(q, qd, x)
+            def forward(model, backend, q, qd, x):
                 return values(model, q, qd, x, backend=backend)
+
+            @staticmethod
+            def setup_context(ctx, inputs, output):  # (the torch.func transforms need this form)
+                ctx.model, ctx.backend, q, qd, x = inputs
+                ctx.save_for_backward(q, qd, x)
+                ctx.save_for_forward(q, qd, x)
+
+            @staticmethod
+            def jvp(ctx, _model, _backend, dq, dqd, dx):  # forward mode: the sum of dy/dz dz
+                q, qd, x = ctx.saved_tensors
+                return jvp_op(ctx.model, ctx.backend, q, qd, x, zeros_for(dq, q), zeros_for(dqd, qd), zeros_for(dx, x))
 
             @staticmethod
             def backward(ctx, g):
                 q, qd, x = ctx.saved_tensors
-                mats = derivatives(ctx.model, q, qd, x, ctx.backend)
-                return (None, None) + tuple(vec_mat(g, m) if need else None
-                                            for m, need in zip(mats, ctx.needs_input_grad[2:]))
+                grads = vjp_op(ctx.model, ctx.backend, q, qd, x, g)
+                return (None, None) + tuple(t if need else None for t, need in zip(grads, ctx.needs_input_grad[2:]))
 
         return DynamicsFunction
 
     InverseDynamicsFunction = dynamics_function(_api.inverse_dynamics, id_derivatives)
     ForwardDynamicsFunction = dynamics_function(_api.forward_dynamics, lambda *a: fd_derivatives(*a)[1:])
+
+    class DirectionalForwardDynamicsFunction(torch.autograd.Function):
+        """qdd = FD(q, qd, tau) with backward fd_vjp (reverse mode) and jvp fd_jvp
+        (forward mode: torch.func.jvp, torch.autograd.forward_ad): O(nv) per instance,
+        no (nv, nv) matrix. Host tensors."""
+
+        @staticmethod
+        def forward(model, backend, q, qd, tau):
+            return _api.forward_dynamics(model, q, qd, tau, backend=backend)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.model, ctx.backend, q, qd, tau = inputs
+            ctx.save_for_backward(q, qd, tau)
+            ctx.save_for_forward(q, qd, tau)
+
+        @staticmethod
+        def backward(ctx, g):
+            q, qd, tau = ctx.saved_tensors
+            grads = fd_vjp_op(ctx.model, ctx.backend, q, qd, tau, g)
+            return (None, None) + tuple(x if need else None for x, need in zip(grads, ctx.needs_input_grad[2:]))
+
+        @staticmethod
+        def jvp(ctx, _model, _backend, dq, dqd, dtau):
+            q, qd, tau = ctx.saved_tensors
+            return fd_jvp_op(ctx.model, ctx.backend, q, qd, tau, zeros_for(dq, q), zeros_for(dqd, qd),
+                             zeros_for(dtau, tau))
 
     class StepFunction(torch.autograd.Function):
         @staticmethod
@@ -537,8 +605,8 @@ def _torch_functions():
             q0, qd0, tau = ctx.saved_tensors
             return (None,) + ctx.step.rollout_vjp(q0, qd0, tau, gq, gqd)
 
-    _TORCH.update(id=InverseDynamicsFunction, fd=ForwardDynamicsFunction, step=StepFunction,
-                  rollout=RolloutFunction)
+    _TORCH.update(id=InverseDynamicsFunction, fd=ForwardDynamicsFunction, fd_directional=DirectionalForwardDynamicsFunction,
+                  step=StepFunction, rollout=RolloutFunction)
     return _TORCH
 
 
@@ -548,10 +616,26 @@ def torch_inverse_dynamics(model, q, qd, qdd, backend="auto"):
     return _torch_functions()["id"].apply(model, backend, q, qd, qdd)
 
 
-def torch_forward_dynamics(model, q, qd, tau, backend="auto"):
-    """qdd = FD(q, qd, tau) on CPU or CUDA tensors, differentiable (backward: fd_derivatives,
-    on the tensors' device)."""
-    return _torch_functions()["fd"].apply(model, backend, q, qd, tau)
+def _fd_derivatives_route(model, on_cuda, derivatives):
+    """'dense' or 'directional': how the differentiable forward dynamics differentiate
+    (see torch_forward_dynamics)."""
+    if derivatives not in ("auto", "dense", "directional"):
+        raise ValueError(f"derivatives={derivatives!r}: expected 'auto', 'dense' or 'directional'")
+    if derivatives != "auto":
+        return derivatives
+    return "dense" if on_cuda or model.nq != model.nv else "directional"
+
+
+def torch_forward_dynamics(model, q, qd, tau, backend="auto", derivatives="auto"):
+    """qdd = FD(q, qd, tau) on CPU or CUDA tensors, differentiable. ``derivatives``:
+    'dense': backward contracts the gradient with fd_derivatives' (nv, nv) matrices on the
+    tensors' device; 'directional': backward is fd_vjp and forward mode (torch.func.jvp)
+    fd_jvp, O(nv) per instance with no (nv, nv) matrix (host tensors; models of 1-DoF
+    joints: a rope of 10^5 links); 'auto' (default): directional for host tensors of
+    1-DoF-joint models (faster at every size measured, iiwa included: docs/derivatives.md),
+    dense for CUDA tensors and multi-DoF joints."""
+    route = _fd_derivatives_route(model, _cuda_device(q, _kind(q), "q") is not None, derivatives)
+    return _torch_functions()["fd" if route == "dense" else "fd_directional"].apply(model, backend, q, qd, tau)
 
 
 def torch_step(step, q, qd, tau):
@@ -604,8 +688,41 @@ def jax_inverse_dynamics(model, q, qd, qdd, backend="auto"):
     return f(q, qd, qdd)
 
 
-def jax_forward_dynamics(model, q, qd, tau, backend="auto"):
-    """qdd = FD(q, qd, tau) for JAX arrays (CPU), differentiable by jax.grad / jax.vjp."""
+def _jax_directional_fd(model, backend):
+    """qdd = FD(q, qd, tau) as a jax.custom_vjp whose backward is fd_vjp (O(nv), no
+    (nv, nv) matrix): NumPy callbacks, host memory."""
+    import jax
+
+    def shape(q):
+        return jax.ShapeDtypeStruct(q.shape, q.dtype)
+
+    @jax.custom_vjp
+    def f(q, qd, tau):
+        return jax.pure_callback(
+            lambda a, b, c: np.asarray(_api.forward_dynamics(model, a, b, c, backend=_backend(backend)), a.dtype),
+            shape(q), q, qd, tau)
+
+    def fwd(q, qd, tau):
+        return f(q, qd, tau), (q, qd, tau)
+
+    def bwd(res, g):
+        q, qd, tau = res
+        return jax.pure_callback(
+            lambda a, b, c, w: tuple(np.asarray(x, a.dtype) for x in fd_vjp(model, a, b, c, np.ascontiguousarray(w),
+                                                                             backend=backend)[1:]),
+            (shape(q), shape(qd), shape(tau)), q, qd, tau, g)
+
+    f.defvjp(fwd, bwd)
+    return f
+
+
+def jax_forward_dynamics(model, q, qd, tau, backend="auto", derivatives="auto"):
+    """qdd = FD(q, qd, tau) for JAX arrays (CPU), differentiable by jax.grad / jax.vjp.
+    ``derivatives``: 'dense' (fd_derivatives' matrices), 'directional' (fd_vjp, O(nv),
+    models of 1-DoF joints) or 'auto' (directional for 1-DoF-joint models, else dense), as
+    torch_forward_dynamics."""
+    if _fd_derivatives_route(model, False, derivatives) == "directional":
+        return _jax_directional_fd(model, backend)(q, qd, tau)
     f = _jax_dynamics(lambda a, b, c: _api.forward_dynamics(model, a, b, c, backend=_backend(backend)),
                       lambda a, b, c: fd_derivatives(model, a, b, c, backend)[1:], model.nv)
     return f(q, qd, tau)
