@@ -10,8 +10,13 @@ each (the least disturbed by other processes on a shared machine), and the note 
 median and the ratio scandyn / pinocchio of both. Rows in the format of
 bench/results/compare-cpu-*.csv.
 
+With --floating the models are on a free joint (scandyn --floating-base, pin_bench
+--root free: JointModelFreeFlyer), --model-names picks the models (default iiwa,atlas),
+and the CSV starts with '#' lines naming the machine, the commit and the command.
+
 Usage: derivatives_cpu.py --scandyn build/scandyn --pin-bench build-pin/pin_bench
          --models models --out bench/results/derivatives-cpu-<machine>.csv
+         [--floating] [--model-names hyq,atlas]
 (pin_bench needs LD_LIBRARY_PATH to hold the `pin` wheel's cmeel.prefix/lib).
 """
 import argparse
@@ -37,21 +42,25 @@ def main():
     ap.add_argument('--out', required=True)
     ap.add_argument('--repeats', type=int, default=7)
     ap.add_argument('--min-time', type=float, default=0.3)
+    ap.add_argument('--floating', action='store_true', help='the models on a free joint (floating base)')
+    ap.add_argument('--model-names', default='iiwa,atlas')
     args = ap.parse_args()
     version = subprocess.run([args.scandyn, '--version'], capture_output=True, text=True).stdout.strip()
     pin_version = subprocess.run([args.pin_bench, 'version'], capture_output=True, text=True).stdout.strip()
     version, pin_version = version.replace(',', ';'), pin_version.replace(',', ';')  # CSV fields
     rows = []
-    for model in ('iiwa', 'atlas'):
+    for model in args.model_names.split(','):
         urdf = os.path.join(args.models, model + '.urdf')
         for algo in ('did', 'dfd'):
             sc, pn = [], []
             for _ in range(args.repeats):
                 r = run([args.scandyn, 'bench', '--model', urdf, '--algo', algo, '--instances', '1', '--min-time',
-                         str(args.min_time), '--allow-nonphysical-inertia'])
+                         str(args.min_time), '--allow-nonphysical-inertia']
+                        + (['--floating-base'] if args.floating else []))
                 sc.append((float(r[7]), r))
-                p = run([args.pin_bench, 'bench', '--urdf', urdf, '--name', model, '--algo', algo, '--instances', '1',
-                         '--min-time', str(args.min_time)])
+                p = run([args.pin_bench, 'bench', '--urdf', urdf, '--name', model + ('-floating' if args.floating else ''),
+                         '--algo', algo, '--instances', '1', '--min-time', str(args.min_time)]
+                        + (['--root', 'free'] if args.floating else []))
                 pn.append((float(p[7]), p))
             best_s, best_p = min(sc)[0], min(pn)[0]
             med_s, med_p = statistics.median(t for t, _ in sc), statistics.median(t for t, _ in pn)
@@ -61,9 +70,16 @@ def main():
             rows.append(','.join(r[:10] + ['scandyn', version, '', note]))
             rows.append(','.join(p[:9] + ['', 'pinocchio', pin_version, '', note]))
             print(rows[-2], rows[-1], sep='\n', flush=True)
-    with open(args.out, 'w') as fh:
-        fh.write(HEADER + '\n' + '\n'.join(rows) + '\n')
     cpu = next((l.split(':', 1)[1].strip() for l in open('/proc/cpuinfo') if l.startswith('model name')), '?')
+    with open(args.out, 'w') as fh:
+        if args.floating:
+            commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,
+                                    text=True).stdout.strip()
+            fh.write('# machine: %s, %d threads, load average %s at the end of the run\n'
+                     % (cpu, os.cpu_count(), ' '.join(open('/proc/loadavg').read().split()[:3])))
+            fh.write('# commit: %s (scandyn %s; %s)\n' % (commit, version, pin_version))
+            fh.write('# command: %s\n' % ' '.join([os.path.basename(sys.argv[0])] + sys.argv[1:]))
+        fh.write(HEADER + '\n' + '\n'.join(rows) + '\n')
     with open(os.path.splitext(args.out)[0] + '.env.txt', 'w') as fh:
         fh.write('date: %s\ncpu: %s, %d threads\nload average: %s\nscandyn: %s\npinocchio: %s\n'
                  % (subprocess.run(['date', '-u', '+%Y-%m-%dT%H:%M:%SZ'], capture_output=True, text=True).stdout.strip(),

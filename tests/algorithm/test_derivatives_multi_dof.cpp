@@ -250,6 +250,17 @@ TEST(MultiDofDerivatives, DofParents) {
     EXPECT_EQ(dt.dof_parent[b.idx_v], p < 0 ? -1 : t.bodies[p].idx_v + joint_nv(t.bodies[p].type) - 1);
     for (int k = 1; k < joint_nv(b.type); ++k) EXPECT_EQ(dt.dof_parent[b.idx_v + k], b.idx_v + k - 1);
   }
+  // dof_last[k]: the largest DoF of k's subtree (every descendant at or before it; a
+  // preorder, as the loader's, makes the subtree exactly k..dof_last[k])
+  const Index nv = t.nv();
+  for (Index k = 0; k < nv; ++k) {
+    Index largest = k;
+    for (Index i = k; i < nv; ++i)
+      for (Index a = i; a >= 0; a = dt.dof_parent[a])
+        if (a == k) largest = i;
+    EXPECT_EQ(dt.dof_last[k], largest) << "DoF " << k;
+  }
+  EXPECT_EQ(dd.dof_last[0], 11);
 }
 
 // ---- the engines ----------------------------------------------------------------

@@ -27,13 +27,16 @@ struct DerivativeDataTpl {
   explicit DerivativeDataTpl(const ModelTpl<S>& model)
       : aba(model, /*mass_matrix=*/false),
         work(static_cast<std::size_t>(model.nv())),
-        dof_parent(static_cast<std::size_t>(model.nv())) {
+        dof_parent(static_cast<std::size_t>(model.nv())),
+        dof_last(static_cast<std::size_t>(model.nv())) {
     dof_parents(model.bodies.data(), model.nbodies(), dof_parent.data());
+    dof_subtree_last(dof_parent.data(), model.nv(), dof_last.data());
   }
   DataTpl<S> aba;                        // the ABA's scratch (aba_derivatives' qdd)
   std::vector<DerivativeBody<S>> work;   // (nv) world-frame body quantities (multi-DoF
                                          // joints: rnea_derivatives_general_instance's layout)
   std::vector<Index> dof_parent;         // (nv) the tree of DoFs (dof_parents)
+  std::vector<Index> dof_last;           // (nv) the last DoF of each DoF's subtree
 };
 
 // dtau/dq, dtau/dqd and dtau/dqdd = M at (q, qd, qdd, fext); tau (optional) =

@@ -368,8 +368,19 @@ struct BodyTree {
 };
 struct DofTree {
   const Index* parent;  // (nv) parent DoF of each DoF, -1 at the root
+  const Index* last;    // (nv) largest DoF of each DoF's subtree (dof_subtree_last): the
+                        // subtree of DoF k lies in k..last[k] (is that range, for the
+                        // loader's preorder; its other DoFs have zeros in L^-1's column k)
   SCANDYN_HD Index operator()(Index i) const { return parent[i]; }
 };
+
+// last[k] for the nv DoFs of a tree given by parent (parent[i] < i): the largest DoF of
+// k's subtree.
+SCANDYN_HD void dof_subtree_last(const Index* parent, Index nv, Index* last) {
+  for (Index i = 0; i < nv; ++i) last[i] = i;
+  for (Index i = nv - 1; i > 0; --i)
+    if (parent[i] >= 0 && last[i] > last[parent[i]]) last[parent[i]] = last[i];
+}
 
 // parent[c] for the nv DoFs c of a model of nb bodies (any joint types): the DoF
 // before c in its joint, or the last DoF of the parent body's joint, or -1.
@@ -408,20 +419,45 @@ SCANDYN_HD Index tree_ltl_factor(Tree parent, MatrixRef<S> A) {
 template <class S, class Tree>
 SCANDYN_HD void tree_ltl_negated_solve(Tree parent, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
   const Index n = L.n;
-  // row r of both: row r = a * row r + b * row s
-  auto rows = [&](Index r, S a, Index s, S b) {
+  // row r of both *= a; row r += b * row s (r != s). Row-major blocks (stride 1, the
+  // host's layout) take plain pointer loops the compiler vectorises; the arithmetic
+  // per entry is the same either way.
+  const bool contiguous = X.stride == 1 && Y.stride == 1;
+  auto scale = [&](Index r, S a) {
+    if (contiguous) {
+      S* x = &X(r, 0);
+      S* y = &Y(r, 0);
+      for (Index c = 0; c < n; ++c) x[c] *= a;
+      for (Index c = 0; c < n; ++c) y[c] *= a;
+      return;
+    }
     for (Index c = 0; c < n; ++c) {
-      X(r, c) = a * X(r, c) + b * X(s, c);
-      Y(r, c) = a * Y(r, c) + b * Y(s, c);
+      X(r, c) *= a;
+      Y(r, c) *= a;
+    }
+  };
+  auto axpy = [&](Index r, Index s, S b) {
+    if (contiguous) {
+      S* __restrict__ xr = &X(r, 0);
+      const S* __restrict__ xs = &X(s, 0);
+      for (Index c = 0; c < n; ++c) xr[c] += b * xs[c];
+      S* __restrict__ yr = &Y(r, 0);
+      const S* __restrict__ ys = &Y(s, 0);
+      for (Index c = 0; c < n; ++c) yr[c] += b * ys[c];
+      return;
+    }
+    for (Index c = 0; c < n; ++c) {
+      X(r, c) += b * X(s, c);
+      Y(r, c) += b * Y(s, c);
     }
   };
   for (Index i = n - 1; i >= 0; --i) {  // L^T y = -x (row i holds x_i + sum of L_ki y_k when reached)
-    rows(i, S(-1) / L(i, i), i, S(0));
-    for (Index j = parent(i); j >= 0; j = parent(j)) rows(j, S(1), i, L(i, j));
+    scale(i, S(-1) / L(i, i));
+    for (Index j = parent(i); j >= 0; j = parent(j)) axpy(j, i, L(i, j));
   }
   for (Index i = 0; i < n; ++i) {  // L z = y
-    for (Index j = parent(i); j >= 0; j = parent(j)) rows(i, S(1), j, -L(i, j));
-    rows(i, S(1) / L(i, i), i, S(0));
+    for (Index j = parent(i); j >= 0; j = parent(j)) axpy(i, j, -L(i, j));
+    scale(i, S(1) / L(i, i));
   }
 }
 
@@ -456,6 +492,50 @@ SCANDYN_HD void tree_ltl_inverse(Tree parent, MatrixRef<S> A, Scratch diag, Scra
       A(i, j) = s;
     }
     for (Index k = j; k >= 0; k = parent(k)) row[k] = S(0);
+  }
+  for (Index i = 0; i < n; ++i)
+    for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
+}
+
+// tree_ltl_inverse over the tree of DoFs (a multi-DoF model's; each subtree within the
+// range k..tree.last[k]): L^-1 column by column over that range only (a DoF in it that
+// is not k's descendant sums zeros), then M^-1 = L^-1 L^-T as the sum over k of the
+// outer products of L^-1's column k with itself (non-zero on k's subtree: within the
+// square block of rows and columns k..last[k]),
+// accumulated into the upper triangle with contiguous row segments (row-major A: loops
+// the compiler vectorises), then mirrored. A floating base makes every DoF a
+// descendant of the base's six, so M^-1 is dense: this is O(sum of subtree sizes^2)
+// streaming work instead of a tree walk per entry. diag, row: n scalars of scratch.
+template <class S, class Scratch>
+SCANDYN_HD void tree_ltl_inverse(DofTree tree, MatrixRef<S> A, Scratch diag, Scratch row) {
+  const Index n = A.n;
+  for (Index k = 0; k < n; ++k) {  // column k of L^-1 (columns > k still hold L)
+    A(k, k) = S(1) / A(k, k);
+    for (Index i = k + 1; i <= tree.last[k]; ++i) {  // k's descendants (the others stay 0)
+      S s = S(0);
+      Index m = tree(i);
+      for (; m > k; m = tree(m)) s += A(i, m) * A(m, k);
+      s += A(i, k) * A(k, k);
+      A(i, k) = -s / A(i, i);
+    }
+  }
+  for (Index i = 0; i < n; ++i) {
+    diag[i] = A(i, i);
+    for (Index j = i; j < n; ++j) A(i, j) = S(0);
+  }
+  for (Index k = 0; k < n; ++k) {
+    const Index e = tree.last[k];
+    row[k] = diag[k];
+    for (Index c = k + 1; c <= e; ++c) row[c] = A(c, k);  // L^-1's column k (strict lower triangle)
+    for (Index r = k; r <= e; ++r) {
+      const S vr = row[r];
+      if (A.stride == 1) {
+        S* a = &A(r, 0);
+        for (Index c = r; c <= e; ++c) a[c] += vr * row[c];
+      } else {
+        for (Index c = r; c <= e; ++c) A(r, c) += vr * row[c];
+      }
+    }
   }
   for (Index i = 0; i < n; ++i)
     for (Index j = i + 1; j < n; ++j) A(j, i) = A(i, j);
@@ -640,18 +720,20 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
 
 // fd_derivatives_instance for a model with multi-DoF joints (arguments as
 // rnea_derivatives_general_instance; qdd: the caller's FD(q, qd, tau, fext), nv
-// entries; dof_parent: the nv DoF parents, dof_parents): M = L^T L factored with the
+// entries; dof_parent, dof_last: the nv DoF parents and subtree ends, dof_parents and
+// dof_subtree_last): M = L^T L factored with the
 // tree sparsity at the DoF level (a multi-DoF joint's DoFs form a chain), by the tree
 // walks over the output blocks. Returns as fd_derivatives_instance.
 template <class S>
 SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, Index nv, const Motion<S>& a0,
                                                  const S* q, const S* qd, const S* qdd, const Force<S>* fext,
-                                                 const Index* dof_parent, DerivativeBody<S>* work,
+                                                 const Index* dof_parent, const Index* dof_last,
+                                                 DerivativeBody<S>* work,
                                                  MatrixRef<S> dqdd_dq, MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau,
                                                  const S* armature = nullptr) {
   rnea_derivatives_general_instance(body, nb, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau,
                                     nullptr);
-  return tree_fd_solve(DofTree{dof_parent}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
+  return tree_fd_solve(DofTree{dof_parent, dof_last}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
 }
 
 }  // namespace scandyn
