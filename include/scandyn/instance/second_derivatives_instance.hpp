@@ -4,7 +4,9 @@
 // scandyn/instance/second_derivatives_analytic.hpp, what rnea_second_derivatives and
 // the engines run for models of 1-DoF joints) through rnea_second_derivatives_dual
 // (scandyn/algorithm/second_derivatives.hpp), the CPU engines' path for other models,
-// and the variational integrator's weighted contraction (rnea_weighted_dq2_instance).
+// and the reference of the weighted contraction (rnea_weighted_dq2_instance, through
+// rnea_weighted_dq2_dual; the variational integrator runs the analytical
+// rnea_weighted_dq2_analytic_instance).
 // Also the tensor types (TensorRef) both share.
 //
 // Forward mode over the analytical first-order derivatives: the recursions of
@@ -183,7 +185,8 @@ SCANDYN_HD void rnea_second_derivatives_instance(const Body<Dual<S>>* body, Inde
 // (seeded_derivative_pass), each contracted with w. body: the nv bodies in dual
 // numbers; a0: the base acceleration (-g); fext: the body wrenches in dual numbers
 // (dual_wrenches) or null; work: nv entries of scratch; block: an nv x nv matrix of
-// scratch (one pass's d/dq_k of dtau/dq).
+// scratch (one pass's d/dq_k of dtau/dq). The reference of
+// rnea_weighted_dq2_analytic_instance (scandyn/instance/second_derivatives_analytic.hpp).
 template <class S, class V>
 SCANDYN_HD void rnea_weighted_dq2_instance(const Body<Dual<S>>* body, Index nv, const Motion<S>& a0, V q, V qd,
                                            V qdd, const Force<Dual<S>>* fext, const S* w,
