@@ -13,6 +13,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/sim/contacts.hpp"
 #include "scandyn/sim/integrators.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/variational.hpp"
 
 namespace scandyn {
@@ -370,6 +371,10 @@ class CpuInstanceStep final : public CpuSimState<S> {
         else
           constrained_forward_dynamics(model, setup.loops, w.loop_q.data(), w.loop_qd.data(), w.loop_tau.data(),
                                        w.loop_qdd.data(), w.loop_lambda.data(), f.empty() ? nullptr : f.data());
+      } catch (const sim::LoopSolveNotConverged&) {  // the iterative solver's CG (LoopNotClosed)
+        w.failure = Failure::LoopNotClosed;
+        w.failure_estimate = INFINITY;
+        return 0;
       } catch (const LoopError&) {
         return 0;  // the mass matrix is not positive definite
       }

@@ -561,10 +561,11 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   }
 
   // ---- integration and execution
-  if (doc.contains("loop_solver")) {  // closed loops: dense, sparse or auto (docs/loops.md)
+  if (doc.contains("loop_solver")) {  // closed loops: dense, sparse, iterative or auto (docs/loops.md)
     s.loop_solver = r.string("loop_solver", doc["loop_solver"]);
-    if (s.loop_solver != "auto" && s.loop_solver != "dense" && s.loop_solver != "sparse")
-      r.expected("loop_solver", "\"auto\", \"dense\" or \"sparse\"", doc["loop_solver"]);
+    if (s.loop_solver != "auto" && s.loop_solver != "dense" && s.loop_solver != "sparse" &&
+        s.loop_solver != "iterative")
+      r.expected("loop_solver", "\"auto\", \"dense\", \"sparse\" or \"iterative\"", doc["loop_solver"]);
   }
   if (doc.contains("integrator")) {
     const std::string name = r.string("integrator", doc["integrator"]);

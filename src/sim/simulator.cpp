@@ -15,6 +15,7 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/sharded.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/variational_instance.hpp"
 
 namespace scandyn {
@@ -184,7 +185,8 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     if (!scene.prescribed.empty()) throw BackendError("a scene cannot have both closed loops and prescribed joints");
     setup_.loops = scene.loops;
     setup_.loop_model = scene.model;
-    // the loops' solver: dense, or the registered sparse one (scandyn/sim/sparse_loops.hpp)
+    // the loops' solver: dense, the registered sparse one (scandyn/sim/sparse_loops.hpp) or
+    // the iterative one (scandyn/sim/iterative_loops.hpp)
     const bool wrenches = (setup_.effects & (kContacts | kExternal)) != 0;
     if (scene.loop_solver == "sparse") {
       if (!sparse_loop_solver())
@@ -195,6 +197,11 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
         throw BackendError("\"loop_solver\": \"sparse\" takes no contacts or external wrenches (the dense "
                            "solver does)");
       setup_.loop_solver = sparse_loop_solver();
+    } else if (scene.loop_solver == "iterative") {
+      if (wrenches)
+        throw BackendError("\"loop_solver\": \"iterative\" takes no contacts or external wrenches (the dense "
+                           "solver does)");
+      setup_.loop_solver = &make_iterative_loop_solver;  // the core library's (scandyn/sim/iterative_loops.hpp)
     } else if (scene.loop_solver == "auto" && nv >= kSparseLoopDofs && !wrenches) {
       setup_.loop_solver = sparse_loop_solver();  // null when none is registered: dense
     }

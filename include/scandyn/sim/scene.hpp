@@ -88,8 +88,9 @@ struct Scene {
   PrescribedMotion prescribed;        // driven DoFs and their trajectories ("prescribed"), or empty
   LoopSet loops;                      // closed loops: the generator's and the scene's "loops"
   // the closed loops' solver ("loop_solver"): "dense" (constrained_forward_dynamics,
-  // project_to_loops), "sparse" (the registered sparse solver, scandyn/sim/sparse_loops.hpp)
-  // or "auto" (sparse from kSparseLoopDofs DoFs on, when registered; docs/loops.md)
+  // project_to_loops), "sparse" (the registered sparse solver, scandyn/sim/sparse_loops.hpp),
+  // "iterative" (matrix-free conjugate gradients, scandyn/sim/iterative_loops.hpp) or
+  // "auto" (sparse from kSparseLoopDofs DoFs on, when registered; docs/loops.md)
   std::string loop_solver = "auto";
 
   Index nv() const { return model.nv(); }

@@ -1,0 +1,134 @@
+// scandyn/sim/iterative_loops.hpp: the simulator's iterative (matrix-free) loop
+// solver, scene "loop_solver": "iterative" (docs/loops.md, "The simulator's iterative
+// loop path"). In the core library: no external dependency (no CHOLMOD), so it is
+// there in every build and in the wheels.
+//
+// forward_dynamics: M qdd + h = tau + J^T lambda, J qdd + gamma = 0 through the Schur
+// complement A = J M^-1 J^T:  A lambda = b,  b = -gamma - J qdd0,  qdd0 = M^-1 (tau - h),
+// qdd = qdd0 + M^-1 J^T lambda. A is applied matrix-free by the O(n) tree passes of
+// scandyn/algorithm/loop_iterative.hpp (J^T lambda as point forces on the links, M^-1
+// by the articulated-body passes at zero velocity without gravity, J x from the
+// links' accelerations) and solved by preconditioned conjugate gradients, warm-started
+// from this solver's previous lambda (the previous stage or step of the instances the
+// solver serves). A is symmetric positive semi-definite: redundant rows (a planar loop
+// closed by a 3D point, a cloth's dependent rows) leave it singular, and CG on the
+// consistent system converges in its range (qdd is unique; lambda is a solution, not
+// necessarily the minimum-norm one: J^T lambda is unique).
+//
+// Converged: ||J qdd + gamma||_2 <= tolerance (||gamma||_2 + ||J qdd0||_2) + 1e-12 L_J ||qdd0||_2,
+// L_J = sqrt of the largest diagonal entry of J J^T at q = 0 (a length; the second term
+// keeps the target above rounding, and above the part of b that a state's loop
+// violation at rounding level puts outside J's range, where gamma and J qdd0 cancel:
+// ropes that move alike), checked on the true residual. Not
+// converged within max_iterations, or a non-finite value: LoopError naming the
+// iterations and the residual (the simulator's step then fails for that instance:
+// Failure::LoopNotClosed), never a silent wrong answer.
+//
+// project: project_onto_loops (scandyn/algorithm/loop_projection.hpp) with each step
+// x = J^T (J J^T + mu D)^-1 r (D: the block-Jacobi blocks of J J^T, the Levenberg-Marquardt
+// weights; mu = 0: the minimum-norm J^+ r) by conjugate gradients on the normal
+// equations (J^T W J + mu I) x = J^T W r, W = D^+ (CGLS, preconditioned by the same
+// blocks, over the "unit tree": massless links, a unit joint-space inertia per joint:
+// J p and J^T W q by O(n) passes), from 0, until ||J^T W (r - J x) - mu x||_2 <=
+// tolerance ||J^T W r||_2 + 1e-14 max(||q||_2, ||qd||_2) (the second term: rounding).
+// CGLS rather than CG on J J^T: r is in J's range only up to rounding (after a velocity
+// projection, J qd's remainder is what no change of qd can remove), and CG on a
+// singular inconsistent system diverges; CGLS converges to the least-squares solution.
+// A position step that does not converge is judged by the Levenberg-Marquardt
+// acceptance test; the velocity projection's solve must converge (else LoopError).
+//
+// Preconditioner: block Jacobi, loop k's diagonal block of A (of J J^T + mu I) from the
+// links' apparent inverse inertias (loop_response_blocks, an O(n) recursion), inverted
+// by its pseudo-inverse; or none.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "scandyn/algorithm/loop_iterative.hpp"
+#include "scandyn/sim/sparse_loops.hpp"
+
+namespace scandyn::sim {
+
+// The iterative loop solver's relative residual tolerance and iteration cap (per
+// solve), the defaults of IterativeLoopOptions.
+inline constexpr double kIterativeLoopTolerance = 1e-10;
+inline constexpr int kIterativeLoopMaxIterations = 20000;
+// The forward dynamics' absolute floor on ||J qdd + gamma||_2, relative to L_J ||qdd0||_2.
+inline constexpr double kIterativeLoopFloor = 1e-12;
+
+// A solve of the iterative loop solver that did not converge within its iteration cap
+// (or met a non-finite value): what() names the solve, its residual and iterations. The
+// simulator's step records it as the instance's Failure::LoopNotClosed (estimate
+// infinite).
+class LoopSolveNotConverged : public LoopError {
+ public:
+  using LoopError::LoopError;
+};
+
+enum class LoopPreconditioner { None, BlockJacobi };
+
+struct IterativeLoopOptions {
+  double tolerance = kIterativeLoopTolerance;
+  int max_iterations = kIterativeLoopMaxIterations;
+  LoopPreconditioner preconditioner = LoopPreconditioner::BlockJacobi;
+  bool warm_start = true;  // start each forward dynamics' CG from the previous lambda
+};
+
+// What the solver did since its construction (or reset_stats).
+struct IterativeLoopStats {
+  long fd_solves = 0, fd_iterations = 0;        // forward dynamics: CG solves, iterations
+  long proj_solves = 0, proj_iterations = 0;    // projection: CG solves, iterations
+  long proj_unconverged = 0;                    // projection position steps that did not converge
+  int last_iterations = 0;                      // the last CG solve's iterations
+  double last_residual = 0;                     // and its relative residual
+  double fd_seconds = 0, proj_seconds = 0;      // wall time in forward_dynamics / project
+  long applies = 0;                             // applications of A or J J^T (tree passes)
+  double apply_seconds = 0;                     // their time
+};
+
+class IterativeLoopSolver : public LoopSolver {
+ public:
+  // Throws LoopError for a model with multi-DoF joints (the loops' routines take 1-DoF joints).
+  IterativeLoopSolver(const Model& model, const LoopSet& loops, const IterativeLoopOptions& options = {});
+  void forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd, double* lambda) override;
+  double project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info = nullptr) override;
+
+  const IterativeLoopStats& stats() const { return stats_; }
+  void reset_stats() { stats_ = {}; }
+  const IterativeLoopOptions& options() const { return options_; }
+
+ private:
+  struct Projection;
+  void invert_blocks();
+  void schur_response(const double* w, double* Js);
+  bool fd_solve(double target, int& it, double& rnorm);
+  void build_preconditioner(const Force<double>* U, const double* D);
+  void apply_preconditioner(const double* r, double* z) const;
+  void unit_solve(const double* r, double mu, double floor, double* x, bool& converged);
+
+  Model model_;
+  LoopSet loops_;
+  std::vector<LoopRow<double>> rows_;
+  IterativeLoopOptions options_;
+  IterativeLoopStats stats_;
+  Index n_ = 0, m_ = 0;
+  // per body
+  std::vector<Transform<double>> Xup_, X0_;
+  std::vector<Force<double>> U_, f_, pA_;
+  std::vector<double> D_, u_, qdd0_, tmp_n_;
+  std::vector<Motion<double>> v_, c_, a_, acc_;
+  std::vector<ABInertia<double>> IA_;
+  std::vector<Mat6<double>> Omega_;
+  // per row
+  std::vector<double> lambda_, b_, gamma_, r_, z_, p_, Ap_, best_, tmp_m_;
+  std::vector<double> blocks_, block_inv_;  // per loop: d x d raw blocks and their pseudo-inverses (6x6 slots)
+  bool unit_factored_ = false;
+  double unit_scale_ = 1;
+  double jscale_ = 1;  // L_J: sqrt of the largest diagonal entry of J J^T at q = 0 (m)
+};
+
+std::unique_ptr<LoopSolver> make_iterative_loop_solver(const Model& model, const LoopSet& loops);
+
+}  // namespace scandyn::sim

@@ -1,0 +1,383 @@
+// src/sim/iterative_loops.cpp: the simulator's iterative loop solver
+// (scandyn/sim/iterative_loops.hpp): conjugate gradients over the tree passes of
+// scandyn/algorithm/loop_iterative.hpp.
+#include "scandyn/sim/iterative_loops.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include "scandyn/algorithm/loops.hpp"
+
+namespace scandyn::sim {
+
+namespace {
+using Clock = std::chrono::steady_clock;
+double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+double dot(const double* a, const double* b, Index m) {
+  double s = 0;
+  for (Index k = 0; k < m; ++k) s += a[k] * b[k];
+  return s;
+}
+double norm(const double* a, Index m) { return std::sqrt(dot(a, a, m)); }
+std::string sci(double x) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.3g", x);
+  return buf;
+}
+}  // namespace
+
+IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loops, const IterativeLoopOptions& options)
+    : model_(model), loops_(loops), rows_(loop_rows_of<double>(loops)), options_(options) {
+  if (model_.multi_dof())
+    throw LoopError("iterative loop solver: the model has multi-DoF joints (closed loops take 1-DoF joints)");
+  if (!(options_.tolerance > 0) || options_.max_iterations < 1)
+    throw LoopError("iterative loop solver: the tolerance must be positive and max_iterations at least 1");
+  n_ = model_.nv(), m_ = loops_.rows();
+  const std::size_t n = static_cast<std::size_t>(n_), m = static_cast<std::size_t>(m_);
+  Xup_.resize(n), X0_.resize(n), U_.resize(n), f_.resize(n), pA_.resize(n);
+  D_.resize(n), u_.resize(n), qdd0_.resize(n), tmp_n_.resize(n);
+  v_.resize(n), c_.resize(n), a_.resize(n), acc_.resize(n), IA_.resize(n);
+  Omega_.resize(n);  // the preconditioner's and the projection's damping scale
+  lambda_.assign(m, 0.0);
+  b_.resize(m), gamma_.resize(m), r_.resize(m), z_.resize(m), p_.resize(m), Ap_.resize(m), best_.resize(m);
+  tmp_m_.resize(m);
+  blocks_.assign(rows_.size() * 36, 0.0), block_inv_.assign(rows_.size() * 36, 0.0);
+  // L_J at q = 0: the unit tree's diagonal blocks
+  std::vector<double> q0(n, 0.0);
+  loop_body_motion(model_.bodies.data(), n_, q0.data(), static_cast<const double*>(nullptr), X0_.data(), v_.data(),
+                   a_.data());
+  loop_joint_transforms(model_.bodies.data(), n_, q0.data(), Xup_.data());
+  build_preconditioner(nullptr, nullptr);
+  double big = 0;
+  for (std::size_t k = 0; k < rows_.size(); ++k) {
+    const int d = rows_[k].rows();
+    for (int i = 0; i < d; ++i) big = std::max(big, blocks_[36 * k + i * d + i]);
+  }
+  jscale_ = big > 0 ? std::sqrt(big) : 1.0;
+}
+
+// Raw diagonal blocks of J Omega J^T (U null: the unit tree's) at the current X0_, Xup_.
+void IterativeLoopSolver::build_preconditioner(const Force<double>* U, const double* D) {
+  loop_response_blocks(model_.bodies.data(), n_, Xup_.data(), U, D, Omega_.data());
+  for (std::size_t k = 0; k < rows_.size(); ++k) loop_schur_block(rows_[k], X0_.data(), Omega_.data(), &blocks_[36 * k]);
+}
+
+void IterativeLoopSolver::apply_preconditioner(const double* r, double* z) const {
+  if (options_.preconditioner == LoopPreconditioner::None) {
+    std::copy(r, r + m_, z);
+    return;
+  }
+  Index row = 0;
+  for (std::size_t k = 0; k < rows_.size(); ++k) {
+    const int d = rows_[k].rows();
+    const double* B = &block_inv_[36 * k];
+    for (int i = 0; i < d; ++i) {
+      double s = 0;
+      for (int j = 0; j < d; ++j) s += B[i * d + j] * r[row + j];
+      z[row + i] = s;
+    }
+    row += d;
+  }
+}
+
+
+// The weights W: the blocks' inverses with their eigenvalues floored (kLoopBlockFloor).
+void IterativeLoopSolver::invert_blocks() {
+  for (std::size_t k = 0; k < rows_.size(); ++k) {
+    const int d = rows_[k].rows();
+    std::copy(&blocks_[36 * k], &blocks_[36 * k] + d * d, &block_inv_[36 * k]);
+    symmetric_pseudo_inverse(&block_inv_[36 * k], d, kLoopBlockFloor);
+  }
+}
+
+// The M^-1 J^T of row values w, and J of it: s = M^-1 J^T w (n, in tmp_n_) and
+// Js (m) from the tree's response at zero velocity (loop_tree_response, U_ and D_).
+void IterativeLoopSolver::schur_response(const double* w, double* Js) {
+  const auto t0 = Clock::now();
+  const Index nl = static_cast<Index>(rows_.size());
+  loop_point_wrenches(rows_.data(), nl, n_, X0_.data(), w, f_.data());
+  loop_tree_response(model_.bodies.data(), n_, Xup_.data(), U_.data(), D_.data(), f_.data(), pA_.data(), tmp_n_.data(),
+                     acc_.data());
+  loop_rows_apply(rows_.data(), nl, X0_.data(), acc_.data(), Js);
+  ++stats_.applies;
+  stats_.apply_seconds += seconds_since(t0);
+}
+
+// lambda_ from b_: conjugate gradients on the normal equations of J x = b in the metric
+// of M (x = M^-1 J^T lambda, the constraint accelerations' change), weighted by W
+// (CGLS: min ||J x - b||_W, x of least M-norm; the iterates' lambda directions are
+// those of preconditioned CG on A lambda = b, and the iteration counts alike, but the
+// residual ||b - J x||_W decreases monotonically, also when rounding leaves part of b
+// outside A's range, where CG on A diverges). Per iteration one response
+// (schur_response): J^T, M^-1 and J as O(n) passes. From the previous lambda (warm
+// start). Converged: ||b - A lambda||_2 <= target; or, b partly outside the range, the
+// normal residual ||J^T W (b - A lambda)||_{M^-1} at most tolerance times its first value
+// and the true ||b - A lambda|| within 10 % (+ target) of the recurrence's.
+bool IterativeLoopSolver::fd_solve(double target, int& it, double& rnorm) {
+  const Index m = m_;
+  double* res = r_.data();  // b - A lambda
+  double* w = z_.data();    // W res
+  double* pl = p_.data();   // the direction in lambda
+  double* Jp = Ap_.data();  // A pl
+  double* Js = best_.data();
+  double* WJp = tmp_m_.data();
+  it = 0;
+  bool any = false;
+  for (double e : lambda_) any = any || e != 0;
+  if (any) {
+    schur_response(lambda_.data(), Js);
+    for (Index k = 0; k < m; ++k) res[k] = b_[k] - Js[k];
+  } else {
+    std::copy(b_.begin(), b_.end(), res);
+  }
+  rnorm = norm(res, m);
+  if (rnorm <= target) return true;
+  apply_preconditioner(res, w);
+  schur_response(w, Js);
+  double gamma = dot(w, Js, m);
+  const double gamma0 = gamma;
+  std::copy(w, w + m, pl);
+  std::copy(Js, Js + m, Jp);
+  bool least_squares = false;
+  while (it < options_.max_iterations && gamma > 0) {
+    apply_preconditioner(Jp, WJp);
+    const double delta = dot(Jp, WJp, m);
+    if (!(delta > 0) || !std::isfinite(delta)) break;
+    const double alpha = gamma / delta;
+    for (Index k = 0; k < m; ++k) lambda_[k] += alpha * pl[k], res[k] -= alpha * Jp[k];
+    ++it;
+    rnorm = norm(res, m);
+    if (!std::isfinite(rnorm)) return false;
+    if (rnorm <= target) break;
+    apply_preconditioner(res, w);
+    schur_response(w, Js);
+    const double gamma1 = dot(w, Js, m);
+    if (!(gamma1 > options_.tolerance * options_.tolerance * gamma0)) {
+      least_squares = true;
+      break;
+    }
+    const double beta = gamma1 / gamma;
+    gamma = gamma1;
+    for (Index k = 0; k < m; ++k) pl[k] = w[k] + beta * pl[k], Jp[k] = Js[k] + beta * Jp[k];
+  }
+  // the true residual (the recurrence's may drift): converged when it meets the
+  // target, or, least squares, when it is the recurrence's (the part of b outside the
+  // range, which no lambda removes)
+  const double recurrence = rnorm;
+  schur_response(lambda_.data(), Js);
+  for (Index k = 0; k < m; ++k) res[k] = b_[k] - Js[k];
+  rnorm = norm(res, m);
+  return rnorm <= target || (least_squares && rnorm <= 1.1 * recurrence + target);
+}
+
+void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd,
+                                           double* lambda) {
+  const auto t0 = Clock::now();
+  const Body<double>* bodies = model_.bodies.data();
+  const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
+  // X0, and gamma = Jdot qd (body motion with qdd = 0, no gravity)
+  loop_body_motion(bodies, n, q, qd, X0_.data(), v_.data(), a_.data());
+  loop_rows(bodies, n, rows_.data(), nl, X0_.data(), v_.data(), a_.data(), static_cast<double*>(nullptr),
+            static_cast<double*>(nullptr), gamma_.data());
+  // the tree: qdd0 and the articulated inertias' U, D
+  const Index failed = loop_aba_factor(bodies, n, model_.gravity, q, qd, tau, Xup_.data(), U_.data(), D_.data(),
+                                       qdd0_.data(), v_.data(), c_.data(), a_.data(), IA_.data(), pA_.data(), u_.data());
+  if (failed >= 0)
+    throw LoopError("iterative loop solver: the articulated-body pivot of DoF " + std::to_string(failed) +
+                    " is not positive and finite");
+  // b = -gamma - J qdd0
+  loop_joint_motion(bodies, n, Xup_.data(), qdd0_.data(), acc_.data());
+  loop_rows_apply(rows_.data(), nl, X0_.data(), acc_.data(), tmp_m_.data());
+  for (Index k = 0; k < m; ++k) b_[k] = -gamma_[k] - tmp_m_[k];
+  // the size of the constraint accelerations, ||gamma|| + ||J qdd0||, and the floor
+  // kIterativeLoopFloor L_J ||qdd0|| (L_J: sqrt of the largest diagonal entry of J J^T at
+  // q = 0, a length), which keeps the target above rounding and above the part of b a
+  // state's loop violation puts outside J's range, where gamma and J qdd0 cancel
+  const double scale = norm(gamma_.data(), m) + norm(tmp_m_.data(), m);
+  const double floor = kIterativeLoopFloor * jscale_ * norm(qdd0_.data(), n);
+  if (!options_.warm_start) std::fill(lambda_.begin(), lambda_.end(), 0.0);
+  for (double e : lambda_)
+    if (!std::isfinite(e)) {
+      std::fill(lambda_.begin(), lambda_.end(), 0.0);
+      break;
+    }
+  const double target = options_.tolerance * scale + floor;
+  if (m > 0) {
+    if (options_.preconditioner == LoopPreconditioner::BlockJacobi) {
+      build_preconditioner(U_.data(), D_.data());
+      invert_blocks();
+    }
+    int it = 0;
+    double residual = 0;
+    const bool ok = fd_solve(target, it, residual);
+    residual /= scale > 0 ? scale : 1.0;
+    ++stats_.fd_solves;
+    stats_.fd_iterations += it;
+    stats_.last_iterations = it;
+    stats_.last_residual = residual;
+    if (!ok) {
+      std::fill(lambda_.begin(), lambda_.end(), 0.0);  // no warm start from a failed solve
+      stats_.fd_seconds += seconds_since(t0);
+      throw LoopSolveNotConverged("iterative loop solver: conjugate gradients on J M^-1 J^T did not converge (relative residual " +
+                      sci(residual) + " after " + std::to_string(it) + " iterations, at most " +
+                      std::to_string(options_.max_iterations) + "; tolerance " + sci(options_.tolerance) + ")");
+    }
+  }
+  // qdd = qdd0 + M^-1 J^T lambda
+  if (m > 0) {
+    loop_point_wrenches(rows_.data(), nl, n, X0_.data(), lambda_.data(), f_.data());
+    loop_tree_response(bodies, n, Xup_.data(), U_.data(), D_.data(), f_.data(), pA_.data(), tmp_n_.data(), acc_.data());
+  } else {
+    std::fill(tmp_n_.begin(), tmp_n_.end(), 0.0);
+  }
+  for (Index i = 0; i < n; ++i) {
+    qdd[i] = qdd0_[i] + tmp_n_[i];
+    if (!std::isfinite(qdd[i])) {
+      std::fill(lambda_.begin(), lambda_.end(), 0.0);
+      stats_.fd_seconds += seconds_since(t0);
+      throw LoopSolveNotConverged("iterative loop solver: qdd of DoF " + std::to_string(i) + " is not finite");
+    }
+  }
+  if (lambda) std::copy(lambda_.begin(), lambda_.end(), lambda);
+  stats_.fd_seconds += seconds_since(t0);
+}
+
+// The projection's step x = argmin ||J x - r||_W^2 + mu ||x||^2 = J^T (J J^T + mu W^-1)^-1 r
+// at its linearisation, by conjugate gradients on the normal equations
+// (J^T W J + mu I) x = J^T W r from x = 0 (CGLS: each iteration one J p and one J^T W q;
+// min-norm, and a least-squares solution also when r is not in J's range, as a
+// projection's residual partly is at rounding level). W: the block-Jacobi weights (the
+// pseudo-inverses of J J^T's diagonal blocks; this is CG on J J^T + mu W^-1 with that
+// preconditioner, in the rows' terms), or 1 without a preconditioner. Converged:
+// ||J^T W (r - J x) - mu x||_2 <= tolerance ||J^T W r||_2 + floor.
+void IterativeLoopSolver::unit_solve(const double* r, double mu, double floor, double* x, bool& converged) {
+  const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
+  const Body<double>* bodies = model_.bodies.data();
+  double* res = r_.data();  // r - J x (rows)
+  double* wq = z_.data();   // W times a row vector
+  double* q = Ap_.data();   // J p (rows)
+  std::vector<double>& s = tmp_n_;
+  std::vector<double>& p = qdd0_;  // (free during a projection)
+  std::copy(r, r + m, res);
+  std::fill(x, x + n, 0.0);
+  auto jtw = [&](const double* rows, double* out) {  // out (n) = J^T W rows
+    apply_preconditioner(rows, wq);
+    loop_point_wrenches(rows_.data(), nl, n, X0_.data(), wq, f_.data());
+    loop_joint_forces(bodies, n, Xup_.data(), f_.data(), pA_.data(), out);
+  };
+  auto jv = [&](const double* v, double* out) {  // out (m) = J v
+    loop_joint_motion(bodies, n, Xup_.data(), v, acc_.data());
+    loop_rows_apply(rows_.data(), nl, X0_.data(), acc_.data(), out);
+  };
+  const auto t0 = Clock::now();
+  jtw(res, s.data());
+  const double s0 = norm(s.data(), n);
+  const double target = options_.tolerance * s0 + floor;
+  double gamma = dot(s.data(), s.data(), n), sn = s0;
+  std::copy(s.begin(), s.end(), p.begin());
+  int it = 0;
+  while (!(sn <= target) && it < options_.max_iterations) {
+    jv(p.data(), q);
+    apply_preconditioner(q, wq);
+    const double delta = dot(q, wq, m) + mu * dot(p.data(), p.data(), n);
+    ++it;
+    if (!(delta > 0) || !std::isfinite(delta)) break;
+    const double alpha = gamma / delta;
+    for (Index i = 0; i < n; ++i) x[i] += alpha * p[i];
+    for (Index k = 0; k < m; ++k) res[k] -= alpha * q[k];
+    jtw(res, s.data());
+    if (mu != 0)
+      for (Index i = 0; i < n; ++i) s[i] -= mu * x[i];
+    const double gamma1 = dot(s.data(), s.data(), n);
+    sn = std::sqrt(gamma1);
+    if (!std::isfinite(sn)) break;
+    const double beta = gamma1 / gamma;
+    gamma = gamma1;
+    for (Index i = 0; i < n; ++i) p[i] = s[i] + beta * p[i];
+  }
+  stats_.applies += it;
+  stats_.apply_seconds += seconds_since(t0);
+  ++stats_.proj_solves;
+  stats_.proj_iterations += it;
+  stats_.last_iterations = it;
+  stats_.last_residual = s0 > 0 ? sn / s0 : 0;
+  converged = sn <= target;
+  for (Index i = 0; i < n; ++i)
+    if (!std::isfinite(x[i])) {
+      std::fill(x, x + n, 0.0);
+      converged = false;
+      break;
+    }
+}
+
+double IterativeLoopSolver::project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info) {
+  const auto t0 = Clock::now();
+  const Body<double>* bodies = model_.bodies.data();
+  const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
+  struct Ops {
+    IterativeLoopSolver& s;
+    std::vector<Transform<double>> X0;  // trial points' poses (residual)
+    std::vector<Motion<double>> v, a;
+    bool last_converged = true;
+    bool residual(const double* x, double* phi) {
+      loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), X0.data(), v.data(),
+                       a.data());
+      loop_rows(s.model_.bodies.data(), s.n_, s.rows_.data(), static_cast<Index>(s.rows_.size()), X0.data(), v.data(),
+                a.data(), phi, static_cast<double*>(nullptr), static_cast<double*>(nullptr));
+      for (Index k = 0; k < s.m_; ++k)
+        if (!std::isfinite(phi[k])) return false;
+      return true;
+    }
+    void factorize(const double* x) {
+      loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), s.X0_.data(),
+                       s.v_.data(), s.a_.data());
+      loop_joint_transforms(s.model_.bodies.data(), s.n_, x, s.Xup_.data());
+      s.build_preconditioner(nullptr, nullptr);  // the unit tree's blocks: also the damping's scale
+      double big = 0;
+      for (std::size_t k = 0; k < s.rows_.size(); ++k) {
+        const int d = s.rows_[k].rows();
+        for (int i = 0; i < d; ++i) big = std::max(big, s.blocks_[36 * k + i * d + i]);
+      }
+      // Levenberg-Marquardt's damping scale, the size of J J^T in the weights' units: 1
+      // with the block-Jacobi weights (W^1/2 J J^T W^1/2 has unit diagonal blocks), else
+      // the largest diagonal entry of J J^T
+      s.unit_scale_ = s.options_.preconditioner == LoopPreconditioner::BlockJacobi ? 1.0 : big > 0 ? big : 1.0;
+      if (s.options_.preconditioner == LoopPreconditioner::BlockJacobi) s.invert_blocks();
+    }
+    double floor = 0;  // the solves' absolute tolerance (below)
+    void solve(const double* r, double mu, double* x) {
+      s.unit_solve(r, mu, floor, x, last_converged);
+      if (!last_converged && mu == 0) ++s.stats_.proj_unconverged;
+    }
+    void apply(const double* v_in, double* out) {
+      loop_joint_motion(s.model_.bodies.data(), s.n_, s.Xup_.data(), v_in, s.acc_.data());
+      loop_rows_apply(s.rows_.data(), static_cast<Index>(s.rows_.size()), s.X0_.data(), s.acc_.data(), out);
+    }
+    double damping_scale() const { return s.unit_scale_; }
+  } ops{*this, std::vector<Transform<double>>(static_cast<std::size_t>(n)),
+        std::vector<Motion<double>>(static_cast<std::size_t>(n)), std::vector<Motion<double>>(static_cast<std::size_t>(n))};
+  (void)bodies, (void)nl;
+  LoopProjectionInfo out;
+  // the rounding floor of the solves' normal residual J^T W (r - J x) for r = J v (v: q
+  // for the position steps, qd for the velocities): 1e-14 max(||q||_2, ||qd||_2) times
+  // the size of J^T W J (1 with the block-Jacobi weights, else L_J^2)
+  ops.floor = 1e-14 * std::max(norm(q, n), norm(qd, n)) *
+              (options_.preconditioner == LoopPreconditioner::BlockJacobi ? 1.0 : jscale_ * jscale_);
+  const double phi = project_onto_loops(ops, n, m, q, qd, tol, iterations, &out);
+  if (info) *info = out;
+  stats_.proj_seconds += seconds_since(t0);
+  // the last solve was the velocity projection's (J qd = 0): it must have converged
+  if (m > 0 && !ops.last_converged)
+    throw LoopSolveNotConverged("iterative loop solver: conjugate gradients on the velocity projection's normal equations did not converge "
+                    "(relative residual " + sci(stats_.last_residual) + " after at most " +
+                    std::to_string(options_.max_iterations) + " iterations; tolerance " + sci(options_.tolerance) + ")");
+  return phi;
+}
+
+std::unique_ptr<LoopSolver> make_iterative_loop_solver(const Model& model, const LoopSet& loops) {
+  return std::make_unique<IterativeLoopSolver>(model, loops);
+}
+
+}  // namespace scandyn::sim

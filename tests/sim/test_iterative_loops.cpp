@@ -1,0 +1,300 @@
+// The simulator's iterative loop solver (scandyn/sim/iterative_loops.hpp, scene key
+// "loop_solver": "iterative"; docs/loops.md): its tree passes against the dense J and
+// M, its constrained forward dynamics and projection against the dense ones
+// (constrained_forward_dynamics, project_to_loops), the iterative simulator step
+// against the dense step, the closure over a rollout, and non-convergence reported.
+#include <gtest/gtest.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <string>
+
+#include "loop_cases.hpp"
+#include "scandyn/algorithm/reference.hpp"
+#include "scandyn/io/csv.hpp"
+#include "scandyn/model/load.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
+#include "scandyn/sim/simulator.hpp"
+#include "test_util.hpp"
+
+namespace scandyn {
+namespace {
+
+using test::max_abs;
+using test::max_diff;
+using RowMat = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+const std::vector<std::string> kCases = {"fivebar", "fivebar+weld", "fourbar", "cloth:4:4", "cloth:8:8"};
+
+// The passes against J (loop_kinematics) and M (crba): J^T lambda, M^-1 J^T lambda, J x,
+// the diagonal blocks of J M^-1 J^T and J J^T (exact for these loops: their two links
+// share no moving ancestor), and the pseudo-inverse.
+TEST(IterativeLoops, TreePassesEqualTheDenseMatrices) {
+  std::mt19937_64 rng(4);
+  for (const test::LoopCase& c : test::loop_cases(kCases)) {
+    SCOPED_TRACE(c.spec);
+    const Index n = c.model.nv(), m = c.loops.rows();
+    const auto rows = loop_rows_of<double>(c.loops);
+    const Index nl = static_cast<Index>(rows.size());
+    std::vector<double> q, qd;
+    ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+    RowMat J(m, n), M(n, n);
+    loop_kinematics(c.model, c.loops, q.data(), nullptr, nullptr, J.data(), nullptr);
+    Data data(c.model);
+    crba(c.model, data, q.data(), M.data());
+    const Eigen::MatrixXd Minv = M.inverse();
+    std::vector<Transform<double>> Xup(n), X0(n);
+    std::vector<Force<double>> U(n), pA(n), f(n);
+    std::vector<double> D(n), u(n), qdd0(n), tau(n, 0.0), x(n);
+    std::vector<Motion<double>> v(n), cc(n), a(n);
+    std::vector<ABInertia<double>> IA(n);
+    loop_body_motion(c.model.bodies.data(), n, q.data(), qd.data(), X0.data(), v.data(), a.data());
+    ASSERT_LT(loop_aba_factor(c.model.bodies.data(), n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(),
+                              U.data(), D.data(), qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(),
+                              u.data()),
+              0);
+    const auto lam = test::random_vector(rng, static_cast<int>(m), -1, 1);
+    const Eigen::Map<const Eigen::VectorXd> lv(lam.data(), m);
+    loop_point_wrenches(rows.data(), nl, n, X0.data(), lam.data(), f.data());
+    // unit tree: J^T lambda
+    loop_tree_response(c.model.bodies.data(), n, Xup.data(), static_cast<const Force<double>*>(nullptr),
+                       static_cast<const double*>(nullptr), f.data(), pA.data(), x.data(), a.data());
+    const Eigen::VectorXd jt = J.transpose() * lv;
+    EXPECT_LE(max_diff(x, std::vector<double>(jt.data(), jt.data() + n)), 1e-13 * (1 + jt.cwiseAbs().maxCoeff()))
+        << "J^T lambda";
+    // M^-1 J^T lambda, and J of it
+    loop_tree_response(c.model.bodies.data(), n, Xup.data(), U.data(), D.data(), f.data(), pA.data(), x.data(),
+                       a.data());
+    const Eigen::VectorXd mjt = Minv * jt;
+    EXPECT_LE(max_diff(x, std::vector<double>(mjt.data(), mjt.data() + n)), 1e-10 * (1 + mjt.cwiseAbs().maxCoeff()))
+        << "M^-1 J^T lambda";
+    std::vector<double> Ax(m);
+    loop_rows_apply(rows.data(), nl, X0.data(), a.data(), Ax.data());
+    const Eigen::VectorXd Aref = J * mjt;
+    EXPECT_LE(max_diff(Ax, std::vector<double>(Aref.data(), Aref.data() + m)), 1e-10 * (1 + Aref.cwiseAbs().maxCoeff()))
+        << "J M^-1 J^T lambda";
+    // J x for any x
+    const auto xr = test::random_vector(rng, static_cast<int>(n), -1, 1);
+    loop_joint_motion(c.model.bodies.data(), n, Xup.data(), xr.data(), a.data());
+    loop_rows_apply(rows.data(), nl, X0.data(), a.data(), Ax.data());
+    const Eigen::VectorXd jx = J * Eigen::Map<const Eigen::VectorXd>(xr.data(), n);
+    EXPECT_LE(max_diff(Ax, std::vector<double>(jx.data(), jx.data() + m)), 1e-13 * (1 + jx.cwiseAbs().maxCoeff()))
+        << "J x";
+    // diagonal blocks
+    for (int unit = 0; unit < 2; ++unit) {
+      std::vector<Mat6<double>> Omega(n);
+      loop_response_blocks(c.model.bodies.data(), n, Xup.data(), unit ? nullptr : U.data(), unit ? nullptr : D.data(),
+                           Omega.data());
+      const Eigen::MatrixXd A = unit ? Eigen::MatrixXd(J * J.transpose()) : Eigen::MatrixXd(J * Minv * J.transpose());
+      Index row = 0;
+      for (Index k = 0; k < nl; ++k) {
+        const int d = rows[k].rows();
+        double B[36];
+        loop_schur_block(rows[k], X0.data(), Omega.data(), B);
+        double err = 0;
+        for (int i = 0; i < d; ++i)
+          for (int j = 0; j < d; ++j) err = std::max(err, std::fabs(B[i * d + j] - A(row + i, row + j)));
+        EXPECT_LE(err, 1e-10 * A.cwiseAbs().maxCoeff()) << (unit ? "J J^T" : "J M^-1 J^T") << " block of loop " << k;
+        // its pseudo-inverse: B B+ B = B, B+ B B+ = B+
+        double P[36];
+        std::copy(B, B + d * d, P);
+        symmetric_pseudo_inverse(P, d);
+        const Eigen::Map<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> Bm(B, d, d), Pm(P, d, d);
+        EXPECT_LE((Bm * Pm * Bm - Bm).cwiseAbs().maxCoeff(), 1e-9 * Bm.cwiseAbs().maxCoeff());
+        EXPECT_LE((Pm * Bm * Pm - Pm).cwiseAbs().maxCoeff(), 1e-9 * Pm.cwiseAbs().maxCoeff());
+        row += d;
+      }
+    }
+  }
+}
+
+TEST(IterativeLoops, ForwardDynamicsAndProjectionEqualTheDenseOnes) {
+  std::mt19937_64 rng(21);
+  for (auto pre : {sim::LoopPreconditioner::BlockJacobi, sim::LoopPreconditioner::None}) {
+    for (const test::LoopCase& c : test::loop_cases(kCases)) {
+      const Index nv = c.model.nv(), m = c.loops.rows();
+      const double tau_scale = c.spec.rfind("cloth", 0) == 0 ? 1e-3 : 1.0;
+      sim::IterativeLoopOptions opt;
+      opt.preconditioner = pre;
+      sim::IterativeLoopSolver it(c.model, c.loops, opt);
+      for (int trial = 0; trial < 3; ++trial) {
+        SCOPED_TRACE(c.spec + " state " + std::to_string(trial) +
+                     (pre == sim::LoopPreconditioner::None ? " (no preconditioner)" : ""));
+        std::vector<double> q, qd;
+        ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+        const auto tau = test::random_vector(rng, nv, -tau_scale, tau_scale);
+        std::vector<double> qdd_ref(nv), lambda_ref(m), qdd(nv), lambda(m);
+        constrained_forward_dynamics(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd_ref.data(),
+                                     lambda_ref.data());
+        it.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), lambda.data());
+        EXPECT_LE(max_diff(qdd, qdd_ref), 1e-8 * max_abs(qdd_ref)) << "qdd";
+        // J^T lambda is unique (lambda is not, with redundant rows)
+        RowMat J(m, nv);
+        loop_kinematics(c.model, c.loops, q.data(), nullptr, nullptr, J.data(), nullptr);
+        const Eigen::VectorXd jl = J.transpose() * Eigen::Map<const Eigen::VectorXd>(lambda.data(), m);
+        const Eigen::VectorXd jl_ref = J.transpose() * Eigen::Map<const Eigen::VectorXd>(lambda_ref.data(), m);
+        // (relative to the forces' size: M qdd, tau and J^T lambda)
+        RowMat M(nv, nv);
+        Data data(c.model);
+        crba(c.model, data, q.data(), M.data());
+        const Eigen::VectorXd mq = M * Eigen::Map<const Eigen::VectorXd>(qdd_ref.data(), nv);
+        const double force = std::max({jl_ref.cwiseAbs().maxCoeff(), max_abs(tau), mq.cwiseAbs().maxCoeff()});
+        EXPECT_LE((jl - jl_ref).cwiseAbs().maxCoeff(), 1e-8 * force) << "J^T lambda";
+        // velocities projected at a closed q: the minimum-norm change (J^+ unique)
+        std::vector<double> qp = q, qdp = qd;
+        for (Index i = 0; i < nv; ++i) qdp[i] += 1e-2 * std::cos(2.0 + i);
+        std::vector<double> q_ref = qp, qd_ref = qdp;
+        project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 0);
+        it.project(qp.data(), qdp.data(), 1e-12, 0);
+        EXPECT_LE(max_diff(qdp, qd_ref), 1e-9 * std::max(1.0, max_abs(qd_ref))) << "projected qd";
+        // positions off the loops: Gauss-Newton to |phi| <= 1e-12 and J qd = 0 (the end
+        // points agree on the five-bars; on the cloths J's weakly constrained
+        // directions leave q undetermined at the tolerance: SparseLoopStep's comment)
+        for (Index i = 0; i < nv; ++i) qp[i] += 1e-4 * std::sin(1.0 + i), qdp[i] += 1e-2 * std::cos(2.0 + i);
+        q_ref = qp, qd_ref = qdp;
+        const double r_ref = project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 10);
+        const double r = it.project(qp.data(), qdp.data(), 1e-12, 10);
+        EXPECT_LE(r, 1e-12);
+        EXPECT_LE(r_ref, 1e-12);
+        if (c.spec.rfind("cloth", 0) != 0) {
+          EXPECT_LE(max_diff(qp, q_ref), 1e-11) << "projected q";
+        }
+        EXPECT_LE(loop_violation(c.model, c.loops, qp.data(), qdp.data()), 1e-10);
+      }
+    }
+  }
+}
+
+// From far off the loops (0.2 rad per joint) the projection's first steps are damped
+// (Levenberg-Marquardt with the block-Jacobi weights: J^T (J J^T + mu D)^-1 r, D the
+// diagonal blocks of J J^T, where the dense projection damps by mu I): a different path,
+// which ends on the loops (the five-bar's closed configurations are a 2-dimensional
+// family) in at most three times as many linearisations (+5), a comparable distance
+// from the start.
+TEST(IterativeLoops, FarProjectionCloses) {
+  std::mt19937_64 rng(9);
+  for (const test::LoopCase& c : test::loop_cases({"fivebar", "fourbar", "cloth:4:4", "cloth:6:6"})) {
+    SCOPED_TRACE(c.spec);
+    const Index nv = c.model.nv();
+    std::vector<double> q, qd;
+    ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+    for (Index i = 0; i < nv; ++i) q[i] += 0.2 * std::sin(1.0 + i);
+    const std::vector<double> start = q;
+    std::vector<double> q_ref = q, qd_ref = qd;
+    LoopProjectionInfo info, info_ref;
+    project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-13, 100, &info_ref);
+    sim::IterativeLoopSolver it(c.model, c.loops);
+    it.project(q.data(), qd.data(), 1e-13, 100, &info);
+    ASSERT_TRUE(info_ref.converged);
+    EXPECT_TRUE(info.converged);
+    EXPECT_LE(info.linearisations, 3 * info_ref.linearisations + 5);  // measured: 20 against 7 on cloth:6:6
+    EXPECT_LE(loop_violation(c.model, c.loops, q.data(), qd.data()), 1e-12);
+    EXPECT_LE(max_diff(q, start), 2 * max_diff(q_ref, start));
+  }
+}
+
+// The simulator's state after `steps` steps of the scene with the given loop solver,
+// from q = 0.1, qd = 0.5 projected by the dense solve (the same start for every solver).
+void rollout(const std::string& model, const std::string& solver, const char* integrator, double dt, int steps,
+             std::vector<double>& q, std::vector<double>& qd, double* worst_closure = nullptr) {
+  const Model mdl = load_model(model);
+  const LoopSet loops = generator_loops(model, mdl);
+  std::vector<double> q0(mdl.nv(), 0.1), qd0(mdl.nv(), 0.5);
+  project_to_loops(mdl, loops, q0.data(), qd0.data());
+  auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
+  const sim::Scene scene = sim::parse_scene(std::string(R"({"model": ")") + model +
+                                                R"(", "effects": {"gravity": true}, "integrator": ")" +
+                                                integrator + R"(", "loop_solver": ")" + solver + R"(", "dt": )" +
+                                                std::to_string(dt) + R"(, "initial": {"q": )" + array(q0) +
+                                                R"(, "qd": )" + array(qd0) + "}}",
+                                            "test.json");
+  sim::Simulator<double> s(scene, BackendKind::Serial);
+  const Index n = s.nv();
+  q.resize(n), qd.resize(n);
+  for (int k = 0; k < steps; ++k) {
+    s.step();
+    if (worst_closure) {
+      s.read_state(q.data(), qd.data());
+      *worst_closure = std::max(*worst_closure, loop_violation(scene.model, scene.loops, q.data(), qd.data()));
+    }
+  }
+  ASSERT_TRUE(s.status().ok()) << sim::failure_message(s.status());
+  s.read_state(q.data(), qd.data());
+}
+
+TEST(IterativeLoops, SimulatorStepEqualsTheDenseStep) {
+  struct Case {
+    const char* model;
+    const char* integrator;
+    int steps;
+    double dt;
+  } cases[] = {{"fivebar", "rk4", 200, 1e-3}, {"fivebar", "euler", 200, 1e-3}, {"cloth:4:4", "rk4", 100, 2e-4},
+               {"cloth:8:8", "rk4", 50, 2e-4}, {"cloth:8:8", "euler", 50, 2e-4}};
+  for (const Case& c : cases) {
+    SCOPED_TRACE(std::string(c.model) + " " + c.integrator);
+    std::vector<double> q, qd, q_ref, qd_ref;
+    rollout(c.model, "iterative", c.integrator, c.dt, c.steps, q, qd);
+    rollout(c.model, "dense", c.integrator, c.dt, c.steps, q_ref, qd_ref);
+    EXPECT_GT(max_diff(q_ref, std::vector<double>(q_ref.size(), 0.1)), 1e-3) << "the mechanism moved";
+    EXPECT_LE(max_diff(q, q_ref), 1e-9 * std::max(1.0, max_abs(q_ref))) << "q";
+    EXPECT_LE(max_diff(qd, qd_ref), 1e-8 * std::max(1.0, max_abs(qd_ref))) << "qd";
+  }
+}
+
+TEST(IterativeLoops, ClosureBoundedOverARollout) {
+  std::vector<double> q, qd;
+  double worst = 0;
+  rollout("cloth:8:8", "iterative", "rk4", 2e-4, 500, q, qd, &worst);
+  EXPECT_LE(worst, 1e-11);
+}
+
+// A forward dynamics whose CG cannot converge within its cap is a LoopError naming the
+// residual; in the simulator, the instance's step fails (LoopNotClosed) and it keeps
+// its state.
+TEST(IterativeLoops, NonConvergenceIsReported) {
+  const test::LoopCase c = test::loop_cases({"cloth:8:8"})[0];
+  std::mt19937_64 rng(3);
+  std::vector<double> q, qd;
+  ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+  sim::IterativeLoopOptions opt;
+  opt.max_iterations = 2;
+  opt.warm_start = false;
+  sim::IterativeLoopSolver it(c.model, c.loops, opt);
+  std::vector<double> tau(c.model.nv(), 0.0), qdd(c.model.nv());
+  try {
+    it.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), nullptr);
+    FAIL() << "2 CG iterations converged on cloth:8:8";
+  } catch (const sim::LoopSolveNotConverged& e) {  // (the simulator's LoopNotClosed)
+    EXPECT_NE(std::string(e.what()).find("did not converge"), std::string::npos) << e.what();
+  }
+  // the default cap converges
+  sim::IterativeLoopSolver ok(c.model, c.loops);
+  std::vector<double> qdd_ref(c.model.nv()), lambda_ref(c.loops.rows());
+  constrained_forward_dynamics(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd_ref.data(), lambda_ref.data());
+  ok.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), nullptr);
+  for (double e : qdd) EXPECT_TRUE(std::isfinite(e));
+  EXPECT_GT(ok.stats().last_iterations, 2);
+  EXPECT_LE(max_diff(qdd, qdd_ref), 1e-8 * max_abs(qdd_ref));
+}
+
+TEST(IterativeLoops, SceneChoosesTheSolver) {
+  auto error_of = [](const std::string& json) -> std::string {
+    try {
+      sim::Simulator<double> s(sim::parse_scene(json, "test.json"), BackendKind::Serial);
+    } catch (const std::exception& e) {
+      return e.what();
+    }
+    return "";
+  };
+  EXPECT_EQ(error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative"})"), "");
+  const std::string e = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "cg"})");
+  EXPECT_NE(e.find("\"iterative\""), std::string::npos) << e;
+  const std::string w = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative",
+      "effects": {"external": {"wrenches": [{"link": "left_distal", "wrench": [0, 0, 0, 1, 0, 0]}]}}})");
+  EXPECT_NE(w.find("iterative"), std::string::npos) << w;
+}
+
+}  // namespace
+}  // namespace scandyn
