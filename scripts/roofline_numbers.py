@@ -31,6 +31,7 @@ PEAK = {
 }
 ISSUE = 132 * 4 * 1.98e9  # warp instructions per second, either GPU
 
+LAST_SOURCE = [""]
 STATIC = list(csv.DictReader(open(os.path.join(RES, "sass-static-sm90.csv"))))
 
 
@@ -49,13 +50,21 @@ def measured(name, **match):
     rows = [r for r in csv.DictReader(lines) if all(r.get(k) == v for k, v in match.items())]
     assert len(rows) == 1, (name, match, len(rows))
     r = rows[0]
+    LAST_SOURCE[0] = name
     if "seconds_zaxis" in r:  # zaxis-h100.csv: the z-axis frames' time (the engines' kernels)
         return float(r["seconds_zaxis"]), int(r["instances"])
     return float(r["seconds_per_call"]), int(r["instances"])
 
 
+class Entries(list):
+    """Entries that remember the results file of the last measured() call."""
+    def append(self, e):
+        e.setdefault("src", LAST_SOURCE[0])
+        super().append(e)
+
+
 def entries():
-    E = []
+    E = Entries()
     # -- thread per instance, iiwa (7 bodies, capacity 8), z-axis frames --------------------
     k = kernel(r"id_instances_kernelIfLi8ENS_10ZJointBodyIfEELb0")
     t, B = measured("zaxis-h100.csv", algo="id", precision="float", model="iiwa")
@@ -144,7 +153,7 @@ def entries():
 
 
 def main():
-    print("| kernel | GPU | per | bytes / eval | instructions / eval | evals/s | DRAM | % peak | warp-instr issue | % peak |")
+    print("| kernel | GPU | per | bytes / eval | instructions / eval | evals/s (file) | DRAM | % peak | warp-instr issue | % peak |")
     print("|---|---|---|---:|---|---:|---:|---:|---:|---:|")
     for e in entries():
         rate = e["evals"] / e["t"]
@@ -161,8 +170,8 @@ def main():
             instr = "%d (%s)" % (e["instr"], e["instr_how"])
         else:
             i_s, ip, instr = "", "", e["instr_how"]
-        print("| %s | %s | %s | %s | %s | %.3g | %s | %s | %s | %s |" % (
-            e["name"], e["dev"], e["per"], b_s, instr, rate, bw_s, pct, i_s, ip))
+        print("| %s | %s | %s | %s | %s | %.3g (`%s`) | %s | %s | %s | %s |" % (
+            e["name"], e["dev"], e["per"], b_s, instr, rate, e["src"], bw_s, pct, i_s, ip))
         if e.get("flops32"):
             print("|  | | FP32 (static FLOPs %d x rate) | | | | %.1f TFLOP/s | %.0f %% | | |" % (
                 e["flops32"], e["flops32"] * rate / 1e12, 100 * e["flops32"] * rate / pk["fp32"]))
