@@ -2,8 +2,12 @@
 // a generator that carries loops: fivebar, fourbar, cloth:K:N): forward dynamics
 // (qdd_fd_<i>, lambda_<k>) and, with --actuated LIST, inverse dynamics (tau_id_<i>,
 // lambda_<k>) of the constrained system (scandyn/algorithm/loops.hpp), serial double.
+// Forward dynamics through --loop-solver: dense (constrained_forward_dynamics), sparse
+// (the registered CHOLMOD solver, scandyn/sim/sparse_loops.hpp) or iterative
+// (scandyn/sim/iterative_loops.hpp): the simulator's loop solvers, one per call.
 #include <cmath>
 #include <cstdio>
+#include <memory>
 
 #include "hybrid.hpp"
 #include "engines.hpp"
@@ -12,6 +16,8 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
+#include "scandyn/sim/sparse_loops.hpp"
 
 namespace scandyn::cli {
 
@@ -26,6 +32,33 @@ LoopSet load_cli_loops(const Args& args, const Model& model) {
   }
   return loops;
 }
+
+namespace {
+
+// --loop-solver of eval's forward dynamics: null for the dense solve, else the
+// simulator's solver factory (the same choice as a scene's "loop_solver").
+sim::LoopSolverFactory eval_loop_solver(const Args& args, const std::string& algo, Index nv) {
+  const std::string name = args.get("loop-solver", "auto");
+  if (name != "auto" && name != "dense" && name != "sparse" && name != "iterative")
+    throw UsageError("--loop-solver " + name + ": expected dense, sparse, iterative or auto");
+  if (algo == "id") {
+    if (name != "auto" && name != "dense")
+      throw UsageError("--loop-solver " + name + ": inverse dynamics with loops (--algo id) solves densely");
+    return nullptr;
+  }
+  if (name == "dense") return nullptr;
+  if (name == "sparse") {
+    if (!sim::sparse_loop_solver())
+      throw UsageError("--loop-solver sparse: this scandyn was built without SuiteSparse CHOLMOD (`scandyn info` "
+                       "lists its loop solvers); use iterative or dense");
+    return sim::sparse_loop_solver();
+  }
+  if (name == "iterative" || nv >= sim::kSparseLoopDofs)
+    return name == "auto" && sim::sparse_loop_solver() ? sim::sparse_loop_solver() : &sim::make_iterative_loop_solver;
+  return nullptr;
+}
+
+}  // namespace
 
 int run_eval_loops(const Args& args) {
   const std::string& states_path = args.required("states");
@@ -47,6 +80,8 @@ int run_eval_loops(const Args& args) {
   std::vector<unsigned char> actuated;
   if (args.has("actuated")) actuated = parse_prescribed(args.required("actuated"), model, "actuated");
 
+  const sim::LoopSolverFactory factory = eval_loop_solver(args, algo, n);  // (usage errors before the files)
+
   CsvReader in(states_path);
   const StateColumns cols = map_state_columns(in.columns(), n, states_path);
   const Family given = algo == "fd" ? Family::Tau : Family::Qdd;
@@ -56,7 +91,17 @@ int run_eval_loops(const Args& args) {
       throw CsvError(states_path + ": missing column " + family_prefix(f) + std::to_string(i) + " (needed by --algo " +
                      algo + " with loops)");
   }
-  require_host_memory("eval with loops on " + printable(model.source), 8.0 * double(n) * double(n + m) * 4 + 1e6);
+  std::unique_ptr<sim::LoopSolver> solver;
+  if (factory) {
+    try {
+      solver = factory(model, loops);
+    } catch (const LoopError& e) {
+      throw DataError(printable(model.source) + ": " + e.what());
+    }
+  } else {
+    require_host_memory("eval with loops on " + printable(model.source) + " (the dense solve; --loop-solver)",
+                        8.0 * double(n) * double(n + m) * 4 + 1e6);
+  }
   CsvWriter out(out_path);
   std::vector<std::string> names;
   for (Index i = 0; i < n; ++i) names.push_back((algo == "fd" ? "qdd_fd_" : "tau_id_") + std::to_string(i));
@@ -73,11 +118,18 @@ int run_eval_loops(const Args& args) {
       throw DataError(in.where() + ": the state violates loop " + std::to_string(loop) + " (" +
                       loops.loops[loop].link_a + " - " + loops.loops[loop].link_b + ") by " + std::to_string(v) +
                       " (tolerance " + std::to_string(kLoopStateTolerance) + " m, rad, m/s, rad/s)");
-    if (algo == "fd")
+    if (solver) {
+      try {
+        solver->forward_dynamics(q.data(), qd.data(), u.data(), res.data(), res.data() + n);
+      } catch (const LoopError& e) {
+        throw DataError(in.where() + ": " + e.what());
+      }
+    } else if (algo == "fd") {
       constrained_forward_dynamics(model, loops, q.data(), qd.data(), u.data(), res.data(), res.data() + n);
-    else
+    } else {
       constrained_inverse_dynamics(model, loops, q.data(), qd.data(), u.data(), actuated.data(), res.data(),
                                    res.data() + n);
+    }
     for (std::size_t j = 0; j < res.size(); ++j)
       if (!std::isfinite(res[j])) throw DataError(in.where() + ": result " + names[j] + " is not finite");
     out.write_row(res.data(), res.size());

@@ -123,11 +123,15 @@ const char* const kEvalUsage =
     "tau_<i> of the others; writes qdd_hd_<i> and tau_hd_<i> of every DoF.\n"
     "\n"
     "       scandyn eval --model M --states IN.csv --out OUT.csv [--loops FILE]\n"
-    "                    [--algo fd | --algo id --actuated LIST]\n"
+    "                    [--algo fd [--loop-solver S] | --algo id --actuated LIST]\n"
     "Closed loops (a loop file, or the loops of fivebar, fourbar, cloth:K:N): fd writes\n"
     "qdd_fd_<i> and lambda_<k> (M qdd + h = tau + J^T lambda, J qdd + Jdot qd = 0);\n"
     "id with the actuated DoFs writes tau_id_<i> (minimum norm) and lambda_<k>. A state\n"
-    "violating its loops by more than 1e-6 is an error. Serial, double.\n";
+    "violating its loops by more than 1e-6 is an error. Serial, double.\n"
+    "  --loop-solver S  fd's solver: dense (rank-revealing, lambda of minimum norm),\n"
+    "                   sparse (CHOLMOD, when built with it), iterative (matrix-free\n"
+    "                   conjugate gradients, relative residual 1e-10), or auto\n"
+    "                   (default: dense below 200 DoF, else sparse, else iterative)\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"
@@ -210,7 +214,7 @@ const Command kCommands[] = {
      kEvalUsage,
      {"model", "states", "out", "algo", "fd", "fallback", "backend", "strategy", "threads", "precision",
       "allow-nonphysical-inertia", "frames", "reference", "floating-base", "fd-check", "fd-check-tol", "prescribed", "loops",
-      "actuated", "simd", "devices"},
+      "actuated", "loop-solver", "simd", "devices"},
      &run_eval},
     {"bench",
      kBenchUsage,

@@ -68,6 +68,38 @@ TEST(Loops, GeneratorsAreClosedAtZero) {
   EXPECT_EQ(c.loops.loops[5].link_b, "link_2_1");
 }
 
+// loop_violation (phi and J qd by the points' velocities, O(nv + m)) equals max(|phi|,
+// |J qd|) with J formed by loop_kinematics, and names the worst loop, on random states
+// off the loops (point and weld loops; 1e-13 absolute, rounding of the two summations).
+TEST(Loops, ViolationEqualsTheFormedJacobians) {
+  std::mt19937_64 g(41);
+  for (const Loopy& L : loopy_models()) {
+    const Index n = L.model.nv(), m = L.loops.rows();
+    for (int trial = 0; trial < 5; ++trial) {
+      const std::vector<double> q = test::random_vector(g, n, -1, 1), qd = test::random_vector(g, n, -1, 1);
+      std::vector<double> phi(m), J(static_cast<std::size_t>(m * n));
+      loop_kinematics(L.model, L.loops, q.data(), qd.data(), phi.data(), J.data(), nullptr);
+      double worst = 0;
+      Index worst_loop = -1, row = 0;
+      for (Index k = 0; k < static_cast<Index>(L.loops.loops.size()); ++k) {
+        for (Index r = row; r < row + L.loops.loops[k].rows(); ++r) {
+          double jqd = 0;
+          for (Index j = 0; j < n; ++j) jqd += J[r * n + j] * qd[j];
+          const double e = std::max(std::fabs(phi[r]), std::fabs(jqd));
+          if (worst_loop < 0 || e > worst) worst = e, worst_loop = k;
+        }
+        row += L.loops.loops[k].rows();
+      }
+      Index loop = -2;
+      const double v = loop_violation(L.model, L.loops, q.data(), qd.data(), &loop);
+      EXPECT_NEAR(v, worst, 1e-13) << L.spec;
+      if (std::fabs(v - worst) < 1e-13 && worst > 1e-9) {
+        EXPECT_GE(loop, 0) << L.spec;
+      }
+    }
+  }
+}
+
 TEST(Loops, JacobianAndBiasAgainstDifferences) {
   std::mt19937_64 g(1);
   for (const auto& L : loopy_models()) {
