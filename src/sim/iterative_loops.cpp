@@ -4,6 +4,7 @@
 #include "scandyn/sim/iterative_loops.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -14,6 +15,26 @@ namespace scandyn::sim {
 
 namespace {
 using Clock = std::chrono::steady_clock;
+// iterative_loop_totals' sums (seconds in nanoseconds)
+std::atomic<long> g_fd_solves{0}, g_fd_iterations{0}, g_proj_solves{0}, g_proj_iterations{0}, g_applies{0},
+    g_apply_ns{0}, g_fd_ns{0}, g_proj_ns{0};
+long ns(double seconds) { return static_cast<long>(seconds * 1e9); }
+
+// When conjugate gradients on normal equations stop short of their residual target:
+// the residual ||b - J x|| has reached the part of b outside J's range (no x removes
+// it), i.e. the normal residual (relative to its first value) is at rounding level,
+// kLeastSquaresRounding; or the residual has not decreased by 0.1 % in 100 iterations
+// (200 iterations) and the relative normal residual is below kLeastSquaresStagnant.
+constexpr double kLeastSquaresRounding = 1e-14, kLeastSquaresStagnant = 1e-12;
+struct LeastSquaresStop {
+  double best = INFINITY;
+  int since = 0;
+  bool least_squares(double residual, double relative_normal) {
+    if (residual < (1 - 1e-3) * best) best = residual, since = 0;
+    else ++since;
+    return relative_normal <= kLeastSquaresRounding || (since >= 200 && relative_normal <= kLeastSquaresStagnant);
+  }
+};
 double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 double dot(const double* a, const double* b, Index m) {
   double s = 0;
@@ -37,7 +58,7 @@ IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loop
   n_ = model_.nv(), m_ = loops_.rows();
   const std::size_t n = static_cast<std::size_t>(n_), m = static_cast<std::size_t>(m_);
   Xup_.resize(n), X0_.resize(n), U_.resize(n), f_.resize(n), pA_.resize(n);
-  D_.resize(n), u_.resize(n), qdd0_.resize(n), tmp_n_.resize(n);
+  D_.resize(n), u_.resize(n), qdd0_.resize(n), tmp_n_.resize(n), xbest_.resize(n), dx_.resize(n), px_.resize(n);
   v_.resize(n), c_.resize(n), a_.resize(n), acc_.resize(n), IA_.resize(n);
   Omega_.resize(n);  // the preconditioner's and the projection's damping scale
   lambda_.assign(m, 0.0);
@@ -116,20 +137,25 @@ void IterativeLoopSolver::schur_response(const double* w, double* Js) {
 // normal residual ||J^T W (b - A lambda)||_{M^-1} at most tolerance times its first value
 // and the true ||b - A lambda|| within 10 % (+ target) of the recurrence's.
 bool IterativeLoopSolver::fd_solve(double target, int& it, double& rnorm) {
-  const Index m = m_;
-  double* res = r_.data();  // b - A lambda
+  const Index m = m_, n = n_;
+  double* res = r_.data();  // b - J x
   double* w = z_.data();    // W res
   double* pl = p_.data();   // the direction in lambda
-  double* Jp = Ap_.data();  // A pl
+  double* Jp = Ap_.data();  // J px = A pl
   double* Js = best_.data();
   double* WJp = tmp_m_.data();
+  double* x = dx_.data();   // M^-1 J^T lambda (n)
+  double* px = px_.data();  // the direction in x (n)
+  const double* s = tmp_n_.data();  // schur_response's M^-1 J^T w
   it = 0;
   bool any = false;
   for (double e : lambda_) any = any || e != 0;
   if (any) {
     schur_response(lambda_.data(), Js);
+    std::copy(s, s + n, x);
     for (Index k = 0; k < m; ++k) res[k] = b_[k] - Js[k];
   } else {
+    std::fill(x, x + n, 0.0);
     std::copy(b_.begin(), b_.end(), res);
   }
   rnorm = norm(res, m);
@@ -139,14 +165,17 @@ bool IterativeLoopSolver::fd_solve(double target, int& it, double& rnorm) {
   double gamma = dot(w, Js, m);
   const double gamma0 = gamma;
   std::copy(w, w + m, pl);
+  std::copy(s, s + n, px);
   std::copy(Js, Js + m, Jp);
   bool least_squares = false;
+  LeastSquaresStop stop;
   while (it < options_.max_iterations && gamma > 0) {
     apply_preconditioner(Jp, WJp);
     const double delta = dot(Jp, WJp, m);
     if (!(delta > 0) || !std::isfinite(delta)) break;
     const double alpha = gamma / delta;
     for (Index k = 0; k < m; ++k) lambda_[k] += alpha * pl[k], res[k] -= alpha * Jp[k];
+    for (Index i = 0; i < n; ++i) x[i] += alpha * px[i];
     ++it;
     rnorm = norm(res, m);
     if (!std::isfinite(rnorm)) return false;
@@ -154,26 +183,60 @@ bool IterativeLoopSolver::fd_solve(double target, int& it, double& rnorm) {
     apply_preconditioner(res, w);
     schur_response(w, Js);
     const double gamma1 = dot(w, Js, m);
-    if (!(gamma1 > options_.tolerance * options_.tolerance * gamma0)) {
+    if (stop.least_squares(rnorm, std::sqrt(gamma1 / gamma0))) {
       least_squares = true;
       break;
     }
     const double beta = gamma1 / gamma;
     gamma = gamma1;
     for (Index k = 0; k < m; ++k) pl[k] = w[k] + beta * pl[k], Jp[k] = Js[k] + beta * Jp[k];
+    for (Index i = 0; i < n; ++i) px[i] = s[i] + beta * px[i];
   }
-  // the true residual (the recurrence's may drift): converged when it meets the
-  // target, or, least squares, when it is the recurrence's (the part of b outside the
-  // range, which no lambda removes)
+  // the true residual b - J x (the recurrence's may drift): converged when it meets
+  // the target, or, least squares, when it is the recurrence's (the part of b outside
+  // the range, which no x removes). x, not M^-1 J^T lambda: lambda may drift along
+  // J^T's null space (without effect on x) where b is partly outside the range.
   const double recurrence = rnorm;
-  schur_response(lambda_.data(), Js);
+  loop_joint_motion(model_.bodies.data(), n, Xup_.data(), x, acc_.data());
+  loop_rows_apply(rows_.data(), static_cast<Index>(rows_.size()), X0_.data(), acc_.data(), Js);
   for (Index k = 0; k < m; ++k) res[k] = b_[k] - Js[k];
   rnorm = norm(res, m);
   return rnorm <= target || (least_squares && rnorm <= 1.1 * recurrence + target);
 }
 
+void IterativeLoopSolver::add_to_totals(const IterativeLoopStats& before) const {
+  g_fd_solves += stats_.fd_solves - before.fd_solves;
+  g_fd_iterations += stats_.fd_iterations - before.fd_iterations;
+  g_proj_solves += stats_.proj_solves - before.proj_solves;
+  g_proj_iterations += stats_.proj_iterations - before.proj_iterations;
+  g_applies += stats_.applies - before.applies;
+  g_apply_ns += ns(stats_.apply_seconds - before.apply_seconds);
+  g_fd_ns += ns(stats_.fd_seconds - before.fd_seconds);
+  g_proj_ns += ns(stats_.proj_seconds - before.proj_seconds);
+}
+
+IterativeLoopStats iterative_loop_totals() {
+  IterativeLoopStats t;
+  t.fd_solves = g_fd_solves, t.fd_iterations = g_fd_iterations, t.proj_solves = g_proj_solves;
+  t.proj_iterations = g_proj_iterations, t.applies = g_applies;
+  t.apply_seconds = 1e-9 * double(g_apply_ns), t.fd_seconds = 1e-9 * double(g_fd_ns);
+  t.proj_seconds = 1e-9 * double(g_proj_ns);
+  return t;
+}
+
+void reset_iterative_loop_totals() {
+  g_fd_solves = 0, g_fd_iterations = 0, g_proj_solves = 0, g_proj_iterations = 0, g_applies = 0, g_apply_ns = 0;
+  g_fd_ns = 0, g_proj_ns = 0;
+}
+
 void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, const double* tau, double* qdd,
                                            double* lambda) {
+  const IterativeLoopStats before = stats_;
+  struct Add {
+    const IterativeLoopSolver& s;
+    const IterativeLoopStats& before;
+    ~Add() { s.add_to_totals(before); }
+  } add{*this, before};
   const auto t0 = Clock::now();
   const Body<double>* bodies = model_.bodies.data();
   const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
@@ -225,15 +288,10 @@ void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, co
                       std::to_string(options_.max_iterations) + "; tolerance " + sci(options_.tolerance) + ")");
     }
   }
-  // qdd = qdd0 + M^-1 J^T lambda
-  if (m > 0) {
-    loop_point_wrenches(rows_.data(), nl, n, X0_.data(), lambda_.data(), f_.data());
-    loop_tree_response(bodies, n, Xup_.data(), U_.data(), D_.data(), f_.data(), pA_.data(), tmp_n_.data(), acc_.data());
-  } else {
-    std::fill(tmp_n_.begin(), tmp_n_.end(), 0.0);
-  }
+  // qdd = qdd0 + M^-1 J^T lambda (fd_solve's x)
+  if (m == 0) std::fill(dx_.begin(), dx_.end(), 0.0);
   for (Index i = 0; i < n; ++i) {
-    qdd[i] = qdd0_[i] + tmp_n_[i];
+    qdd[i] = qdd0_[i] + dx_[i];
     if (!std::isfinite(qdd[i])) {
       std::fill(lambda_.begin(), lambda_.end(), 0.0);
       stats_.fd_seconds += seconds_since(t0);
@@ -250,10 +308,17 @@ void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, co
 // min-norm, and a least-squares solution also when r is not in J's range, as a
 // projection's residual partly is at rounding level). W: the block-Jacobi weights (the
 // pseudo-inverses of J J^T's diagonal blocks; this is CG on J J^T + mu W^-1 with that
-// preconditioner, in the rows' terms), or 1 without a preconditioner. Converged:
-// ||J^T W (r - J x) - mu x||_2 <= tolerance ||J^T W r||_2 + floor.
-void IterativeLoopSolver::unit_solve(const double* r, double mu, double floor, double* x, bool& converged) {
+// preconditioner, in the rows' terms), or 1 without a preconditioner. mu is at least
+// kLoopRankTolerance (of the damping scale). Converged: (mu = 0 asked) ||r - J x||_2 <=
+// tolerance ||r||_2 + floor, or the damped normal residual ||J^T W (r - J x) - mu x||_2
+// at most tolerance times its first value.
+void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor, double* x, bool& converged) {
   const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
+  // every solve damped by at least kLoopRankTolerance of the scale: J's directions of
+  // singular value below 1e-5 (relative) stay out of the step, as the dense solve's
+  // rank threshold keeps them out (a right-hand side at rounding level would otherwise
+  // be "solved" along them by steps of any length)
+  const double mu = std::max(mu_in, kLoopRankTolerance * unit_scale_);
   const Body<double>* bodies = model_.bodies.data();
   double* res = r_.data();  // r - J x (rows)
   double* wq = z_.data();   // W times a row vector
@@ -272,38 +337,83 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu, double floor, d
     loop_rows_apply(rows_.data(), nl, X0_.data(), acc_.data(), out);
   };
   const auto t0 = Clock::now();
-  jtw(res, s.data());
-  const double s0 = norm(s.data(), n);
-  const double target = options_.tolerance * s0 + floor;
-  double gamma = dot(s.data(), s.data(), n), sn = s0;
-  std::copy(s.begin(), s.end(), p.begin());
+  const double r0 = norm(res, m);
+  const double target = options_.tolerance * r0 + floor;
+  double rn = r0, sn = 0, s0 = 0;
   int it = 0;
-  while (!(sn <= target) && it < options_.max_iterations) {
-    jv(p.data(), q);
-    apply_preconditioner(q, wq);
-    const double delta = dot(q, wq, m) + mu * dot(p.data(), p.data(), n);
-    ++it;
-    if (!(delta > 0) || !std::isfinite(delta)) break;
-    const double alpha = gamma / delta;
-    for (Index i = 0; i < n; ++i) x[i] += alpha * p[i];
-    for (Index k = 0; k < m; ++k) res[k] -= alpha * q[k];
+  converged = rn <= target;
+  // the iterate of least residual: a right-hand side at rounding level (a step's drift
+  // closed to it) may not decrease further
+  double best = r0;
+  std::vector<double>& xbest = xbest_;
+  std::fill(xbest.begin(), xbest.end(), 0.0);
+  // rounds: CGLS to its damped normal residual, then (mu = 0 asked) again from the true
+  // residual r - J x while that is above the target and the last round halved it
+  for (int round = 0; round < 4 && !converged && it < options_.max_iterations; ++round) {
+    const double round_start = rn;
+    if (round > 0) {  // the true residual at x
+      jv(x, q);
+      for (Index k = 0; k < m; ++k) res[k] = r[k] - q[k];
+      rn = norm(res, m);
+      if (mu_in == 0 && rn <= target) {
+        converged = true;
+        break;
+      }
+    }
     jtw(res, s.data());
-    if (mu != 0)
+    for (Index i = 0; i < n; ++i) s[i] -= mu * x[i];
+    sn = norm(s.data(), n);
+    if (round == 0) s0 = sn;  // (every round's normal residual relative to the first's)
+    double gamma = sn * sn;
+    std::copy(s.begin(), s.end(), p.begin());
+    bool normal = sn <= options_.tolerance * s0;
+    while (!normal && it < options_.max_iterations && gamma > 0) {
+      jv(p.data(), q);
+      apply_preconditioner(q, wq);
+      const double delta = dot(q, wq, m) + mu * dot(p.data(), p.data(), n);
+      if (!(delta > 0) || !std::isfinite(delta)) break;
+      const double alpha = gamma / delta;
+      for (Index i = 0; i < n; ++i) x[i] += alpha * p[i];
+      for (Index k = 0; k < m; ++k) res[k] -= alpha * q[k];
+      ++it;
+      rn = norm(res, m);
+      if (!std::isfinite(rn)) break;
+      if (rn < best) best = rn, std::copy(x, x + n, xbest.begin());
+      if (mu_in == 0 && rn <= target) {
+        converged = true;
+        break;
+      }
+      jtw(res, s.data());
       for (Index i = 0; i < n; ++i) s[i] -= mu * x[i];
-    const double gamma1 = dot(s.data(), s.data(), n);
-    sn = std::sqrt(gamma1);
-    if (!std::isfinite(sn)) break;
-    const double beta = gamma1 / gamma;
-    gamma = gamma1;
-    for (Index i = 0; i < n; ++i) p[i] = s[i] + beta * p[i];
+      const double gamma1 = dot(s.data(), s.data(), n);
+      sn = std::sqrt(gamma1);
+      // the damped normal equations' residual (r - J x need not vanish)
+      if (sn <= options_.tolerance * s0) {
+        normal = true;
+        break;
+      }
+      const double beta = gamma1 / gamma;
+      gamma = gamma1;
+      for (Index i = 0; i < n; ++i) p[i] = s[i] + beta * p[i];
+    }
+    if (converged) break;
+    if (!normal) break;  // the cap, or a breakdown: not converged
+    if (mu_in != 0 || !(rn <= 0.5 * round_start)) {
+      converged = true;  // the damped problem solved (its residual is what remains)
+      break;
+    }
+  }
+  if (mu_in == 0 && !(rn <= best)) {
+    std::copy(xbest.begin(), xbest.end(), x);
+    rn = best;
+    converged = converged || rn <= target;
   }
   stats_.applies += it;
   stats_.apply_seconds += seconds_since(t0);
   ++stats_.proj_solves;
   stats_.proj_iterations += it;
   stats_.last_iterations = it;
-  stats_.last_residual = s0 > 0 ? sn / s0 : 0;
-  converged = sn <= target;
+  stats_.last_residual = r0 > 0 ? rn / r0 : 0;
   for (Index i = 0; i < n; ++i)
     if (!std::isfinite(x[i])) {
       std::fill(x, x + n, 0.0);
@@ -313,6 +423,12 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu, double floor, d
 }
 
 double IterativeLoopSolver::project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info) {
+  const IterativeLoopStats before = stats_;
+  struct Add {
+    const IterativeLoopSolver& s;
+    const IterativeLoopStats& before;
+    ~Add() { s.add_to_totals(before); }
+  } add{*this, before};
   const auto t0 = Clock::now();
   const Body<double>* bodies = model_.bodies.data();
   const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
@@ -360,11 +476,10 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
         std::vector<Motion<double>>(static_cast<std::size_t>(n)), std::vector<Motion<double>>(static_cast<std::size_t>(n))};
   (void)bodies, (void)nl;
   LoopProjectionInfo out;
-  // the rounding floor of the solves' normal residual J^T W (r - J x) for r = J v (v: q
-  // for the position steps, qd for the velocities): 1e-14 max(||q||_2, ||qd||_2) times
-  // the size of J^T W J (1 with the block-Jacobi weights, else L_J^2)
-  ops.floor = 1e-14 * std::max(norm(q, n), norm(qd, n)) *
-              (options_.preconditioner == LoopPreconditioner::BlockJacobi ? 1.0 : jscale_ * jscale_);
+  // the floor of the solves' residual r - J x for r = J v (v: q for the position steps,
+  // qd for the velocities): kIterativeLoopFloor L_J max(||q||_2, ||qd||_2), the
+  // residual a dense projection leaves
+  ops.floor = kIterativeLoopFloor * jscale_ * std::max(norm(q, n), norm(qd, n));
   const double phi = project_onto_loops(ops, n, m, q, qd, tol, iterations, &out);
   if (info) *info = out;
   stats_.proj_seconds += seconds_since(t0);

@@ -102,6 +102,7 @@ class IterativeLoopSolver : public LoopSolver {
  private:
   struct Projection;
   void invert_blocks();
+  void add_to_totals(const IterativeLoopStats& before) const;
   void schur_response(const double* w, double* Js);
   bool fd_solve(double target, int& it, double& rnorm);
   void build_preconditioner(const Force<double>* U, const double* D);
@@ -117,7 +118,7 @@ class IterativeLoopSolver : public LoopSolver {
   // per body
   std::vector<Transform<double>> Xup_, X0_;
   std::vector<Force<double>> U_, f_, pA_;
-  std::vector<double> D_, u_, qdd0_, tmp_n_;
+  std::vector<double> D_, u_, qdd0_, tmp_n_, xbest_, dx_, px_;
   std::vector<Motion<double>> v_, c_, a_, acc_;
   std::vector<ABInertia<double>> IA_;
   std::vector<Mat6<double>> Omega_;
@@ -130,5 +131,12 @@ class IterativeLoopSolver : public LoopSolver {
 };
 
 std::unique_ptr<LoopSolver> make_iterative_loop_solver(const Model& model, const LoopSet& loops);
+
+// The sums of every iterative loop solver's IterativeLoopStats counters in this process
+// since it started (or since reset_iterative_loop_totals): solves, iterations,
+// applications and their seconds (what a benchmark reads around the simulator's
+// steps, whose solvers are its threads'). Thread-safe.
+IterativeLoopStats iterative_loop_totals();
+void reset_iterative_loop_totals();
 
 }  // namespace scandyn::sim
