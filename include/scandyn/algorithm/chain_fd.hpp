@@ -56,7 +56,10 @@
 // instance boundary.
 #pragma once
 
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <memory>
 #include <vector>
 
 #include "scandyn/algorithm/steps.hpp"
@@ -386,6 +389,15 @@ SCANDYN_HD void record_failure(const ChainFdData<S, kB>& d, Index g, int k = 0) 
 
 // ---- chunk walks: links s..e (inclusive, s <= e), shared by every driver ------
 
+// Pass 1's element of link g (not a floating base): Y_g as a map of Y_{g+1}.
+// Xnext is link g + 1's transform, read only when link g has a child.
+template <class S, bool kB>
+SCANDYN_HD DualRiccati<DualScalar> link_dual_element(const ChainFdData<S, kB>& d, Index g, const Transform<S>& Xnext) {
+  const Body<S>& b = d.body_of(g);
+  const bool child = d.has_child(g);
+  return dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+}
+
 // Pass 0's aggregate of links s..e: v_e as a map of v_{s-1}.
 template <class S, bool kB>
 SCANDYN_HD Affine6<S> velocity_aggregate(const ChainFdData<S, kB>& d, Index s, Index e) {
@@ -416,13 +428,12 @@ SCANDYN_HD DualRiccati<DualScalar> velocity_walk(const ChainFdData<S, kB>& d, In
     const bool more = g + 1 < d.count();
     const Transform<S> Xnext = more ? d.Xup(g + 1) : X;  // the next link's (the next instance's first)
     if constexpr (kDual) {
-      const bool child = d.has_child(g);
       // a floating base: the dual of a joint that transmits every force has no
       // coordinates, and no link reads the base's (a constant map, as at a leaf)
       const DualRiccati<DualScalar> el =
           d.is_base(g) ? DualRiccati<DualScalar>{Mat5<DualScalar>::identity(), Mat5<DualScalar>::zero(),
                                                  Mat5<DualScalar>::zero(), true}
-                       : dual_element(b, d.Phi_of(g), child, child ? d.body_of(g + 1) : b, Xnext);
+                       : link_dual_element(d, g, Xnext);
       agg = g == s ? el : DualRiccati<DualScalar>::compose(agg, el);
     }
     X = Xnext;
@@ -650,6 +661,80 @@ SCANDYN_HD ABInertia<S> chunk_inertia_carry(const ChainFdData<S, kB>& d, Index e
   return d.has_child(e) ? articulated_from_dual(d.body_of(e + 1), Y) : ABInertia<S>{};
 }
 
+// ---- the hybrid's host pass 1 (ChainInertiaCarries below) --------------------
+
+// Pass 1's aggregate of links s..e (no floating base): Y_s as a map of Y_{e+1}, the
+// composition of link_dual_element over the links (what velocity_walk returns,
+// without the velocities).
+template <class S, bool kB>
+SCANDYN_HD DualRiccati<DualScalar> dual_aggregate(const ChainFdData<S, kB>& d, Index s, Index e) {
+  DualRiccati<DualScalar> agg{};
+  Transform<S> Xnext = d.Xup(s + 1 < d.count() ? s + 1 : s);
+  for (Index g = s; g <= e; ++g) {
+    const DualRiccati<DualScalar> el = link_dual_element(d, g, Xnext);
+    agg = g == s ? el : DualRiccati<DualScalar>::compose(agg, el);
+    if (g + 2 < d.count()) Xnext = d.Xup(g + 2);
+  }
+  return agg;
+}
+
+// The dual Y = T^T IA^{-1} T of a link with joint body b from its articulated inertia
+// IA (children's included, not projected), in pass 1's scalar; NaN when IA is not
+// positive definite. articulated_from_dual(b, Y) is then Ia = IA - U U^T / D.
+template <class S>
+SCANDYN_HD Mat5<DualScalar> dual_from_articulated(const Body<S>& b, const ABInertia<S>& IA) {
+  using D = DualScalar;
+  Mat6<D> L = to_mat6(IA.template cast<D>());
+  SmallMat<D, 6, 5> Z;  // IA^{-1} T
+  for (int k = 0; k < 5; ++k) {
+    const Vec6<D> t = to_vec6(constraint_force_in<D>(b, k));
+    for (int r = 0; r < 6; ++r) Z(r, k) = t.m[r];
+  }
+  const SmallMat<D, 6, 5> T = Z;
+  if (!cholesky(L)) return DualRiccati<D>::nan_value();
+  cholesky_solve(L, Z);
+  return symmetrize(mul_transpose(T, Z));
+}
+
+// One step of the articulated-inertia recursion at link g (ABA pass 2's Riccati
+// part): IA = I_g + Xnext^T Ia_next Xnext (Ia_next, Xnext: link g + 1's projected
+// inertia and transform, read only when g has a child), U = IA S, D = S^T U,
+// returns Ia = IA - U U^T / D, NaN when the pivot D is not positive and finite (the
+// walk of pass 1 reports it). IA_out receives IA.
+template <class S, bool kB>
+SCANDYN_HD ABInertia<S> inertia_carry_step(const ChainFdData<S, kB>& d, Index g, const ABInertia<S>& Ia_next,
+                                           const Transform<S>& Xnext, ABInertia<S>& IA_out) {
+  const Body<S>& b = d.body_of(g);
+  ABInertia<S> IA = ABInertia<S>::from(b.I);
+  if (d.has_child(g)) IA += Ia_next.transform_transpose(Xnext);
+  Force<S> U;
+  S D, u;
+  aba_joint_terms(b, IA, Force<S>::zero(), S(0), U, D, u);
+  if (!pivot_ok(D)) D = S(NAN);
+  IA_out = IA;
+  return IA.minus_outer(U, S(1) / D);
+}
+
+// The serial recursion over chunks [c_lo, c_hi) of `chunk` links, from the last
+// link of chunk c_hi - 1 down to the first of chunk c_lo: Ia_out[c] = Ia of link
+// last(c) + 1 (its frame) on entering chunk c. Ia_next and Xnext carry link g + 1's
+// Ia and transform in and out (link last(c_hi - 1) + 1's on entry); IA_first
+// receives the articulated inertia of the group's first link.
+template <class S, bool kB>
+SCANDYN_HD void inertia_carry_walk(const ChainFdData<S, kB>& d, Index chunk, Index c_lo, Index c_hi,
+                                   ABInertia<S>* Ia_out, ABInertia<S>& Ia_next, Transform<S>& Xnext,
+                                   ABInertia<S>& IA_first) {
+  const Index count = d.count();
+  for (Index c = c_hi - 1; c >= c_lo; --c) {
+    Ia_out[c] = Ia_next;  // unused when link last(c) has no child
+    const Index last = (c + 1) * chunk < count ? (c + 1) * chunk - 1 : count - 1;
+    for (Index g = last; g >= c * chunk; --g) {
+      Ia_next = inertia_carry_step(d, g, Ia_next, Xnext, IA_first);
+      Xnext = d.Xup(g);
+    }
+  }
+}
+
 }  // namespace scandyn
 
 namespace scandyn {
@@ -776,6 +861,90 @@ class ChainForwardDynamics {
   // per level: aggregates and carries of the three Affine6 passes and the dual pass
   ChainLevels<Affine6<S>> aff_;
   ChainLevels<DualRiccati<DualScalar>> dual_;
+};
+
+// ---- the hybrid's host pass 1 --------------------------------------------------
+
+// One interval of a host thread's work in ChainInertiaCarries::compute, in ms from
+// the caller's origin (the hybrid's timeline).
+struct ChainCarryInterval {
+  enum Kind : int { Walk = 0, Reduce = 1, Combine = 2 };
+  int thread = 0;                   // OpenMP thread number (0: the calling thread)
+  Kind kind = Walk;                 // the recursion over the chunks, their dual aggregate, the combine
+  Index c_lo = 0, c_hi = 0;         // chunks [c_lo, c_hi) (Combine: the whole call's)
+  double start_ms = 0, end_ms = 0;  // -1 / -1: not run in this call
+};
+
+// ChainInertiaCarries::compute's report to its caller: chunks [c_lo, c_hi)'s carries
+// are written. Called on the calling thread, each chunk once, ranges in no fixed order.
+using ChainCarryReady = void (*)(void* context, Index c_lo, Index c_hi);
+
+// The articulated inertias at the chunk boundaries of a chain (the carries of pass 1,
+// what the hybrid forward dynamics computes on the host, cuda::ChainFdPlan::launch_hybrid)
+// with `threads` host threads. One thread runs the serial recursion (inertia_carry_walk)
+// from the last link to the first. With T >= 2 the chunks are cut into T + 1 ranges
+// from the root: range 0, ranges 1..T-1 and the tip range T.
+//   phase A  thread T-1 walks the tip range from its leaf by the serial recursion and
+//            turns the articulated inertia of its first link into the dual Y
+//            (dual_from_articulated); threads 0..T-2 each reduce a range 1..T-1 to its
+//            pass-1 aggregate, the composed dual Riccati map (dual_aggregate: the
+//            aggregate the parallel chain FD scans);
+//   combine  the last thread to finish phase A applies the aggregates from the tip down:
+//            the dual carry of every range (T - 1 DualRiccati applications);
+//   phase C  threads 0..T-2 walk ranges 1..T-1 and thread T-1 range 0, each from its
+//            carry (chunk_inertia_carry of the dual; range T-1 takes the tip walk's Ia
+//            itself) by the serial recursion, writing every chunk's carry.
+// A reduction costs about reduce_cost times the walk per link, so the tip range (walked,
+// never reduced) gets reduce_cost times the links of each other range and every thread
+// is busy for about (1 + reduce_cost) L of the N = (T + reduce_cost) L links. Range 0 is
+// never reduced (no range lies below it). Walks run in `groups` groups per range, each
+// reported through `ready` as soon as it is written (the calling thread polls the
+// others between its own groups and pieces of its reduction).
+// With 1 thread the carries are those of the serial recursion; with more, ranges T and
+// T-1 are too (their carries come from the tip's walk), the others start from carries
+// through the dual maps (equal to rounding). A pivot that is not positive and finite
+// makes the carries below it in that instance NaN (inertia_carry_step), and the walks of
+// pass 1 report it; instances never mix (an instance's last link's dual map is constant).
+template <class S>
+class ChainInertiaCarries {
+ public:
+  // Reduction / walk cost per link: measured on a 2-core AMD EPYC (bench/chain_carries_cost.cpp).
+  static constexpr double kReduceCost = 4.0;
+  // Fewest chunks per range; with fewer chunks the threads drop until it holds.
+  static constexpr Index kMinChunksPerRange = 8;
+
+  // threads: host threads (0: openmp_threads()); groups: walk groups per range (0: 64
+  // for one thread, else max(2, 64 / (threads + 1))); reduce_cost: see above.
+  explicit ChainInertiaCarries(int threads = 0, Index groups = 0, double reduce_cost = kReduceCost);
+
+  // Ia_out[c] for every chunk c of `chunk` links of d's d.count() links (d: n, batch,
+  // the bodies, Phi, body_class and q; a fixed base): the projected articulated
+  // inertia Ia of link last(c) + 1 in its frame (unused, and unspecified, when link
+  // last(c) has no child). ready(context, c_lo, c_hi), when not null, as chunks are
+  // written. With origin not null, intervals() receives each thread's work in ms
+  // from *origin.
+  void compute(const ChainFdData<S>& d, Index chunk, ABInertia<S>* Ia_out, ChainCarryReady ready = nullptr,
+               void* context = nullptr, const std::chrono::steady_clock::time_point* origin = nullptr);
+
+  int threads() const { return threads_; }
+  // the threads the last compute() ran (fewer for short chains) and its ranges' first chunks
+  int threads_used() const { return used_; }
+  const std::vector<Index>& range_starts() const { return bound_; }
+  const std::vector<ChainCarryInterval>& intervals() const { return intervals_; }
+
+ private:
+  int threads_ = 1, used_ = 1;
+  Index groups_ = 0;
+  double reduce_cost_ = kReduceCost;
+  std::vector<Index> bound_;                       // (T + 2) range k: chunks [bound_[k], bound_[k + 1])
+  std::vector<DualRiccati<DualScalar>> agg_;       // (T + 1) ranges' aggregates
+  std::vector<Mat5<DualScalar>> carry_;            // (T + 1) ranges' dual carries
+  ABInertia<S> tip_Ia_{};                          // Ia the tip's walk passes to range T - 1
+  std::unique_ptr<std::atomic<Index>[]> done_;     // (T + 1) groups walked per range
+  std::vector<Index> reported_;                    // (T + 1) groups reported per range
+  std::atomic<int> arrived_{0};                    // phase A finished (threads)
+  std::atomic<bool> combined_{false};
+  std::vector<ChainCarryInterval> intervals_;      // (T + 1) groups + T reduce + combine
 };
 
 }  // namespace scandyn
