@@ -24,18 +24,18 @@
 // --analyse-only: the symbolic analyses and their statistics alone (no steps).
 // --iterative: the iterative path instead (scene "loop_solver": "iterative",
 // scandyn/sim/iterative_loops.hpp), its own CSV (header below), from the closed start
-// of --start x (also taken by the sparse path with --start x): q = 0.1 on every x-axis
-// joint (even i of each rope) and 0 on the others (rotations about the rod's axis
-// keep the loops closed: phi = 0), qd = 0.5 on the x-axis joints and 0.5 cos(1 + i) on
-// the y-axis ones (DoF i), projected onto J qd = 0 by the reset (a velocity
-// projection, no position steps); without --start x the start of the rows above.
+// of --start x (also taken by the sparse path with --start x): q = 0.1 and qd = 0.5 on
+// every x-axis joint (even i of each rope), 0 on the others (rotations about the rod's
+// axis keep the loops closed: phi = 0, J qd = 0); without --start x the start of the
+// rows above.
 // Columns: the simulator's steps (first, mean after it), CG iterations per forward
 // dynamics solve and per projection solve during the steps (warm-started), seconds per
 // application of J M^-1 J^T (one J^T, M^-1, J pass), and on a solver of its own at
 // the start state: one cold forward dynamics solve (lambda = 0) and the velocity
 // projection, each with the block-Jacobi preconditioner and with none (iterations,
 // seconds). --max-seconds S: skip the steps of a grid whose cold solve took more
-// than S seconds (the solves are still reported). --torque A (iterative): the joint
+// than S seconds (the solves are still reported). --quick: the cold solves with the
+// preconditioner only, and no velocity projection (their columns -1 ... 0). --torque A (iterative): the joint
 // torques tau_i = A sin(1 + i) (N m) at every step and in the cold solve (else 0): with
 // --start x the cloth then deforms (with tau = 0 its ropes swing alike, where the
 // constraint forces vanish and a warm-started solve needs no iteration).
@@ -83,20 +83,20 @@ double sparse_violation(const Model& model, const LoopSet& loops, const double* 
   return std::max(wp, wv);
 }
 
-// --start x: q = 0.1 on the x-axis joints (even i of each rope of N links), 0 on the
-// others; qd 0.5 there and 0.5 cos(1 + i) on the y-axis ones.
+// --start x: q = 0.1 and qd = 0.5 on the x-axis joints (even i of each rope of N links),
+// 0 on the others: every rope turns about the rod's axis alike, closed in q and qd.
 void closed_start_state(const std::string& spec, std::vector<double>& q, std::vector<double>& qd) {
   const std::size_t colon = spec.rfind(':');
   const Index N = std::atol(spec.c_str() + colon + 1);
   for (std::size_t i = 0; i < q.size(); ++i) {
     const bool x_axis = (static_cast<Index>(i) % N) % 2 == 0;
     q[i] = x_axis ? 0.1 : 0.0;
-    qd[i] = x_axis ? 0.5 : 0.5 * std::cos(1.0 + double(i));
+    qd[i] = x_axis ? 0.5 : 0.0;
   }
 }
 
 int iterative_main(const std::vector<std::string>& grids, int steps, double dt, bool closed_start, double max_seconds,
-                   double torque) {
+                   double torque, bool quick) {
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,fd_iterations_per_solve,"
               "proj_iterations_per_solve,apply_s,fd_s_per_solve,proj_s_per_solve,reset_s,reset_linearisations,reset_max_phi,"
               "cold_fd_iterations,cold_fd_s,cold_fd_iterations_none,cold_fd_s_none,vel_proj_iterations,vel_proj_s,"
@@ -128,7 +128,7 @@ int iterative_main(const std::vector<std::string>& grids, int steps, double dt, 
     double cold_s[2] = {0, 0}, vel_s[2] = {0, 0};
     std::vector<double> tau(n, 0.0), qdd(n);
     for (Index i = 0; i < n; ++i) tau[i] = torque * std::sin(1.0 + double(i));
-    for (int pre = 0; pre < 2; ++pre) {
+    for (int pre = 0; pre < (quick ? 1 : 2); ++pre) {
       sim::IterativeLoopOptions opt;
       opt.preconditioner = pre == 0 ? sim::LoopPreconditioner::BlockJacobi : sim::LoopPreconditioner::None;
       sim::IterativeLoopSolver s(raw.model, raw.loops, opt);
@@ -141,6 +141,12 @@ int iterative_main(const std::vector<std::string>& grids, int steps, double dt, 
         cold_it[pre] = -1;
       }
       cold_s[pre] = now() - t0;
+      std::fprintf(stderr, "%s: cold forward dynamics %d iterations, %.3g s (%.3g s per application)\n", spec.c_str(),
+                   cold_it[pre], cold_s[pre], s.stats().applies ? s.stats().apply_seconds / double(s.stats().applies) : 0.0);
+      if (quick) {
+        cold_it[1] = vel_it[0] = vel_it[1] = -1;
+        break;
+      }
       // the velocity projection of qd + a disturbance (one CGLS solve at a closed q)
       std::vector<double> q = q0, qd = qd0;
       for (Index i = 0; i < n; ++i) qd[i] += 0.1 * std::sin(2.0 + double(i));
@@ -205,6 +211,7 @@ int main(int argc, char** argv) {
   int steps = 3;
   bool dense = false, analyse_only = false, gpu = false, iterative = false, closed_start = false;
   double dt = 1e-4, max_seconds = 1e30, torque = 0;
+  bool quick = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--cloth" && i + 1 < argc) grids.push_back(argv[++i]);
@@ -217,14 +224,15 @@ int main(int argc, char** argv) {
     else if (a == "--start" && i + 1 < argc && std::string(argv[i + 1]) == "x") closed_start = true, ++i;
     else if (a == "--max-seconds" && i + 1 < argc) max_seconds = std::atof(argv[++i]);
     else if (a == "--torque" && i + 1 < argc) torque = std::atof(argv[++i]);
+    else if (a == "--quick") quick = true;
     else {
       std::fprintf(stderr, "usage: bench_loop_step [--cloth K:N]... [--steps S] [--dt DT] [--dense] [--gpu] [--analyse-only] "
-                           "[--iterative] [--start x] [--max-seconds S] [--torque A]\n");
+                           "[--iterative] [--start x] [--max-seconds S] [--torque A] [--quick]\n");
       return 2;
     }
   }
   if (grids.empty()) grids = {"10:10", "30:30"};
-  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque);
+  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque, quick);
   factor_graph::register_sparse_loop_solver(gpu);
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,analysis_fd_s,analysis_proj_s,"
               "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj,reset_s,"

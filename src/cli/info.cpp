@@ -56,9 +56,9 @@ void add_cuda_rows(std::vector<std::vector<std::string>>& rows) {
 // The closed-loop solvers this command has (scene key "loop_solver"; docs/loops.md).
 const char* loop_solvers() {
 #if SCANDYN_CLI_SPARSE_LOOPS
-  return "dense, sparse (CHOLMOD)";
+  return "dense, iterative, sparse (CHOLMOD)";
 #else
-  return "dense (no sparse loop solver: built without SuiteSparse CHOLMOD)";
+  return "dense, iterative (no sparse loop solver: built without SuiteSparse CHOLMOD)";
 #endif
 }
 

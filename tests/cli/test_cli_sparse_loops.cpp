@@ -76,8 +76,8 @@ TEST_F(CliSparseLoops, InfoSaysWhetherTheSparseSolverIsThere) {
   const auto r = run("info --model fivebar");
   ASSERT_EQ(r.code, 0) << r.err;
   const std::string row = SCANDYN_CLI_SPARSE_LOOPS
-                              ? "loops    dense, sparse (CHOLMOD)"
-                              : "loops    dense (no sparse loop solver: built without SuiteSparse CHOLMOD)";
+                              ? "loops    dense, iterative, sparse (CHOLMOD)"
+                              : "loops    dense, iterative (no sparse loop solver: built without SuiteSparse CHOLMOD)";
   EXPECT_NE(r.out.find("\n" + row + "\n"), std::string::npos) << r.out;
 }
 
