@@ -7,6 +7,8 @@
 #include <climits>
 #include <cstring>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "scandyn/cuda/chain_fd.hpp"
 #include "chain_scan.cuh"
@@ -153,8 +155,24 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
                    cudaMemcpyHostToDevice),
         "copying the chain's body classes");
   check(cudaMallocHost(&Ia_pinned_, chunks * sizeof(ABInertia<S>)), "allocating pinned memory");
-  events_.resize(2 * 64 + 4);
-  for (auto& e : events_) check(cudaEventCreate(&e), "cudaEventCreate");
+  set_host_threads(0);
+}
+
+template <class S>
+void ChainFdPlan<S>::set_host_threads(int threads) {
+  carries_ = std::make_unique<ChainInertiaCarries<S>>(threads);
+  // 4, then 2 per walk group: at most groups per range x (threads + 1) ranges
+  const std::size_t want = 4 + 2 * static_cast<std::size_t>(carries_->groups()) * (carries_->threads() + 1);
+  while (events_.size() < want) {
+    cudaEvent_t e = nullptr;
+    check(cudaEventCreate(&e), "cudaEventCreate");
+    events_.push_back(e);
+  }
+}
+
+template <class S>
+int ChainFdPlan<S>::host_threads() const {
+  return carries_->threads();
 }
 
 template <class S>
@@ -239,87 +257,104 @@ cudaError_t ChainFdPlan<S>::passes(const ChainFdData<S, kB>& d, cudaStream_t str
   return finish(d, stream);
 }
 
+namespace {
+
+// launch_hybrid's queue: called on the calling thread by ChainInertiaCarries::compute
+// as chunks' carries are written; copies them to the device and queues their walks
+// (events before and after the kernel when timed).
+template <class S>
+struct HybridQueue {
+  ChainFdData<S> d;
+  ChunkRange r;
+  cudaStream_t stream;
+  const ABInertia<S>* pinned;
+  ABInertia<S>* carry;
+  Affine6<S>* agg;
+  const cudaEvent_t* events;  // 2 per group, or null
+  std::size_t capacity;       // groups the events hold
+  std::vector<std::pair<Index, Index>>* groups;  // (c_lo, c_hi) per group, in queue order
+  cudaError_t err = cudaSuccess;
+
+  static void ready(void* self, Index c_lo, Index c_hi) {
+    HybridQueue& q = *static_cast<HybridQueue*>(self);
+    if (q.err != cudaSuccess) return;
+    const std::size_t k = q.groups->size();
+    const bool timed = q.events && k < q.capacity;
+    const std::size_t bytes = static_cast<std::size_t>(c_hi - c_lo) * sizeof(ABInertia<S>);
+    if ((q.err = cudaMemcpyAsync(q.carry + c_lo, q.pinned + c_lo, bytes, cudaMemcpyHostToDevice, q.stream)) !=
+        cudaSuccess)
+      return;
+    if (timed && (q.err = cudaEventRecord(q.events[2 * k], q.stream)) != cudaSuccess) return;
+    inertia_walk_kernel<<<blocks(c_hi - c_lo), kBlock, 0, q.stream>>>(
+        q.d, q.r, c_lo, c_hi, static_cast<const Mat5<DualScalar>*>(nullptr), q.carry, q.agg);
+    if ((q.err = cudaGetLastError()) != cudaSuccess) return;
+    if (timed && (q.err = cudaEventRecord(q.events[2 * k + 1], q.stream)) != cudaSuccess) return;
+    q.groups->emplace_back(c_lo, c_hi);
+  }
+};
+
+}  // namespace
+
 template <class S>
 cudaError_t ChainFdPlan<S>::launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in,
                                           const BatchView<S>& qdd, int* failed, cudaStream_t stream,
                                           std::vector<ChainTimelineEvent>* timeline) {
   using clock = std::chrono::steady_clock;
   const auto t0 = clock::now();
-  auto ms_since = [&](clock::time_point t) { return std::chrono::duration<double, std::milli>(t - t0).count(); };
   const Index B = in.q.batch;
   if (B > max_batch_ || B < 0 || q_host.batch != B) return cudaErrorInvalidValue;
   if (floating_) return cudaErrorNotSupported;  // the host recursion takes 1-DoF joints (the engine refuses hybrid)
   if (B == 0) return cudaSuccess;
   cudaError_t err = cudaMemsetAsync(failed, 0xff, static_cast<std::size_t>(B) * sizeof(int), stream);
   if (err != cudaSuccess) return err;
-  cudaEvent_t start = events_[0], after_velocities = events_[1], end = events_[2];
-  if ((err = cudaEventRecord(start, stream)) != cudaSuccess) return err;
+  const bool timed = timeline != nullptr;
+  cudaEvent_t start = events_[0], after_velocities = events_[1], before_finish = events_[2], end = events_[3];
+  if (timed && (err = cudaEventRecord(start, stream)) != cudaSuccess) return err;
   const ChainFdData<S> d = data<false>(in, qdd, failed);
   const Index count = d.count();
   const ChunkRange r{chunk_, count};
-  const Index chunks = level_sizes(count, chunk_, fan_in_)[0];
   // the device: velocities (no dual aggregates) while the host starts
   if ((err = velocities(d, false, stream)) != cudaSuccess) return err;
-  if ((err = cudaEventRecord(after_velocities, stream)) != cudaSuccess) return err;
-  std::vector<ChainTimelineEvent> tl;
-  // the host: the articulated-inertia recursion from the last link to the first,
-  // in up to 64 groups of chunks, each group's walks queued once its carries are known
-  const Index groups = std::min<Index>(64, chunks);
-  const Index per_group = (chunks + groups - 1) / groups;
-  std::vector<double> cpu_start(static_cast<std::size_t>(groups)), cpu_end(static_cast<std::size_t>(groups));
-  ABInertia<S> Ia_next{};  // Ia of link g + 1, its frame
-  Transform<S> Xnext = Transform<S>::identity();
-  Index g = count - 1;
-  Index done_groups = 0;
-  for (Index grp = 0; grp < groups; ++grp) {
-    const Index c_hi = chunks - grp * per_group;  // this group: chunks [c_lo, c_hi)
-    if (c_hi <= 0) break;
-    const Index c_lo = std::max<Index>(0, c_hi - per_group);
-    cpu_start[grp] = ms_since(clock::now());
-    // chunk c's carry is Ia of link last(c) + 1 = first(c + 1); walk down to first(c_lo)
-    for (Index c = c_hi - 1; c >= c_lo; --c) {
-      Ia_pinned_[c] = Ia_next;  // Ia of link last(c) + 1 (unused when last(c) has no child)
-      for (; g >= r.first(c); --g) {
-        const Index i = g % n_, b = g / n_;
-        const Body<S>& body = host_.body[host_.body_class[i]];
-        ABInertia<S> IA = ABInertia<S>::from(body.I);
-        if (host_.has_child(i)) IA += Ia_next.transform_transpose(Xnext);
-        Force<S> U;
-        S D, u;
-        aba_joint_terms(body, IA, Force<S>::zero(), S(0), U, D, u);
-        Ia_next = IA.minus_outer(U, S(1) / D);  // a failed pivot: NaN here, reported by the device walk
-        Xnext = joint_transform(body, q_host.at(i, b));
-      }
-    }
-    cpu_end[grp] = ms_since(clock::now());
-    // this group's carries to the device, then its walks
-    const std::size_t bytes = static_cast<std::size_t>(c_hi - c_lo) * sizeof(ABInertia<S>);
-    if ((err = cudaMemcpyAsync(Ia_carry_ + c_lo, Ia_pinned_ + c_lo, bytes, cudaMemcpyHostToDevice, stream)) !=
-        cudaSuccess)
-      return err;
-    inertia_walk_kernel<<<blocks(c_hi - c_lo), kBlock, 0, stream>>>(d, r, c_lo, c_hi, static_cast<const Mat5<DualScalar>*>(nullptr),
-                                                                    Ia_carry_, aff_[0]);
-    if ((err = cudaEventRecord(events_[4 + grp], stream)) != cudaSuccess) return err;
-    ++done_groups;
-  }
+  if (timed && (err = cudaEventRecord(after_velocities, stream)) != cudaSuccess) return err;
+  // the host: the articulated inertias at the chunk boundaries (ChainInertiaCarries on
+  // host_threads() threads) from q_host; each group's walks queued as soon as its
+  // carries are written
+  ChainFdData<S> h;  // the chain on the host: its constants and q_host
+  h.n = n_;
+  h.batch = B;
+  h.q = q_host;
+  h.body = host_.body.data();
+  h.Phi = host_.Phi.data();
+  h.body_class = host_.body_class.data();
+  std::vector<std::pair<Index, Index>> groups;
+  groups.reserve((events_.size() - 4) / 2);
+  HybridQueue<S> queue{d, r, stream, Ia_pinned_, Ia_carry_, aff_[0], timed ? events_.data() + 4 : nullptr,
+                       (events_.size() - 4) / 2, &groups};
+  carries_->compute(h, chunk_, Ia_pinned_, &HybridQueue<S>::ready, &queue, timed ? &t0 : nullptr);
+  if (queue.err != cudaSuccess) return queue.err;
+  if (timed && (err = cudaEventRecord(before_finish, stream)) != cudaSuccess) return err;
   if ((err = finish(d, stream)) != cudaSuccess) return err;
-  if ((err = cudaEventRecord(end, stream)) != cudaSuccess) return err;
-  if (timeline) {
+  if (timed && (err = cudaEventRecord(end, stream)) != cudaSuccess) return err;
+  if (timed) {
     if ((err = cudaEventSynchronize(end)) != cudaSuccess) return err;
     auto gpu_ms = [&](cudaEvent_t e) {
       float ms = 0;
       cudaEventElapsedTime(&ms, start, e);
       return double(ms);
     };
+    std::vector<ChainTimelineEvent> tl;
     tl.push_back({"gpu velocities", 0.0, gpu_ms(after_velocities)});
-    double prev = gpu_ms(after_velocities);
-    for (Index k = 0; k < done_groups; ++k) {
-      tl.push_back({"cpu group " + std::to_string(k), cpu_start[k], cpu_end[k]});
-      const double t = gpu_ms(events_[4 + k]);
-      tl.push_back({"gpu group " + std::to_string(k), prev, t});
-      prev = t;
+    for (const ChainCarryInterval& iv : carries_->intervals()) {
+      if (iv.start_ms < 0) continue;
+      const char* what = iv.kind == ChainCarryInterval::Walk ? "cpu walk"
+                         : iv.kind == ChainCarryInterval::Reduce ? "cpu reduce" : "cpu combine";
+      tl.push_back({what, iv.start_ms, iv.end_ms, iv.thread, iv.c_lo, iv.c_hi});
     }
-    tl.push_back({"gpu end", prev, gpu_ms(end)});
+    const std::size_t timed_groups = std::min(groups.size(), queue.capacity);
+    for (std::size_t k = 0; k < timed_groups; ++k)
+      tl.push_back({"gpu walk", gpu_ms(events_[4 + 2 * k]), gpu_ms(events_[4 + 2 * k + 1]), -1, groups[k].first,
+                    groups[k].second});
+    tl.push_back({"gpu finish", gpu_ms(before_finish), gpu_ms(end)});
     *timeline = std::move(tl);
   }
   return cudaGetLastError();

@@ -154,8 +154,11 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
       max_batch_, nv_, sizeof(S) == 4 ? "float" : "double", "q, qd, tau, qdd, fext and a failed DoF",
       10 * static_cast<std::size_t>(nq_) * sizeof(S) + sizeof(int));
   device_ = staging_->device();
-  if (chain) chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
-  else if (general)  // a thread per instance (or a warp over the levels: general_aba_from_env)
+  if (chain) {
+    chain_ = std::make_unique<ChainFdPlan<S>>(model, max_batch_);
+    // the hybrid's host part on the options' threads (0: openmp_threads())
+    if (algorithm == FdMethod::Hybrid) chain_->set_host_threads(options.threads);
+  } else if (general)  // a thread per instance (or a warp over the levels: general_aba_from_env)
     general_ = std::make_unique<GeneralPlan<S>>(model, max_batch_, 0, 0, 0, general_interleave_from_env(),
                                                 general_aba_from_env());
   else if (thread_bodies <= kMaxThreadDofs)

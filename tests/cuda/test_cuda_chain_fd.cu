@@ -132,14 +132,49 @@ TEST(CudaChainFd, HybridOverlapsHostAndDevice) {
   const Case c = make_case(m, 1, 3, false);
   std::vector<cuda::ChainTimelineEvent> tl;
   EXPECT_LT(device_error<float>(m, 1, FdMethod::Hybrid, c, &tl), 1e-3);
-  // some device group's walks finish before the host's recursion does
-  double host_end = 0, first_gpu_group_end = -1;
+  // some device group's walks finish before the host's work does; the device's walks
+  // are busy intervals (one kernel each, in stream order: none overlaps the next), and
+  // every chunk is walked once on each side
+  double host_end = 0, first_gpu_walk_end = -1, prev_end = 0;
+  Index host_walked = 0, gpu_walked = 0;
   for (const auto& e : tl) {
-    if (e.what.rfind("cpu group", 0) == 0) host_end = std::max(host_end, e.end_ms);
-    if (e.what.rfind("gpu group", 0) == 0 && first_gpu_group_end < 0) first_gpu_group_end = e.end_ms;
+    EXPECT_LE(e.start_ms, e.end_ms) << e.what;
+    if (e.what.rfind("cpu", 0) == 0) host_end = std::max(host_end, e.end_ms);
+    if (e.what == "cpu walk") host_walked += e.c_hi - e.c_lo;
+    if (e.what == "gpu walk") {
+      if (first_gpu_walk_end < 0) first_gpu_walk_end = e.end_ms;
+      EXPECT_GE(e.start_ms, prev_end);
+      prev_end = e.end_ms;
+      gpu_walked += e.c_hi - e.c_lo;
+    }
   }
   ASSERT_GT(tl.size(), 4u);
-  EXPECT_LT(first_gpu_group_end, host_end);
+  EXPECT_LT(first_gpu_walk_end, host_end);
+  const Index chunks = (200000 + cuda::ChainFdPlan<float>::kDefaultChunk - 1) / cuda::ChainFdPlan<float>::kDefaultChunk;
+  EXPECT_EQ(host_walked, chunks);
+  EXPECT_EQ(gpu_walked, chunks);
+}
+
+// The hybrid's host part on 1, 2 and 4 threads (BackendOptions::threads): the same
+// qdd as the serial ABA within the tolerances of the other tests.
+TEST(CudaChainFd, HybridOnHostThreads) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Model m = make_generated("rope:100000");
+  const Case c = make_case(m, 1, 5, false);
+  for (int threads : {1, 2, 4}) {
+    BackendOptions o;
+    o.backend = BackendKind::Cuda;
+    o.max_batch = 1;
+    o.threads = threads;
+    cuda::CudaForwardDynamics<double> fd(m, o, FdMethod::Hybrid);
+    std::vector<double> qdd(c.q.size(), NAN);
+    FdBatchIn<double> in{BatchView<const double>::soa(c.q.data(), 100000, 1),
+                         BatchView<const double>::soa(c.qd.data(), 100000, 1),
+                         BatchView<const double>::soa(c.tau.data(), 100000, 1), nullptr};
+    const auto st = fd.compute(in, BatchView<double>::soa(qdd.data(), 100000, 1));
+    EXPECT_TRUE(st.ok()) << st.message();
+    EXPECT_LT(test::max_rel_err(qdd, c.ref), 1e-9) << threads << " threads";
+  }
 }
 
 TEST(CudaChainFd, FailedPivotIsReportedNotNaN) {
@@ -149,21 +184,25 @@ TEST(CudaChainFd, FailedPivotIsReportedNotNaN) {
   // a NaN joint position in instance 1 makes its articulated pivots non-finite
   Case bad = c;
   bad.q[150 * 2 + 1] = NAN;
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = 2;
-  cuda::CudaForwardDynamics<double> fd(m, o, FdMethod::Parallel);
-  std::vector<double> qdd(bad.q.size(), 123.0);
-  FdBatchIn<double> in{BatchView<const double>::soa(bad.q.data(), 300, 2),
-                       BatchView<const double>::soa(bad.qd.data(), 300, 2),
-                       BatchView<const double>::soa(bad.tau.data(), 300, 2), nullptr};
-  std::vector<int> failed(2, 9);
-  const auto st = fd.compute(in, BatchView<double>::soa(qdd.data(), 300, 2), failed.data());
-  EXPECT_EQ(st.failed, 1);
-  EXPECT_EQ(failed[0], -1);
-  EXPECT_GE(failed[1], 0);
-  for (Index i = 0; i < 300; ++i) {
-    EXPECT_EQ(qdd[i * 2 + 1], 123.0);  // unwritten
-    EXPECT_NEAR(qdd[i * 2], c.ref[i * 2], 1e-9 * 100);
+  // parallel, and the hybrid with its host part on 1 and 2 threads
+  for (int run = 0; run < 3; ++run) {
+    BackendOptions o;
+    o.backend = BackendKind::Cuda;
+    o.max_batch = 2;
+    o.threads = run == 2 ? 2 : 1;
+    cuda::CudaForwardDynamics<double> fd(m, o, run == 0 ? FdMethod::Parallel : FdMethod::Hybrid);
+    std::vector<double> qdd(bad.q.size(), 123.0);
+    FdBatchIn<double> in{BatchView<const double>::soa(bad.q.data(), 300, 2),
+                         BatchView<const double>::soa(bad.qd.data(), 300, 2),
+                         BatchView<const double>::soa(bad.tau.data(), 300, 2), nullptr};
+    std::vector<int> failed(2, 9);
+    const auto st = fd.compute(in, BatchView<double>::soa(qdd.data(), 300, 2), failed.data());
+    EXPECT_EQ(st.failed, 1) << fd.strategy() << " run " << run;
+    EXPECT_EQ(failed[0], -1) << run;
+    EXPECT_GE(failed[1], 0) << run;
+    for (Index i = 0; i < 300; ++i) {
+      EXPECT_EQ(qdd[i * 2 + 1], 123.0) << run;  // unwritten
+      EXPECT_NEAR(qdd[i * 2], c.ref[i * 2], 1e-9 * 100) << run;
+    }
   }
 }

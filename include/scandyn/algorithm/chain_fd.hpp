@@ -908,8 +908,10 @@ using ChainCarryReady = void (*)(void* context, Index c_lo, Index c_hi);
 template <class S>
 class ChainInertiaCarries {
  public:
-  // Reduction / walk cost per link: measured on a 2-core AMD EPYC (bench/chain_carries_cost.cpp).
-  static constexpr double kReduceCost = 4.0;
+  // Reduction / walk cost per link: 6.0 / 5.7 (double / float) on rope:10^5, one
+  // thread of a 2-core AMD EPYC (bench/chain_carries_cost.cpp,
+  // bench/results/chain_carries-cpu-amd-epyc-2c-shared.csv).
+  static constexpr double kReduceCost = 6.0;
   // Fewest chunks per range; with fewer chunks the threads drop until it holds.
   static constexpr Index kMinChunksPerRange = 8;
 
@@ -927,6 +929,7 @@ class ChainInertiaCarries {
                void* context = nullptr, const std::chrono::steady_clock::time_point* origin = nullptr);
 
   int threads() const { return threads_; }
+  Index groups() const { return groups_; }  // walk groups per range
   // the threads the last compute() ran (fewer for short chains) and its ranges' first chunks
   int threads_used() const { return used_; }
   const std::vector<Index>& range_starts() const { return bound_; }

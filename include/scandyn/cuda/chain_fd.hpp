@@ -4,12 +4,15 @@
 // Two variants share the kernels:
 //   parallel  every pass on the device: the articulated-inertia recursion as a scan
 //             of constraint-space Riccati maps (DualRiccati), O(log n) span;
-//   hybrid    the seed's split: the articulated-inertia recursion runs serially on
-//             the host (the calling thread), from the last link to the first, in
-//             groups of chunks; each group's boundary inertias go to the device
-//             through pinned memory as soon as they are known and that group's
-//             pass-1 walks start while the host works on the next group. The other
-//             passes (velocities, the z and acceleration scans) run on the device.
+//   hybrid    the seed's split: the articulated inertias at the chunk boundaries
+//             are computed on the host (ChainInertiaCarries, scandyn/algorithm/
+//             chain_fd.hpp: the serial recursion on one thread; on T threads, ranges
+//             of the chain walked by it from carries that pass 1's dual aggregates
+//             supply), in groups of chunks; each group's boundary inertias go to the
+//             device through pinned memory as soon as they are known and that
+//             group's pass-1 walks start while the host works on the others. The
+//             other passes (velocities, the z and acceleration scans) run on the
+//             device.
 //
 // Kernels (one thread per chunk of `chunk` links, chunk aggregates scanned in levels
 // of kFanIn): velocity aggregate, then per pass the level folds, one thread for the
@@ -33,11 +36,17 @@
 namespace scandyn {
 namespace cuda {
 
-// One event of the hybrid's timeline, in milliseconds from the start of the call.
+// One busy interval of the hybrid's timeline, in milliseconds: host intervals from
+// the start of the call (host clock), device intervals from the call's first event
+// on the stream (CUDA events recorded right before and after the work).
 struct ChainTimelineEvent {
-  std::string what;  // "cpu group k" (host recursion done down to the group's first chunk),
-                     // "gpu velocities", "gpu group k" (its pass-1 walks done), "gpu end"
+  std::string what;  // host: "cpu walk" (the recursion over chunks [c_lo, c_hi)), "cpu reduce"
+                     // (their dual aggregate), "cpu combine"; device: "gpu velocities",
+                     // "gpu walk" (pass 1's walks of chunks [c_lo, c_hi), one kernel),
+                     // "gpu finish" (passes 2 and 3)
   double start_ms = 0, end_ms = 0;
+  int thread = -1;           // the host thread (OpenMP number) of a cpu interval; -1: the device
+  Index c_lo = 0, c_hi = 0;  // the chunks (walks, reductions)
 };
 
 template <class S>
@@ -70,10 +79,12 @@ class ChainFdPlan {
   // (scandyn/algorithm/chain_fd.hpp). Spherical joints: BackendError naming the joint.
 
   // hybrid: the same result, with the articulated inertias computed on the host
-  // from q_host (the same positions as in.q, in host memory). Returns after the
-  // host recursion and the queuing of every kernel (not after the kernels). When
-  // timeline is not null it receives the host and device events of the call, and
-  // the call then waits for the device at the end. A free rope: cudaErrorNotSupported.
+  // from q_host (the same positions as in.q, in host memory) on host_threads()
+  // threads. Returns after the host's work and the queuing of every kernel (not
+  // after the kernels). When timeline is not null it receives the host's and the
+  // device's busy intervals of the call (events before and after each group's
+  // walks), and the call then waits for the device at the end. A free rope:
+  // cudaErrorNotSupported.
   cudaError_t launch_hybrid(const BatchView<const S>& q_host, const FdBatchIn<S>& in, const BatchView<S>& qdd,
                             int* failed, cudaStream_t stream, std::vector<ChainTimelineEvent>* timeline = nullptr);
 
@@ -94,6 +105,10 @@ class ChainFdPlan {
                          const BatchView<S>& gq, const BatchView<S>& gqd, const BatchView<S>& gtau, int* failed,
                          cudaStream_t stream);
   bool directional() const { return F_ != nullptr; }
+
+  // the hybrid's host threads (0: openmp_threads(), the default)
+  void set_host_threads(int threads);
+  int host_threads() const;
 
   Index links() const { return n_; }  // bodies per instance (nv, or nv - 5 for a free rope)
   Index max_batch() const { return max_batch_; }
@@ -144,7 +159,8 @@ class ChainFdPlan {
   Vec6<S>* qdd_base_ = nullptr;             // (max_batch) its qdd (pass 2)
   ABInertia<S>* Ia_carry_ = nullptr;        // (chunks) hybrid: Ia of each chunk's link e + 1
   ABInertia<S>* Ia_pinned_ = nullptr;       // (chunks) host pinned staging of the same
-  std::vector<cudaEvent_t> events_;         // hybrid timeline and group ordering
+  std::unique_ptr<ChainInertiaCarries<S>> carries_;  // the hybrid's host part and its threads
+  std::vector<cudaEvent_t> events_;         // hybrid timeline: 4, then 2 per walk group
 };
 
 // The engine API's directional derivatives of forward dynamics on cuda

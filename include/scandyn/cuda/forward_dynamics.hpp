@@ -106,7 +106,8 @@ inline constexpr int kFdInstancesBlock = 128;
 //   Parallel  unbranched chains from the base, any length: the articulated-body algorithm
 //             as scans over links, every pass on the device (ChainFdPlan::launch);
 //   Hybrid    the same shapes: articulated inertias on the host, the other passes as
-//             device scans (ChainFdPlan::launch_hybrid); compute() only.
+//             device scans (ChainFdPlan::launch_hybrid); compute() only. The host part
+//             runs on BackendOptions::threads host threads (0: openmp_threads()).
 
 // qdd_out (nv x B) = FD(q, qd, tau, fext) for the B = batch_in.q.batch instances,
 // gravity included: one launch of fd_instances_kernel on `stream`. Writes
