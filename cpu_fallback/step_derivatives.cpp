@@ -16,6 +16,7 @@
 #include "scandyn/cuda/step_derivatives.hpp"
 #include "scandyn/algorithm/derivatives.hpp"
 #include "scandyn/algorithm/directional_derivatives.hpp"
+#include "scandyn/sim/manifold_step_derivatives.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 
 namespace scandyn {
@@ -27,16 +28,25 @@ template <class S>
 struct StepWork {
   explicit StepWork(const SimSetup<S>& setup)
       : deriv(setup.model), directional(setup.model),
-        scratch(std::max(step_jacobian_scratch(setup.model.nv(), setup.integrator),
-                         step_directional_scratch(setup.model.nv()))),
-        rows(8 * static_cast<std::size_t>(setup.model.nv())) {}
+        scratch(setup.model.multi_dof()
+                    ? step_jacobian_at_scratch(setup.model.nq(), setup.model.nv(), setup.integrator)
+                    : std::max(step_jacobian_scratch(setup.model.nv(), setup.integrator),
+                               step_directional_scratch(setup.model.nv()))),
+        rows(rollout_rows(setup.model.nq(), setup.model.nv())),
+        jac(setup.model.multi_dof() ? 6 * nn(setup) + static_cast<std::size_t>(setup.model.nq()) +
+                                          4 * static_cast<std::size_t>(setup.model.nv())
+                                    : 0) {}
+  static std::size_t nn(const SimSetup<S>& setup) {
+    return static_cast<std::size_t>(setup.model.nv()) * static_cast<std::size_t>(setup.model.nv());
+  }
   DerivativeDataTpl<S> deriv;       // the ABA's and the dense derivatives' scratch
   AbaJvpData<S> directional;        // aba_jvp / aba_vjp's scratch
   std::vector<S> scratch;           // the step functions' scratch
-  std::vector<S> rows;              // (8 nv) one instance's rows: the Jacobian's q, qd, tau; the
+  std::vector<S> rows;              // (8 nv + nq) one instance's rows: the Jacobian's q (nq), qd, tau; the
                                     // rollout instance functions' (step_derivatives.hpp)
+  std::vector<S> jac;               // multi-DoF joints (6 nv^2 + nq + 4 nv): a step's dense Jacobian, the
+                                    // state it starts from and the products' rows (the rollouts' JVP, VJP)
   std::vector<S> store;             // rollout vjp: checkpoints and one segment of states
-  S* row(int k) { return rows.data() + static_cast<std::size_t>(k) * rows.size() / 8; }
 };
 
 // The step functions of one instance for joint-effect set E and integrator I over
@@ -92,6 +102,93 @@ struct InstanceKernels {
   }
 };
 
+// The step functions of one instance of a model with multi-DoF joints (a floating
+// base, spherical joints): step_instance_at over the reference aba, as the
+// simulator's CpuInstanceStep::step_one_at; the Jacobian by
+// step_jacobian_at_instance over fd_derivatives_general_instance; the JVP and VJP
+// (the rollouts') as products with that dense Jacobian (aba_jvp / aba_vjp take 1-DoF
+// joints only).
+template <unsigned E, Integrator I, class S>
+struct InstanceKernelsAt {
+  static Index step(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau) {
+    const ModelTpl<S>& model = setup.model;
+    const std::size_t n = static_cast<std::size_t>(model.nv());
+    S* const r = w.scratch.data();
+    const StepScratchAt<S> sc{r, r + n, r + 6 * n, r + 2 * n, r + 3 * n, r + 4 * n, r + 5 * n};
+    return step_instance_at<E, I>(model.bodies.data(), model.nbodies(), model.nq(), model.nv(), setup.dt,
+                                  setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(), q, qd,
+                                  tau, sc, InstanceKernels<E, I, S>::fd(setup, w, fext));
+  }
+  static Index jacobian(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau,
+                        const StepJacobian<S>& J) {
+    const ModelTpl<S>& model = setup.model;
+    const Motion<S> a0 = base_acceleration(model.gravity);
+    auto dfd = [&](const S* qa, const S* qda, const S* qdd, const S* arm, MatrixRef<S> Fq, MatrixRef<S> Fqd,
+                   MatrixRef<S> Ft) -> Index {
+      return fd_derivatives_general_instance(model.bodies.data(), model.nbodies(), model.nv(), a0, qa, qda, qdd, fext,
+                                             w.deriv.dof_parent.data(), w.deriv.dof_last.data(), w.deriv.work.data(),
+                                             Fq, Fqd, Ft, arm);
+    };
+    return step_jacobian_at_instance<E, I>(model.bodies.data(), model.nbodies(), model.nq(), model.nv(), setup.dt,
+                                           setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(),
+                                           q, qd, tau, w.scratch.data(), J, InstanceKernels<E, I, S>::fd(setup, w, fext),
+                                           dfd);
+  }
+  // the Jacobian of the step from (q, qd) under tau in w.jac (q, qd advance in place)
+  static Index jacobian_at(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau,
+                           StepJacobian<S>& J) {
+    const Index n = setup.model.nv();
+    const std::size_t nn = StepWork<S>::nn(setup);
+    S* const m = w.jac.data();
+    J = StepJacobian<S>{{m, n, 1}, {m + nn, n, 1}, {m + 2 * nn, n, 1},
+                        {m + 3 * nn, n, 1}, {m + 4 * nn, n, 1}, {m + 5 * nn, n, 1}};
+    return jacobian(setup, w, fext, q, qd, tau, J);
+  }
+  static Index jvp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau, S* dq,
+                   S* dqd, const S* dtau) {
+    const Index n = setup.model.nv();
+    StepJacobian<S> J;
+    const Index failed = jacobian_at(setup, w, fext, q, qd, tau, J);
+    if (failed >= 0) return failed;
+    S* const a = w.jac.data() + 6 * StepWork<S>::nn(setup) + setup.model.nq();
+    S* const c = a + n;
+    for (Index i = 0; i < n; ++i) {
+      S x = S(0), y = S(0);
+      for (Index j = 0; j < n; ++j) {
+        x += J.q_q(i, j) * dq[j] + J.q_qd(i, j) * dqd[j] + J.q_tau(i, j) * dtau[j];
+        y += J.qd_q(i, j) * dq[j] + J.qd_qd(i, j) * dqd[j] + J.qd_tau(i, j) * dtau[j];
+      }
+      a[i] = x, c[i] = y;
+    }
+    for (Index i = 0; i < n; ++i) dq[i] = a[i], dqd[i] = c[i];
+    return -1;
+  }
+  static Index vjp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, const S* q, const S* qd,
+                   const S* tau, S* gq, S* gqd, S* gtau) {
+    const Index n = setup.model.nv(), nq = setup.model.nq();
+    S* const x = w.jac.data() + 6 * StepWork<S>::nn(setup);  // the start state (q, qd are not changed)
+    S* const xd = x + nq;
+    S* const a = xd + n;
+    S* const c = a + n;
+    for (Index i = 0; i < nq; ++i) x[i] = q[i];
+    for (Index i = 0; i < n; ++i) xd[i] = qd[i];
+    StepJacobian<S> J;
+    const Index failed = jacobian_at(setup, w, fext, x, xd, tau, J);
+    if (failed >= 0) return failed;
+    for (Index j = 0; j < n; ++j) {
+      S x0 = S(0), x1 = S(0), x2 = S(0);
+      for (Index i = 0; i < n; ++i) {
+        x0 += J.q_q(i, j) * gq[i] + J.qd_q(i, j) * gqd[i];
+        x1 += J.q_qd(i, j) * gq[i] + J.qd_qd(i, j) * gqd[i];
+        x2 += J.q_tau(i, j) * gq[i] + J.qd_tau(i, j) * gqd[i];
+      }
+      a[j] = x0, c[j] = x1, gtau[j] = x2;
+    }
+    for (Index i = 0; i < n; ++i) gq[i] = a[i], gqd[i] = c[i];
+    return -1;
+  }
+};
+
 template <class S>
 struct KernelSet {
   Index (*step)(const SimSetup<S>&, StepWork<S>&, const Force<S>*, S*, S*, const S*);
@@ -111,18 +208,30 @@ constexpr std::array<KernelSet<S>, sizeof...(K)> make_kernels(std::index_sequenc
                        &InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jvp,
                        &InstanceKernels<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::vjp}...};
 }
+template <class S, std::size_t... K>
+constexpr std::array<KernelSet<S>, sizeof...(K)> make_kernels_at(std::index_sequence<K...>) {
+  return {KernelSet<S>{&InstanceKernelsAt<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::step,
+                       &InstanceKernelsAt<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jacobian,
+                       &InstanceKernelsAt<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::jvp,
+                       &InstanceKernelsAt<host_joint_effect_set(unsigned(K % 16)) & kJointEffects, Integrator(K / 16), S>::vjp}...};
+}
 template <class S>
 const KernelSet<S>& kernels_of(const SimSetup<S>& setup) {
+  const std::size_t entry = static_cast<std::size_t>(setup.integrator) * 16 + (setup.effects & kJointEffects);
+  if (setup.model.multi_dof()) {
+    static const auto table_at = make_kernels_at<S>(std::make_index_sequence<kIntegrators * 16>{});
+    return table_at[entry];
+  }
   static const auto table = make_kernels<S>(std::make_index_sequence<kIntegrators * 16>{});
-  return table[static_cast<std::size_t>(setup.integrator) * 16 + (setup.effects & kJointEffects)];
+  return table[entry];
 }
 
-// Instance b's wrenches: the caller's per-step ones, the scene's constant ones, or
-// null without the external effect.
+// Instance b's wrenches (one per body): the caller's per-step ones, the scene's
+// constant ones, or null without the external effect.
 template <class S>
 const Force<S>* instance_wrenches(const SimSetup<S>& setup, const Force<S>* fext, Index b) {
   if (!(setup.effects & kExternal)) return nullptr;
-  return fext ? fext + static_cast<std::size_t>(b) * setup.model.nv() : setup.wrenches.data();
+  return fext ? fext + static_cast<std::size_t>(b) * setup.model.nbodies() : setup.wrenches.data();
 }
 
 // The status of a batch whose instance b failed at failed[b] >= 0 for reason what[b].
@@ -164,12 +273,13 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
         throw BackendError("the step derivatives: the new state's batch size " + std::to_string(v->batch) +
                            " is not q's " + std::to_string(in.q.batch));
     refuse_wrenches_without_effect(setup_, in.fext);
-    const Index n = setup_.model.nv(), B = in.q.batch;
+    const Index n = setup_.model.nv(), nq = setup_.model.nq(), B = in.q.batch;
     cpu::for_instance_blocks(threads_, B, [&](int t, Index begin, Index end) {
       StepWork<S>& w = work_[static_cast<std::size_t>(t)];
-      S *q = w.row(0), *qd = w.row(1), *tau = w.row(2);
+      S *q = w.rows.data(), *qd = q + nq, *tau = qd + n;
       for (Index b = begin; b < end; ++b) {
-        for (Index i = 0; i < n; ++i) q[i] = in.q.at(i, b), qd[i] = in.qd.at(i, b), tau[i] = in.tau.at(i, b);
+        for (Index i = 0; i < nq; ++i) q[i] = in.q.at(i, b);
+        for (Index i = 0; i < n; ++i) qd[i] = in.qd.at(i, b), tau[i] = in.tau.at(i, b);
         const StepJacobian<S> J{instance_matrix(out.q_q, b, n),  instance_matrix(out.q_qd, b, n),
                                 instance_matrix(out.q_tau, b, n), instance_matrix(out.qd_q, b, n),
                                 instance_matrix(out.qd_qd, b, n), instance_matrix(out.qd_tau, b, n)};
@@ -177,6 +287,8 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
         what_[static_cast<std::size_t>(b)] = Failure::ArticulatedPivot;
         if (failed < 0) {  // a state or derivative that is not finite is a failure, never a silent NaN
           const MatrixRef<S> blocks[6] = {J.q_q, J.q_qd, J.q_tau, J.qd_q, J.qd_qd, J.qd_tau};
+          for (Index i = n; i < nq && failed < 0; ++i)
+            if (!std::isfinite(q[i])) failed = i, what_[static_cast<std::size_t>(b)] = Failure::NonFinite;
           for (Index i = 0; i < n && failed < 0; ++i) {
             bool finite = std::isfinite(q[i]) && std::isfinite(qd[i]);
             for (int k = 0; k < 6; ++k)
@@ -185,10 +297,10 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
           }
         }
         failed_[static_cast<std::size_t>(b)] = static_cast<int>(failed);
-        for (Index i = 0; i < n && failed < 0; ++i) {
+        for (Index i = 0; i < nq && failed < 0; ++i)
           if (out.q_next.data) out.q_next.at(i, b) = q[i];
+        for (Index i = 0; i < n && failed < 0; ++i)
           if (out.qd_next.data) out.qd_next.at(i, b) = qd[i];
-        }
       }
     });
     return status_of(failed_, what_, B);
@@ -209,7 +321,7 @@ class CpuStepDerivatives final : public StepDerivatives<S> {
 
 template <class S>
 std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& setup, const BackendOptions& options) {
-  require_differentiable_step(setup, "the step derivatives");
+  require_differentiable_step(setup, "the step derivatives", options.backend);
   if (options.backend == BackendKind::Cuda) {
 #if SCANDYN_HAS_CUDA
     return cuda::make_cuda_step_derivatives(setup, options);
@@ -271,7 +383,7 @@ struct RolloutDerivatives<S>::Impl {
 template <class S>
 RolloutDerivatives<S>::RolloutDerivatives(const SimSetup<S>& setup, const BackendOptions& options,
                                           Index checkpoint_interval) {
-  require_differentiable_step(setup, "the rollout derivatives");
+  require_differentiable_step(setup, "the rollout derivatives", options.backend);
   if (checkpoint_interval < 0)
     throw BackendError("the rollout derivatives: checkpoint interval " + std::to_string(checkpoint_interval) +
                        " is negative");
@@ -295,7 +407,7 @@ template <class S>
 BatchStatus RolloutDerivatives<S>::rollout(const BatchView<const S>& q0, const BatchView<const S>& qd0,
                                            const StepSequence<const S>& tau, const StepSequence<S>& q,
                                            const StepSequence<S>& qd) {
-  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv(), nq = impl_->setup.model.nq();
   require_rollout_state("qd0", qd0, B);
   require_rollout_sequence("tau", tau, T, B);
   require_rollout_sequence("q", q, T, B);
@@ -304,7 +416,7 @@ BatchStatus RolloutDerivatives<S>::rollout(const BatchView<const S>& q0, const B
   const SimSetup<S>& setup = impl_->setup;
   return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
     const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
-    return rollout_instance(n, b, q0, qd0, tau, q, qd, w.rows.data(), [&](S* x, S* xd, const S* u) -> Index {
+    return rollout_instance_at(nq, n, b, q0, qd0, tau, q, qd, w.rows.data(), [&](S* x, S* xd, const S* u) -> Index {
       return impl_->kernels.step(setup, w, fext, x, xd, u);
     });
   });
@@ -315,7 +427,7 @@ BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const Batch
                                        const StepSequence<const S>& tau, const BatchView<const S>& dq0,
                                        const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
                                        const StepSequence<S>& dq, const StepSequence<S>& dqd) {
-  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv(), nq = impl_->setup.model.nq();
   require_rollout_state("qd0", qd0, B);
   require_rollout_state("dq0", dq0, B);
   require_rollout_state("dqd0", dqd0, B);
@@ -327,7 +439,7 @@ BatchStatus RolloutDerivatives<S>::jvp(const BatchView<const S>& q0, const Batch
   const SimSetup<S>& setup = impl_->setup;
   return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
     const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
-    return rollout_jvp_instance(n, b, q0, qd0, tau, dq0, dqd0, dtau, dq, dqd, w.rows.data(),
+    return rollout_jvp_instance_at(nq, n, b, q0, qd0, tau, dq0, dqd0, dtau, dq, dqd, w.rows.data(),
                                 [&](S* x, S* xd, const S* u, S* dx, S* dxd, const S* du) -> Index {
                                   return impl_->kernels.jvp(setup, w, fext, x, xd, u, dx, dxd, du);
                                 });
@@ -339,7 +451,7 @@ BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const Batch
                                        const StepSequence<const S>& tau, const StepSequence<const S>& gq,
                                        const StepSequence<const S>& gqd, const BatchView<S>& gq0,
                                        const BatchView<S>& gqd0, const StepSequence<S>& gtau) {
-  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv();
+  const Index B = q0.batch, T = tau.steps, n = impl_->setup.model.nv(), nq = impl_->setup.model.nq();
   require_rollout_state("qd0", qd0, B);
   require_rollout_state("gq0", gq0, B);
   require_rollout_state("gqd0", gqd0, B);
@@ -350,12 +462,12 @@ BatchStatus RolloutDerivatives<S>::vjp(const BatchView<const S>& q0, const Batch
   if (impl_->cuda) return impl_->cuda->vjp(q0, qd0, tau, gq, gqd, gq0, gqd0, gtau);
   const SimSetup<S>& setup = impl_->setup;
   const Index K = checkpoint_interval(T);
-  const std::size_t state = 2 * static_cast<std::size_t>(n);
+  const std::size_t state = 2 * static_cast<std::size_t>(nq);  // rows of nq entries (qd's: the first n)
   for (StepWork<S>& w : impl_->work) w.store.resize(static_cast<std::size_t>(rollout_store_slots(T, K)) * state);
   return impl_->instances(B, [&](StepWork<S>& w, Index b) -> Index {
     const Force<S>* const fext = instance_wrenches<S>(setup, nullptr, b);
-    return rollout_vjp_instance(
-        n, b, K, q0, qd0, tau, gq, gqd, gq0, gqd0, gtau, w.rows.data(), StateStore<S>{w.store.data(), n, 1},
+    return rollout_vjp_instance_at(
+        nq, n, b, K, q0, qd0, tau, gq, gqd, gq0, gqd0, gtau, w.rows.data(), StateStore<S>{w.store.data(), nq, 1},
         [&](S* x, S* xd, const S* u) -> Index { return impl_->kernels.step(setup, w, fext, x, xd, u); },
         [&](const S* x, const S* xd, const S* u, S* lq, S* lqd, S* gu) -> Index {
           return impl_->kernels.vjp(setup, w, fext, x, xd, u, lq, lqd, gu);

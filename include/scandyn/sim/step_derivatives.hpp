@@ -22,15 +22,20 @@
 // identity (step_jacobian_instance); the JVP to one tangent (step_jvp_instance);
 // the VJP is the transposed recursion (step_vjp_instance: the stages in reverse).
 //
-// What is covered: 1-DoF joints (revolute, prismatic), every integrator (euler,
-// rk4, implicit), the effects gravity, damping, springs, limits (the derivative of
-// the branch the state is on: exact away from the limit itself, where the penalty
-// force has a kink) and external wrenches (constant in their body frames over the
-// step, not differentiated). Backends: serial, openmp and cuda (the Jacobian:
-// scandyn/cuda/step_derivatives.hpp; the rollouts: scandyn/cuda/rollout_derivatives.hpp,
-// models of up to 64 DoF). Refused by name (BackendError from the factories and
-// constructors): contacts, prescribed joint motion, closed loops, multi-DoF joints (a
-// floating base, spherical joints).
+// What is covered: every integrator (euler, rk4, implicit), the effects gravity,
+// damping, springs, limits (the derivative of the branch the state is on: exact away
+// from the limit itself, where the penalty force has a kink) and external wrenches
+// (constant in their body frames over the step, not differentiated). Joints:
+// revolute and prismatic on every backend (serial, openmp and cuda: the Jacobian
+// scandyn/cuda/step_derivatives.hpp, the rollouts scandyn/cuda/rollout_derivatives.hpp,
+// models of up to 64 DoF); multi-DoF joints (a floating base, spherical joints) on
+// serial and openmp: the step on the configuration manifold (step_instance_at) and
+// its Jacobian in the tangent of local increments, q ⊕ d = q exp(d)
+// (step_jacobian_at_instance, scandyn/sim/manifold_step_derivatives.hpp); their
+// rollouts' JVP and VJP run that dense Jacobian per step (O(nv^2 depth), rk4 O(nv^3)),
+// not the O(nv) directional recursions, which take 1-DoF joints. Refused by name
+// (BackendError from the factories and constructors): contacts, prescribed joint
+// motion, closed loops, and multi-DoF joints on cuda.
 #pragma once
 
 #include <cmath>
@@ -374,9 +379,10 @@ template <class S>
 std::unique_ptr<StepDerivatives<S>> make_step_derivatives(const SimSetup<S>& setup, const BackendOptions& options);
 
 // Throws BackendError naming `what` and the first of the setup's features the step
-// derivatives do not cover (contacts, prescribed motion, loops, multi-DoF joints).
+// derivatives do not cover on `backend` (contacts, prescribed motion, loops; on cuda,
+// the default: the CUDA engines' own check, multi-DoF joints too, naming the joint).
 template <class S>
-void require_differentiable_step(const SimSetup<S>& setup, const char* what);
+void require_differentiable_step(const SimSetup<S>& setup, const char* what, BackendKind backend = BackendKind::Cuda);
 
 // A sequence of T per-step batches: step t's view is `first` moved by t *
 // time_stride elements. A (T, B, nv) C array is {BatchView::aos(p, nv, B), B * nv, T}.
@@ -441,6 +447,15 @@ struct StateStore {
   SCANDYN_HD void get(std::ptrdiff_t slot, S* q, S* qd, Index n) const {
     for (Index i = 0; i < n; ++i) q[i] = at(2 * slot, i), qd[i] = at(2 * slot + 1, i);
   }
+  // a model with multi-DoF joints: q with nq entries (row_stride >= nq), qd with n
+  SCANDYN_HD void put(std::ptrdiff_t slot, const S* q, const S* qd, Index nq, Index n) const {
+    for (Index i = 0; i < nq; ++i) at(2 * slot, i) = q[i];
+    for (Index i = 0; i < n; ++i) at(2 * slot + 1, i) = qd[i];
+  }
+  SCANDYN_HD void get(std::ptrdiff_t slot, S* q, S* qd, Index nq, Index n) const {
+    for (Index i = 0; i < nq; ++i) q[i] = at(2 * slot, i);
+    for (Index i = 0; i < n; ++i) qd[i] = at(2 * slot + 1, i);
+  }
 };
 
 // Number of state slots of a rollout adjoint's store for T steps and checkpoint
@@ -477,33 +492,48 @@ void require_rollout_sequence(const char* name, const StepSequence<S>& s, Index 
 // Instance b's rollout from (q0, qd0) under tau (T = tau.steps): q.at(t), qd.at(t) =
 // x_{t+1} (null sequences: not written). step(x, xd, u) -> Index advances (x, xd)
 // in place (the simulator's step).
+// rollout_instance_at: a model with multi-DoF joints, q (q0 and the q sequence)
+// with nq entries per instance, rows 8 n + nq scalars (rollout_rows).
 template <class S, class Step>
-SCANDYN_HD Index rollout_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
-                                  const StepSequence<const S>& tau, const StepSequence<S>& q,
-                                  const StepSequence<S>& qd, S* rows, Step&& step) {
-  S *x = rows, *xd = rows + n, *u = rows + 2 * n;
-  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+SCANDYN_HD Index rollout_instance_at(Index nq, Index n, Index b, const BatchView<const S>& q0,
+                                     const BatchView<const S>& qd0, const StepSequence<const S>& tau,
+                                     const StepSequence<S>& q, const StepSequence<S>& qd, S* rows, Step&& step) {
+  S *x = rows, *xd = rows + nq, *u = rows + nq + n;
+  load_instance_row(q0, b, nq, x), load_instance_row(qd0, b, n, xd);
   for (Index t = 0; t < tau.steps; ++t) {
     load_instance_row(tau.at(t), b, n, u);
     const Index failed = step(x, xd, static_cast<const S*>(u));
     if (failed >= 0) return failed;
     if (const Index bad = rollout_nonfinite<S, 2>({x, xd}, n); bad != -1) return bad;
-    if (q.first.data) store_instance_row(static_cast<const S*>(x), q.at(t), b, n);
+    if (q.first.data) store_instance_row(static_cast<const S*>(x), q.at(t), b, nq);
     if (qd.first.data) store_instance_row(static_cast<const S*>(xd), qd.at(t), b, n);
   }
   return -1;
+}
+template <class S, class Step>
+SCANDYN_HD Index rollout_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                  const StepSequence<const S>& tau, const StepSequence<S>& q,
+                                  const StepSequence<S>& qd, S* rows, Step&& step) {
+  return rollout_instance_at(n, n, b, q0, qd0, tau, q, qd, rows, static_cast<Step&&>(step));
+}
+
+// Scalars of rows the rollout instance functions need (nq: the positions).
+inline std::size_t rollout_rows(Index nq, Index n) {
+  return 8 * static_cast<std::size_t>(n) + static_cast<std::size_t>(nq);
 }
 
 // Instance b's trajectory tangents along (dq0, dqd0, dtau) (null dtau: zero):
 // dq.at(t), dqd.at(t) = dx_{t+1}. jvp(x, xd, u, dx, dxd, du) -> Index advances the
 // state and its tangent in place (step_jvp_instance).
+// (rollout_jvp_instance_at: q0 with nq entries, the tangents dq0, dq with n.)
 template <class S, class Jvp>
-SCANDYN_HD Index rollout_jvp_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
-                                      const StepSequence<const S>& tau, const BatchView<const S>& dq0,
-                                      const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
-                                      const StepSequence<S>& dq, const StepSequence<S>& dqd, S* rows, Jvp&& jvp) {
-  S *x = rows, *xd = rows + n, *u = rows + 2 * n, *dx = rows + 3 * n, *dxd = rows + 4 * n, *du = rows + 5 * n;
-  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+SCANDYN_HD Index rollout_jvp_instance_at(Index nq, Index n, Index b, const BatchView<const S>& q0,
+                                         const BatchView<const S>& qd0, const StepSequence<const S>& tau,
+                                         const BatchView<const S>& dq0, const BatchView<const S>& dqd0,
+                                         const StepSequence<const S>& dtau, const StepSequence<S>& dq,
+                                         const StepSequence<S>& dqd, S* rows, Jvp&& jvp) {
+  S *x = rows, *xd = rows + nq, *u = xd + n, *dx = xd + 2 * n, *dxd = xd + 3 * n, *du = xd + 4 * n;
+  load_instance_row(q0, b, nq, x), load_instance_row(qd0, b, n, xd);
   load_instance_row(dq0, b, n, dx), load_instance_row(dqd0, b, n, dxd);
   for (Index t = 0; t < tau.steps; ++t) {
     load_instance_row(tau.at(t), b, n, u);
@@ -516,6 +546,13 @@ SCANDYN_HD Index rollout_jvp_instance(Index n, Index b, const BatchView<const S>
   }
   return -1;
 }
+template <class S, class Jvp>
+SCANDYN_HD Index rollout_jvp_instance(Index n, Index b, const BatchView<const S>& q0, const BatchView<const S>& qd0,
+                                      const StepSequence<const S>& tau, const BatchView<const S>& dq0,
+                                      const BatchView<const S>& dqd0, const StepSequence<const S>& dtau,
+                                      const StepSequence<S>& dq, const StepSequence<S>& dqd, S* rows, Jvp&& jvp) {
+  return rollout_jvp_instance_at(n, n, b, q0, qd0, tau, dq0, dqd0, dtau, dq, dqd, rows, static_cast<Jvp&&>(jvp));
+}
 
 // Instance b's adjoint of the loss sum_t l_t(x_{t+1}) with gradients gq.at(t),
 // gqd.at(t) (null: zero), checkpointed every K steps: forward, x_t stored for t a
@@ -525,19 +562,21 @@ SCANDYN_HD Index rollout_jvp_instance(Index n, Index b, const BatchView<const S>
 // finally gq0, gqd0. step(x, xd, u) -> Index as rollout_instance's; vjp(x, xd, u,
 // lq, lqd, gu) -> Index turns the adjoints (lq, lqd) of x_{t+1} into those of x_t
 // and writes gu (step_vjp_instance). store: rollout_store_slots(T, K) slots.
+// (rollout_vjp_instance_at: q0 and the stored positions with nq entries, the
+// adjoints gq, gq0 with n: the tangents'.)
 template <class S, class Step, class Vjp>
-SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView<const S>& q0,
-                                      const BatchView<const S>& qd0, const StepSequence<const S>& tau,
-                                      const StepSequence<const S>& gq, const StepSequence<const S>& gqd,
-                                      const BatchView<S>& gq0, const BatchView<S>& gqd0, const StepSequence<S>& gtau,
-                                      S* rows, const StateStore<S>& store, Step&& step, Vjp&& vjp) {
+SCANDYN_HD Index rollout_vjp_instance_at(Index nq, Index n, Index b, Index K, const BatchView<const S>& q0,
+                                         const BatchView<const S>& qd0, const StepSequence<const S>& tau,
+                                         const StepSequence<const S>& gq, const StepSequence<const S>& gqd,
+                                         const BatchView<S>& gq0, const BatchView<S>& gqd0,
+                                         const StepSequence<S>& gtau, S* rows, const StateStore<S>& store,
+                                         Step&& step, Vjp&& vjp) {
   const Index T = tau.steps, segments = (T + K - 1) / K;
-  S *x = rows, *xd = rows + n, *u = rows + 2 * n, *lq = rows + 3 * n, *lqd = rows + 4 * n, *gu = rows + 5 * n,
-    *g = rows + 6 * n;
+  S *x = rows, *xd = rows + nq, *u = xd + n, *lq = xd + 2 * n, *lqd = xd + 3 * n, *gu = xd + 4 * n, *g = xd + 5 * n;
   // forward: the checkpoints
-  load_instance_row(q0, b, n, x), load_instance_row(qd0, b, n, xd);
+  load_instance_row(q0, b, nq, x), load_instance_row(qd0, b, n, xd);
   for (Index t = 0; t < T; ++t) {
-    if (t % K == 0) store.put(t / K, x, xd, n);
+    if (t % K == 0) store.put(t / K, x, xd, nq, n);
     if (t + 1 == T) break;  // the last state is not needed
     load_instance_row(tau.at(t), b, n, u);
     const Index failed = step(x, xd, static_cast<const S*>(u));
@@ -547,13 +586,13 @@ SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView
   for (Index i = 0; i < n; ++i) lq[i] = S(0), lqd[i] = S(0);
   for (Index k = segments - 1; k >= 0; --k) {
     const Index t0 = k * K, t1 = T < t0 + K ? T : t0 + K;
-    store.get(k, x, xd, n);
-    store.put(segments, x, xd, n);
+    store.get(k, x, xd, nq, n);
+    store.put(segments, x, xd, nq, n);
     for (Index t = t0; t + 1 < t1; ++t) {
       load_instance_row(tau.at(t), b, n, u);
       const Index failed = step(x, xd, static_cast<const S*>(u));
       if (failed >= 0) return failed;
-      store.put(segments + (t + 1 - t0), x, xd, n);
+      store.put(segments + (t + 1 - t0), x, xd, nq, n);
     }
     for (Index t = t1 - 1; t >= t0; --t) {
       // the loss's gradient at x_{t+1}, then the step's adjoint at x_t
@@ -565,7 +604,7 @@ SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView
         load_instance_row(gqd.at(t), b, n, g);
         for (Index i = 0; i < n; ++i) lqd[i] += g[i];
       }
-      store.get(segments + (t - t0), x, xd, n);
+      store.get(segments + (t - t0), x, xd, nq, n);
       load_instance_row(tau.at(t), b, n, u);
       const Index failed = vjp(static_cast<const S*>(x), static_cast<const S*>(xd), static_cast<const S*>(u), lq, lqd, gu);
       if (failed >= 0) return failed;
@@ -576,6 +615,15 @@ SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView
   store_instance_row(static_cast<const S*>(lq), gq0, b, n);
   store_instance_row(static_cast<const S*>(lqd), gqd0, b, n);
   return -1;
+}
+template <class S, class Step, class Vjp>
+SCANDYN_HD Index rollout_vjp_instance(Index n, Index b, Index K, const BatchView<const S>& q0,
+                                      const BatchView<const S>& qd0, const StepSequence<const S>& tau,
+                                      const StepSequence<const S>& gq, const StepSequence<const S>& gqd,
+                                      const BatchView<S>& gq0, const BatchView<S>& gqd0, const StepSequence<S>& gtau,
+                                      S* rows, const StateStore<S>& store, Step&& step, Vjp&& vjp) {
+  return rollout_vjp_instance_at(n, n, b, K, q0, qd0, tau, gq, gqd, gq0, gqd0, gtau, rows, store,
+                                 static_cast<Step&&>(step), static_cast<Vjp&&>(vjp));
 }
 
 // Rollouts of the simulator's step and their derivatives: x_{t+1} = step(x_t, tau_t),
