@@ -35,7 +35,11 @@
 // projection, each with the block-Jacobi preconditioner and with none (iterations,
 // seconds). --max-seconds S: skip the steps of a grid whose cold solve took more
 // than S seconds (the solves are still reported). --quick: the cold solves with the
-// preconditioner only, and no velocity projection (their columns -1 ... 0). --torque A (iterative): the joint
+// preconditioner only, and no velocity projection (their columns -1 ... 0).
+// --max-iterations K: the cold solves' iteration cap (default the solver's,
+// sim::kIterativeLoopMaxIterations): a grid too large to converge in the time at hand
+// reports its residual after K iterations (cold_fd_iterations -1) and the time per
+// application. --torque A (iterative): the joint
 // torques tau_i = A sin(1 + i) (N m) at every step and in the cold solve (else 0): with
 // --start x the cloth then deforms (with tau = 0 its ropes swing alike, where the
 // constraint forces vanish and a warm-started solve needs no iteration).
@@ -96,7 +100,7 @@ void closed_start_state(const std::string& spec, std::vector<double>& q, std::ve
 }
 
 int iterative_main(const std::vector<std::string>& grids, int steps, double dt, bool closed_start, double max_seconds,
-                   double torque, bool quick) {
+                   double torque, bool quick, int max_iterations) {
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,fd_iterations_per_solve,"
               "proj_iterations_per_solve,apply_s,fd_s_per_solve,proj_s_per_solve,reset_s,reset_linearisations,reset_max_phi,"
               "cold_fd_iterations,cold_fd_s,cold_fd_iterations_none,cold_fd_s_none,vel_proj_iterations,vel_proj_s,"
@@ -131,6 +135,7 @@ int iterative_main(const std::vector<std::string>& grids, int steps, double dt, 
     for (int pre = 0; pre < (quick ? 1 : 2); ++pre) {
       sim::IterativeLoopOptions opt;
       opt.preconditioner = pre == 0 ? sim::LoopPreconditioner::BlockJacobi : sim::LoopPreconditioner::None;
+      opt.max_iterations = max_iterations;
       sim::IterativeLoopSolver s(raw.model, raw.loops, opt);
       t0 = now();
       try {
@@ -141,8 +146,9 @@ int iterative_main(const std::vector<std::string>& grids, int steps, double dt, 
         cold_it[pre] = -1;
       }
       cold_s[pre] = now() - t0;
-      std::fprintf(stderr, "%s: cold forward dynamics %d iterations, %.3g s (%.3g s per application)\n", spec.c_str(),
-                   cold_it[pre], cold_s[pre], s.stats().applies ? s.stats().apply_seconds / double(s.stats().applies) : 0.0);
+      std::fprintf(stderr, "%s: cold forward dynamics %d iterations, %.3g s (%ld applications, %.3g s each; relative residual %.3g)\n",
+                   spec.c_str(), cold_it[pre], cold_s[pre], s.stats().applies,
+                   s.stats().applies ? s.stats().apply_seconds / double(s.stats().applies) : 0.0, s.stats().last_residual);
       if (quick) {
         cold_it[1] = vel_it[0] = vel_it[1] = -1;
         break;
@@ -212,6 +218,7 @@ int main(int argc, char** argv) {
   bool dense = false, analyse_only = false, gpu = false, iterative = false, closed_start = false;
   double dt = 1e-4, max_seconds = 1e30, torque = 0;
   bool quick = false;
+  int max_iterations = sim::kIterativeLoopMaxIterations;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--cloth" && i + 1 < argc) grids.push_back(argv[++i]);
@@ -225,14 +232,15 @@ int main(int argc, char** argv) {
     else if (a == "--max-seconds" && i + 1 < argc) max_seconds = std::atof(argv[++i]);
     else if (a == "--torque" && i + 1 < argc) torque = std::atof(argv[++i]);
     else if (a == "--quick") quick = true;
+    else if (a == "--max-iterations" && i + 1 < argc) max_iterations = std::atoi(argv[++i]);
     else {
       std::fprintf(stderr, "usage: bench_loop_step [--cloth K:N]... [--steps S] [--dt DT] [--dense] [--gpu] [--analyse-only] "
-                           "[--iterative] [--start x] [--max-seconds S] [--torque A] [--quick]\n");
+                           "[--iterative] [--start x] [--max-seconds S] [--torque A] [--quick] [--max-iterations K]\n");
       return 2;
     }
   }
   if (grids.empty()) grids = {"10:10", "30:30"};
-  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque, quick);
+  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque, quick, max_iterations);
   factor_graph::register_sparse_loop_solver(gpu);
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,analysis_fd_s,analysis_proj_s,"
               "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj,reset_s,"

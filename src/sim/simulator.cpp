@@ -203,7 +203,8 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
                            "solver does)");
       setup_.loop_solver = &make_iterative_loop_solver;  // the core library's (scandyn/sim/iterative_loops.hpp)
     } else if (scene.loop_solver == "auto" && nv >= kSparseLoopDofs && !wrenches) {
-      setup_.loop_solver = sparse_loop_solver();  // null when none is registered: dense
+      // the registered sparse solver, else the iterative one (docs/loops.md, "Choosing it")
+      setup_.loop_solver = sparse_loop_solver() ? sparse_loop_solver() : &make_iterative_loop_solver;
     }
   }
   if (!scene.prescribed.empty()) {

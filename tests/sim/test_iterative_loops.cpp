@@ -279,6 +279,20 @@ TEST(IterativeLoops, NonConvergenceIsReported) {
   EXPECT_LE(max_diff(qdd, qdd_ref), 1e-8 * max_abs(qdd_ref));
 }
 
+// "auto" from kSparseLoopDofs DoF on, without a registered sparse solver (this program
+// links none): the iterative solver, step for step (bit-identical states), not the dense one.
+TEST(IterativeLoops, AutoTakesTheIterativeSolverWithoutASparseOne) {
+  ASSERT_EQ(sim::sparse_loop_solver(), nullptr);
+  std::vector<double> q, qd, q_it, qd_it, q_dense, qd_dense;
+  rollout("cloth:15:14", "auto", "rk4", 2e-4, 3, q, qd);  // 210 DoF
+  rollout("cloth:15:14", "iterative", "rk4", 2e-4, 3, q_it, qd_it);
+  rollout("cloth:15:14", "dense", "rk4", 2e-4, 3, q_dense, qd_dense);
+  EXPECT_EQ(q, q_it);
+  EXPECT_EQ(qd, qd_it);
+  EXPECT_NE(qd, qd_dense);  // (the dense step differs in its last bits)
+  EXPECT_LE(max_diff(qd, qd_dense), 1e-8 * std::max(1.0, max_abs(qd_dense)));
+}
+
 TEST(IterativeLoops, SceneChoosesTheSolver) {
   auto error_of = [](const std::string& json) -> std::string {
     try {

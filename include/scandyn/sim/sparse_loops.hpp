@@ -45,9 +45,9 @@ void set_sparse_loop_solver(LoopSolverFactory factory);
 LoopSolverFactory sparse_loop_solver();
 
 // scene "loop_solver": "auto" picks the sparse solver from this many DoFs on (when
-// one is registered and the scene has no contacts or external wrenches): the
-// dense solve is O(nv^3) and the sparse one's analysis costs ~10 ms at 100 DoF
-// (docs/loops.md's table).
+// one is registered and the scene has no contacts or external wrenches; else the
+// iterative one, scandyn/sim/iterative_loops.hpp): the dense solve is O(nv^3) and the
+// sparse one's analysis costs ~10 ms at 100 DoF (docs/loops.md's table).
 inline constexpr Index kSparseLoopDofs = 200;
 
 }  // namespace scandyn::sim
