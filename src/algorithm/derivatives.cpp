@@ -36,7 +36,8 @@ Status aba_derivatives(const ModelTpl<S>& model, DerivativeDataTpl<S>& data, con
   if (model.multi_dof())
     return Status{fd_derivatives_general_instance(model.bodies.data(), model.nbodies(), model.nv(),
                                                   base_acceleration(model.gravity), q, qd, static_cast<const S*>(qdd),
-                                                  fext, data.dof_parent.data(), data.dof_last.data(), data.work.data(), dqdd_dq, dqdd_dqd,
+                                                  fext, data.dof_parent.data(), data.dof_last.data(), data.dof_run.data(),
+                                                  data.work.data(), dqdd_dq, dqdd_dqd,
                                                   dqdd_dtau, armature)};
   const Index failed = fd_derivatives_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q,
                                                qd, static_cast<const S*>(qdd), fext, data.work.data(), dqdd_dq,

@@ -28,15 +28,18 @@ struct DerivativeDataTpl {
       : aba(model, /*mass_matrix=*/false),
         work(static_cast<std::size_t>(model.nv())),
         dof_parent(static_cast<std::size_t>(model.nv())),
-        dof_last(static_cast<std::size_t>(model.nv())) {
+        dof_last(static_cast<std::size_t>(model.nv())),
+        dof_run(static_cast<std::size_t>(model.nv())) {
     dof_parents(model.bodies.data(), model.nbodies(), dof_parent.data());
     dof_subtree_last(dof_parent.data(), model.nv(), dof_last.data());
+    dof_runs(dof_parent.data(), model.nv(), dof_run.data());
   }
   DataTpl<S> aba;                        // the ABA's scratch (aba_derivatives' qdd)
   std::vector<DerivativeBody<S>> work;   // (nv) world-frame body quantities (multi-DoF
                                          // joints: rnea_derivatives_general_instance's layout)
   std::vector<Index> dof_parent;         // (nv) the tree of DoFs (dof_parents)
   std::vector<Index> dof_last;           // (nv) the last DoF of each DoF's subtree
+  std::vector<Index> dof_run;            // (nv) the first DoF of each DoF's unbranched run (dof_runs)
 };
 
 // dtau/dq, dtau/dqd and dtau/dqdd = M at (q, qd, qdd, fext); tau (optional) =

@@ -371,8 +371,19 @@ struct DofTree {
   const Index* last;    // (nv) largest DoF of each DoF's subtree (dof_subtree_last): the
                         // subtree of DoF k lies in k..last[k] (is that range, for the
                         // loader's preorder; its other DoFs have zeros in L^-1's column k)
+  const Index* run;     // (nv) first DoF of each DoF's unbranched run (dof_runs), or null: the DoFs
+                        // run[i]..i are each the parent of the next, so they are all
+                        // ancestors of i (or i): the ancestors of i are the contiguous
+                        // ranges run[j]..j for j = parent[i], then j = parent[run[j]], ...
+                        // (a floating base's six DoFs and a limb's chain are one range each)
   SCANDYN_HD Index operator()(Index i) const { return parent[i]; }
 };
+
+// run[i] for the nv DoFs of a tree given by parent (parent[i] < i): i's run starts where
+// the chain of DoFs each the parent of the next (parent[t] = t - 1) that ends at i starts.
+SCANDYN_HD void dof_runs(const Index* parent, Index nv, Index* run) {
+  for (Index i = 0; i < nv; ++i) run[i] = i > 0 && parent[i] == i - 1 ? run[i - 1] : i;
+}
 
 // last[k] for the nv DoFs of a tree given by parent (parent[i] < i): the largest DoF of
 // k's subtree.
@@ -409,6 +420,33 @@ SCANDYN_HD Index tree_ltl_factor(Tree parent, MatrixRef<S> A) {
       const S Lki = A(k, i);
       for (Index j = i; j >= 0; j = parent(j)) A(i, j) -= Lki * A(k, j);
     }
+  }
+  return -1;
+}
+
+// tree_ltl_factor over the tree of DoFs on a row-major A (stride 1), the ancestors
+// taken as DoFTree's contiguous runs: the row updates A(i, anc) -= L_ki A(k, anc) are
+// contiguous segments (the compiler vectorises them) instead of one tree walk per
+// entry. The same operations on every entry as tree_ltl_factor (bit-identical).
+template <class S>
+SCANDYN_HD Index dof_ltl_factor(DofTree tree, MatrixRef<S> A) {
+  const Index n = A.n;
+  for (Index k = n - 1; k >= 0; --k) {
+    const S d = A(k, k);
+    if (!pivot_ok(d)) return k;
+    const S Lkk = ScalarMath<S>::sqrt(d);
+    A(k, k) = Lkk;
+    const S inv = S(1) / Lkk;
+    S* __restrict__ rk = &A(k, 0);
+    for (Index j = tree(k); j >= 0; j = tree(tree.run[j]))
+      for (Index i = tree.run[j]; i <= j; ++i) rk[i] *= inv;
+    for (Index j = tree(k); j >= 0; j = tree(tree.run[j]))
+      for (Index i = j; i >= tree.run[j]; --i) {  // ancestor i of k: row i -= L_ki row k on i's ancestors
+        const S Lki = rk[i];
+        S* __restrict__ ri = &A(i, 0);
+        for (Index h = i; h >= 0; h = tree(tree.run[h]))
+          for (Index c = tree.run[h]; c <= h; ++c) ri[c] -= Lki * rk[c];
+      }
   }
   return -1;
 }
@@ -458,6 +496,79 @@ SCANDYN_HD void tree_ltl_negated_solve(Tree parent, MatrixRef<S> L, MatrixRef<S>
   for (Index i = 0; i < n; ++i) {  // L z = y
     for (Index j = parent(i); j >= 0; j = parent(j)) axpy(i, j, -L(i, j));
     scale(i, S(1) / L(i, i));
+  }
+}
+
+// One row of dof_ltl_negated_solve, W columns from c0 at a time: out[c] = s (out[c] +
+// sum of the source rows' terms), the W sums held in registers while the source rows
+// stream past (one store per entry instead of one per source row).
+// Backward sweep: the sources are rows k = e down to i + 1 with coefficient L(k, i).
+template <int W, class S>
+SCANDYN_HD void dof_gather_subtree(const S* __restrict__ L, S* __restrict__ M, Index n, Index i, Index e, Index c0,
+                                   S s) {
+  S acc[W];
+  S* out = M + static_cast<std::ptrdiff_t>(i) * n + c0;
+  for (int w = 0; w < W; ++w) acc[w] = out[w];
+  for (Index k = e; k > i; --k) {
+    const S l = L[static_cast<std::ptrdiff_t>(k) * n + i];
+    const S* src = M + static_cast<std::ptrdiff_t>(k) * n + c0;
+    for (int w = 0; w < W; ++w) acc[w] += l * src[w];
+  }
+  for (int w = 0; w < W; ++w) out[w] = acc[w] * s;
+}
+// Forward sweep: the sources are the ancestors j of i, nearest first, with
+// coefficient -L(i, j) (li: row i of L).
+template <int W, class S>
+SCANDYN_HD void dof_gather_ancestors(DofTree tree, const S* __restrict__ li, S* __restrict__ M, Index n, Index i,
+                                     Index c0, S s) {
+  S acc[W];
+  S* out = M + static_cast<std::ptrdiff_t>(i) * n + c0;
+  for (int w = 0; w < W; ++w) acc[w] = out[w];
+  for (Index j = tree(i); j >= 0; j = tree(tree.run[j]))
+    for (Index m = j; m >= tree.run[j]; --m) {
+      const S l = li[m];
+      const S* src = M + static_cast<std::ptrdiff_t>(m) * n + c0;
+      for (int w = 0; w < W; ++w) acc[w] -= l * src[w];
+    }
+  for (int w = 0; w < W; ++w) out[w] = acc[w] * s;
+}
+// Columns 0..len-1 of one row in blocks of 12, 8, 4, 2, 1 (12 sums: six SSE2 registers
+// of two doubles, enough independent additions to cover the adder's latency).
+template <class Block>
+SCANDYN_HD void dof_gather_row(Index len, Block&& block) {
+  Index c = 0;
+  for (; c + 12 <= len; c += 12) block(std::integral_constant<int, 12>{}, c);
+  if (c + 8 <= len) block(std::integral_constant<int, 8>{}, c), c += 8;
+  if (c + 4 <= len) block(std::integral_constant<int, 4>{}, c), c += 4;
+  if (c + 2 <= len) block(std::integral_constant<int, 2>{}, c), c += 2;
+  if (c < len) block(std::integral_constant<int, 1>{}, c);
+}
+
+// tree_ltl_negated_solve over the tree of DoFs on row-major blocks (all strides 1),
+// each row computed once from its sources instead of updated once per source: L^T y =
+// -x from the last row (y_i = -(x_i + sum of L_ki y_k over k's subtree, k > i) / L_ii,
+// the subtree k = i+1..last[i]), then L z = y from the first (z_i = (y_i - sum of L_ij
+// z_j over i's ancestors j) / L_ii, the ancestors by runs). The terms are added in the
+// order tree_ltl_negated_solve adds them (bit-identical). In the first sweep row i
+// stops at column last[i]: a row of dtau/dq or dtau/dqd is zero in the columns of DoFs
+// that are neither ancestors nor descendants (the columns past last[i] are such), and
+// so is y_i there.
+template <class S>
+SCANDYN_HD void dof_ltl_negated_solve(DofTree tree, MatrixRef<S> L, MatrixRef<S> X, MatrixRef<S> Y) {
+  const Index n = L.n;
+  const S* Ld = L.data;
+  S* const mats[2] = {X.data, Y.data};
+  for (Index i = n - 1; i >= 0; --i) {
+    const Index e = tree.last[i];
+    const S s = S(-1) / L(i, i);
+    for (S* M : mats)
+      dof_gather_row(e + 1, [&](auto w, Index c0) { dof_gather_subtree<decltype(w)::value>(Ld, M, n, i, e, c0, s); });
+  }
+  for (Index i = 0; i < n; ++i) {
+    const S s = S(1) / L(i, i);
+    const S* li = &L(i, 0);
+    for (S* M : mats)
+      dof_gather_row(n, [&](auto w, Index c0) { dof_gather_ancestors<decltype(w)::value>(tree, li, M, n, i, c0, s); });
   }
 }
 
@@ -513,8 +624,16 @@ SCANDYN_HD void tree_ltl_inverse(DofTree tree, MatrixRef<S> A, Scratch diag, Scr
     A(k, k) = S(1) / A(k, k);
     for (Index i = k + 1; i <= tree.last[k]; ++i) {  // k's descendants (the others stay 0)
       S s = S(0);
-      Index m = tree(i);
-      for (; m > k; m = tree(m)) s += A(i, m) * A(m, k);
+      // the ancestors m > k of i, nearest first (with the runs, a run at a time: no tree
+      // walk per term)
+      if (tree.run) {
+        for (Index j = tree(i); j > k; j = tree(tree.run[j])) {
+          const Index lo = tree.run[j] > k ? tree.run[j] : k + 1;
+          for (Index m = j; m >= lo; --m) s += A(i, m) * A(m, k);
+        }
+      } else {
+        for (Index m = tree(i); m > k; m = tree(m)) s += A(i, m) * A(m, k);
+      }
       s += A(i, k) * A(k, k);
       A(i, k) = -s / A(i, i);
     }
@@ -720,10 +839,41 @@ SCANDYN_HD Index fd_derivatives_instance(const Body<S>* body, Index nv, const Mo
 
 // fd_derivatives_instance for a model with multi-DoF joints (arguments as
 // rnea_derivatives_general_instance; qdd: the caller's FD(q, qd, tau, fext), nv
-// entries; dof_parent, dof_last: the nv DoF parents and subtree ends, dof_parents and
-// dof_subtree_last): M = L^T L factored with the
-// tree sparsity at the DoF level (a multi-DoF joint's DoFs form a chain), by the tree
-// walks over the output blocks. Returns as fd_derivatives_instance.
+// entries; dof_parent, dof_last, dof_run: the nv DoF parents, subtree ends and run
+// starts, dof_parents, dof_subtree_last and dof_runs): M = L^T L factored with the
+// tree sparsity at the DoF level (a multi-DoF joint's DoFs form a chain), in the
+// output blocks. Returns as fd_derivatives_instance.
+template <class S>
+SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, Index nv, const Motion<S>& a0,
+                                                 const S* q, const S* qd, const S* qdd, const Force<S>* fext,
+                                                 const Index* dof_parent, const Index* dof_last,
+                                                 const Index* dof_run, DerivativeBody<S>* work,
+                                                 MatrixRef<S> dqdd_dq, MatrixRef<S> dqdd_dqd, MatrixRef<S> dqdd_dtau,
+                                                 const S* armature = nullptr) {
+  rnea_derivatives_general_instance(body, nb, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau,
+                                    nullptr);
+  const DofTree tree{dof_parent, dof_last, dof_run};
+  if (dqdd_dq.stride != 1 || dqdd_dqd.stride != 1 || dqdd_dtau.stride != 1)
+    return tree_fd_solve(tree, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
+  // row-major blocks (the host's layout): the factor and the solves over the DoF tree's
+  // runs, each row of the solves computed once (dof_ltl_factor, dof_ltl_negated_solve;
+  // the same results as tree_fd_solve, bit for bit)
+  if (armature)
+    for (Index i = 0; i < nv; ++i) dqdd_dtau(i, i) += armature[i];
+  const Index failed = dof_ltl_factor(tree, dqdd_dtau);
+  if (failed >= 0) return failed;
+  dof_ltl_negated_solve(tree, dqdd_dtau, dqdd_dq, dqdd_dqd);
+  struct Field {  // one scalar field of the work array
+    DerivativeBody<S>* w;
+    S DerivativeBody<S>::*f;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+  };
+  tree_ltl_inverse(tree, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+  return -1;
+}
+
+// The same without the DoFs' runs (dof_parent, dof_last only): the factor and the
+// solves by the tree walks of tree_fd_solve, on any layout (the same results).
 template <class S>
 SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, Index nv, const Motion<S>& a0,
                                                  const S* q, const S* qd, const S* qdd, const Force<S>* fext,
@@ -733,7 +883,7 @@ SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, 
                                                  const S* armature = nullptr) {
   rnea_derivatives_general_instance(body, nb, nv, a0, q, qd, qdd, fext, work, dqdd_dq, dqdd_dqd, dqdd_dtau,
                                     nullptr);
-  return tree_fd_solve(DofTree{dof_parent, dof_last}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
+  return tree_fd_solve(DofTree{dof_parent, dof_last, nullptr}, nv, work, dqdd_dq, dqdd_dqd, dqdd_dtau, armature);
 }
 
 }  // namespace scandyn
