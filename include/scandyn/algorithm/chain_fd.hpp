@@ -908,10 +908,10 @@ using ChainCarryReady = void (*)(void* context, Index c_lo, Index c_hi);
 template <class S>
 class ChainInertiaCarries {
  public:
-  // Reduction / walk cost per link: 6.0 / 5.7 (double / float) on rope:10^5, one
-  // thread of a 2-core AMD EPYC (bench/chain_carries_cost.cpp,
-  // bench/results/chain_carries-cpu-amd-epyc-2c-shared.csv).
-  static constexpr double kReduceCost = 6.0;
+  // Reduction / walk cost per link, one thread of a 2-core AMD EPYC: 5.3-5.5 in
+  // double, 7.1-7.3 in float (the reduction runs in double either way) on rope:10^5
+  // and 10^6 (bench/chain_carries_cost.cpp, bench/results/chain_carries-cpu-amd-epyc-2c-shared.csv).
+  static constexpr double kReduceCost = sizeof(S) == 4 ? 7.0 : 5.5;
   // Fewest chunks per range; with fewer chunks the threads drop until it holds.
   static constexpr Index kMinChunksPerRange = 8;
 
