@@ -1,5 +1,6 @@
 // src/io/loops_file.cpp: loop files (JSON, scandyn/algorithm/loops.hpp) and the loops
 // the generators fivebar, fourbar and cloth:K:N carry.
+#include <algorithm>
 #include <cmath>
 #include <iomanip>
 #include <sstream>
@@ -96,12 +97,14 @@ LoopSet load_loops(const std::string& path, const Model& model) {
 LoopSet generator_loops(const std::string& spec, const Model& model) {
   LoopSet out;
   // generators without loops (a free rope, a ballrope) give none, whatever their joints
-  auto add = [&](const std::string& a, const Vec3<double>& pa, const std::string& b, const Vec3<double>& pb) {
+  // (ia, ib: the links' bodies when known, else -2: looked up by name)
+  auto add = [&](const std::string& a, const Vec3<double>& pa, const std::string& b, const Vec3<double>& pb,
+                 Index ia = -2, Index ib = -2) {
     require_one_dof(model, spec);
     LoopClosure c;
     c.type = LoopType::Point;
     c.link_a = a, c.link_b = b;
-    c.body_a = link_body(model, a, spec), c.body_b = link_body(model, b, spec);
+    c.body_a = ia != -2 ? ia : link_body(model, a, spec), c.body_b = ib != -2 ? ib : link_body(model, b, spec);
     c.point_a = pa, c.point_b = pb;
     out.loops.push_back(c);
   };
@@ -116,8 +119,16 @@ LoopSet generator_loops(const std::string& spec, const Model& model) {
     const long long K = std::stoll(spec.substr(6, c1 - 6)), N = std::stoll(spec.substr(c1 + 1));
     // rope k's link j is body k N + j (depth-first order, the ropes in joint-name order)
     auto name = [&](long long k, long long j) { return model.link_names[static_cast<std::size_t>(k * N + j)]; };
+    // (the bodies by index: a lookup by name per loop is O(links) each, hours at 10^6 links)
+    require_one_dof(model, spec);
+    if (static_cast<long long>(model.link_names.size()) < K * N)
+      throw LoopError(spec + ": the model has " + std::to_string(model.link_names.size()) + " links, not the " +
+                      std::to_string(K * N) + " of its ropes");
+    out.loops.reserve(static_cast<std::size_t>(std::max(0LL, (K - 1) * N)));
     for (long long k = 0; k + 1 < K; ++k)
-      for (long long j = 0; j < N; ++j) add(name(k, j), {0.01, 0, -0.01}, name(k + 1, j), {-0.01, 0, -0.01});
+      for (long long j = 0; j < N; ++j)
+        add(name(k, j), {0.01, 0, -0.01}, name(k + 1, j), {-0.01, 0, -0.01}, static_cast<Index>(k * N + j),
+            static_cast<Index>((k + 1) * N + j));
   }
   return out;
 }
