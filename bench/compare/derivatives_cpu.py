@@ -11,8 +11,9 @@ median and the ratio scandyn / pinocchio of both. Rows in the format of
 bench/results/compare-cpu-*.csv.
 
 With --floating the models are on a free joint (scandyn --floating-base, pin_bench
---root free: JointModelFreeFlyer), --model-names picks the models (default iiwa,atlas),
-and the CSV starts with '#' lines naming the machine, the commit and the command.
+--root free: JointModelFreeFlyer), --model-names picks the models (default iiwa,atlas).
+The CSV starts with '#' lines naming the machine and its load, the commit (--commit, or
+HEAD) and the command.
 
 Usage: derivatives_cpu.py --scandyn build/scandyn --pin-bench build-pin/pin_bench
          --models models --out bench/results/derivatives-cpu-<machine>.csv
@@ -44,6 +45,8 @@ def main():
     ap.add_argument('--min-time', type=float, default=0.3)
     ap.add_argument('--floating', action='store_true', help='the models on a free joint (floating base)')
     ap.add_argument('--model-names', default='iiwa,atlas')
+    ap.add_argument('--commit', help="the commit the --scandyn binary was built from, for the CSV's '#' lines "
+                    '(default: the working tree\'s HEAD)')
     args = ap.parse_args()
     version = subprocess.run([args.scandyn, '--version'], capture_output=True, text=True).stdout.strip()
     pin_version = subprocess.run([args.pin_bench, 'version'], capture_output=True, text=True).stdout.strip()
@@ -72,9 +75,9 @@ def main():
             print(rows[-2], rows[-1], sep='\n', flush=True)
     cpu = next((l.split(':', 1)[1].strip() for l in open('/proc/cpuinfo') if l.startswith('model name')), '?')
     with open(args.out, 'w') as fh:
-        if args.floating:
-            commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,
-                                    text=True).stdout.strip()
+        if True:  # '#' lines: machine, load, commit, command
+            commit = args.commit or subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,
+                                                   text=True).stdout.strip()
             fh.write('# machine: %s, %d threads, load average %s at the end of the run\n'
                      % (cpu, os.cpu_count(), ' '.join(open('/proc/loadavg').read().split()[:3])))
             fh.write('# commit: %s (scandyn %s; %s)\n' % (commit, version, pin_version))
