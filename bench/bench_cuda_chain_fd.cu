@@ -10,8 +10,11 @@
 //                                             and out included), as the hybrid is;
 //   fd_hybrid/<precision>/rope:N/cuda         FdMethod::Hybrid through compute():
 //                                             the articulated inertias on this host
-//                                             (one thread), the other passes on the
-//                                             device;
+//                                             (ChainInertiaCarries on all threads,
+//                                             openmp_threads()), the other passes on
+//                                             the device;
+//   fd_hybrid-t1/<precision>/rope:N/cuda      the same with one host thread (the serial
+//                                             recursion), N >= 10^5;
 //   fd_jsi/<precision>/rope:N/cuda            FdMethod::Jsi (jsi_thread to 64 links,
 //                                             then CRBA + cuSOLVER's Cholesky), compute_async,
 //                                             N = 10 .. 4000 (M is N^2 scalars);
@@ -31,9 +34,12 @@
 // rope's base quaternion normalised).
 // Counters: links, instances, max_rel_err, failed (instances reported failed).
 //
-// Before the rows: the device, and the hybrid's timeline for rope:10^6 in float as
-// lines "timeline,<event>,<start ms>,<end ms>" (host groups of the articulated-inertia
-// recursion against the device's walks of the groups already known).
+// Before the rows: the device, and the hybrid's timeline for rope:10^6 in float and
+// double as lines "timeline,<precision>,<lane>,<event>,<c_lo>,<c_hi>,<start ms>,<end ms>":
+// busy intervals, the host threads' walks, reductions and combine (lanes cpu<thread>)
+// and the device's velocities, walks of each group of chunks (CUDA events right before
+// and after the kernel) and passes 2-3 (lane gpu). scripts/gpu_check.sh keeps them as
+// hybrid-timeline-rope1e6.csv; scripts/chain_fd_report.py --timeline draws them.
 //
 // Flags (before Google Benchmark's): --max-links=N (default 10^6).
 #include <benchmark/benchmark.h>
@@ -158,10 +164,11 @@ struct DeviceInputs {
 // The engine for B instances of m by algo, or null (the row skipped with the reason).
 template <class S>
 std::unique_ptr<cuda::CudaForwardDynamics<S>> make_engine(benchmark::State& st, const Model* m, Index B,
-                                                          FdMethod algo) {
+                                                          FdMethod algo, int threads = 0) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
+  o.threads = threads;  // the hybrid's host threads (0: openmp_threads())
   try {
     return std::make_unique<cuda::CudaForwardDynamics<S>>(m->cast<S>(), o, algo);
   } catch (const std::exception& e) {
@@ -187,10 +194,10 @@ void run_device(benchmark::State& st, const Model* m, Index B, FdMethod algo) {
 
 // Host rows: compute() from host buffers (the hybrid needs q on the host).
 template <class S>
-void run_host(benchmark::State& st, const Model* m, Index B, FdMethod algo) {
+void run_host(benchmark::State& st, const Model* m, Index B, FdMethod algo, int threads = 0) {
   const Index n = m->nv();
   const auto in = inputs<S>(*m, B);
-  const auto fd = make_engine<S>(st, m, B, algo);
+  const auto fd = make_engine<S>(st, m, B, algo, threads);
   if (!fd) return;
   const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
   std::vector<S> qdd(q.size());
@@ -256,20 +263,30 @@ void run_plan(benchmark::State& st, const Model* m, Index chunk, Index fan_in, b
 
 std::vector<std::unique_ptr<Model>> g_models;
 
+// The hybrid's busy intervals on rope:n, one instance, the host part on all threads:
+// "timeline,<precision>,<lane>,<event>,<c_lo>,<c_hi>,<start_ms>,<end_ms>" (lane: gpu, or
+// cpu<thread>), for the last of three calls.
+template <class S>
 void print_hybrid_timeline(Index n) {
   const Model m = make_generated("rope:" + std::to_string(n));
-  const auto in = inputs<float>(m, 1);
+  const auto in = inputs<S>(m, 1);
   BackendOptions o;
   o.backend = BackendKind::Cuda;
-  cuda::CudaForwardDynamics<float> fd(m.cast<float>(), o, FdMethod::Hybrid);
+  cuda::CudaForwardDynamics<S> fd(m.cast<S>(), o, FdMethod::Hybrid);
   fd.record_timeline(true);
-  const std::vector<float> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
-  std::vector<float> qdd(q.size());
-  using V = BatchView<const float>;
-  const FdBatchIn<float> hin{V::soa(q.data(), n, 1), V::soa(qd.data(), n, 1), V::soa(tau.data(), n, 1), nullptr};
-  for (int r = 0; r < 3; ++r) fd.compute(hin, BatchView<float>::soa(qdd.data(), n, 1));  // warm, then the last one
-  std::printf("timeline,event,start_ms,end_ms  (hybrid, float, rope:%d, one instance)\n", n);
-  for (const auto& e : fd.timeline()) std::printf("timeline,%s,%.4f,%.4f\n", e.what.c_str(), e.start_ms, e.end_ms);
+  const std::vector<S> q(in->q.begin(), in->q.end()), qd(in->qd.begin(), in->qd.end()), tau(in->tau.begin(), in->tau.end());
+  std::vector<S> qdd(q.size());
+  using V = BatchView<const S>;
+  const FdBatchIn<S> hin{V::soa(q.data(), n, 1), V::soa(qd.data(), n, 1), V::soa(tau.data(), n, 1), nullptr};
+  for (int r = 0; r < 3; ++r) fd.compute(hin, BatchView<S>::soa(qdd.data(), n, 1));  // warm, then the last one
+  const char* prec = sizeof(S) == 4 ? "float" : "double";
+  std::printf("timeline,precision,lane,event,c_lo,c_hi,start_ms,end_ms  (hybrid, %s, rope:%d, one instance, "
+              "%d host threads)\n", prec, n, openmp_threads());
+  for (const auto& e : fd.timeline()) {
+    const std::string lane = e.thread < 0 ? "gpu" : "cpu" + std::to_string(e.thread);
+    std::printf("timeline,%s,%s,%s,%d,%d,%.4f,%.4f\n", prec, lane.c_str(), e.what.c_str(), e.c_lo, e.c_hi, e.start_ms,
+                e.end_ms);
+  }
 }
 
 }  // namespace
@@ -288,7 +305,8 @@ int main(int argc, char** argv) {
     return 0;
   }
   print_device_and_roofline("bench_cuda_chain_fd");
-  print_hybrid_timeline(static_cast<Index>(std::min<long>(max_links, 1000000)));
+  print_hybrid_timeline<float>(static_cast<Index>(std::min<long>(max_links, 1000000)));
+  print_hybrid_timeline<double>(static_cast<Index>(std::min<long>(max_links, 1000000)));
 
   for (long N = 10; N <= max_links; N *= 10) {
     g_models.push_back(std::make_unique<Model>(make_generated("rope:" + std::to_string(N))));
@@ -306,6 +324,9 @@ int main(int argc, char** argv) {
         reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, FdMethod::Parallel); });
         regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, FdMethod::Parallel); });
         regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<float>(st, m, 1, FdMethod::Hybrid); });
+        if (N >= 100000)
+          regh("fd_hybrid-t1/" + tail + "/cuda",
+               [m](benchmark::State& st) { run_host<float>(st, m, 1, FdMethod::Hybrid, 1); });
         if (N <= 4000)
           reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<float>(st, m, 1, FdMethod::Jsi); });
         regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<float>(st, m); });
@@ -313,6 +334,9 @@ int main(int argc, char** argv) {
         reg("fd_parallel/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, FdMethod::Parallel); });
         regh("fd_parallel-host/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, FdMethod::Parallel); });
         regh("fd_hybrid/" + tail + "/cuda", [m](benchmark::State& st) { run_host<double>(st, m, 1, FdMethod::Hybrid); });
+        if (N >= 100000)
+          regh("fd_hybrid-t1/" + tail + "/cuda",
+               [m](benchmark::State& st) { run_host<double>(st, m, 1, FdMethod::Hybrid, 1); });
         if (N <= 4000)
           reg("fd_jsi/" + tail + "/cuda", [m](benchmark::State& st) { run_device<double>(st, m, 1, FdMethod::Jsi); });
         regh("fd_aba/" + tail + "/serial", [m](benchmark::State& st) { run_serial_aba<double>(st, m); });

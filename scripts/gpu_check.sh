@@ -17,6 +17,8 @@
 #       importable (plots where matplotlib is too) -> accuracy-gpu.tar.gz (its
 #       accuracy-gpu.md and accuracy-gpu/ go to docs/) and accuracy-gpu.md
 #   6. every bench/bench_* program, JSON results                    -> bench/<name>.json
+#      (bench_cuda_chain_fd's hybrid timeline also                    -> hybrid-timeline-rope1e6.csv;
+#      the hybrid's host part, bench/chain_carries_cost, 1..16 threads -> chain_carries_cost.csv)
 #   7. with two or more GPUs: scripts/multi_gpu_check.sh (the sharded engines' and
 #      simulator's tests, one GPU against all of them in one process, the Python
 #      examples under torchrun and mpirun)                            -> multi_gpu/
@@ -258,7 +260,25 @@ else
     rc=${PIPESTATUS[0]}
     set -e
     record "bench $name" "$rc"
+    # the hybrid's busy intervals (rope:10^6, float and double) as a CSV for
+    # scripts/chain_fd_report.py --timeline
+    if [[ "$name" == bench_cuda_chain_fd ]] && grep -q '^timeline,' "$out/bench/$name.log"; then
+      { echo "precision,lane,event,c_lo,c_hi,start_ms,end_ms"
+        grep '^timeline,' "$out/bench/$name.log" | grep -v '^timeline,precision,' | cut -d, -f2-; } \
+        >"$out/hybrid-timeline-rope1e6.csv"
+      note "hybrid timeline -> $out/hybrid-timeline-rope1e6.csv"
+    fi
   done
+fi
+# the hybrid's host part on this machine's cores (1 .. 16 threads), interleaved
+if [[ "${SCANDYN_SKIP_BENCH:-0}" != 1 && -x "$build/bench/chain_carries_cost" ]]; then
+  note "chain_carries_cost -> $out/chain_carries_cost.csv"
+  set +e
+  OMP_WAIT_POLICY=passive timeout "${SCANDYN_BENCH_TIMEOUT:-300}" "$build/bench/chain_carries_cost" --rounds 7 \
+    --threads 2,4,8,16 --estimate 32 >"$out/chain_carries_cost.csv"
+  rc=$?
+  set -e
+  record "chain_carries_cost" "$rc"
 fi
 
 # ---- 7. several GPUs in one process, when the machine has them ---------------------
