@@ -315,13 +315,32 @@ def fd_vjp(model, q, qd, tau, w, backend="auto", method="auto"):
 _SEQUENCES = ("tau", "gq", "gqd", "dtau")  # (T, B, nv) arguments of the rollout calls
 
 
+def _quat_matrix(v, w):
+    """The rotation matrices (..., 3, 3) of unit quaternions (x, y, z) = v (..., 3), w
+    (..., 1): base-frame vectors into the world (scandyn's quat_to_matrix)."""
+    x, y, z, w = v[..., 0], v[..., 1], v[..., 2], w[..., 0]
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
 class StepDerivatives:
     """The derivatives of one scene's simulator step and of its rollouts (the scene's
     model, effects, integrator and dt; its instances and initial state are not used).
     ``scene``: a scene file's path or a dict of its keys (as scandyn.Simulator). dtype:
     float64 (default) or float32: every array of a call has it. Covered: euler, rk4,
-    implicit; gravity, damping, springs, limits, external wrenches (constant); contacts,
-    prescribed motion, loops and multi-DoF joints raise BackendError naming them.
+    implicit; gravity, damping, springs, limits, external wrenches (constant); revolute
+    and prismatic joints everywhere, and multi-DoF joints (a floating base, spherical
+    joints: ``"base": "floating"``, ``ballrope:N``) on host arrays (serial, openmp);
+    contacts, prescribed motion, loops, and multi-DoF joints on CUDA raise BackendError
+    naming them.
+
+    Multi-DoF joints: q has nq entries (quaternions), qd and tau nv. The Jacobian's q
+    rows and columns, rollout_vjp's gq (in) and gq0 (out) and rollout_jvp's dq0 and dq
+    are nv-dimensional tangents of local increments, q ⊕ d = q exp(d) per joint (a free
+    joint's d = [w; v]: quat (x) Exp(w), p + R v; docs/derivatives.md).
+    ``tangent_gradient`` and ``ambient_gradient`` map gradients between q's nq
+    coordinates and the tangent (what torch_step, torch_rollout and jax_rollout do).
 
     Where the calls run: host arrays on ``backend`` ('auto': openmp or serial; 'cuda':
     the CUDA engines' host calls, copies in and out); CUDA arrays (torch, CuPy, JAX on a
@@ -356,7 +375,52 @@ class StepDerivatives:
         self._by_device = {self._s.device: self._s} if self._s.backend == "cuda" else {}
 
     nv = property(lambda self: self._s.nv)
+    nq = property(lambda self: self._s.nq, doc="rows of q (> nv with a floating base or spherical joints)")
     dt = property(lambda self: self._s.dt)
+
+    def tangent_gradient(self, q, g):
+        """The tangent gradient (..., nv) of a function of q whose gradient in q's nq
+        coordinates is g (..., nq), at the configurations q (..., nq): E(q)^T g with E =
+        d(q ⊕ d)/dd at d = 0 (a quaternion's 1/2 quat (x) (d, 0), a free joint's position
+        R d_v). NumPy arrays (host)."""
+        q, g = np.asarray(q), np.asarray(g)
+        if self.nq == self.nv:
+            return g
+        out = np.zeros(q.shape[:-1] + (self.nv,), dtype=np.result_type(q, g))
+        for kind, iq, iv in self._s.joints:
+            if kind in ("revolute", "prismatic"):
+                out[..., iv] = g[..., iq]
+                continue
+            k = iq + 3 if kind == "free" else iq
+            pv, pw = q[..., k:k + 3], q[..., k + 3:k + 4]
+            gv, gw = g[..., k:k + 3], g[..., k + 3:k + 4]
+            out[..., iv:iv + 3] = 0.5 * (pw * gv - np.cross(pv, gv) - pv * gw)
+            if kind == "free":
+                out[..., iv + 3:iv + 6] = np.einsum("...ji,...j->...i", _quat_matrix(pv, pw), g[..., iq:iq + 3])
+        return out
+
+    def ambient_gradient(self, q, gt):
+        """The gradient (..., nq) in q's coordinates of a function whose tangent gradient
+        at the configurations q (..., nq, unit quaternions) is gt (..., nv): P(q)^T gt
+        with P the derivative of the inverse retraction log(q^-1 q~) at q~ = q (a
+        quaternion's d = 2 vec(conj(quat) (x) dquat), a free joint's R^T dp); the
+        component along each quaternion is zero. NumPy arrays (host)."""
+        q, gt = np.asarray(q), np.asarray(gt)
+        if self.nq == self.nv:
+            return gt
+        out = np.zeros(q.shape[:-1] + (self.nq,), dtype=np.result_type(q, gt))
+        for kind, iq, iv in self._s.joints:
+            if kind in ("revolute", "prismatic"):
+                out[..., iq] = gt[..., iv]
+                continue
+            k = iq + 3 if kind == "free" else iq
+            pv, pw = q[..., k:k + 3], q[..., k + 3:k + 4]
+            gr = gt[..., iv:iv + 3]
+            out[..., k:k + 3] = 2 * (pw * gr + np.cross(pv, gr))
+            out[..., k + 3] = -2 * np.sum(pv * gr, axis=-1)
+            if kind == "free":
+                out[..., iq:iq + 3] = np.einsum("...ij,...j->...i", _quat_matrix(pv, pw), gt[..., iv + 3:iv + 6])
+        return out
     backend = property(lambda self: self._s.backend, doc="the backend of host calls")
 
     def _ext_for(self, where):
@@ -371,13 +435,14 @@ class StepDerivatives:
             self._by_device[where.cuda] = s
         return s
 
-    def _begin(self, named, stream):
+    def _begin(self, named, stream, sequences=_SEQUENCES):
         """(where, the arrays with a batch dimension, their hand-over, ext object, single):
-        one state ((nv,) states, (T, nv) sequences) runs as a batch of one."""
+        one state ((nv,) states, (T, nv) sequences: the names in sequences) runs as a batch
+        of one."""
         arrays, _ = _inputs(named, self.dtype.name)
         single = len(getattr(arrays[0], "shape", ())) == 1
         if single:
-            arrays = [a[:, None] if n in _SEQUENCES else a[None] for (n, _), a in zip(named, arrays)]
+            arrays = [a[:, None] if n in sequences else a[None] for (n, _), a in zip(named, arrays)]
         where = _where(arrays[0], stream)
         handed = [_handover(a, n, where) for (n, _), a in zip(named, arrays)]
         return where, arrays, handed, self._ext_for(where), single
@@ -413,11 +478,12 @@ class StepDerivatives:
 
     def jacobian(self, q, qd, tau, stream=None, check=None):
         """(q', qd', J): the step from (q, qd) under tau, and J = d(q', qd') / d(q, qd,
-        tau), (B, 2 nv, 3 nv) (rows q', qd'; columns q, qd, tau). On a CUDA device J is
-        an entry-major view (torch, CuPy; as the mass matrix's)."""
-        where, arrays, h, s, single = self._begin([("q", q), ("qd", qd), ("tau", tau)], stream)
+        tau), (B, 2 nv, 3 nv) (rows q', qd'; columns q, qd, tau; q's as tangents for
+        multi-DoF joints, q' (B, nq)). On a CUDA device J is an entry-major view (torch,
+        CuPy; as the mass matrix's)."""
+        where, arrays, h, s, single = self._begin([("q", q), ("qd", qd), ("tau", tau)], stream, sequences=())
         n, B, dt = self.nv, arrays[0].shape[0], self.dtype.name
-        (qn, qdn), (wqn, wqdn) = self._new(where, (B, n), (B, n))
+        (qn, qdn), (wqn, wqdn) = self._new(where, (B, self.nq), (B, n))
         blocks = wblocks = None
         transpose = False
         if where.cuda is None:
@@ -440,10 +506,11 @@ class StepDerivatives:
         return self._unbatch(single, (qn, qdn, J), (False, False, False))
 
     def rollout(self, q0, qd0, tau, stream=None, check=None):
-        """(q, qd), each (T, B, nv): the states after each of the T steps of tau (T, B, nv)
-        from (q0, qd0) (B, nv) ((nv,) and (T, nv) give (T, nv))."""
+        """(q, qd), (T, B, nq) and (T, B, nv): the states after each of the T steps of tau
+        (T, B, nv) from (q0 (B, nq), qd0 (B, nv)) (one state: (nq,), (nv,) and (T, nv) give
+        (T, nq), (T, nv))."""
         return self._rollout_call("rollout", [("q0", q0), ("qd0", qd0), ("tau", tau)], (True, True),
-                                  "rollout", stream, check)
+                                  "rollout", stream, check, widths=(self.nq, self.nv))
 
     def rollout_vjp(self, q0, qd0, tau, gq, gqd, stream=None, check=None):
         """(gq0, gqd0, gtau): the gradient of a loss L with dL/dq_t = gq, dL/dqd_t = gqd
@@ -457,13 +524,14 @@ class StepDerivatives:
             "jvp", [("q0", q0), ("qd0", qd0), ("tau", tau), ("dq0", dq0), ("dqd0", dqd0), ("dtau", dtau)],
             (True, True), "rollout derivatives", stream, check)
 
-    def _rollout_call(self, method, named, per_step, what, stream, check):
+    def _rollout_call(self, method, named, per_step, what, stream, check, widths=None):
         """One of the extension's rollout calls (method: "rollout", "vjp", "jvp") on the
-        named arrays (q0, qd0, tau first); per_step: for each result, True for (T, B, nv),
-        False for (B, nv)."""
+        named arrays (q0, qd0, tau first); per_step: for each result, True for (T, B, w),
+        False for (B, w), w its entry of widths (default nv)."""
         where, arrays, h, s, single = self._begin(named, stream)
-        T, B, n = arrays[2].shape[0], arrays[0].shape[0], self.nv
-        outs, w = self._new(where, *[(T, B, n) if p else (B, n) for p in per_step])
+        T, B = arrays[2].shape[0], arrays[0].shape[0]
+        widths = widths or (self.nv,) * len(per_step)
+        outs, w = self._new(where, *[(T, B, n) if p else (B, n) for p, n in zip(per_step, widths)])
         failed, wf = self._failed(where, B)
         try:
             status = getattr(s, method)(*h, *w, wf, where.stream or 0)
@@ -578,32 +646,47 @@ def _torch_functions():
             return fd_jvp_op(ctx.model, ctx.backend, q, qd, tau, zeros_for(dq, q), zeros_for(dqd, qd),
                              zeros_for(dtau, tau))
 
+    def tangent_of(step, q, g):  # q's gradient (nq coordinates) -> its tangent (nv); host tensors
+        if step.nq == step.nv:
+            return g
+        return torch.as_tensor(step.tangent_gradient(q.detach().cpu().numpy(), g.detach().cpu().numpy()),
+                               dtype=g.dtype)
+
+    def ambient_of(step, q, g):  # a tangent gradient at q (nv) -> q's nq coordinates
+        if step.nq == step.nv:
+            return g
+        return torch.as_tensor(step.ambient_gradient(q.detach().cpu().numpy(), g.detach().cpu().numpy()),
+                               dtype=g.dtype)
+
     class StepFunction(torch.autograd.Function):
         @staticmethod
         def forward(ctx, step, q, qd, tau):
             qn, qdn, J = step.jacobian(q, qd, tau)
-            ctx.save_for_backward(J)
-            ctx.nv = step.nv
+            ctx.save_for_backward(J, q, qn)
+            ctx.step = step
             return qn, qdn
 
         @staticmethod
         def backward(ctx, gq, gqd):
-            (J,) = ctx.saved_tensors
-            n = ctx.nv
-            gz = vec_mat(torch.cat([gq, gqd], dim=-1), J)
-            return None, gz[..., :n], gz[..., n:2 * n], gz[..., 2 * n:]
+            J, q, qn = ctx.saved_tensors
+            step, n = ctx.step, ctx.step.nv
+            gz = vec_mat(torch.cat([tangent_of(step, qn, gq), gqd], dim=-1), J)
+            return None, ambient_of(step, q, gz[..., :n]), gz[..., n:2 * n], gz[..., 2 * n:]
 
     class RolloutFunction(torch.autograd.Function):
         @staticmethod
         def forward(ctx, step, q0, qd0, tau):
             ctx.step = step
-            ctx.save_for_backward(q0, qd0, tau)
-            return step.rollout(q0, qd0, tau)
+            qs, qds = step.rollout(q0, qd0, tau)
+            ctx.save_for_backward(q0, qd0, tau, qs)
+            return qs, qds
 
         @staticmethod
         def backward(ctx, gq, gqd):
-            q0, qd0, tau = ctx.saved_tensors
-            return (None,) + ctx.step.rollout_vjp(q0, qd0, tau, gq, gqd)
+            q0, qd0, tau, qs = ctx.saved_tensors
+            step = ctx.step
+            gq0, gqd0, gtau = step.rollout_vjp(q0, qd0, tau, tangent_of(step, qs, gq).contiguous(), gqd)
+            return None, ambient_of(step, q0, gq0), gqd0, gtau
 
     _TORCH.update(id=InverseDynamicsFunction, fd=ForwardDynamicsFunction, fd_directional=DirectionalForwardDynamicsFunction,
                   step=StepFunction, rollout=RolloutFunction)
@@ -645,9 +728,12 @@ def torch_step(step, q, qd, tau):
 
 
 def torch_rollout(step, q0, qd0, tau):
-    """(q, qd), each (T, B, nv) (or (T, nv)): T simulator steps under tau (T, B, nv),
-    differentiable (backward: the rollout's adjoint, StepDerivatives.rollout_vjp; CUDA
-    tensors: the CUDA adjoint on their device, torch's current stream)."""
+    """(q, qd), (T, B, nq) and (T, B, nv) (or (T, nq), (T, nv)): T simulator steps under
+    tau (T, B, nv), differentiable (backward: the rollout's adjoint,
+    StepDerivatives.rollout_vjp; CUDA tensors: the CUDA adjoint on their device, torch's
+    current stream). With multi-DoF joints (host tensors) q's gradients are mapped to
+    the tangent (StepDerivatives.tangent_gradient) before the adjoint and q0's back to
+    its nq coordinates after (ambient_gradient: zero along each quaternion)."""
     return _torch_functions()["rollout"].apply(step, q0, qd0, tau)
 
 
@@ -729,24 +815,32 @@ def jax_forward_dynamics(model, q, qd, tau, backend="auto", derivatives="auto"):
 
 
 def jax_rollout(step, q0, qd0, tau):
-    """(q, qd) (T, B, nv) of T simulator steps for JAX arrays (CPU), differentiable
-    (the rollout's adjoint)."""
+    """(q, qd) (T, B, nq) and (T, B, nv) of T simulator steps for JAX arrays (CPU),
+    differentiable (the rollout's adjoint; with multi-DoF joints q's gradients pass
+    through StepDerivatives.tangent_gradient / ambient_gradient)."""
     import jax
 
-    out = jax.ShapeDtypeStruct(tau.shape[:1] + q0.shape, q0.dtype)
+    out_q = jax.ShapeDtypeStruct(tau.shape[:1] + q0.shape, q0.dtype)
+    out_qd = jax.ShapeDtypeStruct(tau.shape[:1] + qd0.shape, qd0.dtype)
 
     @jax.custom_vjp
     def f(q0, qd0, tau):
-        return jax.pure_callback(lambda a, b, c: step.rollout(a, b, c), (out, out), q0, qd0, tau)
+        return jax.pure_callback(lambda a, b, c: step.rollout(a, b, c), (out_q, out_qd), q0, qd0, tau)
 
     def fwd(q0, qd0, tau):
-        return f(q0, qd0, tau), (q0, qd0, tau)
+        qs, qds = f(q0, qd0, tau)
+        return (qs, qds), (q0, qd0, tau, qs)
+
+    def vjp(a, b, c, qs, d, e):
+        d = np.ascontiguousarray(step.tangent_gradient(qs, d), dtype=a.dtype)
+        gq0, gqd0, gtau = step.rollout_vjp(a, b, c, d, e)
+        return np.asarray(step.ambient_gradient(a, gq0), a.dtype), gqd0, gtau
 
     def bwd(res, g):
-        q0, qd0, tau = res
-        return jax.pure_callback(lambda a, b, c, d, e: step.rollout_vjp(a, b, c, d, e),
-                                 (jax.ShapeDtypeStruct(q0.shape, q0.dtype), jax.ShapeDtypeStruct(q0.shape, q0.dtype),
-                                  jax.ShapeDtypeStruct(tau.shape, tau.dtype)), q0, qd0, tau, g[0], g[1])
+        q0, qd0, tau, qs = res
+        return jax.pure_callback(vjp,
+                                 (jax.ShapeDtypeStruct(q0.shape, q0.dtype), jax.ShapeDtypeStruct(qd0.shape, qd0.dtype),
+                                  jax.ShapeDtypeStruct(tau.shape, tau.dtype)), q0, qd0, tau, qs, g[0], g[1])
 
     f.defvjp(fwd, bwd)
     return f(q0, qd0, tau)

@@ -21,6 +21,7 @@
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/shared_ptr.h>
 #include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
 #include <nanobind/stl/vector.h>
 
 #include <cstdint>
@@ -28,6 +29,7 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "arrays.hpp"
@@ -274,7 +276,20 @@ class PyStepDerivatives {
     rollout_ = std::make_unique<sim::RolloutDerivatives<S>>(sim_->setup(), options_);
   }
   Index nv() const { return sim_->nv(); }
+  Index nq() const { return sim_->setup().model.nq(); }
   double dt() const { return double(sim_->setup().dt); }
+  // (joint type, first position index, first DoF index) per body: what the Python
+  // side needs to map gradients between q's nq coordinates and its nv-dim tangent
+  std::vector<std::tuple<std::string, Index, Index>> joints() const {
+    std::vector<std::tuple<std::string, Index, Index>> out;
+    for (const Body<S>& b : sim_->setup().model.bodies) {
+      const char* type = b.type == JointType::Free ? "free"
+                         : b.type == JointType::Spherical ? "spherical"
+                         : b.type == JointType::Prismatic ? "prismatic" : "revolute";
+      out.emplace_back(type, b.idx_q, b.idx_v);
+    }
+    return out;
+  }
   int device() const { return device_; }
   std::string backend() const { return to_string(options_.backend); }
 
@@ -288,8 +303,8 @@ class PyStepDerivatives {
                       const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
     const Index n = nv();
     Lead lead;
-    const FdBatchIn<S> in = fd_inputs<S>(n, q, qd, tau, lead);
-    const BatchView<S> qn = view_of<S>(q_next, n, "q_next", lead, false);
+    const FdBatchIn<S> in = fd_inputs<S>(nq(), n, q, qd, tau, lead);
+    const BatchView<S> qn = view_of<S>(q_next, nq(), "q_next", lead, false);
     const BatchView<S> qdn = view_of<S>(qd_next, n, "qd_next", lead, false);
     const Index B = lead.batch;
     check_device(J, "J", lead);
@@ -366,29 +381,31 @@ class PyStepDerivatives {
     return call_status(st, B);
   }
 
-  // q, qd (T, B, nv): the states after each step of tau (T, B, nv) from (q0, qd0) (B, nv)
+  // q (T, B, nq), qd (T, B, nv): the states after each step of tau (T, B, nv) from (q0
+  // (B, nq), qd0 (B, nv)); the multi-DoF joints' tangents below are nv-dimensional
   CallStatus rollout(const InArray& q0, const InArray& qd0, const InArray& tau, const OutArray& q, const OutArray& qd,
                      const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
     const Index n = nv();
     Lead lead;
-    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto x0 = view_of<const S>(q0, nq(), "q0", lead, true);
     const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
     const auto u = sequence_of<const S>(tau, n, "tau", lead);
     const Index T = u.steps;
-    const auto x = sequence_of<S>(q, n, "q", lead, T), xd = sequence_of<S>(qd, n, "qd", lead, T);
+    const auto x = sequence_of<S>(q, nq(), "q", lead, T), xd = sequence_of<S>(qd, n, "qd", lead, T);
     check_outs({{&q, "q"}, {&qd, "qd"}}, {{extent_of(q0), "q0"}, {extent_of(qd0), "qd0"}, {extent_of(tau), "tau"}});
     return run(lead, failed_dof, stream, {{extent_of(q), "q"}, {extent_of(qd), "qd"}},
                [&](auto& r) { return r.rollout(x0, xd0, u, x, xd); },
                [&](auto& r, int* f, cudaStream_t s) { return r.rollout_async(x0, xd0, u, x, xd, f, s); });
   }
 
-  // (gq0, gqd0 (B, nv), gtau (T, B, nv)) for the loss gradients gq, gqd (T, B, nv)
+  // (gq0, gqd0 (B, nv), gtau (T, B, nv)) for the loss gradients gq, gqd (T, B, nv); gq
+  // and gq0 in the tangent of q (local increments: scandyn/sim/manifold_step_derivatives.hpp)
   CallStatus vjp(const InArray& q0, const InArray& qd0, const InArray& tau, const InArray& gq, const InArray& gqd,
                  const OutArray& gq0, const OutArray& gqd0, const OutArray& gtau,
                  const std::optional<OutArray>& failed_dof, std::uintptr_t stream) {
     const Index n = nv();
     Lead lead;
-    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto x0 = view_of<const S>(q0, nq(), "q0", lead, true);
     const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
     const auto u = sequence_of<const S>(tau, n, "tau", lead);
     const Index T = u.steps;
@@ -409,7 +426,7 @@ class PyStepDerivatives {
                  std::uintptr_t stream) {
     const Index n = nv();
     Lead lead;
-    const auto x0 = view_of<const S>(q0, n, "q0", lead, true);
+    const auto x0 = view_of<const S>(q0, nq(), "q0", lead, true);
     const auto xd0 = view_of<const S>(qd0, n, "qd0", lead, false);
     const auto u = sequence_of<const S>(tau, n, "tau", lead);
     const Index T = u.steps;
@@ -515,6 +532,8 @@ void bind_step(nb::module_& m, const char* name) {
       .def(nb::init<const std::string&, const std::string&, const std::string&, const std::string&, int>(),
            "scene_json"_a, "source"_a, "base_dir"_a, "backend"_a, "device"_a = -1)
       .def_prop_ro("nv", &P::nv)
+      .def_prop_ro("nq", &P::nq)
+      .def_prop_ro("joints", &P::joints)
       .def_prop_ro("dt", &P::dt)
       .def_prop_ro("device", &P::device)
       .def_prop_ro("backend", &P::backend)
