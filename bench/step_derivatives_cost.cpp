@@ -9,7 +9,8 @@
 //   rollout_vjp per step of a rollout's adjoint (T = 100, checkpoints every sqrt(T)),
 //               forward checkpoints and recomputation included
 //   rollout_jvp per step of the forward-mode product along one direction
-// Usage: step_derivatives_cost [min_seconds]   (CSV on stdout)
+// Usage: step_derivatives_cost [floating] [min_seconds]   (CSV on stdout; floating:
+// hyq, tree:30:4 and ballrope:20 on a floating base instead of the 1-DoF models)
 //
 // step_derivatives_cost cuda [min_seconds] [B ...] (builds with CUDA): the CUDA
 // rollout adjoint (scandyn/cuda/rollout_derivatives.hpp) on device memory, iiwa
@@ -59,9 +60,13 @@ using namespace scandyn;
 
 namespace {
 
-sim::Scene scene_of(const std::string& model, const std::string& integrator, double dt, Index B) {
+sim::Scene scene_of(const std::string& model, const std::string& integrator, double dt, Index B,
+                    bool floating = false) {
+  char dt_text[32];  // (std::to_string prints 1e-7 as 0.000000)
+  std::snprintf(dt_text, sizeof dt_text, "%.17g", dt);
   sim::Scene s = sim::parse_scene("{\"model\": \"" + model + "\", \"integrator\": \"" + integrator +
-                                      "\", \"dt\": " + std::to_string(dt) +
+                                      "\", \"dt\": " + dt_text +
+                                      (floating ? ", \"base\": \"floating\"" : "") +
                                       ", \"effects\": {\"gravity\": true, \"damping\": 0.01}}",
                                   "bench.json", bench::models_dir());
   s.instances = B;
@@ -267,6 +272,11 @@ int main(int argc, char** argv) {
     return 2;
 #endif
   }
+  // step_derivatives_cost floating [min_seconds]: the same columns on models with a
+  // floating base (multi-DoF joints: step_jacobian_at_instance; the rollouts' JVP and
+  // VJP as products with the dense Jacobian per step)
+  const bool floating = argc > 1 && std::strcmp(argv[1], "floating") == 0;
+  if (floating) --argc, ++argv;
   const double min_time = argc > 1 ? std::atof(argv[1]) : 0.3;
   std::printf("model,integrator,nv,step_us,jacobian_us,central_us,jacobian_over_step,central_over_jacobian,"
               "rollout_vjp_us_per_step,rollout_jvp_us_per_step\n");
@@ -274,20 +284,27 @@ int main(int argc, char** argv) {
     const char* model;
     double dt;
   };
-  for (const Row& r : {Row{"iiwa.urdf", 1e-3}, Row{"hyq.urdf", 1e-3}, Row{"tree:30:4", 1e-4}, Row{"rope:20", 1e-5},
-                       Row{"rope:100", 1e-6}}) {
+  const std::vector<Row> rows =
+      floating ? std::vector<Row>{Row{"hyq.urdf", 1e-3}, Row{"tree:30:4", 1e-4}, Row{"ballrope:20", 1e-7}}
+               : std::vector<Row>{Row{"iiwa.urdf", 1e-3}, Row{"hyq.urdf", 1e-3}, Row{"tree:30:4", 1e-4},
+                                  Row{"rope:20", 1e-5}, Row{"rope:100", 1e-6}};
+  for (const Row& r : rows) {
     for (const char* integrator : {"euler", "rk4"}) {
-      const sim::Scene scene = scene_of(r.model, integrator, r.dt, 1);
-      const Index n = scene.nv();
+      const sim::Scene scene = scene_of(r.model, integrator, r.dt, 1, floating);
+      const Index n = scene.nv(), nq = scene.nq();
       sim::Simulator<double> one(scene, BackendKind::Serial);
       std::mt19937_64 rng(1);
       std::uniform_real_distribution<double> u(-0.3, 0.3);
-      std::vector<double> q(n), qd(n), tau(n, 0.0);
-      for (Index i = 0; i < n; ++i) q[i] = u(rng), qd[i] = u(rng);
+      std::vector<double> q(nq, 0.0), qd(n), tau(n, 0.0), v(n);
+      // q: the neutral configuration moved by a random tangent (q = v on 1-DoF models)
+      neutral_bodies(scene.model.bodies.data(), scene.model.nbodies(), q.data());
+      for (Index i = 0; i < n; ++i) v[i] = u(rng), qd[i] = u(rng);
+      integrate_configuration(scene.model, q.data(), v.data(), 1.0);
       using V = BatchView<const double>;
       // a plain step: the same state each time
       const double step = bench::best_seconds_per_call(min_time, [&] {
-        for (Index i = 0; i < n; ++i) one.q().at(i, 0) = q[i], one.qd().at(i, 0) = qd[i];
+        for (Index i = 0; i < nq; ++i) one.q().at(i, 0) = q[i];
+        for (Index i = 0; i < n; ++i) one.qd().at(i, 0) = qd[i];
         one.step(V::soa(tau.data(), n, 1));
         return std::size_t(1);
       });
@@ -297,16 +314,18 @@ int main(int argc, char** argv) {
       std::vector<std::vector<double>> blocks(6, std::vector<double>(static_cast<std::size_t>(n) * n));
       auto bv = [&](int k) { return BatchView<double>::aos(blocks[k].data(), n * n, 1); };
       const sim::StepDerivativesOut<double> out{bv(0), bv(1), bv(2), bv(3), bv(4), bv(5), {}, {}};
-      const FdBatchIn<double> in{V::aos(q.data(), n, 1), V::aos(qd.data(), n, 1), V::aos(tau.data(), n, 1)};
+      const FdBatchIn<double> in{V::aos(q.data(), nq, 1), V::aos(qd.data(), n, 1), V::aos(tau.data(), n, 1)};
       const double jac = bench::best_seconds_per_call(min_time, [&] {
         engine->compute(in, out);
         return std::size_t(1);
       });
       // central differences: 6 nv perturbed steps
-      sim::Simulator<double> many(scene_of(r.model, integrator, r.dt, 6 * n), BackendKind::Serial);
+      sim::Simulator<double> many(scene_of(r.model, integrator, r.dt, 6 * n, floating), BackendKind::Serial);
       const double central = bench::best_seconds_per_call(min_time, [&] {
-        for (Index b = 0; b < 6 * n; ++b)
-          for (Index i = 0; i < n; ++i) many.q().at(i, b) = q[i], many.qd().at(i, b) = qd[i];
+        for (Index b = 0; b < 6 * n; ++b) {
+          for (Index i = 0; i < nq; ++i) many.q().at(i, b) = q[i];
+          for (Index i = 0; i < n; ++i) many.qd().at(i, b) = qd[i];
+        }
         many.step();
         return std::size_t(1);
       });
@@ -321,13 +340,21 @@ int main(int argc, char** argv) {
       auto out_seq = [&](std::vector<double>& v) {
         return sim::StepSequence<double>{BatchView<double>::aos(v.data(), n, 1), n, T};
       };
+      // every timed call must succeed (a failed instance stops early: its time would mislead)
+      auto require_ok = [&](const BatchStatus& st, const char* what) {
+        if (st.ok()) return;
+        std::fprintf(stderr, "step_derivatives_cost: %s of %s %s failed: %s\n", what, r.model, integrator,
+                     sim::failure_message(st).c_str());
+        std::exit(1);
+      };
+      require_ok(engine->compute(in, out), "the Jacobian");
       const double vjp = bench::best_seconds_per_call(min_time, [&] {
-        rd.vjp(in.q, in.qd, seq(taus), seq(g), seq(g), BatchView<double>::aos(g0.data(), n, 1),
-               BatchView<double>::aos(gd0.data(), n, 1), out_seq(gt));
+        require_ok(rd.vjp(in.q, in.qd, seq(taus), seq(g), seq(g), BatchView<double>::aos(g0.data(), n, 1),
+               BatchView<double>::aos(gd0.data(), n, 1), out_seq(gt)), "the rollout adjoint");
         return std::size_t(T);
       });
       const double jvp = bench::best_seconds_per_call(min_time, [&] {
-        rd.jvp(in.q, in.qd, seq(taus), in.q, in.qd, seq(g), out_seq(dq), out_seq(dqd));
+        require_ok(rd.jvp(in.q, in.qd, seq(taus), in.qd, in.qd, seq(g), out_seq(dq), out_seq(dqd)), "the rollout JVP");
         return std::size_t(T);
       });
       std::printf("%s,%s,%d,%.3f,%.3f,%.3f,%.2f,%.2f,%.3f,%.3f\n", r.model, integrator, int(n), step * 1e6, jac * 1e6,
