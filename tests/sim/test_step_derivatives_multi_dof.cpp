@@ -9,7 +9,8 @@
 // the difference of q' at rounding level) and 2e-3 tau_scale (tau); tolerance 1e-6
 // relative to each block's largest entry. The
 // rollout gradient against central differences of a rollout loss, 1e-6 relative;
-// <vjp(g), v> = <g, jvp(v)> to 1e-10; OpenMP equal to serial bit for bit.
+// <vjp(g), v> = <g, jvp(v)> to 1e-10; OpenMP equal to serial bit for bit; float
+// within 1e-3 of double (relative to each block's largest entry).
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -54,7 +55,9 @@ std::vector<Case> cases() {
     const std::string in = integrator;
     c.push_back({"floating hyq " + in,
                  test::scene_from(R"({"model": "hyq.urdf", "base": "floating", "dt": 2e-3, "integrator": ")" + in +
-                                  R"(", "effects": {"gravity": true, "damping": 0.5, "springs": {"stiffness": 3}}})"),
+                                  R"(", "effects": {"gravity": true, "damping": 0.5, "springs": {"stiffness": 3},
+                                  "external": {"wrenches": [{"link": "lf_lowerleg", "wrench": [0.1, 0.2, 0.3, 1, 2, 3]},
+                                                            {"link": "base_link_0", "wrench": [1, -2, 0.5, 3, 0, -1]}]}}})"),
                  5});
     c.push_back({"ballrope:4 " + in,
                  test::scene_from(R"({"model": "ballrope:4", "dt": 1e-4, "integrator": ")" + in +
@@ -268,6 +271,36 @@ TEST(StepDerivativesMultiDof, OpenmpEqualsSerialBitForBit) {
     for (int k = 0; k < 6; ++k) EXPECT_EQ(a.blocks[k], b.blocks[k]) << "block " << k;
     EXPECT_EQ(a.q, b.q);
     EXPECT_EQ(a.qd, b.qd);
+  }
+}
+
+// float follows double (floating hyq, every block within 1e-3 of its largest double entry)
+TEST(StepDerivativesMultiDof, FloatFollowsDouble) {
+  for (const Case& c : cases()) {
+    if (c.name.find("hyq") == std::string::npos) continue;
+    SCOPED_TRACE(c.name);
+    const Model& m = c.scene.model;
+    const Index n = m.nv(), nq = m.nq();
+    const State s = random_state(m, 21, c.tau_scale);
+    const Jacobians d = step_jacobians(c, s.q, s.qd, s.tau, BackendKind::Serial);
+    Simulator<float> base(batch_of(c.scene, 1), BackendKind::Serial);
+    auto engine = sim::make_step_derivatives(base.setup(), BackendOptions{});
+    std::vector<float> q(s.q.begin(), s.q.end()), qd(s.qd.begin(), s.qd.end()), tau(s.tau.begin(), s.tau.end());
+    std::vector<std::vector<float>> blocks(6, std::vector<float>(n * n, NAN));
+    std::vector<float> qn(nq, NAN), qdn(n, NAN);
+    auto v = [&](int k) { return BatchView<float>::aos(blocks[k].data(), n * n, 1); };
+    const FdBatchIn<float> in{BatchView<const float>::aos(q.data(), nq, 1), BatchView<const float>::aos(qd.data(), n, 1),
+                              BatchView<const float>::aos(tau.data(), n, 1), nullptr};
+    ASSERT_TRUE(engine->compute(in, {v(0), v(1), v(2), v(3), v(4), v(5), BatchView<float>::aos(qn.data(), nq, 1),
+                                     BatchView<float>::aos(qdn.data(), n, 1)})
+                    .ok());
+    for (int k = 0; k < 6; ++k) {
+      double scale = 0, err = 0;
+      for (Index e = 0; e < n * n; ++e) scale = std::max(scale, std::abs(d.blocks[k][e]));
+      for (Index e = 0; e < n * n; ++e) err = std::max(err, std::abs(double(blocks[k][e]) - d.blocks[k][e]));
+      EXPECT_LE(err, 1e-3 * scale) << "block " << k;
+    }
+    for (Index i = 0; i < nq; ++i) EXPECT_NEAR(qn[i], d.q[i], 1e-4) << "q' " << i;
   }
 }
 
