@@ -363,7 +363,7 @@ template <class S>
 class StepDerivatives : public Engine {
  public:
   // in: the state (q, qd) and torques tau of every instance (nv x B); in.fext: the
-  // (B x nv) body wrenches of a scene whose external wrenches are per step, or null
+  // (B x nbodies; nbodies = nv for 1-DoF joints) body wrenches of a scene whose external wrenches are per step, or null
   // for the scene's constant ones. An instance whose forward dynamics fails is
   // reported in the status, its outputs not meaningful.
   virtual BatchStatus compute(const FdBatchIn<S>& in, const StepDerivativesOut<S>& out) = 0;
