@@ -2,7 +2,8 @@
 // (JVP, VJP) of forward dynamics (make_fd_directional_derivatives,
 // scandyn/engine.hpp): for unbranched chains from a fixed base the chunked scans of
 // ChainFdDirectional (scandyn/algorithm/chain_directional.hpp, "parallel"), else the
-// serial aba_jvp / aba_vjp per instance, threads over instances ("aba_jvp").
+// serial aba_jvp / aba_vjp per instance, threads over instances ("aba_jvp"; models with
+// multi-DoF joints too: q of nq entries, fext one wrench per body).
 #include <algorithm>
 #include <memory>
 #include <vector>
@@ -29,7 +30,7 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
       chain_ = std::make_unique<ChainFdDirectional<S>>(model, max_batch_, threads);
     } else {
       threads_ = instance_threads(threads, max_batch_);
-      rows_ = RowScratch<S>(threads_, 10, static_cast<std::size_t>(model.nv()));
+      rows_ = RowScratch<S>(threads_, 10, static_cast<std::size_t>(model.nq()));  // q: nq, the others nv
       for (int t = 0; t < threads_; ++t) data_.push_back(std::make_unique<AbaJvpData<S>>(model));
     }
   }
@@ -48,7 +49,7 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
         S* o_qdd = output_row(qdd, b, rows_.row(t, 6));
         S* o_dqdd = output_row(dqdd, b, rows_.row(t, 7));
         const Status st = aba_jvp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
-                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr, in_row(dq, b, t, 3),
+                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * model_.nbodies() : nullptr, in_row(dq, b, t, 3),
                                   in_row(dqd, b, t, 4), in_row(dtau, b, t, 5), o_dqdd, o_qdd);
         scatter(o_qdd, qdd, b, nv);
         scatter(o_dqdd, dqdd, b, nv);
@@ -71,7 +72,7 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
         S* o_gqd = output_row(gqd, b, rows_.row(t, 8));
         S* o_gtau = output_row(gtau, b, rows_.row(t, 9));
         const Status st = aba_vjp(model_, *data_[t], in_row(in.q, b, t, 0), in_row(in.qd, b, t, 1),
-                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * nv : nullptr, in_row(w, b, t, 3),
+                                  in_row(in.tau, b, t, 2), in.fext ? in.fext + b * model_.nbodies() : nullptr, in_row(w, b, t, 3),
                                   o_gq, o_gqd, o_gtau, o_qdd);
         scatter(o_qdd, qdd, b, nv);
         scatter(o_gq, gq, b, nv);
@@ -92,8 +93,9 @@ class CpuFdDirectional final : public FdDirectionalDerivatives<S> {
       for (Index b = begin; b < end; ++b) failed_[static_cast<std::size_t>(b)] = f(t, b).failed_dof;
     });
   }
+  // row k of instance b on thread t (k = 0: q, nq entries; the others nv)
   const S* in_row(const BatchView<const S>& v, Index b, int t, int k) {
-    return gather(v, b, model_.nv(), rows_.row(t, k));
+    return gather(v, b, k == 0 ? model_.nq() : model_.nv(), rows_.row(t, k));
   }
   // the FD's views (check_batch), then every direction and output: in.q's batch
   void check(const FdBatchIn<S>& in, const BatchView<S>& qdd, std::initializer_list<const BatchView<const S>*> x,

@@ -389,13 +389,15 @@ class FdDirectionalDerivatives : public Engine {
                           const BatchView<S>& gq, const BatchView<S>& gqd, const BatchView<S>& gtau) = 0;
 };
 
-// Models of 1-DoF joints, host memory. options.fd_method: Aba (aba_jvp / aba_vjp per
-// instance, threads over instances: "aba_jvp"), Parallel (unbranched chains from a
-// fixed base: the chunked scans of ChainFdDirectional on the engine's threads:
-// "parallel"; BackendError for other models), Auto (Parallel for such chains of 4096
-// links or more, else Aba). On cuda (one device) the scans only, for such chains:
-// Auto or Parallel, a directional cuda::ChainFdPlan behind the host views (on device
-// memory call its launch_jvp / launch_vjp, scandyn/cuda/chain_fd.hpp).
+// Host memory. options.fd_method: Aba (aba_jvp / aba_vjp per instance, threads over
+// instances: "aba_jvp"; any model, multi-DoF joints included: q of nq entries, dq and
+// gq of nv in the tangent convention of the dense derivatives, fext one wrench per
+// body), Parallel (unbranched chains of 1-DoF joints from a fixed base: the chunked
+// scans of ChainFdDirectional on the engine's threads: "parallel"; BackendError for
+// other models), Auto (Parallel for such chains of 4096 links or more, else Aba). On
+// cuda (one device) the scans only, for such chains: Auto or Parallel, a directional
+// cuda::ChainFdPlan behind the host views (on device memory call its launch_jvp /
+// launch_vjp, scandyn/cuda/chain_fd.hpp); multi-DoF joints are refused there.
 template <class S>
 std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
                                                                              const BackendOptions& options);

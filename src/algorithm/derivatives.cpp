@@ -55,6 +55,7 @@ RneaBodies<S> bodies_of(DataTpl<S>& d) {
 template <class S>
 void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
               const Force<S>* fext, const S* dq, const S* dqd, const S* dqdd, S* dtau, S* tau) {
+  if (model.multi_dof()) return rnea_jvp_at(model, data, q, qd, qdd, fext, dq, dqd, dqdd, dtau, tau);
   rnea_jvp_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q, qd, qdd, fext, dq, dqd,
                     dqdd, bodies_of(data.rnea), data.t.data(), dtau, tau);
 }
@@ -62,6 +63,7 @@ void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const 
 template <class S>
 void rnea_vjp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
               const Force<S>* fext, const S* w, S* gq, S* gqd, S* gqdd) {
+  if (model.multi_dof()) return rnea_vjp_at(model, data, q, qd, qdd, fext, w, gq, gqd, gqdd);
   rnea_vjp_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q, qd, qdd, fext, w,
                     bodies_of(data.rnea), data.adj.data(), gq, gqd, gqdd);
 }
@@ -99,6 +101,7 @@ struct SerialAba {
 template <class S>
 Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
                const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd, const S* armature) {
+  if (model.multi_dof()) return aba_jvp_at(model, data, q, qd, tau, fext, dq, dqd, dtau, dqdd, qdd, armature);
   const SerialAba<S> f{model, data, fext};
   return Status{aba_jvp_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q, qd, tau, fext,
                                  dq, dqd, dtau, armature, bodies_of(data.id.rnea), data.id.t.data(), data.r0.data(),
@@ -108,6 +111,7 @@ Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const 
 template <class S>
 Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
                const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd, const S* armature) {
+  if (model.multi_dof()) return aba_vjp_at(model, data, q, qd, tau, fext, w, gq, gqd, gtau, qdd, armature);
   const SerialAba<S> f{model, data, fext};
   return Status{aba_vjp_instance(model.bodies.data(), model.nv(), base_acceleration(model.gravity), q, qd, tau, fext,
                                  w, armature, bodies_of(data.id.rnea), data.id.adj.data(), data.r1.data(), gq, gqd,

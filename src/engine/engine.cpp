@@ -355,10 +355,18 @@ template <class S>
 std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(const ModelTpl<S>& model,
                                                                              const BackendOptions& o) {
   require_built(o);
-  require_one_dof_joints(model, "the directional derivatives of forward dynamics");
   if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba && o.fd_method != FdMethod::Parallel)
     throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
                        "' is not available for the directional derivatives (use auto, aba or parallel)");
+  // multi-DoF joints: aba_jvp / aba_vjp over the general ABA (serial, openmp); the
+  // chain scans and the cuda engine take 1-DoF joints only
+  if (model.multi_dof() && (o.backend == BackendKind::Cuda || o.fd_method == FdMethod::Parallel))
+    throw BackendError(std::string("the directional derivatives of forward dynamics") +
+                       (o.backend == BackendKind::Cuda ? " on backend 'cuda'" : " by the method 'parallel'") +
+                       ": model '" + model.name + "' has the multi-DoF joint '" + first_multi_dof_joint(model) +
+                       "' (" + (model.floating_base() ? "the floating base" : "a spherical joint") +
+                       "), and the chain scans take revolute and prismatic joints only; use backend serial or "
+                       "openmp with the method aba (or auto)");
 #if SCANDYN_HAS_CUDA
   if (o.backend == BackendKind::Cuda) {
     if (o.fd_method == FdMethod::Aba)
@@ -368,7 +376,7 @@ std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(con
     return cuda::make_cuda_fd_directional_derivatives(model, o);
   }
 #endif
-  const bool chain = first_branching_body(model) < 0 && !model.floating_base();
+  const bool chain = first_branching_body(model) < 0 && !model.multi_dof();
   if (o.fd_method == FdMethod::Parallel && !chain)
     throw BackendError("forward-dynamics method 'parallel' of the directional derivatives needs unbranched chains "
                        "hanging from a fixed base (" +

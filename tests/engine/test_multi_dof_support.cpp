@@ -132,12 +132,15 @@ TEST(MultiDofKinematics, JacobianIsTheDerivativeAlongTheManifold) {
 TEST(MultiDofSupport, RefusedWithTheFeatureAndTheJoint) {
   const Model m = test::load_floating("hyq");
   const BackendOptions serial;
-  // (the first-order derivatives take multi-DoF joints on serial and OpenMP:
-  // tests/algorithm/test_derivatives_multi_dof.cpp; the second-order and directional
-  // ones do not)
+  // (the first-order derivatives and the directional derivatives by aba take
+  // multi-DoF joints on serial and OpenMP: tests/algorithm/test_derivatives_multi_dof.cpp,
+  // test_directional_multi_dof.cpp; the second-order ones and the directional chain
+  // scans do not)
   expect_throws_naming([&] { make_id_second_derivatives(m, serial); },
                        {"second-order inverse-dynamics derivatives", "root_joint"});
-  expect_throws_naming([&] { make_fd_directional_derivatives(m, serial); },
+  BackendOptions scans = serial;
+  scans.fd_method = FdMethod::Parallel;
+  expect_throws_naming([&] { make_fd_directional_derivatives(m, scans); },
                        {"directional derivatives", "root_joint"});
   expect_throws_naming([&] { make_hybrid_dynamics(m, std::vector<unsigned char>(std::size_t(m.nv()), 0), serial); },
                        {"hybrid dynamics", "root_joint"});

@@ -16,7 +16,9 @@
 //
 // The functions below are the serial entry points (a model and host scratch); the
 // recursions themselves are the __host__ __device__ functions of
-// scandyn/instance/directional_instance.hpp, which the CUDA rollout kernels run too.
+// scandyn/instance/directional_instance.hpp, which the CUDA rollout kernels run too
+// (models of 1-DoF joints), and for multi-DoF joints those of
+// scandyn/instance/directional_general_instance.hpp (serial and OpenMP).
 #pragma once
 
 #include <vector>
@@ -37,7 +39,8 @@ struct RneaJvpData {
 };
 
 // dtau = (d ID / d q) dq + (d ID / d qd) dqd + M dqdd at (q, qd, qdd, fext), in
-// O(nv); tau (optional) = ID(q, qd, qdd, fext). Every array has nv entries.
+// O(nv); tau (optional) = ID(q, qd, qdd, fext). Every array has nv entries (q: nq);
+// fext: one wrench per body (body frames) or null.
 template <class S>
 void rnea_jvp(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
               const Force<S>* fext, const S* dq, const S* dqd, const S* dqdd, S* dtau, S* tau = nullptr);
@@ -82,5 +85,26 @@ Status aba_jvp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const 
 template <class S>
 Status aba_vjp(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
                const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd, const S* armature = nullptr);
+
+// ---- multi-DoF joints ------------------------------------------------------------
+// The four functions above take models with a floating base and spherical joints too
+// (ModelTpl::multi_dof): q has nq entries, its tangent dq and the gradient gq nv, in
+// the dense derivatives' tangent convention (a joint's increment q (+) d = q exp(d) in
+// the child's frame; docs/derivatives.md). They dispatch to these (the recursions of
+// scandyn/instance/directional_general_instance.hpp; src/algorithm/directional_general.cpp),
+// whose arguments are theirs.
+template <class S>
+void rnea_jvp_at(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
+                 const Force<S>* fext, const S* dq, const S* dqd, const S* dqdd, S* dtau, S* tau);
+template <class S>
+void rnea_vjp_at(const ModelTpl<S>& model, RneaJvpData<S>& data, const S* q, const S* qd, const S* qdd,
+                 const Force<S>* fext, const S* w, S* gq, S* gqd, S* gqdd);
+template <class S>
+Status aba_jvp_at(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+                  const Force<S>* fext, const S* dq, const S* dqd, const S* dtau, S* dqdd, S* qdd,
+                  const S* armature);
+template <class S>
+Status aba_vjp_at(const ModelTpl<S>& model, AbaJvpData<S>& data, const S* q, const S* qd, const S* tau,
+                  const Force<S>* fext, const S* w, S* gq, S* gqd, S* gtau, S* qdd, const S* armature);
 
 }  // namespace scandyn
