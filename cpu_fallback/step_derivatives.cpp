@@ -29,23 +29,17 @@ struct StepWork {
   explicit StepWork(const SimSetup<S>& setup)
       : deriv(setup.model), directional(setup.model),
         scratch(setup.model.multi_dof()
-                    ? step_jacobian_at_scratch(setup.model.nq(), setup.model.nv(), setup.integrator)
+                    ? std::max(step_jacobian_at_scratch(setup.model.nq(), setup.model.nv(), setup.integrator),
+                               step_directional_at_scratch(setup.model.nq(), setup.model.nv()) +
+                                   static_cast<std::size_t>(setup.model.nv()))
                     : std::max(step_jacobian_scratch(setup.model.nv(), setup.integrator),
                                step_directional_scratch(setup.model.nv()))),
-        rows(rollout_rows(setup.model.nq(), setup.model.nv())),
-        jac(setup.model.multi_dof() ? 6 * nn(setup) + static_cast<std::size_t>(setup.model.nq()) +
-                                          4 * static_cast<std::size_t>(setup.model.nv())
-                                    : 0) {}
-  static std::size_t nn(const SimSetup<S>& setup) {
-    return static_cast<std::size_t>(setup.model.nv()) * static_cast<std::size_t>(setup.model.nv());
-  }
+        rows(rollout_rows(setup.model.nq(), setup.model.nv())) {}
   DerivativeDataTpl<S> deriv;       // the ABA's and the dense derivatives' scratch
   AbaJvpData<S> directional;        // aba_jvp / aba_vjp's scratch
   std::vector<S> scratch;           // the step functions' scratch
   std::vector<S> rows;              // (8 nv + nq) one instance's rows: the Jacobian's q (nq), qd, tau; the
                                     // rollout instance functions' (step_derivatives.hpp)
-  std::vector<S> jac;               // multi-DoF joints (6 nv^2 + nq + 4 nv): a step's dense Jacobian, the
-                                    // state it starts from and the products' rows (the rollouts' JVP, VJP)
   std::vector<S> store;             // rollout vjp: checkpoints and one segment of states
 };
 
@@ -106,8 +100,8 @@ struct InstanceKernels {
 // base, spherical joints): step_instance_at over the reference aba, as the
 // simulator's CpuInstanceStep::step_one_at; the Jacobian by
 // step_jacobian_at_instance over fd_derivatives_general_instance; the JVP and VJP
-// (the rollouts') as products with that dense Jacobian (aba_jvp / aba_vjp take 1-DoF
-// joints only).
+// (the rollouts') by step_jvp_at_instance / step_vjp_at_instance over aba_jvp /
+// aba_vjp, O(nv).
 template <unsigned E, Integrator I, class S>
 struct InstanceKernelsAt {
   static Index step(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau) {
@@ -134,58 +128,32 @@ struct InstanceKernelsAt {
                                            q, qd, tau, w.scratch.data(), J, InstanceKernels<E, I, S>::fd(setup, w, fext),
                                            dfd);
   }
-  // the Jacobian of the step from (q, qd) under tau in w.jac (q, qd advance in place)
-  static Index jacobian_at(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau,
-                           StepJacobian<S>& J) {
-    const Index n = setup.model.nv();
-    const std::size_t nn = StepWork<S>::nn(setup);
-    S* const m = w.jac.data();
-    J = StepJacobian<S>{{m, n, 1}, {m + nn, n, 1}, {m + 2 * nn, n, 1},
-                        {m + 3 * nn, n, 1}, {m + 4 * nn, n, 1}, {m + 5 * nn, n, 1}};
-    return jacobian(setup, w, fext, q, qd, tau, J);
-  }
+  // the JVP and VJP in O(nv): step_jvp_at_instance / step_vjp_at_instance over aba_jvp /
+  // aba_vjp (their general path: the forward dynamics' directional derivatives of
+  // multi-DoF joints)
   static Index jvp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, S* q, S* qd, const S* tau, S* dq,
                    S* dqd, const S* dtau) {
-    const Index n = setup.model.nv();
-    StepJacobian<S> J;
-    const Index failed = jacobian_at(setup, w, fext, q, qd, tau, J);
-    if (failed >= 0) return failed;
-    S* const a = w.jac.data() + 6 * StepWork<S>::nn(setup) + setup.model.nq();
-    S* const c = a + n;
-    for (Index i = 0; i < n; ++i) {
-      S x = S(0), y = S(0);
-      for (Index j = 0; j < n; ++j) {
-        x += J.q_q(i, j) * dq[j] + J.q_qd(i, j) * dqd[j] + J.q_tau(i, j) * dtau[j];
-        y += J.qd_q(i, j) * dq[j] + J.qd_qd(i, j) * dqd[j] + J.qd_tau(i, j) * dtau[j];
-      }
-      a[i] = x, c[i] = y;
-    }
-    for (Index i = 0; i < n; ++i) dq[i] = a[i], dqd[i] = c[i];
-    return -1;
+    const ModelTpl<S>& model = setup.model;
+    auto fd_jvp = [&](const S* qa, const S* qda, const S* t, const S* dqa, const S* dqda, const S* dt,
+                      const S* arm, S* dqdd, S* qdd) -> Index {
+      return aba_jvp(model, w.directional, qa, qda, t, fext, dqa, dqda, dt, dqdd, qdd, arm).failed_dof;
+    };
+    return step_jvp_at_instance<E, I>(model.bodies.data(), model.nbodies(), model.nq(), model.nv(), setup.dt,
+                                      setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(), q,
+                                      qd, tau, dq, dqd, dtau, w.scratch.data(), fd_jvp);
   }
   static Index vjp(const SimSetup<S>& setup, StepWork<S>& w, const Force<S>* fext, const S* q, const S* qd,
                    const S* tau, S* gq, S* gqd, S* gtau) {
-    const Index n = setup.model.nv(), nq = setup.model.nq();
-    S* const x = w.jac.data() + 6 * StepWork<S>::nn(setup);  // the start state (q, qd are not changed)
-    S* const xd = x + nq;
-    S* const a = xd + n;
-    S* const c = a + n;
-    for (Index i = 0; i < nq; ++i) x[i] = q[i];
-    for (Index i = 0; i < n; ++i) xd[i] = qd[i];
-    StepJacobian<S> J;
-    const Index failed = jacobian_at(setup, w, fext, x, xd, tau, J);
-    if (failed >= 0) return failed;
-    for (Index j = 0; j < n; ++j) {
-      S x0 = S(0), x1 = S(0), x2 = S(0);
-      for (Index i = 0; i < n; ++i) {
-        x0 += J.q_q(i, j) * gq[i] + J.qd_q(i, j) * gqd[i];
-        x1 += J.q_qd(i, j) * gq[i] + J.qd_qd(i, j) * gqd[i];
-        x2 += J.q_tau(i, j) * gq[i] + J.qd_tau(i, j) * gqd[i];
-      }
-      a[j] = x0, c[j] = x1, gtau[j] = x2;
-    }
-    for (Index i = 0; i < n; ++i) gq[i] = a[i], gqd[i] = c[i];
-    return -1;
+    const ModelTpl<S>& model = setup.model;
+    // aba_vjp's qdd, past step_vjp_at_instance's rows
+    S* const qdd = w.scratch.data() + step_directional_at_scratch(model.nq(), model.nv());
+    auto fd_vjp = [&](const S* qa, const S* qda, const S* t, const S* arm, const S* wt, S* a, S* b, S* gt) -> Index {
+      return aba_vjp(model, w.directional, qa, qda, t, fext, wt, a, b, gt, qdd, arm).failed_dof;
+    };
+    return step_vjp_at_instance<E, I>(model.bodies.data(), model.nbodies(), model.nq(), model.nv(), setup.dt,
+                                      setup.coef.data(), setup.armature.empty() ? nullptr : setup.armature.data(), q,
+                                      qd, tau, gq, gqd, gtau, w.scratch.data(), InstanceKernels<E, I, S>::fd(setup, w, fext),
+                                      fd_vjp);
   }
 };
 

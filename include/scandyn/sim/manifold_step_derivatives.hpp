@@ -375,5 +375,271 @@ SCANDYN_HD Index step_jacobian_at_instance(const Body<S>* bodies, Index nb, Inde
   }
 }
 
+// ---- directional derivatives of one step (O(nv) each) -----------------------------
+
+// y = M x for a joint's block (nj entries; y may not be x).
+template <class S>
+SCANDYN_HD void joint_block_mul(const JointBlock<S>& M, int nj, const S* x, S* y) {
+  for (int r = 0; r < nj; ++r) {
+    S acc = S(0);
+    for (int c = 0; c < nj; ++c) acc += M.m[r][c] * x[c];
+    y[r] = acc;
+  }
+}
+// y += M^T x for a joint's block (nj entries; y may not be x).
+template <class S>
+SCANDYN_HD void joint_block_mul_transpose_add(const JointBlock<S>& M, int nj, const S* x, S* y) {
+  for (int c = 0; c < nj; ++c) {
+    S acc = S(0);
+    for (int r = 0; r < nj; ++r) acc += M.m[r][c] * x[r];
+    y[c] += acc;
+  }
+}
+
+// Scalars of scratch step_jvp_at_instance and step_vjp_at_instance use for nq
+// positions and nv DoFs.
+inline std::size_t step_directional_at_scratch(Index nq, Index nv) {
+  return 26 * static_cast<std::size_t>(nv) + 5 * static_cast<std::size_t>(nq);
+}
+
+// One step of a model with multi-DoF joints with its tangent: (q, qd) advance as
+// step_instance_at advances them, and (dq, dqd) (nv each, in place; dq in the
+// tangents of the header comment, at q in and at q' out) become the tangent of the new
+// state along (dq, dqd, dtau): the products of step_jacobian_at_instance's Jacobian
+// with the direction, each map's tangent taken in turn (the forward dynamics' by
+// fd_jvp, the joints' maps by their joint_nv blocks), O(nv). fd_jvp(q, qd, tau, dq,
+// dqd, dtau, armature, dqdd, qdd) -> Index writes qdd = FD(q, qd, tau) and its tangent
+// (aba_jvp; q of nq entries, dq a tangent). scratch: step_directional_at_scratch(nq,
+// nv) scalars. Returns -1 or the failed DoF.
+template <unsigned kEffects, Integrator kIntegrator, class S, class FdJvp>
+SCANDYN_HD Index step_jvp_at_instance(const Body<S>* bodies, Index nb, Index nq, Index n, S dt,
+                                      const JointCoefficients<S>* coef, const S* armature, S* q, S* qd, const S* tau,
+                                      S* dq, S* dqd, const S* dtau, S* scratch, FdJvp&& fd_jvp) {
+  const std::size_t m = static_cast<std::size_t>(n);
+  S *tau_s = scratch, *qdd = scratch + m, *dqdd = scratch + 2 * m, *eq = scratch + 3 * m, *eqd = scratch + 4 * m,
+    *dtau_s = scratch + 5 * m, *qds = scratch + 6 * m, *theta = scratch + 7 * m, *aq = scratch + 8 * m,
+    *aqd = scratch + 9 * m, *dth = scratch + 10 * m, *dqds = scratch + 11 * m, *P = scratch + 12 * m,
+    *daq = scratch + 13 * m, *daqd = scratch + 14 * m, *qs = scratch + 15 * m;
+  // the stage's qdd and dqdd at (qa, qda) with the tangent (dqa, dqda)
+  auto stage = [&](const S* qa, const S* qda, const S* dqa, const S* dqda, S h, const S* arm) -> Index {
+    stage_forces_at<kEffects>(bodies, nb, coef, tau, qa, qda, h, tau_s, eq, eqd);
+    for (Index i = 0; i < n; ++i) dtau_s[i] = dtau[i] + eq[i] * dqa[i] + eqd[i] * dqda[i];
+    return fd_jvp(qa, qda, static_cast<const S*>(tau_s), dqa, dqda, static_cast<const S*>(dtau_s), arm, dqdd, qdd);
+  };
+  JointBlock<S> Dq, Dv;
+  S x[kMaxJointDofs], y[kMaxJointDofs];
+  if constexpr (kIntegrator == Integrator::Rk4) {
+    for (Index i = 0; i < nq; ++i) qs[i] = q[i];
+    for (Index i = 0; i < n; ++i) {
+      qds[i] = qd[i], theta[i] = aq[i] = aqd[i] = S(0);
+      dth[i] = daq[i] = daqd[i] = S(0), dqds[i] = dqd[i];
+    }
+    for (int s = 0; s < 4; ++s) {
+      // the stage position q (+) theta_s's tangent: P = Dq(theta_s) dq + Dv(theta_s) dtheta_s
+      for (Index i = 0; i < nb; ++i) {
+        const Index k = bodies[i].idx_v;
+        const int nj = joint_nv(bodies[i].type);
+        joint_integrate_jacobians(bodies[i], theta + k, S(1), Dq, Dv);
+        joint_block_mul(Dq, nj, dq + k, x);
+        joint_block_mul(Dv, nj, dth + k, y);
+        for (int j = 0; j < nj; ++j) P[k + j] = x[j] + y[j];
+      }
+      const Index failed = stage(qs, qds, P, dqds, S(0), static_cast<const S*>(nullptr));
+      if (failed >= 0) return failed;
+      // the slope and its tangent (into P): St dtheta_s + Sv dqd_s
+      for (Index i = 0; i < nb; ++i) {
+        const Index k = bodies[i].idx_v;
+        const int nj = joint_nv(bodies[i].type);
+        joint_tangent_slope_jacobians(bodies[i], theta + k, qds + k, Dq, Dv);
+        joint_block_mul(Dq, nj, dth + k, x);
+        joint_block_mul(Dv, nj, dqds + k, y);
+        S slope[kMaxJointDofs];
+        joint_tangent_slope(bodies[i], theta + k, qds + k, slope);
+        for (int j = 0; j < nj; ++j) P[k + j] = x[j] + y[j], theta[k + j] = slope[j];
+      }
+      const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+      const S c = s < 2 ? S(0.5) * dt : dt;  // the next stage's offset
+      for (Index i = 0; i < n; ++i) {
+        aq[i] += weight * theta[i];
+        aqd[i] += weight * qdd[i];
+        theta[i] *= c;
+        qds[i] = qd[i] + c * qdd[i];
+        daq[i] += weight * P[i];
+        daqd[i] += weight * dqdd[i];
+        dth[i] = c * P[i];
+        dqds[i] = dqd[i] + c * dqdd[i];
+      }
+      for (Index i = 0; i < nq; ++i) qs[i] = q[i];
+      integrate_bodies(bodies, nb, qs, theta, S(1));
+    }
+    // q' = q (+) dt/6 aq, qd' = qd + dt/6 aqd
+    const S sixth = dt / S(6);
+    for (Index i = 0; i < nb; ++i) {
+      const Index k = bodies[i].idx_v;
+      const int nj = joint_nv(bodies[i].type);
+      joint_integrate_jacobians(bodies[i], aq + k, sixth, Dq, Dv);
+      joint_block_mul(Dq, nj, dq + k, x);
+      joint_block_mul(Dv, nj, daq + k, y);
+      for (int j = 0; j < nj; ++j) dq[k + j] = x[j] + y[j];
+    }
+    for (Index i = 0; i < n; ++i) dqd[i] += sixth * daqd[i];
+    integrate_bodies(bodies, nb, q, aq, sixth);
+    for (Index i = 0; i < n; ++i) qd[i] += sixth * aqd[i];
+  } else {
+    constexpr bool kImplicit = kIntegrator == Integrator::Implicit && (kEffects & kImplicitEffects) != 0;
+    const Index failed = stage(q, qd, dq, dqd, kImplicit ? dt : S(0), kImplicit ? armature : static_cast<const S*>(nullptr));
+    if (failed >= 0) return failed;
+    // qd' = qd + dt qdd, q' = q (+) dt qd'
+    for (Index i = 0; i < n; ++i) qd[i] += dt * qdd[i], dqd[i] += dt * dqdd[i];
+    for (Index i = 0; i < nb; ++i) {
+      const Index k = bodies[i].idx_v;
+      const int nj = joint_nv(bodies[i].type);
+      joint_integrate_jacobians(bodies[i], qd + k, dt, Dq, Dv);
+      joint_block_mul(Dq, nj, dq + k, x);
+      joint_block_mul(Dv, nj, dqd + k, y);
+      for (int j = 0; j < nj; ++j) dq[k + j] = x[j] + y[j];
+    }
+    integrate_bodies(bodies, nb, q, qd, dt);
+  }
+  return -1;
+}
+
+// The adjoint of one step of a model with multi-DoF joints at (q, qd, tau): gq, gqd
+// (nv each, in place; gq in the tangent at q' in, at q out) hold the adjoints of the
+// new state and become those of (q, qd); gtau (nv) gets the torques' (written). q and
+// qd are not changed. The maps of step_jvp_at_instance transposed, in reverse order
+// (rk4: its four stages run forward first, their states kept); fd as
+// step_instance_at's; fd_vjp(q, qd, tau, armature, w, gq, gqd, gtau) -> Index the
+// adjoint of qdd = FD(q, qd, tau) for the weight w on qdd (aba_vjp). scratch:
+// step_directional_at_scratch(nq, nv) scalars. Returns -1 or the failed DoF.
+template <unsigned kEffects, Integrator kIntegrator, class S, class Fd, class FdVjp>
+SCANDYN_HD Index step_vjp_at_instance(const Body<S>* bodies, Index nb, Index nq, Index n, S dt,
+                                      const JointCoefficients<S>* coef, const S* armature, const S* q, const S* qd,
+                                      const S* tau, S* gq, S* gqd, S* gtau, S* scratch, Fd&& fd, FdVjp&& fd_vjp) {
+  const std::size_t m = static_cast<std::size_t>(n), mq = static_cast<std::size_t>(nq);
+  S *tau_s = scratch, *qdd = scratch + m, *eq = scratch + 2 * m, *eqd = scratch + 3 * m, *w = scratch + 4 * m,
+    *a = scratch + 5 * m, *b = scratch + 6 * m, *gt = scratch + 7 * m, *v = scratch + 8 * m, *gaq = scratch + 9 * m,
+    *gaqd = scratch + 10 * m, *gth = scratch + 11 * m, *gqds = scratch + 12 * m, *gsig = scratch + 13 * m,
+    *aq = scratch + 14 * m, *aqd = scratch + 15 * m, *stth = scratch + 16 * m, *stqd = scratch + 20 * m,
+    *stq = scratch + 24 * m, *theta = scratch + 24 * m + 4 * mq, *qds = scratch + 25 * m + 4 * mq;
+  JointBlock<S> Dq, Dv;
+  S x[kMaxJointDofs];
+  for (Index i = 0; i < n; ++i) gtau[i] = S(0);
+  // the adjoint of one stage's qdd = FD(qa, qda, tau + e(qa, qda)) for the weight w:
+  // a (the stage position's tangent), b (the stage velocity's), gtau
+  auto stage_adjoint = [&](const S* qa, const S* qda, S h, const S* arm) -> Index {
+    stage_forces_at<kEffects>(bodies, nb, coef, tau, qa, qda, h, tau_s, eq, eqd);
+    const Index failed = fd_vjp(qa, qda, static_cast<const S*>(tau_s), arm, static_cast<const S*>(w), a, b, gt);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < n; ++i) {
+      a[i] += eq[i] * gt[i];
+      b[i] += eqd[i] * gt[i];
+      gtau[i] += gt[i];
+    }
+    return -1;
+  };
+  if constexpr (kIntegrator == Integrator::Rk4) {
+    // forward: the four stages' theta_s, qd_s and positions q (+) theta_s, as step_instance_at
+    for (Index i = 0; i < nq; ++i) stq[i] = q[i];
+    for (Index i = 0; i < n; ++i) qds[i] = qd[i], theta[i] = aq[i] = aqd[i] = S(0);
+    for (int s = 0; s < 4; ++s) {
+      S* const q_s = stq + s * mq;
+      for (Index i = 0; i < n; ++i) stth[s * m + i] = theta[i], stqd[s * m + i] = qds[i];
+      stage_forces_at<kEffects>(bodies, nb, coef, tau, q_s, qds, S(0), tau_s, static_cast<S*>(nullptr),
+                                static_cast<S*>(nullptr));
+      const Index failed = fd(static_cast<const S*>(q_s), static_cast<const S*>(qds), static_cast<const S*>(tau_s),
+                              static_cast<const S*>(nullptr), qdd);
+      if (failed >= 0) return failed;
+      for (Index i = 0; i < nb; ++i) {
+        const Index k = bodies[i].idx_v;
+        S slope[kMaxJointDofs];
+        joint_tangent_slope(bodies[i], theta + k, qds + k, slope);
+        for (int j = 0; j < joint_nv(bodies[i].type); ++j) theta[k + j] = slope[j];
+      }
+      const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+      const S c = s < 2 ? S(0.5) * dt : dt;
+      for (Index i = 0; i < n; ++i) {
+        aq[i] += weight * theta[i];
+        aqd[i] += weight * qdd[i];
+        theta[i] *= c;
+        qds[i] = qd[i] + c * qdd[i];
+      }
+      if (s == 3) break;
+      S* const q_next = stq + (s + 1) * mq;
+      for (Index i = 0; i < nq; ++i) q_next[i] = q[i];
+      integrate_bodies(bodies, nb, q_next, theta, S(1));
+    }
+    // reverse: q' = q (+) dt/6 aq, qd' = qd + dt/6 aqd
+    const S sixth = dt / S(6);
+    for (Index i = 0; i < nb; ++i) {
+      const Index k = bodies[i].idx_v;
+      const int nj = joint_nv(bodies[i].type);
+      joint_integrate_jacobians(bodies[i], aq + k, sixth, Dq, Dv);
+      for (int j = 0; j < nj; ++j) x[j] = gq[k + j], gq[k + j] = gaq[k + j] = S(0);
+      joint_block_mul_transpose_add(Dq, nj, x, gq + k);
+      joint_block_mul_transpose_add(Dv, nj, x, gaq + k);
+    }
+    for (Index i = 0; i < n; ++i) gaqd[i] = sixth * gqd[i], gth[i] = gqds[i] = S(0);
+    // the stages 3..0 (gth, gqds: the adjoints of the next stage's dtheta and dqd_s)
+    for (int s = 3; s >= 0; --s) {
+      const S weight = (s == 0 || s == 3) ? S(1) : S(2);
+      const S c = s < 2 ? S(0.5) * dt : dt;
+      for (Index i = 0; i < n; ++i) {
+        gsig[i] = weight * gaq[i] + c * gth[i];  // the slope's tangent
+        w[i] = weight * gaqd[i] + c * gqds[i];   // the stage's dqdd
+        gqd[i] += gqds[i];
+      }
+      const S* const th_s = stth + s * m;
+      const S* const qd_s = stqd + s * m;
+      // the slope St dtheta_s + Sv dqd_s: gth = St^T gsig, gqds = Sv^T gsig
+      for (Index i = 0; i < nb; ++i) {
+        const Index k = bodies[i].idx_v;
+        const int nj = joint_nv(bodies[i].type);
+        joint_tangent_slope_jacobians(bodies[i], th_s + k, qd_s + k, Dq, Dv);
+        for (int j = 0; j < nj; ++j) gth[k + j] = gqds[k + j] = S(0);
+        joint_block_mul_transpose_add(Dq, nj, gsig + k, gth + k);
+        joint_block_mul_transpose_add(Dv, nj, gsig + k, gqds + k);
+      }
+      const Index failed = stage_adjoint(stq + s * mq, qd_s, S(0), static_cast<const S*>(nullptr));
+      if (failed >= 0) return failed;
+      for (Index i = 0; i < n; ++i) gqds[i] += b[i];
+      // the stage position's tangent Dq(theta_s) dq + Dv(theta_s) dtheta_s
+      for (Index i = 0; i < nb; ++i) {
+        const Index k = bodies[i].idx_v;
+        const int nj = joint_nv(bodies[i].type);
+        joint_integrate_jacobians(bodies[i], th_s + k, S(1), Dq, Dv);
+        joint_block_mul_transpose_add(Dq, nj, a + k, gq + k);
+        joint_block_mul_transpose_add(Dv, nj, a + k, gth + k);
+      }
+    }
+    for (Index i = 0; i < n; ++i) gqd[i] += gqds[i];  // qd_0 = qd
+  } else {
+    constexpr bool kImplicit = kIntegrator == Integrator::Implicit && (kEffects & kImplicitEffects) != 0;
+    const S h = kImplicit ? dt : S(0);
+    const S* const arm = kImplicit ? armature : static_cast<const S*>(nullptr);
+    // forward: qd' = qd + dt qdd (into v)
+    stage_forces_at<kEffects>(bodies, nb, coef, tau, q, qd, h, tau_s, static_cast<S*>(nullptr),
+                              static_cast<S*>(nullptr));
+    Index failed = fd(q, qd, static_cast<const S*>(tau_s), arm, qdd);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < n; ++i) v[i] = qd[i] + dt * qdd[i];
+    // reverse: q' = q (+) dt qd': gq = Dq^T gq', gqd' += Dv^T gq'
+    for (Index i = 0; i < nb; ++i) {
+      const Index k = bodies[i].idx_v;
+      const int nj = joint_nv(bodies[i].type);
+      joint_integrate_jacobians(bodies[i], v + k, dt, Dq, Dv);
+      for (int j = 0; j < nj; ++j) x[j] = gq[k + j], gq[k + j] = S(0);
+      joint_block_mul_transpose_add(Dq, nj, x, gq + k);
+      joint_block_mul_transpose_add(Dv, nj, x, gqd + k);
+    }
+    // qd' = qd + dt qdd
+    for (Index i = 0; i < n; ++i) w[i] = dt * gqd[i];
+    failed = stage_adjoint(q, qd, h, arm);
+    if (failed >= 0) return failed;
+    for (Index i = 0; i < n; ++i) gq[i] += a[i], gqd[i] += b[i];
+  }
+  return -1;
+}
+
 }  // namespace sim
 }  // namespace scandyn
