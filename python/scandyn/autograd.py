@@ -191,12 +191,15 @@ class FdDirectional(ForwardDynamics):
     - ``vjp(q, qd, tau, w) -> (qdd, gq, gqd, gtau)``, gq = (dqdd/dq)^T w, gqd =
       (dqdd/dqd)^T w, gtau = M^-1 w.
 
-    Every array (B, nv) (B <= max_batch instances) or (nv,) for one state, results the
-    same shape, of the inputs' kind (NumPy, or CPU torch tensors), in the engine's dtype.
-    Host arrays only, on every backend: 'serial', 'openmp' ('auto'), or 'cuda' (one
-    device; the engine copies the host arrays to its device and back). CUDA arrays raise
-    DeviceError. Models of 1-DoF joints. ``method``: 'parallel' (the chunked scans, for
-    unbranched chains from a fixed base; the only one on cuda), 'aba' (aba_jvp / aba_vjp
+    Every array (B, nv) (B <= max_batch instances) or (nv,) for one state, q (B, nq),
+    results the same shape, of the inputs' kind (NumPy, or CPU torch tensors), in the
+    engine's dtype. Host arrays only, on every backend: 'serial', 'openmp' ('auto'), or
+    'cuda' (one device; the engine copies the host arrays to its device and back). CUDA
+    arrays raise DeviceError. Models with a floating base or spherical joints (nq > nv)
+    on serial and openmp by 'aba': dq and gq are tangents (nv) of local increments q (+)
+    d = q exp(d) per joint, as fd_derivatives' q columns; cuda and 'parallel' refuse
+    them (BackendError). ``method``: 'parallel' (the chunked scans, for unbranched chains
+    of 1-DoF joints from a fixed base; the only one on cuda), 'aba' (aba_jvp / aba_vjp
     per instance, threads over instances; serial and openmp), 'auto' (parallel for such
     chains of 4096 links or more on the host, always on cuda; else aba); ``strategy``
     says which ran ('parallel' or 'aba_jvp'). An instance whose articulated pivot is not
@@ -295,8 +298,9 @@ def fd_derivatives(model, q, qd, tau, backend="auto", stream=None, check=None):
 
 def fd_jvp(model, q, qd, tau, dq, dqd, dtau, backend="auto", method="auto"):
     """(qdd, dqdd) of qdd = FD(q, qd, tau): dqdd = dqdd/dq dq + dqdd/dqd dqd + M^-1 dtau,
-    O(nv) per instance (no nv x nv matrix). Every array (B, nv) or (nv,), results the
-    same shape; host arrays (NumPy, CPU torch) only, float32 or float64 (q's dtype).
+    O(nv) per instance (no nv x nv matrix). Every array (B, nv) or (nv,) (q: (B, nq) or
+    (nq,); dq a tangent with multi-DoF joints, FdDirectional), results (B, nv) or (nv,);
+    host arrays (NumPy, CPU torch) only, float32 or float64 (q's dtype).
     ``backend``, ``method``: as FdDirectional (whose engine is cached per model).
     ForwardDynamicsError for an instance whose pivot fails."""
     engine, a = _directional(model, [("q", q), ("qd", qd), ("tau", tau), ("dq", dq), ("dqd", dqd), ("dtau", dtau)],

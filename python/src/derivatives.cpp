@@ -155,14 +155,14 @@ CallStatus fd_derivatives_compute(PyFdDerivatives& e, const InArray& q, const In
 // Host arrays only, on every backend (the cuda engine stages host views through its own
 // device buffers; on device memory the library's ChainFdPlan::launch_jvp / launch_vjp
 // are the way, not bound here). `x`: the directions (dq, dqd, dtau) or the weight w;
-// `y`: qdd and the outputs (dqdd, or gq, gqd, gtau); (B, nv) or (nv,) each.
+// `y`: qdd and the outputs (dqdd, or gq, gqd, gtau); (B, nv) or (nv,) each (q: (B, nq)).
 template <class S, class Call>
 CallStatus fd_directional_call(PyFdDirectional& e, const InArray& q, const InArray& qd, const InArray& tau,
                                std::initializer_list<std::pair<const InArray*, const char*>> x,
                                std::initializer_list<std::pair<const OutArray*, const char*>> y, Call&& call) {
   const Index nv = e.nv();
   Lead lead;
-  const FdBatchIn<S> in = fd_inputs<S>(nv, q, qd, tau, lead);
+  const FdBatchIn<S> in = fd_inputs<S>(e.nq(), nv, q, qd, tau, lead);  // q: nq wide (quaternions)
   std::vector<BatchView<const S>> xv;
   std::vector<BatchView<S>> yv;
   for (const auto& [a, name] : x) xv.push_back(view_of<const S>(*a, nv, name, lead, false));
