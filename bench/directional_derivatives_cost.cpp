@@ -22,6 +22,13 @@
 // microseconds per call. Columns as chain's, and qdd_diff: the largest |qdd| difference
 // between the JVP's and VJP's forward dynamics and launch()'s (a sanity check: the
 // same passes, 0 unless the directional plan's chunks differ).
+//
+// directional_derivatives_cost floating [min_seconds]: models with multi-DoF joints
+// (floating hyq and atlas, ballrope:20 and ballrope:200 on a floating base): aba_jvp /
+// aba_vjp (the general path, O(nv)) next to one serial ABA and the dense derivatives
+// (aba_derivatives: the three nv x nv blocks), one instance, double, serial, random
+// states (unit quaternions). Columns: model, nv, aba_us, aba_jvp_us, aba_vjp_us,
+// dfd_us, jvp_over_aba, vjp_over_aba, dfd_over_vjp.
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -32,6 +39,8 @@
 
 #include "plain_bench_util.hpp"
 #include "scandyn/algorithm/chain_directional.hpp"
+#include "scandyn/algorithm/configuration.hpp"
+#include "scandyn/algorithm/derivatives.hpp"
 #include "scandyn/algorithm/directional_derivatives.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
@@ -163,9 +172,60 @@ void cuda_rows(const char* spec, double min_time) {
 }
 #endif
 
+void floating_rows(double min_time) {
+  std::printf("model,nv,aba_us,aba_jvp_us,aba_vjp_us,dfd_us,jvp_over_aba,vjp_over_aba,dfd_over_vjp\n");
+  BuildOptions bo;
+  bo.floating_base = true;
+  bo.require_physical_inertia = false;  // atlas.urdf (tests/test_util.hpp, load_robot)
+  const std::string dir = SCANDYN_DEFAULT_MODELS_DIR;
+  for (const std::string& spec : {dir + "/hyq.urdf", dir + "/atlas.urdf", std::string("ballrope:20"),
+                                 std::string("ballrope:200")}) {
+    const Model model = load_model(spec, bo);
+    const Index n = model.nv();
+    std::mt19937_64 rng(2);
+    std::uniform_real_distribution<double> u(-1, 1);
+    std::vector<double> q(model.nq()), qd(n), tau(n), dq(n), dqd(n), dtau(n), qdd(n), out(n), g1(n), g2(n), g3(n);
+    neutral_bodies(model.bodies.data(), model.nbodies(), q.data());
+    std::vector<double> d(n);
+    for (Index i = 0; i < n; ++i) d[i] = u(rng), qd[i] = u(rng), tau[i] = u(rng), dq[i] = u(rng), dqd[i] = u(rng), dtau[i] = u(rng);
+    integrate_bodies(model.bodies.data(), model.nbodies(), q.data(), d.data(), 1.0);  // a random configuration
+    DataTpl<double> data(model, false);
+    AbaJvpData<double> jd(model);
+    DerivativeDataTpl<double> dd(model);
+    std::vector<double> A(n * n), B(n * n), C(n * n);
+    const double aba_s = bench::best_seconds_per_call(min_time, [&] {
+      aba(model, data, q.data(), qd.data(), tau.data(), qdd.data());
+      return std::size_t(1);
+    });
+    const double jvp_s = bench::best_seconds_per_call(min_time, [&] {
+      aba_jvp(model, jd, q.data(), qd.data(), tau.data(), kNoWrenches, dq.data(), dqd.data(), dtau.data(), out.data(),
+              qdd.data());
+      return std::size_t(1);
+    });
+    const double vjp_s = bench::best_seconds_per_call(min_time, [&] {
+      aba_vjp(model, jd, q.data(), qd.data(), tau.data(), kNoWrenches, dtau.data(), g1.data(), g2.data(), g3.data(),
+              qdd.data());
+      return std::size_t(1);
+    });
+    const double dfd_s = bench::best_seconds_per_call(min_time, [&] {
+      aba_derivatives(model, dd, q.data(), qd.data(), tau.data(), kNoWrenches, qdd.data(), {A.data(), n, 1},
+                      {B.data(), n, 1}, {C.data(), n, 1});
+      return std::size_t(1);
+    });
+    const std::string name = spec.find('/') == std::string::npos ? spec : spec.substr(spec.rfind('/') + 1);
+    std::printf("%s,%d,%.2f,%.2f,%.2f,%.2f,%.2f,%.2f,%.2f\n", name.c_str(), int(n), aba_s * 1e6, jvp_s * 1e6,
+                vjp_s * 1e6, dfd_s * 1e6, jvp_s / aba_s, vjp_s / aba_s, dfd_s / vjp_s);
+    std::fflush(stdout);
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (argc > 1 && std::strcmp(argv[1], "floating") == 0) {
+    floating_rows(argc > 2 ? std::atof(argv[2]) : 0.3);
+    return 0;
+  }
   if (argc > 1 && (std::strcmp(argv[1], "chain") == 0 || std::strcmp(argv[1], "cuda") == 0)) {
     const bool on_cuda = std::strcmp(argv[1], "cuda") == 0;
     const double min_time = argc > 2 ? std::atof(argv[2]) : 0.3;
