@@ -5,41 +5,45 @@
 //
 // forward_dynamics: M qdd + h = tau + J^T lambda, J qdd + gamma = 0 through the Schur
 // complement A = J M^-1 J^T:  A lambda = b,  b = -gamma - J qdd0,  qdd0 = M^-1 (tau - h),
-// qdd = qdd0 + M^-1 J^T lambda. A is applied matrix-free by the O(n) tree passes of
-// scandyn/algorithm/loop_iterative.hpp (J^T lambda as point forces on the links, M^-1
-// by the articulated-body passes at zero velocity without gravity, J x from the
-// links' accelerations) and solved by preconditioned conjugate gradients, warm-started
-// from this solver's previous lambda (the previous stage or step of the instances the
-// solver serves). A is symmetric positive semi-definite: redundant rows (a planar loop
-// closed by a 3D point, a cloth's dependent rows) leave it singular, and CG on the
-// consistent system converges in its range (qdd is unique; lambda is a solution, not
-// necessarily the minimum-norm one: J^T lambda is unique).
+// qdd = qdd0 + x,  x = M^-1 J^T lambda. A is applied matrix-free by the O(n) tree passes
+// of scandyn/algorithm/loop_iterative.hpp (J^T lambda as point forces on the links, M^-1
+// by the articulated-body passes at zero velocity without gravity, J x from the links'
+// accelerations), and solved by conjugate gradients on the normal equations in M's
+// metric, weighted by the block-Jacobi weights W (CGLS: min ||J x - b||_W over x =
+// M^-1 J^T lambda; one application of A per iteration), warm-started from this solver's
+// previous lambda (the previous stage or step of the instances the solver serves). A is
+// symmetric positive semi-definite: redundant rows (a planar loop closed by a 3D point,
+// a cloth's dependent rows) leave it singular, and rounding puts part of b outside its
+// range, where CG on A diverges; CGLS's residual decreases monotonically, x is tracked
+// directly (qdd is unique; lambda is a solution, not necessarily the minimum-norm one:
+// J^T lambda is unique).
 //
 // Converged: ||J qdd + gamma||_2 <= tolerance (||gamma||_2 + ||J qdd0||_2) + 1e-12 L_J ||qdd0||_2,
 // L_J = sqrt of the largest diagonal entry of J J^T at q = 0 (a length; the second term
 // keeps the target above rounding, and above the part of b that a state's loop
 // violation at rounding level puts outside J's range, where gamma and J qdd0 cancel:
-// ropes that move alike), checked on the true residual. Not
-// converged within max_iterations, or a non-finite value: LoopError naming the
-// iterations and the residual (the simulator's step then fails for that instance:
-// Failure::LoopNotClosed), never a silent wrong answer.
+// ropes that move alike), checked on the true residual; or, b partly outside the
+// range, the normal residual at rounding level and the true residual the recurrence's.
+// Not converged within max_iterations, or a non-finite value: LoopSolveNotConverged
+// naming the iterations and the residual (the simulator's step then fails for that
+// instance: Failure::LoopNotClosed), never a silent wrong answer.
 //
 // project: project_onto_loops (scandyn/algorithm/loop_projection.hpp) with each step
 // x = J^T (J J^T + mu D)^-1 r (D: the block-Jacobi blocks of J J^T, the Levenberg-Marquardt
-// weights; mu = 0: the minimum-norm J^+ r) by conjugate gradients on the normal
-// equations (J^T W J + mu I) x = J^T W r, W = D^+ (CGLS, preconditioned by the same
-// blocks, over the "unit tree": massless links, a unit joint-space inertia per joint:
-// J p and J^T W q by O(n) passes), from 0, until ||J^T W (r - J x) - mu x||_2 <=
-// tolerance ||J^T W r||_2 + 1e-14 max(||q||_2, ||qd||_2) (the second term: rounding).
-// CGLS rather than CG on J J^T: r is in J's range only up to rounding (after a velocity
-// projection, J qd's remainder is what no change of qd can remove), and CG on a
-// singular inconsistent system diverges; CGLS converges to the least-squares solution.
-// A position step that does not converge is judged by the Levenberg-Marquardt
-// acceptance test; the velocity projection's solve must converge (else LoopError).
+// weights; mu = 0: the minimum-norm J^+ r) by CGLS on (J^T W J + mu I) x = J^T W r,
+// W = D^-1, over the "unit tree" (massless links, a unit joint-space inertia per joint:
+// J p and J^T W q by O(n) passes), from 0. mu is at least kLoopRankTolerance (the dense
+// solve's rank threshold's role: a right-hand side at rounding level is not "solved"
+// along J's near-null directions). Converged: ||r - J x||_2 <= tolerance ||r||_2 +
+// 1e-12 L_J max(||q||_2, ||qd||_2), or the damped normal residual at tolerance of its
+// first value (then restarted from the true residual while that halves, at most 4
+// rounds). A position step that does not converge is judged by the Levenberg-Marquardt
+// acceptance test; the velocity projection's solve must converge (else
+// LoopSolveNotConverged).
 //
-// Preconditioner: block Jacobi, loop k's diagonal block of A (of J J^T + mu I) from the
-// links' apparent inverse inertias (loop_response_blocks, an O(n) recursion), inverted
-// by its pseudo-inverse; or none.
+// Preconditioner: block Jacobi, loop k's diagonal block of A (of J J^T) from the links'
+// apparent inverse inertias (loop_response_blocks, an O(n) recursion), inverted with its
+// eigenvalues floored at kLoopBlockFloor of its largest; or none (W = 1).
 #pragma once
 
 #include <memory>
