@@ -34,14 +34,13 @@
 //                            fourbar and cloth:K:N), else the cross term through the
 //                            common ancestors is left out (the block stays symmetric
 //                            positive semi-definite: a preconditioner, not A);
-//   symmetric_pseudo_inverse the inverse of such a block (Jacobi eigenvalue iteration):
-//                            the forward dynamics' preconditioner takes the
-//                            pseudo-inverse (a loop whose rows are partly zero, e.g.
-//                            at the first link of two ropes, has a singular block:
-//                            those rows are A's null space, where CG must not be
-//                            pushed), the projection's least-squares weights the
+//   symmetric_pseudo_inverse the inverse of such a block (Jacobi eigenvalue iteration),
+//                            as the solver's least-squares weights W with the
 //                            eigenvalues raised to kLoopBlockFloor of the block's
-//                            largest (bounded, positive definite weights).
+//                            largest (bounded, positive definite weights; a zero row
+//                            of J, e.g. of a loop at the first links of two ropes,
+//                            is an eigenvector of its block, and J^T W leaves it out);
+//                            without a floor, the pseudo-inverse.
 //
 // The conjugate gradients over these passes are host code (src/sim/iterative_loops.cpp).
 #pragma once
@@ -53,7 +52,7 @@
 
 namespace scandyn {
 
-// The projection's block weights' eigenvalue floor, relative to each block's largest
+// The block weights' eigenvalue floor, relative to each block's largest
 // (a nearly singular block, e.g. a loop point moved by two nearly parallel joint axes,
 // is inverted as if its weak eigenvalues were this large: a pseudo-inverse would weigh
 // those rows by up to 1e10, and the least squares would follow their rounding).
