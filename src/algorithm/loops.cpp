@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "scandyn/algorithm/loop_iterative.hpp"
 #include "scandyn/algorithm/loop_projection.hpp"
 #include "scandyn/algorithm/loop_solver.hpp"
 #include "scandyn/algorithm/reference.hpp"
@@ -36,35 +37,27 @@ void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, 
 }
 
 double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd, Index* loop) {
-  // phi from the loops' rows; J qd as the points' relative velocity (and a weld's
-  // relative angular velocity), without forming J: O(nv + m), as large grids need
+  // phi from the loops' rows; J qd as the points' relative velocities (and a weld's
+  // relative angular velocity) by loop_rows_apply over the bodies' velocities, without
+  // forming J: O(nv + m), as large grids need
   const Index n = model.nv(), m = loops.rows();
   std::vector<Transform<double>> X0(n);
   std::vector<Motion<double>> v(n), a(n);
   loop_body_motion(model.bodies.data(), n, q, qd, X0.data(), v.data(), a.data());
   const std::vector<LoopRow<double>> rows = loop_rows_of<double>(loops);
-  std::vector<double> phi(m);
-  loop_rows(model.bodies.data(), n, rows.data(), static_cast<Index>(rows.size()), X0.data(), v.data(), a.data(),
-            phi.data(), static_cast<double*>(nullptr), static_cast<double*>(nullptr));
+  const Index nl = static_cast<Index>(rows.size());
+  std::vector<double> phi(m), jqd(m);
+  loop_rows(model.bodies.data(), n, rows.data(), nl, X0.data(), v.data(), a.data(), phi.data(),
+            static_cast<double*>(nullptr), static_cast<double*>(nullptr));
+  loop_rows_apply(rows.data(), nl, X0.data(), v.data(), jqd.data());
   double worst = 0;
   Index row = 0, where = -1;
-  for (Index k = 0; k < static_cast<Index>(rows.size()); ++k) {
-    const LoopRow<double>& l = rows[k];
-    auto velocity = [&](Index body, const Vec3<double>& p, bool angular) {
-      if (body < 0) return Vec3<double>::zero();
-      return angular ? to_world(X0[body], v[body].w) : point_velocity(X0[body], v[body], p);
-    };
-    for (int part = l.weld ? 0 : 1; part < 2; ++part) {  // a weld's angular rows first, then the linear ones
-      const bool angular = part == 0;
-      const Vec3<double> jqd = velocity(l.body_a, l.point_a, angular) - velocity(l.body_b, l.point_b, angular);
-      const double jv[3] = {jqd.x, jqd.y, jqd.z};
-      const Index first = row + (l.weld && !angular ? 3 : 0);
-      for (int r = 0; r < 3; ++r) {
-        const double e = std::max(std::fabs(phi[first + r]), std::fabs(jv[r]));
-        if (where < 0 || e > worst || std::isnan(e)) worst = e, where = k;
-      }
+  for (Index k = 0; k < nl; ++k) {
+    for (Index r = row; r < row + rows[k].rows(); ++r) {
+      const double e = std::max(std::fabs(phi[r]), std::fabs(jqd[r]));
+      if (where < 0 || e > worst || std::isnan(e)) worst = e, where = k;
     }
-    row += l.rows();
+    row += rows[k].rows();
   }
   if (loop) *loop = where;
   return worst;
