@@ -251,12 +251,7 @@ SCANDYN_HD Index step_jacobian_at_instance(const Body<S>* bodies, Index nb, Inde
     if (failed >= 0) return failed;
     failed = dfd(qa, qda, static_cast<const S*>(qdd), arm, A[0], A[1], A[2]);
     if (failed >= 0) return failed;
-    if constexpr ((kEffects & kJointEffects) != 0)
-      for (Index i = 0; i < n; ++i)
-        for (Index j = 0; j < n; ++j) {
-          A[0](i, j) += A[2](i, j) * eq[j];
-          A[1](i, j) += A[2](i, j) * eqd[j];
-        }
+    add_effect_partials<kEffects>(n, A, eq, eqd);
     return -1;
   };
   const MatrixRef<S> Jq[3] = {J.q_q, J.q_qd, J.q_tau}, Jqd[3] = {J.qd_q, J.qd_qd, J.qd_tau};

@@ -107,6 +107,21 @@ struct StepJacobian {
   MatrixRef<S> qd_q, qd_qd, qd_tau;  // d qd' / d q, ...
 };
 
+// A stage's forward-dynamics derivatives through the joint effects' forces: the stage's
+// forward dynamics reads tau + e(q, qd), so A_q += A_tau diag(eq) and A_qd += A_tau
+// diag(eqd) (eq, eqd: e's diagonal partials, stage_forces / stage_forces_at). A: A_q,
+// A_qd, A_tau (n x n each).
+template <unsigned kEffects, class S>
+SCANDYN_HD void add_effect_partials(Index n, const MatrixRef<S>* A, const S* eq, const S* eqd) {
+  if constexpr ((kEffects & kJointEffects) != 0)
+    for (Index i = 0; i < n; ++i)
+      for (Index j = 0; j < n; ++j) {
+        A[0](i, j) += A[2](i, j) * eq[j];
+        A[1](i, j) += A[2](i, j) * eqd[j];
+      }
+  (void)n, (void)A, (void)eq, (void)eqd;
+}
+
 // Scalars of scratch step_jacobian_instance needs for n DoF.
 inline std::size_t step_jacobian_scratch(Index n, Integrator integrator) {
   const std::size_t m = static_cast<std::size_t>(n);
@@ -144,12 +159,7 @@ SCANDYN_HD Index step_jacobian_instance(Index n, S dt, const JointCoefficients<S
     if (failed >= 0) return failed;
     failed = dfd(qa, qda, static_cast<const S*>(qdd), arm, A[0], A[1], A[2]);
     if (failed >= 0) return failed;
-    if constexpr ((kEffects & kJointEffects) != 0)
-      for (Index i = 0; i < n; ++i)
-        for (Index j = 0; j < n; ++j) {
-          A[0](i, j) += A[2](i, j) * eq[j];
-          A[1](i, j) += A[2](i, j) * eqd[j];
-        }
+    add_effect_partials<kEffects>(n, A, eq, eqd);
     return -1;
   };
   const MatrixRef<S> Jq[3] = {J.q_q, J.q_qd, J.q_tau}, Jqd[3] = {J.qd_q, J.qd_qd, J.qd_tau};
