@@ -32,8 +32,8 @@
 // serial and openmp: the step on the configuration manifold (step_instance_at) and
 // its Jacobian in the tangent of local increments, q ⊕ d = q exp(d)
 // (step_jacobian_at_instance, scandyn/sim/manifold_step_derivatives.hpp); their
-// rollouts' JVP and VJP run that dense Jacobian per step (O(nv^2 depth), rk4 O(nv^3)),
-// not the O(nv) directional recursions, which take 1-DoF joints. Refused by name
+// rollouts' JVP and VJP in O(nv) per step (step_jvp_at_instance / step_vjp_at_instance,
+// the same header, over aba_jvp / aba_vjp's general path). Refused by name
 // (BackendError from the factories and constructors): contacts, prescribed joint
 // motion, closed loops, and multi-DoF joints on cuda.
 #pragma once
