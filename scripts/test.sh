@@ -105,6 +105,7 @@ test_stage() {
   shift 2
   stamp "$name: test"
   local rc=0
+  rm -f "$dir/Testing/Temporary/LastTestsFailed.log"  # (a failing run writes it afresh)
   ctest --test-dir "$dir" --output-on-failure --parallel "$jobs" "$@" || rc=1
   show_skips "$dir"
   if ((rc)); then
