@@ -43,6 +43,11 @@
 // torques tau_i = A sin(1 + i) (N m) at every step and in the cold solve (else 0): with
 // --start x the cloth then deforms (with tau = 0 its ropes swing alike, where the
 // constraint forces vanish and a warm-started solve needs no iteration).
+// --preconditioner P[,P...] (iterative): the preconditioners to run (each grid's rows in
+// the order given, one row each, interleaved grid by grid; default block-jacobi; the
+// names of sim::loop_preconditioner_name), the steps through the scene's
+// "loop_preconditioner"; the cold solves' and velocity projection's "none" columns are
+// computed once per grid and repeated in its rows.
 // --gpu: the sparse path's factorisations and solves by cuSOLVER on the GPU
 // (GpuSparseCholesky under CHOLMOD's order; the serial simulator backend steps, the
 // CUDA one refuses loops); its analysis column includes cuSOLVER's.
@@ -100,112 +105,131 @@ void closed_start_state(const std::string& spec, std::vector<double>& q, std::ve
 }
 
 int iterative_main(const std::vector<std::string>& grids, int steps, double dt, bool closed_start, double max_seconds,
-                   double torque, bool quick, int max_iterations) {
+                   double torque, bool quick, int max_iterations, const std::vector<std::string>& pres) {
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,fd_iterations_per_solve,"
               "proj_iterations_per_solve,apply_s,fd_s_per_solve,proj_s_per_solve,reset_s,reset_linearisations,reset_max_phi,"
               "cold_fd_iterations,cold_fd_s,cold_fd_iterations_none,cold_fd_s_none,vel_proj_iterations,vel_proj_s,"
               "vel_proj_iterations_none,vel_proj_s_none,failed_steps\n");
   std::fflush(stdout);
   for (const std::string& g : grids) {
-    const std::string spec = "cloth:" + g;
-    const std::string head = R"({"model": ")" + spec + R"(", "effects": {"gravity": true}, "integrator": "rk4", "dt": )" +
-                             std::to_string(dt) + R"(, "loop_solver": "iterative", "initial": )";
-    const sim::Scene raw = sim::parse_scene(head + R"({"q": 0.1, "qd": 0.5}})", "bench.json");
-    const Index n = raw.model.nv(), m = raw.loops.rows();
-    std::vector<double> q0(n, 0.1), qd0(n, 0.5);
-    if (closed_start) closed_start_state(spec, q0, qd0);
-    // the reset's projection on a solver of its own (the simulator then starts from its result)
-    LoopProjectionInfo reset;
-    double t0 = now();
-    try {
-      sim::IterativeLoopSolver rs(raw.model, raw.loops);
-      rs.project(q0.data(), qd0.data(), 1e-13, sim::kResetLinearisations, &reset);
-    } catch (const LoopError& e) {
-      std::fprintf(stderr, "%s: the reset projection failed: %s\n", spec.c_str(), e.what());
-      continue;
-    }
-    const double reset_s = now() - t0;
-    std::fprintf(stderr, "%s iterative: reset projection %.2f s, %d linearisations, max |phi| %.3g, max |J qd| %.3g\n",
-                 spec.c_str(), reset_s, reset.linearisations, reset.phi, reset.jqd);
-    // cold solves at the start, with and without the preconditioner
-    int cold_it[2] = {0, 0}, vel_it[2] = {0, 0};
-    double cold_s[2] = {0, 0}, vel_s[2] = {0, 0};
-    std::vector<double> tau(n, 0.0), qdd(n);
-    for (Index i = 0; i < n; ++i) tau[i] = torque * std::sin(1.0 + double(i));
-    for (int pre = 0; pre < (quick ? 1 : 2); ++pre) {
-      sim::IterativeLoopOptions opt;
-      opt.preconditioner = pre == 0 ? sim::LoopPreconditioner::BlockJacobi : sim::LoopPreconditioner::None;
-      opt.max_iterations = max_iterations;
-      sim::IterativeLoopSolver s(raw.model, raw.loops, opt);
-      t0 = now();
+    bool none_done = false;
+    int none_cold_it = -1, none_vel_it = -1;
+    double none_cold_s = 0, none_vel_s = 0;
+    for (const std::string& pre_name : pres) {
+      const sim::LoopPreconditioner pre_kind = sim::parse_loop_preconditioner(pre_name);
+      const std::string spec = "cloth:" + g;
+      const std::string head = R"({"model": ")" + spec + R"(", "effects": {"gravity": true}, "integrator": "rk4", "dt": )" +
+                               std::to_string(dt) + R"(, "loop_solver": "iterative", "loop_preconditioner": ")" +
+                               pre_name + R"(", "initial": )";
+      const sim::Scene raw = sim::parse_scene(head + R"({"q": 0.1, "qd": 0.5}})", "bench.json");
+      const Index n = raw.model.nv(), m = raw.loops.rows();
+      std::vector<double> q0(n, 0.1), qd0(n, 0.5);
+      if (closed_start) closed_start_state(spec, q0, qd0);
+      // the reset's projection on a solver of its own (the simulator then starts from its result)
+      LoopProjectionInfo reset;
+      double t0 = now();
       try {
-        s.forward_dynamics(q0.data(), qd0.data(), tau.data(), qdd.data(), nullptr);
-        cold_it[pre] = s.stats().last_iterations;
+        sim::IterativeLoopOptions ro;
+        ro.preconditioner = pre_kind;
+        sim::IterativeLoopSolver rs(raw.model, raw.loops, ro);
+        rs.project(q0.data(), qd0.data(), 1e-13, sim::kResetLinearisations, &reset);
       } catch (const LoopError& e) {
-        std::fprintf(stderr, "%s: %s\n", spec.c_str(), e.what());
-        cold_it[pre] = -1;
+        std::fprintf(stderr, "%s: the reset projection failed: %s\n", spec.c_str(), e.what());
+        continue;
       }
-      cold_s[pre] = now() - t0;
-      std::fprintf(stderr, "%s: cold forward dynamics %d iterations, %.3g s (%ld applications, %.3g s each; relative residual %.3g)\n",
-                   spec.c_str(), cold_it[pre], cold_s[pre], s.stats().applies,
-                   s.stats().applies ? s.stats().apply_seconds / double(s.stats().applies) : 0.0, s.stats().last_residual);
-      if (quick) {
-        cold_it[1] = vel_it[0] = vel_it[1] = -1;
-        break;
+      const double reset_s = now() - t0;
+      std::fprintf(stderr, "%s iterative: reset projection %.2f s, %d linearisations, max |phi| %.3g, max |J qd| %.3g\n",
+                   spec.c_str(), reset_s, reset.linearisations, reset.phi, reset.jqd);
+      // cold solves at the start, with and without the preconditioner
+      int cold_it[2] = {0, 0}, vel_it[2] = {0, 0};
+      double cold_s[2] = {0, 0}, vel_s[2] = {0, 0};
+      std::vector<double> tau(n, 0.0), qdd(n);
+      for (Index i = 0; i < n; ++i) tau[i] = torque * std::sin(1.0 + double(i));
+      for (int pre = 0; pre < (quick ? 1 : 2); ++pre) {
+        if (pre == 1 && none_done) {
+          cold_it[1] = none_cold_it, cold_s[1] = none_cold_s, vel_it[1] = none_vel_it, vel_s[1] = none_vel_s;
+          break;
+        }
+        sim::IterativeLoopOptions opt;
+        opt.preconditioner = pre == 0 ? pre_kind : sim::LoopPreconditioner::None;
+        opt.max_iterations = max_iterations;
+        sim::IterativeLoopSolver s(raw.model, raw.loops, opt);
+        t0 = now();
+        try {
+          s.forward_dynamics(q0.data(), qd0.data(), tau.data(), qdd.data(), nullptr);
+          cold_it[pre] = s.stats().last_iterations;
+        } catch (const LoopError& e) {
+          std::fprintf(stderr, "%s: %s\n", spec.c_str(), e.what());
+          cold_it[pre] = -1;
+        }
+        cold_s[pre] = now() - t0;
+        std::fprintf(stderr, "%s %s: cold forward dynamics %d iterations, %.3g s (%ld applications, %.3g s each; relative residual %.3g; %ld incomplete-factorisation fallbacks)\n",
+                     spec.c_str(), pre == 0 ? pre_name.c_str() : "none", cold_it[pre], cold_s[pre], s.stats().applies,
+                     s.stats().applies ? s.stats().apply_seconds / double(s.stats().applies) : 0.0, s.stats().last_residual,
+                     s.stats().dilu_fallbacks);
+        if (quick) {
+          cold_it[1] = vel_it[0] = vel_it[1] = -1;
+          break;
+        }
+        // the velocity projection of qd + a disturbance (one CGLS solve at a closed q)
+        std::vector<double> q = q0, qd = qd0;
+        for (Index i = 0; i < n; ++i) qd[i] += 0.1 * std::sin(2.0 + double(i));
+        s.reset_stats();
+        t0 = now();
+        try {
+          s.project(q.data(), qd.data(), 1e-12, 0);
+          vel_it[pre] = s.stats().last_iterations;
+        } catch (const LoopError& e) {
+          std::fprintf(stderr, "%s: %s\n", spec.c_str(), e.what());
+          vel_it[pre] = -1;
+        }
+        vel_s[pre] = now() - t0;
+        std::fprintf(stderr, "%s %s: cold forward dynamics %d iterations %.3g s, velocity projection %d iterations %.3g s (relative residual %.3g)\n",
+                     spec.c_str(), pre == 0 ? pre_name.c_str() : "none", cold_it[pre], cold_s[pre], vel_it[pre], vel_s[pre],
+                     s.stats().last_residual);
+        if (pre == 1) {
+          none_done = true;
+          none_cold_it = cold_it[1], none_cold_s = cold_s[1], none_vel_it = vel_it[1], none_vel_s = vel_s[1];
+        }
       }
-      // the velocity projection of qd + a disturbance (one CGLS solve at a closed q)
-      std::vector<double> q = q0, qd = qd0;
-      for (Index i = 0; i < n; ++i) qd[i] += 0.1 * std::sin(2.0 + double(i));
-      s.reset_stats();
-      t0 = now();
-      try {
-        s.project(q.data(), qd.data(), 1e-12, 0);
-        vel_it[pre] = s.stats().last_iterations;
-      } catch (const LoopError& e) {
-        std::fprintf(stderr, "%s: %s\n", spec.c_str(), e.what());
-        vel_it[pre] = -1;
+      auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
+      double first = 0, mean = 0, closure = 0, closure_phi = 0, closure_jqd = 0, apply_s = 0, fd_per = 0, proj_per = 0,
+             fd_s = 0, proj_s = 0;
+      long long failed_steps = 0;
+      int ran = 0;
+      if (cold_s[0] <= max_seconds) {
+        const sim::Scene scene = sim::parse_scene(head + R"({"q": )" + array(q0) + R"(, "qd": )" + array(qd0) + "}}", "bench.json");
+        sim::Simulator<double> s(scene, BackendKind::Serial);
+        sim::reset_iterative_loop_totals();
+        const BatchView<const double> tv = BatchView<const double>::soa(tau.data(), n, 1);
+        t0 = now();
+        s.step(tv);
+        first = now() - t0;
+        t0 = now();
+        for (int k = 1; k < steps; ++k) s.step(tv);
+        mean = steps > 1 ? (now() - t0) / (steps - 1) : 0;
+        ran = steps;
+        const sim::IterativeLoopStats t = sim::iterative_loop_totals();
+        std::fprintf(stderr, "%s: steps: %ld forward dynamics solves (%ld iterations), %ld projection solves (%ld iterations), %ld applications (%.3g s)\n",
+                     spec.c_str(), t.fd_solves, t.fd_iterations, t.proj_solves, t.proj_iterations, t.applies, t.apply_seconds);
+        fd_per = t.fd_solves ? double(t.fd_iterations) / double(t.fd_solves) : 0;
+        proj_per = t.proj_solves ? double(t.proj_iterations) / double(t.proj_solves) : 0;
+        apply_s = t.applies ? t.apply_seconds / double(t.applies) : 0;
+        fd_s = t.fd_solves ? t.fd_seconds / double(t.fd_solves) : 0;
+        proj_s = t.proj_solves ? t.proj_seconds / double(steps) : 0;  // per projection (one per step)
+        std::vector<double> q(n), qd(n);
+        s.read_state(q.data(), qd.data());
+        failed_steps = static_cast<long long>(s.status().failed);
+        if (!s.status().ok()) std::fprintf(stderr, "%s: %s\n", spec.c_str(), sim::failure_message(s.status()).c_str());
+        closure = sparse_violation(scene.model, scene.loops, q.data(), qd.data(), &closure_phi, &closure_jqd);
       }
-      vel_s[pre] = now() - t0;
-      std::fprintf(stderr, "%s %s: cold forward dynamics %d iterations %.3g s, velocity projection %d iterations %.3g s\n",
-                   spec.c_str(), pre == 0 ? "block-jacobi" : "none", cold_it[pre], cold_s[pre], vel_it[pre], vel_s[pre]);
+      std::printf("%s,%lld,%lld,iterative-cgls-%s%s,%d,%.4g,%.4g,%.3g,%.3g,%.3g,%.4g,%.4g,%.4g,%.4g,%.4g,%.4g,%d,%.3g,%d,%.4g,%d,%.4g,"
+                  "%d,%.4g,%d,%.4g,%lld\n",
+                  spec.c_str(), (long long)n, (long long)m, pre_name.c_str(), torque != 0 ? "-torque" : "", ran, first, mean, closure, closure_phi, closure_jqd, fd_per,
+                  proj_per, apply_s, fd_s, proj_s, reset_s, reset.linearisations, reset.phi, cold_it[0], cold_s[0],
+                  cold_it[1], cold_s[1], vel_it[0], vel_s[0], vel_it[1], vel_s[1], failed_steps);
+      std::fflush(stdout);
     }
-    auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
-    double first = 0, mean = 0, closure = 0, closure_phi = 0, closure_jqd = 0, apply_s = 0, fd_per = 0, proj_per = 0,
-           fd_s = 0, proj_s = 0;
-    long long failed_steps = 0;
-    int ran = 0;
-    if (cold_s[0] <= max_seconds) {
-      const sim::Scene scene = sim::parse_scene(head + R"({"q": )" + array(q0) + R"(, "qd": )" + array(qd0) + "}}", "bench.json");
-      sim::Simulator<double> s(scene, BackendKind::Serial);
-      sim::reset_iterative_loop_totals();
-      const BatchView<const double> tv = BatchView<const double>::soa(tau.data(), n, 1);
-      t0 = now();
-      s.step(tv);
-      first = now() - t0;
-      t0 = now();
-      for (int k = 1; k < steps; ++k) s.step(tv);
-      mean = steps > 1 ? (now() - t0) / (steps - 1) : 0;
-      ran = steps;
-      const sim::IterativeLoopStats t = sim::iterative_loop_totals();
-      std::fprintf(stderr, "%s: steps: %ld forward dynamics solves (%ld iterations), %ld projection solves (%ld iterations), %ld applications (%.3g s)\n",
-                   spec.c_str(), t.fd_solves, t.fd_iterations, t.proj_solves, t.proj_iterations, t.applies, t.apply_seconds);
-      fd_per = t.fd_solves ? double(t.fd_iterations) / double(t.fd_solves) : 0;
-      proj_per = t.proj_solves ? double(t.proj_iterations) / double(t.proj_solves) : 0;
-      apply_s = t.applies ? t.apply_seconds / double(t.applies) : 0;
-      fd_s = t.fd_solves ? t.fd_seconds / double(t.fd_solves) : 0;
-      proj_s = t.proj_solves ? t.proj_seconds / double(steps) : 0;  // per projection (one per step)
-      std::vector<double> q(n), qd(n);
-      s.read_state(q.data(), qd.data());
-      failed_steps = static_cast<long long>(s.status().failed);
-      if (!s.status().ok()) std::fprintf(stderr, "%s: %s\n", spec.c_str(), sim::failure_message(s.status()).c_str());
-      closure = sparse_violation(scene.model, scene.loops, q.data(), qd.data(), &closure_phi, &closure_jqd);
-    }
-    std::printf("%s,%lld,%lld,iterative-cgls-blockjacobi%s,%d,%.4g,%.4g,%.3g,%.3g,%.3g,%.4g,%.4g,%.4g,%.4g,%.4g,%.4g,%d,%.3g,%d,%.4g,%d,%.4g,"
-                "%d,%.4g,%d,%.4g,%lld\n",
-                spec.c_str(), (long long)n, (long long)m, torque != 0 ? "-torque" : "", ran, first, mean, closure, closure_phi, closure_jqd, fd_per,
-                proj_per, apply_s, fd_s, proj_s, reset_s, reset.linearisations, reset.phi, cold_it[0], cold_s[0],
-                cold_it[1], cold_s[1], vel_it[0], vel_s[0], vel_it[1], vel_s[1], failed_steps);
-    std::fflush(stdout);
   }
   return 0;
 }
@@ -219,6 +243,7 @@ int main(int argc, char** argv) {
   double dt = 1e-4, max_seconds = 1e30, torque = 0;
   bool quick = false;
   int max_iterations = sim::kIterativeLoopMaxIterations;
+  std::vector<std::string> pres;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--cloth" && i + 1 < argc) grids.push_back(argv[++i]);
@@ -232,15 +257,33 @@ int main(int argc, char** argv) {
     else if (a == "--max-seconds" && i + 1 < argc) max_seconds = std::atof(argv[++i]);
     else if (a == "--torque" && i + 1 < argc) torque = std::atof(argv[++i]);
     else if (a == "--quick") quick = true;
+    else if (a == "--preconditioner" && i + 1 < argc) {
+      std::string list = argv[++i];
+      for (std::size_t at = 0; at <= list.size();) {
+        const std::size_t comma = std::min(list.find(',', at), list.size());
+        pres.push_back(list.substr(at, comma - at));
+        at = comma + 1;
+      }
+    }
     else if (a == "--max-iterations" && i + 1 < argc) max_iterations = std::atoi(argv[++i]);
     else {
       std::fprintf(stderr, "usage: bench_loop_step [--cloth K:N]... [--steps S] [--dt DT] [--dense] [--gpu] [--analyse-only] "
-                           "[--iterative] [--start x] [--max-seconds S] [--torque A] [--quick] [--max-iterations K]\n");
+                           "[--iterative] [--start x] [--max-seconds S] [--torque A] [--quick] [--max-iterations K] "
+                           "[--preconditioner P[,P...]]\n");
       return 2;
     }
   }
   if (grids.empty()) grids = {"10:10", "30:30"};
-  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque, quick, max_iterations);
+  if (pres.empty()) pres = {"block-jacobi"};
+  for (const std::string& p : pres) {
+    try {
+      (void)sim::parse_loop_preconditioner(p);
+    } catch (const LoopError& e) {
+      std::fprintf(stderr, "bench_loop_step: %s\n", e.what());
+      return 2;
+    }
+  }
+  if (iterative) return iterative_main(grids, steps, dt, closed_start, max_seconds, torque, quick, max_iterations, pres);
   factor_graph::register_sparse_loop_solver(gpu);
   std::printf("grid,links,loop_rows,solver,steps,first_step_s,step_s,closure,max_phi,max_jqd,analysis_fd_s,analysis_proj_s,"
               "factorize_s,solve_s,factorizations_per_step,unknowns_fd,nnz_L_fd,flops_fd,nnz_L_proj,flops_proj,reset_s,"

@@ -65,12 +65,13 @@ IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loop
   b_.resize(m), gamma_.resize(m), r_.resize(m), z_.resize(m), p_.resize(m), Ap_.resize(m), best_.resize(m);
   tmp_m_.resize(m);
   blocks_.assign(rows_.size() * 36, 0.0), block_inv_.assign(rows_.size() * 36, 0.0);
+  if (neighbour_blocks(options_.preconditioner)) build_pattern();
   // L_J at q = 0: the unit tree's diagonal blocks
   std::vector<double> q0(n, 0.0);
   loop_body_motion(model_.bodies.data(), n_, q0.data(), static_cast<const double*>(nullptr), X0_.data(), v_.data(),
                    a_.data());
   loop_joint_transforms(model_.bodies.data(), n_, q0.data(), Xup_.data());
-  build_preconditioner(nullptr, nullptr);
+  build_preconditioner(nullptr, nullptr, LoopPreconditioner::BlockJacobi);
   double big = 0;
   for (std::size_t k = 0; k < rows_.size(); ++k) {
     const int d = rows_[k].rows();
@@ -79,38 +80,227 @@ IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loop
   jscale_ = big > 0 ? std::sqrt(big) : 1.0;
 }
 
-// Raw diagonal blocks of J Omega J^T (U null: the unit tree's) at the current X0_, Xup_.
-void IterativeLoopSolver::build_preconditioner(const Force<double>* U, const double* D) {
+const char* loop_preconditioner_name(LoopPreconditioner p) {
+  switch (p) {
+    case LoopPreconditioner::None: return "none";
+    case LoopPreconditioner::BlockJacobi: return "block-jacobi";
+    case LoopPreconditioner::SymmetricGaussSeidel: return "symmetric-gauss-seidel";
+    case LoopPreconditioner::BlockTridiagonal: return "block-tridiagonal";
+    case LoopPreconditioner::BlockDilu: return "block-dilu";
+  }
+  return "?";
+}
+
+LoopPreconditioner parse_loop_preconditioner(const std::string& name) {
+  for (LoopPreconditioner p : {LoopPreconditioner::None, LoopPreconditioner::BlockJacobi,
+                               LoopPreconditioner::SymmetricGaussSeidel, LoopPreconditioner::BlockTridiagonal,
+                               LoopPreconditioner::BlockDilu})
+    if (name == loop_preconditioner_name(p)) return p;
+  throw LoopError("unknown loop preconditioner '" + name +
+                  "' (expected none, block-jacobi, symmetric-gauss-seidel, block-tridiagonal or block-dilu)");
+}
+
+bool IterativeLoopSolver::neighbour_blocks(LoopPreconditioner p) {
+  return p == LoopPreconditioner::SymmetricGaussSeidel || p == LoopPreconditioner::BlockTridiagonal ||
+         p == LoopPreconditioner::BlockDilu;
+}
+
+// The neighbour blocks' pattern (it does not depend on q): every two loops with a link
+// on one body, or on a child and its parent; the pairs in rows by the later loop.
+void IterativeLoopSolver::build_pattern() {
+  const Index nl = static_cast<Index>(rows_.size());
+  // the loop sides on each body
+  std::vector<Index> start(static_cast<std::size_t>(n_) + 1, 0);
+  for (const LoopRow<double>& l : rows_)
+    for (Index b : {l.body_a, l.body_b})
+      if (b >= 0) ++start[static_cast<std::size_t>(b) + 1];
+  for (Index i = 0; i < n_; ++i) start[i + 1] += start[i];
+  std::vector<Index> side_loop(static_cast<std::size_t>(start[n_])), fill(start.begin(), start.end() - 1);
+  std::vector<int> side_of(side_loop.size());
+  for (Index k = 0; k < nl; ++k)
+    for (int side = 0; side < 2; ++side) {
+      const Index b = side == 0 ? rows_[k].body_a : rows_[k].body_b;
+      if (b < 0) continue;
+      side_loop[fill[b]] = k, side_of[fill[b]] = side, ++fill[b];
+    }
+  terms_.clear();
+  auto add = [&](Index k1, int s1, Index k2, int s2, int rel12) {
+    // rel12: 0 one body, 1 k1's body the child of k2's, 2 k2's the child of k1's
+    if (k1 == k2) return;  // (a loop's own cross term through a common ancestor: left out, as on the diagonal)
+    if (k1 > k2) terms_.push_back({0, k1, k2, s1, s2, rel12});
+    else terms_.push_back({0, k2, k1, s2, s1, rel12 == 0 ? 0 : 3 - rel12});
+  };
+  for (Index b = 0; b < n_; ++b) {
+    for (Index e = start[b]; e < start[b + 1]; ++e) {
+      for (Index f = e + 1; f < start[b + 1]; ++f) add(side_loop[e], side_of[e], side_loop[f], side_of[f], 0);
+      const Index p = model_.bodies[static_cast<std::size_t>(b)].parent;
+      if (p < 0) continue;
+      for (Index f = start[p]; f < start[p + 1]; ++f) add(side_loop[e], side_of[e], side_loop[f], side_of[f], 1);
+    }
+  }
+  std::sort(terms_.begin(), terms_.end(), [](const PairTerm& a, const PairTerm& b) {
+    return a.hi != b.hi ? a.hi < b.hi : a.lo < b.lo;
+  });
+  pair_start_.assign(static_cast<std::size_t>(nl) + 1, 0);
+  pair_lo_.clear(), pair_off_.clear(), pair_line_.clear();
+  std::size_t off = 0;
+  for (std::size_t t = 0; t < terms_.size(); ++t) {
+    PairTerm& term = terms_[t];
+    const bool fresh = t == 0 || term.hi != terms_[t - 1].hi || term.lo != terms_[t - 1].lo;
+    if (fresh) {
+      pair_lo_.push_back(term.lo), pair_off_.push_back(off), pair_line_.push_back(0);
+      ++pair_start_[static_cast<std::size_t>(term.hi) + 1];
+      off += static_cast<std::size_t>(rows_[term.hi].rows() * rows_[term.lo].rows());
+    }
+    term.pair = static_cast<Index>(pair_lo_.size()) - 1;
+  }
+  for (Index k = 0; k < nl; ++k) pair_start_[k + 1] += pair_start_[k];
+  // line neighbours: both links of each of the two loops take part (bits: hi's sides 1, 2; lo's 4, 8)
+  std::vector<unsigned char> cover(pair_lo_.size(), 0);
+  for (const PairTerm& t : terms_) cover[static_cast<std::size_t>(t.pair)] |= static_cast<unsigned char>((1 << t.s_hi) | (4 << t.s_lo));
+  for (std::size_t p = 0; p < cover.size(); ++p) pair_line_[p] = cover[p] == 15;
+  pair_vals_.assign(off, 0.0);
+  loop_row_.assign(static_cast<std::size_t>(nl) + 1, 0);
+  for (Index k = 0; k < nl; ++k) loop_row_[k + 1] = loop_row_[k] + rows_[k].rows();
+  pre_acc_.assign(static_cast<std::size_t>(m_), 0.0);
+}
+
+// Raw diagonal blocks of J Omega J^T (U null: the unit tree's) at the current X0_, Xup_,
+// and (neighbour_blocks(kind)) the neighbour blocks.
+void IterativeLoopSolver::build_preconditioner(const Force<double>* U, const double* D, LoopPreconditioner kind) {
   loop_response_blocks(model_.bodies.data(), n_, Xup_.data(), U, D, Omega_.data());
   for (std::size_t k = 0; k < rows_.size(); ++k) loop_schur_block(rows_[k], X0_.data(), Omega_.data(), &blocks_[36 * k]);
+  if (!neighbour_blocks(kind)) return;
+  std::fill(pair_vals_.begin(), pair_vals_.end(), 0.0);
+  for (const PairTerm& t : terms_) {
+    const LoopRow<double>& hi = rows_[t.hi];
+    const LoopRow<double>& lo = rows_[t.lo];
+    const Index bh = t.s_hi == 0 ? hi.body_a : hi.body_b, bl = t.s_lo == 0 ? lo.body_a : lo.body_b;
+    Mat6<double> O;
+    if (t.rel == 0) {
+      O = Omega_[bh];
+    } else {
+      const Index c = t.rel == 1 ? bh : bl, p = t.rel == 1 ? bl : bh;
+      O = loop_child_response(model_.bodies[c], Xup_[c], U ? &U[c] : nullptr, U ? D[c] : 1.0, Omega_[p]);
+      if (t.rel == 2) O = transpose(O);
+    }
+    loop_pair_block(hi, t.s_hi, lo, t.s_lo, X0_.data(), O, &pair_vals_[pair_off_[t.pair]]);
+  }
 }
 
 void IterativeLoopSolver::apply_preconditioner(const double* r, double* z) const {
-  if (options_.preconditioner == LoopPreconditioner::None) {
+  if (weights_ == LoopPreconditioner::None) {
     std::copy(r, r + m_, z);
     return;
   }
-  Index row = 0;
-  for (std::size_t k = 0; k < rows_.size(); ++k) {
+  auto block = [&](std::size_t k, const double* in, double* out) {  // out = Dt_k^-1 in
     const int d = rows_[k].rows();
     const double* B = &block_inv_[36 * k];
     for (int i = 0; i < d; ++i) {
       double s = 0;
-      for (int j = 0; j < d; ++j) s += B[i * d + j] * r[row + j];
-      z[row + i] = s;
+      for (int j = 0; j < d; ++j) s += B[i * d + j] * in[j];
+      out[i] = s;
     }
-    row += d;
+  };
+  if (!neighbour_blocks(weights_)) {
+    Index row = 0;
+    for (std::size_t k = 0; k < rows_.size(); ++k) {
+      block(k, r + row, z + row);
+      row += rows_[k].rows();
+    }
+    return;
+  }
+  // W r = (Dt + L)^-T Dt (Dt + L)^-1 r: forward y_k = Dt_k^-1 (r_k - sum_{l < k} A_kl y_l),
+  // backward z_k = y_k - Dt_k^-1 sum_{l > k} A_kl z_l (the sums scattered by A_lk^T)
+  const bool line_only = weights_ == LoopPreconditioner::BlockTridiagonal;
+  const Index nl = static_cast<Index>(rows_.size());
+  double t[6], y[6];
+  for (Index k = 0; k < nl; ++k) {
+    const int d = rows_[k].rows();
+    const Index row = loop_row_[k];
+    for (int i = 0; i < d; ++i) t[i] = r[row + i];
+    for (Index p = pair_start_[k]; p < pair_start_[k + 1]; ++p) {
+      if (line_only && !pair_line_[p]) continue;
+      const Index l = pair_lo_[p];
+      const int dl = rows_[l].rows();
+      const double* A = &pair_vals_[pair_off_[p]];
+      const double* yl = z + loop_row_[l];
+      for (int i = 0; i < d; ++i)
+        for (int j = 0; j < dl; ++j) t[i] -= A[i * dl + j] * yl[j];
+    }
+    block(static_cast<std::size_t>(k), t, z + row);
+  }
+  double* acc = pre_acc_.data();
+  std::fill(acc, acc + m_, 0.0);
+  for (Index k = nl - 1; k >= 0; --k) {
+    const int d = rows_[k].rows();
+    const Index row = loop_row_[k];
+    block(static_cast<std::size_t>(k), acc + row, y);
+    for (int i = 0; i < d; ++i) z[row + i] -= y[i];
+    for (Index p = pair_start_[k]; p < pair_start_[k + 1]; ++p) {
+      if (line_only && !pair_line_[p]) continue;
+      const Index l = pair_lo_[p];
+      const int dl = rows_[l].rows();
+      const double* A = &pair_vals_[pair_off_[p]];
+      double* al = acc + loop_row_[l];
+      for (int i = 0; i < d; ++i)
+        for (int j = 0; j < dl; ++j) al[j] += A[i * dl + j] * z[row + i];
+    }
   }
 }
 
-
-// The weights W: the blocks' inverses with their eigenvalues floored (kLoopBlockFloor).
-void IterativeLoopSolver::invert_blocks() {
+// The weights W: the blocks' inverses with their eigenvalues floored (kLoopBlockFloor);
+// BlockDilu and BlockTridiagonal: the incomplete factorisation's Dt_k, in the loops' order.
+void IterativeLoopSolver::invert_blocks(LoopPreconditioner kind) {
+  const bool dilu = kind == LoopPreconditioner::BlockDilu || kind == LoopPreconditioner::BlockTridiagonal;
+  const bool line_only = kind == LoopPreconditioner::BlockTridiagonal;
   for (std::size_t k = 0; k < rows_.size(); ++k) {
     const int d = rows_[k].rows();
-    std::copy(&blocks_[36 * k], &blocks_[36 * k] + d * d, &block_inv_[36 * k]);
-    symmetric_pseudo_inverse(&block_inv_[36 * k], d, kLoopBlockFloor);
+    double* Dk = &block_inv_[36 * k];
+    std::copy(&blocks_[36 * k], &blocks_[36 * k] + d * d, Dk);
+    if (!dilu) {
+      symmetric_pseudo_inverse(Dk, d, kLoopBlockFloor);
+      continue;
+    }
+    // Dt_k = A_kk - sum_{l < k} A_kl Dt_l^-1 A_kl^T
+    for (Index p = pair_start_[k]; p < pair_start_[k + 1]; ++p) {
+      if (line_only && !pair_line_[p]) continue;
+      const Index l = pair_lo_[p];
+      const int dl = rows_[l].rows();
+      const double* A = &pair_vals_[pair_off_[p]];
+      const double* Bl = &block_inv_[36 * static_cast<std::size_t>(l)];
+      double AB[36];  // A_kl Dt_l^-1 (d x dl)
+      for (int i = 0; i < d; ++i)
+        for (int j = 0; j < dl; ++j) {
+          double s = 0;
+          for (int e = 0; e < dl; ++e) s += A[i * dl + e] * Bl[e * dl + j];
+          AB[i * dl + j] = s;
+        }
+      for (int i = 0; i < d; ++i)
+        for (int j = 0; j < d; ++j) {
+          double s = 0;
+          for (int e = 0; e < dl; ++e) s += AB[i * dl + e] * A[j * dl + e];
+          Dk[i * d + j] -= s;
+        }
+    }
+    for (int i = 0; i < d; ++i)  // (symmetric up to rounding)
+      for (int j = i + 1; j < d; ++j) Dk[i * d + j] = Dk[j * d + i] = 0.5 * (Dk[i * d + j] + Dk[j * d + i]);
+    // the floor relative to A_kk's largest eigenvalue; a Dt_k weaker than A_kk in more
+    // directions (the incomplete factorisation broke down): A_kk
+    double V[36], lam_a[6], lam_d[6];
+    symmetric_eigen(&blocks_[36 * k], d, V, lam_a);
+    symmetric_eigen(Dk, d, V, lam_d);
+    double big = 0;
+    for (int i = 0; i < d; ++i) big = std::max(big, lam_a[i]);
+    int weak_a = 0, weak_d = 0;
+    for (int i = 0; i < d; ++i) weak_a += lam_a[i] <= kLoopBlockFloor * big, weak_d += lam_d[i] <= kLoopBlockFloor * big;
+    if (weak_d > weak_a) {
+      std::copy(&blocks_[36 * k], &blocks_[36 * k] + d * d, Dk);
+      ++stats_.dilu_fallbacks;
+    }
+    symmetric_pseudo_inverse(Dk, d, kLoopBlockFloor, big);
   }
+  weights_ = kind;
 }
 
 // The M^-1 J^T of row values w, and J of it: s = M^-1 J^T w (n, in tmp_n_) and
@@ -268,9 +458,9 @@ void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, co
     }
   const double target = options_.tolerance * scale + floor;
   if (m > 0) {
-    if (options_.preconditioner == LoopPreconditioner::BlockJacobi) {
-      build_preconditioner(U_.data(), D_.data());
-      invert_blocks();
+    if (options_.preconditioner != LoopPreconditioner::None) {
+      build_preconditioner(U_.data(), D_.data(), options_.preconditioner);
+      invert_blocks(options_.preconditioner);
     }
     int it = 0;
     double residual = 0;
@@ -450,7 +640,12 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
       loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), s.X0_.data(),
                        s.v_.data(), s.a_.data());
       loop_joint_transforms(s.model_.bodies.data(), s.n_, x, s.Xup_.data());
-      s.build_preconditioner(nullptr, nullptr);  // the unit tree's blocks: also the damping's scale
+      // the unit tree's blocks: also the damping's scale; the weights block Jacobi for
+      // every preconditioner but None (the neighbour-block weights of J J^T are
+      // ill-conditioned: docs/loops.md, "Preconditioner")
+      const LoopPreconditioner kind =
+          s.options_.preconditioner == LoopPreconditioner::None ? LoopPreconditioner::None : LoopPreconditioner::BlockJacobi;
+      s.build_preconditioner(nullptr, nullptr, kind);
       double big = 0;
       for (std::size_t k = 0; k < s.rows_.size(); ++k) {
         const int d = s.rows_[k].rows();
@@ -459,8 +654,8 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
       // Levenberg-Marquardt's damping scale, the size of J J^T in the weights' units: 1
       // with the block-Jacobi weights (W^1/2 J J^T W^1/2 has unit diagonal blocks), else
       // the largest diagonal entry of J J^T
-      s.unit_scale_ = s.options_.preconditioner == LoopPreconditioner::BlockJacobi ? 1.0 : big > 0 ? big : 1.0;
-      if (s.options_.preconditioner == LoopPreconditioner::BlockJacobi) s.invert_blocks();
+      s.unit_scale_ = s.options_.preconditioner != LoopPreconditioner::None ? 1.0 : big > 0 ? big : 1.0;
+      if (kind != LoopPreconditioner::None) s.invert_blocks(kind);
     }
     double floor = 0;  // the solves' absolute tolerance (below)
     void solve(const double* r, double mu, double* x) {
@@ -493,6 +688,26 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
 
 std::unique_ptr<LoopSolver> make_iterative_loop_solver(const Model& model, const LoopSet& loops) {
   return std::make_unique<IterativeLoopSolver>(model, loops);
+}
+
+namespace {
+template <LoopPreconditioner P>
+std::unique_ptr<LoopSolver> make_preconditioned(const Model& model, const LoopSet& loops) {
+  IterativeLoopOptions options;
+  options.preconditioner = P;
+  return std::make_unique<IterativeLoopSolver>(model, loops, options);
+}
+}  // namespace
+
+LoopSolverFactory iterative_loop_solver_factory(LoopPreconditioner p) {
+  switch (p) {
+    case LoopPreconditioner::None: return &make_preconditioned<LoopPreconditioner::None>;
+    case LoopPreconditioner::BlockJacobi: return &make_preconditioned<LoopPreconditioner::BlockJacobi>;
+    case LoopPreconditioner::SymmetricGaussSeidel: return &make_preconditioned<LoopPreconditioner::SymmetricGaussSeidel>;
+    case LoopPreconditioner::BlockTridiagonal: return &make_preconditioned<LoopPreconditioner::BlockTridiagonal>;
+    case LoopPreconditioner::BlockDilu: return &make_preconditioned<LoopPreconditioner::BlockDilu>;
+  }
+  return &make_iterative_loop_solver;
 }
 
 }  // namespace scandyn::sim

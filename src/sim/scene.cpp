@@ -19,6 +19,7 @@
 #include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sharded.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
 
 namespace scandyn {
 namespace sim {
@@ -405,7 +406,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     r.fail("", "not valid JSON: " + printable(what));
   }
   r.check_object("", doc, {"model", "allow_nonphysical_inertia", "effects", "integrator", "dt", "precision",
-                           "backend", "devices", "threads", "instances", "initial", "prescribed", "loops", "loop_solver", "base"});
+                           "backend", "devices", "threads", "instances", "initial", "prescribed", "loops", "loop_solver", "loop_preconditioner", "base"});
   if (!doc.contains("model")) r.fail("model", "missing (a URDF path or a generator spec such as rope:1000)");
   if (!doc.contains("dt")) r.fail("dt", "missing (the time step in seconds)");
 
@@ -566,6 +567,16 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
     if (s.loop_solver != "auto" && s.loop_solver != "dense" && s.loop_solver != "sparse" &&
         s.loop_solver != "iterative")
       r.expected("loop_solver", "\"auto\", \"dense\", \"sparse\" or \"iterative\"", doc["loop_solver"]);
+  }
+  if (doc.contains("loop_preconditioner")) {  // the iterative loop solver's (docs/loops.md)
+    s.loop_preconditioner = r.string("loop_preconditioner", doc["loop_preconditioner"]);
+    try {
+      (void)parse_loop_preconditioner(s.loop_preconditioner);
+    } catch (const LoopError&) {
+      r.expected("loop_preconditioner",
+                 "\"block-jacobi\", \"symmetric-gauss-seidel\", \"block-tridiagonal\", \"block-dilu\" or \"none\"",
+                 doc["loop_preconditioner"]);
+    }
   }
   if (doc.contains("integrator")) {
     const std::string name = r.string("integrator", doc["integrator"]);

@@ -188,6 +188,9 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
     // the loops' solver: dense, the registered sparse one (scandyn/sim/sparse_loops.hpp) or
     // the iterative one (scandyn/sim/iterative_loops.hpp)
     const bool wrenches = (setup_.effects & (kContacts | kExternal)) != 0;
+    const LoopSolverFactory iterative = scene.loop_preconditioner.empty()
+                                            ? &make_iterative_loop_solver
+                                            : iterative_loop_solver_factory(parse_loop_preconditioner(scene.loop_preconditioner));
     if (scene.loop_solver == "sparse") {
       if (!sparse_loop_solver())
         throw BackendError("\"loop_solver\": \"sparse\": this program has no sparse loop solver (it is the "
@@ -201,10 +204,10 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
       if (wrenches)
         throw BackendError("\"loop_solver\": \"iterative\" takes no contacts or external wrenches (the dense "
                            "solver does)");
-      setup_.loop_solver = &make_iterative_loop_solver;  // the core library's (scandyn/sim/iterative_loops.hpp)
+      setup_.loop_solver = iterative;  // the core library's (scandyn/sim/iterative_loops.hpp)
     } else if (scene.loop_solver == "auto" && nv >= kSparseLoopDofs && !wrenches) {
       // the registered sparse solver, else the iterative one (docs/loops.md, "Choosing it")
-      setup_.loop_solver = sparse_loop_solver() ? sparse_loop_solver() : &make_iterative_loop_solver;
+      setup_.loop_solver = sparse_loop_solver() ? sparse_loop_solver() : iterative;
     }
   }
   if (!scene.prescribed.empty()) {

@@ -34,6 +34,16 @@
 //                            fourbar and cloth:K:N), else the cross term through the
 //                            common ancestors is left out (the block stays symmetric
 //                            positive semi-definite: a preconditioner, not A);
+//   loop_side_map            a loop side's rows of J per body motion (W below);
+//   loop_child_response      Omega_{c,p}, the motion of a child c per unit wrench on
+//                            its parent p: P_c Xup_c Omega_p (its transpose Omega_{p,c});
+//   loop_pair_block          a share of the off-diagonal block (k, l) of A (or J J^T) of
+//                            two loops with links on one body or on a child and its
+//                            parent (the neighbour blocks of the preconditioners of
+//                            scandyn/sim/iterative_loops.hpp: symmetric block
+//                            Gauss-Seidel, block-tridiagonal along the ropes, block
+//                            DILU);
+//   symmetric_eigen          a symmetric d x d (d <= 6) matrix's eigenvalues and vectors;
 //   symmetric_pseudo_inverse the inverse of such a block (Jacobi eigenvalue iteration),
 //                            as the solver's least-squares weights W with the
 //                            eigenvalues raised to kLoopBlockFloor of the block's
@@ -247,10 +257,31 @@ SCANDYN_HD void loop_response_blocks(const Body<S>* bodies, Index n, const Trans
   }
 }
 
+// The map from loop l's side `side` (0: a, 1: b) body's motion (body coordinates) to
+// that side's rows of J (base coordinates): W = diag(E^T, E^T) [1 0; -[p]x 1], i.e.
+// [w; v] -> [w; the velocity of point p]; the loop's rows are W's rows 3-5 (point) or
+// 0-5 (weld), and its J is W_a (body a's motion) - W_b (body b's motion).
+template <class S>
+SCANDYN_HD Mat6<S> loop_side_map(const LoopRow<S>& l, int side, const Transform<S>* X0) {
+  const Index body = side == 0 ? l.body_a : l.body_b;
+  const Vec3<S>& p = side == 0 ? l.point_a : l.point_b;
+  const Mat3<S>& E = X0[body].E;
+  Mat6<S> W = Mat6<S>::zero();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      W(r, c) = E(c, r);
+      W(r + 3, c + 3) = E(c, r);
+      // (E^T (-[p]x))(r, c) = -sum_k E(k, r) [p]x(k, c)
+      const Vec3<S> ec{E(0, r), E(1, r), E(2, r)};  // row r of E^T
+      const Vec3<S> unit{S(c == 0), S(c == 1), S(c == 2)};
+      W(r + 3, c) = -dot(ec, cross(p, unit));
+    }
+  return W;
+}
+
 // Loop l's diagonal block (d x d, d = l.rows(), row-major in out) of J Omega J^T from
 // its links' Omega (see the header: the cross term through common ancestors is not
-// included). A link's rows of J are W = diag(E^T, E^T) [1 0; -[p]x 1] applied to its
-// body motion ([w; v] -> [w; point velocity] in base coordinates).
+// included). A link's rows of J are loop_side_map's W applied to its body motion.
 template <class S>
 SCANDYN_HD void loop_schur_block(const LoopRow<S>& l, const Transform<S>* X0, const Mat6<S>* Omega, S* out) {
   const int d = l.rows();
@@ -259,34 +290,58 @@ SCANDYN_HD void loop_schur_block(const LoopRow<S>& l, const Transform<S>* X0, co
   for (int side = 0; side < 2; ++side) {
     const Index body = side == 0 ? l.body_a : l.body_b;
     if (body < 0) continue;
-    const Vec3<S>& p = side == 0 ? l.point_a : l.point_b;
-    const Mat3<S>& E = X0[body].E;
-    // W (6 x 6): rows 0-2 E^T [1 0], rows 3-5 E^T [-[p]x 1]
-    Mat6<S> W = Mat6<S>::zero();
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) {
-        W(r, c) = E(c, r);
-        W(r + 3, c + 3) = E(c, r);
-        // (E^T (-[p]x))(r, c) = -sum_k E(k, r) [p]x(k, c)
-        const Vec3<S> ec{E(0, r), E(1, r), E(2, r)};  // row r of E^T
-        const Vec3<S> unit{S(c == 0), S(c == 1), S(c == 2)};
-        W(r + 3, c) = -dot(ec, cross(p, unit));
-      }
+    const Mat6<S> W = loop_side_map(l, side, X0);
     const Mat6<S> B = W * mul_transpose_right(Omega[body], W);
     for (int r = 0; r < d; ++r)
       for (int c = 0; c < d; ++c) out[r * d + c] += B(first + r, first + c);
   }
 }
 
-// The inverse of a symmetric positive semi-definite d x d matrix (d <= 6, row-major,
-// overwritten) by cyclic Jacobi rotations, its eigenvalues raised to at least `floor`
-// times the largest: floor 0, the pseudo-inverse (eigenvalues at most 1e-10 times the
-// largest, or not positive, count as zero); floor > 0, a bounded, positive definite
-// inverse (the block-Jacobi weights: a nearly singular block would otherwise weigh
-// its weak direction by up to 1e10). A zero matrix stays zero.
+// Omega_{c,p}: the motion of body c (its coordinates) per unit wrench on its parent p
+// (p's coordinates), the whole tree articulated: P_c Xup_c Omega_p (a wrench on p moves
+// c through its joint's articulated response: a_c = P_c Xup_c a_p, P_c = 1 - S_c U_c^T /
+// D_c; U null, the unit tree: P_c = 1). Its transpose is Omega_{p,c} (M^-1 is symmetric).
 template <class S>
-SCANDYN_HD void symmetric_pseudo_inverse(S* A, int d, S floor = S(0)) {
-  S V[36], a[36];
+SCANDYN_HD Mat6<S> loop_child_response(const Body<S>& child, const Transform<S>& Xup_c, const Force<S>* U_c, S D_c,
+                                       const Mat6<S>& Omega_p) {
+  Mat6<S> R = to_mat6(Xup_c) * Omega_p;
+  if (U_c) {
+    const Motion<S> s = joint_motion(child, S(1));
+    const S sv[6] = {s.w.x, s.w.y, s.w.z, s.v.x, s.v.y, s.v.z};
+    const S uv[6] = {U_c->n.x, U_c->n.y, U_c->n.z, U_c->f.x, U_c->f.y, U_c->f.z};
+    S UR[6];  // U^T R / D
+    for (int c = 0; c < 6; ++c) {
+      S t = S(0);
+      for (int k = 0; k < 6; ++k) t += uv[k] * R(k, c);
+      UR[c] = t / D_c;
+    }
+    for (int r = 0; r < 6; ++r)
+      for (int c = 0; c < 6; ++c) R(r, c) -= sv[r] * UR[c];
+  }
+  return R;
+}
+
+// Adds loop l1's side s1 and loop l2's side s2's share of the off-diagonal block
+// (l1, l2) of J Omega J^T (d1 x d2, row-major in out): sign_1 sign_2 W_1 Omega_12 W_2^T
+// restricted to the loops' rows (sign +1 on side a, -1 on side b; Omega_12 the motion
+// of side 1's body per unit wrench on side 2's: Omega of the body when they are one,
+// loop_child_response or its transpose for a child and its parent).
+template <class S>
+SCANDYN_HD void loop_pair_block(const LoopRow<S>& l1, int s1, const LoopRow<S>& l2, int s2, const Transform<S>* X0,
+                                const Mat6<S>& Omega12, S* out) {
+  const int d1 = l1.rows(), d2 = l2.rows();
+  const int f1 = l1.weld ? 0 : 3, f2 = l2.weld ? 0 : 3;
+  const Mat6<S> B = loop_side_map(l1, s1, X0) * mul_transpose_right(Omega12, loop_side_map(l2, s2, X0));
+  const S sign = (s1 == s2) ? S(1) : S(-1);
+  for (int r = 0; r < d1; ++r)
+    for (int c = 0; c < d2; ++c) out[r * d2 + c] += sign * B(f1 + r, f2 + c);
+}
+
+// The eigen-decomposition of a symmetric d x d matrix A (d <= 6, row-major) by cyclic
+// Jacobi rotations: A = V diag(lam) V^T, V's columns the eigenvectors (row-major d x d).
+template <class S>
+SCANDYN_HD void symmetric_eigen(const S* A, int d, S* V, S* lam) {
+  S a[36];
   for (int r = 0; r < d; ++r)
     for (int c = 0; c < d; ++c) V[r * d + c] = S(r == c), a[r * d + c] = A[r * d + c];
   for (int sweep = 0; sweep < 30; ++sweep) {
@@ -317,15 +372,29 @@ SCANDYN_HD void symmetric_pseudo_inverse(S* A, int d, S floor = S(0)) {
         }
       }
   }
+  for (int k = 0; k < d; ++k) lam[k] = a[k * d + k];
+}
+
+// The inverse of a symmetric positive semi-definite d x d matrix (d <= 6, row-major,
+// overwritten) by cyclic Jacobi rotations, its eigenvalues raised to at least `floor`
+// times the largest: floor 0, the pseudo-inverse (eigenvalues at most 1e-10 times the
+// largest, or not positive, count as zero); floor > 0, a bounded, positive definite
+// inverse (the block-Jacobi weights: a nearly singular block would otherwise weigh
+// its weak direction by up to 1e10). `scale` > 0: the floor is relative to it instead
+// of the largest eigenvalue. A zero matrix stays zero.
+template <class S>
+SCANDYN_HD void symmetric_pseudo_inverse(S* A, int d, S floor = S(0), S scale = S(0)) {
+  S V[36], lam[6];
+  symmetric_eigen(A, d, V, lam);
   S big = S(0);
-  for (int k = 0; k < d; ++k) big = a[k * d + k] > big ? a[k * d + k] : big;
+  for (int k = 0; k < d; ++k) big = lam[k] > big ? lam[k] : big;
+  if (scale > S(0)) big = scale;
   for (int r = 0; r < d; ++r)
     for (int c = 0; c < d; ++c) {
       S s = S(0);
       for (int k = 0; k < d; ++k) {
-        const S lam = a[k * d + k];
-        if (floor > S(0) && big > S(0)) s += V[r * d + k] * V[c * d + k] / (lam > floor * big ? lam : floor * big);
-        else if (lam > S(1e-10) * big) s += V[r * d + k] * V[c * d + k] / lam;
+        if (floor > S(0) && big > S(0)) s += V[r * d + k] * V[c * d + k] / (lam[k] > floor * big ? lam[k] : floor * big);
+        else if (lam[k] > S(1e-10) * big) s += V[r * d + k] * V[c * d + k] / lam[k];
       }
       A[r * d + c] = s;
     }

@@ -41,9 +41,29 @@
 // acceptance test; the velocity projection's solve must converge (else
 // LoopSolveNotConverged).
 //
-// Preconditioner: block Jacobi, loop k's diagonal block of A (of J J^T) from the links'
-// apparent inverse inertias (loop_response_blocks, an O(n) recursion), inverted with its
-// eigenvalues floored at kLoopBlockFloor of its largest; or none (W = 1).
+// Preconditioner (IterativeLoopOptions::preconditioner): the weights W, an approximate
+// inverse of A (of J J^T), symmetric positive definite, O(n + m) to build and apply:
+// - BlockJacobi: loop k's diagonal block of A from the links' apparent inverse inertias
+//   (loop_response_blocks, an O(n) recursion), inverted with its eigenvalues floored at
+//   kLoopBlockFloor of its largest;
+// - the neighbour-block preconditioners, over A_nb: A's diagonal blocks and its blocks
+//   (k, l) of every two loops with links on one body or on a child and its parent
+//   (loop_pair_block; for cloth:K:N the 8 neighbours of loop (k, j) on the grid, each
+//   block exact), L_nb its strictly lower part in the loops' order, and W^-1 =
+//   (Dt + L_nb) Dt^-1 (Dt + L_nb)^T (symmetric positive definite for any symmetric
+//   positive definite block diagonal Dt; one forward and one backward block sweep):
+//   - SymmetricGaussSeidel: Dt = A's diagonal blocks (symmetric block Gauss-Seidel);
+//   - BlockDilu: Dt_k = A_kk - sum_{l < k} A_kl Dt_l^-1 A_lk over the neighbours (block
+//     diagonal incomplete LU: the incomplete factorisation whose product has A_nb's
+//     diagonal blocks and lower part);
+//   - BlockTridiagonal: BlockDilu over the "line" neighbours only: two loops whose both
+//     links are on one body or on a child and its parent (for a cloth the loops of one
+//     pair of ropes, consecutive in the loops' order), where it is the exact block LDL^T
+//     factorisation of A's block-tridiagonal part along each pair of ropes;
+//   Dt_k is inverted with its eigenvalues floored at kLoopBlockFloor of A_kk's largest;
+//   a Dt_k with more eigenvalues below that floor than A_kk is replaced by A_kk (the
+//   incomplete factorisation broke down there; counted in IterativeLoopStats);
+// - None: W = 1.
 #pragma once
 
 #include <memory>
@@ -71,7 +91,12 @@ class LoopSolveNotConverged : public LoopError {
   using LoopError::LoopError;
 };
 
-enum class LoopPreconditioner { None, BlockJacobi };
+enum class LoopPreconditioner { None, BlockJacobi, SymmetricGaussSeidel, BlockTridiagonal, BlockDilu };
+
+// "none", "block-jacobi", "symmetric-gauss-seidel", "block-tridiagonal", "block-dilu".
+const char* loop_preconditioner_name(LoopPreconditioner p);
+// The inverse of loop_preconditioner_name; throws LoopError naming the choices.
+LoopPreconditioner parse_loop_preconditioner(const std::string& name);
 
 struct IterativeLoopOptions {
   double tolerance = kIterativeLoopTolerance;
@@ -88,6 +113,7 @@ struct IterativeLoopStats {
   int last_iterations = 0;                      // the last CG solve's iterations
   double last_residual = 0;                     // and its relative residual
   double fd_seconds = 0, proj_seconds = 0;      // wall time in forward_dynamics / project
+  long dilu_fallbacks = 0;                      // Dt_k replaced by A_kk (BlockDilu, BlockTridiagonal)
   long applies = 0;                             // applications of A or J J^T (tree passes)
   double apply_seconds = 0;                     // their time
 };
@@ -102,16 +128,22 @@ class IterativeLoopSolver : public LoopSolver {
   const IterativeLoopStats& stats() const { return stats_; }
   void reset_stats() { stats_ = {}; }
   const IterativeLoopOptions& options() const { return options_; }
+  // z (m) = W r (m): the preconditioner as last built (by forward_dynamics: of A at its
+  // state; by project: of J J^T at its last linearisation, block Jacobi for every
+  // preconditioner but None); the identity before.
+  void apply_weights(const double* r, double* z) const { apply_preconditioner(r, z); }
 
  private:
   struct Projection;
-  void invert_blocks();
+  void invert_blocks(LoopPreconditioner kind);
   void add_to_totals(const IterativeLoopStats& before) const;
   void schur_response(const double* w, double* Js);
   bool fd_solve(double target, int& it, double& rnorm);
-  void build_preconditioner(const Force<double>* U, const double* D);
+  void build_preconditioner(const Force<double>* U, const double* D, LoopPreconditioner kind);
   void apply_preconditioner(const double* r, double* z) const;
   void unit_solve(const double* r, double mu, double floor, double* x, bool& converged);
+  static bool neighbour_blocks(LoopPreconditioner p);
+  void build_pattern();
 
   Model model_;
   LoopSet loops_;
@@ -129,12 +161,30 @@ class IterativeLoopSolver : public LoopSolver {
   // per row
   std::vector<double> lambda_, b_, gamma_, r_, z_, p_, Ap_, best_, tmp_m_;
   std::vector<double> blocks_, block_inv_;  // per loop: d x d raw blocks and their pseudo-inverses (6x6 slots)
+  // the neighbour blocks (neighbour_blocks()): per pair of loops (hi, lo), lo < hi, in
+  // rows by hi: pair_start_ (loops + 1), pair_lo_, pair_line_ (both links neighbours),
+  // pair_off_ into pair_vals_ (d_hi x d_lo, row-major); the shares that make them
+  struct PairTerm {
+    Index pair, hi, lo;
+    int s_hi, s_lo;
+    int rel;  // 0: one body; 1: hi's body the child of lo's; 2: lo's the child of hi's
+  };
+  std::vector<PairTerm> terms_;
+  std::vector<Index> pair_start_, pair_lo_, loop_row_;
+  std::vector<std::size_t> pair_off_;
+  std::vector<char> pair_line_;
+  std::vector<double> pair_vals_;
+  mutable std::vector<double> pre_acc_;
+  LoopPreconditioner weights_ = LoopPreconditioner::None;  // the weights as last built (None: W = 1)
   bool unit_factored_ = false;
   double unit_scale_ = 1;
   double jscale_ = 1;  // L_J: sqrt of the largest diagonal entry of J J^T at q = 0 (m)
 };
 
 std::unique_ptr<LoopSolver> make_iterative_loop_solver(const Model& model, const LoopSet& loops);
+// The factory of iterative loop solvers with the preconditioner p and the other options'
+// defaults (the scene's "loop_preconditioner").
+LoopSolverFactory iterative_loop_solver_factory(LoopPreconditioner p);
 
 // The sums of every iterative loop solver's IterativeLoopStats counters in this process
 // since it started (or since reset_iterative_loop_totals): solves, iterations,

@@ -92,6 +92,10 @@ struct Scene {
   // "iterative" (matrix-free conjugate gradients, scandyn/sim/iterative_loops.hpp) or
   // "auto" (sparse from kSparseLoopDofs DoFs on, when registered; docs/loops.md)
   std::string loop_solver = "auto";
+  // the iterative solver's preconditioner ("loop_preconditioner": "block-jacobi",
+  // "symmetric-gauss-seidel", "block-tridiagonal", "block-dilu" or "none";
+  // sim::LoopPreconditioner); empty: IterativeLoopOptions' default
+  std::string loop_preconditioner;
 
   Index nv() const { return model.nv(); }
   Index nq() const { return model.nq(); }  // rows of q (> nv with a floating base or ball joints)
