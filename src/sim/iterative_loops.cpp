@@ -85,6 +85,7 @@ const char* loop_preconditioner_name(LoopPreconditioner p) {
     case LoopPreconditioner::None: return "none";
     case LoopPreconditioner::BlockJacobi: return "block-jacobi";
     case LoopPreconditioner::SymmetricGaussSeidel: return "symmetric-gauss-seidel";
+    case LoopPreconditioner::Ssor: return "ssor";
     case LoopPreconditioner::BlockTridiagonal: return "block-tridiagonal";
     case LoopPreconditioner::BlockDilu: return "block-dilu";
   }
@@ -93,16 +94,16 @@ const char* loop_preconditioner_name(LoopPreconditioner p) {
 
 LoopPreconditioner parse_loop_preconditioner(const std::string& name) {
   for (LoopPreconditioner p : {LoopPreconditioner::None, LoopPreconditioner::BlockJacobi,
-                               LoopPreconditioner::SymmetricGaussSeidel, LoopPreconditioner::BlockTridiagonal,
-                               LoopPreconditioner::BlockDilu})
+                               LoopPreconditioner::SymmetricGaussSeidel, LoopPreconditioner::Ssor,
+                               LoopPreconditioner::BlockTridiagonal, LoopPreconditioner::BlockDilu})
     if (name == loop_preconditioner_name(p)) return p;
   throw LoopError("unknown loop preconditioner '" + name +
-                  "' (expected none, block-jacobi, symmetric-gauss-seidel, block-tridiagonal or block-dilu)");
+                  "' (expected none, block-jacobi, symmetric-gauss-seidel, ssor, block-tridiagonal or block-dilu)");
 }
 
 bool IterativeLoopSolver::neighbour_blocks(LoopPreconditioner p) {
-  return p == LoopPreconditioner::SymmetricGaussSeidel || p == LoopPreconditioner::BlockTridiagonal ||
-         p == LoopPreconditioner::BlockDilu;
+  return p == LoopPreconditioner::SymmetricGaussSeidel || p == LoopPreconditioner::Ssor ||
+         p == LoopPreconditioner::BlockTridiagonal || p == LoopPreconditioner::BlockDilu;
 }
 
 // The neighbour blocks' pattern (it does not depend on q): every two loops with a link
@@ -163,6 +164,7 @@ void IterativeLoopSolver::build_pattern() {
   loop_row_.assign(static_cast<std::size_t>(nl) + 1, 0);
   for (Index k = 0; k < nl; ++k) loop_row_[k + 1] = loop_row_[k] + rows_[k].rows();
   pre_acc_.assign(static_cast<std::size_t>(m_), 0.0);
+  all_points_ = std::all_of(rows_.begin(), rows_.end(), [](const LoopRow<double>& l) { return !l.weld; });
 }
 
 // Raw diagonal blocks of J Omega J^T (U null: the unit tree's) at the current X0_, Xup_,
@@ -186,6 +188,8 @@ void IterativeLoopSolver::build_preconditioner(const Force<double>* U, const dou
     }
     loop_pair_block(hi, t.s_hi, lo, t.s_lo, X0_.data(), O, &pair_vals_[pair_off_[t.pair]]);
   }
+  if (kind == LoopPreconditioner::Ssor)  // L -> omega L
+    for (double& e : pair_vals_) e *= options_.relaxation;
 }
 
 void IterativeLoopSolver::apply_preconditioner(const double* r, double* z) const {
@@ -215,6 +219,42 @@ void IterativeLoopSolver::apply_preconditioner(const double* r, double* z) const
   const bool line_only = weights_ == LoopPreconditioner::BlockTridiagonal;
   const Index nl = static_cast<Index>(rows_.size());
   double t[6], y[6];
+  if (all_points_ && !line_only) {  // the same sweeps with 3 x 3 blocks (the cloths': unrolled)
+    for (Index k = 0; k < nl; ++k) {
+      const Index row = 3 * k;
+      double t0 = r[row], t1 = r[row + 1], t2 = r[row + 2];
+      for (Index p = pair_start_[k]; p < pair_start_[k + 1]; ++p) {
+        const double* A = &pair_vals_[9 * static_cast<std::size_t>(p)];
+        const double* yl = z + 3 * pair_lo_[p];
+        t0 -= A[0] * yl[0] + A[1] * yl[1] + A[2] * yl[2];
+        t1 -= A[3] * yl[0] + A[4] * yl[1] + A[5] * yl[2];
+        t2 -= A[6] * yl[0] + A[7] * yl[1] + A[8] * yl[2];
+      }
+      const double* B = &block_inv_[36 * static_cast<std::size_t>(k)];
+      z[row] = B[0] * t0 + B[1] * t1 + B[2] * t2;
+      z[row + 1] = B[3] * t0 + B[4] * t1 + B[5] * t2;
+      z[row + 2] = B[6] * t0 + B[7] * t1 + B[8] * t2;
+    }
+    double* acc = pre_acc_.data();
+    std::fill(acc, acc + m_, 0.0);
+    for (Index k = nl - 1; k >= 0; --k) {
+      const Index row = 3 * k;
+      const double* B = &block_inv_[36 * static_cast<std::size_t>(k)];
+      const double a0 = acc[row], a1 = acc[row + 1], a2 = acc[row + 2];
+      const double z0 = z[row] - (B[0] * a0 + B[1] * a1 + B[2] * a2);
+      const double z1 = z[row + 1] - (B[3] * a0 + B[4] * a1 + B[5] * a2);
+      const double z2 = z[row + 2] - (B[6] * a0 + B[7] * a1 + B[8] * a2);
+      z[row] = z0, z[row + 1] = z1, z[row + 2] = z2;
+      for (Index p = pair_start_[k]; p < pair_start_[k + 1]; ++p) {
+        const double* A = &pair_vals_[9 * static_cast<std::size_t>(p)];
+        double* al = acc + 3 * pair_lo_[p];
+        al[0] += A[0] * z0 + A[3] * z1 + A[6] * z2;
+        al[1] += A[1] * z0 + A[4] * z1 + A[7] * z2;
+        al[2] += A[2] * z0 + A[5] * z1 + A[8] * z2;
+      }
+    }
+    return;
+  }
   for (Index k = 0; k < nl; ++k) {
     const int d = rows_[k].rows();
     const Index row = loop_row_[k];
@@ -366,11 +406,11 @@ bool IterativeLoopSolver::fd_solve(double target, int& it, double& rnorm) {
     const double alpha = gamma / delta;
     for (Index k = 0; k < m; ++k) lambda_[k] += alpha * pl[k], res[k] -= alpha * Jp[k];
     for (Index i = 0; i < n; ++i) x[i] += alpha * px[i];
+    for (Index k = 0; k < m; ++k) w[k] -= alpha * WJp[k];  // W res by its recurrence (W is linear)
     ++it;
     rnorm = norm(res, m);
     if (!std::isfinite(rnorm)) return false;
     if (rnorm <= target) break;
-    apply_preconditioner(res, w);
     schur_response(w, Js);
     const double gamma1 = dot(w, Js, m);
     if (stop.least_squares(rnorm, std::sqrt(gamma1 / gamma0))) {
@@ -517,9 +557,9 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
   std::vector<double>& p = qdd0_;  // (free during a projection)
   std::copy(r, r + m, res);
   std::fill(x, x + n, 0.0);
-  auto jtw = [&](const double* rows, double* out) {  // out (n) = J^T W rows
-    apply_preconditioner(rows, wq);
-    loop_point_wrenches(rows_.data(), nl, n, X0_.data(), wq, f_.data());
+  double* wres = tmp_m_.data();  // W res, by its recurrence within a round (W is linear)
+  auto jt = [&](const double* wrows, double* out) {  // out (n) = J^T wrows
+    loop_point_wrenches(rows_.data(), nl, n, X0_.data(), wrows, f_.data());
     loop_joint_forces(bodies, n, Xup_.data(), f_.data(), pA_.data(), out);
   };
   auto jv = [&](const double* v, double* out) {  // out (m) = J v
@@ -550,7 +590,8 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
         break;
       }
     }
-    jtw(res, s.data());
+    apply_preconditioner(res, wres);
+    jt(wres, s.data());
     for (Index i = 0; i < n; ++i) s[i] -= mu * x[i];
     sn = norm(s.data(), n);
     if (round == 0) s0 = sn;  // (every round's normal residual relative to the first's)
@@ -564,7 +605,7 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
       if (!(delta > 0) || !std::isfinite(delta)) break;
       const double alpha = gamma / delta;
       for (Index i = 0; i < n; ++i) x[i] += alpha * p[i];
-      for (Index k = 0; k < m; ++k) res[k] -= alpha * q[k];
+      for (Index k = 0; k < m; ++k) res[k] -= alpha * q[k], wres[k] -= alpha * wq[k];
       ++it;
       rn = norm(res, m);
       if (!std::isfinite(rn)) break;
@@ -573,7 +614,7 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
         converged = true;
         break;
       }
-      jtw(res, s.data());
+      jt(wres, s.data());
       for (Index i = 0; i < n; ++i) s[i] -= mu * x[i];
       const double gamma1 = dot(s.data(), s.data(), n);
       sn = std::sqrt(gamma1);
@@ -640,11 +681,12 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
       loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), s.X0_.data(),
                        s.v_.data(), s.a_.data());
       loop_joint_transforms(s.model_.bodies.data(), s.n_, x, s.Xup_.data());
-      // the unit tree's blocks: also the damping's scale; the weights block Jacobi for
-      // every preconditioner but None (the neighbour-block weights of J J^T are
+      // the unit tree's blocks: also the damping's scale; the weights: None, Ssor, or
+      // block Jacobi for the others (their neighbour-block weights of J J^T are
       // ill-conditioned: docs/loops.md, "Preconditioner")
+      const LoopPreconditioner p = s.options_.preconditioner;
       const LoopPreconditioner kind =
-          s.options_.preconditioner == LoopPreconditioner::None ? LoopPreconditioner::None : LoopPreconditioner::BlockJacobi;
+          p == LoopPreconditioner::None || p == LoopPreconditioner::Ssor ? p : LoopPreconditioner::BlockJacobi;
       s.build_preconditioner(nullptr, nullptr, kind);
       double big = 0;
       for (std::size_t k = 0; k < s.rows_.size(); ++k) {
@@ -704,6 +746,7 @@ LoopSolverFactory iterative_loop_solver_factory(LoopPreconditioner p) {
     case LoopPreconditioner::None: return &make_preconditioned<LoopPreconditioner::None>;
     case LoopPreconditioner::BlockJacobi: return &make_preconditioned<LoopPreconditioner::BlockJacobi>;
     case LoopPreconditioner::SymmetricGaussSeidel: return &make_preconditioned<LoopPreconditioner::SymmetricGaussSeidel>;
+    case LoopPreconditioner::Ssor: return &make_preconditioned<LoopPreconditioner::Ssor>;
     case LoopPreconditioner::BlockTridiagonal: return &make_preconditioned<LoopPreconditioner::BlockTridiagonal>;
     case LoopPreconditioner::BlockDilu: return &make_preconditioned<LoopPreconditioner::BlockDilu>;
   }

@@ -574,7 +574,7 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
       (void)parse_loop_preconditioner(s.loop_preconditioner);
     } catch (const LoopError&) {
       r.expected("loop_preconditioner",
-                 "\"block-jacobi\", \"symmetric-gauss-seidel\", \"block-tridiagonal\", \"block-dilu\" or \"none\"",
+                 "\"block-jacobi\", \"symmetric-gauss-seidel\", \"ssor\", \"block-tridiagonal\", \"block-dilu\" or \"none\"",
                  doc["loop_preconditioner"]);
     }
   }

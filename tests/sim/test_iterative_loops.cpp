@@ -183,7 +183,7 @@ TEST(IterativeLoops, NeighbourBlocksEqualTheDenseOnes) {
 
 const sim::LoopPreconditioner kPreconditioners[] = {
     sim::LoopPreconditioner::BlockJacobi, sim::LoopPreconditioner::None,
-    sim::LoopPreconditioner::SymmetricGaussSeidel, sim::LoopPreconditioner::BlockTridiagonal,
+    sim::LoopPreconditioner::SymmetricGaussSeidel, sim::LoopPreconditioner::Ssor, sim::LoopPreconditioner::BlockTridiagonal,
     sim::LoopPreconditioner::BlockDilu};
 
 // Every preconditioner's weights W are symmetric positive definite (what CGLS needs of

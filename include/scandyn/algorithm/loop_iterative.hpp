@@ -331,10 +331,21 @@ SCANDYN_HD void loop_pair_block(const LoopRow<S>& l1, int s1, const LoopRow<S>& 
                                 const Mat6<S>& Omega12, S* out) {
   const int d1 = l1.rows(), d2 = l2.rows();
   const int f1 = l1.weld ? 0 : 3, f2 = l2.weld ? 0 : 3;
-  const Mat6<S> B = loop_side_map(l1, s1, X0) * mul_transpose_right(Omega12, loop_side_map(l2, s2, X0));
+  const Mat6<S> W1 = loop_side_map(l1, s1, X0), W2 = loop_side_map(l2, s2, X0);
+  S T[36];  // Omega12 W2^T, the loop's columns only (6 x d2)
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < d2; ++c) {
+      S t = S(0);
+      for (int k = 0; k < 6; ++k) t += Omega12(r, k) * W2(f2 + c, k);
+      T[r * d2 + c] = t;
+    }
   const S sign = (s1 == s2) ? S(1) : S(-1);
   for (int r = 0; r < d1; ++r)
-    for (int c = 0; c < d2; ++c) out[r * d2 + c] += sign * B(f1 + r, f2 + c);
+    for (int c = 0; c < d2; ++c) {
+      S t = S(0);
+      for (int k = 0; k < 6; ++k) t += W1(f1 + r, k) * T[k * d2 + c];
+      out[r * d2 + c] += sign * t;
+    }
 }
 
 // The eigen-decomposition of a symmetric d x d matrix A (d <= 6, row-major) by cyclic

@@ -91,9 +91,9 @@ class LoopSolveNotConverged : public LoopError {
   using LoopError::LoopError;
 };
 
-enum class LoopPreconditioner { None, BlockJacobi, SymmetricGaussSeidel, BlockTridiagonal, BlockDilu };
+enum class LoopPreconditioner { None, BlockJacobi, SymmetricGaussSeidel, Ssor, BlockTridiagonal, BlockDilu };
 
-// "none", "block-jacobi", "symmetric-gauss-seidel", "block-tridiagonal", "block-dilu".
+// "none", "block-jacobi", "symmetric-gauss-seidel", "ssor", "block-tridiagonal", "block-dilu".
 const char* loop_preconditioner_name(LoopPreconditioner p);
 // The inverse of loop_preconditioner_name; throws LoopError naming the choices.
 LoopPreconditioner parse_loop_preconditioner(const std::string& name);
@@ -101,8 +101,11 @@ LoopPreconditioner parse_loop_preconditioner(const std::string& name);
 struct IterativeLoopOptions {
   double tolerance = kIterativeLoopTolerance;
   int max_iterations = kIterativeLoopMaxIterations;
-  LoopPreconditioner preconditioner = LoopPreconditioner::BlockJacobi;
+  LoopPreconditioner preconditioner = LoopPreconditioner::Ssor;
   bool warm_start = true;  // start each forward dynamics' CG from the previous lambda
+  // Ssor's relaxation omega: W^-1 proportional to (D + omega L_nb) D^-1 (D + omega L_nb)^T
+  // (1: SymmetricGaussSeidel; 0: BlockJacobi)
+  double relaxation = 0.5;
 };
 
 // What the solver did since its construction (or reset_stats).
@@ -130,7 +133,7 @@ class IterativeLoopSolver : public LoopSolver {
   const IterativeLoopOptions& options() const { return options_; }
   // z (m) = W r (m): the preconditioner as last built (by forward_dynamics: of A at its
   // state; by project: of J J^T at its last linearisation, block Jacobi for every
-  // preconditioner but None); the identity before.
+  // preconditioner but None and Ssor); the identity before.
   void apply_weights(const double* r, double* z) const { apply_preconditioner(r, z); }
 
  private:
@@ -175,6 +178,7 @@ class IterativeLoopSolver : public LoopSolver {
   std::vector<char> pair_line_;
   std::vector<double> pair_vals_;
   mutable std::vector<double> pre_acc_;
+  bool all_points_ = false;  // every loop a point loop (3 rows): the sweeps' 3 x 3 path
   LoopPreconditioner weights_ = LoopPreconditioner::None;  // the weights as last built (None: W = 1)
   bool unit_factored_ = false;
   double unit_scale_ = 1;

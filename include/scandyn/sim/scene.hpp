@@ -93,7 +93,7 @@ struct Scene {
   // "auto" (sparse from kSparseLoopDofs DoFs on, when registered; docs/loops.md)
   std::string loop_solver = "auto";
   // the iterative solver's preconditioner ("loop_preconditioner": "block-jacobi",
-  // "symmetric-gauss-seidel", "block-tridiagonal", "block-dilu" or "none";
+  // "symmetric-gauss-seidel", "ssor", "block-tridiagonal", "block-dilu" or "none";
   // sim::LoopPreconditioner); empty: IterativeLoopOptions' default
   std::string loop_preconditioner;
 
