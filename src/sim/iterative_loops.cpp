@@ -536,9 +536,9 @@ void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, co
 // at its linearisation, by conjugate gradients on the normal equations
 // (J^T W J + mu I) x = J^T W r from x = 0 (CGLS: each iteration one J p and one J^T W q;
 // min-norm, and a least-squares solution also when r is not in J's range, as a
-// projection's residual partly is at rounding level). W: the block-Jacobi weights (the
-// pseudo-inverses of J J^T's diagonal blocks; this is CG on J J^T + mu W^-1 with that
-// preconditioner, in the rows' terms), or 1 without a preconditioner. mu is at least
+// projection's residual partly is at rounding level). W: the SSOR or block-Jacobi weights
+// of J J^T (this is CG on J J^T + mu W^-1 with that preconditioner, in the rows' terms;
+// W times the residual by its recurrence), or 1 without a preconditioner. mu is at least
 // kLoopRankTolerance (of the damping scale). Converged: (mu = 0 asked) ||r - J x||_2 <=
 // tolerance ||r||_2 + floor, or the damped normal residual ||J^T W (r - J x) - mu x||_2
 // at most tolerance times its first value.
@@ -694,8 +694,8 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
         for (int i = 0; i < d; ++i) big = std::max(big, s.blocks_[36 * k + i * d + i]);
       }
       // Levenberg-Marquardt's damping scale, the size of J J^T in the weights' units: 1
-      // with the block-Jacobi weights (W^1/2 J J^T W^1/2 has unit diagonal blocks), else
-      // the largest diagonal entry of J J^T
+      // with weights (block Jacobi: W^1/2 J J^T W^1/2 has unit diagonal blocks; SSOR's
+      // are of that size), else the largest diagonal entry of J J^T
       s.unit_scale_ = s.options_.preconditioner != LoopPreconditioner::None ? 1.0 : big > 0 ? big : 1.0;
       if (kind != LoopPreconditioner::None) s.invert_blocks(kind);
     }

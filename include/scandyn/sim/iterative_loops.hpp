@@ -9,7 +9,7 @@
 // of scandyn/algorithm/loop_iterative.hpp (J^T lambda as point forces on the links, M^-1
 // by the articulated-body passes at zero velocity without gravity, J x from the links'
 // accelerations), and solved by conjugate gradients on the normal equations in M's
-// metric, weighted by the block-Jacobi weights W (CGLS: min ||J x - b||_W over x =
+// metric, weighted by the preconditioner's weights W (CGLS: min ||J x - b||_W over x =
 // M^-1 J^T lambda; one application of A per iteration), warm-started from this solver's
 // previous lambda (the previous stage or step of the instances the solver serves). A is
 // symmetric positive semi-definite: redundant rows (a planar loop closed by a 3D point,
@@ -29,7 +29,7 @@
 // instance: Failure::LoopNotClosed), never a silent wrong answer.
 //
 // project: project_onto_loops (scandyn/algorithm/loop_projection.hpp) with each step
-// x = J^T (J J^T + mu D)^-1 r (D: the block-Jacobi blocks of J J^T, the Levenberg-Marquardt
+// x = J^T (J J^T + mu D)^-1 r (D = W^-1 of J J^T, below: the Levenberg-Marquardt
 // weights; mu = 0: the minimum-norm J^+ r) by CGLS on (J^T W J + mu I) x = J^T W r,
 // W = D^-1, over the "unit tree" (massless links, a unit joint-space inertia per joint:
 // J p and J^T W q by O(n) passes), from 0. mu is at least kLoopRankTolerance (the dense
@@ -53,6 +53,9 @@
 //   (Dt + L_nb) Dt^-1 (Dt + L_nb)^T (symmetric positive definite for any symmetric
 //   positive definite block diagonal Dt; one forward and one backward block sweep):
 //   - SymmetricGaussSeidel: Dt = A's diagonal blocks (symmetric block Gauss-Seidel);
+//   - Ssor (the default): the same with L_nb scaled by relaxation (omega = 0.5): SSOR,
+//     the preconditioner with the fewest iterations and seconds measured (docs/loops.md,
+//     "Preconditioner"); also the projection's weights of J J^T;
 //   - BlockDilu: Dt_k = A_kk - sum_{l < k} A_kl Dt_l^-1 A_lk over the neighbours (block
 //     diagonal incomplete LU: the incomplete factorisation whose product has A_nb's
 //     diagonal blocks and lower part);
@@ -63,7 +66,11 @@
 //   Dt_k is inverted with its eigenvalues floored at kLoopBlockFloor of A_kk's largest;
 //   a Dt_k with more eigenvalues below that floor than A_kk is replaced by A_kk (the
 //   incomplete factorisation broke down there; counted in IterativeLoopStats);
+//   SymmetricGaussSeidel, BlockTridiagonal and BlockDilu project with block Jacobi's
+//   weights (theirs of J J^T are ill-conditioned: the velocity projection stopped far
+//   from J qd = 0), and need more iterations than block Jacobi from cloth:50:50 on;
 // - None: W = 1.
+// One application of W per CGLS iteration (W times the residual by its recurrence).
 #pragma once
 
 #include <memory>
