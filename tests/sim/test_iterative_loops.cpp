@@ -452,6 +452,14 @@ TEST(IterativeLoops, SceneChoosesTheSolver) {
   EXPECT_EQ(error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative"})"), "");
   const std::string e = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "cg"})");
   EXPECT_NE(e.find("\"iterative\""), std::string::npos) << e;
+  // the preconditioner: every name, and an unknown one refused naming the choices
+  for (auto pre : kPreconditioners)
+    EXPECT_EQ(error_of(std::string(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative", "loop_preconditioner": ")") +
+                       sim::loop_preconditioner_name(pre) + "\"}"),
+              "");
+  const std::string p = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_preconditioner": "jacobi"})");
+  EXPECT_NE(p.find("loop_preconditioner"), std::string::npos) << p;
+  EXPECT_NE(p.find("\"ssor\""), std::string::npos) << p;
   const std::string w = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative",
       "effects": {"external": {"wrenches": [{"link": "left_distal", "wrench": [0, 0, 0, 1, 0, 0]}]}}})");
   EXPECT_NE(w.find("iterative"), std::string::npos) << w;
