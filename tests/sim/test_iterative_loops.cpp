@@ -336,7 +336,10 @@ TEST(IterativeLoops, FarProjectionCloses) {
     it.project(q.data(), qd.data(), 1e-13, 100, &info);
     ASSERT_TRUE(info_ref.converged);
     EXPECT_TRUE(info.converged);
-    EXPECT_LE(info.linearisations, 3 * info_ref.linearisations + 5);  // measured: 20 against 7 on cloth:6:6
+    // measured (ssor): 5, 5, 8, 19 against the dense 5, 5, 5, 7 (block Jacobi: 20 on cloth:6:6)
+    EXPECT_LE(info.linearisations, 3 * info_ref.linearisations + 5);
+    RecordProperty(c.spec + "_linearisations", std::to_string(info.linearisations) + " against " +
+                                                   std::to_string(info_ref.linearisations));
     EXPECT_LE(loop_violation(c.model, c.loops, q.data(), qd.data()), 1e-11);  // (|J qd|: measured 1.2e-12)
     EXPECT_LE(max_diff(q, start), 2 * max_diff(q_ref, start));
   }
