@@ -40,7 +40,7 @@
 //   loop_pair_block          a share of the off-diagonal block (k, l) of A (or J J^T) of
 //                            two loops with links on one body or on a child and its
 //                            parent (the neighbour blocks of the preconditioners of
-//                            scandyn/sim/iterative_loops.hpp: symmetric block
+//                            scandyn/sim/iterative_loops.hpp: SSOR, symmetric block
 //                            Gauss-Seidel, block-tridiagonal along the ropes, block
 //                            DILU);
 //   symmetric_eigen          a symmetric d x d (d <= 6) matrix's eigenvalues and vectors;
