@@ -223,6 +223,7 @@ wait_report() {
   else
     echo "test.sh: accuracy report failed (output kept in $report_dir)" >&2
     failed+=(accuracy-report)
+    failed_tests+=("accuracy-report: scripts/accuracy_report --quick failed (its output above)")
   fi
 }
 
@@ -260,7 +261,8 @@ wait_report
 if [[ "${SCANDYN_SKIP_FUZZ:-0}" != 1 ]]; then
   if command -v clang++ >/dev/null 2>&1; then
     stamp "fuzz: ${SCANDYN_FUZZ_SECONDS:-10} s per target (build-fuzz)"
-    scripts/fuzz.sh "${SCANDYN_FUZZ_SECONDS:-10}" || failed+=(fuzz)
+    scripts/fuzz.sh "${SCANDYN_FUZZ_SECONDS:-10}" ||
+      { failed+=(fuzz); failed_tests+=("fuzz: the fuzz targets' build or a target failed (above)"); }
   else
     echo "test.sh: warning: clang++ not found; the fuzz stage is skipped" >&2
   fi

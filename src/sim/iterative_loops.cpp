@@ -80,27 +80,6 @@ IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loop
   jscale_ = big > 0 ? std::sqrt(big) : 1.0;
 }
 
-const char* loop_preconditioner_name(LoopPreconditioner p) {
-  switch (p) {
-    case LoopPreconditioner::None: return "none";
-    case LoopPreconditioner::BlockJacobi: return "block-jacobi";
-    case LoopPreconditioner::SymmetricGaussSeidel: return "symmetric-gauss-seidel";
-    case LoopPreconditioner::Ssor: return "ssor";
-    case LoopPreconditioner::BlockTridiagonal: return "block-tridiagonal";
-    case LoopPreconditioner::BlockDilu: return "block-dilu";
-  }
-  return "?";
-}
-
-LoopPreconditioner parse_loop_preconditioner(const std::string& name) {
-  for (LoopPreconditioner p : {LoopPreconditioner::None, LoopPreconditioner::BlockJacobi,
-                               LoopPreconditioner::SymmetricGaussSeidel, LoopPreconditioner::Ssor,
-                               LoopPreconditioner::BlockTridiagonal, LoopPreconditioner::BlockDilu})
-    if (name == loop_preconditioner_name(p)) return p;
-  throw LoopError("unknown loop preconditioner '" + name +
-                  "' (expected none, block-jacobi, symmetric-gauss-seidel, ssor, block-tridiagonal or block-dilu)");
-}
-
 bool IterativeLoopSolver::neighbour_blocks(LoopPreconditioner p) {
   return p == LoopPreconditioner::SymmetricGaussSeidel || p == LoopPreconditioner::Ssor ||
          p == LoopPreconditioner::BlockTridiagonal || p == LoopPreconditioner::BlockDilu;

@@ -101,9 +101,28 @@ class LoopSolveNotConverged : public LoopError {
 enum class LoopPreconditioner { None, BlockJacobi, SymmetricGaussSeidel, Ssor, BlockTridiagonal, BlockDilu };
 
 // "none", "block-jacobi", "symmetric-gauss-seidel", "ssor", "block-tridiagonal", "block-dilu".
-const char* loop_preconditioner_name(LoopPreconditioner p);
+// (Inline, as the next: the scene parser, in the parsers' library without the solver,
+// checks a scene's "loop_preconditioner" with them.)
+inline const char* loop_preconditioner_name(LoopPreconditioner p) {
+  switch (p) {
+    case LoopPreconditioner::None: return "none";
+    case LoopPreconditioner::BlockJacobi: return "block-jacobi";
+    case LoopPreconditioner::SymmetricGaussSeidel: return "symmetric-gauss-seidel";
+    case LoopPreconditioner::Ssor: return "ssor";
+    case LoopPreconditioner::BlockTridiagonal: return "block-tridiagonal";
+    case LoopPreconditioner::BlockDilu: return "block-dilu";
+  }
+  return "?";
+}
 // The inverse of loop_preconditioner_name; throws LoopError naming the choices.
-LoopPreconditioner parse_loop_preconditioner(const std::string& name);
+inline LoopPreconditioner parse_loop_preconditioner(const std::string& name) {
+  for (LoopPreconditioner p : {LoopPreconditioner::None, LoopPreconditioner::BlockJacobi,
+                               LoopPreconditioner::SymmetricGaussSeidel, LoopPreconditioner::Ssor,
+                               LoopPreconditioner::BlockTridiagonal, LoopPreconditioner::BlockDilu})
+    if (name == loop_preconditioner_name(p)) return p;
+  throw LoopError("unknown loop preconditioner '" + name +
+                  "' (expected none, block-jacobi, symmetric-gauss-seidel, ssor, block-tridiagonal or block-dilu)");
+}
 
 struct IterativeLoopOptions {
   double tolerance = kIterativeLoopTolerance;
