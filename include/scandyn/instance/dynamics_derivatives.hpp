@@ -790,6 +790,17 @@ SCANDYN_PACKED_UNROLL
   return -1;
 }
 
+// tree_ltl_inverse with its two scratch vectors in the d and t fields of work (nv entries).
+template <class S, class Tree>
+SCANDYN_HD void tree_ltl_inverse_on_work(Tree parent, MatrixRef<S> L_to_Minv, DerivativeBody<S>* work) {
+  struct Field {  // one scalar field of the work array
+    DerivativeBody<S>* w;
+    S DerivativeBody<S>::*f;
+    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
+  };
+  tree_ltl_inverse(parent, L_to_Minv, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+}
+
 // The forward-dynamics solve by the tree walks on the inverse-dynamics derivatives
 // in the three blocks (dtau/dq, dtau/dqd, M + diag(armature) in; dqdd/dq, dqdd/dqd,
 // M^-1 out), over the tree of DoFs `parent` (BodyTree or DofTree); work: nv entries
@@ -802,12 +813,7 @@ SCANDYN_HD Index tree_fd_solve(Tree parent, Index nv, DerivativeBody<S>* work, M
   const Index failed = tree_ltl_factor(parent, dqdd_dtau);
   if (failed >= 0) return failed;
   tree_ltl_negated_solve(parent, dqdd_dtau, dqdd_dq, dqdd_dqd);
-  struct Field {  // one scalar field of the work array
-    DerivativeBody<S>* w;
-    S DerivativeBody<S>::*f;
-    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
-  };
-  tree_ltl_inverse(parent, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+  tree_ltl_inverse_on_work(parent, dqdd_dtau, work);
   return -1;
 }
 
@@ -863,12 +869,7 @@ SCANDYN_HD Index fd_derivatives_general_instance(const Body<S>* body, Index nb, 
   const Index failed = dof_ltl_factor(tree, dqdd_dtau);
   if (failed >= 0) return failed;
   dof_ltl_negated_solve(tree, dqdd_dtau, dqdd_dq, dqdd_dqd);
-  struct Field {  // one scalar field of the work array
-    DerivativeBody<S>* w;
-    S DerivativeBody<S>::*f;
-    SCANDYN_HD S& operator[](Index i) const { return w[i].*f; }
-  };
-  tree_ltl_inverse(tree, dqdd_dtau, Field{work, &DerivativeBody<S>::d}, Field{work, &DerivativeBody<S>::t});
+  tree_ltl_inverse_on_work(tree, dqdd_dtau, work);
   return -1;
 }
 
