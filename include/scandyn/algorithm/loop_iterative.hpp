@@ -9,7 +9,9 @@
 //                            M^-1 (tau - h), and what M^-1 needs of the state at q:
 //                            Xup_i, U_i = IA_i S_i and D_i = S_i^T IA_i S_i;
 //   loop_point_wrenches      J^T lambda as body wrenches: lambda's rows act as point
-//                            forces (and, weld, couples) on the loop's two links;
+//                            forces (and, weld, couples) on the loop's two links
+//                            (loop_body_wrench: one body's, gathered from its loop
+//                            sides without a scatter);
 //   loop_tree_response       the response of a tree at zero velocity and without
 //                            gravity to body wrenches f: M^-1 J^T lambda by the
 //                            ABA's passes 2 and 3 with the articulated inertias of
@@ -52,7 +54,9 @@
 //                            is an eigenvector of its block, and J^T W leaves it out);
 //                            without a floor, the pseudo-inverse.
 //
-// The conjugate gradients over these passes are host code (src/sim/iterative_loops.cpp).
+// The conjugate gradients over these passes are host code (src/sim/iterative_loops.cpp);
+// the CUDA solver (kernels/loop_iterative.cu) runs the passes one thread per chain
+// (the *_range forms, below) and one thread per loop.
 #pragma once
 
 #include <cmath>
@@ -72,11 +76,22 @@ inline constexpr double kLoopBlockFloor = 1e-6;
 // zero-velocity responses reuse: Xup, U, D (n each) and the tree's qdd0 (n).
 // Scratch (n each): v, c, a (motions), IA (articulated inertias), pA (forces), u.
 // Returns -1, or the DoF whose articulated pivot D_i was not positive and finite.
+//
+// The *_range forms of the tree passes (loop_aba_factor_range, loop_tree_response_range,
+// loop_joint_motion_range, loop_response_blocks_range; loop_body_motion_range in
+// loop_solver.hpp) walk the bodies [begin, end) only, on the whole tree's arrays (global
+// body indices): a range closed under the parent relation (every body's parent in the
+// range or the base), e.g. one unbranched chain hanging from the base, as the CUDA
+// iterative loop solver's threads walk them (scandyn/cuda/loop_iterative.hpp). Each
+// body's arithmetic is the whole-tree pass's, in the same order: the composition over
+// such ranges equals the whole-tree pass bit for bit (the whole-tree forms call them
+// with [0, n)).
 template <class S>
-SCANDYN_HD Index loop_aba_factor(const Body<S>* bodies, Index n, const Vec3<S>& gravity, const S* q, const S* qd,
-                                 const S* tau, Transform<S>* Xup, Force<S>* U, S* D, S* qdd0, Motion<S>* v,
-                                 Motion<S>* c, Motion<S>* a, ABInertia<S>* IA, Force<S>* pA, S* u) {
-  for (Index i = 0; i < n; ++i) {  // pass 1: velocities, velocity products, bias forces
+SCANDYN_HD Index loop_aba_factor_range(const Body<S>* bodies, Index begin, Index end, const Vec3<S>& gravity,
+                                       const S* q, const S* qd, const S* tau, Transform<S>* Xup, Force<S>* U, S* D,
+                                       S* qdd0, Motion<S>* v, Motion<S>* c, Motion<S>* a, ABInertia<S>* IA,
+                                       Force<S>* pA, S* u) {
+  for (Index i = begin; i < end; ++i) {  // pass 1: velocities, velocity products, bias forces
     const Body<S>& b = bodies[i];
     const Index p = b.parent;
     Xup[i] = joint_transform(b, q[i]);
@@ -84,18 +99,24 @@ SCANDYN_HD Index loop_aba_factor(const Body<S>* bodies, Index n, const Vec3<S>& 
     v[i] = o.v, c[i] = o.c, pA[i] = o.pA;
     IA[i] = ABInertia<S>::from(b.I);
   }
-  for (Index i = n - 1; i >= 0; --i) {  // pass 2: articulated inertias, leaves to root
+  for (Index i = end - 1; i >= begin; --i) {  // pass 2: articulated inertias, leaves to root
     const Body<S>& b = bodies[i];
     aba_joint_terms(b, IA[i], pA[i], tau[i], U[i], D[i], u[i]);
     if (!pivot_ok(D[i])) return i;
     if (b.parent >= 0) aba_backward_to_parent(Xup[i], IA[i], pA[i], c[i], U[i], D[i], u[i], IA[b.parent], pA[b.parent]);
   }
   const Motion<S> a0 = base_acceleration(gravity);
-  for (Index i = 0; i < n; ++i) {  // pass 3: accelerations
+  for (Index i = begin; i < end; ++i) {  // pass 3: accelerations
     const Body<S>& b = bodies[i];
     qdd0[i] = aba_acceleration_step(b, Xup[i], b.parent < 0 ? a0 : a[b.parent], c[i], U[i], D[i], u[i], a[i]);
   }
   return -1;
+}
+template <class S>
+SCANDYN_HD Index loop_aba_factor(const Body<S>* bodies, Index n, const Vec3<S>& gravity, const S* q, const S* qd,
+                                 const S* tau, Transform<S>* Xup, Force<S>* U, S* D, S* qdd0, Motion<S>* v,
+                                 Motion<S>* c, Motion<S>* a, ABInertia<S>* IA, Force<S>* pA, S* u) {
+  return loop_aba_factor_range(bodies, Index(0), n, gravity, q, qd, tau, Xup, U, D, qdd0, v, c, a, IA, pA, u);
 }
 
 // Xup_i at q alone (the unit tree's transforms, for the projection).
@@ -108,6 +129,20 @@ SCANDYN_HD void loop_joint_transforms(const Body<S>* bodies, Index n, const S* q
 // loop k's linear rows l act as the force +l at point a of link a and -l at point b
 // of link b (base coordinates: E l on the body, moment p x E l about its origin); a
 // weld's angular rows as the couples +-E l. A link -1 (the base) takes nothing.
+// Loop l's wrench on its side `side`'s body (not the base), lambda_row: the loop's rows.
+template <class S>
+SCANDYN_HD Force<S> loop_side_wrench(const LoopRow<S>& l, int side, const Transform<S>* X0, const S* lambda_row) {
+  const Index lin = l.weld ? 3 : 0;
+  const Vec3<S> fl{lambda_row[lin], lambda_row[lin + 1], lambda_row[lin + 2]};
+  const Index body = side == 0 ? l.body_a : l.body_b;
+  const S sign = side == 0 ? S(1) : S(-1);
+  const Vec3<S>& p = side == 0 ? l.point_a : l.point_b;
+  const Vec3<S> fb = sign * (X0[body].E * fl);
+  Vec3<S> nb = cross(p, fb);
+  if (l.weld) nb += sign * (X0[body].E * Vec3<S>{lambda_row[0], lambda_row[1], lambda_row[2]});
+  return Force<S>{nb, fb};
+}
+
 template <class S>
 SCANDYN_HD void loop_point_wrenches(const LoopRow<S>* loops, Index nloops, Index n, const Transform<S>* X0,
                                     const S* lambda, Force<S>* f) {
@@ -115,21 +150,29 @@ SCANDYN_HD void loop_point_wrenches(const LoopRow<S>* loops, Index nloops, Index
   Index row = 0;
   for (Index k = 0; k < nloops; ++k) {
     const LoopRow<S>& l = loops[k];
-    const Index lin = l.weld ? row + 3 : row;
-    const Vec3<S> fl{lambda[lin], lambda[lin + 1], lambda[lin + 2]};
-    const Vec3<S> nl = l.weld ? Vec3<S>{lambda[row], lambda[row + 1], lambda[row + 2]} : Vec3<S>::zero();
     for (int side = 0; side < 2; ++side) {
       const Index body = side == 0 ? l.body_a : l.body_b;
       if (body < 0) continue;
-      const S sign = side == 0 ? S(1) : S(-1);
-      const Vec3<S>& p = side == 0 ? l.point_a : l.point_b;
-      const Vec3<S> fb = sign * (X0[body].E * fl);
-      Vec3<S> nb = cross(p, fb);
-      if (l.weld) nb += sign * (X0[body].E * nl);
-      f[body] += Force<S>{nb, fb};
+      f[body] += loop_side_wrench(l, side, X0, lambda + row);
     }
     row += l.rows();
   }
+}
+
+// Body `body`'s entry of loop_point_wrenches' f gathered from its loop sides (no
+// scatter: what a thread per body or per chain computes without races): side_start
+// (bodies + 1) and side (2 k + s: loop k's side s, per body in increasing order, as
+// loop_body_sides builds them), row_of (loops): each loop's first row. The same sums
+// in the same order as loop_point_wrenches: bit for bit its f[body].
+template <class S>
+SCANDYN_HD Force<S> loop_body_wrench(const LoopRow<S>* loops, const Index* row_of, const Index* side_start,
+                                     const Index* side, Index body, const Transform<S>* X0, const S* lambda) {
+  Force<S> f = Force<S>::zero();
+  for (Index e = side_start[body]; e < side_start[body + 1]; ++e) {
+    const Index k = side[e] >> 1;
+    f += loop_side_wrench(loops[k], static_cast<int>(side[e] & 1), X0, lambda + row_of[k]);
+  }
+  return f;
 }
 
 // The tree's response at zero velocity and without gravity to the body wrenches f
@@ -141,10 +184,11 @@ SCANDYN_HD void loop_point_wrenches(const LoopRow<S>* loops, Index nloops, Index
 // U null: the unit tree (U = 0, D = 1): qdd_i = S_i^T (f summed over i's subtree),
 // i.e. qdd = J^T lambda for loop_point_wrenches' f. Scratch pA (n forces).
 template <class S>
-SCANDYN_HD void loop_tree_response(const Body<S>* bodies, Index n, const Transform<S>* Xup, const Force<S>* U,
-                                   const S* D, const Force<S>* f, Force<S>* pA, S* qdd, Motion<S>* a) {
-  for (Index i = 0; i < n; ++i) pA[i] = -f[i];
-  for (Index i = n - 1; i >= 0; --i) {
+SCANDYN_HD void loop_tree_response_range(const Body<S>* bodies, Index begin, Index end, const Transform<S>* Xup,
+                                         const Force<S>* U, const S* D, const Force<S>* f, Force<S>* pA, S* qdd,
+                                         Motion<S>* a) {
+  for (Index i = begin; i < end; ++i) pA[i] = -f[i];
+  for (Index i = end - 1; i >= begin; --i) {
     const Body<S>& b = bodies[i];
     const S u = -joint_project(b, pA[i]);
     qdd[i] = u;  // u_i until pass 3
@@ -152,12 +196,17 @@ SCANDYN_HD void loop_tree_response(const Body<S>* bodies, Index n, const Transfo
     const Force<S> pa = U ? pA[i] + (u / D[i]) * U[i] : pA[i];
     pA[b.parent] += Xup[i].apply_transpose(pa);
   }
-  for (Index i = 0; i < n; ++i) {
+  for (Index i = begin; i < end; ++i) {
     const Body<S>& b = bodies[i];
     const Motion<S> ap = b.parent < 0 ? Motion<S>::zero() : Xup[i].apply(a[b.parent]);
     if (U) qdd[i] = (qdd[i] - dot(ap, U[i])) / D[i];
     a[i] = add_joint_motion(b, ap, qdd[i]);
   }
+}
+template <class S>
+SCANDYN_HD void loop_tree_response(const Body<S>* bodies, Index n, const Transform<S>* Xup, const Force<S>* U,
+                                   const S* D, const Force<S>* f, Force<S>* pA, S* qdd, Motion<S>* a) {
+  loop_tree_response_range(bodies, Index(0), n, Xup, U, D, f, pA, qdd, a);
 }
 
 // tau = J^T lambda from loop_point_wrenches' f: tau_i = S_i^T (the wrenches of i's
@@ -176,11 +225,16 @@ SCANDYN_HD void loop_joint_forces(const Body<S>* bodies, Index n, const Transfor
 
 // The body motions of joint rates x: a_i = Xup_i a_parent + S_i x_i (J x's motions).
 template <class S>
-SCANDYN_HD void loop_joint_motion(const Body<S>* bodies, Index n, const Transform<S>* Xup, const S* x, Motion<S>* a) {
-  for (Index i = 0; i < n; ++i) {
+SCANDYN_HD void loop_joint_motion_range(const Body<S>* bodies, Index begin, Index end, const Transform<S>* Xup,
+                                        const S* x, Motion<S>* a) {
+  for (Index i = begin; i < end; ++i) {
     const Body<S>& b = bodies[i];
     a[i] = add_joint_motion(b, b.parent < 0 ? Motion<S>::zero() : Xup[i].apply(a[b.parent]), x[i]);
   }
+}
+template <class S>
+SCANDYN_HD void loop_joint_motion(const Body<S>* bodies, Index n, const Transform<S>* Xup, const S* x, Motion<S>* a) {
+  loop_joint_motion_range(bodies, Index(0), n, Xup, x, a);
 }
 
 // out (m) = J x from the body motions a of x (loop_joint_motion, or the response's
@@ -224,9 +278,9 @@ SCANDYN_HD Mat6<S> mul_transpose_right(const Mat6<S>& A, const Mat6<S>& B) {
 // Omega_i (n 6x6, body coordinates: motion per unit wrench) by the forward recursion
 // of the header; U null: the unit tree's (J_i J_i^T of body i's Jacobian).
 template <class S>
-SCANDYN_HD void loop_response_blocks(const Body<S>* bodies, Index n, const Transform<S>* Xup, const Force<S>* U,
-                                     const S* D, Mat6<S>* Omega) {
-  for (Index i = 0; i < n; ++i) {
+SCANDYN_HD void loop_response_blocks_range(const Body<S>* bodies, Index begin, Index end, const Transform<S>* Xup,
+                                           const Force<S>* U, const S* D, Mat6<S>* Omega) {
+  for (Index i = begin; i < end; ++i) {
     const Body<S>& b = bodies[i];
     Mat6<S> W = Mat6<S>::zero();
     if (b.parent >= 0) {
@@ -255,6 +309,11 @@ SCANDYN_HD void loop_response_blocks(const Body<S>* bodies, Index n, const Trans
       for (int k = 0; k < 6; ++k) W(r, k) += sv[r] * sv[k] * Dinv;
     Omega[i] = W;
   }
+}
+template <class S>
+SCANDYN_HD void loop_response_blocks(const Body<S>* bodies, Index n, const Transform<S>* Xup, const Force<S>* U,
+                                     const S* D, Mat6<S>* Omega) {
+  loop_response_blocks_range(bodies, Index(0), n, Xup, U, D, Omega);
 }
 
 // The map from loop l's side `side` (0: a, 1: b) body's motion (body coordinates) to

@@ -50,10 +50,13 @@ SCANDYN_HD constexpr double loop_rank_tolerance() {
 }
 
 // X0, v, a of every body (n bodies in DoF order, parent < index).
+// loop_body_motion_range: the bodies [begin, end) only, a range closed under the parent
+// relation (scandyn/algorithm/loop_iterative.hpp's *_range passes), bit for bit the
+// whole pass's values there.
 template <class S>
-SCANDYN_HD void loop_body_motion(const Body<S>* bodies, Index n, const S* q, const S* qd, Transform<S>* X0,
-                                 Motion<S>* v, Motion<S>* a) {
-  for (Index i = 0; i < n; ++i) {
+SCANDYN_HD void loop_body_motion_range(const Body<S>* bodies, Index begin, Index end, const S* q, const S* qd,
+                                       Transform<S>* X0, Motion<S>* v, Motion<S>* a) {
+  for (Index i = begin; i < end; ++i) {
     const Body<S>& b = bodies[i];
     const Index p = b.parent;
     const Transform<S> Xup = joint_transform(b, q[i]);
@@ -62,6 +65,11 @@ SCANDYN_HD void loop_body_motion(const Body<S>* bodies, Index n, const S* q, con
                                                p < 0 ? Motion<S>::zero() : a[p], qd ? qd[i] : S(0), S(0));
     v[i] = o.v, a[i] = o.a;
   }
+}
+template <class S>
+SCANDYN_HD void loop_body_motion(const Body<S>* bodies, Index n, const S* q, const S* qd, Transform<S>* X0,
+                                 Motion<S>* v, Motion<S>* a) {
+  loop_body_motion_range(bodies, Index(0), n, q, qd, X0, v, a);
 }
 
 // phi, J, gamma of the loops (any may be null); X0, v, a from loop_body_motion (v, a
