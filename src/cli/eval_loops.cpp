@@ -4,7 +4,10 @@
 // lambda_<k>) of the constrained system (scandyn/algorithm/loops.hpp), serial double.
 // Forward dynamics through --loop-solver: dense (constrained_forward_dynamics), sparse
 // (the registered CHOLMOD solver, scandyn/sim/sparse_loops.hpp) or iterative
-// (scandyn/sim/iterative_loops.hpp): the simulator's loop solvers, one per call.
+// (scandyn/sim/iterative_loops.hpp): the simulator's loop solvers, one per call; with
+// --backend cuda (and --loop-solver iterative), the iterative solver on the GPU
+// (scandyn/cuda/loop_iterative.hpp: chains from the base, block Jacobi; --precision
+// double or float), one solver for every row (warm-started from the previous row).
 #include <cmath>
 #include <cstdio>
 #include <memory>
@@ -16,6 +19,8 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/build_config.hpp"
+#include "scandyn/cuda/loop_iterative.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/sparse_loops.hpp"
 
@@ -72,15 +77,34 @@ int run_eval_loops(const Args& args) {
   if (algo == "fd" && args.has("actuated")) throw UsageError("--actuated applies only to --algo id");
   for (const char* f : {"fd", "fallback", "strategy", "prescribed"})
     if (args.has(f)) throw UsageError(std::string("--") + f + " does not apply to a model with loops");
-  if (args.get("backend", "serial") != "serial" || args.get("precision", "double") != "double")
-    throw UsageError("a model with loops runs on the serial backend in double (the dense loop solver)");
+  // --backend cuda: the CUDA iterative solver (scandyn/cuda/loop_iterative.hpp), double
+  // or float; every other combination runs on the serial backend in double
+  const std::string backend = args.get("backend", "serial"), precision = args.get("precision", "double");
+  const bool cuda_backend = backend == "cuda";
+  if (cuda_backend) {
+    if (algo != "fd" || args.get("loop-solver", "auto") != "iterative")
+      throw UsageError("--backend cuda with loops: forward dynamics (--algo fd) by --loop-solver iterative only "
+                       "(the CUDA iterative loop solver)");
+    if (precision != "double" && precision != "float")
+      throw UsageError("--precision " + precision + ": expected double or float");
+#if !SCANDYN_HAS_CUDA
+    throw UsageError("--backend cuda: this scandyn was built without CUDA");
+#endif
+  } else if (backend != "serial" || precision != "double") {
+    throw UsageError("a model with loops runs on the serial backend in double (the dense loop solver), or with "
+                     "--loop-solver iterative --backend cuda (double or float)");
+  }
   const Model model = load_cli_model(args);
   const LoopSet loops = load_cli_loops(args, model);
   const Index n = model.nv(), m = loops.rows();
   std::vector<unsigned char> actuated;
   if (args.has("actuated")) actuated = parse_prescribed(args.required("actuated"), model, "actuated");
 
-  const sim::LoopSolverFactory factory = eval_loop_solver(args, algo, n);  // (usage errors before the files)
+  sim::LoopSolverFactory factory = eval_loop_solver(args, algo, n);  // (usage errors before the files)
+#if SCANDYN_HAS_CUDA
+  if (cuda_backend)
+    factory = precision == "float" ? &cuda::make_cuda_iterative_loop_solver_float : &cuda::make_cuda_iterative_loop_solver;
+#endif
 
   CsvReader in(states_path);
   const StateColumns cols = map_state_columns(in.columns(), n, states_path);

@@ -131,7 +131,10 @@ const char* const kEvalUsage =
     "  --loop-solver S  fd's solver: dense (rank-revealing, lambda of minimum norm),\n"
     "                   sparse (CHOLMOD, when built with it), iterative (matrix-free\n"
     "                   conjugate gradients, relative residual 1e-10), or auto\n"
-    "                   (default: dense below 200 DoF, else sparse, else iterative)\n";
+    "                   (default: dense below 200 DoF, else sparse, else iterative)\n"
+    "  --loop-solver iterative --backend cuda [--precision double|float]: the iterative\n"
+    "                   solver on the GPU (trees of unbranched chains from the base,\n"
+    "                   e.g. cloth:K:N; block-Jacobi preconditioner; float: 1e-5)\n";
 
 const char* const kRolloutUsage =
     "usage: scandyn rollout --scene S.json --steps N --out TRAJ.csv|TRAJ.npy [--every K]\n"

@@ -85,6 +85,8 @@ TEST_F(CliLoops, Errors) {
       {"--model fivebar", "row 1 (line 2): the state violates loop 0 (left_distal - right_distal) by", 1},
       {"--model chain:4 --loops bad.json", "bad.json: loops[0].link_a: unknown link 'x'", 1},
       {"--model fivebar --backend openmp", "a model with loops runs on the serial backend in double", 2},
+      {"--model fivebar --backend cuda", "--backend cuda with loops: forward dynamics (--algo fd) by --loop-solver iterative only", 2},
+      {"--model fivebar --backend cuda --loop-solver iterative --precision half", "--precision half: expected double or float", 2},
       {"--model fivebar --algo id", "--algo id with loops needs --actuated LIST", 2},
       {"--model fivebar --algo mass", "with loops, eval computes fd", 2},
       {"--model chain:4 --actuated 0", "--actuated applies only to models with loops", 2},

@@ -1,0 +1,229 @@
+// The CUDA iterative loop forward dynamics (scandyn/cuda/loop_iterative.hpp,
+// kernels/loop_iterative.cu) against the CPU iterative solver (sim::IterativeLoopSolver,
+// block Jacobi, cold) on cloth:4:4, cloth:10:10 and cloth:30:30 at random closed states
+// (q in [-0.2, 0.2] and qd in [-1, 1] projected onto the loops; on cloth:30:30 the
+// ropes alike, random on the x-axis joints; tau in [-1, 1], every DoF its own, so the
+// cloth deforms and the constraint forces do not vanish):
+// - double: max |qdd_gpu - qdd_cpu| <= 1e-7 max |qdd_cpu|. Both stop at the relative
+//   residual 1e-10 of ||gamma|| + ||J qdd0|| (plus the floor 1e-12 L_J ||qdd0||); the CPU
+//   solver's qdd is within 1.1e-9 of max |qdd| of the dense solve's on such states
+//   (docs/loops.md), the GPU's differs by its dot products' summation order only; 1e-7
+//   leaves a margin of 100 for the A's conditioning on the larger grids;
+// - the closure ||J qdd + gamma||_2 (J qdd by the host's passes, gamma = Jdot qd) within
+//   2 (1e-10 (||gamma|| + ||J qdd0||) + 1e-12 L_J ||qdd0||), the solve's target, doubled
+//   for the difference between the device's and the host's rounding of J qdd;
+// - no preconditioner (cloth:10:10): the same qdd; a warm-started second call at the
+//   same state: at most 3 iterations (0 unless the recomputed residual rounds above the
+//   target), the same qdd;
+// - float (cloth:4:4, cloth:10:10): qdd within 1e-3 of max |qdd_cpu| (tolerance 1e-5);
+// - errors: a branched tree (tree:12:1), SSOR (sequential sweeps), the iteration cap
+//   (LoopSolveNotConverged).
+// The device tests skip, with the reason, without a usable device; the refusals and the
+// closed states run on the host.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "cuda_test_util.hpp"
+#include "loop_cases.hpp"
+#include "scandyn/algorithm/loop_iterative.hpp"
+#include "scandyn/cuda/loop_iterative.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
+
+namespace scandyn {
+namespace {
+
+#define SKIP_WITHOUT_DEVICE()                                        \
+  do {                                                               \
+    const std::string reason = test::no_device_reason();            \
+    if (!reason.empty()) GTEST_SKIP() << reason;                     \
+  } while (0)
+
+double norm2(const std::vector<double>& x) {
+  double s = 0;
+  for (double e : x) s += e * e;
+  return std::sqrt(s);
+}
+double max_abs(const std::vector<double>& x) {
+  double s = 0;
+  for (double e : x) s = std::max(s, std::fabs(e));
+  return s;
+}
+
+// ||J qdd + gamma||_2, ||gamma||_2, ||J qdd0||_2 by the host's passes
+struct Closure {
+  double residual = 0, gamma = 0, jqdd0 = 0, qdd0 = 0;
+};
+Closure closure(const test::LoopCase& c, const std::vector<double>& q, const std::vector<double>& qd,
+                const std::vector<double>& tau, const std::vector<double>& qdd) {
+  const Index n = c.model.nv(), m = c.loops.rows();
+  const auto rows = loop_rows_of<double>(c.loops);
+  const Index nl = static_cast<Index>(rows.size());
+  const Body<double>* bodies = c.model.bodies.data();
+  std::vector<Transform<double>> X0(n), Xup(n);
+  std::vector<Motion<double>> v(n), a(n), acc(n), cc(n);
+  std::vector<Force<double>> U(n), pA(n);
+  std::vector<ABInertia<double>> IA(n);
+  std::vector<double> gamma(m), jq(m), D(n), u(n), qdd0(n);
+  loop_body_motion(bodies, n, q.data(), qd.data(), X0.data(), v.data(), a.data());
+  loop_rows(bodies, n, rows.data(), nl, X0.data(), v.data(), a.data(), static_cast<double*>(nullptr),
+            static_cast<double*>(nullptr), gamma.data());
+  loop_aba_factor(bodies, n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(), U.data(), D.data(),
+                  qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(), u.data());
+  Closure out;
+  loop_joint_motion(bodies, n, Xup.data(), qdd0.data(), acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  out.jqdd0 = norm2(jq), out.gamma = norm2(gamma), out.qdd0 = norm2(qdd0);
+  loop_joint_motion(bodies, n, Xup.data(), qdd.data(), acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  for (Index k = 0; k < m; ++k) jq[k] += gamma[k];
+  out.residual = norm2(jq);
+  return out;
+}
+
+struct Case {
+  test::LoopCase c;
+  std::vector<double> q, qd, tau;
+};
+
+// A random closed state: test::closed_state (the dense projection) up to 10x10; on
+// cloth:30:30 a random state of the ropes alike (below).
+Case make_case(const std::string& spec, unsigned seed) {
+  Case k{test::loop_cases({spec}).front(), {}, {}, {}};
+  std::mt19937_64 rng(seed);
+  const Index n = k.c.model.nv();
+  if (n <= 100) {
+    EXPECT_LE(test::closed_state(k.c, rng, k.q, k.qd), 1e-12) << spec;
+  } else {
+    // the ropes alike: random angles and rates on the x-axis joints (even j of each
+    // rope, the same on every rope), 0 on the y-axis joints: the ropes turn about the
+    // rod's axis, the loops closed to rounding (the projections take seconds here and
+    // the iterative one closes J qd only to its floor, ~4e-8)
+    const Index N = std::stoi(spec.substr(spec.rfind(':') + 1));
+    const std::vector<double> qj = test::random_vector(rng, N, -0.2, 0.2), qdj = test::random_vector(rng, N, -1, 1);
+    k.q.assign(n, 0.0), k.qd.assign(n, 0.0);
+    for (Index i = 0; i < n; ++i)
+      if ((i % N) % 2 == 0) k.q[i] = qj[i % N], k.qd[i] = qdj[i % N];
+  }
+  EXPECT_LE(loop_violation(k.c.model, k.c.loops, k.q.data(), k.qd.data()), 1e-9) << spec;
+  k.tau = test::random_vector(rng, n, -1, 1);
+  return k;
+}
+
+std::vector<double> cpu_qdd(const Case& k, int* iterations = nullptr) {
+  sim::IterativeLoopOptions o;
+  o.preconditioner = sim::LoopPreconditioner::BlockJacobi;
+  o.warm_start = false;
+  sim::IterativeLoopSolver cpu(k.c.model, k.c.loops, o);
+  std::vector<double> qdd(k.c.model.nv());
+  cpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), nullptr);
+  if (iterations) *iterations = cpu.stats().last_iterations;
+  return qdd;
+}
+
+double rel_diff(const std::vector<double>& a, const std::vector<double>& ref) {
+  double d = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) d = std::max(d, std::fabs(a[i] - ref[i]));
+  return d / std::max(1e-300, max_abs(ref));
+}
+
+// The closed states themselves (host only: runs without a device).
+TEST(CudaLoopIterative, ClosedStates) {
+  for (const char* spec : {"cloth:4:4", "cloth:10:10", "cloth:30:30"}) {
+    const Case k = make_case(spec, 5);
+    (void)k;
+  }
+}
+
+TEST(CudaLoopIterative, RefusesOtherTreesAndPreconditioners) {
+  const Model tree = load_model("tree:12:1");
+  try {
+    cuda::CudaIterativeLoopSolver<double> s(tree, LoopSet{});
+    FAIL() << "a branched tree accepted";
+  } catch (const LoopError& e) {
+    EXPECT_NE(std::string(e.what()).find("branches"), std::string::npos) << e.what();
+  }
+  const test::LoopCase c = test::loop_cases({"cloth:4:4"}).front();
+  cuda::CudaIterativeLoopOptions o;
+  o.preconditioner = sim::LoopPreconditioner::Ssor;
+  try {
+    cuda::CudaIterativeLoopSolver<double> s(c.model, c.loops, o);
+    FAIL() << "SSOR accepted";
+  } catch (const LoopError& e) {
+    EXPECT_NE(std::string(e.what()).find("ssor"), std::string::npos) << e.what();
+  }
+}
+
+TEST(CudaLoopIterative, DoubleEqualsTheCpuSolver) {
+  SKIP_WITHOUT_DEVICE();
+  for (const char* spec : {"cloth:4:4", "cloth:10:10", "cloth:30:30"}) {
+    SCOPED_TRACE(spec);
+    const Case k = make_case(spec, 5);
+    const Index n = k.c.model.nv();
+    int cpu_it = 0;
+    const std::vector<double> ref = cpu_qdd(k, &cpu_it);
+    cuda::CudaIterativeLoopSolver<double> gpu(k.c.model, k.c.loops);
+    std::vector<double> qdd(n), lambda(k.c.loops.rows());
+    gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), lambda.data());
+    const double diff = rel_diff(qdd, ref);
+    const Closure cl = closure(k.c, k.q, k.qd, k.tau, qdd);
+    const double target = 1e-10 * (cl.gamma + cl.jqdd0) + 1e-12 * gpu.jscale() * cl.qdd0;
+    std::printf("%s: cpu %d iterations, gpu %d iterations; max |qdd diff| / max |qdd| %.3g; closure %.3g (target %.3g)\n",
+                spec, cpu_it, gpu.stats().last_iterations, diff, cl.residual, target);
+    EXPECT_LE(diff, 1e-7);
+    EXPECT_LE(cl.residual, 2 * target);
+    EXPECT_GT(gpu.stats().last_iterations, 0);
+    // warm start at the same state: converged from the previous lambda
+    std::vector<double> qdd2(n);
+    gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd2.data(), nullptr);
+    EXPECT_LE(gpu.stats().last_iterations, 3);  // (0 unless x's recomputation rounds above the target)
+    EXPECT_LE(rel_diff(qdd2, ref), 1e-7);
+  }
+}
+
+TEST(CudaLoopIterative, WithoutPreconditioner) {
+  SKIP_WITHOUT_DEVICE();
+  const Case k = make_case("cloth:10:10", 6);
+  const std::vector<double> ref = cpu_qdd(k);
+  cuda::CudaIterativeLoopOptions o;
+  o.preconditioner = sim::LoopPreconditioner::None;
+  cuda::CudaIterativeLoopSolver<double> gpu(k.c.model, k.c.loops, o);
+  std::vector<double> qdd(k.c.model.nv());
+  gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), nullptr);
+  std::printf("none: %d iterations, diff %.3g\n", gpu.stats().last_iterations, rel_diff(qdd, ref));
+  EXPECT_LE(rel_diff(qdd, ref), 1e-7);
+}
+
+TEST(CudaLoopIterative, Float) {
+  SKIP_WITHOUT_DEVICE();
+  for (const char* spec : {"cloth:4:4", "cloth:10:10"}) {
+    SCOPED_TRACE(spec);
+    const Case k = make_case(spec, 7);
+    const std::vector<double> ref = cpu_qdd(k);
+    cuda::CudaIterativeLoopSolver<float> gpu(k.c.model, k.c.loops);
+    std::vector<double> qdd(k.c.model.nv());
+    gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), nullptr);
+    std::printf("%s float: %d iterations, relative residual %.3g, diff %.3g\n", spec, gpu.stats().last_iterations,
+                gpu.stats().last_residual, rel_diff(qdd, ref));
+    EXPECT_LE(rel_diff(qdd, ref), 1e-3);
+  }
+}
+
+TEST(CudaLoopIterative, IterationCapIsAnError) {
+  SKIP_WITHOUT_DEVICE();
+  const Case k = make_case("cloth:10:10", 8);
+  cuda::CudaIterativeLoopOptions o;
+  o.max_iterations = 2;
+  cuda::CudaIterativeLoopSolver<double> gpu(k.c.model, k.c.loops, o);
+  std::vector<double> qdd(k.c.model.nv());
+  EXPECT_THROW(gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), nullptr),
+               sim::LoopSolveNotConverged);
+}
+
+}  // namespace
+}  // namespace scandyn
