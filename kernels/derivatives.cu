@@ -18,6 +18,14 @@
 // (id_derivatives_kernel on chains too). Measured on an H200 (iiwa, float, 10^6
 // instances, device-resident): dfd lean 3.93e8/s, packed 3.37e8, tree 1.62e8; did lean
 // 9.94e8/s, recursion 6.86e8.
+//
+// Models with multi-DoF joints (a floating base, spherical joints) of up to
+// kMaxThreadDofs DoF: id_derivatives_general_kernel (rnea_derivatives_general_instance)
+// and fd_derivatives_general_kernel (aba_general, then fd_derivatives_general_instance),
+// one thread per instance over GeneralDerivativeParams (launch_id_derivatives /
+// launch_fd_derivatives of a GeneralDerivativeModel). The functions are the serial
+// reference's (scandyn/algorithm/derivatives.cpp: aba, then the same two), on
+// per-thread copies of the instance's q, qd, qdd / tau and per-thread scratch.
 #include <cuda_runtime.h>
 
 #include <atomic>
@@ -30,6 +38,7 @@
 #include "scandyn/instance/aba_instance.hpp"
 #include "scandyn/instance/dof_column.hpp"
 #include "scandyn/instance/dynamics_derivatives.hpp"
+#include "scandyn/instance/general_instance.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -342,6 +351,93 @@ __global__ void __launch_bounds__(kDerivativesBlock, at_min_blocks<S>())
   if (failed_dof) failed_dof[b] = failed;
 }
 
+// ---- models with multi-DoF joints: the general kernels ------------------------------
+
+// Instance b's n entries of v (a batch view, any strides) into a per-thread array.
+template <class S>
+__device__ __forceinline__ void gather_column(const BatchView<const S>& v, long long b, Index n, S* out) {
+  const S* const p = v.data + b * v.batch_stride;
+  for (Index i = 0; i < n; ++i) out[i] = p[static_cast<std::ptrdiff_t>(i) * v.dof_stride];
+}
+
+// One thread per instance b < B: dtau/dq, dtau/dqd and M of instance b by
+// rnea_derivatives_general_instance (per-thread copies of q, qd, qdd; nv
+// DerivativeBody entries of scratch in local memory).
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    id_derivatives_general_kernel(const __grid_constant__ GeneralDerivativeParams<S, C> model, const IdBatchIn<S> in,
+                                  const IdDerivativesOut<S> out) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Index nv = model.nv;
+  S q[GeneralDerivativeParams<S, C>::q_capacity], qd[C], qdd[C];
+  gather_column(in.q, b, model.nq, q);
+  gather_column(in.qd, b, nv, qd);
+  gather_column(in.qdd, b, nv, qdd);
+  DerivativeBody<S> work[C];  // per-thread local memory
+  rnea_derivatives_general_instance(model.body, model.nb, nv, model.a0, q, qd, qdd,
+                                    in.fext ? in.fext + b * model.nb : nullptr, work,
+                                    instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
+                                    instance_matrix(out.M, b, nv), nullptr);
+}
+
+// aba_general's scratch for at most C bodies and C DoFs (a GeneralWork of per-thread
+// arrays; the CRBA's Ic unused).
+template <class S, int C>
+struct GeneralAbaScratch {
+  Transform<S> Xup[C];
+  Motion<S> v[C], a[C], c[C];
+  Force<S> f[C];
+  ABInertia<S> IA[C];
+  Force<S> U[C];
+  S D[C], u[C], L[kMaxJointDofs * C];
+  __device__ GeneralWork<S> work() { return {Xup, v, a, c, f, nullptr, IA, U, D, u, L}; }
+};
+
+// The forward-dynamics kernel's scratch: the ABA's, then (once qdd is known) the
+// derivatives' nv DerivativeBody entries in the same local memory.
+template <class S, int C>
+union GeneralFdScratch {
+  GeneralAbaScratch<S, C> aba;
+  DerivativeBody<S> work[C];
+  __device__ GeneralFdScratch() {}
+};
+
+// One thread per instance b < B: qdd by aba_general (into out.qdd when given), then
+// dqdd/dq, dqdd/dqd, M^-1 by fd_derivatives_general_instance (the factor of M over the
+// tree of DoFs in the output blocks); failed_dof[b] (when given): -1, or the DoF whose
+// pivot (the ABA's, or M's) failed.
+template <class S, int C>
+__global__ void __launch_bounds__(kDerivativesBlock)
+    fd_derivatives_general_kernel(const __grid_constant__ GeneralDerivativeParams<S, C> model, const FdBatchIn<S> in,
+                                  const FdDerivativesOut<S> out, int* failed_dof) {
+  const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (b >= in.q.batch) return;
+  const Index nv = model.nv;
+  S q[GeneralDerivativeParams<S, C>::q_capacity], qd[C], tau[C], qdd[C];
+  gather_column(in.q, b, model.nq, q);
+  gather_column(in.qd, b, nv, qd);
+  gather_column(in.tau, b, nv, tau);
+  const Force<S>* fext = in.fext ? in.fext + b * model.nb : nullptr;
+  GeneralFdScratch<S, C> scratch;  // per-thread local memory
+  // plain pointers: aba_general's serial instantiation (scandyn/algorithm/reference_general_impl.hpp)
+  const S *const qp = q, *const qdp = qd, *const taup = tau;
+  S* const qddp = qdd;
+  Index failed = aba_general(model.body, model.nb, model.a0, scratch.aba.work(), qp, qdp, taup, qddp, fext,
+                             static_cast<const S*>(nullptr));
+  if (failed < 0) {
+    if (out.qdd.data) {
+      const DofColumn<S> o = instance_column(out.qdd, b);
+      for (Index i = 0; i < nv; ++i) o[i] = qdd[i];
+    }
+    failed = fd_derivatives_general_instance(model.body, model.nb, nv, model.a0, q, qd, qdd, fext, model.dof_parent,
+                                             model.dof_last, model.dof_run, scratch.work,
+                                             instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
+                                             instance_matrix(out.dqdd_dtau, b, nv));
+  }
+  if (failed_dof) failed_dof[b] = static_cast<int>(failed);
+}
+
 namespace {
 
 unsigned blocks_for(Index B) {
@@ -410,11 +506,78 @@ cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S
   return cudaGetLastError();
 }
 
+template <class S>
+GeneralDerivativeModel<S>::GeneralDerivativeModel(const ModelTpl<S>& model)
+    : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()) {
+  if (nv_ > kMaxThreadDofs)
+    throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nv_) +
+                       " DoF; the derivatives run a thread per instance, which takes at most " +
+                       std::to_string(kMaxThreadDofs));
+  capacity_ = nv_ <= 8 ? 8 : nv_ <= 16 ? 16 : nv_ <= 32 ? 32 : 64;
+  require_compiled_capacity(capacity_, "the derivatives of models with multi-DoF joints", model.name);
+  const auto fill = [&](auto& p) {
+    using P = std::decay_t<decltype(p)>;
+    if (nq_ > P::q_capacity)  // (cannot happen: nq <= 4 nv / 3)
+      throw BackendError("backend 'cuda': model '" + model.name + "' has " + std::to_string(nq_) +
+                         " position entries, more than the derivative kernels' " + std::to_string(P::q_capacity));
+    p = P{};
+    for (Index i = 0; i < nb_; ++i) p.body[i] = model.bodies[static_cast<std::size_t>(i)];
+    dof_parents(model.bodies.data(), nb_, p.dof_parent);
+    dof_subtree_last(p.dof_parent, nv_, p.dof_last);
+    dof_runs(p.dof_parent, nv_, p.dof_run);
+    p.a0 = base_acceleration(model.gravity);
+    p.nb = nb_, p.nv = nv_, p.nq = nq_;
+  };
+  switch (capacity_) {
+    case 8: fill(params_.template emplace<GeneralDerivativeParams<S, 8>>()); break;
+    case 16: fill(params_.template emplace<GeneralDerivativeParams<S, 16>>()); break;
+    case 32: fill(params_.template emplace<GeneralDerivativeParams<S, 32>>()); break;
+    default: fill(params_.template emplace<GeneralDerivativeParams<S, 64>>()); break;
+  }
+}
+
+template <class S>
+cudaError_t launch_id_derivatives(const GeneralDerivativeModel<S>& model, const IdBatchIn<S>& in,
+                                  const IdDerivativesOut<S>& out, cudaStream_t stream) {
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.dtau_dq.batch != B || out.dtau_dqd.batch != B ||
+      out.M.batch != B)
+    return cudaErrorInvalidValue;
+  if (B == 0 || model.nv() == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
+    return cudaErrorInvalidValue;
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    id_derivatives_general_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
+  });
+  return cudaGetLastError();
+}
+
+template <class S>
+cudaError_t launch_fd_derivatives(const GeneralDerivativeModel<S>& model, const FdBatchIn<S>& in,
+                                  const FdDerivativesOut<S>& out, int* failed_dof, cudaStream_t stream) {
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.tau.batch != B || out.dqdd_dq.batch != B || out.dqdd_dqd.batch != B ||
+      out.dqdd_dtau.batch != B || (out.qdd.data && out.qdd.batch != B))
+    return cudaErrorInvalidValue;
+  if (B == 0 || model.nv() == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
+    return cudaErrorInvalidValue;
+  visit_compiled_capacity(model.params(), [&](const auto& params) {
+    constexpr int C = std::decay_t<decltype(params)>::capacity;
+    prefer_l1<fd_derivatives_general_kernel<S, C>>();
+    fd_derivatives_general_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out,
+                                                                                        failed_dof);
+  });
+  return cudaGetLastError();
+}
+
 // ---- the engines --------------------------------------------------------------------
 //
-// Staging buffer per engine, for max_batch instances (cap = nv x max_batch scalars):
-// the three inputs in slots 0..2, qdd in slot 3 (forward dynamics), the wrenches (6
-// slots, detail::stage_inputs' layout), then the three nv x nv outputs (nv slots
+// Staging buffer per engine, for max_batch instances (cap = nq x max_batch scalars:
+// nv x max_batch for models of 1-DoF joints): the three inputs in slots 0..2, qdd in
+// slot 3 (forward dynamics), the wrenches (6 slots, detail::stage_inputs' layout: nb <=
+// nv wrenches per instance), then the three nv x nv outputs (nv^2 x max_batch scalars
 // each), then (forward dynamics) max_batch ints of failed DoFs.
 
 namespace {
@@ -428,11 +591,11 @@ std::unique_ptr<detail::StagingBuffer> derivative_staging(const ModelTpl<S>& mod
                        " DoF; the derivatives run a thread per instance, which takes at most " +
                        std::to_string(kMaxThreadDofs));
   if (max_batch < 0) throw BackendError("backend 'cuda': max_batch " + std::to_string(max_batch) + " is negative");
-  const std::size_t n = static_cast<std::size_t>(model.nv());
+  const std::size_t n = static_cast<std::size_t>(model.nv()), nq = static_cast<std::size_t>(model.nq());
   return std::make_unique<detail::StagingBuffer>(
       max_batch, model.nv(), sizeof(S) == 4 ? "float" : "double",
       fd ? "q, qd, tau, qdd, fext and three nv x nv derivatives" : "q, qd, qdd, fext and three nv x nv derivatives",
-      (kInputSlots + 3 * n) * n * sizeof(S) + (fd ? sizeof(int) : 0));
+      (kInputSlots * nq + 3 * n * n) * sizeof(S) + (fd ? sizeof(int) : 0));
 }
 
 // Stages the three nv x nv outputs (device views in `dev`), returns their plans.
@@ -459,9 +622,10 @@ void copy_outputs(const Staging (&st)[N], const BatchView<S> (&host)[N], const c
 
 template <class S>
 CudaIdDerivatives<S>::CudaIdDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch) {
+    : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   staging_ = derivative_staging(model, max_batch_, false);
-  thread_ = std::make_unique<ThreadModel<S>>(model);
+  if (model.multi_dof()) general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
+  else thread_ = std::make_unique<ThreadModel<S>>(model);
 }
 template <class S>
 CudaIdDerivatives<S>::~CudaIdDerivatives() = default;
@@ -469,7 +633,7 @@ CudaIdDerivatives<S>::~CudaIdDerivatives() = default;
 template <class S>
 cudaError_t CudaIdDerivatives<S>::compute_async(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out,
                                                 cudaStream_t stream) {
-  return launch_id_derivatives(*thread_, in, out, stream);
+  return general_ ? launch_id_derivatives(*general_, in, out, stream) : launch_id_derivatives(*thread_, in, out, stream);
 }
 
 template <class S>
@@ -477,28 +641,34 @@ void CudaIdDerivatives<S>::compute(const IdBatchIn<S>& in, const IdDerivativesOu
   check_batch(in, out, max_batch_);
   const Index B = in.q.batch, nv = nv_;
   if (B == 0 || nv == 0) return;
-  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;   // an output's nv slots of cap
+  const std::size_t icap = static_cast<std::size_t>(nq_) * max_batch_;  // an input slot (nq = nv: 1-DoF joints)
   S* const buffer = static_cast<S*>(staging_->data());
   const cudaStream_t stream = staging_->stream();
   static const char* const kNames[3] = {"dtau_dq", "dtau_dqd", "M"};
   const BatchView<S> host[3] = {out.dtau_dq, out.dtau_dqd, out.M};
   Staging st[3];
   BatchView<S> dev[3];
-  plan_outputs(host, kNames, nv, cap, buffer + kInputSlots * cap, st, dev);
-  const detail::StagedInputs<S> d =
-      detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext, nv, cap, buffer, stream);
+  plan_outputs(host, kNames, nv, cap, buffer + kInputSlots * icap, st, dev);
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext,
+                                                            {nq_, nv, nv}, nb_, icap, buffer, stream);
   check(compute_async(IdBatchIn<S>{d.in[0], d.in[1], d.in[2], d.fext}, IdDerivativesOut<S>{dev[0], dev[1], dev[2]},
                       stream),
         "launching id_derivatives_kernel");
-  copy_outputs(st, host, kNames, nv, cap, buffer + kInputSlots * cap, stream);
+  copy_outputs(st, host, kNames, nv, cap, buffer + kInputSlots * icap, stream);
   check(cudaStreamSynchronize(stream), "running id_derivatives_kernel");
 }
 
 template <class S>
 CudaFdDerivatives<S>::CudaFdDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
-    : nv_(model.nv()), max_batch_(options.max_batch), failed_host_(static_cast<std::size_t>(options.max_batch)) {
+    : nv_(model.nv()),
+      nq_(model.nq()),
+      nb_(model.nbodies()),
+      max_batch_(options.max_batch),
+      failed_host_(static_cast<std::size_t>(options.max_batch)) {
   staging_ = derivative_staging(model, max_batch_, true);
-  thread_ = std::make_unique<ThreadModel<S>>(model);
+  if (model.multi_dof()) general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
+  else thread_ = std::make_unique<ThreadModel<S>>(model);
 }
 template <class S>
 CudaFdDerivatives<S>::~CudaFdDerivatives() = default;
@@ -506,7 +676,8 @@ CudaFdDerivatives<S>::~CudaFdDerivatives() = default;
 template <class S>
 cudaError_t CudaFdDerivatives<S>::compute_async(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
                                                 int* failed_dof, cudaStream_t stream) {
-  return launch_fd_derivatives(*thread_, in, out, failed_dof, stream);
+  return general_ ? launch_fd_derivatives(*general_, in, out, failed_dof, stream)
+                  : launch_fd_derivatives(*thread_, in, out, failed_dof, stream);
 }
 
 template <class S>
@@ -514,29 +685,31 @@ BatchStatus CudaFdDerivatives<S>::compute(const FdBatchIn<S>& in, const FdDeriva
   check_batch(in, out, max_batch_);
   const Index B = in.q.batch, nv = nv_;
   if (B == 0 || nv == 0) return BatchStatus{};
-  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;
+  const std::size_t cap = static_cast<std::size_t>(nv) * max_batch_;   // an output's nv slots of cap
+  const std::size_t icap = static_cast<std::size_t>(nq_) * max_batch_;  // an input slot (nq = nv: 1-DoF joints)
   S* const buffer = static_cast<S*>(staging_->data());
   const cudaStream_t stream = staging_->stream();
   static const char* const kNames[3] = {"dqdd_dq", "dqdd_dqd", "dqdd_dtau"};
   const BatchView<S> host[3] = {out.dqdd_dq, out.dqdd_dqd, out.dqdd_dtau};
   Staging st[3];
   BatchView<S> dev[3];
-  S* const mats = buffer + kInputSlots * cap;
+  S* const mats = buffer + kInputSlots * icap;
   plan_outputs(host, kNames, nv, cap, mats, st, dev);
   int* const dfailed = reinterpret_cast<int*>(mats + 3 * static_cast<std::size_t>(nv) * cap);
   Staging sqdd;
   BatchView<S> dqdd{};
   if (out.qdd.data) {
-    sqdd = plan(out.qdd, nv, cap, true, "qdd");
-    dqdd = sqdd.device_view(buffer + 3 * cap, B);
+    sqdd = plan(out.qdd, nv, icap, true, "qdd");
+    dqdd = sqdd.device_view(buffer + 3 * icap, B);
   }
-  const detail::StagedInputs<S> d =
-      detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext, nv, cap, buffer, stream);
+  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext,
+                                                            {nq_, nv, nv}, nb_, icap, buffer, stream);
   check(compute_async(FdBatchIn<S>{d.in[0], d.in[1], d.in[2], d.fext},
                       FdDerivativesOut<S>{dev[0], dev[1], dev[2], dqdd}, dfailed, stream),
         "launching fd_derivatives_kernel");
   copy_outputs(st, host, kNames, nv, cap, mats, stream);
-  if (out.qdd.data) check(copy(sqdd, out.qdd, nv, buffer + 3 * cap, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
+  if (out.qdd.data)
+    check(copy(sqdd, out.qdd, nv, buffer + 3 * icap, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
   check(cudaMemcpyAsync(failed_host_.data(), dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost,
                         stream),
         "copying the failed DoFs to the host");
@@ -560,6 +733,11 @@ std::unique_ptr<FdDerivatives<S>> make_cuda_fd_derivatives(const ModelTpl<S>& mo
                                              cudaStream_t);                                                        \
   template cudaError_t launch_fd_derivatives(const ThreadModel<S>&, const FdBatchIn<S>&, const FdDerivativesOut<S>&, \
                                              int*, cudaStream_t);                                                  \
+  template class GeneralDerivativeModel<S>;                                                                        \
+  template cudaError_t launch_id_derivatives(const GeneralDerivativeModel<S>&, const IdBatchIn<S>&,                \
+                                             const IdDerivativesOut<S>&, cudaStream_t);                            \
+  template cudaError_t launch_fd_derivatives(const GeneralDerivativeModel<S>&, const FdBatchIn<S>&,                \
+                                             const FdDerivativesOut<S>&, int*, cudaStream_t);                      \
   template std::unique_ptr<IdDerivatives<S>> make_cuda_id_derivatives(const ModelTpl<S>&, const BackendOptions&);    \
   template std::unique_ptr<FdDerivatives<S>> make_cuda_fd_derivatives(const ModelTpl<S>&, const BackendOptions&);
 SCANDYN_INSTANTIATE(float)

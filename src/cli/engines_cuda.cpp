@@ -215,7 +215,7 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
             return e.compute_async({d.input(0), d.input(1), d.input(2)},
                                    {block(d, 0), block(d, 1), block(d, 2), {}}, d.failed_dof(), d.stream());
           },
-          Failure::ArticulatedPivot);
+          Failure::ArticulatedPivot, nq);
     }
     auto& e = dynamic_cast<cuda::CudaIdDerivatives<S>&>(engine);
     return std::make_unique<CudaResidentBatch<S>>(
@@ -223,7 +223,8 @@ std::unique_ptr<ResidentBatch<S>> make_resident_batch(Algo algo, Engine& engine,
         width, std::size_t(0), [&e, block](const D& d) {
           return e.compute_async({d.input(0), d.input(1), d.input(2)}, {block(d, 0), block(d, 1), block(d, 2)},
                                  d.stream());
-        });
+        },
+        Failure::None, nq);
   }
   if (algo == Algo::Mass) {
     auto& e = dynamic_cast<cuda::CudaMassMatrix<S>&>(engine);

@@ -217,19 +217,11 @@ void require_one_dof_joints(const ModelTpl<S>& model, const char* what) {
 template void require_one_dof_joints(const ModelTpl<float>&, const char*);
 template void require_one_dof_joints(const ModelTpl<double>&, const char*);
 
-namespace {
-// The first-order derivatives take multi-DoF joints on serial and OpenMP
-// (rnea_derivatives_general_instance); the CUDA kernels take 1-DoF joints only.
-template <class S>
-void require_derivative_joints(const ModelTpl<S>& model, const BackendOptions& o, const char* what) {
-  if (!model.multi_dof() || o.backend != BackendKind::Cuda) return;
-  throw BackendError(std::string(what) + " on backend 'cuda': model '" + model.name + "' has the multi-DoF joint '" +
-                     first_multi_dof_joint(model) + "' (" +
-                     (model.floating_base() ? "the floating base" : "a spherical joint") +
-                     "), and the CUDA derivative kernels take revolute and prismatic joints only; use backend "
-                     "serial or openmp");
-}
-}  // namespace
+// The first-order derivatives take multi-DoF joints (a floating base, spherical joints)
+// on every backend: serial and OpenMP by rnea_derivatives_general_instance /
+// fd_derivatives_general_instance, cuda by its general derivative kernels (the same
+// functions, one thread per instance, up to kMaxThreadDofs DoF;
+// scandyn/cuda/derivatives.hpp).
 
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& o) {
@@ -316,7 +308,6 @@ void check_batch(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index m
 template <class S>
 std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o);
-  require_derivative_joints(model, o, "the inverse-dynamics derivatives");
   if (o.strategy != IdStrategy::Auto)
     throw BackendError(std::string("strategy '") + to_string(o.strategy) +
                        "' is not available for the inverse-dynamics derivatives (use auto)");
@@ -335,7 +326,6 @@ std::unique_ptr<IdDerivatives<S>> make_id_derivatives(const ModelTpl<S>& model, 
 template <class S>
 std::unique_ptr<FdDerivatives<S>> make_fd_derivatives(const ModelTpl<S>& model, const BackendOptions& o) {
   require_built(o);
-  require_derivative_joints(model, o, "the forward-dynamics derivatives");
   if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba)
     throw BackendError(std::string("forward-dynamics method '") + to_string(o.fd_method) +
                        "' is not available for the forward-dynamics derivatives (use auto or aba)");

@@ -33,10 +33,20 @@
 // Per thread: nv DerivativeBody entries (72 scalars each; the lean chain recursion: 24)
 // in per-thread local memory, plus the ABA's state for the forward dynamics (and, up
 // to 8 DoF, L: 36 scalars in registers).
+//
+// Models with multi-DoF joints (a floating base, spherical joints; ModelTpl::multi_dof())
+// of up to kMaxThreadDofs DoF take the general kernels instead, one thread per instance
+// too: id_derivatives_general_kernel (rnea_derivatives_general_instance) and
+// fd_derivatives_general_kernel (aba_general over a GeneralWork of per-thread arrays
+// for qdd, then fd_derivatives_general_instance in the output blocks; the two
+// scratches share their local memory), over GeneralDerivativeModel's parameter block
+// of the smallest capacity C >= nv (8, 16, 32 or 64; the capacities a build compiles:
+// visit_compiled_capacity). The engines pick them by the model (strategy "general").
 #pragma once
 
 #include <memory>
 #include <string>
+#include <variant>
 #include <vector>
 
 #include "scandyn/build_config.hpp"
@@ -46,6 +56,7 @@
 #include <cuda_runtime_api.h>
 
 #include "scandyn/instance/thread_model.hpp"
+#include "scandyn/model/model.hpp"
 
 namespace scandyn {
 namespace cuda {
@@ -70,6 +81,62 @@ template <class S>
 cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
                                   int* failed_dof, cudaStream_t stream);
 
+// ---- models with multi-DoF joints ------------------------------------------------
+
+// The model as the general derivative kernels read it, for capacity C >= nv (the
+// kernel parameter, __grid_constant__): the model's bodies in DoF order and the tree
+// of its DoFs (dof_parents, dof_subtree_last, dof_runs of
+// scandyn/instance/dynamics_derivatives.hpp). Entries past nb / nv unused.
+template <class S, int C>
+struct GeneralDerivativeParams {
+  static constexpr int capacity = C;
+  // q entries a thread holds: nq <= 4 nv / 3 (a spherical joint: 4 for 3 DoF; a free
+  // joint 7 for 6; a 1-DoF joint 1 for 1)
+  static constexpr int q_capacity = C + C / 3;
+  Body<S> body[C];         // (nb <= nv) bodies in DoF order
+  Index dof_parent[C];     // (nv) parent DoF of each DoF, -1 at the root
+  Index dof_last[C];       // (nv) last DoF of each DoF's subtree
+  Index dof_run[C];        // (nv) first DoF of each DoF's unbranched run
+  Motion<S> a0;            // base_acceleration(gravity)
+  Index nb, nv, nq;
+};
+
+// A model with multi-DoF joints prepared for the general derivative kernels: the
+// parameter block of the smallest capacity that holds its nv DoF. Host memory only.
+template <class S>
+class GeneralDerivativeModel {
+ public:
+  using Params = std::variant<GeneralDerivativeParams<S, 8>, GeneralDerivativeParams<S, 16>,
+                              GeneralDerivativeParams<S, 32>, GeneralDerivativeParams<S, 64>>;
+  // Throws BackendError for more than kMaxThreadDofs DoF (naming the limit), or a
+  // capacity this build does not compile (SCANDYN_CUDA_ALL_CAPACITIES=OFF: 8 DoF).
+  explicit GeneralDerivativeModel(const ModelTpl<S>& model);
+  Index nv() const { return nv_; }
+  Index nq() const { return nq_; }
+  Index nbodies() const { return nb_; }
+  Index capacity() const { return capacity_; }  // 8, 16, 32 or 64
+  const Params& params() const { return params_; }
+
+ private:
+  Index nv_ = 0, nq_ = 0, nb_ = 0, capacity_ = 0;
+  Params params_;
+};
+
+// launch_id_derivatives / launch_fd_derivatives for a model with multi-DoF joints:
+// q has nq entries per instance, fext (or null) nbodies wrenches per instance; the
+// rest as above.
+template <class S>
+cudaError_t launch_id_derivatives(const GeneralDerivativeModel<S>& model, const IdBatchIn<S>& in,
+                                  const IdDerivativesOut<S>& out, cudaStream_t stream);
+template <class S>
+cudaError_t launch_fd_derivatives(const GeneralDerivativeModel<S>& model, const FdBatchIn<S>& in,
+                                  const FdDerivativesOut<S>& out, int* failed_dof, cudaStream_t stream);
+
+// ---- the engines ------------------------------------------------------------------
+// Any model of up to kMaxThreadDofs DoF: models of 1-DoF joints take the thread
+// kernels above (strategy "thread"), models with multi-DoF joints the general ones
+// (strategy "general").
+
 template <class S>
 class CudaIdDerivatives final : public IdDerivatives<S> {
  public:
@@ -80,12 +147,13 @@ class CudaIdDerivatives final : public IdDerivatives<S> {
   ~CudaIdDerivatives() override;
   void compute(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out) override;
   cudaError_t compute_async(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, cudaStream_t stream);
-  std::string strategy() const override { return "thread"; }
+  std::string strategy() const override { return general_ ? "general" : "thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
  private:
-  Index nv_ = 0, max_batch_ = 0;
-  std::unique_ptr<ThreadModel<S>> thread_;
+  Index nv_ = 0, nq_ = 0, nb_ = 0, max_batch_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;              // models of 1-DoF joints
+  std::unique_ptr<GeneralDerivativeModel<S>> general_;  // models with multi-DoF joints
   std::unique_ptr<detail::StagingBuffer> staging_;
 };
 
@@ -98,12 +166,13 @@ class CudaFdDerivatives final : public FdDerivatives<S> {
   // failed_dof: B ints of device memory, or null
   cudaError_t compute_async(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, int* failed_dof,
                             cudaStream_t stream);
-  std::string strategy() const override { return "thread"; }
+  std::string strategy() const override { return general_ ? "general" : "thread"; }
   BackendKind backend() const override { return BackendKind::Cuda; }
 
  private:
-  Index nv_ = 0, max_batch_ = 0;
-  std::unique_ptr<ThreadModel<S>> thread_;
+  Index nv_ = 0, nq_ = 0, nb_ = 0, max_batch_ = 0;
+  std::unique_ptr<ThreadModel<S>> thread_;              // models of 1-DoF joints
+  std::unique_ptr<GeneralDerivativeModel<S>> general_;  // models with multi-DoF joints
   std::unique_ptr<detail::StagingBuffer> staging_;
   std::vector<int> failed_host_;  // (max_batch) the failed DoFs of the last compute()
 };
