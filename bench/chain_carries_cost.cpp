@@ -21,6 +21,10 @@
 //   config apply      one DualRiccati::apply (ms_* in ms per application)
 //   config threads    ChainInertiaCarries with T threads (note: threads used, and the
 //                     last round's phases: tip walk, reduction, combine, walks, in ms)
+//   config reduce-par T threads at once, each dual_aggregate over its own N / T links
+//                     (links = N / T: ns_per_link is one thread's cost per link; against
+//                     the reduce row, how the reduction scales on this machine)
+//   config walk-par   the same for inertia_carry_walk over C / T chunks each
 //   config estimate   NOT MEASURED: (1 + r) N / (T + r) t_walk + (T - 1) t_apply with
 //                     r = reduce / serial per link measured here, t_walk the serial
 //                     row's ns per link, t_apply the apply row's; for a thread count
@@ -42,6 +46,10 @@
 
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/model/load.hpp"
+
+#if defined(_OPENMP)
+#include <omp.h>
+#endif
 
 using namespace scandyn;
 
@@ -69,6 +77,14 @@ std::string first_line_with(const char* path, const char* key) {
   while (std::getline(in, line))
     if (line.rfind(key, 0) == 0) return line;
   return "";
+}
+
+Index this_thread() {
+#if defined(_OPENMP)
+  return omp_get_thread_num();
+#else
+  return 0;
+#endif
 }
 
 struct Row {
@@ -122,6 +138,13 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
   rows.push_back({m.source, prec, "reduce", 1, N, {}, ""});
   rows.push_back({m.source, prec, "apply", 1, N, {}, ""});
   for (int t : threads) rows.push_back({m.source, prec, "threads", t, N, {}, ""});
+  // the machine's scaling of the two kernels the schedule is made of: t threads each on
+  // its own 1/t of the links at once (links = N / t, so ns_per_link is a thread's)
+  const std::size_t scaling = rows.size();
+  for (int t : threads) {
+    rows.push_back({m.source, prec, "reduce-par", t, N / t, {}, "t threads, each dual_aggregate over its own N / t links"});
+    rows.push_back({m.source, prec, "walk-par", t, N / t, {}, "t threads, each inertia_carry_walk over its own C / t chunks"});
+  }
   // an aggregate to apply: the first 64 links'
   const DualRiccati<DualScalar> agg = dual_aggregate(d, 0, std::min<Index>(N, 64) - 1);
   Mat5<DualScalar> Y = dual_aggregate(d, std::min<Index>(N, 64), std::min<Index>(N, 128) - 1).apply(Mat5<DualScalar>::identity());
@@ -136,6 +159,29 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
                                   sink = sink + y.m[0];
                                 }) /
                                 reps);
+    for (std::size_t k = 0; k < threads.size(); ++k) {
+      const int t = threads[k];
+      std::vector<double> sinks(static_cast<std::size_t>(t), 0.0);
+      rows[scaling + 2 * k].ms.push_back(ms_of([&] {
+#pragma omp parallel num_threads(t)
+        {
+          const Index j = this_thread();
+          if (j < t) sinks[static_cast<std::size_t>(j)] = dual_aggregate(d, j * N / t, (j + 1) * N / t - 1).Q.m[0];
+        }
+      }));
+      rows[scaling + 2 * k + 1].ms.push_back(ms_of([&] {
+#pragma omp parallel num_threads(t)
+        {
+          const Index j = this_thread();
+          if (j < t) {
+            ABInertia<S> Ia{}, IA_first{};
+            Transform<S> X = Transform<S>::identity();
+            inertia_carry_walk(d, chunk, j * C / t, (j + 1) * C / t, out.data(), Ia, X, IA_first);
+          }
+        }
+      }));
+      for (double x : sinks) sink = sink + x;
+    }
     for (std::size_t k = 0; k < threads.size(); ++k) {
       ChainInertiaCarries<S>& c = *par[k];
       const auto origin = Clock::now();
@@ -212,6 +258,7 @@ int main(int argc, char** argv) {
       auto model_ms = [&](int T) { return (1 + r) * rows[0].links / (T + r) * tw + (T - 1) * ta; };
       std::string check;
       for (std::size_t k = 3; k < rows.size(); ++k) {
+        if (rows[k].config != "threads") continue;
         char b[120];
         std::snprintf(b, sizeof b, "%sT=%d model %.3f ms vs measured %.3f ms", check.empty() ? "" : "; ", rows[k].threads,
                       model_ms(rows[k].threads), rows[k].fastest());
