@@ -1,0 +1,242 @@
+// One closed-loop forward dynamics of cloth:K:N on the GPU (cuda::CudaIterativeLoopSolver,
+// scandyn/cuda/loop_iterative.hpp: CGLS with block Jacobi, a thread per rope and per
+// loop) next to the CPU iterative solver (sim::IterativeLoopSolver, block Jacobi, one
+// core) on the same grid and state. A plain program (no Google Benchmark).
+//
+//   bench_cuda_loop_iterative [--grids 30:30,100:100,300:300,1000:1000] [--cpu-max-links L]
+//                             [--float] [--max-iterations K] [--torque A] [--csv FILE]
+//
+// State (bench_loop_step's --start x): q = 0.1 and qd = 0.5 on every x-axis joint (even
+// j of each rope), 0 on the others (the ropes alike: closed), torques tau_i = A sin(1 + i)
+// (A = --torque, default 1e-4: the cloth deforms, so the constraint forces do not vanish).
+// Every solve cold (lambda = 0), tolerance 1e-10 (float: 1e-5). The CPU solves grids of
+// at most --cpu-max-links links (default 10^5: up to cloth:300:300, ~10-20 s there).
+// The GPU solvers are made and warmed up (the kernels' first launch, JIT from PTX) on
+// cloth:4:4 before the timed rows; each timed row is one forward_dynamics call (host
+// copies of q, qd, tau in and qdd out included); setup_s: the solver's construction.
+//
+// Columns: grid, links, rows, solver, iterations, seconds, setup_s, closure
+// (||J qdd + gamma||_2 by the host's passes), closure_rel (closure / (||gamma|| + ||J qdd0||)),
+// qdd_diff (max |qdd - qdd_cpu| / max |qdd_cpu|; against the CPU row where it ran, else
+// against the GPU double row for float, else -), status (ok, or the error).
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "scandyn/algorithm/loop_iterative.hpp"
+#include "scandyn/algorithm/loops.hpp"
+#include "scandyn/cuda/loop_iterative.hpp"
+#include "scandyn/model/load.hpp"
+#include "scandyn/sim/iterative_loops.hpp"
+
+using namespace scandyn;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+double norm2(const std::vector<double>& x) {
+  double s = 0;
+  for (double e : x) s += e * e;
+  return std::sqrt(s);
+}
+
+struct Closure {
+  double residual = 0, scale = 0;
+};
+// ||J qdd + gamma||, ||gamma|| + ||J qdd0|| by the host's passes
+Closure closure(const Model& model, const LoopSet& loops, const std::vector<double>& q, const std::vector<double>& qd,
+                const std::vector<double>& tau, const std::vector<double>& qdd) {
+  const Index n = model.nv(), m = loops.rows();
+  const auto rows = loop_rows_of<double>(loops);
+  const Index nl = static_cast<Index>(rows.size());
+  const Body<double>* bodies = model.bodies.data();
+  std::vector<Transform<double>> X0(n), Xup(n);
+  std::vector<Motion<double>> v(n), a(n), acc(n), cc(n);
+  std::vector<Force<double>> U(n), pA(n);
+  std::vector<ABInertia<double>> IA(n);
+  std::vector<double> gamma(m), jq(m), D(n), u(n), qdd0(n);
+  loop_body_motion(bodies, n, q.data(), qd.data(), X0.data(), v.data(), a.data());
+  loop_rows(bodies, n, rows.data(), nl, X0.data(), v.data(), a.data(), static_cast<double*>(nullptr),
+            static_cast<double*>(nullptr), gamma.data());
+  loop_aba_factor(bodies, n, model.gravity, q.data(), qd.data(), tau.data(), Xup.data(), U.data(), D.data(),
+                  qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(), u.data());
+  Closure out;
+  loop_joint_motion(bodies, n, Xup.data(), qdd0.data(), acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  out.scale = norm2(gamma) + norm2(jq);
+  loop_joint_motion(bodies, n, Xup.data(), qdd.data(), acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  for (Index k = 0; k < m; ++k) jq[k] += gamma[k];
+  out.residual = norm2(jq);
+  return out;
+}
+
+double rel_diff(const std::vector<double>& a, const std::vector<double>& ref) {
+  double d = 0, r = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) d = std::max(d, std::fabs(a[i] - ref[i])), r = std::max(r, std::fabs(ref[i]));
+  return d / (r > 0 ? r : 1);
+}
+
+std::vector<std::string> split(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ','))
+    if (!item.empty()) out.push_back(item);
+  return out;
+}
+
+struct Row {
+  std::string grid, solver, status = "ok";
+  long long links = 0, rows = 0;
+  int iterations = 0;
+  double seconds = 0, setup = 0, closure = NAN, closure_rel = NAN, diff = NAN;
+};
+
+FILE* g_csv = nullptr;
+void print(const Row& r) {
+  char diff[32] = "-";
+  if (std::isfinite(r.diff)) std::snprintf(diff, sizeof diff, "%.3g", r.diff);
+  std::string status = r.status;
+  std::replace(status.begin(), status.end(), ',', ';');
+  char line[1024];
+  std::snprintf(line, sizeof line, "%s,%lld,%lld,%s,%d,%.4g,%.3g,%.3g,%.3g,%s,%s\n", r.grid.c_str(), r.links, r.rows,
+                r.solver.c_str(), r.iterations, r.seconds, r.setup, r.closure, r.closure_rel, diff, status.c_str());
+  std::fputs(line, stdout);
+  std::fflush(stdout);
+  if (g_csv) std::fputs(line, g_csv), std::fflush(g_csv);
+}
+
+template <class S>
+Row run_gpu(const std::string& spec, const Model& model, const LoopSet& loops, const std::vector<double>& q,
+            const std::vector<double>& qd, const std::vector<double>& tau, int max_iterations, std::vector<double>& qdd) {
+  Row r;
+  r.grid = spec, r.links = model.nv(), r.rows = loops.rows();
+  r.solver = sizeof(S) == sizeof(float) ? "cuda-float" : "cuda-double";
+  cuda::CudaIterativeLoopOptions o;
+  o.warm_start = false;
+  o.max_iterations = max_iterations;
+  qdd.assign(model.nv(), NAN);
+  try {
+    auto t0 = Clock::now();
+    cuda::CudaIterativeLoopSolver<S> gpu(model, loops, o);
+    r.setup = seconds_since(t0);
+    t0 = Clock::now();
+    try {
+      gpu.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), nullptr);
+    } catch (const LoopError& e) {
+      r.status = std::string("error: ") + e.what();
+    }
+    r.seconds = seconds_since(t0);
+    r.iterations = gpu.stats().last_iterations;
+  } catch (const std::exception& e) {
+    r.status = std::string("error: ") + e.what();
+  }
+  return r;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> grids = {"30:30", "100:100", "300:300", "1000:1000"};
+  long long cpu_max_links = 100000;
+  bool with_float = false;
+  int max_iterations = sim::kIterativeLoopMaxIterations;
+  double torque = 1e-4;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--grids" && i + 1 < argc) grids = split(argv[++i]);
+    else if (a == "--cpu-max-links" && i + 1 < argc) cpu_max_links = std::atoll(argv[++i]);
+    else if (a == "--float") with_float = true;
+    else if (a == "--max-iterations" && i + 1 < argc) max_iterations = std::atoi(argv[++i]);
+    else if (a == "--torque" && i + 1 < argc) torque = std::atof(argv[++i]);
+    else if (a == "--csv" && i + 1 < argc) g_csv = std::fopen(argv[++i], "w");
+    else {
+      std::fprintf(stderr,
+                   "usage: bench_cuda_loop_iterative [--grids 30:30,100:100,...] [--cpu-max-links L] [--float] "
+                   "[--max-iterations K] [--torque A] [--csv FILE]\n");
+      return 2;
+    }
+  }
+  // warm-up: every kernel of both precisions launched once
+  {
+    const Model model = load_model("cloth:4:4");
+    const LoopSet loops = generator_loops("cloth:4:4", model);
+    std::vector<double> z(model.nv(), 0.0), t(model.nv(), 1e-4), out;
+    try {
+      run_gpu<double>("cloth:4:4", model, loops, z, z, t, 100, out);
+      run_gpu<float>("cloth:4:4", model, loops, z, z, t, 100, out);
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "warm-up: %s\n", e.what());
+    }
+  }
+  const char* header = "grid,links,rows,solver,iterations,seconds,setup_s,closure,closure_rel,qdd_diff,status\n";
+  std::fputs(header, stdout);
+  if (g_csv) std::fputs(header, g_csv);
+  for (const std::string& g : grids) {
+    const std::string spec = "cloth:" + g;
+    const Model model = load_model(spec);
+    const LoopSet loops = generator_loops(spec, model);
+    const Index n = model.nv();
+    const Index N = std::atoi(g.c_str() + g.rfind(':') + 1);
+    std::vector<double> q(n), qd(n), tau(n);
+    for (Index i = 0; i < n; ++i) {
+      const bool x_axis = (i % N) % 2 == 0;
+      q[i] = x_axis ? 0.1 : 0.0, qd[i] = x_axis ? 0.5 : 0.0, tau[i] = torque * std::sin(1.0 + double(i));
+    }
+    std::vector<double> qdd_cpu, qdd_gpu, qdd_f;
+    if (n <= cpu_max_links) {
+      Row r;
+      r.grid = spec, r.links = n, r.rows = loops.rows(), r.solver = "cpu-iterative";
+      sim::IterativeLoopOptions o;
+      o.preconditioner = sim::LoopPreconditioner::BlockJacobi;
+      o.warm_start = false;
+      o.max_iterations = max_iterations;
+      auto t0 = Clock::now();
+      sim::IterativeLoopSolver cpu(model, loops, o);
+      r.setup = seconds_since(t0);
+      qdd_cpu.assign(n, NAN);
+      t0 = Clock::now();
+      try {
+        cpu.forward_dynamics(q.data(), qd.data(), tau.data(), qdd_cpu.data(), nullptr);
+      } catch (const LoopError& e) {
+        r.status = std::string("error: ") + e.what();
+        qdd_cpu.clear();
+      }
+      r.seconds = seconds_since(t0);
+      r.iterations = cpu.stats().last_iterations;
+      if (!qdd_cpu.empty()) {
+        const Closure c = closure(model, loops, q, qd, tau, qdd_cpu);
+        r.closure = c.residual, r.closure_rel = c.residual / c.scale;
+      }
+      print(r);
+    }
+    Row r = run_gpu<double>(spec, model, loops, q, qd, tau, max_iterations, qdd_gpu);
+    if (r.status == "ok") {
+      const Closure c = closure(model, loops, q, qd, tau, qdd_gpu);
+      r.closure = c.residual, r.closure_rel = c.residual / c.scale;
+      if (!qdd_cpu.empty()) r.diff = rel_diff(qdd_gpu, qdd_cpu);
+    }
+    print(r);
+    if (with_float) {
+      Row f = run_gpu<float>(spec, model, loops, q, qd, tau, max_iterations, qdd_f);
+      if (f.status == "ok") {
+        const Closure c = closure(model, loops, q, qd, tau, qdd_f);
+        f.closure = c.residual, f.closure_rel = c.residual / c.scale;
+        if (!qdd_cpu.empty()) f.diff = rel_diff(qdd_f, qdd_cpu);
+        else if (r.status == "ok") f.diff = rel_diff(qdd_f, qdd_gpu);
+      }
+      print(f);
+    }
+  }
+  if (g_csv) std::fclose(g_csv);
+  return 0;
+}
