@@ -54,6 +54,9 @@ struct Dev {
 };
 
 constexpr int kThreads = 128;
+// per-chain kernels: one warp per block, so that the few chain threads (10^3 on
+// cloth:1000:1000) spread over the multiprocessors (each thread's walk is latency-bound)
+constexpr int kChainThreads = 32;
 constexpr int kReduceThreads = 256, kReduceBlocks = 512;
 int grid(long n, int t = kThreads) { return static_cast<int>(n > 0 ? (n + t - 1) / t : 1); }
 
@@ -333,12 +336,12 @@ struct CudaIterativeLoopSolver<S>::Impl {
   }
 
   void joint_motion_rows(const S* xx, S* out) {  // out = J xx
-    k_joint_motion<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p, xx, acc.p);
+    k_joint_motion<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p, xx, acc.p);
     k_rows_apply<<<grid(nl), kThreads, 0, stream>>>(rows.p, nl, row_of.p, X0.p, acc.p, out);
     launched("J x");
   }
   void response(const S* ww, S* Js_out) {  // s = M^-1 J^T ww, Js_out = J s
-    k_response<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, rows.p, row_of.p, side_start.p, side.p,
+    k_response<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, rows.p, row_of.p, side_start.p, side.p,
                                                   X0.p, Xup.p, U.p, D.p, ww, f.p, pA.p, s.p, acc.p);
     k_rows_apply<<<grid(nl), kThreads, 0, stream>>>(rows.p, nl, row_of.p, X0.p, acc.p, Js_out);
     launched("the tree's response");
@@ -403,10 +406,10 @@ struct CudaIterativeLoopSolver<S>::Impl {
     // L_J: the unit tree's diagonal blocks at q = 0
     check(cudaMemsetAsync(q.p, 0, sizeof(S) * (N ? N : 1), stream), "memset");
     if (nl > 0) {
-      k_body_motion<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, q.p, static_cast<const S*>(nullptr),
+      k_body_motion<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, q.p, static_cast<const S*>(nullptr),
                                                        X0.p, v.p, a.p);
       k_joint_transforms<<<grid(n), kThreads, 0, stream>>>(bodies.p, n, q.p, Xup.p);
-      k_response_blocks<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p,
+      k_response_blocks<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p,
                                                            static_cast<const Force<S>*>(nullptr),
                                                            static_cast<const S*>(nullptr), Omega.p);
       k_blocks<<<grid(nl), kThreads, 0, stream>>>(rows.p, nl, X0.p, Omega.p, S(0), static_cast<S*>(nullptr), tmp.p);
@@ -491,14 +494,14 @@ struct CudaIterativeLoopSolver<S>::Impl {
     for (Index i = 0; i < n; ++i) hq[i] = S(qh[i]), hqd[i] = S(qdh[i]), htau[i] = S(tauh[i]);
     q.upload(hq.data(), n, stream), qd.upload(hqd.data(), n, stream), tau.upload(htau.data(), n, stream);
     // X0, gamma = Jdot qd
-    k_body_motion<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, q.p, qd.p, X0.p, v.p, a.p);
+    k_body_motion<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, q.p, qd.p, X0.p, v.p, a.p);
     if (nl > 0)
       k_loop_gamma<<<grid(nl), kThreads, 0, stream>>>(bodies.p, n, rows.p, nl, row_of.p, X0.p, v.p, a.p, gamma.p);
     launched("body motion");
     // qdd0, U, D
     const int minus_one = -1;
     check(cudaMemcpyAsync(failed.p, &minus_one, sizeof(int), cudaMemcpyHostToDevice, stream), "flag");
-    k_aba_factor<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, gravity, q.p, qd.p, tau.p, Xup.p,
+    k_aba_factor<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, gravity, q.p, qd.p, tau.p, Xup.p,
                                                     U.p, D.p, qdd0.p, v.p, c.p, a.p, IA.p, pA.p, u.p, failed.p);
     launched("articulated-body factor");
     // b = -gamma - J qdd0
@@ -524,7 +527,7 @@ struct CudaIterativeLoopSolver<S>::Impl {
     const double target = tolerance * scale + floor;
     if (m > 0) {
       if (options.preconditioner == sim::LoopPreconditioner::BlockJacobi) {
-        k_response_blocks<<<grid(nc), kThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p, U.p, D.p, Omega.p);
+        k_response_blocks<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(bodies.p, chain_start.p, nc, Xup.p, U.p, D.p, Omega.p);
         k_blocks<<<grid(nl), kThreads, 0, stream>>>(rows.p, nl, X0.p, Omega.p, S(kLoopBlockFloor), inv.p,
                                                     static_cast<S*>(nullptr));
         launched("block-Jacobi weights");
