@@ -60,6 +60,7 @@ IterativeLoopSolver::IterativeLoopSolver(const Model& model, const LoopSet& loop
   Xup_.resize(n), X0_.resize(n), U_.resize(n), f_.resize(n), pA_.resize(n);
   D_.resize(n), u_.resize(n), qdd0_.resize(n), tmp_n_.resize(n), xbest_.resize(n), dx_.resize(n), px_.resize(n);
   v_.resize(n), c_.resize(n), a_.resize(n), acc_.resize(n), IA_.resize(n);
+  trial_X0_.resize(n), trial_v_.resize(n), trial_a_.resize(n);  // project's trial points (no allocation per call)
   Omega_.resize(n);  // the preconditioner's and the projection's damping scale
   lambda_.assign(m, 0.0);
   b_.resize(m), gamma_.resize(m), r_.resize(m), z_.resize(m), p_.resize(m), Ap_.resize(m), best_.resize(m);
@@ -518,10 +519,17 @@ void IterativeLoopSolver::forward_dynamics(const double* q, const double* qd, co
 // projection's residual partly is at rounding level). W: the SSOR or block-Jacobi weights
 // of J J^T (this is CG on J J^T + mu W^-1 with that preconditioner, in the rows' terms;
 // W times the residual by its recurrence), or 1 without a preconditioner. mu is at least
-// kLoopRankTolerance (of the damping scale). Converged: (mu = 0 asked) ||r - J x||_2 <=
-// tolerance ||r||_2 + floor, or the damped normal residual ||J^T W (r - J x) - mu x||_2
-// at most tolerance times its first value.
-void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor, double* x, bool& converged) {
+// kLoopRankTolerance (of the damping scale). Converged (mu = 0 asked), judged on the TRUE
+// residual r - J x at the end (the recurrence's and the normal residual's only decide
+// when to stop): ||r - J x||_2 <= tolerance ||r||_2 + floor; or, where the rounds stopped
+// at the damped normal residual ||J^T W (r - J x) - mu x||_2 <= tolerance times its first
+// value (the residual no longer halving), ||r - J x||_2 <= allowance + floor (the part of
+// r the rank floor mu leaves: the caller's sqrt(kLoopRankTolerance) L_J ||v||_2 for r = J
+// v). A recurrence's residual at the target that the true one is not (drift): another
+// round from the true residual. mu > 0 asked: the damped problem solved (its normal
+// residual), the residual is what it is.
+void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor, double allowance, double* x,
+                                     bool& converged) {
   const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
   // every solve damped by at least kLoopRankTolerance of the scale: J's directions of
   // singular value below 1e-5 (relative) stay out of the step, as the dense solve's
@@ -558,6 +566,7 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
   std::fill(xbest.begin(), xbest.end(), 0.0);
   // rounds: CGLS to its damped normal residual, then (mu = 0 asked) again from the true
   // residual r - J x while that is above the target and the last round halved it
+  bool damped = false;  // stopped at the damped normal residual (mu = 0 asked)
   for (int round = 0; round < 4 && !converged && it < options_.max_iterations; ++round) {
     const double round_start = rn;
     if (round > 0) {  // the true residual at x
@@ -606,10 +615,20 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
       gamma = gamma1;
       for (Index i = 0; i < n; ++i) p[i] = s[i] + beta * p[i];
     }
-    if (converged) break;
+    if (converged) {
+      // the recurrence's residual at the target: the true one too, else (drift) the next
+      // round from it
+      jv(x, q);
+      double t = 0;
+      for (Index k = 0; k < m; ++k) t += (r[k] - q[k]) * (r[k] - q[k]);
+      if (std::sqrt(t) <= target) break;
+      converged = false;
+      continue;
+    }
     if (!normal) break;  // the cap, or a breakdown: not converged
     if (mu_in != 0 || !(rn <= 0.5 * round_start)) {
       converged = true;  // the damped problem solved (its residual is what remains)
+      damped = mu_in == 0;
       break;
     }
   }
@@ -618,18 +637,31 @@ void IterativeLoopSolver::unit_solve(const double* r, double mu_in, double floor
     rn = best;
     converged = converged || rn <= target;
   }
-  stats_.applies += it;
-  stats_.apply_seconds += seconds_since(t0);
-  ++stats_.proj_solves;
-  stats_.proj_iterations += it;
-  stats_.last_iterations = it;
-  stats_.last_residual = r0 > 0 ? rn / r0 : 0;
   for (Index i = 0; i < n; ++i)
     if (!std::isfinite(x[i])) {
       std::fill(x, x + n, 0.0);
       converged = false;
       break;
     }
+  last_r0_ = r0, last_target_ = target, last_allowance_ = allowance + floor;
+  if (mu_in == 0) {
+    // the acceptance, on the true residual r - J x (never the recurrence's or the damped
+    // normal residual alone: where J J^T's small singular values leave r - J x far above
+    // a normal residual at its tolerance, that would be a wrong projection)
+    jv(x, q);
+    double t = 0;
+    for (Index k = 0; k < m; ++k) t += (r[k] - q[k]) * (r[k] - q[k]);
+    rn = std::sqrt(t);
+    const bool within = rn <= target || (damped && rn <= allowance + floor);
+    converged = std::isfinite(rn) && within && (converged || rn <= target);
+  }
+  stats_.applies += it;
+  stats_.apply_seconds += seconds_since(t0);
+  ++stats_.proj_solves;
+  stats_.proj_iterations += it;
+  stats_.last_iterations = it;
+  stats_.last_residual = r0 > 0 ? rn / r0 : 0;
+  last_residual_abs_ = rn;
 }
 
 double IterativeLoopSolver::project(double* q, double* qd, double tol, int iterations, LoopProjectionInfo* info) {
@@ -644,14 +676,12 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
   const Index n = n_, m = m_, nl = static_cast<Index>(rows_.size());
   struct Ops {
     IterativeLoopSolver& s;
-    std::vector<Transform<double>> X0;  // trial points' poses (residual)
-    std::vector<Motion<double>> v, a;
     bool last_converged = true;
-    bool residual(const double* x, double* phi) {
-      loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), X0.data(), v.data(),
-                       a.data());
-      loop_rows(s.model_.bodies.data(), s.n_, s.rows_.data(), static_cast<Index>(s.rows_.size()), X0.data(), v.data(),
-                a.data(), phi, static_cast<double*>(nullptr), static_cast<double*>(nullptr));
+    bool residual(const double* x, double* phi) {  // (the trial points' poses in the solver's scratch)
+      loop_body_motion(s.model_.bodies.data(), s.n_, x, static_cast<const double*>(nullptr), s.trial_X0_.data(),
+                       s.trial_v_.data(), s.trial_a_.data());
+      loop_rows(s.model_.bodies.data(), s.n_, s.rows_.data(), static_cast<Index>(s.rows_.size()), s.trial_X0_.data(),
+                s.trial_v_.data(), s.trial_a_.data(), phi, static_cast<double*>(nullptr), static_cast<double*>(nullptr));
       for (Index k = 0; k < s.m_; ++k)
         if (!std::isfinite(phi[k])) return false;
       return true;
@@ -678,9 +708,9 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
       s.unit_scale_ = s.options_.preconditioner != LoopPreconditioner::None ? 1.0 : big > 0 ? big : 1.0;
       if (kind != LoopPreconditioner::None) s.invert_blocks(kind);
     }
-    double floor = 0;  // the solves' absolute tolerance (below)
+    double floor = 0, allowance = 0;  // the solves' absolute tolerances (below)
     void solve(const double* r, double mu, double* x) {
-      s.unit_solve(r, mu, floor, x, last_converged);
+      s.unit_solve(r, mu, floor, allowance, x, last_converged);
       if (!last_converged && mu == 0) ++s.stats_.proj_unconverged;
     }
     void apply(const double* v_in, double* out) {
@@ -688,22 +718,31 @@ double IterativeLoopSolver::project(double* q, double* qd, double tol, int itera
       loop_rows_apply(s.rows_.data(), static_cast<Index>(s.rows_.size()), s.X0_.data(), s.acc_.data(), out);
     }
     double damping_scale() const { return s.unit_scale_; }
-  } ops{*this, std::vector<Transform<double>>(static_cast<std::size_t>(n)),
-        std::vector<Motion<double>>(static_cast<std::size_t>(n)), std::vector<Motion<double>>(static_cast<std::size_t>(n))};
+  } ops{*this};
   (void)bodies, (void)nl;
   LoopProjectionInfo out;
   // the floor of the solves' residual r - J x for r = J v (v: q for the position steps,
   // qd for the velocities): kIterativeLoopFloor L_J max(||q||_2, ||qd||_2), the
   // residual a dense projection leaves
   ops.floor = kIterativeLoopFloor * jscale_ * std::max(norm(q, n), norm(qd, n));
+  // and the part of J qd the rank floor mu = kLoopRankTolerance leaves (J qd along J's
+  // directions of singular value below sqrt(kLoopRankTolerance) L_J, which the damping
+  // keeps out of the step as the dense solve's rank threshold does): the velocity
+  // projection's allowance where it stops at the damped normal residual
+  ops.allowance = std::sqrt(kLoopRankTolerance) * jscale_ * norm(qd, n);
   const double phi = project_onto_loops(ops, n, m, q, qd, tol, iterations, &out);
   if (info) *info = out;
   stats_.proj_seconds += seconds_since(t0);
-  // the last solve was the velocity projection's (J qd = 0): it must have converged
+  // the last solve was the velocity projection's (J qd = 0): it must have converged, on
+  // its true residual ||J qd'||_2 (unit_solve's acceptance)
   if (m > 0 && !ops.last_converged)
-    throw LoopSolveNotConverged("iterative loop solver: conjugate gradients on the velocity projection's normal equations did not converge "
-                    "(relative residual " + sci(stats_.last_residual) + " after at most " +
-                    std::to_string(options_.max_iterations) + " iterations; tolerance " + sci(options_.tolerance) + ")");
+    throw LoopSolveNotConverged(
+        "iterative loop solver: the velocity projection did not converge: ||J qd||_2 " + sci(last_residual_abs_) +
+        " after it (" + sci(last_r0_) + " before; relative residual " + sci(stats_.last_residual) + ") after " +
+        std::to_string(stats_.last_iterations) + " iterations (at most " + std::to_string(options_.max_iterations) +
+        "); accepted: at most " + sci(last_target_) + " (tolerance " + sci(options_.tolerance) +
+        " of ||J qd||_2 before + 1e-12 L_J max(||q||_2, ||qd||_2)), or " + sci(last_allowance_) +
+        " where it stopped at the damped normal residual (1e-5 L_J ||qd||_2 + the same floor)");
   return phi;
 }
 

@@ -34,12 +34,19 @@
 // W = D^-1, over the "unit tree" (massless links, a unit joint-space inertia per joint:
 // J p and J^T W q by O(n) passes), from 0. mu is at least kLoopRankTolerance (the dense
 // solve's rank threshold's role: a right-hand side at rounding level is not "solved"
-// along J's near-null directions). Converged: ||r - J x||_2 <= tolerance ||r||_2 +
-// 1e-12 L_J max(||q||_2, ||qd||_2), or the damped normal residual at tolerance of its
-// first value (then restarted from the true residual while that halves, at most 4
-// rounds). A position step that does not converge is judged by the Levenberg-Marquardt
-// acceptance test; the velocity projection's solve must converge (else
-// LoopSolveNotConverged).
+// along J's near-null directions). CGLS stops at ||r - J x||_2 <= tolerance ||r||_2 +
+// 1e-12 L_J max(||q||_2, ||qd||_2) (by its recurrence), or at the damped normal residual
+// at tolerance of its first value (then restarted from the true residual while that
+// halves, at most 4 rounds); a solve is converged only on its TRUE residual r - J x,
+// computed at the end: within that target, or, stopped at the damped normal residual,
+// within sqrt(kLoopRankTolerance) L_J ||qd||_2 + the same floor (the part of J qd along
+// J's directions of singular value below 1e-5 L_J, which the damping leaves as the dense
+// rank threshold does). The velocity projection's solve must converge, else
+// LoopSolveNotConverged naming ||J qd||_2 after and before, the iterations and both
+// bounds (the normal residual alone is no test: J J^T's small singular values can leave
+// r - J x far above it). A position step's solve, converged or not (counted in
+// proj_unconverged), is judged by the Levenberg-Marquardt acceptance test on the true
+// phi at the trial point, and the caller judges max |phi|: no wrong q either.
 //
 // Preconditioner (IterativeLoopOptions::preconditioner): the weights W, an approximate
 // inverse of A (of J J^T), symmetric positive definite, O(n + m) to build and apply:
@@ -140,7 +147,7 @@ struct IterativeLoopStats {
   long proj_solves = 0, proj_iterations = 0;    // projection: CG solves, iterations
   long proj_unconverged = 0;                    // projection position steps that did not converge
   int last_iterations = 0;                      // the last CG solve's iterations
-  double last_residual = 0;                     // and its relative residual
+  double last_residual = 0;                     // and its relative residual (projection, mu = 0: the true one)
   double fd_seconds = 0, proj_seconds = 0;      // wall time in forward_dynamics / project
   long dilu_fallbacks = 0;                      // Dt_k replaced by A_kk (BlockDilu, BlockTridiagonal)
   long applies = 0;                             // applications of A or J J^T (tree passes)
@@ -170,7 +177,7 @@ class IterativeLoopSolver : public LoopSolver {
   bool fd_solve(double target, int& it, double& rnorm);
   void build_preconditioner(const Force<double>* U, const double* D, LoopPreconditioner kind);
   void apply_preconditioner(const double* r, double* z) const;
-  void unit_solve(const double* r, double mu, double floor, double* x, bool& converged);
+  void unit_solve(const double* r, double mu, double floor, double allowance, double* x, bool& converged);
   static bool neighbour_blocks(LoopPreconditioner p);
   void build_pattern();
 
@@ -185,6 +192,9 @@ class IterativeLoopSolver : public LoopSolver {
   std::vector<Force<double>> U_, f_, pA_;
   std::vector<double> D_, u_, qdd0_, tmp_n_, xbest_, dx_, px_;
   std::vector<Motion<double>> v_, c_, a_, acc_;
+  // project's trial points (Levenberg-Marquardt's phi at q + p): their poses and motions
+  std::vector<Transform<double>> trial_X0_;
+  std::vector<Motion<double>> trial_v_, trial_a_;
   std::vector<ABInertia<double>> IA_;
   std::vector<Mat6<double>> Omega_;
   // per row
@@ -207,6 +217,9 @@ class IterativeLoopSolver : public LoopSolver {
   bool all_points_ = false;  // every loop a point loop (3 rows): the sweeps' 3 x 3 path
   LoopPreconditioner weights_ = LoopPreconditioner::None;  // the weights as last built (None: W = 1)
   bool unit_factored_ = false;
+  // the last projection solve's ||r||_2, its target, its allowance (+ floor) and its true
+  // residual ||r - J x||_2 (mu = 0; else the recurrence's): the velocity projection's error
+  double last_r0_ = 0, last_target_ = 0, last_allowance_ = 0, last_residual_abs_ = 0;
   double unit_scale_ = 1;
   double jscale_ = 1;  // L_J: sqrt of the largest diagonal entry of J J^T at q = 0 (m)
 };
