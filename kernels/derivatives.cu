@@ -35,10 +35,10 @@
 #include <type_traits>
 
 #include "scandyn/cuda/derivatives.hpp"
+#include "scandyn/cuda/derivatives_general.hpp"
 #include "scandyn/instance/aba_instance.hpp"
 #include "scandyn/instance/dof_column.hpp"
 #include "scandyn/instance/dynamics_derivatives.hpp"
-#include "scandyn/instance/general_instance.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -352,60 +352,21 @@ __global__ void __launch_bounds__(kDerivativesBlock, at_min_blocks<S>())
 }
 
 // ---- models with multi-DoF joints: the general kernels ------------------------------
+// One thread per instance b < B over scandyn/cuda/derivatives_general.hpp's
+// per-instance functions (per-thread arrays in local memory).
 
-// Instance b's n entries of v (a batch view, any strides) into a per-thread array.
-template <class S>
-__device__ __forceinline__ void gather_column(const BatchView<const S>& v, long long b, Index n, S* out) {
-  const S* const p = v.data + b * v.batch_stride;
-  for (Index i = 0; i < n; ++i) out[i] = p[static_cast<std::ptrdiff_t>(i) * v.dof_stride];
-}
-
-// One thread per instance b < B: dtau/dq, dtau/dqd and M of instance b by
-// rnea_derivatives_general_instance (per-thread copies of q, qd, qdd; nv
-// DerivativeBody entries of scratch in local memory).
+// dtau/dq, dtau/dqd and M of instance b (rnea_derivatives_general_instance).
 template <class S, int C>
 __global__ void __launch_bounds__(kDerivativesBlock)
     id_derivatives_general_kernel(const __grid_constant__ GeneralDerivativeParams<S, C> model, const IdBatchIn<S> in,
                                   const IdDerivativesOut<S> out) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= in.q.batch) return;
-  const Index nv = model.nv;
-  S q[GeneralDerivativeParams<S, C>::q_capacity], qd[C], qdd[C];
-  gather_column(in.q, b, model.nq, q);
-  gather_column(in.qd, b, nv, qd);
-  gather_column(in.qdd, b, nv, qdd);
-  DerivativeBody<S> work[C];  // per-thread local memory
-  rnea_derivatives_general_instance(model.body, model.nb, nv, model.a0, q, qd, qdd,
-                                    in.fext ? in.fext + b * model.nb : nullptr, work,
-                                    instance_matrix(out.dtau_dq, b, nv), instance_matrix(out.dtau_dqd, b, nv),
-                                    instance_matrix(out.M, b, nv), nullptr);
+  id_derivatives_general_thread(model, in, out, b);
 }
 
-// aba_general's scratch for at most C bodies and C DoFs (a GeneralWork of per-thread
-// arrays; the CRBA's Ic unused).
-template <class S, int C>
-struct GeneralAbaScratch {
-  Transform<S> Xup[C];
-  Motion<S> v[C], a[C], c[C];
-  Force<S> f[C];
-  ABInertia<S> IA[C];
-  Force<S> U[C];
-  S D[C], u[C], L[kMaxJointDofs * C];
-  __device__ GeneralWork<S> work() { return {Xup, v, a, c, f, nullptr, IA, U, D, u, L}; }
-};
-
-// The forward-dynamics kernel's scratch: the ABA's, then (once qdd is known) the
-// derivatives' nv DerivativeBody entries in the same local memory.
-template <class S, int C>
-union GeneralFdScratch {
-  GeneralAbaScratch<S, C> aba;
-  DerivativeBody<S> work[C];
-  __device__ GeneralFdScratch() {}
-};
-
-// One thread per instance b < B: qdd by aba_general (into out.qdd when given), then
-// dqdd/dq, dqdd/dqd, M^-1 by fd_derivatives_general_instance (the factor of M over the
-// tree of DoFs in the output blocks); failed_dof[b] (when given): -1, or the DoF whose
+// qdd by aba_general (into out.qdd when given), then dqdd/dq, dqdd/dqd, M^-1 by
+// fd_derivatives_general_instance; failed_dof[b] (when given): -1, or the DoF whose
 // pivot (the ABA's, or M's) failed.
 template <class S, int C>
 __global__ void __launch_bounds__(kDerivativesBlock)
@@ -413,28 +374,7 @@ __global__ void __launch_bounds__(kDerivativesBlock)
                                   const FdDerivativesOut<S> out, int* failed_dof) {
   const long long b = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (b >= in.q.batch) return;
-  const Index nv = model.nv;
-  S q[GeneralDerivativeParams<S, C>::q_capacity], qd[C], tau[C], qdd[C];
-  gather_column(in.q, b, model.nq, q);
-  gather_column(in.qd, b, nv, qd);
-  gather_column(in.tau, b, nv, tau);
-  const Force<S>* fext = in.fext ? in.fext + b * model.nb : nullptr;
-  GeneralFdScratch<S, C> scratch;  // per-thread local memory
-  // plain pointers: aba_general's serial instantiation (scandyn/algorithm/reference_general_impl.hpp)
-  const S *const qp = q, *const qdp = qd, *const taup = tau;
-  S* const qddp = qdd;
-  Index failed = aba_general(model.body, model.nb, model.a0, scratch.aba.work(), qp, qdp, taup, qddp, fext,
-                             static_cast<const S*>(nullptr));
-  if (failed < 0) {
-    if (out.qdd.data) {
-      const DofColumn<S> o = instance_column(out.qdd, b);
-      for (Index i = 0; i < nv; ++i) o[i] = qdd[i];
-    }
-    failed = fd_derivatives_general_instance(model.body, model.nb, nv, model.a0, q, qd, qdd, fext, model.dof_parent,
-                                             model.dof_last, model.dof_run, scratch.work,
-                                             instance_matrix(out.dqdd_dq, b, nv), instance_matrix(out.dqdd_dqd, b, nv),
-                                             instance_matrix(out.dqdd_dtau, b, nv));
-  }
+  const Index failed = fd_derivatives_general_thread(model, in, out, b);
   if (failed_dof) failed_dof[b] = static_cast<int>(failed);
 }
 
@@ -514,7 +454,6 @@ GeneralDerivativeModel<S>::GeneralDerivativeModel(const ModelTpl<S>& model)
                        " DoF; the derivatives run a thread per instance, which takes at most " +
                        std::to_string(kMaxThreadDofs));
   capacity_ = nv_ <= 8 ? 8 : nv_ <= 16 ? 16 : nv_ <= 32 ? 32 : 64;
-  require_compiled_capacity(capacity_, "the derivatives of models with multi-DoF joints", model.name);
   const auto fill = [&](auto& p) {
     using P = std::decay_t<decltype(p)>;
     if (nq_ > P::q_capacity)  // (cannot happen: nq <= 4 nv / 3)
@@ -624,8 +563,12 @@ template <class S>
 CudaIdDerivatives<S>::CudaIdDerivatives(const ModelTpl<S>& model, const BackendOptions& options)
     : nv_(model.nv()), nq_(model.nq()), nb_(model.nbodies()), max_batch_(options.max_batch) {
   staging_ = derivative_staging(model, max_batch_, false);
-  if (model.multi_dof()) general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
-  else thread_ = std::make_unique<ThreadModel<S>>(model);
+  if (model.multi_dof()) {
+    general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
+    require_compiled_capacity(general_->capacity(), "the derivatives of models with multi-DoF joints", model.name);
+  } else {
+    thread_ = std::make_unique<ThreadModel<S>>(model);
+  }
 }
 template <class S>
 CudaIdDerivatives<S>::~CudaIdDerivatives() = default;
@@ -667,8 +610,12 @@ CudaFdDerivatives<S>::CudaFdDerivatives(const ModelTpl<S>& model, const BackendO
       max_batch_(options.max_batch),
       failed_host_(static_cast<std::size_t>(options.max_batch)) {
   staging_ = derivative_staging(model, max_batch_, true);
-  if (model.multi_dof()) general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
-  else thread_ = std::make_unique<ThreadModel<S>>(model);
+  if (model.multi_dof()) {
+    general_ = std::make_unique<GeneralDerivativeModel<S>>(model);
+    require_compiled_capacity(general_->capacity(), "the derivatives of models with multi-DoF joints", model.name);
+  } else {
+    thread_ = std::make_unique<ThreadModel<S>>(model);
+  }
 }
 template <class S>
 CudaFdDerivatives<S>::~CudaFdDerivatives() = default;

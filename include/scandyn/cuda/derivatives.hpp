@@ -42,6 +42,7 @@
 // scratches share their local memory), over GeneralDerivativeModel's parameter block
 // of the smallest capacity C >= nv (8, 16, 32 or 64; the capacities a build compiles:
 // visit_compiled_capacity). The engines pick them by the model (strategy "general").
+// One instance's work: scandyn/cuda/derivatives_general.hpp (__host__ __device__).
 #pragma once
 
 #include <memory>
@@ -108,8 +109,9 @@ class GeneralDerivativeModel {
  public:
   using Params = std::variant<GeneralDerivativeParams<S, 8>, GeneralDerivativeParams<S, 16>,
                               GeneralDerivativeParams<S, 32>, GeneralDerivativeParams<S, 64>>;
-  // Throws BackendError for more than kMaxThreadDofs DoF (naming the limit), or a
-  // capacity this build does not compile (SCANDYN_CUDA_ALL_CAPACITIES=OFF: 8 DoF).
+  // Throws BackendError for more than kMaxThreadDofs DoF (naming the limit). The
+  // launches refuse a capacity this build does not compile (visit_compiled_capacity;
+  // SCANDYN_CUDA_ALL_CAPACITIES=OFF: 8 only), the engines at construction.
   explicit GeneralDerivativeModel(const ModelTpl<S>& model);
   Index nv() const { return nv_; }
   Index nq() const { return nq_; }
