@@ -1,14 +1,20 @@
 // The command line with --floating-base: info's nq / nv / base, eval's q_0..q_{nq-1}
 // columns (quaternions normalised within 1e-6, a data error beyond, naming the row
 // and the columns), the nq / nv column mismatch, a root link that is the world
-// frame, bench's floating rows. The values themselves are checked against
+// frame, bench's floating rows, the first-order derivatives on backend cuda (bench
+// rows; eval's dfd against serial's). The values themselves are checked against
 // Pinocchio's free flyer by scripts/check_pinocchio.py (ctest pinocchio_crosscheck).
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <random>
+#include <string>
+#include <vector>
 
 #include "cli/cli_test_util.hpp"
 #include "scandyn/algorithm/reference.hpp"
+#include "scandyn/build_config.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/io/states.hpp"
 #include "scandyn/model/load.hpp"
@@ -181,4 +187,62 @@ TEST_F(CliFloating, KinematicsCheckAndRefusals) {
   EXPECT_NE(e.find("dqdd_dtau_17_17"), std::string::npos);
   EXPECT_EQ(e.find("dqdd_dq_18_"), std::string::npos);
   EXPECT_EQ(e.find("nan"), std::string::npos);
+}
+
+namespace {
+
+// The numbers of a CSV file after its header, row by row.
+std::vector<double> csv_numbers(const std::string& text) {
+  std::vector<double> v;
+  const std::size_t body = text.find('\n');
+  std::string cell;
+  for (std::size_t i = body == std::string::npos ? text.size() : body + 1; i <= text.size(); ++i) {
+    if (i == text.size() || text[i] == ',' || text[i] == '\n') {
+      if (!cell.empty()) v.push_back(std::strtod(cell.c_str(), nullptr));
+      cell.clear();
+    } else {
+      cell += text[i];
+    }
+  }
+  return v;
+}
+
+}  // namespace
+
+// The first-order derivatives on backend cuda take the floating base (the general
+// derivative kernels, strategy "general"): bench rows, and eval's dfd equal to
+// serial's within 1e-9 of the largest entry. Without a usable device the error says
+// why; a build without SCANDYN_CUDA_ALL_CAPACITIES (capacity 8 only) refuses hyq's 18
+// DoF naming the option.
+TEST_F(CliFloating, DerivativesOnCuda) {
+  const bool device = scandyn::backend_unusable(scandyn::BackendKind::Cuda).empty();
+  for (const char* algo : {"did", "dfd"}) {
+    const Result c = run(std::string("bench --model hyq --floating-base --algo ") + algo +
+                         " --instances 8 --min-time 0 --backend cuda");
+    if (!device) {
+      EXPECT_NE(c.code, 0);
+      EXPECT_NE(c.err.find("cuda"), std::string::npos) << c.err;
+    } else if (!SCANDYN_CUDA_ALL_CAPACITIES) {
+      EXPECT_NE(c.code, 0);
+      EXPECT_NE(c.err.find("SCANDYN_CUDA_ALL_CAPACITIES"), std::string::npos) << c.err;
+    } else {
+      ASSERT_EQ(c.code, 0) << c.err;
+      EXPECT_NE(c.out.find(std::string(algo) + ",general,cuda,double,hyq-floating,18,8,"), std::string::npos) << c.out;
+    }
+  }
+  if (!device || !SCANDYN_CUDA_ALL_CAPACITIES) return;
+  write_states("s.csv", 19, 18, 5, 1.0);
+  Result r = run("eval --model hyq --floating-base --states s.csv --out serial.csv --algo dfd");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = run("eval --model hyq --floating-base --states s.csv --out cuda.csv --algo dfd --backend cuda");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::vector<double> a = csv_numbers(read_text(path("cuda.csv"))), b = csv_numbers(read_text(path("serial.csv")));
+  ASSERT_EQ(a.size(), b.size());
+  ASSERT_EQ(a.size(), std::size_t(5) * 3 * 18 * 18);
+  double scale = 1, err = 0;
+  for (std::size_t k = 0; k < a.size(); ++k) {
+    scale = std::max(scale, std::fabs(b[k]));
+    err = std::max(err, std::fabs(a[k] - b[k]));
+  }
+  EXPECT_LT(err / scale, 1e-9);
 }
