@@ -2,7 +2,9 @@
 //
 // The layers of scandyn/cuda/inverse_dynamics.hpp: rnea_instance (the header) ->
 // id_instances_kernel -> launch_id_instances -> CudaInverseDynamics (host staging
-// for compute(), the plain launch for compute_async()).
+// for compute(): the pinned chunked pipeline of host_pipeline.hpp for the thread
+// strategy, or the pageable copies of staging.hpp; the plain launch for
+// compute_async()).
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -14,6 +16,7 @@
 
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
+#include "host_pipeline.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -226,10 +229,25 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
   if (strategy == IdStrategy::ScanLocal) scan_ = std::make_unique<IdScanPlan<S>>(model, max_batch_);
   else thread_ = std::make_unique<ZThreadModel<S>>(model), require_floating_capacity(*thread_, model.name);
   bytes_ = staging_->bytes() + (scan_ ? scan_->device_bytes() : 0);
+  // the pinned host path: the thread kernels, one per instance, take a chunk as a sub-batch
+  if (thread_ && detail::host_staging_from_env() == host_staging::Mode::Pinned) {
+    chunk_override_ = detail::host_chunk_override_from_env();
+    pipeline_ = std::make_unique<detail::HostPipeline>();
+  }
 }
 
 template <class S>
 CudaInverseDynamics<S>::~CudaInverseDynamics() = default;
+
+template <class S>
+std::size_t CudaInverseDynamics<S>::host_ring_bytes() const {
+  return pipeline_ ? pipeline_->ring_bytes() : 0;
+}
+
+template <class S>
+int CudaInverseDynamics<S>::host_ring_allocations() const {
+  return pipeline_ ? pipeline_->allocations() : 0;
+}
 
 template <class S>
 cudaError_t CudaInverseDynamics<S>::compute_async(const IdBatchIn<S>& in, const BatchView<S>& tau,
@@ -245,12 +263,14 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   if (B == 0 || nv == 0) return;
   // staging buffers: nq x max_batch scalars each, then the wrenches
   const std::size_t cap = static_cast<std::size_t>(nq_) * max_batch_;
+  // (both paths: a tau view whose entries overlap is refused here)
+  const Staging stau = plan(tau, nv, cap, true, "tau");
+  if (pipeline_) return compute_pinned(in, tau);
   S* const buffer = static_cast<S*>(staging_->data());
   const cudaStream_t stream = staging_->stream();
   S* const dtau = buffer + 3 * cap;
 
   // copy in, in whatever layout keeps the copies few
-  const Staging stau = plan(tau, nv, cap, true, "tau");
   const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.qdd}, {"q", "qd", "qdd"}, in.fext,
                                                             {nq_, nv, nv}, nb_, cap, buffer, stream);
   // run
@@ -260,6 +280,49 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
   // copy out: tau's entries only
   check(copy(stau, tau, nv, dtau, cudaMemcpyDeviceToHost, stream), "copying tau to the host");
   check(cudaStreamSynchronize(stream), scan_ ? "running the link scans" : "running id_instances_kernel");
+}
+
+// The pinned path (host_pipeline.hpp): per chunk, q, qd, qdd packed in the layout
+// their host views suggest (host_staging::choose_layout), fext verbatim, and tau.
+template <class S>
+void CudaInverseDynamics<S>::compute_pinned(const IdBatchIn<S>& in, const BatchView<S>& tau) {
+  namespace hs = host_staging;
+  const Index B = in.q.batch, nv = nv_, nb = nb_;
+  const BatchView<const S> views[3] = {in.q, in.qd, in.qdd};
+  const Index widths[3] = {nq_, nv, nv};
+  hs::Layout lay[3];
+  for (int k = 0; k < 3; ++k) lay[k] = hs::choose_layout(views[k], widths[k], false);
+  const hs::Layout ltau = hs::choose_layout(tau, nv, true);
+  const std::size_t fext_bytes = in.fext ? static_cast<std::size_t>(nb) * sizeof(Force<S>) : 0;  // per instance
+  const auto layout = [&](Index n) {
+    detail::SlotLayout L;
+    for (int k = 0; k < 3; ++k) L.add(hs::packed_entries(lay[k], widths[k], n) * sizeof(S));  // arrays 0, 1, 2
+    L.add(fext_bytes * static_cast<std::size_t>(n));                                          // 3
+    L.close_inputs();
+    L.add(hs::packed_entries(ltau, nv, n) * sizeof(S));  // 4: tau
+    return L;
+  };
+  const std::size_t per_instance = (static_cast<std::size_t>(nq_) + 3 * static_cast<std::size_t>(nv)) * sizeof(S) +
+                                   fext_bytes;
+  const auto pack = [&](const detail::HostChunk& c) {
+    for (int k = 0; k < 3; ++k) hs::pack(views[k], widths[k], c.range, lay[k], c.host_array<S>(k), 0);
+    if (in.fext)
+      hs::copy_bytes(c.host_array<unsigned char>(3), in.fext + static_cast<std::ptrdiff_t>(c.range.begin) * nb,
+                     fext_bytes * static_cast<std::size_t>(c.range.count), 0);
+  };
+  const auto launch = [&](const detail::HostChunk& c, cudaStream_t stream) {
+    const Index n = c.range.count;
+    const IdBatchIn<S> din{hs::packed_view(c.device_array<const S>(0), lay[0], nq_, n),
+                           hs::packed_view(c.device_array<const S>(1), lay[1], nv, n),
+                           hs::packed_view(c.device_array<const S>(2), lay[2], nv, n),
+                           in.fext ? c.device_array<const Force<S>>(3) : nullptr};
+    return launch_id_instances(*thread_, din, hs::packed_view(c.device_array<S>(4), ltau, nv, n), stream);
+  };
+  const auto unpack = [&](const detail::HostChunk& c) {
+    hs::unpack(c.host_array<const S>(4), ltau, tau, nv, c.range, 0);
+  };
+  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), layout, pack, launch, unpack,
+                 "launching id_instances_kernel", "running id_instances_kernel");
 }
 
 // ---- the bias forces ----------------------------------------------------------------

@@ -63,6 +63,7 @@ namespace cuda {
 
 namespace detail {
 class StagingBuffer;  // kernels/staging.hpp: an engine's stream and device buffer
+class HostPipeline;   // kernels/host_pipeline.hpp: the pinned ring and chunked pipeline
 }  // namespace detail
 
 // Largest model (DoF) the thread-per-instance kernels take: kMaxThreadDofs (scandyn/engine.hpp).
@@ -114,9 +115,17 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
 
   // HOST pointers, any strides. Copies the inputs to the device, runs the kernels,
   // copies tau back (writing only tau's entries: gaps between strided entries keep
-  // their contents) and waits for all of it on the engine's own stream. Throws
-  // BackendError for B > max_batch, views whose batch sizes disagree, a tau view
-  // whose entries overlap, or any CUDA error.
+  // their contents) and waits for all of it. Throws BackendError for B > max_batch,
+  // views whose batch sizes disagree, a tau view whose entries overlap, or any CUDA
+  // error (the engine stays usable). How the host views travel
+  // (SCANDYN_HOST_STAGING, read at construction; host_staging()):
+  //   pinned    (the default, strategy thread) in chunks through a pinned ring the
+  //             engine allocates at the first call and reuses: host threads pack
+  //             chunk k + 1 while chunk k is copied and computed
+  //             (kernels/host_pipeline.hpp; SCANDYN_HOST_CHUNK_INSTANCES sets the
+  //             chunk); same kernel, same results bit for bit;
+  //   pageable  the whole batch copied straight from and to the user's memory on
+  //             the engine's own stream (and strategy scan-local always).
   void compute(const IdBatchIn<S>& in, const BatchView<S>& tau) override;
 
   // DEVICE pointers, any strides, on `stream`. Asynchronous: returns after queuing
@@ -136,12 +145,21 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
   std::size_t device_bytes() const { return bytes_; }  // staging buffers and scan scratch
+  // compute()'s host path: "pinned" or "pageable" (above)
+  std::string host_staging() const { return pipeline_ ? "pinned" : "pageable"; }
+  // the pinned path's ring: bytes of pinned memory held (as many of device memory,
+  // beyond device_bytes()) and times it was allocated; 0 before the first call
+  std::size_t host_ring_bytes() const;
+  int host_ring_allocations() const;
 
  private:
   Index nv_ = 0;
   Index nq_ = 0;  // entries of q (nv + 1 with a floating base)
   Index nb_ = 0;  // bodies (entries of fext)
   std::unique_ptr<ZThreadModel<S>> thread_;
+  std::unique_ptr<detail::HostPipeline> pipeline_;  // the pinned path (null: pageable)
+  Index chunk_override_ = 0;                        // SCANDYN_HOST_CHUNK_INSTANCES, 0: none
+  void compute_pinned(const IdBatchIn<S>& in, const BatchView<S>& tau);
   std::unique_ptr<IdScanPlan<S>> scan_;
   Index max_batch_ = 0;
   int device_ = 0;
