@@ -3,8 +3,10 @@
 //
 // The layers of scandyn/cuda/forward_dynamics.hpp: fd_jsi_instance / aba_instance
 // (the header) -> fd_instances_kernel -> launch_fd_jsi_instances /
-// launch_aba_instances -> CudaForwardDynamics (host staging through
-// kernels/staging.hpp for compute(), the plain launch for compute_async()).
+// launch_aba_instances -> CudaForwardDynamics (host staging for compute(): the
+// pinned chunked pipeline of kernels/host_pipeline.hpp for the thread strategies,
+// or the pageable copies of kernels/staging.hpp; the plain launch for
+// compute_async()).
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -14,6 +16,7 @@
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/fd_check.hpp"
+#include "host_pipeline.hpp"
 #include "staging.hpp"
 
 namespace scandyn {
@@ -167,6 +170,11 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   bytes_ = staging_->bytes() + (dense_ ? dense_->device_bytes() : 0) + (chain_ ? chain_->device_bytes() : 0) +
            (general_ ? general_->device_bytes() : 0);
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
+  // the pinned host path: the thread kernels, one per instance, take a chunk as a sub-batch
+  if (thread_ && detail::host_staging_from_env() == host_staging::Mode::Pinned) {
+    chunk_override_ = detail::host_chunk_override_from_env();
+    pipeline_ = std::make_unique<detail::HostPipeline>();
+  }
   if (options.fallback_aba) set_fallback_aba(true);
   BackendOptions cuda_options = options;  // the Auto rule of the cuda backend, however the engine was made
   cuda_options.backend = BackendKind::Cuda;
@@ -188,6 +196,16 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
 template <class S>
 CudaForwardDynamics<S>::~CudaForwardDynamics() {
   if (check_estimates_) cudaFree(check_estimates_);
+}
+
+template <class S>
+std::size_t CudaForwardDynamics<S>::host_ring_bytes() const {
+  return pipeline_ ? pipeline_->ring_bytes() : 0;
+}
+
+template <class S>
+int CudaForwardDynamics<S>::host_ring_allocations() const {
+  return pipeline_ ? pipeline_->allocations() : 0;
 }
 
 template <class S>
@@ -224,47 +242,53 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
   S* const dqdd = buffer + 3 * cap;
   int* const dfailed = reinterpret_cast<int*>(reinterpret_cast<Force<S>*>(buffer + 4 * cap) + cap);
 
-  // copy in, in whatever layout keeps the copies few
+  // (both paths: a qdd view whose entries overlap is refused here)
   const Staging sqdd = plan(qdd, nv, cap, true, "qdd");
-  const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext,
-                                                            {nq_, nv, nv}, nb_, cap, buffer, stream);
-  // run
-  const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
-  if (chain_ && algorithm_ == FdMethod::Hybrid)
-    check(chain_->launch_hybrid(in.q, din, sqdd.device_view(dqdd, B), dfailed, stream,
-                                record_timeline_ ? &timeline_ : nullptr),
-          "running the hybrid forward dynamics");
-  else
-    check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
-  // which instances failed, before qdd comes back over their entries
-  check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
-        "copying the failed DoFs to the host");
-  if (device_check_)
-    check(cudaMemcpyAsync(estimate_host_.data(), check_estimates_, static_cast<std::size_t>(B) * sizeof(double),
-                          cudaMemcpyDeviceToHost, stream),
-          "copying the forward-dynamics check's estimates to the host");
-  check(cudaStreamSynchronize(stream), "running the forward dynamics");
-  status = summarize_failures(failed, B, pivot_failure(algorithm_));
-  // a failed pivot leaves qdd unwritten on the device; an instance the device check
-  // flagged (estimate not -1) has its result there
-  const auto pivot_failed = [&](Index b) { return failed[b] >= 0 && (!device_check_ || estimate_host_[b] == -1.0); };
-  // keep the failed instances' qdd entries (the device holds nothing for them)
-  if (status.failed > 0) {
-    const std::size_t need = static_cast<std::size_t>(status.failed) * nv;
-    if (kept_.size() < need) kept_.resize(need);
-    std::size_t k = 0;
-    for (Index b = 0; b < B; ++b)
-      if (pivot_failed(b))
-        for (Index i = 0; i < nv; ++i) kept_[k++] = qdd.at(i, b);
-  }
-  // copy out: qdd's entries only
-  check(copy(sqdd, qdd, nv, dqdd, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
-  check(cudaStreamSynchronize(stream), "copying qdd to the host");
-  if (status.failed > 0) {
-    std::size_t k = 0;
-    for (Index b = 0; b < B; ++b)
-      if (pivot_failed(b))
-        for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
+  if (pipeline_) {
+    compute_pinned(in, qdd, failed);
+    status = summarize_failures(failed, B, pivot_failure(algorithm_));
+  } else {
+    // copy in, in whatever layout keeps the copies few
+    const detail::StagedInputs<S> d = detail::stage_inputs<S>({in.q, in.qd, in.tau}, {"q", "qd", "tau"}, in.fext,
+                                                              {nq_, nv, nv}, nb_, cap, buffer, stream);
+    // run
+    const FdBatchIn<S> din{d.in[0], d.in[1], d.in[2], d.fext};
+    if (chain_ && algorithm_ == FdMethod::Hybrid)
+      check(chain_->launch_hybrid(in.q, din, sqdd.device_view(dqdd, B), dfailed, stream,
+                                  record_timeline_ ? &timeline_ : nullptr),
+            "running the hybrid forward dynamics");
+    else
+      check(compute_async(din, sqdd.device_view(dqdd, B), dfailed, stream), "launching the forward dynamics");
+    // which instances failed, before qdd comes back over their entries
+    check(cudaMemcpyAsync(failed, dfailed, static_cast<std::size_t>(B) * sizeof(int), cudaMemcpyDeviceToHost, stream),
+          "copying the failed DoFs to the host");
+    if (device_check_)
+      check(cudaMemcpyAsync(estimate_host_.data(), check_estimates_, static_cast<std::size_t>(B) * sizeof(double),
+                            cudaMemcpyDeviceToHost, stream),
+            "copying the forward-dynamics check's estimates to the host");
+    check(cudaStreamSynchronize(stream), "running the forward dynamics");
+    status = summarize_failures(failed, B, pivot_failure(algorithm_));
+    // a failed pivot leaves qdd unwritten on the device; an instance the device check
+    // flagged (estimate not -1) has its result there
+    const auto pivot_failed = [&](Index b) { return failed[b] >= 0 && (!device_check_ || estimate_host_[b] == -1.0); };
+    // keep the failed instances' qdd entries (the device holds nothing for them)
+    if (status.failed > 0) {
+      const std::size_t need = static_cast<std::size_t>(status.failed) * nv;
+      if (kept_.size() < need) kept_.resize(need);
+      std::size_t k = 0;
+      for (Index b = 0; b < B; ++b)
+        if (pivot_failed(b))
+          for (Index i = 0; i < nv; ++i) kept_[k++] = qdd.at(i, b);
+    }
+    // copy out: qdd's entries only
+    check(copy(sqdd, qdd, nv, dqdd, cudaMemcpyDeviceToHost, stream), "copying qdd to the host");
+    check(cudaStreamSynchronize(stream), "copying qdd to the host");
+    if (status.failed > 0) {
+      std::size_t k = 0;
+      for (Index b = 0; b < B; ++b)
+        if (pivot_failed(b))
+          for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
+    }
   }
   if (!check_->on()) {
     if (fallback_aba_ && status.failed > 0) return compute_failed_by_aba(in, qdd, failed, status.failed);
@@ -276,6 +300,84 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
   const bool fell = fallback_aba_ && status.failed > 0;
   if (fell) compute_failed_by_aba(in, qdd, failed, status.failed);
   return settle_checked(in, qdd, failed, fell);
+}
+
+// The pinned path (host_pipeline.hpp): per chunk, q, qd, tau packed in the layout
+// their host views suggest (host_staging::choose_layout), fext verbatim; back: qdd,
+// the failed DoFs and the device check's estimates. Fills failed (B) and
+// estimate_host_ (with the device check), and qdd's entries of every instance
+// except those whose pivot failed (their entries kept, as the pageable path does).
+template <class S>
+void CudaForwardDynamics<S>::compute_pinned(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) {
+  namespace hs = host_staging;
+  const Index B = in.q.batch, nv = nv_, nb = nb_;
+  const BatchView<const S> views[3] = {in.q, in.qd, in.tau};
+  const Index widths[3] = {nq_, nv, nv};
+  hs::Layout lay[3];
+  for (int k = 0; k < 3; ++k) lay[k] = hs::choose_layout(views[k], widths[k], false);
+  const hs::Layout lqdd = hs::choose_layout(qdd, nv, true);
+  const bool estimates = device_check_ != nullptr;
+  const std::size_t fext_bytes = in.fext ? static_cast<std::size_t>(nb) * sizeof(Force<S>) : 0;  // per instance
+  const auto layout = [&](Index n) {
+    const std::size_t un = static_cast<std::size_t>(n);
+    detail::SlotLayout L;
+    for (int k = 0; k < 3; ++k) L.add(hs::packed_entries(lay[k], widths[k], n) * sizeof(S));  // arrays 0, 1, 2
+    L.add(fext_bytes * un);                                                                   // 3
+    L.close_inputs();
+    L.add(hs::packed_entries(lqdd, nv, n) * sizeof(S));  // 4: qdd
+    L.add(un * sizeof(int));                             // 5: failed DoFs
+    L.add(estimates ? un * sizeof(double) : 0);          // 6: the check's estimates
+    return L;
+  };
+  const std::size_t per_instance = (static_cast<std::size_t>(nq_) + 3 * static_cast<std::size_t>(nv)) * sizeof(S) +
+                                   fext_bytes + sizeof(int) + (estimates ? sizeof(double) : 0);
+  const auto pack = [&](const detail::HostChunk& c) {
+    for (int k = 0; k < 3; ++k) hs::pack(views[k], widths[k], c.range, lay[k], c.host_array<S>(k), 0);
+    if (in.fext)
+      hs::copy_bytes(c.host_array<unsigned char>(3), in.fext + static_cast<std::ptrdiff_t>(c.range.begin) * nb,
+                     fext_bytes * static_cast<std::size_t>(c.range.count), 0);
+  };
+  const auto launch = [&](const detail::HostChunk& c, cudaStream_t stream) {
+    const Index n = c.range.count;
+    const FdBatchIn<S> din{hs::packed_view(c.device_array<const S>(0), lay[0], nq_, n),
+                           hs::packed_view(c.device_array<const S>(1), lay[1], nv, n),
+                           hs::packed_view(c.device_array<const S>(2), lay[2], nv, n),
+                           in.fext ? c.device_array<const Force<S>>(3) : nullptr};
+    const BatchView<S> dqdd = hs::packed_view(c.device_array<S>(4), lqdd, nv, n);
+    int* const dfailed = c.device_array<int>(5);
+    cudaError_t e = aba_ ? launch_aba_instances(*thread_, din, dqdd, dfailed, stream)
+                         : launch_fd_jsi_instances(*thread_, din, dqdd, dfailed, stream);
+    if (e != cudaSuccess || !estimates) return e;
+    double* const dest = c.device_array<double>(6);
+    e = device_check_->launch(din, BatchView<const S>{dqdd.data, dqdd.batch, dqdd.dof_stride, dqdd.batch_stride},
+                              check_->threshold(), dfailed, dest, stream);
+    if (e != cudaSuccess) return e;
+    // device_estimates(): the batch's, as the pageable path leaves them
+    return cudaMemcpyAsync(check_estimates_ + c.range.begin, dest, static_cast<std::size_t>(n) * sizeof(double),
+                           cudaMemcpyDeviceToDevice, stream);
+  };
+  const auto unpack = [&](const detail::HostChunk& c) {
+    const Index b0 = c.range.begin, n = c.range.count;
+    std::copy_n(c.host_array<const int>(5), n, failed + b0);
+    if (estimates) std::copy_n(c.host_array<const double>(6), n, estimate_host_.data() + b0);
+    // a failed pivot leaves qdd unwritten on the device (an instance the device check
+    // flagged, estimate not -1, has its result there): keep those entries
+    const auto pivot_failed = [&](Index b) { return failed[b] >= 0 && (!estimates || estimate_host_[b] == -1.0); };
+    std::size_t k = 0;
+    for (Index b = b0; b < b0 + n; ++b)
+      if (pivot_failed(b)) {
+        if (kept_.size() < k + static_cast<std::size_t>(nv)) kept_.resize(k + static_cast<std::size_t>(nv));
+        for (Index i = 0; i < nv; ++i) kept_[k++] = qdd.at(i, b);
+      }
+    hs::unpack(c.host_array<const S>(4), lqdd, qdd, nv, c.range, 0);
+    if (k == 0) return;
+    k = 0;
+    for (Index b = b0; b < b0 + n; ++b)
+      if (pivot_failed(b))
+        for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
+  };
+  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), layout, pack, launch, unpack,
+                 "launching the forward dynamics", "running the forward dynamics");
 }
 
 template <class S>

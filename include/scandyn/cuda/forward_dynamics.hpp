@@ -161,7 +161,11 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   // -1 or the failed DoF of each instance. Throws BackendError for B > max_batch,
   // views whose batch sizes disagree, a qdd view whose entries overlap, or any CUDA
   // error; a failed factorisation is not an exception. Allocates nothing, except
-  // the first time more instances fail than ever before (to keep their qdd).
+  // the first time more instances fail than ever before (to keep their qdd), and
+  // the pinned ring. The host path (SCANDYN_HOST_STAGING, read at construction) is
+  // CudaInverseDynamics::compute's: pinned, in chunks through the engine's pinned
+  // ring (kernels/host_pipeline.hpp), for jsi_thread and aba_thread (by default);
+  // pageable, the whole batch straight from the user's memory, for the others.
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed_dof);
   // The same; the status's failed_dof is the engine's own host array.
   BatchStatus compute(const FdBatchIn<S>& in, const BatchView<S>& qdd) override {
@@ -222,6 +226,11 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   Index max_batch() const { return max_batch_; }
   int device() const { return device_; }
   std::size_t device_bytes() const { return bytes_; }  // held by the staging buffers
+  // compute()'s host path, "pinned" or "pageable", and the pinned ring's bytes and
+  // allocations, as CudaInverseDynamics's
+  std::string host_staging() const { return pipeline_ ? "pinned" : "pageable"; }
+  std::size_t host_ring_bytes() const;
+  int host_ring_allocations() const;
 
  private:
   Index nv_ = 0;
@@ -243,6 +252,10 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   std::unique_ptr<detail::StagingBuffer> staging_;
   std::vector<int> failed_host_;  // (max_batch) when the caller passes no failed_dof
   std::vector<S> kept_;           // qdd entries of failed instances, restored after the copy back
+  std::unique_ptr<detail::HostPipeline> pipeline_;  // the pinned path (null: pageable)
+  Index chunk_override_ = 0;                        // SCANDYN_HOST_CHUNK_INSTANCES, 0: none
+  // compute()'s pinned path up to the failed DoFs and the device check's estimates
+  void compute_pinned(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed);
   bool fallback_aba_ = false;     // set_fallback_aba
   // compute()'s second pass for set_fallback_aba: the failed instances by the ABA
   BatchStatus compute_failed_by_aba(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed,
