@@ -72,7 +72,8 @@ enum class Layout { InstanceMajor, DofMajor, Broadcast };
 template <class T>
 Layout choose_layout(const BatchView<T>& v, Index w, bool output) {
   const std::ptrdiff_t ds = w > 1 ? v.dof_stride : 0, bs = v.batch > 1 ? v.batch_stride : 0;
-  if (!output && v.batch > 1 && bs == 0) return Layout::Broadcast;
+  if (v.batch <= 1) return Layout::InstanceMajor;  // (one instance: both layouts are the same)
+  if (!output && bs == 0) return Layout::Broadcast;
   const std::ptrdiff_t ads = ds < 0 ? -ds : ds, abs_bs = bs < 0 ? -bs : bs;
   return ads > abs_bs ? Layout::DofMajor : Layout::InstanceMajor;
 }
