@@ -24,6 +24,10 @@
 //   config reduce-par T threads at once, each dual_aggregate over its own N / T links
 //                     (links = N / T: ns_per_link is one thread's cost per link; against
 //                     the reduce row, how the reduction scales on this machine)
+//                     (in a FlushDenormalsScope, as ChainInertiaCarries reduces; the
+//                     reduce row too)
+//   config reduce-par-subnormal  the same without it (subnormals computed: on Intel
+//                     x86 each costs a microcode assist)
 //   config walk-par   the same for inertia_carry_walk over C / T chunks each
 //   config estimate   NOT MEASURED: (1 + r) N / (T + r) t_walk + (T - 1) t_apply with
 //                     r = reduce / serial per link measured here, t_walk the serial
@@ -45,6 +49,7 @@
 #include <vector>
 
 #include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/flush_denormals.hpp"
 #include "scandyn/model/load.hpp"
 
 #if defined(_OPENMP)
@@ -143,6 +148,8 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
   const std::size_t scaling = rows.size();
   for (int t : threads) {
     rows.push_back({m.source, prec, "reduce-par", t, N / t, {}, "t threads, each dual_aggregate over its own N / t links"});
+    rows.push_back({m.source, prec, "reduce-par-subnormal", t, N / t, {},
+                    "the same without FlushDenormalsScope (subnormals computed)"});
     rows.push_back({m.source, prec, "walk-par", t, N / t, {}, "t threads, each inertia_carry_walk over its own C / t chunks"});
   }
   // an aggregate to apply: the first 64 links'
@@ -151,7 +158,10 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
   volatile double sink = 0;
   for (int r = 0; r < rounds; ++r) {
     rows[base + 0].ms.push_back(ms_of([&] { serial.compute(d, chunk, out.data()); }));
-    rows[base + 1].ms.push_back(ms_of([&] { sink = sink + dual_aggregate(d, 0, N - 1).Q.m[0]; }));
+    rows[base + 1].ms.push_back(ms_of([&] {
+      const FlushDenormalsScope flush;  // as ChainInertiaCarries reduces
+      sink = sink + dual_aggregate(d, 0, N - 1).Q.m[0];
+    }));
     const int reps = 10000;
     rows[base + 2].ms.push_back(ms_of([&] {
                                   Mat5<DualScalar> y = Y;
@@ -162,14 +172,15 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
     for (std::size_t k = 0; k < threads.size(); ++k) {
       const int t = threads[k];
       std::vector<double> sinks(static_cast<std::size_t>(t), 0.0);
-      rows[scaling + 2 * k].ms.push_back(ms_of([&] {
+      rows[scaling + 3 * k].ms.push_back(ms_of([&] {
 #pragma omp parallel num_threads(t)
         {
           const Index j = this_thread();
+          const FlushDenormalsScope flush;
           if (j < t) sinks[static_cast<std::size_t>(j)] = dual_aggregate(d, j * N / t, (j + 1) * N / t - 1).Q.m[0];
         }
       }));
-      rows[scaling + 2 * k + 1].ms.push_back(ms_of([&] {
+      rows[scaling + 3 * k + 2].ms.push_back(ms_of([&] {
 #pragma omp parallel num_threads(t)
         {
           const Index j = this_thread();
@@ -178,6 +189,13 @@ void measure(const Model& m, int rounds, const std::vector<int>& threads, std::v
             Transform<S> X = Transform<S>::identity();
             inertia_carry_walk(d, chunk, j * C / t, (j + 1) * C / t, out.data(), Ia, X, IA_first);
           }
+        }
+      }));
+      rows[scaling + 3 * k + 1].ms.push_back(ms_of([&] {
+#pragma omp parallel num_threads(t)
+        {
+          const Index j = this_thread();
+          if (j < t) sinks[static_cast<std::size_t>(j)] += dual_aggregate(d, j * N / t, (j + 1) * N / t - 1).Q.m[0];
         }
       }));
       for (double x : sinks) sink = sink + x;

@@ -9,6 +9,7 @@
 #include <thread>
 
 #include "scandyn/algorithm/chain_fd.hpp"
+#include "scandyn/flush_denormals.hpp"
 
 #if defined(_OPENMP)
 #include <omp.h>
@@ -209,6 +210,7 @@ void ChainInertiaCarries<S>::compute(const ChainFdData<S>& d, Index chunk, ABIne
         if (origin) iv.start_ms = ms_since(origin);
         const Index step = step_of(k);
         const Index first = bound_[k] * chunk, last = std::min(count, bound_[k + 1] * chunk) - 1;
+        const FlushDenormalsScope flush;  // the aggregate's coupling decays through the subnormals
         DualRiccati<DualScalar> agg{};
         for (Index s = first; s <= last; s += step * chunk) {
           const Index e = std::min(last, s + step * chunk - 1);
