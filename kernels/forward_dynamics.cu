@@ -376,7 +376,7 @@ void CudaForwardDynamics<S>::compute_pinned(const FdBatchIn<S>& in, const BatchV
       if (pivot_failed(b))
         for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
   };
-  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), layout, pack, launch, unpack,
+  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), max_batch_, layout, pack, launch, unpack,
                  "launching the forward dynamics", "running the forward dynamics");
 }
 

@@ -5,8 +5,9 @@
 // "pageable" path), the driver bounces every copy through its own small pinned
 // buffers, slowly and without overlap with the kernel. This pipeline instead owns a
 // ring of kSlots pinned (cudaMallocHost) slots, each with a device slot of the same
-// size, reused from call to call (allocated at the first call, grown when a call
-// needs more), and runs the batch in chunks of instances; for chunk k:
+// size, reused from call to call (allocated at the first call for a full chunk of the
+// engine's max_batch, grown only when a later call's arrays need more per instance,
+// e.g. the first call with fext), and runs the batch in chunks of instances; for chunk k:
 //   1. host threads (OpenMP, src/engine/host_staging.cpp) gather the user's views
 //      of the chunk's instances into pinned slot k % kSlots (pack);
 //   2. one cudaMemcpyAsync of the packed inputs to the device slot, on the
@@ -135,15 +136,19 @@ class HostPipeline {
   //   launch(const HostChunk&, stream) -> cudaError_t  the kernels on the device slot;
   //   unpack(const HostChunk&)         host: the outputs from chunk.host_array.
   // `launching` / `running` name the kernels in errors ("launching ...: ").
+  // capacity: the most instances a call of the engine takes (its max_batch): the ring
+  // is sized at once for kSlots chunks of min(chunk, capacity) instances, so that a
+  // later, larger call does not allocate pinned memory again.
   template <class Layout, class Pack, class Launch, class Unpack>
-  void run(Index batch, Index chunk, Layout&& layout, Pack&& pack, Launch&& launch, Unpack&& unpack,
+  void run(Index batch, Index chunk, Index capacity, Layout&& layout, Pack&& pack, Launch&& launch, Unpack&& unpack,
            const char* launching, const char* running) {
     using host_staging::chunk_count;
     using host_staging::chunk_range;
     if (batch <= 0) return;
+    const Index full = std::max<Index>(1, std::min(chunk, std::max(capacity, batch)));
     chunk = std::max<Index>(1, std::min(chunk, batch));
     const Index K = chunk_count(batch, chunk);
-    reserve(static_cast<int>(std::min<Index>(K, kSlots)), layout(chunk).end);
+    reserve(kSlots, layout(full).end);
     const Index lag = kSlots - 1;  // chunk k is unpacked after packing chunk k + lag
     try {
       for (Index k = 0; k < K + lag; ++k) {

@@ -321,7 +321,7 @@ void CudaInverseDynamics<S>::compute_pinned(const IdBatchIn<S>& in, const BatchV
   const auto unpack = [&](const detail::HostChunk& c) {
     hs::unpack(c.host_array<const S>(4), ltau, tau, nv, c.range, 0);
   };
-  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), layout, pack, launch, unpack,
+  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), max_batch_, layout, pack, launch, unpack,
                  "launching id_instances_kernel", "running id_instances_kernel");
 }
 

@@ -31,13 +31,15 @@ enum class Mode { Pageable, Pinned };
 Mode parse_mode(const char* value);
 const char* to_string(Mode mode);
 
-// Default chunk: the instances whose packed inputs and outputs come to about 4 MiB.
-// Large enough that a chunk's copies run near the link's bandwidth and its kernel
-// fills an H100/H200 (iiwa, float: ~37k instances, > 280 blocks of 128 threads),
-// small enough that packing chunk k+1 on the host overlaps the DMA and the kernel of
-// chunk k over many chunks, and that the ring (3 slots) stays ~12 MiB of pinned and
-// of device memory. Not measured yet: tune with SCANDYN_HOST_CHUNK_INSTANCES.
-inline constexpr std::size_t kChunkBytes = std::size_t(4) << 20;
+// Default chunk: the instances whose packed inputs and outputs come to about 16 MiB
+// (iiwa, float: ~150k instances). Measured on an H200 (iiwa id from host buffers,
+// float, 10^6 instances, `scandyn bench`, bench/results/host-staging-h200.csv):
+// chunks of 8192 instances 15.0 ms (no better than the pageable path's 14.5), 37449
+// (4 MiB) 4.03 ms, 131072 2.31 ms, 262144 2.17 ms: per chunk a fixed cost (events,
+// the OpenMP team's start) that small chunks repeat. 16 MiB keeps a 10^6 batch in ~7
+// chunks, so packing, DMA and kernels still overlap, and the ring (3 slots) at ~48 MiB
+// of pinned and of device memory. SCANDYN_HOST_CHUNK_INSTANCES overrides it.
+inline constexpr std::size_t kChunkBytes = std::size_t(16) << 20;
 
 // Instances per chunk: `value` (SCANDYN_HOST_CHUNK_INSTANCES) when given (a positive
 // integer, else std::invalid_argument), else kChunkBytes / bytes_per_instance, at least 1.

@@ -321,8 +321,9 @@ TEST(CudaMultiDofDerivativesHost, TakenUpToTheLimit) {
 // fd_derivatives_general_thread of scandyn/cuda/derivatives_general.hpp, run on the
 // host over GeneralDerivativeModel's parameter block, every capacity) against the
 // serial engines on soa and aos outputs, with external wrenches and qdd: the same
-// functions on the same inputs (measured: equal bit for bit; tolerance 1e-12 of each
-// block's largest entry, ballrope:21's M^-1 1e-12 cond(M), should the compilers differ).
+// functions on the same inputs (equal bit for bit without -march=native; tolerance
+// 1e-12 of each block's largest entry, dfd max(1e-12, 1e-14 cond(M)) where the
+// compilers contract differently).
 template <class S>
 void host_composition(const std::string& name, const Model& model_d, bool soa) {
   const ModelTpl<S> model = model_d.cast<S>();
@@ -357,7 +358,11 @@ void host_composition(const std::string& name, const Model& model_d, bool soa) {
         }
       },
       g.params());
-  const double tol = 1e-12 * (name.find("ballrope:21") != std::string::npos ? cond_estimate(id_ref, fd_ref, nv, B) : 1);
+  // M^-1 amplifies rounding differences by cond(M): the serial engine and the kernel's
+  // composition are compiled apart (with -march=native, FMA contractions differ);
+  // measured on an H200's host: floating ball ropes 5e-10..1e-9 (cond ~1e5-1e6), the
+  // rest <= 2e-13
+  const double tol = std::max(1e-12, 1e-14 * cond_estimate(id_ref, fd_ref, nv, B));
   const double eid = block_err(id_got, id_ref, nv, B), efd = block_err(fd_got, fd_ref, nv, B);
   EXPECT_LT(eid, 1e-12) << name << (soa ? " soa" : " aos");
   EXPECT_LT(efd, tol) << name << (soa ? " soa" : " aos");
