@@ -263,18 +263,6 @@ __global__ void k_reduce_final(const double* partial, int np, double* out) {
   if (threadIdx.x == 0) *out = sh[0];
 }
 
-// The least-squares stop of src/sim/iterative_loops.cpp (LeastSquaresStop) with the
-// precision's thresholds.
-struct LeastSquaresStop {
-  double rounding, stagnant;
-  double best = INFINITY;
-  int since = 0;
-  bool least_squares(double residual, double relative_normal) {
-    if (residual < (1 - 1e-3) * best) best = residual, since = 0;
-    else ++since;
-    return relative_normal <= rounding || (since >= 200 && relative_normal <= stagnant);
-  }
-};
 
 // The device scalars (double): slots of Impl::scalars.
 enum Slot { kDelta = 0, kRR, kGamma1, kA, kB, kC, kD, kSlots };
@@ -445,7 +433,7 @@ struct CudaIterativeLoopSolver<S>::Impl {
     const double gamma0 = gamma_h;
     copy(pl.p, w.p, m), copy(px.p, s.p, n), copy(Jp.p, Js.p, m);
     bool least_squares = false;
-    LeastSquaresStop stop{kFloat ? 1e-6 : 1e-14, kFloat ? 1e-4 : 1e-12};
+    sim::LeastSquaresStop stop{kFloat ? 1e-6 : 1e-14, kFloat ? 1e-4 : 1e-12};
     const Index len = std::max(m, n);
     while (it < options.max_iterations && gamma_h > 0) {
       precondition(Jp.p, WJp.p);

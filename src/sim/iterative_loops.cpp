@@ -20,21 +20,6 @@ std::atomic<long> g_fd_solves{0}, g_fd_iterations{0}, g_proj_solves{0}, g_proj_i
     g_apply_ns{0}, g_fd_ns{0}, g_proj_ns{0};
 long ns(double seconds) { return static_cast<long>(seconds * 1e9); }
 
-// When conjugate gradients on normal equations stop short of their residual target:
-// the residual ||b - J x|| has reached the part of b outside J's range (no x removes
-// it), i.e. the normal residual (relative to its first value) is at rounding level,
-// kLeastSquaresRounding; or the residual has not decreased by 0.1 % in 100 iterations
-// (200 iterations) and the relative normal residual is below kLeastSquaresStagnant.
-constexpr double kLeastSquaresRounding = 1e-14, kLeastSquaresStagnant = 1e-12;
-struct LeastSquaresStop {
-  double best = INFINITY;
-  int since = 0;
-  bool least_squares(double residual, double relative_normal) {
-    if (residual < (1 - 1e-3) * best) best = residual, since = 0;
-    else ++since;
-    return relative_normal <= kLeastSquaresRounding || (since >= 200 && relative_normal <= kLeastSquaresStagnant);
-  }
-};
 double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 double dot(const double* a, const double* b, Index m) {
   double s = 0;

@@ -80,6 +80,8 @@
 // One application of W per CGLS iteration (W times the residual by its recurrence).
 #pragma once
 
+#include <cmath>
+
 #include <memory>
 #include <string>
 #include <vector>
@@ -103,6 +105,23 @@ inline constexpr double kIterativeLoopFloor = 1e-12;
 class LoopSolveNotConverged : public LoopError {
  public:
   using LoopError::LoopError;
+};
+
+// When conjugate gradients on normal equations (CGLS) stop short of their residual
+// target: the residual ||b - J x|| has reached the part of b outside J's range (no x
+// removes it), i.e. the normal residual relative to its first value is at rounding
+// level (`rounding`); or the residual has not decreased by 0.1 % in 200 iterations and
+// the relative normal residual is below `stagnant`. Double's thresholds by default
+// (the CPU solver's); the GPU solver's float uses 1e-6 and 1e-4.
+struct LeastSquaresStop {
+  double rounding = 1e-14, stagnant = 1e-12;
+  double best = INFINITY;  // the smallest residual so far
+  int since = 0;           // iterations since it last decreased by 0.1 %
+  bool least_squares(double residual, double relative_normal) {
+    if (residual < (1 - 1e-3) * best) best = residual, since = 0;
+    else ++since;
+    return relative_normal <= rounding || (since >= 200 && relative_normal <= stagnant);
+  }
 };
 
 enum class LoopPreconditioner { None, BlockJacobi, SymmetricGaussSeidel, Ssor, BlockTridiagonal, BlockDilu };
