@@ -105,13 +105,9 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& o) {
   // fd_method: Auto (the parallel chain where forward dynamics would take it), Aba (the
-  // recursion), Parallel (the chain scans; BackendError for a model that is not chains)
-  if (o.fd_method != FdMethod::Auto && o.fd_method != FdMethod::Aba && o.fd_method != FdMethod::Parallel)
-    throw BackendError(std::string("hybrid dynamics: method '") + to_string(o.fd_method) +
-                       "' is not offered (auto, aba or parallel)");
-  const bool parallel = o.fd_method == FdMethod::Parallel ||
-                        (o.fd_method == FdMethod::Auto && choose_fd_method(o.backend, model) == FdMethod::Parallel);
-  if (parallel) return std::make_unique<CpuChainHybridDynamics<S>>(model, prescribed, o);
+  // recursion), Parallel (the chain scans; BackendError for a model that is not chains):
+  // choose_hybrid_method
+  if (choose_hybrid_method(o.backend, model, o.fd_method) == FdMethod::Parallel) return std::make_unique<CpuChainHybridDynamics<S>>(model, prescribed, o);
   return std::make_unique<CpuHybridDynamics<S>>(model, prescribed, o);
 }
 template std::unique_ptr<HybridDynamics<float>> make_hybrid_dynamics(const ModelTpl<float>&,

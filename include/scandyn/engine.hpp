@@ -231,13 +231,13 @@ class HybridDynamics : public Engine {
   virtual const std::vector<unsigned char>& prescribed() const = 0;
 };
 
-// The hybrid-dynamics engine of options.backend (serial and openmp: the reference
-// hybrid_dynamics per instance, or for long unbranched chains, where
-// choose_fd_method picks Parallel or options.fd_method is Parallel, the parallel chain
-// hybrid dynamics (scandyn/algorithm/chain_hybrid.hpp); fd_method Aba keeps the
-// recursion, other methods are a BackendError; cuda: one thread per instance up to
-// cuda::kMaxThreadDofs DoF). prescribed: nv entries. Throws BackendError as the other
-// factories, and for a prescribed mask whose size is not nv.
+// The hybrid-dynamics engine of options.backend, by choose_hybrid_method (serial and
+// openmp: the reference hybrid_dynamics per instance ("recursion"), or the parallel
+// chain hybrid dynamics, scandyn/algorithm/chain_hybrid.hpp ("parallel"); cuda: one
+// thread per instance up to cuda::kMaxThreadDofs DoF ("aba_thread"), or the chain
+// scans on the device, scandyn/cuda/chain_hybrid.hpp ("parallel")). prescribed: nv
+// entries. Throws BackendError as the other factories, as choose_hybrid_method, and for
+// a prescribed mask whose size is not nv.
 // Throws BackendError naming `what` ("hybrid dynamics", ...) and the model's first
 // multi-DoF joint when the model has one (a floating base, a spherical joint): what
 // takes revolute and prismatic joints only calls it first.
@@ -270,6 +270,19 @@ IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int th
 // says what was measured).
 template <class S>
 FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model);
+
+// Hybrid dynamics (make_hybrid_dynamics): Aba (the recursion per instance; on cuda one
+// thread per instance, up to cuda::kMaxThreadDofs DoF) or Parallel (the chain scans with
+// the prescribed joints rigid, unbranched chains from the base) for `requested`
+// (options.fd_method). Auto: on serial and openmp Parallel where choose_fd_method picks
+// it (openmp, chains of 4096 links and more), else Aba; on cuda Aba up to
+// kMaxThreadDofs DoF, Parallel for longer unbranched chains from the base. Throws
+// BackendError for the methods not offered (jsi, hybrid) and, on cuda, for Aba beyond
+// kMaxThreadDofs DoF and for a model beyond it that is not an unbranched chain from the
+// base (naming the body that branches). Parallel on a model that is not chains is
+// refused by the engine itself (naming the body).
+template <class S>
+FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested);
 
 // True for an unbranched chain hanging from the base: what the parallel chain
 // forward dynamics (and the hybrid) take.

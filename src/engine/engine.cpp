@@ -14,6 +14,7 @@
 #if SCANDYN_HAS_CUDA
 #include "scandyn/cuda/device.hpp"
 #include "scandyn/cuda/chain_fd.hpp"
+#include "scandyn/cuda/chain_hybrid.hpp"
 #include "scandyn/cuda/forward_dynamics.hpp"
 #include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/cuda/inverse_dynamics.hpp"
@@ -138,6 +139,36 @@ FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
       return model.nv() <= kCudaGeneralAbaMaxTreeDofs ? FdMethod::Aba : FdMethod::Jsi;
   }
   return FdMethod::Aba;
+}
+
+template <class S>
+FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested) {
+  if (requested != FdMethod::Auto && requested != FdMethod::Aba && requested != FdMethod::Parallel)
+    throw BackendError(std::string("hybrid dynamics: method '") + to_string(requested) +
+                       "' is not offered (auto, aba or parallel)");
+  if (backend != BackendKind::Cuda) {
+    if (requested != FdMethod::Auto) return requested;
+    return choose_fd_method(backend, model) == FdMethod::Parallel ? FdMethod::Parallel : FdMethod::Aba;
+  }
+  // cuda: the thread-per-instance kernels up to kMaxThreadDofs DoF, the chain scans
+  // (kernels/chain_hybrid.cu) for longer unbranched chains (no general-path hybrid)
+  const Index nv = model.nv();
+  if (requested == FdMethod::Parallel) return FdMethod::Parallel;
+  if (nv <= cuda::kMaxThreadDofs) return FdMethod::Aba;
+  const std::string dofs = "model '" + model.name + "' has " + std::to_string(nv) + " DoF";
+  if (requested == FdMethod::Aba)
+    throw BackendError("backend 'cuda': hybrid dynamics by aba runs one thread per instance, for models of up to " +
+                       std::to_string(cuda::kMaxThreadDofs) + " DoF; " + dofs +
+                       " (method auto or parallel takes unbranched chains hanging from the base; or use the serial "
+                       "or openmp backend)");
+  const Index k = first_branching_body(model);
+  if (k >= 0)
+    throw BackendError("backend 'cuda': hybrid dynamics runs one thread per instance for models of up to " +
+                       std::to_string(cuda::kMaxThreadDofs) +
+                       " DoF and the parallel chain scans for unbranched chains hanging from the base; " + dofs +
+                       " and is not a chain: body " + std::to_string(k) + " (joint '" + model.joint_names[k] +
+                       "') has parent " + std::to_string(model.parent(k)) + " (use the serial or openmp backend)");
+  return FdMethod::Parallel;
 }
 
 // ---- factories ------------------------------------------------------------------
@@ -481,6 +512,8 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
           per_device<HybridDynamics<S>>(
               o, [&](const BackendOptions& one) { return make_hybrid_dynamics(model, prescribed, one); }),
           o.devices, true, model.nbodies(), o.max_batch);
+    if (choose_hybrid_method(o.backend, model, o.fd_method) == FdMethod::Parallel)
+      return std::make_unique<cuda::CudaChainHybridDynamics<S>>(model, prescribed, o);
     return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
   }
 #endif
@@ -498,6 +531,7 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
   template void check_batch(const BatchView<const S>&, const BatchView<S>&, Index);                            \
   template bool is_chain_from_base(const ModelTpl<S>&);                                                         \
   template FdMethod choose_fd_method(BackendKind, const ModelTpl<S>&);                                          \
+  template FdMethod choose_hybrid_method(BackendKind, const ModelTpl<S>&, FdMethod);                            \
   template std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>&, const BackendOptions&); \
   template std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>&, const BackendOptions&);           \
   template std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>&, const BackendOptions&);           \

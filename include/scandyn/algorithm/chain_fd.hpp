@@ -144,7 +144,9 @@ struct InverseInertia {
   S m_inv;         // 1 / mass
 
   // A body without positive mass and positive definite Ic gives non-finite entries.
-  static InverseInertia from(const Inertia<S>& I) {
+  // (SCANDYN_HD: the hybrid chain's pass 1 inverts composite inertias per instance on
+  // the device too, scandyn/algorithm/chain_hybrid.hpp.)
+  SCANDYN_HD static InverseInertia from(const Inertia<S>& I) {
     InverseInertia o;
     o.m_inv = S(1) / I.m;
     o.c = o.m_inv * I.h;

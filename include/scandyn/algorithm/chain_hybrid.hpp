@@ -1,7 +1,9 @@
 // scandyn/algorithm/chain_hybrid.hpp: hybrid dynamics (Featherstone 2008, 9.2: some
 // DoFs' accelerations given, the others' forces) of unbranched chains by the chunked
 // scans of the parallel chain forward dynamics (scandyn/algorithm/chain_fd.hpp), on the
-// host with OpenMP threads.
+// host with OpenMP threads (ChainHybridDynamics, below) and on a CUDA device
+// (cuda::ChainHybridPlan, scandyn/cuda/chain_hybrid.hpp: the same walks, SCANDYN_HD,
+// one thread per chunk).
 //
 // A prescribed joint is rigid for the articulated inertia: it passes its whole
 // articulated inertia IA to its parent (no projection), and its known acceleration
@@ -43,23 +45,24 @@ struct HybridDual {
 };
 
 // The chain, its per-link scratch (ChainFdData: v, U, D, w, u) and the hybrid's inputs
-// and outputs. For a prescribed link, U = IA S, D unused, w = IA c and u = -S^T pA
-// (pA with its children's forces), so that tau = U^T a - u.
+// and outputs (host or device pointers, as the driver needs). For a prescribed link,
+// U = IA S, D unused, w = IA c and u = -S^T pA (pA with its children's forces), so
+// that tau = U^T a - u.
 template <class S>
 struct ChainHybridData : ChainFdData<S> {
   const unsigned char* prescribed = nullptr;  // (n) nonzero: the DoF's acceleration is given
   BatchView<const S> qdd_in;                  // (n x B) read at prescribed DoFs
   BatchView<S> tau_out;                       // (n x B) written at every DoF
 
-  bool given(Index g) const { return prescribed[g % this->n] != 0; }
-  S qdd_given(Index g) const { return qdd_in.at(g % this->n, g / this->n); }
+  SCANDYN_HD bool given(Index g) const { return prescribed[g % this->n] != 0; }
+  SCANDYN_HD S qdd_given(Index g) const { return qdd_in.at(g % this->n, g / this->n); }
 };
 
 // The composite rigid body of free link g and the run of prescribed links after it
 // (in g's frame), and the transform from g's frame to the next free link's (the run's
 // product of Xup); next: that link, -1 when the run reaches the chain's end.
 template <class S>
-Inertia<S> hybrid_run_inertia(const ChainHybridData<S>& d, Index g, Transform<S>& X_next, Index& next) {
+SCANDYN_HD Inertia<S> hybrid_run_inertia(const ChainHybridData<S>& d, Index g, Transform<S>& X_next, Index& next) {
   Index end = g;  // the run's last link
   while (d.has_child(end) && d.given(end + 1)) ++end;
   next = d.has_child(end) ? end + 1 : -1;
@@ -77,7 +80,7 @@ Inertia<S> hybrid_run_inertia(const ChainHybridData<S>& d, Index g, Transform<S>
 
 // Pass 1's element of link g.
 template <class S>
-HybridDual<DualScalar> hybrid_dual_element(const ChainHybridData<S>& d, Index g) {
+SCANDYN_HD HybridDual<DualScalar> hybrid_dual_element(const ChainHybridData<S>& d, Index g) {
   if (d.given(g)) return {};
   Transform<S> X;
   Index next;
@@ -89,7 +92,7 @@ HybridDual<DualScalar> hybrid_dual_element(const ChainHybridData<S>& d, Index g)
 
 // Pass 0's walk from v_{s-1}: stores v; returns pass 1's aggregate of the chunk.
 template <class S>
-HybridDual<DualScalar> hybrid_velocity_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
+SCANDYN_HD HybridDual<DualScalar> hybrid_velocity_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& v_in) {
   velocity_walk<false>(d, s, e, v_in);
   HybridDual<DualScalar> agg;
   for (Index g = s; g <= e; ++g) agg = HybridDual<DualScalar>::compose(agg, hybrid_dual_element(d, g));
@@ -100,7 +103,7 @@ HybridDual<DualScalar> hybrid_velocity_walk(const ChainHybridData<S>& d, Index s
 // of the first free link at or after e + 1: that link's projected inertia, then the
 // prescribed links before it rigid (IA = I + Xup^T Ia Xup).
 template <class S>
-ABInertia<S> hybrid_inertia_carry(const ChainHybridData<S>& d, Index e, const Mat5<DualScalar>& Y) {
+SCANDYN_HD ABInertia<S> hybrid_inertia_carry(const ChainHybridData<S>& d, Index e, const Mat5<DualScalar>& Y) {
   if (!d.has_child(e)) return ABInertia<S>{};
   Index j = e + 1;
   while (d.given(j) && d.has_child(j)) ++j;
@@ -117,7 +120,7 @@ ABInertia<S> hybrid_inertia_carry(const ChainHybridData<S>& d, Index e, const Ma
 // e..s (prescribed links rigid); stores U, D, w and records a failed pivot of a free
 // link; returns pass 2's aggregate, z_s as a map of z_{e+1}.
 template <class S>
-Affine6<S> hybrid_inertia_walk(const ChainHybridData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
+SCANDYN_HD Affine6<S> hybrid_inertia_walk(const ChainHybridData<S>& d, Index s, Index e, const ABInertia<S>& Ia_in) {
   ABInertia<S> Ia_next = Ia_in;
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -152,7 +155,7 @@ Affine6<S> hybrid_inertia_walk(const ChainHybridData<S>& d, Index s, Index e, co
 // Pass 2's walk from z_{e+1}: stores u (free: tau - S^T pA; prescribed: -S^T pA);
 // returns pass 3's aggregate, a_e as a map of a_{s-1}.
 template <class S>
-Affine6<S> hybrid_bias_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
+SCANDYN_HD Affine6<S> hybrid_bias_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& z_in) {
   Force<S> z_next = to_force(z_in);
   Transform<S> Xnext = d.has_child(e) ? d.Xup(e + 1) : Transform<S>::identity();
   Affine6<S> agg{Mat6<S>::identity(), Vec6<S>::zero(), false};
@@ -209,7 +212,7 @@ Affine6<S> hybrid_bias_walk(const ChainHybridData<S>& d, Index s, Index e, const
 
 // Pass 3's walk from a_{s-1}: qdd and tau of links s..e (a failed instance's unwritten).
 template <class S>
-void hybrid_acceleration_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& a_in) {
+SCANDYN_HD void hybrid_acceleration_walk(const ChainHybridData<S>& d, Index s, Index e, const Vec6<S>& a_in) {
   Motion<S> a_parent = to_motion(a_in);
   for (Index g = s; g <= e; ++g) {
     const Body<S>& b = d.body_of(g);

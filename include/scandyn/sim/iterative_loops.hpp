@@ -81,7 +81,6 @@
 #pragma once
 
 #include <cmath>
-
 #include <memory>
 #include <string>
 #include <vector>
