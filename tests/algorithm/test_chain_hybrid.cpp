@@ -168,3 +168,49 @@ TEST(ChainHybrid, EngineChoosesTheScansForLongChains) {
   EXPECT_LT(test::max_rel_err(q2, q1), 1e-9);
   EXPECT_LT(test::max_rel_err(t2, t1), 1e-9);
 }
+
+// choose_hybrid_method, the engine's choice (no device needed): on the CPU backends as
+// forward dynamics' parallel method; on cuda the thread kernels up to 64 DoF, the chain
+// scans (kernels/chain_hybrid.cu) for longer unbranched chains, and the refusals with
+// their messages.
+TEST(ChainHybrid, ChooseHybridMethodByBackendAndShape) {
+  auto message = [](auto&& f) {
+    try {
+      f();
+    } catch (const BackendError& e) {
+      return std::string(e.what());
+    }
+    return std::string("(no BackendError)");
+  };
+  const Model rope = make_generated("rope:5000"), chain64 = make_generated("chain:64"),
+              chain65 = make_generated("chain:65"), tree = make_generated("tree:80:1");
+  ASSERT_GE(first_branching_body(tree), 0);
+  // serial and openmp
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Auto), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Auto), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, chain64, FdMethod::Auto), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Parallel), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Aba), FdMethod::Aba);
+  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Jsi); }),
+            "hybrid dynamics: method 'jsi' is not offered (auto, aba or parallel)");
+  // cuda
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Auto), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Auto), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("rope:100000"), FdMethod::Auto), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Parallel), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Aba), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("tree:40:1"), FdMethod::Auto), FdMethod::Aba);
+  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Hybrid); }),
+            "hybrid dynamics: method 'hybrid' is not offered (auto, aba or parallel)");
+  const std::string aba = message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Aba); });
+  EXPECT_NE(aba.find("backend 'cuda': hybrid dynamics by aba runs one thread per instance, for models of up to 64 "
+                     "DoF; model 'chain:65' has 65 DoF"),
+            std::string::npos)
+      << aba;
+  const std::string branched = message([&] { choose_hybrid_method(BackendKind::Cuda, tree, FdMethod::Auto); });
+  EXPECT_NE(branched.find("the parallel chain scans for unbranched chains hanging from the base; model 'tree:80:1' "
+                          "has 80 DoF and is not a chain: body "),
+            std::string::npos)
+      << branched;
+  EXPECT_NE(branched.find("(use the serial or openmp backend)"), std::string::npos) << branched;
+}

@@ -236,9 +236,16 @@ TEST_F(CudaHybridDevice, FailedInstanceLeavesOutputs) {
   for (double x : to) EXPECT_EQ(x, -1);
 }
 
+// Beyond 64 DoF the thread kernels refuse: an unbranched chain takes the chain scans
+// instead (strategy "parallel", tests/cuda/test_cuda_chain_hybrid.cu), fd_method aba
+// and a branched tree are refused.
 TEST_F(CudaHybridDevice, TooManyDofsIsRefused) {
   const Model md = load_model("chain:65");
   BackendOptions o;
   o.backend = BackendKind::Cuda;
+  EXPECT_EQ(make_hybrid_dynamics(md, std::vector<unsigned char>(65, 0), o)->strategy(), "parallel");
+  const Model tree = load_model("tree:80:1");
+  EXPECT_THROW(make_hybrid_dynamics(tree, std::vector<unsigned char>(tree.nv(), 0), o), BackendError);
+  o.fd_method = FdMethod::Aba;
   EXPECT_THROW(make_hybrid_dynamics(md, std::vector<unsigned char>(65, 0), o), BackendError);
 }

@@ -16,8 +16,9 @@
 // articulated pivot (of a DoF whose force is given) is not positive and finite has
 // its failed DoF reported and its outputs left unwritten.
 //
-// Not here: models beyond kMaxThreadDofs DoF (the parallel chain forward dynamics
-// with prescribed DoFs is not written; BackendError).
+// Not here: models beyond kMaxThreadDofs DoF (BackendError): make_hybrid_dynamics
+// takes the parallel chain hybrid dynamics (scandyn/cuda/chain_hybrid.hpp) for
+// unbranched chains from the base and refuses other shapes (choose_hybrid_method).
 #pragma once
 
 #include <memory>
