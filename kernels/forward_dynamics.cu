@@ -310,39 +310,25 @@ BatchStatus CudaForwardDynamics<S>::compute(const FdBatchIn<S>& in, const BatchV
 template <class S>
 void CudaForwardDynamics<S>::compute_pinned(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed) {
   namespace hs = host_staging;
-  const Index B = in.q.batch, nv = nv_, nb = nb_;
-  const BatchView<const S> views[3] = {in.q, in.qd, in.tau};
-  const Index widths[3] = {nq_, nv, nv};
-  hs::Layout lay[3];
-  for (int k = 0; k < 3; ++k) lay[k] = hs::choose_layout(views[k], widths[k], false);
+  const Index B = in.q.batch, nv = nv_;
+  const detail::PackedBatchInputs<S, FdBatchIn<S>> inputs(in, nq_, nv, nb_);
   const hs::Layout lqdd = hs::choose_layout(qdd, nv, true);
   const bool estimates = device_check_ != nullptr;
-  const std::size_t fext_bytes = in.fext ? static_cast<std::size_t>(nb) * sizeof(Force<S>) : 0;  // per instance
   const auto layout = [&](Index n) {
     const std::size_t un = static_cast<std::size_t>(n);
     detail::SlotLayout L;
-    for (int k = 0; k < 3; ++k) L.add(hs::packed_entries(lay[k], widths[k], n) * sizeof(S));  // arrays 0, 1, 2
-    L.add(fext_bytes * un);                                                                   // 3
-    L.close_inputs();
+    inputs.add_to(L, n);                                 // arrays 0-3
     L.add(hs::packed_entries(lqdd, nv, n) * sizeof(S));  // 4: qdd
     L.add(un * sizeof(int));                             // 5: failed DoFs
     L.add(estimates ? un * sizeof(double) : 0);          // 6: the check's estimates
     return L;
   };
-  const std::size_t per_instance = (static_cast<std::size_t>(nq_) + 3 * static_cast<std::size_t>(nv)) * sizeof(S) +
-                                   fext_bytes + sizeof(int) + (estimates ? sizeof(double) : 0);
-  const auto pack = [&](const detail::HostChunk& c) {
-    for (int k = 0; k < 3; ++k) hs::pack(views[k], widths[k], c.range, lay[k], c.host_array<S>(k), 0);
-    if (in.fext)
-      hs::copy_bytes(c.host_array<unsigned char>(3), in.fext + static_cast<std::ptrdiff_t>(c.range.begin) * nb,
-                     fext_bytes * static_cast<std::size_t>(c.range.count), 0);
-  };
+  const std::size_t per_instance = inputs.bytes_per_instance() + static_cast<std::size_t>(nv) * sizeof(S) +
+                                   sizeof(int) + (estimates ? sizeof(double) : 0);
+  const auto pack = [&](const detail::HostChunk& c) { inputs.pack(c); };
   const auto launch = [&](const detail::HostChunk& c, cudaStream_t stream) {
     const Index n = c.range.count;
-    const FdBatchIn<S> din{hs::packed_view(c.device_array<const S>(0), lay[0], nq_, n),
-                           hs::packed_view(c.device_array<const S>(1), lay[1], nv, n),
-                           hs::packed_view(c.device_array<const S>(2), lay[2], nv, n),
-                           in.fext ? c.device_array<const Force<S>>(3) : nullptr};
+    const FdBatchIn<S> din = inputs.device_batch(c);
     const BatchView<S> dqdd = hs::packed_view(c.device_array<S>(4), lqdd, nv, n);
     int* const dfailed = c.device_array<int>(5);
     cudaError_t e = aba_ ? launch_aba_instances(*thread_, din, dqdd, dfailed, stream)

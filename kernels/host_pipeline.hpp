@@ -101,6 +101,56 @@ struct HostChunk {
   T* device_array(int a) const { return reinterpret_cast<T*>(device + layout.offset[a]); }
 };
 
+// The inputs of a thread engine's batch (IdBatchIn / FdBatchIn: q with nq entries per
+// instance, qd, and qdd or tau with nv, and optionally fext, one wrench per body) as a
+// chunk's arrays 0-3: each view packed in the layout it suggests
+// (host_staging::choose_layout), fext verbatim. What the pinned paths of inverse and
+// forward dynamics share; each adds its outputs after close_inputs().
+template <class S, class In>
+struct PackedBatchInputs {
+  BatchView<const S> views[3];
+  Index widths[3];
+  host_staging::Layout lay[3];
+  const Force<S>* fext;
+  Index nb;
+  std::size_t fext_bytes;  // per instance
+
+  PackedBatchInputs(const In& in, Index nq, Index nv, Index nbodies)
+      : views{in.q, in.qd, third(in)}, widths{nq, nv, nv}, fext(in.fext), nb(nbodies),
+        fext_bytes(in.fext ? static_cast<std::size_t>(nbodies) * sizeof(Force<S>) : 0) {
+    for (int k = 0; k < 3; ++k) lay[k] = host_staging::choose_layout(views[k], widths[k], false);
+  }
+  // bytes per instance of the inputs (for the chunk size)
+  std::size_t bytes_per_instance() const {
+    return (static_cast<std::size_t>(widths[0]) + 2 * static_cast<std::size_t>(widths[1])) * sizeof(S) + fext_bytes;
+  }
+  // arrays 0, 1, 2 (the views) and 3 (fext) of n instances, then close_inputs()
+  void add_to(SlotLayout& L, Index n) const {
+    for (int k = 0; k < 3; ++k) L.add(host_staging::packed_entries(lay[k], widths[k], n) * sizeof(S));
+    L.add(fext_bytes * static_cast<std::size_t>(n));
+    L.close_inputs();
+  }
+  // host: the chunk's instances into its pinned arrays 0-3
+  void pack(const HostChunk& c) const {
+    for (int k = 0; k < 3; ++k) host_staging::pack(views[k], widths[k], c.range, lay[k], c.host_array<S>(k), 0);
+    if (fext)
+      host_staging::copy_bytes(c.host_array<unsigned char>(3), fext + static_cast<std::ptrdiff_t>(c.range.begin) * nb,
+                               fext_bytes * static_cast<std::size_t>(c.range.count), 0);
+  }
+  // the chunk's batch on the device slot
+  In device_batch(const HostChunk& c) const {
+    const Index n = c.range.count;
+    return In{host_staging::packed_view(c.device_array<const S>(0), lay[0], widths[0], n),
+              host_staging::packed_view(c.device_array<const S>(1), lay[1], widths[1], n),
+              host_staging::packed_view(c.device_array<const S>(2), lay[2], widths[2], n),
+              fext ? c.device_array<const Force<S>>(3) : nullptr};
+  }
+
+ private:
+  static BatchView<const S> third(const IdBatchIn<S>& in) { return in.qdd; }
+  static BatchView<const S> third(const FdBatchIn<S>& in) { return in.tau; }
+};
+
 class HostPipeline {
  public:
   static constexpr int kSlots = 3;

@@ -287,36 +287,20 @@ void CudaInverseDynamics<S>::compute(const IdBatchIn<S>& in, const BatchView<S>&
 template <class S>
 void CudaInverseDynamics<S>::compute_pinned(const IdBatchIn<S>& in, const BatchView<S>& tau) {
   namespace hs = host_staging;
-  const Index B = in.q.batch, nv = nv_, nb = nb_;
-  const BatchView<const S> views[3] = {in.q, in.qd, in.qdd};
-  const Index widths[3] = {nq_, nv, nv};
-  hs::Layout lay[3];
-  for (int k = 0; k < 3; ++k) lay[k] = hs::choose_layout(views[k], widths[k], false);
+  const Index B = in.q.batch, nv = nv_;
+  const detail::PackedBatchInputs<S, IdBatchIn<S>> inputs(in, nq_, nv, nb_);
   const hs::Layout ltau = hs::choose_layout(tau, nv, true);
-  const std::size_t fext_bytes = in.fext ? static_cast<std::size_t>(nb) * sizeof(Force<S>) : 0;  // per instance
   const auto layout = [&](Index n) {
     detail::SlotLayout L;
-    for (int k = 0; k < 3; ++k) L.add(hs::packed_entries(lay[k], widths[k], n) * sizeof(S));  // arrays 0, 1, 2
-    L.add(fext_bytes * static_cast<std::size_t>(n));                                          // 3
-    L.close_inputs();
+    inputs.add_to(L, n);                                 // arrays 0-3
     L.add(hs::packed_entries(ltau, nv, n) * sizeof(S));  // 4: tau
     return L;
   };
-  const std::size_t per_instance = (static_cast<std::size_t>(nq_) + 3 * static_cast<std::size_t>(nv)) * sizeof(S) +
-                                   fext_bytes;
-  const auto pack = [&](const detail::HostChunk& c) {
-    for (int k = 0; k < 3; ++k) hs::pack(views[k], widths[k], c.range, lay[k], c.host_array<S>(k), 0);
-    if (in.fext)
-      hs::copy_bytes(c.host_array<unsigned char>(3), in.fext + static_cast<std::ptrdiff_t>(c.range.begin) * nb,
-                     fext_bytes * static_cast<std::size_t>(c.range.count), 0);
-  };
+  const std::size_t per_instance = inputs.bytes_per_instance() + static_cast<std::size_t>(nv) * sizeof(S);
+  const auto pack = [&](const detail::HostChunk& c) { inputs.pack(c); };
   const auto launch = [&](const detail::HostChunk& c, cudaStream_t stream) {
-    const Index n = c.range.count;
-    const IdBatchIn<S> din{hs::packed_view(c.device_array<const S>(0), lay[0], nq_, n),
-                           hs::packed_view(c.device_array<const S>(1), lay[1], nv, n),
-                           hs::packed_view(c.device_array<const S>(2), lay[2], nv, n),
-                           in.fext ? c.device_array<const Force<S>>(3) : nullptr};
-    return launch_id_instances(*thread_, din, hs::packed_view(c.device_array<S>(4), ltau, nv, n), stream);
+    return launch_id_instances(*thread_, inputs.device_batch(c),
+                               hs::packed_view(c.device_array<S>(4), ltau, nv, c.range.count), stream);
   };
   const auto unpack = [&](const detail::HostChunk& c) {
     hs::unpack(c.host_array<const S>(4), ltau, tau, nv, c.range, 0);
