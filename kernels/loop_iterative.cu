@@ -14,6 +14,7 @@
 
 #include "scandyn/algorithm/loop_chains.hpp"
 #include "scandyn/algorithm/loop_iterative.hpp"
+#include "scandyn/algorithm/loop_projection.hpp"
 #include "scandyn/algorithm/loops.hpp"
 
 namespace scandyn::cuda {
@@ -182,6 +183,34 @@ __global__ void k_precondition(const LoopRow<S>* rows, Index nl, const Index* ro
   }
 }
 
+// phi (the loops' residual) at the poses X0, v, a of loop_body_motion: one thread per loop.
+template <class S>
+__global__ void k_loop_phi(const Body<S>* bodies, Index n, const LoopRow<S>* rows, Index nl, const Index* row_of,
+                           const Transform<S>* X0, const Motion<S>* v, const Motion<S>* a, S* phi) {
+  const Index k = static_cast<Index>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (k >= nl) return;
+  loop_rows(bodies, n, rows + k, Index(1), X0, v, a, phi + row_of[k], static_cast<S*>(nullptr),
+            static_cast<S*>(nullptr));
+}
+
+// The unit tree's J^T w (the projection's): per chain, the bodies' wrenches gathered
+// (loop_body_wrench) and loop_joint_forces' backward pass over the chain (its subtree:
+// the chain's later bodies; the same sums in the same order as the host's pass).
+template <class S>
+__global__ void k_joint_forces(const Body<S>* bodies, const Index* cs, Index nc, const LoopRow<S>* rows,
+                               const Index* row_of, const Index* side_start, const Index* side,
+                               const Transform<S>* X0, const Transform<S>* Xup, const S* w, Force<S>* F, S* tau) {
+  const Index c = static_cast<Index>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (c >= nc) return;
+  const Index b = cs[c], e = cs[c + 1];
+  for (Index i = b; i < e; ++i) F[i] = loop_body_wrench(rows, row_of, side_start, side, i, X0, w);
+  for (Index i = e - 1; i >= b; --i) {
+    const Body<S>& body = bodies[i];
+    tau[i] = joint_project(body, F[i]);
+    if (body.parent >= b) F[body.parent] += Xup[i].apply_transpose(F[i]);
+  }
+}
+
 // ---- vectors -----------------------------------------------------------------------
 
 // out = -a - b (b = -gamma - J qdd0) or (sub) a - b
@@ -217,6 +246,35 @@ __global__ void k_cg_direction(Index m, Index n, double beta, S* pl, const S* w,
   const S bs = static_cast<S>(beta);
   if (i < m) pl[i] = w[i] + bs * pl[i], Jp[i] = Js[i] + bs * Jp[i];
   if (i < n) px[i] = s[i] + bs * px[i];
+}
+
+// y += c x (n)
+template <class S>
+__global__ void k_axpy(Index n, double c, const S* x, S* y) {
+  const Index i = static_cast<Index>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (i < n) y[i] += static_cast<S>(c) * x[i];
+}
+
+// One step of the projection's CGLS (unit_solve's): delta = q.Wq + mu p.p, alpha =
+// gamma / delta, skipped when delta is not positive and finite (the host then stops
+// before the update, as the CPU does).
+template <class S>
+__global__ void k_unit_step(Index m, Index n, double gamma, double mu, const double* qwq, const double* pp, S* x,
+                            const S* p, S* res, const S* q, S* wres, const S* wq) {
+  const Index i = static_cast<Index>(blockIdx.x * blockDim.x + threadIdx.x);
+  const double delta = *qwq + mu * *pp;
+  if (!(delta > 0) || !isfinite(delta)) return;
+  const double alpha = gamma / delta;
+  const S as = static_cast<S>(alpha);
+  if (i < n) x[i] += as * p[i];
+  if (i < m) res[i] -= as * q[i], wres[i] -= as * wq[i];
+}
+
+// p = s + beta p (n)
+template <class S>
+__global__ void k_unit_direction(Index n, double beta, S* p, const S* s) {
+  const Index i = static_cast<Index>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (i < n) p[i] = s[i] + static_cast<S>(beta) * p[i];
 }
 
 template <class S>
@@ -265,7 +323,7 @@ __global__ void k_reduce_final(const double* partial, int np, double* out) {
 
 
 // The device scalars (double): slots of Impl::scalars.
-enum Slot { kDelta = 0, kRR, kGamma1, kA, kB, kC, kD, kSlots };
+enum Slot { kDelta = 0, kRR, kGamma1, kA, kB, kC, kD, kPP, kSlots };
 
 }  // namespace
 
@@ -390,6 +448,7 @@ struct CudaIterativeLoopSolver<S>::Impl {
     side.upload(lay.side.data(), lay.side.size(), stream);
     row_of.upload(lay.row_of.data(), lay.row_of.size(), stream);
     check(cudaMemsetAsync(lambda.p, 0, sizeof(S) * (M ? M : 1), stream), "memset");
+    check(cudaMemsetAsync(scalars.p, 0, sizeof(double) * kSlots, stream), "memset");
     hq.resize(N), hqd.resize(N), htau.resize(N), hout.resize(std::max(N, M));
     // L_J: the unit tree's diagonal blocks at q = 0
     check(cudaMemsetAsync(q.p, 0, sizeof(S) * (N ? N : 1), stream), "memset");
@@ -469,6 +528,265 @@ struct CudaIterativeLoopSolver<S>::Impl {
     fetch(kRR + 1);
     rnorm = std::sqrt(host_scalars[kRR]);
     return rnorm <= target || (least_squares && rnorm <= 1.1 * recurrence + target);
+  }
+
+  // ---- the projection on the device (double; sim::IterativeLoopSolver::project's
+  // unit_solve and Ops with block-Jacobi weights or none) ----
+  Dev<S> ur, ures, uwres, uq, uwq, ux, up, us, uxbest, uv, uphi;
+  Dev<Transform<S>> tX0;  // the trial points' poses and motions
+  Dev<Motion<S>> tv, ta;
+  bool proj_ready = false;
+  double unit_scale = 1;
+  // the last projection solve's ||r||, its target, allowance + floor, true residual
+  double last_r0 = 0, last_target = 0, last_allowance = 0, last_residual_abs = 0;
+  int last_proj_iterations = 0;
+  double last_proj_residual = 0;
+
+  void alloc_projection() {
+    if (proj_ready) return;
+    const std::size_t N = static_cast<std::size_t>(n), M = static_cast<std::size_t>(m);
+    const char* mem = "device memory for the projection";
+    for (Dev<S>* d : {&ur, &ures, &uwres, &uq, &uwq, &uphi}) d->alloc(M, mem);
+    for (Dev<S>* d : {&ux, &up, &us, &uxbest, &uv}) d->alloc(N, mem);
+    tX0.alloc(N, mem), tv.alloc(N, mem), ta.alloc(N, mem);
+    proj_ready = true;
+  }
+  void to_device(S* dst, const double* src, Index len) {
+    if (len <= 0) return;
+    if constexpr (kFloat) {
+      hout.resize(std::max<std::size_t>(hout.size(), static_cast<std::size_t>(len)));
+      for (Index i = 0; i < len; ++i) hout[i] = static_cast<S>(src[i]);
+      check(cudaMemcpyAsync(dst, hout.data(), sizeof(S) * len, cudaMemcpyHostToDevice, stream), "copy to the device");
+      check(cudaStreamSynchronize(stream), "copy to the device");
+    } else {
+      check(cudaMemcpyAsync(dst, src, sizeof(S) * len, cudaMemcpyHostToDevice, stream), "copy to the device");
+    }
+  }
+  void to_host(double* dst, const S* src, Index len) {
+    if (len <= 0) return;
+    if constexpr (kFloat) {
+      hout.resize(std::max<std::size_t>(hout.size(), static_cast<std::size_t>(len)));
+      check(cudaMemcpyAsync(hout.data(), src, sizeof(S) * len, cudaMemcpyDeviceToHost, stream), "copy to the host");
+      check(cudaStreamSynchronize(stream), "copy to the host");
+      for (Index i = 0; i < len; ++i) dst[i] = static_cast<double>(hout[i]);
+    } else {
+      check(cudaMemcpyAsync(dst, src, sizeof(S) * len, cudaMemcpyDeviceToHost, stream), "copy to the host");
+      check(cudaStreamSynchronize(stream), "copy to the host");
+    }
+    ++stats.syncs;
+  }
+  void jt(const S* wrows, S* out) {  // out (n) = J^T wrows on the unit tree
+    k_joint_forces<<<grid(nc, kChainThreads), kChainThreads, 0, stream>>>(
+        bodies.p, chain_start.p, nc, rows.p, row_of.p, side_start.p, side.p, X0.p, Xup.p, wrows, f.p, out);
+    launched("J^T w");
+  }
+  // ||a - b||_2 (m) with a scratch row vector
+  double residual_norm(const S* a_, const S* b_, S* scratch) {
+    k_combine<<<grid(m), kThreads, 0, stream>>>(m, a_, b_, scratch, true);
+    reduce<0>(scratch, scratch, m, kRR);
+    fetch(kSlots);
+    return std::sqrt(host_scalars[kRR]);
+  }
+
+  // unit_solve of src/sim/iterative_loops.cpp: x = J^T (J J^T + mu W^-1)^-1 r by CGLS on
+  // (J^T W J + mu I) x = J^T W r over the unit tree, with its rounds, stops and
+  // acceptance on the true residual (read that function's comment).
+  void unit_solve(const double* rh, double mu_in, double floor, double allowance, double* xh, bool& converged) {
+    const double tol = tolerance;
+    const double mu = std::max(mu_in, kLoopRankTolerance * unit_scale);
+    const std::size_t N1 = std::max<std::size_t>(1, static_cast<std::size_t>(n));
+    to_device(ur.p, rh, m);
+    copy(ures.p, ur.p, m);
+    check(cudaMemsetAsync(ux.p, 0, sizeof(S) * N1, stream), "memset");
+    check(cudaMemsetAsync(uxbest.p, 0, sizeof(S) * N1, stream), "memset");
+    reduce<0>(ures.p, ures.p, m, kRR);
+    fetch(kSlots);
+    const double r0 = std::sqrt(host_scalars[kRR]);
+    const double target = tol * r0 + floor;
+    double rn = r0, sn = 0, s0 = 0;
+    int it = 0;
+    converged = rn <= target;
+    double best = r0;
+    bool damped = false;
+    const Index len = std::max(m, n);
+    for (int round = 0; round < 4 && !converged && it < options.max_iterations; ++round) {
+      const double round_start = rn;
+      if (round > 0) {  // the true residual at x
+        joint_motion_rows(ux.p, uq.p);
+        rn = residual_norm(ur.p, uq.p, ures.p);
+        if (mu_in == 0 && rn <= target) {
+          converged = true;
+          break;
+        }
+      }
+      precondition(ures.p, uwres.p);
+      jt(uwres.p, us.p);
+      k_axpy<<<grid(n), kThreads, 0, stream>>>(n, -mu, ux.p, us.p);
+      reduce<0>(us.p, us.p, n, kGamma1);
+      fetch(kSlots);
+      sn = std::sqrt(host_scalars[kGamma1]);
+      if (round == 0) s0 = sn;
+      double gamma = sn * sn;
+      copy(up.p, us.p, n);
+      bool normal = sn <= tol * s0;
+      while (!normal && it < options.max_iterations && gamma > 0) {
+        joint_motion_rows(up.p, uq.p);
+        precondition(uq.p, uwq.p);
+        reduce<0>(uq.p, uwq.p, m, kDelta);
+        reduce<0>(up.p, up.p, n, kPP);
+        k_unit_step<<<grid(len), kThreads, 0, stream>>>(m, n, gamma, mu, scalars.p + kDelta, scalars.p + kPP, ux.p,
+                                                        up.p, ures.p, uq.p, uwres.p, uwq.p);
+        launched("projection step");
+        reduce<0>(ures.p, ures.p, m, kRR);
+        // the next normal residual, before the tests (one synchronisation per iteration)
+        jt(uwres.p, us.p);
+        k_axpy<<<grid(n), kThreads, 0, stream>>>(n, -mu, ux.p, us.p);
+        reduce<0>(us.p, us.p, n, kGamma1);
+        fetch(kSlots);
+        ++stats.applies;
+        const double delta = host_scalars[kDelta] + mu * host_scalars[kPP];
+        if (!(delta > 0) || !std::isfinite(delta)) break;
+        ++it;
+        rn = std::sqrt(host_scalars[kRR]);
+        if (!std::isfinite(rn)) break;
+        if (rn < best) best = rn, copy(uxbest.p, ux.p, n);
+        if (mu_in == 0 && rn <= target) {
+          converged = true;
+          break;
+        }
+        const double gamma1 = host_scalars[kGamma1];
+        sn = std::sqrt(gamma1);
+        if (sn <= tol * s0) {
+          normal = true;
+          break;
+        }
+        const double beta = gamma1 / gamma;
+        gamma = gamma1;
+        k_unit_direction<<<grid(n), kThreads, 0, stream>>>(n, beta, up.p, us.p);
+        launched("projection direction");
+      }
+      if (converged) {  // the recurrence's residual at the target: the true one too, else another round
+        joint_motion_rows(ux.p, uq.p);
+        if (residual_norm(ur.p, uq.p, uwq.p) <= target) break;
+        converged = false;
+        continue;
+      }
+      if (!normal) break;
+      if (mu_in != 0 || !(rn <= 0.5 * round_start)) {
+        converged = true;
+        damped = mu_in == 0;
+        break;
+      }
+    }
+    if (mu_in == 0 && !(rn <= best)) {
+      copy(ux.p, uxbest.p, n);
+      rn = best;
+      converged = converged || rn <= target;
+    }
+    reduce<1>(ux.p, static_cast<const S*>(nullptr), n, kD);
+    fetch(kSlots);
+    if (!(host_scalars[kD] < INFINITY)) {
+      check(cudaMemsetAsync(ux.p, 0, sizeof(S) * N1, stream), "memset");
+      converged = false;
+    }
+    last_r0 = r0, last_target = target, last_allowance = allowance + floor;
+    if (mu_in == 0) {  // the acceptance, on the true residual r - J x
+      joint_motion_rows(ux.p, uq.p);
+      rn = residual_norm(ur.p, uq.p, uwq.p);
+      const bool within = rn <= target || (damped && rn <= allowance + floor);
+      converged = std::isfinite(rn) && within && (converged || rn <= target);
+    }
+    to_host(xh, ux.p, n);
+    ++stats.proj_solves;
+    stats.proj_iterations += it;
+    last_proj_iterations = it;
+    last_proj_residual = r0 > 0 ? rn / r0 : 0;
+    last_residual_abs = rn;
+  }
+
+  // project_onto_loops' operations on the device (sim::IterativeLoopSolver::project's Ops)
+  struct ProjOps {
+    Impl& s;
+    bool last_converged = true;
+    double floor = 0, allowance = 0;
+    bool residual(const double* xq, double* phi) {
+      s.to_device(s.uv.p, xq, s.n);
+      k_body_motion<<<grid(s.nc, kChainThreads), kChainThreads, 0, s.stream>>>(
+          s.bodies.p, s.chain_start.p, s.nc, s.uv.p, static_cast<const S*>(nullptr), s.tX0.p, s.tv.p, s.ta.p);
+      k_loop_phi<<<grid(s.nl), kThreads, 0, s.stream>>>(s.bodies.p, s.n, s.rows.p, s.nl, s.row_of.p, s.tX0.p, s.tv.p,
+                                                         s.ta.p, s.uphi.p);
+      s.launched("phi");
+      s.to_host(phi, s.uphi.p, s.m);
+      for (Index k = 0; k < s.m; ++k)
+        if (!std::isfinite(phi[k])) return false;
+      return true;
+    }
+    void factorize(const double* xq) {
+      s.to_device(s.uv.p, xq, s.n);
+      k_body_motion<<<grid(s.nc, kChainThreads), kChainThreads, 0, s.stream>>>(
+          s.bodies.p, s.chain_start.p, s.nc, s.uv.p, static_cast<const S*>(nullptr), s.X0.p, s.v.p, s.a.p);
+      k_joint_transforms<<<grid(s.n), kThreads, 0, s.stream>>>(s.bodies.p, s.n, s.uv.p, s.Xup.p);
+      k_response_blocks<<<grid(s.nc, kChainThreads), kChainThreads, 0, s.stream>>>(
+          s.bodies.p, s.chain_start.p, s.nc, s.Xup.p, static_cast<const Force<S>*>(nullptr),
+          static_cast<const S*>(nullptr), s.Omega.p);
+      s.launched("the unit tree's blocks");
+      if (s.options.preconditioner == sim::LoopPreconditioner::None) {
+        // Levenberg-Marquardt's scale without weights: J J^T's largest diagonal entry
+        k_blocks<<<grid(s.nl), kThreads, 0, s.stream>>>(s.rows.p, s.nl, s.X0.p, s.Omega.p, S(0),
+                                                        static_cast<S*>(nullptr), s.tmp.p);
+        s.launched("J J^T's diagonal");
+        s.template reduce<1>(s.tmp.p, static_cast<const S*>(nullptr), s.nl, kD);
+        s.fetch(kSlots);
+        const double big = s.host_scalars[kD];
+        s.unit_scale = big > 0 ? big : 1.0;
+      } else {  // block Jacobi's weights of J J^T (the scale 1: unit diagonal blocks)
+        k_blocks<<<grid(s.nl), kThreads, 0, s.stream>>>(s.rows.p, s.nl, s.X0.p, s.Omega.p, S(kLoopBlockFloor),
+                                                        s.inv.p, static_cast<S*>(nullptr));
+        s.launched("block-Jacobi weights of J J^T");
+        s.unit_scale = 1.0;
+      }
+    }
+    void solve(const double* r, double mu, double* x) {
+      s.unit_solve(r, mu, floor, allowance, x, last_converged);
+      if (!last_converged && mu == 0) ++s.stats.proj_unconverged;
+    }
+    void apply(const double* v_in, double* out) {
+      s.to_device(s.uv.p, v_in, s.n);
+      s.joint_motion_rows(s.uv.p, s.uphi.p);
+      s.to_host(out, s.uphi.p, s.m);
+    }
+    double damping_scale() const { return s.unit_scale; }
+  };
+
+  double project(double* qh, double* qdh, double tol, int iterations, LoopProjectionInfo* info) {
+    const auto t0 = Clock::now();
+    struct Time {
+      Impl& s;
+      Clock::time_point t0;
+      ~Time() { s.stats.proj_seconds += std::chrono::duration<double>(Clock::now() - t0).count(); }
+    } timer{*this, t0};
+    check(cudaSetDevice(options.device), "cudaSetDevice");
+    alloc_projection();
+    auto norm = [](const double* x, Index len) {
+      double t = 0;
+      for (Index i = 0; i < len; ++i) t += x[i] * x[i];
+      return std::sqrt(t);
+    };
+    ProjOps ops{*this};
+    ops.floor = sim::kIterativeLoopFloor * jscale * std::max(norm(qh, n), norm(qdh, n));
+    ops.allowance = std::sqrt(kLoopRankTolerance) * jscale * norm(qdh, n);
+    LoopProjectionInfo out;
+    const double phi = project_onto_loops(ops, n, m, qh, qdh, tol, iterations, &out);
+    if (info) *info = out;
+    if (m > 0 && !ops.last_converged)
+      throw sim::LoopSolveNotConverged(
+          "CUDA iterative loop solver: the velocity projection did not converge: ||J qd||_2 " + sci(last_residual_abs) +
+          " after it (" + sci(last_r0) + " before; relative residual " + sci(last_proj_residual) + ") after " +
+          std::to_string(last_proj_iterations) + " iterations (at most " + std::to_string(options.max_iterations) +
+          "); accepted: at most " + sci(last_target) + " (tolerance " + sci(tolerance) +
+          " of ||J qd||_2 before + 1e-12 L_J max(||q||_2, ||qd||_2)), or " + sci(last_allowance) +
+          " where it stopped at the damped normal residual (1e-5 L_J ||qd||_2 + the same floor)");
+    return phi;
   }
 
   void forward_dynamics(const double* qh, const double* qdh, const double* tauh, double* qddh, double* lambdah) {
@@ -579,8 +897,15 @@ void CudaIterativeLoopSolver<S>::forward_dynamics(const double* q, const double*
 template <class S>
 double CudaIterativeLoopSolver<S>::project(double* q, double* qd, double tol, int iterations,
                                            LoopProjectionInfo* info) {
-  if (!impl_->projector) impl_->projector = std::make_unique<sim::IterativeLoopSolver>(impl_->host_model, impl_->loops);
-  return impl_->projector->project(q, qd, tol, iterations, info);
+  if (impl_->options.project_on_host || Impl::kFloat) {  // the host's projector (float: its double projection)
+    if (!impl_->projector) {
+      sim::IterativeLoopOptions o;
+      o.preconditioner = impl_->options.preconditioner;
+      impl_->projector = std::make_unique<sim::IterativeLoopSolver>(impl_->host_model, impl_->loops, o);
+    }
+    return impl_->projector->project(q, qd, tol, iterations, info);
+  }
+  return impl_->project(q, qd, tol, iterations, info);
 }
 
 template <class S>
@@ -608,6 +933,21 @@ std::unique_ptr<sim::LoopSolver> make_cuda_iterative_loop_solver(const Model& mo
 }
 std::unique_ptr<sim::LoopSolver> make_cuda_iterative_loop_solver_float(const Model& model, const LoopSet& loops) {
   return std::make_unique<CudaIterativeLoopSolver<float>>(model, loops);
+}
+
+namespace {
+std::unique_ptr<sim::LoopSolver> make_cuda_iterative_loop_solver_none(const Model& model, const LoopSet& loops) {
+  CudaIterativeLoopOptions o;
+  o.preconditioner = sim::LoopPreconditioner::None;
+  return std::make_unique<CudaIterativeLoopSolver<double>>(model, loops, o);
+}
+}  // namespace
+
+sim::LoopSolverFactory cuda_iterative_loop_solver_factory(sim::LoopPreconditioner p) {
+  if (p == sim::LoopPreconditioner::BlockJacobi) return &make_cuda_iterative_loop_solver;
+  if (p == sim::LoopPreconditioner::None) return &make_cuda_iterative_loop_solver_none;
+  throw LoopError(std::string("CUDA iterative loop solver: preconditioner ") + sim::loop_preconditioner_name(p) +
+                  " is not on the GPU (its sweeps are sequential): use block-jacobi or none");
 }
 
 }  // namespace scandyn::cuda

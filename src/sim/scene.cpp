@@ -562,11 +562,12 @@ Scene parse_scene(const std::string& text, const std::string& source, const std:
   }
 
   // ---- integration and execution
-  if (doc.contains("loop_solver")) {  // closed loops: dense, sparse, iterative or auto (docs/loops.md)
+  if (doc.contains("loop_solver")) {  // closed loops: dense, sparse, iterative(-cuda) or auto (docs/loops.md)
     s.loop_solver = r.string("loop_solver", doc["loop_solver"]);
     if (s.loop_solver != "auto" && s.loop_solver != "dense" && s.loop_solver != "sparse" &&
-        s.loop_solver != "iterative")
-      r.expected("loop_solver", "\"auto\", \"dense\", \"sparse\" or \"iterative\"", doc["loop_solver"]);
+        s.loop_solver != "iterative" && s.loop_solver != "iterative-cuda")
+      r.expected("loop_solver", "\"auto\", \"dense\", \"sparse\", \"iterative\" or \"iterative-cuda\"",
+                 doc["loop_solver"]);
   }
   if (doc.contains("loop_preconditioner")) {  // the iterative loop solver's (docs/loops.md)
     s.loop_preconditioner = r.string("loop_preconditioner", doc["loop_preconditioner"]);

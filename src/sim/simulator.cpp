@@ -15,6 +15,7 @@
 #include "scandyn/io/limits.hpp"
 #include "scandyn/build_config.hpp"
 #include "scandyn/sharded.hpp"
+#include "scandyn/cuda/loop_iterative.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/variational_instance.hpp"
 
@@ -205,6 +206,19 @@ Simulator<S>::Simulator(const Scene& scene, BackendKind backend) : initial_(scen
         throw BackendError("\"loop_solver\": \"iterative\" takes no contacts or external wrenches (the dense "
                            "solver does)");
       setup_.loop_solver = iterative;  // the core library's (scandyn/sim/iterative_loops.hpp)
+    } else if (scene.loop_solver == "iterative-cuda") {
+      // the iterative solver's forward dynamics and projection on a CUDA device
+      // (scandyn/cuda/loop_iterative.hpp), the step itself on this (serial or openmp) backend
+      if (wrenches)
+        throw BackendError("\"loop_solver\": \"iterative-cuda\" takes no contacts or external wrenches (the dense "
+                           "solver does)");
+      const LoopPreconditioner p = scene.loop_preconditioner.empty() ? LoopPreconditioner::BlockJacobi
+                                                                     : parse_loop_preconditioner(scene.loop_preconditioner);
+      const std::string why = cuda::cuda_iterative_loop_refusal(scene.model, scene.loops, p);
+      if (!why.empty()) throw BackendError(why);
+#if SCANDYN_HAS_CUDA
+      setup_.loop_solver = cuda::cuda_iterative_loop_solver_factory(p);
+#endif
     } else if (scene.loop_solver == "auto" && nv >= kSparseLoopDofs && !wrenches) {
       // the registered sparse solver, else the iterative one (docs/loops.md, "Choosing it")
       setup_.loop_solver = sparse_loop_solver() ? sparse_loop_solver() : iterative;

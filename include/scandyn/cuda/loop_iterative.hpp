@@ -29,14 +29,26 @@
 // the least-squares stop at a relative normal residual of 1e-6 (1e-4 stalled): float
 // rounding (~1e-7) leaves the double thresholds out of reach.
 //
-// project() (the LoopSolver interface) runs on the host: a sim::IterativeLoopSolver
-// with its default options, made on first use.
+// project() (the LoopSolver interface): in double on the device, the same as
+// sim::IterativeLoopSolver::project with this solver's preconditioner (block Jacobi's
+// weights of J J^T, or none): project_onto_loops' Levenberg-Marquardt steps and
+// acceptance on the host around device solves (unit_solve's CGLS on
+// (J^T W J + mu I) x = J^T W r over the unit tree: J p by loop_joint_motion_range per
+// chain, J^T W q by the bodies' gathered wrenches and loop_joint_forces' backward pass
+// per chain; the same rounds, stops, true-residual acceptance and errors, with the
+// tolerance of this solver's double: 1e-10), phi at the trial points one thread per
+// loop; phi, J p and the steps cross to the host per evaluation (project_onto_loops'
+// O(n + m) host work). Float, or options.project_on_host: on the host, a
+// sim::IterativeLoopSolver with this solver's preconditioner (the reference), made on
+// first use.
 #pragma once
 
 #include <memory>
 #include <string>
 
+#include "scandyn/algorithm/loop_chains.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/device.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
 
 namespace scandyn::cuda {
@@ -51,6 +63,9 @@ struct CudaIterativeLoopOptions {
   sim::LoopPreconditioner preconditioner = sim::LoopPreconditioner::BlockJacobi;
   bool warm_start = true;  // start each solve from the previous lambda
   int device = 0;
+  // project() on the host (sim::IterativeLoopSolver, this preconditioner) instead of the
+  // device (double; float always projects on the host)
+  bool project_on_host = false;
 };
 
 struct CudaIterativeLoopStats {
@@ -60,7 +75,38 @@ struct CudaIterativeLoopStats {
   double fd_seconds = 0;     // wall time in forward_dynamics (copies included)
   long applies = 0;          // applications of A (tree passes)
   long syncs = 0;            // host synchronisations
+  // project() on the device: CGLS solves, iterations, position steps not converged,
+  // wall time (copies and the host's Levenberg-Marquardt included)
+  long proj_solves = 0, proj_iterations = 0, proj_unconverged = 0;
+  double proj_seconds = 0;
 };
+
+// Why the simulator cannot use this solver for the model's loops with preconditioner p
+// (scene "loop_solver": "iterative-cuda"), or "" when it can: a build without CUDA, no
+// usable device, a tree that is not a set of unbranched chains from the base
+// (loop_chain_layout's message), a preconditioner other than block-jacobi and none, or
+// multi-DoF joints. Checks no device memory; the tree and the preconditioner before
+// the device.
+inline std::string cuda_iterative_loop_refusal(const Model& model, const LoopSet& loops, sim::LoopPreconditioner p) {
+  const std::string who = "\"loop_solver\": \"iterative-cuda\": ";
+#if !SCANDYN_HAS_CUDA
+  (void)model, (void)loops, (void)p;
+  return who + "this build has no CUDA (SCANDYN_CUDA=OFF); \"iterative\" is the host's iterative solver";
+#else
+  if (p != sim::LoopPreconditioner::BlockJacobi && p != sim::LoopPreconditioner::None)
+    return who + "\"loop_preconditioner\": \"" + sim::loop_preconditioner_name(p) +
+           "\" is not on the GPU (its sweeps are sequential): use \"block-jacobi\" (its default) or \"none\"";
+  try {
+    (void)loop_chain_layout(model, loop_rows_of<double>(loops));
+  } catch (const LoopError& e) {
+    return who + e.what();
+  }
+  const Result<int> count = device_count();
+  if (!count) return who + count.error;
+  if (count.value == 0) return who + "no usable CUDA device (0 visible)";
+  return "";
+#endif
+}
 
 #if SCANDYN_HAS_CUDA
 
@@ -95,6 +141,8 @@ class CudaIterativeLoopSolver final : public sim::LoopSolver {
 // LoopSolverFactory-shaped makers (default options): double and float.
 std::unique_ptr<sim::LoopSolver> make_cuda_iterative_loop_solver(const Model& model, const LoopSet& loops);
 std::unique_ptr<sim::LoopSolver> make_cuda_iterative_loop_solver_float(const Model& model, const LoopSet& loops);
+// The double solver's maker with preconditioner p (BlockJacobi or None; others: LoopError).
+sim::LoopSolverFactory cuda_iterative_loop_solver_factory(sim::LoopPreconditioner p);
 
 #endif  // SCANDYN_HAS_CUDA
 

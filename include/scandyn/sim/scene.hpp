@@ -89,7 +89,9 @@ struct Scene {
   LoopSet loops;                      // closed loops: the generator's and the scene's "loops"
   // the closed loops' solver ("loop_solver"): "dense" (constrained_forward_dynamics,
   // project_to_loops), "sparse" (the registered sparse solver, scandyn/sim/sparse_loops.hpp),
-  // "iterative" (matrix-free conjugate gradients, scandyn/sim/iterative_loops.hpp) or
+  // "iterative" (matrix-free conjugate gradients, scandyn/sim/iterative_loops.hpp),
+  // "iterative-cuda" (the same on a CUDA device, scandyn/cuda/loop_iterative.hpp: the
+  // step on the serial or openmp backend, its loop solves on the GPU; docs/scenes.md) or
   // "auto" (sparse from kSparseLoopDofs DoFs on, when registered; docs/loops.md)
   std::string loop_solver = "auto";
   // the iterative solver's preconditioner ("loop_preconditioner": "block-jacobi",
