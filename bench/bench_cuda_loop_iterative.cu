@@ -19,6 +19,19 @@
 // (||J qdd + gamma||_2 by the host's passes), closure_rel (closure / (||gamma|| + ||J qdd0||)),
 // qdd_diff (max |qdd - qdd_cpu| / max |qdd_cpu|; against the CPU row where it ran, else
 // against the GPU double row for float, else -), status (ok, or the error).
+//
+// --sim-steps K (whole simulator steps; the forward-dynamics rows above are then not run):
+// per grid, K rk4 steps (dt --dt, default 2e-4 s) of sim::Simulator<double> (serial
+// backend, gravity, the state above as the scene's initial state, the torques above) with
+// "loop_solver": "iterative-cuda" (block Jacobi: the GPU solver's forward dynamics and
+// projection) next to "iterative" with "loop_preconditioner": "block-jacobi" (the CPU's,
+// one core) on grids of at most --step-cpu-max-links links (default 2 10^4: up to
+// cloth:100:100, whose CPU steps take seconds each). Columns: grid, links, solver,
+// steps, s_per_step (the steps' wall time / K, after one untimed step), setup_s (the
+// simulator's construction and the first step), violation (max(|phi|, |J qd|) after
+// the last step), failures (failed instance-steps), fd_iterations and proj_iterations
+// per step (the GPU solver's own counters are not reachable through the simulator: the
+// CPU rows' from iterative_loop_totals, the GPU rows' -), status.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -33,7 +46,10 @@
 #include "scandyn/algorithm/loops.hpp"
 #include "scandyn/cuda/loop_iterative.hpp"
 #include "scandyn/model/load.hpp"
+#include "scandyn/io/csv.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
+#include "scandyn/sim/scene.hpp"
+#include "scandyn/sim/simulator.hpp"
 
 using namespace scandyn;
 using Clock = std::chrono::steady_clock;
@@ -143,6 +159,53 @@ Row run_gpu(const std::string& spec, const Model& model, const LoopSet& loops, c
   return r;
 }
 
+// --sim-steps: K simulator steps of cloth:<g> with the loop solver `solver`
+void run_steps(const std::string& spec, const Model& model, const LoopSet& loops, const std::vector<double>& q,
+               const std::vector<double>& qd, const std::vector<double>& tau, const std::string& solver, int steps,
+               double dt) {
+  const Index n = model.nv();
+  std::string status = "ok", violation = "-", failures = "-", fd_it = "-", proj_it = "-";
+  double per_step = NAN, setup = NAN;
+  try {
+    const std::string json = std::string(R"({"model": ")") + spec +
+                             R"(", "effects": {"gravity": true}, "integrator": "rk4", "loop_solver": ")" + solver +
+                             R"(", "loop_preconditioner": "block-jacobi", "dt": )" + std::to_string(dt) +
+                             R"(, "initial": {"q": )" + io::number_array(q.data(), q.size()) + R"(, "qd": )" +
+                             io::number_array(qd.data(), qd.size()) + "}}";
+    auto t0 = Clock::now();
+    sim::Simulator<double> s(sim::parse_scene(json, "bench.json"), BackendKind::Serial);
+    const BatchView<const double> u = BatchView<const double>::soa(tau.data(), n, 1);
+    s.step(u);  // (the first: the loop solver's construction, the kernels' first launch)
+    setup = seconds_since(t0);
+    sim::reset_iterative_loop_totals();
+    t0 = Clock::now();
+    for (int k = 0; k < steps; ++k) s.step(u);
+    per_step = seconds_since(t0) / steps;
+    if (solver == "iterative") {
+      const sim::IterativeLoopStats t = sim::iterative_loop_totals();
+      fd_it = std::to_string(t.fd_iterations / steps), proj_it = std::to_string(t.proj_iterations / steps);
+    }
+    const BatchStatus st = s.status();
+    failures = std::to_string(st.failed);
+    if (!st.ok()) status = "error: " + sim::failure_message(st);
+    std::vector<double> qe(n), qde(n);
+    s.read_state(qe.data(), qde.data());
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.3g", loop_violation(model, loops, qe.data(), qde.data()));
+    violation = buf;
+  } catch (const std::exception& e) {
+    status = std::string("error: ") + e.what();
+  }
+  std::replace(status.begin(), status.end(), ',', ';');
+  char line[2048];
+  std::snprintf(line, sizeof line, "%s,%lld,%s,%d,%.4g,%.3g,%s,%s,%s,%s,%s\n", spec.c_str(), (long long)n,
+                solver.c_str(), steps, per_step, setup, violation.c_str(), failures.c_str(), fd_it.c_str(),
+                proj_it.c_str(), status.c_str());
+  std::fputs(line, stdout);
+  std::fflush(stdout);
+  if (g_csv) std::fputs(line, g_csv), std::fflush(g_csv);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -151,6 +214,9 @@ int main(int argc, char** argv) {
   bool with_float = false;
   int max_iterations = sim::kIterativeLoopMaxIterations;
   double torque = 1e-4;
+  int sim_steps = 0;
+  double dt = 2e-4;
+  long long step_cpu_max_links = 20000;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--grids" && i + 1 < argc) grids = split(argv[++i]);
@@ -159,10 +225,13 @@ int main(int argc, char** argv) {
     else if (a == "--max-iterations" && i + 1 < argc) max_iterations = std::atoi(argv[++i]);
     else if (a == "--torque" && i + 1 < argc) torque = std::atof(argv[++i]);
     else if (a == "--csv" && i + 1 < argc) g_csv = std::fopen(argv[++i], "w");
+    else if (a == "--sim-steps" && i + 1 < argc) sim_steps = std::atoi(argv[++i]);
+    else if (a == "--dt" && i + 1 < argc) dt = std::atof(argv[++i]);
+    else if (a == "--step-cpu-max-links" && i + 1 < argc) step_cpu_max_links = std::atoll(argv[++i]);
     else {
       std::fprintf(stderr,
                    "usage: bench_cuda_loop_iterative [--grids 30:30,100:100,...] [--cpu-max-links L] [--float] "
-                   "[--max-iterations K] [--torque A] [--csv FILE]\n");
+                   "[--max-iterations K] [--torque A] [--csv FILE] [--sim-steps K [--dt DT] [--step-cpu-max-links L]]\n");
       return 2;
     }
   }
@@ -177,6 +246,27 @@ int main(int argc, char** argv) {
     } catch (const std::exception& e) {
       std::fprintf(stderr, "warm-up: %s\n", e.what());
     }
+  }
+  if (sim_steps > 0) {
+    const char* h = "grid,links,solver,steps,s_per_step,setup_s,violation,failures,fd_iterations,proj_iterations,status\n";
+    std::fputs(h, stdout);
+    if (g_csv) std::fputs(h, g_csv);
+    for (const std::string& g : grids) {
+      const std::string spec = "cloth:" + g;
+      const Model model = load_model(spec);
+      const LoopSet loops = generator_loops(spec, model);
+      const Index n = model.nv();
+      const Index N = std::atoi(g.c_str() + g.rfind(':') + 1);
+      std::vector<double> q(n), qd(n), tau(n);
+      for (Index i = 0; i < n; ++i) {
+        const bool x_axis = (i % N) % 2 == 0;
+        q[i] = x_axis ? 0.1 : 0.0, qd[i] = x_axis ? 0.5 : 0.0, tau[i] = torque * std::sin(1.0 + double(i));
+      }
+      if (n <= step_cpu_max_links) run_steps(spec, model, loops, q, qd, tau, "iterative", sim_steps, dt);
+      run_steps(spec, model, loops, q, qd, tau, "iterative-cuda", sim_steps, dt);
+    }
+    if (g_csv) std::fclose(g_csv);
+    return 0;
   }
   const char* header = "grid,links,rows,solver,iterations,seconds,setup_s,closure,closure_rel,qdd_diff,status\n";
   std::fputs(header, stdout);
