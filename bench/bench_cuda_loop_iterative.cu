@@ -160,6 +160,25 @@ Row run_gpu(const std::string& spec, const Model& model, const LoopSet& loops, c
 }
 
 // --sim-steps: K simulator steps of cloth:<g> with the loop solver `solver`
+// cloth:<g> (g = "K:N") and the state of the header: q = 0.1, qd = 0.5 on the x-axis
+// joints (even j of each rope), 0 on the others; tau_i = torque sin(1 + i)
+struct Grid {
+  std::string spec;
+  Model model;
+  LoopSet loops;
+  Index n = 0;
+  std::vector<double> q, qd, tau;
+  Grid(const std::string& g, double torque)
+      : spec("cloth:" + g), model(load_model(spec)), loops(generator_loops(spec, model)), n(model.nv()) {
+    const Index N = std::atoi(g.c_str() + g.rfind(':') + 1);
+    q.resize(n), qd.resize(n), tau.resize(n);
+    for (Index i = 0; i < n; ++i) {
+      const bool x_axis = (i % N) % 2 == 0;
+      q[i] = x_axis ? 0.1 : 0.0, qd[i] = x_axis ? 0.5 : 0.0, tau[i] = torque * std::sin(1.0 + double(i));
+    }
+  }
+};
+
 void run_steps(const std::string& spec, const Model& model, const LoopSet& loops, const std::vector<double>& q,
                const std::vector<double>& qd, const std::vector<double>& tau, const std::string& solver, int steps,
                double dt) {
@@ -252,18 +271,9 @@ int main(int argc, char** argv) {
     std::fputs(h, stdout);
     if (g_csv) std::fputs(h, g_csv);
     for (const std::string& g : grids) {
-      const std::string spec = "cloth:" + g;
-      const Model model = load_model(spec);
-      const LoopSet loops = generator_loops(spec, model);
-      const Index n = model.nv();
-      const Index N = std::atoi(g.c_str() + g.rfind(':') + 1);
-      std::vector<double> q(n), qd(n), tau(n);
-      for (Index i = 0; i < n; ++i) {
-        const bool x_axis = (i % N) % 2 == 0;
-        q[i] = x_axis ? 0.1 : 0.0, qd[i] = x_axis ? 0.5 : 0.0, tau[i] = torque * std::sin(1.0 + double(i));
-      }
-      if (n <= step_cpu_max_links) run_steps(spec, model, loops, q, qd, tau, "iterative", sim_steps, dt);
-      run_steps(spec, model, loops, q, qd, tau, "iterative-cuda", sim_steps, dt);
+      const Grid c(g, torque);
+      if (c.n <= step_cpu_max_links) run_steps(c.spec, c.model, c.loops, c.q, c.qd, c.tau, "iterative", sim_steps, dt);
+      run_steps(c.spec, c.model, c.loops, c.q, c.qd, c.tau, "iterative-cuda", sim_steps, dt);
     }
     if (g_csv) std::fclose(g_csv);
     return 0;
@@ -272,16 +282,12 @@ int main(int argc, char** argv) {
   std::fputs(header, stdout);
   if (g_csv) std::fputs(header, g_csv);
   for (const std::string& g : grids) {
-    const std::string spec = "cloth:" + g;
-    const Model model = load_model(spec);
-    const LoopSet loops = generator_loops(spec, model);
-    const Index n = model.nv();
-    const Index N = std::atoi(g.c_str() + g.rfind(':') + 1);
-    std::vector<double> q(n), qd(n), tau(n);
-    for (Index i = 0; i < n; ++i) {
-      const bool x_axis = (i % N) % 2 == 0;
-      q[i] = x_axis ? 0.1 : 0.0, qd[i] = x_axis ? 0.5 : 0.0, tau[i] = torque * std::sin(1.0 + double(i));
-    }
+    const Grid c(g, torque);
+    const std::string& spec = c.spec;
+    const Model& model = c.model;
+    const LoopSet& loops = c.loops;
+    const Index n = c.n;
+    const std::vector<double>&q = c.q, &qd = c.qd, &tau = c.tau;
     std::vector<double> qdd_cpu, qdd_gpu, qdd_f;
     if (n <= cpu_max_links) {
       Row r;
