@@ -384,18 +384,45 @@ unsigned blocks_for(Index B) {
   return static_cast<unsigned>((static_cast<long long>(B) + kDerivativesBlock - 1) / kDerivativesBlock);
 }
 
+// The launches' argument checks (every model kind): cudaErrorInvalidValue for views of
+// different batches or a missing array; otherwise cudaSuccess, and `run` false when
+// there is nothing to do (no instance, or a model without DoFs).
+template <class S>
+cudaError_t check_id_arguments(const IdBatchIn<S>& in, const IdDerivativesOut<S>& out, Index nv, bool& run) {
+  run = false;
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.dtau_dq.batch != B || out.dtau_dqd.batch != B ||
+      out.M.batch != B)
+    return cudaErrorInvalidValue;
+  if (B == 0 || nv == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
+    return cudaErrorInvalidValue;
+  run = true;
+  return cudaSuccess;
+}
+
+template <class S>
+cudaError_t check_fd_arguments(const FdBatchIn<S>& in, const FdDerivativesOut<S>& out, Index nv, bool& run) {
+  run = false;
+  const Index B = in.q.batch;
+  if (B < 0 || in.qd.batch != B || in.tau.batch != B || out.dqdd_dq.batch != B || out.dqdd_dqd.batch != B ||
+      out.dqdd_dtau.batch != B || (out.qdd.data && out.qdd.batch != B))
+    return cudaErrorInvalidValue;
+  if (B == 0 || nv == 0) return cudaSuccess;
+  if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
+    return cudaErrorInvalidValue;
+  run = true;
+  return cudaSuccess;
+}
+
 }  // namespace
 
 template <class S>
 cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S>& in, const IdDerivativesOut<S>& out,
                                   cudaStream_t stream) {
+  bool run = false;
+  if (const cudaError_t e = check_id_arguments(in, out, model.nv(), run); e != cudaSuccess || !run) return e;
   const Index B = in.q.batch;
-  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.dtau_dq.batch != B || out.dtau_dqd.batch != B ||
-      out.M.batch != B)
-    return cudaErrorInvalidValue;
-  if (B == 0 || model.nv() == 0) return cudaSuccess;
-  if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
-    return cudaErrorInvalidValue;
   const bool recursion = env_is("SCANDYN_DID_KERNEL", "recursion");
   visit_compiled_capacity(model.params(), [&](const auto& params) {
     using P = std::decay_t<decltype(params)>;
@@ -414,13 +441,9 @@ cudaError_t launch_id_derivatives(const ThreadModel<S>& model, const IdBatchIn<S
 template <class S>
 cudaError_t launch_fd_derivatives(const ThreadModel<S>& model, const FdBatchIn<S>& in, const FdDerivativesOut<S>& out,
                                   int* failed_dof, cudaStream_t stream) {
+  bool run = false;
+  if (const cudaError_t e = check_fd_arguments(in, out, model.nv(), run); e != cudaSuccess || !run) return e;
   const Index B = in.q.batch;
-  if (B < 0 || in.qd.batch != B || in.tau.batch != B || out.dqdd_dq.batch != B || out.dqdd_dqd.batch != B ||
-      out.dqdd_dtau.batch != B || (out.qdd.data && out.qdd.batch != B))
-    return cudaErrorInvalidValue;
-  if (B == 0 || model.nv() == 0) return cudaSuccess;
-  if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
-    return cudaErrorInvalidValue;
   const bool tree = env_is("SCANDYN_DFD_KERNEL", "tree"), packed = env_is("SCANDYN_DFD_KERNEL", "packed");
   const unsigned grid = blocks_for(B);
   visit_compiled_capacity(model.params(), [&](const auto& params) {
@@ -478,13 +501,9 @@ GeneralDerivativeModel<S>::GeneralDerivativeModel(const ModelTpl<S>& model)
 template <class S>
 cudaError_t launch_id_derivatives(const GeneralDerivativeModel<S>& model, const IdBatchIn<S>& in,
                                   const IdDerivativesOut<S>& out, cudaStream_t stream) {
+  bool run = false;
+  if (const cudaError_t e = check_id_arguments(in, out, model.nv(), run); e != cudaSuccess || !run) return e;
   const Index B = in.q.batch;
-  if (B < 0 || in.qd.batch != B || in.qdd.batch != B || out.dtau_dq.batch != B || out.dtau_dqd.batch != B ||
-      out.M.batch != B)
-    return cudaErrorInvalidValue;
-  if (B == 0 || model.nv() == 0) return cudaSuccess;
-  if (!in.q.data || !in.qd.data || !in.qdd.data || !out.dtau_dq.data || !out.dtau_dqd.data || !out.M.data)
-    return cudaErrorInvalidValue;
   visit_compiled_capacity(model.params(), [&](const auto& params) {
     constexpr int C = std::decay_t<decltype(params)>::capacity;
     id_derivatives_general_kernel<S, C><<<blocks_for(B), kDerivativesBlock, 0, stream>>>(params, in, out);
@@ -495,13 +514,9 @@ cudaError_t launch_id_derivatives(const GeneralDerivativeModel<S>& model, const 
 template <class S>
 cudaError_t launch_fd_derivatives(const GeneralDerivativeModel<S>& model, const FdBatchIn<S>& in,
                                   const FdDerivativesOut<S>& out, int* failed_dof, cudaStream_t stream) {
+  bool run = false;
+  if (const cudaError_t e = check_fd_arguments(in, out, model.nv(), run); e != cudaSuccess || !run) return e;
   const Index B = in.q.batch;
-  if (B < 0 || in.qd.batch != B || in.tau.batch != B || out.dqdd_dq.batch != B || out.dqdd_dqd.batch != B ||
-      out.dqdd_dtau.batch != B || (out.qdd.data && out.qdd.batch != B))
-    return cudaErrorInvalidValue;
-  if (B == 0 || model.nv() == 0) return cudaSuccess;
-  if (!in.q.data || !in.qd.data || !in.tau.data || !out.dqdd_dq.data || !out.dqdd_dqd.data || !out.dqdd_dtau.data)
-    return cudaErrorInvalidValue;
   visit_compiled_capacity(model.params(), [&](const auto& params) {
     constexpr int C = std::decay_t<decltype(params)>::capacity;
     prefer_l1<fd_derivatives_general_kernel<S, C>>();
