@@ -99,17 +99,11 @@ ChainHybridPlan<S>::ChainHybridPlan(const ModelTpl<S>& model, Index max_batch, I
     o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
   }
   bytes_ = off;
-  std::size_t free_bytes = 0, total_bytes = 0;
-  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-  const cudaError_t err = cudaMalloc(&memory_, bytes_);
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();
-    memory_ = nullptr;
-    throw BackendError("backend 'cuda': the parallel chain hybrid dynamics of " + std::to_string(n_) + " links x " +
-                       std::to_string(max_batch_) + " instances needs " + std::to_string(bytes_) +
-                       " bytes of device memory; " + std::to_string(free_bytes) + " are free (" +
-                       detail::error_string(err) + ")");
-  }
+  memory_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t) {
+    return "backend 'cuda': the parallel chain hybrid dynamics of " + std::to_string(n_) + " links x " +
+           std::to_string(max_batch_) + " instances needs " + std::to_string(bytes_) + " bytes of device memory; " +
+           std::to_string(free_bytes) + " are free";
+  });
   char* base = static_cast<char*>(memory_);
   body_ = reinterpret_cast<const Body<S>*>(base + o_body);
   Phi_ = reinterpret_cast<const InverseInertia<DualScalar>*>(base + o_phi);
@@ -219,14 +213,15 @@ CudaChainHybridDynamics<S>::CudaChainHybridDynamics(const ModelTpl<S>& model,
   const std::size_t N = static_cast<std::size_t>(n_) * max_batch_;
   const std::size_t bytes = 6 * N * sizeof(S) + N * sizeof(Force<S>) + max_batch_ * sizeof(int) + N;
   check(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
-  const cudaError_t err = cudaMalloc(&buffer_, bytes);
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();
-    buffer_ = nullptr;
+  try {
+    buffer_ = detail::device_malloc(bytes, [&](std::size_t free_bytes, std::size_t) {
+      return "backend 'cuda': the parallel chain hybrid dynamics' staging of " + std::to_string(n_) + " DoF x " +
+             std::to_string(max_batch_) + " instances needs " + std::to_string(bytes) + " bytes of device memory; " +
+             std::to_string(free_bytes) + " are free";
+    });
+  } catch (...) {
     cudaStreamDestroy(stream_);
-    throw BackendError("backend 'cuda': the parallel chain hybrid dynamics' staging of " + std::to_string(n_) +
-                       " DoF x " + std::to_string(max_batch_) + " instances needs " + std::to_string(bytes) +
-                       " bytes of device memory (" + detail::error_string(err) + ")");
+    throw;
   }
   S* p = static_cast<S*>(buffer_);
   for (int k = 0; k < 6; ++k) array_[k] = p + k * N;
