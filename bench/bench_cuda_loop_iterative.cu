@@ -58,43 +58,6 @@ namespace {
 
 double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-double norm2(const std::vector<double>& x) {
-  double s = 0;
-  for (double e : x) s += e * e;
-  return std::sqrt(s);
-}
-
-struct Closure {
-  double residual = 0, scale = 0;
-};
-// ||J qdd + gamma||, ||gamma|| + ||J qdd0|| by the host's passes
-Closure closure(const Model& model, const LoopSet& loops, const std::vector<double>& q, const std::vector<double>& qd,
-                const std::vector<double>& tau, const std::vector<double>& qdd) {
-  const Index n = model.nv(), m = loops.rows();
-  const auto rows = loop_rows_of<double>(loops);
-  const Index nl = static_cast<Index>(rows.size());
-  const Body<double>* bodies = model.bodies.data();
-  std::vector<Transform<double>> X0(n), Xup(n);
-  std::vector<Motion<double>> v(n), a(n), acc(n), cc(n);
-  std::vector<Force<double>> U(n), pA(n);
-  std::vector<ABInertia<double>> IA(n);
-  std::vector<double> gamma(m), jq(m), D(n), u(n), qdd0(n);
-  loop_body_motion(bodies, n, q.data(), qd.data(), X0.data(), v.data(), a.data());
-  loop_rows(bodies, n, rows.data(), nl, X0.data(), v.data(), a.data(), static_cast<double*>(nullptr),
-            static_cast<double*>(nullptr), gamma.data());
-  loop_aba_factor(bodies, n, model.gravity, q.data(), qd.data(), tau.data(), Xup.data(), U.data(), D.data(),
-                  qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(), u.data());
-  Closure out;
-  loop_joint_motion(bodies, n, Xup.data(), qdd0.data(), acc.data());
-  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
-  out.scale = norm2(gamma) + norm2(jq);
-  loop_joint_motion(bodies, n, Xup.data(), qdd.data(), acc.data());
-  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
-  for (Index k = 0; k < m; ++k) jq[k] += gamma[k];
-  out.residual = norm2(jq);
-  return out;
-}
-
 double rel_diff(const std::vector<double>& a, const std::vector<double>& ref) {
   double d = 0, r = 0;
   for (std::size_t i = 0; i < a.size(); ++i) d = std::max(d, std::fabs(a[i] - ref[i])), r = std::max(r, std::fabs(ref[i]));
@@ -118,6 +81,14 @@ struct Row {
 };
 
 FILE* g_csv = nullptr;
+// the row's closure ||J qdd + gamma|| and its ratio to ||gamma|| + ||J qdd0||, by the
+// host's passes
+void set_closure(Row& r, const Model& model, const LoopSet& loops, const std::vector<double>& q,
+                 const std::vector<double>& qd, const std::vector<double>& tau, const std::vector<double>& qdd) {
+  const LoopAccelerationClosure c = loop_acceleration_closure(model, loops, q.data(), qd.data(), tau.data(), qdd.data());
+  r.closure = c.residual, r.closure_rel = c.residual / (c.gamma + c.jqdd0);
+}
+
 void print(const Row& r) {
   char diff[32] = "-";
   if (std::isfinite(r.diff)) std::snprintf(diff, sizeof diff, "%.3g", r.diff);
@@ -309,24 +280,19 @@ int main(int argc, char** argv) {
       }
       r.seconds = seconds_since(t0);
       r.iterations = cpu.stats().last_iterations;
-      if (!qdd_cpu.empty()) {
-        const Closure c = closure(model, loops, q, qd, tau, qdd_cpu);
-        r.closure = c.residual, r.closure_rel = c.residual / c.scale;
-      }
+      if (!qdd_cpu.empty()) set_closure(r, model, loops, q, qd, tau, qdd_cpu);
       print(r);
     }
     Row r = run_gpu<double>(spec, model, loops, q, qd, tau, max_iterations, qdd_gpu);
     if (r.status == "ok") {
-      const Closure c = closure(model, loops, q, qd, tau, qdd_gpu);
-      r.closure = c.residual, r.closure_rel = c.residual / c.scale;
+      set_closure(r, model, loops, q, qd, tau, qdd_gpu);
       if (!qdd_cpu.empty()) r.diff = rel_diff(qdd_gpu, qdd_cpu);
     }
     print(r);
     if (with_float) {
       Row f = run_gpu<float>(spec, model, loops, q, qd, tau, max_iterations, qdd_f);
       if (f.status == "ok") {
-        const Closure c = closure(model, loops, q, qd, tau, qdd_f);
-        f.closure = c.residual, f.closure_rel = c.residual / c.scale;
+        set_closure(f, model, loops, q, qd, tau, qdd_f);
         if (!qdd_cpu.empty()) f.diff = rel_diff(qdd_f, qdd_cpu);
         else if (r.status == "ok") f.diff = rel_diff(qdd_f, qdd_gpu);
       }

@@ -63,6 +63,38 @@ double loop_violation(const Model& model, const LoopSet& loops, const double* q,
   return worst;
 }
 
+LoopAccelerationClosure loop_acceleration_closure(const Model& model, const LoopSet& loops, const double* q,
+                                                  const double* qd, const double* tau, const double* qdd) {
+  const Index n = model.nv(), m = loops.rows();
+  const std::vector<LoopRow<double>> rows = loop_rows_of<double>(loops);
+  const Index nl = static_cast<Index>(rows.size());
+  const Body<double>* bodies = model.bodies.data();
+  std::vector<Transform<double>> X0(n), Xup(n);
+  std::vector<Motion<double>> v(n), a(n), acc(n), c(n);
+  std::vector<Force<double>> U(n), pA(n);
+  std::vector<ABInertia<double>> IA(n);
+  std::vector<double> gamma(m), jq(m), D(n), u(n), qdd0(n);
+  loop_body_motion(bodies, n, q, qd, X0.data(), v.data(), a.data());
+  loop_rows(bodies, n, rows.data(), nl, X0.data(), v.data(), a.data(), static_cast<double*>(nullptr),
+            static_cast<double*>(nullptr), gamma.data());
+  loop_aba_factor(bodies, n, model.gravity, q, qd, tau, Xup.data(), U.data(), D.data(), qdd0.data(), v.data(),
+                  c.data(), a.data(), IA.data(), pA.data(), u.data());
+  const auto norm = [](const std::vector<double>& x) {
+    double s = 0;
+    for (double e : x) s += e * e;
+    return std::sqrt(s);
+  };
+  LoopAccelerationClosure out;
+  loop_joint_motion(bodies, n, Xup.data(), qdd0.data(), acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  out.jqdd0 = norm(jq), out.gamma = norm(gamma), out.qdd0 = norm(qdd0);
+  loop_joint_motion(bodies, n, Xup.data(), qdd, acc.data());
+  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
+  for (Index k = 0; k < m; ++k) jq[k] += gamma[k];
+  out.residual = norm(jq);
+  return out;
+}
+
 bool generator_has_loops(const std::string& spec) {
   return spec == "fivebar" || spec == "fourbar" || spec.rfind("cloth:", 0) == 0;
 }

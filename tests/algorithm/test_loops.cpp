@@ -100,6 +100,33 @@ TEST(Loops, ViolationEqualsTheFormedJacobians) {
   }
 }
 
+TEST(Loops, AccelerationClosureEqualsTheFormedMatrices) {
+  std::mt19937_64 g(43);
+  for (const Loopy& L : loopy_models()) {
+    SCOPED_TRACE(L.spec);
+    const Index n = L.model.nv(), m = L.loops.rows();
+    const auto q = test::random_vector(g, n, -1, 1), qd = test::random_vector(g, n, -1, 1),
+               tau = test::random_vector(g, n, -1, 1), qdd = test::random_vector(g, n, -1, 1);
+    const LoopAccelerationClosure c =
+        loop_acceleration_closure(L.model, L.loops, q.data(), qd.data(), tau.data(), qdd.data());
+    // the same norms from J, gamma (loop_kinematics) and qdd0 = M^-1 (tau - h) (crba, bias_forces)
+    std::vector<double> J(m * n), gamma(m);
+    loop_kinematics(L.model, L.loops, q.data(), qd.data(), nullptr, J.data(), gamma.data());
+    const Eigen::Map<const MatX> Jm(J.data(), m, n);
+    const Eigen::Map<const Eigen::VectorXd> gv(gamma.data(), m), x(qdd.data(), n), t(tau.data(), n);
+    Data d(L.model);
+    MatX M(n, n);
+    Eigen::VectorXd h(n);
+    crba(L.model, d, q.data(), M.data());
+    bias_forces(L.model, d, q.data(), qd.data(), h.data());
+    const Eigen::VectorXd qdd0 = M.ldlt().solve(t - h);
+    EXPECT_NEAR(c.residual, (Jm * x + gv).norm(), 1e-10 * std::max(1.0, c.residual));
+    EXPECT_NEAR(c.gamma, gv.norm(), 1e-12 * std::max(1.0, c.gamma));
+    EXPECT_NEAR(c.qdd0, qdd0.norm(), 1e-9 * std::max(1.0, c.qdd0));
+    EXPECT_NEAR(c.jqdd0, (Jm * qdd0).norm(), 1e-9 * std::max(1.0, c.jqdd0));
+  }
+}
+
 TEST(Loops, JacobianAndBiasAgainstDifferences) {
   std::mt19937_64 g(1);
   for (const auto& L : loopy_models()) {

@@ -60,11 +60,6 @@ namespace {
     if (!reason.empty()) GTEST_SKIP() << reason;                     \
   } while (0)
 
-double norm2(const std::vector<double>& x) {
-  double s = 0;
-  for (double e : x) s += e * e;
-  return std::sqrt(s);
-}
 double max_abs(const std::vector<double>& x) {
   double s = 0;
   for (double e : x) s = std::max(s, std::fabs(e));
@@ -72,34 +67,9 @@ double max_abs(const std::vector<double>& x) {
 }
 
 // ||J qdd + gamma||_2, ||gamma||_2, ||J qdd0||_2 by the host's passes
-struct Closure {
-  double residual = 0, gamma = 0, jqdd0 = 0, qdd0 = 0;
-};
-Closure closure(const test::LoopCase& c, const std::vector<double>& q, const std::vector<double>& qd,
-                const std::vector<double>& tau, const std::vector<double>& qdd) {
-  const Index n = c.model.nv(), m = c.loops.rows();
-  const auto rows = loop_rows_of<double>(c.loops);
-  const Index nl = static_cast<Index>(rows.size());
-  const Body<double>* bodies = c.model.bodies.data();
-  std::vector<Transform<double>> X0(n), Xup(n);
-  std::vector<Motion<double>> v(n), a(n), acc(n), cc(n);
-  std::vector<Force<double>> U(n), pA(n);
-  std::vector<ABInertia<double>> IA(n);
-  std::vector<double> gamma(m), jq(m), D(n), u(n), qdd0(n);
-  loop_body_motion(bodies, n, q.data(), qd.data(), X0.data(), v.data(), a.data());
-  loop_rows(bodies, n, rows.data(), nl, X0.data(), v.data(), a.data(), static_cast<double*>(nullptr),
-            static_cast<double*>(nullptr), gamma.data());
-  loop_aba_factor(bodies, n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(), U.data(), D.data(),
-                  qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(), u.data());
-  Closure out;
-  loop_joint_motion(bodies, n, Xup.data(), qdd0.data(), acc.data());
-  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
-  out.jqdd0 = norm2(jq), out.gamma = norm2(gamma), out.qdd0 = norm2(qdd0);
-  loop_joint_motion(bodies, n, Xup.data(), qdd.data(), acc.data());
-  loop_rows_apply(rows.data(), nl, X0.data(), acc.data(), jq.data());
-  for (Index k = 0; k < m; ++k) jq[k] += gamma[k];
-  out.residual = norm2(jq);
-  return out;
+LoopAccelerationClosure closure(const test::LoopCase& c, const std::vector<double>& q, const std::vector<double>& qd,
+                                const std::vector<double>& tau, const std::vector<double>& qdd) {
+  return loop_acceleration_closure(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd.data());
 }
 
 struct Case {
@@ -187,7 +157,7 @@ TEST(CudaLoopIterative, DoubleEqualsTheCpuSolver) {
     std::vector<double> qdd(n), lambda(k.c.loops.rows());
     gpu.forward_dynamics(k.q.data(), k.qd.data(), k.tau.data(), qdd.data(), lambda.data());
     const double diff = rel_diff(qdd, ref);
-    const Closure cl = closure(k.c, k.q, k.qd, k.tau, qdd);
+    const LoopAccelerationClosure cl = closure(k.c, k.q, k.qd, k.tau, qdd);
     const double target = 1e-10 * (cl.gamma + cl.jqdd0) + 1e-12 * gpu.jscale() * cl.qdd0;
     std::printf("%s: cpu %d iterations, gpu %d iterations; max |qdd diff| / max |qdd| %.3g; closure %.3g (target %.3g)\n",
                 spec, cpu_it, gpu.stats().last_iterations, diff, cl.residual, target);

@@ -95,6 +95,17 @@ void loop_kinematics(const Model& model, const LoopSet& loops, const double* q, 
 double loop_violation(const Model& model, const LoopSet& loops, const double* q, const double* qd,
                       Index* loop = nullptr);
 
+// How far qdd is from closing the loops at (q, qd, tau): residual = ||J qdd + gamma||_2,
+// with what the iterative solvers measure it against, gamma = ||gamma||_2 and jqdd0 =
+// ||J qdd0||_2 (qdd0 = M^-1 (tau - h), the tree's forward dynamics without the loops,
+// gravity included), and qdd0 = ||qdd0||_2. O(nv + m) by the tree passes of
+// algorithm/loop_iterative.hpp: no J or M formed.
+struct LoopAccelerationClosure {
+  double residual = 0, gamma = 0, jqdd0 = 0, qdd0 = 0;
+};
+LoopAccelerationClosure loop_acceleration_closure(const Model& model, const LoopSet& loops, const double* q,
+                                                  const double* qd, const double* tau, const double* qdd);
+
 // True for the generator specs that carry loops (fivebar, fourbar, cloth:K:N).
 bool generator_has_loops(const std::string& spec);
 
