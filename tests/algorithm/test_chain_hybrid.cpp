@@ -15,6 +15,7 @@
 #include "scandyn/algorithm/reference.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "prescribed_masks.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
@@ -68,32 +69,8 @@ double hybrid_error(const Model& model, const std::vector<unsigned char>& mask, 
   return std::max(eq, et);
 }
 
-std::vector<unsigned char> random_mask(Index n, double p, std::mt19937_64& g) {
-  std::bernoulli_distribution coin(p);
-  std::vector<unsigned char> m(n);
-  for (auto& x : m) x = coin(g);
-  return m;
-}
-
-// Masks that exercise every case: none, all, random, a run at the base, a run at the tip,
-// alternating, one long run in the middle.
-std::vector<std::vector<unsigned char>> masks(Index n, std::mt19937_64& g) {
-  std::vector<std::vector<unsigned char>> v;
-  v.push_back(std::vector<unsigned char>(n, 0));
-  v.push_back(std::vector<unsigned char>(n, 1));
-  v.push_back(random_mask(n, 0.5, g));
-  v.push_back(random_mask(n, 0.1, g));
-  v.push_back(random_mask(n, 0.9, g));
-  std::vector<unsigned char> base(n, 0), tip(n, 0), alt(n, 0), mid(n, 0);
-  for (Index i = 0; i < n; ++i) {
-    base[i] = i < n / 3;
-    tip[i] = i >= n - n / 3;
-    alt[i] = i % 2;
-    mid[i] = i > n / 4 && i < 3 * n / 4;
-  }
-  for (auto* m : {&base, &tip, &alt, &mid}) v.push_back(*m);
-  return v;
-}
+using test::prescribed_masks;
+using test::random_prescribed_mask;
 
 }  // namespace
 
@@ -101,7 +78,7 @@ TEST(ChainHybrid, RandomChainsMatchSerialHybrid) {
   std::mt19937_64 g(3);
   for (unsigned seed : {1u, 2u}) {
     const Model m = test::random_chain(41, seed);
-    for (const auto& mask : masks(m.nv(), g))
+    for (const auto& mask : prescribed_masks(m.nv(), g))
       for (Index chunk : {1, 3, 8, 64}) {
         EXPECT_LT(hybrid_error<double>(m, mask, 3, seed, 2, chunk, false), 1e-9) << "seed " << seed << " chunk " << chunk;
         EXPECT_LT(hybrid_error<double>(m, mask, 2, seed, 1, chunk, true), 1e-9) << "fext, seed " << seed;
@@ -112,10 +89,10 @@ TEST(ChainHybrid, RandomChainsMatchSerialHybrid) {
 TEST(ChainHybrid, ChainsFromTheBase) {
   std::mt19937_64 g(4);
   const Model m = test::random_chains_from_base(40, 5, {1, 3, 10, 23});
-  for (const auto& mask : masks(m.nv(), g))
+  for (const auto& mask : prescribed_masks(m.nv(), g))
     for (Index chunk : {1, 2, 5, 64}) EXPECT_LT(hybrid_error<double>(m, mask, 3, 6, 2, chunk, false), 1e-9) << chunk;
   const Model curtain = make_generated("curtain:4:30");
-  for (const auto& mask : masks(curtain.nv(), g)) EXPECT_LT(hybrid_error<double>(curtain, mask, 2, 7, 2, 0, true), 1e-9);
+  for (const auto& mask : prescribed_masks(curtain.nv(), g)) EXPECT_LT(hybrid_error<double>(curtain, mask, 2, 7, 2, 0, true), 1e-9);
 }
 
 TEST(ChainHybrid, RopesWithRandomPrescribedSets) {
@@ -123,7 +100,7 @@ TEST(ChainHybrid, RopesWithRandomPrescribedSets) {
   for (int n : {1000, 100000}) {
     const Model m = make_generated("rope:" + std::to_string(n));
     for (double p : {0.0, 0.3, 0.7}) {
-      const auto mask = random_mask(n, p, g);
+      const auto mask = random_prescribed_mask(n, p, g);
       const double ed = hybrid_error<double>(m, mask, 1, 8, 2, 0, false);
       EXPECT_LT(ed, 1e-9) << "rope:" << n << " p " << p;
       std::printf("rope:%d, %.0f%% prescribed: chain hybrid max rel err (double) %.2e\n", n, 100 * p, ed);
@@ -141,7 +118,7 @@ TEST(ChainHybrid, RopesWithRandomPrescribedSets) {
 TEST(ChainHybrid, EngineChoosesTheScansForLongChains) {
   const Model m = make_generated("rope:5000");
   std::mt19937_64 g(9);
-  const auto mask = random_mask(m.nv(), 0.4, g);
+  const auto mask = random_prescribed_mask(m.nv(), 0.4, g);
   BackendOptions o;
   o.max_batch = 2;
   auto recursion = make_hybrid_dynamics<double>(m, mask, o);

@@ -27,13 +27,14 @@
 #include "scandyn/cuda/chain_hybrid.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "prescribed_masks.hpp"
 #include "test_util.hpp"
 
 using namespace scandyn;
 
 namespace {
 
-using Mask = std::vector<unsigned char>;
+using Mask = test::PrescribedMask;
 
 // inputs (SoA, n x B) and the serial double reference of [qdd, tau]
 struct Case {
@@ -128,32 +129,8 @@ double plan_error(const Model& model, const Mask& mask, Index B, const Case& c, 
   return std::max(test::max_rel_err(qdd, c.ref_qdd), test::max_rel_err(tau, c.ref_tau));
 }
 
-Mask random_mask(Index n, double p, std::mt19937_64& g) {
-  std::bernoulli_distribution coin(p);
-  Mask m(n);
-  for (auto& x : m) x = coin(g);
-  return m;
-}
-
-// the host test's patterns: none, all, random 50 / 10 / 90 %, a run at the base, at
-// the tip, alternating, one long run in the middle
-std::vector<Mask> masks(Index n, std::mt19937_64& g) {
-  std::vector<Mask> v;
-  v.push_back(Mask(n, 0));
-  v.push_back(Mask(n, 1));
-  v.push_back(random_mask(n, 0.5, g));
-  v.push_back(random_mask(n, 0.1, g));
-  v.push_back(random_mask(n, 0.9, g));
-  Mask base(n, 0), tip(n, 0), alt(n, 0), mid(n, 0);
-  for (Index i = 0; i < n; ++i) {
-    base[i] = i < n / 3;
-    tip[i] = i >= n - n / 3;
-    alt[i] = i % 2;
-    mid[i] = i > n / 4 && i < 3 * n / 4;
-  }
-  for (auto* m : {&base, &tip, &alt, &mid}) v.push_back(*m);
-  return v;
-}
+using test::prescribed_masks;
+using test::random_prescribed_mask;
 
 }  // namespace
 
@@ -163,7 +140,7 @@ TEST(CudaChainHybrid, RandomChainsEveryPattern) {
   for (unsigned seed : {1u, 2u}) {
     const Model m = test::random_chain(41, seed);
     int k = 0;
-    for (const auto& mask : masks(m.nv(), g)) {
+    for (const auto& mask : prescribed_masks(m.nv(), g)) {
       const Case c = make_case(m, mask, 3, seed + 10 * k, seed == 2);
       for (Index chunk : {1, 3, 8}) {
         EXPECT_LT(plan_error<double>(m, mask, 3, c, chunk), 1e-9) << "seed " << seed << " mask " << k << " chunk " << chunk;
@@ -181,7 +158,7 @@ TEST(CudaChainHybrid, ChainsFromTheBase) {
   const Model curtain = make_generated("curtain:4:30");
   for (const Model* m : {&forest, &curtain}) {
     int k = 0;
-    for (const auto& mask : masks(m->nv(), g)) {
+    for (const auto& mask : prescribed_masks(m->nv(), g)) {
       const Case c = make_case(*m, mask, 3, 6 + k, m == &curtain);
       for (Index chunk : {1, 5, 8}) EXPECT_LT(plan_error<double>(*m, mask, 3, c, chunk), 1e-9) << m->name << " mask " << k;
       EXPECT_LT(plan_error<float>(*m, mask, 3, c), 1e-2) << m->name << " mask " << k;
@@ -199,9 +176,9 @@ TEST(CudaChainHybrid, RopesWithPrescribedSets) {
     const Model m = make_generated("rope:" + std::to_string(n));
     const Index B = n == 1000 ? 3 : 2;
     std::vector<Mask> ms;
-    for (double p : {0.0, 0.3, 0.7}) ms.push_back(random_mask(n, p, g));
+    for (double p : {0.0, 0.3, 0.7}) ms.push_back(random_prescribed_mask(n, p, g));
     if (n == 1000)
-      for (auto& mk : masks(n, g)) ms.push_back(mk);
+      for (auto& mk : prescribed_masks(n, g)) ms.push_back(mk);
     for (std::size_t k = 0; k < ms.size(); ++k) {
       const Mask& mask = ms[k];
       const Case c = make_case(m, mask, B, 8 + static_cast<unsigned>(k), false);
@@ -233,7 +210,7 @@ TEST(CudaChainHybrid, FailedInstanceIsReportedOthersWritten) {
   SKIP_WITHOUT_CUDA_DEVICE();
   const Model m = make_generated("rope:300");
   std::mt19937_64 g(6);
-  const Mask mask = random_mask(300, 0.3, g);
+  const Mask mask = random_prescribed_mask(300, 0.3, g);
   const Index B = 3;
   const Case good = make_case(m, mask, B, 4, false);
   Case bad = good;
@@ -287,7 +264,7 @@ TEST(CudaChainHybrid, EngineTakesTheScansBeyondTheThreadKernels) {
   o.max_batch = 2;
   const Model rope = make_generated("rope:500");
   std::mt19937_64 g(7);
-  const Mask mask = random_mask(500, 0.4, g);
+  const Mask mask = random_prescribed_mask(500, 0.4, g);
   auto e = make_hybrid_dynamics(rope, mask, o);
   EXPECT_EQ(e->strategy(), "parallel");
   EXPECT_EQ(make_hybrid_dynamics(make_generated("chain:20"), Mask(20, 0), o)->strategy(), "aba_thread");
