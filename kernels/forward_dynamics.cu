@@ -172,7 +172,6 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   failed_host_.resize(static_cast<std::size_t>(max_batch_));
   // the pinned host path: the thread kernels, one per instance, take a chunk as a sub-batch
   if (thread_ && detail::host_staging_from_env() == host_staging::Mode::Pinned) {
-    chunk_override_ = detail::host_chunk_override_from_env();
     pipeline_ = std::make_unique<detail::HostPipeline>();
   }
   if (options.fallback_aba) set_fallback_aba(true);
@@ -362,7 +361,7 @@ void CudaForwardDynamics<S>::compute_pinned(const FdBatchIn<S>& in, const BatchV
       if (pivot_failed(b))
         for (Index i = 0; i < nv; ++i) qdd.at(i, b) = kept_[k++];
   };
-  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), max_batch_, layout, pack, launch, unpack,
+  pipeline_->run(B, per_instance, max_batch_, layout, pack, launch, unpack,
                  "launching the forward dynamics", "running the forward dynamics");
 }
 

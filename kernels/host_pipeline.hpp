@@ -156,7 +156,8 @@ class HostPipeline {
   static constexpr int kSlots = 3;
 
   // Streams and events on the device current now (the engine's); no memory yet.
-  HostPipeline() {
+  // SCANDYN_HOST_CHUNK_INSTANCES is read now (a bad value: BackendError).
+  HostPipeline() : chunk_override_(host_chunk_override_from_env()) {
     check(cudaGetDevice(&device_), "cudaGetDevice");
     try {
       for (cudaStream_t* s : {&upload_, &compute_, &download_})
@@ -180,7 +181,8 @@ class HostPipeline {
   // times the ring was allocated (1 after the first call while no call needs more)
   int allocations() const { return allocations_; }
 
-  // Runs `batch` instances in chunks of `chunk`:
+  // Runs `batch` instances in chunks of SCANDYN_HOST_CHUNK_INSTANCES instances, else of
+  // about kChunkBytes of `bytes_per_instance` (host_chunk):
   //   layout(n) -> SlotLayout          the arrays of a chunk of n instances;
   //   pack(const HostChunk&)           host: the inputs into chunk.host_array;
   //   launch(const HostChunk&, stream) -> cudaError_t  the kernels on the device slot;
@@ -190,11 +192,12 @@ class HostPipeline {
   // is sized at once for kSlots chunks of min(chunk, capacity) instances, so that a
   // later, larger call does not allocate pinned memory again.
   template <class Layout, class Pack, class Launch, class Unpack>
-  void run(Index batch, Index chunk, Index capacity, Layout&& layout, Pack&& pack, Launch&& launch, Unpack&& unpack,
-           const char* launching, const char* running) {
+  void run(Index batch, std::size_t bytes_per_instance, Index capacity, Layout&& layout, Pack&& pack, Launch&& launch,
+           Unpack&& unpack, const char* launching, const char* running) {
     using host_staging::chunk_count;
     using host_staging::chunk_range;
     if (batch <= 0) return;
+    Index chunk = host_chunk(chunk_override_, bytes_per_instance);
     const Index full = std::max<Index>(1, std::min(chunk, std::max(capacity, batch)));
     chunk = std::max<Index>(1, std::min(chunk, batch));
     const Index K = chunk_count(batch, chunk);
@@ -308,6 +311,7 @@ class HostPipeline {
   std::size_t slot_bytes_ = 0;
   int slots_ = 0;
   int allocations_ = 0;
+  Index chunk_override_ = 0;  // SCANDYN_HOST_CHUNK_INSTANCES, 0: none
 };
 
 }  // namespace detail

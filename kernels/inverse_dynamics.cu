@@ -231,7 +231,6 @@ CudaInverseDynamics<S>::CudaInverseDynamics(const ModelTpl<S>& model, const Back
   bytes_ = staging_->bytes() + (scan_ ? scan_->device_bytes() : 0);
   // the pinned host path: the thread kernels, one per instance, take a chunk as a sub-batch
   if (thread_ && detail::host_staging_from_env() == host_staging::Mode::Pinned) {
-    chunk_override_ = detail::host_chunk_override_from_env();
     pipeline_ = std::make_unique<detail::HostPipeline>();
   }
 }
@@ -305,7 +304,7 @@ void CudaInverseDynamics<S>::compute_pinned(const IdBatchIn<S>& in, const BatchV
   const auto unpack = [&](const detail::HostChunk& c) {
     hs::unpack(c.host_array<const S>(4), ltau, tau, nv, c.range, 0);
   };
-  pipeline_->run(B, detail::host_chunk(chunk_override_, per_instance), max_batch_, layout, pack, launch, unpack,
+  pipeline_->run(B, per_instance, max_batch_, layout, pack, launch, unpack,
                  "launching id_instances_kernel", "running id_instances_kernel");
 }
 

@@ -253,7 +253,6 @@ class CudaForwardDynamics final : public ForwardDynamics<S> {
   std::vector<int> failed_host_;  // (max_batch) when the caller passes no failed_dof
   std::vector<S> kept_;           // qdd entries of failed instances, restored after the copy back
   std::unique_ptr<detail::HostPipeline> pipeline_;  // the pinned path (null: pageable)
-  Index chunk_override_ = 0;                        // SCANDYN_HOST_CHUNK_INSTANCES, 0: none
   // compute()'s pinned path up to the failed DoFs and the device check's estimates
   void compute_pinned(const FdBatchIn<S>& in, const BatchView<S>& qdd, int* failed);
   bool fallback_aba_ = false;     // set_fallback_aba

@@ -158,7 +158,6 @@ class CudaInverseDynamics final : public InverseDynamics<S> {
   Index nb_ = 0;  // bodies (entries of fext)
   std::unique_ptr<ZThreadModel<S>> thread_;
   std::unique_ptr<detail::HostPipeline> pipeline_;  // the pinned path (null: pageable)
-  Index chunk_override_ = 0;                        // SCANDYN_HOST_CHUNK_INSTANCES, 0: none
   void compute_pinned(const IdBatchIn<S>& in, const BatchView<S>& tau);
   std::unique_ptr<IdScanPlan<S>> scan_;
   Index max_batch_ = 0;
