@@ -44,6 +44,8 @@ start=$SECONDS
 failed=()
 # what failed, one line each, repeated at the end (CI shows the log's tail)
 failed_tests=()
+# the output tails of the failed tests (failure_tail), also repeated at the end
+failure_tails=()
 
 if [[ "${SCANDYN_SKIP_SETUP:-0}" != 1 ]]; then
   stamp "setup"
@@ -111,12 +113,32 @@ test_stage() {
   if ((rc)); then
     local log=$dir/Testing/Temporary/LastTestsFailed.log
     if [[ -s "$log" ]]; then
-      while IFS= read -r line; do failed_tests+=("$name: ${line#*:}"); done <"$log"
+      while IFS= read -r line; do
+        failed_tests+=("$name: ${line#*:}")
+        failure_tails+=("$(failure_tail "$dir" "${line#*:}" "$name")")
+      done <"$log"
     else
       failed_tests+=("$name: ctest failed without a list of failed tests")
     fi
   fi
   return "$rc"
+}
+
+# failure_tail BUILD_DIR TEST STAGE: the last 25 lines of TEST's output and its
+# verdict (timeout, exit code, signal), from ctest's LastTest.log. CI shows only the
+# log's tail, so these are printed again at the end.
+failure_tail() {
+  local log=$1/Testing/Temporary/LastTest.log
+  printf -- '--- %s: %s (its output, last lines; ctest %s)\n' "$3" "$2" "$log"
+  [[ -f "$log" ]] || return 0
+  awk -v t="$2" '
+    $0 ~ "^[0-9]+/[0-9]+ Test: " && substr($0, index($0, "Test: ") + 6) == t { on = 1; n = 0; next }
+    on && /^<end of output>/ { out = 1; next }
+    on && out && /^Test (Passed|Failed|Timeout)|Exception|Failed|Timeout|exit code|Signal/ { verdict = verdict $0 "\n" }
+    on && out && /^-+$/ && verdict != "" { on = 0; out = 0 }
+    on && !out { buf[n++ % 25] = $0 }
+    END { s = (n > 25) ? n - 25 : 0; for (i = s; i < n; ++i) print buf[i % 25]; printf "%s", verdict }
+  ' "$log"
 }
 
 # Prints each skipped GoogleTest case with the reason it gave (ctest only says
@@ -159,7 +181,11 @@ if build_stage release "$build" -DCMAKE_BUILD_TYPE=Release -DSCANDYN_PYTHON=OFF 
   if compgen -G ".venv/lib/python3*/site-packages/cmeel.prefix/include/pinocchio" >/dev/null &&
      [[ ! -x "$build/bench/pinocchio_second_order" ]]; then
     stamp "release: configure again for bench/pinocchio_second_order (.venv has Pinocchio's headers now)"
-    if cmake -S . -B "$build" >/dev/null && cmake --build "$build" --target help | grep -q 'pinocchio_second_order'; then
+    # (the target list is read whole before grep: `cmake --build --target help | grep -q`
+    # under pipefail fails at random when grep exits first and ninja gets SIGPIPE)
+    build_targets=
+    if cmake -S . -B "$build" >/dev/null && build_targets=$(cmake --build "$build" --target help) &&
+       grep -q 'pinocchio_second_order' <<<"$build_targets"; then
       cmake --build "$build" --parallel "$jobs" --target pinocchio_second_order ||
         { failed+=(release); failed_tests+=("release: building bench/pinocchio_second_order failed"); }
     fi
@@ -270,6 +296,10 @@ fi
 
 elapsed=$((SECONDS - start))
 if ((${#failed[@]})); then
+  if ((${#failure_tails[@]})); then
+    echo "the failed tests' output (last lines each):"
+    printf '%s\n' "${failure_tails[@]}"
+  fi
   if ((${#failed_tests[@]})); then
     echo "what failed (stage: test or step; the stage's output above has the details):"
     printf '  %s\n' "${failed_tests[@]}"
