@@ -3,7 +3,7 @@
 # -fsanitize=fuzzer,address,undefined, CPU only, in build-fuzz/) and runs each for
 # SECONDS, one after the other: urdf (the URDF loader), scene (the scene parser),
 # csv (the states CSV reader); default all three. The corpus starts from
-# tests/fuzz/seeds/<target>/ (the hostile cases of issue 24 among them), the shipped
+# tests/fuzz/seeds/<target>/ (the hostile-input cases of tests/cli/test_hostile.cpp among them), the shipped
 # robots ($SCANDYN_MODELS_DIR, urdf) and scenes/*.json (scene), and grows in
 # build-fuzz/corpus/<target>/ across runs.
 #

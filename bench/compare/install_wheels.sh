@@ -1,7 +1,7 @@
 # bench/compare/install_wheels.sh (sourced): installs the peers' wheels offline on the GPU
 # machine into /tmp/site and puts it on PYTHONPATH: .whl/*.whl (bench/compare/fetch_wheels.sh)
 # and every wheel whose parts bench/compare/stage_wheels.sh staged in earlier calls (MuJoCo
-# Warp), joined and checked against the MANIFEST's sha256. Used by gpu.sh and mujoco_step.sh.
+# Warp), joined and checked against the MANIFEST's sha256. Used by gpu.sh.
 #
 #   source bench/compare/install_wheels.sh        (from the repository root)
 wheels=()

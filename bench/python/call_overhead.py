@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Python call overhead: the scandyn package's engines on torch CUDA tensors against the C++
 engines' compute_async rows of `scandyn bench --backend cuda` (the batch resident in device
-memory), iiwa in float at B = 1, 10^4, 10^6 (issue 18's target: at most 10 us per call
+memory), iiwa in float at B = 1, 10^4, 10^6 (the target: at most 10 us per call
 above the C++ time).
 
     python3 bench/python/call_overhead.py --scandyn build-gpu/scandyn --out OUT.csv
