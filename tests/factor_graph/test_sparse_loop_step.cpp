@@ -13,8 +13,8 @@
 #include <string>
 
 #include "loop_cases.hpp"
+#include "loop_solver_checks.hpp"
 #include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
-#include "scandyn/io/csv.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "test_util.hpp"
@@ -33,103 +33,29 @@ const std::vector<std::string> kCases = {"fivebar", "fivebar+weld", "fourbar", "
 TEST(SparseLoopStep, ForwardDynamicsAndProjectionEqualTheDenseOnes) {
   std::mt19937_64 rng(21);
   for (const test::LoopCase& c : test::loop_cases(kCases)) {
-    const Index nv = c.model.nv(), m = c.loops.rows();
-    const double tau_scale = c.spec.rfind("cloth", 0) == 0 ? 1e-3 : 1.0;
     SparseConstrainedDynamics sparse(c.model, c.loops);
     for (int trial = 0; trial < 3; ++trial) {
       SCOPED_TRACE(c.spec + " state " + std::to_string(trial));
-      std::vector<double> q, qd;
-      ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
-      const auto tau = test::random_vector(rng, nv, -tau_scale, tau_scale);
-      std::vector<double> qdd_ref(nv), lambda_ref(m), qdd(nv), lambda(m);
-      constrained_forward_dynamics(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd_ref.data(),
-                                   lambda_ref.data());
-      sparse.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), lambda.data());
-      EXPECT_LE(max_diff(qdd, qdd_ref), 1e-9 * max_abs(qdd_ref)) << "qdd";
-      // velocities projected at a closed q: the same minimum-norm change (J qd = 0 is
-      // consistent, J^+ unique)
-      std::vector<double> qp = q, qdp = qd;
-      for (Index i = 0; i < nv; ++i) qdp[i] += 1e-2 * std::cos(2.0 + i);
-      std::vector<double> q_ref = qp, qd_ref = qdp;
-      project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 0);
-      sparse.project(qp.data(), qdp.data(), 1e-12, 0);
-      EXPECT_LE(max_diff(qdp, qd_ref), 1e-12 * std::max(1.0, max_abs(qd_ref))) << "projected qd";
-      // positions off the loops: Gauss-Newton to |phi| <= 1e-12 and J qd = 0. The end
-      // points agree to 1e-11 on the five-bars; on the cloths only up to the
-      // directions J barely constrains (singular values ~1e-6 on cloth:4:4), where
-      // |phi| <= 1e-12 leaves q undetermined by ~1e-12 / 1e-6, and an inconsistent
-      // phi (not in J's range) makes the first step's least squares weigh the rows
-      // differently (the graph's scaled equations, the dense solve's plain rows)
-      for (Index i = 0; i < nv; ++i) qp[i] += 1e-4 * std::sin(1.0 + i), qdp[i] += 1e-2 * std::cos(2.0 + i);
-      q_ref = qp, qd_ref = qdp;
-      const double r_ref = project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 10);
-      const double r = sparse.project(qp.data(), qdp.data(), 1e-12, 10);
-      EXPECT_LE(r, 1e-12);
-      EXPECT_LE(r_ref, 1e-12);
-      if (c.spec.rfind("cloth", 0) != 0) {
-        EXPECT_LE(max_diff(qp, q_ref), 1e-11) << "projected q";
-      }
-      EXPECT_LE(loop_violation(c.model, c.loops, qp.data(), qdp.data()), 1e-11);
+      test::ForwardDynamicsPair fd;
+      ASSERT_NO_FATAL_FAILURE(fd.solve(c, rng, sparse));
+      EXPECT_LE(max_diff(fd.qdd, fd.qdd_ref), 1e-9 * max_abs(fd.qdd_ref)) << "qdd";
+      // the projections: qd at a closed q to 1e-12, positions off the loops closed to 1e-11
+      test::expect_projections_equal_dense(c, fd.q, fd.qd, sparse, 1e-12, 1e-11);
     }
   }
-}
-
-// The simulator's state after `steps` steps of the scene with the given loop solver.
-void rollout(const std::string& model, const std::string& solver, const char* integrator, double dt, int steps,
-             std::vector<double>& q, std::vector<double>& qd, double* worst_closure = nullptr) {
-  // the same closed initial state for both solvers: q = 0.1, qd = 0.5 projected by
-  // the dense solve (each solver's own projection from off the loops ends at a
-  // different point of them: the least squares of an inconsistent phi differ)
-  const Model mdl = load_model(model);
-  const LoopSet loops = generator_loops(model, mdl);
-  std::vector<double> q0(mdl.nv(), 0.1), qd0(mdl.nv(), 0.5);
-  project_to_loops(mdl, loops, q0.data(), qd0.data());
-  auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
-  const sim::Scene scene = sim::parse_scene(std::string(R"({"model": ")") + model +
-                                                R"(", "effects": {"gravity": true}, "integrator": ")" +
-                                                integrator + R"(", "loop_solver": ")" + solver + R"(", "dt": )" +
-                                                std::to_string(dt) + R"(, "initial": {"q": )" + array(q0) + R"(, "qd": )" + array(qd0) + "}}",
-                                            "test.json");
-  sim::Simulator<double> s(scene, BackendKind::Serial);
-  const Index n = s.nv();
-  q.resize(n), qd.resize(n);
-  for (int k = 0; k < steps; ++k) {
-    s.step();
-    if (worst_closure) {
-      s.read_state(q.data(), qd.data());
-      *worst_closure = std::max(*worst_closure, loop_violation(scene.model, scene.loops, q.data(), qd.data()));
-    }
-  }
-  ASSERT_TRUE(s.status().ok()) << sim::failure_message(s.status());
-  s.read_state(q.data(), qd.data());
 }
 
 TEST(SparseLoopStep, SimulatorStepEqualsTheDenseStep) {
   factor_graph::register_sparse_loop_solver();
-  struct Case {
-    const char* model;
-    const char* integrator;
-    int steps;
-    double dt;
-  } cases[] = {{"fivebar", "rk4", 200, 1e-3}, {"fivebar", "euler", 200, 1e-3}, {"cloth:4:4", "rk4", 100, 2e-4},
-               {"cloth:8:8", "rk4", 50, 2e-4}, {"cloth:8:8", "euler", 50, 2e-4}};
-  for (const Case& c : cases) {
-    SCOPED_TRACE(std::string(c.model) + " " + c.integrator);
-    std::vector<double> q, qd, q_ref, qd_ref;
-    rollout(c.model, "sparse", c.integrator, c.dt, c.steps, q, qd);
-    rollout(c.model, "dense", c.integrator, c.dt, c.steps, q_ref, qd_ref);
-    EXPECT_GT(max_diff(q_ref, std::vector<double>(q_ref.size(), 0.2)), 1e-3) << "the mechanism moved";
-    // measured: q within 1e-15, qd within 1.2e-13 (cloth:8:8, 50 steps, |qd| ~ 8 rad/s)
-    EXPECT_LE(max_diff(q, q_ref), 1e-12 * std::max(1.0, max_abs(q_ref))) << "q";
-    EXPECT_LE(max_diff(qd, qd_ref), 1e-11 * std::max(1.0, max_abs(qd_ref))) << "qd";
-  }
+  // measured: q within 1e-15, qd within 1.2e-13 (cloth:8:8, 50 steps, |qd| ~ 8 rad/s)
+  test::expect_steps_equal_dense("sparse", 1e-12, 1e-11, 0.2);
 }
 
 TEST(SparseLoopStep, ClosureBoundedOverARollout) {
   factor_graph::register_sparse_loop_solver();
   std::vector<double> q, qd;
   double worst = 0;
-  rollout("cloth:8:8", "sparse", "rk4", 2e-4, 500, q, qd, &worst);
+  test::loop_rollout("cloth:8:8", "sparse", "rk4", 2e-4, 500, q, qd, &worst);
   EXPECT_LE(worst, 1e-11);
 }
 
@@ -232,11 +158,7 @@ TEST(SparseLoopStep, GpuSolverStepEqualsTheDenseStep) {
   factor_graph::register_sparse_loop_solver(true);
   for (const char* model : {"fivebar", "cloth:8:8"}) {
     SCOPED_TRACE(model);
-    std::vector<double> q, qd, q_ref, qd_ref;
-    rollout(model, "sparse", "rk4", 2e-4, 50, q, qd);
-    rollout(model, "dense", "rk4", 2e-4, 50, q_ref, qd_ref);
-    EXPECT_LE(max_diff(q, q_ref), 1e-9 * std::max(1.0, max_abs(q_ref))) << "q";
-    EXPECT_LE(max_diff(qd, qd_ref), 1e-8 * std::max(1.0, max_abs(qd_ref))) << "qd";
+    test::expect_rollout_equals_dense(model, "sparse", "rk4", 2e-4, 50, 1e-9, 1e-8);
   }
   factor_graph::register_sparse_loop_solver(false);
 }

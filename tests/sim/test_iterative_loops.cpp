@@ -13,8 +13,8 @@
 #include <string>
 
 #include "loop_cases.hpp"
+#include "loop_solver_checks.hpp"
 #include "scandyn/algorithm/reference.hpp"
-#include "scandyn/io/csv.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/simulator.hpp"
@@ -35,6 +35,53 @@ std::string sci(double x) {
 
 const std::vector<std::string> kCases = {"fivebar", "fivebar+weld", "fourbar", "cloth:4:4", "cloth:8:8"};
 
+// At a random closed state of c: the dense J (loop_kinematics) and M^-1 (crba), and the
+// tree passes' factorisation there (loop_body_motion; loop_aba_factor at tau = 0):
+// the body poses X0, the joint transforms Xup, U and D, and the scratch pA and a the
+// passes reuse.
+struct TreeFactors {
+  Index n = 0, m = 0, nl = 0;
+  std::vector<LoopRow<double>> rows;
+  RowMat J;
+  Eigen::MatrixXd Minv;
+  std::vector<Transform<double>> Xup, X0;
+  std::vector<Force<double>> U, pA;
+  std::vector<double> D;
+  std::vector<Motion<double>> a;
+
+  void factor_at_closed_state(const test::LoopCase& c, std::mt19937_64& rng) {
+    n = c.model.nv(), m = c.loops.rows();
+    rows = loop_rows_of<double>(c.loops);
+    nl = static_cast<Index>(rows.size());
+    std::vector<double> q, qd;
+    ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
+    RowMat M(n, n);
+    J.resize(m, n);
+    loop_kinematics(c.model, c.loops, q.data(), nullptr, nullptr, J.data(), nullptr);
+    Data data(c.model);
+    crba(c.model, data, q.data(), M.data());
+    Minv = M.inverse();
+    Xup.resize(n), X0.resize(n), U.resize(n), pA.resize(n), D.resize(n), a.resize(n);
+    std::vector<double> u(n), qdd0(n), tau(n, 0.0);
+    std::vector<Motion<double>> v(n), cc(n);
+    std::vector<ABInertia<double>> IA(n);
+    loop_body_motion(c.model.bodies.data(), n, q.data(), qd.data(), X0.data(), v.data(), a.data());
+    ASSERT_LT(loop_aba_factor(c.model.bodies.data(), n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(),
+                              U.data(), D.data(), qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(),
+                              u.data()),
+              0);
+  }
+
+  // The response blocks Omega (n, loop_response_blocks) of the unit tree (unit: the
+  // blocks of J J^T) or of the articulated one (the blocks of J M^-1 J^T), and that
+  // dense matrix.
+  Eigen::MatrixXd response_blocks(const Model& model, bool unit, std::vector<Mat6<double>>& Omega) const {
+    loop_response_blocks(model.bodies.data(), n, Xup.data(), unit ? nullptr : U.data(), unit ? nullptr : D.data(),
+                         Omega.data());
+    return unit ? Eigen::MatrixXd(J * J.transpose()) : Eigen::MatrixXd(J * Minv * J.transpose());
+  }
+};
+
 // The passes against J (loop_kinematics) and M (crba): J^T lambda, M^-1 J^T lambda, J x,
 // the diagonal blocks of J M^-1 J^T and J J^T (exact for these loops: their two links
 // share no moving ancestor), and the pseudo-inverse.
@@ -42,64 +89,47 @@ TEST(IterativeLoops, TreePassesEqualTheDenseMatrices) {
   std::mt19937_64 rng(4);
   for (const test::LoopCase& c : test::loop_cases(kCases)) {
     SCOPED_TRACE(c.spec);
-    const Index n = c.model.nv(), m = c.loops.rows();
-    const auto rows = loop_rows_of<double>(c.loops);
-    const Index nl = static_cast<Index>(rows.size());
-    std::vector<double> q, qd;
-    ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
-    RowMat J(m, n), M(n, n);
-    loop_kinematics(c.model, c.loops, q.data(), nullptr, nullptr, J.data(), nullptr);
-    Data data(c.model);
-    crba(c.model, data, q.data(), M.data());
-    const Eigen::MatrixXd Minv = M.inverse();
-    std::vector<Transform<double>> Xup(n), X0(n);
-    std::vector<Force<double>> U(n), pA(n), f(n);
-    std::vector<double> D(n), u(n), qdd0(n), tau(n, 0.0), x(n);
-    std::vector<Motion<double>> v(n), cc(n), a(n);
-    std::vector<ABInertia<double>> IA(n);
-    loop_body_motion(c.model.bodies.data(), n, q.data(), qd.data(), X0.data(), v.data(), a.data());
-    ASSERT_LT(loop_aba_factor(c.model.bodies.data(), n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(),
-                              U.data(), D.data(), qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(),
-                              u.data()),
-              0);
+    TreeFactors t;
+    ASSERT_NO_FATAL_FAILURE(t.factor_at_closed_state(c, rng));
+    const Index n = t.n, m = t.m, nl = t.nl;
+    std::vector<Force<double>> f(n);
+    std::vector<double> x(n);
     const auto lam = test::random_vector(rng, static_cast<int>(m), -1, 1);
     const Eigen::Map<const Eigen::VectorXd> lv(lam.data(), m);
-    loop_point_wrenches(rows.data(), nl, n, X0.data(), lam.data(), f.data());
+    loop_point_wrenches(t.rows.data(), nl, n, t.X0.data(), lam.data(), f.data());
     // unit tree: J^T lambda
-    loop_tree_response(c.model.bodies.data(), n, Xup.data(), static_cast<const Force<double>*>(nullptr),
-                       static_cast<const double*>(nullptr), f.data(), pA.data(), x.data(), a.data());
-    const Eigen::VectorXd jt = J.transpose() * lv;
+    loop_tree_response(c.model.bodies.data(), n, t.Xup.data(), static_cast<const Force<double>*>(nullptr),
+                       static_cast<const double*>(nullptr), f.data(), t.pA.data(), x.data(), t.a.data());
+    const Eigen::VectorXd jt = t.J.transpose() * lv;
     EXPECT_LE(max_diff(x, std::vector<double>(jt.data(), jt.data() + n)), 1e-13 * (1 + jt.cwiseAbs().maxCoeff()))
         << "J^T lambda";
     // M^-1 J^T lambda, and J of it
-    loop_tree_response(c.model.bodies.data(), n, Xup.data(), U.data(), D.data(), f.data(), pA.data(), x.data(),
-                       a.data());
-    const Eigen::VectorXd mjt = Minv * jt;
+    loop_tree_response(c.model.bodies.data(), n, t.Xup.data(), t.U.data(), t.D.data(), f.data(), t.pA.data(),
+                       x.data(), t.a.data());
+    const Eigen::VectorXd mjt = t.Minv * jt;
     EXPECT_LE(max_diff(x, std::vector<double>(mjt.data(), mjt.data() + n)), 1e-10 * (1 + mjt.cwiseAbs().maxCoeff()))
         << "M^-1 J^T lambda";
     std::vector<double> Ax(m);
-    loop_rows_apply(rows.data(), nl, X0.data(), a.data(), Ax.data());
-    const Eigen::VectorXd Aref = J * mjt;
+    loop_rows_apply(t.rows.data(), nl, t.X0.data(), t.a.data(), Ax.data());
+    const Eigen::VectorXd Aref = t.J * mjt;
     EXPECT_LE(max_diff(Ax, std::vector<double>(Aref.data(), Aref.data() + m)), 1e-10 * (1 + Aref.cwiseAbs().maxCoeff()))
         << "J M^-1 J^T lambda";
     // J x for any x
     const auto xr = test::random_vector(rng, static_cast<int>(n), -1, 1);
-    loop_joint_motion(c.model.bodies.data(), n, Xup.data(), xr.data(), a.data());
-    loop_rows_apply(rows.data(), nl, X0.data(), a.data(), Ax.data());
-    const Eigen::VectorXd jx = J * Eigen::Map<const Eigen::VectorXd>(xr.data(), n);
+    loop_joint_motion(c.model.bodies.data(), n, t.Xup.data(), xr.data(), t.a.data());
+    loop_rows_apply(t.rows.data(), nl, t.X0.data(), t.a.data(), Ax.data());
+    const Eigen::VectorXd jx = t.J * Eigen::Map<const Eigen::VectorXd>(xr.data(), n);
     EXPECT_LE(max_diff(Ax, std::vector<double>(jx.data(), jx.data() + m)), 1e-13 * (1 + jx.cwiseAbs().maxCoeff()))
         << "J x";
     // diagonal blocks
     for (int unit = 0; unit < 2; ++unit) {
       std::vector<Mat6<double>> Omega(n);
-      loop_response_blocks(c.model.bodies.data(), n, Xup.data(), unit ? nullptr : U.data(), unit ? nullptr : D.data(),
-                           Omega.data());
-      const Eigen::MatrixXd A = unit ? Eigen::MatrixXd(J * J.transpose()) : Eigen::MatrixXd(J * Minv * J.transpose());
+      const Eigen::MatrixXd A = t.response_blocks(c.model, unit, Omega);
       Index row = 0;
       for (Index k = 0; k < nl; ++k) {
-        const int d = rows[k].rows();
+        const int d = t.rows[k].rows();
         double B[36];
-        loop_schur_block(rows[k], X0.data(), Omega.data(), B);
+        loop_schur_block(t.rows[k], t.X0.data(), Omega.data(), B);
         double err = 0;
         for (int i = 0; i < d; ++i)
           for (int j = 0; j < d; ++j) err = std::max(err, std::fabs(B[i * d + j] - A(row + i, row + j)));
@@ -125,31 +155,12 @@ TEST(IterativeLoops, NeighbourBlocksEqualTheDenseOnes) {
   std::mt19937_64 rng(14);
   for (const test::LoopCase& c : test::loop_cases({"cloth:4:4", "cloth:5:7"})) {
     SCOPED_TRACE(c.spec);
-    const Index n = c.model.nv(), m = c.loops.rows();
-    const auto rows = loop_rows_of<double>(c.loops);
-    const Index nl = static_cast<Index>(rows.size());
-    std::vector<double> q, qd;
-    ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
-    RowMat J(m, n), M(n, n);
-    loop_kinematics(c.model, c.loops, q.data(), nullptr, nullptr, J.data(), nullptr);
-    Data data(c.model);
-    crba(c.model, data, q.data(), M.data());
-    const Eigen::MatrixXd Minv = M.inverse();
-    std::vector<Transform<double>> Xup(n), X0(n);
-    std::vector<Force<double>> U(n), pA(n);
-    std::vector<double> D(n), u(n), qdd0(n), tau(n, 0.0);
-    std::vector<Motion<double>> v(n), cc(n), a(n);
-    std::vector<ABInertia<double>> IA(n);
-    loop_body_motion(c.model.bodies.data(), n, q.data(), qd.data(), X0.data(), v.data(), a.data());
-    ASSERT_LT(loop_aba_factor(c.model.bodies.data(), n, c.model.gravity, q.data(), qd.data(), tau.data(), Xup.data(),
-                              U.data(), D.data(), qdd0.data(), v.data(), cc.data(), a.data(), IA.data(), pA.data(),
-                              u.data()),
-              0);
+    TreeFactors t;
+    ASSERT_NO_FATAL_FAILURE(t.factor_at_closed_state(c, rng));
+    const Index n = t.n, nl = t.nl;
     for (int unit = 0; unit < 2; ++unit) {
       std::vector<Mat6<double>> Omega(n);
-      loop_response_blocks(c.model.bodies.data(), n, Xup.data(), unit ? nullptr : U.data(), unit ? nullptr : D.data(),
-                           Omega.data());
-      const Eigen::MatrixXd A = unit ? Eigen::MatrixXd(J * J.transpose()) : Eigen::MatrixXd(J * Minv * J.transpose());
+      const Eigen::MatrixXd A = t.response_blocks(c.model, unit, Omega);
       int pairs = 0;
       double worst = 0;
       for (Index k1 = 0; k1 < nl; ++k1)
@@ -158,16 +169,21 @@ TEST(IterativeLoops, NeighbourBlocksEqualTheDenseOnes) {
           bool neighbours = false;
           for (int s1 = 0; s1 < 2; ++s1)
             for (int s2 = 0; s2 < 2; ++s2) {
-              const Index b1 = s1 ? rows[k1].body_b : rows[k1].body_a, b2 = s2 ? rows[k2].body_b : rows[k2].body_a;
+              const Index b1 = s1 ? t.rows[k1].body_b : t.rows[k1].body_a;
+              const Index b2 = s2 ? t.rows[k2].body_b : t.rows[k2].body_a;
               if (b1 < 0 || b2 < 0) continue;
               const Index p1 = c.model.bodies[b1].parent, p2 = c.model.bodies[b2].parent;
               Mat6<double> O;
               if (b1 == b2) O = Omega[b1];
-              else if (p1 == b2) O = loop_child_response(c.model.bodies[b1], Xup[b1], unit ? nullptr : &U[b1], unit ? 1.0 : D[b1], Omega[b2]);
-              else if (p2 == b1) O = transpose(loop_child_response(c.model.bodies[b2], Xup[b2], unit ? nullptr : &U[b2], unit ? 1.0 : D[b2], Omega[b1]));
+              else if (p1 == b2)
+                O = loop_child_response(c.model.bodies[b1], t.Xup[b1], unit ? nullptr : &t.U[b1], unit ? 1.0 : t.D[b1],
+                                        Omega[b2]);
+              else if (p2 == b1)
+                O = transpose(loop_child_response(c.model.bodies[b2], t.Xup[b2], unit ? nullptr : &t.U[b2],
+                                                  unit ? 1.0 : t.D[b2], Omega[b1]));
               else continue;
               neighbours = true;
-              loop_pair_block(rows[k1], s1, rows[k2], s2, X0.data(), O, B);
+              loop_pair_block(t.rows[k1], s1, t.rows[k2], s2, t.X0.data(), O, B);
             }
           if (!neighbours) continue;
           ++pairs;
@@ -245,19 +261,15 @@ TEST(IterativeLoops, ForwardDynamicsAndProjectionEqualTheDenseOnes) {
     double worst_qdd = 0, worst_force = 0, worst_qd = 0;
     for (const test::LoopCase& c : test::loop_cases(kCases)) {
       const Index nv = c.model.nv(), m = c.loops.rows();
-      const double tau_scale = c.spec.rfind("cloth", 0) == 0 ? 1e-3 : 1.0;
       sim::IterativeLoopOptions opt;
       opt.preconditioner = pre;
       sim::IterativeLoopSolver it(c.model, c.loops, opt);
       for (int trial = 0; trial < 3; ++trial) {
         SCOPED_TRACE(c.spec + " state " + std::to_string(trial) + " " + sim::loop_preconditioner_name(pre));
-        std::vector<double> q, qd;
-        ASSERT_LE(test::closed_state(c, rng, q, qd), 1e-12);
-        const auto tau = test::random_vector(rng, nv, -tau_scale, tau_scale);
-        std::vector<double> qdd_ref(nv), lambda_ref(m), qdd(nv), lambda(m);
-        constrained_forward_dynamics(c.model, c.loops, q.data(), qd.data(), tau.data(), qdd_ref.data(),
-                                     lambda_ref.data());
-        it.forward_dynamics(q.data(), qd.data(), tau.data(), qdd.data(), lambda.data());
+        test::ForwardDynamicsPair fd;
+        ASSERT_NO_FATAL_FAILURE(fd.solve(c, rng, it));
+        const std::vector<double>& q = fd.q, &qd = fd.qd, &tau = fd.tau, &qdd = fd.qdd, &qdd_ref = fd.qdd_ref;
+        const std::vector<double>& lambda = fd.lambda, &lambda_ref = fd.lambda_ref;
         // measured (worst over the cases and states, relative to max |qdd|): ssor 6.1e-10,
         // block-jacobi 1.1e-9, none 2.2e-9, symmetric-gauss-seidel 1.4e-9,
         // block-tridiagonal 9.3e-10, block-dilu 6.6e-10 (the solves stop at a relative
@@ -279,31 +291,12 @@ TEST(IterativeLoops, ForwardDynamicsAndProjectionEqualTheDenseOnes) {
         // 1.7e-9, block-tridiagonal 3.6e-9, block-dilu 2.2e-9 of the forces' size
         EXPECT_LE((jl - jl_ref).cwiseAbs().maxCoeff(), 1e-8 * force) << "J^T lambda";
         worst_force = std::max(worst_force, (jl - jl_ref).cwiseAbs().maxCoeff() / force);
-        // velocities projected at a closed q: the minimum-norm change (J^+ unique)
-        std::vector<double> qp = q, qdp = qd;
-        for (Index i = 0; i < nv; ++i) qdp[i] += 1e-2 * std::cos(2.0 + i);
-        std::vector<double> q_ref = qp, qd_ref = qdp;
-        project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 0);
-        it.project(qp.data(), qdp.data(), 1e-12, 0);
-        // measured: ssor 3.2e-10, block-jacobi 4.0e-10 (also the weights of
-        // symmetric-gauss-seidel, block-tridiagonal and block-dilu's projections: 3.9e-10 ..
-        // 4.0e-10), none 9.6e-10 (the tightest: without weights the stopping residual
-        // 1e-10 ||r|| weighs the rows unevenly)
-        EXPECT_LE(max_diff(qdp, qd_ref), 1e-9 * std::max(1.0, max_abs(qd_ref))) << "projected qd";
-        worst_qd = std::max(worst_qd, max_diff(qdp, qd_ref) / std::max(1.0, max_abs(qd_ref)));
-        // positions off the loops: Gauss-Newton to |phi| <= 1e-12 and J qd = 0 (the end
-        // points agree on the five-bars; on the cloths J's weakly constrained
-        // directions leave q undetermined at the tolerance: SparseLoopStep's comment)
-        for (Index i = 0; i < nv; ++i) qp[i] += 1e-4 * std::sin(1.0 + i), qdp[i] += 1e-2 * std::cos(2.0 + i);
-        q_ref = qp, qd_ref = qdp;
-        const double r_ref = project_to_loops(c.model, c.loops, q_ref.data(), qd_ref.data(), 1e-12, 10);
-        const double r = it.project(qp.data(), qdp.data(), 1e-12, 10);
-        EXPECT_LE(r, 1e-12);
-        EXPECT_LE(r_ref, 1e-12);
-        if (c.spec.rfind("cloth", 0) != 0) {
-          EXPECT_LE(max_diff(qp, q_ref), 1e-11) << "projected q";
-        }
-        EXPECT_LE(loop_violation(c.model, c.loops, qp.data(), qdp.data()), 1e-10);
+        // the projections: qd at a closed q within 1e-9 (measured: ssor 3.2e-10,
+        // block-jacobi 4.0e-10 (also the weights of symmetric-gauss-seidel,
+        // block-tridiagonal and block-dilu's projections: 3.9e-10 .. 4.0e-10), none 9.6e-10
+        // (the tightest: without weights the stopping residual 1e-10 ||r|| weighs the rows
+        // unevenly)); positions off the loops closed to 1e-10
+        worst_qd = std::max(worst_qd, test::expect_projections_equal_dense(c, q, qd, it, 1e-9, 1e-10));
       }
     }
     // (the measured values: docs/loops.md, "Tested"; --gtest_output=xml records them)
@@ -345,58 +338,14 @@ TEST(IterativeLoops, FarProjectionCloses) {
   }
 }
 
-// The simulator's state after `steps` steps of the scene with the given loop solver,
-// from q = 0.1, qd = 0.5 projected by the dense solve (the same start for every solver).
-void rollout(const std::string& model, const std::string& solver, const char* integrator, double dt, int steps,
-             std::vector<double>& q, std::vector<double>& qd, double* worst_closure = nullptr) {
-  const Model mdl = load_model(model);
-  const LoopSet loops = generator_loops(model, mdl);
-  std::vector<double> q0(mdl.nv(), 0.1), qd0(mdl.nv(), 0.5);
-  project_to_loops(mdl, loops, q0.data(), qd0.data());
-  auto array = [](const std::vector<double>& x) { return io::number_array(x.data(), x.size()); };
-  const sim::Scene scene = sim::parse_scene(std::string(R"({"model": ")") + model +
-                                                R"(", "effects": {"gravity": true}, "integrator": ")" +
-                                                integrator + R"(", "loop_solver": ")" + solver + R"(", "dt": )" +
-                                                std::to_string(dt) + R"(, "initial": {"q": )" + array(q0) +
-                                                R"(, "qd": )" + array(qd0) + "}}",
-                                            "test.json");
-  sim::Simulator<double> s(scene, BackendKind::Serial);
-  const Index n = s.nv();
-  q.resize(n), qd.resize(n);
-  for (int k = 0; k < steps; ++k) {
-    s.step();
-    if (worst_closure) {
-      s.read_state(q.data(), qd.data());
-      *worst_closure = std::max(*worst_closure, loop_violation(scene.model, scene.loops, q.data(), qd.data()));
-    }
-  }
-  ASSERT_TRUE(s.status().ok()) << sim::failure_message(s.status());
-  s.read_state(q.data(), qd.data());
-}
-
 TEST(IterativeLoops, SimulatorStepEqualsTheDenseStep) {
-  struct Case {
-    const char* model;
-    const char* integrator;
-    int steps;
-    double dt;
-  } cases[] = {{"fivebar", "rk4", 200, 1e-3}, {"fivebar", "euler", 200, 1e-3}, {"cloth:4:4", "rk4", 100, 2e-4},
-               {"cloth:8:8", "rk4", 50, 2e-4}, {"cloth:8:8", "euler", 50, 2e-4}};
-  for (const Case& c : cases) {
-    SCOPED_TRACE(std::string(c.model) + " " + c.integrator);
-    std::vector<double> q, qd, q_ref, qd_ref;
-    rollout(c.model, "iterative", c.integrator, c.dt, c.steps, q, qd);
-    rollout(c.model, "dense", c.integrator, c.dt, c.steps, q_ref, qd_ref);
-    EXPECT_GT(max_diff(q_ref, std::vector<double>(q_ref.size(), 0.1)), 1e-3) << "the mechanism moved";
-    EXPECT_LE(max_diff(q, q_ref), 1e-9 * std::max(1.0, max_abs(q_ref))) << "q";
-    EXPECT_LE(max_diff(qd, qd_ref), 1e-8 * std::max(1.0, max_abs(qd_ref))) << "qd";
-  }
+  test::expect_steps_equal_dense("iterative", 1e-9, 1e-8, 0.1);
 }
 
 TEST(IterativeLoops, ClosureBoundedOverARollout) {
   std::vector<double> q, qd;
   double worst = 0;
-  rollout("cloth:8:8", "iterative", "rk4", 2e-4, 500, q, qd, &worst);
+  test::loop_rollout("cloth:8:8", "iterative", "rk4", 2e-4, 500, q, qd, &worst);
   EXPECT_LE(worst, 1e-11);
 }
 
@@ -550,9 +499,9 @@ TEST(IterativeLoops, UnconvergedVelocityProjectionIsAnError) {
 TEST(IterativeLoops, AutoTakesTheIterativeSolverWithoutASparseOne) {
   ASSERT_EQ(sim::sparse_loop_solver(), nullptr);
   std::vector<double> q, qd, q_it, qd_it, q_dense, qd_dense;
-  rollout("cloth:15:14", "auto", "rk4", 2e-4, 3, q, qd);  // 210 DoF
-  rollout("cloth:15:14", "iterative", "rk4", 2e-4, 3, q_it, qd_it);
-  rollout("cloth:15:14", "dense", "rk4", 2e-4, 3, q_dense, qd_dense);
+  test::loop_rollout("cloth:15:14", "auto", "rk4", 2e-4, 3, q, qd);  // 210 DoF
+  test::loop_rollout("cloth:15:14", "iterative", "rk4", 2e-4, 3, q_it, qd_it);
+  test::loop_rollout("cloth:15:14", "dense", "rk4", 2e-4, 3, q_dense, qd_dense);
   EXPECT_EQ(q, q_it);
   EXPECT_EQ(qd, qd_it);
   EXPECT_NE(qd, qd_dense);  // (the dense step differs in its last bits)
