@@ -119,11 +119,10 @@ TEST(SecondDerivatives, CentralDifferencesOfTheFirstOrderDerivativesAndSymmetry)
   }
 }
 
-// The analytical recursion (rnea_second_derivatives) against the dual-number passes
-// (rnea_second_derivatives_dual): every entry of the four tensors, relative to each
-// tensor's largest entry; exact symmetry of d2tau/dq2 and d2tau/dqd2 in (j, k); the
-// outputs' previous contents do not matter (NaN-filled first).
-TEST(SecondDerivatives, AnalyticRecursionMatchesTheDualPasses) {
+// The models the analytical recursion is checked on against the dual passes: the
+// shipped robots, random trees (prismatic joints, arbitrary axes), a random chain and
+// random chains from the base; each named with its count of prismatic joints.
+std::vector<std::pair<std::string, Model>> analytic_models() {
   std::vector<std::pair<std::string, Model>> models;
   models.emplace_back("iiwa", test::load_robot("iiwa.urdf"));
   models.emplace_back("hyq", test::load_robot("hyq.urdf"));
@@ -133,12 +132,22 @@ TEST(SecondDerivatives, AnalyticRecursionMatchesTheDualPasses) {
   models.emplace_back("random_model(40)", test::random_model(40, 4));
   models.emplace_back("random_chain(10)", test::random_chain(10, 7));
   models.emplace_back("random_chains_from_base(14)", test::random_chains_from_base(14, 5, {0, 4, 9}));
-  for (const auto& [name, model] : models) {
+  for (auto& [name, model] : models) {
     int prismatic = 0;
     for (const auto& b : model.bodies) prismatic += b.type == JointType::Prismatic;
+    name += " (" + std::to_string(prismatic) + " prismatic)";
+  }
+  return models;
+}
+
+// The analytical recursion (rnea_second_derivatives) against the dual-number passes
+// (rnea_second_derivatives_dual): every entry of the four tensors, relative to each
+// tensor's largest entry; exact symmetry of d2tau/dq2 and d2tau/dqd2 in (j, k); the
+// outputs' previous contents do not matter (NaN-filled first).
+TEST(SecondDerivatives, AnalyticRecursionMatchesTheDualPasses) {
+  for (const auto& [name, model] : analytic_models()) {
     for (bool with_wrenches : {false, true}) {
-      SCOPED_TRACE(name + " (" + std::to_string(prismatic) + " prismatic)" +
-                   (with_wrenches ? " with external wrenches" : ""));
+      SCOPED_TRACE(name + (with_wrenches ? " with external wrenches" : ""));
       const Index n = model.nv();
       const std::size_t nnn = static_cast<std::size_t>(n) * n * n;
       std::mt19937_64 rng(91 + n + with_wrenches);
@@ -232,20 +241,9 @@ TEST(SecondDerivatives, InertiaRateIsTheCrossProductCommutator) {
 // term (gravity, qd, qdd, a random w, with and without external wrenches). Float
 // within 2e-5 of the double reference.
 TEST(SecondDerivatives, WeightedContractionMatchesTheDualPasses) {
-  std::vector<std::pair<std::string, Model>> models;
-  models.emplace_back("iiwa", test::load_robot("iiwa.urdf"));
-  models.emplace_back("hyq", test::load_robot("hyq.urdf"));
-  models.emplace_back("atlas", test::load_robot("atlas.urdf"));
-  models.emplace_back("random_model(12)", test::random_model(12, 9));
-  models.emplace_back("random_model(20)", test::random_model(20, 31));
-  models.emplace_back("random_model(40)", test::random_model(40, 4));
-  models.emplace_back("random_chain(10)", test::random_chain(10, 7));
-  models.emplace_back("random_chains_from_base(14)", test::random_chains_from_base(14, 5, {0, 4, 9}));
-  for (const auto& [name, full] : models) {
-    int prismatic = 0;
-    for (const auto& b : full.bodies) prismatic += b.type == JointType::Prismatic;
+  for (const auto& [name, full] : analytic_models()) {
     for (int terms = 0; terms < 3; ++terms) {  // 0: the variational integrator's; 1: every term; 2: and wrenches
-      SCOPED_TRACE(name + " (" + std::to_string(prismatic) + " prismatic), " +
+      SCOPED_TRACE(name + ", " +
                    (terms == 0 ? "at rest without gravity, w = qdd" : terms == 1 ? "every term" : "every term + fext"));
       Model model = full;
       if (terms == 0) model.gravity = Vec3<double>{0, 0, 0};

@@ -15,30 +15,18 @@
 #include "scandyn/cuda/second_derivatives.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "second_order_tensors.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
 namespace {
 
-// The four tensors of B instances (nv^3 entries each) in one layout; NaN until written.
-template <class S>
-struct Tensors {
-  Index n3, B;
-  bool soa;
-  std::vector<S> data;
-  Tensors(Index nv, Index B_, bool soa_)
-      : n3(nv * nv * nv), B(B_), soa(soa_), data(4 * static_cast<std::size_t>(n3) * B_, S(NAN)) {}
-  BatchView<S> view(int t) {
-    S* p = data.data() + static_cast<std::size_t>(t) * n3 * B;
-    return soa ? BatchView<S>::soa(p, n3, B) : BatchView<S>::aos(p, n3, B);
-  }
-  IdSecondDerivativesOut<S> out() { return {view(0), view(1), view(2), view(3)}; }
-};
+using test::SecondOrderTensors;
 
 // max over instances and tensors of max |a - b| / max |b| (b's largest entry in that
 // tensor of that instance); infinite when a has an entry that is not finite.
 template <class S>
-double tensor_err(Tensors<S>& a, Tensors<S>& b) {
+double tensor_err(SecondOrderTensors<S>& a, SecondOrderTensors<S>& b) {
   double worst = 0;
   for (int t = 0; t < 4; ++t)
     for (Index i = 0; i < a.B; ++i) {
@@ -80,7 +68,7 @@ void compare_with_serial(const std::string& name, const Model& model_d, bool soa
   const IdBatchIn<S> in{V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(qdd.data(), nv, B), fext.data()};
   BackendOptions o;
   o.max_batch = B;
-  Tensors<S> ref(nv, B, false), got(nv, B, soa);
+  SecondOrderTensors<S> ref(nv, B, false), got(nv, B, soa);
   make_id_second_derivatives(model, o)->compute(in, ref.out());
   o.backend = BackendKind::Cuda;
   const auto engine = make_id_second_derivatives(model, o);
@@ -134,10 +122,10 @@ TEST(CudaSecondDerivatives, DevicePointersOnAStream) {
                               {out[0], out[1], out[2], out[3]}, stream));
   ASSERT_CUDA(cudaStreamSynchronize(stream));
   ASSERT_CUDA(cudaStreamDestroy(stream));
-  Tensors<double> got(nv, B, true);
+  SecondOrderTensors<double> got(nv, B, true);
   ASSERT_CUDA(cudaMemcpy(got.data.data(), dout.ptr, got.data.size() * sizeof(double), cudaMemcpyDeviceToHost));
   // against the serial engine on soa host views of the same inputs
-  Tensors<double> ref(nv, B, true);
+  SecondOrderTensors<double> ref(nv, B, true);
   BackendOptions s;
   s.max_batch = B;
   make_id_second_derivatives(model, s)->compute(

@@ -11,27 +11,13 @@
 #include "scandyn/algorithm/second_derivatives.hpp"
 #include "scandyn/engine.hpp"
 #include "scandyn/model/load.hpp"
+#include "second_order_tensors.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
 namespace {
 
-// The four tensors of B instances, nv^3 entries each, in one layout; NaN until written.
-template <class S>
-struct Tensors {
-  Index n3, B;
-  bool soa;
-  std::vector<S> data;
-  Tensors(Index nv, Index B_, bool soa_)
-      : n3(nv * nv * nv), B(B_), soa(soa_), data(4 * static_cast<std::size_t>(n3) * B_, S(NAN)) {}
-  BatchView<S> view(int t) {
-    S* p = data.data() + static_cast<std::size_t>(t) * n3 * B;
-    return soa ? BatchView<S>::soa(p, n3, B) : BatchView<S>::aos(p, n3, B);
-  }
-  IdSecondDerivativesOut<S> out() { return {view(0), view(1), view(2), view(3)}; }
-  // entry e of tensor t of instance b
-  S at(int t, Index e, Index b) { return view(t).at(e, b); }
-};
+using test::SecondOrderTensors;
 
 template <class S>
 void engines_equal_the_serial_function(const std::string& name, const Model& model_d) {
@@ -61,7 +47,7 @@ void engines_equal_the_serial_function(const std::string& name, const Model& mod
       o.backend = kind;
       o.max_batch = B;
       o.threads = 3;
-      Tensors<S> got(nv, B, soa);
+      SecondOrderTensors<S> got(nv, B, soa);
       const auto engine = make_id_second_derivatives(model, o);
       EXPECT_TRUE(engine->exact());
       engine->compute(in, got.out());
@@ -76,7 +62,7 @@ void engines_equal_the_serial_function(const std::string& name, const Model& mod
   // dM_dq is optional: without it the three tensors are the same
   BackendOptions o;
   o.max_batch = B;
-  Tensors<S> got(nv, B, true);
+  SecondOrderTensors<S> got(nv, B, true);
   IdSecondDerivativesOut<S> out = got.out();
   out.dM_dq = {};
   make_id_second_derivatives(model, o)->compute(in, out);
