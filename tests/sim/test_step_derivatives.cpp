@@ -17,6 +17,7 @@
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
+#include "step_derivatives_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -72,22 +73,6 @@ State random_state(Index n, unsigned seed, double tau_scale) {
           test::random_vector(rng, n, -tau_scale, tau_scale)};
 }
 
-// The simulator's step of B instances from per-instance states (rows of n), in place.
-void simulate(const Scene& scene, std::vector<double>& q, std::vector<double>& qd, const std::vector<double>& tau,
-              Index steps = 1, const std::vector<std::vector<double>>* tau_steps = nullptr) {
-  Simulator<double> sim(scene, BackendKind::Serial);
-  const Index n = scene.nv(), B = scene.instances;
-  for (Index b = 0; b < B; ++b)
-    for (Index i = 0; i < n; ++i) sim.q().at(i, b) = q[b * n + i], sim.qd().at(i, b) = qd[b * n + i];
-  for (Index t = 0; t < steps; ++t) {
-    const std::vector<double>& u = tau_steps ? (*tau_steps)[t] : tau;
-    sim.step(BatchView<const double>::aos(u.data(), n, B));
-  }
-  ASSERT_TRUE(sim.status().ok()) << sim::failure_message(sim.status());
-  for (Index b = 0; b < B; ++b)
-    for (Index i = 0; i < n; ++i) q[b * n + i] = sim.q().at(i, b), qd[b * n + i] = sim.qd().at(i, b);
-}
-
 // Central differences of the simulator's step at s: J (2n x 3n, row-major; rows q',
 // qd'; columns q, qd, tau).
 std::vector<double> step_by_differences(const Case& c, const State& s) {
@@ -103,7 +88,7 @@ std::vector<double> step_by_differences(const Case& c, const State& s) {
     std::vector<double>& v = k < n ? q : k < 2 * n ? qd : tau;
     for (int sign : {0, 1}) v[(2 * k + sign) * n + k % n] += sign ? -h_of(k) : h_of(k);
   }
-  simulate(scene_of(c, B), q, qd, tau);
+  test::simulate_rows(scene_of(c, B), q, qd, {tau});
   std::vector<double> J(2 * n * P);
   for (Index k = 0; k < P; ++k)
     for (Index r = 0; r < 2 * n; ++r) {
@@ -113,38 +98,11 @@ std::vector<double> step_by_differences(const Case& c, const State& s) {
   return J;
 }
 
-// The engine's six blocks of one instance as one 2n x 3n row-major matrix.
-struct Jacobians {
-  Jacobians(Index n, Index B) : n(n), B(B), blocks(6, std::vector<double>(n * n * B, NAN)), q(n * B), qd(n * B) {}
-  Index n, B;
-  std::vector<std::vector<double>> blocks;
-  std::vector<double> q, qd;
-  sim::StepDerivativesOut<double> out() {
-    auto v = [&](int k) { return BatchView<double>::aos(blocks[k].data(), n * n, B); };
-    return {v(0), v(1), v(2), v(3), v(4), v(5), BatchView<double>::aos(q.data(), n, B),
-            BatchView<double>::aos(qd.data(), n, B)};
-  }
-  double at(Index b, Index r, Index c) const {
-    const int k = (r < n ? 0 : 3) + static_cast<int>(c / n);
-    return blocks[k][b * n * n + (r % n) * n + c % n];
-  }
-};
+using Jacobians = test::StepJacobians;
 
 Jacobians step_jacobians(const Case& c, const std::vector<double>& q, const std::vector<double>& qd,
                          const std::vector<double>& tau, BackendKind kind, int threads = 1) {
-  const Index n = scene_of(c, 1).nv(), B = static_cast<Index>(q.size()) / n;
-  Simulator<double> base(scene_of(c, 1), BackendKind::Serial);
-  BackendOptions o;
-  o.backend = kind;
-  o.threads = threads;
-  o.max_batch = B;
-  auto engine = sim::make_step_derivatives(base.setup(), o);
-  Jacobians J(n, B);
-  using V = BatchView<const double>;
-  const BatchStatus st = engine->compute({V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(tau.data(), n, B)},
-                                         J.out());
-  EXPECT_TRUE(st.ok()) << st.message();
-  return J;
+  return test::step_jacobians_of(scene_of(c, 1), q, qd, tau, kind, threads);
 }
 
 TEST(StepDerivatives, JacobianMatchesCentralDifferencesOfTheSimulatorsStep) {
@@ -168,7 +126,7 @@ TEST(StepDerivatives, JacobianMatchesCentralDifferencesOfTheSimulatorsStep) {
       }
     // the new state is the simulator's, bit for bit
     std::vector<double> q = s.q, qd = s.qd;
-    simulate(scene_of(c, 1), q, qd, s.tau);
+    test::simulate_rows(scene_of(c, 1), q, qd, {s.tau});
     for (Index i = 0; i < n; ++i) {
       EXPECT_EQ(J.q[i], q[i]);
       EXPECT_EQ(J.qd[i], qd[i]);
@@ -384,7 +342,7 @@ TEST(RolloutDerivatives, AdjointIsTheTransposeOfTheForwardModeProduct) {
     std::vector<double> sq = r.q0, sqd = r.qd0;
     std::vector<std::vector<double>> taus(T);
     for (Index t = 0; t < T; ++t) taus[t].assign(r.tau.begin() + t * B * n, r.tau.begin() + (t + 1) * B * n);
-    simulate(scene_of(c, B), sq, sqd, {}, T, &taus);
+    test::simulate_rows(scene_of(c, B), sq, sqd, taus);
     for (Index e = 0; e < B * n; ++e) {
       EXPECT_EQ(q[(T - 1) * B * n + e], sq[e]);
       EXPECT_EQ(qd[(T - 1) * B * n + e], sqd[e]);
@@ -435,7 +393,7 @@ TEST(StepDerivatives, ANonFiniteResultIsAFailureNeverASilentNaN) {
   BackendOptions o;
   o.max_batch = B;
   using V = BatchView<const double>;
-  Jacobians J(n, B);
+  Jacobians J(n, n, B);
   const BatchStatus st =
       sim::make_step_derivatives(base.setup(), o)->compute({V::aos(q.data(), n, B), V::aos(qd.data(), n, B), V::aos(tau.data(), n, B)}, J.out());
   EXPECT_EQ(st.failed, 1);

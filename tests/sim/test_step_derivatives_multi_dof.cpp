@@ -26,6 +26,7 @@
 #include "scandyn/sim/simulator.hpp"
 #include "scandyn/sim/step_derivatives.hpp"
 #include "scene_util.hpp"
+#include "step_derivatives_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -142,24 +143,6 @@ std::vector<double> tangent_of(const Model& m, const double* q_ref, const double
   return d;
 }
 
-// The simulator (serial) from per-instance states (rows), `steps` steps under
-// tau_steps[t] (rows of nv per instance), in place.
-void simulate(const Scene& scene, std::vector<double>& q, std::vector<double>& qd,
-              const std::vector<std::vector<double>>& tau_steps) {
-  Simulator<double> sim(scene, BackendKind::Serial);
-  const Index nq = scene.model.nq(), n = scene.nv(), B = scene.instances;
-  for (Index b = 0; b < B; ++b) {
-    for (Index i = 0; i < nq; ++i) sim.q().at(i, b) = q[b * nq + i];
-    for (Index i = 0; i < n; ++i) sim.qd().at(i, b) = qd[b * n + i];
-  }
-  for (const std::vector<double>& u : tau_steps) sim.step(BatchView<const double>::aos(u.data(), n, B));
-  ASSERT_TRUE(sim.status().ok()) << sim::failure_message(sim.status());
-  for (Index b = 0; b < B; ++b) {
-    for (Index i = 0; i < nq; ++i) q[b * nq + i] = sim.q().at(i, b);
-    for (Index i = 0; i < n; ++i) qd[b * n + i] = sim.qd().at(i, b);
-  }
-}
-
 // Central differences of the simulator's step at s: J (2n x 3n, row-major; rows the
 // tangent of q', qd'; columns q's tangent, qd, tau), and the unperturbed new state.
 std::vector<double> step_by_differences(const Case& c, const State& s, std::vector<double>& q_next) {
@@ -180,7 +163,7 @@ std::vector<double> step_by_differences(const Case& c, const State& s, std::vect
     qd.insert(qd.end(), qdk.begin(), qdk.end());
     tau.insert(tau.end(), tk.begin(), tk.end());
   }
-  simulate(batch_of(c.scene, B), q, qd, {tau});
+  test::simulate_rows(batch_of(c.scene, B), q, qd, {tau});
   const double* ref = q.data() + (B - 1) * nq;
   q_next.assign(ref, ref + nq);
   std::vector<double> J(static_cast<std::size_t>(2 * n * P));
@@ -195,38 +178,11 @@ std::vector<double> step_by_differences(const Case& c, const State& s, std::vect
   return J;
 }
 
-struct Jacobians {
-  Jacobians(Index n, Index nq, Index B)
-      : n(n), nq(nq), B(B), blocks(6, std::vector<double>(n * n * B, NAN)), q(nq * B, NAN), qd(n * B, NAN) {}
-  Index n, nq, B;
-  std::vector<std::vector<double>> blocks;
-  std::vector<double> q, qd;
-  sim::StepDerivativesOut<double> out() {
-    auto v = [&](int k) { return BatchView<double>::aos(blocks[k].data(), n * n, B); };
-    return {v(0), v(1), v(2), v(3), v(4), v(5), BatchView<double>::aos(q.data(), nq, B),
-            BatchView<double>::aos(qd.data(), n, B)};
-  }
-  double at(Index b, Index r, Index c) const {
-    const int k = (r < n ? 0 : 3) + static_cast<int>(c / n);
-    return blocks[k][b * n * n + (r % n) * n + c % n];
-  }
-};
+using Jacobians = test::StepJacobians;
 
 Jacobians step_jacobians(const Case& c, const std::vector<double>& q, const std::vector<double>& qd,
                          const std::vector<double>& tau, BackendKind kind, int threads = 1) {
-  const Index n = c.scene.nv(), nq = c.scene.model.nq(), B = static_cast<Index>(qd.size()) / n;
-  Simulator<double> base(batch_of(c.scene, 1), BackendKind::Serial);
-  BackendOptions o;
-  o.backend = kind;
-  o.threads = threads;
-  o.max_batch = B;
-  auto engine = sim::make_step_derivatives(base.setup(), o);
-  Jacobians J(n, nq, B);
-  FdBatchIn<double> in{BatchView<const double>::aos(q.data(), nq, B), BatchView<const double>::aos(qd.data(), n, B),
-                       BatchView<const double>::aos(tau.data(), n, B), nullptr};
-  const BatchStatus st = engine->compute(in, J.out());
-  EXPECT_TRUE(st.ok()) << c.name;
-  return J;
+  return test::step_jacobians_of(batch_of(c.scene, 1), q, qd, tau, kind, threads);
 }
 
 TEST(StepDerivativesMultiDof, JacobianMatchesCentralDifferencesOfTheSimulatorsStep) {
@@ -442,7 +398,7 @@ TEST(StepDerivativesMultiDof, RolloutAdjointMatchesCentralDifferencesOfARolloutL
       std::vector<std::vector<double>> one_step(1);
       for (Index t = 0; t < T; ++t) {
         one_step[0] = taus[t];
-        simulate(batch_of(c.scene, 1), sq, sqd, one_step);
+        test::simulate_rows(batch_of(c.scene, 1), sq, sqd, one_step);
         for (Index i = 0; i < nq; ++i) ASSERT_EQ(qs[t * nq + i], sq[i]) << "step " << t;
       }
       std::vector<double> ga, gc, gq0(n), gqd0(n), gtau(T * n);
@@ -461,7 +417,7 @@ TEST(StepDerivativesMultiDof, RolloutAdjointMatchesCentralDifferencesOfARolloutL
         for (Index t = 0; t < T; ++t) {
           std::vector<double> u;
           for (Index b = 0; b < B; ++b) u.insert(u.end(), tau_s[b][t].begin(), tau_s[b][t].end());
-          simulate(batch_of(c.scene, B), q, qd, {u});
+          test::simulate_rows(batch_of(c.scene, B), q, qd, {u});
           for (Index b = 0; b < B; ++b) {
             const std::vector<double> d = tangent_of(m, qs.data() + t * nq, q.data() + b * nq);
             for (Index i = 0; i < n; ++i) L[b] += a[t][i] * d[i] + cw[t][i] * qd[b * n + i];
