@@ -4,6 +4,7 @@
 #pragma once
 
 #include <random>
+#include <string>
 #include <vector>
 
 #include "scandyn/algorithm/reference.hpp"
@@ -38,6 +39,33 @@ inline Model random_free_chain(int n, unsigned seed) {
   m.joint_names[0] = "root_joint";
   set_joint_offsets(m);
   return m;
+}
+
+// A model with the name the tests trace it by.
+struct NamedModel {
+  std::string name;
+  Model m;
+};
+
+// The multi-DoF models the derivative tests run on: hyq and atlas on a floating base,
+// the generator specs `floating_specs` on a floating base, the ball-joint rope of
+// rope_links links on a fixed and on a floating root, a random free chain of
+// chain_links links (chain_seed), and random floating trees of `trees` bodies (seed
+// tree_seed + n, 40% spherical joints).
+inline std::vector<NamedModel> multi_dof_models(const std::vector<std::string>& floating_specs, int rope_links,
+                                                int chain_links, unsigned chain_seed, const std::vector<int>& trees,
+                                                unsigned tree_seed) {
+  std::vector<NamedModel> c;
+  c.push_back({"hyq (floating)", load_floating(model_path("hyq.urdf"))});
+  c.push_back({"atlas (floating)", load_floating(model_path("atlas.urdf"))});
+  for (const std::string& spec : floating_specs) c.push_back({spec + " (floating)", load_floating(spec)});
+  const std::string rope = "ballrope:" + std::to_string(rope_links);
+  c.push_back({rope + " (fixed root)", load_model(rope)});
+  c.push_back({rope + " (floating)", load_floating(rope)});
+  c.push_back({"random free chain " + std::to_string(chain_links), random_free_chain(chain_links, chain_seed)});
+  for (int n : trees)
+    c.push_back({"random floating tree " + std::to_string(n), random_floating_model(n, tree_seed + n, 0.4)});
+  return c;
 }
 
 // B random states of a model (any joints), structure of arrays: entry (i, b) at

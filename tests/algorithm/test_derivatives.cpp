@@ -5,6 +5,7 @@
 // without external wrenches.
 #include <gtest/gtest.h>
 
+#include <array>
 #include <cmath>
 #include <random>
 #include <vector>
@@ -31,14 +32,6 @@ State random_state(Index n, unsigned seed, bool with_fext) {
           random_vector(rng, n, -5, 5), {}};
   if (with_fext) s.fext = test::random_wrenches<double>(rng, n, 2.0);
   return s;
-}
-
-// max |a - b| / max(1, max |b|)
-double matrix_err(const std::vector<double>& a, const std::vector<double>& b) {
-  double scale = 1, err = 0;
-  for (double x : b) scale = std::max(scale, std::fabs(x));
-  for (std::size_t k = 0; k < a.size(); ++k) err = std::max(err, std::fabs(a[k] - b[k]));
-  return err / scale;
 }
 
 MatrixRef<double> ref(std::vector<double>& m, Index n) { return {m.data(), n, 1}; }
@@ -72,8 +65,8 @@ std::vector<double> central_jacobian(Index n, std::vector<double>& x, double h, 
 // vectors of n entries, n outputs), by central differences with one Richardson step
 // as central_jacobian.
 template <class F>
-std::vector<double> directional_difference(Index n, const std::vector<double>* x[3], const std::vector<double>* dx[3],
-                                           double h, F&& f) {
+std::vector<double> directional_difference(Index n, const std::array<const std::vector<double>*, 3>& x,
+                                           const std::array<const std::vector<double>*, 3>& dx, double h, F&& f) {
   std::vector<double> in[3] = {std::vector<double>(n), std::vector<double>(n), std::vector<double>(n)};
   std::vector<double> fp(n), fm(n), d[2] = {std::vector<double>(n), std::vector<double>(n)};
   for (int k = 0; k < 2; ++k) {
@@ -87,6 +80,52 @@ std::vector<double> directional_difference(Index n, const std::vector<double>* x
   }
   for (Index i = 0; i < n; ++i) d[0][i] = (4 * d[1][i] - d[0][i]) / 3;
   return d[0];
+}
+
+// The dense products of a Jacobian of three n x n row-major blocks J = [J0 J1 J2]: J v
+// for the direction v = (v0, v1, v2), and J^T w = (J0^T w, J1^T w, J2^T w).
+struct DenseProducts {
+  std::vector<double> jv;
+  std::array<std::vector<double>, 3> jtw;
+  // a VJP (g0, g1, g2) against J^T w: max_rel_err below tol in each block
+  void expect_transpose(const std::vector<double>& g0, const std::vector<double>& g1, const std::vector<double>& g2,
+                        double tol) const {
+    EXPECT_LT(test::max_rel_err(g0, jtw[0]), tol) << "J0^T w";
+    EXPECT_LT(test::max_rel_err(g1, jtw[1]), tol) << "J1^T w";
+    EXPECT_LT(test::max_rel_err(g2, jtw[2]), tol) << "J2^T w";
+  }
+};
+
+DenseProducts dense_products(Index n, const std::array<const std::vector<double>*, 3>& J,
+                             const std::array<const std::vector<double>*, 3>& v, const std::vector<double>& w) {
+  const std::vector<double>& J0 = *J[0], &J1 = *J[1], &J2 = *J[2];
+  DenseProducts p{std::vector<double>(n, 0.0), {std::vector<double>(n, 0.0), std::vector<double>(n, 0.0),
+                                                std::vector<double>(n, 0.0)}};
+  for (Index i = 0; i < n; ++i)
+    for (Index j = 0; j < n; ++j) {
+      p.jv[i] += J0[i * n + j] * (*v[0])[j] + J1[i * n + j] * (*v[1])[j] + J2[i * n + j] * (*v[2])[j];
+      p.jtw[0][j] += w[i] * J0[i * n + j];
+      p.jtw[1][j] += w[i] * J1[i * n + j];
+      p.jtw[2][j] += w[i] * J2[i * n + j];
+    }
+  return p;
+}
+
+// A rope's state near rest for the differences along a direction on long ropes
+// (random_state with wrenches, |q|, |qd| scaled to <= 0.01: large angles and rates on
+// many links give link velocities whose rounding, not the derivative, would dominate),
+// and three directions in [-1, 1] (seeded by direction_seed).
+struct NearRest {
+  State s;
+  std::array<std::vector<double>, 3> d;
+};
+
+NearRest near_rest(Index n, unsigned state_seed, unsigned direction_seed) {
+  NearRest r{random_state(n, state_seed, true), {}};
+  for (Index i = 0; i < n; ++i) r.s.q[i] *= 0.005, r.s.qd[i] *= 0.005;
+  std::mt19937_64 rng(direction_seed);
+  for (auto& d : r.d) d = random_vector(rng, n, -1, 1);
+  return r;
 }
 
 std::vector<std::pair<std::string, Model>> derivative_models() {
@@ -123,11 +162,11 @@ TEST(RneaDerivatives, MatchCentralDifferences) {
       rnea(model, data, s.q.data(), s.qd.data(), s.qdd.data(), tau_ref.data(), fext);
       EXPECT_LT(test::max_rel_err(tau, tau_ref), 1e-12);
       auto id = [&](double* out) { rnea(model, data, s.q.data(), s.qd.data(), s.qdd.data(), out, fext); };
-      EXPECT_LT(matrix_err(dq, central_jacobian(n, s.q, kStep, id)), kFdTol);
-      EXPECT_LT(matrix_err(dqd, central_jacobian(n, s.qd, kStep, id)), kFdTol);
+      EXPECT_LT(test::max_rel_err(dq, central_jacobian(n, s.q, kStep, id)), kFdTol);
+      EXPECT_LT(test::max_rel_err(dqd, central_jacobian(n, s.qd, kStep, id)), kFdTol);
       std::vector<double> Mref(n * n);
       crba(model, data, s.q.data(), Mref.data());
-      EXPECT_LT(matrix_err(M, Mref), 1e-12);
+      EXPECT_LT(test::max_rel_err(M, Mref), 1e-12);
     }
   }
 }
@@ -150,9 +189,9 @@ TEST(AbaDerivatives, MatchCentralDifferencesAndIdentities) {
       auto fd = [&](double* out) { aba(model, data, s.q.data(), s.qd.data(), s.tau.data(), out, fext); };
       const bool ill_conditioned = name.rfind("rope", 0) == 0 || name.rfind("curtain", 0) == 0;
       const double tol = ill_conditioned ? 5e-6 : kFdTol;
-      EXPECT_LT(matrix_err(dq, central_jacobian(n, s.q, kStep, fd)), tol);
-      EXPECT_LT(matrix_err(dqd, central_jacobian(n, s.qd, kStep, fd)), tol);
-      EXPECT_LT(matrix_err(Minv, central_jacobian(n, s.tau, kStep, fd)), tol);
+      EXPECT_LT(test::max_rel_err(dq, central_jacobian(n, s.q, kStep, fd)), tol);
+      EXPECT_LT(test::max_rel_err(dqd, central_jacobian(n, s.qd, kStep, fd)), tol);
+      EXPECT_LT(test::max_rel_err(Minv, central_jacobian(n, s.tau, kStep, fd)), tol);
       // identities: M Minv = 1, and dqdd/dq = -M^-1 dtau/dq at qdd = FD
       std::vector<double> M(n * n), tq(n * n), tqd(n * n), Mt(n * n);
       crba(model, data, s.q.data(), M.data());
@@ -172,7 +211,7 @@ TEST(AbaDerivatives, MatchCentralDifferencesAndIdentities) {
           for (Index k = 0; k < n; ++k) acc -= Minv[i * n + k] * tq[k * n + j];
           minus_Minv_tq[i * n + j] = acc;
         }
-      EXPECT_LT(matrix_err(dq, minus_Minv_tq), 1e-9);
+      EXPECT_LT(test::max_rel_err(dq, minus_Minv_tq), 1e-9);
     }
   }
 }
@@ -261,34 +300,24 @@ TEST(RneaJvp, JvpAndVjpMatchTheDenseDerivatives) {
     const Index n = model.nv();
     const State s = random_state(n, 5 + n, true);
     std::mt19937_64 rng(n);
-    const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dqdd = random_vector(rng, n, -1, 1);
+    const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dqdd = random_vector(rng, n, -1, 1),
+               w = random_vector(rng, n, -1, 1);
     const std::size_t nn = static_cast<std::size_t>(n) * n;
-    std::vector<double> A(nn), B(nn), M(nn), dense(n, 0.0), jvp(n, NAN), tau(n, NAN), tau_ref(n);
+    std::vector<double> A(nn), B(nn), M(nn), jvp(n, NAN), tau(n, NAN), tau_ref(n);
     DerivativeDataTpl<double> dd(model);
     rnea_derivatives(model, dd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), ref(A, n), ref(B, n), ref(M, n),
                      tau_ref.data());
-    for (Index i = 0; i < n; ++i)
-      for (Index j = 0; j < n; ++j)
-        dense[i] += A[i * n + j] * dq[j] + B[i * n + j] * dqd[j] + M[i * n + j] * dqdd[j];
+    const DenseProducts dense = dense_products(n, {&A, &B, &M}, {&dq, &dqd, &dqdd}, w);
     RneaJvpData<double> jd(model);
     rnea_jvp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), dq.data(), dqd.data(), dqdd.data(),
              jvp.data(), tau.data());
-    EXPECT_LT(test::max_rel_err(jvp, dense), 1e-11);
+    EXPECT_LT(test::max_rel_err(jvp, dense.jv), 1e-11);
     EXPECT_LT(test::max_rel_err(tau, tau_ref), 1e-12);
     // the adjoint: w^T dtau/dq, w^T dtau/dqd, M w
-    const auto w = random_vector(rng, n, -1, 1);
-    std::vector<double> gq(n, NAN), gqd(n, NAN), gqdd(n, NAN), rq(n, 0.0), rqd(n, 0.0), rqdd(n, 0.0);
+    std::vector<double> gq(n, NAN), gqd(n, NAN), gqdd(n, NAN);
     rnea_vjp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), w.data(), gq.data(), gqd.data(),
              gqdd.data());
-    for (Index i = 0; i < n; ++i)
-      for (Index j = 0; j < n; ++j) {
-        rq[j] += w[i] * A[i * n + j];
-        rqd[j] += w[i] * B[i * n + j];
-        rqdd[j] += w[i] * M[i * n + j];
-      }
-    EXPECT_LT(test::max_rel_err(gq, rq), 1e-11);
-    EXPECT_LT(test::max_rel_err(gqd, rqd), 1e-11);
-    EXPECT_LT(test::max_rel_err(gqdd, rqdd), 1e-11);
+    dense.expect_transpose(gq, gqd, gqdd, 1e-11);
   }
 }
 
@@ -298,26 +327,22 @@ TEST(RneaJvp, JvpAndVjpMatchTheDenseDerivatives) {
 TEST(RneaJvp, MatchesCentralDifferencesOnALongRope) {
   const Model model = load_model("rope:100000");
   const Index n = model.nv();
-  // a hanging rope near rest (|q|, |qd| <= 0.01): large angles and rates on 10^5 links
-  // give link velocities whose rounding, not the derivative, would dominate
-  State s = random_state(n, 3, true);
-  for (Index i = 0; i < n; ++i) s.q[i] *= 0.005, s.qd[i] *= 0.005;
-  std::mt19937_64 rng(9);
-  const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dqdd = random_vector(rng, n, -1, 1);
+  // a hanging rope near rest, direction (dq, dqd, dqdd)
+  const NearRest r = near_rest(n, 3, 9);
+  const State& s = r.s;
   std::vector<double> jvp(n);
   RneaJvpData<double> jd(model);
-  rnea_jvp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), dq.data(), dqd.data(), dqdd.data(),
-           jvp.data());
+  rnea_jvp(model, jd, s.q.data(), s.qd.data(), s.qdd.data(), s.fext.data(), r.d[0].data(), r.d[1].data(),
+           r.d[2].data(), jvp.data());
   Data data(model, /*mass_matrix=*/false);
   // the direction changes every joint angle, so a step h turns the rope's shape by
   // about h sqrt(nv): 1e-4 keeps that small (3e-4 to 1e-5 all pass; 1e-3 fails by
   // truncation)
-  const std::vector<double>* x[3] = {&s.q, &s.qd, &s.qdd};
-  const std::vector<double>* dx[3] = {&dq, &dqd, &dqdd};
-  const std::vector<double> d1 = directional_difference(n, x, dx, 1e-4, [&](const double* q, const double* qd,
-                                                                            const double* qdd, double* out) {
-    rnea(model, data, q, qd, qdd, out, s.fext.data());
-  });
+  const std::vector<double> d1 = directional_difference(
+      n, {&s.q, &s.qd, &s.qdd}, {&r.d[0], &r.d[1], &r.d[2]}, 1e-4,
+      [&](const double* q, const double* qd, const double* qdd, double* out) {
+        rnea(model, data, q, qd, qdd, out, s.fext.data());
+      });
   EXPECT_LT(test::max_rel_err(jvp, d1), 1e-6);
 }
 
@@ -341,26 +366,17 @@ TEST(AbaJvp, JvpAndVjpMatchTheDenseDerivatives) {
     ASSERT_TRUE(aba_derivatives(model, dd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), qdd.data(),
                                 ref(A, n), ref(B, n), ref(Minv, n))
                     .ok());
-    std::vector<double> dense(n, 0.0), rq(n, 0.0), rqd(n, 0.0), rtau(n, 0.0);
-    for (Index i = 0; i < n; ++i)
-      for (Index j = 0; j < n; ++j) {
-        dense[i] += A[i * n + j] * dq[j] + B[i * n + j] * dqd[j] + Minv[i * n + j] * dtau[j];
-        rq[j] += w[i] * A[i * n + j];
-        rqd[j] += w[i] * B[i * n + j];
-        rtau[j] += w[i] * Minv[i * n + j];
-      }
+    const DenseProducts dense = dense_products(n, {&A, &B, &Minv}, {&dq, &dqd, &dtau}, w);
     AbaJvpData<double> jd(model);
     ASSERT_TRUE(aba_jvp(model, jd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), dq.data(), dqd.data(),
                         dtau.data(), jvp.data(), qdd2.data())
                     .ok());
     EXPECT_EQ(qdd2, qdd);
-    EXPECT_LT(test::max_rel_err(jvp, dense), 1e-9);
+    EXPECT_LT(test::max_rel_err(jvp, dense.jv), 1e-9);
     ASSERT_TRUE(aba_vjp(model, jd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), w.data(), gq.data(),
                         gqd.data(), gtau.data(), qdd2.data())
                     .ok());
-    EXPECT_LT(test::max_rel_err(gq, rq), 1e-9);
-    EXPECT_LT(test::max_rel_err(gqd, rqd), 1e-9);
-    EXPECT_LT(test::max_rel_err(gtau, rtau), 1e-9);
+    dense.expect_transpose(gq, gqd, gtau, 1e-9);
   }
 }
 
@@ -373,22 +389,20 @@ TEST(AbaJvp, JvpAndVjpMatchTheDenseDerivatives) {
 TEST(AbaJvp, MatchesCentralDifferencesOnARope) {
   const Model model = load_model("rope:1000");
   const Index n = model.nv();
-  State s = random_state(n, 4, true);
-  for (Index i = 0; i < n; ++i) s.q[i] *= 0.005, s.qd[i] *= 0.005;
-  std::mt19937_64 rng(10);
-  const auto dq = random_vector(rng, n, -1, 1), dqd = random_vector(rng, n, -1, 1), dtau = random_vector(rng, n, -1, 1);
+  // direction (dq, dqd, dtau)
+  const NearRest r = near_rest(n, 4, 10);
+  const State& s = r.s;
   std::vector<double> jvp(n), qdd(n);
   AbaJvpData<double> jd(model);
-  ASSERT_TRUE(aba_jvp(model, jd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), dq.data(), dqd.data(),
-                      dtau.data(), jvp.data(), qdd.data())
+  ASSERT_TRUE(aba_jvp(model, jd, s.q.data(), s.qd.data(), s.tau.data(), s.fext.data(), r.d[0].data(), r.d[1].data(),
+                      r.d[2].data(), jvp.data(), qdd.data())
                   .ok());
   Data data(model, /*mass_matrix=*/false);
-  const std::vector<double>* x[3] = {&s.q, &s.qd, &s.tau};
-  const std::vector<double>* dx[3] = {&dq, &dqd, &dtau};
-  const std::vector<double> d1 = directional_difference(n, x, dx, 1e-4, [&](const double* q, const double* qd,
-                                                                            const double* tau, double* out) {
-    ASSERT_TRUE(aba(model, data, q, qd, tau, out, s.fext.data()).ok());
-  });
+  const std::vector<double> d1 = directional_difference(
+      n, {&s.q, &s.qd, &s.tau}, {&r.d[0], &r.d[1], &r.d[2]}, 1e-4,
+      [&](const double* q, const double* qd, const double* tau, double* out) {
+        ASSERT_TRUE(aba(model, data, q, qd, tau, out, s.fext.data()).ok());
+      });
   EXPECT_LT(test::max_rel_err(jvp, d1), 1e-6);
 }
 

@@ -30,23 +30,9 @@ namespace {
 
 using test::random_vector;
 
-struct Case {
-  std::string name;
-  Model m;
-};
+using Case = test::NamedModel;
 
-std::vector<Case> cases() {
-  std::vector<Case> c;
-  c.push_back({"hyq (floating)", test::load_floating(test::model_path("hyq.urdf"))});
-  c.push_back({"atlas (floating)", test::load_floating(test::model_path("atlas.urdf"))});
-  c.push_back({"tree:12:3 (floating)", test::load_floating("tree:12:3")});
-  c.push_back({"ballrope:4 (fixed root)", load_model("ballrope:4")});
-  c.push_back({"ballrope:4 (floating)", test::load_floating("ballrope:4")});
-  c.push_back({"random free chain 6", test::random_free_chain(6, 5)});
-  for (int n : {1, 3, 8, 13, 30})
-    c.push_back({"random floating tree " + std::to_string(n), test::random_floating_model(n, 40 + n, 0.4)});
-  return c;
-}
+std::vector<Case> cases() { return test::multi_dof_models({"tree:12:3"}, 4, 6, 5, {1, 3, 8, 13, 30}, 40); }
 
 struct State {
   std::vector<double> q, qd, qdd, tau;
@@ -65,14 +51,6 @@ State random_state(const Model& m, unsigned seed, bool with_fext) {
 }
 
 const Force<double>* wrenches(const State& s) { return s.fext.empty() ? nullptr : s.fext.data(); }
-
-// max |a - b| / max(1, max |b|)
-double matrix_err(const std::vector<double>& a, const std::vector<double>& b) {
-  double scale = 1, err = 0;
-  for (double x : b) scale = std::max(scale, std::fabs(x));
-  for (std::size_t k = 0; k < a.size(); ++k) err = std::max(err, std::fabs(a[k] - b[k]));
-  return err / scale;
-}
 
 MatrixRef<double> ref(std::vector<double>& m, Index n) { return {m.data(), n, 1}; }
 
@@ -119,6 +97,23 @@ constexpr double kStep = 1e-3;
 constexpr double kStepQd = 0.1;
 constexpr double kFdTol = 1e-6;
 
+// The q and qd blocks (dq, dqd: nv x nv, row-major) of the derivatives of `what` at s
+// against its central differences along q's tangent directions (retract; kStep) and
+// along qd (kStepQd); f_q(q, out) and f_qd(qd, out) evaluate it with the other input at s.
+template <class Fq, class Fqd>
+void expect_central_differences(const Model& m, const State& s, const std::vector<double>& dq,
+                                const std::vector<double>& dqd, Fq&& f_q, Fqd&& f_qd, const std::string& what) {
+  const Index nv = m.nv();
+  const auto move_q = [&](Index j, double h) { return retract(m, s.q, j, h); };
+  const auto move_qd = [&](Index j, double h) {
+    std::vector<double> x = s.qd;
+    x[j] += h;
+    return x;
+  };
+  EXPECT_LT(test::max_rel_err(dq, central_jacobian(nv, move_q, f_q, kStep)), kFdTol) << "d" << what << "/dq";
+  EXPECT_LT(test::max_rel_err(dqd, central_jacobian(nv, move_qd, f_qd, kStepQd)), kFdTol) << "d" << what << "/dqd";
+}
+
 TEST(MultiDofDerivatives, InverseDynamicsMatchCentralDifferences) {
   for (const Case& c : cases()) {
     for (bool with_fext : {false, true}) {
@@ -134,7 +129,7 @@ TEST(MultiDofDerivatives, InverseDynamicsMatchCentralDifferences) {
       Data data(m);
       std::vector<double> tau_ref(nv);
       rnea(m, data, s.q.data(), s.qd.data(), s.qdd.data(), tau_ref.data(), wrenches(s));
-      EXPECT_LT(matrix_err(tau, tau_ref), 1e-12);
+      EXPECT_LT(test::max_rel_err(tau, tau_ref), 1e-12);
 
       const auto id_q = [&](const std::vector<double>& q, double* out) {
         rnea(m, data, q.data(), s.qd.data(), s.qdd.data(), out, wrenches(s));
@@ -142,17 +137,10 @@ TEST(MultiDofDerivatives, InverseDynamicsMatchCentralDifferences) {
       const auto id_qd = [&](const std::vector<double>& qd, double* out) {
         rnea(m, data, s.q.data(), qd.data(), s.qdd.data(), out, wrenches(s));
       };
-      const auto move_q = [&](Index j, double h) { return retract(m, s.q, j, h); };
-      const auto move_qd = [&](Index j, double h) {
-        std::vector<double> x = s.qd;
-        x[j] += h;
-        return x;
-      };
-      EXPECT_LT(matrix_err(dq, central_jacobian(nv, move_q, id_q, kStep)), kFdTol) << "dtau/dq";
-      EXPECT_LT(matrix_err(dqd, central_jacobian(nv, move_qd, id_qd, kStepQd)), kFdTol) << "dtau/dqd";
+      expect_central_differences(m, s, dq, dqd, id_q, id_qd, "tau");
       std::vector<double> Mref(nv * nv);
       crba(m, data, s.q.data(), Mref.data());
-      EXPECT_LT(matrix_err(M, Mref), 1e-12) << "M against crba";
+      EXPECT_LT(test::max_rel_err(M, Mref), 1e-12) << "M against crba";
     }
   }
 }
@@ -172,7 +160,7 @@ TEST(MultiDofDerivatives, ForwardDynamicsMatchCentralDifferencesAndIdentities) {
       Data data(m);
       std::vector<double> qdd_ref(nv);
       ASSERT_TRUE(aba(m, data, s.q.data(), s.qd.data(), s.tau.data(), qdd_ref.data(), wrenches(s)).ok());
-      EXPECT_LT(matrix_err(qdd, qdd_ref), 1e-12);
+      EXPECT_LT(test::max_rel_err(qdd, qdd_ref), 1e-12);
 
       const auto fd_q = [&](const std::vector<double>& q, double* out) {
         ASSERT_TRUE(aba(m, data, q.data(), s.qd.data(), s.tau.data(), out, wrenches(s)).ok());
@@ -180,14 +168,7 @@ TEST(MultiDofDerivatives, ForwardDynamicsMatchCentralDifferencesAndIdentities) {
       const auto fd_qd = [&](const std::vector<double>& qd, double* out) {
         ASSERT_TRUE(aba(m, data, s.q.data(), qd.data(), s.tau.data(), out, wrenches(s)).ok());
       };
-      const auto move_q = [&](Index j, double h) { return retract(m, s.q, j, h); };
-      const auto move_qd = [&](Index j, double h) {
-        std::vector<double> x = s.qd;
-        x[j] += h;
-        return x;
-      };
-      EXPECT_LT(matrix_err(dq, central_jacobian(nv, move_q, fd_q, kStep)), kFdTol) << "dqdd/dq";
-      EXPECT_LT(matrix_err(dqd, central_jacobian(nv, move_qd, fd_qd, kStepQd)), kFdTol) << "dqdd/dqd";
+      expect_central_differences(m, s, dq, dqd, fd_q, fd_qd, "qdd");
 
       // identities: M M^-1 = 1 (M from crba), dqdd/dq = -M^-1 dtau/dq and dqdd/dqd =
       // -M^-1 dtau/dqd with the inverse-dynamics derivatives at qdd = FD
@@ -204,9 +185,9 @@ TEST(MultiDofDerivatives, ForwardDynamicsMatchCentralDifferencesAndIdentities) {
             pq[i * nv + j] -= Minv[i * nv + k] * tq[k * nv + j];
             pqd[i * nv + j] -= Minv[i * nv + k] * tqd[k * nv + j];
           }
-      EXPECT_LT(matrix_err(MMinv, eye), 1e-9) << "M M^-1";
-      EXPECT_LT(matrix_err(dq, pq), 1e-9) << "dqdd/dq = -M^-1 dtau/dq";
-      EXPECT_LT(matrix_err(dqd, pqd), 1e-9) << "dqdd/dqd = -M^-1 dtau/dqd";
+      EXPECT_LT(test::max_rel_err(MMinv, eye), 1e-9) << "M M^-1";
+      EXPECT_LT(test::max_rel_err(dq, pq), 1e-9) << "dqdd/dq = -M^-1 dtau/dq";
+      EXPECT_LT(test::max_rel_err(dqd, pqd), 1e-9) << "dqdd/dqd = -M^-1 dtau/dqd";
       for (Index i = 0; i < nv; ++i)
         for (Index j = 0; j < nv; ++j) EXPECT_EQ(Minv[i * nv + j], Minv[j * nv + i]);
     }
@@ -390,7 +371,7 @@ TEST(MultiDofDerivatives, FloatAgainstDouble) {
             d2.push_back(fdd.at(k, i, j, b, nv));
             f2.push_back(fdf.at(k, i, j, b, nv));
           }
-        const double eid = matrix_err(fl, d), efd = matrix_err(f2, d2);
+        const double eid = test::max_rel_err(fl, d), efd = test::max_rel_err(f2, d2);
         worst_id = std::max(worst_id, eid);
         worst_fd = std::max(worst_fd, efd);
         EXPECT_LT(eid, 1e-5) << "id block " << k << " instance " << b;

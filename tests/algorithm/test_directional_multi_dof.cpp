@@ -29,22 +29,9 @@ namespace {
 
 using test::random_vector;
 
-struct Case {
-  std::string name;
-  Model m;
-};
+using Case = test::NamedModel;
 
-std::vector<Case> cases() {
-  std::vector<Case> c;
-  c.push_back({"hyq (floating)", test::load_floating(test::model_path("hyq.urdf"))});
-  c.push_back({"atlas (floating)", test::load_floating(test::model_path("atlas.urdf"))});
-  c.push_back({"ballrope:6 (fixed root)", load_model("ballrope:6")});
-  c.push_back({"ballrope:6 (floating)", test::load_floating("ballrope:6")});
-  c.push_back({"random free chain 7", test::random_free_chain(7, 9)});
-  for (int n : {1, 4, 11, 30})
-    c.push_back({"random floating tree " + std::to_string(n), test::random_floating_model(n, 70 + n, 0.4)});
-  return c;
-}
+std::vector<Case> cases() { return test::multi_dof_models({}, 6, 7, 9, {1, 4, 11, 30}, 70); }
 
 // One state and directions: q (nq), qd, tau, and the directions dq (a tangent, nv),
 // dqd, dtau, and the weight w (nv each); fext per body or empty.
