@@ -92,6 +92,26 @@ inline SoaStates random_soa_states(const Model& m, Index B, unsigned seed, bool 
   return x;
 }
 
+// SoaStates in precision S, and the engines' soa input views of them (u: qdd for
+// inverse dynamics, tau for forward dynamics).
+template <class S>
+struct SoaInputs {
+  Index nq, nv, B;
+  std::vector<S> q, qd, u;
+  std::vector<Force<S>> fext;
+  explicit SoaInputs(const SoaStates& x)
+      : nq(x.nq), nv(x.nv), B(x.B), q(cast_vector<S>(x.q)), qd(cast_vector<S>(x.qd)), u(cast_vector<S>(x.u)),
+        fext(cast_wrenches<S>(x.fext)) {}
+  IdBatchIn<S> id() const {
+    using V = BatchView<const S>;
+    return {V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
+  }
+  FdBatchIn<S> fd() const {
+    using V = BatchView<const S>;
+    return {V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
+  }
+};
+
 // The serial double reference of every instance, SoA (nv x B): forward dynamics
 // (aba, u = tau; every instance must succeed) or inverse dynamics (rnea, u = qdd).
 inline std::vector<double> soa_reference(const Model& m, const SoaStates& x, bool forward) {

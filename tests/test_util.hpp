@@ -249,4 +249,24 @@ struct DerivativeBlocks {
   S at(int k, Index i, Index j, Index b, Index nv) const { return v[k].at(i * nv + j, b); }
 };
 
+// Largest |a - b| / max(1, max |b|) over instances, per block (blocks k0..k1 - 1);
+// infinite when a has an entry that is not finite.
+template <class S>
+double block_err(const DerivativeBlocks<S>& a, const DerivativeBlocks<S>& b, Index nv, Index B, int k0 = 0,
+                 int k1 = 3) {
+  double worst = 0;
+  for (int k = k0; k < k1; ++k)
+    for (Index i = 0; i < B; ++i) {
+      double scale = 1, err = 0;
+      for (Index e = 0; e < nv * nv; ++e) {
+        const double x = double(a.v[k].at(e, i)), y = double(b.v[k].at(e, i));
+        if (!std::isfinite(x)) return INFINITY;
+        scale = std::max(scale, std::fabs(y));
+        err = std::max(err, std::fabs(x - y));
+      }
+      worst = std::max(worst, err / scale);
+    }
+  return worst;
+}
+
 }  // namespace scandyn::test

@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "cuda_derivatives_test_util.hpp"
 #include "cuda_test_util.hpp"
 #include "scandyn/cuda/derivatives.hpp"
 #include "scandyn/engine.hpp"
@@ -28,23 +29,7 @@ namespace {
 template <class S>
 using Blocks = test::DerivativeBlocks<S>;
 
-// max over instances and blocks of max |a - b| / max(1, max |b|) (per block).
-template <class S>
-double block_err(const Blocks<S>& a, const Blocks<S>& b, Index nv, Index B) {
-  double worst = 0;
-  for (int k = 0; k < 3; ++k)
-    for (Index i = 0; i < B; ++i) {
-      double scale = 1, err = 0;
-      for (Index e = 0; e < nv * nv; ++e) {
-        const double x = double(a.v[k].at(e, i)), y = double(b.v[k].at(e, i));
-        if (!std::isfinite(x)) return INFINITY;
-        scale = std::max(scale, std::fabs(y));
-        err = std::max(err, std::fabs(x - y));
-      }
-      worst = std::max(worst, err / scale);
-    }
-  return worst;
-}
+using test::block_err;
 
 // Sets an environment variable (null: unsets it) for its lifetime, then restores it.
 class ScopedEnv {
@@ -112,14 +97,11 @@ void compare_with_serial(const std::string& name, const Model& model_d, bool soa
   using V = BatchView<const S>;
   const IdBatchIn<S> id_in{V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(x.data(), nv, B), fext.data()};
   const FdBatchIn<S> fd_in{V::aos(q.data(), nv, B), V::aos(qd.data(), nv, B), V::aos(x.data(), nv, B), fext.data()};
-  BackendOptions o;
-  o.max_batch = B;
   Blocks<S> id_ref(nv, B, false), fd_ref(nv, B, false), id_cuda(nv, B, soa), fd_cuda(nv, B, soa);
   std::vector<S> qdd_ref(nv * B), qdd_cuda(nv * B, S(NAN));
-  make_id_derivatives(model, o)->compute(id_in, {id_ref.v[0], id_ref.v[1], id_ref.v[2]});
-  ASSERT_TRUE(make_fd_derivatives(model, o)
-                  ->compute(fd_in, {fd_ref.v[0], fd_ref.v[1], fd_ref.v[2], BatchView<S>::aos(qdd_ref.data(), nv, B)})
-                  .ok());
+  ASSERT_TRUE(test::serial_derivatives(model, B, id_in, fd_in, id_ref, fd_ref, qdd_ref).ok());
+  BackendOptions o;
+  o.max_batch = B;
   o.backend = BackendKind::Cuda;
   make_id_derivatives(model, o)->compute(id_in, {id_cuda.v[0], id_cuda.v[1], id_cuda.v[2]});
   const BatchStatus st = make_fd_derivatives(model, o)->compute(
@@ -155,45 +137,13 @@ TEST(CudaDerivatives, DevicePointersOnAStream) {
   SKIP_WITHOUT_CUDA_DEVICE();
   const Model model = test::load_robot("iiwa.urdf");
   const Index nv = model.nv(), B = 1000;
-  const std::size_t nn = static_cast<std::size_t>(nv) * nv;
   std::mt19937_64 rng(5);
   const std::vector<double> q = test::random_vector(rng, nv * B, -1, 1), qd = test::random_vector(rng, nv * B, -1, 1),
                             tau = test::random_vector(rng, nv * B, -1, 1);
-  test::DeviceArray<double> dq, dqd, dtau, dout;
-  ASSERT_CUDA(dq.alloc(q.size()));
-  ASSERT_CUDA(dqd.alloc(q.size()));
-  ASSERT_CUDA(dtau.alloc(q.size()));
-  ASSERT_CUDA(dout.alloc(3 * nn * B));
-  test::DeviceArray<int> dfailed;
-  ASSERT_CUDA(dfailed.alloc(B));
-  ASSERT_CUDA(cudaMemcpy(dq.ptr, q.data(), q.size() * 8, cudaMemcpyHostToDevice));
-  ASSERT_CUDA(cudaMemcpy(dqd.ptr, qd.data(), q.size() * 8, cudaMemcpyHostToDevice));
-  ASSERT_CUDA(cudaMemcpy(dtau.ptr, tau.data(), q.size() * 8, cudaMemcpyHostToDevice));
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = 1;  // compute_async is not limited by max_batch
-  cuda::CudaFdDerivatives<double> e(model, o);
-  using V = BatchView<const double>;
-  BatchView<double> out[3];
-  for (int k = 0; k < 3; ++k) out[k] = BatchView<double>::soa(dout.ptr + k * nn * B, nv * nv, B);
-  cudaStream_t stream;
-  ASSERT_CUDA(cudaStreamCreate(&stream));
-  ASSERT_CUDA(e.compute_async({V::soa(dq.ptr, nv, B), V::soa(dqd.ptr, nv, B), V::soa(dtau.ptr, nv, B)},
-                              {out[0], out[1], out[2], {}}, dfailed.ptr, stream));
-  ASSERT_CUDA(cudaStreamSynchronize(stream));
-  ASSERT_CUDA(cudaStreamDestroy(stream));
-  std::vector<double> got(3 * nn * B);
-  std::vector<int> failed(B);
-  ASSERT_CUDA(cudaMemcpy(got.data(), dout.ptr, got.size() * 8, cudaMemcpyDeviceToHost));
-  ASSERT_CUDA(cudaMemcpy(failed.data(), dfailed.ptr, B * sizeof(int), cudaMemcpyDeviceToHost));
-  // against the serial engine on soa host views of the same inputs
-  Blocks<double> ref(nv, B, true);
-  BackendOptions s;
-  s.max_batch = B;
-  ASSERT_TRUE(make_fd_derivatives(model, s)
-                  ->compute({V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)},
-                            {ref.v[0], ref.v[1], ref.v[2], {}})
-                  .ok());
+  std::vector<double> got;
+  std::vector<int> failed;
+  Blocks<double> ref(nv, B, true);  // the serial engine on soa host views of the same inputs
+  ASSERT_NO_FATAL_FAILURE(test::fd_derivatives_on_a_stream(model, B, q, qd, tau, got, ref, failed));
   double err = 0;
   for (std::size_t k = 0; k < got.size(); ++k) err = std::max(err, std::fabs(got[k] - ref.data[k]));
   EXPECT_LT(err, 1e-9);

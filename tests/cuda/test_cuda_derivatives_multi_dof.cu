@@ -20,6 +20,7 @@
 #include <string>
 #include <vector>
 
+#include "cuda_derivatives_test_util.hpp"
 #include "cuda_test_util.hpp"
 #include "floating_models.hpp"
 #include "scandyn/cuda/derivatives.hpp"
@@ -45,6 +46,14 @@ std::string not_compiled_reason(const Model& m) {
          " kernels, which this build does not compile (SCANDYN_CUDA_ALL_CAPACITIES=OFF: capacity 8 only)";
 }
 
+// Whether the general derivative kernels of this build take the model; when not, a
+// note with the reason.
+bool compiled_here(const std::string& name, const Model& m) {
+  const std::string why = not_compiled_reason(m);
+  if (!why.empty()) std::cout << "[ note ] " << name << ": " << why << "\n";
+  return why.empty();
+}
+
 std::vector<std::pair<std::string, Model>> models() {
   std::vector<std::pair<std::string, Model>> m;
   // small enough for capacity 8 (every build)
@@ -67,23 +76,7 @@ std::vector<std::pair<std::string, Model>> models() {
   return m;
 }
 
-// Largest |a - b| / max(1, max |b|) over instances, per block; k0..k1 the blocks.
-template <class S>
-double block_err(const Blocks<S>& a, const Blocks<S>& b, Index nv, Index B, int k0 = 0, int k1 = 3) {
-  double worst = 0;
-  for (int k = k0; k < k1; ++k)
-    for (Index i = 0; i < B; ++i) {
-      double scale = 1, err = 0;
-      for (Index e = 0; e < nv * nv; ++e) {
-        const double x = double(a.v[k].at(e, i)), y = double(b.v[k].at(e, i));
-        if (!std::isfinite(x)) return INFINITY;
-        scale = std::max(scale, std::fabs(y));
-        err = std::max(err, std::fabs(x - y));
-      }
-      worst = std::max(worst, err / scale);
-    }
-  return worst;
-}
+using test::block_err;
 
 // A condition estimate of M over the instances: nv max|M| max|M^-1| (from the serial
 // did's M and dfd's M^-1), which scales dfd's rounding (double's tolerance).
@@ -110,23 +103,16 @@ struct Errors {
 template <class S>
 Errors compare_with_serial(const Model& model_d, bool soa, unsigned seed) {
   const ModelTpl<S> model = model_d.cast<S>();
-  const Index nv = model.nv(), nq = model.nq(), B = 37;
-  const test::SoaStates x = test::random_soa_states(model_d, B, seed, true);
-  const auto cast = [](const std::vector<double>& v) { return std::vector<S>(v.begin(), v.end()); };
-  const std::vector<S> q = cast(x.q), qd = cast(x.qd), u = cast(x.u);
-  std::vector<Force<S>> fext;
-  for (const auto& f : x.fext) fext.push_back(f.template cast<S>());
-  using V = BatchView<const S>;
-  const IdBatchIn<S> id_in{V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
-  const FdBatchIn<S> fd_in{V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
-  BackendOptions o;
-  o.max_batch = B;
+  const Index nv = model.nv(), B = 37;
+  const test::SoaInputs<S> x(test::random_soa_states(model_d, B, seed, true));
+  const IdBatchIn<S> id_in = x.id();
+  const FdBatchIn<S> fd_in = x.fd();
   Blocks<S> id_ref(nv, B, false), fd_ref(nv, B, false), id_cuda(nv, B, soa), fd_cuda(nv, B, soa);
   std::vector<S> qdd_ref(nv * B), qdd_cuda(nv * B, S(NAN));
-  make_id_derivatives(model, o)->compute(id_in, {id_ref.v[0], id_ref.v[1], id_ref.v[2]});
-  const BatchStatus sr = make_fd_derivatives(model, o)->compute(
-      fd_in, {fd_ref.v[0], fd_ref.v[1], fd_ref.v[2], BatchView<S>::aos(qdd_ref.data(), nv, B)});
+  const BatchStatus sr = test::serial_derivatives(model, B, id_in, fd_in, id_ref, fd_ref, qdd_ref);
   EXPECT_TRUE(sr.ok()) << "serial: " << sr.message();
+  BackendOptions o;
+  o.max_batch = B;
   o.backend = BackendKind::Cuda;
   const auto id = make_id_derivatives(model, o);
   const auto fd = make_fd_derivatives(model, o);
@@ -151,11 +137,7 @@ TEST(CudaMultiDofDerivatives, MatchSerialDouble) {
   SKIP_WITHOUT_CUDA_DEVICE();
   int ran = 0;
   for (const auto& [name, model] : models()) {
-    const std::string why = not_compiled_reason(model);
-    if (!why.empty()) {
-      std::cout << "[ note ] " << name << ": " << why << "\n";
-      continue;
-    }
+    if (!compiled_here(name, model)) continue;
     ++ran;
     for (bool soa : {false, true}) {
       const Errors e = compare_with_serial<double>(model, soa, 7 + static_cast<unsigned>(model.nv()));
@@ -178,11 +160,7 @@ TEST(CudaMultiDofDerivatives, MatchSerialFloat) {
   int ran = 0;
   for (const auto& [name, model] : models()) {
     if (name.find("ballrope") != std::string::npos) continue;
-    const std::string why = not_compiled_reason(model);
-    if (!why.empty()) {
-      std::cout << "[ note ] " << name << ": " << why << "\n";
-      continue;
-    }
+    if (!compiled_here(name, model)) continue;
     ++ran;
     for (bool soa : {false, true}) {
       const Errors e = compare_with_serial<float>(model, soa, 11 + static_cast<unsigned>(model.nv()));
@@ -201,43 +179,12 @@ TEST(CudaMultiDofDerivatives, DevicePointersOnAStream) {
   SKIP_WITHOUT_CUDA_DEVICE();
   Model model = test::load_floating(test::model_path("hyq.urdf"));
   if (!not_compiled_reason(model).empty()) model = test::random_free_chain(3, 4);  // nv 8
-  const Index nv = model.nv(), nq = model.nq(), B = 1000;
-  const std::size_t nn = static_cast<std::size_t>(nv) * nv;
+  const Index nv = model.nv(), B = 1000;
   const test::SoaStates x = test::random_soa_states(model, B, 21, false);
-  test::DeviceArray<double> dq, dqd, dtau, dout;
-  ASSERT_CUDA(dq.alloc(x.q.size()));
-  ASSERT_CUDA(dqd.alloc(x.qd.size()));
-  ASSERT_CUDA(dtau.alloc(x.u.size()));
-  ASSERT_CUDA(dout.alloc(3 * nn * B));
-  test::DeviceArray<int> dfailed;
-  ASSERT_CUDA(dfailed.alloc(B));
-  ASSERT_CUDA(cudaMemcpy(dq.ptr, x.q.data(), x.q.size() * 8, cudaMemcpyHostToDevice));
-  ASSERT_CUDA(cudaMemcpy(dqd.ptr, x.qd.data(), x.qd.size() * 8, cudaMemcpyHostToDevice));
-  ASSERT_CUDA(cudaMemcpy(dtau.ptr, x.u.data(), x.u.size() * 8, cudaMemcpyHostToDevice));
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = 1;  // compute_async is not limited by max_batch
-  cuda::CudaFdDerivatives<double> e(model, o);
-  using V = BatchView<const double>;
-  BatchView<double> out[3];
-  for (int k = 0; k < 3; ++k) out[k] = BatchView<double>::soa(dout.ptr + k * nn * B, nv * nv, B);
-  cudaStream_t stream;
-  ASSERT_CUDA(cudaStreamCreate(&stream));
-  ASSERT_CUDA(e.compute_async({V::soa(dq.ptr, nq, B), V::soa(dqd.ptr, nv, B), V::soa(dtau.ptr, nv, B)},
-                              {out[0], out[1], out[2], {}}, dfailed.ptr, stream));
-  ASSERT_CUDA(cudaStreamSynchronize(stream));
-  ASSERT_CUDA(cudaStreamDestroy(stream));
-  std::vector<double> got(3 * nn * B);
-  std::vector<int> failed(B);
-  ASSERT_CUDA(cudaMemcpy(got.data(), dout.ptr, got.size() * 8, cudaMemcpyDeviceToHost));
-  ASSERT_CUDA(cudaMemcpy(failed.data(), dfailed.ptr, B * sizeof(int), cudaMemcpyDeviceToHost));
+  std::vector<double> got;
+  std::vector<int> failed;
   Blocks<double> ref(nv, B, true);
-  BackendOptions s;
-  s.max_batch = B;
-  ASSERT_TRUE(make_fd_derivatives(model, s)
-                  ->compute({V::soa(x.q.data(), nq, B), V::soa(x.qd.data(), nv, B), V::soa(x.u.data(), nv, B)},
-                            {ref.v[0], ref.v[1], ref.v[2], {}})
-                  .ok());
+  ASSERT_NO_FATAL_FAILURE(test::fd_derivatives_on_a_stream(model, B, x.q, x.qd, x.u, got, ref, failed));
   double err = 0, scale = 1;
   for (std::size_t k = 0; k < got.size(); ++k) {
     err = std::max(err, std::fabs(got[k] - ref.data[k]));
@@ -327,24 +274,13 @@ TEST(CudaMultiDofDerivativesHost, TakenUpToTheLimit) {
 template <class S>
 void host_composition(const std::string& name, const Model& model_d, bool soa) {
   const ModelTpl<S> model = model_d.cast<S>();
-  const Index nv = model.nv(), nq = model.nq(), B = 5;
-  const test::SoaStates x = test::random_soa_states(model_d, B, 31, true);
-  const auto cast = [](const std::vector<double>& v) { return std::vector<S>(v.begin(), v.end()); };
-  const std::vector<S> q = cast(x.q), qd = cast(x.qd), u = cast(x.u);
-  std::vector<Force<S>> fext;
-  for (const auto& f : x.fext) fext.push_back(f.template cast<S>());
-  using V = BatchView<const S>;
-  const IdBatchIn<S> id_in{V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
-  const FdBatchIn<S> fd_in{V::soa(q.data(), nq, B), V::soa(qd.data(), nv, B), V::soa(u.data(), nv, B), fext.data()};
-  BackendOptions o;
-  o.max_batch = B;
+  const Index nv = model.nv(), B = 5;
+  const test::SoaInputs<S> x(test::random_soa_states(model_d, B, 31, true));
+  const IdBatchIn<S> id_in = x.id();
+  const FdBatchIn<S> fd_in = x.fd();
   Blocks<S> id_ref(nv, B, false), fd_ref(nv, B, false), id_got(nv, B, soa), fd_got(nv, B, soa);
   std::vector<S> qdd_ref(nv * B), qdd_got(nv * B, S(NAN));
-  make_id_derivatives(model, o)->compute(id_in, {id_ref.v[0], id_ref.v[1], id_ref.v[2]});
-  ASSERT_TRUE(make_fd_derivatives(model, o)
-                  ->compute(fd_in, {fd_ref.v[0], fd_ref.v[1], fd_ref.v[2], BatchView<S>::aos(qdd_ref.data(), nv, B)})
-                  .ok())
-      << name;
+  ASSERT_TRUE(test::serial_derivatives(model, B, id_in, fd_in, id_ref, fd_ref, qdd_ref).ok()) << name;
   const cuda::GeneralDerivativeModel<S> g(model);
   std::visit(
       [&](const auto& p) {
