@@ -35,19 +35,13 @@ using test::aos;
 using test::Layout;
 using test::pack;
 using test::random_layout;
+using test::robot;
 using test::soa;
 
 inline constexpr double kDoubleTol = 1e-10;  // vs fd_jsi
 inline constexpr double kAbaTol = 1e-9;      // double vs aba
 inline constexpr double kFloatTol = 1e-4;    // float on the robots; floor elsewhere
 inline constexpr double kSentinel = 12345.0;
-
-inline const Model& robot(const std::string& file) {
-  static std::map<std::string, Model> cache;
-  auto it = cache.find(file);
-  if (it == cache.end()) it = cache.emplace(file, test::load_robot(file)).first;
-  return it->second;
-}
 
 // ---- one batch against the references ----------------------------------------------
 

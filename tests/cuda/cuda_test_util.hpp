@@ -1,6 +1,7 @@
 // Shared plumbing of the CUDA test programs (tests/test_cuda_*.cu): skipping with
 // a visible reason when no device is usable, checked CUDA calls, device buffers,
-// and strided batch layouts for the engines' views.
+// the shipped robots loaded once, strided batch layouts for the engines' views, and
+// the layout trials the engines' tests share.
 #pragma once
 
 #include <cuda_runtime.h>
@@ -8,12 +9,15 @@
 
 #include <algorithm>
 #include <cstddef>
+#include <limits>
+#include <map>
 #include <random>
 #include <string>
 #include <vector>
 
 #include "scandyn/config.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "test_util.hpp"
 
 namespace scandyn::test {
 
@@ -41,6 +45,14 @@ struct DeviceArray {
     if (ptr) cudaFree(ptr);
   }
 };
+
+// A shipped robot (test::load_robot), loaded once per program.
+inline const Model& robot(const std::string& file) {
+  static std::map<std::string, Model> cache;
+  auto it = cache.find(file);
+  if (it == cache.end()) it = cache.emplace(file, load_robot(file)).first;
+  return it->second;
+}
 
 // ---- layouts --------------------------------------------------------------------
 
@@ -89,6 +101,86 @@ std::vector<S> pack(const std::vector<double>& v, Index nv, Index B, const Layou
   for (Index i = 0; i < nv; ++i)
     for (Index b = 0; b < B; ++b) buf[l.at(i, b)] = S(v[static_cast<std::size_t>(i) * B + b]);
   return buf;
+}
+
+// An output buffer in layout l: NaN at the nv x B entries (an entry never written
+// fails), `sentinel` in the gaps between them.
+template <class S>
+std::vector<S> sentinel_output(const Layout& l, Index nv, Index B, double sentinel) {
+  std::vector<S> buf(l.size, S(sentinel));
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) buf[l.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
+  return buf;
+}
+
+// How many gaps of a buffer in layout l (the elements that are none of its nv x B
+// entries) no longer hold `sentinel`: 0 when the engine wrote only its entries.
+template <class S>
+std::size_t gap_writes(const std::vector<S>& buf, const Layout& l, Index nv, Index B, double sentinel) {
+  std::vector<char> entry(l.size, 0);
+  for (Index i = 0; i < nv; ++i)
+    for (Index b = 0; b < B; ++b) entry[l.at(i, b)] = 1;
+  std::size_t bad = 0;
+  for (std::size_t k = 0; k < buf.size(); ++k) bad += !entry[k] && buf[k] != S(sentinel);
+  return bad;
+}
+
+// ---- the engines' layout trials -------------------------------------------------
+
+// One trial of host views in strided layouts: B = 1 every third trial, else `batch`
+// instances; the first input (q) in a random layout that may broadcast, the second (qd)
+// random and the third an aos or soa one (both like q when q broadcasts: then all three
+// do), the output in a random layout; external wrenches every other trial.
+struct LayoutTrial {
+  Index B;
+  Layout lq, lout, lqd, l3;
+  bool fx;
+};
+
+inline LayoutTrial random_layout_trial(std::mt19937_64& g, Index nv, int trial, Index batch) {
+  LayoutTrial t;
+  t.B = trial % 3 == 0 ? 1 : batch;
+  t.lq = random_layout(g, nv, t.B, false);
+  t.lout = random_layout(g, nv, t.B, true);
+  t.lqd = t.lq.bs == 0 ? t.lq : random_layout(g, nv, t.B, true);
+  t.l3 = t.lq.bs == 0 ? t.lq : (trial % 2 ? aos(nv, t.B) : soa(nv, t.B));
+  t.fx = trial % 2 == 0;
+  return t;
+}
+
+// Host views in strided layouts: on iiwa and atlas, 12 trials (random_layout_trial) of
+// B = 1 or 257 instances; run(model, B, with_fext, l1, l2, l3, lout, trial) under a
+// trace naming the layouts by the inputs' names q, qd, third and the output's, out.
+template <class Run>
+void strided_host_layout_trials(const std::string& third, const std::string& out, Run&& run) {
+  std::mt19937_64 g(99);
+  for (const char* file : {"iiwa.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    for (int trial = 0; trial < 12; ++trial) {
+      const LayoutTrial t = random_layout_trial(g, md.nv(), trial, 257);
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(t.B) + " q " + t.lq.name + " qd " + t.lqd.name + " " +
+                   third + " " + t.l3.name + " " + out + " " + t.lout.name + (t.fx ? " fext" : ""));
+      run(md, t.B, t.fx, t.lq, t.lqd, t.l3, t.lout, trial);
+    }
+  }
+}
+
+// Device pointers: on iiwa, hyq and atlas, B = 1, 33 (inputs aos) and 4097 (output in a
+// random layout) instances, inputs and output soa otherwise; run(model, B, lin, lout)
+// under a trace naming them.
+template <class Run>
+void device_layout_trials(Run&& run) {
+  std::mt19937_64 g(5);
+  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
+    const Model& md = robot(file);
+    const Index nv = md.nv();
+    for (Index B : {1, 33, 4097}) {
+      const Layout lin = B == 33 ? aos(nv, B) : soa(nv, B);
+      const Layout lout = B == 4097 ? random_layout(g, nv, B, true) : lin;
+      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " in " + lin.name + " out " + lout.name);
+      run(md, B, lin, lout);
+    }
+  }
 }
 
 }  // namespace scandyn::test

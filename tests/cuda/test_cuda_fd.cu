@@ -182,9 +182,7 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
                        tau = pack<S>(batch.tau, nv, B, ltau, 0.0);
   std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
-  std::vector<S> qdd(lout.size, S(kSentinel));
-  for (Index i = 0; i < nv; ++i)
-    for (Index b = 0; b < B; ++b) qdd[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
+  std::vector<S> qdd = test::sentinel_output<S>(lout, nv, B, kSentinel);
 
   BackendOptions o;
   o.backend = BackendKind::Cuda;
@@ -203,13 +201,8 @@ Errors host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   EXPECT_TRUE(st.ok()) << st.message();
   EXPECT_EQ(std::count(failed.begin(), failed.end(), -1), B);
 
-  // gaps untouched
-  std::vector<char> entry(lout.size, 0);
-  for (Index i = 0; i < nv; ++i)
-    for (Index b = 0; b < B; ++b) entry[lout.at(i, b)] = 1;
-  std::size_t bad_gaps = 0;
-  for (std::size_t k = 0; k < qdd.size(); ++k) bad_gaps += !entry[k] && qdd[k] != S(kSentinel);
-  EXPECT_EQ(bad_gaps, 0u) << "compute() wrote between qdd's entries (layout " << lout.name << ")";
+  EXPECT_EQ(test::gap_writes(qdd, lout, nv, B, kSentinel), 0u)
+      << "compute() wrote between qdd's entries (layout " << lout.name << ")";
   return worst_errors<S>(md, batch, with_fext, qdd, lout);
 }
 
@@ -309,39 +302,20 @@ TEST(CudaFd, GeneratedTreesAndChains) {
 
 TEST(CudaFd, StridedHostLayouts) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  std::mt19937_64 g(99);
-  for (const char* file : {"iiwa.urdf", "atlas.urdf"}) {
-    const Model& md = robot(file);
-    const Index nv = md.nv();
-    for (int trial = 0; trial < 12; ++trial) {
-      const Index B = trial % 3 == 0 ? 1 : 257;
-      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
-      // qd and tau like q when q broadcasts (then all three do)
-      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
-      const Layout ltau = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
-      const bool fx = trial % 2 == 0;
-      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " q " + lq.name + " qd " + lqd.name + " tau " +
-                   ltau.name + " qdd " + lout.name + (fx ? " fext" : ""));
-      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kDoubleTol);
-      EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kFloatTol);
-    }
-  }
+  test::strided_host_layout_trials("tau", "qdd",
+                                   [](const Model& md, Index B, bool fx, const Layout& lq, const Layout& lqd,
+                                      const Layout& ltau, const Layout& lout, int trial) {
+                                     EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kDoubleTol);
+                                     EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, ltau, lout, trial).jsi, kFloatTol);
+                                   });
 }
 
 TEST(CudaFd, DevicePointersOnAStream) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  std::mt19937_64 g(5);
-  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
-    const Model& md = robot(file);
-    const Index nv = md.nv();
-    for (Index B : {1, 33, 4097}) {
-      const Layout lin = B == 33 ? aos(nv, B) : soa(nv, B);
-      const Layout lout = B == 4097 ? random_layout(g, nv, B, true) : lin;
-      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " in " + lin.name + " out " + lout.name);
-      EXPECT_LE(device_run<double>(md, B, lin, lout, B != 1).jsi, kDoubleTol);
-      EXPECT_LE(device_run<float>(md, B, lin, lout, B != 1).jsi, kFloatTol);
-    }
-  }
+  test::device_layout_trials([](const Model& md, Index B, const Layout& lin, const Layout& lout) {
+    EXPECT_LE(device_run<double>(md, B, lin, lout, B != 1).jsi, kDoubleTol);
+    EXPECT_LE(device_run<float>(md, B, lin, lout, B != 1).jsi, kFloatTol);
+  });
   SCOPED_TRACE("iiwa B=100000");
   EXPECT_LE(device_run<float>(robot("iiwa.urdf"), 100000, soa(7, 100000), soa(7, 100000), false).jsi, kFloatTol);
 }

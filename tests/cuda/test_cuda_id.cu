@@ -37,6 +37,7 @@ using test::aos;
 using test::Layout;
 using test::pack;
 using test::random_layout;
+using test::robot;
 using test::soa;
 
 // ---- one batch against the reference -------------------------------------------
@@ -100,9 +101,7 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
   const std::vector<S> q = pack<S>(batch.q, nv, B, lq, 0.0), qd = pack<S>(batch.qd, nv, B, lqd, 0.0),
                        qdd = pack<S>(batch.qdd, nv, B, lqdd, 0.0);
   std::vector<Force<S>> fext = test::cast_wrenches<S>(batch.fext);
-  std::vector<S> tau(lout.size, S(kSentinel));
-  for (Index i = 0; i < nv; ++i)
-    for (Index b = 0; b < B; ++b) tau[lout.at(i, b)] = std::numeric_limits<S>::quiet_NaN();
+  std::vector<S> tau = test::sentinel_output<S>(lout, nv, B, kSentinel);
 
   BackendOptions o;
   o.backend = BackendKind::Cuda;
@@ -118,13 +117,8 @@ double host_run(const Model& md, Index B, bool with_fext, const Layout& lq, cons
                         with_fext ? fext.data() : nullptr};
   engine->compute(in, BatchView<S>{tau.data() + lout.base, B, lout.ds, lout.bs});
 
-  // gaps untouched
-  std::vector<char> entry(lout.size, 0);
-  for (Index i = 0; i < nv; ++i)
-    for (Index b = 0; b < B; ++b) entry[lout.at(i, b)] = 1;
-  std::size_t bad_gaps = 0;
-  for (std::size_t k = 0; k < tau.size(); ++k) bad_gaps += !entry[k] && tau[k] != S(kSentinel);
-  EXPECT_EQ(bad_gaps, 0u) << "compute() wrote between tau's entries (layout " << lout.name << ")";
+  EXPECT_EQ(test::gap_writes(tau, lout, nv, B, kSentinel), 0u)
+      << "compute() wrote between tau's entries (layout " << lout.name << ")";
   return worst_error<S>(md, batch, with_fext, tau, lout);
 }
 
@@ -132,13 +126,6 @@ template <class S>
 double host_run_soa(const Model& md, Index B, bool with_fext, IdStrategy strategy = IdStrategy::Auto) {
   const Layout l = soa(md.nv(), B);
   return host_run<S>(md, B, with_fext, l, l, l, l, 1, strategy);
-}
-
-const Model& robot(const std::string& file) {
-  static std::map<std::string, Model> cache;
-  auto it = cache.find(file);
-  if (it == cache.end()) it = cache.emplace(file, test::load_robot(file)).first;
-  return it->second;
 }
 
 // The flags of ThreadModel's parameter block, whatever its capacity.
@@ -343,23 +330,12 @@ TEST(CudaId, GeneratedTreesAndChains) {
 
 TEST(CudaId, StridedHostLayouts) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  std::mt19937_64 g(99);
-  for (const char* file : {"iiwa.urdf", "atlas.urdf"}) {
-    const Model& md = robot(file);
-    const Index nv = md.nv();
-    for (int trial = 0; trial < 12; ++trial) {
-      const Index B = trial % 3 == 0 ? 1 : 257;
-      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
-      // qd and qdd like q unless q broadcasts (then all three do)
-      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
-      const Layout lqdd = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
-      const bool fx = trial % 2 == 0;
-      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " q " + lq.name + " qd " + lqd.name + " qdd " +
-                   lqdd.name + " tau " + lout.name + (fx ? " fext" : ""));
-      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-10);
-      EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-4);
-    }
-  }
+  test::strided_host_layout_trials("qdd", "tau",
+                                   [](const Model& md, Index B, bool fx, const Layout& lq, const Layout& lqd,
+                                      const Layout& lqdd, const Layout& lout, int trial) {
+                                     EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-10);
+                                     EXPECT_LE(host_run<float>(md, B, fx, lq, lqd, lqdd, lout, trial), 1e-4);
+                                   });
 }
 
 // compute_async: device pointers with their own strides, the caller's stream.
@@ -412,18 +388,10 @@ void device_run(const Model& md, Index B, const Layout& lin, const Layout& lout,
 
 TEST(CudaId, DevicePointersOnAStream) {
   SKIP_WITHOUT_CUDA_DEVICE();
-  std::mt19937_64 g(5);
-  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
-    const Model& md = robot(file);
-    const Index nv = md.nv();
-    for (Index B : {1, 33, 4097}) {
-      const Layout lin = B == 33 ? aos(nv, B) : soa(nv, B);
-      const Layout lout = B == 4097 ? random_layout(g, nv, B, true) : lin;
-      SCOPED_TRACE(std::string(file) + " B=" + std::to_string(B) + " in " + lin.name + " out " + lout.name);
-      device_run<double>(md, B, lin, lout, B != 1, 1e-10);
-      device_run<float>(md, B, lin, lout, B != 1, 1e-4);
-    }
-  }
+  test::device_layout_trials([](const Model& md, Index B, const Layout& lin, const Layout& lout) {
+    device_run<double>(md, B, lin, lout, B != 1, 1e-10);
+    device_run<float>(md, B, lin, lout, B != 1, 1e-4);
+  });
   SCOPED_TRACE("iiwa B=100000");
   device_run<float>(robot("iiwa.urdf"), 100000, soa(7, 100000), soa(7, 100000), false, 1e-4);
 }
@@ -515,13 +483,9 @@ TEST(CudaIdScan, StridedLayoutsAndDevicePointers) {
     const Model md = load_model(spec);
     const Index nv = md.nv();
     for (int trial = 0; trial < 6; ++trial) {
-      const Index B = trial % 3 == 0 ? 1 : 37;
-      const Layout lq = random_layout(g, nv, B, false), lout = random_layout(g, nv, B, true);
-      const Layout lqd = lq.bs == 0 ? lq : random_layout(g, nv, B, true);
-      const Layout lqdd = lq.bs == 0 ? lq : (trial % 2 ? aos(nv, B) : soa(nv, B));
-      const bool fx = trial % 2 == 0;
-      SCOPED_TRACE(std::string(spec) + " B=" + std::to_string(B) + " q " + lq.name + " tau " + lout.name);
-      EXPECT_LE(host_run<double>(md, B, fx, lq, lqd, lqdd, lout, trial, IdStrategy::ScanLocal), 1e-10);
+      const test::LayoutTrial t = test::random_layout_trial(g, nv, trial, 37);
+      SCOPED_TRACE(std::string(spec) + " B=" + std::to_string(t.B) + " q " + t.lq.name + " tau " + t.lout.name);
+      EXPECT_LE(host_run<double>(md, t.B, t.fx, t.lq, t.lqd, t.l3, t.lout, trial, IdStrategy::ScanLocal), 1e-10);
     }
     for (Index B : {1, 64}) {
       SCOPED_TRACE(std::string(spec) + " device pointers B=" + std::to_string(B));

@@ -53,12 +53,7 @@ constexpr double kRneaTol = 1e-9;     // double, against the RNEA's columns
 constexpr double kFloatTol = 1e-5;    // float floor
 constexpr double kSentinel = 12345.0;
 
-const Model& robot(const std::string& file) {
-  static std::map<std::string, Model> cache;
-  auto it = cache.find(file);
-  if (it == cache.end()) it = cache.emplace(file, test::load_robot(file)).first;
-  return it->second;
-}
+using test::robot;
 
 // Models of up to 64 DoF: the robots, chains at the capacities' edges, trees, and
 // random trees with arbitrary axes and ~25% prismatic joints whose parents are drawn
