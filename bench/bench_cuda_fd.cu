@@ -168,41 +168,6 @@ struct DeviceBatch {
   BatchView<S> qdd(Index nv, Index B) const { return BatchView<S>::soa(p + 3 * n, nv, B); }
 };
 
-// max rel_err over up to 64 instances: qdd (soa, nv x B, host or device) against the
-// double serial fd_jsi (with_aba: aba) on the same (S-rounded) inputs.
-template <class S>
-double max_rel_err(const Model& md, Index B, const S* qdd, bool on_device, bool with_aba = false) {
-  const Index nv = md.nv();
-  Data d(md);
-  std::vector<double> q(nv), qd(nv), tau(nv), ref(nv), ours(nv);
-  std::vector<S> col(nv);
-  double worst = 0;
-  const Index step = B > 64 ? B / 64 : 1;
-  for (Index b = 0; b < B; b += step) {
-    for (Index i = 0; i < nv; ++i) {
-      const std::size_t k = static_cast<std::size_t>(i) * B + b;
-      q[i] = double(S(uniform(0, k)));
-      qd[i] = double(S(uniform(1, k)));
-      tau[i] = double(S(uniform(2, k)));
-    }
-    const Status ok = with_aba ? aba(md, d, q.data(), qd.data(), tau.data(), ref.data())
-                               : fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data());
-    if (!ok.ok()) return std::nan("");
-    if (on_device) {
-      if (cudaMemcpy2D(col.data(), sizeof(S), qdd + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
-          cudaSuccess)
-        return std::nan("");
-    } else {
-      for (Index i = 0; i < nv; ++i) col[i] = qdd[static_cast<std::size_t>(i) * B + b];
-    }
-    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
-    const double e = rel_err(ours.data(), ref.data(), ref.size());
-    if (std::isnan(e)) return e;
-    worst = std::fmax(worst, e);
-  }
-  return worst;
-}
-
 // Instances whose factorisation failed (failed DoF >= 0), from B device entries.
 double count_failed(const int* failed, Index B) {
   std::vector<int> h(static_cast<std::size_t>(B));
@@ -236,7 +201,7 @@ void bench_device(benchmark::State& st, const Model* md, Index B, FdMethod alg =
   const FdBatchIn<S> in = buf.in(nv, B);
   const BatchView<S> qdd = buf.qdd(nv, B);
   const double seconds = time_launches(st, [&] { return engine.compute_async(in, qdd, buf.failed, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, alg == FdMethod::Aba),
+  set_counters(st, nv, B, bench::fd_max_rel_err<S>(*md, B, qdd.data, true, alg == FdMethod::Aba),
                count_failed(buf.failed, B), seconds, sizeof(S));
 }
 
@@ -263,7 +228,7 @@ void bench_kernel(benchmark::State& st, const Model* md, Index B, bool with_aba,
     launch(params, in, qdd, buf.failed, blocks);
     return cudaGetLastError();
   });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, qdd.data, true, with_aba), count_failed(buf.failed, B), seconds,
+  set_counters(st, nv, B, bench::fd_max_rel_err<S>(*md, B, qdd.data, true, with_aba), count_failed(buf.failed, B), seconds,
                sizeof(S));
 }
 
@@ -298,14 +263,14 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   const std::size_t n = static_cast<std::size_t>(nv) * B;
-  std::vector<S> q(n), qd(n), tau(n), qdd(n, std::numeric_limits<S>::quiet_NaN());
-  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), tau[k] = S(uniform(2, k));
+  const bench::HostInputs<S> x(n);  // q, qd, tau
+  std::vector<S> qdd(n, std::numeric_limits<S>::quiet_NaN());
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;
   cuda::CudaForwardDynamics<S> engine(m, o);
   using V = BatchView<const S>;
-  const FdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(tau.data(), nv, B)};
+  const FdBatchIn<S> in{V::soa(x.q.data(), nv, B), V::soa(x.qd.data(), nv, B), V::soa(x.u.data(), nv, B)};
   const BatchView<S> out = BatchView<S>::soa(qdd.data(), nv, B);
   BatchStatus status = engine.compute(in, out);  // warm-up
   for (auto _ : st) {
@@ -314,7 +279,7 @@ void bench_host(benchmark::State& st, const Model* md, Index B) {
   }
   st.counters["links"] = nv;
   st.counters["instances"] = B;
-  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, qdd.data(), false);
+  st.counters["max_rel_err"] = bench::fd_max_rel_err<S>(*md, B, qdd.data(), false);
   st.counters["failed"] = status.failed;
 }
 
@@ -434,37 +399,16 @@ void add(const std::string& name, F&& f, bool host = false) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  std::string models_dir = env && *env ? env : "../shared/models";
-  long max_instances = 10000000;
-  std::vector<char*> rest;
-  for (int i = 0; i < argc; ++i) {
-    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
-    else if (std::strncmp(argv[i], "--max-instances=", 16) == 0) max_instances = std::atol(argv[i] + 16);
-    else rest.push_back(argv[i]);
-  }
-  const auto count = cuda::device_count();
-  if (!count || count.value == 0) {
-    std::fprintf(stderr, "bench_cuda_fd: %s; nothing to run\n",
-                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
-    return 0;
-  }
+  bench::BenchArgs args = bench::parse_bench_args(argc, argv, "--max-instances=", 10000000);
+  if (!bench::have_device("bench_cuda_fd")) return 0;
   print_limits();
   std::size_t free_bytes = 0, total_bytes = 0;
   cudaMemGetInfo(&free_bytes, &total_bytes);
 
-  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
-    BuildOptions bo;
-    bo.require_physical_inertia = false;  // GRiD's atlas.urdf
-    try {
-      g_models.push_back(std::make_unique<Model>(load_urdf(models_dir + "/" + file, bo)));
-    } catch (const ModelError& e) {
-      std::fprintf(stderr, "bench_cuda_fd: skipping %s: %s\n", file, e.what());
-      continue;
-    }
-    const Model* m = g_models.back().get();
-    const std::string label = std::string(file).substr(0, std::strlen(file) - 5);
-    for (long B = 10000; B <= max_instances; B *= 10) {
+  for (const auto& robot : bench::load_bench_robots("bench_cuda_fd", args.models_dir, g_models)) {
+    const std::string& label = robot.first;
+    const Model* m = robot.second;  // (a variable: lambdas capture it)
+    for (long B = 10000; B <= args.count; B *= 10) {
       for (int prec = 0; prec < 2; ++prec) {
         const bool fl = prec == 1;
         const std::size_t need = (4 * static_cast<std::size_t>(m->nv()) * (fl ? 4 : 8) + sizeof(int)) * B;
@@ -521,9 +465,5 @@ int main(int argc, char** argv) {
       }
     }
   }
-  int rargc = static_cast<int>(rest.size());
-  benchmark::Initialize(&rargc, rest.data());
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return bench::run_benchmarks(args.rest);
 }

@@ -71,66 +71,37 @@ __global__ void __launch_bounds__(cuda::kIdInstancesBlock)
 template <class S>
 void bench_device(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
-  const Index nv = m.nv();
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 0;  // no staging buffers: the device path does not use them
   cuda::CudaInverseDynamics<S> engine(m, o);
-  DeviceBatch<S> buf;
-  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
-  const IdBatchIn<S> in = buf.in(nv, B);
-  const BatchView<S> tau = buf.tau(nv, B);
-  const double seconds = time_launches(st, [&] { return engine.compute_async(in, tau, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true), seconds, sizeof(S));
+  time_device_id<S>(st, *md, B, 64, [&](const IdBatchIn<S>& in, const BatchView<S>& tau) {
+    return engine.compute_async(in, tau, nullptr);
+  });
 }
 
 // id_thread-keepxup, id_thread-rolled: the bench's own instances of the device function.
 template <class S, bool kKeepXup, bool kUnrolled, Trig kTrig = cuda::kThreadTrig<S>>
 void bench_variant(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
-  const Index nv = m.nv();
   const cuda::ThreadModel<S> tm(m);
   if (tm.capacity() != 8) {
     st.SkipWithError("the variants are built for capacity 8 only");
     return;
   }
   const auto& params = std::get<cuda::ThreadModelParams<S, 8>>(tm.params());
-  DeviceBatch<S> buf;
-  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
-  const IdBatchIn<S> in = buf.in(nv, B);
-  const BatchView<S> tau = buf.tau(nv, B);
   const unsigned blocks = static_cast<unsigned>((static_cast<long long>(B) + cuda::kIdInstancesBlock - 1) /
                                                 cuda::kIdInstancesBlock);
-  const double seconds = time_launches(st, [&] {
+  time_device_id<S>(st, *md, B, 64, [&](const IdBatchIn<S>& in, const BatchView<S>& tau) {
     variant_kernel<S, 8, kKeepXup, kUnrolled, kTrig><<<blocks, cuda::kIdInstancesBlock>>>(params, in, tau);
     return cudaGetLastError();
   });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true), seconds, sizeof(S));
 }
 
 // id_thread-host: compute() from host buffers, copies included (wall clock).
 template <class S>
 void bench_host(benchmark::State& st, const Model* md, Index B) {
-  const ModelTpl<S> m = md->cast<S>();
-  const Index nv = m.nv();
-  const std::size_t n = static_cast<std::size_t>(nv) * B;
-  std::vector<S> q(n), qd(n), qdd(n), tau(n, std::numeric_limits<S>::quiet_NaN());
-  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), qdd[k] = S(uniform(2, k));
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = B;
-  auto engine = make_inverse_dynamics<S>(m, o);
-  using V = BatchView<const S>;
-  const IdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B)};
-  const BatchView<S> out = BatchView<S>::soa(tau.data(), nv, B);
-  engine->compute(in, out);  // warm-up
-  for (auto _ : st) {
-    engine->compute(in, out);
-    benchmark::ClobberMemory();
-  }
-  st.counters["links"] = nv;
-  st.counters["instances"] = B;
-  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, tau.data(), false);
+  time_host_id<S>(st, *md, B, BackendKind::Cuda, std::numeric_limits<S>::quiet_NaN());
 }
 
 // ---- what bounds the speed: printed before the rows ----------------------------------
@@ -155,37 +126,16 @@ std::vector<std::unique_ptr<Model>> g_models;  // outlive the registered benchma
 }  // namespace
 
 int main(int argc, char** argv) {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  std::string models_dir = env && *env ? env : "../shared/models";
-  long max_instances = 10000000;
-  std::vector<char*> rest;
-  for (int i = 0; i < argc; ++i) {
-    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
-    else if (std::strncmp(argv[i], "--max-instances=", 16) == 0) max_instances = std::atol(argv[i] + 16);
-    else rest.push_back(argv[i]);
-  }
-  const auto count = cuda::device_count();
-  if (!count || count.value == 0) {
-    std::fprintf(stderr, "bench_cuda_id: %s; nothing to run\n",
-                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
-    return 0;
-  }
+  BenchArgs args = parse_bench_args(argc, argv, "--max-instances=", 10000000);
+  if (!have_device("bench_cuda_id")) return 0;
   print_limits();
   std::size_t free_bytes = 0, total_bytes = 0;
   cudaMemGetInfo(&free_bytes, &total_bytes);
 
-  for (const char* file : {"iiwa.urdf", "hyq.urdf", "atlas.urdf"}) {
-    BuildOptions bo;
-    bo.require_physical_inertia = false;  // GRiD's atlas.urdf
-    try {
-      g_models.push_back(std::make_unique<Model>(load_urdf(models_dir + "/" + file, bo)));
-    } catch (const ModelError& e) {
-      std::fprintf(stderr, "bench_cuda_id: skipping %s: %s\n", file, e.what());
-      continue;
-    }
-    const Model* m = g_models.back().get();
-    const std::string label = std::string(file).substr(0, std::strlen(file) - 5);
-    for (long B = 10000; B <= max_instances; B *= 10) {
+  for (const auto& robot : load_bench_robots("bench_cuda_id", args.models_dir, g_models)) {
+    const std::string& label = robot.first;
+    const Model* m = robot.second;  // (a variable: lambdas capture it)
+    for (long B = 10000; B <= args.count; B *= 10) {
       for (int prec = 0; prec < 2; ++prec) {
         const std::size_t need = 4 * static_cast<std::size_t>(m->nv()) * B * (prec ? 4 : 8);
         if (need > free_bytes * 0.9) {
@@ -226,9 +176,5 @@ int main(int argc, char** argv) {
       }
     }
   }
-  int rargc = static_cast<int>(rest.size());
-  benchmark::Initialize(&rargc, rest.data());
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return run_benchmarks(args.rest);
 }

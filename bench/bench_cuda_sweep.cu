@@ -64,46 +64,17 @@ void bench_cuda(benchmark::State& st, const Model* md, Index B) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = B;  // the scan strategy sizes its scratch by it; no host staging is used here
-  std::unique_ptr<cuda::CudaInverseDynamics<S>> engine;
-  try {
-    engine = std::make_unique<cuda::CudaInverseDynamics<S>>(m, o);
-  } catch (const BackendError& e) {
-    st.SkipWithError(e.what());
-    return;
-  }
-  DeviceBatch<S> buf;
-  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
-  const IdBatchIn<S> in = buf.in(nv, B);
-  const BatchView<S> tau = buf.tau(nv, B);
-  const double seconds = time_launches(st, [&] { return engine->compute_async(in, tau, nullptr); });
-  set_counters(st, nv, B, max_rel_err<S>(*md, B, tau.data, true, samples_for(nv)), seconds, sizeof(S));
+  const auto engine = make_or_skip<cuda::CudaInverseDynamics<S>>(st, m, o);
+  if (!engine) return;
+  time_device_id<S>(st, *md, B, samples_for(nv), [&](const IdBatchIn<S>& in, const BatchView<S>& tau) {
+    return engine->compute_async(in, tau, nullptr);
+  });
   st.SetLabel(engine->strategy());
 }
 
 template <class S>
 void bench_openmp(benchmark::State& st, const Model* md, Index B) {
-  const ModelTpl<S> m = md->cast<S>();
-  const Index nv = m.nv();
-  const std::size_t n = static_cast<std::size_t>(nv) * B;
-  std::vector<S> q(n), qd(n), qdd(n), tau(n, S(0));
-  for (std::size_t k = 0; k < n; ++k)
-    q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), qdd[k] = S(uniform(2, k));
-  BackendOptions o;
-  o.backend = BackendKind::OpenMP;
-  o.max_batch = B;
-  auto engine = make_inverse_dynamics<S>(m, o);
-  using V = BatchView<const S>;
-  const IdBatchIn<S> in{V::soa(q.data(), nv, B), V::soa(qd.data(), nv, B), V::soa(qdd.data(), nv, B)};
-  const BatchView<S> out = BatchView<S>::soa(tau.data(), nv, B);
-  engine->compute(in, out);  // warm-up
-  for (auto _ : st) {
-    engine->compute(in, out);
-    benchmark::ClobberMemory();
-  }
-  st.counters["links"] = nv;
-  st.counters["instances"] = B;
-  st.counters["max_rel_err"] = max_rel_err<S>(*md, B, tau.data(), false, samples_for(nv));
-  st.SetLabel(engine->strategy());
+  st.SetLabel(time_host_id<S>(st, *md, B, BackendKind::OpenMP, S(0), samples_for(md->nv())));
 }
 
 
@@ -112,51 +83,21 @@ void bench_openmp(benchmark::State& st, const Model* md, Index B) {
 template <class S>
 void bench_scan_runs(benchmark::State& st, const Model* md, unsigned target_runs) {
   const ModelTpl<S> m = md->cast<S>();
-  const Index nv = m.nv();
-  std::unique_ptr<cuda::IdScanPlan<S>> plan;
-  try {
-    plan = std::make_unique<cuda::IdScanPlan<S>>(m, 1, target_runs);
-  } catch (const BackendError& e) {
-    st.SkipWithError(e.what());
-    return;
-  }
-  DeviceBatch<S> buf;
-  if (!cuda_ok(st, buf.alloc(nv, 1), "allocating and filling the batch")) return;
-  const IdBatchIn<S> in = buf.in(nv, 1);
-  const BatchView<S> tau = buf.tau(nv, 1);
-  const double seconds = time_launches(st, [&] { return plan->launch(in, tau, nullptr); });
-  set_counters(st, nv, 1, max_rel_err<S>(*md, 1, tau.data, true, 1), seconds, sizeof(S));
+  const auto plan = make_or_skip<cuda::IdScanPlan<S>>(st, m, 1, target_runs);
+  if (!plan) return;
+  time_device_id<S>(st, *md, 1, 1, [&](const IdBatchIn<S>& in, const BatchView<S>& tau) {
+    return plan->launch(in, tau, nullptr);
+  });
 }
 
 // ---- forward dynamics by the joint-space inertia --------------------------------------
 
 // max rel_err of qdd (soa, host or device) against the double serial fd_jsi on the
-// same (S-rounded) inputs, over up to 16 instances; inputs: arrays 0, 1, 2 = q, qd, tau
+// same (S-rounded) inputs, over up to 16 instances; inputs: arrays 0, 1, 2 = q, qd, tau;
+// an instance whose error is NaN is left out
 template <class S>
-double fd_max_rel_err(const Model& md, Index B, const S* qdd, bool on_device) {
-  const Index nv = md.nv();
-  Data d(md, true);
-  std::vector<double> q(nv), qd(nv), tau(nv), ref(nv), ours(nv);
-  std::vector<S> col(nv);
-  double worst = 0;
-  const Index step = B > 16 ? B / 16 : 1;
-  for (Index b = 0; b < B; b += step) {
-    for (Index i = 0; i < nv; ++i) {
-      const std::size_t k = static_cast<std::size_t>(i) * B + b;
-      q[i] = double(S(uniform(0, k))), qd[i] = double(S(uniform(1, k))), tau[i] = double(S(uniform(2, k)));
-    }
-    if (!fd_jsi(md, d, q.data(), qd.data(), tau.data(), ref.data()).ok()) return std::nan("");
-    if (on_device) {
-      if (cudaMemcpy2D(col.data(), sizeof(S), qdd + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
-          cudaSuccess)
-        return std::nan("");
-    } else {
-      for (Index i = 0; i < nv; ++i) col[i] = qdd[static_cast<std::size_t>(i) * B + b];
-    }
-    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
-    worst = std::fmax(worst, rel_err(ours.data(), ref.data(), ref.size()));
-  }
-  return worst;
+double fd_error(const Model& md, Index B, const S* qdd, bool on_device) {
+  return fd_max_rel_err<S>(md, B, qdd, on_device, false, 16, SampleFailures{false, true});
 }
 
 template <class S>
@@ -166,13 +107,8 @@ void bench_fd_cuda(benchmark::State& st, const Model* md, Index B) {
   BackendOptions o;
   o.backend = BackendKind::Cuda;
   o.max_batch = 0;  // device path only
-  std::unique_ptr<cuda::CudaForwardDynamics<S>> engine;
-  try {
-    engine = std::make_unique<cuda::CudaForwardDynamics<S>>(m, o);
-  } catch (const BackendError& e) {
-    st.SkipWithError(e.what());
-    return;
-  }
+  const auto engine = make_or_skip<cuda::CudaForwardDynamics<S>>(st, m, o);
+  if (!engine) return;
   DeviceBatch<S> buf;  // q, qd, tau (array 2), qdd (array 3)
   int* failed = nullptr;
   if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch") ||
@@ -182,7 +118,7 @@ void bench_fd_cuda(benchmark::State& st, const Model* md, Index B) {
   const FdBatchIn<S> in{id.q, id.qd, id.qdd};
   const BatchView<S> qdd = buf.tau(nv, B);
   const double seconds = time_launches(st, [&] { return engine->compute_async(in, qdd, failed, nullptr); });
-  set_counters(st, nv, B, fd_max_rel_err<S>(*md, B, qdd.data, true), seconds, sizeof(S));
+  set_counters(st, nv, B, fd_error<S>(*md, B, qdd.data, true), seconds, sizeof(S));
   cudaFree(failed);
 }
 
@@ -191,8 +127,9 @@ void bench_fd_cpu(benchmark::State& st, const Model* md, Index B) {
   const ModelTpl<S> m = md->cast<S>();
   const Index nv = m.nv();
   const std::size_t n = static_cast<std::size_t>(nv) * B;
-  std::vector<S> q(n), qd(n), tau(n), qdd(n, S(0));
-  for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), tau[k] = S(uniform(2, k));
+  const HostInputs<S> x(n);
+  const std::vector<S>& q = x.q, &qd = x.qd, &tau = x.u;
+  std::vector<S> qdd(n, S(0));
   const int threads = std::max(1u, std::thread::hardware_concurrency());
   std::vector<DataTpl<S>> data;
   for (int t = 0; t < threads; ++t) data.emplace_back(m, true);
@@ -219,7 +156,7 @@ void bench_fd_cpu(benchmark::State& st, const Model* md, Index B) {
   }
   st.counters["links"] = nv;
   st.counters["instances"] = B;
-  st.counters["max_rel_err"] = fd_max_rel_err<S>(*md, B, qdd.data(), false);
+  st.counters["max_rel_err"] = fd_error<S>(*md, B, qdd.data(), false);
 }
 
 std::vector<std::unique_ptr<Model>> g_models;
@@ -238,12 +175,7 @@ int main(int argc, char** argv) {
     else if (std::strcmp(argv[i], "--no-openmp") == 0) openmp = false;
     else rest.push_back(argv[i]);
   }
-  const auto count = cuda::device_count();
-  if (!count || count.value == 0) {
-    std::fprintf(stderr, "bench_cuda_sweep: %s; nothing to run\n",
-                 count ? "no CUDA device: the CUDA runtime reports 0 devices" : count.error.c_str());
-    return 0;
-  }
+  if (!have_device("bench_cuda_sweep")) return 0;
   const auto info = cuda::device_info(0);
   const int threads = openmp_threads();
   std::printf("bench_cuda_sweep: device %s; OpenMP rows on %d threads\n",
@@ -309,9 +241,5 @@ int main(int argc, char** argv) {
       c->UseRealTime()->Unit(benchmark::kMicrosecond)->MinTime(0.2);
     }
   }
-  int rargc = static_cast<int>(rest.size());
-  benchmark::Initialize(&rargc, rest.data());
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return run_benchmarks(rest);
 }

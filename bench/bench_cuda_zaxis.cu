@@ -54,29 +54,15 @@ template <class S>
 double output_error(const Model& md, Algo algo, Index B, const S* out) {
   const Index nv = md.nv(), rows = algo == Algo::Mass ? nv * nv : nv;
   Data d(md, false);
-  std::vector<double> q(nv), qd(nv), u(nv), ref(rows), ours(rows);
-  std::vector<S> col(rows);
-  double worst = 0;
-  const Index step = B > 64 ? B / 64 : 1;
-  for (Index b = 0; b < B; b += step) {
-    for (Index i = 0; i < nv; ++i) {
-      const std::size_t k = static_cast<std::size_t>(i) * B + b;
-      q[i] = double(S(uniform(0, k)));
-      qd[i] = double(S(uniform(1, k)));
-      u[i] = double(S(uniform(2, k)));
-    }
-    if (algo == Algo::Id) rnea(md, d, q.data(), qd.data(), u.data(), ref.data());
-    else if (algo == Algo::Mass) crba(md, d, q.data(), ref.data());
-    else if (!aba(md, d, q.data(), qd.data(), u.data(), ref.data()).ok()) continue;
-    if (cudaMemcpy2D(col.data(), sizeof(S), out + b, B * sizeof(S), sizeof(S), rows, cudaMemcpyDeviceToHost) !=
-        cudaSuccess)
-      return std::nan("");
-    for (Index i = 0; i < rows; ++i) ours[i] = double(col[i]);
-    const double e = rel_err(ours.data(), ref.data(), ref.size());
-    if (std::isnan(e)) return e;
-    worst = std::fmax(worst, e);
-  }
-  return worst;
+  return sampled_rel_err<S>(
+      md, B, out, true, rows, 64,
+      [&](const double* q, const double* qd, const double* u, double* ref) {
+        if (algo == Algo::Id) rnea(md, d, q, qd, u, ref);
+        else if (algo == Algo::Mass) crba(md, d, q, ref);
+        else return aba(md, d, q, qd, u, ref).ok();
+        return true;
+      },
+      SampleFailures{true, false});  // an instance whose aba failed is left out
 }
 
 template <class S, class Bd>
@@ -115,23 +101,13 @@ std::vector<std::unique_ptr<Model>> g_models;  // outlive the registered benchma
 }  // namespace
 
 int main(int argc, char** argv) {
-  const char* env = std::getenv("SCANDYN_MODELS_DIR");
-  std::string models_dir = env && *env ? env : "../shared/models";
-  long instances = 1000000;
-  std::vector<char*> rest;
-  for (int i = 0; i < argc; ++i) {
-    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) models_dir = argv[i] + 13;
-    else if (std::strncmp(argv[i], "--instances=", 12) == 0) instances = std::atol(argv[i] + 12);
-    else rest.push_back(argv[i]);
-  }
+  BenchArgs args = parse_bench_args(argc, argv, "--instances=", 1000000);
   if (!have_device("bench_cuda_zaxis")) return 0;
   print_device_and_roofline("bench_cuda_zaxis");
-  for (const std::string label : {"iiwa", "hyq", "atlas"}) {
-    std::unique_ptr<Model> loaded = load_bench_robot("bench_cuda_zaxis", models_dir, label + ".urdf");
-    if (!loaded) continue;
-    g_models.push_back(std::move(loaded));
-    const Model* m = g_models.back().get();
-    const Index B = static_cast<Index>(instances);
+  for (const auto& robot : load_bench_robots("bench_cuda_zaxis", args.models_dir, g_models)) {
+    const std::string& label = robot.first;
+    const Model* m = robot.second;  // (a variable: lambdas capture it)
+    const Index B = static_cast<Index>(args.count);
     for (Algo algo : {Algo::Id, Algo::Mass, Algo::Aba, Algo::Jsi}) {
       for (int prec = 0; prec < 2; ++prec) {
         for (int z = 0; z < 2; ++z) {
@@ -148,9 +124,5 @@ int main(int argc, char** argv) {
       }
     }
   }
-  int rargc = static_cast<int>(rest.size());
-  benchmark::Initialize(&rargc, rest.data());
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return run_benchmarks(args.rest);
 }

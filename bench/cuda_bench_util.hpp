@@ -11,8 +11,11 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "scandyn/accuracy.hpp"
@@ -70,14 +73,23 @@ struct DeviceBatch {
   BatchView<S> tau(Index nv, Index B) const { return BatchView<S>::soa(p + 3 * n, nv, B); }
 };
 
-// max rel_err over up to `samples` instances: tau (soa, nv x B, host or device)
-// against the double reference on the same (S-rounded) inputs.
-template <class S>
-double max_rel_err(const Model& md, Index B, const S* tau, bool on_device, Index samples = 64) {
+// How sampled_rel_err treats an instance whose reference failed or whose error is NaN:
+// the result is NaN, or (skip) the instance is left out.
+struct SampleFailures {
+  bool skip_failed_reference = false;
+  bool skip_nan = false;
+};
+
+// max rel_err over up to `samples` instances (every (B / samples)-th): out (soa, rows x
+// B, host or device) against the double reference on the same (S-rounded) inputs, the
+// hash's arrays 0, 1, 2 (q, qd, and qdd or tau): reference(q, qd, u, ref) fills ref
+// (rows) and returns false when it failed.
+template <class S, class Reference>
+double sampled_rel_err(const Model& md, Index B, const S* out, bool on_device, Index rows, Index samples,
+                       Reference&& reference, SampleFailures failures = {}) {
   const Index nv = md.nv();
-  Data d(md, false);
-  std::vector<double> q(nv), qd(nv), qdd(nv), ref(nv), ours(nv);
-  std::vector<S> col(nv);
+  std::vector<double> q(nv), qd(nv), u(nv), ref(rows), ours(rows);
+  std::vector<S> col(rows);
   double worst = 0;
   const Index step = B > samples ? B / samples : 1;
   for (Index b = 0; b < B; b += step) {
@@ -85,22 +97,101 @@ double max_rel_err(const Model& md, Index B, const S* tau, bool on_device, Index
       const std::size_t k = static_cast<std::size_t>(i) * B + b;
       q[i] = double(S(uniform(0, k)));
       qd[i] = double(S(uniform(1, k)));
-      qdd[i] = double(S(uniform(2, k)));
+      u[i] = double(S(uniform(2, k)));
     }
-    rnea(md, d, q.data(), qd.data(), qdd.data(), ref.data());
+    if (!reference(q.data(), qd.data(), u.data(), ref.data())) {
+      if (failures.skip_failed_reference) continue;
+      return std::nan("");
+    }
     if (on_device) {
-      if (cudaMemcpy2D(col.data(), sizeof(S), tau + b, B * sizeof(S), sizeof(S), nv, cudaMemcpyDeviceToHost) !=
+      if (cudaMemcpy2D(col.data(), sizeof(S), out + b, B * sizeof(S), sizeof(S), rows, cudaMemcpyDeviceToHost) !=
           cudaSuccess)
         return std::nan("");
     } else {
-      for (Index i = 0; i < nv; ++i) col[i] = tau[static_cast<std::size_t>(i) * B + b];
+      for (Index i = 0; i < rows; ++i) col[i] = out[static_cast<std::size_t>(i) * B + b];
     }
-    for (Index i = 0; i < nv; ++i) ours[i] = double(col[i]);
+    for (Index i = 0; i < rows; ++i) ours[i] = double(col[i]);
     const double e = rel_err(ours.data(), ref.data(), ref.size());
-    if (std::isnan(e)) return e;
+    if (std::isnan(e) && !failures.skip_nan) return e;
     worst = std::fmax(worst, e);
   }
   return worst;
+}
+
+// max rel_err over up to `samples` instances: tau (soa, nv x B, host or device)
+// against the double reference (rnea) on the same (S-rounded) inputs.
+template <class S>
+double max_rel_err(const Model& md, Index B, const S* tau, bool on_device, Index samples = 64) {
+  Data d(md, false);
+  return sampled_rel_err<S>(md, B, tau, on_device, md.nv(), samples,
+                            [&](const double* q, const double* qd, const double* qdd, double* ref) {
+                              rnea(md, d, q, qd, qdd, ref);
+                              return true;
+                            });
+}
+
+// max rel_err over up to `samples` instances: qdd (soa, nv x B, host or device) against
+// the double serial fd_jsi (with_aba: aba) on the same (S-rounded) inputs.
+template <class S>
+double fd_max_rel_err(const Model& md, Index B, const S* qdd, bool on_device, bool with_aba = false,
+                      Index samples = 64, SampleFailures failures = {}) {
+  Data d(md);
+  return sampled_rel_err<S>(md, B, qdd, on_device, md.nv(), samples,
+                            [&](const double* q, const double* qd, const double* tau, double* ref) {
+                              return (with_aba ? aba(md, d, q, qd, tau, ref) : fd_jsi(md, d, q, qd, tau, ref)).ok();
+                            },
+                            failures);
+}
+
+// The hash's arrays 0, 1, 2 (q, qd, and qdd or tau) of n entries each, on the host, in
+// precision S.
+template <class S>
+struct HostInputs {
+  std::vector<S> q, qd, u;
+  explicit HostInputs(std::size_t n) : q(n), qd(n), u(n) {
+    for (std::size_t k = 0; k < n; ++k) q[k] = S(uniform(0, k)), qd[k] = S(uniform(1, k)), u[k] = S(uniform(2, k));
+  }
+};
+
+// Inverse dynamics by the engine of backend `kind` (max_batch B) through compute() from
+// host buffers (soa; inputs HostInputs, tau starting at tau0), wall clock after one
+// warm-up call; counters links, instances and max_rel_err (over `samples` instances).
+// Returns the engine's strategy.
+template <class S>
+std::string time_host_id(benchmark::State& st, const Model& md, Index B, BackendKind kind, S tau0,
+                         Index samples = 64) {
+  BackendOptions o;
+  o.backend = kind;
+  o.max_batch = B;
+  auto engine = make_inverse_dynamics<S>(md.cast<S>(), o);
+  const Index nv = md.nv();
+  const std::size_t n = static_cast<std::size_t>(nv) * B;
+  const HostInputs<S> x(n);
+  std::vector<S> tau(n, tau0);
+  using V = BatchView<const S>;
+  const IdBatchIn<S> in{V::soa(x.q.data(), nv, B), V::soa(x.qd.data(), nv, B), V::soa(x.u.data(), nv, B)};
+  const BatchView<S> out = BatchView<S>::soa(tau.data(), nv, B);
+  engine->compute(in, out);  // warm-up
+  for (auto _ : st) {
+    engine->compute(in, out);
+    benchmark::ClobberMemory();
+  }
+  st.counters["links"] = nv;
+  st.counters["instances"] = B;
+  st.counters["max_rel_err"] = max_rel_err<S>(md, B, tau.data(), false, samples);
+  return engine->strategy();
+}
+
+// An engine (or plan) E made from args; null, with the benchmark skipped with the
+// message, when its constructor throws a BackendError.
+template <class E, class... Args>
+std::unique_ptr<E> make_or_skip(benchmark::State& st, Args&&... args) {
+  try {
+    return std::make_unique<E>(std::forward<Args>(args)...);
+  } catch (const BackendError& e) {
+    st.SkipWithError(e.what());
+    return nullptr;
+  }
 }
 
 inline void set_counters(benchmark::State& st, Index nv, Index B, double err, double seconds, std::size_t scalar) {
@@ -141,6 +232,20 @@ double time_launches(benchmark::State& st, F&& launch) {
   cudaEventDestroy(start);
   cudaEventDestroy(stop);
   return total;
+}
+
+// Inverse dynamics on a DeviceBatch of B instances (the hash's inputs): launch(in, tau)
+// (one launch; its cudaError_t) timed by time_launches; counters as set_counters,
+// max_rel_err over `samples` instances.
+template <class S, class Launch>
+void time_device_id(benchmark::State& st, const Model& md, Index B, Index samples, Launch&& launch) {
+  const Index nv = md.nv();
+  DeviceBatch<S> buf;
+  if (!cuda_ok(st, buf.alloc(nv, B), "allocating and filling the batch")) return;
+  const IdBatchIn<S> in = buf.in(nv, B);
+  const BatchView<S> tau = buf.tau(nv, B);
+  const double seconds = time_launches(st, [&] { return launch(in, tau); });
+  set_counters(st, nv, B, max_rel_err<S>(md, B, tau.data, true, samples), seconds, sizeof(S));
 }
 
 
@@ -212,6 +317,52 @@ inline std::unique_ptr<Model> load_bench_robot(const char* program, const std::s
     std::fprintf(stderr, "%s: skipping %s: %s\n", program, file.c_str(), e.what());
     return nullptr;
   }
+}
+
+// The flags of the robot programs, before Google Benchmark's: --models-dir=DIR
+// (default $SCANDYN_MODELS_DIR or ../shared/models) and the program's count flag
+// (count_flag, e.g. "--max-instances=", default `count`); the rest (argv[0] first)
+// are Google Benchmark's.
+struct BenchArgs {
+  std::string models_dir;
+  long count;
+  std::vector<char*> rest;
+};
+
+inline BenchArgs parse_bench_args(int argc, char** argv, const char* count_flag, long count) {
+  const char* env = std::getenv("SCANDYN_MODELS_DIR");
+  BenchArgs a{env && *env ? env : "../shared/models", count, {}};
+  const std::size_t nc = std::strlen(count_flag);
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--models-dir=", 13) == 0) a.models_dir = argv[i] + 13;
+    else if (std::strncmp(argv[i], count_flag, nc) == 0) a.count = std::atol(argv[i] + nc);
+    else a.rest.push_back(argv[i]);
+  }
+  return a;
+}
+
+// iiwa, hyq and atlas from dir (load_bench_robot: a line on stderr for each that cannot
+// be loaded), kept in `models` (they must outlive the registered benchmarks), each with
+// its label (the file name without .urdf).
+inline std::vector<std::pair<std::string, const Model*>> load_bench_robots(const char* program, const std::string& dir,
+                                                                           std::vector<std::unique_ptr<Model>>& models) {
+  std::vector<std::pair<std::string, const Model*>> robots;
+  for (const std::string label : {"iiwa", "hyq", "atlas"}) {
+    std::unique_ptr<Model> loaded = load_bench_robot(program, dir, label + ".urdf");
+    if (!loaded) continue;
+    models.push_back(std::move(loaded));
+    robots.emplace_back(label, models.back().get());
+  }
+  return robots;
+}
+
+// Google Benchmark on the flags left (argv[0] first): the rows registered so far.
+inline int run_benchmarks(std::vector<char*>& rest) {
+  int rargc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rargc, rest.data());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
 }
 
 }  // namespace scandyn::bench
