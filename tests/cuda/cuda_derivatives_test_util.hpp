@@ -52,10 +52,7 @@ inline void fd_derivatives_on_a_stream(const Model& model, Index B, const std::v
   ASSERT_CUDA(cudaMemcpy(dq.ptr, q.data(), q.size() * 8, cudaMemcpyHostToDevice));
   ASSERT_CUDA(cudaMemcpy(dqd.ptr, qd.data(), qd.size() * 8, cudaMemcpyHostToDevice));
   ASSERT_CUDA(cudaMemcpy(dtau.ptr, tau.data(), tau.size() * 8, cudaMemcpyHostToDevice));
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = 1;  // compute_async is not limited by max_batch
-  cuda::CudaFdDerivatives<double> e(model, o);
+  cuda::CudaFdDerivatives<double> e(model, device_path_options());
   using V = BatchView<const double>;
   BatchView<double> out[3];
   for (int k = 0; k < 3; ++k) out[k] = BatchView<double>::soa(dout.ptr + k * nn * B, nv * nv, B);

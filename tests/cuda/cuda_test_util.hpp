@@ -17,6 +17,7 @@
 
 #include "scandyn/config.hpp"
 #include "scandyn/cuda/device.hpp"
+#include "scandyn/engine.hpp"
 #include "test_util.hpp"
 
 namespace scandyn::test {
@@ -52,6 +53,15 @@ inline const Model& robot(const std::string& file) {
   auto it = cache.find(file);
   if (it == cache.end()) it = cache.emplace(file, load_robot(file)).first;
   return it->second;
+}
+
+// Options of an engine used through compute_async alone: the CUDA backend, max_batch 1
+// (compute_async is not limited by max_batch, which sizes compute()'s host staging).
+inline BackendOptions device_path_options() {
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = 1;
+  return o;
 }
 
 // ---- layouts --------------------------------------------------------------------

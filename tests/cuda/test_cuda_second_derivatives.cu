@@ -109,10 +109,7 @@ TEST(CudaSecondDerivatives, DevicePointersOnAStream) {
   ASSERT_CUDA(cudaMemcpy(dqd.ptr, qd.data(), bytes, cudaMemcpyHostToDevice));
   ASSERT_CUDA(cudaMemcpy(dqdd.ptr, qdd.data(), bytes, cudaMemcpyHostToDevice));
   ASSERT_CUDA(cudaMemcpy(dfext.ptr, fext.data(), fext.size() * sizeof(Force<double>), cudaMemcpyHostToDevice));
-  BackendOptions o;
-  o.backend = BackendKind::Cuda;
-  o.max_batch = 1;  // compute_async is not limited by max_batch
-  cuda::CudaIdSecondDerivatives<double> e(model, o);
+  cuda::CudaIdSecondDerivatives<double> e(model, test::device_path_options());
   using V = BatchView<const double>;
   BatchView<double> out[4];
   for (int t = 0; t < 4; ++t) out[t] = BatchView<double>::soa(dout.ptr + static_cast<std::size_t>(t) * n3 * B, n3, B);
