@@ -1,9 +1,11 @@
-// Scenes from JSON text, for the simulator tests.
+// Scenes from JSON text, for the simulator tests, and the errors they raise.
 #pragma once
 
+#include <exception>
 #include <string>
 
 #include "scandyn/sim/scene.hpp"
+#include "scandyn/sim/simulator.hpp"
 
 namespace scandyn::test {
 
@@ -17,6 +19,17 @@ inline std::string scene_error(const std::string& json, const std::string& base_
   try {
     scene_from(json, base_dir);
   } catch (const sim::SceneError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// The message of what making a serial double simulator of json's scene (named
+// "test.json") throws, the scene's parse or the simulator's setup ("" when nothing).
+inline std::string simulator_error(const std::string& json) {
+  try {
+    sim::Simulator<double> s(sim::parse_scene(json, "test.json"), BackendKind::Serial);
+  } catch (const std::exception& e) {
     return e.what();
   }
   return "";

@@ -17,6 +17,7 @@
 #include "scandyn/factor_graph/sparse_constrained_dynamics.hpp"
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -62,14 +63,7 @@ TEST(SparseLoopStep, ClosureBoundedOverARollout) {
 TEST(SparseLoopStep, SceneChoosesTheSolver) {
   factor_graph::register_sparse_loop_solver();
   // "sparse" with contacts is refused; an unknown value is a scene error
-  auto error_of = [](const std::string& json) -> std::string {
-    try {
-      sim::Simulator<double> s(sim::parse_scene(json, "test.json"), BackendKind::Serial);
-    } catch (const std::exception& e) {
-      return e.what();
-    }
-    return "";
-  };
+  const auto error_of = test::simulator_error;
   EXPECT_NE(error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "qr"})").find("loop_solver"),
             std::string::npos);
   EXPECT_EQ(error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "sparse"})"), "");

@@ -18,6 +18,7 @@
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/iterative_loops.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 #include "test_util.hpp"
 
 namespace scandyn {
@@ -509,14 +510,7 @@ TEST(IterativeLoops, AutoTakesTheIterativeSolverWithoutASparseOne) {
 }
 
 TEST(IterativeLoops, SceneChoosesTheSolver) {
-  auto error_of = [](const std::string& json) -> std::string {
-    try {
-      sim::Simulator<double> s(sim::parse_scene(json, "test.json"), BackendKind::Serial);
-    } catch (const std::exception& e) {
-      return e.what();
-    }
-    return "";
-  };
+  const auto error_of = test::simulator_error;
   EXPECT_EQ(error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "iterative"})"), "");
   const std::string e = error_of(R"({"model": "fivebar", "dt": 0.001, "loop_solver": "cg"})");
   EXPECT_NE(e.find("\"iterative\""), std::string::npos) << e;

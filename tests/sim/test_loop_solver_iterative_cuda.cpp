@@ -15,18 +15,12 @@
 #include "scandyn/model/load.hpp"
 #include "scandyn/sim/scene.hpp"
 #include "scandyn/sim/simulator.hpp"
+#include "scene_util.hpp"
 
 namespace scandyn {
 namespace {
 
-std::string error_of(const std::string& json) {
-  try {
-    sim::Simulator<double> s(sim::parse_scene(json, "test.json"), BackendKind::Serial);
-  } catch (const std::exception& e) {
-    return e.what();
-  }
-  return "";
-}
+const auto error_of = test::simulator_error;
 
 bool has(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
 
