@@ -41,17 +41,16 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
-#include <functional>
 #include <memory>
 #include <optional>
 #include <random>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include "scandyn/algorithm/chain_fd.hpp"
 #include "scandyn/flush_denormals.hpp"
 #include "scandyn/model/load.hpp"
+#include "plain_bench_util.hpp"
 
 #if defined(_OPENMP)
 #include <omp.h>
@@ -61,29 +60,9 @@ using namespace scandyn;
 
 namespace {
 
+using bench::first_line_with;
+using bench::ms_of;
 using Clock = std::chrono::steady_clock;
-
-double ms_of(const std::function<void()>& f) {
-  const auto t0 = Clock::now();
-  f();
-  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
-}
-
-std::vector<std::string> split(const std::string& s) {
-  std::vector<std::string> out;
-  std::stringstream ss(s);
-  std::string item;
-  while (std::getline(ss, item, ',')) out.push_back(item);
-  return out;
-}
-
-std::string first_line_with(const char* path, const char* key) {
-  std::ifstream in(path);
-  std::string line;
-  while (std::getline(in, line))
-    if (line.rfind(key, 0) == 0) return line;
-  return "";
-}
 
 Index this_thread() {
 #if defined(_OPENMP)
@@ -99,12 +78,8 @@ struct Row {
   Index links = 0;
   std::vector<double> ms;
   std::string note;
-  double fastest() const { return *std::min_element(ms.begin(), ms.end()); }
-  double median() const {
-    std::vector<double> v = ms;
-    std::sort(v.begin(), v.end());
-    return v[v.size() / 2];
-  }
+  double fastest() const { return bench::fastest_of(ms); }
+  double median() const { return bench::median_of(ms); }
 };
 
 template <class S>
@@ -245,8 +220,8 @@ int main(int argc, char** argv) {
     else if (a == "--threads" || a == "--estimate") {
       std::vector<int>& v = a == "--threads" ? threads : estimate;
       v.clear();
-      for (const auto& s : split(next())) v.push_back(std::max(1, std::atoi(s.c_str())));
-    } else if (a == "--models") models = split(next());
+      for (const auto& s : bench::split_list(next())) v.push_back(std::max(1, std::atoi(s.c_str())));
+    } else if (a == "--models") models = bench::split_list(next());
     else {
       std::fprintf(stderr, "usage: chain_carries_cost [--rounds R] [--threads T,...] [--models rope:N,...] [--estimate T,...]\n");
       return 2;

@@ -8,7 +8,10 @@
 #include <cstddef>
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
+#include <sstream>
 #include <string>
+#include <vector>
 
 #include "scandyn/build_config.hpp"
 #if SCANDYN_HAS_CUDA
@@ -21,6 +24,41 @@ namespace scandyn::bench {
 inline std::string models_dir() {
   const char* env = std::getenv("SCANDYN_MODELS_DIR");
   return env && *env ? std::string(env) : std::string(SCANDYN_DEFAULT_MODELS_DIR);
+}
+
+// Milliseconds one call of f takes.
+template <class F>
+double ms_of(F&& f) {
+  using Clock = std::chrono::steady_clock;
+  const auto t0 = Clock::now();
+  f();
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+// A comma-separated command-line list ("1,2", "rope:5000,rope:20000").
+inline std::vector<std::string> split_list(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ',')) out.push_back(item);
+  return out;
+}
+
+// The first line of a text file that starts with key ("" when none): the machine's
+// lines of /proc/cpuinfo ("model name", "cpu cores") in a program's '#' header.
+inline std::string first_line_with(const char* path, const char* key) {
+  std::ifstream in(path);
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind(key, 0) == 0) return line;
+  return "";
+}
+
+// The fastest and the median of one configuration's times over rounds (not empty).
+inline double fastest_of(const std::vector<double>& t) { return *std::min_element(t.begin(), t.end()); }
+inline double median_of(std::vector<double> t) {
+  std::sort(t.begin(), t.end());
+  return t[t.size() / 2];
 }
 
 // Best of 3 runs of seconds per call: each run repeats batch() (which makes some

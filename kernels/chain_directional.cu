@@ -17,11 +17,6 @@ namespace cuda {
 
 namespace {
 
-#define SCANDYN_CHUNK_INDEX                                                  \
-  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x; \
-  if (c >= chunks) return;                                                   \
-  const Index s = r.first(c), e = r.last(c)
-
 // ---- JVP ----
 template <class S>
 __global__ void jvp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, Affine6<S>* dv_agg) {
@@ -30,26 +25,8 @@ __global__ void jvp_first_kernel(const ChainDirectionalData<S> d, ChunkRange r, 
   dv_agg[c] = jvp_velocity_aggregate(d, s, e);
 }
 
-template <class S>
-__global__ void jvp_velocity_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks,
-                                    const Vec6<S>* dv_carry, Affine6<S>* da_agg) {
-  SCANDYN_CHUNK_INDEX;
-  da_agg[c] = jvp_velocity_walk(d, s, e, dv_carry[c]);
-}
-
-template <class S>
-__global__ void jvp_acceleration_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks,
-                                        const Vec6<S>* carry, Affine6<S>* agg) {
-  SCANDYN_CHUNK_INDEX;
-  agg[c] = jvp_acceleration_walk(d, s, e, carry[c]);
-}
-
-template <class S>
-__global__ void jvp_force_kernel(const ChainDirectionalData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
-                                 Affine6<S>* agg) {
-  SCANDYN_CHUNK_INDEX;
-  agg[c] = jvp_force_walk(d, s, e, carry[c]);
-}
+// the walks of dv, da and dF: chunk_walk_kernel over jvp_velocity_walk,
+// jvp_acceleration_walk and jvp_force_walk (chain_scan.cuh)
 
 // ---- VJP ----
 // F locally, the rest solve's pass-2 aggregates (u = M^-1 w).
@@ -81,8 +58,6 @@ __global__ void vjp_rv_kernel(const ChainDirectionalData<S> d, ChunkRange r, Ind
   SCANDYN_CHUNK_INDEX;
   vjp_rv_walk(d, s, e, carry[c]);
 }
-
-#undef SCANDYN_CHUNK_INDEX
 
 // One call's chunked passes over count links: the level sizes, level 0's chunk range
 // r, its chunks (one thread each) in nb blocks of kBlock, and scan(forward), the
@@ -157,13 +132,13 @@ cudaError_t ChainFdPlan<S>::launch_jvp(const FdBatchIn<S>& in, const BatchView<c
   // F (locally) and dv (forward)
   jvp_first_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_[0]);
   if ((err = k.scan(true)) != cudaSuccess) return err;
-  jvp_velocity_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
+  chunk_walk_kernel<&jvp_velocity_walk<S>><<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // da (forward), df
   if ((err = k.scan(true)) != cudaSuccess) return err;
-  jvp_acceleration_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
+  chunk_walk_kernel<&jvp_acceleration_walk<S>><<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   // dF (backward), dtau - r
   if ((err = k.scan(false)) != cudaSuccess) return err;
-  jvp_force_kernel<<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
+  chunk_walk_kernel<&jvp_force_walk<S>><<<k.nb, kBlock, 0, stream>>>(d, k.r, k.chunks, aff_carry_[0], aff_[0]);
   if ((err = cudaGetLastError()) != cudaSuccess) return err;
   // dqdd = M^-1 (dtau - r): passes 2 and 3 at rest
   return finish(d.rest, stream);

@@ -49,13 +49,6 @@ __global__ void inertia_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, In
 }
 
 template <class S, bool kB>
-__global__ void bias_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
-                                 Affine6<S>* agg) {
-  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (c < chunks) agg[c] = bias_walk(d, r.first(c), r.last(c), carry[c]);
-}
-
-template <class S, bool kB>
 __global__ void acceleration_walk_kernel(const ChainFdData<S, kB> d, ChunkRange r, Index chunks, const Vec6<S>* carry) {
   const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (c < chunks) acceleration_walk(d, r.first(c), r.last(c), carry[c]);
@@ -75,85 +68,45 @@ ChainFdPlan<S>::ChainFdPlan(const ModelTpl<S>& model, Index max_batch, Index chu
     throw BackendError("backend 'cuda': the parallel chain JVP / VJP of forward dynamics takes chains of 1-DoF joints "
                        "from a fixed base; body 0 (joint '" + model.joint_names[0] + "') is a floating base (a free rope)");
   a0_ = base_acceleration(model.gravity);
-  const std::vector<InverseInertia<DualScalar>>& Phi = host_.Phi;
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
   level_size_ = level_sizes(static_cast<Index>(links), chunk_, fan_in_);
-  const std::size_t classes = host_.body.size(), chunks = static_cast<std::size_t>(level_size_[0]);
+  const std::size_t chunks = static_cast<std::size_t>(level_size_[0]);
   // one allocation: tables, per-link scratch, per-level aggregates and carries
-  std::size_t off = 0;
-  auto take = [&](std::size_t bytes) {
-    const std::size_t at = off;
-    off += aligned(bytes);
-    return at;
-  };
-  const std::size_t o_body = take(classes * sizeof(Body<S>)), o_phi = take(classes * sizeof(InverseInertia<DualScalar>)),
-                    o_class = take(static_cast<std::size_t>(n_) * sizeof(int)), o_v = take(links * sizeof(Motion<S>)),
-                    o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
-                    o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S)),
-                    o_Ia = take(chunks * sizeof(ABInertia<S>));
+  DeviceLayout m;
+  const ChainTablesLayout<S> tables(m, host_, links);
+  const std::size_t o_Ia = m.take(chunks * sizeof(ABInertia<S>));
   // a floating base's IA_0, acceleration and qdd per instance
   const std::size_t nbase = floating_ ? static_cast<std::size_t>(max_batch_) : 0;
-  const std::size_t o_IAb = take(nbase * sizeof(ABInertia<S>)), o_ab = take(nbase * sizeof(Motion<S>)),
-                    o_qddb = take(nbase * sizeof(Vec6<S>));
+  const std::size_t o_IAb = m.take(nbase * sizeof(ABInertia<S>)), o_ab = m.take(nbase * sizeof(Motion<S>)),
+                    o_qddb = m.take(nbase * sizeof(Vec6<S>));
   // the directional scratch
   const std::size_t nd = directional ? links : 0;
-  const std::size_t o_a = take(nd * sizeof(Motion<S>)), o_F = take(nd * sizeof(Force<S>)),
-                    o_dv = take(nd * sizeof(Motion<S>)), o_df = take(nd * sizeof(Force<S>)), o_x = take(nd * sizeof(S)),
-                    o_IA = take(nd * sizeof(ABInertia<S>));
-  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
-  for (Index size : level_size_) {
-    o_aff.push_back(take(size * sizeof(Affine6<S>)));
-    o_affc.push_back(take(size * sizeof(Vec6<S>)));
-    o_dual.push_back(take(size * sizeof(DualRiccati<DualScalar>)));
-    o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
-  }
-  bytes_ = off;
-  std::size_t free_bytes = 0, total_bytes = 0;
-  check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-  const cudaError_t err = cudaMalloc(&memory_, bytes_);
-  if (err != cudaSuccess) {
-    (void)cudaGetLastError();
-    throw BackendError("backend 'cuda': the chain forward dynamics of " + std::to_string(n_) + " links x " +
-                       std::to_string(max_batch_) + " instances needs " + std::to_string(bytes_) +
-                       " bytes of device memory; " + std::to_string(free_bytes) + " are free (" +
-                       detail::error_string(err) + ")");
-  }
-  char* base = static_cast<char*>(memory_);
-  body_ = reinterpret_cast<const Body<S>*>(base + o_body);
-  Phi_ = reinterpret_cast<const InverseInertia<DualScalar>*>(base + o_phi);
-  body_class_ = reinterpret_cast<const int*>(base + o_class);
-  v_ = reinterpret_cast<Motion<S>*>(base + o_v);
-  U_ = reinterpret_cast<Force<S>*>(base + o_U);
-  w_ = reinterpret_cast<Force<S>*>(base + o_w);
-  D_ = reinterpret_cast<S*>(base + o_D);
-  u_ = reinterpret_cast<S*>(base + o_u);
-  Ia_carry_ = reinterpret_cast<ABInertia<S>*>(base + o_Ia);
+  const std::size_t o_a = m.take(nd * sizeof(Motion<S>)), o_F = m.take(nd * sizeof(Force<S>)),
+                    o_dv = m.take(nd * sizeof(Motion<S>)), o_df = m.take(nd * sizeof(Force<S>)),
+                    o_x = m.take(nd * sizeof(S)), o_IA = m.take(nd * sizeof(ABInertia<S>));
+  const LevelsLayout<Affine6<S>> aff(m, level_size_);
+  const LevelsLayout<DualRiccati<DualScalar>> dual(m, level_size_);
+  bytes_ = m.bytes;
+  memory_ = allocate_chain(m, tables, host_,
+                           "backend 'cuda': the chain forward dynamics of " + std::to_string(n_) + " links x " +
+                               std::to_string(max_batch_) + " instances");
+  chain_ = tables.pointers(memory_);
+  Ia_carry_ = at_offset<ABInertia<S>>(memory_, o_Ia);
   if (floating_) {
-    IA_base_ = reinterpret_cast<ABInertia<S>*>(base + o_IAb);
-    a_base_ = reinterpret_cast<Motion<S>*>(base + o_ab);
-    qdd_base_ = reinterpret_cast<Vec6<S>*>(base + o_qddb);
+    IA_base_ = at_offset<ABInertia<S>>(memory_, o_IAb);
+    a_base_ = at_offset<Motion<S>>(memory_, o_ab);
+    qdd_base_ = at_offset<Vec6<S>>(memory_, o_qddb);
   }
   if (directional) {
-    a_ = reinterpret_cast<Motion<S>*>(base + o_a);
-    F_ = reinterpret_cast<Force<S>*>(base + o_F);
-    dv_ = reinterpret_cast<Motion<S>*>(base + o_dv);
-    df_ = reinterpret_cast<Force<S>*>(base + o_df);
-    x_ = reinterpret_cast<S*>(base + o_x);
-    IA_ = reinterpret_cast<ABInertia<S>*>(base + o_IA);
+    a_ = at_offset<Motion<S>>(memory_, o_a);
+    F_ = at_offset<Force<S>>(memory_, o_F);
+    dv_ = at_offset<Motion<S>>(memory_, o_dv);
+    df_ = at_offset<Force<S>>(memory_, o_df);
+    x_ = at_offset<S>(memory_, o_x);
+    IA_ = at_offset<ABInertia<S>>(memory_, o_IA);
   }
-  for (std::size_t k = 0; k < level_size_.size(); ++k) {
-    aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
-    aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
-    dual_.push_back(reinterpret_cast<DualRiccati<DualScalar>*>(base + o_dual[k]));
-    dual_carry_.push_back(reinterpret_cast<Mat5<DualScalar>*>(base + o_dualc[k]));
-  }
-  check(cudaMemcpy(base + o_body, host_.body.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
-        "copying the chain's bodies");
-  check(cudaMemcpy(base + o_phi, Phi.data(), classes * sizeof(InverseInertia<DualScalar>), cudaMemcpyHostToDevice),
-        "copying the chain's inverse inertias");
-  check(cudaMemcpy(base + o_class, host_.body_class.data(), static_cast<std::size_t>(n_) * sizeof(int),
-                   cudaMemcpyHostToDevice),
-        "copying the chain's body classes");
+  aff.pointers(memory_, aff_, aff_carry_);
+  dual.pointers(memory_, dual_, dual_carry_);
   check(cudaMallocHost(&Ia_pinned_, chunks * sizeof(ABInertia<S>)), "allocating pinned memory");
   set_host_threads(0);
 }
@@ -188,15 +141,8 @@ ChainFdData<S, kB> ChainFdPlan<S>::data(const FdBatchIn<S>& in, const BatchView<
   ChainFdData<S, kB> d;
   d.n = n_;
   d.bind(in, qdd);
-  d.body = body_;
-  d.Phi = Phi_;
-  d.body_class = body_class_;
+  chain_.bind(d);
   d.a0 = a0_;
-  d.v = v_;
-  d.U = U_;
-  d.w = w_;
-  d.D = D_;
-  d.u = u_;
   d.a = a_;  // null unless directional
   d.failed = failed;
   if (floating_) d.bind_base(IA_base_, a_base_, qdd_base_);
@@ -226,7 +172,7 @@ cudaError_t ChainFdPlan<S>::finish(const ChainFdData<S, kB>& d, cudaStream_t str
   const Index chunks = size[0];
   cudaError_t err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream);
   if (err != cudaSuccess) return err;
-  bias_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  chunk_walk_kernel<&bias_walk<S, kB>><<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
   err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream);
   if (err != cudaSuccess) return err;
   acceleration_walk_kernel<<<blocks(chunks), kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0]);

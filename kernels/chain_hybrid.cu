@@ -11,7 +11,6 @@
 
 #include "chain_scan.cuh"
 #include "scandyn/cuda/chain_hybrid.hpp"
-#include "staging.hpp"
 
 namespace scandyn {
 namespace cuda {
@@ -20,41 +19,34 @@ using detail::check;
 
 namespace {
 
-#define SCANDYN_CHUNK_INDEX                                                  \
-  const Index c = static_cast<Index>(blockIdx.x) * blockDim.x + threadIdx.x; \
-  if (c >= chunks) return;                                                   \
-  const Index s = r.first(c), e = r.last(c)
-
-// pass 0's aggregates (velocity_aggregate reads no mask: the chain FD's)
+// pass 0's aggregates: velocities (velocity_aggregate reads no mask: the chain FD's)
+// and, when run_agg is not null, the runs' composites (RigidComposite)
 template <class S>
-__global__ void hybrid_velocity_aggregate_kernel(const ChainHybridData<S> d, ChunkRange r, Index chunks,
-                                                 Affine6<S>* agg) {
+__global__ void hybrid_aggregate_kernel(const ChainHybridData<S> d, ChunkRange r, Index chunks, Affine6<S>* agg,
+                                        HybridRun<S>* run_agg) {
   SCANDYN_CHUNK_INDEX;
   agg[c] = velocity_aggregate<S, false>(d, s, e);
+  if (run_agg) run_agg[c] = hybrid_composite_aggregate(d, s, e);
 }
 
-// pass 0's walks: v, and pass 1's aggregates (HybridDual)
+// pass 0's walks: v, and pass 1's aggregates (HybridDual); run_after: S_{e+1} per
+// chunk, the run scan's carries (scanned) or walked and written here
 template <class S>
 __global__ void hybrid_velocity_walk_kernel(const ChainHybridData<S> d, ChunkRange r, Index chunks,
-                                            const Vec6<S>* carry, HybridDual<DualScalar>* dual) {
+                                            const Vec6<S>* carry, HybridRun<S>* run_after, bool scanned,
+                                            HybridDual<DualScalar>* dual) {
   SCANDYN_CHUNK_INDEX;
-  dual[c] = hybrid_velocity_walk(d, s, e, carry[c]);
+  dual[c] = hybrid_velocity_walk(d, s, e, carry[c], run_after[c], scanned);
 }
 
-// pass 1's walks from the carried dual (prescribed joints rigid): U, D, w; pass 2's aggregates
+// pass 1's walks from the carried dual and S_{e+1} (prescribed joints rigid): U, D, w;
+// pass 2's aggregates
 template <class S>
 __global__ void hybrid_inertia_walk_kernel(const ChainHybridData<S> d, ChunkRange r, Index chunks,
-                                           const Mat5<DualScalar>* dual_carry, Affine6<S>* agg) {
+                                           const Mat5<DualScalar>* dual_carry, const HybridRun<S>* run_after,
+                                           Affine6<S>* agg) {
   SCANDYN_CHUNK_INDEX;
-  agg[c] = hybrid_inertia_walk(d, s, e, hybrid_inertia_carry(d, e, dual_carry[c]));
-}
-
-// pass 2's walks: u; pass 3's aggregates
-template <class S>
-__global__ void hybrid_bias_walk_kernel(const ChainHybridData<S> d, ChunkRange r, Index chunks, const Vec6<S>* carry,
-                                        Affine6<S>* agg) {
-  SCANDYN_CHUNK_INDEX;
-  agg[c] = hybrid_bias_walk(d, s, e, carry[c]);
+  agg[c] = hybrid_inertia_walk(d, s, e, hybrid_inertia_carry(d, e, dual_carry[c], run_after[c]));
 }
 
 // pass 3's walks: qdd and tau
@@ -64,8 +56,6 @@ __global__ void hybrid_acceleration_walk_kernel(const ChainHybridData<S> d, Chun
   SCANDYN_CHUNK_INDEX;
   hybrid_acceleration_walk(d, s, e, carry[c]);
 }
-
-#undef SCANDYN_CHUNK_INDEX
 
 }  // namespace
 
@@ -80,59 +70,19 @@ ChainHybridPlan<S>::ChainHybridPlan(const ModelTpl<S>& model, Index max_batch, I
   a0_ = base_acceleration(model.gravity);
   const std::size_t links = static_cast<std::size_t>(n_) * max_batch_;
   const std::vector<Index> level_size = level_sizes(static_cast<Index>(links), chunk_, fan_in_);
-  const std::size_t classes = host.body.size();
-  std::size_t off = 0;
-  auto take = [&](std::size_t bytes) {
-    const std::size_t at = off;
-    off += aligned(bytes);
-    return at;
-  };
-  const std::size_t o_body = take(classes * sizeof(Body<S>)), o_phi = take(classes * sizeof(InverseInertia<DualScalar>)),
-                    o_class = take(static_cast<std::size_t>(n_) * sizeof(int)), o_v = take(links * sizeof(Motion<S>)),
-                    o_U = take(links * sizeof(Force<S>)), o_w = take(links * sizeof(Force<S>)),
-                    o_D = take(links * sizeof(S)), o_u = take(links * sizeof(S));
-  std::vector<std::size_t> o_aff, o_affc, o_dual, o_dualc;
-  for (Index size : level_size) {
-    o_aff.push_back(take(size * sizeof(Affine6<S>)));
-    o_affc.push_back(take(size * sizeof(Vec6<S>)));
-    o_dual.push_back(take(size * sizeof(HybridDual<DualScalar>)));
-    o_dualc.push_back(take(size * sizeof(Mat5<DualScalar>)));
-  }
-  bytes_ = off;
-  memory_ = detail::device_malloc(bytes_, [&](std::size_t free_bytes, std::size_t) {
-    return "backend 'cuda': the parallel chain hybrid dynamics of " + std::to_string(n_) + " links x " +
-           std::to_string(max_batch_) + " instances needs " + std::to_string(bytes_) + " bytes of device memory; " +
-           std::to_string(free_bytes) + " are free";
-  });
-  char* base = static_cast<char*>(memory_);
-  body_ = reinterpret_cast<const Body<S>*>(base + o_body);
-  Phi_ = reinterpret_cast<const InverseInertia<DualScalar>*>(base + o_phi);
-  body_class_ = reinterpret_cast<const int*>(base + o_class);
-  v_ = reinterpret_cast<Motion<S>*>(base + o_v);
-  U_ = reinterpret_cast<Force<S>*>(base + o_U);
-  w_ = reinterpret_cast<Force<S>*>(base + o_w);
-  D_ = reinterpret_cast<S*>(base + o_D);
-  u_ = reinterpret_cast<S*>(base + o_u);
-  for (std::size_t k = 0; k < level_size.size(); ++k) {
-    aff_.push_back(reinterpret_cast<Affine6<S>*>(base + o_aff[k]));
-    aff_carry_.push_back(reinterpret_cast<Vec6<S>*>(base + o_affc[k]));
-    dual_.push_back(reinterpret_cast<HybridDual<DualScalar>*>(base + o_dual[k]));
-    dual_carry_.push_back(reinterpret_cast<Mat5<DualScalar>*>(base + o_dualc[k]));
-  }
-  try {
-    check(cudaMemcpy(base + o_body, host.body.data(), classes * sizeof(Body<S>), cudaMemcpyHostToDevice),
-          "copying the chain's bodies");
-    check(cudaMemcpy(base + o_phi, host.Phi.data(), classes * sizeof(InverseInertia<DualScalar>),
-                     cudaMemcpyHostToDevice),
-          "copying the chain's inverse inertias");
-    check(cudaMemcpy(base + o_class, host.body_class.data(), static_cast<std::size_t>(n_) * sizeof(int),
-                     cudaMemcpyHostToDevice),
-          "copying the chain's body classes");
-  } catch (...) {
-    cudaFree(memory_);
-    memory_ = nullptr;
-    throw;
-  }
+  DeviceLayout m;
+  const ChainTablesLayout<S> tables(m, host, links);
+  const LevelsLayout<Affine6<S>> aff(m, level_size);
+  const LevelsLayout<HybridDual<DualScalar>> dual(m, level_size);
+  const LevelsLayout<HybridRun<S>> run(m, level_size);
+  bytes_ = m.bytes;
+  memory_ = allocate_chain(m, tables, host,
+                           "backend 'cuda': the parallel chain hybrid dynamics of " + std::to_string(n_) + " links x " +
+                               std::to_string(max_batch_) + " instances");
+  chain_ = tables.pointers(memory_);
+  aff.pointers(memory_, aff_, aff_carry_);
+  dual.pointers(memory_, dual_, dual_carry_);
+  run.pointers(memory_, run_, run_carry_);
 }
 
 template <class S>
@@ -157,15 +107,8 @@ cudaError_t ChainHybridPlan<S>::launch(const HybridBatchIn<S>& in, const unsigne
   ChainHybridData<S> d;
   d.n = n_;
   d.batch = B;
-  d.body = body_;
-  d.Phi = Phi_;
-  d.body_class = body_class_;
+  chain_.bind(d);
   d.a0 = a0_;
-  d.v = v_;
-  d.U = U_;
-  d.D = D_;
-  d.w = w_;
-  d.u = u_;
   d.failed = failed;
   d.q = in.q;
   d.qd = in.qd;
@@ -180,16 +123,20 @@ cudaError_t ChainHybridPlan<S>::launch(const HybridBatchIn<S>& in, const unsigne
   const ChunkRange r{chunk_, d.count()};
   const Index chunks = size[0];
   const unsigned g = blocks(chunks);
-  // pass 0: velocities (and pass 1's aggregates)
-  hybrid_velocity_aggregate_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_[0]);
+  // pass 0: velocities and the runs' composites S_{e+1} at the chunk boundaries
+  // (scanned, or walked by each chunk's thread); pass 1's aggregates
+  hybrid_aggregate_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_[0], scan_runs_ ? run_[0] : nullptr);
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
-  hybrid_velocity_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], dual_[0]);
+  if (scan_runs_ && (err = scan_levels(size, run_.data(), run_carry_.data(), fan_in_, false, stream)) != cudaSuccess)
+    return err;
+  hybrid_velocity_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], run_carry_[0], scan_runs_,
+                                                        dual_[0]);
   // pass 1: articulated inertias, prescribed joints rigid (and pass 2's aggregates)
   if ((err = scan_levels(size, dual_.data(), dual_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  hybrid_inertia_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, dual_carry_[0], aff_[0]);
+  hybrid_inertia_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, dual_carry_[0], run_carry_[0], aff_[0]);
   // pass 2: bias forces, prescribed accelerations included (and pass 3's aggregates)
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, false, stream)) != cudaSuccess) return err;
-  hybrid_bias_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
+  chunk_walk_kernel<&hybrid_bias_walk<S>><<<g, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0], aff_[0]);
   // pass 3: accelerations and the prescribed joints' forces
   if ((err = scan_levels(size, aff_.data(), aff_carry_.data(), fan_in_, true, stream)) != cudaSuccess) return err;
   hybrid_acceleration_walk_kernel<<<g, kBlock, 0, stream>>>(d, r, chunks, aff_carry_[0]);
@@ -210,6 +157,7 @@ CudaChainHybridDynamics<S>::CudaChainHybridDynamics(const ModelTpl<S>& model,
     throw BackendError("backend 'cuda': " + why);
   check(cudaGetDevice(&device_), "cudaGetDevice");
   plan_ = std::make_unique<ChainHybridPlan<S>>(model, max_batch_);
+  plan_->set_scan_runs(hybrid_scans_runs(prescribed_, plan_->chunk(), HybridRunScan::Auto));
   const std::size_t N = static_cast<std::size_t>(n_) * max_batch_;
   const std::size_t bytes = 6 * N * sizeof(S) + N * sizeof(Force<S>) + max_batch_ * sizeof(int) + N;
   check(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");

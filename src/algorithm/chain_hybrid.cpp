@@ -12,7 +12,7 @@ namespace scandyn {
 
 template <class S>
 ChainHybridDynamics<S>::ChainHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed,
-                                            Index max_batch, int threads, Index chunk)
+                                            Index max_batch, int threads, Index chunk, HybridRunScan runs)
     : n_(model.nv()), max_batch_(std::max<Index>(max_batch, 1)), prescribed_(prescribed) {
   require_one_dof_joints(model, "the parallel chain hybrid dynamics");
   if (static_cast<Index>(prescribed.size()) != n_)
@@ -22,6 +22,7 @@ ChainHybridDynamics<S>::ChainHybridDynamics(const ModelTpl<S>& model, const std:
   threads_ = threads > 0 ? threads : openmp_threads();
   const Index links = n_ * max_batch_;
   chunk_ = chunk > 0 ? chunk : std::clamp<Index>(links / (8 * threads_), 8, 64);
+  scan_runs_ = hybrid_scans_runs(prescribed_, chunk_, runs);
   a0_ = base_acceleration(model.gravity);
   v_.resize(links);
   U_.resize(links);
@@ -36,6 +37,8 @@ ChainHybridDynamics<S>::ChainHybridDynamics(const ModelTpl<S>& model, const std:
     dual_.emplace_back(static_cast<std::size_t>(size));
     dual_carry_.emplace_back(static_cast<std::size_t>(size));
   }
+  if (scan_runs_) run_.resize(ck);
+  else run_.carry.assign(1, std::vector<HybridRun<S>>(static_cast<std::size_t>(ck.chunks())));  // walked
 }
 
 template <class S>
@@ -64,15 +67,22 @@ Index ChainHybridDynamics<S>::compute(const HybridBatchIn<S>& in, const BatchVie
   using chain_host::for_chunks;
   using chain_host::scan_levels;
 
-  // pass 0: velocities (and pass 1's aggregates)
-  for_chunks(ck, count, T, [&](Index c, Index s, Index e) { aff_[0][c] = velocity_aggregate<S>(d, s, e); });
+  // pass 0: velocities and the runs' composites S_{e+1} at the chunk boundaries
+  // (scanned, or walked by each chunk); pass 1's aggregates
+  auto& run_after = run_.carry[0];
+  for_chunks(ck, count, T, [&](Index c, Index s, Index e) {
+    aff_[0][c] = velocity_aggregate<S>(d, s, e);
+    if (scan_runs_) run_.agg[0][c] = hybrid_composite_aggregate(d, s, e);
+  });
   scan_levels(ck, aff_, aff_carry_, true, T);
-  for_chunks(ck, count, T,
-             [&](Index c, Index s, Index e) { dual_[0][c] = hybrid_velocity_walk(d, s, e, aff_carry_[0][c]); });
+  if (scan_runs_) scan_levels(ck, run_.agg, run_.carry, false, T);
+  for_chunks(ck, count, T, [&](Index c, Index s, Index e) {
+    dual_[0][c] = hybrid_velocity_walk(d, s, e, aff_carry_[0][c], run_after[c], scan_runs_);
+  });
   // pass 1: articulated inertias, prescribed joints rigid (and pass 2's aggregates)
   scan_levels(ck, dual_, dual_carry_, false, T);
   for_chunks(ck, count, T, [&](Index c, Index s, Index e) {
-    aff_[0][c] = hybrid_inertia_walk(d, s, e, hybrid_inertia_carry(d, e, dual_carry_[0][c]));
+    aff_[0][c] = hybrid_inertia_walk(d, s, e, hybrid_inertia_carry(d, e, dual_carry_[0][c], run_after[c]));
   });
   // pass 2: bias forces, prescribed accelerations included (and pass 3's aggregates)
   scan_levels(ck, aff_, aff_carry_, false, T);

@@ -20,15 +20,10 @@ template <class Data, class S>
 void bind_chain(Data& d, const ChainBodies<S>& bodies, const Motion<S>& a0, std::vector<Motion<S>>& v,
                 std::vector<Force<S>>& U, std::vector<S>& D, std::vector<Force<S>>& w, std::vector<S>& u,
                 std::vector<int>& failed) {
-  d.body = bodies.body.data();
-  d.Phi = bodies.Phi.data();
-  d.body_class = bodies.body_class.data();
+  ChainScratch<S>{bodies.body.data(), bodies.Phi.data(), bodies.body_class.data(), v.data(), U.data(), w.data(),
+                  D.data(), u.data()}
+      .bind(d);
   d.a0 = a0;
-  d.v = v.data();
-  d.U = U.data();
-  d.D = D.data();
-  d.w = w.data();
-  d.u = u.data();
   d.failed = failed.data();
 }
 

@@ -4,7 +4,8 @@
 // 10^5 links, random prescribed sets (none, all, half, runs at the base, at the tip,
 // across chunks), every chunk size, with and without external wrenches; qdd and tau
 // (the full vectors) to 1e-9 relative in double (the scans' rounding, as the chain
-// forward dynamics'), 1e-2 in float; the given entries copied through exactly.
+// forward dynamics'), 1e-2 in float; the given entries copied through exactly. Long
+// prescribed runs (many chunks long) with the runs' composites scanned and walked.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -23,9 +24,12 @@ using namespace scandyn;
 namespace {
 
 // max relative error of [qdd, tau] against the serial hybrid, B instances, SoA.
+// serial_error, when not null: the same error of the serial hybrid_dynamics in S (no
+// fext), the recursion's own rounding in that precision.
 template <class S>
 double hybrid_error(const Model& model, const std::vector<unsigned char>& mask, Index B, unsigned seed, int threads,
-                    Index chunk, bool with_fext) {
+                    Index chunk, bool with_fext, HybridRunScan runs = HybridRunScan::Auto,
+                    double* serial_error = nullptr) {
   std::mt19937_64 rng(seed);
   const Index n = model.nv();
   const auto q = test::random_vector(rng, n * B, -3, 3);
@@ -49,7 +53,10 @@ double hybrid_error(const Model& model, const std::vector<unsigned char>& mask, 
     for (Index i = 0; i < n; ++i) ref_qdd[i * B + b] = ao[i], ref_tau[i * B + b] = to[i];
   }
   const ModelTpl<S> m = model.cast<S>();
-  ChainHybridDynamics<S> hd(m, mask, B, threads, chunk);
+  ChainHybridDynamics<S> hd(m, mask, B, threads, chunk, runs);
+  if (runs != HybridRunScan::Auto) {
+    EXPECT_EQ(hd.scans_runs(), runs == HybridRunScan::On);
+  }
   const auto qs = test::cast_vector<S>(q), qds = test::cast_vector<S>(qd), as = test::cast_vector<S>(qdd_in),
              ts = test::cast_vector<S>(tau_in);
   std::vector<Force<S>> fs;
@@ -66,6 +73,19 @@ double hybrid_error(const Model& model, const std::vector<unsigned char>& mask, 
     }
   // qdd and tau, each relative to its own scale
   const double eq = test::max_rel_err(qdd, ref_qdd), et = test::max_rel_err(tau, ref_tau);
+  if (serial_error) {
+    DataTpl<S> ds(m, false);
+    std::vector<S> sq(q.size()), st(q.size()), qi_s(n), qdi_s(n), ai_s(n), ti_s(n), ao_s(n), to_s(n);
+    for (Index b = 0; b < B; ++b) {
+      for (Index i = 0; i < n; ++i)
+        qi_s[i] = qs[i * B + b], qdi_s[i] = qds[i * B + b], ai_s[i] = as[i * B + b], ti_s[i] = ts[i * B + b];
+      EXPECT_TRUE(hybrid_dynamics(m, ds, qi_s.data(), qdi_s.data(), mask.data(), ai_s.data(), ti_s.data(),
+                                  ao_s.data(), to_s.data())
+                      .ok());
+      for (Index i = 0; i < n; ++i) sq[i * B + b] = ao_s[i], st[i * B + b] = to_s[i];
+    }
+    *serial_error = std::max(test::max_rel_err(sq, ref_qdd), test::max_rel_err(st, ref_tau));
+  }
   return std::max(eq, et);
 }
 
@@ -109,6 +129,41 @@ TEST(ChainHybrid, RopesWithRandomPrescribedSets) {
         EXPECT_LT(ef, 1e-2) << "rope:" << n << " p " << p;
       }
     }
+  }
+}
+
+// Prescribed runs much longer than a chunk (their composites scanned, or walked per
+// chunk boundary: both agree with the serial hybrid): rope:2000, two instances (a run
+// of every DoF crosses the instance boundary), test::long_run_masks (a run in the
+// middle, every DoF, runs at the chain's start and end, runs of 300, alternating); 1 and
+// 3 threads, chunks of 3, 8 and the default; the run scan on, off (the walks) and by the
+// mask; double within 1e-9, float within each mask's bound.
+TEST(ChainHybrid, LongPrescribedRuns) {
+  const Index n = 2000;
+  const Model m = make_generated("rope:" + std::to_string(n));
+  for (const auto& [name, mask, float_bound] : test::long_run_masks(n)) {
+    // Auto scans exactly the masks whose longest run passes kScanRunChunks chunks
+    EXPECT_EQ(ChainHybridDynamics<double>(m, mask, 2, 1, 8).scans_runs(), name != "alternating") << name;
+    double ed = 0, ef = 0, es = 0;  // the largest errors: double, float, the serial float recursion's
+    for (int threads : {1, 3})
+      for (Index chunk : {3, 8, 0}) {
+        const std::string what = name + ", " + std::to_string(threads) + " threads, chunk " + std::to_string(chunk);
+        std::vector<std::pair<HybridRunScan, bool>> runs{{HybridRunScan::Auto, false}, {HybridRunScan::On, true}};
+        if (chunk != 3) runs.push_back({HybridRunScan::Off, false});  // the walks: O(run^2 / chunk)
+        for (const auto& [mode, fext] : runs) {
+          const char* how = mode == HybridRunScan::Auto ? "auto" : mode == HybridRunScan::On ? "on" : "off";
+          const double d = hybrid_error<double>(m, mask, 2, 11, threads, chunk, fext, mode);
+          double serial = 0;
+          const double f = hybrid_error<float>(m, mask, 2, 12, threads, chunk, false, mode, &serial);
+          EXPECT_LT(d, 1e-9) << what << ", " << how;
+          EXPECT_LT(f, float_bound) << what << ", " << how << ", float (serial float " << serial << ")";
+          ed = std::max(ed, d);
+          ef = std::max(ef, f);
+          es = std::max(es, serial);
+        }
+      }
+    std::printf("rope:2000 x 2, %s: chain hybrid max rel err double %.2e, float %.2e (serial float hybrid %.2e)\n",
+                name.c_str(), ed, ef, es);
   }
 }
 

@@ -5,7 +5,8 @@
 // 10^3 and 10^5 links with 0 / 30 / 70 % of the DoFs prescribed at random and the host
 // test's patterns (none, all, random 50 / 10 / 90 %, a run at the base, at the tip,
 // alternating, one long run in the middle: tests/algorithm/test_chain_hybrid.cpp),
-// several instances, chunk sizes 1, 3 and 8, with and without external wrenches.
+// several instances, chunk sizes 1, 3 and 8, with and without external wrenches; runs
+// of prescribed DoFs many chunks long, their composites scanned and walked.
 // Bounds: double 1e-9 relative to max(1, |x|) (the host test's); float 1e-2 (the host
 // test's float bound) on every case but rope:10^5, whose float error is recorded and
 // bounded by 1e-1 only. The given entries are copied through exactly; a failed instance
@@ -82,10 +83,11 @@ S* to_device(test::DeviceArray<S>& d, const std::vector<S>& h) {
 // failed per instance; the given entries checked to be copied through.
 template <class S>
 void run_plan(const Model& model, const Mask& mask, Index B, const Case& c, Index chunk, std::vector<S>& qdd_out,
-              std::vector<S>& tau_out, std::vector<int>& failed, Index fan_in = 0) {
+              std::vector<S>& tau_out, std::vector<int>& failed, Index fan_in = 0, bool scan_runs = true) {
   const Index n = model.nv();
   const ModelTpl<S> m = model.cast<S>();
   cuda::ChainHybridPlan<S> plan(m, B, chunk, fan_in);
+  plan.set_scan_runs(scan_runs);
   test::DeviceArray<S> dq, dqd, da, dt, dqo, dto;
   test::DeviceArray<Force<S>> df;
   test::DeviceArray<unsigned char> dmask;
@@ -121,10 +123,11 @@ void run_plan(const Model& model, const Mask& mask, Index B, const Case& c, Inde
 
 // max relative error of the plan's [qdd, tau] against the serial double hybrid
 template <class S>
-double plan_error(const Model& model, const Mask& mask, Index B, const Case& c, Index chunk = 0) {
+double plan_error(const Model& model, const Mask& mask, Index B, const Case& c, Index chunk = 0,
+                  bool scan_runs = true) {
   std::vector<S> qdd, tau;
   std::vector<int> failed;
-  run_plan<S>(model, mask, B, c, chunk, qdd, tau, failed);
+  run_plan<S>(model, mask, B, c, chunk, qdd, tau, failed, 0, scan_runs);
   for (Index b = 0; b < B; ++b) EXPECT_EQ(failed[b], -1) << "instance " << b;
   return std::max(test::max_rel_err(qdd, c.ref_qdd), test::max_rel_err(tau, c.ref_tau));
 }
@@ -201,6 +204,43 @@ TEST(CudaChainHybrid, RopesWithPrescribedSets) {
         EXPECT_LT(std::max(test::max_rel_err(dq, hq), test::max_rel_err(dt, ht)), 1e-9) << what << " vs host";
       }
     }
+  }
+}
+
+// Prescribed runs much longer than a chunk (tests/algorithm/test_chain_hybrid.cpp,
+// LongPrescribedRuns): rope:2000, two instances, test::long_run_masks; chunks of 3 and
+// 8; the runs' composites scanned (the plan's default) and walked (set_scan_runs(false));
+// double within 1e-9, float within each mask's bound. The engine scans by its mask
+// (hybrid_scans_runs).
+TEST(CudaChainHybrid, LongPrescribedRuns) {
+  SKIP_WITHOUT_CUDA_DEVICE();
+  const Index n = 2000, B = 2;
+  const Model m = make_generated("rope:" + std::to_string(n));
+  BackendOptions o;
+  o.backend = BackendKind::Cuda;
+  o.max_batch = B;
+  o.fd_method = FdMethod::Parallel;
+  unsigned seed = 21;
+  for (const auto& [name, mask, float_bound] : test::long_run_masks(n)) {
+    const Case c = make_case(m, mask, B, seed, seed % 2 == 0);
+    ++seed;
+    double ed = 0, ef = 0;
+    for (Index chunk : {3, 8})
+      for (bool scan : {true, false}) {
+        const std::string what = name + ", chunk " + std::to_string(chunk) + (scan ? ", scanned" : ", walked");
+        const double d = plan_error<double>(m, mask, B, c, chunk, scan);
+        const double f = plan_error<float>(m, mask, B, c, chunk, scan);
+        EXPECT_LT(d, 1e-9) << what;
+        EXPECT_LT(f, float_bound) << what;
+        ed = std::max(ed, d);
+        ef = std::max(ef, f);
+      }
+    std::printf("rope:2000 x 2, %s: device chain hybrid max rel err double %.2e, float %.2e\n", name.c_str(), ed, ef);
+    // the engine (chunks of 8): a run beyond kScanRunChunks chunks is scanned
+    auto engine = make_hybrid_dynamics(m, mask, o);
+    auto* chain = dynamic_cast<cuda::CudaChainHybridDynamics<double>*>(engine.get());
+    ASSERT_NE(chain, nullptr) << name;
+    EXPECT_EQ(chain->plan().scans_runs(), name != "alternating") << name;
   }
 }
 

@@ -229,15 +229,20 @@ SCANDYN_HD ABInertia<T> constraint_congruence(const Body<S>& b, const Mat5<T>& K
 }
 
 // The articulated inertia Ia = T Y^{-1} T^T that a body passes to its parent, from
-// its dual Y (NaN when Y is not positive definite), rounded to the body's scalar.
-template <class S>
-SCANDYN_HD ABInertia<S> articulated_from_dual(const Body<S>& b, const Mat5<DualScalar>& Y) {
+// its dual Y (NaN when Y is not positive definite), in the scalar T (pass 1's; the
+// hybrid's prescribed runs take it in it), or rounded to the body's scalar.
+template <class T, class S>
+SCANDYN_HD ABInertia<T> articulated_from_dual_in(const Body<S>& b, const Mat5<DualScalar>& Y) {
   using D = DualScalar;
   Mat5<D> L = Y;
   Mat5<D> K = Mat5<D>::identity();
   if (!cholesky(L)) K = DualRiccati<D>::nan_value();
   else cholesky_solve(L, K);
-  return constraint_congruence(b, symmetrize(K)).template cast<S>();
+  return constraint_congruence(b, symmetrize(K)).template cast<T>();
+}
+template <class S>
+SCANDYN_HD ABInertia<S> articulated_from_dual(const Body<S>& b, const Mat5<DualScalar>& Y) {
+  return articulated_from_dual_in<S>(b, Y);
 }
 
 // Pass 1's element of link i: Y_{i+1} -> Y_i. Xup_next is link i + 1's transform;
@@ -548,6 +553,40 @@ SCANDYN_HD Motion<S> base_acceleration_walk(const ChainFdData<S, kB>& d, Index g
   return a;
 }
 
+// Pass 3's element of a link with a free 1-DoF joint (ABA's acceleration step as a
+// map): a_g as a map of a_{g-1} from its transform X = Xup_g, c = v x S qd, U, 1 / D
+// and u = tau - S^T pA,
+//   a_g = N^T (X a_{g-1} + c) + S u / D,  N^T = 1 - S U^T / D,
+// constant (from the base acceleration a0) at a chain's first link (no parent).
+// Shared by bias_walk and the hybrid's walk (scandyn/algorithm/chain_hybrid.hpp).
+template <class S>
+SCANDYN_HD Affine6<S> free_acceleration_element(const Body<S>& b, bool has_parent, const Transform<S>& X,
+                                                const Motion<S>& a0, const Motion<S>& c, const Force<S>& U, S Dinv,
+                                                S u) {
+  const Vec6<S> Uv = to_vec6(U);
+  const Vec6<S> Sv = to_vec6(joint_motion(b, S(1)));
+  auto project = [&](Vec6<S> x) {  // N^T x
+    S t = S(0);
+    for (int r = 0; r < 6; ++r) t += Uv.m[r] * x.m[r];
+    t *= Dinv;
+    for (int r = 0; r < 6; ++r) x.m[r] -= Sv.m[r] * t;
+    return x;
+  };
+  const Vec6<S> Su = to_vec6(joint_motion(b, u * Dinv));
+  if (!has_parent) return Affine6<S>::make_constant(project(to_vec6(X.apply(a0) + c)) + Su);
+  Affine6<S> el;
+  const Mat6<S> XM = to_mat6(X);
+  for (int k = 0; k < 6; ++k) {
+    Vec6<S> col;
+    for (int r = 0; r < 6; ++r) col.m[r] = XM(r, k);
+    col = project(col);
+    for (int r = 0; r < 6; ++r) el.M(r, k) = col.m[r];
+  }
+  el.b = project(to_vec6(c)) + Su;
+  el.constant = false;
+  return el;
+}
+
 // Pass 2's walk from z_{e+1}: stores u = tau - S^T pA; returns pass 3's aggregate of
 // the chunk, a_e as a map of a_{s-1}.
 template <class S, bool kB>
@@ -571,32 +610,8 @@ SCANDYN_HD Affine6<S> bias_walk(const ChainFdData<S, kB>& d, Index s, Index e, c
     const S u = d.tau_of(g) - joint_project(b, pA);
     d.u[g] = u;
     z_next = pA + d.w_of(g) + (u * Dinv) * U;
-    // a_g = N^T (Xup a_{g-1} + c) + S u / D,  N^T = 1 - S U^T / D
     const Transform<S> X = d.Xup(g);
-    const Vec6<S> Uv = to_vec6(U);
-    const Vec6<S> Sv = to_vec6(joint_motion(b, S(1)));
-    auto project = [&](Vec6<S> x) {  // N^T x
-      S t = S(0);
-      for (int r = 0; r < 6; ++r) t += Uv.m[r] * x.m[r];
-      t *= Dinv;
-      for (int r = 0; r < 6; ++r) x.m[r] -= Sv.m[r] * t;
-      return x;
-    };
-    Affine6<S> el;
-    const Vec6<S> Su = to_vec6(joint_motion(b, u * Dinv));
-    if (d.has_parent(g)) {
-      const Mat6<S> XM = to_mat6(X);
-      for (int c = 0; c < 6; ++c) {
-        Vec6<S> col;
-        for (int r = 0; r < 6; ++r) col.m[r] = XM(r, c);
-        col = project(col);
-        for (int r = 0; r < 6; ++r) el.M(r, c) = col.m[r];
-      }
-      el.b = project(to_vec6(d.c(g))) + Su;
-    } else {
-      el = Affine6<S>::make_constant(project(to_vec6(X.apply(d.a0) + d.c(g))) + Su);
-    }
-    agg = Affine6<S>::compose(agg, el);
+    agg = Affine6<S>::compose(agg, free_acceleration_element(b, d.has_parent(g), X, d.a0, d.c(g), U, Dinv, u));
     Xnext = X;
   }
   return agg;
@@ -824,6 +839,34 @@ struct ChainBodies {
   // Throws BackendError unless the model is chains from the base (require_chain) and
   // n x max_batch links fit in 2^30.
   static ChainBodies from(const ModelTpl<S>& model, Index max_batch);
+};
+
+// Where a driver keeps a chain's tables (ChainBodies' arrays) and the four passes'
+// per-link scratch, as it points a ChainFdData (or the hybrid's ChainHybridData) at
+// them: host vectors' data (chain_host::bind_chain) or device pointers into a CUDA
+// plan's allocation (kernels/chain_scan.cuh, ChainTablesLayout).
+template <class S>
+struct ChainScratch {
+  const Body<S>* body = nullptr;                    // (classes) distinct bodies
+  const InverseInertia<DualScalar>* Phi = nullptr;  // (classes) their inverse inertias
+  const int* body_class = nullptr;                  // (n) entry of body i
+  Motion<S>* v = nullptr;                           // (links) pass 0's velocities
+  Force<S>* U = nullptr;                            // (links) pass 1's IA S
+  Force<S>* w = nullptr;                            // (links) pass 1's Ia c
+  S* D = nullptr;                                   // (links) pass 1's S^T IA S
+  S* u = nullptr;                                   // (links) pass 2's tau - S^T pA
+
+  template <class Data>
+  void bind(Data& d) const {
+    d.body = body;
+    d.Phi = Phi;
+    d.body_class = body_class;
+    d.v = v;
+    d.U = U;
+    d.w = w;
+    d.D = D;
+    d.u = u;
+  }
 };
 
 // Forward dynamics of B instances of unbranched chains from the base by the chunked scans above

@@ -134,14 +134,7 @@ class ChainFdPlan {
   ChainBodies<S> host_;                     // the chain's constants (hybrid's host recursion)
   std::size_t bytes_ = 0;
   void* memory_ = nullptr;                  // one device allocation for everything below
-  const Body<S>* body_ = nullptr;           // (classes) distinct bodies
-  const InverseInertia<DualScalar>* Phi_ = nullptr;  // (classes)
-  const int* body_class_ = nullptr;         // (n)
-  Motion<S>* v_ = nullptr;                  // (n max_batch) per-link scratch
-  Force<S>* U_ = nullptr;
-  Force<S>* w_ = nullptr;
-  S* D_ = nullptr;
-  S* u_ = nullptr;
+  ChainScratch<S> chain_;                   // the chain's tables and (n max_batch) per-link scratch
   // directional scratch (null unless constructed with directional): (n max_batch) each
   Motion<S>* a_ = nullptr;                  // body accelerations (pass 3)
   Force<S>* F_ = nullptr;                   // subtree forces

@@ -7,11 +7,13 @@
 // hybrid_bias_walk, hybrid_acceleration_walk; SCANDYN_HD, called by the host driver
 // too) and the same scan elements (Affine6 for passes 0, 2, 3; HybridDual, the dual
 // Riccati map of a free link with the run of prescribed links after it as one rigid
-// body, for pass 1), one thread per chunk of `chunk` links, chunk aggregates scanned in
-// levels of fan_in by the launch plumbing of the chain forward dynamics
-// (kernels/chain_scan.cuh). Kernels per call: the velocity aggregates, then per pass
-// (four) the level folds, one thread for the top level, the level carries and the
-// pass's walk: 1 + 4 (2 L) with L levels (L = 4 for rope:10^5, chunk = fan_in = 8).
+// body, for pass 1; RigidComposite, the runs' composite rigid bodies, scanned backward
+// beside pass 0 unless set_scan_runs(false)), one thread per chunk of `chunk` links,
+// chunk aggregates scanned in levels of fan_in by the launch plumbing of the chain
+// forward dynamics (kernels/chain_scan.cuh). Kernels per call: the velocity (and run)
+// aggregates, then per pass (four, five with the run scan) the level folds, one thread
+// for the top level, the level carries and the pass's walk: 1 + 4 (2 L) with L levels
+// (L = 4 for rope:10^5, chunk = fan_in = 8), 2 L more with the run scan.
 //
 // Two layers:
 //   ChainHybridPlan::launch()       DEVICE pointers and a stream: no allocation, no
@@ -45,8 +47,8 @@ class ChainHybridPlan {
   static constexpr Index kDefaultFanIn = 8;  // aggregates per thread at the levels above
 
   // Copies the model's distinct bodies to the device and allocates the scratch for
-  // max_batch instances (per link: v, U, w, D, u; per level: Affine6 and HybridDual
-  // aggregates and carries). chunk: links per thread (0: kDefaultChunk); fan_in:
+  // max_batch instances (per link: v, U, w, D, u; per level: Affine6, HybridDual and
+  // RigidComposite aggregates and carries). chunk: links per thread (0: kDefaultChunk); fan_in:
   // aggregates per thread above (0: kDefaultFanIn). Throws BackendError for a model
   // with a multi-DoF joint (a floating base, a spherical joint), a model that is not
   // unbranched chains from the base (naming the body), a batch whose links do not fit
@@ -68,6 +70,14 @@ class ChainHybridPlan {
   cudaError_t launch(const HybridBatchIn<S>& in, const unsigned char* prescribed, const BatchView<S>& qdd,
                      const BatchView<S>& tau, int* failed, cudaStream_t stream);
 
+  // Whether launch() scans the prescribed runs' composites (true, the default: O(n)
+  // work and one walk per chunk of bounded length for any mask) or each chunk's thread
+  // walks the run at its boundary to its end (false: no extra scan, for masks whose
+  // runs are short; O(run^2 / chunk) on long ones). The engine sets it from its mask
+  // (hybrid_scans_runs).
+  void set_scan_runs(bool scan) { scan_runs_ = scan; }
+  bool scans_runs() const { return scan_runs_; }
+
   Index links() const { return n_; }  // DoF (bodies) per instance
   Index max_batch() const { return max_batch_; }
   Index chunk() const { return chunk_; }
@@ -79,18 +89,14 @@ class ChainHybridPlan {
   Motion<S> a0_;
   std::size_t bytes_ = 0;
   void* memory_ = nullptr;  // one device allocation for everything below
-  const Body<S>* body_ = nullptr;
-  const InverseInertia<DualScalar>* Phi_ = nullptr;
-  const int* body_class_ = nullptr;
-  Motion<S>* v_ = nullptr;  // (n max_batch) per-link scratch
-  Force<S>* U_ = nullptr;
-  Force<S>* w_ = nullptr;
-  S* D_ = nullptr;
-  S* u_ = nullptr;
+  bool scan_runs_ = true;   // launch() scans the runs' composites (else each chunk walks its boundary's run)
+  ChainScratch<S> chain_;   // the chain's tables and (n max_batch) per-link scratch
   std::vector<Affine6<S>*> aff_;  // per level
   std::vector<Vec6<S>*> aff_carry_;
   std::vector<HybridDual<DualScalar>*> dual_;
   std::vector<Mat5<DualScalar>*> dual_carry_;
+  std::vector<HybridRun<S>*> run_;        // the runs' composites: aggregates (scanned only)
+  std::vector<HybridRun<S>*> run_carry_;  // and carries; level 0: S_{e+1} per chunk (always)
 };
 
 // The engine API's hybrid dynamics of unbranched chains on cuda (strategy "parallel"):
