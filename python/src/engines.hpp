@@ -101,7 +101,8 @@ cuda::CudaForwardDynamics<S>* as_cuda(ForwardDynamics<S>* e) { return dynamic_ca
 template <class S>
 cuda::CudaKinematics<S>* as_cuda(Kinematics<S>* e) { return dynamic_cast<cuda::CudaKinematics<S>*>(e); }
 template <class S>
-cuda::CudaHybridDynamics<S>* as_cuda(HybridDynamics<S>* e) { return dynamic_cast<cuda::CudaHybridDynamics<S>*>(e); }
+// (either CUDA strategy: one thread per instance, or the parallel chain hybrid)
+cuda::CudaHybridEngine<S>* as_cuda(HybridDynamics<S>* e) { return dynamic_cast<cuda::CudaHybridEngine<S>*>(e); }
 template <class S>
 cuda::CudaConstrainedForwardDynamics<S>* as_cuda(ConstrainedForwardDynamics<S>* e) {
   return dynamic_cast<cuda::CudaConstrainedForwardDynamics<S>*>(e);

@@ -196,3 +196,28 @@ def test_hybrid_long_chain_scans():
     np.testing.assert_array_equal(to[:, ~mask], tau[:, ~mask])
     np.testing.assert_allclose(qo, qr, rtol=0, atol=1e-9 * max(1.0, np.abs(qr).max()))
     np.testing.assert_allclose(to, tr, rtol=0, atol=1e-9 * max(1.0, np.abs(tr).max()))
+
+
+def test_hybrid_long_chain_cuda_arrays():
+    """CUDA tensors reach the CUDA engine of either strategy: on a rope of 300 links
+    (beyond one thread's DoFs) the parallel chain hybrid runs on torch's current stream,
+    with a long prescribed run; its results equal the serial recursion's (double)."""
+    reason = sd.backend_unusable("cuda")
+    if reason:
+        pytest.skip(f"backend cuda: {reason}")
+    torch = pytest.importorskip("torch")
+    m = sd.load_model("rope:300")
+    rng = np.random.default_rng(5)
+    q, qd, qdd, tau = (rng.uniform(-1, 1, (3, m.nv)) for _ in range(4))
+    mask = np.zeros(m.nv, bool)
+    mask[20:260] = True  # a prescribed run of 240 links
+    mask[::7] = True
+    e = sd.HybridDynamics(m, mask, backend="cuda", max_batch=3)
+    assert e.strategy == "parallel"
+    dev = [torch.from_numpy(x).cuda() for x in (q, qd, qdd, tau)]
+    qg, tg = e(*dev)
+    torch.cuda.synchronize()
+    assert qg.is_cuda and tg.is_cuda
+    qr, tr = sd.HybridDynamics(m, mask, backend="serial", max_batch=3)(q, qd, qdd, tau)
+    np.testing.assert_allclose(qg.cpu().numpy(), qr, rtol=0, atol=1e-9 * max(1.0, np.abs(qr).max()))
+    np.testing.assert_allclose(tg.cpu().numpy(), tr, rtol=0, atol=1e-9 * max(1.0, np.abs(tr).max()))

@@ -32,6 +32,7 @@
 
 #include "scandyn/algorithm/chain_hybrid.hpp"
 #include "scandyn/build_config.hpp"
+#include "scandyn/cuda/hybrid_dynamics.hpp"
 #include "scandyn/engine.hpp"
 
 #if SCANDYN_HAS_CUDA
@@ -105,7 +106,7 @@ class ChainHybridPlan {
 // out; waits); outputs of failed instances untouched. Throws BackendError as the plan,
 // for a mask of another size, without a usable device, and for a CUDA error.
 template <class S>
-class CudaChainHybridDynamics final : public HybridDynamics<S> {
+class CudaChainHybridDynamics final : public CudaHybridEngine<S> {
  public:
   CudaChainHybridDynamics(const ModelTpl<S>& model, const std::vector<unsigned char>& prescribed,
                           const BackendOptions& options);
@@ -117,15 +118,14 @@ class CudaChainHybridDynamics final : public HybridDynamics<S> {
   // DEVICE views on `stream` (failed_dof: B device ints): the plan's launch with the
   // engine's mask.
   cudaError_t compute_async(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau,
-                            int* failed_dof, cudaStream_t stream) {
+                            int* failed_dof, cudaStream_t stream) override {
     return plan_->launch(in, mask_, qdd, tau, failed_dof, stream);
   }
 
   const std::vector<unsigned char>& prescribed() const override { return prescribed_; }
   std::string strategy() const override { return "parallel"; }
-  BackendKind backend() const override { return BackendKind::Cuda; }
   const ChainHybridPlan<S>& plan() const { return *plan_; }
-  int device() const { return device_; }
+  int device() const override { return device_; }
 
  private:
   int device_ = 0;

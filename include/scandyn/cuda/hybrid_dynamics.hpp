@@ -54,8 +54,25 @@ cudaError_t launch_hybrid_instances(const ThreadModel<S>& model, unsigned long l
                                     const HybridBatchIn<S>& batch_in, const BatchView<S>& qdd_out,
                                     const BatchView<S>& tau_out, int* failed_dof_out, cudaStream_t stream);
 
+// What every CUDA hybrid-dynamics engine offers beside HybridDynamics: the launch on
+// DEVICE views and the caller's stream, and its device. Implemented by
+// CudaHybridDynamics (one thread per instance, below) and CudaChainHybridDynamics
+// (the parallel chain hybrid, scandyn/cuda/chain_hybrid.hpp), so that a caller holding
+// device arrays (the Python package) reaches whichever make_hybrid_dynamics chose.
 template <class S>
-class CudaHybridDynamics final : public HybridDynamics<S> {
+class CudaHybridEngine : public HybridDynamics<S> {
+ public:
+  // qdd and tau (nv x B) of the B = in.q.batch instances on `stream`; failed_dof: B
+  // device ints (-1, or the DoF whose articulated pivot failed; that instance's outputs
+  // unwritten). Nothing copied or synchronised.
+  virtual cudaError_t compute_async(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau,
+                                    int* failed_dof, cudaStream_t stream) = 0;
+  virtual int device() const = 0;  // the CUDA device the engine was made on
+  BackendKind backend() const override { return BackendKind::Cuda; }
+};
+
+template <class S>
+class CudaHybridDynamics final : public CudaHybridEngine<S> {
  public:
   // Prepares the model and the staging buffers of compute(): q, qd, qdd, tau in, qdd
   // and tau out, fext and a failed DoF per instance, (12 nv sizeof(S) + sizeof(int))
@@ -73,13 +90,12 @@ class CudaHybridDynamics final : public HybridDynamics<S> {
   BatchStatus compute(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau) override;
   // DEVICE pointers on `stream` (failed_dof: B ints on the device): launch_hybrid_instances.
   cudaError_t compute_async(const HybridBatchIn<S>& in, const BatchView<S>& qdd, const BatchView<S>& tau,
-                            int* failed_dof, cudaStream_t stream);
+                            int* failed_dof, cudaStream_t stream) override;
 
   const std::vector<unsigned char>& prescribed() const override { return prescribed_; }
   std::string strategy() const override { return "aba_thread"; }
-  BackendKind backend() const override { return BackendKind::Cuda; }
   const ThreadModel<S>& thread_model() const { return *thread_; }
-  int device() const { return device_; }  // the CUDA device the engine was made on
+  int device() const override { return device_; }
 
  private:
   int device_ = 0;
