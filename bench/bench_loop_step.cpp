@@ -1,5 +1,5 @@
 // bench/bench_loop_step.cpp: seconds per simulator step of a cloth grid with its loop
-// closures (issue 21, "Measured"), on the sparse loop path (the factor graph's
+// closures, on the sparse loop path (the factor graph's
 // system and CHOLMOD, scandyn/factor_graph/sparse_constrained_dynamics.hpp) and,
 // with --dense, the dense one (constrained_forward_dynamics, project_to_loops).
 //

@@ -1,8 +1,7 @@
 // cpu_fallback/cpu_engines.hpp: the serial and OpenMP engines behind the factories
 // of scandyn/engine.hpp (make_inverse_dynamics, ... with BackendKind::Serial or
-// OpenMP). One source per algorithm: inverse_dynamics.cpp (with the bias forces),
-// forward_dynamics.cpp, mass_matrix.cpp, kinematics.cpp, hybrid_dynamics.cpp; all run their instances through
-// instance_loop.hpp.
+// OpenMP). One source per algorithm, named above each factory below; the engines run
+// their instances through instance_loop.hpp.
 #pragma once
 
 #include <memory>
@@ -12,12 +11,15 @@
 namespace scandyn {
 namespace cpu {
 
+// inverse_dynamics.cpp (with the bias forces)
 template <class S>
 std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
 template <class S>
 std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>& model, const BackendOptions& options);
+// mass_matrix.cpp
 template <class S>
 std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>& model, const BackendOptions& options);
+// forward_dynamics.cpp
 template <class S>
 std::unique_ptr<ForwardDynamics<S>> make_forward_dynamics(const ModelTpl<S>& model, const BackendOptions& options);
 // derivatives.cpp
@@ -33,14 +35,16 @@ std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(con
 template <class S>
 std::unique_ptr<IdSecondDerivatives<S>> make_id_second_derivatives(const ModelTpl<S>& model,
                                                                    const BackendOptions& options);
+// kinematics.cpp
 template <class S>
 std::unique_ptr<Kinematics<S>> make_kinematics(const ModelTpl<S>& model, const BackendOptions& options,
                                                const KinematicsOptions& kinematics);
+// hybrid_dynamics.cpp (long chains on openmp: ChainHybridDynamics)
 template <class S>
 std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model,
                                                         const std::vector<unsigned char>& prescribed,
                                                         const BackendOptions& options);
-
+// constrained_dynamics.cpp
 template <class S>
 std::unique_ptr<ConstrainedForwardDynamics<S>> make_constrained_forward_dynamics(const ModelTpl<S>& model,
                                                                                  const LoopSet& loops,

@@ -1,6 +1,8 @@
-// Hostile and careless input (issue 24): each test reproduces one row of the issue's
-// table against the built `scandyn` (or the library) and checks the documented
-// outcome: one clear error line, the exit code, nothing half-written, no debris.
+// Hostile and careless input: each test reproduces one hostile case (huge or deep
+// models and scenes, non-regular and oversized files, non-finite rollouts, memory and
+// thread-count refusals, signals mid-write, symlinked or '-' outputs) against the
+// built `scandyn` (or the library) and checks the documented outcome: one clear error
+// line, the exit code, nothing half-written, no debris.
 #include <gtest/gtest.h>
 #include <fcntl.h>
 #include <signal.h>

@@ -1,6 +1,6 @@
 // tests/cuda/cuda_fd_test_util.hpp: what the parts of the test_cuda_fd program share.
 // The program is compiled from tests/cuda/test_cuda_fd.cu (the engine on the device, the
-// argument checks, the model's masks and slots) and tests/test_cuda_fd.<part>.cu (the
+// argument checks, the model's masks and slots) and tests/cuda/test_cuda_fd.<part>.cu (the
 // device functions run on the host, one translation unit per group of
 // instantiations, so that a parallel build compiles them side by side: see
 // tests/CMakeLists.txt).

@@ -1,4 +1,4 @@
-// Shared plumbing of the CUDA test programs (tests/test_cuda_*.cu): skipping with
+// Shared plumbing of the CUDA test programs (tests/cuda/test_cuda_*.cu): skipping with
 // a visible reason when no device is usable, checked CUDA calls, device buffers,
 // the shipped robots loaded once, strided batch layouts for the engines' views, and
 // the layout trials the engines' tests share.
