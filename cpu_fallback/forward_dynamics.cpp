@@ -26,7 +26,7 @@ class CpuForwardDynamics final : public ForwardDynamics<S> {
  public:
   CpuForwardDynamics(const ModelTpl<S>& model, const BackendOptions& o)
       : model_(model), kind_(o.backend), threads_(engine_threads(o)), max_batch_(o.max_batch) {
-    method_ = o.fd_method == FdMethod::Auto ? choose_fd_method(kind_, model) : o.fd_method;
+    method_ = o.fd_method == FdMethod::Auto ? choose_fd_method(kind_, model, max_batch_, threads_) : o.fd_method;
     if (method_ == FdMethod::Hybrid)
       throw BackendError("hybrid runs on the cuda backend only (articulated inertias on the host, the other passes "
                          "as device scans); on the CPU use parallel, aba or jsi");

@@ -107,7 +107,8 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
   // fd_method: Auto (the parallel chain where forward dynamics would take it), Aba (the
   // recursion), Parallel (the chain scans; BackendError for a model that is not chains):
   // choose_hybrid_method
-  if (choose_hybrid_method(o.backend, model, o.fd_method) == FdMethod::Parallel) return std::make_unique<CpuChainHybridDynamics<S>>(model, prescribed, o);
+  if (choose_hybrid_method(o.backend, model, o.fd_method, o.max_batch, engine_threads(o)) == FdMethod::Parallel)
+    return std::make_unique<CpuChainHybridDynamics<S>>(model, prescribed, o);
   return std::make_unique<CpuHybridDynamics<S>>(model, prescribed, o);
 }
 template std::unique_ptr<HybridDynamics<float>> make_hybrid_dynamics(const ModelTpl<float>&,

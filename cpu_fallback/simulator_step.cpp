@@ -639,9 +639,9 @@ bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, i
   return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
          setup.integrator != Integrator::Variational && !setup.model.multi_dof() &&
          (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
-         static_cast<long long>(threads) >= static_cast<long long>(kEngineThreadsPerInstance) * setup.batch &&
          !setup.model.multi_dof() &&  // CpuEngineStep integrates per DoF (a free rope's FD is parallel too)
-         choose_fd_method(backend, setup.model) == FdMethod::Parallel;
+         // (kEngineThreadsPerInstance threads per instance and more)
+         choose_fd_method(backend, setup.model, setup.batch, threads) == FdMethod::Parallel;
 }
 
 template <class S>

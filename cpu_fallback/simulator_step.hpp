@@ -23,13 +23,9 @@ namespace scandyn {
 namespace cpu {
 
 // Threads per instance from which the openmp step of one long chain goes through
-// the parallel chain forward dynamics. Measured on the 16-core host of the H100
-// machine (docs/scenes.md, "One long chain on OpenMP"): the chain forward dynamics
-// does 6-7x the serial ABA's arithmetic on one thread, and a step of rope:10^4
-// (rope:10^5) through it takes 0.7-0.8x (0.8-1.3x) the time of the serial step on
-// 8 threads, 0.9-1.2x (1.1-1.2x) on 12, 1.0-1.6x (2.0-2.2x) on 16 (the range: the
-// OpenMP wait policies, passive and active).
-inline constexpr int kEngineThreadsPerInstance = 16;
+// the parallel chain forward dynamics: the forward-dynamics engines' own crossover
+// (kChainFdThreadsPerInstance, scandyn/engine.hpp, with what was measured).
+inline constexpr int kEngineThreadsPerInstance = kChainFdThreadsPerInstance;
 
 // True when the simulator steps setup on `backend` with `threads` OpenMP threads
 // per forward dynamics through the parallel chain forward dynamics: openmp, a

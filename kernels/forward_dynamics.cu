@@ -137,7 +137,7 @@ CudaForwardDynamics<S>::CudaForwardDynamics(const ModelTpl<S>& model, const Back
   if (options.strategy != IdStrategy::Auto && options.strategy != IdStrategy::Recursion)
     throw BackendError(std::string("backend 'cuda': strategy '") + to_string(options.strategy) +
                        "' is not available for forward dynamics (use auto or recursion)");
-  if (algorithm == FdMethod::Auto) algorithm = choose_fd_method(BackendKind::Cuda, model);
+  if (algorithm == FdMethod::Auto) algorithm = choose_fd_method(BackendKind::Cuda, model, 1, 1);
   algorithm_ = algorithm;
   aba_ = algorithm == FdMethod::Aba;
   const bool chain = algorithm == FdMethod::Parallel || algorithm == FdMethod::Hybrid;

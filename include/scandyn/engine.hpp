@@ -263,26 +263,40 @@ inline constexpr Index kMaxThreadDofs = 64;
 // DoF, the scan beyond; see scandyn/cuda/inverse_dynamics.hpp.)
 IdStrategy choose_id_strategy(BackendKind backend, Index nv, Index batch, int threads);
 
-// Forward dynamics: on serial aba; on openmp the parallel chain forward dynamics for
-// unbranched chains from the base of at least 4096 links, else aba; on cuda aba up to
-// 64 DoF (the thread kernels), aba by the general path for chains of up to 128 DoF and
-// for larger trees, parallel for longer chains from the base (src/engine/engine.cpp
-// says what was measured).
+// Threads per instance from which Auto on openmp runs one long chain by the parallel
+// chain forward dynamics (and the hybrid by its chain scans) rather than the ABA per
+// instance. The chain scans do 7.3-7.7x the serial ABA's arithmetic on one thread
+// (rope:4096, 2x10^4, 10^5, double, one instance, AMD EPYC:
+// bench/results/fd-openmp-auto-crossover-amd-epyc-2c.csv) and scale with the threads;
+// on the 16-core host of the H100 machine a step of rope:10^4 (10^5) through them took
+// 0.7-0.8x (0.8-1.3x) the serial step's time on 8 threads, 0.9-1.2x (1.1-1.2x) on 12,
+// 1.0-1.6x (2.0-2.2x) on 16 (docs/scenes.md, "One long chain on OpenMP").
+inline constexpr int kChainFdThreadsPerInstance = 16;
+
+// Forward dynamics for `batch` instances (the engine's max_batch) on `threads` threads:
+// on serial aba; on openmp the parallel chain forward dynamics for unbranched chains
+// from the base of at least 4096 links with at least kChainFdThreadsPerInstance
+// threads per instance, else aba (over the instances); on cuda (batch and threads
+// unused) aba up to 64 DoF (the thread kernels), aba by the general path for chains of
+// up to 128 DoF and for larger trees, parallel for longer chains from the base
+// (src/engine/engine.cpp says what was measured).
 template <class S>
-FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model);
+FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model, Index batch, int threads);
 
 // Hybrid dynamics (make_hybrid_dynamics): Aba (the recursion per instance; on cuda one
 // thread per instance, up to cuda::kMaxThreadDofs DoF) or Parallel (the chain scans with
 // the prescribed joints rigid, unbranched chains from the base) for `requested`
 // (options.fd_method). Auto: on serial and openmp Parallel where choose_fd_method picks
-// it (openmp, chains of 4096 links and more), else Aba; on cuda Aba up to
+// it for `batch` instances on `threads` threads (openmp, chains of 4096 links and more,
+// kChainFdThreadsPerInstance threads per instance), else Aba; on cuda Aba up to
 // kMaxThreadDofs DoF, Parallel for longer unbranched chains from the base. Throws
 // BackendError for the methods not offered (jsi, hybrid) and, on cuda, for Aba beyond
 // kMaxThreadDofs DoF and for a model beyond it that is not an unbranched chain from the
 // base (naming the body that branches). Parallel on a model that is not chains is
 // refused by the engine itself (naming the body).
 template <class S>
-FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested);
+FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested, Index batch,
+                              int threads);
 
 // True for an unbranched chain hanging from the base: what the parallel chain
 // forward dynamics (and the hybrid) take.

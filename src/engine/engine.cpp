@@ -122,13 +122,19 @@ constexpr Index kCudaGeneralAbaMaxChainDofs = 128;
 constexpr Index kCudaGeneralAbaMaxTreeDofs = std::numeric_limits<Index>::max();
 
 template <class S>
-FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
+FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model, Index batch, int threads) {
   // multi-DoF joints: aba, or a free rope's parallel chain forward dynamics
   if (model.multi_dof() && !is_chain_from_base(model)) return FdMethod::Aba;
   switch (backend) {
     case BackendKind::Serial: return FdMethod::Aba;
     case BackendKind::OpenMP:
-      return is_chain_from_base(model) && model.nv() >= 4096 ? FdMethod::Parallel : FdMethod::Aba;
+      // the chain scans pay once enough threads share each instance
+      // (kChainFdThreadsPerInstance, measured); else the ABA over the instances
+      return is_chain_from_base(model) && model.nv() >= 4096 &&
+                     static_cast<long long>(threads) >=
+                         static_cast<long long>(kChainFdThreadsPerInstance) * std::max<Index>(batch, 1)
+                 ? FdMethod::Parallel
+                 : FdMethod::Aba;
     case BackendKind::Cuda:
       // measured on the H100 (bench_cuda_fd, 10^7 instances, ms, float / double):
       // iiwa ABA 3.3 / 7.5 against JSI 4.5 / 8.9, hyq 6.0 / 13.8 against 7.5 / 14.8,
@@ -142,13 +148,15 @@ FdMethod choose_fd_method(BackendKind backend, const ModelTpl<S>& model) {
 }
 
 template <class S>
-FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested) {
+FdMethod choose_hybrid_method(BackendKind backend, const ModelTpl<S>& model, FdMethod requested, Index batch,
+                              int threads) {
   if (requested != FdMethod::Auto && requested != FdMethod::Aba && requested != FdMethod::Parallel)
     throw BackendError(std::string("hybrid dynamics: method '") + to_string(requested) +
                        "' is not offered (auto, aba or parallel)");
   if (backend != BackendKind::Cuda) {
     if (requested != FdMethod::Auto) return requested;
-    return choose_fd_method(backend, model) == FdMethod::Parallel ? FdMethod::Parallel : FdMethod::Aba;
+    return choose_fd_method(backend, model, batch, threads) == FdMethod::Parallel ? FdMethod::Parallel
+                                                                                    : FdMethod::Aba;
   }
   // cuda: the thread-per-instance kernels up to kMaxThreadDofs DoF, the chain scans
   // (kernels/chain_hybrid.cu) for longer unbranched chains (no general-path hybrid)
@@ -404,7 +412,12 @@ std::unique_ptr<FdDirectionalDerivatives<S>> make_fd_directional_derivatives(con
                        (model.floating_base() ? std::string("body 0 is a floating base")
                                               : "body " + std::to_string(first_branching_body(model)) + " branches off") +
                        "; use aba)");
-  const bool scans = o.fd_method == FdMethod::Parallel || (o.fd_method == FdMethod::Auto && chain && model.nv() >= 4096);
+  // auto: the scans where forward dynamics takes them (openmp, long chains, enough
+  // threads per instance: kChainFdThreadsPerInstance), else aba_jvp / aba_vjp
+  const bool scans = o.fd_method == FdMethod::Parallel ||
+                     (o.fd_method == FdMethod::Auto && chain &&
+                      choose_fd_method(o.backend, model, o.max_batch, backend_threads(o.backend, o.threads)) ==
+                          FdMethod::Parallel);
   return cpu::make_fd_directional_derivatives(model, o, scans);
 }
 
@@ -512,7 +525,7 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
           per_device<HybridDynamics<S>>(
               o, [&](const BackendOptions& one) { return make_hybrid_dynamics(model, prescribed, one); }),
           o.devices, true, model.nbodies(), o.max_batch);
-    if (choose_hybrid_method(o.backend, model, o.fd_method) == FdMethod::Parallel)
+    if (choose_hybrid_method(o.backend, model, o.fd_method, o.max_batch, 1) == FdMethod::Parallel)
       return std::make_unique<cuda::CudaChainHybridDynamics<S>>(model, prescribed, o);
     return std::make_unique<cuda::CudaHybridDynamics<S>>(model, prescribed, o);
   }
@@ -530,8 +543,8 @@ std::unique_ptr<HybridDynamics<S>> make_hybrid_dynamics(const ModelTpl<S>& model
   template void check_batch(const BiasBatchIn<S>&, const BatchView<S>&, Index);                                \
   template void check_batch(const BatchView<const S>&, const BatchView<S>&, Index);                            \
   template bool is_chain_from_base(const ModelTpl<S>&);                                                         \
-  template FdMethod choose_fd_method(BackendKind, const ModelTpl<S>&);                                          \
-  template FdMethod choose_hybrid_method(BackendKind, const ModelTpl<S>&, FdMethod);                            \
+  template FdMethod choose_fd_method(BackendKind, const ModelTpl<S>&, Index, int);                              \
+  template FdMethod choose_hybrid_method(BackendKind, const ModelTpl<S>&, FdMethod, Index, int);                \
   template std::unique_ptr<InverseDynamics<S>> make_inverse_dynamics(const ModelTpl<S>&, const BackendOptions&); \
   template std::unique_ptr<BiasForces<S>> make_bias_forces(const ModelTpl<S>&, const BackendOptions&);           \
   template std::unique_ptr<MassMatrix<S>> make_mass_matrix(const ModelTpl<S>&, const BackendOptions&);           \

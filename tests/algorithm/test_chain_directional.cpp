@@ -197,7 +197,8 @@ TEST(ChainDirectional, Engine) {
     for (FdMethod method : {FdMethod::Auto, FdMethod::Aba, FdMethod::Parallel}) {
       std::string strategy;
       const Errors e = errors(run_engine<double>(curtain, c, kind, method, &strategy), c);
-      // Auto picks the scans from 4096 links: aba_jvp on a curtain of 150
+      // Auto picks the scans from 4096 links and kChainFdThreadsPerInstance threads per
+      // instance (openmp): aba_jvp on a curtain of 150
       EXPECT_EQ(strategy, method == FdMethod::Parallel ? "parallel" : "aba_jvp");
       if (strategy == "aba_jvp") {
         for (int k = 0; k < 5; ++k) EXPECT_EQ(e[k], 0.0) << kField[k];  // the serial functions themselves
@@ -205,6 +206,21 @@ TEST(ChainDirectional, Engine) {
       expect_within(e, es, false, std::string(to_string(method)) + " on " + to_string(kind));
       expect_within(errors(run_engine<float>(curtain, c, kind, method, &strategy), c), es, true,
                     std::string("float, ") + to_string(method));
+    }
+  }
+  // Auto on one long chain: the scans where forward dynamics takes them (openmp, 4096
+  // links, kChainFdThreadsPerInstance threads per instance; engines constructed only)
+  {
+    const Model rope = load_model("rope:4096");
+    BackendOptions a;
+    a.fd_method = FdMethod::Auto;
+    EXPECT_EQ(make_fd_directional_derivatives(rope, a)->strategy(), "aba_jvp");  // serial
+    if (backend_unusable(BackendKind::OpenMP).empty()) {
+      a.backend = BackendKind::OpenMP;
+      a.threads = kChainFdThreadsPerInstance;
+      EXPECT_EQ(make_fd_directional_derivatives(rope, a)->strategy(), "parallel");
+      a.threads = kChainFdThreadsPerInstance - 1;
+      EXPECT_EQ(make_fd_directional_derivatives(rope, a)->strategy(), "aba_jvp");
     }
   }
   // a branching model: aba_jvp, and no scans

@@ -126,9 +126,11 @@ TEST(ChainFdFloating, FailedPivotIsReportedAsADof) {
 // parallel method equals the engine's aba.
 TEST(ChainFdFloating, EngineParallelMethodOnAFreeRope) {
   const Model m = test::load_floating("rope:5000");
-  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, m), FdMethod::Parallel);
-  EXPECT_EQ(choose_fd_method(BackendKind::Serial, m), FdMethod::Aba);
-  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, test::load_floating("ballrope:5000")), FdMethod::Aba);
+  const int kT = kChainFdThreadsPerInstance;
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, m, 1, kT), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, m, 1, kT - 1), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::Serial, m, 1, kT), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, test::load_floating("ballrope:5000"), 1, kT), FdMethod::Aba);
   const Index B = 2;
   const SoaStates x = random_soa_states(m, B, 4, false);
   const auto ref = test::soa_reference(m, x, true);

@@ -168,7 +168,7 @@ TEST(ChainHybrid, LongPrescribedRuns) {
 }
 
 // The engine API: openmp takes the chain scans where forward dynamics would (chains of
-// 4096 links and more), fd_method Parallel forces them (also on serial), Aba keeps the
+// 4096 links and more, kChainFdThreadsPerInstance threads per instance), fd_method Parallel forces them (also on serial), Aba keeps the
 // recursion; the results agree with the recursion engine.
 TEST(ChainHybrid, EngineChoosesTheScansForLongChains) {
   const Model m = make_generated("rope:5000");
@@ -186,7 +186,10 @@ TEST(ChainHybrid, EngineChoosesTheScansForLongChains) {
   o.fd_method = FdMethod::Auto;
   if (backend_unusable(BackendKind::OpenMP).empty()) {
     o.backend = BackendKind::OpenMP;
+    o.threads = kChainFdThreadsPerInstance * static_cast<int>(o.max_batch);  // (constructed only)
     EXPECT_EQ(make_hybrid_dynamics<double>(m, mask, o)->strategy(), "parallel");
+    o.threads = kChainFdThreadsPerInstance * static_cast<int>(o.max_batch) - 1;
+    EXPECT_EQ(make_hybrid_dynamics<double>(m, mask, o)->strategy(), "recursion");
   }
   const Index n = m.nv(), B = 2;
   const auto q = test::random_vector(g, n * B, -1, 1), qd = test::random_vector(g, n * B, -1, 1),
@@ -217,29 +220,31 @@ TEST(ChainHybrid, ChooseHybridMethodByBackendAndShape) {
   const Model rope = make_generated("rope:5000"), chain64 = make_generated("chain:64"),
               chain65 = make_generated("chain:65"), tree = make_generated("tree:80:1");
   ASSERT_GE(first_branching_body(tree), 0);
+  const int kT = kChainFdThreadsPerInstance;  // threads per instance from which the scans pay
   // serial and openmp
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Auto), FdMethod::Aba);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Auto), FdMethod::Parallel);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, chain64, FdMethod::Auto), FdMethod::Aba);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Parallel), FdMethod::Parallel);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Aba), FdMethod::Aba);
-  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Jsi); }),
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Auto, 1, kT), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Auto, 1, kT), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Auto, 2, 2 * kT - 1), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, chain64, FdMethod::Auto, 1, kT), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Parallel, 1, kT), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::OpenMP, rope, FdMethod::Aba, 1, kT), FdMethod::Aba);
+  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Serial, rope, FdMethod::Jsi, 1, kT); }),
             "hybrid dynamics: method 'jsi' is not offered (auto, aba or parallel)");
   // cuda
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Auto), FdMethod::Aba);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Auto), FdMethod::Parallel);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("rope:100000"), FdMethod::Auto), FdMethod::Parallel);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Parallel), FdMethod::Parallel);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Aba), FdMethod::Aba);
-  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("tree:40:1"), FdMethod::Auto), FdMethod::Aba);
-  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Hybrid); }),
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Auto, 1, 1), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Auto, 1, 1), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("rope:100000"), FdMethod::Auto, 1, 1), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Parallel, 1, 1), FdMethod::Parallel);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, chain64, FdMethod::Aba, 1, 1), FdMethod::Aba);
+  EXPECT_EQ(choose_hybrid_method(BackendKind::Cuda, make_generated("tree:40:1"), FdMethod::Auto, 1, 1), FdMethod::Aba);
+  EXPECT_EQ(message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Hybrid, 1, 1); }),
             "hybrid dynamics: method 'hybrid' is not offered (auto, aba or parallel)");
-  const std::string aba = message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Aba); });
+  const std::string aba = message([&] { choose_hybrid_method(BackendKind::Cuda, chain65, FdMethod::Aba, 1, 1); });
   EXPECT_NE(aba.find("backend 'cuda': hybrid dynamics by aba runs one thread per instance, for models of up to 64 "
                      "DoF; model 'chain:65' has 65 DoF"),
             std::string::npos)
       << aba;
-  const std::string branched = message([&] { choose_hybrid_method(BackendKind::Cuda, tree, FdMethod::Auto); });
+  const std::string branched = message([&] { choose_hybrid_method(BackendKind::Cuda, tree, FdMethod::Auto, 1, 1); });
   EXPECT_NE(branched.find("the parallel chain scans for unbranched chains hanging from the base; model 'tree:80:1' "
                           "has 80 DoF and is not a chain: body "),
             std::string::npos)

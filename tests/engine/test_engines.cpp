@@ -249,15 +249,21 @@ TEST(Engines, StatusMessages) {
 TEST(Engines, AutoChoicesFollowBackendAndShape) {
   const Model iiwa = test::load_robot("iiwa.urdf");
   const Model rope = load_model("rope:5000"), tree = load_model("tree:100:3");
-  EXPECT_EQ(choose_fd_method(BackendKind::Serial, rope), FdMethod::Aba);
-  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, iiwa), FdMethod::Aba);
-  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope), FdMethod::Parallel);
-  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, load_model("rope:4095")), FdMethod::Aba);
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, iiwa), FdMethod::Aba);
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, rope), FdMethod::Parallel);
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:129")), FdMethod::Parallel);
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:128")), FdMethod::Aba);  // aba_general
-  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, tree), FdMethod::Aba);                    // aba_general
+  const int kT = kChainFdThreadsPerInstance;
+  EXPECT_EQ(choose_fd_method(BackendKind::Serial, rope, 1, 64), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, iiwa, 1, 64), FdMethod::Aba);
+  // openmp: the chain scans for one long chain from kT threads per instance on
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope, 1, kT), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope, 2, 2 * kT), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope, 1, kT - 1), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope, 2, 2 * kT - 1), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, rope, 1, 2), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::OpenMP, load_model("rope:4095"), 1, 64), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, iiwa, 1, 1), FdMethod::Aba);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, rope, 1, 1), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:129"), 1, 1), FdMethod::Parallel);
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, load_model("rope:128"), 1, 1), FdMethod::Aba);  // aba_general
+  EXPECT_EQ(choose_fd_method(BackendKind::Cuda, tree, 1, 1), FdMethod::Aba);                    // aba_general
   EXPECT_TRUE(is_chain_from_base(rope));
   EXPECT_FALSE(is_chain_from_base(tree));
   EXPECT_EQ(choose_id_strategy(BackendKind::OpenMP, 7, 1000000, 16), IdStrategy::Recursion);
@@ -265,11 +271,17 @@ TEST(Engines, AutoChoicesFollowBackendAndShape) {
   EXPECT_EQ(choose_id_strategy(BackendKind::Serial, 1000000, 1, 1), IdStrategy::Recursion);
   EXPECT_EQ(choose_id_strategy(BackendKind::Cuda, 64, 1, 1), IdStrategy::Recursion);
   EXPECT_EQ(choose_id_strategy(BackendKind::Cuda, 65, 1, 1), IdStrategy::ScanLocal);
-  // the openmp engine takes the choice
+  // the openmp engine takes the choice for its max_batch and threads (constructed only)
   if (backend_unusable(BackendKind::OpenMP).empty()) {
     BackendOptions o;
     o.backend = BackendKind::OpenMP;
+    o.threads = kT;
     EXPECT_EQ(make_forward_dynamics<double>(rope, o)->method(), FdMethod::Parallel);
+    o.max_batch = 2;
+    EXPECT_EQ(make_forward_dynamics<double>(rope, o)->method(), FdMethod::Aba);
+    o.threads = 2;
+    o.max_batch = 1;
+    EXPECT_EQ(make_forward_dynamics<double>(rope, o)->method(), FdMethod::Aba);
   }
 }
 
@@ -362,7 +374,7 @@ void expect_cuda_matches_serial(const Model& md) {
   EXPECT_LT(err(Mb, Ma, nv * nv), test::Tol<S>(1e-12, 1e-5)) << "mass";
   ASSERT_TRUE(make_forward_dynamics<S>(m, serial)->compute({V(in.q), V(in.qd), V(in.x)}, O(a, nv)).ok());
   auto fd = make_forward_dynamics<S>(m, cuda);
-  EXPECT_EQ(fd->method(), choose_fd_method(BackendKind::Cuda, m));
+  EXPECT_EQ(fd->method(), choose_fd_method(BackendKind::Cuda, m, 1, 1));
   const BatchStatus st = fd->compute({V(in.q), V(in.qd), V(in.x)}, O(b, nv));
   ASSERT_TRUE(st.ok()) << st.message();
   EXPECT_LT(err(b, a, nv), fd_tol) << "fd by " << to_string(fd->method());

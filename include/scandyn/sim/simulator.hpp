@@ -40,10 +40,11 @@
 //           to serial. "openmp-engine-parallel": per forward dynamics over the
 //           parallel chain forward dynamics (make_forward_dynamics with
 //           FdMethod::Parallel, scans across links on all threads), for what
-//           choose_fd_method(OpenMP, model) runs by the parallel method (unbranched
-//           chains from the base of >= 4096 links) with at least 16 threads per
-//           instance (cpu::kEngineThreadsPerInstance: with fewer, threads stepping
-//           whole instances by the ABA are faster; measured in docs/scenes.md) and
+//           choose_fd_method(OpenMP, model, batch, threads) runs by the parallel
+//           method (unbranched chains from the base of >= 4096 links with at least
+//           kChainFdThreadsPerInstance = 16 threads per instance: with fewer, threads
+//           stepping whole instances by the ABA are faster; measured in
+//           scandyn/engine.hpp and docs/scenes.md) and
 //           euler or rk4 (cpu_fallback/simulator_step.hpp);
 //   cuda    models of up to 64 DoF: one fused kernel per step, one thread per
 //           instance: step_instance over the articulated-body algorithm
