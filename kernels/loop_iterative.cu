@@ -23,6 +23,14 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
+// Adds the seconds from its construction to its destruction to `total`, also when the
+// scope ends by an exception (the solver's per-call timings).
+struct AddElapsed {
+  double& total;
+  Clock::time_point t0 = Clock::now();
+  ~AddElapsed() { total += std::chrono::duration<double>(Clock::now() - t0).count(); }
+};
+
 std::string sci(double x) {
   char buf[32];
   std::snprintf(buf, sizeof buf, "%.3g", x);
@@ -759,12 +767,7 @@ struct CudaIterativeLoopSolver<S>::Impl {
   };
 
   double project(double* qh, double* qdh, double tol, int iterations, LoopProjectionInfo* info) {
-    const auto t0 = Clock::now();
-    struct Time {
-      Impl& s;
-      Clock::time_point t0;
-      ~Time() { s.stats.proj_seconds += std::chrono::duration<double>(Clock::now() - t0).count(); }
-    } timer{*this, t0};
+    const AddElapsed timer{stats.proj_seconds};
     check(cudaSetDevice(options.device), "cudaSetDevice");
     alloc_projection();
     auto norm = [](const double* x, Index len) {
@@ -790,12 +793,7 @@ struct CudaIterativeLoopSolver<S>::Impl {
   }
 
   void forward_dynamics(const double* qh, const double* qdh, const double* tauh, double* qddh, double* lambdah) {
-    const auto t0 = Clock::now();
-    struct Time {
-      Impl& s;
-      Clock::time_point t0;
-      ~Time() { s.stats.fd_seconds += std::chrono::duration<double>(Clock::now() - t0).count(); }
-    } timer{*this, t0};
+    const AddElapsed timer{stats.fd_seconds};
     check(cudaSetDevice(options.device), "cudaSetDevice");
     for (Index i = 0; i < n; ++i) hq[i] = S(qh[i]), hqd[i] = S(qdh[i]), htau[i] = S(tauh[i]);
     q.upload(hq.data(), n, stream), qd.upload(hqd.data(), n, stream), tau.upload(htau.data(), n, stream);
