@@ -637,10 +637,9 @@ bool steps_per_forward_dynamics(const SimSetup<S>& setup, BackendKind backend, i
   // models with multi-DoF joints step per instance (step_instance_at; the engine
   // path integrates per DoF in R^n)
   return backend == BackendKind::OpenMP && setup.integrator != Integrator::Implicit &&
-         setup.integrator != Integrator::Variational && !setup.model.multi_dof() &&
-         (setup.effects & sim::kContacts) == 0 && setup.prescribed.empty() && setup.loops.empty() &&
+         setup.integrator != Integrator::Variational && (setup.effects & sim::kContacts) == 0 &&
+         setup.prescribed.empty() && setup.loops.empty() &&
          !setup.model.multi_dof() &&  // CpuEngineStep integrates per DoF (a free rope's FD is parallel too)
-         // (kEngineThreadsPerInstance threads per instance and more)
          choose_fd_method(backend, setup.model, setup.batch, threads) == FdMethod::Parallel;
 }
 

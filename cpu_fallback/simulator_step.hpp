@@ -22,19 +22,15 @@
 namespace scandyn {
 namespace cpu {
 
-// Threads per instance from which the openmp step of one long chain goes through
-// the parallel chain forward dynamics: the forward-dynamics engines' own crossover
-// (kChainFdThreadsPerInstance, scandyn/engine.hpp, with what was measured).
-inline constexpr int kEngineThreadsPerInstance = kChainFdThreadsPerInstance;
-
 // True when the simulator steps setup on `backend` with `threads` OpenMP threads
 // per forward dynamics through the parallel chain forward dynamics: openmp, a
-// model choose_fd_method(OpenMP, model) runs by FdMethod::Parallel (unbranched
-// chains from the base of >= 4096 links), at least kEngineThreadsPerInstance
-// threads per instance (with fewer, the threads stepping whole instances with the
-// serial ABA are faster, one thread per instance at most), and euler or rk4 (the
-// chain forward dynamics takes no armature: implicit steps per instance), without
-// contacts (their pass runs per instance).
+// model choose_fd_method(OpenMP, model, batch, threads) runs by FdMethod::Parallel
+// (unbranched chains from the base of >= 4096 links with at least
+// kChainFdThreadsPerInstance threads per instance, scandyn/engine.hpp; with fewer,
+// the threads stepping whole instances with the serial ABA are faster, one thread
+// per instance at most), and euler or rk4 (the chain forward dynamics takes no
+// armature: implicit steps per instance), without contacts (their pass runs per
+// instance).
 template <class S>
 bool steps_per_forward_dynamics(const sim::SimSetup<S>& setup, BackendKind backend, int threads);
 

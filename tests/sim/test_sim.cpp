@@ -525,9 +525,9 @@ TEST(Simulator, StepFailuresAddUpAndSaturate) {
 
 // When the openmp step goes through the forward-dynamics engine: a chain from the
 // base that choose_fd_method(OpenMP) runs by the parallel method (>= 4096 links),
-// at least kEngineThreadsPerInstance threads per instance, euler or rk4.
+// at least kChainFdThreadsPerInstance threads per instance, euler or rk4.
 TEST(SimOpenMPChain, StepsPerForwardDynamicsOnlyWithEnoughThreadsPerInstance) {
-  constexpr int kT = cpu::kEngineThreadsPerInstance;
+  constexpr int kT = kChainFdThreadsPerInstance;
   sim::SimSetup<double> s;
   s.model = make_generated("rope:4096");
   s.batch = 1;
@@ -591,7 +591,7 @@ TEST(SimOpenMPChain, LongChainStepsThroughTheParallelChainForwardDynamics) {
 #if !SCANDYN_HAS_OPENMP
   GTEST_SKIP() << "built without OpenMP";
 #endif
-  const int kT = cpu::kEngineThreadsPerInstance;
+  const int kT = kChainFdThreadsPerInstance;
   struct Case {
     const char* integrator;
     int instances;
@@ -635,7 +635,7 @@ TEST(SimOpenMPChain, EnginePathFailuresLeaveTheStateAlone) {
 #if !SCANDYN_HAS_OPENMP
   GTEST_SKIP() << "built without OpenMP";
 #endif
-  const int kT = cpu::kEngineThreadsPerInstance;
+  const int kT = kChainFdThreadsPerInstance;
   for (const char* integrator : {"euler", "rk4"}) {
     const Scene scene = scene_from(std::string(R"({"model": "rope:4096", "dt": 1e-5, "integrator": ")") + integrator +
                                    R"(", "instances": 2, "threads": )" + std::to_string(2 * kT) +
